@@ -1,0 +1,60 @@
+"""Shared edge checks: seeds, factor matrices, atomic writes."""
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from lrm_cvx import Region
+from lrm_cvx._validation import as_factor_matrix, as_generator, atomic_output, check_positive
+from lrm_cvx.errors import DataError, ModelError, PlanningError
+
+
+def test_as_generator_is_deterministic():
+    assert as_generator(3).random() == as_generator(3).random()
+    g = np.random.default_rng(1)
+    assert as_generator(g) is g
+    with pytest.raises(ModelError, match="random_state"):
+        as_generator("seed")
+
+
+def test_as_factor_matrix_accepts_cell_and_grid_forms():
+    da = xr.DataArray(np.ones((1, 2, 3)), dims=("time", "lat", "lon"))
+    da[0, 0, 1] = np.nan
+    region = Region.from_dataarray(da)
+    Y = np.arange(10.0).reshape(2, 5)
+    np.testing.assert_array_equal(as_factor_matrix(Y, region), Y)
+    Ycell = xr.DataArray(Y, dims=("component", "cell"))
+    np.testing.assert_array_equal(as_factor_matrix(Ycell, region), Y)
+    Ygrid = region.unstack(Y, dims=("component",))
+    np.testing.assert_array_equal(as_factor_matrix(Ygrid, region), Y)
+    with pytest.raises(DataError, match="columns"):
+        as_factor_matrix(Y[:, :4], region)
+    with pytest.raises(DataError, match="non-finite"):
+        as_factor_matrix(np.array([[np.nan]]))
+    with pytest.raises(DataError, match="region"):
+        as_factor_matrix(Ygrid)
+
+
+def test_check_positive():
+    assert check_positive("2.5", "budget") == 2.5
+    with pytest.raises(PlanningError, match="budget"):
+        check_positive(-1, "budget", error=PlanningError)
+    with pytest.raises(DataError, match="> 0"):
+        check_positive(0, "ridge", strict=True)
+
+
+def test_atomic_output_replaces_only_on_success(tmp_path):
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_output(target) as tmp:
+            tmp.write_text("partial")
+            raise RuntimeError("boom")
+    assert target.read_text() == "old"
+    assert list(tmp_path.iterdir()) == [target]
+    with atomic_output(target) as tmp:
+        tmp.write_text("new")
+    assert target.read_text() == "new"
+    with pytest.raises(FileExistsError):
+        with atomic_output(target, overwrite=False):
+            pass
