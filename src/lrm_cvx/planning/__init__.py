@@ -1,0 +1,28 @@
+"""Path planning: the greedy planner, the paper's baselines, the Plan result and its bound."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .baselines import random_walk, transect
+from .greedy import initial_cells, plan_greedy
+from .plan import Plan
+
+__all__ = [
+    "Plan",
+    "plan_greedy",
+    "initial_cells",
+    "transect",
+    "random_walk",
+    "plan_bound",
+    "dopt_upper_bound",
+]
+
+
+def __getattr__(name: str) -> Any:
+    # the certificate module (cvxpy, scipy) is imported only when used
+    if name in ("plan_bound", "dopt_upper_bound"):
+        from . import bound
+
+        return getattr(bound, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
