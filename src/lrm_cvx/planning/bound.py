@@ -1,0 +1,792 @@
+"""Certified upper bounds on the Fisher information of any plan (issue #5).
+
+The paper quotes only the worst-case guarantee ``1/2 (1 - 1/e)`` of its greedy planner. This
+module measures the real gap. Every plan the planners can return is a set of at most ``n`` cells
+out of a candidate set, so its Fisher information ``log det(ridge I + sum_{p in P} y_p y_p^T)`` is
+at most the optimum of the continuous D-optimal design relaxation (Joshi & Boyd, "Sensor
+selection via convex optimization")::
+
+    maximise  log det M(w),   M(w) = ridge I + sum_i w_i y_i y_i^T
+    subject to  0 <= w <= 1,  sum_i w_i <= n.
+
+The relaxation is modelled in cvxpy on a small working set of cells that grows by column
+generation (the cells whose leverage ``g_i = y_i^T M(w)^-1 y_i`` violates optimality), warm
+started by a vectorised Frank-Wolfe over all candidates. The reported bound does not trust any
+solver: it is the Lagrange dual function evaluated at ``Z = t M(w)^-1`` with the best scale ``t``
+and multiplier ``nu`` (closed forms), which bounds the relaxation for *any* ``w``::
+
+    log det M*  <=  log det M(w) + k log(S / k),
+    S = ridge tr M(w)^-1 + (sum of the n largest g_i over all candidates).
+
+See ``docs/certificate.md`` for the derivations and the proof that the plan bound covers every
+plan of the greedy planner and the baselines.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numba
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+
+from .._validation import as_factor_matrix
+from ..errors import ConvergenceWarning, PlanningError, SolverError
+
+__all__ = [
+    "Bound",
+    "PlanCertificate",
+    "dopt_upper_bound",
+    "plan_bound",
+    "dual_value",
+    "certify_weights",
+]
+
+_SOLVERS = ("CLARABEL", "SCS")
+# Clarabel settings tried in turn (DESIGN.md: its defaults fail on unscaled problems; on the
+# congruence-scaled working-set problems equilibration is what most often breaks it)
+_TIGHT = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10}
+_CLARABEL_OPTS = (
+    {"max_step_fraction": 0.9, "chordal_decomposition_enable": False, "equilibrate_enable": False,
+     **_TIGHT},
+    {"max_step_fraction": 0.9, "chordal_decomposition_enable": False, **_TIGHT},
+    {"max_step_fraction": 0.9, "chordal_decomposition_enable": False},
+)
+_SCS_OPTS = {"eps_abs": 1e-7, "eps_rel": 1e-7, "max_iters": 20000}
+_DIST_EPS = 1e-9  # slack on budget comparisons: the bound must cover float-rounded path costs
+
+
+# ----------------------------------------------------------------------------- results
+@dataclass(frozen=True, eq=False)
+class Bound:
+    """A certified upper bound on the D-optimal relaxation (all values in nats).
+
+    ``value`` is the dual bound (valid whatever the solvers did), ``primal = log det M(w)`` is the
+    relaxation's value at the returned feasible ``weights``, so the relaxation optimum lies in
+    ``[primal, value]`` and ``gap = value - primal``. ``weights`` is a 1-D ``scipy.sparse``
+    ``coo_array`` over cell indices (length ``L``, the columns of ``Y``) holding the nonzero
+    ``w``. ``status`` is ``"optimal"`` (gap <= tol), ``"inexact"`` (valid bound, gap > tol),
+    ``"trivial"`` (n >= number of candidates: w = 1 everywhere) or ``"singular"`` (every
+    feasible M(w) is singular, so every plan has information -inf and the bound is -inf).
+    """
+
+    value: float
+    primal: float
+    gap: float
+    weights: scipy.sparse.coo_array
+    n: float
+    k: int
+    ridge: float
+    n_candidates: int
+    n_working: int
+    iterations: int
+    fw_iterations: int
+    solve_time: float
+    solver: str
+    status: str
+    history: tuple[tuple[float, float], ...] = field(default=(), repr=False)
+
+    @property
+    def support(self) -> np.ndarray:
+        """Cell indices with a nonzero weight, ascending."""
+        return np.asarray(self.weights.coords[0])
+
+    def __repr__(self) -> str:
+        return (
+            f"Bound(value={self.value:.6g} nats, primal={self.primal:.6g}, gap={self.gap:.3g}, "
+            f"n={self.n:g}, k={self.k}, candidates={self.n_candidates}, "
+            f"working set={self.n_working}, support={self.weights.nnz}, "
+            f"iterations={self.iterations} (+{self.fw_iterations} Frank-Wolfe), "
+            f"{self.solve_time:.2f} s, solver={self.solver}, status={self.status!r})"
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class PlanCertificate:
+    """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
+
+    ``bound = max(initial_information, relaxation.value)``: a plan of the greedy planner is
+    either its forced initial set (information ``initial_information``) or a set of at most
+    ``n_max`` cells within ``budget`` of the start (covered by the relaxation). ``gap =
+    bound - information`` (nats, >= 0 for every feasible plan) and ``volume_ratio =
+    exp(-gap / k)``: the plan's information-ellipsoid volume relative to the bound's, per
+    dimension (1 = certified optimal). ``online_bound`` is the submodularity bound
+    ``f(P) + sum of the n_max largest marginal gains at P`` (see docs/certificate.md), when a
+    plan was given; it is reported beside and ``bound`` already takes the smaller of the two.
+    """
+
+    bound: float
+    information: float | None
+    gap: float | None
+    volume_ratio: float | None
+    n_max: int
+    n_candidates: int
+    k: int
+    start: int
+    budget: float
+    ridge: float
+    metric: str
+    initial_information: float
+    relaxation: Bound
+    online_bound: float | None = None
+
+    @property
+    def relative_gap(self) -> float | None:
+        """``gap / |bound|`` when both are finite (a unit-free view of the gap)."""
+        if self.gap is None or not np.isfinite(self.bound) or self.bound == 0:
+            return None
+        return self.gap / abs(self.bound)
+
+    def __repr__(self) -> str:
+        lines = [
+            f"PlanCertificate(start={self.start}, budget={self.budget:g} "
+            f"({self.metric}), k={self.k}, ridge={self.ridge:g})",
+            f"  upper bound          {self.bound:.6g} nats",
+        ]
+        if self.information is not None:
+            lines += [
+                f"  plan information     {self.information:.6g} nats",
+                f"  certified gap        {self.gap:.4g} nats",
+                f"  volume ratio         {self.volume_ratio:.4f} (per dimension, 1 = optimal)",
+            ]
+        lines += [
+            f"  relaxation           {self.relaxation.value:.6g} (primal "
+            f"{self.relaxation.primal:.6g}, status {self.relaxation.status})",
+            f"  initial set          {self.initial_information:.6g} nats",
+        ]
+        if self.online_bound is not None:
+            lines.append(f"  online bound         {self.online_bound:.6g} nats")
+        lines.append(
+            f"  at most {self.n_max} cells out of {self.n_candidates} candidates "
+            f"within the budget"
+        )
+        return "\n".join(lines)
+
+    def _repr_html_(self) -> str:
+        rows = [("upper bound (nats)", f"{self.bound:.6g}")]
+        if self.information is not None:
+            rows += [
+                ("plan information (nats)", f"{self.information:.6g}"),
+                ("certified gap (nats)", f"{self.gap:.4g}"),
+                ("volume ratio (per dim.)", f"{self.volume_ratio:.4f}"),
+            ]
+        rows += [
+            ("relaxation value / primal", f"{self.relaxation.value:.6g} / "
+                                          f"{self.relaxation.primal:.6g}"),
+            ("initial set (nats)", f"{self.initial_information:.6g}"),
+            ("max cells / candidates", f"{self.n_max} / {self.n_candidates}"),
+            ("start, budget", f"{self.start}, {self.budget:g} ({self.metric})"),
+        ]
+        if self.online_bound is not None:
+            rows.append(("online bound (nats)", f"{self.online_bound:.6g}"))
+        body = "".join(f"<tr><td>{a}</td><td>{b}</td></tr>" for a, b in rows)
+        return f"<table><caption>PlanCertificate</caption>{body}</table>"
+
+
+# ----------------------------------------------------------------------------- kernels
+@numba.njit(cache=True, nogil=True)
+def _leverages_kernel(Y: np.ndarray, Linv: np.ndarray, out: np.ndarray) -> None:
+    """``out[i] = ||Linv @ Y[:, i]||^2`` for every column (Linv lower triangular, k x k)."""
+    k, N = Y.shape
+    y = np.empty(k)
+    for i in range(N):
+        for a in range(k):
+            y[a] = Y[a, i]
+        s = 0.0
+        for a in range(k):
+            v = 0.0
+            for b in range(a + 1):
+                v += Linv[a, b] * y[b]
+            s += v * v
+        out[i] = s
+
+
+def _leverages(Y: np.ndarray, Linv: np.ndarray) -> np.ndarray:
+    """``g_i = y_i^T M^-1 y_i`` for all columns of ``Y`` (k, N), with ``M^-1 = Linv^T Linv``."""
+    out = np.empty(Y.shape[1])
+    _leverages_kernel(Y, np.ascontiguousarray(np.tril(Linv)), out)
+    return out
+
+
+def _chol(M: np.ndarray) -> np.ndarray | None:
+    """Lower Cholesky factor of a symmetric matrix, or None when it is not positive definite."""
+    try:
+        return np.linalg.cholesky(0.5 * (M + M.T))
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _inv_lower(L: np.ndarray) -> np.ndarray:
+    return scipy.linalg.solve_triangular(L, np.eye(L.shape[0]), lower=True)
+
+
+def _top_sum(g: np.ndarray, n: float) -> tuple[float, float]:
+    """Sum of the ``n`` largest entries of ``g >= 0`` (fractional ``n``) and the optimal ``mu``.
+
+    ``min_{mu >= 0} mu n + sum_i max(0, g_i - mu)`` is piecewise linear with slope
+    ``n - #{g_i > mu}``; its minimum is at ``mu = g_(m+1)`` (the (m+1)-th largest, m = floor n)
+    and equals ``sum_{j <= m} g_(j) + (n - m) g_(m+1)``; when ``n >= N`` it is ``sum g`` at
+    ``mu = 0``.
+    """
+    N = g.size
+    m = math.floor(n)
+    f = n - m
+    if m >= N:
+        return float(g.sum()), 0.0
+    q = m + 1
+    if q < N:
+        top = g[np.argpartition(g, N - q)[N - q:]]
+    else:
+        top = g
+    top = np.sort(top)[::-1]
+    return float(top[:m].sum() + f * top[m]), float(top[m])
+
+
+def _dual_from_M(
+    Yc: np.ndarray, M: np.ndarray, n: float, ridge: float
+) -> tuple[float, float, np.ndarray, float] | None:
+    """Dual certificate at ``Z = t M^-1``: ``(value, logdet M, g, mu)`` or None if M is singular.
+
+    With ``g_i = y_i^T M^-1 y_i`` and ``S = ridge tr M^-1 + top-n sum of g``, the dual function
+    minimised over the scale ``t`` (``t = k / S``) and ``nu = t mu`` is
+    ``log det M + k log(S / k)``.
+    """
+    k = M.shape[0]
+    L = _chol(M)
+    if L is None:
+        return None
+    logdet = 2.0 * float(np.log(np.diag(L)).sum())
+    Linv = _inv_lower(L)
+    g = _leverages(Yc, Linv)
+    top, mu = _top_sum(g, n)
+    S = ridge * float((Linv * Linv).sum()) + top
+    if not (np.isfinite(S) and S > 0 and np.isfinite(logdet)):
+        return None
+    # S >= k holds exactly for every feasible w (S >= tr(M^-1 M(w)) = k); a value below k
+    # can only be rounding, so the gap is clamped at zero.
+    gap = k * math.log(max(S, k) / k)
+    return logdet + gap, logdet, g, mu
+
+
+def _moment(Yc: np.ndarray, idx: np.ndarray, w: np.ndarray, ridge: float) -> np.ndarray:
+    """``ridge I + sum_j w_j y_idx[j] y_idx[j]^T`` (k x k)."""
+    Ys = Yc[:, idx]
+    M = (Ys * w) @ Ys.T
+    M = 0.5 * (M + M.T)
+    M[np.diag_indices_from(M)] += ridge
+    return M
+
+
+# ----------------------------------------------------------------------------- public helpers
+def dual_value(Y: Any, Z: Any, nu: float, n: float, *, ridge: float = 0.0) -> float:
+    """Lagrange dual function ``g(Z, nu)`` of the relaxation over all columns of ``Y`` (k, N).
+
+    ``g(Z, nu) = -log det Z - k + ridge tr Z + nu n + sum_i max(0, y_i^T Z y_i - nu)`` is an
+    upper bound on the relaxation's optimum for every ``Z`` positive definite and ``nu >= 0``.
+    Returns ``+inf`` when ``Z`` is not positive definite.
+    """
+    Y = as_factor_matrix(Y)
+    Z = np.asarray(Z, dtype=np.float64)
+    k = Y.shape[0]
+    if Z.shape != (k, k):
+        raise PlanningError(f"Z must be {k} x {k}, got shape {Z.shape}")
+    if not (np.isfinite(nu) and nu >= 0):
+        raise PlanningError(f"nu must be >= 0 and finite, got {nu!r}")
+    C = _chol(Z)
+    if C is None:
+        return math.inf
+    logdetZ = 2.0 * float(np.log(np.diag(C)).sum())
+    q = ((C.T @ Y) ** 2).sum(axis=0)  # y^T Z y with Z = C C^T
+    return float(
+        -logdetZ - k + ridge * np.trace(Z) + nu * n + np.maximum(q - nu, 0.0).sum()
+    )
+
+
+def certify_weights(
+    Y: Any, weights: Any, n: float, *, candidates: Any = None, ridge: float = 0.0
+) -> tuple[float, float]:
+    """``(dual bound, primal)`` of the relaxation at any feasible weights (no solver involved).
+
+    ``weights`` is a dense ``(L,)`` vector over the cells of ``Y`` (zero off ``candidates``)
+    or a 1-D sparse array; it must satisfy ``0 <= w <= 1`` and ``sum w <= n``.
+    """
+    Y = as_factor_matrix(Y)
+    n, ridge = _check_n_ridge(n, ridge)
+    cand = _check_candidates(candidates, Y.shape[1])
+    w = weights.toarray() if scipy.sparse.issparse(weights) else np.asarray(weights, float)
+    if w.shape != (Y.shape[1],):
+        raise PlanningError(f"weights must have shape ({Y.shape[1]},), got {w.shape}")
+    if np.any(w < 0) or np.any(w > 1) or w.sum() > n * (1 + 1e-12):
+        raise PlanningError("weights must satisfy 0 <= w <= 1 and sum(w) <= n")
+    off = np.ones(Y.shape[1], bool)
+    off[cand] = False
+    if np.any(w[off] != 0):
+        raise PlanningError("weights must be zero off the candidate cells")
+    idx = np.flatnonzero(w)
+    M = _moment(Y, idx, w[idx], ridge)
+    out = _dual_from_M(np.ascontiguousarray(Y[:, cand]), M, n, ridge)
+    if out is None:
+        return math.inf, -math.inf
+    return out[0], out[1]
+
+
+# ----------------------------------------------------------------------------- validation
+def _check_n_ridge(n: Any, ridge: Any) -> tuple[float, float]:
+    try:
+        n = float(n)
+    except (TypeError, ValueError):
+        raise PlanningError(f"n must be a number of cells, got {n!r}") from None
+    if not (math.isfinite(n) and n > 0):
+        raise PlanningError(f"n must be > 0 and finite, got {n!r}")
+    try:
+        ridge = float(ridge)
+    except (TypeError, ValueError):
+        raise PlanningError(f"ridge must be a number, got {ridge!r}") from None
+    if not (math.isfinite(ridge) and ridge >= 0):
+        raise PlanningError(f"ridge must be >= 0 and finite, got {ridge!r}")
+    return n, ridge
+
+
+def _check_candidates(candidates: Any, L: int) -> np.ndarray:
+    if candidates is None:
+        return np.arange(L, dtype=np.int64)
+    arr = np.asarray(candidates)
+    if arr.ndim != 1 or (arr.size and not np.issubdtype(arr.dtype, np.integer)):
+        raise PlanningError(f"candidates must be a 1-D array of cell indices, got {arr!r}")
+    if arr.size == 0:
+        raise PlanningError("candidates is empty: no cell can be observed")
+    if arr.min() < 0 or arr.max() >= L:
+        raise PlanningError(f"candidates must be cell indices in [0, {L})")
+    return np.unique(arr.astype(np.int64))
+
+
+# ----------------------------------------------------------------------------- first order
+def _line_search(lam: np.ndarray) -> float:
+    """argmax over [0, 1] of ``sum_j log(1 + gamma (lam_j - 1))`` (concave), by bisection."""
+    d = lam - 1.0
+
+    def slope(gam: float) -> float:
+        return float((d / (1.0 + gam * d)).sum())
+
+    if slope(0.0) <= 0:
+        return 0.0
+    if np.all(lam > 1e-12) and slope(1.0) >= 0:
+        return 1.0
+    lo, hi = 0.0, 1.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if slope(mid) > 0:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def _top_vertex(g: np.ndarray, n: float) -> tuple[np.ndarray, np.ndarray]:
+    """Maximiser of ``<g, s>`` over ``{0 <= s <= 1, sum s <= n}``: the top-n cells (ties low)."""
+    N = g.size
+    m = math.floor(n)
+    f = n - m
+    q = min(N, m + (1 if f > 0 else 0))
+    if q < N:
+        # stable order: largest g first, then lowest index
+        part = np.argpartition(-g, q - 1)[:q]
+        cut = g[part].min()
+        pool = np.flatnonzero(g >= cut)
+    else:
+        pool = np.arange(N)
+    order = pool[np.lexsort((pool, -g[pool]))][:q]
+    s = np.ones(q)
+    if q > m:
+        s[-1] = f
+    return order, s
+
+
+def _frank_wolfe(
+    Yc: np.ndarray, n: float, ridge: float, iters: int, tol: float
+) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float]]]:
+    """Frank-Wolfe with exact line search from the uniform design; returns (w, M, history).
+
+    Each step costs one pass over the candidates (leverages, top-n); the iterate's dual bound is
+    free. Used to pick the working set and as the fallback certificate.
+    """
+    k, N = Yc.shape
+    w = np.full(N, min(1.0, n / N))
+    B = (Yc @ Yc.T) * w[0]
+    M = B + ridge * np.eye(k)
+    hist: list[tuple[float, float]] = []
+    for _ in range(iters):
+        L = _chol(M)
+        if L is None:
+            break
+        Linv = _inv_lower(L)
+        g = _leverages(Yc, Linv)
+        top, _ = _top_sum(g, n)
+        S = ridge * float((Linv * Linv).sum()) + top
+        logdet = 2.0 * float(np.log(np.diag(L)).sum())
+        hist.append((logdet + k * math.log(max(S, k) / k), logdet))
+        if S - k <= tol:
+            break
+        idx, s = _top_vertex(g, n)
+        Bs = (Yc[:, idx] * s) @ Yc[:, idx].T
+        Ms = Bs + ridge * np.eye(k)
+        A = Linv @ Ms @ Linv.T
+        lam = np.linalg.eigvalsh(0.5 * (A + A.T))
+        gam = _line_search(lam)
+        if gam <= 0:
+            break
+        w *= 1.0 - gam
+        w[idx] += gam * s
+        B = (1.0 - gam) * B + gam * Bs
+        M = B + ridge * np.eye(k)
+    return w, M, hist
+
+
+# ----------------------------------------------------------------------------- cvxpy
+def _solve_restricted(
+    Yw: np.ndarray, C: np.ndarray, n: float, solver: str, verbose: bool = False
+) -> tuple[np.ndarray | None, str]:
+    """Relaxation over the columns of ``Yw`` (k, m) with constant term ``C``, in cvxpy.
+
+    ``M(w) = C + sum_j w_j y_j y_j^T`` is an affine map of ``w``: its k(k+1)/2 distinct entries
+    are ``F w`` with ``F[(a, b), j] = y_aj y_bj``, scattered into the k x k matrix by a constant
+    0/1 matrix, so the model never forms ``Y diag(w) Y^T``. Returns ``(w, status)``; ``w`` is
+    None when the solver failed.
+    """
+    import cvxpy as cp
+
+    k, m = Yw.shape
+    iu, ju = np.triu_indices(k)
+    F = Yw[iu] * Yw[ju]  # (p, m)
+    p = iu.size
+    rows = np.concatenate([iu * k + ju, ju * k + iu])  # row-major positions a*k + b
+    cols = np.concatenate([np.arange(p), np.arange(p)])
+    keep = np.ones(rows.size, bool)
+    keep[p:] = iu != ju  # diagonal entries once
+    E = scipy.sparse.csr_array(
+        (np.ones(int(keep.sum())), (rows[keep], cols[keep])), shape=(k * k, p)
+    )
+    w = cp.Variable(m)
+    vecM = C.ravel() + E @ (F @ w)
+    Mexpr = cp.reshape(vecM, (k, k), order="C")
+    prob = cp.Problem(cp.Maximize(cp.log_det(Mexpr)), [w >= 0, w <= 1, cp.sum(w) <= n])
+    attempts = _CLARABEL_OPTS if solver == "CLARABEL" else (_SCS_OPTS,)
+    status = "not run"
+    for opts in attempts:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "solution may be inaccurate"
+                prob.solve(solver=solver, verbose=verbose, **opts)
+        except (cp.error.SolverError, ValueError, ArithmeticError) as exc:
+            status = f"error: {str(exc).splitlines()[0][:80]}"
+            continue
+        status = str(prob.status)
+        if w.value is not None and status in ("optimal", "optimal_inaccurate"):
+            return np.asarray(w.value, dtype=np.float64), status
+    return None, status
+
+
+def _feasible(w: np.ndarray, n: float) -> np.ndarray:
+    """Project a solver's ``w`` onto the feasible set by clipping and scaling down."""
+    w = np.clip(w, 0.0, 1.0)
+    w[w < 1e-6] = 0.0  # interior-point zeros; dropping them keeps w feasible
+    s = w.sum()
+    if s > n:
+        w *= n / s
+    return w
+
+
+# ----------------------------------------------------------------------------- main entry
+def dopt_upper_bound(
+    Y: Any,
+    n: float,
+    *,
+    candidates: Any = None,
+    ridge: float = 0.0,
+    solver: Literal["CLARABEL", "SCS"] = "CLARABEL",
+    tol: float = 1e-3,
+    max_iter: int = 30,
+    fw_iter: int = 25,
+    verbose: bool | int = False,
+) -> Bound:
+    """Certified upper bound on ``log det(ridge I + sum_{p in P} y_p y_p^T)`` over ``|P| <= n``.
+
+    Parameters
+    ----------
+    Y : ``(k, L)`` factor matrix (ndarray or ``(component, cell)`` DataArray).
+    n : the largest number of cells a plan may hold (> 0; fractional allowed).
+    candidates : int array of the cell indices a plan may use; all ``L`` cells by default.
+    ridge : ``>= 0``, added to the information matrix (as in ``fisher_information``).
+    solver : conic solver for the working-set problems; the other one is the fallback.
+    tol : target gap (nats) between the dual bound and the primal value.
+    max_iter : column-generation rounds (each one cvxpy solve plus one pass over candidates).
+    fw_iter : Frank-Wolfe passes over all candidates used to pick the first working set.
+
+    Returns a :class:`Bound`; ``value`` is valid even when the solvers are inexact (it is a
+    Lagrange dual value, not a solver's claim). Raises :class:`SolverError` only when no
+    feasible weight with a finite ``log det`` could be found.
+    """
+    t0 = time.perf_counter()
+    Y = as_factor_matrix(Y)
+    k, L = Y.shape
+    n, ridge = _check_n_ridge(n, ridge)
+    solver = str(solver).upper()
+    if solver not in _SOLVERS:
+        raise PlanningError(f"solver must be one of {_SOLVERS}, got {solver!r}")
+    if not (math.isfinite(tol) and tol > 0):
+        raise PlanningError(f"tol must be > 0 and finite, got {tol!r}")
+    cand = _check_candidates(candidates, L)
+    N = cand.size
+    Yc = np.ascontiguousarray(Y[:, cand])
+
+    def result(value, primal, idx, wv, status, n_working=0, iters=0, fw=0, used="none",
+               hist=()) -> Bound:
+        nz = wv > 0
+        weights = scipy.sparse.coo_array(
+            (wv[nz], (cand[idx[nz]],)), shape=(L,)
+        )
+        gap = 0.0 if value == primal else value - primal
+        return Bound(
+            value=float(value), primal=float(primal), gap=float(gap), weights=weights, n=n,
+            k=k, ridge=ridge, n_candidates=N, n_working=int(n_working), iterations=iters,
+            fw_iterations=fw, solve_time=time.perf_counter() - t0, solver=used,
+            status=status, history=tuple(hist),
+        )
+
+    # singular: fewer than k independent candidates and no ridge -> every M(w) is singular
+    G = Yc @ Yc.T
+    if ridge == 0 and np.linalg.matrix_rank(G) < k:
+        return result(-math.inf, -math.inf, np.arange(0), np.zeros(0), "singular")
+    if n >= N:  # w = 1 on every candidate is optimal (log det is monotone)
+        M = G + ridge * np.eye(k)
+        out = _dual_from_M(Yc, M, n, ridge)
+        if out is None:
+            raise SolverError("information matrix of all candidates is not positive definite")
+        # w = 1 is exactly optimal here, so the relaxation's value is log det M itself
+        return result(out[1], out[1], np.arange(N), np.ones(N), "trivial")
+
+    # 1. Frank-Wolfe warm start over all candidates
+    w_fw, M_fw, hist = _frank_wolfe(Yc, n, ridge, fw_iter, max(tol, 0.01))
+    fw_done = len(hist)
+    best_val, best_primal = math.inf, -math.inf
+    best_w: tuple[np.ndarray, np.ndarray] | None = None
+    out = _dual_from_M(Yc, M_fw, n, ridge)
+    if out is None:
+        raise SolverError(
+            "Frank-Wolfe warm start lost positive definiteness; no feasible design to certify"
+        )
+    best_val, best_primal = out[0], out[1]
+    fw_support = np.flatnonzero(w_fw)
+    best_w = (fw_support, w_fw[fw_support])
+    g, M_ref = out[2], M_fw
+
+    # 2. column generation on a working set, solved in cvxpy
+    nc = math.ceil(n)
+    m0 = min(N, 2 * nc + 20 * k)
+    batch = max(nc, 10 * k)
+    # first working set: the Frank-Wolfe iterate's main support plus the top leverages
+    heavy = np.flatnonzero(w_fw >= 1e-3)
+    if heavy.size > 2 * m0:
+        heavy = heavy[np.argsort(-w_fw[heavy], kind="stable")[: 2 * m0]]
+    W = np.union1d(_top_vertex(g, m0)[0], heavy)
+    status_msgs: list[str] = []
+    used = "Frank-Wolfe"
+    iters = 0
+    for it in range(max_iter):
+        if it > 0 and best_val - best_primal <= tol:
+            break
+        iters = it + 1
+        Lr = _chol(M_ref)
+        A = _inv_lower(Lr)  # congruence: A M_ref A^T = I keeps the conic problem well scaled
+        Yw = A @ Yc[:, W]
+        C = ridge * (A @ A.T)
+        wW = None
+        for s in (solver,) + tuple(x for x in _SOLVERS if x != solver):
+            wW, st = _solve_restricted(Yw, C, n, s, verbose > 1)
+            if wW is not None:
+                used = s
+                break
+            status_msgs.append(f"{s}: {st}")
+        if wW is None:
+            break
+        wW = _feasible(wW, n)
+        nzw = wW > 0
+        M = _moment(Yc, W[nzw], wW[nzw], ridge)
+        out = _dual_from_M(Yc, M, n, ridge)
+        if out is None:
+            status_msgs.append("working-set solution singular")
+            break
+        val, primal, g, _ = out
+        if verbose:
+            print(f"[dopt] round {iters}: |W|={W.size} value={val:.8g} primal={primal:.8g} "
+                  f"gap={val - primal:.3g} ({used})")
+        hist.append((val, primal))
+        best_val = min(best_val, val)
+        if primal > best_primal:
+            best_primal, best_w = primal, (W[nzw], wW[nzw])
+        M_ref = M
+        if best_val - best_primal <= tol:
+            break
+        # violators: cells outside W whose leverage beats W's marginal (ceil(n)-th) leverage
+        gW = np.sort(g[W])[::-1]
+        tau = gW[nc - 1] if W.size >= nc else 0.0
+        inW = np.zeros(N, bool)
+        inW[W] = True
+        viol = np.flatnonzero((g > tau * (1 + 1e-9)) & ~inW)
+        if viol.size == 0:
+            status_msgs.append("no violator left: working-set solve is inexact")
+            break
+        if viol.size > batch:
+            viol = viol[np.argsort(-g[viol], kind="stable")[:batch]]
+        W = np.union1d(W, viol)
+
+    gap = best_val - best_primal
+    status = "optimal" if gap <= tol else "inexact"
+    if status == "inexact":
+        note = "; ".join(status_msgs[-3:])
+        warnings.warn(
+            f"D-optimal bound gap {gap:.3g} nats > tol={tol:g} after {iters} rounds "
+            f"({note or 'iteration limit'}); the bound is still valid",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    idx, wv = best_w
+    return result(best_val, best_primal, idx, wv, status, W.size, iters, fw_done, used, hist)
+
+
+# ----------------------------------------------------------------------------- plan bound
+def plan_bound(
+    Y: Any,
+    region: Any,
+    start: Any,
+    budget: float,
+    *,
+    ridge: float = 0.0,
+    plan: Any = None,
+    metric: Literal["grid", "km"] = "grid",
+    solver: Literal["CLARABEL", "SCS"] = "CLARABEL",
+    tol: float = 1e-3,
+) -> PlanCertificate:
+    """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
+
+    Every plan of ``plan_greedy`` (any cost, since each is the length of a path from the start
+    through all the plan's cells), ``transect`` and ``random_walk`` is either the greedy's forced
+    initial set (start plus its k-1 nearest cells) or a set of at most ``n_max`` cells within
+    ``budget`` of the start, where ``n_max = floor(budget / d_min) + 1`` and ``d_min`` is the
+    smallest distance between two candidate cells (1 grid unit for ``metric="grid"``). Hence
+    ``bound = max(I(initial set), relaxation over the budget disk with n = n_max)``; when the
+    plan is given the submodularity online bound is computed too and the smaller one is kept.
+    Proofs in docs/certificate.md.
+
+    ``budget`` is in grid units (``metric="grid"``) or km (``metric="km"``).
+    """
+    from ..information import fisher_information
+    from .greedy import initial_cells
+
+    Y = as_factor_matrix(Y, region)
+    k, L = Y.shape
+    start = region.resolve_cell(start, "start")
+    try:
+        budget = float(budget)
+    except (TypeError, ValueError):
+        raise PlanningError(f"budget must be a number, got {budget!r}") from None
+    if not (math.isfinite(budget) and budget >= 0):
+        raise PlanningError(f"budget must be >= 0 and finite, got {budget!r}")
+    _, ridge = _check_n_ridge(1.0, ridge)
+    if metric not in ("grid", "km"):
+        raise PlanningError(f"metric must be 'grid' or 'km', got {metric!r}")
+
+    dist = np.asarray(region.distance(start, np.arange(L), metric=metric), dtype=np.float64)
+    slack = _DIST_EPS * max(1.0, budget)
+    cand = np.flatnonzero(dist <= budget + slack)
+    if metric == "grid":
+        d_min = 1.0
+    else:
+        d_min = _min_spacing_km(region, cand)
+    n_max = min(cand.size, math.floor((budget + slack) / d_min) + 1) if d_min > 0 else cand.size
+
+    init = np.asarray(initial_cells(region, start, k), dtype=np.int64)
+    init_info = float(fisher_information(Y, init, ridge=ridge))
+    relax = dopt_upper_bound(Y, n_max, candidates=cand, ridge=ridge, solver=solver, tol=tol)
+    bound = max(init_info, relax.value)
+
+    information = gap = ratio = online = None
+    if plan is not None:
+        cells = np.asarray(plan.cells, dtype=np.int64)
+        _check_plan_feasible(cells, init, cand, n_max, plan, budget, slack)
+        information = float(fisher_information(Y, cells, ridge=ridge))
+        online = _online_bound(Y, cells, cand, n_max, ridge, information)
+        if online is not None:
+            bound = min(bound, max(init_info, online))
+        gap, ratio = _gap(bound, information, k)
+    return PlanCertificate(
+        bound=float(bound), information=information, gap=gap, volume_ratio=ratio,
+        n_max=int(n_max), n_candidates=int(cand.size), k=k, start=int(start), budget=budget,
+        ridge=ridge, metric=metric, initial_information=init_info, relaxation=relax,
+        online_bound=online,
+    )
+
+
+def _gap(bound: float, information: float, k: int) -> tuple[float, float]:
+    if bound == -math.inf and information == -math.inf:
+        return 0.0, 1.0  # every feasible plan is singular: this one is optimal
+    gap = bound - information
+    return float(gap), float(math.exp(-gap / k)) if math.isfinite(gap) else 0.0
+
+
+def _check_plan_feasible(
+    cells: np.ndarray, init: np.ndarray, cand: np.ndarray, n_max: int, plan: Any,
+    budget: float, slack: float,
+) -> None:
+    """The certificate covers the initial set and plans of <= n_max cells in the budget disk."""
+    if set(cells.tolist()) == set(init.tolist()):
+        return
+    inside = np.isin(cells, cand)
+    if not inside.all() or np.unique(cells).size > n_max:
+        raise PlanningError(
+            f"the plan is not feasible for start={plan.start}, budget={budget:g}: "
+            f"{int((~inside).sum())} of its cells lie farther than the budget from the start "
+            f"or it holds more than {n_max} cells; the certificate does not cover it"
+        )
+
+
+def _online_bound(
+    Y: np.ndarray, cells: np.ndarray, cand: np.ndarray, n_max: int, ridge: float, f_S: float
+) -> float | None:
+    """``f(S) + sum of the n_max largest gains log(1 + y^T M_S^-1 y)`` over candidates not in S.
+
+    Valid for any set S with finite information because log det is monotone submodular:
+    ``f(O) <= f(S u O) <= f(S) + sum_{x in O \\ S} (f(S + x) - f(S))`` and ``|O| <= n_max``.
+    """
+    if not math.isfinite(f_S):
+        return None
+    M = _moment(Y, cells, np.ones(cells.size), ridge)
+    L = _chol(M)
+    if L is None:
+        return None
+    others = np.setdiff1d(cand, cells)
+    if others.size == 0:
+        return f_S
+    gains = np.log1p(_leverages(np.ascontiguousarray(Y[:, others]), _inv_lower(L)))
+    top, _ = _top_sum(gains, float(n_max))
+    return f_S + top
+
+
+def _min_spacing_km(region: Any, cand: np.ndarray) -> float:
+    """Smallest great-circle distance (km) between two distinct candidate cells (KD-tree)."""
+    if cand.size < 2:
+        return math.inf
+    from scipy.spatial import cKDTree
+
+    lat = np.radians(region.cell_lat[cand])
+    lon = np.radians(region.cell_lon[cand])
+    xyz = np.column_stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
+    _, nn = cKDTree(xyz).query(xyz, k=2)
+    d = np.asarray(region.distance(cand, cand[nn[:, 1]], metric="km"), dtype=np.float64)
+    # chord and great-circle distances are monotone in each other; shave rounding off
+    return float(d.min()) * (1 - 1e-9)
