@@ -77,12 +77,15 @@ def run_synthetic(small: bool) -> None:
           f"status {b.status}, solver {b.solver}")
 
     start = central_cell(region)
-    t = time.perf_counter()
-    cert = plan_bound(Y, region, start, budget)
-    r = cert.relaxation
-    print(f"plan_bound(start={start}, budget={budget:g}): {time.perf_counter() - t:.2f} s, "
-          f"{cert.n_candidates} candidates, n_max {cert.n_max}, working set {r.n_working}, "
-          f"dual gap {r.gap:.2e}, bound {cert.bound:.6g} nats")
+    for tighten in (False, True):
+        t = time.perf_counter()
+        cert = plan_bound(Y, region, start, budget, tighten=tighten)
+        r = cert.relaxation
+        print(f"plan_bound(start={start}, budget={budget:g}, tighten={tighten}): "
+              f"{time.perf_counter() - t:.2f} s, {cert.n_candidates} candidates, n_max "
+              f"{cert.n_max}, pieces {max(1, len(cert.leaves))}, largest piece: "
+              f"{r.n_candidates} candidates, working set {r.n_working}, dual gap {r.gap:.2e}; "
+              f"bound {cert.bound:.6g} nats")
 
     out, why = greedy_certificate(Y, region, start, budget)
     if out is None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import math
 import warnings
+from types import SimpleNamespace
 
 import cvxpy as cp
 import numpy as np
@@ -256,7 +257,8 @@ def test_plan_bound_covers_every_feasible_set_brute_force(budget, k, ridge):
     region = make_region(6, 6, masked=[(2, 3), (4, 1), (0, 0)])
     Y = _grid_Y(region, k, 3)
     start = int(region.cell_grid[2, 2])
-    cert = B.plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6)
+    # the plain disk relaxation: bounds every set of <= n_max cells within the budget
+    cert = B.plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6, tighten=False)
     d = region.distance(start, np.arange(region.n_cells))
     disk = np.flatnonzero(d <= budget)
     n_max = math.floor(budget) + 1
@@ -309,10 +311,15 @@ def test_plan_bound_km_metric_uses_the_smallest_spacing():
     assert B._min_spacing_km(region, cand) == pytest.approx(dmin, rel=1e-8)
     assert B._min_spacing_km(region, cand) <= dmin
     budget = 2.5 * dmin
-    cert = B.plan_bound(Y, region, start, budget, metric="km", tol=1e-6)
+    cert = B.plan_bound(Y, region, start, budget, metric="km", tol=1e-6, tighten=False)
     disk = np.flatnonzero(D[start] <= budget)
     assert cert.n_max == 3 and cert.n_candidates == disk.size
     assert cert.bound >= brute_force_best(Y, 3, 0.0, disk) - 1e-9
+    # tightened (distance limits from the start): still covers every path-feasible set
+    tight = B.plan_bound(Y, region, start, budget, metric="km", tol=1e-6)
+    best = max(logdet(Y[:, sorted(S)] @ Y[:, sorted(S)].T)
+               for S in path_feasible_sets(D, start, budget))
+    assert best - 1e-9 <= tight.bound <= cert.bound + 1e-6
 
 
 def test_plan_bound_bad_input():
@@ -349,7 +356,7 @@ def test_plan_bound_covers_greedy_and_baseline_plans(instance):
 
     region, start, k, budget, seed = instance
     Y = _grid_Y(region, k, seed)
-    cert = B.plan_bound(Y, region, start, budget)
+    cert = B.plan_bound(Y, region, start, budget, max_pieces=8)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         plans = [plan_greedy(Y, region, start, budget, progress=False)]
@@ -358,7 +365,215 @@ def test_plan_bound_covers_greedy_and_baseline_plans(instance):
     for plan in plans:
         info = logdet(Y[:, plan.cells] @ Y[:, plan.cells].T)
         assert cert.bound >= info - 1e-9, (plan.method, cert.bound, info)
-    greedy_cert = plans[0].certify()
+    greedy_cert = plans[0].certify(max_pieces=8)
     assert greedy_cert.gap >= -1e-9
     assert greedy_cert.bound <= cert.bound + 1e-9
     assert greedy_cert.information == pytest.approx(plans[0].information)
+
+
+# ----------------------------------------------------------------------------- tightening
+def path_feasible_sets(D: np.ndarray, start: int, budget: float) -> set[frozenset]:
+    """Every set of cells an open path from ``start`` of length <= budget visits (exhaustive
+    depth-first search over visiting orders; D is the full distance matrix)."""
+    near = np.flatnonzero(D[start] <= budget + 1e-9).tolist()
+    out: set[frozenset] = set()
+
+    def dfs(cur: int, used: list[int], length: float) -> None:
+        out.add(frozenset(used))
+        for c in near:
+            if c not in used and length + D[cur, c] <= budget + 1e-9:
+                used.append(c)
+                dfs(c, used, length + D[cur, c])
+                used.pop()
+
+    dfs(start, [start], 0.0)
+    return out
+
+
+def grid_distances(region: Region) -> np.ndarray:
+    pos = region.grid_index.astype(float)
+    return np.hypot(*(pos[:, None, :] - pos[None, :, :]).transpose(2, 0, 1))
+
+
+def random_levels(rng, N: int, J: tuple[int, ...]) -> tuple[list, list]:
+    levels = [rng.integers(0, j + 1, N) for j in J]
+    caps = [np.sort(rng.integers(1, 6, j).astype(float))[::-1] for j in J]
+    return levels, caps
+
+
+def test_polytope_lp_reduction_and_dual_term_match_the_full_lp():
+    from scipy.optimize import linprog
+
+    rng = np.random.default_rng(4)
+    for trial in range(15):
+        N = int(rng.integers(20, 200))
+        poly = B._Polytope(float(rng.integers(3, 12)), N, *random_levels(rng, N, (3, 4)))
+        g = rng.uniform(0, 1, N)
+        if trial % 3 == 0:  # ties, as on a smooth field
+            g = np.round(g, 1)
+        A, b = poly._rows(np.arange(N))
+        full = -linprog(-g, A_ub=A, b_ub=b, bounds=(0, 1), method="highs").fun
+        top, (nu, mus) = poly.support(g)  # LP on the reduced cells, h evaluated on all
+        assert top == pytest.approx(full, abs=1e-7)
+        # h is an upper bound at any multipliers
+        for _ in range(5):
+            mus_r = [rng.uniform(0, 0.5, m.size) for m in mus]
+            assert poly.h(g, rng.uniform(0, 0.5), mus_r) >= full - 1e-9
+        idx, s = poly.vertex(g)
+        v = np.zeros(N)
+        v[idx] = s
+        assert poly.is_feasible(v) and g @ v == pytest.approx(full, abs=1e-5)
+        # uniform and projected designs are feasible
+        assert poly.is_feasible(poly.uniform())
+        assert poly.is_feasible(poly.project(rng.uniform(0, 1.2, N)))
+
+
+def limited_cvxpy(Y, n, limits, ridge=0.0):
+    k, L = Y.shape
+    w = cp.Variable(L)
+    cons = [w >= 0, w <= 1, cp.sum(w) <= n]
+    for vals, thr, caps in limits:
+        for t, c in zip(thr, caps, strict=True):
+            cons.append(cp.sum(w[np.flatnonzero(vals >= t)]) <= c)
+    prob = cp.Problem(cp.Maximize(cp.log_det(Y @ cp.diag(w) @ Y.T + ridge * np.eye(k))), cons)
+    prob.solve(solver="CLARABEL")
+    assert prob.status == "optimal"
+    return float(prob.value)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_limits_relaxation_matches_cvxpy_brute_force_and_random_duals(seed):
+    rng = np.random.default_rng(seed)
+    k, L, n, ridge = 3, 14, 5, 0.05 * seed
+    Y = rng.standard_normal((k, L))
+    limits = [(rng.uniform(0, 10, L), [3.0, 6.0, 8.0], [4, 2, 1]),
+              (rng.uniform(0, 5, L), [1.0, 2.5, 4.0], [4, 3, 1])]
+    b = dopt_upper_bound(Y, n, limits=limits, ridge=ridge, tol=1e-6)
+    opt = limited_cvxpy(Y, n, limits, ridge)
+    assert b.value == pytest.approx(opt, abs=1e-4) and b.primal <= b.value
+    w = b.weights.toarray()
+    for vals, thr, caps in limits:
+        for t, c in zip(thr, caps, strict=True):
+            assert w[vals >= t].sum() <= c + 1e-9
+    # brute force over the subsets that satisfy the limits
+    best = -math.inf
+    for m in range(1, n + 1):
+        for S in itertools.combinations(range(L), m):
+            S = list(S)
+            if all((v[S] >= t).sum() <= c for v, thr, caps in limits
+                   for t, c in zip(thr, caps, strict=True)):
+                best = max(best, logdet(ridge * np.eye(k) + Y[:, S] @ Y[:, S].T))
+    assert b.value >= best - 1e-9
+    assert b.value <= dopt_upper_bound(Y, n, ridge=ridge, tol=1e-6).value + 1e-6
+    # the dual function with the limits' multipliers bounds the optimum at random points
+    for _ in range(10):
+        A = rng.standard_normal((k, k))
+        Z = A @ A.T + 0.1 * np.eye(k)
+        nu = rng.uniform(0, 1)
+        mus = [rng.uniform(0, 1, 3) for _ in limits]
+        price = nu + sum(
+            sum(mu_j * (v >= t) for mu_j, t in zip(mu, thr, strict=True)) for mu, (v, thr, _) in
+            zip(mus, limits, strict=True)
+        )
+        q = np.einsum("ai,ab,bi->i", Y, Z, Y)
+        dual = (-logdet(Z) - k + ridge * np.trace(Z) + nu * n
+                + sum(mu @ np.asarray(c, float) for mu, (_, _, c) in zip(mus, limits, strict=True))
+                + np.maximum(q - price, 0).sum())
+        assert dual >= opt - 1e-7
+
+
+def test_limits_bad_input():
+    Y = np.random.default_rng(0).standard_normal((2, 6))
+    v = np.arange(6.0)
+    with pytest.raises(PlanningError, match="triple"):
+        dopt_upper_bound(Y, 2, limits=[(v, [1.0])])
+    with pytest.raises(PlanningError, match="shape"):
+        dopt_upper_bound(Y, 2, limits=[(v[:3], [1.0], [1.0])])
+    with pytest.raises(PlanningError, match="ascending"):
+        dopt_upper_bound(Y, 2, limits=[(v, [2.0, 1.0], [1.0, 1.0])])
+    with pytest.raises(PlanningError, match="caps"):
+        dopt_upper_bound(Y, 2, limits=[(v, [1.0], [-1.0])])
+    region = make_region(4, 4)
+    Yr = _grid_Y(region, 2, 0)
+    with pytest.raises(PlanningError, match="cover"):
+        B.plan_bound(Yr, region, 0, 3.0, cover=0)
+    with pytest.raises(PlanningError, match="max_pieces"):
+        B.plan_bound(Yr, region, 0, 3.0, max_pieces=0)
+
+
+def test_path_limits_hold_on_random_paths():
+    """The lemmas behind the tightening, checked on many random paths (no solver involved)."""
+    rng = np.random.default_rng(5)
+    region = make_region(25, 25)
+    D = grid_distances(region)
+    pos = region.grid_index.astype(float)
+    for _trial in range(300):
+        budget = float(rng.uniform(2, 12))
+        Bp = budget + 1e-9 * max(1, budget)
+        start = int(rng.integers(region.n_cells))
+        # a random path: random cells near the current one while the budget lasts
+        path, length = [start], 0.0
+        while True:
+            cur = path[-1]
+            near = np.flatnonzero((D[cur] <= rng.uniform(1, 4)) & (D[cur] > 0))
+            near = near[~np.isin(near, path)]
+            if near.size == 0:
+                break
+            c = int(rng.choice(near))
+            if length + D[cur, c] > budget:
+                break
+            path.append(c)
+            length += D[cur, c]
+        cells = np.array(path)
+        n_max = math.floor(Bp) + 1
+        thr, caps = B._start_limit(Bp, 1.0, n_max) or (np.zeros(0), np.zeros(0))
+        d = D[start, cells]
+        assert np.all((d[:, None] >= thr[None, :]).sum(axis=0) <= caps)
+        # the midpoint (by arc length) and the square of the cover that holds it
+        steps = D[cells[:-1], cells[1:]]
+        arc = np.concatenate([[0.0], np.cumsum(steps)])
+        T = arc[-1]
+        j = min(int(np.searchsorted(arc, T / 2, side="right")) - 1, len(cells) - 2)
+        if len(cells) == 1:
+            mid = pos[start]
+        else:
+            t = (T / 2 - arc[j]) / steps[j]
+            mid = pos[cells[j]] + t * (pos[cells[j + 1]] - pos[cells[j]])
+        assert np.hypot(*(mid - pos[start])) <= T / 2 + 1e-9
+        assert np.all(np.hypot(*(pos[cells] - mid).T) <= T / 2 + 1e-9)
+        c0 = pos[start]
+        squares = B._cover_squares(c0, Bp / 2, c0[0] - Bp / 2, c0[1] - Bp / 2, Bp, 4)
+        squares = [c for q in squares for c in B._cover_squares(c0, Bp / 2, *q, 2)]
+        holds = [q for q in squares if B._square_distance(mid[None], *q)[0] == 0]
+        assert holds, "the cover misses the midpoint"
+        sthr, scaps = B._square_limit(Bp, n_max)
+        for q in holds:
+            dq = B._square_distance(pos[cells], *q)
+            assert np.all(dq <= Bp / 2 + 1e-9)
+            assert np.all((dq[:, None] >= sthr[None, :]).sum(axis=0) <= scaps)
+        # and the certificate's own plan check accepts it
+        plan = SimpleNamespace(cells=cells, start=start)
+        B._check_plan_limits(cells, np.array([-1]), region, D[start], (thr, caps),
+                             [(*q, 0.0) for q in squares], Bp, n_max, plan)
+
+
+@pytest.mark.parametrize("budget, k, ridge", [(2.3, 3, 0.0), (3.0, 2, 0.0), (3.6, 3, 0.0),
+                                              (4.2, 3, 0.01), (4.5, 2, 0.0)])
+def test_tightened_bound_covers_every_path_feasible_set_brute_force(budget, k, ridge):
+    from lrm_cvx.planning.greedy import initial_cells
+
+    region = make_region(7, 7, masked=[(2, 3), (4, 1), (0, 0)])
+    Y = _grid_Y(region, k, 3)
+    start = int(region.cell_grid[3, 3])
+    sets = path_feasible_sets(grid_distances(region), start, budget)
+    best = max(logdet(ridge * np.eye(k) + Y[:, sorted(S)] @ Y[:, sorted(S)].T) for S in sets)
+    init = initial_cells(region, start, k)
+    best = max(best, logdet(ridge * np.eye(k) + Y[:, init] @ Y[:, init].T))
+    tight = B.plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6)
+    loose = B.plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6, tighten=False)
+    assert tight.tightened and len(tight.leaves) >= 4
+    assert best - 1e-9 <= tight.bound <= loose.bound + 1e-6
+    assert tight.bound < loose.bound - 0.1  # the tightening does something here
+    # no refinement at all is valid too (and looser or equal)
+    coarse = B.plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6, max_pieces=1)
+    assert best - 1e-9 <= coarse.bound and tight.bound <= coarse.bound + 1e-6

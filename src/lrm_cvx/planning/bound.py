@@ -18,8 +18,10 @@ and multiplier ``nu`` (closed forms), which bounds the relaxation for *any* ``w`
     log det M*  <=  log det M(w) + k log(S / k),
     S = ridge tr M(w)^-1 + (sum of the n largest g_i over all candidates).
 
-See ``docs/certificate.md`` for the derivations and the proof that the plan bound covers every
-plan of the greedy planner and the baselines.
+``plan_bound`` tightens the relaxation with the path's geometry (distance limits from the start
+and from a cover of the path's possible midpoints; linear count limits whose multipliers enter
+the dual). See ``docs/certificate.md`` for the derivations and the proofs that the plan bound
+covers every plan of the greedy planner and the baselines.
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ _CLARABEL_OPTS = (
     {"max_step_fraction": 0.9, "chordal_decomposition_enable": False},
 )
 _SCS_OPTS = {"eps_abs": 1e-7, "eps_rel": 1e-7, "max_iters": 20000}
+_FW_LIMITED = 4  # Frank-Wolfe steps when the relaxation has count limits (one LP each)
 _DIST_EPS = 1e-9  # slack on budget comparisons: the bound must cover float-rounded path costs
 
 
@@ -118,6 +121,9 @@ class PlanCertificate:
     dimension (1 = certified optimal). ``online_bound`` is the submodularity bound
     ``f(P) + sum of the n_max largest marginal gains at P`` (see docs/certificate.md), when a
     plan was given; it is reported beside and ``bound`` already takes the smaller of the two.
+    ``tightened``: the relaxation had the path's distance limits (docs/certificate.md §6);
+    ``leaves``: the final squares of the midpoint cover ``(row0, col0, side, value)``, whose
+    largest value is ``relaxation.value`` (empty without the cover).
     """
 
     bound: float
@@ -134,6 +140,8 @@ class PlanCertificate:
     initial_information: float
     relaxation: Bound
     online_bound: float | None = None
+    tightened: bool = False
+    leaves: tuple[tuple[float, float, float, float], ...] = field(default=(), repr=False)
 
     @property
     def relative_gap(self) -> float | None:
@@ -165,6 +173,9 @@ class PlanCertificate:
             f"  at most {self.n_max} cells out of {self.n_candidates} candidates "
             f"within the budget"
         )
+        if self.tightened:
+            lines.append(f"  tightened: distance limits, midpoint cover of "
+                         f"{len(self.leaves)} squares")
         return "\n".join(lines)
 
     def _repr_html_(self) -> str:
@@ -222,7 +233,12 @@ def _chol(M: np.ndarray) -> np.ndarray | None:
 
 
 def _inv_lower(L: np.ndarray) -> np.ndarray:
-    return scipy.linalg.solve_triangular(L, np.eye(L.shape[0]), lower=True)
+    """Inverse of a small lower-triangular matrix (LAPACK trtri; scipy's solve_triangular
+    costs milliseconds of overhead per call)."""
+    inv, info = scipy.linalg.lapack.dtrtri(np.asarray(L, dtype=np.float64), lower=1)
+    if info != 0:
+        return scipy.linalg.solve_triangular(L, np.eye(L.shape[0]), lower=True)
+    return np.tril(inv)
 
 
 def _top_sum(g: np.ndarray, n: float) -> tuple[float, float]:
@@ -247,14 +263,184 @@ def _top_sum(g: np.ndarray, n: float) -> tuple[float, float]:
     return float(top[:m].sum() + f * top[m]), float(top[m])
 
 
+# ----------------------------------------------------------------------------- the polytope
+class _Polytope:
+    """Feasible weights ``{0 <= w <= 1, sum w <= n, nested count limits}`` over N candidates.
+
+    Each limit family ``f`` gives every candidate a level ``level_f[i] in 0..J_f`` and caps
+    ``caps_f`` (J_f,): ``sum_{i: level_f[i] >= j} w_i <= caps_f[j-1]`` for ``j = 1..J_f`` (the
+    sets are nested, e.g. "farther than r_j from the start"). With multipliers ``nu >= 0`` for
+    the sum and ``mu_f >= 0`` for the limits, the dual term of the relaxation is
+    ``h = nu n + sum_f mu_f . caps_f + sum_i max(0, g_i - price_i)`` with
+    ``price_i = nu + sum_f sum_{j <= level_f[i]} mu_fj``; ``min h = max_{v in polytope} g . v``
+    (LP duality). ``h`` at *any* multipliers is an upper bound, so the multipliers may come from
+    an inexact LP solver: ``support`` evaluates ``h`` exactly over all N candidates.
+    """
+
+    def __init__(self, n: float, N: int, levels: Any = (), caps: Any = ()) -> None:
+        self.n = float(n)
+        self.N = int(N)
+        self.levels = [np.ascontiguousarray(lv, dtype=np.int64) for lv in levels]
+        self.caps = [np.asarray(c, dtype=np.float64) for c in caps]
+        # effective cap of a cell of level l: min(n, caps[0..l-1]) (the sets are nested)
+        self.eff = [
+            np.concatenate([[self.n], np.minimum.accumulate(np.minimum(c, self.n))])
+            for c in self.caps
+        ]
+
+    @property
+    def limited(self) -> bool:
+        return bool(self.levels)
+
+    def subset(self, idx: np.ndarray) -> _Polytope:
+        return _Polytope(self.n, idx.size, [lv[idx] for lv in self.levels], self.caps)
+
+    # -- dual side
+    def price(self, nu: float, mus: list[np.ndarray], idx: Any = None) -> np.ndarray:
+        """``price_i = nu + sum_f sum_{j <= level_f[i]} mu_fj`` (for ``idx`` or all cells)."""
+        n_out = self.N if idx is None else len(idx)
+        p = np.full(n_out, float(nu))
+        for lv, mu in zip(self.levels, mus, strict=True):
+            cum = np.concatenate([[0.0], np.cumsum(mu)])
+            p += cum[lv if idx is None else lv[idx]]
+        return p
+
+    def h(self, g: np.ndarray, nu: float, mus: list[np.ndarray]) -> float:
+        """The dual term at ``(nu, mus)``: an upper bound on ``max g . v`` over the polytope."""
+        val = nu * self.n + sum(float(mu @ c) for mu, c in zip(mus, self.caps, strict=True))
+        return val + float(np.maximum(g - self.price(nu, mus), 0.0).sum())
+
+    # -- the linear program max g . v over the polytope
+    def _reduce(self, g: np.ndarray) -> np.ndarray:
+        """Cells that suffice for the LP: the top ``cap + 1`` cells by ``g`` of each level class.
+
+        Cells with equal levels in every family are interchangeable in the constraints, so an
+        optimal v uses the largest ``g`` of each class, at most ``cap = min(n, caps)`` of them.
+        One more cell per class makes the reduced LP's multipliers optimal for the full LP too:
+        that cell has ``v < 1`` or ties, so complementary slackness gives ``g <= price`` on it,
+        hence on every dropped cell of its class (same price, smaller ``g``).
+        """
+        cls = np.zeros(self.N, np.int64)
+        cap = np.full(self.N, self.n)
+        for lv, eff in zip(self.levels, self.eff, strict=True):
+            cls = cls * (eff.size) + lv
+            cap = np.minimum(cap, eff[lv])
+        order = np.lexsort((np.arange(self.N), -g, cls))
+        cs = cls[order]
+        first = np.flatnonzero(np.r_[True, cs[1:] != cs[:-1]])
+        start_of = np.repeat(first, np.diff(np.r_[first, cs.size]))
+        rank = np.arange(cs.size) - start_of
+        keep = rank < np.ceil(cap[order] - 1e-9) + 1
+        return np.sort(order[keep])
+
+    def _rows(self, idx: np.ndarray) -> tuple[scipy.sparse.csr_array, np.ndarray]:
+        """Constraint matrix (sum row, then each family's nested sets) and caps, cells ``idx``."""
+        m = idx.size
+        r_parts, c_parts = [np.zeros(m, np.int64)], [np.arange(m)]
+        b = [self.n]
+        off = 1
+        for lv, c in zip(self.levels, self.caps, strict=True):
+            lvl = lv[idx]
+            tot = int(lvl.sum())
+            cells = np.repeat(np.arange(m), lvl)
+            starts = np.repeat(np.cumsum(lvl) - lvl, lvl)
+            r_parts.append(off + np.arange(tot) - starts)
+            c_parts.append(cells)
+            b.extend(c.tolist())
+            off += c.size
+        rows = np.concatenate(r_parts)
+        cols = np.concatenate(c_parts)
+        A = scipy.sparse.csr_array((np.ones(rows.size), (rows, cols)), shape=(off, m))
+        return A, np.asarray(b)
+
+    def lp(self, g: np.ndarray, idx: Any = None) -> tuple[float, list[np.ndarray], np.ndarray]:
+        """Multipliers ``(nu, mus)`` of ``max g . v`` over the polytope restricted to ``idx``
+        (all cells by default) and a maximising vertex ``v`` (N,) (zero off ``idx``)."""
+        from scipy.optimize import linprog
+
+        cells = np.arange(self.N) if idx is None else np.asarray(idx)
+        sub = cells[self.subset(cells)._reduce(g[cells])] if cells.size else cells
+        v = np.zeros(self.N)
+        if sub.size == 0:
+            return 0.0, [np.zeros(c.size) for c in self.caps], v
+        A, b = self._rows(sub)
+        scale = float(g[sub].max()) or 1.0
+        res = linprog(-g[sub] / scale, A_ub=A, b_ub=b, bounds=(0.0, 1.0), method="highs")
+        if res.status != 0 or res.x is None:
+            raise SolverError(f"HiGHS failed on the count-limit LP: {res.message}")
+        y = np.maximum(-np.asarray(res.ineqlin.marginals), 0.0) * scale
+        mus, off = [], 1
+        for c in self.caps:
+            mus.append(y[off: off + c.size])
+            off += c.size
+        v[sub] = res.x
+        return float(y[0]), mus, v
+
+    def support(self, g: np.ndarray) -> tuple[float, Any]:
+        """An upper bound on ``max_{v in polytope} g . v`` (exact up to the LP's duals)."""
+        if not self.limited:
+            return _top_sum(g, self.n)
+        nu, mus, _ = self.lp(g)
+        return self.h(g, nu, mus), (nu, mus)
+
+    def vertex(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A feasible maximiser of ``g . v`` (indices, weights); ties to the lowest index."""
+        if not self.limited:
+            return _top_vertex(g, self.n)
+        _, _, v = self.lp(g)
+        v = self.project(v)
+        idx = np.flatnonzero(v)
+        return idx, v[idx]
+
+    def project(self, w: np.ndarray) -> np.ndarray:
+        """Clip to [0, 1], drop interior-point zeros, scale down until every limit holds."""
+        w = np.clip(np.asarray(w, dtype=np.float64), 0.0, 1.0)
+        w[w < 1e-6] = 0.0
+        factor = 1.0
+        s = w.sum()
+        if s > self.n:
+            factor = self.n / s
+        for lv, c in zip(self.levels, self.caps, strict=True):
+            per = np.bincount(lv, weights=w, minlength=c.size + 1)
+            sums = np.cumsum(per[::-1])[::-1][1: c.size + 1]  # sets level >= j, j = 1..J
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = np.where(sums > c, c / sums, 1.0)
+            factor = min(factor, float(r.min()) if r.size else 1.0)
+        if factor < 1.0:
+            w *= factor * (1 - 1e-12)
+        return w
+
+    def is_feasible(self, w: np.ndarray, rtol: float = 1e-12) -> bool:
+        if np.any(w < 0) or np.any(w > 1) or w.sum() > self.n * (1 + rtol):
+            return False
+        for lv, c in zip(self.levels, self.caps, strict=True):
+            per = np.bincount(lv, weights=w, minlength=c.size + 1)
+            sums = np.cumsum(per[::-1])[::-1][1: c.size + 1]
+            if np.any(sums > c * (1 + rtol) + rtol):
+                return False
+        return True
+
+    def uniform(self) -> np.ndarray:
+        """A feasible design with every weight positive: ``w_i = min(1, n/N, caps_j/|S_j|)``."""
+        w = np.full(self.N, min(1.0, self.n / self.N))
+        for lv, c in zip(self.levels, self.caps, strict=True):
+            per = np.bincount(lv, minlength=c.size + 1).astype(np.float64)
+            size = np.cumsum(per[::-1])[::-1][1: c.size + 1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(size > 0, c / size, np.inf)
+            lim = np.concatenate([[np.inf], np.minimum.accumulate(ratio)])
+            w = np.minimum(w, lim[lv])
+        return w
+
+
 def _dual_from_M(
-    Yc: np.ndarray, M: np.ndarray, n: float, ridge: float
-) -> tuple[float, float, np.ndarray, float] | None:
+    Yc: np.ndarray, M: np.ndarray, n: float | _Polytope, ridge: float
+) -> tuple[float, float, np.ndarray, Any] | None:
     """Dual certificate at ``Z = t M^-1``: ``(value, logdet M, g, mu)`` or None if M is singular.
 
-    With ``g_i = y_i^T M^-1 y_i`` and ``S = ridge tr M^-1 + top-n sum of g``, the dual function
-    minimised over the scale ``t`` (``t = k / S``) and ``nu = t mu`` is
-    ``log det M + k log(S / k)``.
+    With ``g_i = y_i^T M^-1 y_i`` and ``S = ridge tr M^-1 + top-n sum of g`` (with count limits:
+    the polytope's dual term ``h`` at the LP's multipliers), the dual function minimised over the
+    scale ``t`` (``t = k / S``) and ``nu = t mu`` is ``log det M + k log(S / k)``.
     """
     k = M.shape[0]
     L = _chol(M)
@@ -263,7 +449,10 @@ def _dual_from_M(
     logdet = 2.0 * float(np.log(np.diag(L)).sum())
     Linv = _inv_lower(L)
     g = _leverages(Yc, Linv)
-    top, mu = _top_sum(g, n)
+    if isinstance(n, _Polytope):
+        top, mu = n.support(g)
+    else:
+        top, mu = _top_sum(g, n)
     S = ridge * float((Linv * Linv).sum()) + top
     if not (np.isfinite(S) and S > 0 and np.isfinite(logdet)):
         return None
@@ -408,16 +597,22 @@ def _top_vertex(g: np.ndarray, n: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _frank_wolfe(
-    Yc: np.ndarray, n: float, ridge: float, iters: int, tol: float
+    Yc: np.ndarray, n: float | _Polytope, ridge: float, iters: int, tol: float
 ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float]]]:
-    """Frank-Wolfe with exact line search from the uniform design; returns (w, M, history).
+    """Frank-Wolfe with exact line search from a uniform design; returns (w, M, history).
 
-    Each step costs one pass over the candidates (leverages, top-n); the iterate's dual bound is
-    free. Used to pick the working set and as the fallback certificate.
+    Each step costs one pass over the candidates (leverages, then the top-n vertex, or one LP
+    on the reduced cells when there are count limits); the iterate's dual bound is free. Used to
+    pick the working set and as the fallback certificate.
     """
     k, N = Yc.shape
-    w = np.full(N, min(1.0, n / N))
-    B = (Yc @ Yc.T) * w[0]
+    poly = n if isinstance(n, _Polytope) else None
+    if poly is None:
+        w = np.full(N, min(1.0, n / N))
+        B = (Yc @ Yc.T) * w[0]
+    else:
+        w = poly.uniform()
+        B = (Yc * w) @ Yc.T
     M = B + ridge * np.eye(k)
     hist: list[tuple[float, float]] = []
     for _ in range(iters):
@@ -426,13 +621,20 @@ def _frank_wolfe(
             break
         Linv = _inv_lower(L)
         g = _leverages(Yc, Linv)
-        top, _ = _top_sum(g, n)
+        if poly is None:
+            top, _ = _top_sum(g, n)
+            idx, s = _top_vertex(g, n)
+        else:
+            nu, mus, v = poly.lp(g)
+            top = poly.h(g, nu, mus)
+            v = poly.project(v)
+            idx = np.flatnonzero(v)
+            s = v[idx]
         S = ridge * float((Linv * Linv).sum()) + top
         logdet = 2.0 * float(np.log(np.diag(L)).sum())
         hist.append((logdet + k * math.log(max(S, k) / k), logdet))
         if S - k <= tol:
             break
-        idx, s = _top_vertex(g, n)
         Bs = (Yc[:, idx] * s) @ Yc[:, idx].T
         Ms = Bs + ridge * np.eye(k)
         A = Linv @ Ms @ Linv.T
@@ -449,17 +651,19 @@ def _frank_wolfe(
 
 # ----------------------------------------------------------------------------- cvxpy
 def _solve_restricted(
-    Yw: np.ndarray, C: np.ndarray, n: float, solver: str, verbose: bool = False
+    Yw: np.ndarray, C: np.ndarray, n: float, solver: str, verbose: bool = False,
+    rows: tuple[Any, np.ndarray] | None = None,
 ) -> tuple[np.ndarray | None, str]:
     """Relaxation over the columns of ``Yw`` (k, m) with constant term ``C``, in cvxpy.
 
     ``M(w) = C + sum_j w_j y_j y_j^T`` is an affine map of ``w``: its k(k+1)/2 distinct entries
     are ``F w`` with ``F[(a, b), j] = y_aj y_bj``, scattered into the k x k matrix by a constant
-    0/1 matrix, so the model never forms ``Y diag(w) Y^T``. Returns ``(w, status)``; ``w`` is
-    None when the solver failed.
+    0/1 matrix, so the model never forms ``Y diag(w) Y^T``. ``rows = (A, b)`` adds the linear
+    count limits ``A w <= b``. Returns ``(w, status)``; ``w`` is None when the solver failed.
     """
     import cvxpy as cp
 
+    limit_rows = rows
     k, m = Yw.shape
     iu, ju = np.triu_indices(k)
     F = Yw[iu] * Yw[ju]  # (p, m)
@@ -474,7 +678,10 @@ def _solve_restricted(
     w = cp.Variable(m)
     vecM = C.ravel() + E @ (F @ w)
     Mexpr = cp.reshape(vecM, (k, k), order="C")
-    prob = cp.Problem(cp.Maximize(cp.log_det(Mexpr)), [w >= 0, w <= 1, cp.sum(w) <= n])
+    cons = [w >= 0, w <= 1, cp.sum(w) <= n]
+    if limit_rows is not None and limit_rows[0].shape[0]:
+        cons.append(limit_rows[0] @ w <= limit_rows[1])
+    prob = cp.Problem(cp.Maximize(cp.log_det(Mexpr)), cons)
     attempts = _CLARABEL_OPTS if solver == "CLARABEL" else (_SCS_OPTS,)
     status = "not run"
     for opts in attempts:
@@ -508,6 +715,7 @@ def dopt_upper_bound(
     *,
     candidates: Any = None,
     ridge: float = 0.0,
+    limits: Any = None,
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL",
     tol: float = 1e-3,
     max_iter: int = 30,
@@ -522,6 +730,11 @@ def dopt_upper_bound(
     n : the largest number of cells a plan may hold (> 0; fractional allowed).
     candidates : int array of the cell indices a plan may use; all ``L`` cells by default.
     ridge : ``>= 0``, added to the information matrix (as in ``fisher_information``).
+    limits : optional nested count limits, a sequence of ``(values, thresholds, caps)``:
+        ``values`` ``(L,)`` per cell (e.g. distance from the start), ``thresholds`` ascending
+        ``(J,)``, ``caps`` ``(J,) >= 0``; every plan holds at most ``caps[j]`` cells with
+        ``values >= thresholds[j]``. The relaxation gets the linear constraints
+        ``sum_{values_i >= thresholds_j} w_i <= caps_j`` and the dual their multipliers.
     solver : conic solver for the working-set problems; the other one is the fallback.
     tol : target gap (nats) between the dual bound and the primal value.
     max_iter : column-generation rounds (each one cvxpy solve plus one pass over candidates).
@@ -531,18 +744,70 @@ def dopt_upper_bound(
     Lagrange dual value, not a solver's claim). Raises :class:`SolverError` only when no
     feasible weight with a finite ``log det`` could be found.
     """
-    t0 = time.perf_counter()
     Y = as_factor_matrix(Y)
     k, L = Y.shape
     n, ridge = _check_n_ridge(n, ridge)
+    cand = _check_candidates(candidates, L)
+    poly = _polytope_from_limits(n, cand, limits, L)
+    return _relaxation(Y, cand, poly, ridge, solver=solver, tol=tol, max_iter=max_iter,
+                       fw_iter=fw_iter, verbose=verbose)
+
+
+def _polytope_from_limits(n: float, cand: np.ndarray, limits: Any, L: int) -> _Polytope:
+    """Validate ``limits`` (see :func:`dopt_upper_bound`) and give each candidate its levels."""
+    if limits is None:
+        return _Polytope(n, cand.size)
+    levels, caps = [], []
+    for f, item in enumerate(limits):
+        try:
+            values, thr, cap = item
+        except (TypeError, ValueError):
+            raise PlanningError(
+                f"limits[{f}] must be a (values, thresholds, caps) triple"
+            ) from None
+        values = np.asarray(values, dtype=np.float64)
+        thr = np.atleast_1d(np.asarray(thr, dtype=np.float64))
+        cap = np.atleast_1d(np.asarray(cap, dtype=np.float64))
+        if values.shape != (L,):
+            raise PlanningError(f"limits[{f}] values must have shape ({L},), got {values.shape}")
+        if thr.ndim != 1 or thr.shape != cap.shape:
+            raise PlanningError(f"limits[{f}] thresholds and caps must be 1-D of equal length")
+        if not (np.all(np.isfinite(thr)) and np.all(np.diff(thr) > 0)):
+            raise PlanningError(f"limits[{f}] thresholds must be finite and strictly ascending")
+        if not (np.all(np.isfinite(cap)) and np.all(cap >= 0)):
+            raise PlanningError(f"limits[{f}] caps must be finite and >= 0")
+        if np.any(np.isnan(values[cand])):
+            raise PlanningError(f"limits[{f}] values must not be NaN on the candidates")
+        levels.append(np.searchsorted(thr, values[cand], side="right"))
+        caps.append(cap)
+    return _Polytope(n, cand.size, levels, caps)
+
+
+def _relaxation(
+    Y: np.ndarray,
+    cand: np.ndarray,
+    poly: _Polytope,
+    ridge: float,
+    *,
+    solver: str = "CLARABEL",
+    tol: float = 1e-3,
+    max_iter: int = 30,
+    fw_iter: int = 25,
+    verbose: bool | int = False,
+) -> Bound:
+    """:func:`dopt_upper_bound` on validated input: candidates ``cand``, feasible set ``poly``."""
+    t0 = time.perf_counter()
+    k, L = Y.shape
+    n = poly.n
     solver = str(solver).upper()
     if solver not in _SOLVERS:
         raise PlanningError(f"solver must be one of {_SOLVERS}, got {solver!r}")
     if not (math.isfinite(tol) and tol > 0):
         raise PlanningError(f"tol must be > 0 and finite, got {tol!r}")
-    cand = _check_candidates(candidates, L)
     N = cand.size
     Yc = np.ascontiguousarray(Y[:, cand])
+    limited = poly.limited
+    what: float | _Polytope = poly if limited else n
 
     def result(value, primal, idx, wv, status, n_working=0, iters=0, fw=0, used="none",
                hist=()) -> Bound:
@@ -562,20 +827,20 @@ def dopt_upper_bound(
     G = Yc @ Yc.T
     if ridge == 0 and np.linalg.matrix_rank(G) < k:
         return result(-math.inf, -math.inf, np.arange(0), np.zeros(0), "singular")
-    if n >= N:  # w = 1 on every candidate is optimal (log det is monotone)
+    if n >= N and poly.is_feasible(np.ones(N)):
+        # w = 1 on every candidate is feasible, hence optimal (log det is monotone)
         M = G + ridge * np.eye(k)
-        out = _dual_from_M(Yc, M, n, ridge)
+        out = _dual_from_M(Yc, M, what, ridge)
         if out is None:
             raise SolverError("information matrix of all candidates is not positive definite")
-        # w = 1 is exactly optimal here, so the relaxation's value is log det M itself
         return result(out[1], out[1], np.arange(N), np.ones(N), "trivial")
 
     # 1. Frank-Wolfe warm start over all candidates
-    w_fw, M_fw, hist = _frank_wolfe(Yc, n, ridge, fw_iter, max(tol, 0.01))
+    # with count limits each Frank-Wolfe step solves an LP: a few steps pick the working set
+    fw_n = min(fw_iter, _FW_LIMITED) if limited else fw_iter
+    w_fw, M_fw, hist = _frank_wolfe(Yc, what, ridge, fw_n, max(tol, 0.01))
     fw_done = len(hist)
-    best_val, best_primal = math.inf, -math.inf
-    best_w: tuple[np.ndarray, np.ndarray] | None = None
-    out = _dual_from_M(Yc, M_fw, n, ridge)
+    out = _dual_from_M(Yc, M_fw, what, ridge)
     if out is None:
         raise SolverError(
             "Frank-Wolfe warm start lost positive definiteness; no feasible design to certify"
@@ -590,10 +855,17 @@ def dopt_upper_bound(
     m0 = min(N, 2 * nc + 20 * k)
     batch = max(nc, 10 * k)
     # first working set: the Frank-Wolfe iterate's main support plus the top leverages
+    # (with count limits: the top reduced leverages g - price, which respect the limits)
     heavy = np.flatnonzero(w_fw >= 1e-3)
     if heavy.size > 2 * m0:
         heavy = heavy[np.argsort(-w_fw[heavy], kind="stable")[: 2 * m0]]
-    W = np.union1d(_top_vertex(g, m0)[0], heavy)
+    if limited:
+        nu, mus = out[3]
+        score = g - poly.price(nu, mus)
+        first = np.argsort(-score, kind="stable")[:m0]
+    else:
+        first = _top_vertex(g, m0)[0]
+    W = np.union1d(first, heavy)
     status_msgs: list[str] = []
     used = "Frank-Wolfe"
     iters = 0
@@ -605,19 +877,25 @@ def dopt_upper_bound(
         A = _inv_lower(Lr)  # congruence: A M_ref A^T = I keeps the conic problem well scaled
         Yw = A @ Yc[:, W]
         C = ridge * (A @ A.T)
+        rows = poly.subset(W)._rows(np.arange(W.size)) if limited else None
+        if rows is not None:  # the sum row is already in the model
+            rows = (rows[0][1:], rows[1][1:])
         wW = None
         for s in (solver,) + tuple(x for x in _SOLVERS if x != solver):
-            wW, st = _solve_restricted(Yw, C, n, s, verbose > 1)
+            wW, st = _solve_restricted(Yw, C, n, s, verbose > 1, rows=rows)
             if wW is not None:
                 used = s
                 break
             status_msgs.append(f"{s}: {st}")
         if wW is None:
             break
-        wW = _feasible(wW, n)
+        if limited:
+            wW = poly.subset(W).project(wW)
+        else:
+            wW = _feasible(wW, n)
         nzw = wW > 0
         M = _moment(Yc, W[nzw], wW[nzw], ridge)
-        out = _dual_from_M(Yc, M, n, ridge)
+        out = _dual_from_M(Yc, M, what, ridge)
         if out is None:
             status_msgs.append("working-set solution singular")
             break
@@ -632,17 +910,25 @@ def dopt_upper_bound(
         M_ref = M
         if best_val - best_primal <= tol:
             break
-        # violators: cells outside W whose leverage beats W's marginal (ceil(n)-th) leverage
-        gW = np.sort(g[W])[::-1]
-        tau = gW[nc - 1] if W.size >= nc else 0.0
         inW = np.zeros(N, bool)
         inW[W] = True
-        viol = np.flatnonzero((g > tau * (1 + 1e-9)) & ~inW)
+        if limited:
+            # violators: positive reduced cost at the working set's LP multipliers
+            nu, mus, _ = poly.lp(g, W)
+            rc = g - poly.price(nu, mus)
+            viol = np.flatnonzero((rc > 1e-9 * max(float(g.max()), 1e-300)) & ~inW)
+            key = rc
+        else:
+            # violators: cells outside W whose leverage beats W's marginal (ceil(n)-th) one
+            gW = np.sort(g[W])[::-1]
+            tau = gW[nc - 1] if W.size >= nc else 0.0
+            viol = np.flatnonzero((g > tau * (1 + 1e-9)) & ~inW)
+            key = g
         if viol.size == 0:
             status_msgs.append("no violator left: working-set solve is inexact")
             break
         if viol.size > batch:
-            viol = viol[np.argsort(-g[viol], kind="stable")[:batch]]
+            viol = viol[np.argsort(-key[viol], kind="stable")[:batch]]
         W = np.union1d(W, viol)
 
     gap = best_val - best_primal
@@ -653,7 +939,7 @@ def dopt_upper_bound(
             f"D-optimal bound gap {gap:.3g} nats > tol={tol:g} after {iters} rounds "
             f"({note or 'iteration limit'}); the bound is still valid",
             ConvergenceWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
     idx, wv = best_w
     return result(best_val, best_primal, idx, wv, status, W.size, iters, fw_done, used, hist)
@@ -671,17 +957,29 @@ def plan_bound(
     metric: Literal["grid", "km"] = "grid",
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL",
     tol: float = 1e-3,
+    tighten: bool = True,
+    cover: int = 2,
+    max_pieces: int = 40,
 ) -> PlanCertificate:
     """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
 
     Every plan of ``plan_greedy`` (any cost, since each is the length of a path from the start
     through all the plan's cells), ``transect`` and ``random_walk`` is either the greedy's forced
-    initial set (start plus its k-1 nearest cells) or a set of at most ``n_max`` cells within
-    ``budget`` of the start, where ``n_max = floor(budget / d_min) + 1`` and ``d_min`` is the
-    smallest distance between two candidate cells (1 grid unit for ``metric="grid"``). Hence
-    ``bound = max(I(initial set), relaxation over the budget disk with n = n_max)``; when the
-    plan is given the submodularity online bound is computed too and the smaller one is kept.
-    Proofs in docs/certificate.md.
+    initial set (start plus its k-1 nearest cells) or the cells visited by a path from the start
+    of length ``<= budget``. The latter are at most ``n_max = floor(budget / d_min) + 1`` cells
+    within ``budget`` of the start (``d_min`` = the smallest distance between two candidate
+    cells, 1 grid unit for ``metric="grid"``), so ``bound = max(I(initial set), relaxation)``.
+
+    With ``tighten=True`` (default) the relaxation also gets the path's *distance limits*: at
+    most ``floor((budget - r) / d_min) + 1`` cells at distance ``>= r`` from the start, for a
+    ladder of radii ``r``; and for ``metric="grid"`` (and ``budget >= 2``) the *midpoint cover*:
+    the path's midpoint lies in one of the squares of side ``budget / (2 cover)`` that tile the
+    disk of radius ``budget / 2`` around the start, the plan then lies within ``budget / 2`` of
+    that square and holds at most ``floor(budget - 2 s) + 2`` cells at distance ``>= s`` from it.
+    The bound is the maximum of one relaxation per square; the square with the largest bound is
+    split into four while at most ``max_pieces`` relaxations have been solved. ``tighten=False``
+    gives the plain disk relaxation. When the plan is given, the submodularity online bound is
+    computed too and the smaller one is kept. Proofs in docs/certificate.md.
 
     ``budget`` is in grid units (``metric="grid"``) or km (``metric="km"``).
     """
@@ -700,25 +998,45 @@ def plan_bound(
     _, ridge = _check_n_ridge(1.0, ridge)
     if metric not in ("grid", "km"):
         raise PlanningError(f"metric must be 'grid' or 'km', got {metric!r}")
+    if not isinstance(cover, (int, np.integer)) or cover < 1:
+        raise PlanningError(f"cover must be an integer >= 1, got {cover!r}")
+    if not isinstance(max_pieces, (int, np.integer)) or max_pieces < 1:
+        raise PlanningError(f"max_pieces must be an integer >= 1, got {max_pieces!r}")
 
     dist = np.asarray(region.distance(start, np.arange(L), metric=metric), dtype=np.float64)
     slack = _DIST_EPS * max(1.0, budget)
-    cand = np.flatnonzero(dist <= budget + slack)
+    Bp = budget + slack  # every path cost the planners accept is <= Bp
+    cand = np.flatnonzero(dist <= Bp)
     if metric == "grid":
         d_min = 1.0
     else:
         d_min = _min_spacing_km(region, cand)
-    n_max = min(cand.size, math.floor((budget + slack) / d_min) + 1) if d_min > 0 else cand.size
+    n_max = min(cand.size, math.floor(Bp / d_min) + 1) if d_min > 0 else cand.size
 
     init = np.asarray(initial_cells(region, start, k), dtype=np.int64)
     init_info = float(fisher_information(Y, init, ridge=ridge))
-    relax = dopt_upper_bound(Y, n_max, candidates=cand, ridge=ridge, solver=solver, tol=tol)
+    opts = {"solver": solver, "tol": tol}
+    leaves: list[tuple[float, float, float, float]] = []
+    start_lim = _start_limit(Bp, d_min, n_max) if tighten and math.isfinite(d_min) else None
+    start_lv = (
+        np.searchsorted(start_lim[0], dist[cand], side="right") if start_lim else None
+    )
+    if tighten and metric == "grid" and Bp >= 2.0:
+        centre = region.grid_index[start].astype(np.float64)
+        relax, leaves = _midpoint_cover(
+            Y, region, cand, start_lv, start_lim, centre, Bp, n_max, ridge, cover,
+            max_pieces, init_info, opts,
+        )
+    else:
+        levels, caps = ([start_lv], [start_lim[1]]) if start_lim else ([], [])
+        relax = _relaxation(Y, cand, _Polytope(n_max, cand.size, levels, caps), ridge, **opts)
     bound = max(init_info, relax.value)
 
     information = gap = ratio = online = None
     if plan is not None:
         cells = np.asarray(plan.cells, dtype=np.int64)
         _check_plan_feasible(cells, init, cand, n_max, plan, budget, slack)
+        _check_plan_limits(cells, init, region, dist, start_lim, leaves, Bp, n_max, plan)
         information = float(fisher_information(Y, cells, ridge=ridge))
         online = _online_bound(Y, cells, cand, n_max, ridge, information)
         if online is not None:
@@ -728,8 +1046,166 @@ def plan_bound(
         bound=float(bound), information=information, gap=gap, volume_ratio=ratio,
         n_max=int(n_max), n_candidates=int(cand.size), k=k, start=int(start), budget=budget,
         ridge=ridge, metric=metric, initial_information=init_info, relaxation=relax,
-        online_bound=online,
+        online_bound=online, tightened=bool(tighten), leaves=tuple(leaves),
     )
+
+
+# ----------------------------------------------------------------------------- path limits
+_NUDGE = 1e-6  # radii sit this far (in d_min) inside their cap's interval, away from rounding
+
+
+def _cap_ladder(lo: int, hi: int, count: int = 10) -> np.ndarray:
+    """About ``2 count`` integer caps in ``[lo, hi)``: geometric (dense near ``lo``) + linear."""
+    if hi <= lo:
+        return np.zeros(0, np.int64)
+    geo = np.geomspace(lo, max(hi - 1, lo), count)
+    lin = np.linspace(lo, max(hi - 1, lo), count)
+    return np.unique(np.round(np.concatenate([geo, lin])).astype(np.int64))
+
+
+def _start_limit(Bp: float, d_min: float, n_max: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Distance limits from the start: ``(thresholds, caps)``, ascending thresholds.
+
+    A path of length ``<= Bp`` from the start holds at most ``floor((Bp - r) / d_min) + 1`` cells
+    at distance ``>= r`` from the start. For a cap ``c`` the largest such set has ``r`` just
+    above ``Bp - c d_min``; the cap is recomputed from ``r`` (not assumed), and the threshold is
+    nudged up so that float distances cannot put a cell into a set it does not belong to.
+    """
+    thr, caps = [], []
+    for c in _cap_ladder(1, n_max)[::-1]:
+        r = Bp - (c - _NUDGE) * d_min
+        if r <= 0:
+            continue
+        cap = math.floor((Bp - r) / d_min) + 1
+        thr.append(r * (1 + 1e-12) + 1e-12)
+        caps.append(cap)
+    if not thr:
+        return None
+    return np.asarray(thr), np.asarray(caps, dtype=np.float64)
+
+
+def _square_limit(Bp: float, n_max: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distance limits from the midpoint's square: at most ``floor(Bp - 2 s) + 2`` cells at
+    distance ``>= s > 0`` from it (grid units, ``d_min = 1``); ascending thresholds."""
+    thr, caps = [], []
+    for c in _cap_ladder(2, n_max)[::-1]:
+        s = (Bp - c + 1 + 2 * _NUDGE) / 2
+        if s <= 0:
+            continue
+        cap = math.floor(Bp - 2 * s) + 2
+        thr.append(s * (1 + 1e-12) + 1e-12)
+        caps.append(cap)
+    return np.asarray(thr), np.asarray(caps, dtype=np.float64)
+
+
+def _square_distance(points: np.ndarray, r0: float, c0: float, h: float) -> np.ndarray:
+    """Euclidean distance (grid units) from ``points`` (m, 2) to the square ``[r0, r0+h] x
+    [c0, c0+h]`` (0 inside)."""
+    pr, pc = points[:, 0], points[:, 1]
+    dr = np.maximum(np.maximum(r0 - pr, pr - (r0 + h)), 0.0)
+    dc = np.maximum(np.maximum(c0 - pc, pc - (c0 + h)), 0.0)
+    return np.hypot(dr, dc)
+
+
+def _cover_squares(
+    centre: np.ndarray, radius: float, r0: float, c0: float, h: float, parts: int
+) -> list[tuple[float, float, float]]:
+    """The ``parts x parts`` sub-squares of ``[r0, r0+h] x [c0, c0+h]`` meeting the disk
+    ``B(centre, radius)``, as ``(r0, c0, side)``."""
+    s = h / parts
+    out = []
+    for a in range(parts):
+        for b in range(parts):
+            q = (r0 + a * s, c0 + b * s, s)
+            if _square_distance(centre[None, :], *q)[0] <= radius:
+                out.append(q)
+    return out
+
+
+def _midpoint_cover(
+    Y: np.ndarray, region: Any, cand: np.ndarray, start_lv: np.ndarray | None,
+    start_lim: tuple[np.ndarray, np.ndarray] | None, centre: np.ndarray, Bp: float,
+    n_max: int, ridge: float, cover: int, max_pieces: int, floor_value: float,
+    opts: dict[str, Any],
+) -> tuple[Bound, list[tuple[float, float, float, float]]]:
+    """Max over a cover of the possible path midpoints of the relaxation restricted to each piece.
+
+    The midpoint lies in the closed disk ``B(start, Bp / 2)``, tiled by squares of side
+    ``Bp / (2 cover)`` with a corner at the start. Piece ``Q``: the candidates within ``Bp / 2``
+    of ``Q``, the start's distance limits and ``Q``'s distance limits. The piece with the largest
+    bound is split into four (children keep ``min(own, parent)``: both bound the midpoints in
+    the child) until ``max_pieces`` relaxations have been solved or it is below ``floor_value``
+    (the initial set's information, which the certificate takes the maximum with anyway).
+    Returns the largest piece's :class:`Bound` and every final piece ``(r0, c0, side, value)``.
+    """
+    pos = region.grid_index[cand].astype(np.float64)
+    sq_thr, sq_caps = _square_limit(Bp, n_max)
+    half = Bp / 2
+
+    def solve(q: tuple[float, float, float]) -> Bound:
+        dq = _square_distance(pos, *q)
+        sel = np.flatnonzero(dq <= half * (1 + 1e-12) + 1e-12)
+        levels = [np.searchsorted(sq_thr, dq[sel], side="right")]
+        caps = [sq_caps]
+        if start_lv is not None:
+            levels.append(start_lv[sel])
+            caps.append(start_lim[1])
+        poly = _Polytope(n_max, sel.size, levels, caps)
+        return _relaxation(Y, cand[sel], poly, ridge, **opts)
+
+    side = Bp / cover  # 2 cover squares across the disk's diameter Bp
+    squares = _cover_squares(centre, half, centre[0] - half, centre[1] - half, Bp, 2 * cover)
+    del side
+    pieces: list[tuple[tuple[float, float, float], Bound, float]] = []
+    for q in squares:
+        b = solve(q)
+        pieces.append((q, b, b.value))
+    solved = len(pieces)
+    while True:
+        i = max(range(len(pieces)), key=lambda j: (pieces[j][2], -j))
+        q, b, val = pieces[i]
+        children = _cover_squares(centre, half, q[0], q[1], q[2], 2)
+        if val <= floor_value or solved + len(children) > max_pieces or q[2] < 0.5:
+            break
+        new = []
+        for c in children:
+            bc = solve(c)
+            new.append((c, bc if bc.value < val else b, min(bc.value, val)))
+        solved += len(children)
+        pieces[i: i + 1] = new
+    i = max(range(len(pieces)), key=lambda j: (pieces[j][2], -j))
+    leaves = [(q[0], q[1], q[2], v) for q, _, v in pieces]
+    return pieces[i][1], leaves
+
+
+def _check_plan_limits(
+    cells: np.ndarray, init: np.ndarray, region: Any, dist: np.ndarray,
+    start_lim: tuple[np.ndarray, np.ndarray] | None,
+    leaves: list[tuple[float, float, float, float]], Bp: float, n_max: int, plan: Any,
+) -> None:
+    """A covered plan satisfies the start's distance limits and lies in some piece's set."""
+    if set(cells.tolist()) == set(init.tolist()):
+        return
+    cells = np.unique(cells)
+    msg = f"the plan is not a path of length <= {Bp:.6g} from start={plan.start}: "
+    if start_lim is not None:
+        d = dist[cells]
+        counts = (d[:, None] >= start_lim[0][None, :]).sum(axis=0)
+        if np.any(counts > start_lim[1]):
+            raise PlanningError(msg + "too many cells far from the start; the certificate "
+                                "does not cover it")
+    if not leaves:
+        return
+    pos = region.grid_index[cells].astype(np.float64)
+    sq_thr, sq_caps = _square_limit(Bp, n_max)
+    for r0, c0, h, _ in leaves:
+        dq = _square_distance(pos, r0, c0, h)
+        if np.all(dq <= Bp / 2 * (1 + 1e-12) + 1e-12) and np.all(
+            (dq[:, None] >= sq_thr[None, :]).sum(axis=0) <= sq_caps
+        ):
+            return
+    raise PlanningError(msg + "no piece of the midpoint cover holds it; the certificate does "
+                        "not cover it")
 
 
 def _gap(bound: float, information: float, k: int) -> tuple[float, float]:
