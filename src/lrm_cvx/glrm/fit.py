@@ -1,0 +1,532 @@
+"""Alternating minimisation of a GLRM on a ``(T, L)`` matrix: init, X and Y steps, convergence.
+
+The problem (paper, Approach): with ``Omega`` the observed entries,
+
+    minimise  sum_{(t, j) in Omega} loss(x_t . y_j - D_tj) + sum_t reg_x(x_t) + sum_j reg_y(y_j)
+
+over ``X (k, T)`` and ``Y (k, L)``. Given ``X`` the cells are independent (Y step); given ``Y``
+the times are independent (X step). Data arrive as ``D`` (float32 or float64, ``(T, L)``) plus a
+boolean mask ``M`` (True = observed); ``D`` is never read where ``M`` is False and never copied.
+
+Block solvers, chosen by capability (never by name):
+
+- fast path (``solver="auto"``/``"fast"``) for a loss with a compiled quadratic majoriser
+  (``kernel_spec``) and a regulariser with a closed form (``ridge_coefficient``) or a separable
+  prox. One compiled pass over the data builds every column's (or row's) k x k Gram matrix of
+  the majoriser; then a batched k x k Cholesky (ridge / none) or exact coordinate descent on the
+  k x k system (L1, non-negative). For the quadratic loss this is the exact block minimiser.
+  For Huber, absolute and quantile losses it is one majorisation-minimisation (IRLS) step per
+  block per iteration (``max_inner`` of them), which never increases the objective; the L1-type
+  losses floor ``|r|`` at a tiny ``eps`` so their step is checked per column and reverted
+  where the objective went up.
+- cvxpy path (``solver="cvxpy"`` or a custom cvxpy regulariser): each block's subproblem is a
+  cvxpy problem over a batch of columns, compiled once with parameters (DPP) and re-solved for
+  every batch with Clarabel (SCS as fallback).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import cvxpy as cp
+import numba
+import numpy as np
+
+from ..errors import ConvergenceWarning, DataError, ModelError, SolverError
+from . import kernels as K
+from .losses import Loss
+from .regularizers import Regularizer
+
+__all__ = [
+    "FitResult",
+    "fit_glrm",
+    "objective",
+    "y_block",
+    "x_block",
+    "cvxpy_y_block",
+    "cvxpy_x_block",
+    "initialize",
+    "is_fast_capable",
+    "check_data",
+]
+
+Y_CHUNK = 1 << 17  # cells per Y-step chunk (bounds the Gram buffers to ~30 MB)
+SMALL_SVD = 4_000_000  # exact SVD of the mean-filled matrix below this many entries
+
+
+@dataclass
+class FitResult:
+    """Learned factors and diagnostics of :func:`fit_glrm`."""
+
+    X: np.ndarray  # (k, T) float64
+    Y: np.ndarray  # (k, L) float64
+    objective: list[float] = field(default_factory=list)
+    n_iter: int = 0
+    converged: bool = False
+    unobserved_cells: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    n_observed: int = 0
+    sse: float = 0.0  # sum of squared residuals on observed entries
+    noise_std: float = 0.0
+    solver: str = "fast"
+
+
+# --------------------------------------------------------------------------- data checks
+def check_data(D: np.ndarray, M: np.ndarray, rank: int, *, check_finite: bool = True):
+    """Validate ``D``/``M`` and the rank; return ``(row_counts, col_counts)``.
+
+    Raises DataError (wrong dims, all missing, inf among observed values, a time with no
+    observation) or ModelError (rank < 1 or > min(T, L)).
+    """
+    if D.ndim != 2:
+        raise DataError(f"data must be a (time, cell) matrix, got shape {D.shape}")
+    if M.shape != D.shape or M.dtype != np.bool_:
+        raise DataError(f"mask must be a boolean array of shape {D.shape}, got "
+                        f"{M.dtype} {M.shape}")
+    T, L = D.shape
+    if T == 0 or L == 0:
+        raise DataError(f"data is empty, shape {D.shape}")
+    if isinstance(rank, bool) or not isinstance(rank, (int, np.integer)):
+        raise ModelError(f"rank must be an integer, got {rank!r}")
+    if rank < 1 or rank > min(T, L):
+        raise ModelError(f"rank must be in [1, min(T, L)] = [1, {min(T, L)}], got {rank}")
+    rows, cols, nbad = K.mask_stats(D, M, check_finite)
+    if rows.sum() == 0:
+        raise DataError("data has no observed value (all missing / all NaN)")
+    if nbad:
+        raise DataError(f"data has {nbad} non-finite observed values (inf); use NaN or the "
+                        "mask for missing entries")
+    empty = np.flatnonzero(rows == 0)
+    if empty.size:
+        raise DataError(f"times {empty[:10].tolist()} have no observation; drop them first")
+    return rows, cols
+
+
+def is_fast_capable(loss: Loss, *regs: Regularizer) -> bool:
+    """True when the compiled path can fit this loss and these regularisers.
+
+    It needs the loss's compiled majoriser and, per regulariser, a closed form (ridge) or a
+    separable prox. An L1-type loss (``smoothing``) with a non-smooth regulariser (no closed
+    form) is left to cvxpy: IRLS combined with a kinked penalty can stall off the optimum.
+    """
+    if loss.kernel_spec is None:
+        return False
+    for r in regs:
+        if r.ridge_coefficient is None and (loss.smoothing or not r.separable_prox):
+            return False
+    return True
+
+
+# --------------------------------------------------------------------------- normal equations
+def _unpack(G: np.ndarray, k: int) -> np.ndarray:
+    pa, pb = K.pair_index(k)
+    A = np.empty((G.shape[0], k, k))
+    A[:, pa, pb] = G
+    A[:, pb, pa] = G
+    return A
+
+
+def _coordinate_descent(G, h, reg, F0, max_sweeps=1000, tol=1e-13):
+    """Exactly minimise ``y^T A y - 2 h^T y + g(y)`` for every row of ``h (n, k)``.
+
+    Cyclic coordinate descent with ``g``'s scalar prox (vectorised over the ``n`` systems):
+    coordinate ``i`` is ``prox_{g, 1/(2 A_ii)}(c_i / A_ii)``. Monotone and convergent for a
+    convex separable ``g``. A zero diagonal (nothing observed) gives ``g``'s minimiser.
+    """
+    n, k = h.shape
+    A = _unpack(G, k)
+    y = np.ascontiguousarray(F0.T, dtype=np.float64).copy()
+    diag = np.einsum("nii->ni", A).copy()
+    empty = diag <= 0
+    safe = np.where(empty, 1.0, diag)
+    zero = reg.minimizer(k)
+    for _ in range(max_sweeps):
+        change = 0.0
+        for i in range(k):
+            c = h[:, i] - np.einsum("nj,nj->n", A[:, i, :], y) + diag[:, i] * y[:, i]
+            new = reg.prox(c / safe[:, i], 0.5 / safe[:, i])
+            new = np.where(empty[:, i], zero[i], new)
+            change = max(change, float(np.max(np.abs(new - y[:, i]), initial=0.0)))
+            y[:, i] = new
+        if change <= tol * (1.0 + float(np.max(np.abs(y), initial=0.0))):
+            break
+    return y.T
+
+
+def _solve_normal(G, h, reg, F0):
+    """Minimiser of the majorised block problem for each column: ``(k, n)``."""
+    k = h.shape[1]
+    lam = reg.ridge_coefficient
+    if lam is not None:
+        pa, pb = K.pair_index(k)
+        out = np.empty((h.shape[0], k))
+        K.chol_solve(G, h, float(lam), pa, pb, out)
+        return out.T
+    if reg.separable_prox:
+        return _coordinate_descent(G, h, reg, F0)
+    raise ModelError(f"{reg!r} has no closed form or prox: use solver='cvxpy'")
+
+
+def _mm_block(pass_fn, F, loss, reg, max_inner, inner_tol, step0=0):
+    """Minimise one block by (majorised) normal equations; return ``(F_new, objective_before)``.
+
+    ``pass_fn(F) -> (G, h, f)`` evaluates the loss ``f`` per column at ``F`` and the Gram of
+    its quadratic majoriser. Quadratic loss: one exact solve. Otherwise up to ``max_inner``
+    MM steps; inexact majorisers keep a column's old value when its objective went up.
+    """
+    G, h, f = pass_fn(F, loss.smoothed(step0))
+    cur = f + reg.evaluate(F)
+    first = float(cur.sum())
+    for it in range(max_inner):
+        Fn = np.array(_solve_normal(G, h, reg, F), dtype=np.float64)
+        last = it == max_inner - 1
+        if loss.is_quadratic or (last and loss.majorizer_exact):
+            return Fn, first
+        G2, h2, f2 = pass_fn(Fn, loss.smoothed(step0 + it + 1))
+        new = f2 + reg.evaluate(Fn)
+        if not loss.majorizer_exact:
+            worse = ~(new <= cur)
+            if worse.any():
+                Fn[:, worse] = F[:, worse]
+                G2[worse], h2[worse], new[worse] = G[worse], h[worse], cur[worse]
+        dec = float(cur.sum() - new.sum())
+        F, G, h, cur = Fn, G2, h2, new
+        if dec <= inner_tol * max(abs(float(cur.sum())), 1e-300) and (
+            not loss.smoothing or loss.smoothed(step0 + it + 1) == loss.smoothed(step0 + it + 2)
+        ):
+            break
+    return F, first
+
+
+def y_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, out=None, step0=0):
+    """Y step of the fast path: update every cell's column given ``X``.
+
+    Returns ``(Y_new (k, L), objective_before)`` where the objective is the loss over observed
+    entries at ``(X, Y)`` plus ``reg(Y)``. ``out`` may be ``Y`` itself (in-place update).
+    """
+    k, L = Y.shape
+    pa, pb = K.pair_index(k)
+    npair = pa.size
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    out = np.empty_like(Y) if out is None else out
+    total = 0.0
+    for j0 in range(0, L, Y_CHUNK):
+        j1 = min(j0 + Y_CHUNK, L)
+        c = j1 - j0
+
+        def pass_fn(F, lo, j0=j0, j1=j1, c=c):
+            code, p0, p1 = lo.kernel_spec
+            G = np.empty((c, npair))
+            h = np.empty((c, k))
+            f = np.empty(c)
+            Fc = np.ascontiguousarray(F, dtype=np.float64)
+            K.col_pass(D, M, X, Fc, j0, j1, code, p0, p1, pa, pb, G, h, f)
+            return G, h, f
+
+        Fn, first = _mm_block(pass_fn, np.array(Y[:, j0:j1]), loss, reg, max_inner, inner_tol,
+                              step0)
+        out[:, j0:j1] = Fn
+        total += first
+    return out, total
+
+
+def x_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, step0=0):
+    """X step of the fast path: update every time's column given ``Y``.
+
+    Returns ``(X_new (k, T), objective_before)`` (loss at ``(X, Y)`` plus ``reg(X)``).
+    """
+    k, T = X.shape
+    pa, pb = K.pair_index(k)
+    npair = pa.size
+    nchunk = max(4 * numba.get_num_threads(), 4)
+    Y = np.ascontiguousarray(Y, dtype=np.float64)
+
+    def pass_fn(F, lo):
+        code, p0, p1 = lo.kernel_spec
+        Fc = np.ascontiguousarray(F, dtype=np.float64)
+        G = np.zeros((nchunk, T, npair))
+        h = np.zeros((nchunk, T, k))
+        f = np.zeros((nchunk, T))
+        K.row_pass(D, M, Fc, Y, code, p0, p1, pa, pb, nchunk, G, h, f)
+        return G.sum(0), h.sum(0), f.sum(0)
+
+    return _mm_block(pass_fn, np.array(X, dtype=np.float64), loss, reg, max_inner, inner_tol,
+                     step0)
+
+
+def objective(D, M, X, Y, loss, reg_x, reg_y) -> float:
+    """The GLRM objective at ``(X, Y)``: loss over observed entries plus both regularisers."""
+    return _loss_sum(D, M, X, Y, loss) + reg_x.value(X) + reg_y.value(Y)
+
+
+def _loss_sum(D, M, X, Y, loss) -> float:
+    if loss.kernel_spec is None:
+        R = X.T @ Y - np.where(M, D, 0.0)
+        return float(np.sum(np.where(M, loss.evaluate(R), 0.0)))
+    k, T = X.shape
+    code, p0, p1 = loss.kernel_spec
+    pa, pb = K.pair_index(k)
+    nchunk = max(4 * numba.get_num_threads(), 4)
+    G = np.zeros((nchunk, T, pa.size))
+    h = np.zeros((nchunk, T, k))
+    f = np.zeros((nchunk, T))
+    K.row_pass(D, M, np.ascontiguousarray(X, dtype=np.float64),
+               np.ascontiguousarray(Y, dtype=np.float64), code, p0, p1, pa, pb, nchunk, G, h, f)
+    return float(f.sum())
+
+
+# --------------------------------------------------------------------------- cvxpy path
+_OK = (cp.OPTIMAL,)
+
+
+def _solve_problem(prob: cp.Problem, what: str) -> None:
+    """Solve with Clarabel, falling back to SCS; SolverError with the status on failure."""
+    status = None
+    try:
+        prob.solve(solver=cp.CLARABEL)
+        status = prob.status
+    except cp.error.SolverError as exc:
+        status = f"error ({exc})"
+    if status in _OK:
+        return
+    try:
+        prob.solve(solver=cp.SCS, eps=1e-9, max_iters=100_000)
+        if prob.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+            return
+        status = f"Clarabel: {status}; SCS: {prob.status}"
+    except cp.error.SolverError as exc:
+        status = f"Clarabel: {status}; SCS: error ({exc})"
+    raise SolverError(f"cvxpy {what} subproblem failed: {status}")
+
+
+class _CvxBatch:
+    """A block subproblem over ``nb`` columns, compiled once (DPP) and re-solved per batch.
+
+    Column ``j`` has residual ``P_j @ v_j - d_j`` with parameters ``P_j = diag(w_j) A``
+    (``A`` the other factor's transpose, ``w_j`` the 0/1 observation weights) and
+    ``d_j = w_j * data_j``; unobserved entries thus have residual 0 and loss 0.
+    """
+
+    def __init__(self, m: int, k: int, nb: int, loss: Loss, reg: Regularizer) -> None:
+        self.P = [cp.Parameter((m, k)) for _ in range(nb)]
+        self.d = cp.Parameter((m, nb))
+        self.V = cp.Variable((k, nb))
+        terms = [loss.cvxpy(self.P[j] @ self.V[:, j] - self.d[:, j]) for j in range(nb)]
+        reg_expr, cons = reg.cvxpy(self.V)
+        self.prob = cp.Problem(cp.Minimize(cp.sum(cp.hstack(terms)) + reg_expr), cons)
+        self.nb, self.m, self.k = nb, m, k
+
+    def solve(self, A: np.ndarray, W: np.ndarray, Dw: np.ndarray, what: str) -> np.ndarray:
+        """``A (m, k)``; ``W``, ``Dw`` ``(m, n)`` with ``n <= nb``; returns ``V (k, n)``."""
+        n = W.shape[1]
+        for j in range(self.nb):
+            self.P[j].value = A * W[:, j : j + 1] if j < n else np.zeros((self.m, self.k))
+        d = np.zeros((self.m, self.nb))
+        d[:, :n] = Dw
+        self.d.value = d
+        _solve_problem(self.prob, what)
+        return np.asarray(self.V.value)[:, :n]
+
+
+def _batch_size(m: int, n: int) -> int:
+    return int(max(1, min(256, n, 20_000 // max(m, 1))))
+
+
+def cvxpy_y_block(D, M, X, Y, loss, reg, cache: dict | None = None):
+    """Y step by cvxpy (batches of columns); returns ``(Y_new, objective_before)``."""
+    k, L = Y.shape
+    T = X.shape[1]
+    before = _loss_sum(D, M, X, Y, loss) + reg.value(Y)
+    nb = _batch_size(T, L)
+    key = ("y", T, k, nb)
+    cache = {} if cache is None else cache
+    if key not in cache:
+        cache[key] = _CvxBatch(T, k, nb, loss, reg)
+    prob = cache[key]
+    A = np.asarray(X.T, dtype=np.float64)
+    out = np.empty((k, L))
+    for j0 in range(0, L, nb):
+        j1 = min(j0 + nb, L)
+        W = M[:, j0:j1].astype(np.float64)
+        Dw = np.where(M[:, j0:j1], D[:, j0:j1], 0.0)
+        out[:, j0:j1] = prob.solve(A, W, Dw, "Y-step")
+    return out, before
+
+
+def cvxpy_x_block(D, M, X, Y, loss, reg, cache: dict | None = None):
+    """X step by cvxpy (batches of times); returns ``(X_new, objective_before)``."""
+    k, T = X.shape
+    L = Y.shape[1]
+    before = _loss_sum(D, M, X, Y, loss) + reg.value(X)
+    nb = _batch_size(L, T)
+    key = ("x", L, k, nb)
+    cache = {} if cache is None else cache
+    if key not in cache:
+        cache[key] = _CvxBatch(L, k, nb, loss, reg)
+    prob = cache[key]
+    A = np.asarray(Y.T, dtype=np.float64)
+    out = np.empty((k, T))
+    for t0 in range(0, T, nb):
+        t1 = min(t0 + nb, T)
+        W = M[t0:t1].T.astype(np.float64)
+        Dw = np.where(M[t0:t1], D[t0:t1], 0.0).T
+        out[:, t0:t1] = prob.solve(A, W, Dw, "X-step")
+    return out, before
+
+
+# --------------------------------------------------------------------------- initialisation
+def initialize(D, M, rank, init, rng, mu, scale, *, n_power=1, oversample=5):
+    """Initial ``(X, Y)``: SVD of the mean-filled matrix (``init="svd"``) or Gaussian.
+
+    The mean-filled matrix has each cell's missing entries replaced by its observed mean
+    ``mu``. Below ``SMALL_SVD`` entries an exact SVD, else a randomized SVD with ``n_power``
+    power iterations using compiled products (never materialising the filled matrix). The
+    singular values are split evenly: ``X = sqrt(S) U^T``, ``Y = sqrt(S) V^T``.
+    """
+    T, L = D.shape
+    k = rank
+    if init == "random":
+        s = (max(scale, 1e-12) ** 2 / k) ** 0.25
+        return s * rng.standard_normal((k, T)), s * rng.standard_normal((k, L))
+    if init != "svd":
+        raise ModelError(f"init must be 'svd' or 'random', got {init!r}")
+    if T * L <= SMALL_SVD:
+        Z = np.where(M, D, mu[None, :]).astype(np.float64)
+        U, S, Vt = np.linalg.svd(Z, full_matrices=False)
+        U, S, Vt = U[:, :k], S[:k], Vt[:k]
+    else:
+        p = min(k + oversample, T, L)
+        nchunk = max(4 * numba.get_num_threads(), 4)
+        Om = rng.standard_normal((p, L))
+        Q, _ = np.linalg.qr(K.filled_matmul(D, M, mu, Om, nchunk))
+        for _ in range(n_power):
+            Wt = K.filled_rmatmul(D, M, mu, Q)  # (p, L)
+            Wq, _ = np.linalg.qr(Wt.T)
+            Q, _ = np.linalg.qr(K.filled_matmul(D, M, mu, np.ascontiguousarray(Wq.T), nchunk))
+        Bt = K.filled_rmatmul(D, M, mu, Q).T  # (L, p) = Z^T Q
+        Qb, R = np.linalg.qr(Bt)
+        Ur, S, Vrt = np.linalg.svd(R.T)  # B = Q^T Z = R^T Qb^T
+        U = (Q @ Ur)[:, :k]
+        Vt = (Qb @ Vrt.T)[:, :k].T
+        S = S[:k]
+    # deterministic signs: largest |entry| of each right singular vector positive
+    sign = np.sign(Vt[np.arange(k), np.argmax(np.abs(Vt), axis=1)])
+    sign[sign == 0] = 1.0
+    sq = np.sqrt(np.maximum(S, 0.0))
+    X = (sq * sign)[:, None] * U.T
+    Y = (sq * sign)[:, None] * Vt
+    return np.ascontiguousarray(X), np.ascontiguousarray(Y)
+
+
+# --------------------------------------------------------------------------- the loop
+def fit_glrm(
+    D: np.ndarray,
+    M: np.ndarray,
+    rank: int,
+    loss: Loss,
+    reg_x: Regularizer,
+    reg_y: Regularizer,
+    *,
+    max_iter: int = 100,
+    tol: float = 1e-4,
+    init: str = "svd",
+    solver: str = "auto",
+    rng: np.random.Generator | None = None,
+    progress: bool = False,
+    max_inner: int = 1,
+    stats: tuple[np.ndarray, np.ndarray] | None = None,
+) -> FitResult:
+    """Fit ``X (k, T)``, ``Y (k, L)`` to ``D`` on the entries where ``M`` is True.
+
+    Each iteration is a Y step then an X step. The objective recorded for iteration ``i`` is
+    evaluated at the factors after ``i`` rounds (``objective[0]`` at the initialisation);
+    iteration stops when its relative decrease falls below ``tol`` or after ``max_iter``
+    rounds (ConvergenceWarning when ``tol > 0``). Cells never observed get ``reg_y``'s
+    minimiser (zero) and are listed in ``unobserved_cells``.
+    """
+    rng = np.random.default_rng() if rng is None else rng
+    if solver not in ("auto", "fast", "cvxpy"):
+        raise ModelError(f"solver must be 'auto', 'fast' or 'cvxpy', got {solver!r}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
+        raise ModelError(f"max_iter must be an integer >= 0, got {max_iter!r}")
+    if not np.isfinite(tol) or tol < 0:
+        raise ModelError(f"tol must be >= 0, got {tol!r}")
+    rows, cols = check_data(D, M, rank) if stats is None else stats
+    T, L = D.shape
+    fast = solver != "cvxpy" and is_fast_capable(loss, reg_x, reg_y)
+    if solver == "fast" and not fast:
+        raise ModelError(f"no fast path for loss {loss!r} with {reg_x!r} / {reg_y!r}")
+    n_obs = int(rows.sum())
+    mu_global = 0.0
+    mu, ssq = K.column_means(D, M, mu_global)
+    mu_global = float(np.sum(mu * cols) / n_obs)
+    mu[cols == 0] = mu_global
+    scale = float(np.sqrt(ssq / n_obs))
+    loss = loss.with_scale(scale)
+    X, Y = initialize(D, M, rank, init, rng, mu, scale)
+    unobserved = np.flatnonzero(cols == 0)
+    Y[:, unobserved] = reg_y.minimizer(rank)[:, None]
+
+    cache: dict = {}
+    history: list[float] = []
+    converged = False
+    n_iter = 0
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=max_iter, desc="GLRM", unit="it")
+    try:
+        for it in range(max_iter):
+            if fast:
+                Y, fy = y_block(D, M, X, Y, loss, reg_y, max_inner=max_inner, out=Y,
+                                step0=it * max_inner)
+            else:
+                Y, fy = cvxpy_y_block(D, M, X, Y, loss, reg_y, cache)
+            history.append(fy + reg_x.value(X))
+            if it >= 1 and _rel_decrease(history) < tol:
+                converged = True
+                break
+            if fast:
+                X, _ = x_block(D, M, X, Y, loss, reg_x, max_inner=max_inner,
+                               step0=it * max_inner)
+            else:
+                X, _ = cvxpy_x_block(D, M, X, Y, loss, reg_x, cache)
+            n_iter = it + 1
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(objective=f"{history[-1]:.6g}")
+    finally:
+        if bar is not None:
+            bar.close()
+    history.append(objective(D, M, X, Y, loss, reg_x, reg_y))
+    if not converged and max_iter >= 1 and len(history) >= 2:
+        converged = _rel_decrease(history) < tol
+    if not converged and tol > 0:
+        warnings.warn(
+            f"GLRM fit stopped at max_iter={max_iter} before the relative decrease of the "
+            f"objective fell below tol={tol}", ConvergenceWarning, stacklevel=3)
+    Y[:, unobserved] = reg_y.minimizer(rank)[:, None]
+    sse = _loss_sum(D, M, X, Y, _QUAD)
+    dof = rank * (T + L - unobserved.size) - rank * rank
+    denom = n_obs - dof if n_obs > dof else n_obs
+    return FitResult(
+        X=X, Y=Y, objective=history, n_iter=n_iter, converged=bool(converged),
+        unobserved_cells=unobserved.astype(np.int64), n_observed=n_obs, sse=sse,
+        noise_std=float(np.sqrt(sse / denom)), solver="fast" if fast else "cvxpy",
+    )
+
+
+def _rel_decrease(history: list[float]) -> float:
+    prev, cur = history[-2], history[-1]
+    if prev == 0:
+        return 0.0
+    return (prev - cur) / abs(prev)
+
+
+class _Quad(Loss):
+    kernel_spec = (0, 0.0, 0.0)
+
+
+_QUAD = _Quad()
+

@@ -1,0 +1,375 @@
+"""Compiled kernels of the GLRM fit: one pass over ``(T, L)`` data builds every block's Gram.
+
+All kernels read the data ``D`` (float32/float64, ``(T, L)``) together with a boolean mask ``M``
+(True = observed) and never look at ``D`` where ``M`` is False, so unobserved entries may hold
+anything (zeros, NaN). Accumulation is in float64.
+
+A pass evaluates, at the current factors, every observed residual ``r = x_t . y_j - d_tj``, the
+loss ``f(r)`` and a quadratic majoriser ``q(r') = a (r' - z)^2 + const >= f(r')`` of the loss at
+``r`` (see :func:`majorize`). The weighted normal equations of that majoriser are accumulated as
+packed Gram matrices ``G`` (the ``k(k+1)/2`` distinct entries, pair ``p`` = ``(pa[p], pb[p])``)
+and right-hand sides ``h``:  ``G_j = sum_t a x_t x_t^T``, ``h_j = sum_t a (d_tj + z) x_t``.
+For the quadratic loss ``a = 1, z = 0``: the normal equations of the exact block problem.
+
+Loss codes (set by each loss class as its ``kernel_spec``): 0 quadratic ``r^2``; 1 Huber
+``r^2`` / ``2 delta |r| - delta^2`` (cvxpy's ``huber``); 2 absolute ``|r|``; 3 quantile
+``tau max(-r, 0) + (1 - tau) max(r, 0)``. ``p0``/``p1`` are the loss's parameters.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba import prange
+
+_FM = {"contract", "reassoc", "arcp", "nsz"}  # no 'nnan': unobserved entries may be NaN
+BLOCK_COLS = 256  # cells per block in the column (Y-step) kernel
+BLOCK_ROWS = 2048  # cells per block in the row (X-step) kernel
+
+
+def pair_index(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column index of each of the ``k(k+1)/2`` upper-triangle Gram entries."""
+    pa, pb = np.triu_indices(k)
+    return pa.astype(np.int64), pb.astype(np.int64)
+
+
+@numba.njit(inline="always", cache=True)
+def majorize(code: int, p0: float, p1: float, r: float) -> tuple[float, float, float]:
+    """Loss value ``f(r)``, curvature ``a`` and shift ``z`` of a quadratic majoriser at ``r``.
+
+    ``a (r' - z)^2 + c >= f(r')`` for all ``r'`` with equality at ``r' = r`` (exact for
+    codes 0 and 1; for codes 2 and 3, ``|r|`` is clipped below at ``p1`` (absolute) or ``p1``
+    (quantile eps) and equality holds only for ``|r| >= eps``).
+    """
+    if code == 0:
+        return r * r, 1.0, 0.0
+    ar = abs(r)
+    if code == 1:
+        if ar <= p0:
+            return r * r, 1.0, 0.0
+        return 2.0 * p0 * ar - p0 * p0, p0 / ar, 0.0
+    if code == 2:
+        e = max(ar, p1)
+        return ar, 0.5 / e, 0.0
+    # quantile: 0.5 |r| + (0.5 - tau) r <= r^2 / (4e) + (0.5 - tau) r + const
+    tau = p0
+    e = max(ar, p1)
+    f = tau * max(-r, 0.0) + (1.0 - tau) * max(r, 0.0)
+    return f, 0.25 / e, -(0.5 - tau) * 2.0 * e
+
+
+@numba.njit(inline="always", cache=True, fastmath=_FM)
+def _residuals(D, M, t, s, n, xt, yb, wb, vb, rb):  # pragma: no cover - numba
+    """For cells ``s..s+n`` at time ``t``: ``wb`` 0/1 observed, ``vb`` data (0 if unobserved),
+    ``rb`` residual ``x_t . y_j - d``; vectorised over cells."""
+    k = xt.shape[0]
+    for jj in range(n):
+        m = M[t, s + jj]
+        d = D[t, s + jj] if m else 0.0
+        wb[jj] = 1.0 if m else 0.0
+        vb[jj] = d
+        rb[jj] = -d
+    for a in range(k):
+        xa = xt[a]
+        for jj in range(n):
+            rb[jj] += xa * yb[a, jj]
+
+
+@numba.njit(inline="always", cache=True, fastmath=_FM)
+def _weights(code, p0, p1, n, wb, vb, rb, fb):  # pragma: no cover - numba
+    """Turn ``(wb, vb, rb)`` into majoriser weights ``wb = w a`` and targets ``vb = w a (d + z)``
+    and add the loss to ``fb`` per cell."""
+    if code == 0:
+        for jj in range(n):
+            fb[jj] += wb[jj] * rb[jj] * rb[jj]
+    else:
+        for jj in range(n):
+            fv, av, zv = majorize(code, p0, p1, rb[jj])
+            w = wb[jj]
+            fb[jj] += fv if w != 0.0 else 0.0
+            wb[jj] = w * av
+            vb[jj] = w * av * (vb[jj] + zv)
+
+
+@numba.njit(inline="always", cache=True, fastmath=_FM)
+def _weights_sum(code, p0, p1, n, wb, vb, rb):  # pragma: no cover - numba
+    """As :func:`_weights` but returns the summed loss."""
+    fs = 0.0
+    if code == 0:
+        for jj in range(n):
+            fs += wb[jj] * rb[jj] * rb[jj]
+    else:
+        for jj in range(n):
+            fv, av, zv = majorize(code, p0, p1, rb[jj])
+            w = wb[jj]
+            fs += fv if w != 0.0 else 0.0
+            wb[jj] = w * av
+            vb[jj] = w * av * (vb[jj] + zv)
+    return fs
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FM)
+def col_pass(D, M, X, Yc, j0, j1, code, p0, p1, pa, pb, G, h, f):  # pragma: no cover - numba
+    """Y-step pass over cells ``j0..j1``: ``G (c, npair)``, ``h (c, k)``, ``f (c,)`` (loss sums).
+
+    ``X (k, T)`` float64; ``Yc (k, c)`` the current columns of cells ``j0..j1``.
+    Cells go in parallel blocks of ``BLOCK_COLS``; inside a block the loop runs over times.
+    """
+    T = D.shape[0]
+    k = X.shape[0]
+    npair = pa.shape[0]
+    c = j1 - j0
+    nblk = (c + BLOCK_COLS - 1) // BLOCK_COLS
+    for ib in prange(nblk):
+        s = j0 + ib * BLOCK_COLS
+        e = min(s + BLOCK_COLS, j1)
+        n = e - s
+        yb = np.empty((k, n))
+        for a in range(k):
+            for jj in range(n):
+                yb[a, jj] = Yc[a, s - j0 + jj]
+        gb = np.zeros((npair, n))
+        hb = np.zeros((k, n))
+        fb = np.zeros(n)
+        wb = np.empty(n)
+        vb = np.empty(n)
+        xt = np.empty(k)
+        xx = np.empty(npair)
+        rb = np.empty(n)
+        for t in range(T):
+            for a in range(k):
+                xt[a] = X[a, t]
+            for p in range(npair):
+                xx[p] = xt[pa[p]] * xt[pb[p]]
+            _residuals(D, M, t, s, n, xt, yb, wb, vb, rb)
+            _weights(code, p0, p1, n, wb, vb, rb, fb)
+            for p in range(npair):
+                xp = xx[p]
+                for jj in range(n):
+                    gb[p, jj] += wb[jj] * xp
+            for a in range(k):
+                xa = xt[a]
+                for jj in range(n):
+                    hb[a, jj] += vb[jj] * xa
+        for jj in range(n):
+            o = s - j0 + jj
+            for p in range(npair):
+                G[o, p] = gb[p, jj]
+            for a in range(k):
+                h[o, a] = hb[a, jj]
+            f[o] = fb[jj]
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FM)
+def row_pass(D, M, X, Y, code, p0, p1, pa, pb, nchunk, G, h, f):  # pragma: no cover - numba
+    """X-step pass: partial sums ``G (nchunk, T, npair)``, ``h (nchunk, T, k)``, ``f (nchunk, T)``.
+
+    The cells are split into ``nchunk`` ranges processed in parallel, each in blocks of
+    ``BLOCK_ROWS`` cells so that the block of ``Y`` stays in cache while all times are read.
+    The caller sums over the first axis. Buffers must be zeroed by the caller.
+    """
+    T, L = D.shape
+    k = X.shape[0]
+    npair = pa.shape[0]
+    for c in prange(nchunk):
+        s = c * L // nchunk
+        e = (c + 1) * L // nchunk
+        yb = np.empty((k, BLOCK_ROWS))
+        yy = np.empty((npair, BLOCK_ROWS))
+        wb = np.empty(BLOCK_ROWS)
+        vb = np.empty(BLOCK_ROWS)
+        rb = np.empty(BLOCK_ROWS)
+        xt = np.empty(k)
+        for b0 in range(s, e, BLOCK_ROWS):
+            n = min(b0 + BLOCK_ROWS, e) - b0
+            for a in range(k):
+                for jj in range(n):
+                    yb[a, jj] = Y[a, b0 + jj]
+            for p in range(npair):
+                for jj in range(n):
+                    yy[p, jj] = yb[pa[p], jj] * yb[pb[p], jj]
+            for t in range(T):
+                for a in range(k):
+                    xt[a] = X[a, t]
+                _residuals(D, M, t, b0, n, xt, yb, wb, vb, rb)
+                fs = _weights_sum(code, p0, p1, n, wb, vb, rb)
+                f[c, t] += fs
+                for p in range(npair):
+                    acc = 0.0
+                    for jj in range(n):
+                        acc += wb[jj] * yy[p, jj]
+                    G[c, t, p] += acc
+                for a in range(k):
+                    acc = 0.0
+                    for jj in range(n):
+                        acc += vb[jj] * yb[a, jj]
+                    h[c, t, a] += acc
+
+
+@numba.njit(parallel=True, cache=True)
+def chol_solve(G, h, lam, pa, pb, out):  # pragma: no cover - numba
+    """Solve ``(G_j + lam I) y_j = h_j`` for every block entry; ``out (n, k)``.
+
+    ``G (n, npair)`` packed. A per-entry k x k Cholesky; when it breaks down (fewer
+    observations than k and no ridge) the minimum-norm solution via ``pinv``; an all-zero
+    system (never observed, no ridge) gives ``y = 0``. Returns ``(n,)`` int8 flags:
+    0 Cholesky, 1 pseudo-inverse, 2 empty.
+    """
+    n, npair = G.shape
+    k = h.shape[1]
+    flags = np.zeros(n, dtype=np.int8)
+    for j in prange(n):
+        A = np.zeros((k, k))
+        for p in range(npair):
+            A[pa[p], pb[p]] = G[j, p]
+            A[pb[p], pa[p]] = G[j, p]
+        scale = 0.0
+        for a in range(k):
+            A[a, a] += lam
+            scale = max(scale, A[a, a])
+        if scale == 0.0:
+            for a in range(k):
+                out[j, a] = 0.0
+            flags[j] = 2
+            continue
+        Lc = np.zeros((k, k))
+        ok = True
+        for a in range(k):
+            s = A[a, a]
+            for b in range(a):
+                s -= Lc[a, b] * Lc[a, b]
+            if s <= 1e-12 * scale:
+                ok = False
+                break
+            Lc[a, a] = np.sqrt(s)
+            for i in range(a + 1, k):
+                s2 = A[i, a]
+                for b in range(a):
+                    s2 -= Lc[i, b] * Lc[a, b]
+                Lc[i, a] = s2 / Lc[a, a]
+        if ok:
+            z = np.empty(k)
+            for a in range(k):
+                s = h[j, a]
+                for b in range(a):
+                    s -= Lc[a, b] * z[b]
+                z[a] = s / Lc[a, a]
+            for a in range(k - 1, -1, -1):
+                s = z[a]
+                for b in range(a + 1, k):
+                    s -= Lc[b, a] * out[j, b]
+                out[j, a] = s / Lc[a, a]
+        else:
+            P = np.linalg.pinv(A)
+            for a in range(k):
+                s = 0.0
+                for b in range(k):
+                    s += P[a, b] * h[j, b]
+                out[j, a] = s
+            flags[j] = 1
+    return flags
+
+
+@numba.njit(parallel=True, cache=True)
+def mask_stats(D, M, check):  # pragma: no cover - numba
+    """Observed counts per time ``(T,)`` and per cell ``(L,)``, and the number of non-finite
+    observed entries when ``check`` (else 0). One pass; cells split into disjoint ranges."""
+    T, L = D.shape
+    nch = 64
+    rows_part = np.zeros((nch, T), dtype=np.int64)
+    cols = np.zeros(L, dtype=np.int64)
+    bad = np.zeros(nch, dtype=np.int64)
+    for c in prange(nch):
+        s = c * L // nch
+        e = (c + 1) * L // nch
+        for t in range(T):
+            cnt = 0
+            nb = 0
+            for j in range(s, e):
+                if M[t, j]:
+                    cnt += 1
+                    cols[j] += 1
+                    if check and not np.isfinite(D[t, j]):
+                        nb += 1
+            rows_part[c, t] = cnt
+            bad[c] += nb
+    return rows_part.sum(axis=0), cols, bad.sum()
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FM)
+def filled_matmul(D, M, mu, Vt, nchunk):  # pragma: no cover - numba
+    """``Z @ Vt.T``, ``Z = where(M, D, mu[None, :])`` (mean-filled); ``Vt (p, L)`` -> ``(T, p)``.
+
+    Used by the randomized SVD initialisation.
+    """
+    T, L = D.shape
+    p = Vt.shape[0]
+    part = np.zeros((nchunk, T, p))
+    for c in prange(nchunk):
+        s = c * L // nchunk
+        e = (c + 1) * L // nchunk
+        zb = np.empty(BLOCK_ROWS)
+        for b0 in range(s, e, BLOCK_ROWS):
+            n = min(b0 + BLOCK_ROWS, e) - b0
+            for t in range(T):
+                for jj in range(n):
+                    zb[jj] = D[t, b0 + jj] if M[t, b0 + jj] else mu[b0 + jj]
+                for q in range(p):
+                    acc = 0.0
+                    for jj in range(n):
+                        acc += zb[jj] * Vt[q, b0 + jj]
+                    part[c, t, q] += acc
+    return part.sum(axis=0)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FM)
+def filled_rmatmul(D, M, mu, U):  # pragma: no cover - numba
+    """``(Z.T @ U).T`` with ``Z = where(M, D, mu[None, :])``; ``U (T, p)`` -> ``(p, L)``."""
+    T, L = D.shape
+    p = U.shape[1]
+    out = np.zeros((p, L))
+    nblk = (L + BLOCK_COLS - 1) // BLOCK_COLS
+    for ib in prange(nblk):
+        s = ib * BLOCK_COLS
+        e = min(s + BLOCK_COLS, L)
+        n = e - s
+        zb = np.empty(n)
+        ob = np.zeros((p, n))
+        for t in range(T):
+            for jj in range(n):
+                zb[jj] = D[t, s + jj] if M[t, s + jj] else mu[s + jj]
+            for q in range(p):
+                u = U[t, q]
+                for jj in range(n):
+                    ob[q, jj] += zb[jj] * u
+        for q in range(p):
+            for jj in range(n):
+                out[q, s + jj] = ob[q, jj]
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def column_means(D, M, fallback):  # pragma: no cover - numba
+    """Mean of the observed entries of each cell ``(L,)`` (``fallback`` where never observed)
+    and the sum of squares of all observed entries."""
+    T, L = D.shape
+    out = np.empty(L)
+    nblk = (L + BLOCK_COLS - 1) // BLOCK_COLS
+    ssq = np.zeros(nblk)
+    for ib in prange(nblk):
+        s = ib * BLOCK_COLS
+        e = min(s + BLOCK_COLS, L)
+        acc = np.zeros(e - s)
+        cnt = np.zeros(e - s)
+        sq = 0.0
+        for t in range(T):
+            for j in range(s, e):
+                if M[t, j]:
+                    d = D[t, j]
+                    acc[j - s] += d
+                    cnt[j - s] += 1.0
+                    sq += d * d
+        ssq[ib] = sq
+        for j in range(s, e):
+            out[j] = acc[j - s] / cnt[j - s] if cnt[j - s] > 0 else fallback
+    return out, ssq.sum()

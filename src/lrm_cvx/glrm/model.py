@@ -1,0 +1,552 @@
+"""The :class:`GLRM` estimator: fit on snapshots, complete new snapshots, save and load.
+
+xarray lives here at the edge; the numerical work is in :mod:`.fit` and :mod:`.foldin`.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import os
+import warnings
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from .._validation import as_generator, atomic_output, check_positive
+from ..errors import DataError, ModelError, NotFittedError
+from ..region import Region
+from . import kernels as K
+from .fit import FitResult, check_data, fit_glrm
+from .foldin import fold_in, fold_in_many, mean_std
+from .losses import get_loss
+from .regularizers import get_regularizer
+
+__all__ = ["GLRM"]
+
+_FORMAT = "lrm-cvx GLRM"
+_FORMAT_VERSION = 1
+
+
+class GLRM:
+    """Generalized low rank model ``D ~ X^T Y`` fitted on the observed entries only.
+
+    Parameters
+    ----------
+    rank : k, the number of components.
+    loss : ``"quadratic"`` (the paper), ``"huber"``, ``"absolute"``/``"l1"``, ``"quantile"``, or
+        a :class:`~lrm_cvx.glrm.losses.Loss` instance (``Huber(delta=1.0)``, ``Quantile(0.9)``).
+    reg_x, reg_y : regulariser of each column of ``X`` (times) / ``Y`` (cells): ``None``,
+        ``"ridge"``/``"l2"``, ``"l1"``, ``"nonneg"`` (weight 1), an instance (``Ridge(0.1)``,
+        ``L1(0.1)``, ``NonNegative()``), or a callable ``fn(V)`` on a cvxpy Variable ``(k, n)``
+        returning a scalar expression (or ``(expression, constraints)``), summed over columns;
+        callables are fitted by the cvxpy path.
+    max_iter, tol : at most ``max_iter`` rounds (Y step then X step); stop when the relative
+        decrease of the objective is below ``tol``.
+    init : ``"svd"`` (SVD of the mean-filled matrix; randomized for large data) or ``"random"``.
+    solver : ``"auto"`` (compiled fast path whenever the loss/regularisers allow), ``"fast"``
+        (require it), or ``"cvxpy"`` (every block subproblem in cvxpy with Clarabel/SCS).
+    random_state : seed / Generator for the initialisation.
+    progress : show a tqdm progress bar.
+
+    Learned attributes: ``X_`` ``(component, time)``, ``Y_`` ``(component, cell)`` (DataArrays
+    when fitted on xarray data, else ndarrays), ``region_``, ``objective_``, ``n_iter_``,
+    ``converged_``, ``noise_std_``, ``unobserved_cells_``, ``n_times_``, ``n_cells_``,
+    ``n_observed_``, ``solver_``.
+
+    ``noise_std_`` is the RMS training residual on the observed entries with a degrees-of-freedom
+    correction: ``sqrt(SSE / (n_obs - p))`` with ``p = k (T + L_obs) - k^2`` the number of free
+    parameters of a rank-k factorisation (``L_obs`` the observed cells); when ``n_obs <= p`` the
+    plain ``sqrt(SSE / n_obs)``.
+    """
+
+    def __init__(
+        self,
+        rank: int = 5,
+        loss: Any = "quadratic",
+        reg_x: Any = None,
+        reg_y: Any = None,
+        max_iter: int = 100,
+        tol: float = 1e-4,
+        init: str = "svd",
+        solver: str = "auto",
+        random_state: Any = None,
+        progress: bool = True,
+    ) -> None:
+        self.rank = rank
+        self.loss = loss
+        self.reg_x = reg_x
+        self.reg_y = reg_y
+        self.max_iter = max_iter
+        self.tol = tol
+        self.init = init
+        self.solver = solver
+        self.random_state = random_state
+        self.progress = progress
+
+    # ------------------------------------------------------------------ sklearn protocol
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        sig = inspect.signature(cls.__init__)
+        return [p for p in sig.parameters if p != "self"]
+
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        """The constructor parameters, as stored."""
+        return {p: getattr(self, p) for p in self._param_names()}
+
+    def set_params(self, **params: Any) -> GLRM:
+        """Set constructor parameters; returns ``self``."""
+        names = self._param_names()
+        for key, value in params.items():
+            if key not in names:
+                raise ModelError(f"unknown parameter {key!r}; valid: {names}")
+            setattr(self, key, value)
+        return self
+
+    def __repr__(self) -> str:
+        defaults = {
+            p.name: p.default for p in inspect.signature(type(self).__init__).parameters.values()
+        }
+        parts = []
+        for key, value in self.get_params().items():
+            if key in defaults and _same(defaults[key], value):
+                continue
+            parts.append(f"{key}={value!r}")
+        return f"GLRM({', '.join(parts)})"
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "X_"):
+            raise NotFittedError("this GLRM is not fitted yet: call fit(data) first")
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, data: Any, mask: Any = None, region: Region | None = None) -> GLRM:
+        """Fit ``X_`` and ``Y_`` to ``data``.
+
+        ``data``: a ``(time, lat, lon)`` DataArray (NaN = missing; cells never observed are left
+        out by ``Region.from_dataarray`` unless ``region`` is given), a ``(time, cell)``
+        DataArray with ``region``, a ``(T, L)`` array with NaN, or a ``(T, L)`` array plus a
+        boolean ``mask`` (True = observed; entries outside it are ignored, and a float32 or
+        float64 C-contiguous array is used without a copy). Returns ``self``.
+        """
+        rank = self.rank
+        loss = get_loss(self.loss)
+        reg_x = get_regularizer(self.reg_x)
+        reg_y = get_regularizer(self.reg_y)
+        rng = as_generator(self.random_state)
+        D, M, region, times = self._prepare(data, mask, region)
+        stats = check_data(D, M, rank)
+        res = fit_glrm(
+            D, M, rank, loss, reg_x, reg_y, max_iter=self.max_iter, tol=self.tol,
+            init=self.init, solver=self.solver, rng=rng, progress=bool(self.progress),
+            stats=stats,
+        )
+        del D, M
+        self._set_result(res, region, times, xarray=region is not None)
+        return self
+
+    def _prepare(self, data, mask, region):
+        """``(D, M, region, times)`` from any supported input (no copy of clean arrays)."""
+        times = None
+        if isinstance(data, xr.DataArray):
+            if mask is not None:
+                raise DataError("mask is only accepted with a numpy array; a DataArray uses NaN")
+            if data.ndim != 2 and data.ndim != 3:
+                raise DataError(f"data must have dims (time, lat, lon), got {data.dims}")
+            if data.ndim == 3:
+                if region is None:
+                    region = Region.from_dataarray(data)
+                D = region.stack(data)
+            else:
+                if data.dims[-1] != "cell" or region is None:
+                    raise DataError(
+                        f"a 2-D DataArray must have dims (time, cell) and come with a region, "
+                        f"got {data.dims}")
+                D = region.stack(data)
+            tdim = data.dims[0]
+            times = data[tdim] if tdim in data.coords else xr.DataArray(
+                np.arange(data.shape[0]), dims=(tdim,))
+            times = times.rename("time") if tdim == "time" else times
+            self._time_dim = tdim
+            M = ~np.isnan(D)
+            return D, M, region, times
+        self._time_dim = "time"
+        D = np.asarray(data)
+        if D.ndim != 2:
+            raise DataError(f"data must be a (T, L) array or a (time, lat, lon) DataArray, got "
+                            f"shape {D.shape}")
+        if not (np.issubdtype(D.dtype, np.floating) or np.issubdtype(D.dtype, np.integer)):
+            raise DataError(f"data must be numeric, got dtype {D.dtype}")
+        if D.dtype not in (np.float32, np.float64):
+            D = D.astype(np.float64)
+        D = np.ascontiguousarray(D)
+        if mask is None:
+            M = ~np.isnan(D)
+        else:
+            M = np.asarray(mask)
+            if M.shape != D.shape:
+                raise DataError(f"mask has shape {M.shape}, data has shape {D.shape}")
+            if M.dtype != np.bool_:
+                raise DataError(f"mask must be boolean (True = observed), got dtype {M.dtype}")
+            M = np.ascontiguousarray(M)
+        return D, M, None, None
+
+    def _set_result(self, res: FitResult, region, times, xarray: bool) -> None:
+        k = res.X.shape[0]
+        comp = np.arange(k)
+        self.region_ = region
+        self.n_times_, self.n_cells_ = res.X.shape[1], res.Y.shape[1]
+        self.n_features_in_ = self.n_cells_
+        if xarray:
+            tdim = getattr(self, "_time_dim", "time")
+            tvals = times.values if times is not None else np.arange(self.n_times_)
+            self.X_ = xr.DataArray(res.X, dims=("component", tdim),
+                                   coords={"component": comp, tdim: tvals}, name="X")
+            self.Y_ = xr.DataArray(res.Y, dims=("component", "cell"),
+                                   coords={"component": comp, **region.cell_coords()}, name="Y")
+        else:
+            self.X_ = res.X
+            self.Y_ = res.Y
+        self.objective_ = np.asarray(res.objective, dtype=np.float64)
+        self.n_iter_ = int(res.n_iter)
+        self.converged_ = bool(res.converged)
+        self.noise_std_ = float(res.noise_std)
+        self.unobserved_cells_ = np.asarray(res.unobserved_cells, dtype=np.int64)
+        self.n_observed_ = int(res.n_observed)
+        self.solver_ = res.solver
+
+    # ------------------------------------------------------------------ accessors
+    @property
+    def _Xv(self) -> np.ndarray:
+        self._check_fitted()
+        return np.asarray(getattr(self.X_, "values", self.X_), dtype=np.float64)
+
+    @property
+    def _Yv(self) -> np.ndarray:
+        self._check_fitted()
+        return np.asarray(getattr(self.Y_, "values", self.Y_), dtype=np.float64)
+
+    @property
+    def Y_grid(self) -> xr.DataArray:
+        """``Y_`` on the grid: ``(component, lat, lon)``, NaN off-region (needs a region)."""
+        self._check_fitted()
+        if self.region_ is None:
+            raise ModelError("Y_grid needs a model fitted on a DataArray (with a region)")
+        return self.region_.unstack(self.Y_, name="Y")
+
+    def reconstruct(self) -> xr.DataArray | np.ndarray:
+        """``X^T Y`` (float32): ``(time, lat, lon)`` DataArray, or ``(T, L)`` for array input."""
+        vals = (self._Xv.T @ self._Yv).astype(np.float32)
+        if self.region_ is None:
+            return vals
+        tdim = self.X_.dims[1]
+        return self.region_.unstack(vals, dims=(tdim,), coords={tdim: self.X_[tdim].values},
+                                    name="reconstruction")
+
+    # ------------------------------------------------------------------ completion
+    def _stack_snapshots(self, observations: Any) -> tuple[np.ndarray, bool, Any]:
+        """``(values (n, L) with NaN, single, lead)``; ``lead`` = (dim name, coords) or None."""
+        L = self.n_cells_
+        region = self.region_
+        if isinstance(observations, xr.DataArray):
+            da = observations
+            if da.dims and da.dims[-1] == "cell":
+                vals = np.asarray(da.values, dtype=np.float64)
+                if vals.shape[-1] != L:
+                    raise DataError(f"observations have {vals.shape[-1]} cells, model has {L}")
+            else:
+                if region is None:
+                    raise DataError("gridded observations need a model fitted with a region")
+                vals = region.stack(da).astype(np.float64)
+                if da.ndim < 2:
+                    raise DataError(f"observations must have dims (lat, lon), got {da.dims}")
+            if vals.ndim == 1:
+                return vals[None], True, None
+            if vals.ndim == 2:
+                d0 = da.dims[0]
+                return vals, False, (d0, da[d0].values if d0 in da.coords else None)
+            raise DataError(f"observations have too many dims: {da.dims}")
+        if isinstance(observations, Mapping):
+            cells = np.fromiter((int(c) for c in observations), dtype=np.int64,
+                                count=len(observations))
+            values = np.array(list(observations.values()), dtype=np.float64)
+            return self._from_pairs(cells, values), True, None
+        if isinstance(observations, tuple) and len(observations) == 2:
+            cells = np.asarray(observations[0])
+            if cells.ndim == 1 and (cells.size == 0 or np.issubdtype(cells.dtype, np.integer)):
+                return self._from_pairs(cells, np.asarray(observations[1], float)), True, None
+        vals = np.asarray(observations, dtype=np.float64)
+        if vals.ndim == 1 and vals.shape[0] == L:
+            return vals[None], True, None
+        if vals.ndim == 2 and vals.shape[1] == L:
+            return vals, False, ("snapshot", None)
+        raise DataError(
+            "observations must be a DataArray (lat, lon)/(cell) (or with a leading dim), a "
+            f"{{cell: value}} mapping, a (cells, values) tuple, or an array (L,)/(n, L) with "
+            f"L={L}; got {type(observations).__name__}")
+
+    def _from_pairs(self, cells: np.ndarray, values: np.ndarray) -> np.ndarray:
+        L = self.n_cells_
+        if cells.shape != values.shape or cells.ndim != 1:
+            raise DataError(f"cells {cells.shape} and values {values.shape} must be equal 1-D")
+        if cells.size and (cells.min() < 0 or cells.max() >= L):
+            raise DataError(f"cells must be indices in [0, {L})")
+        if not np.all(np.isfinite(values)):
+            raise DataError("observed values must be finite")
+        if np.unique(cells).size != cells.size:
+            raise DataError("cells must not repeat")
+        out = np.full((1, L), np.nan)
+        out[0, cells] = values
+        return out
+
+    def complete(self, observations: Any, ridge: float = 0.0) -> xr.Dataset:
+        """Region completion: predict the whole map from a partially observed snapshot.
+
+        ``observations``: a DataArray ``(lat, lon)`` or ``(cell)`` with NaN, a ``{cell: value}``
+        mapping, a ``(cells, values)`` tuple, or a stack of snapshots (a DataArray with a leading
+        dim, or an ``(n, L)`` array with NaN). Solves ``x = (Y_S Y_S^T + ridge I)^-1 Y_S d_S``
+        (the paper's pseudo-inverse when ``ridge = 0``) and returns a Dataset with
+        ``prediction = Y^T x``, ``std`` (standard error of the predicted *mean*,
+        ``sqrt(y_i^T Cov(x) y_i)`` with ``Cov(x) = noise_std_^2 (Y_S Y_S^T + ridge I)^-1``; it
+        excludes the noise of a new observation, ``noise_std_``, stored as an attribute), ``x``
+        and ``n_observations``, on the ``(lat, lon)`` grid when the model has a region, else on
+        ``cell``.
+        """
+        self._check_fitted()
+        ridge = check_positive(ridge, "ridge", error=ModelError)
+        V, single, lead = self._stack_snapshots(observations)
+        Y = self._Yv
+        if single:
+            obs = np.flatnonzero(~np.isnan(V[0]))
+            if np.any(np.isinf(V[0, obs])):
+                raise DataError("observed values must be finite")
+            x, cov = fold_in(Y, obs, V[0, obs], ridge=ridge, noise_std=self.noise_std_)
+            pred = Y.T @ x
+            std = mean_std(Y, cov)
+            n_obs: Any = int(obs.size)
+        else:
+            x, cov, n_obs = fold_in_many(Y, V, ridge=ridge, noise_std=self.noise_std_)
+            pred = x @ Y
+            std = mean_std(Y, cov)
+        return self._completion_dataset(pred, std, x, n_obs, ridge, single, lead)
+
+    def _completion_dataset(self, pred, std, x, n_obs, ridge, single, lead) -> xr.Dataset:
+        comp = np.arange(x.shape[-1])
+        attrs = {"ridge": ridge, "noise_std": self.noise_std_,
+                 "std_kind": "standard error of the predicted mean (excludes noise_std)"}
+        if single:
+            lead_dims: tuple = ()
+            lead_coords: dict = {}
+            attrs["n_observations"] = n_obs
+        else:
+            name, coord = lead
+            lead_dims = (name,)
+            lead_coords = {name: coord} if coord is not None else {}
+        if self.region_ is not None:
+            pred_da = self.region_.unstack(pred, dims=lead_dims, coords=lead_coords,
+                                        name="prediction")
+            sda = self.region_.unstack(std, dims=lead_dims, coords=lead_coords, name="std")
+        else:
+            cc = {"cell": np.arange(self.n_cells_), **lead_coords}
+            pred_da = xr.DataArray(pred, dims=lead_dims + ("cell",), coords=cc, name="prediction")
+            sda = xr.DataArray(std, dims=lead_dims + ("cell",), coords=cc, name="std")
+        xda = xr.DataArray(x, dims=lead_dims + ("component",),
+                           coords={"component": comp, **lead_coords})
+        data_vars = {"prediction": pred_da, "std": sda, "x": xda}
+        if not single:
+            data_vars["n_observations"] = xr.DataArray(np.asarray(n_obs), dims=lead_dims,
+                                                       coords=lead_coords)
+        ds = xr.Dataset(data_vars, attrs=attrs)
+        ds["std"].attrs["long_name"] = "standard error of the predicted mean"
+        return ds
+
+    # ------------------------------------------------------------------ validation
+    def _matrix(self, data: Any, mask: Any = None) -> tuple[np.ndarray, np.ndarray]:
+        if isinstance(data, xr.DataArray):
+            if self.region_ is None:
+                raise DataError("a DataArray needs a model fitted with a region")
+            D = self.region_.stack(data)
+            return D, ~np.isnan(D)
+        D = np.ascontiguousarray(np.asarray(data, dtype=np.float64))
+        M = ~np.isnan(D) if mask is None else np.ascontiguousarray(np.asarray(mask, dtype=bool))
+        return D, M
+
+    def score(self, data: Any, mask: Any = None) -> float:
+        """Mean squared error of ``X^T Y`` against ``data`` on its observed entries.
+
+        Entry-wise reconstruction error on the *training times* (``data`` has the training
+        shape, e.g. the held-out part of :meth:`holdout`); not a fold-in of new snapshots.
+        """
+        self._check_fitted()
+        D, M = self._matrix(data, mask)
+        if D.shape != (self.n_times_, self.n_cells_):
+            raise DataError(f"data has shape {D.shape}, the model was fitted on "
+                            f"{(self.n_times_, self.n_cells_)}")
+        n = int(np.count_nonzero(M))
+        if n == 0:
+            raise DataError("data has no observed entry to score")
+        pa, pb = K.pair_index(self._Xv.shape[0])
+        nchunk = 8
+        G = np.zeros((nchunk, D.shape[0], pa.size))
+        h = np.zeros((nchunk, D.shape[0], self._Xv.shape[0]))
+        f = np.zeros((nchunk, D.shape[0]))
+        K.row_pass(D, M, self._Xv, self._Yv, 0, 0.0, 0.0, pa, pb, nchunk, G, h, f)
+        return float(f.sum() / n)
+
+    @staticmethod
+    def holdout(data: Any, fraction: float = 0.1, seed: Any = 0) -> tuple[Any, Any]:
+        """Split the observed entries of ``data`` into ``(train, test)`` of the same type.
+
+        A random ``fraction`` of the observed entries moves to ``test`` (NaN elsewhere), the rest
+        stays in ``train``; every time keeps at least one training observation.
+        """
+        fraction = check_positive(fraction, "fraction", strict=True)
+        if fraction >= 1:
+            raise DataError(f"fraction must be in (0, 1), got {fraction}")
+        rng = as_generator(seed)
+        arr = data.values if isinstance(data, xr.DataArray) else np.asarray(data, dtype=float)
+        obs = np.isfinite(arr)
+        test = obs & (rng.random(arr.shape) < fraction)
+        train_obs = obs & ~test
+        lead = arr.shape[0]
+        flat_train = train_obs.reshape(lead, -1)
+        flat_test = test.reshape(lead, -1)
+        empty = np.flatnonzero(~flat_train.any(axis=1) & flat_test.any(axis=1))
+        if empty.size:
+            first = flat_test[empty].argmax(axis=1)
+            flat_test[empty, first] = False
+            flat_train[empty, first] = True
+        test = flat_test.reshape(arr.shape)
+        train_obs = flat_train.reshape(arr.shape)
+        train_v = np.where(train_obs, arr, np.nan).astype(arr.dtype, copy=False)
+        test_v = np.where(test, arr, np.nan).astype(arr.dtype, copy=False)
+        if isinstance(data, xr.DataArray):
+            return data.copy(data=train_v), data.copy(data=test_v)
+        return train_v, test_v
+
+    def select_rank(self, data: Any, ranks: Any, fraction: float = 0.1,
+                    seed: Any = 0) -> pd.Series:
+        """Held-out RMSE for each rank: fit a copy of this model on a training split of the
+        observed entries and score it on the rest. Returns a Series indexed by rank."""
+        if isinstance(data, xr.DataArray) and data.ndim == 3:
+            region = Region.from_dataarray(data)
+            data = xr.DataArray(region.stack(data), dims=(data.dims[0], "cell"))
+        train, test = self.holdout(data, fraction, seed)
+        out = {}
+        for r in ranks:
+            model = GLRM(**{**self.get_params(), "rank": int(r), "progress": False})
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                model.fit(np.asarray(getattr(train, "values", train)))
+            out[int(r)] = float(np.sqrt(model.score(np.asarray(getattr(test, "values", test)))))
+        return pd.Series(out, name="holdout_rmse").rename_axis("rank")
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the fitted model to NetCDF (atomically)."""
+        self._check_fitted()
+        ds = self._to_dataset()
+        with atomic_output(path) as tmp:
+            ds.to_netcdf(tmp)
+
+    def _to_dataset(self) -> xr.Dataset:
+        X, Y = self._Xv, self._Yv
+        k = X.shape[0]
+        if isinstance(self.X_, xr.DataArray):
+            tdim = self.X_.dims[1]
+            tvals = self.X_[tdim].values
+        else:
+            tdim, tvals = "time", np.arange(X.shape[1])
+        ds = xr.Dataset(
+            {
+                "X": (("component", tdim), X),
+                "Y": (("component", "cell"), Y),
+                "objective": (("iteration",), self.objective_),
+                "unobserved_cells": (("unobserved",), self.unobserved_cells_),
+            },
+            coords={"component": np.arange(k), tdim: tvals, "cell": np.arange(Y.shape[1])},
+        )
+        params = {}
+        warn_custom = []
+        for key, value in self.get_params().items():
+            if key in ("loss", "reg_x", "reg_y"):
+                obj = get_loss(value) if key == "loss" else get_regularizer(value)
+                if getattr(obj, "serializable", True):
+                    params[key] = obj.spec()
+                else:
+                    params[key] = {"name": "custom", "repr": repr(obj)}
+                    warn_custom.append(key)
+            elif key == "random_state":
+                params[key] = value if isinstance(value, (int, type(None))) else repr(value)
+            else:
+                params[key] = value
+        attrs = {
+            "format": _FORMAT, "format_version": _FORMAT_VERSION,
+            "params": json.dumps(params, default=str),
+            "noise_std": self.noise_std_, "n_iter": self.n_iter_,
+            "converged": int(self.converged_), "n_observed": self.n_observed_,
+            "solver": self.solver_, "time_dim": str(tdim),
+            "has_region": int(self.region_ is not None),
+        }
+        if warn_custom:
+            attrs["note"] = ("custom callable regularisers cannot be saved; their repr is stored "
+                             f"in params ({', '.join(warn_custom)})")
+        if self.region_ is not None:
+            reg_ds = self.region_.to_dataset()
+            ds = xr.merge([ds, reg_ds])
+            attrs["region_attrs"] = json.dumps(self.region_.attrs, default=str)
+            attrs["region_name"] = "" if self.region_.name is None else str(self.region_.name)
+        ds.attrs = attrs
+        return ds
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> GLRM:
+        """Read a model written by :meth:`save`. A file that is not one raises DataError."""
+        try:
+            with xr.open_dataset(path) as f:
+                ds = f.load()
+        except FileNotFoundError:
+            raise DataError(f"model file {os.fspath(path)!r} does not exist") from None
+        except Exception as exc:
+            raise DataError(f"{os.fspath(path)!r} is not a readable NetCDF file: {exc}") from exc
+        if ds.attrs.get("format") != _FORMAT or "X" not in ds or "Y" not in ds:
+            raise DataError(f"{os.fspath(path)!r} is not an lrm-cvx GLRM model file")
+        params = json.loads(ds.attrs["params"])
+        for key in ("loss", "reg_x", "reg_y"):
+            spec = params.get(key)
+            if isinstance(spec, dict) and spec.get("name") == "custom":
+                warnings.warn(f"{key} was a custom callable ({spec.get('repr')}) and cannot be "
+                              "restored; it is set to None", UserWarning, stacklevel=2)
+                params[key] = None
+            elif isinstance(spec, dict):
+                params[key] = (get_loss(spec) if key == "loss" else get_regularizer(spec))
+        names = cls._param_names()
+        model = cls(**{k: v for k, v in params.items() if k in names})
+        tdim = ds.attrs.get("time_dim", "time")
+        X = ds["X"].values
+        Y = ds["Y"].values
+        region = None
+        if int(ds.attrs.get("has_region", 0)):
+            name = ds.attrs.get("region_name") or None
+            region = Region.from_dataset(ds, attrs=json.loads(ds.attrs.get("region_attrs", "{}")),
+                                         name=name)
+        res = FitResult(
+            X=X, Y=Y, objective=list(ds["objective"].values), n_iter=int(ds.attrs["n_iter"]),
+            converged=bool(int(ds.attrs["converged"])),
+            unobserved_cells=ds["unobserved_cells"].values.astype(np.int64),
+            n_observed=int(ds.attrs["n_observed"]), noise_std=float(ds.attrs["noise_std"]),
+            solver=str(ds.attrs.get("solver", "fast")),
+        )
+        model._time_dim = tdim
+        model._set_result(res, region, ds[tdim], xarray=region is not None)
+        return model
+
+
+def _same(a: Any, b: Any) -> bool:
+    try:
+        return bool(a == b) and type(a) is type(b)
+    except Exception:
+        return a is b
+
