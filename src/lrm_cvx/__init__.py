@@ -6,6 +6,7 @@ path budget, certify the plan's optimality gap, and predict the whole map from a
 
 from __future__ import annotations
 
+from . import accessor as _accessor  # noqa: F401  (registers the .lrm accessor)
 from . import errors
 from .region import Region
 

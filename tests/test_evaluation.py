@@ -1,0 +1,123 @@
+"""Evaluation protocol: exact fold-in errors, protocol invariants, summary, persistence."""
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from lrm_cvx.errors import DataError, ModelError
+from lrm_cvx.evaluation import SnapshotStatistics, evaluate, foldin_mse, save_results, summary
+
+
+def brute_force_mse(Y, values, cells, ridge=0.0):
+    """Fold in by least squares, predict the whole map, MSE over the observed cells."""
+    out = []
+    for v in values:
+        seen = [c for c in cells if np.isfinite(v[c])]
+        A = Y[:, seen]
+        if ridge:
+            x = np.linalg.solve(A @ A.T + ridge * np.eye(len(Y)), A @ v[seen])
+        else:
+            x = np.linalg.lstsq(A.T, v[seen], rcond=None)[0]
+        pred = Y.T @ x
+        ok = np.isfinite(v)
+        out.append(np.mean((pred[ok] - v[ok]) ** 2))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("ridge", [0.0, 0.3])
+def test_foldin_mse_matches_brute_force(ridge):
+    rng = np.random.default_rng(0)
+    k, L = 3, 200
+    Y = rng.normal(size=(k, L))
+    values = (rng.normal(size=(4, k)) @ Y + 0.1 * rng.normal(size=(4, L))).astype(np.float32)
+    values[rng.random(values.shape) < 0.3] = np.nan
+    stats = SnapshotStatistics.from_values(Y, values)
+    cells = rng.choice(L, 25, replace=False)
+    mse, n_obs = foldin_mse(Y, stats, cells, ridge=ridge)
+    np.testing.assert_array_equal(n_obs, np.isfinite(values[:, cells]).sum(axis=1))
+    np.testing.assert_allclose(mse, brute_force_mse(Y, values.astype(float), cells, ridge),
+                               rtol=1e-6)
+
+
+def test_foldin_mse_excludes_too_few_observations():
+    rng = np.random.default_rng(1)
+    Y = rng.normal(size=(2, 30))
+    values = rng.normal(size=(2, 30)).astype(np.float32)
+    values[0, :20] = np.nan
+    stats = SnapshotStatistics.from_values(Y, values)
+    mse, n_obs = foldin_mse(Y, stats, np.arange(25), min_observations=10)
+    assert n_obs.tolist() == [5, 25]
+    assert np.isnan(mse[0]) and np.isfinite(mse[1])
+
+
+def planted(seed=0, T=24, ny=9, nx=11, k=3):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(k, T))
+    Yg = rng.normal(size=(k, ny * nx))
+    data = (X.T @ Yg + 0.05 * rng.normal(size=(T, ny * nx))).reshape(T, ny, nx)
+    data[rng.random(data.shape) < 0.2] = np.nan
+    data[:, 0, :3] = np.nan  # a small "land" area never observed
+    return xr.DataArray(
+        data.astype(np.float32), dims=("time", "lat", "lon"), name="sst",
+        coords={"time": np.arange(T), "lat": np.arange(ny) * 1.0, "lon": np.arange(nx) * 1.0},
+        attrs={"units": "K"},
+    )
+
+
+@pytest.fixture(scope="module")
+def results():
+    return evaluate(planted(), rank=3, n_test=4, budgets=(3, 8, 15), n_starts=3,
+                    random_trials=4, min_observations=4, seed=1, progress=False)
+
+
+def test_protocol_invariants(results):
+    ds = results
+    assert ds["mse"].dims == ("method", "budget", "start", "trial", "test_time")
+    assert ds.sizes["test_time"] == 4 and ds.sizes["trial"] == 4
+    budgets = ds["budget"].broadcast_like(ds["cost"])
+    done = np.isfinite(ds["cost"])
+    assert bool((ds["cost"].where(done) <= budgets + 1e-9).where(done, True).all())
+    # non-random methods run one trial only
+    assert bool(np.isnan(ds["cost"].sel({"method": "greedy"}).isel(trial=slice(1, None))).all())
+    # excluded exactly where too few observations
+    enough = ds["n_obs"] >= ds.attrs["min_observations"]
+    assert bool((np.isfinite(ds["mse"]) <= enough).all())
+    assert bool((ds["n_obs"] <= ds["n_cells"]).all())
+    # the certified bound holds for the greedy plans
+    greedy = ds["information"].sel({"method": "greedy"}).isel(trial=0)
+    assert bool((ds["bound"] >= greedy - 1e-6).all())
+    # the complete condition minimises each snapshot's error: a floor for every plan
+    assert bool((ds["mse"] >= ds["complete_mse"] - 1e-9).where(np.isfinite(ds["mse"]), True).all())
+
+
+def test_protocol_is_deterministic(results):
+    again = evaluate(planted(), rank=3, n_test=4, budgets=(3, 8, 15), n_starts=3,
+                     random_trials=4, min_observations=4, seed=1, progress=False)
+    xr.testing.assert_identical(results, again)
+
+
+def test_summary_matches_manual_mean(results):
+    df = summary(results).set_index(["method", "budget"])
+    sel = results.sel({"method": "random", "budget": 8.0})
+    err = sel["mse"].values[np.isfinite(sel["mse"].values)]
+    row = df.loc[("random", 8.0)]
+    assert row["mse_mean"] == pytest.approx(err.mean())
+    assert row["mse_se"] == pytest.approx(err.std(ddof=1) / np.sqrt(err.size))
+    assert row["n_predictions"] == err.size
+
+
+def test_save_results_round_trip(results, tmp_path):
+    paths = save_results(results, tmp_path)
+    back = xr.load_dataset(paths["results"])
+    xr.testing.assert_allclose(back.drop_vars("method"), results.drop_vars("method"))
+    assert paths["summary"].read_text().startswith("method,budget")
+
+
+def test_bad_arguments():
+    da = planted()
+    with pytest.raises(DataError, match="n_test"):
+        evaluate(da, n_test=0, progress=False)
+    with pytest.raises(ModelError, match="method"):
+        evaluate(da, rank=3, methods=("greedy", "spiral"), progress=False)
+    with pytest.raises(DataError):
+        evaluate(da.isel(time=0), progress=False)
