@@ -44,6 +44,8 @@ __all__ = [
     "objective",
     "y_block",
     "x_block",
+    "x_pass",
+    "solve_block",
     "cvxpy_y_block",
     "cvxpy_x_block",
     "initialize",
@@ -252,6 +254,34 @@ def x_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, step0=0):
 
     return _mm_block(pass_fn, np.array(X, dtype=np.float64), loss, reg, max_inner, inner_tol,
                      step0)
+
+
+def x_pass(D, M, X, Y, loss, step=0):
+    """Sufficient statistics of the X step over the columns of ``D``: ``(G, h, f)``.
+
+    ``G (T, k(k+1)/2)`` packs each time's Gram of the loss's quadratic majoriser at ``(X, Y)``,
+    ``h (T, k)`` its linear term and ``f (T,)`` the loss per time. They add up over column
+    chunks, which is how a chunked (dask) fit reduces the X step.
+    """
+    k, T = X.shape
+    pa, pb = K.pair_index(k)
+    nchunk = max(4 * numba.get_num_threads(), 4)
+    code, p0, p1 = loss.smoothed(step).kernel_spec
+    G = np.zeros((nchunk, T, pa.size))
+    h = np.zeros((nchunk, T, k))
+    f = np.zeros((nchunk, T))
+    K.row_pass(D, M, np.ascontiguousarray(X, dtype=np.float64),
+               np.ascontiguousarray(Y, dtype=np.float64), code, p0, p1, pa, pb, nchunk, G, h, f)
+    return G.sum(0), h.sum(0), f.sum(0)
+
+
+def solve_block(G, h, reg, F0):
+    """Minimiser of the (majorised) block problem for each of ``n`` columns: ``(k, n)``.
+
+    ``G (n, k(k+1)/2)`` and ``h (n, k)`` as returned by :func:`x_pass`; ``F0 (k, n)`` is the
+    starting point for regularisers solved by coordinate descent.
+    """
+    return np.ascontiguousarray(_solve_normal(G, h, reg, F0))
 
 
 def objective(D, M, X, Y, loss, reg_x, reg_y) -> float:
