@@ -2,13 +2,53 @@
 
 Load gridded snapshots, fit a generalized low rank model, plan where a robot should sample under a
 path budget, certify the plan's optimality gap, and predict the whole map from a few observations.
+
+The main entry points are importable from the top level (loaded on first use)::
+
+    from lrm_cvx import GLRM, load_sample, plan_greedy, evaluate
 """
 
 from __future__ import annotations
+
+import importlib
+from typing import Any
 
 from . import accessor as _accessor  # noqa: F401  (registers the .lrm accessor)
 from . import errors
 from .region import Region
 
 __version__ = "0.1.0"
-__all__ = ["Region", "errors", "__version__"]
+
+_LAZY = {
+    "GLRM": "lrm_cvx.glrm",
+    "load_sample": "lrm_cvx.datasets",
+    "list_samples": "lrm_cvx.datasets",
+    "open_data": "lrm_cvx.io.generic",
+    "open_ndvi_cdr": "lrm_cvx.io.ndvi",
+    "open_image_stack": "lrm_cvx.io.imagery",
+    "synthetic_field": "lrm_cvx.io.samples",
+    "fisher_information": "lrm_cvx.information",
+    "nearest_neighbor_tour": "lrm_cvx.cost",
+    "Plan": "lrm_cvx.planning",
+    "plan_greedy": "lrm_cvx.planning",
+    "transect": "lrm_cvx.planning",
+    "random_walk": "lrm_cvx.planning",
+    "plan_bound": "lrm_cvx.planning.bound",
+    "dopt_upper_bound": "lrm_cvx.planning.bound",
+    "evaluate": "lrm_cvx.evaluation",
+    "summary": "lrm_cvx.evaluation",
+}
+
+__all__ = ["Region", "errors", "__version__", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'lrm_cvx' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
