@@ -156,7 +156,8 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     paths = save_results(results, out_dir)
     figs = save_figure(plot_metrics(results), out_dir / "metrics")
     # qualitative figure: the first start cell, three budgets, the first test snapshot
-    chosen = [b for b in results["budget"].values][:: max(1, len(results["budget"]) // 3)][:3]
+    budgets = results["budget"].values
+    chosen = [budgets[i] for i in sorted({0, len(budgets) // 2, len(budgets) - 1})]
     routes = {float(b): results["greedy_route"].sel(budget=b).isel(start=0).values for b in chosen}
     if "greedy" in results["method"].values:
         snap = data.isel(time=n_train)

@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import matplotlib
-
 import numpy as np
 import xarray as xr
 
@@ -42,11 +41,12 @@ def _style(method: str, i: int) -> dict[str, Any]:
 
 
 def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
-                 title: str | None = None):
+                 title: str | None = None, log_mse: bool = True):
     """Fisher information and reconstruction MSE vs budget, mean +- standard error per method.
 
     ``results`` is the Dataset of :func:`lrm_cvx.evaluation.evaluate`. The MSE panel also draws
-    the "complete" condition (fold-in from every observed cell). Returns the figure.
+    the "complete" condition (fold-in from every observed cell), on a log scale by default
+    because small budgets give errors orders of magnitude above the floor. Returns the figure.
     """
     import matplotlib.pyplot as plt
 
@@ -69,10 +69,13 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
         complete = float(results["complete_mse"].mean())
         axes[1].axhline(complete, color="0.4", ls="--", lw=1, label="complete")
         axes[0].set_ylabel("Fisher information (nats)")
-        axes[1].set_ylabel("reconstruction MSE")
+        units = results["mse"].attrs.get("units")
+        axes[1].set_ylabel(f"reconstruction MSE ({units})" if units else "reconstruction MSE")
         for ax in axes:
             ax.set_xlabel("budget (grid cells)")
             ax.grid(alpha=0.3, lw=0.5)
+        if log_mse:
+            axes[1].set_yscale("log")
         axes[0].set_title("(a) information, higher is better")
         axes[1].set_title("(b) reconstruction error, lower is better")
         axes[1].legend(frameon=False, ncol=1, loc="upper right")
@@ -83,7 +86,8 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
 
 def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
              route: xr.Dataset | None = None, **kwargs: Any):
-    """One ``(lat, lon)`` map with a colour bar, optionally with a route ``(lat, lon)`` drawn."""
+    """One ``(lat, lon)`` map (colour bar unless ``add_colorbar=False``), optionally with a
+    route (a Dataset with ``lat`` and ``lon`` per stop) drawn; returns the mappable's axes."""
     import matplotlib.pyplot as plt
 
     if field.ndim != 2:
@@ -116,7 +120,7 @@ def plot_predictions(model: Any, snapshot: xr.DataArray, routes: Mapping[float, 
     lo, hi = np.nanpercentile(values, [2, 98])
     n = len(routes)
     with plt.rc_context(_PRINT_RC):
-        fig, axes = plt.subplots(n, 2, figsize=(7.2, 2.9 * n), squeeze=False,
+        fig, axes = plt.subplots(n, 2, figsize=(7.2, 2.3 * n + 0.8), squeeze=False,
                                  constrained_layout=True)
         errors = {}
         preds = {}
@@ -134,10 +138,20 @@ def plot_predictions(model: Any, snapshot: xr.DataArray, routes: Mapping[float, 
             route = xr.Dataset({"lat": ("step", region.cell_lat[cells]),
                                 "lon": ("step", region.cell_lon[cells])})
             plot_map(errors[budget], ax=axes[row, 0], cmap=error_cmap, vmin=0, vmax=emax,
-                     route=route)
-            plot_map(preds[budget], ax=axes[row, 1], cmap=cmap, vmin=lo, vmax=hi, route=route)
+                     route=route, add_colorbar=False)
+            plot_map(preds[budget], ax=axes[row, 1], cmap=cmap, vmin=lo, vmax=hi, route=route,
+                     add_colorbar=False)
             axes[row, 0].set_title(f"|error|, budget {budget:g} ({len(cells)} cells)")
             axes[row, 1].set_title(f"prediction, budget {budget:g}")
+        units = snapshot.attrs.get("units", "")
+        for col, (label, vmin, vmax, cm) in enumerate(
+            [("|prediction - truth|", 0, emax, error_cmap), ("prediction", lo, hi, cmap)]
+        ):
+            mappable = matplotlib.cm.ScalarMappable(
+                matplotlib.colors.Normalize(vmin, vmax), cmap=cm)
+            fig.colorbar(mappable, ax=axes[:, col], location="bottom", shrink=0.8,
+                         label=f"{label} ({units})" if units else label,
+                         extend="max" if col == 0 else "both")
     return fig
 
 

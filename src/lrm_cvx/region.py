@@ -222,7 +222,7 @@ class Region:
         name: Hashable | None = None,
         attrs: dict[str, Any] | None = None,
     ) -> xr.DataArray:
-        """Gridded view of cell values: ``(..., L)`` -> DataArray ``(..., lat, lon)``, NaN off-region.
+        """Gridded view of cell values: ``(..., L)`` -> ``(..., lat, lon)``, NaN off the region.
 
         ``values`` may be a DataArray whose last dim is ``cell`` (its other dims and coords are
         kept) or an array with leading dims named by ``dims``. The grid's coordinates and the
@@ -241,7 +241,8 @@ class Region:
             values = values.values
         values = np.asarray(values)
         if values.shape[-1] != self.n_cells:
-            raise RegionError(f"values have {values.shape[-1]} cells, the region has {self.n_cells}")
+            raise RegionError(
+                f"values have {values.shape[-1]} cells, the region has {self.n_cells}")
         lead = values.shape[:-1]
         if dims is None:
             dims = {0: (), 1: ("time",)}.get(len(lead), tuple(f"dim_{i}" for i in range(len(lead))))
