@@ -1,0 +1,52 @@
+"""Loaders of gridded snapshots and writers of the real file formats.
+
+- :func:`open_ndvi_cdr` (``io/ndvi.py``): NOAA Climate Data Record NDVI daily NetCDF files
+  (AVHRR v5 and VIIRS v1) -> DataArray ``(time, lat, lon)`` with QA-bit masking.
+- :func:`open_image_stack` (``io/imagery.py``): RGB snapshots (e.g. NASA Worldview) -> hue in
+  degrees with cloud, edge and no-data masks.
+- :func:`synthetic_field`, :func:`write_ndvi_cdr`, :func:`write_image_stack`
+  (``io/samples.py``): a planted low-rank field and writers of the two real formats.
+
+Submodules are imported lazily, so ``from lrm_cvx.io.samples import synthetic_field`` does not
+pay for (or depend on) the others.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__all__ = [
+    "open_ndvi_cdr",
+    "open_image_stack",
+    "synthetic_field",
+    "write_ndvi_cdr",
+    "write_image_stack",
+    "AVHRR_FLAGS",
+    "VIIRS_FLAGS",
+    "DEFAULT_MASK_FLAGS",
+]
+
+_WHERE = {
+    "open_ndvi_cdr": "ndvi",
+    "AVHRR_FLAGS": "ndvi",
+    "VIIRS_FLAGS": "ndvi",
+    "DEFAULT_MASK_FLAGS": "ndvi",
+    "open_image_stack": "imagery",
+    "synthetic_field": "samples",
+    "write_ndvi_cdr": "samples",
+    "write_image_stack": "samples",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _WHERE:
+        module = importlib.import_module(f"{__name__}.{_WHERE[name]}")
+        value = getattr(module, name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -1,0 +1,302 @@
+"""NOAA Climate Data Record (CDR) of daily NDVI -> ``(time, lat, lon)`` DataArray with QA masking.
+
+Two products, told apart by the file name:
+
+- AVHRR v5 (1981-2013): ``AVHRR-Land_v005[-preliminary]_AVH13C1_<PLATFORM>_<YYYYMMDD>_c<proc>.nc``
+  with a ``QA`` int16 whose bits 1..15 are the ``flag_masks`` 2, 4, ..., 16384, -32768:
+  cloudy, cloud_shadow, water, sunglint, dense_dark_vegetation, night, ch1_to_5_valid,
+  ch1_invalid ... ch5_invalid, rho3_invalid, BRDF_corr_problem, polar_flag.
+- VIIRS v1 (2014-): ``VIIRS-Land_v001[-preliminary]_<CODE>_<PLATFORM>_<YYYYMMDD>_c<proc>.nc``
+  (``NPP13C1_S-NPP`` or ``JP113C1_NOAA-20``) with a ``QA`` whose bits 0-1 are the cloud state (0 clear, 1 cloudy, 2 mixed, 3 not set),
+  bit 2 cloud shadow, bits 3-5 the land/water class (0 land and desert, 1 land, 2 inland water,
+  3 sea water, 5 coastal), bits 6-7 aerosol quantity, 8-9 thin cirrus, 10 internal cloud
+  flag, 15 snow/ice.
+
+``NDVI`` is int16 with ``scale_factor`` 1e-4, ``add_offset`` 0, ``_FillValue`` -9999 and
+``valid_range`` [-1000, 10000]. Everything is decoded from the raw integers (xarray applies
+neither ``valid_range`` nor bit flags), so a QA fill value is never mistaken for a flag.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from ..errors import DataError
+
+__all__ = [
+    "open_ndvi_cdr",
+    "parse_cdr_name",
+    "decode_qa",
+    "AVHRR_FLAGS",
+    "VIIRS_FLAGS",
+    "DEFAULT_MASK_FLAGS",
+    "NDVI_SCALE",
+    "NDVI_FILL",
+    "NDVI_VALID_RANGE",
+    "QA_FILL",
+]
+
+NDVI_SCALE = 1e-4
+NDVI_FILL = -9999
+NDVI_VALID_RANGE = (-1000, 10000)
+QA_FILL = -32767
+
+AVHRR_FLAG_NAMES = (
+    "cloudy cloud_shadow water sunglint dense_dark_vegetation night ch1_to_5_valid ch1_invalid "
+    "ch2_invalid ch3_invalid ch4_invalid ch5_invalid rho3_invalid BRDF_corr_problem polar_flag"
+).split()
+AVHRR_FLAGS: dict[str, int] = {name: 1 << (i + 1) for i, name in enumerate(AVHRR_FLAG_NAMES)}
+"""AVHRR v5 QA flag name -> bit mask (bit 1 cloudy ... bit 15 polar_flag)."""
+
+VIIRS_FLAGS: dict[str, str] = {
+    "cloudy": "cloud state (bits 0-1) cloudy or mixed, or the internal cloud flag (bit 10)",
+    "cloud_shadow": "bit 2",
+    "water": "land/water class (bits 3-5) other than land (0) or land-and-desert (1)",
+    "high_aerosol": "aerosol quantity (bits 6-7) high (3)",
+    "thin_cirrus": "thin cirrus (bits 8-9) not none (0)",
+    "snow_ice": "bit 15",
+}
+"""VIIRS v1 QA flag names this loader understands, with the bits they test."""
+
+DEFAULT_MASK_FLAGS: dict[str, tuple[str, ...]] = {
+    "AVHRR": ("cloudy", "cloud_shadow", "water", "sunglint", "ch1_invalid", "ch2_invalid",
+              "ch3_invalid", "ch4_invalid", "ch5_invalid"),
+    "VIIRS": ("cloudy", "cloud_shadow", "water", "snow_ice"),
+}
+"""Flags that make a cell unusable by default, per product."""
+
+_NAME = re.compile(
+    r"^(?P<product>AVHRR|VIIRS)-Land_v(?P<version>\d{3})(?:-preliminary)?_"
+    r"(?P<code>AVH13C1|NPP13C1|JP113C1)_(?P<platform>[A-Za-z0-9-]+)_(?P<date>\d{8})_c\d+\.nc$"
+)
+
+
+def parse_cdr_name(path: str | os.PathLike) -> dict[str, Any]:
+    """``{"product", "platform", "date"}`` from a CDR file name; DataError if it is not one."""
+    name = Path(path).name
+    m = _NAME.match(name)
+    if m is None:
+        raise DataError(
+            f"{name!r} is not a NOAA CDR NDVI file name (expected "
+            "AVHRR-Land_v005_AVH13C1_<PLATFORM>_<YYYYMMDD>_c<proc>.nc or "
+            "VIIRS-Land_v001_NPP13C1_S-NPP_<YYYYMMDD>_c<proc>.nc)"
+        )
+    try:
+        date = pd.Timestamp(m["date"])
+    except ValueError:
+        raise DataError(f"{name!r}: {m['date']} is not a valid date") from None
+    return {"product": m["product"], "platform": m["platform"], "date": date}
+
+
+def decode_qa(qa_raw: Any, product: str, flags: Iterable[str]) -> Any:
+    """Boolean array, True where any of ``flags`` is set in the raw int16 QA of ``product``.
+
+    Works on numpy, dask and xarray objects alike (only bitwise operations). The QA fill value
+    (-32767) is not decoded here: callers treat it as "no QA", i.e. unusable.
+    """
+    q = qa_raw.astype(np.int32) & 0xFFFF
+    out = None
+    for flag in flags:
+        if product == "AVHRR":
+            if flag not in AVHRR_FLAGS:
+                raise DataError(f"unknown AVHRR QA flag {flag!r}; known: {AVHRR_FLAG_NAMES}")
+            hit = (q & AVHRR_FLAGS[flag]) != 0
+        elif product == "VIIRS":
+            if flag == "cloudy":
+                state = q & 0b11
+                hit = (state == 1) | (state == 2) | ((q & (1 << 10)) != 0)
+            elif flag == "cloud_shadow":
+                hit = (q & (1 << 2)) != 0
+            elif flag == "water":
+                hit = ((q >> 3) & 0b111) > 1
+            elif flag == "high_aerosol":
+                hit = ((q >> 6) & 0b11) == 3
+            elif flag == "thin_cirrus":
+                hit = ((q >> 8) & 0b11) != 0
+            elif flag == "snow_ice":
+                hit = (q & (1 << 15)) != 0
+            else:
+                raise DataError(f"unknown VIIRS QA flag {flag!r}; known: {list(VIIRS_FLAGS)}")
+        else:
+            raise DataError(f"unknown product {product!r}")
+        out = hit if out is None else (out | hit)
+    if out is None:
+        out = q != q  # nothing to mask
+    return out
+
+
+def _expand(paths_or_glob: Any) -> list[Path]:
+    items = [paths_or_glob] if isinstance(paths_or_glob, (str, os.PathLike)) else list(
+        paths_or_glob)
+    files: list[Path] = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            files.extend(sorted(p.glob("*.nc")))
+        elif any(c in str(item) for c in "*?["):
+            files.extend(Path(f) for f in sorted(glob.glob(str(item))))
+        else:
+            if not p.exists():
+                raise DataError(f"NDVI file not found: {p}")
+            files.append(p)
+    if not files:
+        raise DataError(f"no NOAA CDR NDVI file matches {paths_or_glob!r}")
+    return files
+
+
+def _resolve_flags(mask_flags: Any, products: set[str]) -> dict[str, tuple[str, ...]]:
+    if mask_flags is None or (isinstance(mask_flags, str) and mask_flags == "default"):
+        return {p: DEFAULT_MASK_FLAGS[p] for p in products}
+    if isinstance(mask_flags, dict):
+        missing = products - set(mask_flags)
+        if missing:
+            raise DataError(f"mask_flags has no entry for product(s) {sorted(missing)}")
+        return {p: tuple(mask_flags[p]) for p in products}
+    flags = (mask_flags,) if isinstance(mask_flags, str) else tuple(mask_flags)
+    return {p: flags for p in products}
+
+
+def _bbox_index(lat: np.ndarray, lon: np.ndarray, bbox: Sequence[float] | None, name: str):
+    if bbox is None:
+        return slice(None), slice(None)
+    try:
+        south, west, north, east = (float(v) for v in bbox)
+    except (TypeError, ValueError):
+        raise DataError(f"bbox must be (south, west, north, east), got {bbox!r}") from None
+    if south > north:
+        raise DataError(f"bbox must have south <= north, got {bbox!r}")
+    rows = np.flatnonzero((lat >= south) & (lat <= north))
+    inside = (lon >= west) & (lon <= east) if west <= east else (lon >= west) | (lon <= east)
+    cols = np.flatnonzero(inside)
+    if rows.size == 0 or cols.size == 0:
+        raise DataError(
+            f"bbox {tuple(bbox)} lies outside the data of {name} "
+            f"(lat {lat.min():g}..{lat.max():g}, lon {lon.min():g}..{lon.max():g})"
+        )
+    # contiguous when the box does not wrap: slices keep the read lazy and cheap
+    row_sel = slice(rows[0], rows[-1] + 1) if np.all(np.diff(rows) == 1) else rows
+    col_sel = slice(cols[0], cols[-1] + 1) if np.all(np.diff(cols) == 1) else cols
+    return row_sel, col_sel
+
+
+def _decode_file(ds: xr.Dataset, path: Path, product: str, flags: tuple[str, ...],
+                 bbox: Sequence[float] | None) -> xr.DataArray:
+    for var in ("NDVI", "QA"):
+        if var not in ds.variables:
+            raise DataError(f"{path.name}: no {var!r} variable (has {sorted(ds.variables)})")
+    ndvi_raw, qa_raw = ds["NDVI"], ds["QA"]
+    expected = {"time", "latitude", "longitude"}
+    for var in (ndvi_raw, qa_raw):
+        if set(var.dims) != expected:
+            raise DataError(f"{path.name}: {var.name} has dims {var.dims}, expected "
+                            "(time, latitude, longitude)")
+    lat = np.asarray(ds["latitude"].values, dtype=np.float64)
+    lon = np.asarray(ds["longitude"].values, dtype=np.float64)
+    rows, cols = _bbox_index(lat, lon, bbox, path.name)
+    sel = {"latitude": rows, "longitude": cols}
+    ndvi_raw = ndvi_raw.transpose("time", "latitude", "longitude").isel(sel)
+    qa_raw = qa_raw.transpose("time", "latitude", "longitude").isel(sel)
+    attrs = ds["NDVI"].attrs
+    scale = float(attrs.get("scale_factor", NDVI_SCALE))
+    offset = float(attrs.get("add_offset", 0.0))
+    fill = attrs.get("_FillValue", NDVI_FILL)
+    vmin, vmax = attrs.get("valid_range", NDVI_VALID_RANGE)
+    qa_fill = ds["QA"].attrs.get("_FillValue", QA_FILL)
+    usable = (ndvi_raw != fill) & (ndvi_raw >= vmin) & (ndvi_raw <= vmax) & (qa_raw != qa_fill)
+    usable = usable & ~decode_qa(qa_raw, product, flags)
+    ndvi = (ndvi_raw.astype(np.float32) * np.float32(scale) + np.float32(offset)).where(usable)
+    return ndvi.astype(np.float32).rename({"latitude": "lat", "longitude": "lon"})
+
+
+def open_ndvi_cdr(
+    paths_or_glob: Any,
+    bbox: Sequence[float] | None = None,
+    mask_flags: Any = None,
+    chunks: Any = None,
+) -> xr.DataArray:
+    """Daily NOAA CDR NDVI files -> ``(time, lat, lon)`` float32 NDVI in [-1, 1], NaN if unusable.
+
+    Parameters
+    ----------
+    paths_or_glob : a glob pattern, a folder, a path or a list of them (AVHRR v5 and VIIRS v1
+        files may be mixed; each file's QA is decoded with its own product's layout).
+    bbox : ``(south, west, north, east)`` in degrees; cells whose centre lies inside are kept.
+        Each file is subset before anything is read, so a small box of the 3600 x 7200 global
+        grid costs little.
+    mask_flags : flag names that make a cell unusable: None = :data:`DEFAULT_MASK_FLAGS`
+        (cloudy, cloud shadow, water, sunglint, any channel invalid for AVHRR; cloudy, cloud
+        shadow, water, snow/ice for VIIRS), a sequence applied to every product, or a dict
+        ``{"AVHRR": [...], "VIIRS": [...]}``. Fill values, values outside ``valid_range`` and a
+        missing QA always make a cell unusable.
+    chunks : None loads each file's subset into memory as it is read (memory = the result);
+        a dask chunk spec (e.g. ``{"time": 1}``) returns a lazy dask-backed DataArray.
+
+    The time of each file is its date in the file name; files are sorted by time. Attributes
+    record units, the flags used, the products and the source files.
+    """
+    files = _expand(paths_or_glob)
+    meta = [parse_cdr_name(f) for f in files]
+    order = np.argsort([m["date"].value for m in meta], kind="stable")
+    files = [files[i] for i in order]
+    meta = [meta[i] for i in order]
+    products = {m["product"] for m in meta}
+    flags = _resolve_flags(mask_flags, products)
+    arrays = []
+    for path, m in zip(files, meta, strict=True):
+        try:
+            ds = xr.open_dataset(path, mask_and_scale=False, decode_times=False,
+                                 chunks=chunks, engine="netcdf4")
+        except Exception as exc:  # netCDF4/HDF5 raise several types for a corrupt file
+            raise DataError(f"cannot read NDVI file {path}: {exc}") from None
+        try:
+            da = _decode_file(ds, path, m["product"], flags[m["product"]], bbox)
+            da = da.assign_coords(time=[np.datetime64(m["date"], "ns")])
+            if chunks is None:
+                da = da.load()
+        except DataError:
+            ds.close()
+            raise
+        except Exception as exc:
+            ds.close()
+            raise DataError(f"cannot decode NDVI file {path}: {exc}") from None
+        if chunks is None:
+            ds.close()
+        arrays.append(da)
+    ref = arrays[0]
+    for path, da in zip(files, arrays, strict=True):
+        if da.shape[1:] != ref.shape[1:] or not (
+            np.allclose(da["lat"], ref["lat"]) and np.allclose(da["lon"], ref["lon"])
+        ):
+            raise DataError(f"{path.name} has a different grid than {files[0].name}")
+    out = xr.concat(arrays, dim="time", join="override", coords="minimal", compat="override")
+    out.name = "ndvi"
+    out["lat"] = out["lat"].astype(np.float64)
+    out["lon"] = out["lon"].astype(np.float64)
+    out["lat"].attrs = {"standard_name": "latitude", "units": "degrees_north", "axis": "Y"}
+    out["lon"].attrs = {"standard_name": "longitude", "units": "degrees_east", "axis": "X"}
+    out["time"].attrs = {"standard_name": "time", "axis": "T"}
+    out.attrs = {
+        "long_name": "normalized difference vegetation index",
+        "units": "1",
+        "valid_min": -1.0,
+        "valid_max": 1.0,
+        "source": "NOAA Climate Data Record of AVHRR/VIIRS Normalized Difference Vegetation Index",
+        "products": " ".join(sorted(products)),
+        "mask_flags": "; ".join(f"{p}: {' '.join(f)}" for p, f in sorted(flags.items())),
+        "source_files": "\n".join(p.name for p in files),
+    }
+    if chunks is None and not np.isfinite(out.values).any():
+        raise DataError(
+            f"every cell is masked in {len(files)} file(s) (bbox {bbox}, flags "
+            f"{out.attrs['mask_flags']}): nothing usable"
+        )
+    return out
