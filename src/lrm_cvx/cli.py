@@ -41,7 +41,7 @@ def _start(text: str) -> tuple[float, float]:
 
 
 def _load(args: argparse.Namespace):
-    from .io.generic import open_data
+    from .io import open_data
 
     bbox = tuple(_floats(args.bbox, 4, "--bbox S,W,N,E")) if args.bbox else None
     return open_data(args.data, var=args.var, bbox=bbox)

@@ -1,5 +1,7 @@
 """Loaders of gridded snapshots and writers of the real file formats.
 
+- :func:`open_data` (``io/generic.py``): any of the sources below, ``sample:NAME`` or a NetCDF
+  file with a ``(time, lat, lon)`` variable, chosen from the paths.
 - :func:`open_ndvi_cdr` (``io/ndvi.py``): NOAA Climate Data Record NDVI daily NetCDF files
   (AVHRR v5 and VIIRS v1) -> DataArray ``(time, lat, lon)`` with QA-bit masking.
 - :func:`open_image_stack` (``io/imagery.py``): RGB snapshots (e.g. NASA Worldview) -> hue in
@@ -17,6 +19,7 @@ import importlib
 from typing import Any
 
 __all__ = [
+    "open_data",
     "open_ndvi_cdr",
     "open_image_stack",
     "synthetic_field",
@@ -28,6 +31,7 @@ __all__ = [
 ]
 
 _WHERE = {
+    "open_data": "generic",
     "open_ndvi_cdr": "ndvi",
     "AVHRR_FLAGS": "ndvi",
     "VIIRS_FLAGS": "ndvi",
