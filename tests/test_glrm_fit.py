@@ -14,6 +14,7 @@ from lrm_cvx.glrm.fit import (
     is_fast_capable,
     objective,
     x_block,
+    x_pass,
     y_block,
 )
 from lrm_cvx.glrm.losses import Absolute, Huber, Quadratic, Quantile
@@ -242,3 +243,162 @@ def test_bad_inputs_raise():
         fit_glrm(D[0], M[0], 1, q, z, z)
     with pytest.raises(ModelError):
         fit_glrm(D, M, 2, q, z, z, solver="nope")
+
+
+# --------------------------------------------------------------------------- quadratic fast path
+def _masked(rng, T, L, dtype, p_obs=0.6):
+    D = rng.standard_normal((T, L)).astype(dtype)
+    M = rng.random((T, L)) < p_obs
+    D_nan = np.where(M, D, np.nan).astype(dtype)  # NaN outside the mask must be ignored
+    return D, M, D_nan
+
+
+def naive_pinv_y_step(D, M, X, lam):
+    """Per column: the minimum-norm minimiser of ||P_j(X^T y - d_j)||^2 + lam ||y||^2."""
+    k = X.shape[0]
+    out = np.zeros((k, D.shape[1]))
+    for j in range(D.shape[1]):
+        obs = M[:, j]
+        A = X[:, obs] @ X[:, obs].T + lam * np.eye(k)
+        out[:, j] = np.linalg.pinv(A) @ (X[:, obs] @ D[obs, j].astype(np.float64))
+    return out
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.3])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_quad_y_kernel_equals_naive(lam, dtype):
+    rng = np.random.default_rng(11)
+    T, L, k = 23, 1300, 4  # T not a multiple of 4; L spans 3 blocks with a ragged last one
+    D, M, D_nan = _masked(rng, T, L, dtype)
+    M[:, 5] = False  # never observed
+    M[:, 7] = False
+    M[:2, 7] = True  # fewer observations than k: pinv without ridge
+    D_nan = np.where(M, D, np.nan).astype(dtype)
+    X = rng.standard_normal((k, T))
+    Y = rng.standard_normal((k, L))
+    pa, pb = K.pair_index(k)
+    out = np.empty_like(Y)
+    before, after, npinv = K.quad_y_step(D_nan, M, X, Y, lam, pa, pb, out, 3)
+    ref = naive_pinv_y_step(D, M, X, lam)
+    np.testing.assert_allclose(out, ref, rtol=1e-8, atol=1e-8)
+    assert np.all(out[:, 5] == 0.0)
+    assert npinv == (1 if lam == 0 else 0)
+    D64 = D.astype(np.float64)
+    loss = lambda F: float(np.sum(np.where(M, X.T @ F - D64, 0.0) ** 2))  # noqa: E731
+    assert np.isclose(before, loss(Y), rtol=1e-10)
+    assert np.isclose(after, loss(out), rtol=1e-10)
+    # in place (out is Y) gives the same
+    Y2 = Y.copy()
+    K.quad_y_step(D_nan, M, X, Y2, lam, pa, pb, Y2, 2)
+    np.testing.assert_array_equal(Y2, out)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_quad_x_stats_equals_naive(dtype):
+    rng = np.random.default_rng(12)
+    T, L, k = 13, 2500, 3
+    D, M, D_nan = _masked(rng, T, L, dtype, 0.4)
+    Y = rng.standard_normal((k, L))
+    pa, pb = K.pair_index(k)
+    nch = 3
+    G = np.full((nch, T, pa.size), np.nan)  # buffers need no zeroing
+    h = np.full((nch, T, k), np.nan)
+    c = np.full((nch, T), np.nan)
+    K.quad_x_stats(D_nan, M, Y, pa, pb, nch, G, h, c)
+    W = M.astype(np.float64)
+    Dz = np.where(M, D, 0).astype(np.float64)
+    Gfull = np.einsum("tj,aj,bj->tab", W, Y, Y)
+    np.testing.assert_allclose(G.sum(0), Gfull[:, pa, pb], rtol=1e-10)
+    np.testing.assert_allclose(h.sum(0), Dz @ Y.T, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(c.sum(0), (Dz**2).sum(1), rtol=1e-10)
+
+
+def test_x_pass_quadratic_matches_generic_kernel():
+    rng = np.random.default_rng(13)
+    T, L, k = 10, 700, 3
+    D, M, D_nan = _masked(rng, T, L, np.float32)
+    X = rng.standard_normal((k, T))
+    Y = rng.standard_normal((k, L))
+    G, h, f = x_pass(D_nan, M, X, Y, Quadratic())
+    R = np.where(M, X.T @ Y - D.astype(np.float64), 0.0)
+    np.testing.assert_allclose(f, (R**2).sum(1), rtol=1e-9)
+    pa, pb = K.pair_index(k)
+    nch = 4
+    G2, h2, f2 = np.zeros((nch, T, pa.size)), np.zeros((nch, T, k)), np.zeros((nch, T))
+    K.row_pass(D_nan, M, X, Y, 0, 0.0, 0.0, pa, pb, nch, G2, h2, f2)
+    np.testing.assert_allclose(G, G2.sum(0), rtol=1e-10)
+    np.testing.assert_allclose(h, h2.sum(0), rtol=1e-9, atol=1e-9)
+
+
+def test_chol_solve_equals_numpy_and_pinv():
+    rng = np.random.default_rng(14)
+    n, k = 300, 4
+    pa, pb = K.pair_index(k)
+    B = rng.standard_normal((n, k, 6))
+    A = B @ B.transpose(0, 2, 1)
+    A[3] = np.outer(B[3, :, 0], B[3, :, 0])  # rank one: pinv
+    A[4] = 0.0  # empty
+    h = rng.standard_normal((n, k))
+    h[3] = B[3, :, 0] * 2.0
+    h[4] = 0.0
+    out = np.empty((n, k))
+    flags = K.chol_solve(np.ascontiguousarray(A[:, pa, pb]), h, 0.0, pa, pb, out)
+    ok = np.ones(n, bool)
+    ok[[3, 4]] = False
+    np.testing.assert_allclose(out[ok], np.linalg.solve(A[ok], h[ok][..., None])[..., 0],
+                               rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(out[3], np.linalg.pinv(A[3]) @ h[3], rtol=1e-8, atol=1e-10)
+    assert np.all(out[4] == 0) and flags[3] == 1 and flags[4] == 2 and flags[ok].max() == 0
+    out2 = np.empty((n, k))
+    K.chol_solve(np.ascontiguousarray(A[:, pa, pb]), h, 0.5, pa, pb, out2)
+    ref = np.linalg.solve(A + 0.5 * np.eye(k), h[..., None])[..., 0]
+    np.testing.assert_allclose(out2, ref, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_filled_products_and_data_stats_equal_numpy(dtype):
+    rng = np.random.default_rng(15)
+    T, L, p = 11, 2300, 3
+    D, M, D_nan = _masked(rng, T, L, dtype, 0.5)
+    M[:, 9] = False
+    mu = rng.standard_normal(L)
+    Z = np.where(M, D.astype(np.float64), mu[None, :])
+    V = rng.standard_normal((p, L))
+    U = rng.standard_normal((T, p))
+    np.testing.assert_allclose(K.filled_matmul(D_nan, M, mu, V, 3), Z @ V.T, rtol=1e-9,
+                               atol=1e-9)
+    np.testing.assert_allclose(K.filled_rmatmul(D_nan, M, mu, U), (Z.T @ U).T, rtol=1e-9,
+                               atol=1e-9)
+    rows, cols, nbad, colsum, ssq = K.data_stats(D_nan, M, True)
+    Dz = np.where(M, D, 0).astype(np.float64)
+    np.testing.assert_array_equal(rows, M.sum(1))
+    np.testing.assert_array_equal(cols, M.sum(0))
+    np.testing.assert_allclose(colsum, Dz.sum(0), rtol=1e-10, atol=1e-12)
+    assert nbad == 0 and np.isclose(ssq, (Dz**2).sum(), rtol=1e-10)
+    D_nan[0, np.flatnonzero(M[0])[0]] = np.inf
+    assert K.data_stats(D_nan, M, True)[2] == 1
+
+
+@pytest.mark.parametrize("reg", [ZeroReg(), Ridge(0.4)])
+def test_quadratic_fit_history_sse_and_determinism(reg):
+    D, M, _ = planted(T=26, L=300, k=3, seed=5)
+    M[:, 3] = False  # unobserved cell
+    D = D.astype(np.float32)
+    kw = dict(max_iter=6, tol=0.0, rng=None)
+    res = fit_glrm(D, M, 3, Quadratic(), reg, reg, **{**kw, "rng": np.random.default_rng(0)})
+    res2 = fit_glrm(D, M, 3, Quadratic(), reg, reg, **{**kw, "rng": np.random.default_rng(0)})
+    np.testing.assert_array_equal(res.X, res2.X)
+    np.testing.assert_array_equal(res.Y, res2.Y)
+    h = np.array(res.objective)
+    assert len(h) == 7 and np.all(np.diff(h) <= 1e-10 * np.abs(h[:-1]))
+    # the final objective (from the last step's Gram) equals a direct evaluation
+    direct = objective(D, M, res.X, res.Y, Quadratic(), reg, reg)
+    R = np.where(M, res.X.T @ res.Y - np.nan_to_num(D.astype(np.float64)), 0.0)
+    assert np.isclose(h[-1], direct, rtol=1e-10)
+    assert np.isclose(h[-1], np.sum(R**2) + reg.value(res.X) + reg.value(res.Y), rtol=1e-9)
+    assert np.isclose(res.sse, np.sum(R**2), rtol=1e-9)
+    assert np.all(res.Y[:, 3] == 0) and 3 in res.unobserved_cells
+    # history entries are the objective after i rounds: round 1 by a fresh 1-round fit
+    one = fit_glrm(D, M, 3, Quadratic(), reg, reg, max_iter=1, tol=0.0,
+                   rng=np.random.default_rng(0))
+    assert np.isclose(one.objective[-1], h[1], rtol=1e-10)
