@@ -23,6 +23,7 @@ from . import kernels as K
 from .fit import FitResult, check_data, fit_glrm
 from .foldin import fold_in, fold_in_many, mean_std
 from .losses import get_loss
+from .predictive import PREDICTIVE_ATTRS, fit_predictive, planner_terms, posterior_complete
 from .regularizers import get_regularizer
 
 __all__ = ["GLRM"]
@@ -51,6 +52,19 @@ class GLRM:
         (require it), or ``"cvxpy"`` (every block subproblem in cvxpy with Clarabel/SCS).
     random_state : seed / Generator for the initialisation.
     progress : show a tqdm progress bar.
+    keep_dask : for dask-backed data, keep ``Y_`` as a dask array of the persisted column chunks
+        instead of computing it into memory (docs/scaling.md).
+    dask_options : for dask-backed data, options of :func:`~.chunked.fit_chunked`
+        (``chunk_mb``, ``scratch_dir``, ``block_mb``).
+    offset, scale : fit a per-cell mean (``offset_``, unpenalised) and/or divide by a per-cell
+        standard deviation (``scale_``) before the low-rank fit; fold-in, prediction and the
+        planner terms undo them (docs/reconstruction.md). Default off (the paper).
+    noise : ``"global"`` (the paper: one ``noise_std_``) or ``"per-cell"`` (``noise_var_``,
+        per-cell training residual variance shrunk towards the global one; weights the fold-in
+        and the planner's information).
+    spatial : None or a covariance model name (``"exponential"``, ``"matern32"``, ...): fit a
+        stationary covariance of the training residuals (``spatial_cov_``) for the low-rank
+        trend + GP residual prediction, ``complete(..., spatial=True)``.
 
     Learned attributes: ``X_`` ``(component, time)``, ``Y_`` ``(component, cell)`` (DataArrays
     when fitted on xarray data, else ndarrays), ``region_``, ``objective_``, ``n_iter_``,
@@ -75,6 +89,12 @@ class GLRM:
         solver: str = "auto",
         random_state: Any = None,
         progress: bool = True,
+        offset: bool = False,
+        scale: bool = False,
+        noise: str = "global",
+        spatial: str | None = None,
+        keep_dask: bool = False,
+        dask_options: dict | None = None,
     ) -> None:
         self.rank = rank
         self.loss = loss
@@ -86,6 +106,12 @@ class GLRM:
         self.solver = solver
         self.random_state = random_state
         self.progress = progress
+        self.offset = offset
+        self.scale = scale
+        self.noise = noise
+        self.spatial = spatial
+        self.keep_dask = keep_dask
+        self.dask_options = dask_options
 
     # ------------------------------------------------------------------ sklearn protocol
     @classmethod
@@ -136,14 +162,34 @@ class GLRM:
         reg_x = get_regularizer(self.reg_x)
         reg_y = get_regularizer(self.reg_y)
         rng = as_generator(self.random_state)
+        if _is_dask(data) or _is_dask(mask):  # out of core, chunk by chunk on dask
+            return self._fit_dask(data, mask, region, rank, loss, reg_x, reg_y, rng)
         D, M, region, times = self._prepare(data, mask, region)
         stats = check_data(D, M, rank)
+        pre = fit_predictive(self, D, M, region, stage="before")  # offset / scale (opt-in)
+        if pre is not None:
+            D = pre.pop("data")
         res = fit_glrm(
             D, M, rank, loss, reg_x, reg_y, max_iter=self.max_iter, tol=self.tol,
             init=self.init, solver=self.solver, rng=rng, progress=bool(self.progress),
             stats=stats,
         )
+        self._set_result(res, region, times, xarray=region is not None)
+        fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
         del D, M
+        return self
+
+    def _fit_dask(self, data, mask, region, rank, loss, reg_x, reg_y, rng) -> GLRM:
+        from .chunked import fit_chunked
+
+        if (self.offset or self.scale or self.noise != "global" or self.spatial is not None):
+            raise ModelError("offset, scale, noise='per-cell' and spatial are not supported for "
+                             "dask-backed data yet; load the data or use the defaults")
+        res, region, times, self._time_dim = fit_chunked(
+            data, rank, loss, reg_x, reg_y, mask=mask, region=region, max_iter=self.max_iter,
+            tol=self.tol, init=self.init, solver=self.solver, rng=rng,
+            progress=bool(self.progress), keep_dask=bool(self.keep_dask),
+            **(self.dask_options or {}))
         self._set_result(res, region, times, xarray=region is not None)
         return self
 
@@ -301,7 +347,8 @@ class GLRM:
         out[0, cells] = values
         return out
 
-    def complete(self, observations: Any, ridge: float = 0.0) -> xr.Dataset:
+    def complete(self, observations: Any, ridge: float = 0.0, *, prior: str | None = None,
+                 spatial: bool = False) -> xr.Dataset:
         """Region completion: predict the whole map from a partially observed snapshot.
 
         ``observations``: a DataArray ``(lat, lon)`` or ``(cell)`` with NaN, a ``{cell: value}``
@@ -313,10 +360,26 @@ class GLRM:
         excludes the noise of a new observation, ``noise_std_``, stored as an attribute), ``x``
         and ``n_observations``, on the ``(lat, lon)`` grid when the model has a region, else on
         ``cell``.
+
+        Options (docs/reconstruction.md): ``prior="empirical"`` is the Bayesian fold-in with
+        the prior ``x ~ N(mean, cov)`` of the training columns of ``X``; ``spatial=True`` adds
+        the kriged GP residual (needs ``spatial=`` at fit). A model fitted with ``offset``,
+        ``scale`` or ``noise="per-cell"`` always uses them. Then ``std`` is the posterior std
+        of the latent (noise-free) value.
         """
         self._check_fitted()
         ridge = check_positive(ridge, "ridge", error=ModelError)
         V, single, lead = self._stack_snapshots(observations)
+        if prior is not None or spatial or self._predictive_active():
+            pred, std, x, n_obs = posterior_complete(self, V, ridge=ridge, prior=prior,
+                                                     spatial=spatial)
+            if single:
+                pred, std, x, n_obs = pred[0], std[0], x[0], int(n_obs[0])
+            ds = self._completion_dataset(pred, std, x, n_obs, ridge, single, lead)
+            ds.attrs.update(prior=str(prior), spatial=int(bool(spatial)),
+                            std_kind="posterior std of the latent value")
+            ds["std"].attrs["long_name"] = "posterior std of the latent value"
+            return ds
         Y = self._Yv
         if single:
             obs = np.flatnonzero(~np.isnan(V[0]))
@@ -331,6 +394,18 @@ class GLRM:
             pred = x @ Y
             std = mean_std(Y, cov)
         return self._completion_dataset(pred, std, x, n_obs, ridge, single, lead)
+
+    def planner_kwargs(self, prior: str | None = "empirical", spatial: bool = False) -> dict:
+        """Keyword arguments for :func:`~lrm_cvx.planning.plan_greedy` matching this model's
+        fold-in (prior precision, per-cell noise, per-cell scale; with ``spatial=True`` also
+        ``prior_cov`` and ``spatial_cov`` for ``criterion="gp-variance"``)."""
+        self._check_fitted()
+        return planner_terms(self, prior=prior, spatial=spatial)
+
+    def _predictive_active(self) -> bool:
+        return (getattr(self, "offset_", None) is not None
+                or getattr(self, "scale_", None) is not None
+                or getattr(self, "noise_var_", None) is not None)
 
     def _completion_dataset(self, pred, std, x, n_obs, ridge, single, lead) -> xr.Dataset:
         comp = np.arange(x.shape[-1])
@@ -452,7 +527,11 @@ class GLRM:
             ds.to_netcdf(tmp)
 
     def _to_dataset(self) -> xr.Dataset:
-        X, Y = self._Xv, self._Yv
+        X = self._Xv
+        if _is_dask(self.Y_):  # a dask-backed Y_ is written chunk by chunk
+            Y = self.Y_.data if isinstance(self.Y_, xr.DataArray) else self.Y_
+        else:
+            Y = self._Yv
         k = X.shape[0]
         if isinstance(self.X_, xr.DataArray):
             tdim = self.X_.dims[1]
@@ -490,6 +569,9 @@ class GLRM:
             "solver": self.solver_, "time_dim": str(tdim),
             "has_region": int(self.region_ is not None),
         }
+        for name, arr in PREDICTIVE_ATTRS.arrays(self).items():
+            ds[name] = (("cell",), arr)
+        attrs.update(PREDICTIVE_ATTRS.attrs(self))
         if warn_custom:
             attrs["note"] = ("custom callable regularisers cannot be saved; their repr is stored "
                              f"in params ({', '.join(warn_custom)})")
@@ -541,7 +623,16 @@ class GLRM:
         )
         model._time_dim = tdim
         model._set_result(res, region, ds[tdim], xarray=region is not None)
+        PREDICTIVE_ATTRS.restore(model, ds)
         return model
+
+
+def _is_dask(obj: Any) -> bool:
+    if obj is None or isinstance(obj, np.ndarray):
+        return False
+    from .chunked import is_dask_backed
+
+    return is_dask_backed(obj)
 
 
 def _same(a: Any, b: Any) -> bool:

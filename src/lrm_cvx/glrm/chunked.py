@@ -1,0 +1,555 @@
+"""Out-of-core GLRM fit on dask: the same alternating minimisation as :mod:`.fit`, chunk by chunk.
+
+The data never exist in memory as one ``(T, L)`` matrix. They are staged once into a scratch
+directory as column chunks (all times x a block of cells, one ``.npy`` file of float32 with NaN
+for missing values per chunk, ``T * L * 4`` bytes on disk), then every step is a dask task per
+chunk that loads its file, zero-fills it, and calls the public in-memory kernels of :mod:`.fit`:
+
+* Y step: :func:`~.fit.y_block` per chunk (cells are independent given ``X``);
+* X step: :func:`~.fit.x_pass` per chunk, the ``k x k`` Gram statistics summed over chunks,
+  then :func:`~.fit.solve_block` on the client (times are independent given ``Y``);
+* objective and diagnostics: :func:`~.fit.objective` per chunk, summed.
+
+The Y step and the X-step statistics of a round are one task per chunk (one read of the data
+per round). Chunks of ``Y`` are persisted between rounds (in the workers' memory with a
+``dask.distributed`` Client, in the client process with the threaded scheduler). Whatever
+scheduler is active is used (``dask.compute`` / ``dask.persist``): the threaded default, or a
+``distributed.Client`` (LocalCluster, dask-jobqueue, dask-kubernetes) when one exists. With a
+cluster, the scratch directory must be on storage every worker can read (``scratch_dir``).
+
+Same answer as the in-memory fit: the initialisation follows :func:`~.fit.initialize` step by
+step (exact SVD of the mean-filled matrix below ``SMALL_SVD`` entries, computed from the
+``T x T`` Gram matrix; above it the randomized SVD with the same Gaussian test matrix drawn from
+the same generator, so the same range is found; ``init="random"`` draws the same factors), and
+the rounds call the same kernels, so fits agree up to floating-point summation order.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import threading
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConvergenceWarning, DataError, ModelError, RegionError
+from ..region import Region
+from .fit import (
+    SMALL_SVD,
+    FitResult,
+    is_fast_capable,
+    objective,
+    solve_block,
+    x_pass,
+    y_block,
+)
+from .losses import Loss, Quadratic
+from .regularizers import Regularizer, ZeroReg
+
+__all__ = ["fit_chunked", "is_dask_backed", "ChunkStore", "stage"]
+
+_LOCK = threading.Lock()  # one compiled kernel at a time per process (they are parallel already)
+_ZERO = ZeroReg()
+_QUAD = Quadratic()
+
+
+def is_dask_backed(data: Any) -> bool:
+    """True when ``data`` is a dask collection (a dask array, or a DataArray backed by one)."""
+    try:
+        import dask
+    except ImportError:
+        return False
+    return bool(dask.is_dask_collection(data))
+
+
+# --------------------------------------------------------------------------- staging
+@dataclass
+class ChunkStore:
+    """Column chunks of the staged ``(T, L)`` matrix: ``files[c]`` holds columns
+    ``bounds[c]:bounds[c + 1]`` as a ``(T, Lc)`` float32 ``.npy`` file, NaN = missing."""
+
+    directory: str
+    n_times: int
+    bounds: np.ndarray
+    files: list[str]
+
+    @property
+    def n_cells(self) -> int:
+        return int(self.bounds[-1])
+
+    @property
+    def n_chunks(self) -> int:
+        return len(self.files)
+
+    def extra(self, name: str, rows: int, dtype: Any = np.float64) -> list[str]:
+        """Create ``(rows, Lc)`` per-chunk files ``name_c.npy`` (for test matrices, init)."""
+        paths = []
+        for c in range(self.n_chunks):
+            p = os.path.join(self.directory, f"{name}_{c:05d}.npy")
+            w = int(self.bounds[c + 1] - self.bounds[c])
+            np.lib.format.open_memmap(p, mode="w+", dtype=dtype, shape=(rows, w)).flush()
+            paths.append(p)
+        return paths
+
+    def write_rows(self, paths: list[str], row: int, values: np.ndarray) -> None:
+        """Write one ``(L,)`` row split over the per-chunk files ``paths``."""
+        for c, p in enumerate(paths):
+            mm = np.lib.format.open_memmap(p, mode="r+")
+            mm[row] = values[self.bounds[c]: self.bounds[c + 1]]
+            mm.flush()
+            del mm
+
+
+def _stage_block(block, t0, files, bounds, index_path, mask_block=None) -> int:
+    """Write rows ``t0 : t0 + len(block)`` of every chunk file; return the number of infs."""
+    block = np.asarray(block)
+    tb = block.shape[0]
+    flat = block.reshape(tb, -1)
+    if index_path is not None:
+        flat = flat[:, np.load(index_path, mmap_mode="r")]
+    flat = np.asarray(flat, dtype=np.float32)
+    if mask_block is not None:
+        flat = np.where(np.asarray(mask_block).reshape(tb, -1), flat, np.float32(np.nan))
+    n_inf = int(np.count_nonzero(np.isinf(flat)))
+    for c, p in enumerate(files):
+        mm = np.lib.format.open_memmap(p, mode="r+")
+        mm[t0: t0 + tb] = flat[:, bounds[c]: bounds[c + 1]]
+        mm.flush()
+        del mm
+    return n_inf
+
+
+def stage(
+    data: Any,
+    *,
+    mask: Any = None,
+    region: Region | None = None,
+    chunk_mb: float = 256.0,
+    scratch_dir: str | None = None,
+    block_mb: float = 256.0,
+) -> tuple[ChunkStore, Region | None, Any, str]:
+    """Stage ``data`` into column chunks on disk; return ``(store, region, times, time_dim)``.
+
+    ``data``: a ``(time, lat, lon)`` DataArray (dask-backed or not; the region's valid cells are
+    those observed at least once, computed as a dask reduction, unless ``region`` is given), a
+    ``(time, cell)`` DataArray with ``region``, or a ``(T, L)`` (dask) array with NaN, optionally
+    with a boolean ``mask`` of the same shape (True = observed). Column chunks hold about
+    ``chunk_mb`` MB of float32 each; ``block_mb`` MB of input times are read per staging task.
+    The caller removes ``store.directory`` when done.
+    """
+    import dask
+    import dask.array as da
+    import xarray as xr
+
+    times, tdim = None, "time"
+    index = None
+    if isinstance(data, xr.DataArray):
+        if mask is not None:
+            raise DataError("mask is only accepted with an array; a DataArray uses NaN")
+        if data.ndim not in (2, 3):
+            raise DataError(f"data must have dims (time, lat, lon), got {data.dims}")
+        tdim = str(data.dims[0])
+        times = data[tdim] if tdim in data.coords else xr.DataArray(
+            np.arange(data.shape[0]), dims=(tdim,))
+        if data.ndim == 3:
+            if region is None:
+                arr = data.data if is_dask_backed(data) else da.from_array(np.asarray(data))
+                valid = np.asarray(da.isfinite(arr).any(axis=0).compute(), dtype=bool)
+                if not valid.any():
+                    raise DataError("da has no finite value: every cell is missing (all NaN)")
+                region = Region.from_dataarray(data, mask=valid)
+            elif tuple(data.shape[1:]) != region.shape:
+                raise RegionError(f"data grid is {data.shape[1:]}, the region's is "
+                                  f"{region.shape}")
+            index = np.flatnonzero(region.mask.ravel())
+        else:
+            if data.dims[-1] != "cell" or region is None:
+                raise DataError("a 2-D DataArray must have dims (time, cell) and come with a "
+                                f"region, got {data.dims}")
+            if data.shape[1] != region.n_cells:
+                raise RegionError(f"data has {data.shape[1]} cells, the region has "
+                                  f"{region.n_cells}")
+        arr = data.data
+    else:
+        arr = data
+        if getattr(arr, "ndim", None) != 2:
+            raise DataError(f"data must be a (T, L) array or a (time, lat, lon) DataArray, got "
+                            f"shape {getattr(arr, 'shape', None)}")
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            raise DataError(f"data must be numeric, got dtype {arr.dtype}")
+        if mask is not None:
+            if tuple(mask.shape) != tuple(arr.shape):
+                raise DataError(f"mask has shape {tuple(mask.shape)}, data has shape "
+                                f"{tuple(arr.shape)}")
+            if mask.dtype != np.bool_:
+                raise DataError(f"mask must be boolean (True = observed), got dtype {mask.dtype}")
+    T = int(arr.shape[0])
+    L = int(index.size) if index is not None else int(arr.shape[1])
+    if T == 0 or L == 0:
+        raise DataError(f"data is empty, shape {tuple(arr.shape)}")
+    width = max(1, min(L, int(chunk_mb * 2**20 / (4 * T))))
+    bounds = np.append(np.arange(0, L, width), L).astype(np.int64)
+    directory = tempfile.mkdtemp(prefix="lrm-dask-", dir=scratch_dir)
+    try:
+        files = []
+        for c in range(bounds.size - 1):
+            p = os.path.join(directory, f"data_{c:05d}.npy")
+            np.lib.format.open_memmap(p, mode="w+", dtype=np.float32,
+                                      shape=(T, int(bounds[c + 1] - bounds[c]))).flush()
+            files.append(p)
+        index_path = None
+        if index is not None:
+            index_path = os.path.join(directory, "index.npy")
+            np.save(index_path, index)
+        row_bytes = 4 * int(np.prod(arr.shape[1:]))
+        tb = max(1, min(T, int(block_mb * 2**20 // max(row_bytes, 1))))
+        tasks = []
+        for t0 in range(0, T, tb):
+            blk = arr[t0: t0 + tb]
+            mblk = None if mask is None else mask[t0: t0 + tb]
+            tasks.append(dask.delayed(_stage_block, pure=False)(
+                blk, t0, files, bounds, index_path, mblk))
+        n_inf = sum(dask.compute(*tasks))
+        if n_inf:
+            raise DataError(f"data has {n_inf} non-finite observed values (inf); use NaN or the "
+                            "mask for missing entries")
+    except BaseException:
+        shutil.rmtree(directory, ignore_errors=True)
+        raise
+    return ChunkStore(directory, T, bounds, files), region, times, tdim
+
+
+# --------------------------------------------------------------------------- chunk tasks
+def _load(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(D, M)`` of one chunk: zero-filled float32 C-contiguous data and the observed mask."""
+    D = np.load(path)
+    M = ~np.isnan(D)
+    np.copyto(D, 0.0, where=~M)
+    return D, M
+
+
+def _t_stats(path):
+    D, M = _load(path)
+    cnt = M.sum(axis=0)
+    Dd = D.astype(np.float64)
+    return {
+        "rows": M.sum(axis=1).astype(np.int64), "cols": cnt.astype(np.int64),
+        "sum": float(Dd.sum()), "ssq": float(np.einsum("ij,ij->", Dd, Dd)),
+    }
+
+
+def _filled(path, mu_global):
+    """The mean-filled chunk ``Z_c`` (float64): missing entries set to the cell's mean."""
+    D, M = _load(path)
+    cnt = M.sum(axis=0)
+    mu = np.where(cnt > 0, D.sum(axis=0, dtype=np.float64) / np.maximum(cnt, 1), mu_global)
+    return np.where(M, D.astype(np.float64), mu[None, :])
+
+
+def _t_gram(path, mu_global):
+    Z = _filled(path, mu_global)
+    return Z @ Z.T
+
+
+def _t_range(path, mu_global, om_path):
+    Z = _filled(path, mu_global)
+    return Z @ np.load(om_path).T
+
+
+def _t_power(path, mu_global, Q):
+    Z = _filled(path, mu_global)
+    return Z @ (Z.T @ Q)
+
+
+def _t_project(path, mu_global, W):
+    B = W.T @ _filled(path, mu_global)
+    return B, B @ B.T
+
+
+def _t_rotate(B, R, j0):
+    C = R.T @ B
+    a = np.abs(C)
+    arg = np.argmax(a, axis=1)
+    rows = np.arange(C.shape[0])
+    return a[rows, arg], arg + j0, np.sign(C[rows, arg])
+
+
+def _t_y0(B, R, scale, unobserved, minimizer):
+    Y = scale[:, None] * (R.T @ B)
+    if unobserved.size:
+        Y[:, unobserved] = minimizer[:, None]
+    return Y
+
+
+def _t_load_y0(path, unobserved, minimizer):
+    Y = np.load(path)
+    if unobserved.size:
+        Y[:, unobserved] = minimizer[:, None]
+    return Y
+
+
+def _t_round(path, X, Yc, loss, reg_y, step):
+    """Y step of one chunk, then its X-step statistics at the new ``Y``."""
+    D, M = _load(path)
+    with _LOCK:
+        Yn, fy = y_block(D, M, X, Yc, loss, reg_y, step0=step)
+        G, h, f = x_pass(D, M, X, Yn, loss, step=step)
+    return Yn, (fy, G, h, f)
+
+
+def _t_fpass(path, X, Yc, loss, step):
+    D, M = _load(path)
+    with _LOCK:
+        return x_pass(D, M, X, Yc, loss, step=step)[2]
+
+
+def _t_final(path, X, Yc, loss, reg_y, unobserved, minimizer):
+    D, M = _load(path)
+    with _LOCK:
+        f = objective(D, M, X, Yc, loss, _ZERO, _ZERO) + reg_y.value(Yc)
+        Yc = Yc.copy()
+        if unobserved.size:
+            Yc[:, unobserved] = minimizer[:, None]
+        sse = objective(D, M, X, Yc, _QUAD, _ZERO, _ZERO)
+    return Yc, (f, sse)
+
+
+def _add(parts):
+    """Sum a list of equally structured tuples / arrays / floats."""
+    first = parts[0]
+    if isinstance(first, tuple):
+        return tuple(_add([p[i] for p in parts]) for i in range(len(first)))
+    out = first.copy() if isinstance(first, np.ndarray) else first
+    for p in parts[1:]:
+        out = out + p
+    return out
+
+
+def _tree_sum(items, fan_in: int = 16):
+    """A dask tree reduction of delayed items with :func:`_add`."""
+    import dask
+
+    items = list(items)
+    while len(items) > 1:
+        items = [dask.delayed(_add, pure=False)(items[i: i + fan_in])
+                 for i in range(0, len(items), fan_in)]
+    return items[0]
+
+
+# --------------------------------------------------------------------------- init
+def _draw_rows(store: ChunkStore, name: str, rng, rows: int, scale: float = 1.0) -> list[str]:
+    """Per-chunk files of ``scale * rng.standard_normal((rows, L))``, drawn one row at a time
+    (the same numbers as one call: the generator fills row-major)."""
+    paths = store.extra(name, rows)
+    for i in range(rows):
+        store.write_rows(paths, i, scale * rng.standard_normal(store.n_cells))
+    return paths
+
+
+def _svd_init(store, k, mu_g, rng, unobs_local, minimizer, n_power=1, oversample=5):
+    """``(X (k, T), [Y_c (k, Lc) delayed, persisted])`` as :func:`~.fit.initialize` (svd)."""
+    import dask
+
+    T, L = store.n_times, store.n_cells
+    d = dask.delayed
+    files = store.files
+    if T * L <= SMALL_SVD:
+        gram = dask.compute(_tree_sum([d(_t_gram, pure=False)(f, mu_g) for f in files]))[0]
+        ev, vec = np.linalg.eigh(gram)
+        W = np.ascontiguousarray(vec[:, ::-1][:, :k])
+    else:
+        p = min(k + oversample, T, L)
+        om = _draw_rows(store, "omega", rng, p)
+        A = dask.compute(_tree_sum([d(_t_range, pure=False)(f, mu_g, o)
+                                    for f, o in zip(files, om, strict=True)]))[0]
+        W, _ = np.linalg.qr(A)
+        for _ in range(n_power):
+            A = dask.compute(_tree_sum([d(_t_power, pure=False)(f, mu_g, W) for f in files]))[0]
+            W, _ = np.linalg.qr(A)
+    proj = [d(_t_project, nout=2, pure=False)(f, mu_g, W) for f in files]
+    Bs = dask.persist(*[b for b, _ in proj])
+    BBt = dask.compute(_tree_sum([bb for _, bb in proj]))[0]
+    ev, R = np.linalg.eigh(BBt)
+    ev, R = ev[::-1][:k], np.ascontiguousarray(R[:, ::-1][:, :k])
+    S = np.sqrt(np.maximum(ev, 0.0))  # singular values of the mean-filled matrix
+    U = W @ R  # (T, k) left singular vectors
+    # deterministic signs: largest |entry| of each right singular vector positive (lowest index)
+    parts = dask.compute(*[d(_t_rotate, pure=False)(b, R, int(store.bounds[c]))
+                           for c, b in enumerate(Bs)])
+    amax = np.stack([p[0] for p in parts])  # (nchunk, k)
+    best = np.zeros(k, dtype=np.int64)
+    sign = np.ones(k)
+    for i in range(k):
+        top = amax[:, i].max()
+        c = int(np.flatnonzero(amax[:, i] == top)[0])
+        best[i] = parts[c][1][i]
+        sign[i] = parts[c][2][i] if parts[c][2][i] != 0 else 1.0
+    sq = np.sqrt(S)
+    X = np.ascontiguousarray((sq * sign)[:, None] * U.T)
+    # Y = sqrt(S) sign V^T with V^T = R^T B / S
+    yscale = np.where(S > 0, sign / np.where(S > 0, sq, 1.0), 0.0)
+    Ys = dask.persist(*[d(_t_y0, pure=False)(b, R, yscale, u, minimizer)
+                        for b, u in zip(Bs, unobs_local, strict=True)])
+    del Bs
+    return X, list(Ys)
+
+
+# --------------------------------------------------------------------------- the loop
+def fit_chunked(
+    data: Any,
+    rank: int,
+    loss: Loss,
+    reg_x: Regularizer,
+    reg_y: Regularizer,
+    *,
+    mask: Any = None,
+    region: Region | None = None,
+    max_iter: int = 100,
+    tol: float = 1e-4,
+    init: str = "svd",
+    solver: str = "auto",
+    rng: np.random.Generator | None = None,
+    progress: bool = False,
+    keep_dask: bool = False,
+    chunk_mb: float = 256.0,
+    scratch_dir: str | None = None,
+    block_mb: float = 256.0,
+) -> tuple[FitResult, Region | None, Any, str]:
+    """Fit a GLRM to (dask-backed) ``data`` chunk by chunk; return ``(result, region, times,
+    time_dim)``.
+
+    Same problem, iteration, stopping rule and diagnostics as :func:`~.fit.fit_glrm` (compiled
+    fast path only). ``data`` as in :func:`stage`. ``result.Y`` is a ``(k, L)`` float64 ndarray,
+    or with ``keep_dask`` a dask array of the persisted column chunks. Scratch space:
+    ``T * L * 4`` bytes (plus ``(k + 5) * L * 8`` for a randomized SVD init, ``k * L * 8`` for
+    ``init="random"``) in ``scratch_dir`` (default: the system temp dir), removed at the end.
+    """
+    rng = np.random.default_rng() if rng is None else rng
+    if solver not in ("auto", "fast", "cvxpy"):
+        raise ModelError(f"solver must be 'auto', 'fast' or 'cvxpy', got {solver!r}")
+    if solver == "cvxpy" or not is_fast_capable(loss, reg_x, reg_y):
+        raise ModelError(f"the dask fit needs the compiled fast path; loss {loss!r} with "
+                         f"{reg_x!r} / {reg_y!r} and solver={solver!r} do not have one")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
+        raise ModelError(f"max_iter must be an integer >= 0, got {max_iter!r}")
+    if not np.isfinite(tol) or tol < 0:
+        raise ModelError(f"tol must be >= 0, got {tol!r}")
+    if init not in ("svd", "random"):
+        raise ModelError(f"init must be 'svd' or 'random', got {init!r}")
+    if isinstance(rank, bool) or not isinstance(rank, (int, np.integer)):
+        raise ModelError(f"rank must be an integer, got {rank!r}")
+    store, region, times, tdim = stage(data, mask=mask, region=region, chunk_mb=chunk_mb,
+                                       scratch_dir=scratch_dir, block_mb=block_mb)
+    try:
+        res = _fit_store(store, int(rank), loss, reg_x, reg_y, max_iter, tol, init, rng,
+                         progress, keep_dask)
+    finally:
+        shutil.rmtree(store.directory, ignore_errors=True)
+    return res, region, times, tdim
+
+
+def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress, keep_dask):
+    import dask
+    import dask.array as da
+
+    d = dask.delayed
+    T, L = store.n_times, store.n_cells
+    files = store.files
+    bounds = store.bounds
+    if k < 1 or k > min(T, L):
+        raise ModelError(f"rank must be in [1, min(T, L)] = [1, {min(T, L)}], got {k}")
+    stats = dask.compute(*[d(_t_stats, pure=False)(f) for f in files])
+    rows = np.sum([s["rows"] for s in stats], axis=0)
+    cols = np.concatenate([s["cols"] for s in stats])
+    n_obs = int(rows.sum())
+    if n_obs == 0:
+        raise DataError("data has no observed value (all missing / all NaN)")
+    empty = np.flatnonzero(rows == 0)
+    if empty.size:
+        raise DataError(f"times {empty[:10].tolist()} have no observation; drop them first")
+    mu_g = float(sum(s["sum"] for s in stats) / n_obs)
+    scale = float(np.sqrt(sum(s["ssq"] for s in stats) / n_obs))
+    del stats
+    loss = loss.with_scale(scale)
+    unobserved = np.flatnonzero(cols == 0)
+    del cols
+    unobs_local = [unobserved[(unobserved >= bounds[c]) & (unobserved < bounds[c + 1])]
+                   - bounds[c] for c in range(len(files))]
+    minimizer = np.asarray(reg_y.minimizer(k), dtype=np.float64)
+    if init == "random":
+        s = (max(scale, 1e-12) ** 2 / k) ** 0.25
+        X = s * rng.standard_normal((k, T))
+        y0 = _draw_rows(store, "y0", rng, k, s)
+        Ys = list(dask.persist(*[d(_t_load_y0, pure=False)(p, u, minimizer)
+                                 for p, u in zip(y0, unobs_local, strict=True)]))
+    else:
+        X, Ys = _svd_init(store, k, mu_g, rng, unobs_local, minimizer)
+
+    history: list[float] = []
+    converged = False
+    n_iter = 0
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=max_iter, desc="GLRM (dask)", unit="it")
+    try:
+        for it in range(max_iter):
+            outs = [d(_t_round, nout=2, pure=False)(f, X, y, loss, reg_y, it)
+                    for f, y in zip(files, Ys, strict=True)]
+            *Ys, tot = dask.persist(*[o[0] for o in outs], _tree_sum([o[1] for o in outs]))
+            fy, G, h, f = dask.compute(tot)[0]
+            del outs, tot
+            history.append(fy + reg_x.value(X))
+            if it >= 1 and _rel_decrease(history) < tol:
+                converged = True
+                break
+            Xn = np.array(solve_block(G, h, reg_x, X), dtype=np.float64)
+            if not (loss.is_quadratic or loss.majorizer_exact):
+                f2 = dask.compute(_tree_sum([d(_t_fpass, pure=False)(p, Xn, y, loss, it + 1)
+                                             for p, y in zip(files, Ys, strict=True)]))[0]
+                worse = ~(f2 + reg_x.evaluate(Xn) <= f + reg_x.evaluate(X))
+                Xn[:, worse] = X[:, worse]
+            X = Xn
+            n_iter = it + 1
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(objective=f"{history[-1]:.6g}")
+    finally:
+        if bar is not None:
+            bar.close()
+    outs = [d(_t_final, nout=2, pure=False)(f, X, y, loss, reg_y, u, minimizer)
+            for f, y, u in zip(files, Ys, unobs_local, strict=True)]
+    *Ys, tot = dask.persist(*[o[0] for o in outs], _tree_sum([o[1] for o in outs]))
+    fsum, sse = dask.compute(tot)[0]
+    history.append(float(fsum) + reg_x.value(X))
+    if not converged and max_iter >= 1 and len(history) >= 2:
+        converged = _rel_decrease(history) < tol
+    if not converged and tol > 0:
+        warnings.warn(
+            f"GLRM fit stopped at max_iter={max_iter} before the relative decrease of the "
+            f"objective fell below tol={tol}", ConvergenceWarning, stacklevel=4)
+    widths = np.diff(bounds)
+    if keep_dask:
+        Y = da.concatenate([da.from_delayed(y, shape=(k, int(w)), dtype=np.float64)
+                            for y, w in zip(Ys, widths, strict=True)], axis=1)
+    else:
+        Y = np.concatenate(dask.compute(*Ys), axis=1)
+    dof = k * (T + L - unobserved.size) - k * k
+    denom = n_obs - dof if n_obs > dof else n_obs
+    return FitResult(
+        X=np.ascontiguousarray(X), Y=Y, objective=history, n_iter=n_iter,
+        converged=bool(converged), unobserved_cells=unobserved.astype(np.int64),
+        n_observed=n_obs, sse=float(sse), noise_std=float(np.sqrt(sse / denom)), solver="fast",
+    )
+
+
+def _rel_decrease(history: list[float]) -> float:
+    prev, cur = history[-2], history[-1]
+    if prev == 0:
+        return 0.0
+    return (prev - cur) / abs(prev)

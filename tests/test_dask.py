@@ -1,0 +1,173 @@
+"""The dask (out-of-core) GLRM fit equals the in-memory fit; staging, errors, distributed."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+dask = pytest.importorskip("dask")
+da = pytest.importorskip("dask.array")
+
+import xarray as xr  # noqa: E402
+
+from lrm_cvx.errors import DataError, ModelError  # noqa: E402
+from lrm_cvx.glrm import GLRM  # noqa: E402
+from lrm_cvx.glrm.chunked import fit_chunked, is_dask_backed, stage  # noqa: E402
+from lrm_cvx.glrm.fit import SMALL_SVD  # noqa: E402
+from lrm_cvx.io.samples import synthetic_field  # noqa: E402
+from lrm_cvx.region import Region  # noqa: E402
+
+SMALL_CHUNKS = {"chunk_mb": 0.05, "block_mb": 0.2}  # several column chunks and time blocks
+
+
+@pytest.fixture(scope="module")
+def field():
+    return synthetic_field(48, (30, 60), rank=3, seed=4, noise=0.03)
+
+
+def _pair(data, dask_data, options=SMALL_CHUNKS, **params):
+    kw = dict(rank=3, max_iter=12, tol=0, random_state=7, progress=False)
+    kw.update(params)
+    ref = GLRM(**kw).fit(data)
+    out = GLRM(**kw, dask_options=options).fit(dask_data)
+    return ref, out
+
+
+def _same_fit(ref, out, rtol=1e-5):
+    np.testing.assert_allclose(out.objective_, ref.objective_, rtol=rtol)
+    assert out.n_iter_ == ref.n_iter_ and out.converged_ == ref.converged_
+    np.testing.assert_allclose(out.noise_std_, ref.noise_std_, rtol=rtol)
+    X1, X2 = np.asarray(ref.X_), np.asarray(out.X_)
+    Y1, Y2 = np.asarray(ref.Y_), np.asarray(out.Y_)
+    np.testing.assert_allclose(X2.T @ Y2, X1.T @ Y1, atol=1e-5 * np.abs(X1.T @ Y1).max())
+    np.testing.assert_array_equal(out.unobserved_cells_, ref.unobserved_cells_)
+    assert out.n_observed_ == ref.n_observed_
+
+
+@pytest.mark.parametrize("init", ["svd", "random"])
+def test_same_answer_as_in_memory(field, init):
+    ref, out = _pair(field, field.chunk({"time": 5}), init=init)
+    assert is_dask_backed(field.chunk({"time": 5})) and not is_dask_backed(field)
+    _same_fit(ref, out, rtol=1e-8)
+    assert out.region_.equals(ref.region_)
+    assert isinstance(out.Y_.data, np.ndarray)  # default: Y_ computed into memory
+    np.testing.assert_array_equal(out.X_["time"].values, ref.X_["time"].values)
+
+
+@pytest.mark.parametrize("loss,reg_x,reg_y", [
+    ("huber", "ridge", None), ("absolute", None, "ridge"), ("quadratic", "l1", "nonneg")])
+def test_same_answer_other_losses(field, loss, reg_x, reg_y):
+    ref, out = _pair(field, field.chunk({"time": 16}), loss=loss, reg_x=reg_x, reg_y=reg_y,
+                     max_iter=6)
+    _same_fit(ref, out, rtol=1e-6)
+
+
+def test_randomized_svd_regime_and_unobserved_cell():
+    """Above SMALL_SVD entries the init is the randomized SVD with the same test matrix."""
+    rng = np.random.default_rng(0)
+    T, L, k = 40, SMALL_SVD // 40 + 500, 2
+    D = (rng.standard_normal((T, k)) @ rng.standard_normal((k, L))).astype(np.float32)
+    D += 0.01 * rng.standard_normal((T, L)).astype(np.float32)
+    D[rng.random((T, L)) < 0.3] = np.nan
+    D[:, 5] = np.nan  # a cell never observed
+    ref, out = _pair(D, da.from_array(D, chunks=(8, -1)), {"chunk_mb": 4}, rank=k, max_iter=2,
+                     init="svd")
+    _same_fit(ref, out, rtol=1e-6)
+    assert out.unobserved_cells_.tolist() == [5]
+    assert isinstance(out.Y_, np.ndarray)
+
+
+def test_mask_input_and_tol_stopping(field):
+    region = Region.from_dataarray(field)
+    D = region.stack(field)
+    M = ~np.isnan(D)
+    Dz = np.where(M, D, 1e30).astype(np.float32)  # outside the mask never read
+    kw = dict(rank=3, max_iter=50, tol=1e-3, random_state=1, progress=False)
+    ref = GLRM(**kw).fit(Dz, mask=M)
+    out = GLRM(**kw, dask_options=SMALL_CHUNKS).fit(da.from_array(Dz, chunks=(10, -1)),
+                                                    mask=da.from_array(M, chunks=(10, -1)))
+    assert ref.converged_ and ref.n_iter_ < 50
+    _same_fit(ref, out, rtol=1e-8)
+
+
+def test_stage_matches_region_stack(field, tmp_path):
+    store, region, times, tdim = stage(field.chunk({"time": 3}), chunk_mb=0.03, block_mb=0.1,
+                                       scratch_dir=str(tmp_path))
+    ref_region = Region.from_dataarray(field)
+    assert region.equals(ref_region) and tdim == "time" and times.size == field.sizes["time"]
+    assert store.n_chunks > 3
+    got = np.concatenate([np.load(f) for f in store.files], axis=1)
+    np.testing.assert_array_equal(got, ref_region.stack(field))  # NaN positions equal too
+
+
+def test_keep_dask_save_load_complete(field, tmp_path):
+    fd = field.chunk({"time": 8})
+    m = GLRM(rank=3, max_iter=5, tol=0, random_state=0, progress=False, keep_dask=True,
+             dask_options=SMALL_CHUNKS).fit(fd)
+    ref = GLRM(rank=3, max_iter=5, tol=0, random_state=0, progress=False).fit(field)
+    assert is_dask_backed(m.Y_) and m.Y_.data.numblocks[1] > 1
+    path = tmp_path / "m.nc"
+    m.save(path)
+    back = GLRM.load(path)
+    np.testing.assert_allclose(back.Y_.values, ref.Y_.values, rtol=1e-6, atol=1e-9)
+    snap = field.isel(time=3)
+    np.testing.assert_allclose(m.complete(snap)["prediction"].values,
+                               ref.complete(snap)["prediction"].values, rtol=1e-5, atol=1e-7)
+
+
+def test_errors():
+    rng = np.random.default_rng(1)
+    D = rng.standard_normal((10, 30))
+    with pytest.raises(ModelError, match="rank"):
+        GLRM(rank=11, progress=False).fit(da.from_array(D))
+    with pytest.raises(ModelError, match="fast path"):
+        GLRM(rank=2, solver="cvxpy", progress=False).fit(da.from_array(D))
+    Dinf = D.copy()
+    Dinf[2, 3] = np.inf
+    with pytest.raises(DataError, match="inf"):
+        GLRM(rank=2, progress=False).fit(da.from_array(Dinf))
+    Dt = D.copy()
+    Dt[4] = np.nan
+    with pytest.raises(DataError, match="times \\[4\\]"):
+        GLRM(rank=2, progress=False).fit(da.from_array(Dt))
+    with pytest.raises(DataError, match="mask"):
+        GLRM(rank=2, progress=False).fit(da.from_array(D), mask=da.from_array(D > 0).astype(int))
+    with pytest.raises(DataError):
+        GLRM(rank=2, progress=False).fit(da.from_array(D)[None])
+    with pytest.raises(ModelError, match="not supported"):
+        GLRM(rank=2, offset=True, progress=False).fit(da.from_array(D))
+    with pytest.raises(DataError, match="all NaN"):
+        fit_chunked(xr.DataArray(da.full((3, 4, 5), np.nan, chunks=1),
+                                 dims=("time", "lat", "lon")), 1, *_defaults())
+
+
+def _defaults():
+    from lrm_cvx.glrm.losses import get_loss
+    from lrm_cvx.glrm.regularizers import get_regularizer
+
+    return get_loss("quadratic"), get_regularizer(None), get_regularizer(None)
+
+
+def test_distributed_local_cluster(field, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                           dashboard_address=None, memory_limit="1GiB")
+    try:
+        with distributed.Client(cluster) as client:
+            assert len(client.scheduler_info()["workers"]) == 2
+            ref, out = _pair(field, field.chunk({"time": 6}), {"chunk_mb": 0.1}, max_iter=5)
+            _same_fit(ref, out, rtol=1e-8)
+            m = GLRM(rank=3, max_iter=4, tol=0, random_state=7, progress=False, keep_dask=True,
+                     dask_options={"chunk_mb": 0.1, "scratch_dir": str(tmp_path)}).fit(
+                         field.chunk({"time": 6}))
+            m.save(tmp_path / "d.nc")
+            ref4 = GLRM(rank=3, max_iter=4, tol=0, random_state=7, progress=False).fit(field)
+            np.testing.assert_allclose(GLRM.load(tmp_path / "d.nc").Y_.values,
+                                       ref4.Y_.values, rtol=1e-6, atol=1e-9)
+            assert not any(p.name.startswith("lrm-dask-") for p in tmp_path.iterdir())
+    finally:
+        cluster.close()
