@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import DataError, ModelError
 
-__all__ = ["fold_in", "fold_in_many", "mean_std"]
+__all__ = ["fold_in", "fold_in_many", "fold_in_posterior", "mean_std"]
 
 
 def _check_Y(Y: Any) -> np.ndarray:
@@ -133,3 +133,152 @@ def mean_std(Y: np.ndarray, cov: np.ndarray) -> np.ndarray:
     else:
         var = np.einsum("ai,nai->ni", Y, np.einsum("nab,bi->nai", cov, Y))
     return np.sqrt(np.maximum(var, 0.0))
+
+
+def fold_in_posterior(
+    Y: np.ndarray,
+    cells: Any,
+    values: Any,
+    *,
+    noise_var: Any = 1.0,
+    prior_mean: Any = None,
+    prior_precision: Any = None,
+    ridge: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian posterior of the latent column ``x (k,)`` from values at ``cells``.
+
+    Model: ``d_p = y_p^T x + e_p``, ``e_p ~ N(0, noise_var_p)`` independent, prior
+    ``x ~ N(prior_mean, prior_precision^-1)`` (no prior when ``prior_precision`` is None; then
+    ``ridge I`` is the precision, the paper's fold-in at ``ridge = 0``). ``noise_var`` is a scalar
+    or a per-cell ``(L,)`` array (only the observed entries are read). Returns the posterior mean
+    ``x = A^-1 (Y_S N^-1 d_S + P0 m0)`` and covariance ``A^-1`` with
+    ``A = Y_S N^-1 Y_S^T + P0``, in ``O(n k^2)``. A singular ``A`` raises ModelError.
+    """
+    Y = _check_Y(Y)
+    k, L = Y.shape
+    cells = np.asarray(cells)
+    if cells.ndim != 1 or (cells.size and not np.issubdtype(cells.dtype, np.integer)):
+        raise DataError(f"cells must be a 1-D array of integer cell indices, got {cells!r}")
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != cells.shape:
+        raise DataError(f"values has shape {values.shape}, cells has shape {cells.shape}")
+    if cells.size and (cells.min() < 0 or cells.max() >= L):
+        raise DataError(f"cells must be in [0, {L}), got min {cells.min()} max {cells.max()}")
+    if not np.all(np.isfinite(values)):
+        raise DataError("values must be finite (drop unobserved cells instead of passing NaN)")
+    ridge = _check_ridge(ridge)
+    nv = np.asarray(noise_var, dtype=np.float64)
+    if nv.ndim == 0:
+        w = np.full(cells.size, 1.0 / float(nv)) if float(nv) > 0 else None
+    elif nv.shape == (L,):
+        w = 1.0 / nv[cells]
+    else:
+        raise DataError(f"noise_var must be a scalar or ({L},), got shape {nv.shape}")
+    if w is None or not np.all(np.isfinite(w)) or np.any(w <= 0):
+        raise ModelError("noise_var must be > 0 and finite")
+    Ys = np.asarray(Y[:, cells], dtype=np.float64)
+    A = (Ys * w) @ Ys.T + ridge * np.eye(k)
+    b = (Ys * w) @ values
+    if prior_precision is not None:
+        P0 = np.asarray(prior_precision, dtype=np.float64)
+        if P0.shape != (k, k):
+            raise ModelError(f"prior_precision must be ({k}, {k}), got {P0.shape}")
+        A = A + P0
+        if prior_mean is not None:
+            m0 = np.asarray(prior_mean, dtype=np.float64)
+            if m0.shape != (k,):
+                raise ModelError(f"prior_mean must be ({k},), got {m0.shape}")
+            b = b + P0 @ m0
+    elif ridge == 0.0:
+        if cells.size < k:
+            raise ModelError(
+                f"fold-in needs at least rank={k} observations (got {cells.size}); pass "
+                "ridge > 0 or a prior")
+    ev = np.linalg.eigvalsh(A)
+    if ev[0] <= 1e-12 * max(ev[-1], 1e-300):
+        raise ModelError("the fold-in system is singular: observe more cells or use a prior")
+    Ainv = np.linalg.inv(A)
+    Ainv = 0.5 * (Ainv + Ainv.T)
+    return Ainv @ b, Ainv
+
+
+# ---------------------------------------------------------------------------- predictive model
+# Helpers of GLRM(offset=, scale=, noise="per-cell", spatial=): column statistics of the
+# training data and of the training residuals, computed in blocks of cells so that no
+# full-size float64 temporary of a (T, L) matrix is ever made.
+_BLOCK = 1 << 16
+
+
+def column_moments(D: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-cell observed mean, standard deviation (ddof 0) and count of ``D (T, L)`` under
+    the mask ``M``; cells without observations get mean 0 and std 1."""
+    T, L = D.shape
+    mean = np.zeros(L)
+    std = np.ones(L)
+    count = np.zeros(L, dtype=np.int64)
+    for lo in range(0, L, _BLOCK):
+        sl = slice(lo, min(L, lo + _BLOCK))
+        m = M[:, sl]
+        d = np.where(m, D[:, sl], 0.0).astype(np.float64)
+        n = m.sum(axis=0)
+        mu = d.sum(axis=0) / np.maximum(n, 1)
+        var = (np.where(m, d - mu, 0.0) ** 2).sum(axis=0) / np.maximum(n, 1)
+        mean[sl] = mu
+        sd = np.sqrt(var)
+        std[sl] = np.where((n > 0) & (sd > 0), sd, 1.0)
+        count[sl] = n
+    return mean, std, count
+
+
+def standardize(D: np.ndarray, M: np.ndarray, offset: np.ndarray | None,
+                scale: np.ndarray | None) -> np.ndarray:
+    """``(D - offset) / scale`` on the observed entries (0 elsewhere), a new array of D's float
+    dtype (float32 stays float32)."""
+    dtype = D.dtype if D.dtype in (np.float32, np.float64) else np.float64
+    out = np.zeros(D.shape, dtype=dtype)
+    L = D.shape[1]
+    for lo in range(0, L, _BLOCK):
+        sl = slice(lo, min(L, lo + _BLOCK))
+        d = D[:, sl].astype(np.float64)
+        if offset is not None:
+            d = d - offset[sl]
+        if scale is not None:
+            d = d / scale[sl]
+        out[:, sl] = np.where(M[:, sl], d, 0.0)
+    return out
+
+
+def residual_moments(D: np.ndarray, M: np.ndarray, X: np.ndarray,
+                     Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-cell sum of squared training residuals ``sum_t (D_tj - x_t^T y_j)^2`` over the
+    observed entries and their count, ``(L,)`` each."""
+    T, L = D.shape
+    sse = np.zeros(L)
+    count = np.zeros(L, dtype=np.int64)
+    for lo in range(0, L, _BLOCK):
+        sl = slice(lo, min(L, lo + _BLOCK))
+        m = M[:, sl]
+        r = np.where(m, D[:, sl] - X.T @ Y[:, sl], 0.0)
+        sse[sl] = (r * r).sum(axis=0)
+        count[sl] = m.sum(axis=0)
+    return sse, count
+
+
+def shrink_noise(sse: np.ndarray, count: np.ndarray, global_var: float,
+                 prior_df: float) -> np.ndarray:
+    """Per-cell noise variance shrunk towards the global one:
+    ``(sse_j + prior_df * global_var) / (count_j + prior_df)`` (the posterior mean of an
+    inverse-gamma prior worth ``prior_df`` pseudo-observations). Cells with few observations stay
+    near ``global_var``; cells never observed get it exactly."""
+    return (sse + prior_df * global_var) / (count + prior_df)
+
+
+def residual_sample(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray,
+                    max_times: int = 20) -> np.ndarray:
+    """Training residuals of at most ``max_times`` evenly spaced times, ``(t, L)`` float32 with
+    NaN where unobserved (for the variogram fit; bounded memory at millions of cells)."""
+    T = D.shape[0]
+    rows = np.unique(np.linspace(0, T - 1, min(T, max_times)).round().astype(np.int64))
+    R = (D[rows].astype(np.float64) - X[:, rows].T @ Y).astype(np.float32)
+    R[~M[rows]] = np.nan
+    return R
