@@ -6,11 +6,12 @@
   (AVHRR v5 and VIIRS v1) -> DataArray ``(time, lat, lon)`` with QA-bit masking.
 - :func:`open_image_stack` (``io/imagery.py``): RGB snapshots (e.g. NASA Worldview) -> hue in
   degrees with cloud, edge and no-data masks.
-- :func:`synthetic_field`, :func:`write_ndvi_cdr`, :func:`write_image_stack`
-  (``io/samples.py``): a planted low-rank field and writers of the two real formats.
+- :func:`write_ndvi_cdr`, :func:`write_image_stack`: writers of the two real formats, beside
+  their readers.
+- :func:`synthetic_field` (``io/samples.py``): a planted low-rank field for tests, benchmarks
+  and notebooks.
 
-Submodules are imported lazily, so ``from lrm_cvx.io.samples import synthetic_field`` does not
-pay for (or depend on) the others.
+Submodules are imported on first use, so ``import lrm_cvx.io`` stays cheap.
 """
 
 from __future__ import annotations
@@ -38,8 +39,8 @@ _WHERE = {
     "DEFAULT_MASK_FLAGS": "ndvi",
     "open_image_stack": "imagery",
     "synthetic_field": "samples",
-    "write_ndvi_cdr": "samples",
-    "write_image_stack": "samples",
+    "write_ndvi_cdr": "ndvi",
+    "write_image_stack": "imagery",
 }
 
 

@@ -1,10 +1,10 @@
-"""A planted low-rank field, and writers of the real file formats at any size.
+"""A planted low-rank field, plus the writers of the real file formats, at any size.
 
 :func:`synthetic_field` builds an NDVI-like ``(time, lat, lon)`` DataArray whose noise-free part
 is exactly rank ``k`` (``X.T @ Y``), with a fixed land mask and spatially correlated cloud gaps,
-so tests and benchmarks know the truth. :func:`write_ndvi_cdr` and :func:`write_image_stack`
-write any such field as NOAA CDR daily NetCDF files or as RGB snapshots, which the loaders in
-``io/ndvi.py`` and ``io/imagery.py`` read back.
+so tests and benchmarks know the truth. The writers live beside their readers and are re-exported
+here: :func:`write_ndvi_cdr` (``io/ndvi.py``, daily NOAA CDR NetCDF files) and
+:func:`write_image_stack` (``io/imagery.py``, Worldview-style RGB snapshots).
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ import xarray as xr
 
 from .._validation import as_generator
 from ..errors import DataError
+from .imagery import write_image_stack
+from .ndvi import write_ndvi_cdr
 
 __all__ = ["synthetic_field", "write_ndvi_cdr", "write_image_stack"]
 
@@ -225,114 +227,3 @@ def _check_int(value: Any, name: str, minimum: int) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise DataError(f"{name} must be an integer >= {minimum}, got {value!r}")
     return int(value)
-
-
-
-# --------------------------------------------------------------------------- writers
-_CDR_EPOCH = np.datetime64("1981-01-01", "D")
-
-
-def _cdr_name(product: str, platform: str, day: pd.Timestamp) -> str:
-    stamp = day.strftime("%Y%m%d")
-    if product == "AVHRR":
-        return f"AVHRR-Land_v005_AVH13C1_{platform}_{stamp}_c20240101000000.nc"
-    code = "JP113C1" if platform == "NOAA-20" else "NPP13C1"
-    return f"VIIRS-Land_v001_{code}_{platform}_{stamp}_c20240101000000.nc"
-
-
-def write_ndvi_cdr(
-    folder: Any,
-    field: xr.DataArray,
-    start_date: Any = None,
-    *,
-    product: str = "AVHRR",
-    platform: str | None = None,
-    qa: np.ndarray | None = None,
-    complevel: int = 1,
-) -> list:
-    """Write ``field`` ``(time, lat, lon)`` as daily NOAA CDR NDVI NetCDF files, one per time.
-
-    Files carry the real names, dims (``time`` of length 1 in days since 1981-01-01,
-    ``latitude``, ``longitude``), ``NDVI`` int16 (scale 1e-4, fill -9999, ``valid_range``
-    [-1000, 10000]) and ``QA`` int16 in the ``product``'s layout ("AVHRR" v5 flag bits or
-    "VIIRS" v1 bit fields). Without ``qa``, a NaN cell is written as fill with its cloud flag
-    set (AVHRR bit 1; VIIRS cloud state 1) and other cells with a clear QA; ``qa`` (int16,
-    the field's shape) is written verbatim. Dates come from ``field.time`` or, when given,
-    consecutive days from ``start_date``. Each file is written atomically; returns the paths.
-    """
-    from pathlib import Path
-
-    import netCDF4
-
-    from .._validation import atomic_output
-    from .ndvi import AVHRR_FLAG_NAMES, AVHRR_FLAGS, NDVI_FILL, NDVI_VALID_RANGE, QA_FILL
-
-    if product not in ("AVHRR", "VIIRS"):
-        raise DataError(f"product must be 'AVHRR' or 'VIIRS', got {product!r}")
-    if not isinstance(field, xr.DataArray) or field.ndim != 3:
-        raise DataError("field must be a (time, lat, lon) DataArray")
-    platform = platform or ("NOAA-19" if product == "AVHRR" else "S-NPP")
-    n_times = field.shape[0]
-    if start_date is not None:
-        days = pd.date_range(pd.Timestamp(start_date), periods=n_times, freq="D")
-    elif "time" in field.coords and np.issubdtype(field["time"].dtype, np.datetime64):
-        days = pd.DatetimeIndex(field["time"].values)
-    else:
-        raise DataError("field has no datetime time coordinate: pass start_date")
-    if qa is not None and np.shape(qa) != field.shape:
-        raise DataError(f"qa must have the field's shape {field.shape}, got {np.shape(qa)}")
-    lat = np.asarray(field[field.dims[1]].values, dtype=np.float32)
-    lon = np.asarray(field[field.dims[2]].values, dtype=np.float32)
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    cloud_bit = AVHRR_FLAGS["cloudy"] if product == "AVHRR" else 1
-    paths = []
-    for t in range(n_times):
-        values = np.asarray(field[t].values, dtype=np.float32)
-        bad = ~np.isfinite(values)
-        raw = np.rint(np.clip(np.nan_to_num(values), -1.0, 1.0) * 1e4).astype(np.int16)
-        raw[bad] = NDVI_FILL
-        q = (np.asarray(qa[t], dtype=np.int16) if qa is not None
-             else np.where(bad, np.int16(cloud_bit), np.int16(0)).astype(np.int16))
-        path = folder / _cdr_name(product, platform, days[t])
-        with atomic_output(path) as tmp:
-            with netCDF4.Dataset(tmp, "w", format="NETCDF4") as nc:
-                nc.createDimension("time", 1)
-                nc.createDimension("latitude", lat.size)
-                nc.createDimension("longitude", lon.size)
-                tv = nc.createVariable("time", "f8", ("time",))
-                tv.units, tv.standard_name = "days since 1981-01-01 00:00:00", "time"
-                tv[:] = [(np.datetime64(days[t], "D") - _CDR_EPOCH).astype(float)]
-                for name, values_1d, units in (("latitude", lat, "degrees_north"),
-                                               ("longitude", lon, "degrees_east")):
-                    v = nc.createVariable(name, "f4", (name,))
-                    v.units, v.standard_name = units, name
-                    v[:] = values_1d
-                dims = ("time", "latitude", "longitude")
-                nv = nc.createVariable("NDVI", "i2", dims, zlib=complevel > 0,
-                                       complevel=max(complevel, 1), fill_value=NDVI_FILL,
-                                       chunksizes=(1, min(lat.size, 512), min(lon.size, 512)))
-                nv.set_auto_maskandscale(False)
-                nv.long_name = "NOAA Climate Data Record of Normalized Difference Vegetation Index"
-                nv.units = "1"
-                nv.scale_factor = np.float32(1e-4)
-                nv.add_offset = np.float32(0.0)
-                nv.valid_range = np.array(NDVI_VALID_RANGE, dtype=np.int16)
-                nv[0] = raw
-                qv = nc.createVariable("QA", "i2", dims, zlib=complevel > 0,
-                                       complevel=max(complevel, 1), fill_value=QA_FILL,
-                                       chunksizes=(1, min(lat.size, 512), min(lon.size, 512)))
-                qv.set_auto_maskandscale(False)
-                qv.long_name = "quality assurance"
-                if product == "AVHRR":
-                    masks = np.array([AVHRR_FLAGS[n] for n in AVHRR_FLAG_NAMES], np.uint16)
-                    qv.flag_masks = masks.view(np.int16)  # 2, 4, ..., 16384, -32768
-                    qv.flag_meanings = " ".join(AVHRR_FLAG_NAMES)
-                else:
-                    qv.comment = ("bits 0-1 cloud state, 2 cloud shadow, 3-5 land/water, "
-                                  "6-7 aerosol, 8-9 thin cirrus, 10 cloud, 15 snow/ice")
-                qv[0] = q
-                nc.title = f"synthetic {product} CDR NDVI written by lrm_cvx.io.samples"
-                nc.Conventions = "CF-1.6"
-        paths.append(path)
-    return paths
