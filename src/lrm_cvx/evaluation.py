@@ -32,6 +32,13 @@ from .region import Region
 __all__ = ["evaluate", "summary", "save_results", "METHODS", "SnapshotStatistics", "foldin_mse"]
 
 METHODS = ("greedy", "transect-up", "transect-down", "transect-left", "transect-right", "random")
+GREEDY_VARIANTS = ("greedy:fisher", "greedy:a-optimal", "greedy:gp-variance")
+
+
+def _check_method(m: str) -> None:
+    if m in METHODS or m in GREEDY_VARIANTS:
+        return
+    raise ModelError(f"unknown method {m!r}; expected a subset of {METHODS + GREEDY_VARIANTS}")
 
 
 @dataclass(frozen=True)
@@ -96,10 +103,44 @@ def _complete_mse(stats: SnapshotStatistics, ridge: float) -> np.ndarray:
     return out
 
 
+def _model_mse(model: Any, values: np.ndarray, cells: np.ndarray, fold_in: dict,
+               min_observations: int) -> tuple[np.ndarray, np.ndarray]:
+    """Like :func:`foldin_mse` but with the model's predictive options (offset, scale, per-cell
+    noise, ``fold_in={"prior": ..., "spatial": ...}``): full maps, MSE over each snapshot's
+    observed cells. ``O(n_test L k)`` (plus kriging) per plan."""
+    from .glrm.predictive import posterior_complete
+
+    cells = np.asarray(cells, dtype=np.int64)
+    V = np.full(values.shape, np.nan)
+    V[:, cells] = values[:, cells]
+    n_obs = np.isfinite(V).sum(axis=1)
+    mse = np.full(values.shape[0], np.nan)
+    ok = np.flatnonzero(n_obs >= max(min_observations, 1))
+    if ok.size == 0:
+        return mse, n_obs
+    try:
+        pred, *_ = posterior_complete(model, V[ok], prior=fold_in.get("prior"),
+                                      spatial=bool(fold_in.get("spatial", False)),
+                                      ridge=float(fold_in.get("ridge", 0.0)))
+    except ModelError:  # too few observations for a fold-in without prior
+        return mse, n_obs
+    err = (pred - values[ok]) ** 2
+    mse[ok] = np.nanmean(err, axis=1)
+    return mse, n_obs
+
+
 def _plan(method: str, Y: np.ndarray, region: Region, start: int, budget: float,
-          rng: np.random.Generator, criterion: str, cost: str, ridge: float):
+          rng: np.random.Generator, criterion: str, cost: str, ridge: float,
+          model: Any = None, fold_in: dict | None = None):
     from .planning import plan_greedy, random_walk, transect
 
+    if method.startswith("greedy:"):
+        crit = method.split(":", 1)[1]
+        kw = model.planner_kwargs(prior="empirical", spatial=crit == "gp-variance")
+        if crit != "gp-variance":
+            kw = {k: v for k, v in kw.items() if k not in ("prior_cov", "spatial_cov")}
+        return plan_greedy(Y, region, start, budget, criterion=crit, cost=cost, ridge=ridge,
+                           progress=False, initial="start", **kw)
     if method == "greedy":
         return plan_greedy(Y, region, start, budget, criterion=criterion, cost=cost,
                            ridge=ridge, progress=False)
@@ -129,6 +170,8 @@ def evaluate(
     seed: int = 0,
     n_jobs: int = 1,
     progress: bool = True,
+    model_params: dict | None = None,
+    fold_in: dict | None = None,
 ) -> xr.Dataset:
     """Run the paper's evaluation protocol on ``data`` ``(time, lat, lon)``.
 
@@ -142,6 +185,17 @@ def evaluate(
     disk relaxation, well under a second at paper scale), ``"tight"`` (with distance cuts and
     the midpoint cover: tighter, ~40 s a plan at paper scale) or ``False``.
 
+    Reconstruction options (issue #8, docs/reconstruction.md; defaults are the paper's):
+    ``methods`` may add ``"greedy:fisher"``, ``"greedy:a-optimal"``, ``"greedy:gp-variance"``:
+    the greedy with a criterion on the model's posterior (``GLRM.planner_kwargs`` with the
+    empirical prior; ``gp-variance`` also with the GP residual, needs ``spatial`` in
+    ``model_params``), started from the start cell alone (``initial="start"``).
+    ``model_params`` are extra GLRM parameters of the fit (``offset``,
+    ``scale``, ``noise``, ``spatial``); ``fold_in`` (``{"prior": "empirical", "spatial": True}``)
+    is the prediction used for every method's error. With either, errors come from full
+    predicted maps and ``complete_mse_model`` is the model's fold-in (without the spatial
+    term) from every observed cell.
+
     Returns a Dataset with ``information``, ``cost``, ``n_cells`` ``(method, budget, start,
     trial)``, ``mse`` and ``n_obs`` ``(method, budget, start, trial, test_time)``, ``bound``
     ``(budget, start)``, ``complete_mse`` ``(test_time)``, the start cells, and the greedy
@@ -153,8 +207,12 @@ def evaluate(
         raise DataError("data must be a (time, lat, lon) DataArray")
     methods = tuple(methods)
     for m in methods:
-        if m not in METHODS:
-            raise ModelError(f"unknown method {m!r}; expected a subset of {METHODS}")
+        _check_method(m)
+    model_params = dict(model_params or {})
+    fold_in = dict(fold_in or {})
+    bad = set(fold_in) - {"prior", "spatial", "ridge"}
+    if bad:
+        raise ModelError(f"fold_in keys must be among prior, spatial, ridge; got {sorted(bad)}")
     budgets = tuple(float(b) for b in budgets)
     if not budgets or min(budgets) < 0:
         raise ModelError(f"budgets must be a non-empty sequence of numbers >= 0, got {budgets}")
@@ -165,12 +223,16 @@ def evaluate(
         raise DataError(f"n_test must be in [1, {data.sizes['time'] - 1}], got {n_test}")
     train, test = data.isel(time=slice(None, -n_test)), data.isel(time=slice(-n_test, None))
     if model is None:
-        model = GLRM(rank=rank, random_state=seed, progress=progress).fit(train)
+        model = GLRM(rank=rank, random_state=seed, progress=progress,
+                     **model_params).fit(train)
     region = model.region_
     if region is None:
         raise ModelError("model must have been fitted on a DataArray (it has no region)")
     Y = as_factor_matrix(model.Y_, region)
-    stats = SnapshotStatistics.from_values(Y, region.stack(test))
+    test_values = region.stack(test)
+    stats = SnapshotStatistics.from_values(Y, test_values)
+    use_model = bool(fold_in) or model._predictive_active()
+    test_values = test_values.astype(np.float64) if use_model else None
     rng = as_generator(seed)
     if n_starts > region.n_cells:
         raise DataError(f"n_starts={n_starts} exceeds the {region.n_cells} valid cells")
@@ -194,8 +256,12 @@ def evaluate(
             for m, method in enumerate(methods):
                 for trial in range(n_trials if method == "random" else 1):
                     plan = _plan(method, Y, region, int(starts[s]), budget, start_rng,
-                                 criterion, cost, ridge)
-                    e, n = foldin_mse(Y, stats, plan.cells, fold_ridge, min_observations)
+                                 criterion, cost, ridge, model, fold_in)
+                    if use_model:
+                        e, n = _model_mse(model, test_values, plan.cells, fold_in,
+                                          min_observations)
+                    else:
+                        e, n = foldin_mse(Y, stats, plan.cells, fold_ridge, min_observations)
                     cert = (plan.certify(tighten=certify == "tight").bound
                             if certify and method == "greedy" else np.nan)
                     out.append((m, b, s, trial, plan, e, n, cert))
@@ -269,8 +335,15 @@ def evaluate(
             "fold_ridge": float(fold_ridge),
             "random_trials": int(random_trials),
             "seed": int(seed),
+            "model_params": repr(model_params),
+            "fold_in": repr(fold_in),
         },
     )
+    if use_model:
+        allc = np.arange(region.n_cells)
+        cm, _ = _model_mse(model, test_values, allc, {**fold_in, "spatial": False}, 1)
+        ds["complete_mse_model"] = (("test_time",), cm,
+                                    {"long_name": "model fold-in error from every observed cell"})
     return ds
 
 
@@ -291,7 +364,8 @@ def summary(results: xr.Dataset) -> pd.DataFrame:
             rows.append({
                 "method": str(method), "budget": float(budget),
                 "information_mean": info.mean() if info.size else np.nan,
-                "information_se": info.std(ddof=1) / np.sqrt(info.size) if info.size > 1 else np.nan,
+                "information_se": (info.std(ddof=1) / np.sqrt(info.size)
+                                   if info.size > 1 else np.nan),
                 "mse_mean": err.mean() if err.size else np.nan,
                 "mse_se": err.std(ddof=1) / np.sqrt(err.size) if err.size > 1 else np.nan,
                 "n_plans": int(info.size), "n_predictions": int(err.size),

@@ -15,6 +15,14 @@ Two criteria share one interface (:class:`FisherOracle`, :class:`AOptimalOracle`
   ``V(P) = sum_i y_i^T M^-1 y_i`` over all cells ``i`` when ``x`` is added,
   ``(y_x^T S W S y_x) / (1 + y_x^T S y_x)`` with ``S = M^-1`` and ``W = Y Y^T``.
   It needs ``ridge > 0`` (``V`` is infinite for a singular ``M``).
+
+Posterior versions (issue #8, docs/reconstruction.md): both oracles accept a prior precision
+``P0`` (``(k, k)``, replacing ``ridge I``) and per-cell noise variances ``noise_var`` (weights
+``w_p = 1 / sigma_p^2``): ``M = P0 + sum_P w_p y_p y_p^T`` is then the posterior precision of the
+fold-in, and the A-optimal target ``W = sum_i c_i y_i y_i^T`` may weight cells
+(``target_weights``, e.g. the squared per-cell scale). Internally the candidates' columns are
+``sqrt(w) y`` so the gain formulas are unchanged. :class:`GPVarianceOracle` (``"gp-variance"``)
+is the A-optimal criterion of the low-rank trend + GP residual model.
 """
 
 from __future__ import annotations
@@ -33,11 +41,13 @@ __all__ = [
     "FisherOracle",
     "AOptimalOracle",
     "make_oracle",
+    "GPVarianceOracle",
+    "gp_variance_value",
     "CRITERIA",
 ]
 
-Criterion = Literal["fisher", "a-optimal"]
-CRITERIA: tuple[str, ...] = ("fisher", "a-optimal")
+Criterion = Literal["fisher", "a-optimal", "gp-variance"]
+CRITERIA: tuple[str, ...] = ("fisher", "a-optimal", "gp-variance")
 
 
 def _gram(Y: np.ndarray, cells: np.ndarray, ridge: float) -> np.ndarray:
@@ -131,11 +141,27 @@ class _Oracle:
 
     criterion: str = ""
 
-    def __init__(self, Y: Any, ridge: float = 0.0, cells: Any = None) -> None:
+    def __init__(self, Y: Any, ridge: float = 0.0, cells: Any = None, *,
+                 prior_precision: Any = None, noise_var: Any = None) -> None:
         self.Y = as_factor_matrix(Y)
+        k, L = self.Y.shape
         self.ridge = check_positive(ridge, "ridge", error=PlanningError)
         self.cells: list[int] = [int(c) for c in _cells_array(cells, self.Y.shape[1])]
-        M = _gram(self.Y, np.asarray(self.cells, dtype=np.int64), self.ridge)
+        self.Yw = self.Y
+        if noise_var is not None:
+            nv = np.asarray(noise_var, dtype=np.float64)
+            if nv.ndim == 0:
+                nv = np.full(L, float(nv))
+            if nv.shape != (L,) or not np.all(np.isfinite(nv)) or np.any(nv <= 0):
+                raise PlanningError(f"noise_var must be a positive scalar or ({L},) array")
+            self.Yw = np.ascontiguousarray(self.Y / np.sqrt(nv))
+        self.P0 = None
+        if prior_precision is not None:
+            P0 = np.asarray(prior_precision, dtype=np.float64)
+            if P0.shape != (k, k) or not np.all(np.isfinite(P0)):
+                raise PlanningError(f"prior_precision must be a finite ({k}, {k}) matrix")
+            self.P0 = 0.5 * (P0 + P0.T)
+        M = self._M(np.asarray(self.cells, dtype=np.int64))
         sign, logdet = np.linalg.slogdet(M)
         if sign <= 0 or np.linalg.cond(M) > 1e13:
             raise PlanningError(
@@ -146,6 +172,13 @@ class _Oracle:
         self.S = np.linalg.inv(M)
         self.S = 0.5 * (self.S + self.S.T)
         self._logdet = float(logdet)
+
+    def _M(self, cells: np.ndarray) -> np.ndarray:
+        """``P0 (or ridge I) + sum_{p in cells} w_p y_p y_p^T``."""
+        if self.P0 is None:
+            return _gram(self.Yw, cells, self.ridge)
+        Yp = self.Yw[:, cells]
+        return self.P0 + Yp @ Yp.T
 
     @property
     def k(self) -> int:
@@ -166,7 +199,7 @@ class _Oracle:
 
     def add(self, cell: int) -> None:
         """Add ``cell`` to the set: Sherman-Morrison update of ``S``, ``O(k^2)``."""
-        y = self.Y[:, int(cell)]
+        y = self.Yw[:, int(cell)]
         u = self.S @ y
         q = float(y @ u)
         self.S -= np.outer(u, u) / (1.0 + q)
@@ -195,7 +228,7 @@ class FisherOracle(_Oracle):
         """Gain of every column (``(L,)``) or of the given column indices (``(n,)``), float64."""
         idx = self._idx(candidates)
         out = np.empty(idx.size if candidates is not None else self.Y.shape[1])
-        _fisher_gains(self.Y, self.S, idx, out)
+        _fisher_gains(self.Yw, self.S, idx, out)
         return out
 
     @property
@@ -208,16 +241,30 @@ class AOptimalOracle(_Oracle):
     """Gains of the A-optimal criterion: decrease of ``V(P) = sum_i y_i^T M^-1 y_i``.
 
     ``gain(x) = (y_x^T S W S y_x) / (1 + y_x^T S y_x)`` with ``S = M^-1`` and ``W = Y Y^T`` over
-    all columns of ``Y`` (or ``weight`` when given, a ``(k, k)`` PSD matrix). Needs ``ridge > 0``.
+    all columns of ``Y`` (or ``weight`` when given, a ``(k, k)`` PSD matrix, or
+    ``sum_i c_i y_i y_i^T`` with ``target_weights`` ``c``). Needs ``ridge > 0`` or a
+    ``prior_precision``; with ``noise_var`` the candidates' ``y`` are ``y / sigma``.
     """
 
     criterion = "a-optimal"
 
-    def __init__(self, Y: Any, ridge: float, cells: Any = None, weight: Any = None) -> None:
-        if check_positive(ridge, "ridge", error=PlanningError) <= 0:
-            raise PlanningError("the a-optimal criterion needs ridge > 0 (e.g. ridge=1e-6)")
-        super().__init__(Y, ridge, cells)
-        self.W = self.Y @ self.Y.T if weight is None else np.asarray(weight, dtype=np.float64)
+    def __init__(self, Y: Any, ridge: float = 0.0, cells: Any = None, weight: Any = None, *,
+                 prior_precision: Any = None, noise_var: Any = None,
+                 target_weights: Any = None) -> None:
+        if (check_positive(ridge, "ridge", error=PlanningError) <= 0
+                and prior_precision is None):
+            raise PlanningError("the a-optimal criterion needs ridge > 0 (e.g. ridge=1e-6) or "
+                                "a prior_precision")
+        super().__init__(Y, ridge, cells, prior_precision=prior_precision, noise_var=noise_var)
+        if weight is not None:
+            self.W = np.asarray(weight, dtype=np.float64)
+        elif target_weights is not None:
+            c = np.asarray(target_weights, dtype=np.float64)
+            if c.shape != (self.Y.shape[1],) or np.any(c < 0):
+                raise PlanningError(f"target_weights must be ({self.Y.shape[1]},) and >= 0")
+            self.W = (self.Y * c) @ self.Y.T
+        else:
+            self.W = self.Y @ self.Y.T
         if self.W.shape != (self.k, self.k):
             raise PlanningError(f"weight must be ({self.k}, {self.k}), got {self.W.shape}")
         self._after_add()
@@ -230,7 +277,7 @@ class AOptimalOracle(_Oracle):
         """Variance reduction of every column (``(L,)``) or of the given columns (``(n,)``)."""
         idx = self._idx(candidates)
         out = np.empty(idx.size if candidates is not None else self.Y.shape[1])
-        _aopt_gains(self.Y, self.S, self.SWS, idx, out)
+        _aopt_gains(self.Yw, self.S, self.SWS, idx, out)
         return out
 
     @property
@@ -241,10 +288,162 @@ class AOptimalOracle(_Oracle):
 
 def make_oracle(
     criterion: str, Y: Any, ridge: float = 0.0, cells: Any = None, **kwargs: Any
-) -> FisherOracle | AOptimalOracle:
-    """The gain oracle for ``criterion`` (``"fisher"`` or ``"a-optimal"``) started at ``cells``."""
+) -> FisherOracle | AOptimalOracle | GPVarianceOracle:
+    """The gain oracle for ``criterion`` (``"fisher"``, ``"a-optimal"`` or ``"gp-variance"``)
+    started at ``cells``; ``kwargs`` go to the oracle (``prior_precision``, ``noise_var``, ...)."""
     if criterion == "fisher":
-        return FisherOracle(Y, ridge, cells)
+        return FisherOracle(Y, ridge, cells, **kwargs)
     if criterion in ("a-optimal", "aopt", "a_optimal"):
         return AOptimalOracle(Y, ridge, cells, **kwargs)
+    if criterion == "gp-variance":
+        return GPVarianceOracle(Y, cells=cells, **kwargs)
     raise PlanningError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+
+
+# --------------------------------------------------------------------------- GP variance
+def _gp_noise(spatial_cov: Any) -> float:
+    """Observation noise of the GP criterion: the nugget, floored at 1e-9 x the total variance
+    (a fitted nugget of ~0 would make the posterior variance at observed cells exactly 0)."""
+    return max(float(spatial_cov.nugget), 1e-9 * float(spatial_cov.total_variance))
+
+
+def _gp_latent_cov(Y: np.ndarray, S0: np.ndarray, region: Any, spatial_cov: Any,
+                   rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``K(rows, cols) = y_i^T S0 y_j + sill rho(d_ij)``: prior covariance of the latent field
+    (low-rank trend with prior ``N(., S0)`` plus the GP residual without its nugget)."""
+    from scipy.spatial.distance import cdist
+
+    from . import spatial as sp
+
+    a = sp._coords(region, spatial_cov.metric, rows)
+    b = sp._coords(region, spatial_cov.metric, cols)
+    K = spatial_cov.covariance(sp._arc(cdist(a, b), spatial_cov.metric), nugget=False)
+    K += Y[:, rows].T @ S0 @ Y[:, cols]
+    return K
+
+
+def _check_gp_inputs(Y, region, spatial_cov, prior_cov):
+    from .region import Region
+    from .spatial import ResidualCovariance
+
+    if not isinstance(region, Region):
+        raise PlanningError("the gp-variance criterion needs the region")
+    if not isinstance(spatial_cov, ResidualCovariance):
+        raise PlanningError("the gp-variance criterion needs spatial_cov (a ResidualCovariance, "
+                            "e.g. model.spatial_cov_ of GLRM(spatial='exponential'))")
+    k = Y.shape[0]
+    S0 = np.asarray(prior_cov, dtype=np.float64) if prior_cov is not None else None
+    if S0 is None or S0.shape != (k, k) or not np.all(np.isfinite(S0)):
+        raise PlanningError(f"the gp-variance criterion needs prior_cov, a ({k}, {k}) matrix "
+                            "(the prior covariance of x, e.g. from prior='empirical')")
+    return 0.5 * (S0 + S0.T)
+
+
+def gp_variance_value(Y: Any, region: Any, spatial_cov: Any, prior_cov: Any, cells: Any,
+                      targets: Any = None, target_weights: Any = None) -> float:
+    """Total posterior variance ``sum_{i in targets} c_i Var(f_i | d_cells)`` of the latent
+    field ``f = Y^T x + r``, ``x ~ N(., prior_cov)``, ``r ~ GP(spatial_cov)``, observed with
+    noise :func:`_gp_noise` at ``cells``. Dense reference (``O(|targets| n)`` memory)."""
+    Y = as_factor_matrix(Y)
+    S0 = _check_gp_inputs(Y, region, spatial_cov, prior_cov)
+    L = Y.shape[1]
+    T = np.arange(L) if targets is None else np.asarray(targets, dtype=np.int64)
+    c = np.ones(T.size) if target_weights is None else np.asarray(target_weights, float)[T]
+    P = _cells_array(cells, L)
+    prior = np.einsum("ai,ab,bi->i", Y[:, T], S0, Y[:, T]) + spatial_cov.sill
+    if P.size == 0:
+        return float(c @ prior)
+    KPP = _gp_latent_cov(Y, S0, region, spatial_cov, P, P) + _gp_noise(spatial_cov) * np.eye(P.size)
+    KTP = _gp_latent_cov(Y, S0, region, spatial_cov, T, P)
+    red = np.einsum("ip,ip->i", KTP, np.linalg.solve(KPP, KTP.T).T)
+    return float(c @ (prior - red))
+
+
+class GPVarianceOracle:
+    """A-optimal gains of the low-rank trend + GP residual model (``"gp-variance"``).
+
+    The predictive model of ``GLRM(spatial=...)`` with ``complete(prior="empirical",
+    spatial=True)`` is a Gaussian process ``f = Y^T x + r`` (``x ~ N(m0, prior_cov)``,
+    ``r ~ GP(spatial_cov)``). The gain of observing ``x`` is the decrease of the total posterior
+    variance over the targets, ``sum_i c_i C(i, x)^2 / (C(x, x) + nugget)`` with ``C`` the
+    current posterior covariance. ``C(rows, pool)`` is held densely (rows = targets plus pool)
+    and updated by a rank-one step per added cell, so gains and updates are
+    ``O(|rows| |pool|)``: exact for regions up to ~10^4 cells; pass ``targets`` (a subsample of
+    cells whose variance is summed) to bound the cost on larger regions.
+    """
+
+    criterion = "gp-variance"
+
+    def __init__(self, Y: Any, cells: Any = None, *, region: Any = None, spatial_cov: Any = None,
+                 prior_cov: Any = None, pool: Any = None, targets: Any = None,
+                 target_weights: Any = None, max_entries: float = 1e8, **_: Any) -> None:
+        self.Y = as_factor_matrix(Y)
+        S0 = _check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
+        L = self.Y.shape[1]
+        self.pool = (np.arange(L) if pool is None
+                     else np.unique(_cells_array(pool, L)))
+        T = np.arange(L) if targets is None else np.unique(_cells_array(targets, L))
+        rows = np.union1d(T, self.pool)
+        if rows.size * self.pool.size > max_entries:
+            raise PlanningError(
+                f"the gp-variance criterion would hold {rows.size} x {self.pool.size} posterior "
+                f"covariances (> {max_entries:.0e}): pass targets= (a subsample of cells) or "
+                "use criterion='a-optimal'")
+        c = np.ones(L) if target_weights is None else np.asarray(target_weights, float)
+        self._tpos = np.searchsorted(rows, T)
+        self._tw = c[T]
+        self._pool_in_rows = np.searchsorted(rows, self.pool)
+        self.noise = _gp_noise(spatial_cov)
+        self.cells: list[int] = [int(v) for v in _cells_array(cells, L)]
+        C = _gp_latent_cov(self.Y, S0, region, spatial_cov, rows, self.pool)
+        prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
+        self._value = float(self._tw @ prior_var)
+        if self.cells:
+            P = np.asarray(self.cells, dtype=np.int64)
+            KPP = _gp_latent_cov(self.Y, S0, region, spatial_cov, P, P)
+            KPP += self.noise * np.eye(P.size)
+            Lp = np.linalg.cholesky(KPP)
+            from scipy.linalg import solve_triangular
+
+            A = solve_triangular(Lp, _gp_latent_cov(self.Y, S0, region, spatial_cov, P, rows),
+                                 lower=True)
+            C -= A.T @ A[:, self._pool_in_rows]
+            self._value -= float(self._tw @ np.einsum("pi,pi->i", A[:, self._tpos],
+                                                      A[:, self._tpos]))
+        self.C = C
+
+    @property
+    def k(self) -> int:
+        return int(self.Y.shape[0])
+
+    def _pos(self, candidates: Any) -> np.ndarray:
+        if candidates is None:
+            return np.arange(self.pool.size)
+        idx = np.asarray(candidates, dtype=np.int64).ravel()
+        pos = np.searchsorted(self.pool, idx)
+        pos = np.minimum(pos, self.pool.size - 1)
+        if idx.size and not np.array_equal(self.pool[pos], idx):
+            raise PlanningError("gp-variance candidates must be cells of the oracle's pool")
+        return pos
+
+    def gains(self, candidates: Any = None) -> np.ndarray:
+        """Total-variance decrease of each candidate (``(n,)``, default: the whole pool)."""
+        pos = self._pos(candidates)
+        Ct = self.C[self._tpos][:, pos]
+        num = self._tw @ (Ct * Ct)
+        den = self.C[self._pool_in_rows[pos], pos] + self.noise
+        return num / np.maximum(den, 1e-300)
+
+    def add(self, cell: int) -> None:
+        """Condition on an observation at ``cell`` (a pool cell): rank-one update."""
+        j = int(self._pos([int(cell)])[0])
+        col = self.C[:, j].copy()
+        den = col[self._pool_in_rows[j]] + self.noise
+        self._value -= float(self._tw @ (col[self._tpos] ** 2)) / den
+        self.C -= np.outer(col, col[self._pool_in_rows] / den)
+        self.cells.append(int(cell))
+
+    @property
+    def value(self) -> float:
+        """Total posterior variance over the targets for the current set."""
+        return self._value

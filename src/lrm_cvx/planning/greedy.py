@@ -74,6 +74,13 @@ def plan_greedy(
     cost: str = "nearest-neighbor",
     ridge: float = 0.0,
     progress: bool = True,
+    prior_precision: Any = None,
+    noise_var: Any = None,
+    target_weights: Any = None,
+    prior_cov: Any = None,
+    spatial_cov: Any = None,
+    targets: Any = None,
+    initial: str = "nearest",
 ) -> Plan:
     """The paper's cost-benefit greedy path planner.
 
@@ -96,6 +103,16 @@ def plan_greedy(
         (cheapest insertion route, cheaper and usually shorter).
     ridge : ``>= 0``, added to the information matrix (``ridge * I``).
     progress : show a tqdm progress bar.
+    prior_precision, noise_var, target_weights : the fold-in's posterior (issue #8,
+        docs/reconstruction.md): ``M = prior_precision + sum_P y_p y_p^T / noise_var_p``
+        replaces ``ridge I + sum_P y_p y_p^T`` in ``"fisher"`` and ``"a-optimal"``, and the
+        A-optimal target is ``sum_i target_weights_i y_i y_i^T``. ``GLRM.planner_kwargs()``
+        returns them for a fitted model. Default None: the paper.
+    prior_cov, spatial_cov, targets : for ``criterion="gp-variance"`` (the A-optimal criterion
+        of the low-rank trend + GP residual model; :class:`~lrm_cvx.information.GPVarianceOracle`).
+    initial : ``"nearest"`` (the paper: the start and its ``k - 1`` nearest cells are forced) or
+        ``"start"`` (only the start cell: with a prior the information matrix is nonsingular
+        from the start, so the budget is not spent on ``k - 1`` forced cells).
 
     If the initial cells alone already exceed the budget, the plan is still returned (the
     paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
@@ -109,9 +126,25 @@ def plan_greedy(
         raise PlanningError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
     if cost not in COSTS:
         raise PlanningError(f"cost must be one of {COSTS}, got {cost!r}")
-    P0 = initial_cells(region, start_cell, k)
-    oracle = make_oracle(criterion, Yk, ridge, P0)
+    if initial == "nearest":
+        P0 = initial_cells(region, start_cell, k)
+    elif initial == "start":
+        P0 = np.array([start_cell], dtype=np.int64)
+    else:
+        raise PlanningError(f"initial must be 'nearest' or 'start', got {initial!r}")
     pool = _budget_pool(region, start_cell, budget)
+    extra: dict[str, Any] = {}
+    if criterion == "gp-variance":
+        extra = dict(region=region, spatial_cov=spatial_cov, prior_cov=prior_cov, pool=pool,
+                     targets=targets, target_weights=target_weights)
+    else:
+        if prior_precision is not None:
+            extra["prior_precision"] = prior_precision
+        if noise_var is not None:
+            extra["noise_var"] = noise_var
+        if target_weights is not None and criterion == "a-optimal":
+            extra["target_weights"] = target_weights
+    oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
     coster = make_cost(cost, region.grid_index, P0, pool)
     if coster.cost > budget + _TOL:
         warnings.warn(
