@@ -76,6 +76,23 @@ def test_predict_from_csv(model_file, data_file, tmp_path):
     np.testing.assert_allclose(pred["prediction"], expected, rtol=1e-5, atol=1e-6)
 
 
+def test_fit_spatial_and_predict_with_prior(data_file, tmp_path):
+    model_path = tmp_path / "gp.nc"
+    assert main(["-q", "fit", str(data_file), "--rank", "3", "--offset", "--spatial",
+                 "exponential", "-o", str(model_path)]) == 0
+    model = GLRM.load(model_path)
+    assert model.offset and model.spatial_cov_ is not None
+    obs = pd.DataFrame({"cell": [0, 5, 17, 30, 44, 61, 70], "value": np.linspace(-1, 1, 7)})
+    obs.to_csv(tmp_path / "obs.csv", index=False)
+    out = tmp_path / "map.nc"
+    assert main(["-q", "predict", str(model_path), "--observations", str(tmp_path / "obs.csv"),
+                 "--prior", "empirical", "--spatial", "-o", str(out)]) == 0
+    expected = model.complete((obs["cell"].to_numpy(), obs["value"].to_numpy()),
+                              prior="empirical", spatial=True)
+    np.testing.assert_allclose(xr.load_dataset(out)["prediction"], expected["prediction"],
+                               rtol=1e-6, atol=1e-9)
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [

@@ -68,7 +68,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     data = _load(args)
     out = _check_output(args.output, args.data)
     model = GLRM(rank=args.rank, loss=args.loss, max_iter=args.max_iter, tol=args.tol,
-                 random_state=args.seed, progress=not args.quiet).fit(data)
+                 offset=args.offset, spatial=args.spatial, random_state=args.seed,
+                 progress=not args.quiet).fit(data)
     model.save(out)
     print(f"fitted rank-{args.rank} GLRM on {data.sizes['time']} snapshots x "
           f"{model.region_.n_cells} cells in {model.n_iter_} iterations "
@@ -130,7 +131,8 @@ def cmd_predict(args: argparse.Namespace) -> int:
         cells = np.atleast_1d(model.region_.cell_of(obs["lat"].to_numpy(), obs["lon"].to_numpy()))
     else:
         raise UsageError("--observations needs a 'cell' column or 'lat' and 'lon' columns")
-    result = model.complete((cells, obs["value"].to_numpy(dtype=float)), ridge=args.ridge)
+    result = model.complete((cells, obs["value"].to_numpy(dtype=float)), ridge=args.ridge,
+                            prior=args.prior, spatial=args.spatial)
     out = _check_output(args.output, [args.model, args.observations])
     with atomic_output(out) as tmp:
         result.to_netcdf(tmp, engine="netcdf4")
@@ -221,6 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-iter", type=int, default=100)
     p.add_argument("--tol", type=float, default=1e-4)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--offset", action="store_true", help="fit a per-cell mean (offset)")
+    p.add_argument("--spatial", choices=["exponential", "matern32", "matern52", "gaussian"],
+                   help="also fit a GP covariance of the residuals")
     p.add_argument("-o", "--output", required=True, help="model file (.nc)")
     p.set_defaults(func=cmd_fit)
 
@@ -238,6 +243,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--observations", required=True,
                    help="CSV with columns value and cell, or value, lat and lon")
     p.add_argument("--ridge", type=float, default=0.0)
+    p.add_argument("--prior", choices=["empirical"], default=None,
+                   help="Bayesian fold-in with the training latent vectors' mean and covariance")
+    p.add_argument("--spatial", action="store_true",
+                   help="add the kriged GP residual (model fitted with a spatial covariance)")
     p.add_argument("-o", "--output", required=True, help="output NetCDF map")
     p.set_defaults(func=cmd_predict)
 
