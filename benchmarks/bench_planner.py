@@ -30,7 +30,8 @@ def _peak_gib() -> float:
 
 def _problem(shape: tuple[int, int], rank: int, seed: int) -> tuple[np.ndarray, Region, int]:
     """Planted smooth factors Y (rank, L) on a land mask, and a central land start cell."""
-    da, truth = synthetic_field(1, shape, rank, seed=seed, return_truth=True, missing=0.0)
+    da, truth = synthetic_field(1, shape, rank, seed=seed, return_truth=True, missing=0.0,
+                                land_fraction=0.95)  # ~2.0M of the 2.1M cells
     region = Region.from_dataarray(da, mask=truth["land_mask"])
     Y = region.stack(truth["Y"]).astype(np.float64)
     centre = np.array(shape) // 2

@@ -29,6 +29,23 @@ def _check_Y(Y: Any) -> np.ndarray:
     return Y
 
 
+
+def _check_observations(Y, cells, values):
+    """``(Y, cells int array, values float64)`` after checking shapes, indices and finiteness."""
+    Y = _check_Y(Y)
+    cells = np.asarray(cells)
+    if cells.ndim != 1 or (cells.size and not np.issubdtype(cells.dtype, np.integer)):
+        raise DataError(f"cells must be a 1-D array of integer cell indices, got {cells!r}")
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != cells.shape:
+        raise DataError(f"values has shape {values.shape}, cells has shape {cells.shape}")
+    L = Y.shape[1]
+    if cells.size and (cells.min() < 0 or cells.max() >= L):
+        raise DataError(f"cells must be in [0, {L}), got min {cells.min()} max {cells.max()}")
+    if not np.all(np.isfinite(values)):
+        raise DataError("values must be finite (drop unobserved cells instead of passing NaN)")
+    return Y, cells, values
+
 def _check_ridge(ridge: Any) -> float:
     try:
         r = float(ridge)
@@ -71,18 +88,8 @@ def fold_in(
     Fewer observations than ``k`` or a rank-deficient ``Y_S`` raises ModelError unless
     ``ridge > 0``.
     """
-    Y = _check_Y(Y)
+    Y, cells, values = _check_observations(Y, cells, values)
     k, L = Y.shape
-    cells = np.asarray(cells)
-    if cells.ndim != 1 or (cells.size and not np.issubdtype(cells.dtype, np.integer)):
-        raise DataError(f"cells must be a 1-D array of integer cell indices, got {cells!r}")
-    values = np.asarray(values, dtype=np.float64)
-    if values.shape != cells.shape:
-        raise DataError(f"values has shape {values.shape}, cells has shape {cells.shape}")
-    if cells.size and (cells.min() < 0 or cells.max() >= L):
-        raise DataError(f"cells must be in [0, {L}), got min {cells.min()} max {cells.max()}")
-    if not np.all(np.isfinite(values)):
-        raise DataError("values must be finite (drop unobserved cells instead of passing NaN)")
     ridge = _check_ridge(ridge)
     Ys = np.asarray(Y[:, cells], dtype=np.float64)
     A = Ys @ Ys.T + ridge * np.eye(k)
@@ -154,18 +161,8 @@ def fold_in_posterior(
     ``x = A^-1 (Y_S N^-1 d_S + P0 m0)`` and covariance ``A^-1`` with
     ``A = Y_S N^-1 Y_S^T + P0``, in ``O(n k^2)``. A singular ``A`` raises ModelError.
     """
-    Y = _check_Y(Y)
+    Y, cells, values = _check_observations(Y, cells, values)
     k, L = Y.shape
-    cells = np.asarray(cells)
-    if cells.ndim != 1 or (cells.size and not np.issubdtype(cells.dtype, np.integer)):
-        raise DataError(f"cells must be a 1-D array of integer cell indices, got {cells!r}")
-    values = np.asarray(values, dtype=np.float64)
-    if values.shape != cells.shape:
-        raise DataError(f"values has shape {values.shape}, cells has shape {cells.shape}")
-    if cells.size and (cells.min() < 0 or cells.max() >= L):
-        raise DataError(f"cells must be in [0, {L}), got min {cells.min()} max {cells.max()}")
-    if not np.all(np.isfinite(values)):
-        raise DataError("values must be finite (drop unobserved cells instead of passing NaN)")
     ridge = _check_ridge(ridge)
     nv = np.asarray(noise_var, dtype=np.float64)
     if nv.ndim == 0:
