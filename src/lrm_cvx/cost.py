@@ -282,7 +282,23 @@ def _steps(rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return r2, np.sqrt(r2.astype(np.float64))
 
 
-class NearestNeighborCost:
+class _PoolCost:
+    """Shared set-up of the incremental costs: the grid, the candidate pool and its state."""
+
+    def _init_pool(self, grid_index: Any, cells: Any, pool: Any) -> tuple[np.ndarray, np.ndarray]:
+        g = _grid(grid_index)
+        self._g = g
+        cells = _cells(cells, g.shape[0])
+        self.pool = np.ascontiguousarray(pool, dtype=np.int64).ravel()
+        if self.pool.size and (self.pool.min() < 0 or self.pool.max() >= g.shape[0]):
+            raise PlanningError("pool must hold cell indices of grid_index")
+        self._pr = np.ascontiguousarray(g[self.pool, 0])
+        self._pc = np.ascontiguousarray(g[self.pool, 1])
+        self.active = ~np.isin(self.pool, cells)
+        return g, cells
+
+
+class NearestNeighborCost(_PoolCost):
     """Exact nearest-neighbour tour cost increases ``C(P + x) - C(P)`` for a candidate pool.
 
     Parameters
@@ -298,15 +314,7 @@ class NearestNeighborCost:
     name = "nearest-neighbor"
 
     def __init__(self, grid_index: Any, cells: Any, pool: Any) -> None:
-        g = _grid(grid_index)
-        self._g = g
-        cells = _cells(cells, g.shape[0])
-        self.pool = np.ascontiguousarray(pool, dtype=np.int64).ravel()
-        if self.pool.size and (self.pool.min() < 0 or self.pool.max() >= g.shape[0]):
-            raise PlanningError("pool must hold cell indices of grid_index")
-        self._pr = np.ascontiguousarray(g[self.pool, 0])
-        self._pc = np.ascontiguousarray(g[self.pool, 1])
-        self.active = ~np.isin(self.pool, cells)
+        g, cells = self._init_pool(grid_index, cells, pool)
         n = self.pool.size
         self._dc = np.full(n, np.nan)
         self._ts = np.zeros(n, dtype=np.int64)
@@ -411,7 +419,7 @@ def _ins_update(pr, pc, active, rr, rc, seg, s, sv, sp):  # pragma: no cover - c
         sv[i], sp[i] = _seg_eval(pr[i], pc[i], rr, rc, seg, s, hi, sv[i], sp[i])
 
 
-class InsertionCost:
+class InsertionCost(_PoolCost):
     """Cheapest-insertion route costs: ``C(P + x) - C(P)`` = the cheapest way to add x.
 
     The route starts as the nearest-neighbour tour of the initial cells. A candidate x can be
@@ -426,15 +434,7 @@ class InsertionCost:
     name = "insertion"
 
     def __init__(self, grid_index: Any, cells: Any, pool: Any) -> None:
-        g = _grid(grid_index)
-        self._g = g
-        cells = _cells(cells, g.shape[0])
-        self.pool = np.ascontiguousarray(pool, dtype=np.int64).ravel()
-        if self.pool.size and (self.pool.min() < 0 or self.pool.max() >= g.shape[0]):
-            raise PlanningError("pool must hold cell indices of grid_index")
-        self._pr = np.ascontiguousarray(g[self.pool, 0])
-        self._pc = np.ascontiguousarray(g[self.pool, 1])
-        self.active = ~np.isin(self.pool, cells)
+        g, cells = self._init_pool(grid_index, cells, pool)
         self._set_route(nearest_neighbor_tour(g, cells)[1])
         self._sv = np.full(self.pool.size, np.inf)
         self._sp = np.full(self.pool.size, -1, dtype=np.int64)
