@@ -1,11 +1,12 @@
 """Out-of-core GLRM on dask: daily CDR-format files -> dask-backed DataArray -> GLRM.fit.
 
-Writes ``--days`` synthetic daily NetCDF files (``lrm_cvx.io.samples.write_ndvi_cdr`` when
-available, else an int16 + zlib CDR-like layout), opens them lazily (``open_ndvi_cdr`` when
-available, else ``xarray.open_mfdataset``) with one chunk per day, and fits on a
-``distributed.LocalCluster`` (processes, ``--workers`` x 1 thread, ``--memory-limit`` per worker).
-Prints the seconds of each phase, seconds per round, and the peak resident memory of the whole
-process tree (client + scheduler + workers; sampled with psutil every 0.2 s).
+Writes ``--days`` synthetic daily NOAA CDR NetCDF files (``lrm_cvx.io.samples.write_ndvi_cdr``,
+int16 + zlib, ``--land-fraction`` of the cells ever observed), opens them lazily
+(``open_ndvi_cdr``, one chunk a day) and fits rank 5 on a ``distributed.LocalCluster``
+(processes, ``--workers`` x 1 thread, ``--memory-limit`` per worker): one fit of ``--rounds``
+iterations with tol=0. Prints the seconds of each phase (region + streaming stage, init, every
+round, final pass) and the peak resident memory of the whole process tree (client + scheduler +
+workers; psutil every 0.2 s) next to the size of the float32 matrix.
 
     flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_dask.py [--small]
 """
@@ -60,30 +61,20 @@ class TreeRSS:
         self._t.join()
 
 
-def write_days(directory: str, days: int, shape: tuple[int, int], batch: int = 8) -> list[str]:
+def write_days(directory: str, days: int, shape: tuple[int, int], batch: int = 8,
+               land_fraction: float = 0.7) -> list[str]:
     """Daily files from ``synthetic_field`` generated ``batch`` days at a time (same seed: the
     same spatial modes and land mask; the time factors restart each batch)."""
     import pandas as pd
 
-    from lrm_cvx.io import samples
-    from lrm_cvx.io.samples import synthetic_field
+    from lrm_cvx.io.samples import synthetic_field, write_ndvi_cdr
 
-    writer = getattr(samples, "write_ndvi_cdr", None)
     start = pd.Timestamp("2013-01-01")
     for d0 in range(0, days, batch):
         n = min(batch, days - d0)
-        field = synthetic_field(n, shape, rank=5, seed=0,
+        field = synthetic_field(n, shape, rank=5, seed=0, land_fraction=land_fraction,
                                 start_date=start + pd.Timedelta(days=d0))
-        if writer is not None:
-            writer(directory, field)
-        else:
-            for i in range(n):
-                day = field.isel(time=[i])
-                stamp = pd.Timestamp(day.time.values[0]).strftime("%Y%m%d")
-                enc = {"ndvi": {"dtype": "int16", "scale_factor": np.float32(1e-4),
-                                "_FillValue": np.int16(-9999), "zlib": True, "complevel": 1}}
-                day.to_dataset(name="ndvi").to_netcdf(
-                    os.path.join(directory, f"AVHRR-Land_v005_NDVI_{stamp}.nc"), encoding=enc)
+        write_ndvi_cdr(directory, field)
         del field
     return sorted(glob.glob(os.path.join(directory, "*.nc")))
 
@@ -108,32 +99,44 @@ def main() -> None:
     ap.add_argument("--days", type=int, default=365)
     ap.add_argument("--ny", type=int, default=2000)
     ap.add_argument("--nx", type=int, default=4000)
-    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--land-fraction", type=float, default=1.0,
+                    help="share of grid cells ever observed (1.0: the matrix is T x ny*nx)")
+    ap.add_argument("--rounds", type=int, default=3, help="max_iter of the fit (tol=0)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--memory-limit", default="2GiB", help="per dask worker")
     ap.add_argument("--chunk-mb", type=float, default=128.0)
-    ap.add_argument("--block-mb", type=float, default=64.0, help="input read per staging task")
+    ap.add_argument("--block-mb", type=float, default=256.0, help="input read per staging block")
     ap.add_argument("--scratch", default=None, help="directory for files and the column store")
+    ap.add_argument("--files", default=None, help="reuse daily files in this folder (not removed)")
     args = ap.parse_args()
     if args.small:
         args.days, args.ny, args.nx, args.rounds = 40, 120, 200, 3
-        args.memory_limit, args.chunk_mb = "512MiB", 1.0
+        args.memory_limit, args.chunk_mb, args.block_mb = "512MiB", 1.0, 1.0
 
+    import resource
+
+    import dask.array as dsa
     import distributed
 
     from lrm_cvx.glrm import GLRM
 
     base = tempfile.mkdtemp(prefix="lrm-bench-dask-", dir=args.scratch)
-    print(f"scratch {base}; grid {args.ny} x {args.nx}, {args.days} days, "
-          f"{args.workers} workers x 1 thread, memory_limit {args.memory_limit}")
+    print(f"scratch {base}; grid {args.ny} x {args.nx}, {args.days} days, land fraction "
+          f"{args.land_fraction}; {args.workers} workers x 1 thread, memory_limit "
+          f"{args.memory_limit}; chunk_mb {args.chunk_mb}, block_mb {args.block_mb}", flush=True)
     try:
-        files_dir = os.path.join(base, "files")
-        os.makedirs(files_dir)
-        t = time.perf_counter()
-        files = write_days(files_dir, args.days, (args.ny, args.nx))
-        t_write = time.perf_counter() - t
+        if args.files:
+            files = sorted(glob.glob(os.path.join(args.files, "*.nc")))
+            print(f"reusing {len(files)} files in {args.files}")
+        else:
+            files_dir = os.path.join(base, "files")
+            os.makedirs(files_dir)
+            t = time.perf_counter()
+            files = write_days(files_dir, args.days, (args.ny, args.nx),
+                               land_fraction=args.land_fraction)
+            print(f"write {len(files)} daily files: {time.perf_counter() - t:.1f} s", flush=True)
         size = sum(os.path.getsize(f) for f in files)
-        print(f"write {len(files)} daily files: {t_write:.1f} s, {size / 2**30:.2f} GiB on disk")
+        print(f"daily files on disk: {size / 2**30:.2f} GiB", flush=True)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             cluster = distributed.LocalCluster(
@@ -144,36 +147,39 @@ def main() -> None:
             with TreeRSS() as rss:
                 base_rss = rss.sample()
                 da, how = open_days(files)
-                print(f"opened with {how}: {da.shape} {da.dtype}, chunks {da.data.chunksize}")
+                print(f"opened with {how}: {da.shape} {da.dtype}, chunks {da.data.chunksize}",
+                      flush=True)
                 opts = {"chunk_mb": args.chunk_mb, "block_mb": args.block_mb, "scratch_dir": base}
                 t = time.perf_counter()  # warm-up: numba compiles in every worker
-                import dask.array as dsa
-
                 warm = dsa.from_array(np.random.default_rng(0).random((20, 2000)), chunks=5)
                 GLRM(rank=5, max_iter=1, tol=0, progress=False, dask_options=opts).fit(warm)
-                print(f"warm-up (compile in the workers): {time.perf_counter() - t:.1f} s")
-                for label, iters in (("stage+init+1 round", 1),
-                                     (f"stage+init+{args.rounds} rounds", args.rounds)):
-                    t = time.perf_counter()
-                    m = GLRM(rank=5, max_iter=iters, tol=0, random_state=0, progress=False,
-                             dask_options=opts)
-                    m.fit(da)
-                    dt = time.perf_counter() - t
-                    print(f"{label}: {dt:.1f} s")
-                    if iters == 1:
-                        t_one = dt
-                    else:
-                        per_round = (dt - t_one) / (iters - 1)
-                L, T = m.n_cells_, m.n_times_
-                gib = T * L * 4 / 2**30
-                print(f"L = {L} cells, T = {T}: float32 matrix {gib:.2f} GiB "
-                      f"(+ mask {T * L / 2**30:.2f} GiB as bool)")
-                print(f"seconds per round (Y step + X step): {per_round:.1f} s")
-                print(f"objective {m.objective_[0]:.6g} -> {m.objective_[-1]:.6g}, "
-                      f"noise_std {m.noise_std_:.4f}")
-            print(f"peak RSS of the process tree: {rss.peak / 2**30:.2f} GiB "
-                  f"(at start {base_rss / 2**30:.2f} GiB); data / peak = "
-                  f"{gib / (rss.peak / 2**30):.2f}")
+                print(f"warm-up (compile in the workers): {time.perf_counter() - t:.1f} s",
+                      flush=True)
+                rss.peak = 0
+                timings: dict = {}
+                t = time.perf_counter()
+                m = GLRM(rank=5, max_iter=args.rounds, tol=0, random_state=0, progress=False,
+                         dask_options={**opts, "timings": timings})
+                m.fit(da)
+                total = time.perf_counter() - t
+            L, T = m.n_cells_, m.n_times_
+            gib = T * L * 4 / 2**30
+            rounds = timings["rounds"]
+            print(f"L = {L} cells, T = {T}: float32 matrix {gib:.2f} GiB "
+                  f"(+ mask {T * L / 2**30:.2f} GiB as bool)")
+            print(f"region reduction + streaming stage: {timings['stage']:.1f} s "
+                  f"({T * L * 4 / 2**20 / timings['stage']:.0f} MB/s of staged float32)")
+            print(f"statistics + randomized-SVD init: {timings['init']:.1f} s")
+            print(f"rounds (Y step + X step): {', '.join(f'{r:.1f}' for r in rounds)} s; "
+                  f"mean {np.mean(rounds):.1f} s per round")
+            print(f"final objective pass + Y gather: {timings['final']:.1f} s; fit total "
+                  f"{total:.1f} s")
+            print(f"objective {m.objective_[0]:.6g} -> {m.objective_[-1]:.6g}, "
+                  f"noise_std {m.noise_std_:.4f}")
+            client_hwm = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+            print(f"peak RSS of the process tree during the fit: {rss.peak / 2**30:.2f} GiB "
+                  f"(tree at start {base_rss / 2**30:.2f} GiB; client process high-water mark "
+                  f"{client_hwm:.2f} GiB); data / peak = {gib / (rss.peak / 2**30):.2f}")
         finally:
             client.close()
             cluster.close()

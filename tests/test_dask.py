@@ -11,10 +11,12 @@ dask = pytest.importorskip("dask")
 da = pytest.importorskip("dask.array")
 
 import xarray as xr  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
 
 from lrm_cvx.errors import DataError, ModelError  # noqa: E402
 from lrm_cvx.glrm import GLRM  # noqa: E402
-from lrm_cvx.glrm.chunked import fit_chunked, is_dask_backed, stage  # noqa: E402
+from lrm_cvx.glrm.chunked import _time_blocks, fit_chunked, is_dask_backed, stage  # noqa: E402
 from lrm_cvx.glrm.fit import SMALL_SVD  # noqa: E402
 from lrm_cvx.io.samples import synthetic_field  # noqa: E402
 from lrm_cvx.region import Region  # noqa: E402
@@ -100,6 +102,43 @@ def test_stage_matches_region_stack(field, tmp_path):
     assert store.n_chunks > 3
     got = np.concatenate([np.load(f) for f in store.files], axis=1)
     np.testing.assert_array_equal(got, ref_region.stack(field))  # NaN positions equal too
+
+
+def test_streaming_stage_irregular_time_chunks(field, tmp_path):
+    """Blocks group whole time chunks and split chunks larger than a block; the staged files
+    are exactly region.stack(data), and the array + mask path writes NaN where unobserved."""
+    fd = field.chunk({"time": (1, 2, 9, 3, 20, 1, 12), "lat": 7, "lon": 25})
+    row_mb = 4 * 30 * 60 / 2**20
+    store, region, _, _ = stage(fd, chunk_mb=0.04, block_mb=5.5 * row_mb,
+                                scratch_dir=str(tmp_path))
+    ref = Region.from_dataarray(field).stack(field)
+    got = np.concatenate([np.load(f) for f in store.files], axis=1)
+    assert store.n_chunks > 3
+    np.testing.assert_array_equal(got, ref)
+    M = ~np.isnan(ref)
+    Dz = np.where(M, ref, 7.0)
+    st2, *_ = stage(da.from_array(Dz, chunks=(5, 40)), mask=da.from_array(M, chunks=(7, 50)),
+                    chunk_mb=0.03, block_mb=0.01, scratch_dir=str(tmp_path))
+    np.testing.assert_array_equal(np.concatenate([np.load(f) for f in st2.files], axis=1),
+                                  ref.astype(np.float32))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(1, 9), min_size=1, max_size=12), st.integers(1, 12))
+def test_time_blocks_cover_and_respect_chunks(sizes, budget):
+    arr = da.zeros((sum(sizes), 3), chunks=(tuple(sizes), 3), dtype=np.float32)
+    blocks = _time_blocks(arr, 4, budget * 4 / 2**20)
+    edges = set(np.cumsum((0, *sizes)).tolist())
+    assert blocks[0][0] == 0 and blocks[-1][1] == sum(sizes)
+    for (_, a1), (b0, _) in zip(blocks[:-1], blocks[1:], strict=True):
+        assert a1 == b0
+    for t0, t1 in blocks:
+        assert t1 > t0
+        inner = [e for e in edges if t0 < e < t1]
+        if inner:  # a block spanning several chunks holds whole chunks within the budget
+            assert t0 in edges and t1 in edges and t1 - t0 <= budget
+        else:  # inside one chunk: at most the budget
+            assert t1 - t0 <= max(budget, 1)
 
 
 def test_keep_dask_save_load_complete(field, tmp_path):

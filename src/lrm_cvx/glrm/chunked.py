@@ -104,22 +104,85 @@ class ChunkStore:
             del mm
 
 
-def _stage_block(block, t0, files, bounds, index_path, mask_block=None) -> int:
-    """Write rows ``t0 : t0 + len(block)`` of every chunk file; return the number of infs."""
-    block = np.asarray(block)
-    tb = block.shape[0]
-    flat = block.reshape(tb, -1)
-    if index_path is not None:
-        flat = flat[:, np.load(index_path, mmap_mode="r")]
-    flat = np.asarray(flat, dtype=np.float32)
-    if mask_block is not None:
-        flat = np.where(np.asarray(mask_block).reshape(tb, -1), flat, np.float32(np.nan))
-    n_inf = int(np.count_nonzero(np.isinf(flat)))
-    for c, p in enumerate(files):
-        mm = np.lib.format.open_memmap(p, mode="r+")
-        mm[t0: t0 + tb] = flat[:, bounds[c]: bounds[c + 1]]
-        mm.flush()
-        del mm
+def _time_blocks(arr: Any, row_bytes: int, block_mb: float) -> list[tuple[int, int]]:
+    """``[(t0, t1), ...]`` covering ``range(T)``: consecutive input time chunks grouped up to
+    ``block_mb`` MB (a chunk larger than that is split), so each block reads whole chunks once."""
+    T = int(arr.shape[0])
+    budget = max(1, int(block_mb * 2**20 // max(row_bytes, 1)))  # rows per block
+    chunks = getattr(arr, "chunks", None)
+    edges = np.cumsum((0, *chunks[0])) if chunks is not None else np.array([0, T])
+    blocks: list[tuple[int, int]] = []
+    t0 = 0
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        a, b = int(a), int(b)
+        if b - a > budget:  # a chunk larger than a block: close the open block, split it
+            if t0 < a:
+                blocks.append((t0, a))
+            blocks.extend((s, min(s + budget, b)) for s in range(a, b, budget))
+            t0 = b
+        elif b - t0 > budget:
+            blocks.append((t0, a))
+            t0 = a
+    if t0 < T:
+        blocks.append((t0, T))
+    return [(a, b) for a, b in blocks if b > a]
+
+
+def _materialize(*parts: Any) -> tuple:
+    """Numpy values of ``parts`` (dask collections computed together on the active scheduler)."""
+    import dask
+
+    if any(is_dask_backed(p) for p in parts if p is not None):
+        return dask.compute(*parts)
+    return parts
+
+
+def _pwrite_all(fd: int, buf: np.ndarray, offset: int) -> None:
+    """Write all of the contiguous ``buf`` at byte ``offset`` of ``fd`` (pwrite may be short)."""
+    view = memoryview(buf).cast("B")
+    done = 0
+    while done < len(view):
+        done += os.pwrite(fd, view[done:], offset + done)
+
+
+def _stream_stage(arr, mask, index, blocks, files, bounds, offsets) -> int:
+    """Stream ``arr`` block of times by block of times into the column files; return the
+    number of infs. Block ``b + 1`` is computed (on the active dask scheduler) while the client
+    writes block ``b``: at most two input blocks and one stacked block are in memory. Rows
+    ``t0:t1`` of a C-ordered ``(T, Lc)`` file are one contiguous byte range, written with
+    ``pwrite`` (no memory map: nothing of the staged matrix stays in the client's RSS)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def fetch(i):
+        t0, t1 = blocks[i]
+        return _materialize(arr[t0:t1], None if mask is None else mask[t0:t1])
+
+    n_inf = 0
+    fds = [os.open(p, os.O_WRONLY) for p in files]
+    try:
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            nxt = pool.submit(fetch, 0)
+            for i, (t0, t1) in enumerate(blocks):
+                block, mblock = nxt.result()
+                if i + 1 < len(blocks):
+                    nxt = pool.submit(fetch, i + 1)
+                tb = t1 - t0
+                flat = np.asarray(block).reshape(tb, -1)
+                if index is not None:
+                    flat = np.take(flat, index, axis=1)
+                flat = np.asarray(flat, dtype=np.float32)
+                del block
+                if mblock is not None:
+                    flat = np.where(np.asarray(mblock).reshape(tb, -1), flat, np.float32(np.nan))
+                n_inf += int(np.count_nonzero(np.isinf(flat)))
+                for c, fd in enumerate(fds):
+                    lo, hi = int(bounds[c]), int(bounds[c + 1])
+                    seg = np.ascontiguousarray(flat[:, lo:hi])
+                    _pwrite_all(fd, seg, offsets[c] + t0 * (hi - lo) * 4)
+                del flat, mblock
+    finally:
+        for fd in fds:
+            os.close(fd)
     return n_inf
 
 
@@ -138,10 +201,13 @@ def stage(
     those observed at least once, computed as a dask reduction, unless ``region`` is given), a
     ``(time, cell)`` DataArray with ``region``, or a ``(T, L)`` (dask) array with NaN, optionally
     with a boolean ``mask`` of the same shape (True = observed). Column chunks hold about
-    ``chunk_mb`` MB of float32 each; ``block_mb`` MB of input times are read per staging task.
+    ``chunk_mb`` MB of float32 each. Staging streams: the input is read one block of about
+    ``block_mb`` MB of consecutive times at a time (whole input time chunks; computed on the
+    active dask scheduler, workers or threads), the client stacks the region's cells and appends
+    the block's rows to every column file. Peak memory is about ``3 * block_mb`` in the client
+    plus the scheduler's buffers, independent of ``T x L`` (no all-to-all rechunk).
     The caller removes ``store.directory`` when done.
     """
-    import dask
     import dask.array as da
     import xarray as xr
 
@@ -191,29 +257,27 @@ def stage(
     L = int(index.size) if index is not None else int(arr.shape[1])
     if T == 0 or L == 0:
         raise DataError(f"data is empty, shape {tuple(arr.shape)}")
+    if not (np.isfinite(block_mb) and block_mb > 0):
+        raise DataError(f"block_mb must be > 0, got {block_mb!r}")
+    if not (np.isfinite(chunk_mb) and chunk_mb > 0):
+        raise DataError(f"chunk_mb must be > 0, got {chunk_mb!r}")
     width = max(1, min(L, int(chunk_mb * 2**20 / (4 * T))))
     bounds = np.append(np.arange(0, L, width), L).astype(np.int64)
     directory = tempfile.mkdtemp(prefix="lrm-dask-", dir=scratch_dir)
     try:
-        files = []
+        files, offsets = [], []
         for c in range(bounds.size - 1):
             p = os.path.join(directory, f"data_{c:05d}.npy")
-            np.lib.format.open_memmap(p, mode="w+", dtype=np.float32,
-                                      shape=(T, int(bounds[c + 1] - bounds[c]))).flush()
+            mm = np.lib.format.open_memmap(p, mode="w+", dtype=np.float32,
+                                           shape=(T, int(bounds[c + 1] - bounds[c])))
+            offsets.append(int(mm.offset))
+            mm.flush()
+            del mm
             files.append(p)
-        index_path = None
-        if index is not None:
-            index_path = os.path.join(directory, "index.npy")
-            np.save(index_path, index)
-        row_bytes = 4 * int(np.prod(arr.shape[1:]))
-        tb = max(1, min(T, int(block_mb * 2**20 // max(row_bytes, 1))))
-        tasks = []
-        for t0 in range(0, T, tb):
-            blk = arr[t0: t0 + tb]
-            mblk = None if mask is None else mask[t0: t0 + tb]
-            tasks.append(dask.delayed(_stage_block, pure=False)(
-                blk, t0, files, bounds, index_path, mblk))
-        n_inf = sum(dask.compute(*tasks))
+        itemsize = max(4, np.dtype(arr.dtype).itemsize)
+        row_bytes = itemsize * int(np.prod(arr.shape[1:]))
+        blocks = _time_blocks(arr, row_bytes, block_mb)
+        n_inf = _stream_stage(arr, mask, index, blocks, files, bounds, offsets)
         if n_inf:
             raise DataError(f"data has {n_inf} non-finite observed values (inf); use NaN or the "
                             "mask for missing entries")
@@ -418,6 +482,7 @@ def fit_chunked(
     chunk_mb: float = 256.0,
     scratch_dir: str | None = None,
     block_mb: float = 256.0,
+    timings: dict | None = None,
 ) -> tuple[FitResult, Region | None, Any, str]:
     """Fit a GLRM to (dask-backed) ``data`` chunk by chunk; return ``(result, region, times,
     time_dim)``.
@@ -427,6 +492,8 @@ def fit_chunked(
     or with ``keep_dask`` a dask array of the persisted column chunks. Scratch space:
     ``T * L * 4`` bytes (plus ``(k + 5) * L * 8`` for a randomized SVD init, ``k * L * 8`` for
     ``init="random"``) in ``scratch_dir`` (default: the system temp dir), removed at the end.
+    ``timings``, when a dict, receives wall seconds: ``"stage"`` (region + staging), ``"init"``
+    (statistics + initialisation), ``"rounds"`` (list, one per round) and ``"final"``.
     """
     rng = np.random.default_rng() if rng is None else rng
     if solver not in ("auto", "fast", "cvxpy"):
@@ -442,17 +509,43 @@ def fit_chunked(
         raise ModelError(f"init must be 'svd' or 'random', got {init!r}")
     if isinstance(rank, bool) or not isinstance(rank, (int, np.integer)):
         raise ModelError(f"rank must be an integer, got {rank!r}")
+    clock = _Clock(timings)
     store, region, times, tdim = stage(data, mask=mask, region=region, chunk_mb=chunk_mb,
                                        scratch_dir=scratch_dir, block_mb=block_mb)
+    clock.mark("stage")
     try:
         res = _fit_store(store, int(rank), loss, reg_x, reg_y, max_iter, tol, init, rng,
-                         progress, keep_dask)
+                         progress, keep_dask, clock)
     finally:
         shutil.rmtree(store.directory, ignore_errors=True)
     return res, region, times, tdim
 
 
-def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress, keep_dask):
+class _Clock:
+    """Wall-clock phases into an optional dict (``mark(name)`` records the time since the
+    previous mark; ``"rounds"`` is a list)."""
+
+    def __init__(self, out: dict | None) -> None:
+        import time
+
+        self._now = time.perf_counter
+        self.out = out
+        self.t = self._now()
+        if out is not None:
+            out["rounds"] = []
+
+    def mark(self, name: str) -> None:
+        now = self._now()
+        if self.out is not None:
+            if name == "rounds":
+                self.out["rounds"].append(now - self.t)
+            else:
+                self.out[name] = now - self.t
+        self.t = now
+
+
+def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress, keep_dask,
+               clock=None):
     import dask
     import dask.array as da
 
@@ -488,6 +581,8 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
                                  for p, u in zip(y0, unobs_local, strict=True)]))
     else:
         X, Ys = _svd_init(store, k, mu_g, rng, unobs_local, minimizer)
+    clock = clock or _Clock(None)
+    clock.mark("init")
 
     history: list[float] = []
     converged = False
@@ -516,6 +611,7 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
                 Xn[:, worse] = X[:, worse]
             X = Xn
             n_iter = it + 1
+            clock.mark("rounds")
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(objective=f"{history[-1]:.6g}")
@@ -539,6 +635,7 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
                             for y, w in zip(Ys, widths, strict=True)], axis=1)
     else:
         Y = np.concatenate(dask.compute(*Ys), axis=1)
+    clock.mark("final")
     dof = k * (T + L - unobserved.size) - k * k
     denom = n_obs - dof if n_obs > dof else n_obs
     return FitResult(
