@@ -392,6 +392,159 @@ def test_greedy_posterior_criteria_equal_naive(seed):
     assert ps.cells[0] == start
 
 
+# --------------------------------------------------------------------------- scalable gp-variance
+def test_grid_convolution_equals_brute_force():
+    from lrm_cvx.information import _GridConv
+
+    rng = np.random.default_rng(0)
+    win, out = (2, 3, 7, 9), (4, 5, 3, 4)
+
+    def h(d):
+        return np.exp(-np.asarray(d) / 1.7)
+
+    f = rng.normal(size=(7, 9))
+    got = _GridConv(win, out, h)(f)
+    ref = np.zeros((3, 4))
+    for a in range(3):
+        for b in range(4):
+            for i in range(7):
+                for j in range(9):
+                    ref[a, b] += f[i, j] * h(np.hypot(win[0] + i - out[0] - a,
+                                                      win[1] + j - out[1] - b))
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-13)
+
+
+def _brute_gains(Y, region, cov, S0, cells, c, pool):
+    """sum_i c_i C(i, x)^2 / (C(x, x) + noise) from the dense posterior covariance."""
+    g = region.grid_index.astype(float)
+    K = Y.T @ S0 @ Y + cov.covariance(cdist(g, g), nugget=False)
+    noise = max(cov.nugget, 1e-9 * cov.total_variance)
+    if len(cells):
+        P = np.asarray(cells)
+        K = K - K[:, P] @ np.linalg.solve(K[np.ix_(P, P)] + noise * np.eye(P.size), K[P, :])
+    C = K[:, pool]
+    return (c[:, None] * C * C).sum(0) / (C[pool, np.arange(pool.size)] + noise)
+
+
+@pytest.mark.parametrize("seed,model", [(0, "exponential"), (1, "matern32"), (2, "gaussian"),
+                                        (3, "exponential")])
+def test_structured_gp_oracle_equals_dense_and_brute_force(seed, model):
+    from lrm_cvx.information import StructuredGPVarianceOracle
+
+    rng = np.random.default_rng(seed)
+    ny, nx = (int(v) for v in rng.integers(9, 15, size=2))
+    region = grid_region(ny, nx, rng.random((ny, nx)) > 0.2)
+    L = region.n_cells
+    k = int(rng.integers(1, 5))
+    Y = rng.normal(size=(k, L))
+    A = rng.normal(size=(k, k))
+    S0 = A @ A.T + 0.2 * np.eye(k)
+    cov = ResidualCovariance(model, sill=float(rng.uniform(0.2, 1.0)),
+                             range=float(rng.uniform(0.8, 3.0)),
+                             nugget=float(rng.choice([0.0, 0.05])))
+    c = rng.uniform(0.5, 1.5, L)
+    T = np.sort(rng.choice(L, L // 2, replace=False)) if seed % 2 else None
+    cw = c if T is None else np.where(np.isin(np.arange(L), T), c, 0.0)
+    pool = np.sort(rng.choice(L, L // 2, replace=False))
+    init = [int(v) for v in rng.choice(L, 2, replace=False)]  # not necessarily in the pool
+    kw = dict(region=region, spatial_cov=cov, prior_cov=S0, pool=pool, targets=T,
+              target_weights=c)
+    d = GPVarianceOracle(Y, init, **kw)
+    s = StructuredGPVarianceOracle(Y, init, **kw)
+    cells = list(init)
+    for _ in range(8):
+        gd, gs = d.gains(pool), s.gains(pool)
+        gb = _brute_gains(Y, region, cov, S0, cells, cw, pool)
+        # unobserved cells: relative 1e-9; already observed ones (gain ~ 0, N / (C + noise)
+        # with both tiny): 1e-9 of the largest gain, 1e-6 for the Gaussian kernel without nugget
+        new = ~np.isin(pool, cells)
+        np.testing.assert_allclose(gs[new], gb[new], rtol=1e-9)
+        np.testing.assert_allclose(gs[new], gd[new], rtol=1e-9)
+        tol = 1e-6 if model == "gaussian" and cov.nugget == 0 else 1e-9
+        np.testing.assert_allclose(gs, gb, rtol=0, atol=tol * gb.max())
+        np.testing.assert_allclose(s.gains(pool[::3]), gs[::3], rtol=0, atol=0)
+        assert s.value == pytest.approx(d.value, rel=1e-10)
+        assert s.value == pytest.approx(brute_total_variance(Y, region, cov, S0, cells, cw),
+                                        rel=1e-10)
+        best = int(pool[np.argmax(gd)])
+        assert best == int(pool[np.argmax(gs)])
+        d.add(best)
+        s.add(best)
+        cells.append(best)
+    assert s.cells == cells
+    with pytest.raises(PlanningError):
+        s.gains([int(np.setdiff1d(np.arange(L), pool)[0])])
+
+
+def test_structured_gp_truncation_is_the_only_approximation():
+    """On a grid much larger than the covariance's reach the g-window is clipped; the
+    default truncation (1e-9) still agrees with the dense oracle, a coarse one does not."""
+    from lrm_cvx.information import StructuredGPVarianceOracle
+
+    rng = np.random.default_rng(7)
+    region = grid_region(40, 36)
+    L = region.n_cells
+    Y = rng.normal(size=(2, L))
+    S0 = np.diag([1.0, 0.3])
+    cov = ResidualCovariance("exponential", sill=1.0, range=0.7, nugget=0.01)
+    gi = region.grid_index
+    pool = np.flatnonzero((np.abs(gi[:, 0] - 20) <= 2) & (np.abs(gi[:, 1] - 18) <= 2))
+    kw = dict(region=region, spatial_cov=cov, prior_cov=S0, pool=pool)
+    d = GPVarianceOracle(Y, [int(pool[0])], **kw)
+    exact = StructuredGPVarianceOracle(Y, [int(pool[0])], **kw)
+    coarse = StructuredGPVarianceOracle(Y, [int(pool[0])], truncation=0.5, **kw)
+    assert exact._wg[2] < 40 and exact._wg[3] < 36  # the window really is clipped
+    for add in (int(pool[7]), int(pool[20])):
+        d.add(add)
+        exact.add(add)
+        coarse.add(add)
+    np.testing.assert_allclose(exact.gains(pool), d.gains(pool), rtol=1e-9)
+    assert np.max(np.abs(coarse.gains(pool) / d.gains(pool) - 1)) > 1e-6
+    with pytest.raises(PlanningError):
+        StructuredGPVarianceOracle(Y, [], truncation=1.5, **kw)
+
+
+def test_make_oracle_switches_to_structured_and_greedy_picks_are_unchanged(monkeypatch):
+    import lrm_cvx.information as info
+
+    rng = np.random.default_rng(11)
+    region = grid_region(9, 10, rng.random((9, 10)) > 0.15)
+    L = region.n_cells
+    Y = rng.normal(size=(2, L))
+    S0 = np.array([[1.0, 0.2], [0.2, 0.4]])
+    cov = ResidualCovariance("exponential", sill=0.5, range=1.5, nugget=0.1)
+    kw = dict(region=region, spatial_cov=cov, prior_cov=S0)
+    assert type(info.make_oracle("gp-variance", Y, 0.0, [0], **kw)) is GPVarianceOracle
+    assert type(info.make_oracle("gp-variance", Y, 0.0, [0], gp_method="structured", **kw)
+                ) is info.StructuredGPVarianceOracle
+    with pytest.raises(PlanningError):
+        info.make_oracle("gp-variance", Y, 0.0, [0], gp_method="sparse", **kw)
+    km = ResidualCovariance("exponential", sill=0.5, range=100.0, metric="km")
+    with pytest.raises(PlanningError):
+        info.StructuredGPVarianceOracle(Y, [0], region=region, spatial_cov=km, prior_cov=S0)
+    start = int(rng.integers(L))
+    plans = {}
+    for thr in (1e30, 0.0):
+        monkeypatch.setattr(info, "GP_STRUCTURED_MIN_ENTRIES", thr)
+        assert type(info.make_oracle("gp-variance", Y, 0.0, [0], **kw)) is (
+            GPVarianceOracle if thr else info.StructuredGPVarianceOracle)
+        # km metric always stays dense
+        assert type(info.make_oracle("gp-variance", Y, 0.0, [0], region=region,
+                                     spatial_cov=km, prior_cov=S0)) is GPVarianceOracle
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            plans[thr] = [plan_greedy(Y, region, start, 7.0, criterion="gp-variance",
+                                      prior_cov=S0, spatial_cov=cov, progress=False,
+                                      initial=ini).cells.tolist()
+                          for ini in ("nearest", "start")]
+
+    def neg_gp(P):
+        return -brute_total_variance(Y, region, cov, S0, P, np.ones(L))
+
+    assert plans[0.0] == plans[1e30]
+    assert plans[0.0][1] == naive_greedy(neg_gp, region.grid_index, start, 7.0, 1)
+
+
 # --------------------------------------------------------------------------- evaluation
 def test_evaluate_with_predictive_options(data):
     kw = dict(rank=3, n_test=4, budgets=(6.0,), n_starts=2, random_trials=2,
