@@ -212,7 +212,10 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lrm-cvx", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="lrm-cvx",
+        description="Persistent environmental monitoring with low-rank models: fit a GLRM, plan "
+        "a sampling route, certify it, predict the map, evaluate like the paper.")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
