@@ -266,9 +266,12 @@ def naive_pinv_y_step(D, M, X, lam):
 
 @pytest.mark.parametrize("lam", [0.0, 0.3])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_quad_y_kernel_equals_naive(lam, dtype):
+@pytest.mark.parametrize("T", [23, 5, 16])
+def test_quad_y_kernel_equals_naive(lam, dtype, T):
     rng = np.random.default_rng(11)
-    T, L, k = 23, 1300, 4  # T not a multiple of 4; L spans 3 blocks with a ragged last one
+    # times go eight at a time: 23 = 2 * 8 + ragged tail, 5 = tail only, 16 = no tail;
+    # L spans 3 blocks with a ragged last one
+    L, k = 1300, 4
     D, M, D_nan = _masked(rng, T, L, dtype)
     M[:, 5] = False  # never observed
     M[:, 7] = False
@@ -282,7 +285,9 @@ def test_quad_y_kernel_equals_naive(lam, dtype):
     ref = naive_pinv_y_step(D, M, X, lam)
     np.testing.assert_allclose(out, ref, rtol=1e-8, atol=1e-8)
     assert np.all(out[:, 5] == 0.0)
-    assert npinv == (1 if lam == 0 else 0)
+    nobs = M.sum(axis=0)  # generic X: singular exactly when 0 < observations < k
+    assert npinv == (int(np.sum((nobs > 0) & (nobs < k))) if lam == 0 else 0)
+    assert T != 23 or npinv == (1 if lam == 0 else 0)
     D64 = D.astype(np.float64)
     loss = lambda F: float(np.sum(np.where(M, X.T @ F - D64, 0.0) ** 2))  # noqa: E731
     assert np.isclose(before, loss(Y), rtol=1e-10)
