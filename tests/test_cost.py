@@ -5,6 +5,7 @@ from itertools import pairwise
 
 import numpy as np
 import pytest
+from references import naive_tour
 
 from lrm_cvx.cost import (
     InsertionCost,
@@ -14,18 +15,6 @@ from lrm_cvx.cost import (
     route_length,
 )
 from lrm_cvx.errors import PlanningError
-
-
-def naive_tour(g, cells):
-    """Nearest-neighbour open path, ties to the lowest cell index; cost by exact summation."""
-    cur, rest, order, steps = cells[0], set(cells[1:]), [cells[0]], []
-    while rest:
-        nxt = min(rest, key=lambda c: ((g[c, 0] - g[cur, 0]) ** 2 + (g[c, 1] - g[cur, 1]) ** 2, c))
-        steps.append(math.dist(g[cur], g[nxt]))
-        rest.remove(nxt)
-        order.append(nxt)
-        cur = nxt
-    return math.fsum(steps), order
 
 
 def random_grid(rng, max_side=14, keep=0.8):

@@ -7,6 +7,7 @@ from itertools import pairwise
 import numpy as np
 import pytest
 import xarray as xr
+from references import naive_tour
 
 from lrm_cvx import Region
 from lrm_cvx.cost import nearest_neighbor_tour
@@ -16,17 +17,6 @@ from lrm_cvx.planning import initial_cells, plan_greedy
 
 
 # --------------------------------------------------------------------------- references
-def naive_tour(g, cells):
-    cur, rest, order, steps = cells[0], set(cells[1:]), [cells[0]], []
-    while rest:
-        nxt = min(rest, key=lambda c: ((g[c, 0] - g[cur, 0]) ** 2 + (g[c, 1] - g[cur, 1]) ** 2, c))
-        steps.append(math.dist(g[cur], g[nxt]))
-        rest.remove(nxt)
-        order.append(nxt)
-        cur = nxt
-    return math.fsum(steps), order
-
-
 def logdet(Y, cells, ridge):
     sign, value = np.linalg.slogdet(ridge * np.eye(Y.shape[0]) + Y[:, cells] @ Y[:, cells].T)
     return value if sign > 0 else -np.inf

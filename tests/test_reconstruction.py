@@ -1,11 +1,11 @@
 """Reconstruction-targeted options (issue #8) against brute-force references."""
 
-import math
 import warnings
 
 import numpy as np
 import pytest
 import xarray as xr
+from references import naive_tour
 from scipy.spatial.distance import cdist
 
 from lrm_cvx import Region
@@ -320,28 +320,18 @@ def test_gp_variance_oracle_gains_equal_value_differences():
 
 
 # --------------------------------------------------------------------------- greedy vs naive
-def naive_tour_cost(g, cells):
-    cur, rest, steps = cells[0], set(cells[1:]), []
-    while rest:
-        nxt = min(rest, key=lambda q: ((g[q, 0] - g[cur, 0]) ** 2 + (g[q, 1] - g[cur, 1]) ** 2, q))
-        steps.append(math.dist(g[cur], g[nxt]))
-        rest.remove(nxt)
-        cur = nxt
-    return math.fsum(steps)
-
-
 def naive_greedy(value, g, start, budget, k):
     """k forced cells (the start and its k - 1 nearest; k = 1: the start alone)."""
     L = g.shape[0]
     d2 = ((g - g[start]) ** 2).sum(1)
     P = [int(q) for q in np.lexsort((np.arange(L), d2))[:k]]
     while True:
-        v0, c0 = value(P), naive_tour_cost(g, P)
+        v0, c0 = value(P), naive_tour(g, P)[0]
         best = None
         for x in range(L):
             if x in P or d2[x] > (budget + 1e-6) ** 2:
                 continue
-            c1 = naive_tour_cost(g, P + [x])
+            c1 = naive_tour(g, P + [x])[0]
             if c1 > budget + 1e-9:
                 continue
             ratio = (value(P + [x]) - v0) / max(c1 - c0, 1e-12)
