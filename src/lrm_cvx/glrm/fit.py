@@ -458,45 +458,38 @@ def _batch_size(m: int, n: int) -> int:
     return int(max(1, min(256, n, 20_000 // max(m, 1))))
 
 
-def cvxpy_y_block(D, M, X, Y, loss, reg, cache: dict | None = None):
-    """Y step by cvxpy (batches of columns); returns ``(Y_new, objective_before)``."""
-    k, L = Y.shape
-    T = X.shape[1]
-    before = _loss_sum(D, M, X, Y, loss) + reg.value(Y)
-    nb = _batch_size(T, L)
-    key = ("y", T, k, nb)
-    cache = {} if cache is None else cache
+def _cvxpy_columns(D, M, A, loss, reg, cache, role):
+    """Solve every column of ``D (m, n)`` (mask ``M``) for its factor column, ``A (m, k)`` the
+    other factor's transpose, in cached DPP batches; returns ``(k, n)``."""
+    m, n = D.shape
+    k = A.shape[1]
+    nb = _batch_size(m, n)
+    key = (role, m, k, nb)
     if key not in cache:
-        cache[key] = _CvxBatch(T, k, nb, loss, reg)
+        cache[key] = _CvxBatch(m, k, nb, loss, reg)
     prob = cache[key]
-    A = np.asarray(X.T, dtype=np.float64)
-    out = np.empty((k, L))
-    for j0 in range(0, L, nb):
-        j1 = min(j0 + nb, L)
+    out = np.empty((k, n))
+    for j0 in range(0, n, nb):
+        j1 = min(j0 + nb, n)
         W = M[:, j0:j1].astype(np.float64)
         Dw = np.where(M[:, j0:j1], D[:, j0:j1], 0.0)
-        out[:, j0:j1] = prob.solve(A, W, Dw, "Y-step")
+        out[:, j0:j1] = prob.solve(A, W, Dw, role)
+    return out
+
+
+def cvxpy_y_block(D, M, X, Y, loss, reg, cache: dict | None = None):
+    """Y step by cvxpy (batches of columns); returns ``(Y_new, objective_before)``."""
+    before = _loss_sum(D, M, X, Y, loss) + reg.value(Y)
+    A = np.asarray(X.T, dtype=np.float64)
+    out = _cvxpy_columns(D, M, A, loss, reg, {} if cache is None else cache, "Y-step")
     return out, before
 
 
 def cvxpy_x_block(D, M, X, Y, loss, reg, cache: dict | None = None):
-    """X step by cvxpy (batches of times); returns ``(X_new, objective_before)``."""
-    k, T = X.shape
-    L = Y.shape[1]
+    """X step by cvxpy (batches of times): the Y step of the transposed problem."""
     before = _loss_sum(D, M, X, Y, loss) + reg.value(X)
-    nb = _batch_size(L, T)
-    key = ("x", L, k, nb)
-    cache = {} if cache is None else cache
-    if key not in cache:
-        cache[key] = _CvxBatch(L, k, nb, loss, reg)
-    prob = cache[key]
     A = np.asarray(Y.T, dtype=np.float64)
-    out = np.empty((k, T))
-    for t0 in range(0, T, nb):
-        t1 = min(t0 + nb, T)
-        W = M[t0:t1].T.astype(np.float64)
-        Dw = np.where(M[t0:t1], D[t0:t1], 0.0).T
-        out[:, t0:t1] = prob.solve(A, W, Dw, "X-step")
+    out = _cvxpy_columns(D.T, M.T, A, loss, reg, {} if cache is None else cache, "X-step")
     return out, before
 
 
