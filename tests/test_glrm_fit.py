@@ -7,6 +7,7 @@ import pytest
 
 from lrm_cvx.errors import DataError, ModelError
 from lrm_cvx.glrm import kernels as K
+from lrm_cvx.glrm import quadratic as Q
 from lrm_cvx.glrm.fit import (
     cvxpy_x_block,
     cvxpy_y_block,
@@ -264,13 +265,33 @@ def naive_pinv_y_step(D, M, X, lam):
     return out
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("T", [1, 13, 16])
+def test_prepare_packs_mask_and_zero_fills_without_touching_input(dtype, T):
+    rng = np.random.default_rng(10)
+    D, M, D_nan = _masked(rng, T, 1100, dtype)
+    keep = D_nan.copy()
+    md = Q.prepare(D_nan, M)
+    np.testing.assert_array_equal(md.mask(), M)  # bytes of eight times, ragged last byte
+    assert md.codes.shape == ((T + 7) // 8, 1100)
+    np.testing.assert_array_equal(md.D, np.where(M, D, 0))
+    assert md.D.dtype == dtype and md.D is not D_nan
+    np.testing.assert_array_equal(D_nan, keep)  # the caller's array is left alone (NaN kept)
+    np.testing.assert_allclose(md.ssq_rows, (np.where(M, D, 0).astype(np.float64) ** 2).sum(1),
+                               rtol=1e-10)
+    clean = np.where(M, D, 0).astype(dtype)
+    assert Q.prepare(clean, M).D is clean  # already zero-filled: no copy
+    own = D_nan.copy()
+    assert Q.prepare(own, M, overwrite=True).D is own and not np.isnan(own).any()
+
+
 @pytest.mark.parametrize("lam", [0.0, 0.3])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("T", [23, 5, 16])
 def test_quad_y_kernel_equals_naive(lam, dtype, T):
     rng = np.random.default_rng(11)
-    # times go eight at a time: 23 = 2 * 8 + ragged tail, 5 = tail only, 16 = no tail;
-    # L spans 3 blocks with a ragged last one
+    # times go eight at a time (one mask byte, one table): 23 = 2 * 8 + ragged tail,
+    # 5 = tail only, 16 = no tail; L spans 3 blocks with a ragged last one
     L, k = 1300, 4
     D, M, D_nan = _masked(rng, T, L, dtype)
     M[:, 5] = False  # never observed
@@ -279,9 +300,9 @@ def test_quad_y_kernel_equals_naive(lam, dtype, T):
     D_nan = np.where(M, D, np.nan).astype(dtype)
     X = rng.standard_normal((k, T))
     Y = rng.standard_normal((k, L))
-    pa, pb = K.pair_index(k)
+    md = Q.prepare(D_nan, M)
     out = np.empty_like(Y)
-    before, after, npinv = K.quad_y_step(D_nan, M, X, Y, lam, pa, pb, out, 3)
+    before, after, npinv = Q.y_step(md, X, Y, lam, out)
     ref = naive_pinv_y_step(D, M, X, lam)
     np.testing.assert_allclose(out, ref, rtol=1e-8, atol=1e-8)
     assert np.all(out[:, 5] == 0.0)
@@ -294,28 +315,25 @@ def test_quad_y_kernel_equals_naive(lam, dtype, T):
     assert np.isclose(after, loss(out), rtol=1e-10)
     # in place (out is Y) gives the same
     Y2 = Y.copy()
-    K.quad_y_step(D_nan, M, X, Y2, lam, pa, pb, Y2, 2)
+    Q.y_step(md, X, Y2, lam, Y2)
     np.testing.assert_array_equal(Y2, out)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_quad_x_stats_equals_naive(dtype):
+@pytest.mark.parametrize(("T", "k"), [(13, 3), (21, 7)])
+def test_quad_x_stats_equals_naive(dtype, T, k):
     rng = np.random.default_rng(12)
-    T, L, k = 13, 2500, 3
+    L = 2500  # three row blocks, ragged last
     D, M, D_nan = _masked(rng, T, L, dtype, 0.4)
     Y = rng.standard_normal((k, L))
     pa, pb = K.pair_index(k)
-    nch = 3
-    G = np.full((nch, T, pa.size), np.nan)  # buffers need no zeroing
-    h = np.full((nch, T, k), np.nan)
-    c = np.full((nch, T), np.nan)
-    K.quad_x_stats(D_nan, M, Y, pa, pb, nch, G, h, c)
+    G, h, c = Q.x_stats(Q.prepare(D_nan, M), Y)
     W = M.astype(np.float64)
     Dz = np.where(M, D, 0).astype(np.float64)
     Gfull = np.einsum("tj,aj,bj->tab", W, Y, Y)
-    np.testing.assert_allclose(G.sum(0), Gfull[:, pa, pb], rtol=1e-10)
-    np.testing.assert_allclose(h.sum(0), Dz @ Y.T, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(c.sum(0), (Dz**2).sum(1), rtol=1e-10)
+    np.testing.assert_allclose(G, Gfull[:, pa, pb], rtol=1e-10)
+    np.testing.assert_allclose(h, Dz @ Y.T, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(c, (Dz**2).sum(1), rtol=1e-10)
 
 
 def test_x_pass_quadratic_matches_generic_kernel():
@@ -370,16 +388,15 @@ def test_filled_products_and_data_stats_equal_numpy(dtype):
     Z = np.where(M, D.astype(np.float64), mu[None, :])
     V = rng.standard_normal((p, L))
     U = rng.standard_normal((T, p))
-    np.testing.assert_allclose(K.filled_matmul(D_nan, M, mu, V, 3), Z @ V.T, rtol=1e-9,
-                               atol=1e-9)
-    np.testing.assert_allclose(K.filled_rmatmul(D_nan, M, mu, U), (Z.T @ U).T, rtol=1e-9,
-                               atol=1e-9)
-    rows, cols, nbad, colsum, ssq = K.data_stats(D_nan, M, True)
+    md = Q.prepare(D_nan, M)
+    np.testing.assert_allclose(Q.filled_matmul(md, mu, V), Z @ V.T, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(Q.filled_rmatmul(md, mu, U), (Z.T @ U).T, rtol=1e-9, atol=1e-9)
+    rows, cols, nbad, colsum = K.data_stats(D_nan, M, True)
     Dz = np.where(M, D, 0).astype(np.float64)
     np.testing.assert_array_equal(rows, M.sum(1))
     np.testing.assert_array_equal(cols, M.sum(0))
     np.testing.assert_allclose(colsum, Dz.sum(0), rtol=1e-10, atol=1e-12)
-    assert nbad == 0 and np.isclose(ssq, (Dz**2).sum(), rtol=1e-10)
+    assert nbad == 0
     D_nan[0, np.flatnonzero(M[0])[0]] = np.inf
     assert K.data_stats(D_nan, M, True)[2] == 1
 

@@ -68,8 +68,21 @@ def test_mask_input_is_not_copied_and_ignores_outside():
     ref = GLRM(rank=2, progress=False, random_state=0, max_iter=5, tol=0).fit(
         np.where(M, D, np.nan))
     np.testing.assert_allclose(m.X_, ref.X_, rtol=1e-10)
-    m._prepare(D2, M, None)[0] is D2  # noqa: B015 - identity checked below
-    assert m._prepare(D2, M, None)[0] is D2
+    D_in, _, _, _, owned = m._prepare(D2, M, None)
+    assert D_in is D2 and not owned
+    assert np.isinf(D2[~M]).all()  # the fit zero-fills a copy, never the caller's array
+
+
+def test_fit_leaves_callers_nan_arrays_alone():
+    da = field()
+    region = Region.from_dataarray(da)
+    stacked = xr.DataArray(region.stack(da), dims=("time", "cell"))  # a view for the fit
+    for data, kw in [(da, {}), (stacked, {"region": region}), (region.stack(da), {})]:
+        keep = np.array(data, copy=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            GLRM(rank=2, progress=False, max_iter=3).fit(data, **kw)
+        np.testing.assert_array_equal(np.asarray(data), keep)  # NaN still in place
 
 
 def test_same_seed_same_result():

@@ -6,7 +6,9 @@ The problem (paper, Approach): with ``Omega`` the observed entries,
 
 over ``X (k, T)`` and ``Y (k, L)``. Given ``X`` the cells are independent (Y step); given ``Y``
 the times are independent (X step). Data arrive as ``D`` (float32 or float64, ``(T, L)``) plus a
-boolean mask ``M`` (True = observed); ``D`` is never read where ``M`` is False and never copied.
+boolean mask ``M`` (True = observed). The fit reads ``D`` zero-filled at unobserved entries with
+the mask packed into bits (:mod:`.quadratic`); ``D`` is copied only when it holds values (NaN)
+at unobserved entries and may not be overwritten.
 
 Block solvers, chosen by capability (never by name):
 
@@ -14,7 +16,8 @@ Block solvers, chosen by capability (never by name):
   (``kernel_spec``) and a regulariser with a closed form (``ridge_coefficient``) or a separable
   prox. One compiled pass over the data builds every column's (or row's) k x k Gram matrix of
   the majoriser; then a batched k x k Cholesky (ridge / none) or exact coordinate descent on the
-  k x k system (L1, non-negative). For the quadratic loss this is the exact block minimiser.
+  k x k system (L1, non-negative). For the quadratic loss this is the exact block minimiser,
+  with the Grams built from the packed mask by subset-sum tables (:mod:`.quadratic`).
   For Huber, absolute and quantile losses it is one majorisation-minimisation (IRLS) step per
   block per iteration (``max_inner`` of them), which never increases the objective; the L1-type
   losses floor ``|r|`` at a tiny ``eps`` so their step is checked per column and reverted
@@ -32,9 +35,11 @@ from dataclasses import dataclass, field
 import cvxpy as cp
 import numba
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from ..errors import ConvergenceWarning, DataError, ModelError, SolverError
 from . import kernels as K
+from . import quadratic as Q
 from .losses import Loss
 from .regularizers import Regularizer
 
@@ -92,7 +97,7 @@ def check_data(D: np.ndarray, M: np.ndarray, rank: int, *, check_finite: bool = 
         raise ModelError(f"rank must be an integer, got {rank!r}")
     if rank < 1 or rank > min(T, L):
         raise ModelError(f"rank must be in [1, min(T, L)] = [1, {min(T, L)}], got {rank}")
-    rows, cols, nbad, colsum, ssq = K.data_stats(D, M, check_finite)
+    rows, cols, nbad, colsum = K.data_stats(D, M, check_finite)
     if rows.sum() == 0:
         raise DataError("data has no observed value (all missing / all NaN)")
     if nbad:
@@ -101,18 +106,17 @@ def check_data(D: np.ndarray, M: np.ndarray, rank: int, *, check_finite: bool = 
     empty = np.flatnonzero(rows == 0)
     if empty.size:
         raise DataError(f"times {empty[:10].tolist()} have no observation; drop them first")
-    return DataStats(rows, cols, colsum, float(ssq))
+    return DataStats(rows, cols, colsum)
 
 
 class DataStats(tuple):
     """``(row_counts, col_counts)`` as returned by :func:`check_data`, carrying the per-cell sums
-    of the observed values (``colsum``, ``(L,)``) and their total sum of squares (``ssq``) from
-    the same pass, so :func:`fit_glrm` needs no second pass for the column means."""
+    of the observed values (``colsum``, ``(L,)``) from the same pass, so :func:`fit_glrm` needs
+    no second pass for the column means."""
 
-    def __new__(cls, rows, cols, colsum=None, ssq=None):
+    def __new__(cls, rows, cols, colsum=None):
         self = super().__new__(cls, (rows, cols))
         self.colsum = colsum
-        self.ssq = ssq
         return self
 
 
@@ -240,42 +244,35 @@ def _gram_values(G, h, c, F):
     return np.einsum("ni,nij,nj->n", Ft, A, Ft) - 2.0 * np.einsum("ni,ni->n", h, Ft) + c
 
 
-def _quad_x_stats(D, M, Y):
-    """``(G (T, npair), h (T, k), c (T,))`` of the quadratic X step (one compiled pass)."""
-    k = Y.shape[0]
-    T = D.shape[0]
-    pa, pb = K.pair_index(k)
-    nch = _nchunk()
-    G = np.empty((nch, T, pa.size))
-    h = np.empty((nch, T, k))
-    c = np.empty((nch, T))
-    K.quad_x_stats(D, M, np.ascontiguousarray(Y, dtype=np.float64), pa, pb, nch, G, h, c)
-    return G.sum(0), h.sum(0), c.sum(0)
-
-
-def _quad_y(D, M, X, Y, lam, out):
-    """Exact quadratic + ridge Y step; ``(Y_new, loss_before, loss_after)`` (no ridge term)."""
-    k = Y.shape[0]
-    pa, pb = K.pair_index(k)
-    Yc = Y if (Y.dtype == np.float64 and Y.ndim == 2) else np.asarray(Y, dtype=np.float64)
-    direct = out is not None and out.dtype == np.float64 and out.ndim == 2
-    res = out if direct else np.empty(Y.shape)
-    before, after, _ = K.quad_y_step(D, M, np.ascontiguousarray(X, dtype=np.float64), Yc,
-                                     lam, pa, pb, res, _nchunk())
+def _quad_y(md, X, Y, lam, out):
+    """Exact quadratic + ridge Y step on prepared data; ``(Y_new, loss_before, loss_after)``
+    (no ridge term)."""
+    Yc = np.ascontiguousarray(Y, dtype=np.float64)
+    direct = (out is not None and out.dtype == np.float64 and out.ndim == 2
+              and out.flags.c_contiguous)
+    res = out if direct else np.empty(Yc.shape)
+    before, after, _ = Q.y_step(md, X, Yc, lam, res)
     if out is not None and not direct:
         out[...] = res
         res = out
     return res, before, after
 
 
-def _quad_x(D, M, X, Y, lam):
-    """Exact quadratic + ridge X step; ``(X_new, loss_before, loss_after)`` (no ridge term)."""
-    G, h, c = _quad_x_stats(D, M, Y)
+def _quad_x(md, X, Y, lam):
+    """Exact quadratic + ridge X step on prepared data; ``(X_new, loss_before, loss_after)``
+    (no ridge term)."""
+    G, h, c = Q.x_stats(md, Y)
     pa, pb = K.pair_index(h.shape[1])
     out = np.empty(h.shape)
     K.chol_solve(G, h, lam, pa, pb, out)
     Xn = np.ascontiguousarray(out.T)
     return Xn, float(_gram_values(G, h, c, X).sum()), float(_gram_values(G, h, c, Xn).sum())
+
+
+def _quad_loss(md, X, Y) -> float:
+    """The quadratic loss over observed entries at ``(X, Y)`` (Gram identity, one pass)."""
+    G, h, c = Q.x_stats(md, Y)
+    return float(_gram_values(G, h, c, np.asarray(X, dtype=np.float64)).sum())
 
 
 def y_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, out=None, step0=0):
@@ -290,7 +287,7 @@ def y_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, out=None, step
     lam = _quad_ridge(loss, reg)
     if lam is not None:
         rv = reg.value(Y)
-        res, before, _ = _quad_y(D, M, X, Y, lam, out)
+        res, before, _ = _quad_y(Q.prepare(D, M), X, Y, lam, out)
         return res, before + rv
     pa, pb = K.pair_index(k)
     npair = pa.size
@@ -325,7 +322,7 @@ def x_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, step0=0):
     k, T = X.shape
     lam = _quad_ridge(loss, reg)
     if lam is not None:
-        Xn, before, _ = _quad_x(D, M, X, Y, lam)
+        Xn, before, _ = _quad_x(Q.prepare(D, M), X, Y, lam)
         return Xn, before + reg.value(X)
     pa, pb = K.pair_index(k)
     npair = pa.size
@@ -355,7 +352,7 @@ def x_pass(D, M, X, Y, loss, step=0):
     k, T = X.shape
     lo = loss.smoothed(step)
     if _is_quad(lo):
-        G, h, c = _quad_x_stats(D, M, Y)
+        G, h, c = Q.x_stats(Q.prepare(D, M), Y)
         return G, h, _gram_values(G, h, c, np.asarray(X, dtype=np.float64))
     pa, pb = K.pair_index(k)
     nchunk = _nchunk()
@@ -387,8 +384,7 @@ def _loss_sum(D, M, X, Y, loss) -> float:
         R = X.T @ Y - np.where(M, D, 0.0)
         return float(np.sum(np.where(M, loss.evaluate(R), 0.0)))
     if loss.kernel_spec[0] == 0:
-        G, h, c = _quad_x_stats(D, M, Y)
-        return float(_gram_values(G, h, c, np.asarray(X, dtype=np.float64)).sum())
+        return _quad_loss(Q.prepare(D, M), X, Y)
     k, T = X.shape
     code, p0, p1 = loss.kernel_spec
     pa, pb = K.pair_index(k)
@@ -494,15 +490,16 @@ def cvxpy_x_block(D, M, X, Y, loss, reg, cache: dict | None = None):
 
 
 # --------------------------------------------------------------------------- initialisation
-def initialize(D, M, rank, init, rng, mu, scale, *, n_power=1, oversample=5):
+def initialize(md, rank, init, rng, mu, scale, *, n_power=1, oversample=5):
     """Initial ``(X, Y)``: SVD of the mean-filled matrix (``init="svd"``) or Gaussian.
 
-    The mean-filled matrix has each cell's missing entries replaced by its observed mean
-    ``mu``. Below ``SMALL_SVD`` entries an exact SVD, else a randomized SVD with ``n_power``
-    power iterations using compiled products (never materialising the filled matrix). The
-    singular values are split evenly: ``X = sqrt(S) U^T``, ``Y = sqrt(S) V^T``.
+    ``md`` is the :class:`~.quadratic.MaskedData` of the data. The mean-filled matrix has each
+    cell's missing entries replaced by its observed mean ``mu``. Below ``SMALL_SVD`` entries an
+    exact SVD, else a randomized SVD with ``n_power`` power iterations using compiled products
+    (never materialising the filled matrix). The singular values are split evenly:
+    ``X = sqrt(S) U^T``, ``Y = sqrt(S) V^T``.
     """
-    T, L = D.shape
+    T, L = md.shape
     k = rank
     if init == "random":
         s = (max(scale, 1e-12) ** 2 / k) ** 0.25
@@ -510,22 +507,21 @@ def initialize(D, M, rank, init, rng, mu, scale, *, n_power=1, oversample=5):
     if init != "svd":
         raise ModelError(f"init must be 'svd' or 'random', got {init!r}")
     if T * L <= SMALL_SVD:
-        Z = np.where(M, D, mu[None, :]).astype(np.float64)
+        Z = np.where(md.mask(), md.D, mu[None, :]).astype(np.float64)
         U, S, Vt = np.linalg.svd(Z, full_matrices=False)
         U, S, Vt = U[:, :k], S[:k], Vt[:k]
     else:
         p = min(k + oversample, T, L)
-        nchunk = _nchunk()
         Om = rng.standard_normal((p, L))
-        Q, _ = np.linalg.qr(K.filled_matmul(D, M, mu, Om, nchunk))
+        Qr, _ = np.linalg.qr(Q.filled_matmul(md, mu, Om))
         del Om
         for _ in range(n_power):
-            Wq, _ = _orth_rows(K.filled_rmatmul(D, M, mu, Q))  # rows span Z^T Q, (p, L)
-            Q, _ = np.linalg.qr(K.filled_matmul(D, M, mu, Wq, nchunk))
+            Wq, _ = _orth_rows(Q.filled_rmatmul(md, mu, Qr))  # rows span Z^T Q, (p, L)
+            Qr, _ = np.linalg.qr(Q.filled_matmul(md, mu, Wq))
             del Wq
-        Qb, Rm = _orth_rows(K.filled_rmatmul(D, M, mu, Q))  # B = Q^T Z = Rm Qb, (p, L)
+        Qb, Rm = _orth_rows(Q.filled_rmatmul(md, mu, Qr))  # B = Q^T Z = Rm Qb, (p, L)
         Ur, S, Vrt = np.linalg.svd(Rm)
-        U = (Q @ Ur)[:, :k]
+        U = (Qr @ Ur)[:, :k]
         Vt = Vrt[:k] @ Qb
         S = S[:k]
     # deterministic signs: largest |entry| of each right singular vector positive
@@ -539,17 +535,17 @@ def initialize(D, M, rank, init, rng, mu, scale, *, n_power=1, oversample=5):
 
 def _orth_rows(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``W (p, L) = R @ Q`` with ``Q`` orthonormal rows: Cholesky QR applied twice (two small
-    Gram products instead of a Householder QR of the tall ``W.T``, ~50x faster at L = 2M);
-    falls back to Householder QR when ``W`` is (numerically) rank-deficient."""
+    Gram products and triangular solves instead of a Householder QR of the tall ``W.T``, ~50x
+    faster at L = 2M); falls back to Householder QR when ``W`` is (numerically) rank-deficient."""
     try:
         R = np.eye(W.shape[0])
-        Q = W
+        Wq = W
         for _ in range(2):
-            C = np.linalg.cholesky(Q @ Q.T)
-            Q = np.linalg.solve(C, Q)
+            C = np.linalg.cholesky(Wq @ Wq.T)
+            Wq = solve_triangular(C, Wq, lower=True, check_finite=False)
             R = R @ C
-        if np.all(np.isfinite(Q)):
-            return np.ascontiguousarray(Q), R
+        if np.all(np.isfinite(Wq)):
+            return np.ascontiguousarray(Wq), R
     except np.linalg.LinAlgError:
         pass
     Qh, Rh = np.linalg.qr(W.T)
@@ -573,8 +569,13 @@ def fit_glrm(
     progress: bool = False,
     max_inner: int = 1,
     stats: tuple[np.ndarray, np.ndarray] | None = None,
+    overwrite_data: bool = False,
 ) -> FitResult:
     """Fit ``X (k, T)``, ``Y (k, L)`` to ``D`` on the entries where ``M`` is True.
+
+    ``D`` is read through its zero-filled form (:func:`~.quadratic.prepare`): a ``D`` that
+    holds values (NaN) at unobserved entries is copied once, or zero-filled in place when
+    ``overwrite_data`` is True. ``stats`` is :func:`check_data`'s result when already known.
 
     Each iteration is a Y step then an X step. The objective recorded for iteration ``i`` is
     evaluated at the factors after ``i`` rounds (``objective[0]`` at the initialisation);
@@ -589,23 +590,21 @@ def fit_glrm(
         raise ModelError(f"max_iter must be an integer >= 0, got {max_iter!r}")
     if not np.isfinite(tol) or tol < 0:
         raise ModelError(f"tol must be >= 0, got {tol!r}")
-    rows, cols = check_data(D, M, rank) if stats is None else stats
+    if getattr(stats, "colsum", None) is None:
+        stats = check_data(D, M, rank)
+    rows, cols = stats
     T, L = D.shape
     fast = solver != "cvxpy" and is_fast_capable(loss, reg_x, reg_y)
     if solver == "fast" and not fast:
         raise ModelError(f"no fast path for loss {loss!r} with {reg_x!r} / {reg_y!r}")
     n_obs = int(rows.sum())
-    if getattr(stats, "colsum", None) is not None and getattr(stats, "ssq", None) is not None:
-        colsum, ssq = stats.colsum, stats.ssq
-        mu_global = float(colsum.sum() / n_obs)
-        mu = np.where(cols > 0, colsum / np.maximum(cols, 1), mu_global)
-    else:
-        mu, ssq = K.column_means(D, M, 0.0)
-        mu_global = float(np.sum(mu * cols) / n_obs)
-        mu[cols == 0] = mu_global
-    scale = float(np.sqrt(ssq / n_obs))
+    mu_global = float(stats.colsum.sum() / n_obs)
+    mu = np.where(cols > 0, stats.colsum / np.maximum(cols, 1), mu_global)
+    md = Q.prepare(D, M, overwrite=overwrite_data)
+    D = md.D  # zero-filled from here on
+    scale = float(np.sqrt(md.ssq_rows.sum() / n_obs))
     loss = loss.with_scale(scale)
-    X, Y = initialize(D, M, rank, init, rng, mu, scale)
+    X, Y = initialize(md, rank, init, rng, mu, scale)
     unobserved = np.flatnonzero(cols == 0)
     Y[:, unobserved] = reg_y.minimizer(rank)[:, None]
     lam_y, lam_x = _quad_ridge(loss, reg_y), _quad_ridge(loss, reg_x)
@@ -625,7 +624,7 @@ def fit_glrm(
         for it in range(max_iter):
             if quad:
                 ry = reg_y.value(Y)
-                Y, lb, f_loss = _quad_y(D, M, X, Y, lam_y, Y)
+                Y, lb, f_loss = _quad_y(md, X, Y, lam_y, Y)
                 fy = lb + ry
             elif fast:
                 Y, fy = y_block(D, M, X, Y, loss, reg_y, max_inner=max_inner, out=Y,
@@ -637,7 +636,7 @@ def fit_glrm(
                 converged = True
                 break
             if quad:
-                X, _, f_loss = _quad_x(D, M, X, Y, lam_x)
+                X, _, f_loss = _quad_x(md, X, Y, lam_x)
             elif fast:
                 X, _ = x_block(D, M, X, Y, loss, reg_x, max_inner=max_inner,
                                step0=it * max_inner)
@@ -660,7 +659,7 @@ def fit_glrm(
             f"GLRM fit stopped at max_iter={max_iter} before the relative decrease of the "
             f"objective fell below tol={tol}", ConvergenceWarning, stacklevel=3)
     Y[:, unobserved] = reg_y.minimizer(rank)[:, None]  # (unobserved columns add no loss)
-    sse = max(f_loss, 0.0) if _is_quad(loss) else _loss_sum(D, M, X, Y, _QUAD)
+    sse = max(f_loss, 0.0) if _is_quad(loss) else _quad_loss(md, X, Y)
     dof = rank * (T + L - unobserved.size) - rank * rank
     denom = n_obs - dof if n_obs > dof else n_obs
     return FitResult(

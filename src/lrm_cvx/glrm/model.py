@@ -164,15 +164,15 @@ class GLRM:
         rng = as_generator(self.random_state)
         if _is_dask(data) or _is_dask(mask):  # out of core, chunk by chunk on dask
             return self._fit_dask(data, mask, region, rank, loss, reg_x, reg_y, rng)
-        D, M, region, times = self._prepare(data, mask, region)
+        D, M, region, times, owned = self._prepare(data, mask, region)
         stats = check_data(D, M, rank)
         pre = fit_predictive(self, D, M, region, stage="before")  # offset / scale (opt-in)
         if pre is not None:
-            D = pre.pop("data")
+            D, owned = pre.pop("data"), True
         res = fit_glrm(
             D, M, rank, loss, reg_x, reg_y, max_iter=self.max_iter, tol=self.tol,
             init=self.init, solver=self.solver, rng=rng, progress=bool(self.progress),
-            stats=stats,
+            stats=stats, overwrite_data=owned,  # our own copy: zero-filled in place
         )
         self._set_result(res, region, times, xarray=region is not None)
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
@@ -194,7 +194,8 @@ class GLRM:
         return self
 
     def _prepare(self, data, mask, region):
-        """``(D, M, region, times)`` from any supported input (no copy of clean arrays)."""
+        """``(D, M, region, times, owned)`` from any supported input (no copy of clean arrays);
+        ``owned`` is True when ``D`` is a copy the fit may overwrite."""
         times = None
         if isinstance(data, xr.DataArray):
             if mask is not None:
@@ -217,9 +218,10 @@ class GLRM:
             times = times.rename("time") if tdim == "time" else times
             self._time_dim = tdim
             M = ~np.isnan(D)
-            return D, M, region, times
+            owned = data.ndim == 3 or not np.may_share_memory(D, data.values)  # 3-D: a gather
+            return D, M, region, times, owned
         self._time_dim = "time"
-        D = np.asarray(data)
+        D = src = np.asarray(data)
         if D.ndim != 2:
             raise DataError(f"data must be a (T, L) array or a (time, lat, lon) DataArray, got "
                             f"shape {D.shape}")
@@ -237,7 +239,7 @@ class GLRM:
             if M.dtype != np.bool_:
                 raise DataError(f"mask must be boolean (True = observed), got dtype {M.dtype}")
             M = np.ascontiguousarray(M)
-        return D, M, None, None
+        return D, M, None, None, not np.may_share_memory(D, src)
 
     def _set_result(self, res: FitResult, region, times, xarray: bool) -> None:
         k = res.X.shape[0]
