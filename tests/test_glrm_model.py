@@ -263,3 +263,15 @@ def test_region_given_with_unobserved_cell():
         m = GLRM(rank=2, progress=False, max_iter=5).fit(da, region=region)
     assert m.unobserved_cells_.tolist() == [0]
     assert np.all(m.Y_.values[:, 0] == 0)
+
+
+def test_is_plain_low_rank_tracks_the_predictive_options():
+    assert fitted().is_plain_low_rank
+    for kw in ({"offset": True}, {"scale": True}, {"noise": "per-cell"}):
+        m = fitted(**kw)
+        assert not m.is_plain_low_rank
+        # so complete() goes through the predictive model, not the plain least squares
+        obs = {0: 1.0, 5: 2.0, 9: -1.0}
+        plain = fitted().complete(obs)
+        assert not np.allclose(m.complete(obs)["std"].values, plain["std"].values,
+                               equal_nan=True)

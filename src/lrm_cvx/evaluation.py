@@ -231,7 +231,7 @@ def evaluate(
     Y = as_factor_matrix(model.Y_, region)
     test_values = region.stack(test)
     stats = SnapshotStatistics.from_values(Y, test_values)
-    use_model = bool(fold_in) or model._predictive_active()
+    use_model = bool(fold_in) or not model.is_plain_low_rank
     test_values = test_values.astype(np.float64) if use_model else None
     rng = as_generator(seed)
     if n_starts > region.n_cells:

@@ -154,8 +154,10 @@ class GLRM:
         ``data``: a ``(time, lat, lon)`` DataArray (NaN = missing; cells never observed are left
         out by ``Region.from_dataarray`` unless ``region`` is given), a ``(time, cell)``
         DataArray with ``region``, a ``(T, L)`` array with NaN, or a ``(T, L)`` array plus a
-        boolean ``mask`` (True = observed; entries outside it are ignored, and a float32 or
-        float64 C-contiguous array is used without a copy). Returns ``self``.
+        boolean ``mask`` (True = observed; entries outside it are ignored). The fit reads the
+        data zero-filled outside the mask: a C-contiguous float32/float64 array that already is
+        is used without a copy, otherwise a zero-filled copy is made (the caller's array is
+        never modified). Returns ``self``.
         """
         rank = self.rank
         loss = get_loss(self.loss)
@@ -372,7 +374,7 @@ class GLRM:
         self._check_fitted()
         ridge = check_positive(ridge, "ridge", error=ModelError)
         V, single, lead = self._stack_snapshots(observations)
-        if prior is not None or spatial or self._predictive_active():
+        if prior is not None or spatial or not self.is_plain_low_rank:
             pred, std, x, n_obs = posterior_complete(self, V, ridge=ridge, prior=prior,
                                                      spatial=spatial)
             if single:
@@ -404,10 +406,13 @@ class GLRM:
         self._check_fitted()
         return planner_terms(self, prior=prior, spatial=spatial)
 
-    def _predictive_active(self) -> bool:
-        return (getattr(self, "offset_", None) is not None
-                or getattr(self, "scale_", None) is not None
-                or getattr(self, "noise_var_", None) is not None)
+    @property
+    def is_plain_low_rank(self) -> bool:
+        """True when the fitted model predicts with the paper's plain fold-in: no offset,
+        scale or per-cell noise was fitted (so ``complete()`` is least squares on ``Y``)."""
+        return (getattr(self, "offset_", None) is None
+                and getattr(self, "scale_", None) is None
+                and getattr(self, "noise_var_", None) is None)
 
     def _completion_dataset(self, pred, std, x, n_obs, ridge, single, lead) -> xr.Dataset:
         comp = np.arange(x.shape[-1])
