@@ -210,3 +210,12 @@ def test_distributed_local_cluster(field, tmp_path):
             assert not any(p.name.startswith("lrm-dask-") for p in tmp_path.iterdir())
     finally:
         cluster.close()
+
+
+def test_convergence_warning_points_at_the_callers_line(field):
+    for data, options in ((field, None), (field.chunk({"time": 8}), SMALL_CHUNKS)):
+        model = GLRM(rank=3, max_iter=1, tol=1e-12, progress=False, dask_options=options)
+        with pytest.warns(Warning) as record:
+            model.fit(data)
+        hits = [w for w in record if "max_iter=1" in str(w.message)]
+        assert len(hits) == 1 and hits[0].filename == __file__

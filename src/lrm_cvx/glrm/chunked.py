@@ -30,19 +30,22 @@ import os
 import shutil
 import tempfile
 import threading
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from ..errors import ConvergenceWarning, DataError, ModelError, RegionError
+from ..errors import DataError, ModelError, RegionError
 from ..region import Region
 from .fit import (
     SMALL_SVD,
     FitResult,
+    _rel_decrease,
+    finish_convergence,
     is_fast_capable,
+    noise_std,
     objective,
+    progress_bar,
     solve_block,
     x_pass,
     y_block,
@@ -587,11 +590,7 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     history: list[float] = []
     converged = False
     n_iter = 0
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=max_iter, desc="GLRM (dask)", unit="it")
+    bar = progress_bar(progress, max_iter, "GLRM (dask)")
     try:
         for it in range(max_iter):
             outs = [d(_t_round, nout=2, pure=False)(f, X, y, loss, reg_y, it)
@@ -623,12 +622,7 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     *Ys, tot = dask.persist(*[o[0] for o in outs], _tree_sum([o[1] for o in outs]))
     fsum, sse = dask.compute(tot)[0]
     history.append(float(fsum) + reg_x.value(X))
-    if not converged and max_iter >= 1 and len(history) >= 2:
-        converged = _rel_decrease(history) < tol
-    if not converged and tol > 0:
-        warnings.warn(
-            f"GLRM fit stopped at max_iter={max_iter} before the relative decrease of the "
-            f"objective fell below tol={tol}", ConvergenceWarning, stacklevel=4)
+    converged = finish_convergence(history, converged, max_iter, tol, stacklevel=6)
     widths = np.diff(bounds)
     if keep_dask:
         Y = da.concatenate([da.from_delayed(y, shape=(k, int(w)), dtype=np.float64)
@@ -636,17 +630,8 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     else:
         Y = np.concatenate(dask.compute(*Ys), axis=1)
     clock.mark("final")
-    dof = k * (T + L - unobserved.size) - k * k
-    denom = n_obs - dof if n_obs > dof else n_obs
     return FitResult(
         X=np.ascontiguousarray(X), Y=Y, objective=history, n_iter=n_iter,
-        converged=bool(converged), unobserved_cells=unobserved.astype(np.int64),
-        n_observed=n_obs, sse=float(sse), noise_std=float(np.sqrt(sse / denom)), solver="fast",
+        converged=converged, unobserved_cells=unobserved.astype(np.int64), n_observed=n_obs,
+        sse=float(sse), noise_std=noise_std(sse, n_obs, k, T, L - unobserved.size), solver="fast",
     )
-
-
-def _rel_decrease(history: list[float]) -> float:
-    prev, cur = history[-2], history[-1]
-    if prev == 0:
-        return 0.0
-    return (prev - cur) / abs(prev)

@@ -615,11 +615,7 @@ def fit_glrm(
     history: list[float] = []
     converged = False
     n_iter = 0
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=max_iter, desc="GLRM", unit="it")
+    bar = progress_bar(progress, max_iter, "GLRM")
     try:
         for it in range(max_iter):
             if quad:
@@ -652,21 +648,25 @@ def fit_glrm(
     if f_loss is None:
         f_loss = _loss_sum(D, M, X, Y, loss)
     history.append(f_loss + reg_x.value(X) + reg_y.value(Y))
-    if not converged and max_iter >= 1 and len(history) >= 2:
-        converged = _rel_decrease(history) < tol
-    if not converged and tol > 0:
-        warnings.warn(
-            f"GLRM fit stopped at max_iter={max_iter} before the relative decrease of the "
-            f"objective fell below tol={tol}", ConvergenceWarning, stacklevel=3)
+    converged = finish_convergence(history, converged, max_iter, tol, stacklevel=4)
     Y[:, unobserved] = reg_y.minimizer(rank)[:, None]  # (unobserved columns add no loss)
     sse = max(f_loss, 0.0) if _is_quad(loss) else _quad_loss(md, X, Y)
-    dof = rank * (T + L - unobserved.size) - rank * rank
-    denom = n_obs - dof if n_obs > dof else n_obs
     return FitResult(
-        X=X, Y=Y, objective=history, n_iter=n_iter, converged=bool(converged),
+        X=X, Y=Y, objective=history, n_iter=n_iter, converged=converged,
         unobserved_cells=unobserved.astype(np.int64), n_observed=n_obs, sse=sse,
-        noise_std=float(np.sqrt(sse / denom)), solver="fast" if fast else "cvxpy",
+        noise_std=noise_std(sse, n_obs, rank, T, L - unobserved.size),
+        solver="fast" if fast else "cvxpy",
     )
+
+
+# --------------------------------------------------------------------------- shared by both drivers
+def progress_bar(progress: bool, total: int, desc: str):
+    """A tqdm bar over the rounds, or None."""
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="it")
 
 
 def _rel_decrease(history: list[float]) -> float:
@@ -674,6 +674,27 @@ def _rel_decrease(history: list[float]) -> float:
     if prev == 0:
         return 0.0
     return (prev - cur) / abs(prev)
+
+
+def finish_convergence(history: list[float], converged: bool, max_iter: int, tol: float,
+                       stacklevel: int) -> bool:
+    """Convergence after the last objective is appended; ConvergenceWarning when ``tol > 0``
+    was not reached within ``max_iter`` rounds."""
+    if not converged and max_iter >= 1 and len(history) >= 2:
+        converged = _rel_decrease(history) < tol
+    if not converged and tol > 0:
+        warnings.warn(
+            f"GLRM fit stopped at max_iter={max_iter} before the relative decrease of the "
+            f"objective fell below tol={tol}", ConvergenceWarning, stacklevel=stacklevel)
+    return bool(converged)
+
+
+def noise_std(sse: float, n_obs: int, k: int, T: int, L_obs: int) -> float:
+    """RMS training residual with a degrees-of-freedom correction: ``sqrt(SSE / (n_obs - p))``,
+    ``p = k (T + L_obs) - k^2`` free parameters (``sqrt(SSE / n_obs)`` when ``n_obs <= p``)."""
+    dof = k * (T + L_obs) - k * k
+    denom = n_obs - dof if n_obs > dof else n_obs
+    return float(np.sqrt(sse / denom))
 
 
 class _Quad(Loss):
