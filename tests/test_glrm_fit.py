@@ -283,6 +283,11 @@ def test_prepare_packs_mask_and_zero_fills_without_touching_input(dtype, T):
     assert Q.prepare(clean, M).D is clean  # already zero-filled: no copy
     own = D_nan.copy()
     assert Q.prepare(own, M, overwrite=True).D is own and not np.isnan(own).any()
+    Ft = np.asfortranarray(D_nan)  # column-major input: a C-ordered zero-filled copy
+    mdf = Q.prepare(Ft, np.asfortranarray(M))
+    assert mdf.D.flags.c_contiguous and np.isnan(Ft[~M]).all()
+    np.testing.assert_array_equal(mdf.D, md.D)
+    np.testing.assert_array_equal(mdf.codes, md.codes)
 
 
 @pytest.mark.parametrize("lam", [0.0, 0.3])

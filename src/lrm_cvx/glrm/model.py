@@ -516,12 +516,15 @@ class GLRM:
             region = Region.from_dataarray(data)
             data = xr.DataArray(region.stack(data), dims=(data.dims[0], "cell"))
         train, test = self.holdout(data, fraction, seed)
+        train = np.asarray(getattr(train, "values", train))
+        mask = ~np.isnan(train)
+        np.copyto(train, 0, where=~mask)  # ours: zero-filled once, so no fit copies it
         out = {}
         for r in ranks:
             model = GLRM(**{**self.get_params(), "rank": int(r), "progress": False})
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                model.fit(np.asarray(getattr(train, "values", train)))
+                model.fit(train, mask=mask)
             out[int(r)] = float(np.sqrt(model.score(np.asarray(getattr(test, "values", test)))))
         return pd.Series(out, name="holdout_rmse").rename_axis("rank")
 

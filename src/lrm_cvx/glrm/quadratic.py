@@ -124,9 +124,13 @@ def prepare(D: np.ndarray, M: np.ndarray, *, overwrite: bool = False) -> MaskedD
 
     One pass packs the mask and finds whether ``D`` is already zero at every unobserved entry
     (as a zero-filled array with a mask, or a chunk of a dask fit, is); if not, the zeros are
-    written into ``D`` itself when ``overwrite`` is True and into a copy otherwise.
+    written into ``D`` itself when ``overwrite`` is True and into a copy otherwise. ``D`` is
+    float32 or float64; a non-contiguous ``D`` is copied.
     """
     T, L = D.shape
+    M = np.ascontiguousarray(M, dtype=np.bool_)
+    if not D.flags.c_contiguous:  # the kernels stream rows
+        D, overwrite = np.ascontiguousarray(D), True
     codes = np.empty(((T + GROUP - 1) // GROUP, L), dtype=np.uint8)
     ssq, dirty = _scan(D, M, codes)
     if dirty:
