@@ -178,7 +178,7 @@ def pair_products(F: np.ndarray, pa: np.ndarray, pb: np.ndarray, width: int) -> 
 @numba.njit(inline="always", cache=True, fastmath=_FM)
 def _col_block(D, codes, s, n, Xt, TAB, hb, gb, acc):  # pragma: no cover - numba
     """For cells ``s..s+n``: ``hb[a, jj] = sum_t d_t,s+jj Xt[t, a]`` and
-    ``gb[jj] = sum_g TAB[g, codes[g, s+jj]]`` (eight times a table look-up)."""
+    ``gb[jj] = sum_g TAB[g, codes[g, s+jj]]`` (one table look-up per eight times)."""
     T = D.shape[0]
     ka = Xt.shape[1]
     ng, _, w = TAB.shape
