@@ -9,7 +9,7 @@ import pytest
 import xarray as xr
 
 from lrm_cvx.errors import ConvergenceWarning, DataError, ModelError, NotFittedError
-from lrm_cvx.glrm import GLRM, Huber, Ridge, fold_in, fold_in_many
+from lrm_cvx.glrm import GLRM, L1, Huber, Ridge, fold_in, fold_in_many
 from lrm_cvx.region import Region
 
 
@@ -275,3 +275,15 @@ def test_is_plain_low_rank_tracks_the_predictive_options():
         plain = fitted().complete(obs)
         assert not np.allclose(m.complete(obs)["std"].values, plain["std"].values,
                                equal_nan=True)
+
+
+def test_negative_or_non_numeric_weights_and_ridge_are_named():
+    with pytest.raises(ModelError, match="Ridge weight"):
+        Ridge(-1.0)
+    with pytest.raises(ModelError, match="L1 weight"):
+        L1("heavy")
+    with pytest.raises(ModelError, match="ridge"):
+        fitted().complete({0: 1.0, 5: 2.0}, ridge=-0.5)
+    Y = np.eye(2, 5)
+    with pytest.raises(ModelError, match="ridge"):
+        fold_in(Y, [0, 1], [1.0, 2.0], ridge=float("nan"))

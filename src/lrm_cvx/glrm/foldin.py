@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validation import check_positive
 from ..errors import DataError, ModelError
 
 __all__ = ["fold_in", "fold_in_many", "fold_in_posterior", "mean_std"]
@@ -45,16 +46,6 @@ def _check_observations(Y, cells, values):
     if not np.all(np.isfinite(values)):
         raise DataError("values must be finite (drop unobserved cells instead of passing NaN)")
     return Y, cells, values
-
-def _check_ridge(ridge: Any) -> float:
-    try:
-        r = float(ridge)
-    except (TypeError, ValueError):
-        raise ModelError(f"ridge must be a number >= 0, got {ridge!r}") from None
-    if not np.isfinite(r) or r < 0:
-        raise ModelError(f"ridge must be a number >= 0, got {ridge!r}")
-    return r
-
 
 def _solve_system(A: np.ndarray, b: np.ndarray, ridge: float, n_obs: Any) -> tuple:
     """Solve ``A x = b`` (batched ``(..., k, k)``) checking that ``A`` is non-singular."""
@@ -90,7 +81,7 @@ def fold_in(
     """
     Y, cells, values = _check_observations(Y, cells, values)
     k, L = Y.shape
-    ridge = _check_ridge(ridge)
+    ridge = check_positive(ridge, "ridge", error=ModelError)
     Ys = np.asarray(Y[:, cells], dtype=np.float64)
     A = Ys @ Ys.T + ridge * np.eye(k)
     x, Ainv = _solve_system(A, Ys @ values, ridge, cells.size)
@@ -113,7 +104,7 @@ def fold_in_many(
         raise DataError(f"values must have shape (n, {L}), got {V.shape}")
     if np.any(np.isinf(V)):
         raise DataError("values must be finite or NaN (unobserved)")
-    ridge = _check_ridge(ridge)
+    ridge = check_positive(ridge, "ridge", error=ModelError)
     obs = ~np.isnan(V)
     pa, pb = np.triu_indices(k)
     Yf = np.asarray(Y, dtype=np.float64)
@@ -163,7 +154,7 @@ def fold_in_posterior(
     """
     Y, cells, values = _check_observations(Y, cells, values)
     k, L = Y.shape
-    ridge = _check_ridge(ridge)
+    ridge = check_positive(ridge, "ridge", error=ModelError)
     nv = np.asarray(noise_var, dtype=np.float64)
     if nv.ndim == 0:
         w = np.full(cells.size, 1.0 / float(nv)) if float(nv) > 0 else None

@@ -22,6 +22,7 @@ from typing import Any
 import cvxpy as cp
 import numpy as np
 
+from .._validation import check_positive
 from ..errors import ModelError
 
 __all__ = [
@@ -98,16 +99,6 @@ class ZeroReg(Regularizer):
         return cp.Constant(0.0), []
 
 
-def _check_lam(lam: Any, what: str) -> float:
-    try:
-        lam = float(lam)
-    except (TypeError, ValueError):
-        raise ModelError(f"{what} weight must be a number >= 0, got {lam!r}") from None
-    if not np.isfinite(lam) or lam < 0:
-        raise ModelError(f"{what} weight must be a number >= 0, got {lam!r}")
-    return lam
-
-
 class Ridge(Regularizer):
     """``g(y) = lam ||y||_2^2``; with a quadratic loss: ``(G + lam I) y = h`` exactly."""
 
@@ -115,7 +106,7 @@ class Ridge(Regularizer):
     separable_prox = True
 
     def __init__(self, lam: float = 1.0) -> None:
-        self.lam = _check_lam(lam, "Ridge")
+        self.lam = check_positive(lam, "Ridge weight", error=ModelError)
 
     @property
     def ridge_coefficient(self) -> float:  # type: ignore[override]
@@ -141,7 +132,7 @@ class L1(Regularizer):
     separable_prox = True
 
     def __init__(self, lam: float = 1.0) -> None:
-        self.lam = _check_lam(lam, "L1")
+        self.lam = check_positive(lam, "L1 weight", error=ModelError)
 
     def get_params(self) -> dict[str, float]:
         return {"lam": self.lam}

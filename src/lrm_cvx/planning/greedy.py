@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._validation import as_factor_matrix
+from .._validation import as_factor_matrix, check_positive
 from ..cost import COSTS, make_cost
 from ..errors import PlanningError
 from ..information import CRITERIA, fisher_information, make_oracle
@@ -47,13 +47,7 @@ def initial_cells(region: Region, start: int, k: int) -> np.ndarray:
 
 
 def _check_budget(budget: Any) -> float:
-    try:
-        b = float(budget)
-    except (TypeError, ValueError):
-        raise PlanningError(f"budget must be a number (grid units), got {budget!r}") from None
-    if not np.isfinite(b) or b < 0:
-        raise PlanningError(f"budget must be >= 0 and finite (grid units), got {budget!r}")
-    return b
+    return check_positive(budget, "budget (grid units)", error=PlanningError)
 
 
 def _budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
