@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +14,8 @@ import xarray as xr
 
 from .errors import DataError, ModelError
 
-__all__ = ["as_generator", "as_factor_matrix", "atomic_output", "check_positive"]
+__all__ = ["as_generator", "as_factor_matrix", "atomic_output", "atomic_outputs",
+           "check_positive", "guard_outputs", "same_file"]
 
 
 def as_generator(random_state: Any) -> np.random.Generator:
@@ -73,6 +74,24 @@ def check_positive(
     return v
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _temp_beside(path: Path) -> Path:
+    """An empty temporary file in ``path``'s folder (same file system, so the rename is atomic),
+    with the permissions a plain ``open(path, "w")`` would give (``mkstemp`` makes it 0600)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())
+    except (AttributeError, OSError):  # pragma: no cover - platforms without fchmod
+        pass
+    os.close(fd)
+    return Path(tmp)
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success move it onto ``path`` atomically.
@@ -80,16 +99,75 @@ def atomic_output(path: str | os.PathLike, *, overwrite: bool = True) -> Iterato
     A failure leaves ``path`` untouched and removes the temporary file. With
     ``overwrite=False`` an existing ``path`` is an error.
     """
-    path = Path(path)
-    if not overwrite and path.exists():
-        raise FileExistsError(f"refusing to overwrite existing file {path}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    with atomic_outputs([path], overwrite=overwrite) as (tmp,):
+        yield tmp
+
+
+@contextlib.contextmanager
+def atomic_outputs(
+    paths: Sequence[str | os.PathLike], *, overwrite: bool = True
+) -> Iterator[list[Path]]:
+    """All-or-nothing write of several files: yield one temporary path beside each of ``paths``.
+
+    When the block succeeds every temporary file is renamed onto its target (``os.replace``,
+    atomic per file); when it raises, no target is touched and every temporary file is removed,
+    so a failure while writing the third output leaves the first two as they were. With
+    ``overwrite=False`` an existing target is a ``FileExistsError`` before anything is written.
+    """
+    targets = [Path(p) for p in paths]
+    for path in targets:
+        if path.is_dir():
+            raise IsADirectoryError(f"{path} is a folder; give a file name")
+        if not overwrite and path.exists():
+            raise FileExistsError(f"refusing to overwrite existing file {path}")
+    tmps: list[Path] = []
     try:
-        yield tmp_path
-        os.replace(tmp_path, path)
+        for path in targets:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmps.append(_temp_beside(path))
+        yield list(tmps)
+        for tmp, path in zip(tmps, targets):
+            os.replace(tmp, path)
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        for tmp in tmps:
+            if tmp.exists():
+                tmp.unlink()
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """True when ``a`` and ``b`` name the same file: equal resolved paths (symlinks, ``..``),
+    or ``os.path.samefile`` (hard links) when both exist."""
+    pa, pb = Path(a), Path(b)
+    if pa.resolve() == pb.resolve():
+        return True
+    try:
+        return os.path.samefile(pa, pb)
+    except OSError:
+        return False
+
+
+def guard_outputs(
+    outputs: Sequence[str | os.PathLike],
+    inputs: Sequence[str | os.PathLike] = (),
+    *,
+    overwrite: bool = False,
+    flag: str = "--overwrite",
+) -> list[Path]:
+    """Check, before any work, that writing ``outputs`` loses nothing; return them as Paths.
+
+    Refuses (``FileExistsError``) an output that is one of ``inputs`` (compared with
+    :func:`same_file`, so globs and folders must be expanded by the caller) whatever
+    ``overwrite`` says, an existing output unless ``overwrite`` (the message names ``flag``),
+    and (``IsADirectoryError``) an output that is an existing folder.
+    """
+    outs = [Path(p) for p in outputs]
+    for out in outs:
+        for inp in inputs:
+            if same_file(out, inp):
+                raise FileExistsError(
+                    f"refusing to write {out}: it is the input file {inp}; choose another output")
+        if out.is_dir():
+            raise IsADirectoryError(f"output {out} is an existing folder; give a file name")
+        if out.exists() and not overwrite:
+            raise FileExistsError(f"output {out} already exists; pass {flag} to replace it")
+    return outs
