@@ -22,6 +22,8 @@ from ..region import Region
 from . import kernels as K
 from .fit import FitResult, check_data, fit_glrm
 from .foldin import fold_in, fold_in_many, mean_std
+from .dynamics import Dynamics, TEMPORAL
+from .dynamics import estimate as estimate_dynamics
 from .losses import get_loss
 from .predictive import PREDICTIVE_ATTRS, fit_predictive, planner_terms, posterior_complete
 from .regularizers import get_regularizer
@@ -65,6 +67,10 @@ class GLRM:
     spatial : None or a covariance model name (``"exponential"``, ``"matern32"``, ...): fit a
         stationary covariance of the training residuals (``spatial_cov_``) for the low-rank
         trend + GP residual prediction, ``complete(..., spatial=True)``.
+    temporal : None (default: snapshots independent), ``"ar1"`` or ``"seasonal"``: after the
+        fit, estimate linear-Gaussian dynamics of the latent columns of ``X_`` (``dynamics_``,
+        :mod:`~lrm_cvx.glrm.dynamics`, docs/monitoring.md) for :meth:`monitor`. Needs a sorted,
+        unique time coordinate and at least 3 snapshots (numpy input: one step per row).
 
     Learned attributes: ``X_`` ``(component, time)``, ``Y_`` ``(component, cell)`` (DataArrays
     when fitted on xarray data, else ndarrays), ``region_``, ``objective_``, ``n_iter_``,
@@ -95,6 +101,7 @@ class GLRM:
         spatial: str | None = None,
         keep_dask: bool = False,
         dask_options: dict | None = None,
+        temporal: str | None = None,
     ) -> None:
         self.rank = rank
         self.loss = loss
@@ -112,6 +119,7 @@ class GLRM:
         self.spatial = spatial
         self.keep_dask = keep_dask
         self.dask_options = dask_options
+        self.temporal = temporal
 
     # ------------------------------------------------------------------ sklearn protocol
     @classmethod
@@ -160,6 +168,7 @@ class GLRM:
         never modified). Returns ``self``.
         """
         rank = self.rank
+        _check_temporal(self.temporal, data)
         loss = get_loss(self.loss)
         reg_x = get_regularizer(self.reg_x)
         reg_y = get_regularizer(self.reg_y)
@@ -178,6 +187,7 @@ class GLRM:
         )
         self._set_result(res, region, times, xarray=region is not None)
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
+        self._fit_dynamics(M[-1])
         del D, M
         return self
 
@@ -193,6 +203,7 @@ class GLRM:
             progress=bool(self.progress), keep_dask=bool(self.keep_dask),
             **(self.dask_options or {}))
         self._set_result(res, region, times, xarray=region is not None)
+        self._fit_dynamics()
         return self
 
     def _prepare(self, data, mask, region):
@@ -399,6 +410,49 @@ class GLRM:
             std = mean_std(Y, cov)
         return self._completion_dataset(pred, std, x, n_obs, ridge, single, lead)
 
+    # ------------------------------------------------------------------ temporal dynamics
+    def _fit_dynamics(self, last_mask: Any = None) -> None:
+        """Set ``dynamics_`` from ``X_`` and its time coordinate (None when ``temporal`` is)."""
+        self.dynamics_ = None
+        if self.temporal is None:
+            return
+        X = self._Xv
+        times = (self.X_[self.X_.dims[1]] if isinstance(self.X_, xr.DataArray)
+                 else np.arange(X.shape[1]))
+        init_cov = None
+        if last_mask is not None:  # the last snapshot's fold-in covariance from its training cells
+            obs = np.flatnonzero(np.asarray(last_mask))
+            Ys = self._Yv[:, obs]
+            nv = getattr(self, "noise_var_", None)
+            w = 1.0 / (nv[obs] if nv is not None else max(self.noise_std_, 1e-300) ** 2)
+            G = (Ys * w) @ Ys.T
+            if obs.size >= X.shape[0] and np.linalg.cond(G) < 1e12:
+                init_cov = np.linalg.inv(G)
+                init_cov = 0.5 * (init_cov + init_cov.T)
+        self.dynamics_ = estimate_dynamics(self.temporal, X, times, initial_cov=init_cov)
+
+    def fit_dynamics(self, temporal: str = "ar1", **options: Any) -> GLRM:
+        """Estimate ``dynamics_`` on an already fitted model (sets ``temporal``); ``options``
+        go to :func:`~lrm_cvx.glrm.dynamics.estimate_ar1` (``shrinkage``). Returns ``self``."""
+        self._check_fitted()
+        if temporal not in TEMPORAL or temporal is None:
+            raise ModelError(f"temporal must be 'ar1' or 'seasonal', got {temporal!r}")
+        self.temporal = temporal
+        X = self._Xv
+        times = (self.X_[self.X_.dims[1]] if isinstance(self.X_, xr.DataArray)
+                 else np.arange(X.shape[1]))
+        self.dynamics_ = estimate_dynamics(temporal, X, times, **options)
+        return self
+
+    def monitor(self, time: Any = None, **options: Any) -> Any:
+        """A :class:`~lrm_cvx.monitor.MonitorState` positioned after the last fitted snapshot
+        (or at ``time``); needs ``temporal`` (or ``dynamics_``) unless ``options`` give
+        ``memoryless=True``. See docs/monitoring.md."""
+        from ..monitor import MonitorState
+
+        self._check_fitted()
+        return MonitorState.from_model(self, time=time, **options)
+
     def planner_kwargs(self, prior: str | None = "empirical", spatial: bool = False) -> dict:
         """Keyword arguments for :func:`~lrm_cvx.planning.plan_greedy` matching this model's
         fold-in (prior precision, per-cell noise, per-cell scale; with ``spatial=True`` also
@@ -582,6 +636,11 @@ class GLRM:
         for name, arr in PREDICTIVE_ATTRS.arrays(self).items():
             ds[name] = (("cell",), arr)
         attrs.update(PREDICTIVE_ATTRS.attrs(self))
+        if getattr(self, "dynamics_", None) is not None:
+            dyn_vars, dyn_attrs = self.dynamics_.to_dataset_vars()
+            for name, value in dyn_vars.items():
+                ds[name] = value
+            attrs.update(dyn_attrs)
         if warn_custom:
             attrs["note"] = ("custom callable regularisers cannot be saved; their repr is stored "
                              f"in params ({', '.join(warn_custom)})")
@@ -634,6 +693,7 @@ class GLRM:
         model._time_dim = tdim
         model._set_result(res, region, ds[tdim], xarray=region is not None)
         PREDICTIVE_ATTRS.restore(model, ds)
+        model.dynamics_ = Dynamics.from_dataset(ds, time=ds[tdim].values[-1])
         return model
 
 
@@ -651,3 +711,22 @@ def _same(a: Any, b: Any) -> bool:
     except Exception:
         return a is b
 
+
+def _check_temporal(temporal: Any, data: Any) -> None:
+    """Refuse an unknown ``temporal`` or a DataArray without a time coordinate, before fitting."""
+    if temporal not in TEMPORAL:
+        raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
+    if temporal is None:
+        return
+    n_times = np.shape(data)[0] if np.ndim(data) >= 2 else 0
+    if n_times < 3:
+        raise ModelError(f"temporal={temporal!r} needs at least 3 snapshots to fit, got "
+                         f"{n_times}")
+    if isinstance(data, xr.DataArray):
+        tdim = data.dims[0]
+        if tdim not in data.coords:
+            raise DataError(f"temporal={temporal!r} needs a time coordinate on the data's "
+                            f"{tdim!r} dim, got none")
+        from .dynamics import check_times
+
+        check_times(data[tdim], f"data[{tdim!r}]")

@@ -20,7 +20,7 @@ from ..errors import DataError
 from .imagery import write_image_stack
 from .ndvi import write_ndvi_cdr
 
-__all__ = ["synthetic_field", "write_ndvi_cdr", "write_image_stack"]
+__all__ = ["synthetic_field", "synthetic_dynamic_field", "write_ndvi_cdr", "write_image_stack"]
 
 _CHUNK = 8  # time steps generated per matrix product
 
@@ -81,6 +81,7 @@ def synthetic_field(
     dtype: Any = np.float32,
     name: str = "ndvi",
     return_truth: bool = False,
+    time_factors: Any = None,
 ) -> xr.DataArray | tuple[xr.DataArray, dict[str, Any]]:
     """A planted rank-``rank`` NDVI-like field ``(time, lat, lon)`` with land mask and cloud gaps.
 
@@ -96,6 +97,9 @@ def synthetic_field(
     ``shape`` equal cells spanning ``lat_range`` x ``lon_range``; ``time`` daily from
     ``start_date``. Built one chunk of days at a time into one preallocated array, so memory is
     about the output's size (paper scale 310 x 1500 x 1400: 2.6 GB float32).
+
+    ``time_factors`` ``(rank, n_times)``: use these as ``X`` instead of the built-in level +
+    seasonal factors (e.g. a planted AR(1) process, :func:`synthetic_dynamic_field`).
 
     With ``return_truth`` also returns ``{"X": (rank, T) float64, "Y": (rank, ny, nx) float32,
     "land_mask": (ny, nx) bool, "noise": noise}``; ``X.T @ Y`` is the noise-free field.
@@ -135,7 +139,13 @@ def synthetic_field(
         mode = _smooth_field(rng, ay_f if k % 2 else ay_m, ax_f if k % 2 else ax_m)
         mode /= max(float(np.abs(mode).max()), 1e-12)
         Y[k] = np.maximum(amplitudes[k - 1], 0.05) * mode
-    X = _time_factors(rng, rank, n_times)
+    if time_factors is None:
+        X = _time_factors(rng, rank, n_times)
+    else:
+        X = np.asarray(time_factors, dtype=np.float64)
+        if X.shape != (rank, n_times) or not np.all(np.isfinite(X)):
+            raise DataError(f"time_factors must be a finite ({rank}, {n_times}) array, got "
+                            f"shape {X.shape}")
 
     land_field = _smooth_field(rng, _rbf_basis(ny, 0.1), _rbf_basis(nx, 0.1))
     land = _top_fraction(land_field, float(land_fraction))
@@ -209,6 +219,99 @@ def synthetic_field(
     )
     if return_truth:
         truth = {"X": X, "Y": Y, "land_mask": land, "noise": float(noise)}
+        return da, truth
+    return da
+
+
+def _stable_dynamics(rng: np.random.Generator, rank: int) -> np.ndarray:
+    """A random symmetric ``(rank, rank)`` matrix with eigenvalues in [0.6, 0.95]."""
+    R, _ = np.linalg.qr(rng.standard_normal((rank, rank)))
+    return (R * rng.uniform(0.6, 0.95, rank)) @ R.T
+
+
+def synthetic_dynamic_field(
+    n_times: int,
+    shape: tuple[int, int],
+    rank: int = 3,
+    *,
+    A: Any = None,
+    Q: Any = None,
+    seasonal_period: int | None = None,
+    seasonal_amplitude: float = 0.5,
+    freq: str = "D",
+    missing: float = 0.5,
+    noise: float = 0.02,
+    seed: Any = 0,
+    return_truth: bool = False,
+    **field_options: Any,
+) -> xr.DataArray | tuple[xr.DataArray, dict[str, Any]]:
+    """A planted rank-``rank`` field whose latent columns follow known AR(1) dynamics.
+
+    ``x_t = mu + s_t + z_t``, ``z_t = A z_{t-1} + w_t``, ``w_t ~ N(0, Q)``, ``z_0`` drawn from
+    the stationary distribution; ``mu = (1, 0, ..., 0)`` (mode 0 of :func:`synthetic_field` is
+    the base level), ``s_t`` a seasonal cycle of ``seasonal_period`` steps (random phase per
+    component, amplitude ``seasonal_amplitude``; level mode excluded) or 0. Defaults: ``A``
+    symmetric with eigenvalues in [0.6, 0.95] (strong persistence), ``Q = 0.1 (I - A A^T)``
+    (stationary covariance ``0.1 I`` when ``A`` is symmetric). The rest (spatial modes,
+    land mask, clouds, noise) is :func:`synthetic_field` with these ``time_factors``; ``freq``
+    ``"D"`` (daily) or ``"MS"`` (monthly, month starts) sets the time coordinate.
+
+    With ``return_truth`` also returns the truth of :func:`synthetic_field` plus ``"A"``,
+    ``"Q"``, ``"mu"``, ``"seasonal"`` ``(rank, T)`` and ``"Z"`` ``(rank, T)`` (the AR part).
+    """
+    n_times = _check_int(n_times, "n_times", 1)
+    rank = _check_int(rank, "rank", 1)
+    rng = as_generator(seed)
+    if A is None:
+        A = _stable_dynamics(rng, rank)
+    A = np.asarray(A, dtype=np.float64)
+    if A.shape != (rank, rank) or not np.all(np.isfinite(A)):
+        raise DataError(f"A must be a finite ({rank}, {rank}) matrix, got shape {A.shape}")
+    if np.max(np.abs(np.linalg.eigvals(A))) >= 1:
+        raise DataError("A must be stable (spectral radius < 1)")
+    if Q is None:
+        Q = 0.1 * (np.eye(rank) - A @ A.T)  # stationary covariance 0.1 I for a symmetric A
+        Q = 0.5 * (Q + Q.T)
+    Q = np.asarray(Q, dtype=np.float64)
+    if Q.shape != (rank, rank) or not np.all(np.isfinite(Q)):
+        raise DataError(f"Q must be a finite ({rank}, {rank}) matrix, got shape {Q.shape}")
+    w, V = np.linalg.eigh(0.5 * (Q + Q.T))
+    if w.min() < -1e-12 * max(w.max(), 1e-300):
+        raise DataError("Q must be positive semi-definite")
+    Qh = V * np.sqrt(np.maximum(w, 0.0))
+    if freq not in ("D", "MS"):
+        raise DataError(f"freq must be 'D' or 'MS', got {freq!r}")
+    import scipy.linalg
+
+    S0 = scipy.linalg.solve_discrete_lyapunov(A, Q)
+    w0, V0 = np.linalg.eigh(0.5 * (S0 + S0.T))
+    Z = np.empty((rank, n_times))
+    z = (V0 * np.sqrt(np.maximum(w0, 0.0))) @ rng.standard_normal(rank)
+    for t in range(n_times):  # a recursion over time (few steps), not over cells
+        if t > 0:
+            z = A @ z + Qh @ rng.standard_normal(rank)
+        Z[:, t] = z
+    mu = np.zeros(rank)
+    mu[0] = 1.0
+    seasonal = np.zeros((rank, n_times))
+    if seasonal_period is not None:
+        period = _check_int(seasonal_period, "seasonal_period", 2)
+        phase = rng.uniform(0, 2 * np.pi, rank)
+        seasonal = float(seasonal_amplitude) * np.sin(
+            2 * np.pi * np.arange(n_times)[None, :] / period + phase[:, None])
+        seasonal[0] = 0.0
+    X = mu[:, None] + seasonal + Z
+    out = synthetic_field(n_times, shape, rank, missing=missing, noise=noise, seed=rng,
+                          return_truth=True, time_factors=X, **field_options)
+    da, truth = out
+    if freq == "MS":
+        start = pd.Timestamp(field_options.get("start_date", "2013-01-01"))
+        da = da.assign_coords(time=("time", pd.date_range(start, periods=n_times, freq="MS")
+                                    .values.astype("datetime64[ns]"), da.time.attrs))
+    da.attrs["source"] = "lrm_cvx.io.samples.synthetic_dynamic_field"
+    da.attrs["comment"] += f"; latent AR(1) dynamics, seasonal period {seasonal_period}"
+    if return_truth:
+        truth.update(A=A, Q=Q, mu=mu, seasonal=seasonal, Z=Z)
         return da, truth
     return da
 

@@ -1,0 +1,384 @@
+"""Temporal dynamics of the latent vectors (issue 13): AR(1) and seasonal AR(1) on ``X``.
+
+A fitted GLRM gives one latent column ``x_t (k,)`` per snapshot. For persistent monitoring the
+columns are modelled as a linear-Gaussian process, so yesterday's posterior is today's prior:
+
+* ``"ar1"``: ``x_t - mu = A (x_{t-1} - mu) + w_t``, ``w_t ~ N(0, Q)``;
+* ``"seasonal"``: ``x_t - m_{s(t)} = A (x_{t-1} - m_{s(t-1)}) + w_t`` with ``m_s`` the mean of
+  ``X`` over the snapshots of season ``s`` (month of year for monthly data, day of year for
+  daily data; from the time coordinate, cftime calendars included).
+
+Irregular time coordinates: the *step* is the median spacing of the fitted times. ``A`` and
+``Q`` are estimated from the consecutive pairs whose spacing rounds to one step (other pairs are
+left out), and a forecast ``n = max(1, round(dt / step))`` steps ahead uses ``A^n`` and
+``Q_n = sum_{j<n} A^j Q A^j^T``. So monthly data (28-31 day months) count one step per month,
+and a missed month counts two. Times are converted to days (datetime64 or cftime) or used as
+plain numbers (a numeric or missing time coordinate: one unit = one number).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from ..errors import DataError, ModelError
+
+__all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "time_numbers",
+           "check_times", "seasons"]
+
+TEMPORAL = (None, "ar1", "seasonal")
+MAX_RADIUS = 0.99  # spectral radius of A is forced below this
+_MIN_SNAPSHOTS = 3
+
+
+# ----------------------------------------------------------------------------- times
+def _is_cftime(values: np.ndarray) -> bool:
+    return values.dtype == object and values.size > 0 and hasattr(values.flat[0], "calendar")
+
+
+def time_numbers(times: Any, name: str = "time") -> tuple[np.ndarray, str, str | None]:
+    """``(t (T,) float64, kind, calendar)``: times in days since the first (``kind``
+    ``"datetime"`` or ``"cftime"``) or as plain numbers (``kind`` ``"numeric"``)."""
+    values = np.asarray(getattr(times, "values", times))
+    if values.ndim != 1:
+        raise DataError(f"{name} must be a 1-D time coordinate, got shape {values.shape}")
+    if values.size == 0:
+        return np.zeros(0), "numeric", None
+    if np.issubdtype(values.dtype, np.datetime64):
+        ns = values.astype("datetime64[ns]")
+        if np.any(np.isnat(ns)):
+            raise DataError(f"{name} has missing (NaT) entries")
+        t = (ns - ns[0]).astype("timedelta64[ns]").astype(np.int64) / 86400e9
+        return t.astype(np.float64), "datetime", None
+    if _is_cftime(values):
+        t0 = values[0]
+        t = np.array([(v - t0).total_seconds() / 86400.0 for v in values])  # few times only
+        return t, "cftime", str(t0.calendar)
+    if np.issubdtype(values.dtype, np.number) and not np.issubdtype(values.dtype, np.complexfloating):
+        t = values.astype(np.float64)
+        if not np.all(np.isfinite(t)):
+            raise DataError(f"{name} has missing or non-finite entries")
+        return t - t[0], "numeric", None
+    raise DataError(f"{name} must hold datetimes, cftime dates or numbers, got dtype "
+                    f"{values.dtype}")
+
+
+def check_times(times: Any, name: str = "time") -> np.ndarray:
+    """Days (or numbers) of ``times`` after checking they are strictly increasing.
+
+    Unsorted or duplicated times are refused (DataError naming the first offending position):
+    the dynamics need one snapshot per time, in order; sort the data (``data.sortby("time")``)
+    and merge duplicates first.
+    """
+    if times is None:
+        raise DataError(f"{name}: temporal dynamics need a time coordinate, got none")
+    t, _, _ = time_numbers(times, name)
+    d = np.diff(t)
+    if np.any(d == 0):
+        i = int(np.flatnonzero(d == 0)[0]) + 1
+        raise DataError(f"{name} is duplicated at position {i}: one snapshot per time is needed")
+    if np.any(d < 0):
+        i = int(np.flatnonzero(d < 0)[0]) + 1
+        raise DataError(f"{name} is not sorted (position {i} is earlier than {i - 1}); sort the "
+                        "data by time first")
+    return t
+
+
+def seasons(times: Any, season: str) -> np.ndarray:
+    """Season index per time: ``"month"`` -> 0..11, ``"dayofyear"`` -> 0..365."""
+    import xarray as xr
+
+    values = np.asarray(getattr(times, "values", times))
+    da = xr.DataArray(values, dims=("t",))
+    if season == "month":
+        return da.dt.month.values.astype(np.int64) - 1
+    if season == "dayofyear":
+        return da.dt.dayofyear.values.astype(np.int64) - 1
+    raise ModelError(f"unknown season {season!r}")
+
+
+# ----------------------------------------------------------------------------- the model
+@dataclass(frozen=True)
+class Dynamics:
+    """Linear-Gaussian dynamics of the latent vector.
+
+    ``x' - m(t') = A^n (x - m(t)) + w``, ``w ~ N(0, Q_n)``, ``n`` steps between ``t`` and ``t'``
+    (module docstring). ``m(t)`` is ``mean`` for ``kind="ar1"`` and ``season_means[s(t)]`` for
+    ``kind="seasonal"``. ``initial_mean`` / ``initial_cov`` are the belief at ``time`` (the
+    last fitted snapshot). ``step`` is in days (or time-coordinate units for ``time_kind``
+    ``"numeric"``).
+    """
+
+    kind: str
+    A: np.ndarray                       # (k, k)
+    Q: np.ndarray                       # (k, k) PSD
+    mean: np.ndarray                    # (k,)
+    initial_mean: np.ndarray            # (k,)
+    initial_cov: np.ndarray             # (k, k)
+    step: float = 1.0
+    time_kind: str = "numeric"
+    season: str | None = None           # "month" | "dayofyear" for kind="seasonal"
+    season_means: np.ndarray | None = None   # (n_seasons, k)
+    shrinkage: float = 0.0
+    n_pairs: int = 0
+    time: Any = field(default=None, compare=False)  # time of the initial belief
+
+    def __post_init__(self) -> None:
+        k = np.asarray(self.A).shape[0]
+        for name, shape in (("A", (k, k)), ("Q", (k, k)), ("mean", (k,)),
+                            ("initial_mean", (k,)), ("initial_cov", (k, k))):
+            arr = np.asarray(getattr(self, name), dtype=np.float64)
+            if arr.shape != shape:
+                raise ModelError(f"Dynamics.{name} must have shape {shape}, got {arr.shape}")
+            if not np.all(np.isfinite(arr)):
+                raise ModelError(f"Dynamics.{name} has non-finite entries")
+            object.__setattr__(self, name, arr)
+        if self.kind not in ("ar1", "seasonal"):
+            raise ModelError(f"Dynamics.kind must be 'ar1' or 'seasonal', got {self.kind!r}")
+        if self.kind == "seasonal" and (self.season_means is None or self.season is None):
+            raise ModelError("seasonal dynamics need season and season_means")
+        if not (np.isfinite(self.step) and self.step > 0):
+            raise ModelError(f"Dynamics.step must be > 0, got {self.step!r}")
+
+    @property
+    def rank(self) -> int:
+        return int(self.A.shape[0])
+
+    def season_mean(self, time: Any) -> np.ndarray:
+        """``m(t)`` ``(k,)`` at one time."""
+        if self.kind == "ar1":
+            return self.mean
+        s = int(seasons(np.asarray([time]), self.season)[0])
+        return self.season_means[s]
+
+    def n_steps(self, t_from: Any, t_to: Any) -> int:
+        """Steps between two times: ``max(1, round(dt / step))`` for ``dt > 0``, 0 for ``dt = 0``
+        (the same snapshot), and 1 for ``dt < 0`` (only reached with ``force``)."""
+        t, _, _ = time_numbers(_as_time_array([t_from, t_to]), "time")
+        dt = float(t[1] - t[0])
+        if dt == 0:
+            return 0
+        return max(1, int(round(dt / self.step))) if dt > 0 else 1
+
+    def transition(self, n: int, t_from: Any = None, t_to: Any = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(A_n, Q_n, c)`` for ``n`` steps: ``x' = A_n x + c + w``, ``w ~ N(0, Q_n)``."""
+        k = self.rank
+        An, Qn = np.eye(k), np.zeros((k, k))
+        for _ in range(int(n)):  # n is a small number of steps
+            Qn = self.A @ Qn @ self.A.T + self.Q
+            An = self.A @ An
+        if n == 0:
+            return An, Qn, np.zeros(k)
+        m_from = self.season_mean(t_from) if self.kind == "seasonal" else self.mean
+        m_to = self.season_mean(t_to) if self.kind == "seasonal" else self.mean
+        return An, 0.5 * (Qn + Qn.T), m_to - An @ m_from
+
+    def stationary_cov(self) -> np.ndarray:
+        """The stationary covariance ``S = A S A^T + Q`` (discrete Lyapunov equation)."""
+        import scipy.linalg
+
+        S = scipy.linalg.solve_discrete_lyapunov(self.A, self.Q)
+        return 0.5 * (S + S.T)
+
+    def with_initial(self, mean: np.ndarray, cov: np.ndarray, time: Any = None) -> Dynamics:
+        return replace(self, initial_mean=np.asarray(mean, float),
+                       initial_cov=np.asarray(cov, float), time=time)
+
+    # ------------------------------------------------------------------ NetCDF
+    def to_dataset_vars(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """``(variables, attrs)`` to merge into the model's NetCDF file (prefix ``dynamics_``)."""
+        dims2 = ("component", "component_b")
+        out = {
+            "dynamics_A": (dims2, self.A),
+            "dynamics_Q": (dims2, self.Q),
+            "dynamics_mean": (("component",), self.mean),
+            "dynamics_initial_mean": (("component",), self.initial_mean),
+            "dynamics_initial_cov": (dims2, self.initial_cov),
+        }
+        if self.season_means is not None:
+            out["dynamics_season_means"] = (("season", "component"), self.season_means)
+        attrs = {"dynamics_kind": self.kind, "dynamics_step": float(self.step),
+                 "dynamics_time_kind": self.time_kind,
+                 "dynamics_season": self.season or "", "dynamics_shrinkage": self.shrinkage,
+                 "dynamics_n_pairs": int(self.n_pairs)}
+        return out, attrs
+
+    @classmethod
+    def from_dataset(cls, ds: Any, time: Any = None) -> Dynamics | None:
+        """The dynamics stored by :meth:`to_dataset_vars`, or None when the file has none."""
+        if "dynamics_kind" not in ds.attrs:
+            return None
+        try:
+            sm = ds["dynamics_season_means"].values if "dynamics_season_means" in ds else None
+            return cls(
+                kind=str(ds.attrs["dynamics_kind"]), A=ds["dynamics_A"].values,
+                Q=ds["dynamics_Q"].values, mean=ds["dynamics_mean"].values,
+                initial_mean=ds["dynamics_initial_mean"].values,
+                initial_cov=ds["dynamics_initial_cov"].values,
+                step=float(ds.attrs["dynamics_step"]),
+                time_kind=str(ds.attrs.get("dynamics_time_kind", "numeric")),
+                season=str(ds.attrs.get("dynamics_season", "")) or None, season_means=sm,
+                shrinkage=float(ds.attrs.get("dynamics_shrinkage", 0.0)),
+                n_pairs=int(ds.attrs.get("dynamics_n_pairs", 0)), time=time)
+        except KeyError as exc:
+            raise DataError(f"the model file's dynamics are incomplete (missing {exc})") from None
+
+
+def _as_time_array(values: list) -> np.ndarray:
+    if any(isinstance(v, np.datetime64) for v in values):
+        return np.asarray(values, dtype="datetime64[ns]")
+    arr = np.empty(len(values), dtype=object)
+    arr[:] = values
+    if not _is_cftime(arr):
+        try:
+            return np.asarray(values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise DataError(f"times {values!r} are neither datetimes nor numbers") from None
+    return arr
+
+
+# ----------------------------------------------------------------------------- estimation
+def _check_X(X: Any, times: Any) -> tuple[np.ndarray, np.ndarray]:
+    X = np.asarray(getattr(X, "values", X), dtype=np.float64)
+    if X.ndim != 2:
+        raise ModelError(f"X must be a (k, T) matrix of latent columns, got shape {X.shape}")
+    if not np.all(np.isfinite(X)):
+        raise ModelError("X has non-finite entries")
+    k, T = X.shape
+    if T < _MIN_SNAPSHOTS:
+        raise ModelError(f"temporal dynamics need at least {_MIN_SNAPSHOTS} fitted snapshots, "
+                         f"got {T}")
+    if times is None:
+        raise DataError("times: temporal dynamics need a time coordinate, got none")
+    t = check_times(times, "times")
+    if t.size != T:
+        raise DataError(f"times has {t.size} entries, X has {T} columns")
+    return X, t
+
+
+def _step_pairs(t: np.ndarray) -> tuple[float, np.ndarray]:
+    """Median step and the indices ``i`` of pairs ``(i-1, i)`` one step apart."""
+    d = np.diff(t)
+    step = float(np.median(d))
+    ok = np.flatnonzero(np.round(d / step) == 1) + 1
+    return step, ok
+
+
+def _fit_var(Z: np.ndarray, idx: np.ndarray, shrinkage: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(A, Q)`` of ``z_i = A z_{i-1} + w`` over pairs ``idx``: ridge least squares with
+    ``shrinkage * tr(Z0 Z0^T) / k`` towards 0, ``A`` scaled to spectral radius <= MAX_RADIUS,
+    ``Q`` the residual covariance with eigenvalues clipped to be PSD."""
+    k = Z.shape[0]
+    n = idx.size
+    if n < 2:
+        raise ModelError(f"temporal dynamics need at least 2 pairs of snapshots one time step "
+                         f"apart, got {n}")
+    Z0, Z1 = Z[:, idx - 1], Z[:, idx]
+    G = Z0 @ Z0.T
+    lam = float(shrinkage) * max(np.trace(G), 1e-300) / k
+    A = np.linalg.solve(G + lam * np.eye(k), Z0 @ Z1.T).T
+    rho = float(np.max(np.abs(np.linalg.eigvals(A)))) if k else 0.0
+    if rho > MAX_RADIUS:
+        A = A * (MAX_RADIUS / rho)
+    R = Z1 - A @ Z0
+    Q = R @ R.T / max(n - 1, 1)
+    Q = 0.5 * (Q + Q.T)
+    w, V = np.linalg.eigh(Q)
+    floor = 1e-9 * max(float(np.max(w)), 1e-300)
+    Q = (V * np.maximum(w, floor)) @ V.T
+    return A, 0.5 * (Q + Q.T)
+
+
+def _check_shrinkage(shrinkage: Any) -> float:
+    try:
+        s = float(shrinkage)
+    except (TypeError, ValueError):
+        raise ModelError(f"shrinkage must be a number >= 0, got {shrinkage!r}") from None
+    if not (np.isfinite(s) and s >= 0):
+        raise ModelError(f"shrinkage must be a number >= 0, got {shrinkage!r}")
+    return s
+
+
+def _time_kind(times: Any) -> str:
+    return time_numbers(times, "times")[1]
+
+
+def _last_time(times: Any) -> Any:
+    values = np.asarray(getattr(times, "values", times))
+    return values[-1]
+
+
+def estimate_ar1(X: Any, times: Any, shrinkage: float = 1e-3,
+                 initial_cov: Any = None) -> Dynamics:
+    """AR(1) dynamics ``x_t - mu = A (x_{t-1} - mu) + w`` of the columns of ``X (k, T)``.
+
+    ``mu`` is the mean column; ``A`` the least-squares fit over the consecutive pairs one step
+    apart with a ridge ``shrinkage * tr(Z0 Z0^T) / k`` towards 0, scaled down if needed so its
+    spectral radius is <= 0.99; ``Q`` the residual covariance (made PSD). The initial belief is
+    the last column with ``initial_cov`` (default zeros: the last fitted snapshot is taken as
+    known). ``times`` ``(T,)``: strictly increasing datetimes, cftime dates or numbers.
+    """
+    shrinkage = _check_shrinkage(shrinkage)
+    X, t = _check_X(X, times)
+    k = X.shape[0]
+    step, idx = _step_pairs(t)
+    mu = X.mean(axis=1)
+    A, Q = _fit_var(X - mu[:, None], idx, shrinkage)
+    P0 = np.zeros((k, k)) if initial_cov is None else np.asarray(initial_cov, dtype=np.float64)
+    return Dynamics(kind="ar1", A=A, Q=Q, mean=mu, initial_mean=X[:, -1].copy(),
+                    initial_cov=P0, step=step, time_kind=_time_kind(times),
+                    shrinkage=shrinkage, n_pairs=int(idx.size), time=_last_time(times))
+
+
+def estimate_seasonal(X: Any, times: Any, shrinkage: float = 1e-3,
+                      initial_cov: Any = None) -> Dynamics:
+    """Seasonal AR(1): ``m_s`` = mean of ``X``'s columns per season, AR(1) on the anomalies.
+
+    The season is the month of year when the median step is 27-32 days (monthly data) and the
+    day of year when it is at most 1.5 days (daily data); other steps, or a time coordinate
+    that is not dates, raise ModelError. The seasons must be seen at least twice (median count
+    over the seasons present: two years of data); seasons never seen get the overall mean.
+    """
+    shrinkage = _check_shrinkage(shrinkage)
+    X, t = _check_X(X, times)
+    _, kind, _ = time_numbers(times, "times")
+    if kind == "numeric":
+        raise ModelError("temporal='seasonal' needs a datetime (or cftime) time coordinate")
+    step, idx = _step_pairs(t)
+    if 27.0 <= step <= 32.0:
+        season, n_seasons = "month", 12
+    elif step <= 1.5:
+        season, n_seasons = "dayofyear", 366
+    else:
+        raise ModelError(f"temporal='seasonal' needs monthly or daily data; the median time "
+                         f"step is {step:g} days (use temporal='ar1')")
+    s = seasons(times, season)
+    k = X.shape[0]
+    counts = np.bincount(s, minlength=n_seasons)
+    if np.median(counts[counts > 0]) < 2:
+        raise ModelError("temporal='seasonal' needs the seasons seen at least twice (two years "
+                         "of data); use temporal='ar1'")
+    sums = np.zeros((n_seasons, k))
+    np.add.at(sums, s, X.T)
+    means = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None],
+                     X.mean(axis=1)[None, :])
+    Z = X - means[s].T
+    A, Q = _fit_var(Z, idx, shrinkage)
+    P0 = np.zeros((k, k)) if initial_cov is None else np.asarray(initial_cov, dtype=np.float64)
+    return Dynamics(kind="seasonal", A=A, Q=Q, mean=X.mean(axis=1),
+                    initial_mean=X[:, -1].copy(), initial_cov=P0, step=step, time_kind=kind,
+                    season=season, season_means=means, shrinkage=shrinkage,
+                    n_pairs=int(idx.size), time=_last_time(times))
+
+
+def estimate(temporal: str, X: Any, times: Any, shrinkage: float = 1e-3,
+             initial_cov: Any = None) -> Dynamics:
+    """Dispatch on ``temporal`` (``"ar1"`` or ``"seasonal"``); anything else is a ModelError."""
+    if temporal == "ar1":
+        return estimate_ar1(X, times, shrinkage, initial_cov)
+    if temporal == "seasonal":
+        return estimate_seasonal(X, times, shrinkage, initial_cov)
+    raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
