@@ -1,0 +1,542 @@
+"""The Gaussian belief over one snapshot's latent vector (issue 13, step 1).
+
+Every fold-in of the project (``GLRM.complete``, the planner's prior terms, ``evaluate``'s
+errors, the monitoring filter) is this module's algebra. The observation model of a fitted GLRM:
+
+    value_j = offset_j + scale_j * (y_j^T x + r_j + e_j),    e_j ~ N(0, noise_var_j),
+
+``r ~ GP(spatial_cov)`` an optional spatial residual (then the independent noise is the
+covariance's nugget), ``offset``/``scale`` 0/1 when the model has none. The belief
+``x ~ N(mean, cov)`` is kept in information form (``precision``, ``shift = precision @ mean``), so a
+flat prior (the paper's least-squares fold-in, precision 0) is allowed and an update is a sum:
+
+    precision' = precision + Y_S W Y_S^T,     shift' = shift + Y_S W z_S,
+
+with ``z = (value - offset) / scale`` and ``W = diag(1 / noise_var_S)`` (``C^-1``, the GP residual's
+covariance plus nugget, when spatial: generalised least squares). Costs: ``O(n k^2)`` per update
+(``O(n^3)`` with the spatial residual: one Cholesky of the ``n x n`` observation covariance),
+``O(L k^2)`` per predicted map.
+
+Observations:
+
+* cell indices must be integers (integral floats such as ``3.0`` are accepted; ``12.7`` is a
+  :class:`~lrm_cvx.errors.DataError`, never truncated);
+* NaN values are dropped and counted (``n_dropped``); infinite values are a DataError;
+* no observations at all: the belief is returned unchanged;
+* a repeated cell is a repeated independent measurement of the same value (each adds its
+  information ``y y^T / noise_var``; sequential updates equal one batch update). With the spatial
+  residual the repeats of one cell are averaged into one observation first (the residual ``r`` is
+  shared; the nugget is not divided by the number of repeats, which is conservative).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+from scipy.spatial.distance import cdist
+
+from .._validation import check_positive
+from ..errors import DataError, ModelError
+
+__all__ = ["ObservationModel", "LatentPosterior", "PRIOR_KINDS", "check_cells", "empirical_moments"]
+
+PRIOR_KINDS = ("empirical", "flat", "ridge", "custom")
+_NOISE_FLOOR = 1e-30  # a fitted noise of exactly 0 (rank = T): a tiny stand-in, not a division by 0
+_SINGULAR = 1e-12  # smallest eigenvalue / largest below this: the belief is improper
+
+
+def check_cells(cells: Any, L: int, name: str = "cells") -> np.ndarray:
+    """``cells`` as an int64 ``(n,)`` array of indices in ``[0, L)``.
+
+    Integral floats (``3.0``) are accepted; non-integral ones (``12.7``), booleans, NaN and
+    out-of-range indices raise DataError naming ``name``.
+    """
+    c = np.asarray(cells)
+    if c.ndim == 0:
+        c = c.reshape(1)
+    if c.ndim != 1:
+        raise DataError(f"{name} must be a 1-D sequence of cell indices, got shape {c.shape}")
+    if c.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if c.dtype == np.bool_ or not (np.issubdtype(c.dtype, np.integer)
+                                   or np.issubdtype(c.dtype, np.floating)):
+        raise DataError(f"{name} must be integer cell indices, got dtype {c.dtype}")
+    if np.issubdtype(c.dtype, np.floating):
+        bad = ~np.isfinite(c) | (c != np.round(c))
+        if bad.any():
+            raise DataError(f"{name} must be integer cell indices, got {c[bad][0]!r} "
+                            f"({int(bad.sum())} non-integer)")
+    c = c.astype(np.int64)
+    if c.min() < 0 or c.max() >= L:
+        raise DataError(f"{name} must be indices in [0, {L}), got min {c.min()} max {c.max()}")
+    return c
+
+
+def _sym(A: np.ndarray) -> np.ndarray:
+    return 0.5 * (A + A.T)
+
+
+def _inverse(P: np.ndarray) -> np.ndarray | None:
+    """Symmetric inverse of a precision/covariance matrix, None when (numerically) singular."""
+    ev = np.linalg.eigvalsh(P)
+    if not np.all(np.isfinite(ev)) or ev[0] <= _SINGULAR * max(ev[-1], 1e-300):
+        return None
+    return _sym(np.linalg.inv(P))
+
+
+def empirical_moments(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(mean (k,), cov (k, k))`` of the training columns of ``X (k, T)`` (ddof 1, plus 1e-9 x
+    its mean eigenvalue on the diagonal so it is invertible)."""
+    X = np.asarray(X, dtype=np.float64)
+    k, T = X.shape
+    if T < 2:
+        raise ModelError("prior='empirical' needs a model fitted on at least 2 times")
+    S0 = np.atleast_2d(np.cov(X))
+    S0 = S0 + 1e-9 * max(np.trace(S0), 1e-300) / k * np.eye(k)
+    return X.mean(axis=1), S0
+
+
+# ============================================================================ observation model
+@dataclass(frozen=True, eq=False)
+class ObservationModel:
+    """How a snapshot's values relate to its latent vector ``x (k,)``: for cell ``j``,
+    ``value_j = offset_j + scale_j * (y_j^T x + r_j + e_j)``, ``e_j ~ N(0, noise_var_j)``,
+    ``r ~ GP(spatial_cov)`` (optional; then ``e`` is the covariance's nugget).
+
+    ``Y (k, L)``; ``offset``/``scale`` ``(L,)`` data units or None; ``noise_var`` a scalar or
+    ``(L,)`` (fit units, > 0); ``spatial_cov`` a :class:`~lrm_cvx.spatial.ResidualCovariance`
+    (fit units) or None; ``region`` the cells' Region (needed with ``spatial_cov``);
+    ``ref_var`` the global noise variance that scales a ridge prior ``N(0, ref_var / ridge I)``
+    (default: ``spatial_cov.total_variance`` when spatial, else the mean of ``noise_var``).
+    """
+
+    Y: np.ndarray
+    offset: np.ndarray | None = None
+    scale: np.ndarray | None = None
+    noise_var: Any = 1.0
+    spatial_cov: Any = None
+    region: Any = None
+    ref_var: float | None = None
+
+    def __post_init__(self) -> None:
+        Y = np.asarray(self.Y)
+        if Y.ndim != 2 or not (np.issubdtype(Y.dtype, np.floating)
+                               or np.issubdtype(Y.dtype, np.integer)):
+            raise DataError(f"Y must be a (k, L) numeric matrix, got {Y.dtype} {Y.shape}")
+        Y = np.ascontiguousarray(Y, dtype=np.float64)
+        k, L = Y.shape
+        object.__setattr__(self, "Y", Y)
+        for name in ("offset", "scale"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            v = np.asarray(v, dtype=np.float64)
+            if v.shape != (L,) or not np.all(np.isfinite(v)):
+                raise ModelError(f"{name} must be a finite ({L},) array, got shape {v.shape}")
+            if name == "scale" and np.any(v <= 0):
+                raise ModelError("scale must be > 0 at every cell")
+            object.__setattr__(self, name, v)
+        nv = np.asarray(self.noise_var, dtype=np.float64)
+        if nv.ndim not in (0,) and nv.shape != (L,):
+            raise ModelError(f"noise_var must be a scalar or ({L},), got shape {nv.shape}")
+        if not np.all(np.isfinite(nv)) or np.any(nv < 0):
+            raise ModelError("noise_var must be finite and >= 0")
+        nv = np.maximum(nv, _NOISE_FLOOR)
+        object.__setattr__(self, "noise_var", float(nv) if nv.ndim == 0 else nv)
+        if self.spatial_cov is not None:
+            from ..spatial import ResidualCovariance
+
+            if not isinstance(self.spatial_cov, ResidualCovariance):
+                raise ModelError("spatial_cov must be a ResidualCovariance, got "
+                                 f"{type(self.spatial_cov).__name__}")
+            if self.region is None or getattr(self.region, "n_cells", None) != L:
+                raise ModelError(f"a spatial observation model needs the region of the {L} cells")
+        if self.ref_var is None:
+            ref = (self.spatial_cov.total_variance if self.spatial_cov is not None
+                   else float(np.mean(nv)))
+            object.__setattr__(self, "ref_var", max(float(ref), _NOISE_FLOOR))
+
+    @classmethod
+    def from_model(cls, model: Any, spatial: bool | None = None) -> ObservationModel:
+        """The observation model of a fitted :class:`~lrm_cvx.glrm.GLRM`: its ``Y_``,
+        ``offset_``, ``scale_``, ``noise_var_`` (else ``noise_std_^2``), and with ``spatial``
+        (None: whenever the model has one) its ``spatial_cov_`` and region."""
+        model._check_fitted()
+        cov = getattr(model, "spatial_cov_", None)
+        if spatial is None:
+            spatial = cov is not None
+        if spatial and cov is None:
+            raise ModelError("spatial=True needs a model fitted with spatial='exponential' "
+                             "(or another covariance model)")
+        nv = getattr(model, "noise_var_", None)
+        sigma2 = float(model.noise_std_) ** 2
+        return cls(Y=model._Yv, offset=getattr(model, "offset_", None),
+                   scale=getattr(model, "scale_", None),
+                   noise_var=sigma2 if nv is None else nv,
+                   spatial_cov=cov if spatial else None,
+                   region=model.region_ if spatial else None,
+                   ref_var=cov.total_variance if spatial else max(sigma2, _NOISE_FLOOR))
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def k(self) -> int:
+        return self.Y.shape[0]
+
+    @property
+    def n_cells(self) -> int:
+        return self.Y.shape[1]
+
+    @property
+    def is_spatial(self) -> bool:
+        return self.spatial_cov is not None
+
+    @property
+    def is_plain(self) -> bool:
+        """No offset, scale, per-cell noise or spatial residual: the paper's model."""
+        return (self.offset is None and self.scale is None and np.ndim(self.noise_var) == 0
+                and self.spatial_cov is None)
+
+    def without_spatial(self) -> ObservationModel:
+        """The same model without the spatial residual (independent noise ``noise_var``)."""
+        if not self.is_spatial:
+            return self
+        return replace(self, spatial_cov=None, region=None, ref_var=None)
+
+    def to_fit_units(self, cells: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """``(values - offset[cells]) / scale[cells]`` (float64)."""
+        z = np.asarray(values, dtype=np.float64)
+        if self.offset is not None:
+            z = z - self.offset[cells]
+        if self.scale is not None:
+            z = z / self.scale[cells]
+        return z
+
+    def to_data_units(self, mean: np.ndarray, std: np.ndarray | None = None,
+                      cells: Any = slice(None)) -> tuple[np.ndarray, np.ndarray | None]:
+        """Map fit-unit means (and stds) at ``cells`` back to data units."""
+        if self.scale is not None:
+            mean = mean * self.scale[cells]
+            std = None if std is None else std * self.scale[cells]
+        if self.offset is not None:
+            mean = mean + self.offset[cells]
+        return mean, std
+
+    def noise_at(self, cells: np.ndarray) -> np.ndarray:
+        """Independent noise variance of one measurement at ``cells`` (fit units)."""
+        if self.is_spatial:
+            return np.full(len(cells), float(self.spatial_cov.nugget))
+        nv = self.noise_var
+        return np.full(len(cells), nv) if np.ndim(nv) == 0 else nv[cells]
+
+    def observation_terms(self, cells: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(Y_S W Y_S^T (k, k), Y_S W z (k,))`` of observations ``z`` (fit units) at ``cells``:
+        ``W = diag(1 / noise_var)``, or ``C^-1`` with the spatial residual (GLS; the cells must
+        then be distinct)."""
+        Ys = self.Y[:, cells]
+        if not self.is_spatial:
+            w = 1.0 / self.noise_at(cells)
+            Yw = Ys * w
+            return Yw @ Ys.T, Yw @ z
+        from .. import spatial as sp
+
+        cov = self.spatial_cov
+        xyz = sp._coords(self.region, cov.metric, cells)
+        C = cov.covariance(sp._arc(cdist(xyz, xyz), cov.metric), nugget=False)
+        C[np.diag_indices_from(C)] = cov.total_variance
+        Lc = sp._cholesky(C, cov.total_variance, "observation")
+        Ws = scipy.linalg.solve_triangular(Lc, Ys.T, lower=True)
+        zs = scipy.linalg.solve_triangular(Lc, z, lower=True)
+        return Ws.T @ Ws, Ws.T @ zs
+
+
+# ============================================================================ the belief
+@dataclass(frozen=True, eq=False)
+class LatentPosterior:
+    """Gaussian belief ``x ~ N(mean, cov)`` over one snapshot's latent vector (immutable).
+
+    Kept in information form: ``precision (k, k)`` and ``shift = precision @ mean (k,)``; a flat
+    (improper) belief has ``precision`` 0 and ``mean``/``cov`` raise ModelError until enough
+    observations make it proper (``is_proper``). ``cells``/``values`` are the observations of
+    this snapshot assimilated so far (data units, NaN dropped; ``n_dropped`` counts the NaN), and
+    ``base_precision``/``base_shift`` the belief before them (the spatial GLS is re-solved from
+    it over all of the snapshot's cells). Build with :meth:`prior` or :meth:`from_moments`.
+    """
+
+    obs_model: ObservationModel
+    precision: np.ndarray
+    shift: np.ndarray
+    base_precision: np.ndarray
+    base_shift: np.ndarray
+    cells: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    values: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    n_dropped: int = 0
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_moments(cls, obs_model: ObservationModel, mean: Any = None, cov: Any = None, *,
+                     precision: Any = None) -> LatentPosterior:
+        """A belief from ``mean (k,)`` and ``cov (k, k)`` (or ``precision``; neither: flat)."""
+        k = obs_model.k
+        m = np.zeros(k) if mean is None else np.asarray(mean, dtype=np.float64)
+        if m.shape != (k,) or not np.all(np.isfinite(m)):
+            raise ModelError(f"mean must be a finite ({k},) array, got shape {m.shape}")
+        if cov is not None and precision is not None:
+            raise ModelError("give cov or precision, not both")
+        if cov is not None:
+            S = np.asarray(cov, dtype=np.float64)
+            if S.shape != (k, k) or not np.all(np.isfinite(S)):
+                raise ModelError(f"cov must be a finite ({k}, {k}) matrix, got shape {S.shape}")
+            P = _inverse(_sym(S))
+            if P is None:
+                raise ModelError("cov must be symmetric positive definite")
+        elif precision is not None:
+            P = np.asarray(precision, dtype=np.float64)
+            if P.shape != (k, k) or not np.all(np.isfinite(P)):
+                raise ModelError(f"precision must be a finite ({k}, {k}) matrix")
+            P = _sym(P)
+            if np.linalg.eigvalsh(P)[0] < -1e-10 * max(np.abs(P).max(), 1e-300):
+                raise ModelError("precision must be positive semi-definite")
+        else:
+            P = np.zeros((k, k))
+        h = P @ m
+        post = cls(obs_model, P, h, P, h)
+        if cov is not None:  # keep the given covariance exactly (no round trip)
+            post.__dict__["cov"] = _sym(np.asarray(cov, dtype=np.float64))
+            post.__dict__["mean"] = m.copy()
+        return post
+
+    @classmethod
+    def prior(cls, model_or_obs: Any, kind: str = "empirical", ridge: float = 0.0,
+              mean: Any = None, cov: Any = None, *, spatial: bool | None = None
+              ) -> LatentPosterior:
+        """The belief before any observation of a snapshot.
+
+        ``model_or_obs``: a fitted GLRM (its :meth:`ObservationModel.from_model` with
+        ``spatial``) or an :class:`ObservationModel`. ``kind``:
+
+        * ``"empirical"``: ``N(mean(X_), cov(X_))`` over the model's training times (needs a model);
+        * ``"flat"``: no prior, the paper's least-squares fold-in; with ``ridge > 0`` it is the
+          ridge prior below (the paper's ridge);
+        * ``"ridge"``: ``N(0, ref_var / ridge I)``, i.e. ``(Y_S Y_S^T + ridge I)^-1`` for the
+          plain model (``ridge = 0``: flat);
+        * ``"custom"``: ``N(mean, cov)`` as given.
+        """
+        if isinstance(model_or_obs, ObservationModel):
+            obs, model = model_or_obs, None
+        else:
+            obs, model = ObservationModel.from_model(model_or_obs, spatial=spatial), model_or_obs
+        if kind not in PRIOR_KINDS:
+            raise ModelError(f"prior kind must be one of {PRIOR_KINDS}, got {kind!r}")
+        ridge = check_positive(ridge, "ridge", error=ModelError)
+        if kind != "custom" and (mean is not None or cov is not None):
+            raise ModelError(f"mean/cov are for kind='custom', not {kind!r}")
+        if kind == "custom":
+            if cov is None:
+                raise ModelError("kind='custom' needs cov (a (k, k) covariance)")
+            return cls.from_moments(obs, mean, cov)
+        if kind == "empirical":
+            if model is None:
+                raise ModelError("kind='empirical' needs the fitted model (its X_), not an "
+                                 "ObservationModel")
+            m0, S0 = empirical_moments(model._Xv)
+            return cls.from_moments(obs, m0, S0)
+        if ridge > 0:
+            return cls.from_moments(obs, None, precision=(ridge / obs.ref_var) * np.eye(obs.k))
+        return cls.from_moments(obs)
+
+    # ------------------------------------------------------------------ moments
+    @property
+    def k(self) -> int:
+        return self.obs_model.k
+
+    @cached_property
+    def _cov_or_none(self) -> np.ndarray | None:
+        return _inverse(self.precision)
+
+    @property
+    def is_proper(self) -> bool:
+        """True when the precision is nonsingular (mean and covariance are defined)."""
+        return "cov" in self.__dict__ or self._cov_or_none is not None
+
+    @property
+    def is_flat(self) -> bool:
+        """True when the precision is exactly zero (no prior, no observation)."""
+        return not np.any(self.precision)
+
+    def _need_proper(self) -> None:
+        if not self.is_proper:
+            k, n = self.k, self.cells.size
+            raise ModelError(
+                f"the fold-in is singular: {n} observation(s) do not determine the rank-{k} "
+                f"latent vector (the paper's fold-in needs at least {k} cells with independent "
+                "factors); observe more cells, pass ridge > 0 or use prior='empirical'")
+
+    @cached_property
+    def cov(self) -> np.ndarray:
+        """Posterior covariance ``(k, k)`` (fit units); ModelError when improper."""
+        self._need_proper()
+        return self._cov_or_none
+
+    @cached_property
+    def mean(self) -> np.ndarray:
+        """Posterior mean ``(k,)``; ModelError when improper."""
+        return self.cov @ self.shift
+
+    # ------------------------------------------------------------------ the fold-in
+    def update(self, cells: Any, values: Any) -> LatentPosterior:
+        """Assimilate ``values`` (data units) at ``cells`` of this snapshot; a new belief.
+
+        NaN values are dropped (counted in ``n_dropped``); no observation returns ``self``.
+        Integer cells only (DataError otherwise); a repeated cell is a repeated independent
+        measurement (averaged first with the spatial residual, see the module docstring).
+        """
+        obs = self.obs_model
+        cells = check_cells(cells, obs.n_cells)
+        v = np.asarray(values, dtype=np.float64)
+        if v.ndim == 0 and cells.size == 1:
+            v = v.reshape(1)
+        if v.shape != cells.shape:
+            raise DataError(f"values has shape {v.shape}, cells has shape {cells.shape}")
+        if np.isinf(v).any():
+            raise DataError("values must be finite (NaN marks a missing value)")
+        keep = ~np.isnan(v)
+        dropped = int(v.size - keep.sum())
+        cells, v = cells[keep], v[keep]
+        if cells.size == 0:
+            return self if dropped == 0 else replace(self, n_dropped=self.n_dropped + dropped)
+        all_cells = np.concatenate([self.cells, cells])
+        all_values = np.concatenate([self.values, v])
+        if obs.is_spatial:  # correlated residuals: re-solve the GLS over all of today's cells
+            uc, zc = _average_repeats(all_cells, obs.to_fit_units(all_cells, all_values))
+            G, b = obs.observation_terms(uc, zc)
+            P, h = self.base_precision + G, self.base_shift + b
+        else:
+            G, b = obs.observation_terms(cells, obs.to_fit_units(cells, v))
+            P, h = self.precision + G, self.shift + b
+        return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
+                               all_cells, all_values, self.n_dropped + dropped)
+
+    # ------------------------------------------------------------------ prediction
+    def _spatial(self, spatial: bool | None) -> bool:
+        if spatial is None:
+            return self.obs_model.is_spatial
+        if spatial and not self.obs_model.is_spatial:
+            raise ModelError("spatial=True needs an observation model with a spatial residual "
+                             "(a model fitted with spatial='exponential' or another covariance)")
+        return bool(spatial)
+
+    def _latent_var(self, spatial: bool, cells: Any = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(mean, var)`` of the noise-free value at ``cells`` (default all), fit units."""
+        obs = self.obs_model
+        Y = obs.Y if cells is None else obs.Y[:, cells]
+        m, S = self.mean, self.cov
+        mu = Y.T @ m
+        if not spatial:
+            return mu, np.maximum(np.einsum("ai,ai->i", Y, S @ Y), 0.0)
+        from .. import spatial as sp
+
+        cov = obs.spatial_cov
+        region = obs.region
+        uc, zc = _average_repeats(self.cells, obs.to_fit_units(self.cells, self.values))
+        Ys = obs.Y[:, uc]
+        res = zc - Ys.T @ m
+        tg = np.arange(obs.n_cells) if cells is None else np.asarray(cells)
+        meth = "direct" if uc.size <= sp._MAX_DIRECT else "neighbors"
+        r_mu, var = sp._krige_core(
+            cov, sp._coords(region, cov.metric, uc), res[:, None],
+            sp._coords(region, cov.metric, tg), method=meth, neighbors=32, cutoff=1e-6,
+            want_var=True, Ys=Ys, Yt=lambda sel: obs.Y[:, tg[sel]], cov_x=S)
+        return mu + r_mu[0], np.maximum(var, 0.0)
+
+    def predict(self, spatial: bool | None = None, cells: Any = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """``(mean, std)`` of the noise-free value at every cell (or at ``cells``), in data units.
+
+        ``std`` is the posterior std of the latent value (it excludes the noise of a new
+        measurement: :meth:`predictive_std`). ``spatial`` (None: the observation model's
+        setting) adds the kriged residual and its variance (universal kriging with a Bayesian
+        trend prior; the GP conditional of ``Y^T x + r``).
+        """
+        sp_ = self._spatial(spatial)
+        if cells is not None:
+            cells = check_cells(cells, self.obs_model.n_cells)
+        mu, var = self._latent_var(sp_, cells)
+        return self.obs_model.to_data_units(mu, np.sqrt(var),
+                                            slice(None) if cells is None else cells)
+
+    def predictive_std(self, spatial: bool | None = None, cells: Any = None) -> np.ndarray:
+        """Std of a new measurement at every cell (or ``cells``), data units: the latent
+        variance plus the noise (``noise_var``; the nugget with the spatial residual)."""
+        obs = self.obs_model
+        sp_ = self._spatial(spatial)
+        if cells is not None:
+            cells = check_cells(cells, obs.n_cells)
+        idx = np.arange(obs.n_cells) if cells is None else cells
+        _, var = self._latent_var(sp_, cells)
+        noise = (np.full(idx.size, obs.spatial_cov.nugget) if sp_
+                 else obs.without_spatial().noise_at(idx))
+        std = np.sqrt(var + noise)
+        return std if obs.scale is None else std * obs.scale[idx]
+
+    # ------------------------------------------------------------------ planner and filter
+    def information(self) -> dict[str, Any]:
+        """The planner's prior terms (keyword arguments of
+        :func:`~lrm_cvx.planning.plan_greedy`): ``prior_precision`` (None when flat),
+        ``noise_var`` (fit units; the spatial covariance's total variance when spatial),
+        ``target_weights`` (``scale^2``: variances in data units, or None), and with the
+        spatial residual ``prior_cov`` (the latent covariance; None when improper) and
+        ``spatial_cov``. With the spatial residual and cells already assimilated, the residual's
+        conditioning on them is not carried (only the latent covariance is)."""
+        obs = self.obs_model
+        out: dict[str, Any] = {
+            "prior_precision": None if self.is_flat else self.precision.copy(),
+            "noise_var": obs.spatial_cov.total_variance if obs.is_spatial else obs.noise_var,
+            "target_weights": None if obs.scale is None else obs.scale ** 2,
+        }
+        if obs.is_spatial:
+            out["prior_cov"] = self.cov.copy() if self.is_proper else None
+            out["spatial_cov"] = obs.spatial_cov
+        return out
+
+    def propagate(self, A: Any, Q: Any, c: Any = None) -> LatentPosterior:
+        """The belief about the next snapshot under ``x' = A x + c + w``, ``w ~ N(0, Q)``:
+        mean ``A m + c``, covariance ``A S A^T + Q``. Clears the cells (a new snapshot).
+        ``A = 0`` is allowed from any belief (then it is ``N(c, Q)`` exactly)."""
+        k = self.k
+        A = np.asarray(A, dtype=np.float64)
+        Q = np.asarray(Q, dtype=np.float64)
+        if A.shape != (k, k) or not np.all(np.isfinite(A)):
+            raise ModelError(f"A must be a finite ({k}, {k}) matrix, got shape {A.shape}")
+        if Q.shape != (k, k) or not np.all(np.isfinite(Q)):
+            raise ModelError(f"Q must be a finite ({k}, {k}) matrix, got shape {Q.shape}")
+        c = np.zeros(k) if c is None else np.asarray(c, dtype=np.float64)
+        if c.shape != (k,) or not np.all(np.isfinite(c)):
+            raise ModelError(f"c must be a finite ({k},) vector, got shape {c.shape}")
+        if not np.any(A):
+            return LatentPosterior.from_moments(self.obs_model, c, Q)
+        return LatentPosterior.from_moments(self.obs_model, A @ self.mean + c,
+                                            A @ self.cov @ A.T + Q)
+
+    def with_obs_model(self, obs_model: ObservationModel) -> LatentPosterior:
+        """The same belief (no cells) under another observation model of the same rank."""
+        if obs_model.k != self.k:
+            raise ModelError(f"obs_model has rank {obs_model.k}, the belief {self.k}")
+        return LatentPosterior(obs_model, self.precision, self.shift, self.precision, self.shift)
+
+    def __repr__(self) -> str:
+        state = "flat" if self.is_flat else ("proper" if self.is_proper else "improper")
+        return (f"LatentPosterior(k={self.k}, {state}, n_obs={self.cells.size}, "
+                f"spatial={self.obs_model.is_spatial})")
+
+
+def _average_repeats(cells: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct cells and the mean of their values (for the spatial residual)."""
+    uc, inv, cnt = np.unique(cells, return_inverse=True, return_counts=True)
+    if uc.size == cells.size:
+        order = np.argsort(cells, kind="stable")
+        return cells[order], z[order]
+    return uc, np.bincount(inv, weights=z, minlength=uc.size) / cnt

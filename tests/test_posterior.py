@@ -1,0 +1,268 @@
+"""The latent belief (glrm/posterior.py) against naive dense references on tiny problems."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import xarray as xr
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.distance import cdist
+
+from lrm_cvx.errors import DataError, ModelError
+from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel, empirical_moments
+from lrm_cvx.spatial import ResidualCovariance
+
+
+def problem(seed, k=3, L=25, offset=True, scale=True, per_cell=True):
+    rng = np.random.default_rng(seed)
+    Y = rng.normal(size=(k, L))
+    off = rng.normal(10, 3, L) if offset else None
+    sc = rng.uniform(0.5, 3.0, L) if scale else None
+    nv = rng.uniform(0.2, 2.0, L) if per_cell else 0.7
+    return rng, ObservationModel(Y, offset=off, scale=sc, noise_var=nv)
+
+
+def naive_blr(obs, m0, P0, cells, values):
+    """Dense Bayesian linear regression in fit units: solve the normal equations."""
+    Y = obs.Y
+    off = np.zeros(obs.n_cells) if obs.offset is None else obs.offset
+    sc = np.ones(obs.n_cells) if obs.scale is None else obs.scale
+    nv = np.broadcast_to(obs.noise_var, (obs.n_cells,))
+    z = (values - off[cells]) / sc[cells]
+    Ys = Y[:, cells]
+    W = np.diag(1.0 / nv[cells])
+    A = Ys @ W @ Ys.T + P0
+    mean = np.linalg.solve(A, Ys @ W @ z + P0 @ m0)
+    cov = np.linalg.inv(A)
+    pred = sc * (Y.T @ mean) + off
+    std = sc * np.sqrt(np.diag(Y.T @ cov @ Y))
+    pstd = sc * np.sqrt(np.diag(Y.T @ cov @ Y) + nv)
+    return mean, cov, pred, std, pstd
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("offset,scale,per_cell", [(True, True, True), (False, False, False),
+                                                   (True, False, True)])
+def test_update_equals_naive_bayesian_regression(seed, offset, scale, per_cell):
+    rng, obs = problem(seed, offset=offset, scale=scale, per_cell=per_cell)
+    k = obs.k
+    B = rng.normal(size=(k, k))
+    S0 = B @ B.T + 0.3 * np.eye(k)
+    m0 = rng.normal(size=k)
+    cells = rng.choice(obs.n_cells, 6, replace=False)
+    values = rng.normal(10, 4, 6)
+    post = LatentPosterior.prior(obs, "custom", mean=m0, cov=S0).update(cells, values)
+    mean, cov, pred, std, pstd = naive_blr(obs, m0, np.linalg.inv(S0), cells, values)
+    np.testing.assert_allclose(post.mean, mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(post.cov, cov, rtol=1e-9, atol=1e-12)
+    mu, sd = post.predict()
+    np.testing.assert_allclose(mu, pred, rtol=1e-9)
+    np.testing.assert_allclose(sd, std, rtol=1e-8)
+    np.testing.assert_allclose(post.predictive_std(), pstd, rtol=1e-8)
+    mc, sc_ = post.predict(cells=[3, 0])
+    np.testing.assert_allclose(mc, pred[[3, 0]], rtol=1e-9)
+    np.testing.assert_allclose(sc_, std[[3, 0]], rtol=1e-8)
+
+
+def test_flat_prior_is_the_papers_least_squares_fold_in():
+    rng, obs = problem(1, per_cell=False)
+    cells = np.array([2, 5, 11, 17, 20])
+    values = rng.normal(size=5)
+    post = LatentPosterior.prior(obs, "flat").update(cells, values)
+    z = (values - obs.offset[cells]) / obs.scale[cells]
+    x = np.linalg.lstsq(obs.Y[:, cells].T, z, rcond=None)[0]
+    np.testing.assert_allclose(post.mean, x, rtol=1e-10)
+    Ys = obs.Y[:, cells]
+    np.testing.assert_allclose(post.cov, 0.7 * np.linalg.inv(Ys @ Ys.T), rtol=1e-10)
+    # the ridge prior: (Y_S Y_S^T + ridge I)^-1 Y_S z and sigma^2 (...)^-1
+    r = LatentPosterior.prior(obs, "ridge", ridge=0.3).update(cells[:2], values[:2])
+    A = Ys[:, :2] @ Ys[:, :2].T + 0.3 * np.eye(3)
+    np.testing.assert_allclose(r.mean, np.linalg.solve(A, Ys[:, :2] @ z[:2]), rtol=1e-10)
+    np.testing.assert_allclose(r.cov, 0.7 * np.linalg.inv(A), rtol=1e-10)
+    assert LatentPosterior.prior(obs, "flat", ridge=0.3).precision[0, 0] == pytest.approx(
+        0.3 / 0.7)
+    # too few cells without a prior: a clear ModelError, not a LinAlgError
+    few = LatentPosterior.prior(obs, "flat").update(cells[:2], values[:2])
+    assert not few.is_proper
+    with pytest.raises(ModelError, match="singular"):
+        few.predict()
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), split=st.integers(0, 8))
+def test_sequential_updates_equal_one_batch(seed, split):
+    rng, obs = problem(seed)
+    cells = rng.integers(0, obs.n_cells, 8)  # repeats allowed: independent measurements
+    values = rng.normal(10, 3, 8)
+    p0 = LatentPosterior.prior(obs, "flat")
+    batch = p0.update(cells, values)
+    seq = p0.update(cells[:split], values[:split]).update(cells[split:], values[split:])
+    np.testing.assert_allclose(seq.precision, batch.precision, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(seq.shift, batch.shift, rtol=1e-10, atol=1e-12)
+    assert seq.cells.tolist() == batch.cells.tolist()
+
+
+def test_duplicates_are_repeated_independent_measurements():
+    rng, obs = problem(3)
+    cells = np.array([1, 4, 4, 9, 12])
+    values = np.array([9.0, 10.0, 12.0, 11.0, 8.0])
+    post = LatentPosterior.prior(obs, "flat").update(cells, values)
+    mean, cov, *_ = naive_blr(obs, np.zeros(3), np.zeros((3, 3)), cells, values)
+    np.testing.assert_allclose(post.mean, mean, rtol=1e-9)
+    np.testing.assert_allclose(post.cov, cov, rtol=1e-9)
+
+
+def test_float_cells_nan_values_and_empty_observations():
+    rng, obs = problem(4)
+    p0 = LatentPosterior.prior(obs, "ridge", ridge=1.0)
+    with pytest.raises(DataError, match="12.7"):
+        p0.update([12.7, 3], [1.0, 2.0])
+    with pytest.raises(DataError, match="integer"):
+        p0.update(np.array([True, False]), [1.0, 2.0])
+    with pytest.raises(DataError, match=r"\[0, 25\)"):
+        p0.update([25], [1.0])
+    with pytest.raises(DataError, match="shape"):
+        p0.update([1, 2], [1.0])
+    with pytest.raises(DataError, match="finite"):
+        p0.update([1, 2], [1.0, np.inf])
+    a = p0.update([3.0, 7.0], [1.0, 2.0])  # integral floats are fine
+    b = p0.update([3, 7], [1.0, 2.0])
+    np.testing.assert_array_equal(a.mean, b.mean)
+    assert p0.update([], []) is p0
+    assert p0.update(np.array([], dtype=float), np.array([])) is p0
+    c = p0.update([3, 5, 7], [1.0, np.nan, 2.0])
+    assert c.n_dropped == 1 and c.cells.tolist() == [3, 7]
+    np.testing.assert_array_equal(c.mean, b.mean)
+    d = p0.update([5], [np.nan])
+    assert d.n_dropped == 1 and d.cells.size == 0
+    np.testing.assert_array_equal(d.mean, p0.mean)
+
+
+def test_propagate_with_zero_dynamics_gives_back_the_prior_exactly():
+    rng, obs = problem(5)
+    k = obs.k
+    B = rng.normal(size=(k, k))
+    S0 = B @ B.T + np.eye(k)
+    m0 = rng.normal(size=k)
+    prior = LatentPosterior.prior(obs, "custom", mean=m0, cov=S0)
+    post = prior.update([1, 2, 3, 4], rng.normal(10, 2, 4))
+    again = post.propagate(np.zeros((k, k)), S0, c=m0)
+    np.testing.assert_array_equal(again.mean, prior.mean)
+    np.testing.assert_array_equal(again.cov, prior.cov)
+    np.testing.assert_array_equal(again.precision, prior.precision)
+    assert again.cells.size == 0
+    # and from a flat belief too
+    flat = LatentPosterior.prior(obs, "flat")
+    np.testing.assert_array_equal(flat.propagate(np.zeros((k, k)), S0, m0).cov, S0)
+    # general A: the Kalman time update
+    A = 0.5 * rng.normal(size=(k, k))
+    Q = 0.1 * np.eye(k)
+    nxt = post.propagate(A, Q)
+    np.testing.assert_allclose(nxt.mean, A @ post.mean, rtol=1e-12)
+    np.testing.assert_allclose(nxt.cov, A @ post.cov @ A.T + Q, rtol=1e-12)
+    with pytest.raises(ModelError):
+        flat.propagate(A, Q)  # an improper belief has no mean to move
+    with pytest.raises(ModelError, match="A must be"):
+        post.propagate(np.eye(k + 1), Q)
+
+
+def test_empirical_prior_and_information_from_a_model():
+    rng = np.random.default_rng(0)
+    T, L, k = 20, 30, 3
+    D = rng.normal(size=(T, k)) @ rng.normal(size=(k, L)) + 50 + 0.1 * rng.normal(size=(T, L))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m = GLRM(k, progress=False, random_state=0, offset=True, scale=True,
+                 noise="per-cell", max_iter=30).fit(D)
+    p = LatentPosterior.prior(m)
+    m0, S0 = empirical_moments(m._Xv)
+    np.testing.assert_allclose(p.mean, m._Xv.mean(1))
+    np.testing.assert_array_equal(p.cov, S0)
+    info = p.information()
+    np.testing.assert_allclose(info["prior_precision"], np.linalg.inv(S0), rtol=1e-8)
+    np.testing.assert_array_equal(info["noise_var"], m.noise_var_)
+    np.testing.assert_allclose(info["target_weights"], m.scale_ ** 2)
+    assert "spatial_cov" not in info
+    assert LatentPosterior.prior(m, "flat").information()["prior_precision"] is None
+    with pytest.raises(ModelError, match="kind"):
+        LatentPosterior.prior(m, "gaussian")
+    with pytest.raises(ModelError, match="needs the fitted model"):
+        LatentPosterior.prior(p.obs_model, "empirical")
+    with pytest.raises(ModelError, match="spatial"):
+        p.predict(spatial=True)
+
+
+# --------------------------------------------------------------------------- spatial
+def grid_obs(seed, ny=5, nx=6, k=2, nugget=0.05):
+    from lrm_cvx import Region
+
+    rng = np.random.default_rng(seed)
+    region = Region(lat=xr.DataArray(np.arange(ny) * 1.0, dims="lat",
+                                     coords={"lat": np.arange(ny) * 1.0}),
+                    lon=xr.DataArray(np.arange(nx) * 1.0, dims="lon",
+                                     coords={"lon": np.arange(nx) * 1.0}),
+                    mask=np.ones((ny, nx), bool))
+    L = region.n_cells
+    cov = ResidualCovariance("exponential", sill=0.4, range=1.6, nugget=nugget)
+    obs = ObservationModel(rng.normal(size=(k, L)), offset=rng.normal(5, 1, L),
+                           scale=rng.uniform(0.5, 2, L), noise_var=0.3, spatial_cov=cov,
+                           region=region)
+    return rng, obs
+
+
+def gp_conditional(obs, m0, S0, cells, z):
+    """Brute force: the joint Gaussian of f = Y^T x + r at every cell, conditioned on noisy z."""
+    g = obs.region.grid_index.astype(float)
+    K = obs.Y.T @ S0 @ obs.Y + obs.spatial_cov.covariance(cdist(g, g), nugget=False)
+    mu = obs.Y.T @ m0
+    A = K[np.ix_(cells, cells)] + obs.spatial_cov.nugget * np.eye(cells.size)
+    mean = mu + K[:, cells] @ np.linalg.solve(A, z - mu[cells])
+    var = np.diag(K - K[:, cells] @ np.linalg.solve(A, K[cells, :]))
+    return mean, var
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_spatial_update_equals_the_gp_conditional(seed):
+    rng, obs = grid_obs(seed)
+    k = obs.k
+    B = rng.normal(size=(k, k))
+    S0 = B @ B.T + 0.5 * np.eye(k)
+    m0 = rng.normal(size=k)
+    cells = rng.choice(obs.n_cells, 7, replace=False)
+    values = rng.normal(5, 1, 7)
+    prior = LatentPosterior.prior(obs, "custom", mean=m0, cov=S0)
+    post = prior.update(cells[:3], values[:3]).update(cells[3:], values[3:])  # sequential
+    z = (values - obs.offset[cells]) / obs.scale[cells]
+    mean, var = gp_conditional(obs, m0, S0, cells, z)
+    mu, sd = post.predict()
+    np.testing.assert_allclose(mu, obs.scale * mean + obs.offset, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(sd ** 2, obs.scale ** 2 * var, rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(post.predictive_std() ** 2,
+                               obs.scale ** 2 * (var + obs.spatial_cov.nugget), rtol=1e-7)
+    # the trend-only prediction is the GLS latent posterior mapped through Y
+    mt, _ = post.predict(spatial=False)
+    np.testing.assert_allclose(mt, obs.scale * (obs.Y.T @ post.mean) + obs.offset, rtol=1e-10)
+    info = post.information()
+    assert info["spatial_cov"] is obs.spatial_cov
+    np.testing.assert_allclose(info["prior_cov"], post.cov)
+    # no observation: the prior field
+    mu0, sd0 = prior.predict()
+    np.testing.assert_allclose(mu0, obs.scale * (obs.Y.T @ m0) + obs.offset, rtol=1e-10)
+    g = obs.region.grid_index.astype(float)
+    np.testing.assert_allclose(
+        sd0 ** 2, obs.scale ** 2 * (np.einsum("ai,ab,bi->i", obs.Y, S0, obs.Y)
+                                    + obs.spatial_cov.sill), rtol=1e-10)
+    del g
+
+
+def test_spatial_repeats_are_averaged_into_one_observation():
+    rng, obs = grid_obs(7)
+    prior = LatentPosterior.prior(obs, "custom", cov=np.eye(2))
+    a = prior.update([3, 3, 8], [5.0, 7.0, 4.0])
+    b = prior.update([3, 8], [6.0, 4.0])
+    np.testing.assert_allclose(a.mean, b.mean, rtol=1e-12)
+    np.testing.assert_allclose(a.predict()[0], b.predict()[0], rtol=1e-12)
