@@ -18,7 +18,10 @@ import xarray as xr
 
 from .errors import DataError, RegionError
 
-__all__ = ["Region", "BBox", "EARTH_RADIUS_KM", "spatial_dims"]
+__all__ = [
+    "Region", "BBox", "EARTH_RADIUS_KM", "spatial_dims", "check_bbox", "check_coords",
+    "geographic_order", "lon_in_box", "to_geographic_order",
+]
 
 BBox = tuple[float, float, float, float]
 """``(south, west, north, east)`` in degrees, the order NASA Worldview uses."""
@@ -77,6 +80,22 @@ class Region:
             raise DataError("the region has no valid cell (every cell is masked or never observed)")
         mask.setflags(write=False)
         object.__setattr__(self, "mask", mask)
+        lat_v = np.asarray(self.lat.values, dtype=np.float64)
+        lon_v = np.asarray(self.lon.values, dtype=np.float64)
+        check_coords(lat_v, lon_v, "region grid")
+        if _is_degrees(lon_v):
+            order, _ = geographic_order(lon_v)
+            if not np.array_equal(order, np.arange(lon_v.size)):
+                raise DataError(
+                    f"coordinate lon ({lon_v.min():g} .. {lon_v.max():g}) is not in geographic "
+                    "order: columns must run eastward and be contiguous (the widest gap between "
+                    "meridians at the edges). Open the data with lrm_cvx.io.open_data, or "
+                    "reorder it with lrm_cvx.region.to_geographic_order(da)"
+                )
+        elif _first_bad_step(lon_v) is not None:
+            raise DataError("coordinate lon must be strictly monotonic")
+        object.__setattr__(self, "_sphere", bool(
+            _is_degrees(lon_v) and np.all(np.abs(lat_v) <= 90.0)))
         flat = np.flatnonzero(mask.ravel())
         rows, cols = np.divmod(flat, mask.shape[1])
         grid_index = np.column_stack([rows, cols]).astype(np.int64)
@@ -273,13 +292,33 @@ class Region:
     def cell_of(self, lat: Any, lon: Any) -> Any:
         """Cell index of the grid position nearest to ``(lat, lon)`` (scalars or arrays).
 
-        Raises :class:`RegionError` when a point lies outside the grid (by more than half a grid
-        spacing) or its nearest grid position is masked.
+        On a grid in degrees the nearest position is the one at the smallest great-circle
+        distance, with longitudes compared modulo 360 (a query at -175 finds a grid column at
+        185; 359.9 finds -0.1); ties go to the lowest cell index. Vectorised: binary search on
+        the two 1-D axes, a few candidates per point. Raises :class:`RegionError` when a point
+        lies outside the grid (by more than half a grid spacing) or its nearest grid position is
+        masked (the nearest *valid* cell is not substituted).
         """
-        lat_a, lon_a = np.broadcast_arrays(np.asarray(lat, float), np.asarray(lon, float))
-        rows = _nearest_index(self.lat.values, lat_a, "lat")
-        cols = _nearest_index(self.lon.values, lon_a, "lon")
-        cells = self.cell_grid[rows, cols]
+        try:
+            lat_a, lon_a = np.broadcast_arrays(np.asarray(lat, dtype=np.float64),
+                                               np.asarray(lon, dtype=np.float64))
+        except (TypeError, ValueError) as exc:
+            raise RegionError(f"lat and lon must be numbers or arrays of one shape: {exc}") from None
+        for what, values in (("lat", lat_a), ("lon", lon_a)):
+            if not np.all(np.isfinite(values)):
+                bad = np.ravel(values)[np.flatnonzero(~np.isfinite(np.ravel(values)))[0]]
+                raise RegionError(f"{what} must be finite, got {bad}")
+        if self._sphere:
+            r, c = _nearest_sphere(self.lat.values.astype(np.float64),
+                                   self.lon.values.astype(np.float64),
+                                   np.ravel(lat_a), np.ravel(lon_a))
+            rows, cols = r.reshape(lat_a.shape), c.reshape(lat_a.shape)
+        else:
+            rows = _nearest_index(self.lat.values, lat_a, "lat")
+            cols = _nearest_index(self.lon.values, lon_a, "lon")
+        flat = np.asarray(rows, dtype=np.int64) * self.shape[1] + np.asarray(cols, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(self._flat, flat), self._flat.size - 1)
+        cells = np.where(self._flat[pos] == flat, pos, -1)
         if np.any(cells < 0):
             bad = np.flatnonzero(np.ravel(cells < 0))[0]
             raise RegionError(
@@ -301,7 +340,13 @@ class Region:
     def resolve_cell(self, where: Any, name: str = "start") -> int:
         """A cell index from either an index or a ``(lat, lon)`` pair."""
         if isinstance(where, (tuple, list, np.ndarray)) and np.size(where) == 2:
-            return int(self.cell_of(float(where[0]), float(where[1])))
+            try:
+                lat, lon = (float(v) for v in np.ravel(np.asarray(where, dtype=object)))
+            except (TypeError, ValueError):
+                raise RegionError(
+                    f"{name} must be a cell index or a (lat, lon) pair of numbers, got {where!r}"
+                ) from None
+            return int(self.cell_of(lat, lon))
         if isinstance(where, (int, np.integer)):
             return int(self.check_cells(where, name))
         raise RegionError(f"{name} must be a cell index or a (lat, lon) pair, got {where!r}")
@@ -312,7 +357,9 @@ class Region:
         """Distance between cells ``a`` and ``b`` (broadcast).
 
         ``metric="grid"``: Euclidean distance in grid units between grid positions (the paper's
-        cost). ``metric="km"``: great-circle distance between cell centres (haversine).
+        cost; columns are in geographic order, so this follows the map, but a global grid's
+        seam is not wrapped). ``metric="km"``: great-circle distance between cell centres
+        (haversine; wraps across the antimeridian).
         """
         a = self.check_cells(a, "a")
         b = self.check_cells(b, "b")
@@ -320,10 +367,7 @@ class Region:
             d = self.grid_index[a] - self.grid_index[b]
             out = np.hypot(d[..., 0], d[..., 1]).astype(np.float64)
         elif metric == "km":
-            lat1, lat2 = np.radians(self.cell_lat[a]), np.radians(self.cell_lat[b])
-            dlon = np.radians(self.cell_lon[b] - self.cell_lon[a])
-            h = np.sin((lat2 - lat1) / 2) ** 2 + np.cos(lat1) * np.cos(lat2) * np.sin(dlon / 2) ** 2
-            out = 2 * EARTH_RADIUS_KM * np.arcsin(np.sqrt(np.clip(h, 0, 1)))
+            out = _haversine(self.cell_lat[a], self.cell_lon[a], self.cell_lat[b], self.cell_lon[b])
         else:
             raise RegionError(f"metric must be 'grid' or 'km', got {metric!r}")
         return float(out) if np.ndim(out) == 0 else out
@@ -332,31 +376,37 @@ class Region:
     def in_bbox(self, bbox: BBox) -> np.ndarray:
         """``(L,)`` bool: cells whose centre lies inside ``bbox = (south, west, north, east)``.
 
-        ``west > east`` denotes a box crossing the antimeridian.
+        Longitudes compare modulo 360 (either convention); ``west > east`` crosses the
+        antimeridian.
         """
-        south, west, north, east = _check_bbox(bbox)
+        south, west, north, east = check_bbox(bbox)
         lat, lon = self.cell_lat, self.cell_lon
-        inside_lat = (lat >= south) & (lat <= north)
-        if west <= east:
-            inside_lon = (lon >= west) & (lon <= east)
-        else:
-            inside_lon = (lon >= west) | (lon <= east)
-        return inside_lat & inside_lon
+        return (lat >= south) & (lat <= north) & lon_in_box(lon, west, east)
 
     def subset(self, bbox: BBox) -> Region:
-        """The region restricted to ``bbox``: its grid cropped to the box, cells outside masked."""
-        south, west, north, east = _check_bbox(bbox)
-        lat, lon = self.lat.values, self.lon.values
+        """The region restricted to ``bbox``: its grid cropped to the box, cells outside masked.
+
+        Columns stay in geographic order and the longitudes follow the rule of
+        :func:`geographic_order` with the box's ``west`` (so the result matches
+        ``open_data(..., bbox=bbox)`` of the same data).
+        """
+        south, west, north, east = check_bbox(bbox)
+        lat, lon = self.lat.values, self.lon.values.astype(np.float64)
         rows = np.flatnonzero((lat >= south) & (lat <= north))
-        if west <= east:
-            cols = np.flatnonzero((lon >= west) & (lon <= east))
-        else:
-            cols = np.flatnonzero((lon >= west) | (lon <= east))
+        cols = np.flatnonzero(lon_in_box(lon, west, east)) if _is_degrees(lon) else \
+            np.flatnonzero((lon >= west) & (lon <= east))
         if rows.size == 0 or cols.size == 0 or not self.mask[np.ix_(rows, cols)].any():
             raise RegionError(f"bbox {bbox} contains no valid cell of {self!r}")
+        new_lon = lon[cols]
+        if _is_degrees(lon):
+            order, new_lon = geographic_order(lon[cols], west)
+            cols = cols[order]
+        lon_dim = self.dims[1]
+        lon_da = self.lon.isel({lon_dim: cols}).copy(data=new_lon.astype(self.lon.dtype))
+        lon_da = lon_da.assign_coords({lon_dim: lon_da.values})
         return Region(
             lat=self.lat.isel({self.dims[0]: rows}),
-            lon=self.lon.isel({self.dims[1]: cols}),
+            lon=lon_da,
             mask=self.mask[np.ix_(rows, cols)],
             attrs=dict(self.attrs),
             name=self.name,
@@ -392,16 +442,256 @@ class Region:
         )
 
 
-def _check_bbox(bbox: Any) -> tuple[float, float, float, float]:
+def check_bbox(bbox: Any, error: type[Exception] = RegionError) -> BBox:
+    """``bbox`` as four finite floats ``(south, west, north, east)``, else ``error`` naming the bound.
+
+    Latitudes must lie in [-90, 90] with ``south <= north``; longitudes may use either the
+    -180..180 or the 0..360 convention, and ``west > east`` means the box crosses the
+    antimeridian (e.g. ``(-10, 170, 10, -170)``).
+    """
     try:
         south, west, north, east = (float(v) for v in bbox)
     except (TypeError, ValueError):
-        raise RegionError(
-            f"bbox must be (south, west, north, east) in degrees, got {bbox!r}"
+        raise error(
+            f"bbox must be four numbers (south, west, north, east) in degrees, got {bbox!r}"
         ) from None
-    if not (-90 <= south <= north <= 90):
-        raise RegionError(f"bbox must have -90 <= south <= north <= 90, got {bbox!r}")
+    for label, v in (("south", south), ("west", west), ("north", north), ("east", east)):
+        if not np.isfinite(v):
+            raise error(f"bbox {label}={v:g} must be finite (bbox = {bbox!r})")
+    for label, v in (("south", south), ("north", north)):
+        if not -90 <= v <= 90:
+            raise error(f"bbox {label}={v:g} must be a latitude in [-90, 90] (bbox = {bbox!r})")
+    if south > north:
+        raise error(
+            f"bbox south={south:g} is north of north={north:g}: the order is "
+            f"(south, west, north, east); did you mean ({north:g}, {west:g}, {south:g}, {east:g})?"
+        )
     return south, west, north, east
+
+
+_check_bbox = check_bbox
+
+
+def lon_in_box(lon: Any, west: float, east: float) -> np.ndarray:
+    """Boolean mask of longitudes inside ``[west, east]`` going east, in any convention.
+
+    Compares modulo 360, so a box given in -180..180 selects data in 0..360 and vice versa;
+    ``west > east`` crosses the antimeridian; a box 360 degrees wide or more keeps everything.
+    """
+    lon = np.asarray(lon, dtype=np.float64)
+    width = east - west if west <= east else east - west + 360.0
+    if width >= 360.0:
+        return np.ones(lon.shape, dtype=bool)
+    return np.mod(lon - west, 360.0) <= width + 1e-9
+
+
+def _is_degrees(lon: np.ndarray) -> bool:
+    """True when a longitude axis looks like degrees east (the periodic rules apply).
+
+    Values within -360..720 spanning at most 360 degrees; anything else (an index axis of a
+    grid without coordinates, metres) is a plain axis: no wrap, no great circles.
+    """
+    return bool(lon.size and np.all(np.isfinite(lon)) and lon.min() >= -360.0
+                and lon.max() <= 720.0 and lon.max() - lon.min() <= 360.0 + 1e-9)
+
+
+def _first_bad_step(values: np.ndarray) -> int | None:
+    """Index ``i`` where ``values`` stops being strictly monotonic (``values[i], values[i+1]``)."""
+    if values.size < 2:
+        return None
+    d = np.diff(values)
+    sign = 1.0 if d[0] > 0 else -1.0
+    bad = np.flatnonzero(~(d * sign > 0))
+    return int(bad[0]) if bad.size else None
+
+
+def check_coords(lat: Any, lon: Any, where: str = "data",
+                 error: type[Exception] = DataError) -> None:
+    """Check grid axes: finite, ``lat`` strictly monotonic, no duplicated ``lon`` (modulo 360).
+
+    Raises ``error`` naming the coordinate, the position and the value.
+    """
+    for name, values in (("lat", lat), ("lon", lon)):
+        values = np.asarray(values, dtype=np.float64)
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            raise error(f"{where}: coordinate {name} has a non-finite value ({values[bad[0]]}) "
+                        f"at position {bad[0]}")
+    lat = np.asarray(lat, dtype=np.float64)
+    lon = np.asarray(lon, dtype=np.float64)
+    i = _first_bad_step(lat)
+    if i is not None:
+        kind = "duplicated" if lat[i] == lat[i + 1] else "not monotonic"
+        raise error(f"{where}: coordinate lat is {kind} at positions {i}, {i + 1} "
+                    f"({lat[i]:g}, {lat[i + 1]:g}); expected strictly increasing or decreasing "
+                    "values (sort with da.sortby('lat'))")
+    key = np.mod(lon, 360.0) if _is_degrees(lon) else lon
+    order = np.argsort(key, kind="stable")
+    dup = np.flatnonzero(np.diff(key[order]) == 0)
+    if dup.size:
+        a, b = sorted((int(order[dup[0]]), int(order[dup[0] + 1])))
+        raise error(f"{where}: coordinate lon is duplicated at positions {a}, {b} "
+                    f"({lon[a]:g} and {lon[b]:g} are the same meridian)")
+
+
+def geographic_order(lon: Any, west: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Column order and longitudes that put a longitude axis in geographic order.
+
+    Returns ``(order, new_lon)``: ``lon[order]`` runs eastward and is contiguous (the widest
+    gap between neighbouring meridians is the one left outside, at the edges), and ``new_lon``
+    is strictly increasing: the same meridians, unwrapped by multiples of 360. Rule for the
+    values: with ``west`` (a bbox's west edge) the first lies in ``[west, west + 360)``, i.e.
+    the box's own convention; otherwise an axis already in geographic order keeps its values,
+    and a reordered one is put in -180..180 when it fits, else 0..360. Axes that are not
+    degrees (values outside -360..720) are only required to be strictly increasing.
+    """
+    lon = np.asarray(lon, dtype=np.float64)
+    n = lon.size
+    if n == 0:
+        return np.arange(0), lon.copy()
+    if not _is_degrees(lon):
+        return np.arange(n), lon.copy()
+    key = np.mod(lon, 360.0)
+    s_order = np.argsort(key, kind="stable")
+    sk = key[s_order]
+    gaps = np.diff(np.append(sk, sk[0] + 360.0))  # gaps[i]: from sk[i] east to the next
+    span = lon[-1] - lon[0]
+    steps = np.diff(lon)
+    keep = bool(np.all(steps > 0) and span < 360.0
+                and (n == 1 or steps.max() <= 360.0 - span + 1e-9))
+    if keep:
+        order = np.arange(n)
+    else:
+        widest = np.flatnonzero(gaps >= gaps.max() - 1e-9)
+        starts = (widest + 1) % n
+        start = starts[np.argmin(lon[s_order[starts]])]  # ties: the lowest original value first
+        order = s_order[np.roll(np.arange(n), -start)]
+    lo = lon[order]
+    new = lo[0] + np.concatenate([[0.0], np.cumsum(np.mod(np.diff(lo), 360.0))])
+    if west is not None:
+        new -= 360.0 * np.floor((new[0] - west + 1e-9) / 360.0)  # first in [west, west+360)
+    elif not keep:
+        new += -360.0 * np.floor((new[0] + 180.0) / 360.0)  # first in [-180, 180)
+        if new[-1] > 180.0:
+            new += -360.0 * np.floor(new[0] / 360.0)  # first in [0, 360)
+            if new[-1] > 360.0:
+                new += -360.0 * np.floor((new[0] + 180.0) / 360.0)
+    return order, new
+
+
+def to_geographic_order(da: xr.DataArray, bbox: Any = None,
+                        error: type[Exception] = DataError) -> xr.DataArray:
+    """``da`` (dims ``(..., lat, lon)``) cropped to ``bbox`` with columns in geographic order.
+
+    Checks the grid axes (:func:`check_coords`), keeps the rows and columns whose centre lies in
+    ``bbox = (south, west, north, east)`` (longitudes modulo 360; ``west > east`` crosses the
+    antimeridian) and reorders / relabels the columns by :func:`geographic_order`: eastward,
+    contiguous, strictly increasing longitudes (a box 170..-170 on -180..180 data gives
+    170..190; -10..10 on 0..360 data gives -10..10). Coordinate attributes are kept.
+    """
+    lat_dim, lon_dim = spatial_dims(da)
+    name = da.name if da.name is not None else "data"
+    lat = _grid_coord(da, lat_dim)
+    lon = _grid_coord(da, lon_dim)
+    check_coords(lat, lon, f"variable {name!r}", error)
+    rows = np.arange(lat.size)
+    cols = np.arange(lon.size)
+    west = None
+    if bbox is not None:
+        south, west, north, east = check_bbox(bbox, error)
+        rows = np.flatnonzero((lat >= south) & (lat <= north))
+        inside = lon_in_box(lon, west, east) if _is_degrees(lon) else (lon >= west) & (lon <= east)
+        cols = np.flatnonzero(inside)
+        if rows.size == 0 or cols.size == 0:
+            raise error(
+                f"bbox {tuple(bbox)} holds no grid cell of {name!r} (lat {lat.min():g}.."
+                f"{lat.max():g}, lon {lon.min():g}..{lon.max():g})"
+            )
+    new_lon = lon[cols]
+    if lon_dim in da.coords and _is_degrees(lon):
+        order, new_lon = geographic_order(lon[cols], west)
+        cols = cols[order]
+    if rows.size < lat.size:
+        da = da.isel({lat_dim: rows})
+    if cols.size < lon.size or not np.array_equal(cols, np.arange(lon.size)):
+        da = da.isel({lon_dim: cols})
+    if lon_dim in da.coords and not np.array_equal(np.asarray(da[lon_dim].values, np.float64),
+                                                   new_lon):
+        attrs = dict(da[lon_dim].attrs)
+        da = da.assign_coords({lon_dim: (lon_dim, new_lon.astype(da[lon_dim].dtype), attrs)})
+    return da
+
+
+def _haversine(lat1: np.ndarray, lon1: np.ndarray, lat2: np.ndarray,
+               lon2: np.ndarray) -> np.ndarray:
+    """Great-circle distance in km between points given in degrees (broadcast)."""
+    p1, p2 = np.radians(lat1), np.radians(lat2)
+    dlon = np.radians(lon2 - lon1)
+    h = np.sin((p2 - p1) / 2) ** 2 + np.cos(p1) * np.cos(p2) * np.sin(dlon / 2) ** 2
+    return 2 * EARTH_RADIUS_KM * np.arcsin(np.sqrt(np.clip(h, 0, 1)))
+
+
+def _bracket(axis: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the two entries of a strictly monotonic ``axis`` around each point."""
+    n = axis.size
+    if n > 1 and axis[1] < axis[0]:
+        pos = np.searchsorted(axis[::-1], points)
+        lo = np.clip(pos - 1, 0, n - 1)
+        hi = np.clip(pos, 0, n - 1)
+        return n - 1 - lo, n - 1 - hi
+    pos = np.searchsorted(axis, points)
+    return np.clip(pos - 1, 0, n - 1), np.clip(pos, 0, n - 1)
+
+
+def _half_step(axis: np.ndarray) -> float:
+    return 0.5 * (float(np.abs(np.diff(axis)).max()) if axis.size > 1 else 0.5)
+
+
+def _nearest_sphere(glat: np.ndarray, glon: np.ndarray, lat: np.ndarray,
+                    lon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column of the grid position nearest (great circle) to each point.
+
+    ``glon`` is strictly increasing degrees spanning < 360; queries wrap modulo 360. Candidates
+    are the two columns around the point's longitude and, for each, the rows around the point's
+    latitude and around the foot of the perpendicular from the point to that column's meridian
+    (distance along a meridian is unimodal about that foot); ties go to the lowest flat index.
+    Raises RegionError for a point more than half a grid spacing outside the grid.
+    """
+    hlat, hlon = _half_step(glat), _half_step(glon)
+    lo, hi = glat.min() - hlat, glat.max() + hlat
+    outside = (lat < lo) | (lat > hi) | (np.abs(lat) > 90)
+    if np.any(outside):
+        k = np.flatnonzero(outside)[0]
+        raise RegionError(f"location (lat={lat[k]:g}, lon={lon[k]:g}) is outside the grid "
+                          f"(lat {lo:g} .. {hi:g})")
+    nx = glon.size
+    q = glon[0] + np.mod(lon - glon[0], 360.0)  # in [glon0, glon0 + 360)
+    pos = np.searchsorted(glon, q, side="right")  # glon[pos-1] <= q
+    left = np.clip(pos - 1, 0, nx - 1)
+    right = np.where(pos < nx, pos, 0)
+    d_left = q - glon[left]
+    d_right = np.where(pos < nx, glon[np.minimum(pos, nx - 1)] - q, glon[0] + 360.0 - q)
+    if np.any(np.minimum(d_left, d_right) > hlon + 1e-9):
+        k = np.flatnonzero(np.minimum(d_left, d_right) > hlon + 1e-9)[0]
+        raise RegionError(
+            f"location (lat={lat[k]:g}, lon={lon[k]:g}) is outside the grid (lon "
+            f"{glon[0] - hlon:g} .. {glon[-1] + hlon:g}, modulo 360)")
+    phi = np.radians(lat)
+    cand_r, cand_c = [], []
+    for col, dl in ((left, d_left), (right, d_right)):
+        foot = np.degrees(np.arctan2(np.sin(phi), np.cos(phi) * np.cos(np.radians(dl))))
+        foot = np.clip(foot, -90.0, 90.0)
+        for centre in (lat, foot):
+            for row in _bracket(glat, centre):
+                cand_r.append(row)
+                cand_c.append(col)
+    rows = np.stack(cand_r, axis=-1)
+    cols = np.stack(cand_c, axis=-1)
+    dist = _haversine(lat[:, None], q[:, None], glat[rows], glon[cols])
+    flat = rows * nx + cols
+    best = dist.min(axis=1, keepdims=True)
+    pick = np.where(dist <= best, flat, np.iinfo(np.int64).max).min(axis=1)
+    return np.divmod(pick, nx)
 
 
 def _nearest_index(grid: np.ndarray, points: np.ndarray, what: str) -> np.ndarray:
