@@ -24,6 +24,7 @@ import numba
 import numpy as np
 
 from .errors import PlanningError
+from .registry import Registry
 
 __all__ = [
     "nearest_neighbor_tour",
@@ -32,9 +33,13 @@ __all__ = [
     "InsertionCost",
     "make_cost",
     "COSTS",
+    "COST_REGISTRY",
 ]
 
-COSTS: tuple[str, ...] = ("nearest-neighbor", "insertion")
+COST_REGISTRY = Registry("cost", PlanningError)
+"""Path costs of the greedy planner (objects: incremental cost classes taking
+``(grid_index, cells, pool)``), registered at the end of the module; ``COSTS`` is its
+``choices()``."""
 
 _TAIL = 8  # cached tail steps per candidate; longer tails are recomputed at every pick
 _BIG = np.iinfo(np.int64).max
@@ -486,10 +491,21 @@ class InsertionCost(_PoolCost):
         return self.tour.copy()
 
 
+COST_REGISTRY.register(
+    "nearest-neighbor", NearestNeighborCost,
+    description="the paper's `C(P)`: nearest-neighbour open path from the start, exact "
+                "incremental costs",
+    aliases=("nn", "nearest_neighbor"),
+)
+COST_REGISTRY.register(
+    "insertion", InsertionCost,
+    description="cheapest-insertion route: add each cell where it lengthens the route least",
+)
+COSTS: tuple[str, ...] = COST_REGISTRY.choices()
+"""Canonical cost names (``in`` accepts aliases); the registry's ``choices()``."""
+
+
 def make_cost(cost: str, grid_index: Any, cells: Any, pool: Any) -> Any:
-    """The incremental cost oracle for ``cost`` (``"nearest-neighbor"`` or ``"insertion"``)."""
-    if cost in ("nearest-neighbor", "nearest_neighbor", "nn"):
-        return NearestNeighborCost(grid_index, cells, pool)
-    if cost == "insertion":
-        return InsertionCost(grid_index, cells, pool)
-    raise PlanningError(f"cost must be one of {COSTS}, got {cost!r}")
+    """The incremental cost oracle for ``cost`` (a name or alias of :data:`COST_REGISTRY`:
+    ``"nearest-neighbor"`` (alias ``"nn"``) or ``"insertion"``)."""
+    return COST_REGISTRY.get(cost)(grid_index, cells, pool)

@@ -27,18 +27,39 @@ from tqdm.auto import tqdm
 
 from ._validation import as_factor_matrix, as_generator, atomic_output
 from .errors import DataError, ModelError
+from .information import CRITERION_REGISTRY
+from .registry import Choices, Registry
 from .region import Region
 
-__all__ = ["evaluate", "summary", "save_results", "METHODS", "SnapshotStatistics", "foldin_mse"]
+__all__ = ["evaluate", "summary", "save_results", "METHODS", "GREEDY_VARIANTS",
+           "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse"]
 
-METHODS = ("greedy", "transect-up", "transect-down", "transect-left", "transect-right", "random")
-GREEDY_VARIANTS = ("greedy:fisher", "greedy:a-optimal", "greedy:gp-variance")
+METHOD_REGISTRY = Registry("method", ModelError)
+"""Methods of :func:`evaluate` (objects: ``(planner, criterion)``); ``METHODS`` are the paper's
+(the default), ``GREEDY_VARIANTS`` the greedy with a criterion and the model's predictive
+fold-in (docs/reconstruction.md). ``greedy:<alias>`` is accepted for every criterion alias."""
+METHOD_REGISTRY.register("greedy", ("greedy", None), description="the paper's cost-benefit "
+                         "greedy (Fisher information, the paper's fold-in)")
+for _d in ("up", "down", "left", "right"):
+    METHOD_REGISTRY.register(f"transect-{_d}", (f"transect-{_d}", None),
+                             description=f"straight transect going {_d} (a lawnmower at the "
+                                         "edge)")
+METHOD_REGISTRY.register("random", ("random", None), description="random walk on valid "
+                         "8-neighbours (`random_trials` walks per start)")
+METHODS: tuple[str, ...] = METHOD_REGISTRY.choices()
+for _c in CRITERION_REGISTRY.entries():
+    METHOD_REGISTRY.register(
+        f"greedy:{_c.name}", ("greedy", _c.name),
+        aliases=tuple(f"greedy:{a}" for a in _c.aliases),
+        description=f"greedy with the `{_c.name}` criterion and the model's predictive fold-in",
+    )
+GREEDY_VARIANTS: tuple[str, ...] = Choices(tuple(m for m in METHOD_REGISTRY.choices()
+                                                 if m not in METHODS), METHOD_REGISTRY)
 
 
-def _check_method(m: str) -> None:
-    if m in METHODS or m in GREEDY_VARIANTS:
-        return
-    raise ModelError(f"unknown method {m!r}; expected a subset of {METHODS + GREEDY_VARIANTS}")
+def _check_method(m: str) -> str:
+    """The canonical name of method ``m`` (aliases accepted); ModelError if unknown."""
+    return METHOD_REGISTRY.canonical(m, "method")
 
 
 @dataclass(frozen=True)
@@ -205,9 +226,7 @@ def evaluate(
 
     if not isinstance(data, xr.DataArray) or data.ndim != 3:
         raise DataError("data must be a (time, lat, lon) DataArray")
-    methods = tuple(methods)
-    for m in methods:
-        _check_method(m)
+    methods = tuple(_check_method(m) for m in methods)
     model_params = dict(model_params or {})
     fold_in = dict(fold_in or {})
     bad = set(fold_in) - {"prior", "spatial", "ridge"}

@@ -27,6 +27,8 @@ is the A-optimal criterion of the low-rank trend + GP residual model.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numba
@@ -34,6 +36,7 @@ import numpy as np
 
 from ._validation import as_factor_matrix, check_positive
 from .errors import PlanningError
+from .registry import Registry
 
 __all__ = [
     "fisher_information",
@@ -46,10 +49,14 @@ __all__ = [
     "StructuredGPVarianceOracle",
     "GP_STRUCTURED_MIN_ENTRIES",
     "CRITERIA",
+    "CRITERION_REGISTRY",
+    "CriterionSpec",
 ]
 
 Criterion = Literal["fisher", "a-optimal", "gp-variance"]
-CRITERIA: tuple[str, ...] = ("fisher", "a-optimal", "gp-variance")
+CRITERION_REGISTRY = Registry("criterion", PlanningError)
+"""Every planning criterion (entries: :class:`CriterionSpec`), registered at the end of the
+module; ``CRITERIA`` is its ``choices()``."""
 
 
 def _gram(Y: np.ndarray, cells: np.ndarray, ridge: float) -> np.ndarray:
@@ -291,20 +298,14 @@ class AOptimalOracle(_Oracle):
 def make_oracle(
     criterion: str, Y: Any, ridge: float = 0.0, cells: Any = None, **kwargs: Any
 ) -> FisherOracle | AOptimalOracle | GPVarianceOracle | StructuredGPVarianceOracle:
-    """The gain oracle for ``criterion`` (``"fisher"``, ``"a-optimal"`` or ``"gp-variance"``)
-    started at ``cells``; ``kwargs`` go to the oracle (``prior_precision``, ``noise_var``, ...).
+    """The gain oracle for ``criterion`` (a name or alias of :data:`CRITERION_REGISTRY`:
+    ``"fisher"``, ``"a-optimal"`` (alias ``"aopt"``) or ``"gp-variance"``) started at ``cells``; ``kwargs`` go to the oracle (``prior_precision``, ``noise_var``, ...).
 
     ``"gp-variance"``: the dense :class:`GPVarianceOracle` up to
     :data:`GP_STRUCTURED_MIN_ENTRIES` covariances, :class:`StructuredGPVarianceOracle` (same
     gains, no dense matrices) above it when the metric is ``"grid"``; ``gp_method="dense"`` or
     ``"structured"`` forces one."""
-    if criterion == "fisher":
-        return FisherOracle(Y, ridge, cells, **kwargs)
-    if criterion in ("a-optimal", "aopt", "a_optimal"):
-        return AOptimalOracle(Y, ridge, cells, **kwargs)
-    if criterion == "gp-variance":
-        return _gp_oracle(Y, cells, **kwargs)
-    raise PlanningError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    return CRITERION_REGISTRY.get(criterion).oracle(Y, ridge, cells, **kwargs)
 
 
 # --------------------------------------------------------------------------- GP variance
@@ -732,3 +733,92 @@ def _gp_oracle(Y: Any, cells: Any, gp_method: str = "auto", **kwargs: Any
     if gp_method == "structured":
         return StructuredGPVarianceOracle(Y, cells=cells, **kwargs)
     return GPVarianceOracle(Y, cells=cells, **kwargs)
+
+
+# --------------------------------------------------------------------------- registry
+@dataclass(frozen=True)
+class CriterionSpec:
+    """A registered planning criterion.
+
+    ``oracle(Y, ridge, cells, **kwargs)`` -> gain oracle (``gains``, ``add``, ``value``);
+    ``value(Y, cells, ridge, **kwargs)`` -> the criterion's value of a set, from scratch;
+    ``maximize``: a gain is ``value(P + x) - value(P)`` (True) or ``value(P) - value(P + x)``;
+    ``certified``: :meth:`Plan.certify` bounds this criterion (``plan_bound``: Fisher only).
+    """
+
+    oracle: Callable[..., Any]
+    value: Callable[..., float]
+    maximize: bool
+    certified: bool
+
+
+def _fisher_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, prior_precision: Any = None,
+                      noise_var: Any = None, **_: Any) -> float:
+    """``log det M(cells)`` from scratch (the posterior precision with a prior / noise)."""
+    if prior_precision is None and noise_var is None:
+        return fisher_information(Y, cells, ridge)
+    Yk = as_factor_matrix(Y)
+    nv = np.broadcast_to(np.asarray(1.0 if noise_var is None else noise_var, float),
+                         (Yk.shape[1],))
+    Yw = Yk / np.sqrt(nv)
+    P = _cells_array(cells, Yk.shape[1])
+    P0 = (ridge * np.eye(Yk.shape[0]) if prior_precision is None
+          else np.asarray(prior_precision, float))
+    M = P0 + Yw[:, P] @ Yw[:, P].T
+    sign, logdet = np.linalg.slogdet(M)
+    return float(logdet) if sign > 0 else -np.inf
+
+
+def _aopt_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, prior_precision: Any = None,
+                    noise_var: Any = None, target_weights: Any = None, weight: Any = None,
+                    **_: Any) -> float:
+    """``trace(M(cells)^-1 W)`` from scratch."""
+    if prior_precision is None and noise_var is None and target_weights is None \
+            and weight is None:
+        return a_optimal_value(Y, cells, ridge)
+    Yk = as_factor_matrix(Y)
+    nv = np.broadcast_to(np.asarray(1.0 if noise_var is None else noise_var, float),
+                         (Yk.shape[1],))
+    Yw = Yk / np.sqrt(nv)
+    P = _cells_array(cells, Yk.shape[1])
+    P0 = (ridge * np.eye(Yk.shape[0]) if prior_precision is None
+          else np.asarray(prior_precision, float))
+    M = P0 + Yw[:, P] @ Yw[:, P].T
+    if weight is not None:
+        W = np.asarray(weight, float)
+    elif target_weights is not None:
+        W = (Yk * np.asarray(target_weights, float)) @ Yk.T
+    else:
+        W = Yk @ Yk.T
+    return float(np.trace(np.linalg.solve(M, W)))
+
+
+def _gp_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, region: Any = None,
+                  spatial_cov: Any = None, prior_cov: Any = None, targets: Any = None,
+                  target_weights: Any = None, **_: Any) -> float:
+    return gp_variance_value(Y, region, spatial_cov, prior_cov, cells, targets, target_weights)
+
+
+CRITERION_REGISTRY.register(
+    "fisher",
+    CriterionSpec(oracle=FisherOracle, value=_fisher_set_value, maximize=True, certified=True),
+    description="D-optimal, the paper's: log det of the information matrix "
+                "`ridge I + sum y y^T` (or the fold-in's posterior precision)",
+)
+CRITERION_REGISTRY.register(
+    "a-optimal",
+    CriterionSpec(oracle=AOptimalOracle, value=_aopt_set_value, maximize=False,
+                  certified=False),
+    description="decrease of the total prediction variance `sum_i y_i^T M^-1 y_i` "
+                "(needs `ridge > 0` or a prior)",
+    aliases=("aopt", "a_optimal"),
+)
+CRITERION_REGISTRY.register(
+    "gp-variance",
+    CriterionSpec(oracle=lambda Y, ridge=0.0, cells=None, **kw: _gp_oracle(Y, cells, **kw),
+                  value=_gp_set_value, maximize=False, certified=False),
+    description="decrease of the total posterior variance of the low-rank trend + GP "
+                "residual model (needs `spatial_cov`, `prior_cov`)",
+)
+CRITERIA: tuple[str, ...] = CRITERION_REGISTRY.choices()
+"""Canonical criterion names (``in`` accepts aliases); the registry's ``choices()``."""

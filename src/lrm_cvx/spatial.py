@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Literal
 
 import numba
@@ -45,9 +46,11 @@ from scipy.spatial.distance import cdist
 from ._validation import as_factor_matrix, as_generator, check_positive
 from .errors import DataError, ModelError, SolverError
 from .region import EARTH_RADIUS_KM, Region
+from .registry import Registry
 
 __all__ = [
     "MODELS",
+    "KERNEL_REGISTRY",
     "ResidualCovariance",
     "EmpiricalVariogram",
     "correlation",
@@ -61,7 +64,6 @@ __all__ = [
 
 Model = Literal["exponential", "matern32", "matern52", "gaussian"]
 Metric = Literal["grid", "km"]
-MODELS: tuple[str, ...] = ("exponential", "matern32", "matern52", "gaussian")
 _METRICS = ("grid", "km")
 _SQRT3 = np.sqrt(3.0)
 _SQRT5 = np.sqrt(5.0)
@@ -85,6 +87,21 @@ def correlation(model: str, h: Any) -> np.ndarray:
     if model == "gaussian":
         return np.exp(-h * h)
     raise ModelError(f"model must be one of {MODELS}, got {model!r}")
+
+
+KERNEL_REGISTRY = Registry("spatial model", ModelError)
+"""Spatial covariance models (objects: their correlation ``rho(h)`` at scaled distance
+``h = d / range``); ``MODELS`` is its ``choices()`` (the order is the compiled kernels' id)."""
+KERNEL_REGISTRY.register("exponential", partial(correlation, "exponential"),
+                         description="`exp(-h)` (Matern 1/2)")
+KERNEL_REGISTRY.register("matern32", partial(correlation, "matern32"),
+                         description="`(1 + sqrt(3) h) exp(-sqrt(3) h)`")
+KERNEL_REGISTRY.register("matern52", partial(correlation, "matern52"),
+                         description="`(1 + sqrt(5) h + 5 h^2 / 3) exp(-sqrt(5) h)`")
+KERNEL_REGISTRY.register("gaussian", partial(correlation, "gaussian"),
+                         description="`exp(-h^2)`")
+MODELS: tuple[str, ...] = KERNEL_REGISTRY.choices()
+"""Canonical spatial model names; the registry's ``choices()``."""
 
 
 def _scaled_cutoff(model: str, rel: float) -> float:
@@ -135,8 +152,7 @@ class ResidualCovariance:
     variogram: EmpiricalVariogram | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
-        if self.model not in MODELS:
-            raise ModelError(f"model must be one of {MODELS}, got {self.model!r}")
+        object.__setattr__(self, "model", KERNEL_REGISTRY.canonical(self.model, "model"))
         if self.metric not in _METRICS:
             raise ModelError(f"metric must be 'grid' or 'km', got {self.metric!r}")
         object.__setattr__(self, "sill", check_positive(self.sill, "sill", error=ModelError))
@@ -454,8 +470,7 @@ def fit_residual_covariance(
     starting ranges (the best fit wins). The range is bounded to ``[1e-3, 10] * max_distance``:
     a range much beyond the largest lag is not identifiable. Deterministic given ``random_state``.
     """
-    if model not in MODELS:
-        raise ModelError(f"model must be one of {MODELS}, got {model!r}")
+    model = KERNEL_REGISTRY.canonical(model, "model")
     vg = empirical_variogram(
         residuals, region, metric=metric, max_pairs=max_pairs, n_bins=n_bins,
         max_distance=max_distance, spacing=spacing, standardize=standardize,

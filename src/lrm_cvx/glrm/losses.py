@@ -24,8 +24,10 @@ import cvxpy as cp
 import numpy as np
 
 from ..errors import ModelError
+from ..registry import Registry
 
-__all__ = ["Loss", "Quadratic", "Huber", "Absolute", "Quantile", "get_loss", "LOSSES"]
+__all__ = ["Loss", "Quadratic", "Huber", "Absolute", "Quantile", "get_loss", "LOSSES",
+           "LOSS_REGISTRY"]
 
 _EPS = 1e-9  # floor of |r| in the L1-type majorisers, relative to the data's RMS (set in fit)
 _START, _DECAY = 1e7, 0.5  # continuation: the floor starts at 1e7 * eps and halves every MM step
@@ -245,14 +247,18 @@ class Quantile(Loss):
         return cp.sum(self.tau * cp.pos(-r) + (1.0 - self.tau) * cp.pos(r))
 
 
-LOSSES: dict[str, type[Loss]] = {
-    "quadratic": Quadratic,
-    "l2": Quadratic,
-    "huber": Huber,
-    "absolute": Absolute,
-    "l1": Absolute,
-    "quantile": Quantile,
-}
+LOSS_REGISTRY = Registry("loss", ModelError)
+"""Loss classes by name (constructed with their default parameters by :func:`get_loss`)."""
+LOSS_REGISTRY.register("quadratic", Quadratic, aliases=("l2",),
+                       description="`r^2`, the paper's squared Frobenius norm")
+LOSS_REGISTRY.register("huber", Huber, description="`r^2` for `|r| <= delta`, "
+                       "`2 delta |r| - delta^2` beyond (`Huber(delta=1.0)`)")
+LOSS_REGISTRY.register("absolute", Absolute, aliases=("l1",),
+                       description="`|r|`, robust (median-type)")
+LOSS_REGISTRY.register("quantile", Quantile, description="pinball loss of level `tau` "
+                       "(`Quantile(tau=0.5)`)")
+LOSSES: tuple[str, ...] = LOSS_REGISTRY.choices()
+"""Canonical loss names (``in`` accepts aliases); the registry's ``choices()``."""
 
 
 def get_loss(loss: Any) -> Loss:
@@ -264,9 +270,7 @@ def get_loss(loss: Any) -> Loss:
         name, params = loss.get("name"), dict(loss.get("params", {}))
     else:
         name, params = loss, {}
-    if isinstance(name, str) and name.lower() in LOSSES:
-        return LOSSES[name.lower()](**params)
-    raise ModelError(
-        f"loss must be one of {sorted(LOSSES)} or a Loss instance (e.g. Huber(delta=1.0)), "
-        f"got {loss!r}"
-    )
+    if isinstance(name, str) and name in LOSS_REGISTRY:
+        return LOSS_REGISTRY.get(name)(**params)
+    raise ModelError(LOSS_REGISTRY.message(loss) + "; or pass a Loss instance "
+                     "(e.g. Huber(delta=1.0))")

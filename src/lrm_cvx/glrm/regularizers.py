@@ -24,6 +24,7 @@ import numpy as np
 
 from .._validation import check_positive
 from ..errors import ModelError
+from ..registry import Registry
 
 __all__ = [
     "Regularizer",
@@ -34,6 +35,7 @@ __all__ = [
     "CvxpyRegularizer",
     "get_regularizer",
     "REGULARIZERS",
+    "REGULARIZER_REGISTRY",
 ]
 
 
@@ -211,15 +213,17 @@ class CvxpyRegularizer(Regularizer):
         return hash(id(self.fn))
 
 
-REGULARIZERS: dict[str, type[Regularizer]] = {
-    "none": ZeroReg,
-    "ridge": Ridge,
-    "l2": Ridge,
-    "l1": L1,
-    "lasso": L1,
-    "nonneg": NonNegative,
-    "nonnegative": NonNegative,
-}
+REGULARIZER_REGISTRY = Registry("regulariser", ModelError)
+"""Regulariser classes by name (constructed with weight 1 by :func:`get_regularizer`)."""
+REGULARIZER_REGISTRY.register("none", ZeroReg, description="no penalty, `g = 0` (also `None`)")
+REGULARIZER_REGISTRY.register("ridge", Ridge, aliases=("l2",),
+                              description="`lam ||y||_2^2` (`Ridge(lam)`)")
+REGULARIZER_REGISTRY.register("l1", L1, aliases=("lasso",),
+                              description="`lam ||y||_1`, sparse factors (`L1(lam)`)")
+REGULARIZER_REGISTRY.register("nonneg", NonNegative, aliases=("nonnegative",),
+                              description="indicator of `y >= 0`, non-negative factors")
+REGULARIZERS: tuple[str, ...] = REGULARIZER_REGISTRY.choices()
+"""Canonical regulariser names (``in`` accepts aliases); the registry's ``choices()``."""
 
 
 def get_regularizer(reg: Any) -> Regularizer:
@@ -234,11 +238,11 @@ def get_regularizer(reg: Any) -> Regularizer:
     else:
         name, params = reg, {}
     if isinstance(name, str):
-        if name.lower() in REGULARIZERS:
-            return REGULARIZERS[name.lower()](**params)
+        if name in REGULARIZER_REGISTRY:
+            return REGULARIZER_REGISTRY.get(name)(**params)
         raise ModelError(
-            f"regulariser must be None, one of {sorted(REGULARIZERS)}, a Regularizer instance "
-            f"(e.g. Ridge(0.1)) or a callable on a cvxpy Variable, got {reg!r}"
+            REGULARIZER_REGISTRY.message(reg) + "; or None, a Regularizer instance "
+            "(e.g. Ridge(0.1)) or a callable on a cvxpy Variable"
         )
     if callable(reg):
         return CvxpyRegularizer(reg)

@@ -9,9 +9,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .._validation import as_factor_matrix, check_positive
-from ..cost import COSTS, make_cost
+from ..cost import COST_REGISTRY, make_cost
 from ..errors import PlanningError
-from ..information import CRITERIA, fisher_information, make_oracle
+from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
 from .plan import Plan
 
@@ -116,10 +116,8 @@ def plan_greedy(
     k, _ = Yk.shape
     start_cell = region.resolve_cell(start, "start")
     budget = _check_budget(budget)
-    if criterion not in CRITERIA:
-        raise PlanningError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
-    if cost not in COSTS:
-        raise PlanningError(f"cost must be one of {COSTS}, got {cost!r}")
+    criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")  # aliases accepted
+    cost = COST_REGISTRY.canonical(cost, "cost")
     if initial == "nearest":
         P0 = initial_cells(region, start_cell, k)
     elif initial == "start":
