@@ -9,6 +9,7 @@ from __future__ import annotations
 import glob
 import os
 import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ import numpy as np
 import xarray as xr
 
 from ..errors import DataError
+from ..region import to_geographic_order
 
 __all__ = ["open_data", "open_netcdf"]
 
@@ -38,52 +40,103 @@ def _expand(paths: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path
 
 
 def _bbox_select(da: xr.DataArray, bbox: Sequence[float] | None) -> xr.DataArray:
-    if bbox is None:
-        return da
-    south, west, north, east = (float(v) for v in bbox)
-    lat, lon = da["lat"].values, da["lon"].values
-    rows = (lat >= south) & (lat <= north)
-    cols = (lon >= west) & (lon <= east) if west <= east else (lon >= west) | (lon <= east)
-    if not rows.any() or not cols.any():
-        raise DataError(
-            f"bbox {tuple(bbox)} lies outside the data (lat {lat.min():g}..{lat.max():g}, "
-            f"lon {lon.min():g}..{lon.max():g})"
-        )
-    return da.isel(lat=np.flatnonzero(rows), lon=np.flatnonzero(cols))
+    """Crop to ``bbox`` with columns in geographic order (see ``region.to_geographic_order``)."""
+    return to_geographic_order(da, bbox, DataError)
 
 
-def open_netcdf(paths: Sequence[Path], var: str | None = None,
-                bbox: Sequence[float] | None = None) -> xr.DataArray:
-    """A ``(time, lat, lon)`` float32 DataArray from generic NetCDF file(s)."""
+def _normalise(da: xr.DataArray, source: str, bbox: Sequence[float] | None, *,
+               lazy: bool = False) -> xr.DataArray:
+    """Checks and normal form shared by every generic source: ``(time, lat, lon)`` float32.
+
+    Renames latitude/longitude/y/x, squeezes extra size-1 dims, refuses empty axes and
+    duplicated times, sorts an unsorted time axis (with a warning), checks and orders the grid
+    (:func:`lrm_cvx.region.to_geographic_order`), loads (unless ``lazy``) and drops all-NaN
+    snapshots with a warning.
+    """
+    name = da.name if da.name is not None else "data"
+    da = da.rename({k: v for k, v in _RENAME.items() if k in da.dims and v not in da.dims})
+    extra = [d for d in da.dims if d not in ("time", "lat", "lon")]
+    for d in extra:
+        if da.sizes[d] != 1:
+            raise DataError(f"{source}: variable {name!r} has extra dim {d!r} of size "
+                            f"{da.sizes[d]}; select one (e.g. da.isel({d}=0))")
+    da = da.squeeze(extra, drop=True)
+    if set(da.dims) != {"time", "lat", "lon"}:
+        raise DataError(f"{source}: variable {name!r} must have dims (time, lat, lon), "
+                        f"got {da.dims}")
+    da = da.transpose("time", "lat", "lon")
+    empty = [d for d in da.dims if da.sizes[d] == 0]
+    if empty:
+        raise DataError(f"{source}: variable {name!r} is empty (dim {empty[0]!r} has size 0)")
+    if "time" in da.coords:
+        index = da.indexes["time"]
+        if not index.is_unique:
+            dup = index[index.duplicated()][0]
+            raise DataError(f"{source}: time {dup} occurs more than once; each snapshot needs "
+                            "its own time (drop or average the duplicates)")
+        if not index.is_monotonic_increasing:
+            warnings.warn(f"{source}: time is not sorted; snapshots were sorted by time",
+                          UserWarning, stacklevel=3)
+            da = da.sortby("time")
+    da = _bbox_select(da, bbox)
     try:
-        if len(paths) == 1:
-            ds = xr.open_dataset(paths[0])
-        else:
-            ds = xr.open_mfdataset([str(p) for p in paths], combine="by_coords")
-    except (OSError, ValueError) as exc:
-        raise DataError(f"cannot read NetCDF {', '.join(map(str, paths))}: {exc}") from None
+        da = da.astype(np.float32)
+        if not lazy:
+            da = da.load()
+    except Exception as exc:  # netCDF4/HDF5 raise several types for truncated data
+        raise DataError(f"cannot read {source}: {exc}") from None
+    if lazy:
+        return da
+    finite = np.isfinite(da.values).reshape(da.shape[0], -1).any(axis=1)
+    if not finite.any():
+        raise DataError(f"{source}: variable {name!r} has no finite value (all NaN"
+                        f"{' inside bbox ' + str(tuple(bbox)) if bbox is not None else ''})")
+    if not finite.all():
+        dropped = da["time"].values[~finite] if "time" in da.coords else np.flatnonzero(~finite)
+        warnings.warn(f"{source}: dropped {int((~finite).sum())} all-NaN snapshot(s) "
+                      f"(time {', '.join(map(str, dropped[:5]))}{' ...' if dropped.size > 5 else ''})",
+                      UserWarning, stacklevel=3)
+        da = da.isel(time=np.flatnonzero(finite))
+    return da
+
+
+def _choose_var(ds: xr.Dataset, var: str | None, source: str) -> xr.DataArray:
     ds = ds.rename({k: v for k, v in _RENAME.items() if k in ds.dims and v not in ds.dims})
     if var is None:
         candidates = [n for n, v in ds.data_vars.items()
                       if {"time", "lat", "lon"} <= set(v.dims)]
         if len(candidates) != 1:
             raise DataError(
-                f"{paths[0]}: cannot choose the variable (found {candidates or 'none'} with dims "
-                "time, lat, lon); pass var / --var"
+                f"{source}: cannot choose the variable (found {candidates or 'none'} with dims "
+                f"time, lat, lon among {list(ds.data_vars)}); pass var / --var"
             )
         var = candidates[0]
-    if var not in ds:
-        raise DataError(f"{paths[0]} has no variable {var!r}; it has {list(ds.data_vars)}")
-    da = ds[var]
-    extra = [d for d in da.dims if d not in ("time", "lat", "lon")]
-    for d in extra:
-        if da.sizes[d] != 1:
-            raise DataError(f"variable {var!r} has extra dim {d!r} of size {da.sizes[d]}")
-    da = da.squeeze(extra, drop=True)
-    if set(da.dims) != {"time", "lat", "lon"}:
-        raise DataError(f"variable {var!r} must have dims (time, lat, lon), got {da.dims}")
-    da = _bbox_select(da.transpose("time", "lat", "lon"), bbox)
-    return da.astype(np.float32).load()
+    if var not in ds.data_vars:
+        raise DataError(f"{source} has no variable {var!r}; it has {list(ds.data_vars)}")
+    return ds[var]
+
+
+def open_netcdf(paths: Sequence[Path], var: str | None = None,
+                bbox: Sequence[float] | None = None) -> xr.DataArray:
+    """A ``(time, lat, lon)`` float32 DataArray from generic NetCDF file(s).
+
+    Raises DataError naming the file for an empty, corrupt or truncated file, a missing or
+    ambiguous variable, wrong dims, bad coordinates (NaN/inf, duplicated, non-monotonic lat)
+    or duplicated times.
+    """
+    source = ", ".join(map(str, paths))
+    for p in paths:
+        if p.is_file() and p.stat().st_size == 0:
+            raise DataError(f"{p} is an empty file (0 bytes), not NetCDF")
+    try:
+        if len(paths) == 1:
+            ds = xr.open_dataset(paths[0])
+        else:
+            ds = xr.open_mfdataset([str(p) for p in paths], combine="by_coords")
+    except Exception as exc:  # netCDF4/HDF5/xarray raise several types for a bad file
+        raise DataError(f"cannot read NetCDF {source}: {exc}") from None
+    with ds:
+        return _normalise(_choose_var(ds, var, source), source, bbox)
 
 
 def open_data(paths: Any, *, var: str | None = None, bbox: Sequence[float] | None = None,
@@ -91,15 +144,29 @@ def open_data(paths: Any, *, var: str | None = None, bbox: Sequence[float] | Non
     """Open any supported source as a ``(time, lat, lon)`` DataArray.
 
     ``paths`` is ``sample:NAME`` (bundled samples), NOAA CDR NDVI files (by name), a folder of
-    RGB images (needs ``bbox = (south, west, north, east)``), or NetCDF file(s) with a
-    ``(time, lat, lon)`` variable (``var`` picks it when there are several).
+    RGB images (needs ``bbox = (south, west, north, east)``), NetCDF file(s) with a
+    ``(time, lat, lon)`` variable (``var`` picks it when there are several), or an in-memory
+    ``xarray.DataArray`` / ``Dataset`` (put through the same checks). ``bbox`` longitudes may
+    use either convention; ``west > east`` crosses the antimeridian, and the columns of the
+    result are always in geographic (eastward, contiguous) order.
     """
+    if isinstance(paths, xr.DataArray):
+        return _normalise(paths, "DataArray", bbox)
+    if isinstance(paths, xr.Dataset):
+        return _normalise(_choose_var(paths, var, "Dataset"), "Dataset", bbox)
+    if isinstance(paths, (bytes, bytearray)) or paths is None or not isinstance(
+            paths, (str, os.PathLike, list, tuple)):
+        raise DataError(
+            "paths must be a file path, a glob pattern, a folder, 'sample:NAME', a list of "
+            f"those, or an xarray DataArray/Dataset; got {type(paths).__name__}"
+        )
     items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    if not items:
+        raise DataError("paths is an empty list: give at least one file")
     if len(items) == 1 and str(items[0]).startswith("sample:"):
         from ..datasets import load_sample
 
-        da = load_sample(str(items[0]).split(":", 1)[1])
-        return _bbox_select(da, bbox)
+        return _normalise(load_sample(str(items[0]).split(":", 1)[1]), str(items[0]), bbox)
     files = _expand(items)
     if len(files) == 1 and files[0].is_dir():
         folder = files[0]
@@ -116,6 +183,9 @@ def open_data(paths: Any, *, var: str | None = None, bbox: Sequence[float] | Non
     missing = [str(p) for p in files if not p.exists()]
     if missing:
         raise DataError(f"file not found: {missing[0]}")
+    folders = [str(p) for p in files if p.is_dir()]
+    if folders:
+        raise DataError(f"{folders[0]} is a folder; give it alone or give its files")
     if all(_CDR_NAME.match(p.name) for p in files):
         from .ndvi import open_ndvi_cdr
 

@@ -32,6 +32,7 @@ import xarray as xr
 
 from .._validation import atomic_output
 from ..errors import DataError
+from ..region import check_bbox, check_coords, geographic_order, lon_in_box
 
 __all__ = [
     "open_ndvi_cdr",
@@ -168,26 +169,30 @@ def _resolve_flags(mask_flags: Any, products: set[str]) -> dict[str, tuple[str, 
 
 
 def _bbox_index(lat: np.ndarray, lon: np.ndarray, bbox: Sequence[float] | None, name: str):
+    """Row and column selectors for ``bbox`` and the longitudes of the selected columns.
+
+    Columns come back in geographic order (``region.geographic_order``): a box crossing the
+    antimeridian (``west > east``) on the CDR's -180..180 grid gives e.g. 170..190.
+    """
+    check_coords(lat, lon, name, DataError)
     if bbox is None:
-        return slice(None), slice(None)
-    try:
-        south, west, north, east = (float(v) for v in bbox)
-    except (TypeError, ValueError):
-        raise DataError(f"bbox must be (south, west, north, east), got {bbox!r}") from None
-    if south > north:
-        raise DataError(f"bbox must have south <= north, got {bbox!r}")
+        order, new_lon = geographic_order(lon)
+        cols = slice(None) if np.array_equal(order, np.arange(lon.size)) else order
+        return slice(None), cols, new_lon
+    south, west, north, east = check_bbox(bbox, DataError)
     rows = np.flatnonzero((lat >= south) & (lat <= north))
-    inside = (lon >= west) & (lon <= east) if west <= east else (lon >= west) | (lon <= east)
-    cols = np.flatnonzero(inside)
+    cols = np.flatnonzero(lon_in_box(lon, west, east))
     if rows.size == 0 or cols.size == 0:
         raise DataError(
             f"bbox {tuple(bbox)} lies outside the data of {name} "
             f"(lat {lat.min():g}..{lat.max():g}, lon {lon.min():g}..{lon.max():g})"
         )
-    # contiguous when the box does not wrap: slices keep the read lazy and cheap
+    order, new_lon = geographic_order(lon[cols], west)
+    cols = cols[order]
+    # contiguous runs become slices: they keep the read lazy and cheap
     row_sel = slice(rows[0], rows[-1] + 1) if np.all(np.diff(rows) == 1) else rows
     col_sel = slice(cols[0], cols[-1] + 1) if np.all(np.diff(cols) == 1) else cols
-    return row_sel, col_sel
+    return row_sel, col_sel, new_lon
 
 
 def _decode_file(ds: xr.Dataset, path: Path, product: str, flags: tuple[str, ...],
@@ -203,7 +208,7 @@ def _decode_file(ds: xr.Dataset, path: Path, product: str, flags: tuple[str, ...
                             "(time, latitude, longitude)")
     lat = np.asarray(ds["latitude"].values, dtype=np.float64)
     lon = np.asarray(ds["longitude"].values, dtype=np.float64)
-    rows, cols = _bbox_index(lat, lon, bbox, path.name)
+    rows, cols, new_lon = _bbox_index(lat, lon, bbox, path.name)
     sel = {"latitude": rows, "longitude": cols}
     ndvi_raw = ndvi_raw.transpose("time", "latitude", "longitude").isel(sel)
     qa_raw = qa_raw.transpose("time", "latitude", "longitude").isel(sel)
@@ -216,7 +221,8 @@ def _decode_file(ds: xr.Dataset, path: Path, product: str, flags: tuple[str, ...
     usable = (ndvi_raw != fill) & (ndvi_raw >= vmin) & (ndvi_raw <= vmax) & (qa_raw != qa_fill)
     usable = usable & ~decode_qa(qa_raw, product, flags)
     ndvi = (ndvi_raw.astype(np.float32) * np.float32(scale) + np.float32(offset)).where(usable)
-    return ndvi.astype(np.float32).rename({"latitude": "lat", "longitude": "lon"})
+    ndvi = ndvi.astype(np.float32).rename({"latitude": "lat", "longitude": "lon"})
+    return ndvi.assign_coords(lon=new_lon)
 
 
 def open_ndvi_cdr(
