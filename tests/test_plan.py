@@ -1,6 +1,7 @@
 """Plan exports, equality and the certificate hook."""
 
 import json
+import math
 
 import matplotlib
 import numpy as np
@@ -114,3 +115,128 @@ def test_certify_without_model_fails(setup):
     with pytest.raises(PlanningError, match="no model"):
         walk.certify()
     assert isinstance(walk, Plan)
+
+
+# ---------------------------------------------------------------------- issue 14, item 10
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@st.composite
+def small_instances(draw):
+    ny, nx = draw(st.integers(1, 6)), draw(st.integers(1, 6))
+    seed = draw(st.integers(0, 10_000))
+    rng = np.random.default_rng(seed)
+    mask = rng.random((ny, nx)) < draw(st.sampled_from([0.6, 0.85, 1.0]))
+    mask.flat[draw(st.integers(0, ny * nx - 1))] = True
+    lat = np.linspace(10, 0, ny) if draw(st.booleans()) else np.linspace(0, 10, ny)
+    lon = np.linspace(30, 30 + nx - 1, nx)
+    region = Region(lat=xr.DataArray(lat, dims="lat", coords={"lat": lat}),
+                    lon=xr.DataArray(lon, dims="lon", coords={"lon": lon}), mask=mask)
+    start = draw(st.integers(0, region.n_cells - 1))
+    budget = draw(st.one_of(st.integers(0, 14).map(float), st.floats(0, 14)))
+    return region, start, budget, seed
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(inst=small_instances(), direction=st.sampled_from(["up", "down", "left", "right"]))
+def test_last_cumulative_cost_is_the_plan_cost(inst, direction):
+    """Every planner and baseline: the route's cumulative cost ends exactly at plan.cost, is
+    non-decreasing from 0, and never exceeds the budget."""
+    region, start, budget, seed = inst
+    plans = [transect(region, start, budget, direction), random_walk(region, start, budget, seed)]
+    Y = np.random.default_rng(seed).standard_normal((1, region.n_cells))
+    for cost in ("nearest-neighbor", "insertion"):
+        plans.append(plan_greedy(Y, region, start, budget, cost=cost, ridge=1e-6,
+                                 progress=False))
+    for plan in plans:
+        cum = plan.to_dataframe()["cumulative_cost"].to_numpy()
+        assert cum[0] == 0.0 and cum[-1] == plan.cost, plan
+        assert np.all(np.diff(cum) >= 0) and plan.cost <= budget + 1e-9
+        if plan.method == "greedy" or plan.method == "random":
+            # a straight-line path through the route: the cumulative cost is its length
+            steps = np.sqrt((np.diff(plan.grid_index, axis=0) ** 2).sum(axis=1))
+            np.testing.assert_allclose(np.diff(cum), steps, rtol=1e-12, atol=1e-12)
+        else:  # a transect's steps are grid moves (>= the straight distance between stops)
+            straight = np.sqrt((np.diff(plan.grid_index, axis=0) ** 2).sum(axis=1))
+            assert np.all(np.diff(cum) >= straight - 1e-12)
+
+
+def test_transect_with_a_turn_over_masked_cells_counts_the_walked_steps():
+    mask = np.ones((3, 3), dtype=bool)
+    mask[0, 1] = mask[0, 2] = False  # the turn at the top edge crosses two masked positions
+    lat = np.linspace(10, 0, 3)  # row 0 is north
+    lon = np.linspace(30, 32, 3)
+    region = Region(lat=xr.DataArray(lat, dims="lat", coords={"lat": lat}),
+                    lon=xr.DataArray(lon, dims="lon", coords={"lon": lon}), mask=mask)
+    start = int(region.cell_grid[2, 1])
+    plan = transect(region, start, 4, "up")  # (2,1) (1,1) (0,1)x (0,2)x (1,2)
+    assert plan.cost == 4
+    assert plan.to_dataframe()["cumulative_cost"].tolist() == [0.0, 1.0, 4.0]
+    # the old export summed straight distances between stops: 1 + sqrt(2) != 4
+
+
+def test_plan_built_without_route_cost_and_inconsistent_cost(setup):
+    Y, region, start, plan = setup
+    kw = dict(region=region, cells=plan.cells, route=plan.route, information=0.0,
+              criterion=None, budget=20.0, start=start, ridge=0.0, method="greedy")
+    built = Plan.build(cost=None, **kw)
+    assert built.cost == plan.cost
+    with pytest.raises(ValueError, match="differs"):
+        Plan.build(cost=plan.cost + 1.0, **kw)
+
+
+# ---------------------------------------------------------------------- issue 14, item 9
+@pytest.fixture(scope="module")
+def tiny():
+    rng = np.random.default_rng(4)
+    lat, lon = np.linspace(5, 0, 6), np.linspace(0, 5, 6)
+    region = Region(lat=xr.DataArray(lat, dims="lat", coords={"lat": lat}),
+                    lon=xr.DataArray(lon, dims="lon", coords={"lon": lon}),
+                    mask=np.ones((6, 6), dtype=bool))
+    Y = rng.standard_normal((2, region.n_cells))
+    return Y, region, int(region.cell_grid[3, 3])
+
+
+def test_certify_fisher_plan_reports_its_gap(tiny):
+    Y, region, start = tiny
+    plan = plan_greedy(Y, region, start, 4, ridge=1e-3, progress=False)
+    cert = plan.certify(tighten=False)
+    assert cert.criterion == "fisher" and cert.plan_criterion == "fisher" and cert.comparable
+    assert cert.information == pytest.approx(plan.information)
+    assert np.isfinite(cert.gap) and cert.gap >= -1e-9
+    assert cert.gap == pytest.approx(cert.bound - plan.information)
+    assert "certified gap" in repr(cert)
+
+
+@pytest.mark.parametrize("criterion", ["a-optimal", "aopt"])
+def test_certify_a_optimal_plan_names_the_criterion_and_gives_no_gap(tiny, criterion):
+    Y, region, start = tiny
+    plan = plan_greedy(Y, region, start, 4, criterion=criterion, ridge=1e-3, progress=False)
+    assert plan.criterion == "a-optimal"  # the alias is stored under its canonical name
+    cert = plan.certify(tighten=False)
+    assert cert.criterion == "fisher" and cert.plan_criterion == "a-optimal"
+    assert not cert.comparable
+    assert math.isnan(cert.gap) and math.isnan(cert.volume_ratio) and cert.relative_gap is None
+    # the plan's Fisher information is still reported, and the bound still bounds it
+    assert cert.information == pytest.approx(plan.information)
+    assert cert.information <= cert.bound + 1e-9
+    text = repr(cert)
+    assert "no gap" in text and "a-optimal" in text and "certified gap" not in text
+    assert "different criteria" in cert._repr_html_()
+
+
+def test_certify_posterior_fisher_plan_gives_no_gap(tiny):
+    Y, region, start = tiny
+    plan = plan_greedy(Y, region, start, 4, prior_precision=np.eye(2), initial="start",
+                       progress=False)
+    assert plan.posterior
+    cert = plan.certify(tighten=False)
+    assert cert.plan_criterion == "fisher (posterior)" and math.isnan(cert.gap)
+
+
+def test_certify_baseline_is_judged_by_fisher(tiny):
+    Y, region, start = tiny
+    walk = transect(region, start, 4, "up", Y=Y, ridge=1e-3)
+    cert = walk.certify(tighten=False)
+    assert cert.plan_criterion is None and cert.comparable and np.isfinite(cert.gap)

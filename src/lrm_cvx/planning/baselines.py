@@ -58,7 +58,9 @@ def transect(
     steps once orthogonally (east for up/down transects, south for left/right ones; the other
     way when that is off the grid too, and from then on) and reverses direction (a lawnmower).
     Every grid position passed is observed; masked positions are crossed (their steps count)
-    but are not among the plan's cells. ``Y`` (optional) gives the plan's Fisher information.
+    but are not among the plan's cells. The plan's ``cost`` is the number of steps walked up to
+    the last observed (valid) cell: steps over masked positions after it observe nothing and
+    are not part of the plan. ``Y`` (optional) gives the plan's Fisher information.
     """
     if direction not in DIRECTIONS:
         raise PlanningError(f"direction must be one of {DIRECTIONS}, got {direction!r}")
@@ -74,6 +76,7 @@ def transect(
     pos = region.grid_index[start_cell].copy()
     inside = lambda p: 0 <= p[0] < ny and 0 <= p[1] < nx  # noqa: E731
     route = [start_cell]
+    route_cost = [0.0]
     n_steps = math.floor(budget + _TOL)
     moves = 0
     for _ in range(n_steps):
@@ -93,10 +96,12 @@ def transect(
         c = int(grid[pos[0], pos[1]])
         if c >= 0:
             route.append(c)
+            route_cost.append(float(moves))
     cells = _first_visits(route)
     Yk, info = _information(Y, region, cells, ridge)
     return Plan.build(
-        region=region, cells=cells, route=route, cost=float(moves), information=info,
+        region=region, cells=cells, route=route, cost=route_cost[-1], information=info,
+        route_cost=route_cost,
         criterion=None, budget=budget, start=start_cell, ridge=float(ridge),
         method=f"transect-{direction}", cost_function="steps", Y=Yk,
         history={},
@@ -138,6 +143,7 @@ def random_walk(
     grid = region.cell_grid
     gi = region.grid_index
     route = [start_cell]
+    route_cost = [0.0]
     visited = {start_cell}
     cost = 0.0
     cur = start_cell
@@ -153,11 +159,13 @@ def random_walk(
         cur = int(nb[j])
         cost += float(lengths[j])
         route.append(cur)
+        route_cost.append(cost)
         visited.add(cur)
     cells = _first_visits(route)
     Yk, info = _information(Y, region, cells, ridge)
     return Plan.build(
         region=region, cells=cells, route=route, cost=cost, information=info, criterion=None,
+        route_cost=route_cost,
         budget=budget, start=start_cell, ridge=float(ridge), method="random",
         cost_function="path", Y=Yk, history={},
     )

@@ -124,6 +124,13 @@ class PlanCertificate:
     ``tightened``: the relaxation had the path's distance limits (docs/certificate.md §6);
     ``leaves``: the final squares of the midpoint cover ``(row0, col0, side, value)``, whose
     largest value is ``relaxation.value`` (empty without the cover).
+
+    ``criterion`` is what the bound bounds: always ``"fisher"`` (``log det(ridge I + sum y
+    y^T)``). ``plan_criterion`` is what the plan was chosen for (``None`` for a baseline, which
+    optimises nothing and is judged by its Fisher information as in the paper; ``"fisher
+    (posterior)"`` for a Fisher greedy on the fold-in's posterior). When the two differ
+    (``comparable`` is False) ``information`` is still the plan's Fisher information but
+    ``gap`` and ``volume_ratio`` are NaN: a gap between different criteria means nothing.
     """
 
     bound: float
@@ -142,11 +149,20 @@ class PlanCertificate:
     online_bound: float | None = None
     tightened: bool = False
     leaves: tuple[tuple[float, float, float, float], ...] = field(default=(), repr=False)
+    criterion: str = "fisher"
+    plan_criterion: str | None = None
+
+    @property
+    def comparable(self) -> bool:
+        """The plan was chosen for the bounded criterion (or is a baseline): the gap means
+        something. False for a-optimal, gp-variance and posterior-Fisher plans."""
+        return self.plan_criterion in (None, self.criterion)
 
     @property
     def relative_gap(self) -> float | None:
         """``gap / |bound|`` when both are finite (a unit-free view of the gap)."""
-        if self.gap is None or not np.isfinite(self.bound) or self.bound == 0:
+        if self.gap is None or not np.isfinite(self.gap) or not np.isfinite(self.bound) \
+                or self.bound == 0:
             return None
         return self.gap / abs(self.bound)
 
@@ -154,9 +170,16 @@ class PlanCertificate:
         lines = [
             f"PlanCertificate(start={self.start}, budget={self.budget:g} "
             f"({self.metric}), k={self.k}, ridge={self.ridge:g})",
-            f"  upper bound          {self.bound:.6g} nats",
+            f"  upper bound          {self.bound:.6g} nats (on the {self.criterion} "
+            f"information of any plan)",
         ]
-        if self.information is not None:
+        if self.information is not None and not self.comparable:
+            lines += [
+                f"  plan information     {self.information:.6g} nats (Fisher)",
+                f"  no gap: the plan was chosen for the {self.plan_criterion} criterion, the "
+                f"bound is on {self.criterion}",
+            ]
+        elif self.information is not None:
             lines += [
                 f"  plan information     {self.information:.6g} nats",
                 f"  certified gap        {self.gap:.4g} nats",
@@ -179,8 +202,13 @@ class PlanCertificate:
         return "\n".join(lines)
 
     def _repr_html_(self) -> str:
-        rows = [("upper bound (nats)", f"{self.bound:.6g}")]
-        if self.information is not None:
+        rows = [("upper bound (nats)", f"{self.bound:.6g}"),
+                ("bounded criterion", self.criterion)]
+        if self.information is not None and not self.comparable:
+            rows += [("plan criterion", str(self.plan_criterion)),
+                     ("plan Fisher information (nats)", f"{self.information:.6g}"),
+                     ("certified gap", "none: different criteria")]
+        elif self.information is not None:
             rows += [
                 ("plan information (nats)", f"{self.information:.6g}"),
                 ("certified gap (nats)", f"{self.gap:.4g}"),
@@ -981,6 +1009,10 @@ def plan_bound(
     gives the plain disk relaxation. When the plan is given, the submodularity online bound is
     computed too and the smaller one is kept. Proofs in docs/certificate.md.
 
+    The bound is on the **Fisher** information (``criterion="fisher"``). For a plan chosen for
+    another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or ``plan.posterior``)
+    the certificate reports the plan's Fisher information but ``gap = volume_ratio = nan``.
+
     ``budget`` is in grid units (``metric="grid"``) or km (``metric="km"``).
     """
     from ..information import fisher_information
@@ -1041,13 +1073,31 @@ def plan_bound(
         online = _online_bound(Y, cells, cand, n_max, ridge, information)
         if online is not None:
             bound = min(bound, max(init_info, online))
-        gap, ratio = _gap(bound, information, k)
+        plan_criterion = _plan_criterion(plan)
+        if plan_criterion in (None, "fisher"):
+            gap, ratio = _gap(bound, information, k)
+        else:  # a bound on Fisher information says nothing of another criterion's gap
+            gap, ratio = math.nan, math.nan
     return PlanCertificate(
         bound=float(bound), information=information, gap=gap, volume_ratio=ratio,
         n_max=int(n_max), n_candidates=int(cand.size), k=k, start=int(start), budget=budget,
         ridge=ridge, metric=metric, initial_information=init_info, relaxation=relax,
         online_bound=online, tightened=bool(tighten), leaves=tuple(leaves),
+        criterion="fisher", plan_criterion=_plan_criterion(plan) if plan is not None else None,
     )
+
+
+def _plan_criterion(plan: Any) -> str | None:
+    """The criterion a plan was chosen for, canonical (``None``: a baseline)."""
+    crit = getattr(plan, "criterion", None)
+    if crit is None:
+        return None
+    from ..information import CRITERION_REGISTRY
+
+    crit = CRITERION_REGISTRY.canonical(crit, "plan.criterion")
+    if crit == "fisher" and getattr(plan, "posterior", False):
+        return "fisher (posterior)"
+    return crit
 
 
 # ----------------------------------------------------------------------------- path limits

@@ -195,4 +195,5 @@ def plan_greedy(
         history=history,
         cost_function=cost,
         Y=Yk,
+        posterior=prior_precision is not None or noise_var is not None,
     )

@@ -14,6 +14,17 @@ from .._validation import atomic_output
 __all__ = ["Plan"]
 
 
+def _path_cumulative(grid_index: np.ndarray) -> np.ndarray:
+    """Cumulative Euclidean grid length ``(r,)`` of the path through ``grid_index`` ``(r, 2)``,
+    summed in order from 0 exactly as :func:`lrm_cvx.cost.route_length` sums it."""
+    g = np.asarray(grid_index, dtype=np.int64).reshape(-1, 2)
+    if g.shape[0] == 0:
+        return np.empty(0)
+    d = np.diff(g, axis=0)
+    steps = np.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]).astype(np.float64))
+    return np.cumsum(np.concatenate([[0.0], steps]))
+
+
 @dataclass(eq=False, repr=False)
 class Plan:
     """A sampling plan from ``start`` within ``budget``.
@@ -36,6 +47,11 @@ class Plan:
         ``cost`` (route cost after the pick) and ``n_evaluated`` (candidates whose exact cost
         was recomputed); empty arrays for baselines.
     method : ``"greedy"``, ``"transect-up"`` (``-down``, ``-left``, ``-right``) or ``"random"``.
+    route_cost : ``(r,)`` float64, the travel cost from the start to each route stop (the last
+        one equals ``cost``): the grid-distance path along the route for the greedy and the
+        random walk; the grid steps walked for a transect (steps across masked positions count).
+    posterior : the greedy's criterion was computed on the fold-in's posterior (a prior
+        precision or per-cell noise), not on ``ridge I + sum y y^T``.
     """
 
     cells: np.ndarray
@@ -52,6 +68,8 @@ class Plan:
     history: dict[str, np.ndarray] = field(default_factory=dict)
     method: str = "greedy"
     cost_function: str = "nearest-neighbor"
+    route_cost: np.ndarray = field(default_factory=lambda: np.empty(0))
+    posterior: bool = False
     _Y: Any = field(default=None, repr=False, compare=False)
     _region: Any = field(default=None, repr=False, compare=False)
 
@@ -63,7 +81,7 @@ class Plan:
         region: Any,
         cells: Any,
         route: Any,
-        cost: float,
+        cost: float | None,
         information: float,
         criterion: str | None,
         budget: float,
@@ -73,10 +91,28 @@ class Plan:
         history: dict[str, np.ndarray] | None = None,
         cost_function: str = "nearest-neighbor",
         Y: Any = None,
+        route_cost: Any = None,
+        posterior: bool = False,
     ) -> Plan:
-        """A plan with its coordinates looked up in ``region``."""
+        """A plan with its coordinates looked up in ``region``.
+
+        ``route_cost`` (cumulative cost at each route stop) defaults to the grid-distance path
+        along ``route`` (summed in order, as the path costs are); ``cost`` defaults to its last
+        value. A given ``cost`` must equal the last ``route_cost`` (to 1e-9 relative).
+        """
         route = np.asarray(route, dtype=np.int64)
         gi = np.asarray(region.grid_index[route], dtype=np.int64)
+        if route_cost is None:
+            route_cost = _path_cumulative(gi)
+        route_cost = np.asarray(route_cost, dtype=np.float64)
+        if route_cost.shape != route.shape:
+            raise ValueError(f"route_cost must have the route's shape {route.shape}")
+        if cost is None:
+            cost = float(route_cost[-1]) if route.size else 0.0
+        if route.size and not np.isclose(route_cost[-1], cost, rtol=1e-9, atol=1e-9):
+            raise ValueError(f"the route's cost {route_cost[-1]!r} differs from cost={cost!r}")
+        if route.size:
+            route_cost[-1] = float(cost)  # the same float, not one rounded differently
         return cls(
             cells=np.asarray(cells, dtype=np.int64),
             route=route,
@@ -92,6 +128,8 @@ class Plan:
             history=dict(history or {}),
             method=method,
             cost_function=cost_function,
+            route_cost=route_cost,
+            posterior=bool(posterior),
             _Y=Y,
             _region=region,
         )
@@ -112,8 +150,8 @@ class Plan:
         if not isinstance(other, Plan):
             return NotImplemented
         scalars = ("cost", "information", "criterion", "budget", "start", "ridge", "method",
-                   "cost_function")
-        arrays = ("cells", "route", "lat", "lon", "grid_index")
+                   "cost_function", "posterior")
+        arrays = ("cells", "route", "lat", "lon", "grid_index", "route_cost")
         return (
             all(
                 getattr(self, a) == getattr(other, a)
@@ -133,7 +171,11 @@ class Plan:
         """Upper bound on the achievable Fisher information and this plan's optimality gap.
 
         Calls :func:`lrm_cvx.planning.bound.plan_bound` with this plan's model, region, start,
-        budget and ridge; keyword arguments are passed on (e.g. ``tol``).
+        budget and ridge; keyword arguments are passed on (e.g. ``tol``). The certificate
+        always bounds the **Fisher** information (``certificate.criterion == "fisher"``); its
+        ``gap`` and ``volume_ratio`` are NaN when the plan was chosen for another criterion
+        (``"a-optimal"``, ``"gp-variance"``, or Fisher on a posterior): a gap between two
+        criteria means nothing (docs/certificate.md, "Which criterion is certified").
         """
         if self._Y is None or self._region is None:
             from ..errors import PlanningError
@@ -149,8 +191,9 @@ class Plan:
         """One row per route stop: order, cell, lat, lon, row, col, cumulative_cost."""
         import pandas as pd
 
-        steps = np.hypot(*np.diff(self.grid_index, axis=0).T) if self.route.size > 1 else []
-        cum = np.concatenate([[0.0], np.cumsum(steps)]) if self.route.size else np.empty(0)
+        cum = self.route_cost
+        if cum.shape != self.route.shape:  # a Plan built by hand without route_cost
+            cum = _path_cumulative(self.grid_index)
         return pd.DataFrame(
             {
                 "order": np.arange(self.route.size),
