@@ -1,0 +1,259 @@
+"""Temporal dynamics of the latent columns (issue 13 step 2): estimation, bad input, model io."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+import xarray as xr
+
+from lrm_cvx.errors import DataError, ModelError
+from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm.dynamics import (
+    Dynamics,
+    check_times,
+    estimate_ar1,
+    estimate_seasonal,
+    time_numbers,
+)
+from lrm_cvx.io.samples import synthetic_dynamic_field
+
+
+def _ar_series(A, Q, T, rng, mu=None):
+    k = A.shape[0]
+    L = np.linalg.cholesky(Q)
+    X = np.empty((k, T))
+    z = np.zeros(k)
+    for t in range(T):
+        z = A @ z + L @ rng.standard_normal(k)
+        X[:, t] = z
+    return X + (0 if mu is None else mu[:, None])
+
+
+def _rel(a, b):
+    return np.linalg.norm(a - b) / np.linalg.norm(b)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ar1_recovers_planted_dynamics(seed):
+    da, truth = synthetic_dynamic_field(3000, (3, 4), 3, seed=seed, missing=0.0,
+                                        return_truth=True)
+    dyn = estimate_ar1(truth["X"], da.time)
+    assert _rel(dyn.A, truth["A"]) < 0.10
+    assert _rel(dyn.Q, truth["Q"]) < 0.15
+    np.testing.assert_allclose(dyn.initial_mean, truth["X"][:, -1])
+    assert dyn.step == 1.0 and dyn.time_kind == "datetime" and dyn.n_pairs == 2999
+
+
+def test_ar1_nonsymmetric_matrix_and_mean():
+    rng = np.random.default_rng(5)
+    A = np.array([[0.7, 0.2], [-0.1, 0.5]])
+    Q = np.array([[0.05, 0.01], [0.01, 0.02]])
+    mu = np.array([2.0, -1.0])
+    X = _ar_series(A, Q, 4000, rng, mu)
+    dyn = estimate_ar1(X, np.arange(4000))
+    assert _rel(dyn.A, A) < 0.10
+    np.testing.assert_allclose(dyn.mean, mu, atol=0.05)
+    # c of one step: x' = A x + (mu - A mu)
+    An, Qn, c = dyn.transition(1)
+    np.testing.assert_allclose(An, dyn.A)
+    np.testing.assert_allclose(c, dyn.mean - dyn.A @ dyn.mean)
+
+
+def test_ar1_is_stable_and_Q_psd():
+    # a random walk (unit root) and a collinear series: A is scaled below 1, Q stays PSD
+    rng = np.random.default_rng(0)
+    walk = np.cumsum(rng.standard_normal((2, 50)), axis=1) * np.array([[1.0], [1.0]])
+    walk[1] = 2 * walk[0]  # rank-deficient: Q has a zero eigenvalue before the floor
+    dyn = estimate_ar1(walk, np.arange(50))
+    assert np.max(np.abs(np.linalg.eigvals(dyn.A))) <= 0.99 + 1e-12
+    assert np.linalg.eigvalsh(dyn.Q).min() > 0
+    np.testing.assert_allclose(dyn.Q, dyn.Q.T)
+
+
+def test_shrinkage_pulls_towards_zero():
+    rng = np.random.default_rng(1)
+    X = _ar_series(np.diag([0.8, 0.6]), 0.1 * np.eye(2), 200, rng)
+    a0 = estimate_ar1(X, np.arange(200), shrinkage=0.0).A
+    a1 = estimate_ar1(X, np.arange(200), shrinkage=1.0).A
+    assert np.linalg.norm(a1) < np.linalg.norm(a0)
+    # the closed form of the ridge least squares
+    Z = X - X.mean(axis=1, keepdims=True)
+    Z0, Z1 = Z[:, :-1], Z[:, 1:]
+    lam = np.trace(Z0 @ Z0.T) / 2
+    np.testing.assert_allclose(a1, Z1 @ Z0.T @ np.linalg.inv(Z0 @ Z0.T + lam * np.eye(2)))
+
+
+def test_irregular_steps_use_pairs_one_step_apart_and_powers_of_A():
+    rng = np.random.default_rng(2)
+    A = np.diag([0.9, 0.5])
+    X = _ar_series(A, 0.1 * np.eye(2), 400, rng)
+    keep = np.ones(400, bool)
+    keep[rng.choice(400, 60, replace=False)] = False  # gaps of 2+ steps
+    t = np.arange(400)[keep]
+    dyn = estimate_ar1(X[:, keep], t)
+    assert dyn.step == 1.0
+    assert dyn.n_pairs == int(np.sum(np.diff(t) == 1))
+    assert dyn.n_steps(10, 13) == 3 and dyn.n_steps(10, 10) == 0
+    A3, Q3, _ = dyn.transition(3)
+    np.testing.assert_allclose(A3, np.linalg.matrix_power(dyn.A, 3))
+    np.testing.assert_allclose(Q3, dyn.Q + dyn.A @ dyn.Q @ dyn.A.T
+                               + dyn.A @ dyn.A @ dyn.Q @ dyn.A.T @ dyn.A.T)
+
+
+def test_monthly_steps_count_one_per_month():
+    times = pd.date_range("2000-01-01", periods=30, freq="MS")
+    t, kind, _ = time_numbers(times.values)
+    assert kind == "datetime" and t[1] == 31
+    X = _ar_series(np.diag([0.5]), np.eye(1), 30, np.random.default_rng(0))
+    dyn = estimate_ar1(X, times.values)
+    assert dyn.n_pairs == 29  # 28..31 day months are all one step
+    assert dyn.n_steps(times.values[0], times.values[3]) == 3
+
+
+def test_seasonal_recovers_season_means_and_anomaly_dynamics():
+    da, truth = synthetic_dynamic_field(12 * 150, (3, 3), 2, seed=3, missing=0.0,
+                                        seasonal_period=12, freq="MS", return_truth=True)
+    dyn = estimate_seasonal(truth["X"], da.time)
+    assert dyn.season == "month" and dyn.season_means.shape == (12, 2)
+    months = da.time.dt.month.values - 1
+    planted = (truth["mu"][:, None] + truth["seasonal"])[:, :12]
+    np.testing.assert_allclose(dyn.season_means[months[:12]], planted.T, atol=0.1)
+    assert _rel(dyn.A, truth["A"]) < 0.15
+    # the transition re-centres on the target month's mean
+    t0, t1 = da.time.values[-1], da.time.values[-1] + np.timedelta64(31, "D")
+    An, _, c = dyn.transition(1, t0, t1)
+    m0, m1 = dyn.season_mean(t0), dyn.season_mean(t1)
+    np.testing.assert_allclose(An @ m0 + c, m1)
+
+
+def test_seasonal_with_a_cftime_calendar():
+    times = xr.date_range("2001-01-01", periods=48, freq="MS", calendar="noleap",
+                          use_cftime=True)
+    rng = np.random.default_rng(4)
+    season = np.sin(2 * np.pi * np.arange(48) / 12)
+    X = np.vstack([season, -season]) + 0.1 * rng.standard_normal((2, 48))
+    dyn = estimate_seasonal(X, times.values)
+    assert dyn.time_kind == "cftime" and dyn.season == "month"
+    np.testing.assert_allclose(dyn.season_means[:, 0], np.sin(2 * np.pi * np.arange(12) / 12),
+                               atol=0.15)
+    t, kind, cal = time_numbers(times.values)
+    assert kind == "cftime" and cal == "noleap" and t[12] == 365
+
+
+def test_seasonal_refuses_numbers_short_records_and_odd_steps():
+    X = np.random.default_rng(0).standard_normal((2, 30))
+    with pytest.raises(ModelError, match="datetime"):
+        estimate_seasonal(X, np.arange(30))
+    with pytest.raises(ModelError, match="twice"):
+        estimate_seasonal(X[:, :14], pd.date_range("2000-01-01", periods=14, freq="MS").values)
+    with pytest.raises(ModelError, match="monthly or daily"):
+        estimate_seasonal(X, pd.date_range("2000-01-01", periods=30, freq="7D").values)
+
+
+@pytest.mark.parametrize("times, match", [
+    (np.array([0, 2, 1, 3]), "not sorted"),
+    (np.array([0, 1, 1, 3]), "duplicated"),
+    (np.array(["2000-01-01", "NaT", "2000-01-03", "2000-01-04"], dtype="datetime64[ns]"),
+     "NaT"),
+    (np.array([0.0, np.nan, 2, 3]), "non-finite"),
+    (None, "time coordinate"),
+])
+def test_bad_times(times, match):
+    X = np.zeros((2, 4))
+    with pytest.raises(DataError, match=match):
+        estimate_ar1(X, times)
+
+
+def test_too_few_snapshots_and_length_mismatch():
+    with pytest.raises(ModelError, match="at least 3"):
+        estimate_ar1(np.zeros((2, 2)), np.arange(2))
+    with pytest.raises(DataError, match="entries"):
+        estimate_ar1(np.zeros((2, 5)), np.arange(4))
+    with pytest.raises(ModelError, match="shrinkage"):
+        estimate_ar1(np.zeros((2, 5)), np.arange(5), shrinkage=-1)
+    with pytest.raises(DataError, match="sorted"):
+        check_times(np.array([3, 2, 1]))
+
+
+def test_dynamics_validates_shapes():
+    with pytest.raises(ModelError, match="Q must have shape"):
+        Dynamics(kind="ar1", A=np.eye(2), Q=np.eye(3), mean=np.zeros(2),
+                 initial_mean=np.zeros(2), initial_cov=np.eye(2))
+    with pytest.raises(ModelError, match="kind"):
+        Dynamics(kind="ar2", A=np.eye(2), Q=np.eye(2), mean=np.zeros(2),
+                 initial_mean=np.zeros(2), initial_cov=np.eye(2))
+
+
+# ----------------------------------------------------------------------------- the model
+@pytest.fixture(scope="module")
+def field():
+    return synthetic_dynamic_field(40, (8, 9), 3, seed=1, noise=0.03)
+
+
+def _fit(data, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return GLRM(3, progress=False, max_iter=30, random_state=0, **kw).fit(data)
+
+
+def test_model_temporal_none_keeps_todays_model(field, tmp_path):
+    plain = _fit(field)
+    assert plain.dynamics_ is None
+    with_dyn = _fit(field, temporal="ar1")
+    np.testing.assert_array_equal(plain._Xv, with_dyn._Xv)  # the fit itself is unchanged
+    np.testing.assert_array_equal(plain._Yv, with_dyn._Yv)
+    plain.save(tmp_path / "plain.nc")
+    with xr.open_dataset(tmp_path / "plain.nc") as ds:
+        assert "dynamics_kind" not in ds.attrs and "dynamics_A" not in ds
+    assert GLRM.load(tmp_path / "plain.nc").dynamics_ is None
+
+
+def test_model_dynamics_round_trip(field, tmp_path):
+    model = _fit(field, temporal="ar1", offset=True)
+    dyn = model.dynamics_
+    assert dyn.kind == "ar1" and dyn.A.shape == (3, 3)
+    np.testing.assert_allclose(dyn.initial_mean, model._Xv[:, -1])
+    assert np.linalg.eigvalsh(dyn.initial_cov).min() > 0  # the last snapshot's fold-in cov
+    model.save(tmp_path / "m.nc")
+    back = GLRM.load(tmp_path / "m.nc")
+    assert back.temporal == "ar1"
+    for name in ("A", "Q", "mean", "initial_mean", "initial_cov"):
+        np.testing.assert_array_equal(getattr(back.dynamics_, name), getattr(dyn, name))
+    assert back.dynamics_.time == field.time.values[-1]
+
+
+def test_model_seasonal_round_trip(tmp_path):
+    da = synthetic_dynamic_field(36, (5, 6), 2, seed=0, seasonal_period=12, freq="MS")
+    model = _fit(da, temporal="seasonal")
+    model.save(tmp_path / "s.nc")
+    back = GLRM.load(tmp_path / "s.nc")
+    assert back.dynamics_.season == "month"
+    np.testing.assert_array_equal(back.dynamics_.season_means, model.dynamics_.season_means)
+
+
+def test_model_temporal_bad_input(field):
+    with pytest.raises(ModelError, match="temporal must be one of"):
+        _fit(field, temporal="ar2")
+    with pytest.raises(ModelError, match="at least 3"):
+        _fit(field.isel(time=slice(0, 2)), temporal="ar1")
+    with pytest.raises(DataError, match="not sorted"):
+        _fit(field.isel(time=[0, 2, 1, 3, 4]), temporal="ar1")
+    with pytest.raises(DataError, match="duplicated"):
+        _fit(field.isel(time=[0, 1, 1, 3, 4]), temporal="ar1")
+    with pytest.raises(DataError, match="needs a time coordinate"):
+        _fit(field.drop_vars("time"), temporal="ar1")
+    model = _fit(field)
+    with pytest.raises(ModelError, match="'ar1' or 'seasonal'"):
+        model.fit_dynamics("ar3")
+    assert model.fit_dynamics("ar1").dynamics_.kind == "ar1"
+
+
+def test_numpy_input_counts_rows_as_steps(field):
+    from lrm_cvx.region import Region
+
+    D = Region.from_dataarray(field).stack(field).astype(np.float64)
+    model = _fit(D, temporal="ar1")
+    assert model.dynamics_.time_kind == "numeric" and model.dynamics_.step == 1.0
