@@ -165,7 +165,8 @@ def guard_outputs(
         for inp in inputs:
             if same_file(out, inp):
                 raise FileExistsError(
-                    f"refusing to write {out}: it is the input file {inp}; choose another output")
+                    f"refusing to overwrite the input file {inp} with the output {out}; choose "
+                    "another output (--overwrite never replaces an input)")
         if out.is_dir():
             raise IsADirectoryError(f"output {out} is an existing folder; give a file name")
         if out.exists() and not overwrite:

@@ -1,79 +1,247 @@
 """The ``lrm-cvx`` command: thin wrappers over the public functions.
 
-User errors (bad arguments, unreadable files, impossible requests) exit with status 2 and one
-line on stderr; anything else is a bug and keeps its traceback.
+Contract (docs/cli.md): every failure prints one line ``lrm-cvx <cmd>: error: ...`` on stderr
+and exits with status 2 (``--debug`` also prints the traceback); no command ever writes onto
+one of its inputs (globs and folders expanded, compared as resolved files); every output is
+written to a temporary file beside it and renamed into place (all of ``evaluate``'s outputs
+together), and an existing output is replaced only with ``--overwrite``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import sys
 import time
+import traceback
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from ._validation import atomic_outputs, guard_outputs
 from .errors import LrmError
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "RECOMMENDED"]
 
 DEMO_DIR = Path("lrm-cvx-demo")
+
+#: The recommended setting of docs/reconstruction.md, switched on by ``--recommended``:
+#: fit ``GLRM(offset=True, spatial="exponential")``, plan with the gp-variance criterion from
+#: the start cell alone, predict with the empirical prior and the kriged GP residual.
+RECOMMENDED = {"offset": True, "spatial": "exponential", "criterion": "gp-variance",
+               "method": "greedy:gp-variance", "initial": "start", "prior": "empirical",
+               "fold_spatial": True}
+
+#: ``--certify`` levels: the library's ``certify="fast"|"tight"`` and ``"off"`` (False).
+CERTIFY_LEVELS = ("fast", "tight", "off")
+
+EVALUATION_FILES = ("results.nc", "summary.csv", "metrics.png", "metrics.pdf",
+                    "predictions.png", "predictions.pdf")
 
 
 class UsageError(LrmError, ValueError):
     """A command-line argument is malformed."""
 
 
+# ---------------------------------------------------------------------------- arguments
 def _floats(text: str, n: int | None, what: str) -> list[float]:
     try:
-        values = [float(v) for v in text.split(",")]
+        values = [float(v) for v in str(text).split(",") if v.strip()]
     except ValueError:
         raise UsageError(f"{what} must be comma-separated numbers, got {text!r}") from None
     if n is not None and len(values) != n:
         raise UsageError(f"{what} must have {n} comma-separated numbers, got {text!r}")
+    if not values:
+        raise UsageError(f"{what} needs at least one number, got {text!r}")
+    if not all(np.isfinite(values)):
+        raise UsageError(f"{what} must be finite numbers, got {text!r}")
     return values
+
+
+def _check_lat(value: float, what: str) -> None:
+    if not -90 <= value <= 90:
+        raise UsageError(f"{what} latitude must be in [-90, 90], got {value:g} "
+                         "(latitude comes first)")
 
 
 def _start(text: str) -> tuple[float, float]:
     lat, lon = _floats(text, 2, "--start LAT,LON")
+    _check_lat(lat, "--start")
     return (lat, lon)
+
+
+def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
+    if text is None:
+        return None
+    south, west, north, east = _floats(text, 4, "--bbox S,W,N,E")
+    _check_lat(south, "--bbox south")
+    _check_lat(north, "--bbox north")
+    if south >= north:
+        raise UsageError(f"--bbox south ({south:g}) must be below north ({north:g}); the order "
+                         "is S,W,N,E")
+    return (south, west, north, east)
+
+
+def _int_at_least(low: int):
+    def convert(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}")
+        return value
+
+    convert.__name__ = f"int>={low}"
+    return convert
+
+
+def _number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+_NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_NUM_LIST = re.compile(rf"^,?{_NUM}(?:,{_NUM})*,?$")
+_COORDINATE_FLAGS = {"--start": 2, "--bbox": 4}
+
+
+def _join_coordinates(argv: Sequence[str]) -> list[str]:
+    """``--start -10 150`` / ``--start -10,150`` -> ``--start=-10,150`` (same for ``--bbox``).
+
+    argparse reads ``-10,150`` as an option; joining the numbers after the flag into
+    ``--flag=...`` accepts every southern or western coordinate, in ``LAT LON`` or ``LAT,LON``
+    form.
+    """
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        if tok == "--":
+            out.extend(argv[i:])
+            break
+        n = _COORDINATE_FLAGS.get(tok)
+        parts: list[str] = []
+        j = i + 1
+        while n is not None and j < len(argv) and len(parts) < n and _NUM_LIST.match(argv[j]):
+            parts += [v for v in argv[j].split(",") if v]
+            j += 1
+        if parts:
+            out.append(f"{tok}={','.join(parts)}")
+            i = j
+        else:
+            out.append(tok)
+            i += 1
+    return out
+
+
+# ---------------------------------------------------------------------------- files
+def _input_files(items: Sequence[str]) -> list[Path]:
+    """Every file a data argument reads: globs expanded (as ``open_data`` does), a folder and
+    every file in it, and the package file behind ``sample:NAME``."""
+    from .io.generic import _expand
+
+    files: list[Path] = []
+    plain = []
+    for item in items:
+        text = str(item)
+        if text.startswith("sample:"):
+            from importlib import resources
+
+            name = text.split(":", 1)[1]
+            files.append(Path(str(resources.files("lrm_cvx") / "data" / f"{name}.nc")))
+        else:
+            plain.append(text)
+    for path in _expand(plain) if plain else []:
+        files.append(path)
+        if path.is_dir():
+            files.extend(q for q in sorted(path.iterdir()) if q.is_file())
+    return files
+
+
+def _check_writable(paths: Sequence[Path]) -> None:
+    """Fail before any work when an output's existing folder cannot take a new file."""
+    import tempfile
+
+    for folder in {p.parent for p in paths}:
+        if folder.is_dir():
+            fd, probe = tempfile.mkstemp(prefix=".lrm-cvx-probe.", dir=folder)
+            os.close(fd)
+            os.unlink(probe)
+        elif folder.exists():
+            raise NotADirectoryError(f"cannot write into {folder}: it is a file, not a folder")
+
+
+def _guard(outputs: Sequence[str | Path], inputs: Sequence[str | Path],
+           args: argparse.Namespace) -> list[Path]:
+    outs = guard_outputs(outputs, inputs, overwrite=args.overwrite)
+    _check_writable(outs)
+    return outs
 
 
 def _load(args: argparse.Namespace):
     from .io import open_data
 
-    bbox = tuple(_floats(args.bbox, 4, "--bbox S,W,N,E")) if args.bbox else None
-    return open_data(args.data, var=args.var, bbox=bbox)
+    return open_data(args.data, var=args.var, bbox=_bbox(args.bbox))
 
 
-def _load_model(path: str):
+def _load_model(path: str, *, need_region: bool = True):
     from .glrm import GLRM
 
-    return GLRM.load(path)
+    model = GLRM.load(path)
+    if need_region and model.region_ is None:
+        raise UsageError(f"model {path} was fitted on a plain array and has no region (lat/lon "
+                         "grid); refit it with 'lrm-cvx fit' on gridded data")
+    return model
 
 
-def _check_output(path: str | Path, inputs: Sequence[str | Path] = ()) -> Path:
-    out = Path(path)
-    for p in inputs:
-        if Path(p).exists() and out.exists() and out.resolve() == Path(p).resolve():
-            raise UsageError(f"refusing to overwrite the input file {p}; choose another -o")
-    return out
+def _need_spatial(model, path: str, why: str) -> None:
+    if getattr(model, "spatial_cov_", None) is None:
+        raise UsageError(f"{why} needs a model fitted with a spatial covariance; {path} has none "
+                         "(refit with 'lrm-cvx fit --spatial exponential' or '--recommended')")
+
+
+def _pick(explicit, recommended: bool, key: str, default):
+    if explicit is not None:
+        return explicit
+    return RECOMMENDED[key] if recommended else default
+
+
+def _prior(text: str | None):
+    return None if text in (None, "none") else text
 
 
 # ---------------------------------------------------------------------------- commands
+def _model_params(args: argparse.Namespace) -> dict:
+    return {"offset": bool(args.offset or args.recommended),
+            "spatial": _pick(args.spatial, args.recommended, "spatial", None),
+            "scale": bool(args.scale),
+            "noise": args.noise}
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     from .glrm import GLRM
 
+    (out,) = _guard([args.output], _input_files(args.data), args)
     data = _load(args)
-    out = _check_output(args.output, args.data)
     model = GLRM(rank=args.rank, loss=args.loss, max_iter=args.max_iter, tol=args.tol,
-                 offset=args.offset, spatial=args.spatial, random_state=args.seed,
-                 progress=not args.quiet).fit(data)
+                 random_state=args.seed, progress=not args.quiet,
+                 **_model_params(args)).fit(data)
     model.save(out)
-    print(f"fitted rank-{args.rank} GLRM on {data.sizes['time']} snapshots x "
-          f"{model.region_.n_cells} cells in {model.n_iter_} iterations "
-          f"(noise std {model.noise_std_:.4g}); saved {out}")
+    extras = [name for name in ("offset", "scale") if getattr(model, name)]
+    if model.spatial:
+        extras.append(f"spatial={model.spatial}")
+    print(f"fitted rank-{args.rank} GLRM{' (' + ', '.join(extras) + ')' if extras else ''} on "
+          f"{data.sizes['time']} snapshots x {model.region_.n_cells} cells in {model.n_iter_} "
+          f"iterations (noise std {model.noise_std_:.4g}); saved {out}")
     return 0
 
 
@@ -81,102 +249,218 @@ def _plan_from_args(args: argparse.Namespace):
     from .planning import plan_greedy
 
     model = _load_model(args.model)
-    return model, plan_greedy(model.Y_, model.region_, _start(args.start), args.budget,
-                              criterion=args.criterion, cost=args.cost, ridge=args.ridge,
-                              progress=not args.quiet)
+    start = _start(args.start)
+    criterion = _pick(args.criterion, args.recommended, "criterion", "fisher")
+    prior = _prior(_pick(args.prior, args.recommended, "prior", None))
+    initial = _pick(args.initial, args.recommended, "initial", "nearest")
+    kw: dict = {}
+    if criterion == "gp-variance":
+        _need_spatial(model, args.model, "--criterion gp-variance")
+        kw = model.planner_kwargs(prior=prior or "empirical", spatial=True)
+    elif prior is not None:
+        kw = {k: v for k, v in model.planner_kwargs(prior=prior).items()
+              if k not in ("prior_cov", "spatial_cov")}
+    plan = plan_greedy(model.Y_, model.region_, start, args.budget, criterion=criterion,
+                       cost=args.cost, ridge=args.ridge, progress=not args.quiet,
+                       initial=initial, **kw)
+    return model, plan
+
+
+def _describe_plan(plan) -> str:
+    value = (f"information {plan.information:.4f} nats" if plan.criterion == "fisher"
+             else f"{plan.criterion} criterion {plan.information:.4g}")
+    return f"{len(plan.cells)} cells, cost {plan.cost:.3f} <= budget {plan.budget:g}, {value}"
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
-    _, plan = _plan_from_args(args)
-    print(f"{len(plan.cells)} cells, cost {plan.cost:.3f} <= budget {plan.budget:g}, "
-          f"information {plan.information:.4f} nats")
+    out = None
     if args.output:
-        out = _check_output(args.output, [args.model])
-        suffix = out.suffix.lower()
-        if suffix == ".csv":
+        suffix = Path(args.output).suffix.lower()
+        if suffix not in (".csv", ".geojson", ".json"):
+            raise UsageError(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
+        (out,) = _guard([args.output], [args.model], args)
+    _, plan = _plan_from_args(args)
+    print(_describe_plan(plan))
+    if out is not None:
+        if out.suffix.lower() == ".csv":
             plan.to_csv(out)
-        elif suffix in (".geojson", ".json"):
-            plan.to_geojson(out)
         else:
-            raise UsageError(f"-o must end in .csv or .geojson, got {out.name!r}")
+            plan.to_geojson(out)
         print(f"route written to {out}")
     return 0
 
 
 def cmd_bound(args: argparse.Namespace) -> int:
     _, plan = _plan_from_args(args)
-    cert = plan.certify()
-    print(f"greedy plan: {len(plan.cells)} cells, information {plan.information:.4f} nats")
-    print(f"certified upper bound on any feasible plan: {cert.bound:.4f} nats")
-    print(f"optimality gap: {cert.gap:.4f} nats (volume ratio per dimension "
-          f"{cert.volume_ratio:.4f})")
+    cert = plan.certify(tighten=args.certify == "tight")
+    bounded = getattr(cert, "criterion", "fisher")
+    print(f"greedy plan: {_describe_plan(plan)}")
+    print(f"certified upper bound on the {bounded} criterion of any feasible plan: "
+          f"{cert.bound:.4f}{' nats' if bounded == 'fisher' else ''}")
+    if plan.criterion != bounded or cert.gap is None:
+        print(f"optimality gap: not reported (the plan maximised {plan.criterion}, the "
+              f"certificate bounds {bounded})")
+    else:
+        print(f"optimality gap: {cert.gap:.4f} nats (volume ratio per dimension "
+              f"{cert.volume_ratio:.4f})")
     return 0
 
 
-def cmd_predict(args: argparse.Namespace) -> int:
+def _observations(args: argparse.Namespace, region) -> tuple[np.ndarray, np.ndarray]:
     import pandas as pd
 
-    from ._validation import atomic_output
-
-    model = _load_model(args.model)
     try:
         obs = pd.read_csv(args.observations)
     except (OSError, ValueError) as exc:
-        raise UsageError(f"cannot read --observations {args.observations}: {exc}") from None
+        raise UsageError(f"cannot read --observations {args.observations}: "
+                         f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                         ) from None
     if "value" not in obs:
-        raise UsageError("--observations needs a 'value' column and 'cell' or 'lat','lon'")
+        raise UsageError(f"--observations {args.observations} needs a 'value' column and "
+                         f"'cell' or 'lat','lon' columns; it has {list(obs.columns)}")
+    if obs.empty:
+        raise UsageError(f"--observations {args.observations} has no rows")
+    numeric = obs.apply(pd.to_numeric, errors="coerce")
+    for col in ("value", "cell", "lat", "lon"):
+        if col in obs and (numeric[col].isna() & obs[col].notna()).any():
+            raise UsageError(f"--observations column {col!r} must hold numbers")
     if "cell" in obs:
-        cells = model.region_.check_cells(obs["cell"].to_numpy(), "cell")
+        cells = region.check_cells(numeric["cell"].to_numpy(), "cell")
     elif {"lat", "lon"} <= set(obs.columns):
-        cells = np.atleast_1d(model.region_.cell_of(obs["lat"].to_numpy(), obs["lon"].to_numpy()))
+        cells = np.atleast_1d(region.cell_of(numeric["lat"].to_numpy(),
+                                             numeric["lon"].to_numpy()))
     else:
-        raise UsageError("--observations needs a 'cell' column or 'lat' and 'lon' columns")
-    result = model.complete((cells, obs["value"].to_numpy(dtype=float)), ridge=args.ridge,
-                            prior=args.prior, spatial=args.spatial)
-    out = _check_output(args.output, [args.model, args.observations])
-    with atomic_output(out) as tmp:
+        raise UsageError(f"--observations {args.observations} needs a 'cell' column or 'lat' "
+                         f"and 'lon' columns; it has {list(obs.columns)}")
+    return cells, numeric["value"].to_numpy(dtype=float)
+
+
+def cmd_predict(args: argparse.Namespace) -> int:
+    (out,) = _guard([args.output], [args.model, args.observations], args)
+    model = _load_model(args.model)
+    prior = _prior(_pick(args.prior, args.recommended, "prior", None))
+    spatial = bool(args.spatial or args.recommended)
+    if spatial:
+        _need_spatial(model, args.model, "--spatial" if args.spatial else "--recommended")
+    cells, values = _observations(args, model.region_)
+    result = model.complete((cells, values), ridge=args.ridge, prior=prior, spatial=spatial)
+    with atomic_outputs([out], overwrite=True) as (tmp,):
         result.to_netcdf(tmp, engine="netcdf4")
     print(f"predicted {model.region_.n_cells} cells from {len(cells)} observations; "
           f"written to {out}")
     return 0
 
 
+def _sorted_by_time(data):
+    if "time" in data.coords and data.sizes["time"] > 1:
+        t = data["time"].to_index()
+        if not t.is_monotonic_increasing:
+            warnings.warn("the time coordinate is not sorted; sorting it so the test snapshots "
+                          "are the last in time", UserWarning, stacklevel=2)
+            data = data.sortby("time")
+    return data
+
+
 def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_starts: int,
                     random_trials: int, min_observations: int, criterion: str, seed: int,
-                    certify: bool, progress: bool) -> None:
-    from .evaluation import evaluate, save_results, summary
-    from .glrm import GLRM
-    from .plots import plot_metrics, plot_predictions, save_figure
+                    certify: bool | str, progress: bool, methods: Sequence[str] | None = None,
+                    cost: str = "nearest-neighbor", ridge: float = 0.0, fold_ridge: float = 0.0,
+                    model_params: dict | None = None, fold_in: dict | None = None,
+                    n_jobs: int = 1, inputs: Sequence[str | Path] = (),
+                    overwrite: bool = True) -> list[Path]:
+    """Fit, evaluate, summarise and draw everything in memory, then write every output in one
+    all-or-nothing step (:func:`~lrm_cvx._validation.atomic_outputs`); returns the paths."""
+    import matplotlib.pyplot as plt
 
-    n_train = data.sizes["time"] - n_test
-    model = GLRM(rank=rank, random_state=seed, progress=progress).fit(
-        data.isel(time=slice(0, n_train)))
+    from .evaluation import METHODS, evaluate, summary
+    from .glrm import GLRM
+    from .plots import plot_metrics, plot_predictions
+
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(f"--out {out_dir} is an existing file; give a folder")
+    data = _sorted_by_time(data)
+    n_time = data.sizes["time"]
+    if not 0 < n_test < n_time:
+        raise UsageError(f"--n-test must be in [1, {n_time - 1}] (the data have {n_time} "
+                         f"snapshots), got {n_test}")
+    methods = tuple(methods or METHODS)
+    model_params = {k: v for k, v in (model_params or {}).items() if v not in (None, False)}
+    fold_in = dict(fold_in or {})
+    model = GLRM(rank=rank, random_state=seed, progress=progress, **model_params).fit(
+        data.isel(time=slice(0, n_time - n_test)))
     results = evaluate(data, rank=rank, n_test=n_test, budgets=budgets, n_starts=n_starts,
-                       random_trials=random_trials, min_observations=min_observations,
-                       criterion=criterion, seed=seed, certify=certify, progress=progress,
-                       model=model)
-    paths = save_results(results, out_dir)
-    figs = save_figure(plot_metrics(results), out_dir / "metrics")
-    # qualitative figure: the first start cell, three budgets, the first test snapshot
-    budgets = results["budget"].values
-    chosen = [budgets[i] for i in sorted({0, len(budgets) // 2, len(budgets) - 1})]
-    routes = {float(b): results["greedy_route"].sel(budget=b).isel(start=0).values for b in chosen}
-    if "greedy" in results["method"].values:
-        snap = data.isel(time=n_train)
-        figs += save_figure(plot_predictions(model, snap, routes), out_dir / "predictions")
+                       methods=methods, random_trials=random_trials,
+                       min_observations=min_observations, criterion=criterion, cost=cost,
+                       ridge=ridge, fold_ridge=fold_ridge, certify=certify, seed=seed,
+                       n_jobs=n_jobs, progress=progress, model=model,
+                       model_params=model_params or None, fold_in=fold_in or None)
     table = summary(results)
+    figures = {"metrics": plot_metrics(results)}
+    if "greedy" in methods:
+        # qualitative figure: the first start cell, three budgets, the first test snapshot
+        bvals = results["budget"].values
+        chosen = [bvals[i] for i in sorted({0, len(bvals) // 2, len(bvals) - 1})]
+        routes = {float(b): results["greedy_route"].sel(budget=b).isel(start=0).values
+                  for b in chosen}
+        figures["predictions"] = plot_predictions(model, data.isel(time=n_time - n_test), routes)
+    targets = [out_dir / "results.nc", out_dir / "summary.csv"]
+    targets += [out_dir / f"{name}.{fmt}" for name in figures for fmt in ("png", "pdf")]
+    guard_outputs(targets, inputs, overwrite=overwrite)
+    try:
+        with atomic_outputs(targets, overwrite=overwrite) as tmps:
+            results.to_netcdf(tmps[0], engine="netcdf4")
+            table.to_csv(tmps[1], index=False)
+            for tmp, target in zip(tmps[2:], targets[2:]):
+                figures[target.stem].savefig(tmp, format=target.suffix[1:], bbox_inches="tight")
+    finally:
+        for fig in figures.values():
+            plt.close(fig)
     with np.printoptions(precision=4):
         print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-    print("wrote " + ", ".join(str(p) for p in [*paths.values(), *figs]))
+    print("wrote " + ", ".join(str(p) for p in targets))
+    return targets
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluation import GREEDY_VARIANTS, METHODS
+
+    out_dir = Path(args.out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(f"--out {out_dir} is an existing file; give a folder")
+    inputs = _input_files(args.data)
+    _guard([out_dir / name for name in EVALUATION_FILES], inputs, args)
+    budgets = _floats(args.budgets, None, "--budgets")
+    if min(budgets) < 0:
+        raise UsageError(f"--budgets must be numbers >= 0, got {args.budgets!r}")
+    if args.methods is not None:
+        methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+        bad = [m for m in methods if m not in METHODS + GREEDY_VARIANTS]
+        if bad or not methods:
+            raise UsageError(f"--methods: unknown method {bad[0] if bad else args.methods!r}; "
+                             f"choose from {', '.join(METHODS + GREEDY_VARIANTS)}")
+    elif args.recommended:
+        methods = (RECOMMENDED["method"], *METHODS)
+    else:
+        methods = METHODS
+    params = _model_params(args)
+    fold_in = {"prior": _prior(_pick(args.prior, args.recommended, "prior", None)),
+               "spatial": bool(args.fold_spatial or args.recommended)}
+    fold_in = {k: v for k, v in fold_in.items() if v}
+    if not params["spatial"]:
+        if "greedy:gp-variance" in methods:
+            raise UsageError("--methods greedy:gp-variance needs --spatial KERNEL (or "
+                             "--recommended)")
+        if fold_in.get("spatial"):
+            raise UsageError("--fold-spatial needs --spatial KERNEL (or --recommended)")
     data = _load(args)
-    _run_evaluation(data, Path(args.out), rank=args.rank, n_test=args.n_test,
-                    budgets=_floats(args.budgets, None, "--budgets"), n_starts=args.starts,
-                    random_trials=args.random_trials, min_observations=args.min_observations,
-                    criterion=args.criterion, seed=args.seed, certify=not args.no_certify,
-                    progress=not args.quiet)
+    _run_evaluation(data, out_dir, rank=args.rank, n_test=args.n_test, budgets=budgets,
+                    n_starts=args.starts, random_trials=args.random_trials,
+                    min_observations=args.min_observations, criterion=args.criterion,
+                    seed=args.seed, certify=False if args.certify == "off" else args.certify,
+                    progress=not args.quiet, methods=methods, cost=args.cost, ridge=args.ridge,
+                    fold_ridge=args.fold_ridge, model_params=params, fold_in=fold_in,
+                    n_jobs=args.jobs, inputs=inputs, overwrite=args.overwrite)
     return 0
 
 
@@ -195,92 +479,221 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- parser
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``lrm-cvx fit: error: ...`` and exit status 2."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    """-q and --debug after the command too (SUPPRESS keeps the global value otherwise)."""
+    p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                   help="no progress bars")
+    p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                   help="print the traceback of an error")
+
+
+def _add_output(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing output files (never an input file)")
+
+
+def _add_recommended(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--recommended", action="store_true",
+                   help=f"the recommended setting of docs/reconstruction.md: {what}; explicit "
+                   "options still win")
+
+
 def _add_data(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", nargs="+", help="NOAA NDVI CDR files, an image folder, a NetCDF "
                    "file with a (time, lat, lon) variable, or sample:NAME")
     p.add_argument("--var", help="variable name in a generic NetCDF file")
-    p.add_argument("--bbox", help="region S,W,N,E in degrees (required for images)")
+    p.add_argument("--bbox", help="region S,W,N,E in degrees (or S W N E; negative = south / "
+                   "west; W > E crosses the antimeridian; required for images)")
+
+
+def _add_model_options(p: argparse.ArgumentParser) -> None:
+    from .glrm.predictive import NOISE_MODELS
+    from .spatial import MODELS
+
+    p.add_argument("--offset", action="store_true", help="fit a per-cell mean (offset)")
+    p.add_argument("--scale", action="store_true", help="fit a per-cell scale")
+    p.add_argument("--noise", choices=NOISE_MODELS, default=NOISE_MODELS[0],
+                   help="noise model (default: %(default)s)")
+    p.add_argument("--spatial", choices=MODELS, default=None, metavar="KERNEL",
+                   help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)})")
+
+
+def _prior_choices() -> list[str]:
+    from .glrm.predictive import PRIORS
+
+    return [p or "none" for p in PRIORS]
 
 
 def _add_plan(p: argparse.ArgumentParser) -> None:
+    from .cost import COSTS
+    from .information import CRITERIA
+
     p.add_argument("model", help="model file written by 'lrm-cvx fit'")
-    p.add_argument("--start", required=True, help="start location LAT,LON (degrees)")
-    p.add_argument("--budget", required=True, type=float, help="path budget in grid cells")
-    p.add_argument("--criterion", default="fisher", choices=["fisher", "a-optimal"])
-    p.add_argument("--cost", default="nearest-neighbor", choices=["nearest-neighbor", "insertion"])
-    p.add_argument("--ridge", type=float, default=0.0, help="ridge added to the information")
+    p.add_argument("--start", required=True,
+                   help="start location LAT,LON or LAT LON in degrees (e.g. --start -10 150)")
+    p.add_argument("--budget", required=True, type=_number, help="path budget in grid cells")
+    p.add_argument("--criterion", choices=CRITERIA, default=None,
+                   help="planning criterion (default fisher; gp-variance with --recommended)")
+    p.add_argument("--cost", default=COSTS[0], choices=COSTS,
+                   help="path cost (default: %(default)s)")
+    p.add_argument("--ridge", type=_number, default=0.0, help="ridge added to the information")
+    p.add_argument("--prior", choices=_prior_choices(), default=None,
+                   help="plan with the fold-in's posterior under this prior (default none; "
+                   "empirical with --recommended or gp-variance)")
+    p.add_argument("--initial", default=None,
+                   help="forced initial cells: nearest (the start and its k-1 nearest cells, "
+                   "the paper; default) or start (the start alone; with --recommended)")
+    _add_recommended(p, "criterion gp-variance, prior empirical, initial start (needs a "
+                        "model fitted with --spatial or --recommended)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    from .evaluation import GREEDY_VARIANTS, METHODS
+    from .glrm.losses import LOSSES
+    from .information import CRITERIA
+    from .cost import COSTS
+
+    parser = _Parser(
         prog="lrm-cvx",
         description="Persistent environmental monitoring with low-rank models: fit a GLRM, plan "
         "a sampling route, certify it, predict the map, evaluate like the paper.")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--debug", action="store_true",
+                        help="print the traceback of an error (for bug reports)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("fit", help="fit a GLRM to gridded snapshots")
     _add_data(p)
-    p.add_argument("--rank", type=int, default=5)
-    p.add_argument("--loss", default="quadratic")
-    p.add_argument("--max-iter", type=int, default=100)
-    p.add_argument("--tol", type=float, default=1e-4)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--offset", action="store_true", help="fit a per-cell mean (offset)")
-    p.add_argument("--spatial", choices=["exponential", "matern32", "matern52", "gaussian"],
-                   help="also fit a GP covariance of the residuals")
+    p.add_argument("--rank", type=_int_at_least(1), default=5)
+    p.add_argument("--loss", default="quadratic", choices=sorted(LOSSES))
+    p.add_argument("--max-iter", type=_int_at_least(1), default=100)
+    p.add_argument("--tol", type=_number, default=1e-4)
+    p.add_argument("--seed", type=_int_at_least(0), default=0)
+    _add_model_options(p)
+    _add_recommended(p, "--offset --spatial exponential")
     p.add_argument("-o", "--output", required=True, help="model file (.nc)")
+    _add_output(p)
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("plan", help="plan a sampling route with the greedy planner")
     _add_plan(p)
     p.add_argument("-o", "--output", help="route.csv or route.geojson")
+    _add_output(p)
     p.set_defaults(func=cmd_plan)
 
     p = sub.add_parser("bound", help="certify the greedy plan's optimality gap")
     _add_plan(p)
+    p.add_argument("--certify", choices=CERTIFY_LEVELS[:2], default="tight",
+                   help="fast: the budget-disk relaxation; tight: with distance limits and "
+                   "the midpoint cover (default)")
     p.set_defaults(func=cmd_bound)
 
     p = sub.add_parser("predict", help="predict the map from observations")
-    p.add_argument("model")
+    p.add_argument("model", help="model file written by 'lrm-cvx fit'")
     p.add_argument("--observations", required=True,
                    help="CSV with columns value and cell, or value, lat and lon")
-    p.add_argument("--ridge", type=float, default=0.0)
-    p.add_argument("--prior", choices=["empirical"], default=None,
-                   help="Bayesian fold-in with the training latent vectors' mean and covariance")
+    p.add_argument("--ridge", type=_number, default=0.0)
+    p.add_argument("--prior", choices=_prior_choices(), default=None,
+                   help="fold-in prior; empirical: the training latent vectors' mean and "
+                   "covariance (default none)")
     p.add_argument("--spatial", action="store_true",
                    help="add the kriged GP residual (model fitted with a spatial covariance)")
+    _add_recommended(p, "--prior empirical --spatial")
     p.add_argument("-o", "--output", required=True, help="output NetCDF map")
+    _add_output(p)
     p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser("evaluate", help="run the paper's evaluation protocol")
     _add_data(p)
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--rank", type=int, default=5)
-    p.add_argument("--n-test", type=int, default=8)
+    p.add_argument("--rank", type=_int_at_least(1), default=5)
+    p.add_argument("--n-test", type=_int_at_least(1), default=8)
     p.add_argument("--budgets", default="5,25,50,100,200")
-    p.add_argument("--starts", type=int, default=10)
-    p.add_argument("--random-trials", type=int, default=70)
-    p.add_argument("--min-observations", type=int, default=10)
-    p.add_argument("--criterion", default="fisher", choices=["fisher", "a-optimal"])
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-certify", action="store_true", help="skip the certified bounds")
+    p.add_argument("--starts", type=_int_at_least(1), default=10)
+    p.add_argument("--random-trials", type=_int_at_least(1), default=70)
+    p.add_argument("--min-observations", type=_int_at_least(0), default=10)
+    p.add_argument("--methods", default=None,
+                   help="comma-separated methods (default: the paper's "
+                   f"{','.join(METHODS)}); also {', '.join(GREEDY_VARIANTS)}")
+    p.add_argument("--criterion", default=CRITERIA[0], choices=CRITERIA,
+                   help="criterion of the 'greedy' method (default: %(default)s)")
+    p.add_argument("--cost", default=COSTS[0], choices=COSTS,
+                   help="path cost of the greedy (default: %(default)s)")
+    p.add_argument("--ridge", type=_number, default=0.0, help="the planners' information ridge")
+    p.add_argument("--fold-ridge", type=_number, default=0.0, help="the fold-in's ridge")
+    p.add_argument("--prior", choices=_prior_choices(), default=None,
+                   help="fold-in prior of every prediction (default none)")
+    p.add_argument("--fold-spatial", action="store_true",
+                   help="predict with the kriged GP residual (needs --spatial)")
+    _add_model_options(p)
+    p.add_argument("--seed", type=_int_at_least(0), default=0)
+    p.add_argument("--jobs", type=_int_at_least(1), default=1, help="threads over start cells")
+    p.add_argument("--certify", choices=CERTIFY_LEVELS, default="fast",
+                   help="certified bounds of the greedy plans (default: %(default)s)")
+    p.add_argument("--no-certify", dest="certify", action="store_const", const="off",
+                   help="same as --certify off")
+    _add_recommended(p, "--offset --spatial exponential --prior empirical --fold-spatial and "
+                        "method greedy:gp-variance first")
+    _add_output(p)
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("demo", help="the whole pipeline on the bundled real sample data")
     p.add_argument("--out", default=str(DEMO_DIR), help="output folder (default ./lrm-cvx-demo)")
     p.set_defaults(func=cmd_demo)
+    for action in sub.choices.values():
+        _add_common(action)
     return parser
 
 
+# ---------------------------------------------------------------------------- main
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, LrmError):
+        return _one_line(str(exc))
+    if isinstance(exc, OSError) and exc.strerror:
+        where = f": {exc.filename}" if exc.filename else ""
+        return _one_line(f"{exc.strerror}{where}")
+    if isinstance(exc, OSError):
+        return _one_line(str(exc))
+    return _one_line(f"unexpected {type(exc).__name__}: {exc} (rerun with --debug for the "
+                     "traceback and report it)")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``lrm-cvx`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
-    args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
-    except (LrmError, FileNotFoundError, FileExistsError, PermissionError) as exc:
-        print(f"lrm-cvx {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        args = parser.parse_args(_join_coordinates(argv))
+    except SystemExit as exc:  # --help (0) or a one-line usage error (2)
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    prefix = f"lrm-cvx {args.command}"
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"{prefix}: warning: {_one_line(str(message))}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        try:
+            return int(args.func(args) or 0)
+        except KeyboardInterrupt:
+            print(f"{prefix}: interrupted", file=sys.stderr)
+            return 130
+        except Exception as exc:  # every failure: one line, exit 2 (traceback with --debug)
+            if args.debug:
+                traceback.print_exc()
+            print(f"{prefix}: error: {_describe(exc)}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":  # pragma: no cover
