@@ -55,6 +55,9 @@ def _normalise(da: xr.DataArray, source: str, bbox: Sequence[float] | None, *,
     """
     name = da.name if da.name is not None else "data"
     da = da.rename({k: v for k, v in _RENAME.items() if k in da.dims and v not in da.dims})
+    if not {"time", "lat", "lon"} <= set(da.dims):
+        raise DataError(f"{source}: variable {name!r} must have dims (time, lat, lon) "
+                        f"(or latitude/longitude, y/x), got {da.dims}")
     extra = [d for d in da.dims if d not in ("time", "lat", "lon")]
     for d in extra:
         if da.sizes[d] != 1:

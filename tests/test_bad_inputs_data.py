@@ -1,0 +1,335 @@
+"""Bad or unusual data inputs (issue 14): each gives the named error class or the right answer,
+and never changes an input file (every file under the test's folder is checksummed before and
+after the call)."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from lrm_cvx import Region
+from lrm_cvx.datasets import load_sample
+from lrm_cvx.errors import DataError, RegionError
+from lrm_cvx.io import open_data, open_ndvi_cdr
+from lrm_cvx.io.samples import synthetic_field, write_ndvi_cdr
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@contextlib.contextmanager
+def unchanged(folder: Path):
+    """Assert that no file under ``folder`` is changed, added or removed by the block."""
+    before = _digest(folder)
+    assert before, "the case must have input files to protect"
+    try:
+        yield
+    finally:
+        assert _digest(folder) == before, "an input file was changed"
+
+
+def field(nt=3, ny=3, nx=4, lat=None, lon=None, time=None, seed=0) -> xr.DataArray:
+    rng = np.random.default_rng(seed)
+    lat = np.arange(ny, dtype=float) * 2.0 + 40 if lat is None else np.asarray(lat, float)
+    lon = np.arange(nx, dtype=float) * 2.0 - 70 if lon is None else np.asarray(lon, float)
+    time = np.arange(nt) if time is None else time
+    values = rng.normal(size=(len(time), lat.size, lon.size)).astype(np.float32)
+    return xr.DataArray(values, dims=("time", "lat", "lon"),
+                        coords={"time": time, "lat": lat, "lon": lon}, name="sst",
+                        attrs={"units": "K"})
+
+
+def write(tmp_path: Path, da: xr.DataArray, name: str = "d.nc") -> Path:
+    path = tmp_path / name
+    da.to_dataset().to_netcdf(path)
+    return path
+
+
+# ------------------------------------------------------------------ in-memory objects
+def test_dataarray_is_accepted_like_a_file(tmp_path):
+    da = field()
+    path = write(tmp_path, da)
+    with unchanged(tmp_path):
+        from_file = open_data(path)
+    from_memory = open_data(da)
+    xr.testing.assert_identical(from_memory, from_file)
+
+
+def test_dataset_is_accepted_and_var_picks(tmp_path):
+    ds = field().to_dataset()
+    ds["other"] = ds["sst"] * 2
+    path = tmp_path / "two.nc"
+    ds.to_netcdf(path)
+    with unchanged(tmp_path):
+        np.testing.assert_array_equal(open_data(ds, var="other").values, 2 * ds["sst"].values)
+        with pytest.raises(DataError, match="--var"):
+            open_data(path)
+
+
+def test_dataarray_with_wrong_dims(tmp_path):
+    write(tmp_path, field())
+    with unchanged(tmp_path), pytest.raises(DataError, match=r"\(time, lat, lon\)"):
+        open_data(xr.DataArray(np.ones((2, 3)), dims=("time", "station")))
+
+
+@pytest.mark.parametrize("paths", [None, 123, b"file.nc", {"a": 1}])
+def test_paths_of_wrong_type(paths):
+    with pytest.raises(DataError, match="paths must be"):
+        open_data(paths)
+
+
+def test_empty_list_of_paths():
+    with pytest.raises(DataError, match="empty list"):
+        open_data([])
+
+
+# ------------------------------------------------------------------ bbox
+@pytest.mark.parametrize("bbox, match", [
+    ((44, -70, 40, -60), "south=44 is north of north=40"),
+    ((-95, -70, 40, -60), "south=-95"),
+    ((40, -70, 95, -60), "north=95"),
+    ((40, float("nan"), 44, -60), "west=nan"),
+    ((40, -70, 44), "four numbers"),
+    ("40,-70,44,-60", "four numbers"),
+])
+def test_bad_bbox_names_the_bound(tmp_path, bbox, match):
+    path = write(tmp_path, field())
+    with unchanged(tmp_path), pytest.raises(DataError, match=match):
+        open_data(path, bbox=bbox)
+
+
+def test_bbox_outside_the_data(tmp_path):
+    path = write(tmp_path, field())
+    with unchanged(tmp_path), pytest.raises(DataError, match="holds no grid cell"):
+        open_data(path, bbox=(0, 0, 10, 10))
+
+
+def test_swapped_bbox_in_region_subset_names_the_bound():
+    region = Region.from_dataarray(field())
+    with pytest.raises(RegionError, match="south=44 is north of north=40"):
+        region.subset((44, -70, 40, -60))
+
+
+def test_antimeridian_bbox_on_0_360_file(tmp_path):
+    lon = np.arange(0.0, 360.0, 10.0)
+    da = field(lon=lon, lat=[-10.0, 0, 10])
+    path = write(tmp_path, da)
+    with unchanged(tmp_path):
+        out = open_data(path, bbox=(-10, 160, 10, -160))
+    np.testing.assert_array_equal(out.lon.values, [160, 170, 180, 190, 200])
+    np.testing.assert_array_equal(out.values, da.sel(lon=[160, 170, 180, 190, 200]).values)
+
+
+def test_antimeridian_bbox_on_sample():
+    out = open_data("sample:sst", bbox=(0, 170, 30, -170))
+    lon = out.lon.values
+    assert np.all(np.diff(lon) > 0) and lon.min() >= 170 and lon.max() <= 190
+    ref = load_sample("sst").sel(lon=lon, lat=out.lat)
+    np.testing.assert_array_equal(out.values, ref.values)
+
+
+def test_antimeridian_bbox_on_ndvi_cdr(tmp_path):
+    lon = np.arange(-179.5, 180.0, 1.0)
+    f = synthetic_field(2, (4, lon.size), seed=0).clip(-0.09, 1)
+    f = f.assign_coords(lon=lon)
+    write_ndvi_cdr(tmp_path, f)
+    with unchanged(tmp_path):
+        out = open_ndvi_cdr(tmp_path, bbox=(-90, 177, 90, -177))
+        full = open_ndvi_cdr(tmp_path)
+    np.testing.assert_allclose(out.lon.values, [177.5, 178.5, 179.5, 180.5, 181.5, 182.5])
+    cols = [357, 358, 359, 0, 1, 2]
+    np.testing.assert_array_equal(out.values, full.values[:, :, cols])
+
+
+def test_swapped_bbox_on_ndvi_cdr(tmp_path):
+    write_ndvi_cdr(tmp_path, synthetic_field(1, (4, 5), seed=0).clip(-0.09, 1))
+    with unchanged(tmp_path), pytest.raises(DataError, match="south=.* is north of north"):
+        open_ndvi_cdr(tmp_path, bbox=(50, -80, 40, -60))
+
+
+# ------------------------------------------------------------------ coordinates
+@pytest.mark.parametrize("lat, lon, match", [
+    ([40.0, np.nan, 44], None, "lat has a non-finite value"),
+    (None, [-70.0, -68, np.inf, -64], "lon has a non-finite value"),
+    ([40.0, 44, 42], None, "lat is not monotonic at positions 1, 2"),
+    ([40.0, 42, 42], None, "lat is duplicated"),
+    (None, [-70.0, -68, -68, -64], "lon is duplicated"),
+    (None, [-180.0, -90, 0, 180], "same meridian"),
+])
+def test_bad_coordinates(tmp_path, lat, lon, match):
+    path = write(tmp_path, field(lat=lat, lon=lon))
+    with unchanged(tmp_path), pytest.raises(DataError, match=match):
+        open_data(path)
+
+
+def test_shuffled_longitudes_are_sorted(tmp_path):
+    da = field(lon=[-64.0, -70, -66, -68])
+    path = write(tmp_path, da)
+    with unchanged(tmp_path):
+        out = open_data(path)
+    np.testing.assert_array_equal(out.lon.values, [-70, -68, -66, -64])
+    np.testing.assert_array_equal(out.values, da.sortby("lon").values)
+
+
+def test_descending_latitude_is_kept(tmp_path):
+    da = field(lat=[44.0, 42, 40])
+    path = write(tmp_path, da)
+    with unchanged(tmp_path):
+        out = open_data(path)
+    np.testing.assert_array_equal(out.lat.values, [44, 42, 40])
+    np.testing.assert_array_equal(out.values, da.values)
+
+
+def test_region_refuses_longitudes_out_of_geographic_order():
+    da = field(lon=[0.0, 10, 300, 350])
+    with pytest.raises(DataError, match="geographic order"):
+        Region.from_dataarray(da)
+
+
+# ------------------------------------------------------------------ files
+def test_empty_file(tmp_path):
+    (tmp_path / "empty.nc").write_bytes(b"")
+    with unchanged(tmp_path), pytest.raises(DataError, match="empty.nc is an empty file"):
+        open_data(tmp_path / "empty.nc")
+
+
+def test_corrupt_file(tmp_path):
+    (tmp_path / "bad.nc").write_bytes(np.random.default_rng(0).bytes(4096))
+    with unchanged(tmp_path), pytest.raises(DataError, match="bad.nc"):
+        open_data(tmp_path / "bad.nc")
+
+
+def test_truncated_netcdf(tmp_path):
+    path = write(tmp_path, field(nt=50, ny=30, nx=40), "full.nc")
+    data = path.read_bytes()
+    (tmp_path / "cut.nc").write_bytes(data[: len(data) // 2])
+    with unchanged(tmp_path), pytest.raises(DataError, match="cut.nc"):
+        open_data(tmp_path / "cut.nc")
+
+
+def test_wrong_variable_lists_the_available_ones(tmp_path):
+    path = write(tmp_path, field())
+    with unchanged(tmp_path), pytest.raises(DataError, match=r"no variable 'temp'.*\['sst'\]"):
+        open_data(path, var="temp")
+
+
+def test_file_without_a_gridded_variable(tmp_path):
+    xr.Dataset({"x": ("station", [1.0, 2.0])}).to_netcdf(tmp_path / "st.nc")
+    with unchanged(tmp_path), pytest.raises(DataError, match="cannot choose the variable"):
+        open_data(tmp_path / "st.nc")
+
+
+def test_variable_with_no_snapshot(tmp_path):
+    path = write(tmp_path, field(time=np.arange(0)))
+    with unchanged(tmp_path), pytest.raises(DataError, match="empty"):
+        open_data(path)
+
+
+def test_extra_dim_of_size_two(tmp_path):
+    da = xr.concat([field(), field()], dim="depth").transpose("time", "depth", "lat", "lon")
+    path = write(tmp_path, da)
+    with unchanged(tmp_path), pytest.raises(DataError, match="extra dim 'depth' of size 2"):
+        open_data(path)
+
+
+def test_folder_inside_a_list(tmp_path):
+    write(tmp_path, field())
+    (tmp_path / "sub").mkdir()
+    with unchanged(tmp_path), pytest.raises(DataError, match="is a folder"):
+        open_data([tmp_path / "d.nc", tmp_path / "sub"])
+
+
+def test_folder_without_data(tmp_path):
+    (tmp_path / "notes.txt").write_text("nothing here")
+    with unchanged(tmp_path), pytest.raises(DataError, match="no images and no NetCDF"):
+        open_data(tmp_path)
+
+
+# ------------------------------------------------------------------ values and times
+def test_all_nan_snapshot_is_dropped_with_a_warning(tmp_path):
+    da = field(nt=4)
+    da[2] = np.nan
+    path = write(tmp_path, da)
+    with unchanged(tmp_path), pytest.warns(UserWarning, match="dropped 1 all-NaN snapshot"):
+        out = open_data(path)
+    np.testing.assert_array_equal(out.time.values, [0, 1, 3])
+    np.testing.assert_array_equal(out.values, da.values[[0, 1, 3]])
+
+
+def test_all_nan_everywhere(tmp_path):
+    da = field() * np.nan
+    path = write(tmp_path, da)
+    with unchanged(tmp_path), pytest.raises(DataError, match="no finite value"):
+        open_data(path)
+
+
+def test_all_nan_inside_the_bbox(tmp_path):
+    da = field()
+    da[:, :, :2] = np.nan
+    path = write(tmp_path, da)
+    with unchanged(tmp_path), pytest.raises(DataError, match="no finite value.*bbox"):
+        open_data(path, bbox=(40, -70, 44, -68))
+
+
+def test_duplicate_times_in_one_file(tmp_path):
+    path = write(tmp_path, field(time=np.array([0, 1, 1])))
+    with unchanged(tmp_path), pytest.raises(DataError, match="time 1 occurs more than once"):
+        open_data(path)
+
+
+def test_duplicate_times_across_files(tmp_path):
+    write(tmp_path, field(time=np.array([0, 1]), seed=1), "a.nc")
+    write(tmp_path, field(time=np.array([1, 2]), seed=2), "b.nc")
+    with unchanged(tmp_path), pytest.raises(DataError, match="occurs more than once"):
+        open_data(str(tmp_path / "*.nc"))
+
+
+def test_unsorted_times_are_sorted_with_a_warning(tmp_path):
+    da = field(time=np.array([2, 0, 1]))
+    path = write(tmp_path, da)
+    with unchanged(tmp_path), pytest.warns(UserWarning, match="sorted by time"):
+        out = open_data(path)
+    np.testing.assert_array_equal(out.time.values, [0, 1, 2])
+    np.testing.assert_array_equal(out.values, da.sortby("time").values)
+
+
+def test_one_cell_region(tmp_path):
+    da = field()
+    path = write(tmp_path, da)
+    with unchanged(tmp_path):
+        out = open_data(path, bbox=(41.5, -68.5, 42.5, -67.5))
+    assert out.shape == (3, 1, 1)
+    np.testing.assert_array_equal(out.values[:, 0, 0], da.values[:, 1, 1])
+    region = Region.from_dataarray(out)
+    assert region.n_cells == 1
+    assert region.cell_of(42.1, -68.1) == 0
+    assert region.distance(0, 0, metric="km") == 0.0
+    with pytest.raises(RegionError, match="outside"):
+        region.cell_of(43.0, -68.0)
+
+
+# ------------------------------------------------------------------ locations
+@pytest.mark.parametrize("where, match", [
+    ((np.nan, -70.0), "lat must be finite"),
+    ((40.0, np.inf), "lon must be finite"),
+    (("north", "west"), "pair of numbers"),
+    (1.5, "cell index or a"),
+    ((60.0, -70.0), r"\(lat=60, lon=-70\) is outside"),
+])
+def test_bad_start_locations(where, match):
+    region = Region.from_dataarray(field())
+    with pytest.raises(RegionError, match=match):
+        region.resolve_cell(where)
+
+
+def test_unknown_sample_lists_available():
+    with pytest.raises(DataError, match="available: hgt500, sst"):
+        open_data("sample:nope")
