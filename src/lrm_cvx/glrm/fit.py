@@ -56,6 +56,10 @@ __all__ = [
     "initialize",
     "is_fast_capable",
     "check_data",
+    "check_magnitude",
+    "free_parameters",
+    "max_identifiable_rank",
+    "noise_std",
 ]
 
 Y_CHUNK = 1 << 17  # cells per Y-step chunk (bounds the Gram buffers to ~30 MB)
@@ -79,11 +83,19 @@ class FitResult:
 
 
 # --------------------------------------------------------------------------- data checks
-def check_data(D: np.ndarray, M: np.ndarray, rank: int, *, check_finite: bool = True):
+F32_MAX = float(np.finfo(np.float32).max)
+
+
+def check_data(D: np.ndarray, M: np.ndarray, rank: int, *, check_finite: bool = True,
+               offset: bool = False, times=None):
     """Validate ``D``/``M`` and the rank; return ``(row_counts, col_counts)``.
 
     Raises DataError (wrong dims, all missing, inf among observed values, a time with no
-    observation) or ModelError (rank < 1 or > min(T, L)).
+    observation, values so large that their per-cell sums overflow float64) or ModelError (rank
+    < 1 or > min(T, L), or a rank that leaves no residual degrees of freedom, see
+    :func:`max_identifiable_rank`: the noise level would not be identifiable). ``offset``: a
+    per-cell mean is fitted too (``L_obs`` more parameters). ``times``: labels of the rows,
+    used to name empty times in the message.
     """
     if D.ndim != 2:
         raise DataError(f"data must be a (time, cell) matrix, got shape {D.shape}")
@@ -105,8 +117,66 @@ def check_data(D: np.ndarray, M: np.ndarray, rank: int, *, check_finite: bool = 
                         "mask for missing entries")
     empty = np.flatnonzero(rows == 0)
     if empty.size:
-        raise DataError(f"times {empty[:10].tolist()} have no observation; drop them first")
+        names = empty[:10].tolist() if times is None else [
+            str(v) for v in np.asarray(times)[empty[:10]]]
+        where = "at positions " if times is None else ""
+        raise DataError(f"times {where}{names} ({empty.size} in all) have no observation (all "
+                        "NaN); drop them first (e.g. da.dropna('time', how='all'))")
+    if not np.all(np.isfinite(colsum)):
+        raise DataError(f"data values are too large: their sums overflow float64 (largest "
+                        f"|value| {_max_abs(D, M):.3g}); rescale the data or mask fill values")
+    n_obs = int(rows.sum())
+    L_obs = int(np.count_nonzero(cols))
+    kmax = max_identifiable_rank(n_obs, T, L_obs, offset=offset)
+    if rank > kmax:
+        p = free_parameters(rank, T, L_obs, offset=offset)
+        hint = (f"use rank <= {kmax} or more data" if kmax >= 1 else
+                "no rank works: fit on more snapshots (at least 2, more than the rank)")
+        raise ModelError(
+            f"rank {rank} leaves no residual degrees of freedom: {n_obs} observed values vs "
+            f"{p} free parameters (T={T} times, {L_obs} observed cells"
+            f"{', a per-cell offset' if offset else ''}); the model interpolates the data and "
+            f"the noise level is not identifiable; {hint}")
     return DataStats(rows, cols, colsum)
+
+
+def free_parameters(k: int, T: int, L_obs: int, *, offset: bool = False) -> int:
+    """Free parameters of a rank-``k`` factorisation of ``T`` times x ``L_obs`` observed cells,
+    ``k (T + L_obs) - k^2``, plus ``L_obs`` when a per-cell offset is fitted."""
+    return k * (T + L_obs) - k * k + (L_obs if offset else 0)
+
+
+def max_identifiable_rank(n_obs: int, T: int, L_obs: int, *, offset: bool = False) -> int:
+    """The largest rank whose fit leaves residual degrees of freedom (``n_obs`` greater than
+    :func:`free_parameters`), so the noise level is identifiable; 0 when none does."""
+    ks = np.arange(1, max(min(T, L_obs), 0) + 1, dtype=np.int64)
+    ok = ks[n_obs > free_parameters(ks, T, L_obs, offset=offset)]
+    return int(ok.max()) if ok.size else 0
+
+
+def _max_abs(D: np.ndarray, M: np.ndarray, rows: int = 256) -> float:
+    """Largest ``|D|`` over the observed entries, in row blocks (no full-size temporary)."""
+    best = 0.0
+    for t0 in range(0, D.shape[0], rows):
+        blk = np.abs(np.where(M[t0:t0 + rows], D[t0:t0 + rows], 0).astype(np.float64))
+        best = max(best, float(np.nanmax(blk, initial=0.0)))
+    return best
+
+
+def check_magnitude(ssq: float, D: np.ndarray, M: np.ndarray, stacklevel: int = 3) -> None:
+    """Refuse a sum of squares that overflows float64 (DataError) and warn (UserWarning naming
+    the largest magnitude) when it would overflow float32: the statistics are kept in float64,
+    but such values are usually unmasked fill values and dominate a least-squares fit."""
+    if not np.isfinite(ssq):
+        raise DataError(f"data values are too large: their sum of squares overflows float64 "
+                        f"(largest |value| {_max_abs(D, M):.3g}); rescale the data or mask "
+                        "fill values")
+    if ssq > F32_MAX:
+        warnings.warn(
+            f"data has observed values up to {_max_abs(D, M):.3g} in magnitude: their sum of "
+            f"squares ({ssq:.3g}) overflows float32; statistics are computed in float64, but "
+            "such values (unmasked fill values?) dominate a least-squares fit: mask them (NaN) "
+            "or rescale the data", UserWarning, stacklevel=stacklevel)
 
 
 class DataStats(tuple):
@@ -570,12 +640,15 @@ def fit_glrm(
     max_inner: int = 1,
     stats: tuple[np.ndarray, np.ndarray] | None = None,
     overwrite_data: bool = False,
+    offset: bool = False,
 ) -> FitResult:
     """Fit ``X (k, T)``, ``Y (k, L)`` to ``D`` on the entries where ``M`` is True.
 
     ``D`` is read through its zero-filled form (:func:`~.quadratic.prepare`): a ``D`` that
     holds values (NaN) at unobserved entries is copied once, or zero-filled in place when
     ``overwrite_data`` is True. ``stats`` is :func:`check_data`'s result when already known.
+    ``offset``: ``D`` is already centred by a fitted per-cell mean (counted in the degrees of
+    freedom of ``noise_std``).
 
     Each iteration is a Y step then an X step. The objective recorded for iteration ``i`` is
     evaluated at the factors after ``i`` rounds (``objective[0]`` at the initialisation);
@@ -591,7 +664,7 @@ def fit_glrm(
     if not np.isfinite(tol) or tol < 0:
         raise ModelError(f"tol must be >= 0, got {tol!r}")
     if getattr(stats, "colsum", None) is None:
-        stats = check_data(D, M, rank)
+        stats = check_data(D, M, rank, offset=offset)
     rows, cols = stats
     T, L = D.shape
     fast = solver != "cvxpy" and is_fast_capable(loss, reg_x, reg_y)
@@ -602,7 +675,9 @@ def fit_glrm(
     mu = np.where(cols > 0, stats.colsum / np.maximum(cols, 1), mu_global)
     md = Q.prepare(D, M, overwrite=overwrite_data)
     D = md.D  # zero-filled from here on
-    scale = float(np.sqrt(md.ssq_rows.sum() / n_obs))
+    ssq = float(md.ssq_rows.sum())  # float64 sums (a float32 sum overflows at |d| ~ 1e19)
+    check_magnitude(ssq, D, M, stacklevel=4)
+    scale = float(np.sqrt(ssq / n_obs))
     loss = loss.with_scale(scale)
     X, Y = initialize(md, rank, init, rng, mu, scale)
     unobserved = np.flatnonzero(cols == 0)
@@ -651,10 +726,15 @@ def fit_glrm(
     converged = finish_convergence(history, converged, max_iter, tol, stacklevel=4)
     Y[:, unobserved] = reg_y.minimizer(rank)[:, None]  # (unobserved columns add no loss)
     sse = max(f_loss, 0.0) if _is_quad(loss) else _quad_loss(md, X, Y)
+    if sse <= SSE_RTOL * ssq:  # the Gram identity cancelled: sum the residuals directly
+        sse = _direct_sse(D, M, X, Y)
+        if _is_quad(loss):
+            history[-1] = sse + reg_x.value(X) + reg_y.value(Y)
     return FitResult(
         X=X, Y=Y, objective=history, n_iter=n_iter, converged=converged,
         unobserved_cells=unobserved.astype(np.int64), n_observed=n_obs, sse=sse,
-        noise_std=noise_std(sse, n_obs, rank, T, L - unobserved.size),
+        noise_std=noise_std(sse, n_obs, rank, T, L - unobserved.size,
+                            extra=(L - unobserved.size) if offset else 0),
         solver="fast" if fast else "cvxpy",
     )
 
@@ -689,12 +769,35 @@ def finish_convergence(history: list[float], converged: bool, max_iter: int, tol
     return bool(converged)
 
 
-def noise_std(sse: float, n_obs: int, k: int, T: int, L_obs: int) -> float:
+def noise_std(sse: float, n_obs: int, k: int, T: int, L_obs: int, extra: int = 0) -> float:
     """RMS training residual with a degrees-of-freedom correction: ``sqrt(SSE / (n_obs - p))``,
-    ``p = k (T + L_obs) - k^2`` free parameters (``sqrt(SSE / n_obs)`` when ``n_obs <= p``)."""
-    dof = k * (T + L_obs) - k * k
-    denom = n_obs - dof if n_obs > dof else n_obs
-    return float(np.sqrt(sse / denom))
+    ``p = k (T + L_obs) - k^2 + extra`` free parameters (``extra``: e.g. ``L_obs`` per-cell
+    offsets). ModelError when ``n_obs <= p``: the fit interpolates the data and the noise level
+    is not identifiable (:func:`check_data` refuses such a rank before fitting)."""
+    p = k * (T + L_obs) - k * k + extra
+    if n_obs <= p:
+        raise ModelError(f"rank {k} leaves no residual degrees of freedom ({n_obs} observed "
+                         f"values, {p} free parameters, T={T}): the noise level is not "
+                         "identifiable; use a lower rank or more data")
+    return float(np.sqrt(max(sse, 0.0) / (n_obs - p)))
+
+
+SSE_RTOL = 1e-8  # below this fraction of the data's sum of squares the SSE is summed directly
+
+
+def _direct_sse(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray) -> float:
+    """Sum of squared residuals over observed entries, from the residuals themselves (one
+    compiled pass, float64): exact where the Gram identity ``y^T G y - 2 h.y + c`` cancels
+    (a fit that explains all but a 1e-8 fraction of the data's energy)."""
+    k, T = X.shape
+    pa, pb = K.pair_index(k)
+    nchunk = _nchunk()
+    G = np.zeros((nchunk, T, pa.size))
+    h = np.zeros((nchunk, T, k))
+    f = np.zeros((nchunk, T))
+    K.row_pass(D, M, np.ascontiguousarray(X, dtype=np.float64),
+               np.ascontiguousarray(Y, dtype=np.float64), 0, 0.0, 0.0, pa, pb, nchunk, G, h, f)
+    return float(f.sum())
 
 
 class _Quad(Loss):

@@ -21,11 +21,11 @@ from ..errors import DataError, ModelError, NotFittedError
 from ..region import Region
 from . import kernels as K
 from .fit import FitResult, check_data, fit_glrm
-from .foldin import fold_in, fold_in_many, mean_std
 from .dynamics import Dynamics, TEMPORAL
 from .dynamics import estimate as estimate_dynamics
 from .losses import get_loss
-from .predictive import PREDICTIVE_ATTRS, fit_predictive, planner_terms, posterior_complete
+from .posterior import LatentPosterior, fold_in_snapshots, model_prior
+from .predictive import PREDICTIVE_ATTRS, fit_predictive
 from .regularizers import get_regularizer
 
 __all__ = ["GLRM"]
@@ -176,14 +176,17 @@ class GLRM:
         if _is_dask(data) or _is_dask(mask):  # out of core, chunk by chunk on dask
             return self._fit_dask(data, mask, region, rank, loss, reg_x, reg_y, rng)
         D, M, region, times, owned = self._prepare(data, mask, region)
-        stats = check_data(D, M, rank)
+        offset = bool(self.offset) if isinstance(self.offset, (bool, np.bool_)) else False
+        stats = check_data(D, M, rank, offset=offset,
+                           times=None if times is None else times.values)
         pre = fit_predictive(self, D, M, region, stage="before")  # offset / scale (opt-in)
-        if pre is not None:
-            D, owned = pre.pop("data"), True
+        if pre is not None:  # the init's mean fill needs the transformed data's sums
+            D, owned, stats = pre.pop("data"), True, None
         res = fit_glrm(
             D, M, rank, loss, reg_x, reg_y, max_iter=self.max_iter, tol=self.tol,
             init=self.init, solver=self.solver, rng=rng, progress=bool(self.progress),
             stats=stats, overwrite_data=owned,  # our own copy: zero-filled in place
+            offset=offset,
         )
         self._set_result(res, region, times, xarray=region is not None)
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
@@ -277,6 +280,7 @@ class GLRM:
         self.unobserved_cells_ = np.asarray(res.unobserved_cells, dtype=np.int64)
         self.n_observed_ = int(res.n_observed)
         self.solver_ = res.solver
+        self.calibration_ = None  # a new fit invalidates a calibration (glrm/calibration.py)
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -297,9 +301,22 @@ class GLRM:
             raise ModelError("Y_grid needs a model fitted on a DataArray (with a region)")
         return self.region_.unstack(self.Y_, name="Y")
 
+    def _to_data_units(self, Z: np.ndarray) -> np.ndarray:
+        """``scale_ * Z + offset_`` in place (``Z (..., L)`` in fit units); a plain model's
+        values are already in the data's units."""
+        sc = getattr(self, "scale_", None)
+        off = getattr(self, "offset_", None)
+        if sc is not None:
+            Z *= sc
+        if off is not None:
+            Z += off
+        return Z
+
     def reconstruct(self) -> xr.DataArray | np.ndarray:
-        """``X^T Y`` (float32): ``(time, lat, lon)`` DataArray, or ``(T, L)`` for array input."""
-        vals = (self._Xv.T @ self._Yv).astype(np.float32)
+        """The fitted training snapshots in the data's units, ``scale_ * (X^T Y) + offset_``
+        (just ``X^T Y`` for a plain model), float32: a ``(time, lat, lon)`` DataArray, or
+        ``(T, L)`` for array input."""
+        vals = self._to_data_units(self._Xv.T @ self._Yv).astype(np.float32)
         if self.region_ is None:
             return vals
         tdim = self.X_.dims[1]
@@ -329,15 +346,6 @@ class GLRM:
                 d0 = da.dims[0]
                 return vals, False, (d0, da[d0].values if d0 in da.coords else None)
             raise DataError(f"observations have too many dims: {da.dims}")
-        if isinstance(observations, Mapping):
-            cells = np.fromiter((int(c) for c in observations), dtype=np.int64,
-                                count=len(observations))
-            values = np.array(list(observations.values()), dtype=np.float64)
-            return self._from_pairs(cells, values), True, None
-        if isinstance(observations, tuple) and len(observations) == 2:
-            cells = np.asarray(observations[0])
-            if cells.ndim == 1 and (cells.size == 0 or np.issubdtype(cells.dtype, np.integer)):
-                return self._from_pairs(cells, np.asarray(observations[1], float)), True, None
         vals = np.asarray(observations, dtype=np.float64)
         if vals.ndim == 1 and vals.shape[0] == L:
             return vals[None], True, None
@@ -348,19 +356,23 @@ class GLRM:
             f"{{cell: value}} mapping, a (cells, values) tuple, or an array (L,)/(n, L) with "
             f"L={L}; got {type(observations).__name__}")
 
-    def _from_pairs(self, cells: np.ndarray, values: np.ndarray) -> np.ndarray:
-        L = self.n_cells_
-        if cells.shape != values.shape or cells.ndim != 1:
-            raise DataError(f"cells {cells.shape} and values {values.shape} must be equal 1-D")
-        if cells.size and (cells.min() < 0 or cells.max() >= L):
-            raise DataError(f"cells must be indices in [0, {L})")
-        if not np.all(np.isfinite(values)):
-            raise DataError("observed values must be finite")
-        if np.unique(cells).size != cells.size:
-            raise DataError("cells must not repeat")
-        out = np.full((1, L), np.nan)
-        out[0, cells] = values
-        return out
+    def _observation_pairs(self, observations: Any) -> tuple[Any, np.ndarray] | None:
+        """``(cells, values)`` of a ``{cell: value}`` mapping or a ``(cells, values)`` tuple
+        (cells checked by the fold-in: integers only), else None (a map or a stack)."""
+        if isinstance(observations, Mapping):
+            cells = list(observations.keys())
+            values = np.asarray(list(observations.values()), dtype=np.float64)
+        elif isinstance(observations, tuple) and len(observations) == 2:
+            cells, values = observations
+            if np.ndim(cells) != 1 or np.ndim(values) != 1:
+                raise DataError("a (cells, values) tuple needs two 1-D sequences, got shapes "
+                                f"{np.shape(cells)} and {np.shape(values)}")
+            values = np.asarray(values, dtype=np.float64)
+        else:
+            return None
+        if len(cells) != values.size:
+            raise DataError(f"{len(cells)} cells but {values.size} values")
+        return cells, values
 
     def complete(self, observations: Any, ridge: float = 0.0, *, prior: str | None = None,
                  spatial: bool = False) -> xr.Dataset:
@@ -380,35 +392,43 @@ class GLRM:
         the prior ``x ~ N(mean, cov)`` of the training columns of ``X``; ``spatial=True`` adds
         the kriged GP residual (needs ``spatial=`` at fit). A model fitted with ``offset``,
         ``scale`` or ``noise="per-cell"`` always uses them. Then ``std`` is the posterior std
-        of the latent (noise-free) value.
+        of the latent (noise-free) value. With ``prior="empirical"``, ``ridge > 0`` adds
+        ``ridge / noise_std_^2 I`` to the prior precision.
+
+        Cells of a mapping or tuple must be integer indices (``12.7`` is a DataError, never
+        truncated); NaN values are dropped (not counted in ``n_observations``); a repeated cell
+        is a repeated independent measurement; no observation at all gives the prior's map with
+        a prior, or a ModelError without one. The algebra is
+        :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (:meth:`latent_prior`).
         """
         self._check_fitted()
         ridge = check_positive(ridge, "ridge", error=ModelError)
-        V, single, lead = self._stack_snapshots(observations)
-        if prior is not None or spatial or not self.is_plain_low_rank:
-            pred, std, x, n_obs = posterior_complete(self, V, ridge=ridge, prior=prior,
-                                                     spatial=spatial)
+        base = self.latent_prior(prior, ridge=ridge, spatial=spatial)
+        pairs = self._observation_pairs(observations)
+        if pairs is not None:  # one snapshot as (cells, values): NaN dropped, repeats allowed
+            post = base.update(*pairs)
+            pred, std = post.predict()
+            x, n_obs, single, lead = post.mean, int(post.cells.size), True, None
+        else:
+            V, single, lead = self._stack_snapshots(observations)
+            pred, std, x, n_obs = fold_in_snapshots(base, V)
             if single:
                 pred, std, x, n_obs = pred[0], std[0], x[0], int(n_obs[0])
-            ds = self._completion_dataset(pred, std, x, n_obs, ridge, single, lead)
+        ds = self._completion_dataset(pred, std, x, n_obs, ridge, single, lead)
+        if prior is not None or spatial or not self.is_plain_low_rank:
             ds.attrs.update(prior=str(prior), spatial=int(bool(spatial)),
                             std_kind="posterior std of the latent value")
             ds["std"].attrs["long_name"] = "posterior std of the latent value"
-            return ds
-        Y = self._Yv
-        if single:
-            obs = np.flatnonzero(~np.isnan(V[0]))
-            if np.any(np.isinf(V[0, obs])):
-                raise DataError("observed values must be finite")
-            x, cov = fold_in(Y, obs, V[0, obs], ridge=ridge, noise_std=self.noise_std_)
-            pred = Y.T @ x
-            std = mean_std(Y, cov)
-            n_obs: Any = int(obs.size)
-        else:
-            x, cov, n_obs = fold_in_many(Y, V, ridge=ridge, noise_std=self.noise_std_)
-            pred = x @ Y
-            std = mean_std(Y, cov)
-        return self._completion_dataset(pred, std, x, n_obs, ridge, single, lead)
+        return ds
+
+    def latent_prior(self, prior: str | None = None, ridge: float = 0.0,
+                     spatial: bool = False) -> LatentPosterior:
+        """The belief over a new snapshot's latent vector that :meth:`complete` folds in from
+        (:class:`~lrm_cvx.glrm.posterior.LatentPosterior`; ``prior``/``ridge``/``spatial`` as in
+        :meth:`complete`). ``.update(cells, values)`` assimilates observations (data units),
+        ``.predict()`` maps them, ``.information()`` is the planner's prior."""
+        self._check_fitted()
+        return model_prior(self, prior, ridge=ridge, spatial=spatial)
 
     # ------------------------------------------------------------------ temporal dynamics
     def _fit_dynamics(self, last_mask: Any = None) -> None:
@@ -458,7 +478,12 @@ class GLRM:
         fold-in (prior precision, per-cell noise, per-cell scale; with ``spatial=True`` also
         ``prior_cov`` and ``spatial_cov`` for ``criterion="gp-variance"``)."""
         self._check_fitted()
-        return planner_terms(self, prior=prior, spatial=spatial)
+        post = self.latent_prior(prior, spatial=spatial)
+        info = post.information()
+        if spatial and info["prior_cov"] is None:
+            raise ModelError("the gp-variance criterion needs prior='empirical' (a proper prior "
+                             "covariance of the latent vector)")
+        return info
 
     @property
     def is_plain_low_rank(self) -> bool:
@@ -501,35 +526,63 @@ class GLRM:
     # ------------------------------------------------------------------ validation
     def _matrix(self, data: Any, mask: Any = None) -> tuple[np.ndarray, np.ndarray]:
         if isinstance(data, xr.DataArray):
+            if mask is not None:
+                raise DataError("mask is only accepted with a numpy array; a DataArray uses NaN")
             if self.region_ is None:
                 raise DataError("a DataArray needs a model fitted with a region")
-            D = self.region_.stack(data)
+            D = np.asarray(self.region_.stack(data), dtype=np.float64)
             return D, ~np.isnan(D)
-        D = np.ascontiguousarray(np.asarray(data, dtype=np.float64))
-        M = ~np.isnan(D) if mask is None else np.ascontiguousarray(np.asarray(mask, dtype=bool))
-        return D, M
+        try:
+            D = np.ascontiguousarray(np.asarray(data, dtype=np.float64))
+        except (TypeError, ValueError):
+            raise DataError(f"data must be a numeric (T, L) array, got "
+                            f"{type(data).__name__}") from None
+        if mask is None:
+            return D, ~np.isnan(D)
+        M = np.asarray(mask)
+        if M.dtype != np.bool_:
+            raise DataError(f"mask must be boolean (True = observed), got dtype {M.dtype}")
+        return D, np.ascontiguousarray(M)
 
     def score(self, data: Any, mask: Any = None) -> float:
-        """Mean squared error of ``X^T Y`` against ``data`` on its observed entries.
+        """Mean squared error, in the data's units squared, of the fitted values
+        (:meth:`reconstruct`: ``scale_ * (X^T Y) + offset_``) against ``data`` on its observed
+        entries.
 
         Entry-wise reconstruction error on the *training times* (``data`` has the training
         shape, e.g. the held-out part of :meth:`holdout`); not a fold-in of new snapshots.
+        Observed entries must be finite (DataError otherwise).
         """
         self._check_fitted()
         D, M = self._matrix(data, mask)
         if D.shape != (self.n_times_, self.n_cells_):
             raise DataError(f"data has shape {D.shape}, the model was fitted on "
                             f"{(self.n_times_, self.n_cells_)}")
+        if M.shape != D.shape:
+            raise DataError(f"mask has shape {M.shape}, data has shape {D.shape}")
         n = int(np.count_nonzero(M))
         if n == 0:
             raise DataError("data has no observed entry to score")
-        pa, pb = K.pair_index(self._Xv.shape[0])
-        nchunk = 8
-        G = np.zeros((nchunk, D.shape[0], pa.size))
-        h = np.zeros((nchunk, D.shape[0], self._Xv.shape[0]))
-        f = np.zeros((nchunk, D.shape[0]))
-        K.row_pass(D, M, self._Xv, self._Yv, 0, 0.0, 0.0, pa, pb, nchunk, G, h, f)
-        return float(f.sum() / n)
+        if not np.all(np.isfinite(D[M])):
+            raise DataError("data has non-finite observed values (inf); use NaN for missing")
+        X, Y = self._Xv, self._Yv
+        if self.is_plain_low_rank:  # compiled residual pass, no (T, L) temporary
+            pa, pb = K.pair_index(X.shape[0])
+            nchunk = 8
+            G = np.zeros((nchunk, D.shape[0], pa.size))
+            h = np.zeros((nchunk, D.shape[0], X.shape[0]))
+            f = np.zeros((nchunk, D.shape[0]))
+            K.row_pass(D, M, X, Y, 0, 0.0, 0.0, pa, pb, nchunk, G, h, f)
+            sse = float(f.sum())
+        else:  # in data units, block of times by block of times
+            sse = 0.0
+            step = max(1, (1 << 22) // max(self.n_cells_, 1))
+            for t0 in range(0, D.shape[0], step):
+                m = M[t0:t0 + step]
+                r = np.where(m, self._to_data_units(X[:, t0:t0 + step].T @ Y)
+                             - np.where(m, D[t0:t0 + step], 0.0), 0.0)
+                sse += float(np.einsum("ij,ij->", r, r))
+        return sse / n
 
     @staticmethod
     def holdout(data: Any, fraction: float = 0.1, seed: Any = 0) -> tuple[Any, Any]:
@@ -566,6 +619,7 @@ class GLRM:
                     seed: Any = 0) -> pd.Series:
         """Held-out RMSE for each rank: fit a copy of this model on a training split of the
         observed entries and score it on the rest. Returns a Series indexed by rank."""
+        ranks = _check_ranks(ranks)
         if isinstance(data, xr.DataArray) and data.ndim == 3:
             region = Region.from_dataarray(data)
             data = xr.DataArray(region.stack(data), dims=(data.dims[0], "cell"))
@@ -641,6 +695,8 @@ class GLRM:
             for name, value in dyn_vars.items():
                 ds[name] = value
             attrs.update(dyn_attrs)
+        if getattr(self, "calibration_", None) is not None:
+            attrs.update(self.calibration_.to_attrs())
         if warn_custom:
             attrs["note"] = ("custom callable regularisers cannot be saved; their repr is stored "
                              f"in params ({', '.join(warn_custom)})")
@@ -694,7 +750,26 @@ class GLRM:
         model._set_result(res, region, ds[tdim], xarray=region is not None)
         PREDICTIVE_ATTRS.restore(model, ds)
         model.dynamics_ = Dynamics.from_dataset(ds, time=ds[tdim].values[-1])
+        from .calibration import Calibration
+
+        model.calibration_ = Calibration.from_attrs(ds.attrs)
         return model
+
+
+def _check_ranks(ranks: Any) -> list[int]:
+    """``ranks`` as a non-empty list of distinct integers >= 1 (ModelError otherwise)."""
+    vals = np.atleast_1d(np.asarray(ranks, dtype=object)).ravel()
+    ok = vals.size > 0
+    for r in vals:  # a handful of ranks
+        if (isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer, float))
+                or not float(r).is_integer() or r < 1):
+            ok = False
+    if not ok:
+        raise ModelError(f"ranks must be a non-empty sequence of integers >= 1, got {ranks!r}")
+    out = [int(r) for r in vals]
+    if len(set(out)) != len(out):
+        raise ModelError(f"ranks must not repeat, got {out}")
+    return out
 
 
 def _is_dask(obj: Any) -> bool:
