@@ -172,6 +172,10 @@ class MonitorState:
         if dynamics.rank != k:
             raise ModelError(f"dynamics have rank {dynamics.rank}, the model {k}")
         obs = ObservationModel.from_model(model, spatial=spatial)
+        if not memoryless:  # the filter's own calibrated variance scale (glrm/calibration.py)
+            from .glrm.calibration import variance_scale
+
+            obs = replace(obs, variance_scale=variance_scale(model, temporal=True))
         P0 = dynamics.initial_cov
         jitter = 1e-9 * max(float(np.trace(dynamics.Q)), 1e-300) / k
         post = LatentPosterior.from_moments(obs, dynamics.initial_mean, P0 + jitter * np.eye(k))

@@ -121,6 +121,7 @@ class ObservationModel:
     spatial_cov: Any = None
     region: Any = None
     ref_var: float | None = None
+    variance_scale: float = 1.0  # calibration (glrm/calibration.py): multiplies output variances
 
     def __post_init__(self) -> None:
         Y = np.asarray(self.Y)
@@ -179,7 +180,8 @@ class ObservationModel:
                    noise_var=sigma2 if nv is None else nv,
                    spatial_cov=cov if spatial else None,
                    region=model.region_ if spatial else None,
-                   ref_var=cov.total_variance if spatial else max(sigma2, _NOISE_FLOOR))
+                   ref_var=cov.total_variance if spatial else max(sigma2, _NOISE_FLOOR),
+                   variance_scale=_variance_scale(model))
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -465,7 +467,7 @@ class LatentPosterior:
         if cells is not None:
             cells = check_cells(cells, self.obs_model.n_cells)
         mu, var = self._latent_var(sp_, cells)
-        return self.obs_model.to_data_units(mu, np.sqrt(var),
+        return self.obs_model.to_data_units(mu, np.sqrt(self.obs_model.variance_scale * var),
                                             slice(None) if cells is None else cells)
 
     def predictive_std(self, spatial: bool | None = None, cells: Any = None) -> np.ndarray:
@@ -479,7 +481,7 @@ class LatentPosterior:
         _, var = self._latent_var(sp_, cells)
         noise = (np.full(idx.size, obs.spatial_cov.nugget) if sp_
                  else obs.without_spatial().noise_at(idx))
-        std = np.sqrt(var + noise)
+        std = np.sqrt(obs.variance_scale * (var + noise))
         return std if obs.scale is None else std * obs.scale[idx]
 
     # ------------------------------------------------------------------ planner and filter
@@ -540,3 +542,70 @@ def _average_repeats(cells: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.n
         order = np.argsort(cells, kind="stable")
         return cells[order], z[order]
     return uc, np.bincount(inv, weights=z, minlength=uc.size) / cnt
+
+
+# ============================================================================ model-level helpers
+def _prior_name(prior: Any) -> str | None:
+    """``None`` or ``"empirical"`` from a prior name (the registry's, when present)."""
+    try:
+        from ..registry import prior_value
+    except ImportError:  # pragma: no cover - registry not there
+        if prior in (None, "none", "empirical"):
+            return None if prior in (None, "none") else "empirical"
+        raise ModelError(f"prior must be one of [None, 'empirical'], got {prior!r}") from None
+    return prior_value(prior)
+
+
+def model_prior(model: Any, prior: str | None = None, ridge: float = 0.0,
+                spatial: bool = False) -> LatentPosterior:
+    """The belief ``GLRM.complete(prior=, ridge=, spatial=)`` folds in from.
+
+    ``prior=None``: the paper's fold-in (flat, or the ridge prior ``N(0, ref_var / ridge I)``);
+    ``"empirical"``: ``N(mean(X_), cov(X_))``, with ``ridge > 0`` adding ``ridge / ref_var I``
+    to its precision. ``spatial`` switches the observation model's GP residual on.
+    """
+    prior = _prior_name(prior)
+    ridge = check_positive(ridge, "ridge", error=ModelError)
+    obs = ObservationModel.from_model(model, spatial=bool(spatial))
+    if prior is None:
+        return LatentPosterior.prior(obs, "ridge", ridge)
+    base = LatentPosterior.prior(model, "empirical", spatial=bool(spatial))
+    if ridge > 0:
+        return LatentPosterior.from_moments(
+            obs, base.mean, precision=base.precision + (ridge / obs.ref_var) * np.eye(obs.k))
+    return base
+
+
+def fold_in_snapshots(prior: LatentPosterior, V: np.ndarray, spatial: bool | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fold each snapshot of ``V (n, L)`` (data units, NaN = not observed) into ``prior``.
+
+    Returns ``pred (n, L)``, ``std (n, L)`` (posterior std of the latent value, data units),
+    ``x (n, k)`` and the observation counts ``(n,)``. A snapshot whose observations do not
+    determine ``x`` raises ModelError. (A loop over snapshots; never over cells.)
+    """
+    V = np.asarray(V, dtype=np.float64)
+    L = prior.obs_model.n_cells
+    if V.ndim != 2 or V.shape[1] != L:
+        raise DataError(f"values must have shape (n, {L}), got {V.shape}")
+    if np.isinf(V).any():
+        raise DataError("observed values must be finite (NaN marks a cell not observed)")
+    n = V.shape[0]
+    pred = np.empty((n, L))
+    std = np.empty((n, L))
+    xs = np.empty((n, prior.k))
+    counts = np.zeros(n, dtype=np.int64)
+    for t in range(n):
+        obs = np.flatnonzero(~np.isnan(V[t]))
+        post = prior.update(obs, V[t, obs])
+        counts[t] = obs.size
+        pred[t], std[t] = post.predict(spatial)
+        xs[t] = post.mean
+    return pred, std, xs, counts
+
+
+def _variance_scale(model: Any, temporal: bool = False) -> float:
+    """The model's calibrated variance scale (``calibration_``; 1.0 when not calibrated)."""
+    from .calibration import variance_scale
+
+    return variance_scale(model, temporal)

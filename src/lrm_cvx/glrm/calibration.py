@@ -1,0 +1,354 @@
+"""Calibrated predictive uncertainty (issue 13, step 6).
+
+A fitted GLRM's predictive interval for a held-out cell is ``mean +- z * sqrt(s * (std^2 +
+noise))``: ``std`` the posterior std of the latent value (trend + kriged residual), ``noise``
+the variance of a new measurement (the spatial nugget with ``spatial=True``, else the noise
+variance, in data units), and ``s`` a variance scale estimated here.
+
+Training residuals under-state the error of a fold-in on a *new* snapshot (the factors were
+fitted to the training snapshots), so ``s`` is estimated from cross-validated fold-in
+residuals instead: the training snapshots are split into contiguous time blocks; for each block
+the model (same parameters, same region) is refitted on the other blocks, and each held-out
+snapshot of the block is folded in from route-like (spatially clustered) and scattered sample
+sets of several sizes; the residuals at the snapshot's other observed cells, standardized by the
+refitted model's own predictive std, are pooled. ``s`` is chosen so that the pooled standardized
+residuals hit the nominal 68% and 95% quantiles of a standard normal (the geometric mean of the
+two quantile ratios, squared): it targets the coverage that is reported, and is 1 for data drawn
+exactly from the model. Scaling every variance component of the model (prior covariance, noise,
+spatial covariance) by ``s`` leaves posterior means unchanged and scales every posterior and
+predictive variance by ``s``, so ``s`` is applied to the variances only.
+
+For the filter (``temporal=``), the residuals come from forward-chaining folds instead: the
+model is refitted (with its dynamics) on the snapshots before a block and the filter runs
+through the block in time order, one sample set per snapshot; its scale is stored apart
+(``temporal_scale``).
+
+The result is :class:`Calibration`, stored on the model as ``calibration_`` and saved with its
+NetCDF file (attributes ``calibration_*``).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from .._validation import as_generator
+from ..errors import DataError, ModelError
+
+__all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
+           "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95"]
+
+Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
+Z95 = 1.959963984540054   # two-sided 95%
+_PREFIX = "calibration_"
+SET_KINDS = ("route", "scattered")
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Variance scales of a model's predictive distribution, estimated by cross-validation.
+
+    ``scale``: multiplier of the memoryless fold-in's predictive variance; ``temporal_scale``:
+    of the filter's (None when not estimated: the filter then uses ``scale``). ``n_residuals``
+    and ``coverage68_raw`` / ``coverage95_raw`` (the cross-validated coverage before scaling)
+    document the estimate; ``n_blocks`` and ``sizes`` how it was made.
+    """
+
+    scale: float = 1.0
+    temporal_scale: float | None = None
+    n_residuals: int = 0
+    coverage68_raw: float = float("nan")
+    coverage95_raw: float = float("nan")
+    temporal_coverage68_raw: float = float("nan")
+    temporal_coverage95_raw: float = float("nan")
+    n_blocks: int = 0
+    sizes: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("scale", "temporal_scale"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            if not (np.isfinite(v) and v > 0):
+                raise ModelError(f"Calibration.{name} must be a finite number > 0, got {v!r}")
+            object.__setattr__(self, name, float(v))
+
+    def variance_scale(self, temporal: bool = False) -> float:
+        """The scale for the memoryless fold-in or (``temporal=True``) the filter."""
+        if temporal and self.temporal_scale is not None:
+            return self.temporal_scale
+        return self.scale
+
+    def to_attrs(self) -> dict[str, Any]:
+        """Flat NetCDF attributes ``calibration_*`` (None stored as NaN)."""
+        out = {}
+        for key, value in asdict(self).items():
+            out[_PREFIX + key] = float("nan") if value is None else value
+        return out
+
+    @classmethod
+    def from_attrs(cls, attrs: dict[str, Any]) -> Calibration | None:
+        """The calibration stored by :meth:`to_attrs`, or None when ``attrs`` hold none."""
+        if _PREFIX + "scale" not in attrs:
+            return None
+        kw: dict[str, Any] = {}
+        for key in cls.__dataclass_fields__:
+            if _PREFIX + key in attrs:
+                v = attrs[_PREFIX + key]
+                if key == "temporal_scale":
+                    v = None if not np.isfinite(float(v)) else float(v)
+                elif key in ("n_residuals", "n_blocks"):
+                    v = int(v)
+                elif key == "sizes":
+                    v = str(v)
+                else:
+                    v = float(v)
+                kw[key] = v
+        return cls(**kw)
+
+
+# ----------------------------------------------------------------------------- applying it
+def variance_scale(model: Any, temporal: bool = False) -> float:
+    """The model's calibrated variance scale (1.0 when it was not calibrated)."""
+    cal = getattr(model, "calibration_", None)
+    return 1.0 if cal is None else cal.variance_scale(temporal)
+
+
+def noise_variance(model: Any, spatial: bool = False) -> Any:
+    """Variance of a new measurement around the latent value, in data units: the spatial
+    nugget with ``spatial=True``, else ``noise_var_`` (per cell) or ``noise_std_^2``, times
+    ``scale_^2`` when the model was fitted with ``scale``. A scalar or ``(L,)``."""
+    if spatial:
+        cov = getattr(model, "spatial_cov_", None)
+        if cov is None:
+            raise ModelError("spatial=True needs a model fitted with spatial=...")
+        nv: Any = float(cov.nugget)
+    else:
+        nv = getattr(model, "noise_var_", None)
+        nv = float(model.noise_std_) ** 2 if nv is None else np.asarray(nv, dtype=np.float64)
+    sc = getattr(model, "scale_", None)
+    return nv if sc is None else nv * np.asarray(sc, dtype=np.float64) ** 2
+
+
+def predictive_std(model: Any, std: Any, spatial: bool = False,
+                   temporal: bool = False) -> np.ndarray:
+    """Calibrated std of a new measurement: ``sqrt(std^2 + s * noise)``.
+
+    ``std`` ``(..., L)`` (data units) is the posterior std of the latent value as returned by
+    ``complete`` / ``MonitorState.predict`` (which already carry the scale ``s``: the
+    observation model's ``variance_scale``); ``noise`` is :func:`noise_variance`; ``s`` the
+    model's :func:`variance_scale`. Equals ``LatentPosterior.predictive_std``.
+    """
+    s = np.asarray(std, dtype=np.float64)
+    return np.sqrt(s * s + variance_scale(model, temporal) * noise_variance(model, spatial))
+
+
+def interval_coverage(values: Any, mean: Any, std: Any,
+                      levels: Sequence[float] = (0.68, 0.95)) -> np.ndarray:
+    """Fraction of the finite ``values`` inside ``mean +- z_level * std`` per level.
+
+    ``values``, ``mean``, ``std`` broadcast together; NaN values are left out. Returns
+    ``(len(levels),)`` (NaN when no value is finite).
+    """
+    from scipy.stats import norm
+
+    v = np.asarray(values, dtype=np.float64)
+    m = np.asarray(mean, dtype=np.float64)
+    sd = np.asarray(std, dtype=np.float64)
+    z = np.abs(v - m) / np.where(sd > 0, sd, np.nan)
+    z = z[np.isfinite(v)]
+    if z.size == 0:
+        return np.full(len(levels), np.nan)
+    z = np.where(np.isnan(z), np.inf, z)
+    return np.array([float(np.mean(z <= norm.ppf(0.5 + lv / 2))) for lv in levels])
+
+
+def fit_scale(z: Any) -> float:
+    """Variance scale ``s`` so ``z / sqrt(s)`` hits the 68% and 95% normal quantiles:
+    ``s = (q68 / Z68) * (q95 / Z95)`` with ``q`` the empirical quantiles of ``|z|``."""
+    z = np.abs(np.asarray(z, dtype=np.float64).ravel())
+    z = z[np.isfinite(z)]
+    if z.size < 20:
+        raise ModelError(f"calibration needs at least 20 held-out residuals, got {z.size}")
+    q68, q95 = np.quantile(z, [0.68, 0.95])
+    s = float(q68 / Z68 * q95 / Z95)
+    if not (np.isfinite(s) and s > 0):
+        raise ModelError("calibration failed: the held-out residuals are all zero")
+    return s
+
+
+# ----------------------------------------------------------------------------- sample sets
+def sample_sets(region: Any, observed: np.ndarray, size: int, kind: str,
+                rng: np.random.Generator) -> np.ndarray:
+    """Cells of one sample set among the ``observed`` cells (bool ``(L,)``): ``"scattered"``
+    (uniformly at random) or ``"route"`` (the ``size`` observed cells nearest, on the grid, to
+    a random observed cell: a spatially clustered set like a short route)."""
+    pool = np.flatnonzero(observed)
+    size = int(min(size, pool.size))
+    if size == 0:
+        return pool
+    if kind == "scattered":
+        return np.sort(rng.choice(pool, size=size, replace=False))
+    if kind == "route":
+        g = np.asarray(region.grid_index, dtype=np.float64)[pool]
+        c = g[rng.integers(pool.size)]
+        d = ((g - c) ** 2).sum(axis=1) + 1e-6 * rng.random(pool.size)  # random tie-break
+        return np.sort(pool[np.argpartition(d, size - 1)[:size]])
+    raise ModelError(f"kind must be one of {SET_KINDS}, got {kind!r}")
+
+
+# ----------------------------------------------------------------------------- estimation
+def _clone(model: Any, **override: Any):
+    from .model import GLRM
+
+    params = {**model.get_params(), "progress": False, **override}
+    return GLRM(**params)
+
+
+def _check_data(model: Any, data: Any):
+    import xarray as xr
+
+    if not isinstance(data, xr.DataArray) or data.ndim != 3:
+        raise DataError("data must be a (time, lat, lon) DataArray (the training snapshots)")
+    region = getattr(model, "region_", None)
+    if region is None:
+        raise ModelError("calibration needs a model fitted on a DataArray (with a region)")
+    return region, region.stack(data).astype(np.float64)
+
+
+def _use_spatial(model: Any, spatial: bool | None) -> bool:
+    if spatial is None:
+        return getattr(model, "spatial_cov_", None) is not None
+    return bool(spatial)
+
+
+def _standardized(model: Any, values: np.ndarray, cells: np.ndarray, pred: np.ndarray,
+                  latent_std: np.ndarray, spatial: bool, temporal: bool = False) -> np.ndarray:
+    held = np.isfinite(values)
+    held[cells] = False
+    sd = predictive_std(model, latent_std, spatial, temporal)
+    sd = sd[held] if np.ndim(sd) else np.full(int(held.sum()), float(sd))
+    return (values[held] - pred[held]) / sd
+
+
+def cv_residuals(model: Any, data: Any, *, n_blocks: int = 4, sizes: Sequence[int] = (5, 15, 50),
+                 kinds: Sequence[str] = SET_KINDS, max_snapshots: int = 6,
+                 prior: str = "empirical", spatial: bool | None = None,
+                 temporal: str | None = None, seed: Any = 0) -> np.ndarray:
+    """Standardized cross-validated fold-in residuals (see the module docstring).
+
+    ``data`` ``(time, lat, lon)``: the snapshots ``model`` was fitted on (its region is used).
+    ``max_snapshots`` held-out snapshots per block (evenly spaced) are folded in from one set
+    of each size and kind. With ``temporal`` (``"ar1"``/``"seasonal"``), forward-chaining folds
+    and the filter instead (:func:`lrm_cvx.monitor`), one set per snapshot (kinds and sizes
+    cycled). The residuals are standardized by the *uncalibrated* predictive std of the
+    refitted model. Returns a 1-D array.
+    """
+    region, V = _check_data(model, data)
+    T = V.shape[0]
+    if not 2 <= int(n_blocks) <= T // 2:
+        raise ModelError(f"n_blocks must be in [2, {T // 2}] for {T} snapshots, got {n_blocks}")
+    for kind in kinds:
+        if kind not in SET_KINDS:
+            raise ModelError(f"kinds must be among {SET_KINDS}, got {kind!r}")
+    sizes = [int(s) for s in sizes]
+    if not sizes or min(sizes) < 1:
+        raise ModelError(f"sizes must be positive integers, got {sizes}")
+    spatial = _use_spatial(model, spatial)
+    rng = as_generator(seed)
+    blocks = np.array_split(np.arange(T), int(n_blocks))
+    out: list[np.ndarray] = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for bi, block in enumerate(blocks):
+            if temporal is not None:
+                if bi == 0:
+                    continue  # forward chaining: the first block has no past
+                train_idx = np.arange(block[0])
+            else:
+                train_idx = np.setdiff1d(np.arange(T), block)
+            has_t = "temporal" in model.get_params()
+            sub = _clone(model, **({"temporal": temporal} if has_t else {}))
+            sub.fit(data.isel(time=train_idx), region=region)
+            sub.calibration_ = None
+            if temporal is not None:
+                out.extend(_filter_residuals(sub, data.isel(time=block), V[block], sizes, kinds,
+                                             spatial, rng))
+                continue
+            pick = block[np.unique(np.linspace(0, block.size - 1,
+                                               min(block.size, max_snapshots)).round()
+                                   .astype(int))]
+            for t in pick:
+                observed = np.isfinite(V[t])
+                for size in sizes:
+                    for kind in kinds:
+                        cells = sample_sets(region, observed, size, kind, rng)
+                        try:
+                            ds = sub.complete((cells, V[t, cells]), prior=prior, spatial=spatial)
+                        except ModelError:
+                            continue
+                        pred = region.stack(ds["prediction"]).astype(np.float64)
+                        std = region.stack(ds["std"]).astype(np.float64)
+                        out.append(_standardized(sub, V[t], cells, pred, std, spatial))
+    if not out:
+        raise ModelError("calibration produced no held-out residuals")
+    return np.concatenate(out)
+
+
+def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int],
+                      kinds: Sequence[str], spatial: bool, rng: np.random.Generator):
+    """Standardized residuals of the filter run through one block, in time order."""
+    region = sub.region_
+    state = sub.monitor()
+    times = block_data["time"].values
+    combos = [(s, k) for s in sizes for k in kinds]
+    out = []
+    for i, t in enumerate(times):
+        observed = np.isfinite(Vb[i])
+        size, kind = combos[i % len(combos)]
+        cells = sample_sets(region, observed, size, kind, rng)
+        state.assimilate((cells, Vb[i, cells]), time=t)
+        mean, _ = state.posterior.predict()
+        pstd = state.posterior.predictive_std()
+        held = np.isfinite(Vb[i])
+        held[cells] = False
+        out.append((Vb[i, held] - mean[held]) / pstd[held])
+    return out
+
+
+def calibrate(model: Any, data: Any, *, n_blocks: int = 4, sizes: Sequence[int] = (5, 15, 50),
+              kinds: Sequence[str] = SET_KINDS, max_snapshots: int = 6,
+              temporal: str | None | bool = "auto", seed: Any = 0) -> Calibration:
+    """Estimate the model's variance scale(s) from cross-validated fold-in residuals on its
+    training snapshots ``data`` and store them as ``model.calibration_`` (returned).
+
+    ``temporal="auto"`` also calibrates the filter when the model has dynamics
+    (``dynamics_``); ``None``/``False`` skips it; ``"ar1"``/``"seasonal"`` forces it.
+    Costs ``n_blocks`` refits plus ``n_blocks * max_snapshots * len(sizes) * len(kinds)``
+    fold-ins.
+    """
+    kw = dict(n_blocks=n_blocks, sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
+    z = cv_residuals(model, data, seed=seed, **kw)
+    scale = fit_scale(z)
+    raw = interval_coverage(z, 0.0, 1.0)
+    if temporal == "auto":
+        dyn = getattr(model, "dynamics_", None)
+        temporal = None if dyn is None else dyn.kind
+    elif temporal is False:
+        temporal = None
+    t_scale, t_raw = None, np.full(2, np.nan)
+    if temporal is not None:
+        zt = cv_residuals(model, data, seed=seed, temporal=temporal, **kw)
+        t_scale = fit_scale(zt)
+        t_raw = interval_coverage(zt, 0.0, 1.0)
+    cal = Calibration(scale=scale, temporal_scale=t_scale, n_residuals=int(z.size),
+                      coverage68_raw=float(raw[0]), coverage95_raw=float(raw[1]),
+                      temporal_coverage68_raw=float(t_raw[0]),
+                      temporal_coverage95_raw=float(t_raw[1]), n_blocks=int(n_blocks),
+                      sizes=",".join(str(int(s)) for s in sizes))
+    model.calibration_ = cal
+    return cal
