@@ -333,3 +333,27 @@ def test_bad_start_locations(where, match):
 def test_unknown_sample_lists_available():
     with pytest.raises(DataError, match="available: hgt500, sst"):
         open_data("sample:nope")
+
+
+# ------------------------------------------------------------------ images
+@pytest.mark.parametrize("bbox, match", [
+    ((48.0, -80.0, 40.0, -68.0), "south=48 is north of north=40"),
+    ((-10.0, 170.0, 10.0, -170.0), r"antimeridian give east \+ 360 \(170 .. 190\)"),
+])
+def test_image_bbox_errors_name_the_bound(tmp_path, bbox, match):
+    from lrm_cvx.io.imagery import open_image_stack, write_image_stack
+
+    write_image_stack(tmp_path, synthetic_field(2, (6, 8), seed=0))
+    with unchanged(tmp_path), pytest.raises(RegionError, match=match):
+        open_image_stack(tmp_path, bbox)
+
+
+def test_image_bbox_across_antimeridian_unwrapped(tmp_path):
+    from lrm_cvx.io.imagery import open_image_stack, write_image_stack
+
+    write_image_stack(tmp_path, synthetic_field(2, (6, 8), seed=0))
+    with unchanged(tmp_path):
+        hue = open_image_stack(tmp_path, (-10.0, 170.0, 10.0, 190.0), edge_sigma=None)
+    np.testing.assert_allclose(hue.lon.values, 170 + 2.5 * (np.arange(8) + 0.5))
+    region = Region.from_dataarray(hue)
+    assert region.cell_lon[region.cell_of(0.0, -178.0)] == pytest.approx(181.25)

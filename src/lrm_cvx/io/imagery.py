@@ -32,6 +32,7 @@ import pandas as pd
 import xarray as xr
 
 from .._validation import atomic_output, check_positive
+from ..region import check_bbox
 from ..errors import DataError, RegionError
 
 __all__ = [
@@ -81,17 +82,19 @@ _PIL_FORMATS = {"png": "PNG", "jpg": "JPEG", "jpeg": "JPEG", "tif": "TIFF", "tif
 
 # --------------------------------------------------------------------------- arguments
 def _check_bbox(bbox: Any) -> tuple[float, float, float, float]:
-    """``(south, west, north, east)`` as floats, with south < north and west < east."""
-    try:
-        south, west, north, east = (float(v) for v in bbox)
-    except (TypeError, ValueError):
+    """``(south, west, north, east)`` as floats with south < north and west < east.
+
+    An image's box must not wrap: give one crossing the antimeridian with ``east`` beyond 180
+    (e.g. 170 .. 190), so its columns get increasing longitudes.
+    """
+    south, west, north, east = check_bbox(bbox, RegionError)
+    if south == north:
+        raise RegionError(f"bbox must have south < north for an image, got {bbox!r}")
+    if west > east:
         raise RegionError(
-            f"bbox must be (south, west, north, east) in degrees, got {bbox!r}"
-        ) from None
-    if not all(np.isfinite((south, west, north, east))):
-        raise RegionError(f"bbox must be finite, got {bbox!r}")
-    if not -90.0 <= south < north <= 90.0:
-        raise RegionError(f"bbox must have -90 <= south < north <= 90, got {bbox!r}")
+            f"bbox west={west:g} is east of east={east:g}: an image's bbox must have "
+            f"west < east; for one crossing the antimeridian give east + 360 "
+            f"({west:g} .. {east + 360:g})")
     if not (west < east and east - west <= 360.0):
         raise RegionError(f"bbox must have west < east <= west + 360, got {bbox!r}")
     return south, west, north, east
