@@ -710,17 +710,14 @@ class GLRM:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> GLRM:
-        """Read a model written by :meth:`save`. A file that is not one raises DataError."""
-        try:
-            with xr.open_dataset(path) as f:
-                ds = f.load()
-        except FileNotFoundError:
-            raise DataError(f"model file {os.fspath(path)!r} does not exist") from None
-        except Exception as exc:
-            raise DataError(f"{os.fspath(path)!r} is not a readable NetCDF file: {exc}") from exc
-        if ds.attrs.get("format") != _FORMAT or "X" not in ds or "Y" not in ds:
-            raise DataError(f"{os.fspath(path)!r} is not an lrm-cvx GLRM model file")
-        params = json.loads(ds.attrs["params"])
+        """Read a model written by :meth:`save` (the file is only read).
+
+        DataError naming the file for a missing, unreadable, truncated or corrupt file, a
+        NetCDF file that is not a GLRM model, a model file missing a variable or attribute
+        (named), inconsistent factor shapes, or a file written by a newer lrm-cvx
+        (``format_version`` above this version's).
+        """
+        ds, params = _read_model_file(path)
         for key in ("loss", "reg_x", "reg_y"):
             spec = params.get(key)
             if isinstance(spec, dict) and spec.get("name") == "custom":
@@ -754,6 +751,79 @@ class GLRM:
 
         model.calibration_ = Calibration.from_attrs(ds.attrs)
         return model
+
+
+_MODEL_VARS = ("X", "Y", "objective", "unobserved_cells")
+_MODEL_ATTRS = ("params", "noise_std", "n_iter", "converged", "n_observed")
+
+
+def _read_model_file(path: str | os.PathLike) -> tuple[xr.Dataset, dict]:
+    """``(dataset, params)`` of a GLRM model file, validated (DataError naming the file and
+    what is wrong)."""
+    name = repr(os.fspath(path))
+    if os.path.isdir(path):
+        raise DataError(f"model file {name} is a folder, expected a file written by GLRM.save")
+    if os.path.isfile(path) and os.path.getsize(path) == 0:
+        raise DataError(f"model file {name} is empty (0 bytes)")
+    try:
+        with xr.open_dataset(path) as f:
+            ds = f.load()
+    except FileNotFoundError:
+        raise DataError(f"model file {name} does not exist") from None
+    except Exception as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"{name} is not a readable NetCDF file (truncated or corrupt?): "
+                        f"{first}") from exc
+    if ds.attrs.get("format") != _FORMAT:
+        raise DataError(f"{name} is not an lrm-cvx GLRM model file (no format attribute "
+                        f"{_FORMAT!r})")
+    try:
+        version = int(ds.attrs.get("format_version", 1))
+    except (TypeError, ValueError):
+        raise DataError(f"model file {name} has an unreadable format_version "
+                        f"{ds.attrs.get('format_version')!r}") from None
+    if version > _FORMAT_VERSION:
+        raise DataError(f"model file {name} has format_version {version}, written by a newer "
+                        f"lrm-cvx; this version reads up to {_FORMAT_VERSION}: upgrade lrm-cvx")
+    missing = [v for v in _MODEL_VARS if v not in ds.variables]
+    if missing:
+        raise DataError(f"model file {name} is missing the variable(s) {missing}")
+    missing = [a for a in _MODEL_ATTRS if a not in ds.attrs]
+    if missing:
+        raise DataError(f"model file {name} is missing the attribute(s) {missing}")
+    tdim = ds.attrs.get("time_dim", "time")
+    X, Y = ds["X"], ds["Y"]
+    if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.dims[1] != tdim:
+        raise DataError(f"model file {name} has inconsistent factors: X {X.dims} {X.shape}, "
+                        f"Y {Y.dims} {Y.shape} (expected (component, {tdim}) and "
+                        "(component, cell) with the same number of components)")
+    if tdim not in ds.variables:
+        raise DataError(f"model file {name} is missing the variable {tdim!r} (the time "
+                        "coordinate)")
+    try:
+        params = json.loads(ds.attrs["params"])
+        noise = float(ds.attrs["noise_std"])
+        int(ds.attrs["n_iter"]), int(ds.attrs["converged"]), int(ds.attrs["n_observed"])
+        json.loads(ds.attrs.get("region_attrs", "{}"))
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"model file {name} has a corrupt attribute: {exc}") from None
+    if not isinstance(params, dict):
+        raise DataError(f"model file {name} has a corrupt 'params' attribute (not a mapping)")
+    if not np.isfinite(noise) or noise < 0:
+        raise DataError(f"model file {name} has noise_std {noise}, expected a finite number "
+                        ">= 0")
+    if int(ds.attrs.get("has_region", 0)):
+        if "region_mask" not in ds.variables:
+            raise DataError(f"model file {name} is missing the variable(s) ['region_mask']")
+        n_valid = int(np.count_nonzero(ds["region_mask"].values))
+        if n_valid != Y.shape[1]:
+            raise DataError(f"model file {name}: the region has {n_valid} valid cells but Y has "
+                            f"{Y.shape[1]}")
+    for key in [k for k in ds.variables if str(k).startswith("predictive_")]:
+        if ds[key].shape != (Y.shape[1],):
+            raise DataError(f"model file {name}: {key} has shape {ds[key].shape}, expected "
+                            f"({Y.shape[1]},) (one value per cell)")
+    return ds, params
 
 
 def _check_ranks(ranks: Any) -> list[int]:
