@@ -60,6 +60,13 @@ class Choices(tuple):
         found = self._registry.resolve(name)
         return found is not None and tuple.__contains__(self, found)
 
+    def __add__(self, other: Any) -> tuple:  # type: ignore[override]
+        """``METHODS + GREEDY_VARIANTS`` stays alias-aware when both come from one registry."""
+        joined = tuple(self) + tuple(other)
+        if isinstance(other, Choices) and other._registry is self._registry:
+            return Choices(joined, self._registry)
+        return joined
+
     def __reduce__(self) -> tuple[Any, ...]:  # pickles as a plain tuple
         return (tuple, (tuple(self),))
 

@@ -215,7 +215,8 @@ class CvxpyRegularizer(Regularizer):
 
 REGULARIZER_REGISTRY = Registry("regulariser", ModelError)
 """Regulariser classes by name (constructed with weight 1 by :func:`get_regularizer`)."""
-REGULARIZER_REGISTRY.register("none", ZeroReg, description="no penalty, `g = 0` (also `None`)")
+REGULARIZER_REGISTRY.register("none", ZeroReg, description="no penalty, `g = 0`",
+                              aliases=(None,))
 REGULARIZER_REGISTRY.register("ridge", Ridge, aliases=("l2",),
                               description="`lam ||y||_2^2` (`Ridge(lam)`)")
 REGULARIZER_REGISTRY.register("l1", L1, aliases=("lasso",),

@@ -18,7 +18,7 @@ from ..errors import PlanningError
 from ..information import fisher_information
 from ..region import Region
 from .greedy import _check_budget
-from .plan import Plan
+from .plan import Plan, check_region
 
 __all__ = ["transect", "random_walk", "DIRECTIONS"]
 
@@ -64,6 +64,7 @@ def transect(
     """
     if direction not in DIRECTIONS:
         raise PlanningError(f"direction must be one of {DIRECTIONS}, got {direction!r}")
+    region = check_region(region)
     start_cell = region.resolve_cell(start, "start")
     budget = _check_budget(budget)
     ny, nx = region.shape
@@ -137,6 +138,7 @@ def random_walk(
     neighbour fits. The cost is the walk's Euclidean length in grid units. ``rng``: a seed or
     ``numpy.random.Generator`` (deterministic given a seed).
     """
+    region = check_region(region)
     start_cell = region.resolve_cell(start, "start")
     budget = _check_budget(budget)
     gen = as_generator(rng)

@@ -1017,7 +1017,9 @@ def plan_bound(
     """
     from ..information import fisher_information
     from .greedy import initial_cells
+    from .plan import check_region
 
+    region = check_region(region)
     Y = as_factor_matrix(Y, region)
     k, L = Y.shape
     start = region.resolve_cell(start, "start")

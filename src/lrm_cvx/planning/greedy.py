@@ -13,7 +13,7 @@ from ..cost import COST_REGISTRY, make_cost
 from ..errors import PlanningError
 from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
-from .plan import Plan
+from .plan import Plan, check_region
 
 __all__ = ["initial_cells", "plan_greedy"]
 
@@ -58,6 +58,15 @@ def _budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
     return np.flatnonzero(d2 <= (budget + _POOL_SLACK) ** 2).astype(np.int64)
 
 
+def _prior_terms(prior: Any) -> dict[str, Any]:
+    """The planner's keyword terms of a latent belief (``LatentPosterior.information()``)."""
+    info = getattr(prior, "information", None)
+    if not callable(info):
+        raise PlanningError("prior must be a LatentPosterior (e.g. model.latent_prior("
+                            f"'empirical')), got {type(prior).__name__}")
+    return info()
+
+
 def plan_greedy(
     Y: Any,
     region: Region,
@@ -75,6 +84,7 @@ def plan_greedy(
     spatial_cov: Any = None,
     targets: Any = None,
     initial: str = "nearest",
+    prior: Any = None,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner.
 
@@ -107,11 +117,16 @@ def plan_greedy(
     initial : ``"nearest"`` (the paper: the start and its ``k - 1`` nearest cells are forced) or
         ``"start"`` (only the start cell: with a prior the information matrix is nonsingular
         from the start, so the budget is not spent on ``k - 1`` forced cells).
+    prior : a :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (``GLRM.latent_prior(...)``, a
+        monitoring filter's forecast): its ``information()`` fills ``prior_precision``,
+        ``noise_var``, ``target_weights`` and, when it has the spatial residual, ``prior_cov``
+        and ``spatial_cov`` (giving one of those too is an error).
 
     If the initial cells alone already exceed the budget, the plan is still returned (the
     paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
     budget, start, criterion or cost, or a singular initial set with ``ridge=0``.
     """
+    region = check_region(region)
     Yk = as_factor_matrix(Y, region)
     k, _ = Yk.shape
     start_cell = region.resolve_cell(start, "start")
@@ -125,6 +140,18 @@ def plan_greedy(
     else:
         raise PlanningError(f"initial must be 'nearest' or 'start', got {initial!r}")
     pool = _budget_pool(region, start_cell, budget)
+    if prior is not None:
+        terms = _prior_terms(prior)
+        given = dict(prior_precision=prior_precision, noise_var=noise_var,
+                     target_weights=target_weights, prior_cov=prior_cov, spatial_cov=spatial_cov)
+        clash = sorted(key for key in terms if given.get(key) is not None)
+        if clash:
+            raise PlanningError(f"prior= already gives {clash}; pass either prior or those")
+        prior_precision = terms.get("prior_precision")
+        noise_var = terms.get("noise_var")
+        target_weights = terms.get("target_weights")
+        prior_cov = terms.get("prior_cov")
+        spatial_cov = terms.get("spatial_cov")
     extra: dict[str, Any] = {}
     if criterion == "gp-variance":
         extra = dict(region=region, spatial_cov=spatial_cov, prior_cov=prior_cov, pool=pool,

@@ -14,6 +14,22 @@ from .._validation import atomic_output
 __all__ = ["Plan"]
 
 
+def check_region(region: Any, name: str = "region") -> Any:
+    """``region`` if it is a :class:`~lrm_cvx.region.Region`, else a :class:`PlanningError`
+    naming it (a model fitted on a plain array has no region and cannot plan)."""
+    from ..region import Region
+
+    if isinstance(region, Region):
+        return region
+    from ..errors import PlanningError
+
+    raise PlanningError(
+        f"{name} must be a lrm_cvx.Region (the grid of the model's cells), got "
+        f"{type(region).__name__}: a model fitted on a plain array has no region; fit it on a "
+        "(time, lat, lon) DataArray or pass region=Region.from_dataarray(data)"
+    )
+
+
 def _path_cumulative(grid_index: np.ndarray) -> np.ndarray:
     """Cumulative Euclidean grid length ``(r,)`` of the path through ``grid_index`` ``(r, 2)``,
     summed in order from 0 exactly as :func:`lrm_cvx.cost.route_length` sums it."""
