@@ -647,6 +647,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the whole pipeline on the bundled real sample data")
     p.add_argument("--out", default=str(DEMO_DIR), help="output folder (default ./lrm-cvx-demo)")
     p.set_defaults(func=cmd_demo)
+    from .cli_monitor import add_monitor_parser  # monitor init|plan|assimilate|map
+
+    add_monitor_parser(sub)
     for action in sub.choices.values():
         _add_common(action)
     return parser

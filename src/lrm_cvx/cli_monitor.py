@@ -1,0 +1,254 @@
+"""``lrm-cvx monitor``: the field loop from a shell (issue 13, step 7).
+
+::
+
+    lrm-cvx monitor init MODEL.nc --state STATE.nc [--time T]
+    lrm-cvx monitor plan STATE.nc --start LAT LON --budget B [--criterion ...] -o plan.csv
+    lrm-cvx monitor assimilate STATE.nc OBS.csv|OBS.nc --time T [--force]
+    lrm-cvx monitor map STATE.nc -o map.nc|map.png [--forecast]
+
+The state file (:class:`~lrm_cvx.monitor.MonitorState`) records its model file and is always
+replaced atomically (temporary file + rename): a crash mid-write leaves the previous state
+readable. Errors follow ``lrm-cvx``'s conventions (one line on stderr, exit status 2; nothing is
+written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["add_monitor_parser"]
+
+_PLAN_SUFFIXES = (".csv", ".geojson", ".json")
+_MAP_SUFFIXES = (".nc", ".png", ".pdf")
+
+
+def _usage(message: str) -> Exception:
+    from .cli import UsageError
+
+    return UsageError(message)
+
+
+def _load_state(path: str):
+    from .monitor import MonitorState
+
+    return MonitorState.load(path)
+
+
+def _save_state(state: Any, path: str | Path) -> None:
+    state.save(path)
+
+
+# ----------------------------------------------------------------------------- commands
+def cmd_monitor_init(args: argparse.Namespace) -> int:
+    from .cli import _guard, _load_model
+    from .monitor import MonitorState
+
+    (out,) = _guard([args.state], [args.model], args)
+    model = _load_model(args.model)
+    if args.memoryless and args.temporal:
+        raise _usage("--memoryless and --temporal exclude each other")
+    dynamics = None
+    if args.temporal:  # estimated from the model's X_ (the model file is not changed)
+        from .glrm.dynamics import estimate
+
+        X = model.X_
+        dynamics = estimate(args.temporal, model._Xv, X[X.dims[1]])
+    elif not args.memoryless and getattr(model, "dynamics_", None) is None:
+        raise _usage(f"model {args.model} has no dynamics: pass --temporal ar1 (or seasonal) "
+                     "to estimate them from the model, or --memoryless")
+    state = MonitorState.from_model(model, time=args.time, dynamics=dynamics,
+                                    memoryless=True if args.memoryless else None)
+    state.model_path = os.path.abspath(args.model)
+    _save_state(state, out)
+    kind = "memoryless" if state.memoryless else state.dynamics.kind
+    print(f"monitor state ({kind}) at time {_label(state.time)} written to {out}")
+    return 0
+
+
+def cmd_monitor_plan(args: argparse.Namespace) -> int:
+    from .cli import _describe_plan, _guard, _start
+    from .planning import plan_greedy
+
+    suffix = Path(args.output).suffix.lower()
+    if suffix not in _PLAN_SUFFIXES:
+        raise _usage(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
+    (out,) = _guard([args.output], [args.state], args)
+    state = _load_state(args.state)
+    model = state.model
+    criterion = args.criterion
+    if criterion is None:
+        criterion = "gp-variance" if state.posterior.obs_model.is_spatial else "fisher"
+    kw = state.planner_kwargs(criterion=criterion, time=args.time)
+    plan = plan_greedy(model._Yv, model.region_, _start(args.start), args.budget,
+                       criterion=criterion, cost=args.cost, ridge=args.ridge,
+                       progress=not args.quiet, initial="start", **kw)
+    t = state._default_time(args.time)
+    print(f"plan for {_label(t)}: {_describe_plan(plan)}")
+    if out.suffix.lower() == ".csv":
+        plan.to_csv(out)
+    else:
+        plan.to_geojson(out)
+    print(f"route written to {out}")
+    return 0
+
+
+def _read_observations(path: str, region: Any, var: str | None) -> Any:
+    """``(cells, values)`` from a CSV (``value`` + ``cell`` or ``lat``, ``lon``), or a
+    ``(lat, lon)`` DataArray from a NetCDF file (NaN where not observed)."""
+    p = Path(path)
+    if not p.exists():
+        raise _usage(f"observations file {path} does not exist")
+    if p.suffix.lower() in (".nc", ".nc4", ".netcdf"):
+        import xarray as xr
+
+        from .errors import DataError
+
+        try:
+            with xr.open_dataset(p) as f:
+                ds = f.load()
+        except Exception as exc:
+            raise DataError(f"{path} is not a readable NetCDF file: {exc}") from None
+        names = [var] if var else [n for n in ds.data_vars if ds[n].ndim >= 2]
+        if len(names) != 1 or names[0] not in ds:
+            raise _usage(f"{path}: pick the observation variable with --var (found "
+                         f"{list(ds.data_vars)})")
+        da = ds[names[0]]
+        extra = [d for d in da.dims if da.sizes[d] == 1 and d not in ("lat", "lon")]
+        da = da.squeeze(extra, drop=True) if extra else da
+        if da.ndim != 2:
+            raise _usage(f"{path}: variable {names[0]!r} must be a (lat, lon) map, got dims "
+                         f"{da.dims}")
+        return da
+    from .cli import _observations
+
+    return _observations(argparse.Namespace(observations=path), region)
+
+
+def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
+    state = _load_state(args.state)
+    obs = _read_observations(args.observations, state.model.region_, args.var)
+    before = state.n_dropped
+    state.assimilate(obs, args.time, force=args.force)
+    _save_state(state, args.state)
+    n_today = int(state.posterior.cells.size)
+    dropped = state.n_dropped - before
+    note = f"; {dropped} NaN value(s) ignored" if dropped else ""
+    print(f"assimilated {n_today} observation(s) at {_label(state.time)}{note}; state "
+          f"{args.state} updated")
+    return 0
+
+
+def cmd_monitor_map(args: argparse.Namespace) -> int:
+    from .cli import _guard
+
+    suffix = Path(args.output).suffix.lower()
+    if suffix not in _MAP_SUFFIXES:
+        raise _usage(f"-o must end in .nc, .png or .pdf, got {Path(args.output).name!r}")
+    (out,) = _guard([args.output], [args.state], args)
+    state = _load_state(args.state)
+    ds = state.forecast(args.time) if args.forecast else state.predict()
+    what = "forecast" if args.forecast else "posterior"
+    if suffix == ".nc":
+        from ._validation import atomic_output
+
+        with atomic_output(out) as tmp:
+            ds.to_netcdf(tmp)
+    else:
+        if state.model.region_ is None:
+            raise _usage("a map image needs a model fitted on gridded data")
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from .plots import plot_map, save_figure
+
+        fig, axes = plt.subplots(1, 2, figsize=(7.5, 3.0), constrained_layout=True)
+        plot_map(ds["mean"], ax=axes[0])
+        axes[0].set_title(f"{what} mean, {_label(ds['time'].values)}", fontsize=9)
+        plot_map(ds["predictive_std"], ax=axes[1], cmap="magma")
+        axes[1].set_title("predictive std", fontsize=9)
+        save_figure(fig, out, formats=(suffix[1:],))
+        plt.close(fig)
+    print(f"{what} map at {_label(ds['time'].values)} written to {out}")
+    return 0
+
+
+def _label(t: Any) -> str:
+    from .monitor import _time_label
+
+    t = t.item() if isinstance(t, np.ndarray) and t.ndim == 0 and t.dtype == object else t
+    if isinstance(t, np.ndarray) and t.ndim == 0:
+        t = t[()]
+    return _time_label(t)
+
+
+# ----------------------------------------------------------------------------- parser
+def add_monitor_parser(sub: Any) -> None:
+    """Add ``monitor init|plan|assimilate|map`` to ``lrm-cvx``'s subcommands."""
+    from .cli import _add_common, _add_output, _number
+    from .cost import COSTS
+    from .information import CRITERIA
+
+    p = sub.add_parser("monitor", help="the field loop: a filter state carried from day to day "
+                       "(init, plan, assimilate, map)")
+    msub = p.add_subparsers(dest="monitor_command", required=True, metavar="STEP")
+
+    q = msub.add_parser("init", help="start a monitor state after the model's last snapshot")
+    q.add_argument("model", help="model file written by 'lrm-cvx fit' (with --temporal)")
+    q.add_argument("--state", required=True, help="state file to write (.nc)")
+    q.add_argument("--time", default=None,
+                   help="position the state at this time (default: the last fitted snapshot)")
+    q.add_argument("--temporal", choices=("ar1", "seasonal"), default=None,
+                   help="estimate these dynamics from the model's latent vectors (default: the "
+                   "model's own, fitted with temporal=...)")
+    q.add_argument("--memoryless", action="store_true",
+                   help="no dynamics: every day's prior is the empirical prior")
+    _add_output(q)
+    q.set_defaults(func=cmd_monitor_init)
+
+    q = msub.add_parser("plan", help="plan the next route with the state's forecast as prior")
+    q.add_argument("state", help="state file written by 'lrm-cvx monitor init'")
+    q.add_argument("--start", required=True,
+                   help="start location LAT,LON or LAT LON in degrees")
+    q.add_argument("--budget", required=True, type=_number, help="path budget in grid cells")
+    q.add_argument("--criterion", choices=CRITERIA, default=None,
+                   help="planning criterion (default gp-variance with a spatial model, else "
+                   "fisher)")
+    q.add_argument("--cost", default=COSTS[0], choices=COSTS,
+                   help="path cost (default: %(default)s)")
+    q.add_argument("--ridge", type=_number, default=0.0, help="ridge added to the information")
+    q.add_argument("--time", default=None,
+                   help="plan for this time (default: the next step, or the state's time if "
+                   "not observed yet)")
+    q.add_argument("-o", "--output", required=True, help="plan.csv or plan.geojson")
+    _add_output(q)
+    q.set_defaults(func=cmd_monitor_plan)
+
+    q = msub.add_parser("assimilate", help="fold a day's observations into the state")
+    q.add_argument("state", help="state file (replaced atomically)")
+    q.add_argument("observations", help="CSV with value and cell or lat, lon columns, or a "
+                   "NetCDF (lat, lon) map with NaN where not observed")
+    q.add_argument("--time", required=True, help="time of the observations")
+    q.add_argument("--force", action="store_true",
+                   help="accept a time earlier than or equal to the state's")
+    q.add_argument("--var", default=None, help="variable of a NetCDF observations file")
+    q.set_defaults(func=cmd_monitor_assimilate)
+
+    q = msub.add_parser("map", help="write the posterior (or forecast) mean and std maps")
+    q.add_argument("state", help="state file")
+    q.add_argument("-o", "--output", required=True, help="map.nc or map.png")
+    q.add_argument("--forecast", action="store_true",
+                   help="the forecast for --time (default the next step) instead of the "
+                   "posterior")
+    q.add_argument("--time", default=None, help="time of the forecast")
+    _add_output(q)
+    q.set_defaults(func=cmd_monitor_map)
+    for action in msub.choices.values():
+        _add_common(action)

@@ -1,0 +1,150 @@
+"""``lrm-cvx monitor``: the field loop in a temporary folder, its refusals and a crash mid-write."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+import xarray as xr
+
+from lrm_cvx.cli import main
+from lrm_cvx.glrm import GLRM
+from lrm_cvx.io.samples import synthetic_dynamic_field
+from lrm_cvx.monitor import MonitorState
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("monitor")
+    da = synthetic_dynamic_field(34, (6, 7), 3, seed=4, noise=0.03)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(3, progress=False, max_iter=20, temporal="ar1", offset=True).fit(
+            da.isel(time=slice(0, 30)))
+        other = GLRM(3, progress=False, max_iter=20, random_state=1).fit(
+            da.isel(time=slice(0, 29)))
+    model.save(folder / "model.nc")
+    other.save(folder / "other.nc")
+    da.isel(time=30).to_dataset(name="ndvi").to_netcdf(folder / "obs30.nc")
+    day31 = da.isel(time=31).to_dataframe(name="value").reset_index().dropna()
+    day31[["lat", "lon", "value"]].head(6).to_csv(folder / "obs31.csv", index=False)
+    return folder, da, model
+
+
+def _run(*argv):
+    return main(["-q", *map(str, argv)])
+
+
+def test_the_field_loop(files, tmp_path, capsys):
+    folder, da, model = files
+    state = tmp_path / "state.nc"
+    assert _run("monitor", "init", folder / "model.nc", "--state", state) == 0
+    assert MonitorState.load(state).time == da.time.values[29]
+    assert _run("monitor", "plan", state, "--start", da.lat.values[2], da.lon.values[3],
+                "--budget", 4, "-o", tmp_path / "plan.csv") == 0
+    plan = pd.read_csv(tmp_path / "plan.csv")
+    assert {"cell", "lat", "lon"} <= set(plan.columns) and len(plan) >= 1
+    assert _run("monitor", "plan", state, "--start", da.lat.values[2], da.lon.values[3],
+                "--budget", 4, "-o", tmp_path / "plan.geojson") == 0
+    assert _run("monitor", "assimilate", state, folder / "obs30.nc",
+                "--time", "2013-01-31") == 0
+    s = MonitorState.load(state)
+    expected = model.monitor().assimilate(da.isel(time=30), da.time.values[30])
+    np.testing.assert_allclose(s.posterior.mean, expected.posterior.mean, rtol=1e-10)
+    assert _run("monitor", "assimilate", state, folder / "obs31.csv",
+                "--time", "2013-02-01") == 0
+    s = MonitorState.load(state)
+    assert s.time == da.time.values[31] and s.posterior.cells.size == 6
+    assert _run("monitor", "map", state, "-o", tmp_path / "map.nc") == 0
+    with xr.open_dataset(tmp_path / "map.nc") as m:
+        assert {"mean", "std", "predictive_std"} <= set(m.data_vars)
+        assert m["mean"].dims == ("lat", "lon")
+        assert m["time"].values == da.time.values[31]
+    assert _run("monitor", "map", state, "-o", tmp_path / "fc.nc", "--forecast") == 0
+    with xr.open_dataset(tmp_path / "fc.nc") as m:
+        assert m["time"].values == da.time.values[32]
+    assert _run("monitor", "map", state, "-o", tmp_path / "map.png") == 0
+    assert (tmp_path / "map.png").stat().st_size > 1000
+
+
+def test_out_of_order_times_are_refused(files, tmp_path, capsys):
+    folder, da, _ = files
+    state = tmp_path / "state.nc"
+    assert _run("monitor", "init", folder / "model.nc", "--state", state) == 0
+    assert _run("monitor", "assimilate", state, folder / "obs31.csv", "--time", "2013-02-01") == 0
+    before = state.read_bytes()
+    capsys.readouterr()
+    assert _run("monitor", "assimilate", state, folder / "obs30.nc",
+                "--time", "2013-01-31") == 2
+    err = capsys.readouterr().err
+    assert "earlier than" in err and err.count("\n") == 1
+    assert _run("monitor", "assimilate", state, folder / "obs31.csv",
+                "--time", "2013-02-01") == 2
+    assert state.read_bytes() == before  # nothing written
+    assert _run("monitor", "assimilate", state, folder / "obs31.csv", "--time", "2013-02-01",
+                "--force") == 0
+    assert MonitorState.load(state).posterior.cells.size == 12
+
+
+def test_init_at_a_time_then_assimilate_that_day(files, tmp_path):
+    folder, da, _ = files
+    state = tmp_path / "state.nc"
+    assert _run("monitor", "init", folder / "model.nc", "--state", state,
+                "--time", "2013-02-01") == 0
+    assert not MonitorState.load(state).observed
+    assert _run("monitor", "assimilate", state, folder / "obs31.csv", "--time", "2013-02-01") == 0
+
+
+def test_bad_input_exits_2_and_writes_nothing(files, tmp_path, capsys):
+    folder, da, _ = files
+    state = tmp_path / "state.nc"
+    assert _run("monitor", "init", folder / "other.nc", "--state", state) == 2
+    assert "no dynamics" in capsys.readouterr().err and not state.exists()
+    assert _run("monitor", "init", folder / "other.nc", "--state", state, "--memoryless") == 0
+    assert MonitorState.load(state, GLRM.load(folder / "other.nc")).memoryless
+    # a state of another model
+    with pytest.raises(Exception, match="another model"):
+        MonitorState.load(state, GLRM.load(folder / "model.nc"))
+    assert _run("monitor", "init", folder / "model.nc", "--state", state) == 2  # exists
+    assert "--overwrite" in capsys.readouterr().err
+    # observations off the region
+    bad = tmp_path / "bad.csv"
+    pd.DataFrame({"lat": [89.0], "lon": [0.0], "value": [0.3]}).to_csv(bad, index=False)
+    before = state.read_bytes()
+    assert _run("monitor", "assimilate", state, bad, "--time", "2013-02-01") == 2
+    assert "lat=89" in capsys.readouterr().err
+    assert state.read_bytes() == before
+    # corrupt / truncated state
+    trunc = tmp_path / "trunc.nc"
+    trunc.write_bytes(before[: len(before) // 3])
+    assert _run("monitor", "map", trunc, "-o", tmp_path / "m.nc") == 2
+    assert "corrupt or truncated" in capsys.readouterr().err
+    assert not (tmp_path / "m.nc").exists()
+    assert _run("monitor", "plan", state, "--start", "0", "0", "--budget", "3",
+                "-o", tmp_path / "p.txt") == 2
+    assert _run("monitor", "assimilate", state, tmp_path / "none.csv", "--time", "2013-02-01") == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_a_crash_during_the_state_write_keeps_the_old_state(files, tmp_path, monkeypatch):
+    folder, da, _ = files
+    state = tmp_path / "state.nc"
+    assert _run("monitor", "init", folder / "model.nc", "--state", state) == 0
+    before = state.read_bytes()
+    real = xr.Dataset.to_netcdf
+
+    def crash(self, path=None, *args, **kwargs):  # write half a file, then die
+        real(self, path, *args, **kwargs)
+        with open(path, "r+b") as f:
+            f.truncate(100)
+        raise OSError("simulated crash during the write")
+
+    monkeypatch.setattr(xr.Dataset, "to_netcdf", crash)
+    assert _run("monitor", "assimilate", state, folder / "obs30.nc", "--time", "2013-01-31") == 2
+    monkeypatch.undo()
+    assert state.read_bytes() == before
+    s = MonitorState.load(state)
+    assert s.time == da.time.values[29] and s.posterior.cells.size == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.nc"]  # no temporary left
