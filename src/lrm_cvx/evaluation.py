@@ -6,10 +6,13 @@ cells (cells the snapshot lacks give no observation), fold the observations in, 
 predicted map against the snapshot's observed cells. Results come back as an
 ``xarray.Dataset`` with dims ``(method, budget, start, trial, test_time)``.
 
-The reconstruction error of a fold-in is computed from per-snapshot sufficient statistics,
-``G = Y_O Y_O^T``, ``b = Y_O d_O`` and ``c = d_O^T d_O`` over the snapshot's observed cells ``O``:
+The fold-in is the model's :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (offset, scale,
+per-cell noise, prior). Its reconstruction error is computed from per-snapshot sufficient
+statistics in data units, ``G = Y_O W Y_O^T``, ``b = Y_O W z_O`` and ``c = z_O^T W z_O`` over the
+snapshot's observed cells ``O`` (``z = (d - offset) / scale``, ``W = diag(scale^2)``):
 ``MSE = (x^T G x - 2 b^T x + c) / |O|``. That is exact and costs ``O(k^2)`` per trial instead
-of an ``O(L k)`` map, which makes thousands of trials at two million cells cheap.
+of an ``O(L k)`` map, which makes thousands of trials at two million cells cheap; only the
+spatial residual (``fold_in={"spatial": True}``) needs full kriged maps.
 """
 
 from __future__ import annotations
@@ -25,8 +28,9 @@ import pandas as pd
 import xarray as xr
 from tqdm.auto import tqdm
 
-from ._validation import as_factor_matrix, as_generator, atomic_output
+from ._validation import as_factor_matrix, as_generator, atomic_output, check_positive
 from .errors import DataError, ModelError
+from .glrm.posterior import LatentPosterior, ObservationModel, check_cells
 from .information import CRITERION_REGISTRY
 from .registry import Choices, Registry
 from .region import Region
@@ -64,11 +68,14 @@ def _check_method(m: str) -> str:
 
 @dataclass(frozen=True)
 class SnapshotStatistics:
-    """Sufficient statistics of the test snapshots for exact fold-in errors.
+    """Sufficient statistics of the test snapshots for exact fold-in errors in data units.
 
-    ``values`` ``(n_test, L)`` float32 with NaN; ``gram`` ``(n_test, k, k)``, ``cross``
-    ``(n_test, k)``, ``sq`` ``(n_test,)``, ``count`` ``(n_test,)`` over each snapshot's observed
-    cells; all in float64.
+    With ``z = (values - offset) / scale`` (fit units) and weights ``w = scale^2`` on each
+    snapshot's observed cells ``O`` (1 without a scale), ``gram = sum_O w y y^T`` ``(n_test, k,
+    k)``, ``cross = sum_O w z y`` ``(n_test, k)``, ``sq = sum_O w z^2`` ``(n_test,)`` and ``count
+    = |O|``, so that the squared error of the map ``offset + scale * Y^T x`` over ``O`` is
+    ``x^T gram x - 2 cross^T x + sq`` (:meth:`mse`). ``values`` ``(n_test, L)`` stay in data
+    units (float32 with NaN); the statistics are float64.
     """
 
     values: np.ndarray
@@ -78,76 +85,184 @@ class SnapshotStatistics:
     count: np.ndarray
 
     @classmethod
-    def from_values(cls, Y: np.ndarray, values: np.ndarray) -> SnapshotStatistics:
+    def from_values(cls, Y: np.ndarray, values: np.ndarray, offset: np.ndarray | None = None,
+                    scale: np.ndarray | None = None) -> SnapshotStatistics:
+        """Statistics of ``values (n_test, L)`` (NaN = not observed) for factors ``Y (k, L)``
+        and the model's ``offset``/``scale`` (``(L,)`` or None)."""
         observed = np.isfinite(values)
-        d = np.where(observed, values, 0.0).astype(np.float64)
+        z = values.astype(np.float64)
+        if offset is not None:
+            z -= offset
+        if scale is not None:
+            z /= scale
+        d = np.where(observed, z, 0.0)
+        del z
         w = observed.astype(np.float64)
+        if scale is not None:
+            w *= np.square(scale)
         gram = np.einsum("kl,jl,tl->tkj", Y, Y, w, optimize=True)
-        return cls(values=values, gram=gram, cross=d @ Y.T, sq=(d * d).sum(axis=1),
+        dw = d * w
+        return cls(values=values, gram=gram, cross=dw @ Y.T, sq=(dw * d).sum(axis=1),
                    count=observed.sum(axis=1))
+
+    def mse(self, t: int, x: np.ndarray) -> float:
+        """Mean squared error (data units) of snapshot ``t``'s map from latent ``x (k,)`` over
+        its observed cells (NaN when it has none)."""
+        if self.count[t] == 0:
+            return np.nan
+        err = x @ self.gram[t] @ x - 2.0 * self.cross[t] @ x + self.sq[t]
+        return max(float(err), 0.0) / float(self.count[t])
+
+
+def _plain_prior(Y: np.ndarray, ridge: float) -> LatentPosterior:
+    """The paper's fold-in on bare factors: flat, or the ridge prior (unit noise)."""
+    return LatentPosterior.prior(ObservationModel(Y), "ridge", ridge)
 
 
 def foldin_mse(Y: np.ndarray, stats: SnapshotStatistics, cells: np.ndarray, ridge: float = 0.0,
-               min_observations: int = 1) -> tuple[np.ndarray, np.ndarray]:
+               min_observations: int = 1, *, prior: LatentPosterior | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Fold each test snapshot in from its values at ``cells``; MSE over its observed cells.
 
-    Returns ``(mse, n_obs)``, each ``(n_test,)``; ``mse`` is NaN where a snapshot has fewer than
-    ``max(min_observations, 1)`` observations at ``cells`` or the least-squares system is
-    rank-deficient with ``ridge == 0`` (the paper's pseudo-inverse is then not unique).
+    The fold-in is ``prior.update(cells, values)`` (default: the paper's least squares with
+    ``ridge`` on ``Y``; pass a model's ``latent_prior(...)`` for its offset, scale, noise and
+    prior, with ``stats`` built with the same offset and scale). ``O(n k^2 + k^2)`` per
+    snapshot: the error comes from ``stats``, never from a map. Returns ``(mse, n_obs)``, each
+    ``(n_test,)``; ``mse`` is NaN where a snapshot has fewer than ``max(min_observations, 1)``
+    observations at ``cells`` or they do not determine ``x`` (flat prior, rank-deficient).
     """
-    cells = np.asarray(cells, dtype=np.int64)
+    if prior is None:
+        prior = _plain_prior(Y, ridge)
+    elif ridge:
+        raise ModelError("give ridge through the prior (latent_prior(ridge=...)), not both")
+    if prior.obs_model.is_spatial:
+        raise ModelError("foldin_mse is the trend-only fold-in; a spatial prior needs full maps")
+    cells = check_cells(cells, stats.values.shape[1])
     vals = stats.values[:, cells].astype(np.float64)  # (n_test, n)
     obs = np.isfinite(vals)
     n_obs = obs.sum(axis=1)
-    Ys = Y[:, cells]
-    k = Y.shape[0]
     mse = np.full(len(n_obs), np.nan)
-    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):
-        Yo = Ys[:, obs[t]]
-        A = Yo @ Yo.T + ridge * np.eye(k)
-        rhs = Yo @ vals[t, obs[t]]
-        if ridge == 0.0 and np.linalg.matrix_rank(A) < k:
-            continue
-        x = np.linalg.solve(A, rhs)
-        err = x @ stats.gram[t] @ x - 2.0 * stats.cross[t] @ x + stats.sq[t]
-        mse[t] = max(err, 0.0) / stats.count[t]
+    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):  # a loop over snapshots
+        post = prior.update(cells[obs[t]], vals[t, obs[t]])
+        if post.is_proper:
+            mse[t] = stats.mse(t, post.mean)
     return mse, n_obs
 
 
-def _complete_mse(stats: SnapshotStatistics, ridge: float) -> np.ndarray:
-    """The "complete" condition: fold-in from every observed cell of each snapshot."""
-    k = stats.gram.shape[1]
-    out = np.empty(len(stats.count))
+def _complete_mse(stats: SnapshotStatistics, prior: LatentPosterior) -> np.ndarray:
+    """The "complete" condition: fold-in from every observed cell of each snapshot (data
+    units; NaN where that does not determine ``x``)."""
+    out = np.full(len(stats.count), np.nan)
     for t in range(len(out)):
-        x = np.linalg.lstsq(stats.gram[t] + ridge * np.eye(k), stats.cross[t], rcond=None)[0]
-        out[t] = max(stats.sq[t] - stats.cross[t] @ x, 0.0) / stats.count[t]
+        cells = np.flatnonzero(np.isfinite(stats.values[t]))
+        post = prior.update(cells, stats.values[t, cells])
+        if post.is_proper:
+            out[t] = stats.mse(t, post.mean)
     return out
 
 
-def _model_mse(model: Any, values: np.ndarray, cells: np.ndarray, fold_in: dict,
+def _model_mse(prior: LatentPosterior, stats: SnapshotStatistics, cells: np.ndarray,
                min_observations: int) -> tuple[np.ndarray, np.ndarray]:
-    """Like :func:`foldin_mse` but with the model's predictive options (offset, scale, per-cell
-    noise, ``fold_in={"prior": ..., "spatial": ...}``): full maps, MSE over each snapshot's
-    observed cells. ``O(n_test L k)`` (plus kriging) per plan."""
-    from .glrm.predictive import posterior_complete
-
-    cells = np.asarray(cells, dtype=np.int64)
-    V = np.full(values.shape, np.nan)
-    V[:, cells] = values[:, cells]
-    n_obs = np.isfinite(V).sum(axis=1)
+    """Like :func:`foldin_mse` for a model's belief (``GLRM.latent_prior``): the exact
+    statistics path without the spatial residual; with it, full predicted maps (kriging) and
+    the MSE over each snapshot's observed cells, ``O(n_test L k)`` (plus kriging) per plan."""
+    if not prior.obs_model.is_spatial:
+        return foldin_mse(prior.obs_model.Y, stats, cells, 0.0, min_observations, prior=prior)
+    values = stats.values
+    cells = check_cells(cells, values.shape[1])
+    vals = values[:, cells].astype(np.float64)
+    obs = np.isfinite(vals)
+    n_obs = obs.sum(axis=1)
     mse = np.full(values.shape[0], np.nan)
-    ok = np.flatnonzero(n_obs >= max(min_observations, 1))
-    if ok.size == 0:
-        return mse, n_obs
-    try:
-        pred, *_ = posterior_complete(model, V[ok], prior=fold_in.get("prior"),
-                                      spatial=bool(fold_in.get("spatial", False)),
-                                      ridge=float(fold_in.get("ridge", 0.0)))
-    except ModelError:  # too few observations for a fold-in without prior
-        return mse, n_obs
-    err = (pred - values[ok]) ** 2
-    mse[ok] = np.nanmean(err, axis=1)
+    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):
+        post = prior.update(cells[obs[t]], vals[t, obs[t]])
+        if not post.is_proper or stats.count[t] == 0:
+            continue
+        pred, _ = post.predict()
+        mse[t] = float(np.nanmean((pred - values[t]) ** 2))
     return mse, n_obs
+
+
+@dataclass(frozen=True)
+class _CampaignPlan:
+    """The first day's plan of a campaign, as much of a Plan as ``evaluate`` records."""
+
+    information: float
+    cost: float
+    n: int
+    route: np.ndarray
+
+    @property
+    def cells(self) -> range:
+        return range(self.n)
+
+
+_COVERAGE_CELLS = 4096  # held-out cells scored for coverage per snapshot (a fixed subset)
+
+
+def _coverage_subset(values: np.ndarray, seed: int = 0) -> list[np.ndarray]:
+    """Per test snapshot, at most ``_COVERAGE_CELLS`` of its observed cells (sorted, a fixed
+    seeded subset): the cells whose predictive interval ``evaluate`` scores."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for t in range(values.shape[0]):
+        obs = np.flatnonzero(np.isfinite(values[t]))
+        if obs.size > _COVERAGE_CELLS:
+            obs = np.sort(rng.choice(obs, size=_COVERAGE_CELLS, replace=False))
+        out.append(obs)
+    return out
+
+
+def _model_coverage(prior: LatentPosterior, values: np.ndarray, subsets: list[np.ndarray],
+                    cells: np.ndarray, min_observations: int) -> np.ndarray:
+    """Coverage of the central 68 % / 95 % predictive intervals (``mean +- z *
+    predictive_std``, calibrated when the model is: glrm/calibration.py) over each test
+    snapshot's held-out observed cells (its ``subsets`` entry minus the sampled ``cells``).
+    Returns ``(n_test, 2)``, NaN where the snapshot has too few observations."""
+    from .glrm.calibration import interval_coverage
+
+    cells = check_cells(cells, values.shape[1])
+    vals = values[:, cells].astype(np.float64)
+    obs = np.isfinite(vals)
+    n_obs = obs.sum(axis=1)
+    out = np.full((values.shape[0], 2), np.nan)
+    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):  # a loop over snapshots
+        post = prior.update(cells[obs[t]], vals[t, obs[t]])
+        held = np.setdiff1d(subsets[t], cells, assume_unique=True)
+        if not post.is_proper or held.size == 0:
+            continue
+        mean, _ = post.predict(cells=held)
+        out[t] = interval_coverage(values[t, held], mean, post.predictive_std(cells=held))
+    return out
+
+
+def _check_temporal(temporal: Any) -> str | None:
+    from .glrm.dynamics import TEMPORAL
+
+    if temporal not in TEMPORAL:
+        raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
+    return temporal
+
+
+def _campaign_errors(model: Any, test: xr.DataArray, start: int, budget: float, method: str,
+                     temporal: str | None, seed: int, spatial: Any, min_observations: int,
+                     options: dict) -> tuple:
+    """One campaign over the test snapshots (:func:`lrm_cvx.campaign.simulate_campaign`):
+    ``(mse (n_test,), n_obs, coverage (n_test, 2), first day's information, cost, cells,
+    route)``; ``mse`` NaN where a day has fewer than ``min_observations`` observations."""
+    from .campaign import simulate_campaign
+
+    ds = simulate_campaign(model, test, start, budget, method=method, temporal=temporal,
+                           seed=seed, spatial=spatial, **options)
+    n = ds["n_obs"].values
+    ok = n >= max(min_observations, 1)
+    mse = np.where(ok, ds["mse"].values, np.nan)
+    cov = np.stack([ds["coverage68"].values, ds["coverage95"].values], axis=-1)
+    cov[~ok] = np.nan
+    route = ds["routes"].values[0]
+    route = route[route >= 0]
+    return (mse, n, cov, float(ds["information"].values[0]), float(ds["route_cost"].values[0]),
+            int(np.unique(route).size), route)
 
 
 def _plan(method: str, Y: np.ndarray, region: Region, start: int, budget: float,
@@ -157,11 +272,9 @@ def _plan(method: str, Y: np.ndarray, region: Region, start: int, budget: float,
 
     if method.startswith("greedy:"):
         crit = method.split(":", 1)[1]
-        kw = model.planner_kwargs(prior="empirical", spatial=crit == "gp-variance")
-        if crit != "gp-variance":
-            kw = {k: v for k, v in kw.items() if k not in ("prior_cov", "spatial_cov")}
+        prior = model.latent_prior("empirical", spatial=crit == "gp-variance")
         return plan_greedy(Y, region, start, budget, criterion=crit, cost=cost, ridge=ridge,
-                           progress=False, initial="start", **kw)
+                           progress=False, initial="start", prior=prior)
     if method == "greedy":
         return plan_greedy(Y, region, start, budget, criterion=criterion, cost=cost,
                            ridge=ridge, progress=False)
@@ -170,6 +283,42 @@ def _plan(method: str, Y: np.ndarray, region: Region, start: int, budget: float,
     if method == "random":
         return random_walk(region, start, budget, rng, Y=Y, ridge=ridge)
     raise ModelError(f"unknown method {method!r}; expected one of {METHODS}")
+
+
+def _int_arg(value: Any, name: str, minimum: int, error: type[Exception] = ModelError) -> int:
+    """``value`` as an int >= ``minimum`` (bools, floats with a fraction, NaN refused)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float,
+                                                                     np.floating)):
+        raise error(f"{name} must be an integer >= {minimum}, got {value!r}")
+    if not np.isfinite(value) or float(value) != int(value) or value < minimum:
+        raise error(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _time_ordered(data: xr.DataArray) -> xr.DataArray:
+    """``data`` with ``time`` first and sorted by its coordinate (UserWarning when it was not
+    sorted: the protocol tests on the *last* times, never on the past). DataError for no
+    ``time`` dim, missing (NaN/NaT) or duplicated times (named)."""
+    if "time" not in data.dims:
+        raise DataError(f"data must have a 'time' dim (time, lat, lon), got dims {data.dims}")
+    if data.dims[0] != "time":
+        data = data.transpose("time", ...)
+    if "time" not in data.coords:
+        return data
+    index = pd.Index(data["time"].values)
+    missing = np.flatnonzero(pd.isna(index))
+    if missing.size:
+        raise DataError(f"data's time coordinate has {missing.size} missing values (NaN/NaT) "
+                        f"at positions {missing[:10].tolist()}")
+    dup = index[index.duplicated()].unique()
+    if dup.size:
+        raise DataError(f"data's time coordinate has {dup.size} duplicated times, e.g. "
+                        f"{[str(v) for v in dup[:5]]}; drop or average them first")
+    if not index.is_monotonic_increasing:
+        warnings.warn("data's time coordinate is not sorted: sorted by time, so the test "
+                      "snapshots are the last n_test times", UserWarning, stacklevel=3)
+        data = data.isel(time=np.argsort(index.values, kind="stable"))
+    return data
 
 
 def evaluate(
@@ -193,6 +342,7 @@ def evaluate(
     progress: bool = True,
     model_params: dict | None = None,
     fold_in: dict | None = None,
+    temporal: str | None = None,
 ) -> xr.Dataset:
     """Run the paper's evaluation protocol on ``data`` ``(time, lat, lon)``.
 
@@ -206,6 +356,12 @@ def evaluate(
     disk relaxation, well under a second at paper scale), ``"tight"`` (with distance cuts and
     the midpoint cover: tighter, ~40 s a plan at paper scale) or ``False``.
 
+    The test snapshots are the last ``n_test`` *times*: data whose ``time`` coordinate is not
+    sorted is sorted first (with a UserWarning); missing (NaT/NaN) or duplicated times raise
+    DataError naming them. ``n_starts``, ``n_test``, ``n_jobs`` (and ``random_trials`` when
+    ``"random"`` is among ``methods``) must be integers >= 1, ``methods`` non-empty without
+    repeats, ``budgets`` finite, >= 0 and distinct (ModelError / DataError otherwise).
+
     Reconstruction options (issue #8, docs/reconstruction.md; defaults are the paper's):
     ``methods`` may add ``"greedy:fisher"``, ``"greedy:a-optimal"``, ``"greedy:gp-variance"``:
     the greedy with a criterion on the model's posterior (``GLRM.planner_kwargs`` with the
@@ -213,9 +369,27 @@ def evaluate(
     ``model_params``), started from the start cell alone (``initial="start"``).
     ``model_params`` are extra GLRM parameters of the fit (``offset``,
     ``scale``, ``noise``, ``spatial``); ``fold_in`` (``{"prior": "empirical", "spatial": True}``)
-    is the prediction used for every method's error. With either, errors come from full
-    predicted maps and ``complete_mse_model`` is the model's fold-in (without the spatial
-    term) from every observed cell.
+    is the prediction used for every method's error (its ``ridge`` defaults to ``fold_ridge``).
+    With either, ``complete_mse_model`` is the model's fold-in with that prior (without the
+    spatial term) from every observed cell. Every error, ``complete_mse`` (the paper's fold-in
+    from every observed cell) included, is in the data's units (the model's offset and scale
+    are undone).
+
+    Persistent monitoring (issue 13, docs/monitoring.md): ``temporal=None`` (default) is the
+    protocol above, each test snapshot folded in on its own. ``"ar1"``/``"seasonal"``: for every
+    start, method, budget (and random trial) one campaign
+    (:func:`~lrm_cvx.campaign.simulate_campaign`) runs over the test snapshots in time order,
+    each day planned against the filter's forecast and assimilated by the filter (the model's
+    ``dynamics_`` when of that kind, else estimated from ``X_``); ``mse``, ``n_obs`` and the
+    coverage are the campaign's, and the same campaigns run memoryless through the same loop
+    give ``mse_memoryless``, ``coverage68_memoryless``, ``coverage95_memoryless``.
+    ``information``, ``cost``, ``n_cells`` and ``greedy_route`` are those of the first day's
+    plan; ``bound`` is not computed (NaN).
+
+    ``coverage68`` / ``coverage95`` ``(method, budget, start, trial, test_time)``: fraction of
+    the held-out observed cells (at most 4096 per snapshot, a fixed subset, minus the sampled
+    cells) inside the central 68 % / 95 % predictive interval of the fold-in used for ``mse``
+    (calibrated when the model is: :func:`~lrm_cvx.glrm.calibration.calibrate`).
 
     Returns a Dataset with ``information``, ``cost``, ``n_cells`` ``(method, budget, start,
     trial)``, ``mse`` and ``n_obs`` ``(method, budget, start, trial, test_time)``, ``bound``
@@ -226,15 +400,38 @@ def evaluate(
 
     if not isinstance(data, xr.DataArray) or data.ndim != 3:
         raise DataError("data must be a (time, lat, lon) DataArray")
+    data = _time_ordered(data)
+    if isinstance(methods, str):
+        methods = (methods,)
     methods = tuple(_check_method(m) for m in methods)
+    if not methods:
+        raise ModelError(f"methods must name at least one method of {METHODS}")
+    if len(set(methods)) != len(methods):
+        raise ModelError(f"methods must not repeat, got {list(methods)}")
+    n_test = _int_arg(n_test, "n_test", 1, DataError)
+    n_starts = _int_arg(n_starts, "n_starts", 1)
+    if "random" in methods:
+        random_trials = _int_arg(random_trials, "random_trials", 1)
+    min_observations = _int_arg(min_observations, "min_observations", 0)
+    n_jobs = _int_arg(n_jobs, "n_jobs", 1)
+    ridge = check_positive(ridge, "ridge", error=ModelError)
+    fold_ridge = check_positive(fold_ridge, "fold_ridge", error=ModelError)
+    temporal = _check_temporal(temporal)
     model_params = dict(model_params or {})
     fold_in = dict(fold_in or {})
     bad = set(fold_in) - {"prior", "spatial", "ridge"}
     if bad:
         raise ModelError(f"fold_in keys must be among prior, spatial, ridge; got {sorted(bad)}")
-    budgets = tuple(float(b) for b in budgets)
-    if not budgets or min(budgets) < 0:
-        raise ModelError(f"budgets must be a non-empty sequence of numbers >= 0, got {budgets}")
+    try:
+        budgets = tuple(float(b) for b in np.atleast_1d(np.asarray(budgets, dtype=object)))
+    except (TypeError, ValueError):
+        raise ModelError(f"budgets must be a non-empty sequence of numbers >= 0, got "
+                         f"{budgets!r}") from None
+    if not budgets or min(budgets) < 0 or not np.all(np.isfinite(budgets)):
+        raise ModelError(f"budgets must be a non-empty sequence of finite numbers >= 0, got "
+                         f"{budgets}")
+    if len(set(budgets)) != len(budgets):
+        raise ModelError(f"budgets must not repeat, got {list(budgets)}")
     if certify not in (False, "fast", "tight", True):
         raise ModelError(f"certify must be False, 'fast' or 'tight', got {certify!r}")
     certify = "tight" if certify is True else certify
@@ -249,9 +446,15 @@ def evaluate(
         raise ModelError("model must have been fitted on a DataArray (it has no region)")
     Y = as_factor_matrix(model.Y_, region)
     test_values = region.stack(test)
-    stats = SnapshotStatistics.from_values(Y, test_values)
+    # one observation model for every error: the model's offset / scale / noise (data units)
+    stats = SnapshotStatistics.from_values(Y, test_values, getattr(model, "offset_", None),
+                                           getattr(model, "scale_", None))
     use_model = bool(fold_in) or not model.is_plain_low_rank
-    test_values = test_values.astype(np.float64) if use_model else None
+    paper_prior = model.latent_prior(None, ridge=fold_ridge)  # the paper's fold-in
+    fold_prior = (model.latent_prior(fold_in.get("prior"),
+                                     ridge=float(fold_in.get("ridge", fold_ridge)),
+                                     spatial=bool(fold_in.get("spatial", False)))
+                  if use_model else paper_prior)
     rng = as_generator(seed)
     if n_starts > region.n_cells:
         raise DataError(f"n_starts={n_starts} exceeds the {region.n_cells} valid cells")
@@ -263,6 +466,13 @@ def evaluate(
     n_cells = np.zeros(shape, dtype=np.int32)
     mse = np.full(shape + (n_test,), np.nan)
     n_obs = np.zeros(shape + (n_test,), dtype=np.int32)
+    coverage = np.full(shape + (n_test, 2), np.nan)
+    mse_ml = np.full(shape + (n_test,), np.nan) if temporal else None
+    coverage_ml = np.full(shape + (n_test, 2), np.nan) if temporal else None
+    cov_subsets = _coverage_subset(stats.values, seed)
+    cov_values = stats.values.astype(np.float64)
+    camp_opts = {"cost": cost, "ridge": ridge, "criterion": criterion}
+    camp_spatial = fold_in.get("spatial") if "spatial" in fold_in else None
     bound = np.full((len(budgets), n_starts), np.nan)
     max_route = 0
     routes: dict[tuple[int, int], np.ndarray] = {}
@@ -274,16 +484,23 @@ def evaluate(
         for b, budget in enumerate(budgets):
             for m, method in enumerate(methods):
                 for trial in range(n_trials if method == "random" else 1):
+                    if temporal is not None:
+                        cseed = int(start_rng.integers(2**31))
+                        runs = [_campaign_errors(model, test, int(starts[s]), budget, method,
+                                                 tm, cseed, camp_spatial, min_observations,
+                                                 camp_opts) for tm in (temporal, None)]
+                        (e, n, c, inf, cst, ncell, route), ml = runs
+                        plan = _CampaignPlan(inf, cst, ncell, route)
+                        out.append((m, b, s, trial, plan, e, n, np.nan, c, ml[0], ml[2]))
+                        continue
                     plan = _plan(method, Y, region, int(starts[s]), budget, start_rng,
                                  criterion, cost, ridge, model, fold_in)
-                    if use_model:
-                        e, n = _model_mse(model, test_values, plan.cells, fold_in,
-                                          min_observations)
-                    else:
-                        e, n = foldin_mse(Y, stats, plan.cells, fold_ridge, min_observations)
+                    e, n = _model_mse(fold_prior, stats, plan.cells, min_observations)
+                    c = _model_coverage(fold_prior, cov_values, cov_subsets, plan.cells,
+                                        min_observations)
                     cert = (plan.certify(tighten=certify == "tight").bound
                             if certify and method == "greedy" else np.nan)
-                    out.append((m, b, s, trial, plan, e, n, cert))
+                    out.append((m, b, s, trial, plan, e, n, cert, c, None, None))
         return out
 
     jobs = range(n_starts)
@@ -292,12 +509,16 @@ def evaluate(
         # at small budgets the forced initial cells exceed the budget: expected, not news
         warnings.filterwarnings("ignore", message=r"the \d+ initial cells")
         for results in pool.map(run_start, jobs):
-            for m, b, s, trial, plan, e, n, cert in results:
+            for m, b, s, trial, plan, e, n, cert, c, e_ml, c_ml in results:
                 info[m, b, s, trial] = plan.information
                 cost_[m, b, s, trial] = plan.cost
                 n_cells[m, b, s, trial] = len(plan.cells)
                 mse[m, b, s, trial] = e
                 n_obs[m, b, s, trial] = n
+                coverage[m, b, s, trial] = c
+                if temporal is not None:
+                    mse_ml[m, b, s, trial] = e_ml
+                    coverage_ml[m, b, s, trial] = c_ml
                 if methods[m] == "greedy":
                     bound[b, s] = cert
                     routes[(b, s)] = np.asarray(plan.route)
@@ -327,8 +548,9 @@ def evaluate(
             "bound": (("budget", "start"), bound,
                       {"long_name": "certified upper bound on the information of any plan",
                        "units": "nats"}),
-            "complete_mse": (("test_time",), _complete_mse(stats, fold_ridge),
-                             {"long_name": "fold-in error from every observed cell"}),
+            "complete_mse": (("test_time",), _complete_mse(stats, paper_prior),
+                             {"long_name": "fold-in error from every observed cell",
+                              "units": f"({data.attrs.get('units', '1')})^2"}),
             "start_cell": (("start",), starts),
             "start_lat": (("start",), region.cell_lat[starts]),
             "start_lon": (("start",), region.cell_lon[starts]),
@@ -356,11 +578,23 @@ def evaluate(
             "seed": int(seed),
             "model_params": repr(model_params),
             "fold_in": repr(fold_in),
+            "temporal": "none" if temporal is None else temporal,
         },
     )
+    dims5 = ("method", "budget", "start", "trial", "test_time")
+    for i, level in enumerate((68, 95)):
+        ds[f"coverage{level}"] = (dims5, coverage[..., i], {
+            "long_name": f"fraction of held-out observed cells inside the central {level}% "
+                         "predictive interval"})
+    if temporal is not None:
+        ds["mse_memoryless"] = (dims5, mse_ml, {
+            "long_name": "campaign MSE of the memoryless model through the same loop",
+            "units": ds["mse"].attrs["units"]})
+        for i, level in enumerate((68, 95)):
+            ds[f"coverage{level}_memoryless"] = (dims5, coverage_ml[..., i])
     if use_model:
-        allc = np.arange(region.n_cells)
-        cm, _ = _model_mse(model, test_values, allc, {**fold_in, "spatial": False}, 1)
+        cm = _complete_mse(stats, model.latent_prior(
+            fold_in.get("prior"), ridge=float(fold_in.get("ridge", fold_ridge))))
         ds["complete_mse_model"] = (("test_time",), cm,
                                     {"long_name": "model fold-in error from every observed cell"})
     return ds
@@ -370,7 +604,11 @@ def summary(results: xr.Dataset) -> pd.DataFrame:
     """Mean and standard error of information and MSE per method and budget.
 
     Information averages the usable plans; MSE averages every (plan, test snapshot) pair with
-    enough observations. Standard error = std / sqrt(count).
+    enough observations. Standard error = std / sqrt(count). ``coverage68_mean`` /
+    ``coverage95_mean`` average the per-pair coverage. Results of ``evaluate(temporal=...)``
+    put memoryless and temporal side by side: ``mse_memoryless_mean`` / ``_se``, the
+    memoryless coverage, and ``temporal_cut`` = ``1 - mse / mse_memoryless`` over the pairs
+    where both are defined (positive: the filter lowers the error).
     """
     rows = []
     for method in results["method"].values:
@@ -389,10 +627,40 @@ def summary(results: xr.Dataset) -> pd.DataFrame:
                 "mse_se": err.std(ddof=1) / np.sqrt(err.size) if err.size > 1 else np.nan,
                 "n_plans": int(info.size), "n_predictions": int(err.size),
                 "mean_cells": float(sel["n_cells"].where(np.isfinite(sel["cost"])).mean()),
+                **_side_by_side(sel),
             })
     df = pd.DataFrame(rows)
+    df["temporal"] = str(results.attrs.get("temporal", "none"))
     df["complete_mse"] = float(results["complete_mse"].mean())
     return df
+
+
+def _finite_mean(v: Any) -> float:
+    v = np.asarray(v, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else np.nan
+
+
+def _side_by_side(sel: xr.Dataset) -> dict[str, float]:
+    """Coverage columns and, for temporal results, the memoryless columns of one row."""
+    out: dict[str, float] = {}
+    for level in (68, 95):
+        if f"coverage{level}" in sel:
+            out[f"coverage{level}_mean"] = _finite_mean(sel[f"coverage{level}"].values)
+    if "mse_memoryless" in sel:
+        ml = sel["mse_memoryless"].values.ravel()
+        tm = sel["mse"].values.ravel()
+        both = np.isfinite(ml) & np.isfinite(tm)
+        f = ml[np.isfinite(ml)]
+        out["mse_memoryless_mean"] = float(f.mean()) if f.size else np.nan
+        out["mse_memoryless_se"] = (float(f.std(ddof=1) / np.sqrt(f.size)) if f.size > 1
+                                    else np.nan)
+        out["temporal_cut"] = (float(1.0 - tm[both].mean() / ml[both].mean())
+                               if both.any() and ml[both].mean() > 0 else np.nan)
+        for level in (68, 95):
+            out[f"coverage{level}_memoryless_mean"] = _finite_mean(
+                sel[f"coverage{level}_memoryless"].values)
+    return out
 
 
 def save_results(results: xr.Dataset, out_dir: Any) -> dict[str, Any]:
