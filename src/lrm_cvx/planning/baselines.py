@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import as_factor_matrix, as_generator
-from ..errors import PlanningError
+from ..errors import LrmError, PlanningError
 from ..information import fisher_information
 from ..region import Region
 from .greedy import _check_budget
@@ -141,7 +141,11 @@ def random_walk(
     region = check_region(region)
     start_cell = region.resolve_cell(start, "start")
     budget = _check_budget(budget)
-    gen = as_generator(rng)
+    try:
+        gen = as_generator(rng)
+    except LrmError:
+        raise PlanningError(f"rng must be None, an int seed or a numpy Generator, got {rng!r}") \
+            from None
     grid = region.cell_grid
     gi = region.grid_index
     route = [start_cell]

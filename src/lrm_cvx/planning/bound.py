@@ -1016,19 +1016,14 @@ def plan_bound(
     ``budget`` is in grid units (``metric="grid"``) or km (``metric="km"``).
     """
     from ..information import fisher_information
-    from .greedy import initial_cells
+    from .greedy import _check_budget, initial_cells
     from .plan import check_region
 
     region = check_region(region)
     Y = as_factor_matrix(Y, region)
     k, L = Y.shape
     start = region.resolve_cell(start, "start")
-    try:
-        budget = float(budget)
-    except (TypeError, ValueError):
-        raise PlanningError(f"budget must be a number, got {budget!r}") from None
-    if not (math.isfinite(budget) and budget >= 0):
-        raise PlanningError(f"budget must be >= 0 and finite, got {budget!r}")
+    budget = _check_budget(budget)
     _, ridge = _check_n_ridge(1.0, ridge)
     if metric not in ("grid", "km"):
         raise PlanningError(f"metric must be 'grid' or 'km', got {metric!r}")

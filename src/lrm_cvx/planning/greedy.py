@@ -47,6 +47,9 @@ def initial_cells(region: Region, start: int, k: int) -> np.ndarray:
 
 
 def _check_budget(budget: Any) -> float:
+    """``budget`` as a float >= 0; a string or a bool is refused, not converted."""
+    if isinstance(budget, (str, bytes, bool, np.bool_)):
+        raise PlanningError(f"budget (grid units) must be a number, got {budget!r}")
     return check_positive(budget, "budget (grid units)", error=PlanningError)
 
 
