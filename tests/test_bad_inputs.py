@@ -1,0 +1,510 @@
+"""Issue 14, the command line: bad or unusual inputs as a new user types them.
+
+Every case asserts the outcome (exit status 2 and one line ``lrm-cvx <cmd>: error: ...`` naming
+the problem, or the correct result) AND that no input file changed (``inputs_unchanged``,
+tests/conftest.py: SHA-256 of every input before and after). Outputs that must not exist are
+checked too. Data lie in the southern and western hemispheres so every coordinate is negative.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import json
+import subprocess
+import sys
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import xarray as xr
+
+from lrm_cvx import cli
+from lrm_cvx.cli import main
+from lrm_cvx.glrm import GLRM
+
+LAT = -30 + 2.0 * np.arange(6)  # -30 .. -20
+LON = -80 + 2.0 * np.arange(8)  # -80 .. -66
+
+
+# ---------------------------------------------------------------------------- fixtures
+def _field(T: int = 14, seed: int = 0) -> xr.DataArray:
+    rng = np.random.default_rng(seed)
+    k, ny, nx = 2, LAT.size, LON.size
+    v = (rng.normal(size=(T, k)) @ rng.normal(size=(k, ny * nx))
+         + 0.05 * rng.normal(size=(T, ny * nx))).reshape(T, ny, nx)
+    v[rng.random(v.shape) < 0.1] = np.nan
+    return xr.DataArray(v.astype(np.float32), dims=("time", "lat", "lon"), name="sst",
+                        coords={"time": pd.date_range("2000-01-01", periods=T, freq="MS"),
+                                "lat": LAT, "lon": LON}, attrs={"units": "K"})
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """d/a.nc, d/b.nc (two halves in time), m/model.nc (offset + spatial), m/plain.nc (paper
+    model), m/noregion.nc (fitted on an array), m/obs.csv, ev/results.nc (a data file named like
+    evaluate's output)."""
+    root = tmp_path_factory.mktemp("bad")
+    d, m, ev = root / "d", root / "m", root / "ev"
+    for p in (d, m, ev):
+        p.mkdir()
+    da = _field()
+    da.isel(time=slice(0, 7)).to_netcdf(d / "a.nc")
+    da.isel(time=slice(7, None)).to_netcdf(d / "b.nc")
+    da.to_netcdf(ev / "results.nc")
+    GLRM(2, offset=True, spatial="exponential", random_state=0, progress=False).fit(da).save(
+        m / "model.nc")
+    GLRM(2, random_state=0, progress=False).fit(da).save(m / "plain.nc")
+    GLRM(2, random_state=0, progress=False).fit(np.nan_to_num(da.values.reshape(14, -1))).save(
+        m / "noregion.nc")
+    snap = da.isel(time=-1).to_dataframe().dropna().reset_index()
+    snap[["lat", "lon", "sst"]].head(10).rename(columns={"sst": "value"}).to_csv(
+        m / "obs.csv", index=False)
+    return {"root": root, "d": d, "m": m, "ev": ev, "a": d / "a.nc", "b": d / "b.nc",
+            "model": m / "model.nc", "plain": m / "plain.nc", "noregion": m / "noregion.nc",
+            "obs": m / "obs.csv", "results": ev / "results.nc"}
+
+
+@pytest.fixture
+def run(files, inputs_unchanged, capsys, monkeypatch):
+    """``run(argv)`` -> (status, stdout, stderr), with every fixture file watched; ``{key}`` in
+    an argument is replaced by that fixture path."""
+    inputs_unchanged.watch(files["d"], files["m"], files["ev"])
+    monkeypatch.chdir(files["root"])
+
+    def go(argv):
+        argv = [a.format(**{k: str(v) for k, v in files.items()}) for a in argv]
+        code = main(["-q", *argv])
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    return go
+
+
+def one_line_error(err: str, cmd: str, *needles: str) -> None:
+    """Exactly one error line (one-line warnings may precede it), naming every needle."""
+    prefix = f"lrm-cvx {cmd}" if cmd else "lrm-cvx"
+    lines = err.strip().splitlines()
+    assert all(line.startswith(f"{prefix}: warning: ") for line in lines[:-1]), err
+    assert lines[-1].startswith(f"{prefix}: error: "), err
+    assert "Traceback" not in err
+    for needle in needles:
+        assert needle in lines[-1], (needle, lines[-1])
+
+
+def leftovers(folder: Path) -> list[str]:
+    """Temporary files an interrupted write would leave."""
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+# ---------------------------------------------------------------------------- never write onto an input
+REFUSE_INPUT = [
+    # the issue's three data-loss cases
+    (["fit", "{d}/*.nc", "--var", "sst", "--rank", "2", "-o", "{d}/a.nc"], "fit"),
+    (["fit", "{d}", "--var", "sst", "--rank", "2", "-o", "{d}/b.nc"], "fit"),
+    (["evaluate", "{ev}/results.nc", "--out", "{ev}"], "evaluate"),
+    # the same with --overwrite: an input is never replaced
+    (["fit", "{d}/*.nc", "--rank", "2", "-o", "{d}/a.nc", "--overwrite"], "fit"),
+    (["fit", "{d}", "--rank", "2", "-o", "{d}/b.nc", "--overwrite"], "fit"),
+    (["evaluate", "{ev}/results.nc", "--out", "{ev}", "--overwrite"], "evaluate"),
+    # the literal path, a relative path, a detour through '..'
+    (["fit", "{a}", "--rank", "2", "-o", "{a}", "--overwrite"], "fit"),
+    (["fit", "d/a.nc", "--rank", "2", "-o", "d/a.nc"], "fit"),
+    (["fit", "{a}", "--rank", "2", "-o", "{m}/../d/a.nc", "--overwrite"], "fit"),
+    (["fit", "d/[ab].nc", "--rank", "2", "-o", "d/b.nc", "--overwrite"], "fit"),
+    (["fit", "{a}", "{b}", "--rank", "2", "-o", "{b}", "--overwrite"], "fit"),
+    # predict: the model and the observations are inputs
+    (["predict", "{model}", "--observations", "{obs}", "-o", "{model}", "--overwrite"],
+     "predict"),
+    (["predict", "{model}", "--observations", "{obs}", "-o", "{obs}", "--overwrite"], "predict"),
+]
+
+
+@pytest.mark.parametrize("argv, cmd", REFUSE_INPUT)
+def test_refuses_to_write_onto_an_input(run, argv, cmd):
+    code, out, err = run(argv)
+    assert code == 2
+    one_line_error(err, cmd, "refusing to overwrite the input file")
+    assert out == ""
+
+
+def test_refuses_a_symlink_to_an_input(run, files, tmp_path):
+    link = tmp_path / "link.nc"
+    link.symlink_to(files["a"])
+    code, _, err = run(["fit", "{a}", "--rank", "2", "-o", str(link), "--overwrite"])
+    assert code == 2
+    one_line_error(err, "fit", "input file")
+    assert link.is_symlink()
+
+
+def test_refuses_a_hard_link_to_an_input(run, files, tmp_path):
+    link = tmp_path / "hard.nc"
+    os.link(files["a"], link)
+    code, _, err = run(["fit", "{a}", "--rank", "2", "-o", str(link), "--overwrite"])
+    assert code == 2
+    one_line_error(err, "fit", "input file")
+
+
+def test_refuses_the_package_sample_file(run, monkeypatch):
+    """``fit sample:sst -o <installed sst.nc>``: the guard must refuse before any work (the load
+    is replaced by a tripwire, so a broken guard cannot damage the package)."""
+    def tripwire(args):
+        raise AssertionError("the guard let the command run")
+
+    monkeypatch.setattr(cli, "_load", tripwire)
+    target = resources.files("lrm_cvx") / "data" / "sst.nc"
+    code, _, err = run(["fit", "sample:sst", "-o", str(target), "--overwrite"])
+    assert code == 2
+    one_line_error(err, "fit", "input file")
+
+
+# ---------------------------------------------------------------------------- the overwrite rule
+def test_existing_output_needs_overwrite(run, files, tmp_path):
+    out = tmp_path / "model.nc"
+    out.write_text("old")
+    code, _, err = run(["fit", "{a}", "--rank", "2", "-o", str(out)])
+    assert code == 2
+    one_line_error(err, "fit", "already exists", "--overwrite")
+    assert out.read_text() == "old"
+
+
+def test_overwrite_replaces_an_output_that_is_not_an_input(run, tmp_path):
+    out = tmp_path / "model.nc"
+    out.write_text("old")
+    code, stdout, err = run(["fit", "{d}/*.nc", "--rank", "2", "-o", str(out), "--overwrite"])
+    assert code == 0, err
+    assert GLRM.load(out).X_.sizes["time"] == 14
+    assert leftovers(tmp_path) == []
+
+
+def test_folder_input_writes_a_new_file_beside_its_data(run, files):
+    out = files["root"] / "new-model.nc"
+    code, _, err = run(["fit", "{d}", "--var", "sst", "--rank", "2", "-o", str(out)])
+    assert code == 0, err
+    assert GLRM.load(out).region_.n_cells == LAT.size * LON.size
+    out.unlink()
+
+
+@pytest.mark.parametrize("argv, cmd, needle", [
+    (["fit", "{a}", "--rank", "2", "-o", "{m}"], "fit", "folder"),
+    (["fit", "{a}", "--rank", "2", "-o", "{m}", "--overwrite"], "fit", "folder"),
+    (["fit", "{a}", "--rank", "2", "-o", "{obs}/x.nc"], "fit", "not a folder"),
+    (["predict", "{model}", "--observations", "{obs}", "-o", "{d}"], "predict", "folder"),
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "-o", "{m}/r.txt"], "plan",
+     ".csv or .geojson"),
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "-o", "{obs}"], "plan",
+     "already exists"),
+    (["evaluate", "{a}", "--out", "{obs}"], "evaluate", "existing file"),
+    (["evaluate", "{a}", "--out", "{ev}"], "evaluate", "already exists"),
+])
+def test_bad_output_paths(run, argv, cmd, needle):
+    code, _, err = run(argv)
+    assert code == 2
+    one_line_error(err, cmd, needle)
+
+
+# ---------------------------------------------------------------------------- failing writes
+def test_crash_while_writing_keeps_the_old_file(run, tmp_path, monkeypatch):
+    out = tmp_path / "model.nc"
+    out.write_text("old")
+
+    def crash(self, *a, **k):
+        Path(a[0]).write_text("half a file")
+        raise RuntimeError("killed mid-write")
+
+    monkeypatch.setattr(xr.Dataset, "to_netcdf", crash)
+    code, _, err = run(["fit", "{a}", "--rank", "2", "-o", str(out), "--overwrite"])
+    assert code == 2
+    one_line_error(err, "fit", "unexpected RuntimeError", "killed mid-write", "--debug")
+    assert out.read_text() == "old"
+    assert leftovers(tmp_path) == []
+
+
+def test_disk_full_keeps_the_old_file(run, tmp_path, monkeypatch):
+    out = tmp_path / "model.nc"
+    out.write_text("old")
+
+    def full(src, dst):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+
+    monkeypatch.setattr(os, "replace", full)
+    code, _, err = run(["fit", "{a}", "--rank", "2", "-o", str(out), "--overwrite"])
+    assert code == 2
+    one_line_error(err, "fit", "No space left on device", str(out))
+    assert out.read_text() == "old"
+    assert leftovers(tmp_path) == []
+
+
+def test_unwritable_folder_fails_before_any_work(run, tmp_path, monkeypatch):
+    import tempfile
+
+    def denied(*a, **k):
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(tmp_path))
+
+    def tripwire(args):
+        raise AssertionError("loaded the data before checking the output folder")
+
+    monkeypatch.setattr(tempfile, "mkstemp", denied)
+    monkeypatch.setattr(cli, "_load", tripwire)
+    code, _, err = run(["fit", "{a}", "--rank", "2", "-o", str(tmp_path / "m.nc")])
+    assert code == 2
+    one_line_error(err, "fit", "Permission denied")
+    assert list(tmp_path.iterdir()) == []
+
+
+EVAL = ["evaluate", "{a}", "{b}", "--rank", "2", "--n-test", "2", "--starts", "1",
+        "--random-trials", "1", "--budgets", "3,6", "--min-observations", "1",
+        "--certify", "off"]
+
+
+def test_evaluate_failing_figure_writes_nothing(run, tmp_path, monkeypatch):
+    import lrm_cvx.plots
+
+    def broken(*a, **k):
+        raise ValueError("cannot draw")
+
+    monkeypatch.setattr(lrm_cvx.plots, "plot_predictions", broken)
+    out = tmp_path / "ev"
+    code, _, err = run([*EVAL, "--out", str(out)])
+    assert code == 2
+    one_line_error(err, "evaluate", "cannot draw")
+    assert not out.exists() or list(out.iterdir()) == []
+
+
+def test_evaluate_failing_last_write_writes_nothing(run, tmp_path, monkeypatch):
+    """The pdf of the last figure fails: results.nc and summary.csv must not appear either."""
+    import matplotlib.figure
+
+    real = matplotlib.figure.Figure.savefig
+
+    def pdf_fails(self, fname, *a, format=None, **k):
+        if format == "pdf":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(fname))
+        return real(self, fname, *a, format=format, **k)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", pdf_fails)
+    out = tmp_path / "ev"
+    out.mkdir()
+    (out / "results.nc").write_text("previous run")
+    code, _, err = run([*EVAL, "--out", str(out), "--overwrite"])
+    assert code == 2
+    one_line_error(err, "evaluate", "No space left on device")
+    assert sorted(p.name for p in out.iterdir()) == ["results.nc"]
+    assert (out / "results.nc").read_text() == "previous run"
+
+
+def test_evaluate_writes_all_outputs(run, tmp_path):
+    out = tmp_path / "ev"
+    code, stdout, err = run([*EVAL, "--out", str(out)])
+    assert code == 0, err
+    assert sorted(p.name for p in out.iterdir()) == sorted(cli.EVALUATION_FILES)
+    assert xr.load_dataset(out / "results.nc").attrs["n_test"] == 2
+
+
+# ---------------------------------------------------------------------------- coordinates
+@pytest.mark.parametrize("start", [["-25", "-70"], ["-25,-70"], ["-25,", "-70"],
+                                   ["-2.5e1", "-70.0"]])
+def test_negative_start_in_every_form(run, start, tmp_path):
+    route = tmp_path / "r.csv"
+    code, _, err = run(["plan", "{model}", "--start", *start, "--budget", "4",
+                        "-o", str(route)])
+    assert code == 0, err
+    first = pd.read_csv(route).iloc[0]
+    assert first["lat"] in (-26.0, -24.0) and first["lon"] == -70.0
+
+
+def test_start_equals_form(run):
+    code, out, err = run(["plan", "{model}", "--start=-25,-70", "--budget", "4"])
+    assert code == 0, err
+    assert "cells" in out
+
+
+@pytest.mark.parametrize("bbox", [["-28,-78,-22,-70"], ["-28", "-78", "-22", "-70"]])
+def test_negative_bbox(run, bbox, tmp_path):
+    out = tmp_path / "m.nc"
+    code, _, err = run(["fit", "{a}", "{b}", "--bbox", *bbox, "--rank", "2", "-o", str(out)])
+    assert code == 0, err
+    region = GLRM.load(out).region_
+    assert region.lat.values.min() >= -28 and region.lon.values.max() <= -70
+
+
+@pytest.mark.parametrize("argv, cmd, needle", [
+    (["plan", "{model}", "--start", "-25", "--budget", "4"], "plan", "LAT,LON"),
+    (["plan", "{model}", "--start", "-25,-70,3", "--budget", "4"], "plan", "LAT,LON"),
+    (["plan", "{model}", "--start", "south,-70", "--budget", "4"], "plan", "numbers"),
+    (["plan", "{model}", "--start", "-100,-70", "--budget", "4"], "plan", "[-90, 90]"),
+    (["plan", "{model}", "--start", "-70,-100", "--budget", "4"], "plan", "outside"),
+    (["plan", "{model}", "--start", "nan,-70", "--budget", "4"], "plan", "finite"),
+    (["plan", "{model}", "--start", "10,10", "--budget", "4"], "plan", "outside"),
+    (["fit", "{a}", "--bbox", "-20,-80,-30,-60", "-o", "x.nc"], "fit", "south (-20)"),
+    (["fit", "{a}", "--bbox", "-20,-80,-30", "-o", "x.nc"], "fit", "S,W,N,E"),
+    (["fit", "{a}", "--bbox", "10,10,20,20", "-o", "x.nc"], "fit", "bbox"),
+])
+def test_bad_coordinates(run, argv, cmd, needle, files):
+    code, _, err = run(argv)
+    assert code == 2
+    one_line_error(err, cmd, needle)
+    assert not (files["root"] / "x.nc").exists()
+
+
+# ---------------------------------------------------------------------------- argparse
+@pytest.mark.parametrize("argv, cmd, needle", [
+    ([], "", "required"),
+    (["frobnicate"], "", "invalid choice"),
+    (["fit", "{a}"], "fit", "-o/--output"),
+    (["fit", "{a}", "-o", "x.nc", "--frobnicate"], "", "unrecognized arguments"),
+    (["fit", "{a}", "-o", "x.nc", "--rank", "0"], "fit", "integer >= 1"),
+    (["fit", "{a}", "-o", "x.nc", "--rank", "two"], "fit", "integer >= 1"),
+    (["fit", "{a}", "-o", "x.nc", "--loss", "l3"], "fit", "invalid choice"),
+    (["fit", "{a}", "-o", "x.nc", "--spatial", "cubic"], "fit", "invalid choice"),
+    (["fit", "{a}", "-o", "x.nc", "--tol", "inf"], "fit", "finite"),
+    (["plan", "{model}", "--budget", "4"], "plan", "--start"),
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "four"], "plan", "number"),
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "--criterion", "dopt"], "plan",
+     "invalid choice"),
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "--cost", "tsp"], "plan",
+     "invalid choice"),
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "--prior", "flat"], "plan",
+     "invalid choice"),
+    (["bound", "{model}", "--start", "-25,-70", "--budget", "4", "--certify", "off"], "bound",
+     "invalid choice"),
+    (["evaluate", "{a}", "--out", "x", "--starts", "0"], "evaluate", "integer >= 1"),
+    (["evaluate", "{a}", "--out", "x", "--n-test", "-1"], "evaluate", "integer >= 1"),
+    (["evaluate", "{a}", "--out", "x", "--certify", "maybe"], "evaluate", "invalid choice"),
+])
+def test_argparse_errors_are_one_line(run, argv, cmd, needle, files):
+    code, out, err = run(argv)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "usage:" not in err, err
+    assert lines[0].startswith(f"lrm-cvx {cmd}: error: " if cmd else "lrm-cvx"), err
+    assert needle in lines[0]
+    assert not (files["root"] / "x.nc").exists() and not (files["root"] / "x").exists()
+
+
+def test_help_exits_0(run):
+    code, out, _ = run(["fit", "--help"])
+    assert code == 0 and "--recommended" in out and "--overwrite" in out
+
+
+# ---------------------------------------------------------------------------- library errors, one line
+@pytest.mark.parametrize("argv, cmd, needle", [
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "-1"], "plan", "budget"),
+    (["plan", "{noregion}", "--start", "-25,-70", "--budget", "4"], "plan", "no region"),
+    (["bound", "{noregion}", "--start", "-25,-70", "--budget", "4"], "bound", "no region"),
+    (["predict", "{noregion}", "--observations", "{obs}", "-o", "p.nc"], "predict", "no region"),
+    (["plan", "{a}", "--start", "-25,-70", "--budget", "4"], "plan", "not an lrm-cvx GLRM"),
+    (["plan", "missing.nc", "--start", "-25,-70", "--budget", "4"], "plan", "does not exist"),
+    (["plan", "{plain}", "--start", "-25,-70", "--budget", "4", "--criterion", "gp-variance"],
+     "plan", "spatial covariance"),
+    (["plan", "{plain}", "--start", "-25,-70", "--budget", "4", "--recommended"], "plan",
+     "spatial covariance"),
+    (["predict", "{plain}", "--observations", "{obs}", "--spatial", "-o", "p.nc"], "predict",
+     "spatial covariance"),
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "--initial", "far"], "plan",
+     "initial"),
+    (["fit", "missing/*.nc", "-o", "x.nc"], "fit", "no file matches"),
+    (["fit", "missing.nc", "-o", "x.nc"], "fit", "not found"),
+    (["fit", "{a}", "--var", "temp", "-o", "x.nc"], "fit", "no variable 'temp'"),
+    (["fit", "{m}", "-o", "x.nc"], "fit", "cannot"),
+    (["evaluate", "{a}", "--out", "x", "--methods", "greedy,zigzag"], "evaluate", "zigzag"),
+    (["evaluate", "{a}", "--out", "x", "--methods", "greedy:gp-variance"], "evaluate",
+     "--spatial"),
+    (["evaluate", "{a}", "--out", "x", "--fold-spatial"], "evaluate", "--spatial"),
+    (["evaluate", "{a}", "--out", "x", "--budgets", "5,x"], "evaluate", "--budgets"),
+    (["evaluate", "{a}", "--out", "x", "--budgets", "-5"], "evaluate", "--budgets"),
+    (["evaluate", "{a}", "--out", "x", "--n-test", "7"], "evaluate", "--n-test"),
+])
+def test_library_errors_are_one_line(run, argv, cmd, needle, files):
+    code, _, err = run(argv)
+    assert code == 2
+    one_line_error(err, cmd, needle)
+    for name in ("x.nc", "x", "p.nc"):
+        assert not (files["root"] / name).exists()
+
+
+@pytest.mark.parametrize("content, needle", [
+    ("", "cannot read"),
+    ("lat,lon\n-25,-70\n", "'value' column"),
+    ("value,depth\n1.0,3\n", "'cell' column or 'lat'"),
+    ("lat,lon,value\n-25,-70,warm\n", "'value' must hold numbers"),
+    ("lat,lon,value\n", "no rows"),
+    ("lat,lon,value\n10,10,1.0\n", "outside"),
+    ("cell,value\n100000,1.0\n", "cell"),
+])
+def test_bad_observation_files(run, tmp_path, inputs_unchanged, content, needle, files):
+    obs = tmp_path / "obs.csv"
+    obs.write_text(content)
+    inputs_unchanged.watch(obs)
+    code, _, err = run(["predict", "{model}", "--observations", str(obs), "-o",
+                        str(tmp_path / "p.nc")])
+    assert code == 2
+    one_line_error(err, "predict", needle)
+    assert not (tmp_path / "p.nc").exists()
+
+
+def test_missing_observation_file(run, tmp_path):
+    code, _, err = run(["predict", "{model}", "--observations", str(tmp_path / "none.csv"),
+                        "-o", str(tmp_path / "p.nc")])
+    assert code == 2
+    one_line_error(err, "predict", "cannot read --observations")
+
+
+def test_empty_data_file(run, tmp_path, inputs_unchanged):
+    empty = tmp_path / "empty.nc"
+    empty.write_bytes(b"")
+    inputs_unchanged.watch(empty)
+    code, _, err = run(["fit", str(empty), "-o", str(tmp_path / "m.nc")])
+    assert code == 2
+    one_line_error(err, "fit", "empty.nc")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.nc"]
+
+
+# ---------------------------------------------------------------------------- unexpected errors, --debug
+def test_unexpected_error_is_one_line_and_debug_shows_traceback(run, monkeypatch, tmp_path):
+    def bug(self, *a, **k):
+        raise ZeroDivisionError("a bug")
+
+    monkeypatch.setattr(GLRM, "fit", bug)
+    argv = ["fit", "{a}", "--rank", "2", "-o", str(tmp_path / "m.nc")]
+    code, _, err = run(argv)
+    assert code == 2
+    one_line_error(err, "fit", "unexpected ZeroDivisionError: a bug", "--debug")
+    for with_debug in (["--debug", *argv], [*argv, "--debug"]):  # before or after the command
+        code, _, err = run(with_debug)
+        assert code == 2
+        assert "Traceback" in err and "ZeroDivisionError" in err
+        assert err.strip().splitlines()[-1].startswith("lrm-cvx fit: error: unexpected")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_warnings_are_one_line(run, files, tmp_path, inputs_unchanged):
+    """Unsorted times: evaluate sorts them with a one-line warning and tests on the latest."""
+    da = _field().isel(time=np.r_[13, 0:13])
+    path = tmp_path / "shuffled.nc"
+    da.to_netcdf(path)
+    inputs_unchanged.watch(path)
+    out = tmp_path / "ev"
+    code, _, err = run([*EVAL[:1], str(path), *EVAL[3:], "--out", str(out)])
+    assert code == 0, err
+    warn = [line for line in err.splitlines() if "warning" in line]
+    assert warn and all(line.startswith("lrm-cvx evaluate: warning: ") for line in warn)
+    test_times = xr.load_dataset(out / "results.nc")["test_time"].values
+    np.testing.assert_array_equal(test_times, np.sort(da["time"].values)[-2:])
+
+
+# ---------------------------------------------------------------------------- as a process
+def test_subprocess_one_line_error_and_negative_start(files, inputs_unchanged, tmp_path):
+    inputs_unchanged.watch(files["d"], files["m"])
+    exe = [sys.executable, "-m", "lrm_cvx.cli", "-q"]
+    bad = subprocess.run([*exe, "fit", f"{files['d']}/*.nc", "-o", str(files["a"])],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2
+    one_line_error(bad.stderr, "fit", "input file")
+    route = tmp_path / "route.geojson"
+    ok = subprocess.run([*exe, "plan", str(files["model"]), "--start", "-25", "-70", "--budget",
+                         "4", "-o", str(route)], capture_output=True, text=True, timeout=300)
+    assert ok.returncode == 0, ok.stderr
+    assert json.loads(route.read_text())["type"] == "FeatureCollection"
