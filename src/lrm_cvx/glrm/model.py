@@ -589,13 +589,28 @@ class GLRM:
         """Split the observed entries of ``data`` into ``(train, test)`` of the same type.
 
         A random ``fraction`` of the observed entries moves to ``test`` (NaN elsewhere), the rest
-        stays in ``train``; every time keeps at least one training observation.
+        stays in ``train``; every time keeps at least one training observation. ``fraction`` in
+        (0, 1); infinite or non-numeric values raise DataError.
         """
         fraction = check_positive(fraction, "fraction", strict=True)
         if fraction >= 1:
             raise DataError(f"fraction must be in (0, 1), got {fraction}")
         rng = as_generator(seed)
-        arr = data.values if isinstance(data, xr.DataArray) else np.asarray(data, dtype=float)
+        try:
+            arr = data.values if isinstance(data, xr.DataArray) else np.asarray(data,
+                                                                                 dtype=float)
+        except (TypeError, ValueError):
+            raise DataError(f"data must be a numeric array or DataArray, got "
+                            f"{type(data).__name__}") from None
+        if arr.ndim < 2 or not (np.issubdtype(arr.dtype, np.floating)
+                                or np.issubdtype(arr.dtype, np.integer)):
+            raise DataError(f"data must be a numeric (time, ...) array with at least 2 dims, "
+                            f"got {arr.dtype} shape {arr.shape}")
+        if not np.issubdtype(arr.dtype, np.floating):
+            arr = arr.astype(np.float64)
+        n_inf = int(np.count_nonzero(np.isinf(arr)))
+        if n_inf:
+            raise DataError(f"data has {n_inf} infinite values; use NaN for missing entries")
         obs = np.isfinite(arr)
         test = obs & (rng.random(arr.shape) < fraction)
         train_obs = obs & ~test
