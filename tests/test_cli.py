@@ -124,3 +124,167 @@ def test_demo_runs(tmp_path, capsys):
     for name in ("results.nc", "summary.csv", "metrics.png", "metrics.pdf", "predictions.png"):
         assert (out / name).exists(), name
     assert str(out.resolve()) in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------------- parity with the Python API
+import argparse  # noqa: E402
+
+from lrm_cvx import cli  # noqa: E402
+from lrm_cvx.cost import COSTS  # noqa: E402
+from lrm_cvx.datasets import load_sample  # noqa: E402
+from lrm_cvx.evaluation import METHODS, evaluate  # noqa: E402
+from lrm_cvx.glrm.losses import LOSSES  # noqa: E402
+from lrm_cvx.glrm.predictive import PRIORS  # noqa: E402
+from lrm_cvx.information import CRITERIA  # noqa: E402
+from lrm_cvx.planning import plan_greedy  # noqa: E402
+from lrm_cvx.spatial import MODELS  # noqa: E402
+
+TINY = ["--rank", "3", "--n-test", "2", "--starts", "1", "--random-trials", "1",
+        "--budgets", "5,10", "--min-observations", "1"]
+
+
+@pytest.fixture(scope="module")
+def sst_model(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sst") / "model.nc"
+    assert main(["-q", "fit", "sample:sst", "--rank", "3", "--recommended", "-o", str(path)]) == 0
+    return path
+
+
+def _subparser(name):
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices[name]
+
+
+def _choices(name, dest):
+    return next(a.choices for a in _subparser(name)._actions if a.dest == dest)
+
+
+def test_choices_come_from_the_library_constants():
+    assert tuple(_choices("plan", "criterion")) == tuple(CRITERIA)
+    assert tuple(_choices("evaluate", "criterion")) == tuple(CRITERIA)
+    assert tuple(_choices("plan", "cost")) == tuple(COSTS)
+    assert tuple(_choices("fit", "spatial")) == tuple(MODELS)
+    assert tuple(_choices("evaluate", "spatial")) == tuple(MODELS)
+    assert sorted(_choices("fit", "loss")) == sorted(LOSSES)
+    assert [None if c == "none" else c for c in _choices("predict", "prior")] == list(PRIORS)
+
+
+def test_fit_recommended_is_the_documented_setting(sst_model):
+    model = GLRM.load(sst_model)
+    assert model.offset is True and model.spatial == cli.RECOMMENDED["spatial"] == "exponential"
+    assert model.spatial_cov_ is not None and model.offset_ is not None
+
+
+@pytest.mark.parametrize("flags, python", [
+    (["--recommended"], dict(criterion="gp-variance", initial="start", prior="empirical",
+                             spatial=True)),
+    (["--criterion", "a-optimal", "--prior", "empirical", "--initial", "start"],
+     dict(criterion="a-optimal", initial="start", prior="empirical", spatial=False)),
+    (["--criterion", "a-optimal", "--ridge", "0.5", "--cost", "insertion"],
+     dict(criterion="a-optimal", ridge=0.5, cost="insertion")),
+    ([], dict()),
+])
+def test_plan_flags_match_plan_greedy(sst_model, tmp_path, flags, python):
+    route = tmp_path / "route.csv"
+    assert main(["-q", "plan", str(sst_model), "--start", "10", "-150", "--budget", "12",
+                 *flags, "-o", str(route)]) == 0
+    model = GLRM.load(sst_model)
+    prior, spatial = python.pop("prior", None), python.pop("spatial", False)
+    kw = {}
+    if prior:
+        kw = model.planner_kwargs(prior=prior, spatial=spatial)
+        if not spatial:
+            kw = {k: v for k, v in kw.items() if k not in ("prior_cov", "spatial_cov")}
+    plan = plan_greedy(model.Y_, model.region_, (10, 210), 12, progress=False, **python, **kw)
+    np.testing.assert_array_equal(pd.read_csv(route)["cell"], plan.route)
+
+
+def test_plan_overwrite(sst_model, tmp_path, capsys):
+    route = tmp_path / "route.csv"
+    route.write_text("old")
+    argv = ["-q", "plan", str(sst_model), "--start", "10,-150", "--budget", "6", "-o", str(route)]
+    assert main(argv) == 2 and "--overwrite" in capsys.readouterr().err
+    assert route.read_text() == "old"
+    assert main([*argv, "--overwrite"]) == 0
+    assert "cell" in pd.read_csv(route)
+
+
+def test_bound_tight_is_at_most_fast(sst_model, capsys):
+    bounds = {}
+    for level in ("fast", "tight"):
+        assert main(["-q", "bound", str(sst_model), "--start", "10,-150", "--budget", "8",
+                     "--certify", level]) == 0
+        line = next(x for x in capsys.readouterr().out.splitlines() if "upper bound" in x)
+        bounds[level] = float(line.split(":")[-1].split()[0])
+    assert bounds["tight"] <= bounds["fast"] + 1e-9
+
+
+def test_predict_recommended_matches_complete(sst_model, tmp_path):
+    obs = pd.DataFrame({"cell": [3, 40, 77, 150, 222, 300], "value": np.linspace(-1, 1, 6)})
+    obs.to_csv(tmp_path / "obs.csv", index=False)
+    out = tmp_path / "map.nc"
+    assert main(["-q", "predict", str(sst_model), "--observations", str(tmp_path / "obs.csv"),
+                 "--recommended", "-o", str(out)]) == 0
+    model = GLRM.load(sst_model)
+    ref = model.complete((obs["cell"].to_numpy(), obs["value"].to_numpy()), prior="empirical",
+                         spatial=True)
+    got = xr.load_dataset(out)
+    np.testing.assert_allclose(got["prediction"], ref["prediction"], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(got["std"], ref["std"], rtol=1e-6, atol=1e-9)
+
+
+def test_evaluate_recommended_matches_python(tmp_path, capsys):
+    out = tmp_path / "ev"
+    assert main(["-q", "evaluate", "sample:sst", *TINY, "--recommended", "--certify", "off",
+                 "--out", str(out)]) == 0
+    got = xr.load_dataset(out / "results.nc")
+    assert list(got["method"].values) == [cli.RECOMMENDED["method"], *METHODS]
+    ref = evaluate(load_sample("sst"), rank=3, n_test=2, n_starts=1, random_trials=1,
+                   budgets=(5, 10), min_observations=1, certify=False, progress=False,
+                   methods=("greedy:gp-variance", *METHODS),
+                   model_params={"offset": True, "spatial": "exponential", "noise": "global"},
+                   fold_in={"prior": "empirical", "spatial": True})
+    np.testing.assert_allclose(got["mse"], ref["mse"], rtol=1e-6, equal_nan=True)
+    np.testing.assert_array_equal(got["greedy_route"], ref["greedy_route"])
+    summary = pd.read_csv(out / "summary.csv")
+    assert summary["method"].iloc[0] == "greedy:gp-variance"
+    assert "greedy:gp-variance" in capsys.readouterr().out
+
+
+def test_evaluate_methods_cost_ridge_certify(tmp_path):
+    out = tmp_path / "ev"
+    assert main(["-q", "evaluate", "sample:sst", *TINY, "--methods",
+                 "greedy,greedy:fisher,greedy:a-optimal,random", "--cost", "insertion",
+                 "--ridge", "0.1", "--fold-ridge", "0.01", "--prior", "empirical", "--offset",
+                 "--certify", "fast", "--out", str(out)]) == 0
+    got = xr.load_dataset(out / "results.nc")
+    assert list(got["method"].values) == ["greedy", "greedy:fisher", "greedy:a-optimal",
+                                          "random"]
+    assert got.attrs["cost_function"] == "insertion" and got.attrs["ridge"] == 0.1
+    assert got.attrs["fold_ridge"] == 0.01 and "empirical" in got.attrs["fold_in"]
+    assert "'offset': True" in got.attrs["model_params"]
+    assert np.isfinite(got["bound"]).all()
+    # --no-certify is kept as an alias of --certify off
+    assert main(["-q", "evaluate", "sample:sst", *TINY, "--methods", "greedy", "--no-certify",
+                 "--out", str(out), "--overwrite"]) == 0
+    assert np.isnan(xr.load_dataset(out / "results.nc")["bound"]).all()
+
+
+def test_docs_name_every_command_and_flag():
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "docs" / "cli.md").read_text()
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    missing = []
+    for name, p in sub.choices.items():
+        if f"lrm-cvx {name}" not in text:
+            missing.append(name)
+        if name == "monitor":  # its own page (cli_monitor.py); only named here
+            continue
+        for action in p._actions:
+            long = [o for o in action.option_strings if o.startswith("--")]
+            if long and long[0] not in ("--help",) and f"`{long[0]}" not in text:
+                missing.append(f"{name} {long[0]}")
+    assert not missing, f"docs/cli.md does not mention {missing}"
