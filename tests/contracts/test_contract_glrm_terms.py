@@ -75,3 +75,11 @@ def test_regularizer_prox_matches_cvxpy(name, t):
     expr, cons = reg.cvxpy(V)
     _solve(cp.Problem(cp.Minimize(expr + cp.sum_squares(V - F) / (2 * t)), cons))
     np.testing.assert_allclose(reg.prox(F, t), V.value, atol=2e-5)
+
+
+def test_custom_regularizer_is_infinite_outside_its_constraints():
+    from lrm_cvx.glrm.regularizers import CvxpyRegularizer
+
+    reg = CvxpyRegularizer(lambda V: (cp.sum(V), [V >= 0]))
+    np.testing.assert_array_equal(reg.evaluate(np.array([[-1.0, 1.0], [2.0, 3.0]])),
+                                  [np.inf, 4.0])

@@ -196,7 +196,8 @@ class CvxpyRegularizer(Regularizer):
         vals = np.empty(F.shape[1])
         for j in range(F.shape[1]):  # small problems only (the cvxpy path)
             expr, cons = self._call(cp.Constant(F[:, j : j + 1]))
-            feasible = all(bool(np.all(c.value)) if c.value is not None else True for c in cons)
+            # constraint violation, with the tolerance of NonNegative (interior-point solutions)
+            feasible = all(np.all(np.asarray(c.violation()) <= 1e-7) for c in cons)
             vals[j] = float(expr.value) if feasible else np.inf
         return vals
 
