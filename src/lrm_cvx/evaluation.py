@@ -32,8 +32,8 @@ from ._validation import as_factor_matrix, as_generator, atomic_output, check_po
 from .errors import DataError, ModelError
 from .glrm.posterior import LatentPosterior, ObservationModel, check_cells
 from .information import CRITERION_REGISTRY
-from .registry import Choices, Registry
 from .region import Region
+from .registry import Choices, Registry
 
 __all__ = ["evaluate", "summary", "save_results", "METHODS", "GREEDY_VARIANTS",
            "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse"]

@@ -299,7 +299,8 @@ def make_oracle(
     criterion: str, Y: Any, ridge: float = 0.0, cells: Any = None, **kwargs: Any
 ) -> FisherOracle | AOptimalOracle | GPVarianceOracle | StructuredGPVarianceOracle:
     """The gain oracle for ``criterion`` (a name or alias of :data:`CRITERION_REGISTRY`:
-    ``"fisher"``, ``"a-optimal"`` (alias ``"aopt"``) or ``"gp-variance"``) started at ``cells``; ``kwargs`` go to the oracle (``prior_precision``, ``noise_var``, ...).
+    ``"fisher"``, ``"a-optimal"`` (alias ``"aopt"``) or ``"gp-variance"``) started at ``cells``;
+    ``kwargs`` go to the oracle (``prior_precision``, ``noise_var``, ...).
 
     ``"gp-variance"``: the dense :class:`GPVarianceOracle` up to
     :data:`GP_STRUCTURED_MIN_ENTRIES` covariances, :class:`StructuredGPVarianceOracle` (same

@@ -1010,8 +1010,9 @@ def plan_bound(
     computed too and the smaller one is kept. Proofs in docs/certificate.md.
 
     The bound is on the **Fisher** information (``criterion="fisher"``). For a plan chosen for
-    another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or ``plan.posterior``)
-    the certificate reports the plan's Fisher information but ``gap = volume_ratio = nan``.
+    another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or
+    ``plan.posterior``) the certificate reports the plan's Fisher information but
+    ``gap = volume_ratio = nan``.
 
     ``budget`` is in grid units (``metric="grid"``) or km (``metric="km"``).
     """
