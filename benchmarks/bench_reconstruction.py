@@ -31,7 +31,7 @@ import xarray as xr
 
 from lrm_cvx.evaluation import evaluate, summary
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.predictive import posterior_complete
+from lrm_cvx.glrm.posterior import fold_in_snapshots
 from lrm_cvx.information import GPVarianceOracle, make_oracle
 
 warnings.filterwarnings("ignore")
@@ -156,7 +156,7 @@ def score(model, values, cells, prior, spatial, ridge=0.0) -> float:
     V = np.full(values.shape, np.nan)
     V[:, cells] = values[:, cells]
     try:
-        pred, *_ = posterior_complete(model, V, prior=prior, spatial=spatial, ridge=ridge)
+        pred, *_ = fold_in_snapshots(model.latent_prior(prior, ridge=ridge, spatial=spatial), V)
     except Exception:  # noqa: BLE001 - too few observations without a prior
         return np.nan
     return float(np.nanmean(np.nanmean((pred - values) ** 2, axis=1)))

@@ -266,3 +266,117 @@ def test_spatial_repeats_are_averaged_into_one_observation():
     b = prior.update([3, 8], [6.0, 4.0])
     np.testing.assert_allclose(a.mean, b.mean, rtol=1e-12)
     np.testing.assert_allclose(a.predict()[0], b.predict()[0], rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- callers
+def small_field(seed=0, T=16, ny=6, nx=7, k=2):
+    rng = np.random.default_rng(seed)
+    data = (rng.normal(size=(T, k)) @ rng.normal(size=(k, ny * nx)) + 50.0
+            + np.linspace(0, 8, ny * nx) + 0.2 * rng.normal(size=(T, ny * nx)))
+    data = data.reshape(T, ny, nx)
+    data[rng.random(data.shape) < 0.2] = np.nan
+    return xr.DataArray(data, dims=("time", "lat", "lon"),
+                        coords={"time": np.arange(T), "lat": np.arange(ny) * 1.0,
+                                "lon": np.arange(nx) * 1.0}, attrs={"units": "K"})
+
+
+def fit_model(da, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return GLRM(2, progress=False, random_state=0, max_iter=40, **kw).fit(da)
+
+
+@pytest.mark.parametrize("kw", [dict(offset=True), dict(offset=True, scale=True),
+                                dict(offset=True, scale=True, noise="per-cell"), {}])
+def test_complete_mse_is_in_data_units(kw):
+    """issue 14 item 7: complete_mse honours the model's offset and scale."""
+    from lrm_cvx.evaluation import evaluate
+
+    da = small_field()
+    n_test = 4
+    m = fit_model(da.isel(time=slice(None, -n_test)), **kw)
+    ds = evaluate(da, model=m, n_test=n_test, budgets=(4.0,), n_starts=1, random_trials=1,
+                  methods=("greedy",), certify=False, progress=False, min_observations=2)
+    Y = m._Yv
+    off = np.zeros(m.n_cells_) if m.offset_ is None else m.offset_
+    sc = np.ones(m.n_cells_) if m.scale_ is None else m.scale_
+    nv = (np.full(m.n_cells_, m.noise_std_ ** 2) if m.noise_var_ is None else m.noise_var_)
+    test = m.region_.stack(da.isel(time=slice(-n_test, None))).astype(float)
+    ref = []
+    for d in test:
+        o = np.flatnonzero(np.isfinite(d))
+        w = 1.0 / np.sqrt(nv[o])
+        x = np.linalg.lstsq((Y[:, o] * w).T, w * (d[o] - off[o]) / sc[o], rcond=None)[0]
+        pred = sc * (Y.T @ x) + off
+        ref.append(np.mean((pred[o] - d[o]) ** 2))
+    np.testing.assert_allclose(ds["complete_mse"].values, ref, rtol=1e-6)
+    assert np.all(ds["complete_mse"].values < 1.0)  # not the square of the mean (50 K)
+    # every plan's error is a fold-in from the plan's cells, also in data units
+    plan_cells = ds["greedy_route"].values[0, 0]
+    plan_cells = plan_cells[plan_cells >= 0]
+    checked = 0
+    for t, d in enumerate(test):
+        o = plan_cells[np.isfinite(d[plan_cells])]
+        got = float(ds["mse"].isel(method=0, budget=0, start=0, trial=0, test_time=t))
+        if o.size < 2:
+            assert np.isnan(got)
+            continue
+        obs_all = np.flatnonzero(np.isfinite(d))
+        pred = m.complete((o, d[o]))["prediction"]
+        pred = m.region_.stack(pred).astype(float)
+        if np.isnan(got):  # rank-deficient plan cells
+            continue
+        assert got == pytest.approx(np.mean((pred[obs_all] - d[obs_all]) ** 2), rel=1e-5)
+        checked += 1
+    assert checked >= 2
+
+
+def test_complete_pairs_edge_cases():
+    m = fit_model(small_field())
+    with pytest.raises(ModelError, match="singular"):
+        m.complete(([], []))  # no observation, no prior: a clear error, no IndexError
+    ds = m.complete(([], []), prior="empirical")  # the prior's map
+    mu, _ = m.latent_prior("empirical").predict()
+    np.testing.assert_allclose(m.region_.stack(ds["prediction"]), mu, rtol=1e-6)
+    assert ds.attrs["n_observations"] == 0
+    with pytest.raises(DataError, match="12.7"):
+        m.complete({12.7: 50.0, 3: 51.0, 9: 49.0})
+    with pytest.raises(DataError, match="12.7"):
+        m.complete(([12.7, 3, 9], [50.0, 51.0, 49.0]))
+    with pytest.raises(DataError, match="cells but"):
+        m.complete(([1, 3], [50.0]))
+    a = m.complete(([1, 3, 9, 4], [50.0, np.nan, 49.0, 52.0]))
+    b = m.complete(([1, 9, 4], [50.0, 49.0, 52.0]))
+    xr.testing.assert_identical(a, b)
+    assert a.attrs["n_observations"] == 3
+    # a repeated cell: two independent measurements (here equal to one with half the noise)
+    c = m.complete(([1, 1, 9, 4], [50.0, 50.0, 49.0, 52.0]))
+    assert c.attrs["n_observations"] == 4
+    assert np.all(m.region_.stack(c["std"]) <= m.region_.stack(b["std"]) + 1e-12)
+
+
+def test_plan_greedy_takes_the_posterior_as_prior():
+    from lrm_cvx.errors import PlanningError
+    from lrm_cvx.planning import plan_greedy
+
+    da = small_field(3)
+    m = fit_model(da, offset=True, noise="per-cell", spatial="exponential")
+    for crit, spatial in (("a-optimal", False), ("fisher", False), ("gp-variance", True)):
+        kw = m.planner_kwargs(spatial=spatial)
+        if not spatial:
+            kw = {k: v for k, v in kw.items() if k not in ("prior_cov", "spatial_cov")}
+        a = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion=crit, initial="start",
+                        progress=False, **kw)
+        b = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion=crit, initial="start",
+                        progress=False, prior=m.latent_prior("empirical", spatial=spatial))
+        assert a.cells.tolist() == b.cells.tolist()
+    # a posterior that already saw cells plans around them (it differs from the prior's plan)
+    post = m.latent_prior("empirical").update([5, 6, 12, 13], [50.0, 51.0, 52.0, 50.5])
+    c = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion="a-optimal", initial="start",
+                    progress=False, prior=post)
+    assert c.cells[0] == 5
+    with pytest.raises(PlanningError, match="either prior"):
+        plan_greedy(m.Y_, m.region_, 5, 6.0, criterion="a-optimal", progress=False,
+                    prior=post, noise_var=1.0)
+    with pytest.raises(PlanningError, match="LatentPosterior"):
+        plan_greedy(m.Y_, m.region_, 5, 6.0, progress=False, prior="empirical")

@@ -12,8 +12,8 @@ from lrm_cvx import Region
 from lrm_cvx.errors import ModelError, PlanningError
 from lrm_cvx.evaluation import evaluate
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.foldin import fold_in_posterior, shrink_noise
-from lrm_cvx.glrm.predictive import NOISE_PRIOR_DF, empirical_prior
+from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel, empirical_moments
+from lrm_cvx.glrm.predictive import NOISE_PRIOR_DF, shrink_noise
 from lrm_cvx.information import (
     AOptimalOracle,
     FisherOracle,
@@ -73,7 +73,9 @@ def test_offset_scale_are_observed_column_moments_and_fold_in_matches(data):
     np.testing.assert_allclose(m.scale_, np.nanstd(D, axis=0), rtol=1e-10)
     # the low-rank part was fitted to the standardised data
     Z = (D - m.offset_) / m.scale_
-    assert m.score(Z) < np.nanvar(Z)
+    R = (D - m.offset_ - m.scale_ * (m._Xv.T @ m._Yv)) / m.scale_
+    assert np.nanmean(R ** 2) < np.nanvar(Z)
+    assert m.score(D) == pytest.approx(np.nanmean((m.scale_ * R) ** 2), rel=1e-6)  # data units
     cells, vals = snapshot_obs(m)
     ds = m.complete((cells, vals))
     Y = m._Yv
@@ -140,7 +142,7 @@ def gaussian_conditional(mu, K, obs, d, noise):
 
 def test_empirical_prior_fold_in_equals_gaussian_posterior(data):
     m = fit(data)
-    m0, P0, S0 = empirical_prior(m)
+    m0, S0 = empirical_moments(m._Xv)
     np.testing.assert_allclose(m0, m._Xv.mean(1))
     np.testing.assert_allclose(S0, np.cov(m._Xv), rtol=1e-6)
     cells, vals = snapshot_obs(m, n=4)  # fewer than... fine with a prior, even below rank
@@ -162,7 +164,9 @@ def test_fold_in_posterior_low_level():
     nv = rng.uniform(0.5, 2, size=20)
     P0 = np.eye(3) * 0.7
     m0 = np.array([1.0, -1.0, 0.5])
-    x, cov = fold_in_posterior(Y, cells, d, noise_var=nv, prior_mean=m0, prior_precision=P0)
+    obs = ObservationModel(Y, noise_var=nv)
+    post = LatentPosterior.from_moments(obs, m0, precision=P0).update(cells, d)
+    x, cov = post.mean, post.cov
     W = np.diag(1 / nv[cells])
     A = Y[:, cells] @ W @ Y[:, cells].T + P0
     np.testing.assert_allclose(cov, np.linalg.inv(A), rtol=1e-10)
@@ -176,7 +180,7 @@ def test_spatial_complete_equals_gp_conditional(data):
     assert isinstance(cov, ResidualCovariance) and cov.range > 0
     cells, vals = snapshot_obs(m, n=12)
     Y = m._Yv
-    m0, _, S0 = empirical_prior(m)
+    m0, S0 = empirical_moments(m._Xv)
     g = m.region_.grid_index.astype(float)
     K = Y.T @ S0 @ Y + cov.covariance(cdist(g, g), nugget=False)
     mean, std = gaussian_conditional(Y.T @ m0, K, cells, vals - m.offset_[cells],

@@ -1,15 +1,18 @@
 """Generalized low rank models: ``D (T x L) ~ X^T Y`` fitted on the observed entries.
 
-``GLRM`` is the estimator; ``fold_in`` is the low-level region completion used by the planner's
-evaluation; losses and regularisers are small classes (see :mod:`.losses`, :mod:`.regularizers`).
+``GLRM`` is the estimator; :class:`~.posterior.LatentPosterior` is the fold-in's Gaussian belief
+(every completion, the planner's prior, the monitoring filter); ``fold_in`` is its thin wrapper on
+a bare factor matrix; losses and regularisers are small classes (see :mod:`.losses`,
+:mod:`.regularizers`).
 """
 
 from __future__ import annotations
 
 from .fit import FitResult, fit_glrm
-from .foldin import fold_in, fold_in_many, mean_std
+from .foldin import fold_in, fold_in_many
 from .losses import Absolute, Huber, Loss, Quadratic, Quantile, get_loss
 from .model import GLRM
+from .posterior import LatentPosterior, ObservationModel
 from .regularizers import (
     L1,
     CvxpyRegularizer,
@@ -26,7 +29,8 @@ __all__ = [
     "FitResult",
     "fold_in",
     "fold_in_many",
-    "mean_std",
+    "LatentPosterior",
+    "ObservationModel",
     "Loss",
     "Quadratic",
     "Huber",

@@ -6,11 +6,14 @@ All opt-in; the paper's model is the default and untouched:
   cell's observed mean, ``scale_`` its observed std, or its RMS without ``offset``); predictions
   are mapped back, ``pred = scale_ * z + offset_``. The offset is known at fold-in.
 * ``noise="per-cell"``: ``noise_var_`` (fit units), each cell's training residual variance
-  shrunk towards the global one (:func:`~.foldin.shrink_noise`, ``NOISE_PRIOR_DF``
+  shrunk towards the global one (:func:`shrink_noise`, ``NOISE_PRIOR_DF``
   pseudo-observations), inflated by the same degrees-of-freedom factor as ``noise_std_``.
 * ``spatial``: a stationary covariance of the training residuals (``spatial_cov_``), for the
   low-rank trend + GP residual prediction (universal kriging with a Bayesian trend prior).
 * ``prior="empirical"`` at fold-in: ``x ~ N(mean(X), cov(X))`` over the training times.
+
+The fold-in itself (every option above) is :mod:`.posterior`; this module fits the options and
+saves them with the model.
 """
 
 from __future__ import annotations
@@ -18,22 +21,11 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import scipy.linalg
-from scipy.spatial.distance import cdist
 
 from ..errors import ModelError
-from .foldin import (
-    column_moments,
-    fold_in_posterior,
-    mean_std,
-    residual_moments,
-    residual_sample,
-    shrink_noise,
-    standardize,
-)
 
-__all__ = ["fit_predictive", "posterior_complete", "empirical_prior", "planner_terms",
-           "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS"]
+__all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
+           "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample"]
 
 NOISE_PRIOR_DF = 10.0  # pseudo-observations of the global variance in each per-cell estimate
 NOISE_MODELS = ("global", "per-cell")
@@ -92,155 +84,86 @@ def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage:
     return None
 
 
-def empirical_prior(model: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(mean (k,), precision (k, k), covariance (k, k))`` of the training columns of ``X``
-    (covariance with ddof 1, plus 1e-9 x its trace so it is invertible)."""
-    X = model._Xv
-    k, T = X.shape
-    if T < 2:
-        raise ModelError("prior='empirical' needs a model fitted on at least 2 times")
-    S0 = np.atleast_2d(np.cov(X))
-    S0 = S0 + 1e-9 * max(np.trace(S0), 1e-300) / k * np.eye(k)
-    P0 = np.linalg.inv(S0)
-    return X.mean(axis=1), 0.5 * (P0 + P0.T), S0
+# ---------------------------------------------------------------------------- predictive model
+# Helpers of GLRM(offset=, scale=, noise="per-cell", spatial=): column statistics of the
+# training data and of the training residuals, computed in blocks of cells so that no
+# full-size float64 temporary of a (T, L) matrix is ever made.
+_BLOCK = 1 << 16
 
 
-def _prior_terms(model: Any, prior: Any, ridge: float, sigma2: float):
-    if prior not in PRIORS:
-        raise ModelError(f"prior must be one of {PRIORS}, got {prior!r}")
-    k = model._Yv.shape[0]
-    if prior == "empirical":
-        m0, P0, _ = empirical_prior(model)
-        return m0, P0
-    if ridge > 0:  # the paper's ridge, i.e. the prior N(0, sigma^2 / ridge I)
-        return np.zeros(k), (ridge / sigma2) * np.eye(k)
-    return None, None
+def column_moments(D: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-cell observed mean, standard deviation (ddof 0) and count of ``D (T, L)`` under
+    the mask ``M``; cells without observations get mean 0 and std 1."""
+    T, L = D.shape
+    mean = np.zeros(L)
+    std = np.ones(L)
+    count = np.zeros(L, dtype=np.int64)
+    for lo in range(0, L, _BLOCK):
+        sl = slice(lo, min(L, lo + _BLOCK))
+        m = M[:, sl]
+        d = np.where(m, D[:, sl], 0.0).astype(np.float64)
+        n = m.sum(axis=0)
+        mu = d.sum(axis=0) / np.maximum(n, 1)
+        var = (np.where(m, d - mu, 0.0) ** 2).sum(axis=0) / np.maximum(n, 1)
+        mean[sl] = mu
+        sd = np.sqrt(var)
+        std[sl] = np.where((n > 0) & (sd > 0), sd, 1.0)
+        count[sl] = n
+    return mean, std, count
 
 
-def _noise(model: Any) -> Any:
-    nv = getattr(model, "noise_var_", None)
-    return nv if nv is not None else max(model.noise_std_, 1e-300) ** 2
-
-
-def posterior_complete(model: Any, V: np.ndarray, *, ridge: float = 0.0, prior: Any = None,
-                       spatial: bool = False):
-    """Predict snapshots ``V (n, L)`` (NaN = not observed) with the predictive options.
-
-    Returns ``pred (n, L)``, ``std (n, L)`` (posterior std of the latent value, data units),
-    ``x (n, k)`` and the observation counts ``(n,)``.
-    """
-    Y = model._Yv
-    k, L = Y.shape
-    off = getattr(model, "offset_", None)
-    sc = getattr(model, "scale_", None)
-    Z = V
-    if off is not None:
-        Z = Z - off
-    if sc is not None:
-        Z = Z / sc
-    if spatial:
-        cov = getattr(model, "spatial_cov_", None)
-        if cov is None:
-            raise ModelError("spatial=True needs a model fitted with spatial='exponential' "
-                             "(or another covariance model)")
-        sigma2 = cov.total_variance
-    else:
-        sigma2 = model.noise_std_ ** 2
-    m0, P0 = _prior_terms(model, prior, ridge, max(sigma2, 1e-300))
-    n = V.shape[0]
-    pred = np.empty((n, L))
-    std = np.empty((n, L))
-    xs = np.empty((n, k))
-    counts = np.zeros(n, dtype=np.int64)
-    for t in range(n):  # loop over snapshots (few), never over cells
-        obs = np.flatnonzero(np.isfinite(Z[t]))
-        if np.any(np.isinf(V[t, obs])):
-            raise ModelError("observed values must be finite")
-        counts[t] = obs.size
-        if spatial:
-            pred[t], var, xs[t] = _spatial_one(model, Y, obs, Z[t, obs], m0, P0)
-        else:
-            x, cx = fold_in_posterior(Y, obs, Z[t, obs], noise_var=_noise(model),
-                                      prior_mean=m0, prior_precision=P0)
-            xs[t] = x
-            pred[t] = Y.T @ x
-            var = mean_std(Y, cx) ** 2
-        std[t] = np.sqrt(np.maximum(var, 0.0))
-    if sc is not None:
-        pred *= sc
-        std *= sc
-    if off is not None:
-        pred += off
-    return pred, std, xs, counts
-
-
-def _spatial_one(model, Y, obs, d, m0, P0):
-    """Universal kriging with a Bayesian trend prior: GLS posterior of ``x`` under
-    ``C = K_SS + nugget I`` and the prior, then simple kriging of ``d - Y_S^T x`` with the
-    trend-uncertainty term. Equals the GP conditional of ``Y^T x + r`` with
-    ``x ~ N(m0, P0^-1)``, ``r ~ GP(cov)`` (tested by brute force)."""
-    from .. import spatial as sp
-
-    cov = model.spatial_cov_
-    region = model.region_
-    k = Y.shape[0]
-    Ys = Y[:, obs]
-    xyz = sp._coords(region, cov.metric, obs)
-    C = cov.covariance(sp._arc(cdist(xyz, xyz), cov.metric))
-    np.fill_diagonal(C, cov.total_variance)
-    Lc = sp._cholesky(C, cov.total_variance, "observation")
-    Ws = scipy.linalg.solve_triangular(Lc, Ys.T, lower=True)
-    zs = scipy.linalg.solve_triangular(Lc, d, lower=True)
-    A = Ws.T @ Ws
-    b = Ws.T @ zs
-    if P0 is not None:
-        A = A + P0
-        b = b + P0 @ m0
-    ev = np.linalg.eigvalsh(A)
-    if ev[0] <= 1e-12 * max(ev[-1], 1e-300):
-        raise ModelError(f"{obs.size} observations do not determine the rank-{k} trend: "
-                         "observe more cells or use prior='empirical'")
-    cov_x = np.linalg.inv(A)
-    cov_x = 0.5 * (cov_x + cov_x.T)
-    x = cov_x @ b
-    res = d - Ys.T @ x
-    meth = "direct" if obs.size <= sp._MAX_DIRECT else "neighbors"
-    mu, var = sp._krige_core(
-        cov, xyz, res[:, None], sp._coords(region, cov.metric, None), method=meth,
-        neighbors=32, cutoff=1e-6, want_var=True, Ys=Ys, Yt=lambda sel: Y[:, sel], cov_x=cov_x)
-    return Y.T @ x + mu[0], var, x
-
-
-def planner_terms(model: Any, prior: Any = "empirical", spatial: bool = False) -> dict:
-    """Keyword arguments of :func:`~lrm_cvx.planning.plan_greedy` that make its criterion
-    match this model's prediction: ``prior_precision``, ``noise_var`` (fit units),
-    ``target_weights`` (``scale_^2``: variance in data units), and, with ``spatial``,
-    ``prior_cov`` and ``spatial_cov`` for the ``"gp-variance"`` criterion."""
-    if spatial:
-        cov = getattr(model, "spatial_cov_", None)
-        if cov is None:
-            raise ModelError("spatial=True needs a model fitted with spatial=...")
-        sigma2 = cov.total_variance
-    else:
-        sigma2 = model.noise_std_ ** 2
-    out: dict[str, Any] = {}
-    if prior == "empirical":
-        _, P0, S0 = empirical_prior(model)
-    elif prior is None:
-        S0 = None
-        P0 = None
-    else:
-        raise ModelError(f"prior must be one of {PRIORS}, got {prior!r}")
-    out["prior_precision"] = P0
-    out["noise_var"] = _noise(model) if not spatial else sigma2
-    sc = getattr(model, "scale_", None)
-    out["target_weights"] = None if sc is None else sc ** 2
-    if spatial:
-        if S0 is None:
-            raise ModelError("the gp-variance criterion needs prior='empirical'")
-        out["prior_cov"] = S0
-        out["spatial_cov"] = model.spatial_cov_
+def standardize(D: np.ndarray, M: np.ndarray, offset: np.ndarray | None,
+                scale: np.ndarray | None) -> np.ndarray:
+    """``(D - offset) / scale`` on the observed entries (0 elsewhere), a new array of D's float
+    dtype (float32 stays float32)."""
+    dtype = D.dtype if D.dtype in (np.float32, np.float64) else np.float64
+    out = np.zeros(D.shape, dtype=dtype)
+    L = D.shape[1]
+    for lo in range(0, L, _BLOCK):
+        sl = slice(lo, min(L, lo + _BLOCK))
+        d = D[:, sl].astype(np.float64)
+        if offset is not None:
+            d = d - offset[sl]
+        if scale is not None:
+            d = d / scale[sl]
+        out[:, sl] = np.where(M[:, sl], d, 0.0)
     return out
+
+
+def residual_moments(D: np.ndarray, M: np.ndarray, X: np.ndarray,
+                     Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-cell sum of squared training residuals ``sum_t (D_tj - x_t^T y_j)^2`` over the
+    observed entries and their count, ``(L,)`` each."""
+    T, L = D.shape
+    sse = np.zeros(L)
+    count = np.zeros(L, dtype=np.int64)
+    for lo in range(0, L, _BLOCK):
+        sl = slice(lo, min(L, lo + _BLOCK))
+        m = M[:, sl]
+        r = np.where(m, D[:, sl] - X.T @ Y[:, sl], 0.0)
+        sse[sl] = (r * r).sum(axis=0)
+        count[sl] = m.sum(axis=0)
+    return sse, count
+
+
+def shrink_noise(sse: np.ndarray, count: np.ndarray, global_var: float,
+                 prior_df: float) -> np.ndarray:
+    """Per-cell noise variance shrunk towards the global one:
+    ``(sse_j + prior_df * global_var) / (count_j + prior_df)`` (the posterior mean of an
+    inverse-gamma prior worth ``prior_df`` pseudo-observations). Cells with few observations stay
+    near ``global_var``; cells never observed get it exactly."""
+    return (sse + prior_df * global_var) / (count + prior_df)
+
+
+def residual_sample(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray,
+                    max_times: int = 20) -> np.ndarray:
+    """Training residuals of at most ``max_times`` evenly spaced times, ``(t, L)`` float32 with
+    NaN where unobserved (for the variogram fit; bounded memory at millions of cells)."""
+    T = D.shape[0]
+    rows = np.unique(np.linspace(0, T - 1, min(T, max_times)).round().astype(np.int64))
+    R = (D[rows].astype(np.float64) - X[:, rows].T @ Y).astype(np.float32)
+    R[~M[rows]] = np.nan
+    return R
 
 
 class _PredictiveIO:
