@@ -270,7 +270,7 @@ def test_evaluate_failing_figure_writes_nothing(run, tmp_path, monkeypatch):
     code, _, err = run([*EVAL, "--out", str(out)])
     assert code == 2
     one_line_error(err, "evaluate", "cannot draw")
-    assert not out.exists() or list(out.iterdir()) == []
+    assert not out.exists()
 
 
 def test_evaluate_failing_last_write_writes_nothing(run, tmp_path, monkeypatch):
@@ -508,3 +508,115 @@ def test_subprocess_one_line_error_and_negative_start(files, inputs_unchanged, t
                          "4", "-o", str(route)], capture_output=True, text=True, timeout=300)
     assert ok.returncode == 0, ok.stderr
     assert json.loads(route.read_text())["type"] == "FeatureCollection"
+
+
+# ---------------------------------------------------------------------------- Python save functions
+def _plan(model_path):
+    from lrm_cvx.planning import plan_greedy
+
+    model = GLRM.load(model_path)
+    return plan_greedy(model.Y_, model.region_, (-25, -70), 4, progress=False)
+
+
+def _save_figure(path):
+    import matplotlib.pyplot as plt
+
+    from lrm_cvx.plots import save_figure
+
+    fig = plt.figure()
+    try:
+        save_figure(fig, path)
+    finally:
+        plt.close(fig)
+
+
+def _failing_replace(src, dst):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+
+
+@pytest.mark.parametrize("name, write", [
+    ("model.nc", lambda files, path: GLRM.load(files["model"]).save(path)),
+    ("route.csv", lambda files, path: _plan(files["model"]).to_csv(path)),
+    ("route.geojson", lambda files, path: _plan(files["model"]).to_geojson(path)),
+    ("fig", lambda files, path: _save_figure(path)),
+])
+def test_python_save_functions_are_atomic(files, inputs_unchanged, tmp_path, monkeypatch, name,
+                                          write):
+    """A full disk at the final rename: the old file stays, no temporary file is left."""
+    inputs_unchanged.watch(files["m"])
+    target = tmp_path / name
+    old = [target.with_suffix(s) for s in (".png", ".pdf")] if name == "fig" else [target]
+    for path in old:
+        path.write_text("old")
+    monkeypatch.setattr(os, "replace", _failing_replace)
+    with pytest.raises(OSError, match="No space"):
+        write(files, target)
+    assert all(p.read_text() == "old" for p in old)
+    assert leftovers(tmp_path) == []
+    monkeypatch.undo()
+    write(files, target)
+    assert all(p.read_bytes() != b"old" for p in old)
+
+
+def test_save_results_is_atomic(files, inputs_unchanged, tmp_path, monkeypatch):
+    from lrm_cvx.evaluation import evaluate, save_results
+
+    inputs_unchanged.watch(files["d"])
+    res = evaluate(_field(), rank=2, n_test=2, budgets=(3,), n_starts=1, random_trials=1,
+                   min_observations=1, certify=False, progress=False)
+    (tmp_path / "results.nc").write_text("old")
+    monkeypatch.setattr(os, "replace", _failing_replace)
+    with pytest.raises(OSError):
+        save_results(res, tmp_path)
+    assert (tmp_path / "results.nc").read_text() == "old"
+    assert leftovers(tmp_path) == []
+
+
+def test_atomic_outputs_is_all_or_nothing(tmp_path):
+    from lrm_cvx._validation import atomic_outputs
+
+    a, b = tmp_path / "a.txt", tmp_path / "new" / "deeper" / "b.txt"
+    a.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_outputs([a, b]) as (ta, tb):
+            ta.write_text("new a")
+            raise RuntimeError("second write failed")
+    assert a.read_text() == "old" and not (tmp_path / "new").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+    with atomic_outputs([a, b]) as (ta, tb):
+        ta.write_text("new a")
+        tb.write_text("b")
+    assert a.read_text() == "new a" and b.read_text() == "b"
+    mode = os.stat(b).st_mode & 0o777
+    umask = os.umask(0)
+    os.umask(umask)
+    assert mode == 0o666 & ~umask  # a normal file's permissions, not mkstemp's 0600
+
+
+def test_guard_outputs(tmp_path):
+    from lrm_cvx._validation import guard_outputs
+
+    src = tmp_path / "in.nc"
+    src.write_text("data")
+    with pytest.raises(FileExistsError, match="input file"):
+        guard_outputs([tmp_path / "x" / ".." / "in.nc"], [src], overwrite=True)
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        guard_outputs([src], [])
+    with pytest.raises(IsADirectoryError, match="folder"):
+        guard_outputs([tmp_path], [], overwrite=True)
+    assert guard_outputs([src], [], overwrite=True) == [src]
+    assert guard_outputs([tmp_path / "new.nc"], [src]) == [tmp_path / "new.nc"]
+    assert src.read_text() == "data"
+
+
+@pytest.mark.parametrize("argv, joined", [
+    (["plan", "m", "--start", "-10", "150"], ["plan", "m", "--start=-10,150"]),
+    (["plan", "m", "--start", "-10,150", "--budget", "5"],
+     ["plan", "m", "--start=-10,150", "--budget", "5"]),
+    (["--start", "-1e1", "-.5", "m"], ["--start=-1e1,-.5", "m"]),
+    (["--bbox", "-20", "-80,10", "-60", "f.nc"], ["--bbox=-20,-80,10,-60", "f.nc"]),
+    (["--start", "m.nc"], ["--start", "m.nc"]),
+    (["--", "--start", "-1", "2"], ["--", "--start", "-1", "2"]),
+])
+def test_join_coordinates(argv, joined):
+    assert cli._join_coordinates(argv) == joined

@@ -121,17 +121,26 @@ def atomic_outputs(
         if not overwrite and path.exists():
             raise FileExistsError(f"refusing to overwrite existing file {path}")
     tmps: list[Path] = []
+    created: list[Path] = []  # folders made here, removed again (when empty) on failure
+    done = False
     try:
         for path in targets:
+            missing = [d for d in (path.parent, *path.parent.parents) if not d.exists()]
             path.parent.mkdir(parents=True, exist_ok=True)
+            created += missing
             tmps.append(_temp_beside(path))
         yield list(tmps)
         for tmp, path in zip(tmps, targets):
             os.replace(tmp, path)
+        done = True
     finally:
         for tmp in tmps:
             if tmp.exists():
                 tmp.unlink()
+        if not done:
+            for folder in created:  # deepest first
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
