@@ -257,3 +257,20 @@ def test_numpy_input_counts_rows_as_steps(field):
     D = Region.from_dataarray(field).stack(field).astype(np.float64)
     model = _fit(D, temporal="ar1")
     assert model.dynamics_.time_kind == "numeric" and model.dynamics_.step == 1.0
+
+
+def test_transformed_dynamics_are_the_same_process():
+    rng = np.random.default_rng(3)
+    A = np.array([[0.8, 0.1], [0.0, 0.5]])
+    Q = np.array([[0.1, 0.02], [0.02, 0.05]])
+    dyn = Dynamics(kind="ar1", A=A, Q=Q, mean=np.array([1.0, 0.0]),
+                   initial_mean=np.array([0.5, 0.2]), initial_cov=0.01 * np.eye(2))
+    T = rng.normal(size=(2, 2)) + 2 * np.eye(2)
+    b = np.array([0.3, -0.1])
+    new = dyn.transformed(T, b)
+    A1, Q1, c1 = dyn.transition(2)
+    A2, Q2, c2 = new.transition(2)
+    x = rng.normal(size=2)
+    # the mean of the next-next state, mapped: T (A1 x + c1) + b == A2 (T x + b) + c2
+    np.testing.assert_allclose(T @ (A1 @ x + c1) + b, A2 @ (T @ x + b) + c2)
+    np.testing.assert_allclose(T @ Q1 @ T.T, Q2)

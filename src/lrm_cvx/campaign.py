@@ -30,6 +30,10 @@ _Z95 = 1.959963984540054  # central 95 %
 def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
     """``(dynamics, memoryless)``: the model's ``dynamics_`` when it is of kind ``temporal``,
     else estimated from ``X_`` (the model is not modified)."""
+    from .glrm.dynamics import Dynamics
+
+    if isinstance(temporal, Dynamics):
+        return temporal, False
     if temporal not in TEMPORAL:
         raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
     if temporal is None:
@@ -84,7 +88,8 @@ def simulate_campaign(
     ``"greedy:a-optimal"``, ``"greedy:gp-variance"`` plan with the filter's forecast as prior;
     ``"greedy"``, the transects and ``"random"`` ignore it). ``temporal``: None (memoryless),
     ``"ar1"`` or ``"seasonal"`` (the model's ``dynamics_`` when of that kind, else estimated
-    from ``X_``). ``replan=False`` plans once, on the first day, and flies that route every
+    from ``X_``), or a :class:`~lrm_cvx.glrm.dynamics.Dynamics` (e.g. the true dynamics of a
+    planted field, in the model's latent coordinates). ``replan=False`` plans once, on the first day, and flies that route every
     day. ``planner_options``: ``cost``, ``ridge``, ``criterion`` (for ``"greedy"``) and other
     :func:`~lrm_cvx.planning.plan_greedy` options. ``spatial``: use the model's spatial
     residual (None: when it has one).
@@ -172,6 +177,8 @@ def simulate_campaign(
     ds.attrs.update(method=method, temporal=str(temporal), replan=int(bool(replan)),
                     budget=budget, start=int(start_cell), seed=str(seed),
                     dynamics="memoryless" if memoryless else dynamics.kind)
+    if not isinstance(temporal, (str, type(None))):
+        ds.attrs["temporal"] = "given"
     return ds
 
 

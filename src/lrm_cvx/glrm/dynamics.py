@@ -183,6 +183,21 @@ class Dynamics:
         S = scipy.linalg.solve_discrete_lyapunov(self.A, self.Q)
         return 0.5 * (S + S.T)
 
+    def transformed(self, T: Any, shift: Any = None) -> Dynamics:
+        """The same dynamics for the latent vector ``x' = T x + shift`` (``T`` invertible
+        ``(k, k)``): ``A' = T A T^-1``, ``Q' = T Q T^T``, means ``T m + shift``. Maps planted
+        dynamics into a fitted model's latent coordinates (``Y_fit ~ T^-T Y_true``)."""
+        T = np.asarray(T, dtype=np.float64)
+        k = self.rank
+        if T.shape != (k, k):
+            raise ModelError(f"T must be ({k}, {k}), got {T.shape}")
+        Ti = np.linalg.inv(T)
+        b = np.zeros(k) if shift is None else np.asarray(shift, dtype=np.float64)
+        sm = None if self.season_means is None else self.season_means @ T.T + b
+        return replace(self, A=T @ self.A @ Ti, Q=T @ self.Q @ T.T, mean=T @ self.mean + b,
+                       initial_mean=T @ self.initial_mean + b,
+                       initial_cov=T @ self.initial_cov @ T.T, season_means=sm)
+
     def with_initial(self, mean: np.ndarray, cov: np.ndarray, time: Any = None) -> Dynamics:
         return replace(self, initial_mean=np.asarray(mean, float),
                        initial_cov=np.asarray(cov, float), time=time)
