@@ -433,3 +433,31 @@ def test_evaluate_bad_arguments(field, bad, error, match):
 def test_evaluate_random_trials_zero_is_fine_without_random(field):
     out = evaluate(field, **{**EV, "methods": ("greedy",), "random_trials": 0})
     assert out.sizes["trial"] == 1 and np.isfinite(out["mse"].values).any()
+
+
+def test_load_zero_noise_file_warns(saved, tmp_path, inputs_unchanged):
+    ds = saved[1].copy()
+    ds.attrs = {**ds.attrs, "noise_std": 0.0}
+    path = tmp_path / "zero.nc"
+    ds.to_netcdf(path)
+    inputs_unchanged.watch(path)
+    with pytest.warns(UserWarning, match="noise_std 0"):
+        GLRM.load(path)
+
+
+@pytest.mark.parametrize("model,match", [(GLRM(rank=2), "not fitted"), ("m.nc", "GLRM")])
+def test_evaluate_refuses_an_unfitted_or_foreign_model(field, model, match):
+    with pytest.raises(ModelError, match=match):
+        evaluate(field, model=model, **EV)
+
+
+def test_evaluate_warns_when_the_model_saw_the_test_times(field):
+    full = quiet_fit(GLRM(rank=2, max_iter=5, progress=False), field)
+    with pytest.warns(UserWarning, match="fitted on 3 of the 3 test times"):
+        evaluate(field, model=full, **{**EV, "methods": ("greedy",)})
+
+
+@pytest.mark.parametrize("tol", ["a", None, -1.0, np.nan])
+def test_fit_bad_tol(tol):
+    with pytest.raises(ModelError, match="tol"):
+        GLRM(rank=1, tol=tol, progress=False).fit(low_rank(5, 6, k=1))

@@ -102,7 +102,7 @@ class SnapshotStatistics:
             w *= np.square(scale)
         gram = np.einsum("kl,jl,tl->tkj", Y, Y, w, optimize=True)
         dw = d * w
-        return cls(values=values, gram=gram, cross=dw @ Y.T, sq=(dw * d).sum(axis=1),
+        return cls(values=values, gram=gram, cross=dw @ Y.T, sq=np.einsum("tl,tl->t", dw, d),
                    count=observed.sum(axis=1))
 
     def mse(self, t: int, x: np.ndarray) -> float:
@@ -321,6 +321,25 @@ def _time_ordered(data: xr.DataArray) -> xr.DataArray:
     return data
 
 
+def _check_given_model(model: Any, test: xr.DataArray) -> None:
+    """A fitted GLRM with a region (ModelError otherwise); UserWarning when it was fitted on
+    any of the test times (its errors would be scored on training data)."""
+    from .glrm import GLRM
+
+    if not isinstance(model, GLRM):
+        raise ModelError(f"model must be a fitted GLRM, got {type(model).__name__}")
+    if not hasattr(model, "X_"):
+        raise ModelError("model is not fitted yet: call model.fit(train) first, or pass "
+                         "model=None to fit on all but the last n_test times")
+    X = model.X_
+    if isinstance(X, xr.DataArray) and "time" in test.coords and X.dims[1] in X.coords:
+        seen = np.intersect1d(np.asarray(X[X.dims[1]].values), np.asarray(test["time"].values))
+        if seen.size:
+            warnings.warn(f"model was fitted on {seen.size} of the {test.sizes['time']} test "
+                          "times: their errors are training errors, not predictions",
+                          UserWarning, stacklevel=3)
+
+
 def evaluate(
     data: xr.DataArray,
     *,
@@ -438,6 +457,8 @@ def evaluate(
     if not 0 < n_test < data.sizes["time"]:
         raise DataError(f"n_test must be in [1, {data.sizes['time'] - 1}], got {n_test}")
     train, test = data.isel(time=slice(None, -n_test)), data.isel(time=slice(-n_test, None))
+    if model is not None:
+        _check_given_model(model, test)
     if model is None:
         model = GLRM(rank=rank, random_state=seed, progress=progress,
                      **model_params).fit(train)

@@ -661,8 +661,10 @@ def fit_glrm(
         raise ModelError(f"solver must be 'auto', 'fast' or 'cvxpy', got {solver!r}")
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
         raise ModelError(f"max_iter must be an integer >= 0, got {max_iter!r}")
-    if not np.isfinite(tol) or tol < 0:
-        raise ModelError(f"tol must be >= 0, got {tol!r}")
+    if (isinstance(tol, (bool, np.bool_)) or not isinstance(tol, (int, float, np.integer,
+                                                                   np.floating))
+            or not np.isfinite(tol) or tol < 0):
+        raise ModelError(f"tol must be a finite number >= 0, got {tol!r}")
     if getattr(stats, "colsum", None) is None:
         stats = check_data(D, M, rank, offset=offset)
     rows, cols = stats

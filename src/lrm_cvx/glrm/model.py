@@ -827,6 +827,10 @@ def _read_model_file(path: str | os.PathLike) -> tuple[xr.Dataset, dict]:
     if not np.isfinite(noise) or noise < 0:
         raise DataError(f"model file {name} has noise_std {noise}, expected a finite number "
                         ">= 0")
+    if noise == 0:
+        warnings.warn(f"model file {name} has noise_std 0: the noise was not identifiable at "
+                      "its rank (fitted by an older lrm-cvx?), so every std map is 0; refit "
+                      "with a lower rank", UserWarning, stacklevel=3)
     if int(ds.attrs.get("has_region", 0)):
         if "region_mask" not in ds.variables:
             raise DataError(f"model file {name} is missing the variable(s) ['region_mask']")
