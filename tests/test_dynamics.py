@@ -274,3 +274,55 @@ def test_transformed_dynamics_are_the_same_process():
     # the mean of the next-next state, mapped: T (A1 x + c1) + b == A2 (T x + b) + c2
     np.testing.assert_allclose(T @ (A1 @ x + c1) + b, A2 @ (T @ x + b) + c2)
     np.testing.assert_allclose(T @ Q1 @ T.T, Q2)
+
+
+# ----------------------------------------------------------------------------- the generator
+def test_synthetic_dynamic_field_plants_its_truth():
+    da, truth = synthetic_dynamic_field(50, (6, 7), 3, seed=0, noise=0.0, missing=0.0,
+                                        return_truth=True)
+    X, Y = truth["X"], truth["Y"]
+    np.testing.assert_allclose(X, truth["mu"][:, None] + truth["seasonal"] + truth["Z"])
+    land = truth["land_mask"]
+    expected = np.clip(np.einsum("kt,kyx->tyx", X, Y), -1, 1)
+    np.testing.assert_allclose(da.values[:, land], expected[:, land], atol=1e-5)
+    assert np.all(np.isnan(da.values[:, ~land]))
+    # the AR part follows its recursion up to the innovations, whose covariance is Q
+    W = truth["Z"][:, 1:] - truth["A"] @ truth["Z"][:, :-1]
+    assert W.shape == (3, 49)
+    assert np.max(np.abs(np.linalg.eigvals(truth["A"]))) < 1
+    np.testing.assert_allclose(truth["Q"], 0.1 * (np.eye(3) - truth["A"] @ truth["A"].T))
+    again = synthetic_dynamic_field(50, (6, 7), 3, seed=0, noise=0.0, missing=0.0)
+    xr.testing.assert_identical(da, again)
+
+
+def test_synthetic_dynamic_field_monthly_and_given_matrices():
+    A = np.diag([0.5, 0.9])
+    Q = np.diag([0.01, 0.02])
+    da, truth = synthetic_dynamic_field(24, (4, 5), 2, A=A, Q=Q, seasonal_period=12,
+                                        freq="MS", seed=1, return_truth=True)
+    assert pd.Timestamp(da.time.values[1]) == pd.Timestamp("2013-02-01")
+    np.testing.assert_array_equal(truth["A"], A)
+    np.testing.assert_allclose(truth["seasonal"][:, :12], truth["seasonal"][:, 12:])
+    assert np.all(truth["seasonal"][0] == 0)  # the level mode has no season
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"A": np.eye(2) * 1.2}, "stable"),
+    ({"A": np.eye(3)}, "A must be"),
+    ({"Q": -np.eye(2)}, "semi-definite"),
+    ({"freq": "W"}, "freq"),
+    ({"seasonal_period": 1}, "seasonal_period"),
+])
+def test_synthetic_dynamic_field_bad_input(kw, match):
+    with pytest.raises(DataError, match=match):
+        synthetic_dynamic_field(10, (3, 3), 2, **kw)
+
+
+def test_synthetic_field_default_is_unchanged_by_time_factors():
+    from lrm_cvx.io.samples import synthetic_field
+
+    da, truth = synthetic_field(12, (5, 6), 2, seed=3, return_truth=True)
+    same = synthetic_field(12, (5, 6), 2, seed=3, time_factors=None)
+    xr.testing.assert_identical(da, same)
+    with pytest.raises(DataError, match="time_factors"):
+        synthetic_field(12, (5, 6), 2, seed=3, time_factors=np.zeros((2, 11)))

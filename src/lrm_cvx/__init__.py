@@ -37,6 +37,10 @@ _LAZY = {
     "dopt_upper_bound": "lrm_cvx.planning.bound",
     "evaluate": "lrm_cvx.evaluation",
     "summary": "lrm_cvx.evaluation",
+    "MonitorState": "lrm_cvx.monitor",
+    "simulate_campaign": "lrm_cvx.campaign",
+    "Dynamics": "lrm_cvx.glrm.dynamics",
+    "synthetic_dynamic_field": "lrm_cvx.io.samples",
 }
 
 __all__ = ["Region", "errors", "__version__", *_LAZY]
