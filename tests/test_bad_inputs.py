@@ -9,8 +9,8 @@ checked too. Data lie in the southern and western hemispheres so every coordinat
 from __future__ import annotations
 
 import errno
-import os
 import json
+import os
 import subprocess
 import sys
 from importlib import resources
@@ -99,7 +99,7 @@ def leftovers(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
 
 
-# ---------------------------------------------------------------------------- never write onto an input
+# ------------------------------------------------------------------ never write onto an input
 REFUSE_INPUT = [
     # the three data-loss cases
     (["fit", "{d}/*.nc", "--var", "sst", "--rank", "2", "-o", "{d}/a.nc"], "fit"),
@@ -389,7 +389,7 @@ def test_help_exits_0(run):
     assert code == 0 and "--recommended" in out and "--overwrite" in out
 
 
-# ---------------------------------------------------------------------------- library errors, one line
+# ------------------------------------------------------------------ library errors, one line
 @pytest.mark.parametrize("argv, cmd, needle", [
     (["plan", "{model}", "--start", "-25,-70", "--budget", "-1"], "plan", "budget"),
     (["plan", "{noregion}", "--start", "-25,-70", "--budget", "4"], "plan", "no region"),
@@ -462,7 +462,7 @@ def test_empty_data_file(run, tmp_path, inputs_unchanged):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.nc"]
 
 
-# ---------------------------------------------------------------------------- unexpected errors, --debug
+# ------------------------------------------------------------------ unexpected errors, --debug
 def test_unexpected_error_is_one_line_and_debug_shows_traceback(run, monkeypatch, tmp_path):
     def bug(self, *a, **k):
         raise ZeroDivisionError("a bug")

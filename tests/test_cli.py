@@ -1,5 +1,6 @@
 """The lrm-cvx command line: each command end to end on small files, and its error contract."""
 
+import argparse
 import json
 
 import numpy as np
@@ -7,8 +8,17 @@ import pandas as pd
 import pytest
 import xarray as xr
 
+from lrm_cvx import cli
 from lrm_cvx.cli import main
+from lrm_cvx.cost import COSTS
+from lrm_cvx.datasets import load_sample
+from lrm_cvx.evaluation import METHODS, evaluate
 from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm.losses import LOSSES
+from lrm_cvx.glrm.predictive import PRIORS
+from lrm_cvx.information import CRITERIA
+from lrm_cvx.planning import plan_greedy
+from lrm_cvx.spatial import MODELS
 
 
 @pytest.fixture(scope="module")
@@ -126,19 +136,7 @@ def test_demo_runs(tmp_path, capsys):
     assert str(out.resolve()) in capsys.readouterr().out
 
 
-# ---------------------------------------------------------------------------- parity with the Python API
-import argparse  # noqa: E402
-
-from lrm_cvx import cli  # noqa: E402
-from lrm_cvx.cost import COSTS  # noqa: E402
-from lrm_cvx.datasets import load_sample  # noqa: E402
-from lrm_cvx.evaluation import METHODS, evaluate  # noqa: E402
-from lrm_cvx.glrm.losses import LOSSES  # noqa: E402
-from lrm_cvx.glrm.predictive import PRIORS  # noqa: E402
-from lrm_cvx.information import CRITERIA  # noqa: E402
-from lrm_cvx.planning import plan_greedy  # noqa: E402
-from lrm_cvx.spatial import MODELS  # noqa: E402
-
+# ------------------------------------------------------------------ parity with the Python API
 TINY = ["--rank", "3", "--n-test", "2", "--starts", "1", "--random-trials", "1",
         "--budgets", "5,10", "--min-observations", "1"]
 

@@ -130,7 +130,7 @@ def atomic_outputs(
             created += missing
             tmps.append(_temp_beside(path))
         yield list(tmps)
-        for tmp, path in zip(tmps, targets):
+        for tmp, path in zip(tmps, targets, strict=True):
             os.replace(tmp, path)
         done = True
     finally:

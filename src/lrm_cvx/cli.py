@@ -411,7 +411,7 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
         with atomic_outputs(targets, overwrite=overwrite) as tmps:
             results.to_netcdf(tmps[0], engine="netcdf4")
             table.to_csv(tmps[1], index=False)
-            for tmp, target in zip(tmps[2:], targets[2:]):
+            for tmp, target in zip(tmps[2:], targets[2:], strict=True):
                 figures[target.stem].savefig(tmp, format=target.suffix[1:], bbox_inches="tight")
     finally:
         for fig in figures.values():
@@ -555,10 +555,10 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .cost import COSTS
     from .evaluation import GREEDY_VARIANTS, METHODS
     from .glrm.losses import LOSSES
     from .information import CRITERIA
-    from .cost import COSTS
 
     parser = _Parser(
         prog="lrm-cvx",
