@@ -297,8 +297,8 @@ def cmd_bound(args: argparse.Namespace) -> int:
     print(f"greedy plan: {_describe_plan(plan)}")
     print(f"certified upper bound on the {bounded} criterion of any feasible plan: "
           f"{cert.bound:.4f}{' nats' if bounded == 'fisher' else ''}")
-    if plan.criterion != bounded or cert.gap is None:
-        print(f"optimality gap: not reported (the plan maximised {plan.criterion}, the "
+    if not cert.comparable or cert.gap is None:
+        print(f"optimality gap: not reported (the plan maximised {cert.plan_criterion}, the "
               f"certificate bounds {bounded})")
     else:
         print(f"optimality gap: {cert.gap:.4f} nats (volume ratio per dimension "
@@ -384,7 +384,7 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     if not 0 < n_test < n_time:
         raise UsageError(f"--n-test must be in [1, {n_time - 1}] (the data have {n_time} "
                          f"snapshots), got {n_test}")
-    methods = tuple(methods or METHODS)
+    methods = tuple(methods or tuple(METHODS))
     model_params = {k: v for k, v in (model_params or {}).items() if v not in (None, False)}
     fold_in = dict(fold_in or {})
     model = GLRM(rank=rank, random_state=seed, progress=progress, **model_params).fit(
@@ -435,10 +435,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise UsageError(f"--budgets must be numbers >= 0, got {args.budgets!r}")
     if args.methods is not None:
         methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-        bad = [m for m in methods if m not in METHODS + GREEDY_VARIANTS]
+        bad = [m for m in methods if m not in (*METHODS, *GREEDY_VARIANTS)]
         if bad or not methods:
             raise UsageError(f"--methods: unknown method {bad[0] if bad else args.methods!r}; "
-                             f"choose from {', '.join(METHODS + GREEDY_VARIANTS)}")
+                             f"choose from {', '.join((*METHODS, *GREEDY_VARIANTS))}")
     elif args.recommended:
         methods = (RECOMMENDED["method"], *METHODS)
     else:
@@ -519,10 +519,15 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--offset", action="store_true", help="fit a per-cell mean (offset)")
     p.add_argument("--scale", action="store_true", help="fit a per-cell scale")
-    p.add_argument("--noise", choices=NOISE_MODELS, default=NOISE_MODELS[0],
+    p.add_argument("--noise", choices=list(NOISE_MODELS), default=_first(NOISE_MODELS),
                    help="noise model (default: %(default)s)")
-    p.add_argument("--spatial", choices=MODELS, default=None, metavar="KERNEL",
+    p.add_argument("--spatial", choices=list(MODELS), default=None, metavar="KERNEL",
                    help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)})")
+
+
+def _first(names):
+    """The default of a library name list (tuple or registry): its first entry."""
+    return next(iter(names))
 
 
 def _prior_choices() -> list[str]:
@@ -539,9 +544,9 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", required=True,
                    help="start location LAT,LON or LAT LON in degrees (e.g. --start -10 150)")
     p.add_argument("--budget", required=True, type=_number, help="path budget in grid cells")
-    p.add_argument("--criterion", choices=CRITERIA, default=None,
+    p.add_argument("--criterion", choices=list(CRITERIA), default=None,
                    help="planning criterion (default fisher; gp-variance with --recommended)")
-    p.add_argument("--cost", default=COSTS[0], choices=COSTS,
+    p.add_argument("--cost", default=_first(COSTS), choices=list(COSTS),
                    help="path cost (default: %(default)s)")
     p.add_argument("--ridge", type=_number, default=0.0, help="ridge added to the information")
     p.add_argument("--prior", choices=_prior_choices(), default=None,
@@ -572,7 +577,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("fit", help="fit a GLRM to gridded snapshots")
     _add_data(p)
     p.add_argument("--rank", type=_int_at_least(1), default=5)
-    p.add_argument("--loss", default="quadratic", choices=sorted(LOSSES))
+    p.add_argument("--loss", default="quadratic", choices=LOSSES)
     p.add_argument("--max-iter", type=_int_at_least(1), default=100)
     p.add_argument("--tol", type=_number, default=1e-4)
     p.add_argument("--seed", type=_int_at_least(0), default=0)
@@ -622,9 +627,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", default=None,
                    help="comma-separated methods (default: the paper's "
                    f"{','.join(METHODS)}); also {', '.join(GREEDY_VARIANTS)}")
-    p.add_argument("--criterion", default=CRITERIA[0], choices=CRITERIA,
+    p.add_argument("--criterion", default=_first(CRITERIA), choices=list(CRITERIA),
                    help="criterion of the 'greedy' method (default: %(default)s)")
-    p.add_argument("--cost", default=COSTS[0], choices=COSTS,
+    p.add_argument("--cost", default=_first(COSTS), choices=list(COSTS),
                    help="path cost of the greedy (default: %(default)s)")
     p.add_argument("--ridge", type=_number, default=0.0, help="the planners' information ridge")
     p.add_argument("--fold-ridge", type=_number, default=0.0, help="the fold-in's ridge")
