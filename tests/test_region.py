@@ -355,7 +355,7 @@ def test_resolve_cell_is_the_brute_force_great_circle_nearest(case):
                                                 dims=("lat", "lon"),
                                                 coords={"lat": lat, "lon": lon}))
     cells = np.atleast_1d(region.cell_of(qlat, qlon))
-    for c, la, lo in zip(cells, qlat, qlon):
+    for c, la, lo in zip(cells, qlat, qlon, strict=True):
         _, dref = brute_nearest(region, la, lo)
         assert gc_dist_of_cell(region, c, la, lo) <= dref * (1 + 1e-12) + 1e-9
         assert region.resolve_cell((la, lo)) == c

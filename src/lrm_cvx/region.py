@@ -303,7 +303,8 @@ class Region:
             lat_a, lon_a = np.broadcast_arrays(np.asarray(lat, dtype=np.float64),
                                                np.asarray(lon, dtype=np.float64))
         except (TypeError, ValueError) as exc:
-            raise RegionError(f"lat and lon must be numbers or arrays of one shape: {exc}") from None
+            raise RegionError(
+                f"lat and lon must be numbers or arrays of one shape: {exc}") from None
         for what, values in (("lat", lat_a), ("lon", lon_a)):
             if not np.all(np.isfinite(values)):
                 bad = np.ravel(values)[np.flatnonzero(~np.isfinite(np.ravel(values)))[0]]
@@ -443,7 +444,7 @@ class Region:
 
 
 def check_bbox(bbox: Any, error: type[Exception] = RegionError) -> BBox:
-    """``bbox`` as four finite floats ``(south, west, north, east)``, else ``error`` naming the bound.
+    """``bbox`` as four finite floats ``(south, west, north, east)``; else ``error`` naming a bound.
 
     Latitudes must lie in [-90, 90] with ``south <= north``; longitudes may use either the
     -180..180 or the 0..360 convention, and ``west > east`` means the box crosses the

@@ -96,8 +96,9 @@ def _normalise(da: xr.DataArray, source: str, bbox: Sequence[float] | None, *,
                         f"{' inside bbox ' + str(tuple(bbox)) if bbox is not None else ''})")
     if not finite.all():
         dropped = da["time"].values[~finite] if "time" in da.coords else np.flatnonzero(~finite)
+        more = " ..." if dropped.size > 5 else ""
         warnings.warn(f"{source}: dropped {int((~finite).sum())} all-NaN snapshot(s) "
-                      f"(time {', '.join(map(str, dropped[:5]))}{' ...' if dropped.size > 5 else ''})",
+                      f"(time {', '.join(map(str, dropped[:5]))}{more})",
                       UserWarning, stacklevel=3)
         da = da.isel(time=np.flatnonzero(finite))
     return da

@@ -32,8 +32,8 @@ import pandas as pd
 import xarray as xr
 
 from .._validation import atomic_output, check_positive
-from ..region import check_bbox
 from ..errors import DataError, RegionError
+from ..region import check_bbox
 
 __all__ = [
     "open_image_stack",
