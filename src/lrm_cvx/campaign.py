@@ -89,10 +89,10 @@ def simulate_campaign(
     ``"greedy"``, the transects and ``"random"`` ignore it). ``temporal``: None (memoryless),
     ``"ar1"`` or ``"seasonal"`` (the model's ``dynamics_`` when of that kind, else estimated
     from ``X_``), or a :class:`~lrm_cvx.glrm.dynamics.Dynamics` (e.g. the true dynamics of a
-    planted field, in the model's latent coordinates). ``replan=False`` plans once, on the first day, and flies that route every
-    day. ``planner_options``: ``cost``, ``ridge``, ``criterion`` (for ``"greedy"``) and other
-    :func:`~lrm_cvx.planning.plan_greedy` options. ``spatial``: use the model's spatial
-    residual (None: when it has one).
+    planted field, in the model's latent coordinates). ``replan=False`` plans once, on the
+    first day, and flies that route every day. ``planner_options``: ``cost``, ``ridge``,
+    ``criterion`` (for ``"greedy"``) and other :func:`~lrm_cvx.planning.plan_greedy`
+    options. ``spatial``: use the model's spatial residual (None: when it has one).
 
     Each day: forecast, plan, observe the true snapshot at the plan's cells (cells it lacks
     give no observation), assimilate, predict. Returns a Dataset over ``time`` with ``mse``

@@ -56,7 +56,7 @@ def time_numbers(times: Any, name: str = "time") -> tuple[np.ndarray, str, str |
         t0 = values[0]
         t = np.array([(v - t0).total_seconds() / 86400.0 for v in values])  # few times only
         return t, "cftime", str(t0.calendar)
-    if np.issubdtype(values.dtype, np.number) and not np.issubdtype(values.dtype, np.complexfloating):
+    if np.issubdtype(values.dtype, np.integer) or np.issubdtype(values.dtype, np.floating):
         t = values.astype(np.float64)
         if not np.all(np.isfinite(t)):
             raise DataError(f"{name} has missing or non-finite entries")

@@ -20,9 +20,9 @@ from .._validation import as_generator, atomic_output, check_positive
 from ..errors import DataError, ModelError, NotFittedError
 from ..region import Region
 from . import kernels as K
-from .fit import FitResult, check_data, fit_glrm
-from .dynamics import Dynamics, TEMPORAL
+from .dynamics import TEMPORAL, Dynamics
 from .dynamics import estimate as estimate_dynamics
+from .fit import FitResult, check_data, fit_glrm
 from .losses import get_loss
 from .posterior import LatentPosterior, fold_in_snapshots, model_prior
 from .predictive import PREDICTIVE_ATTRS, fit_predictive
@@ -466,8 +466,10 @@ class GLRM:
 
     def monitor(self, time: Any = None, **options: Any) -> Any:
         """A :class:`~lrm_cvx.monitor.MonitorState` positioned after the last fitted snapshot
-        (or at ``time``); needs ``temporal`` (or ``dynamics_``) unless ``options`` give
-        ``memoryless=True``. See docs/monitoring.md."""
+        (or at ``time``), filtering with ``dynamics_``; a model without dynamics gives the
+        memoryless filter (every day's prior is the empirical prior). ``options``:
+        ``dynamics``, ``spatial``, ``memoryless`` of ``MonitorState.from_model``.
+        See docs/monitoring.md."""
         from ..monitor import MonitorState
 
         self._check_fitted()
