@@ -5,7 +5,6 @@ after the call)."""
 from __future__ import annotations
 
 import contextlib
-import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -19,20 +18,19 @@ from lrm_cvx.io import open_data, open_ndvi_cdr
 from lrm_cvx.io.samples import synthetic_field, write_ndvi_cdr
 
 
-def _digest(folder: Path) -> dict[str, str]:
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+@pytest.fixture
+def untouched(inputs_unchanged, tmp_path):
+    """``with untouched():`` checksums every file under ``tmp_path`` (conftest's
+    ``inputs_unchanged``) before the block and checks them after it."""
 
-
-@contextlib.contextmanager
-def unchanged(folder: Path):
-    """Assert that no file under ``folder`` is changed, added or removed by the block."""
-    before = _digest(folder)
-    assert before, "the case must have input files to protect"
-    try:
+    @contextlib.contextmanager
+    def guard():
+        assert any(p.is_file() for p in tmp_path.rglob("*")), "the case must have input files"
+        inputs_unchanged.watch(tmp_path)
         yield
-    finally:
-        assert _digest(folder) == before, "an input file was changed"
+        inputs_unchanged.check()
+
+    return guard
 
 
 def field(nt=3, ny=3, nx=4, lat=None, lon=None, time=None, seed=0) -> xr.DataArray:
@@ -53,29 +51,29 @@ def write(tmp_path: Path, da: xr.DataArray, name: str = "d.nc") -> Path:
 
 
 # ------------------------------------------------------------------ in-memory objects
-def test_dataarray_is_accepted_like_a_file(tmp_path):
+def test_dataarray_is_accepted_like_a_file(tmp_path, untouched):
     da = field()
     path = write(tmp_path, da)
-    with unchanged(tmp_path):
+    with untouched():
         from_file = open_data(path)
     from_memory = open_data(da)
     xr.testing.assert_identical(from_memory, from_file)
 
 
-def test_dataset_is_accepted_and_var_picks(tmp_path):
+def test_dataset_is_accepted_and_var_picks(tmp_path, untouched):
     ds = field().to_dataset()
     ds["other"] = ds["sst"] * 2
     path = tmp_path / "two.nc"
     ds.to_netcdf(path)
-    with unchanged(tmp_path):
+    with untouched():
         np.testing.assert_array_equal(open_data(ds, var="other").values, 2 * ds["sst"].values)
         with pytest.raises(DataError, match="--var"):
             open_data(path)
 
 
-def test_dataarray_with_wrong_dims(tmp_path):
+def test_dataarray_with_wrong_dims(tmp_path, untouched):
     write(tmp_path, field())
-    with unchanged(tmp_path), pytest.raises(DataError, match=r"\(time, lat, lon\)"):
+    with untouched(), pytest.raises(DataError, match=r"\(time, lat, lon\)"):
         open_data(xr.DataArray(np.ones((2, 3)), dims=("time", "station")))
 
 
@@ -99,15 +97,15 @@ def test_empty_list_of_paths():
     ((40, -70, 44), "four numbers"),
     ("40,-70,44,-60", "four numbers"),
 ])
-def test_bad_bbox_names_the_bound(tmp_path, bbox, match):
+def test_bad_bbox_names_the_bound(tmp_path, bbox, match, untouched):
     path = write(tmp_path, field())
-    with unchanged(tmp_path), pytest.raises(DataError, match=match):
+    with untouched(), pytest.raises(DataError, match=match):
         open_data(path, bbox=bbox)
 
 
-def test_bbox_outside_the_data(tmp_path):
+def test_bbox_outside_the_data(tmp_path, untouched):
     path = write(tmp_path, field())
-    with unchanged(tmp_path), pytest.raises(DataError, match="holds no grid cell"):
+    with untouched(), pytest.raises(DataError, match="holds no grid cell"):
         open_data(path, bbox=(0, 0, 10, 10))
 
 
@@ -117,11 +115,11 @@ def test_swapped_bbox_in_region_subset_names_the_bound():
         region.subset((44, -70, 40, -60))
 
 
-def test_antimeridian_bbox_on_0_360_file(tmp_path):
+def test_antimeridian_bbox_on_0_360_file(tmp_path, untouched):
     lon = np.arange(0.0, 360.0, 10.0)
     da = field(lon=lon, lat=[-10.0, 0, 10])
     path = write(tmp_path, da)
-    with unchanged(tmp_path):
+    with untouched():
         out = open_data(path, bbox=(-10, 160, 10, -160))
     np.testing.assert_array_equal(out.lon.values, [160, 170, 180, 190, 200])
     np.testing.assert_array_equal(out.values, da.sel(lon=[160, 170, 180, 190, 200]).values)
@@ -135,12 +133,12 @@ def test_antimeridian_bbox_on_sample():
     np.testing.assert_array_equal(out.values, ref.values)
 
 
-def test_antimeridian_bbox_on_ndvi_cdr(tmp_path):
+def test_antimeridian_bbox_on_ndvi_cdr(tmp_path, untouched):
     lon = np.arange(-179.5, 180.0, 1.0)
     f = synthetic_field(2, (4, lon.size), seed=0).clip(-0.09, 1)
     f = f.assign_coords(lon=lon)
     write_ndvi_cdr(tmp_path, f)
-    with unchanged(tmp_path):
+    with untouched():
         out = open_ndvi_cdr(tmp_path, bbox=(-90, 177, 90, -177))
         full = open_ndvi_cdr(tmp_path)
     np.testing.assert_allclose(out.lon.values, [177.5, 178.5, 179.5, 180.5, 181.5, 182.5])
@@ -148,9 +146,9 @@ def test_antimeridian_bbox_on_ndvi_cdr(tmp_path):
     np.testing.assert_array_equal(out.values, full.values[:, :, cols])
 
 
-def test_swapped_bbox_on_ndvi_cdr(tmp_path):
+def test_swapped_bbox_on_ndvi_cdr(tmp_path, untouched):
     write_ndvi_cdr(tmp_path, synthetic_field(1, (4, 5), seed=0).clip(-0.09, 1))
-    with unchanged(tmp_path), pytest.raises(DataError, match="south=.* is north of north"):
+    with untouched(), pytest.raises(DataError, match="south=.* is north of north"):
         open_ndvi_cdr(tmp_path, bbox=(50, -80, 40, -60))
 
 
@@ -163,25 +161,25 @@ def test_swapped_bbox_on_ndvi_cdr(tmp_path):
     (None, [-70.0, -68, -68, -64], "lon is duplicated"),
     (None, [-180.0, -90, 0, 180], "same meridian"),
 ])
-def test_bad_coordinates(tmp_path, lat, lon, match):
+def test_bad_coordinates(tmp_path, lat, lon, match, untouched):
     path = write(tmp_path, field(lat=lat, lon=lon))
-    with unchanged(tmp_path), pytest.raises(DataError, match=match):
+    with untouched(), pytest.raises(DataError, match=match):
         open_data(path)
 
 
-def test_shuffled_longitudes_are_sorted(tmp_path):
+def test_shuffled_longitudes_are_sorted(tmp_path, untouched):
     da = field(lon=[-64.0, -70, -66, -68])
     path = write(tmp_path, da)
-    with unchanged(tmp_path):
+    with untouched():
         out = open_data(path)
     np.testing.assert_array_equal(out.lon.values, [-70, -68, -66, -64])
     np.testing.assert_array_equal(out.values, da.sortby("lon").values)
 
 
-def test_descending_latitude_is_kept(tmp_path):
+def test_descending_latitude_is_kept(tmp_path, untouched):
     da = field(lat=[44.0, 42, 40])
     path = write(tmp_path, da)
-    with unchanged(tmp_path):
+    with untouched():
         out = open_data(path)
     np.testing.assert_array_equal(out.lat.values, [44, 42, 40])
     np.testing.assert_array_equal(out.values, da.values)
@@ -194,116 +192,116 @@ def test_region_refuses_longitudes_out_of_geographic_order():
 
 
 # ------------------------------------------------------------------ files
-def test_empty_file(tmp_path):
+def test_empty_file(tmp_path, untouched):
     (tmp_path / "empty.nc").write_bytes(b"")
-    with unchanged(tmp_path), pytest.raises(DataError, match="empty.nc is an empty file"):
+    with untouched(), pytest.raises(DataError, match="empty.nc is an empty file"):
         open_data(tmp_path / "empty.nc")
 
 
-def test_corrupt_file(tmp_path):
+def test_corrupt_file(tmp_path, untouched):
     (tmp_path / "bad.nc").write_bytes(np.random.default_rng(0).bytes(4096))
-    with unchanged(tmp_path), pytest.raises(DataError, match="bad.nc"):
+    with untouched(), pytest.raises(DataError, match="bad.nc"):
         open_data(tmp_path / "bad.nc")
 
 
-def test_truncated_netcdf(tmp_path):
+def test_truncated_netcdf(tmp_path, untouched):
     path = write(tmp_path, field(nt=50, ny=30, nx=40), "full.nc")
     data = path.read_bytes()
     (tmp_path / "cut.nc").write_bytes(data[: len(data) // 2])
-    with unchanged(tmp_path), pytest.raises(DataError, match="cut.nc"):
+    with untouched(), pytest.raises(DataError, match="cut.nc"):
         open_data(tmp_path / "cut.nc")
 
 
-def test_wrong_variable_lists_the_available_ones(tmp_path):
+def test_wrong_variable_lists_the_available_ones(tmp_path, untouched):
     path = write(tmp_path, field())
-    with unchanged(tmp_path), pytest.raises(DataError, match=r"no variable 'temp'.*\['sst'\]"):
+    with untouched(), pytest.raises(DataError, match=r"no variable 'temp'.*\['sst'\]"):
         open_data(path, var="temp")
 
 
-def test_file_without_a_gridded_variable(tmp_path):
+def test_file_without_a_gridded_variable(tmp_path, untouched):
     xr.Dataset({"x": ("station", [1.0, 2.0])}).to_netcdf(tmp_path / "st.nc")
-    with unchanged(tmp_path), pytest.raises(DataError, match="cannot choose the variable"):
+    with untouched(), pytest.raises(DataError, match="cannot choose the variable"):
         open_data(tmp_path / "st.nc")
 
 
-def test_variable_with_no_snapshot(tmp_path):
+def test_variable_with_no_snapshot(tmp_path, untouched):
     path = write(tmp_path, field(time=np.arange(0)))
-    with unchanged(tmp_path), pytest.raises(DataError, match="empty"):
+    with untouched(), pytest.raises(DataError, match="empty"):
         open_data(path)
 
 
-def test_extra_dim_of_size_two(tmp_path):
+def test_extra_dim_of_size_two(tmp_path, untouched):
     da = xr.concat([field(), field()], dim="depth").transpose("time", "depth", "lat", "lon")
     path = write(tmp_path, da)
-    with unchanged(tmp_path), pytest.raises(DataError, match="extra dim 'depth' of size 2"):
+    with untouched(), pytest.raises(DataError, match="extra dim 'depth' of size 2"):
         open_data(path)
 
 
-def test_folder_inside_a_list(tmp_path):
+def test_folder_inside_a_list(tmp_path, untouched):
     write(tmp_path, field())
     (tmp_path / "sub").mkdir()
-    with unchanged(tmp_path), pytest.raises(DataError, match="is a folder"):
+    with untouched(), pytest.raises(DataError, match="is a folder"):
         open_data([tmp_path / "d.nc", tmp_path / "sub"])
 
 
-def test_folder_without_data(tmp_path):
+def test_folder_without_data(tmp_path, untouched):
     (tmp_path / "notes.txt").write_text("nothing here")
-    with unchanged(tmp_path), pytest.raises(DataError, match="no images and no NetCDF"):
+    with untouched(), pytest.raises(DataError, match="no images and no NetCDF"):
         open_data(tmp_path)
 
 
 # ------------------------------------------------------------------ values and times
-def test_all_nan_snapshot_is_dropped_with_a_warning(tmp_path):
+def test_all_nan_snapshot_is_dropped_with_a_warning(tmp_path, untouched):
     da = field(nt=4)
     da[2] = np.nan
     path = write(tmp_path, da)
-    with unchanged(tmp_path), pytest.warns(UserWarning, match="dropped 1 all-NaN snapshot"):
+    with untouched(), pytest.warns(UserWarning, match="dropped 1 all-NaN snapshot"):
         out = open_data(path)
     np.testing.assert_array_equal(out.time.values, [0, 1, 3])
     np.testing.assert_array_equal(out.values, da.values[[0, 1, 3]])
 
 
-def test_all_nan_everywhere(tmp_path):
+def test_all_nan_everywhere(tmp_path, untouched):
     da = field() * np.nan
     path = write(tmp_path, da)
-    with unchanged(tmp_path), pytest.raises(DataError, match="no finite value"):
+    with untouched(), pytest.raises(DataError, match="no finite value"):
         open_data(path)
 
 
-def test_all_nan_inside_the_bbox(tmp_path):
+def test_all_nan_inside_the_bbox(tmp_path, untouched):
     da = field()
     da[:, :, :2] = np.nan
     path = write(tmp_path, da)
-    with unchanged(tmp_path), pytest.raises(DataError, match="no finite value.*bbox"):
+    with untouched(), pytest.raises(DataError, match="no finite value.*bbox"):
         open_data(path, bbox=(40, -70, 44, -68))
 
 
-def test_duplicate_times_in_one_file(tmp_path):
+def test_duplicate_times_in_one_file(tmp_path, untouched):
     path = write(tmp_path, field(time=np.array([0, 1, 1])))
-    with unchanged(tmp_path), pytest.raises(DataError, match="time 1 occurs more than once"):
+    with untouched(), pytest.raises(DataError, match="time 1 occurs more than once"):
         open_data(path)
 
 
-def test_duplicate_times_across_files(tmp_path):
+def test_duplicate_times_across_files(tmp_path, untouched):
     write(tmp_path, field(time=np.array([0, 1]), seed=1), "a.nc")
     write(tmp_path, field(time=np.array([1, 2]), seed=2), "b.nc")
-    with unchanged(tmp_path), pytest.raises(DataError, match="occurs more than once"):
+    with untouched(), pytest.raises(DataError, match="occurs more than once"):
         open_data(str(tmp_path / "*.nc"))
 
 
-def test_unsorted_times_are_sorted_with_a_warning(tmp_path):
+def test_unsorted_times_are_sorted_with_a_warning(tmp_path, untouched):
     da = field(time=np.array([2, 0, 1]))
     path = write(tmp_path, da)
-    with unchanged(tmp_path), pytest.warns(UserWarning, match="sorted by time"):
+    with untouched(), pytest.warns(UserWarning, match="sorted by time"):
         out = open_data(path)
     np.testing.assert_array_equal(out.time.values, [0, 1, 2])
     np.testing.assert_array_equal(out.values, da.sortby("time").values)
 
 
-def test_one_cell_region(tmp_path):
+def test_one_cell_region(tmp_path, untouched):
     da = field()
     path = write(tmp_path, da)
-    with unchanged(tmp_path):
+    with untouched():
         out = open_data(path, bbox=(41.5, -68.5, 42.5, -67.5))
     assert out.shape == (3, 1, 1)
     np.testing.assert_array_equal(out.values[:, 0, 0], da.values[:, 1, 1])
@@ -339,19 +337,19 @@ def test_unknown_sample_lists_available():
     ((48.0, -80.0, 40.0, -68.0), "south=48 is north of north=40"),
     ((-10.0, 170.0, 10.0, -170.0), r"antimeridian give east \+ 360 \(170 .. 190\)"),
 ])
-def test_image_bbox_errors_name_the_bound(tmp_path, bbox, match):
+def test_image_bbox_errors_name_the_bound(tmp_path, bbox, match, untouched):
     from lrm_cvx.io.imagery import open_image_stack, write_image_stack
 
     write_image_stack(tmp_path, synthetic_field(2, (6, 8), seed=0))
-    with unchanged(tmp_path), pytest.raises(RegionError, match=match):
+    with untouched(), pytest.raises(RegionError, match=match):
         open_image_stack(tmp_path, bbox)
 
 
-def test_image_bbox_across_antimeridian_unwrapped(tmp_path):
+def test_image_bbox_across_antimeridian_unwrapped(tmp_path, untouched):
     from lrm_cvx.io.imagery import open_image_stack, write_image_stack
 
     write_image_stack(tmp_path, synthetic_field(2, (6, 8), seed=0))
-    with unchanged(tmp_path):
+    with untouched():
         hue = open_image_stack(tmp_path, (-10.0, 170.0, 10.0, 190.0), edge_sigma=None)
     np.testing.assert_allclose(hue.lon.values, 170 + 2.5 * (np.arange(8) + 0.5))
     region = Region.from_dataarray(hue)
