@@ -181,6 +181,7 @@ def test_fit_recommended_is_the_documented_setting(sst_model):
      dict(criterion="a-optimal", initial="start", prior="empirical", spatial=False)),
     (["--criterion", "a-optimal", "--ridge", "0.5", "--cost", "insertion"],
      dict(criterion="a-optimal", ridge=0.5, cost="insertion")),
+    (["--criterion", "aopt", "--ridge", "0.5"], dict(criterion="a-optimal", ridge=0.5)),
     ([], dict()),
 ])
 def test_plan_flags_match_plan_greedy(sst_model, tmp_path, flags, python):
@@ -253,7 +254,7 @@ def test_evaluate_recommended_matches_python(tmp_path, capsys):
 def test_evaluate_methods_cost_ridge_certify(tmp_path):
     out = tmp_path / "ev"
     assert main(["-q", "evaluate", "sample:sst", *TINY, "--methods",
-                 "greedy,greedy:fisher,greedy:a-optimal,random", "--cost", "insertion",
+                 "greedy,greedy:fisher,greedy:aopt,random", "--cost", "insertion",
                  "--ridge", "0.1", "--fold-ridge", "0.01", "--prior", "empirical", "--offset",
                  "--certify", "fast", "--out", str(out)]) == 0
     got = xr.load_dataset(out / "results.nc")

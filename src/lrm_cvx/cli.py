@@ -209,6 +209,14 @@ def _need_spatial(model, path: str, why: str) -> None:
                          "(refit with 'lrm-cvx fit --spatial exponential' or '--recommended')")
 
 
+def _canonical(choices, name: str) -> str:
+    """``name`` with a registry alias resolved (``aopt`` -> ``a-optimal``) when the library's
+    name list is alias-aware (:class:`lrm_cvx.registry.Choices`), else ``name``."""
+    registry = getattr(choices, "_registry", None)
+    found = registry.resolve(name) if registry is not None else None
+    return found if isinstance(found, str) else name
+
+
 def _pick(explicit, recommended: bool, key: str, default):
     if explicit is not None:
         return explicit
@@ -250,7 +258,10 @@ def _plan_from_args(args: argparse.Namespace):
 
     model = _load_model(args.model)
     start = _start(args.start)
-    criterion = _pick(args.criterion, args.recommended, "criterion", "fisher")
+    from .information import CRITERIA
+
+    criterion = _canonical(CRITERIA, _pick(args.criterion, args.recommended, "criterion",
+                                           "fisher"))
     prior = _prior(_pick(args.prior, args.recommended, "prior", None))
     initial = _pick(args.initial, args.recommended, "initial", "nearest")
     kw: dict = {}
@@ -434,11 +445,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if min(budgets) < 0:
         raise UsageError(f"--budgets must be numbers >= 0, got {args.budgets!r}")
     if args.methods is not None:
+        known = METHODS + GREEDY_VARIANTS  # alias-aware when the library's lists are
         methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-        bad = [m for m in methods if m not in (*METHODS, *GREEDY_VARIANTS)]
+        bad = [m for m in methods if m not in known]
         if bad or not methods:
             raise UsageError(f"--methods: unknown method {bad[0] if bad else args.methods!r}; "
-                             f"choose from {', '.join((*METHODS, *GREEDY_VARIANTS))}")
+                             f"choose from {', '.join(known)}")
+        methods = tuple(_canonical(known, m) for m in methods)
     elif args.recommended:
         methods = (RECOMMENDED["method"], *METHODS)
     else:
@@ -519,9 +532,9 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--offset", action="store_true", help="fit a per-cell mean (offset)")
     p.add_argument("--scale", action="store_true", help="fit a per-cell scale")
-    p.add_argument("--noise", choices=list(NOISE_MODELS), default=_first(NOISE_MODELS),
+    p.add_argument("--noise", choices=NOISE_MODELS, default=_first(NOISE_MODELS),
                    help="noise model (default: %(default)s)")
-    p.add_argument("--spatial", choices=list(MODELS), default=None, metavar="KERNEL",
+    p.add_argument("--spatial", choices=MODELS, default=None, metavar="KERNEL",
                    help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)})")
 
 
@@ -544,9 +557,9 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", required=True,
                    help="start location LAT,LON or LAT LON in degrees (e.g. --start -10 150)")
     p.add_argument("--budget", required=True, type=_number, help="path budget in grid cells")
-    p.add_argument("--criterion", choices=list(CRITERIA), default=None,
+    p.add_argument("--criterion", choices=CRITERIA, default=None,
                    help="planning criterion (default fisher; gp-variance with --recommended)")
-    p.add_argument("--cost", default=_first(COSTS), choices=list(COSTS),
+    p.add_argument("--cost", default=_first(COSTS), choices=COSTS,
                    help="path cost (default: %(default)s)")
     p.add_argument("--ridge", type=_number, default=0.0, help="ridge added to the information")
     p.add_argument("--prior", choices=_prior_choices(), default=None,
@@ -627,9 +640,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", default=None,
                    help="comma-separated methods (default: the paper's "
                    f"{','.join(METHODS)}); also {', '.join(GREEDY_VARIANTS)}")
-    p.add_argument("--criterion", default=_first(CRITERIA), choices=list(CRITERIA),
+    p.add_argument("--criterion", default=_first(CRITERIA), choices=CRITERIA,
                    help="criterion of the 'greedy' method (default: %(default)s)")
-    p.add_argument("--cost", default=_first(COSTS), choices=list(COSTS),
+    p.add_argument("--cost", default=_first(COSTS), choices=COSTS,
                    help="path cost of the greedy (default: %(default)s)")
     p.add_argument("--ridge", type=_number, default=0.0, help="the planners' information ridge")
     p.add_argument("--fold-ridge", type=_number, default=0.0, help="the fold-in's ridge")
