@@ -106,6 +106,28 @@ def test_sequential_updates_equal_one_batch(seed, split):
     assert seq.cells.tolist() == batch.cells.tolist()
 
 
+def test_batch_means_equal_one_update_per_snapshot():
+    rng, obs = problem(6)
+    cells = np.array([1, 4, 4, 9, 12, 20])
+    V = rng.normal(10, 3, (5, cells.size))
+    V[rng.random(V.shape) < 0.3] = np.nan
+    V[0, :] = np.nan
+    V[1, 1:] = np.nan  # one cell: improper without a prior
+    for prior in (LatentPosterior.prior(obs, "flat"),
+                  LatentPosterior.prior(obs, "custom", mean=np.ones(3), cov=2 * np.eye(3))):
+        means, proper = prior.batch_means(cells, V)
+        for t in range(V.shape[0]):
+            post = prior.update(cells, V[t])
+            assert proper[t] == post.is_proper
+            if post.is_proper:
+                np.testing.assert_allclose(means[t], post.mean, rtol=1e-9, atol=1e-12)
+            else:
+                assert np.isnan(means[t]).all()
+    assert proper[0]  # with a prior even an empty snapshot is proper
+    with pytest.raises(DataError):
+        prior.batch_means(cells, V[:, :2])
+
+
 def test_duplicates_are_repeated_independent_measurements():
     rng, obs = problem(3)
     cells = np.array([1, 4, 4, 9, 12])
@@ -183,7 +205,7 @@ def test_empirical_prior_and_information_from_a_model():
     np.testing.assert_allclose(p.mean, m._Xv.mean(1))
     np.testing.assert_array_equal(p.cov, S0)
     info = p.information()
-    np.testing.assert_allclose(info["prior_precision"], np.linalg.inv(S0), rtol=1e-8)
+    np.testing.assert_allclose(info["prior_precision"], np.linalg.inv(S0), rtol=1e-8, atol=1e-12)
     np.testing.assert_array_equal(info["noise_var"], m.noise_var_)
     np.testing.assert_allclose(info["target_weights"], m.scale_ ** 2)
     assert "spatial_cov" not in info

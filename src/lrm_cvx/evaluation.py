@@ -74,7 +74,7 @@ class SnapshotStatistics:
     snapshot's observed cells ``O`` (1 without a scale), ``gram = sum_O w y y^T`` ``(n_test, k,
     k)``, ``cross = sum_O w z y`` ``(n_test, k)``, ``sq = sum_O w z^2`` ``(n_test,)`` and ``count
     = |O|``, so that the squared error of the map ``offset + scale * Y^T x`` over ``O`` is
-    ``x^T gram x - 2 cross^T x + sq`` (:meth:`mse`). ``values`` ``(n_test, L)`` stay in data
+    ``x^T gram x - 2 cross^T x + sq`` (:meth:`mse_many`). ``values`` ``(n_test, L)`` stay in data
     units (float32 with NaN); the statistics are float64.
     """
 
@@ -105,13 +105,15 @@ class SnapshotStatistics:
         return cls(values=values, gram=gram, cross=dw @ Y.T, sq=np.einsum("tl,tl->t", dw, d),
                    count=observed.sum(axis=1))
 
-    def mse(self, t: int, x: np.ndarray) -> float:
-        """Mean squared error (data units) of snapshot ``t``'s map from latent ``x (k,)`` over
-        its observed cells (NaN when it has none)."""
-        if self.count[t] == 0:
-            return np.nan
-        err = x @ self.gram[t] @ x - 2.0 * self.cross[t] @ x + self.sq[t]
-        return max(float(err), 0.0) / float(self.count[t])
+    def mse_many(self, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Mean squared errors (data units) of snapshots ``rows`` (``(m,)``) mapped from latent
+        vectors ``x (m, k)`` over their observed cells (NaN for NaN ``x`` or no cell)."""
+        G, b = self.gram[rows], self.cross[rows]
+        err = (np.einsum("tk,tkj,tj->t", x, G, x) - 2.0 * np.einsum("tk,tk->t", b, x)
+               + self.sq[rows])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.count[rows] > 0, np.maximum(err, 0.0) / self.count[rows],
+                            np.nan)
 
 
 def _plain_prior(Y: np.ndarray, ridge: float) -> LatentPosterior:
@@ -139,26 +141,21 @@ def foldin_mse(Y: np.ndarray, stats: SnapshotStatistics, cells: np.ndarray, ridg
         raise ModelError("foldin_mse is the trend-only fold-in; a spatial prior needs full maps")
     cells = check_cells(cells, stats.values.shape[1])
     vals = stats.values[:, cells].astype(np.float64)  # (n_test, n)
-    obs = np.isfinite(vals)
-    n_obs = obs.sum(axis=1)
+    n_obs = np.isfinite(vals).sum(axis=1)
     mse = np.full(len(n_obs), np.nan)
-    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):  # a loop over snapshots
-        post = prior.update(cells[obs[t]], vals[t, obs[t]])
-        if post.is_proper:
-            mse[t] = stats.mse(t, post.mean)
+    ok = np.flatnonzero(n_obs >= max(min_observations, 1))
+    if ok.size:
+        means, _ = prior.batch_means(cells, vals[ok])  # every snapshot's fold-in at once
+        mse[ok] = stats.mse_many(ok, means)
     return mse, n_obs
 
 
 def _complete_mse(stats: SnapshotStatistics, prior: LatentPosterior) -> np.ndarray:
     """The "complete" condition: fold-in from every observed cell of each snapshot (data
     units; NaN where that does not determine ``x``)."""
-    out = np.full(len(stats.count), np.nan)
-    for t in range(len(out)):
-        cells = np.flatnonzero(np.isfinite(stats.values[t]))
-        post = prior.update(cells, stats.values[t, cells])
-        if post.is_proper:
-            out[t] = stats.mse(t, post.mean)
-    return out
+    allc = np.arange(stats.values.shape[1])
+    means, _ = prior.batch_means(allc, stats.values)
+    return stats.mse_many(np.arange(len(stats.count)), means)
 
 
 def _model_mse(prior: LatentPosterior, stats: SnapshotStatistics, cells: np.ndarray,
