@@ -392,3 +392,23 @@ def test_region_rejects_bad_coordinates():
         da = xr.DataArray(ones, dims=("lat", "lon"), coords={"lat": lat, "lon": lon})
         with pytest.raises(DataError, match=match):
             Region.from_dataarray(da)
+
+
+@settings(max_examples=80, deadline=None)
+@given(grid_and_points(), st.integers(0, 2**32 - 1))
+def test_cell_of_with_a_mask_is_brute_force_or_a_masked_error(case, seed):
+    lat, lon, qlat, qlon = case
+    mask = np.random.default_rng(seed).random((lat.size, lon.size)) < 0.7
+    mask.flat[0] = True
+    region = Region(lat=xr.DataArray(lat, dims="lat", coords={"lat": lat}),
+                    lon=xr.DataArray(lon, dims="lon", coords={"lon": lon}), mask=mask)
+    for la, lo in zip(qlat, qlon, strict=True):
+        LA, LO = np.meshgrid(lat, lon, indexing="ij")
+        d = haversine_km(la, lo, LA.ravel(), LO.ravel())
+        nearest = np.flatnonzero(d <= d.min() * (1 + 1e-12) + 1e-9)  # exact ties included
+        if not mask.ravel()[nearest].any():
+            with pytest.raises(RegionError, match="masked"):
+                region.cell_of(la, lo)
+        elif mask.ravel()[nearest].all():
+            c = region.cell_of(la, lo)
+            assert gc_dist_of_cell(region, c, la, lo) <= d.min() * (1 + 1e-12) + 1e-9
