@@ -899,34 +899,25 @@ def gls_fold_in(
     """
     cov, Y, cells, d = _observations(Y, cells, values, region, cov)
     ridge = check_positive(ridge, "ridge", error=ModelError)
-    x, cov_x, _ = _gls(Y, cells, d, cov, region, ridge)
+    x, cov_x = _gls(Y, cells, d, cov, region, ridge)
     return x, cov_x
 
 
 def _gls(Y, cells, d, cov, region, ridge):
+    """GLS fold-in: the posterior of :class:`~lrm_cvx.glrm.posterior.LatentPosterior` with the
+    GP residual and the prior precision ``ridge I`` (flat at 0). Returns ``(x, cov_x)``."""
+    from .glrm.posterior import LatentPosterior, ObservationModel
+
     k = Y.shape[0]
     if cells.size == 0 and ridge == 0:
         raise ModelError("gls_fold_in needs at least one observation or ridge > 0")
-    xyz = _coords(region, cov.metric, cells)
-    C = cov.covariance(_arc(cdist(xyz, xyz), cov.metric))
-    np.fill_diagonal(C, cov.total_variance)
-    Lc = _cholesky(C, cov.total_variance, "observation")
-    Ws = scipy.linalg.solve_triangular(Lc, Y[:, cells].T, lower=True)  # (n, k)
-    zs = scipy.linalg.solve_triangular(Lc, d, lower=True)
-    M = Ws.T @ Ws + ridge * np.eye(k)
-    try:
-        ev = np.linalg.eigvalsh(M)
-        if ev[0] <= 1e-12 * max(ev[-1], 1e-300):
-            raise np.linalg.LinAlgError
-        Lm = np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
+    obs = ObservationModel(Y, spatial_cov=cov, region=region)
+    post = LatentPosterior.from_moments(obs, precision=ridge * np.eye(k)).update(cells, d)
+    if not post.is_proper:
         raise ModelError(
             f"the GLS normal matrix is singular: {cells.size} observations do not determine "
-            f"rank {k} factors (observe more cells or set ridge > 0)"
-        ) from None
-    x = scipy.linalg.cho_solve((Lm, True), Ws.T @ zs)
-    cov_x = scipy.linalg.cho_solve((Lm, True), np.eye(k))
-    return x, 0.5 * (cov_x + cov_x.T), Lc
+            f"rank {k} factors (observe more cells or set ridge > 0)")
+    return post.mean, post.cov
 
 
 def residual_correction(
@@ -962,7 +953,7 @@ def residual_correction(
     k = Y.shape[0]
     Ys = Y[:, cells]
     if fold_in == "gls":
-        x, cov_x, _ = _gls(Y, cells, d, cov, region, ridge)
+        x, cov_x = _gls(Y, cells, d, cov, region, ridge)
     else:
         G = Ys @ Ys.T + ridge * np.eye(k)
         x, *_ = np.linalg.lstsq(G, Ys @ d, rcond=None)
