@@ -354,3 +354,31 @@ def test_image_bbox_across_antimeridian_unwrapped(tmp_path, untouched):
     np.testing.assert_allclose(hue.lon.values, 170 + 2.5 * (np.arange(8) + 0.5))
     region = Region.from_dataarray(hue)
     assert region.cell_lon[region.cell_of(0.0, -178.0)] == pytest.approx(181.25)
+
+
+# ------------------------------------------------------------------ NOAA CDR files
+def test_ndvi_cdr_with_nan_latitude(tmp_path, untouched):
+    f = synthetic_field(1, (4, 5), seed=0).clip(-0.09, 1)
+    lat = f.lat.values.copy()
+    lat[1] = np.nan
+    write_ndvi_cdr(tmp_path, f.assign_coords(lat=lat))
+    with untouched(), pytest.raises(DataError, match=r"AVHRR-Land.*lat has a non-finite"):
+        open_ndvi_cdr(tmp_path)
+
+
+def test_ndvi_cdr_empty_file(tmp_path, untouched):
+    (tmp_path / "AVHRR-Land_v005_AVH13C1_NOAA-19_20130101_c20240101000000.nc").write_bytes(b"")
+    with untouched(), pytest.raises(DataError, match="cannot read NDVI file .*20130101"):
+        open_data(tmp_path)
+
+
+def test_ndvi_cdr_bbox_in_the_other_convention(tmp_path, untouched):
+    lon = np.arange(-179.5, 180.0, 1.0)
+    f = synthetic_field(1, (3, lon.size), seed=1, missing=0.0, land_fraction=1.0)
+    f = f.clip(-0.09, 1).assign_coords(lon=lon)
+    write_ndvi_cdr(tmp_path, f)
+    with untouched():
+        out = open_data(tmp_path, bbox=(-90, 183, 90, 186))  # 0..360 box on -180..180 files
+        full = open_data(tmp_path)
+    np.testing.assert_allclose(out.lon.values, [183.5, 184.5, 185.5])
+    np.testing.assert_array_equal(out.values, full.sel(lon=[-176.5, -175.5, -174.5]).values)
