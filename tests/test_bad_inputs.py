@@ -405,6 +405,8 @@ def test_help_exits_0(run):
      "spatial covariance"),
     (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "--initial", "far"], "plan",
      "initial"),
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "--criterion", "gp-variance",
+      "--prior", "none"], "plan", "--prior empirical"),
     (["fit", "missing/*.nc", "-o", "x.nc"], "fit", "no file matches"),
     (["fit", "missing.nc", "-o", "x.nc"], "fit", "not found"),
     (["fit", "{a}", "--var", "temp", "-o", "x.nc"], "fit", "no variable 'temp'"),

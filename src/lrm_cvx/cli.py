@@ -267,6 +267,9 @@ def _plan_from_args(args: argparse.Namespace):
     kw: dict = {}
     if criterion == "gp-variance":
         _need_spatial(model, args.model, "--criterion gp-variance")
+        if args.prior == "none":
+            raise UsageError("--criterion gp-variance needs a prior: use --prior empirical (the "
+                             "default for this criterion)")
         kw = model.planner_kwargs(prior=prior or "empirical", spatial=True)
     elif prior is not None:
         kw = {k: v for k, v in model.planner_kwargs(prior=prior).items()
