@@ -322,3 +322,23 @@ def test_model_without_region_and_numeric_times(field):
     state.assimilate((np.arange(10), D[30, :10]), 30)
     ds = state.predict()
     assert ds["mean"].dims == ("cell",) and float(ds["time"]) == 30.0
+
+
+def test_cftime_calendar_end_to_end(tmp_path):
+    da = synthetic_dynamic_field(40, (5, 6), 2, seed=0, seasonal_period=12, freq="MS")
+    times = xr.date_range("2001-01-01", periods=40, freq="MS", calendar="noleap",
+                          use_cftime=True)
+    da = da.assign_coords(time=times)
+    model = _fit(da.isel(time=slice(0, 36)), temporal="seasonal")
+    assert model.dynamics_.time_kind == "cftime"
+    state = model.monitor()
+    assert state.next_time() == times[36]
+    state.assimilate(da.isel(time=36), da.time.values[36])
+    state.assimilate(da.isel(time=37), "2004-02-01")  # a string in the model's calendar
+    assert state.time == times[37]
+    model.save(tmp_path / "m.nc")
+    state.save(tmp_path / "s.nc")
+    back = MonitorState.load(tmp_path / "s.nc", GLRM.load(tmp_path / "m.nc"))
+    assert back.time == times[37] and back.forecast()["time"].values == times[38]
+    with pytest.raises(DataError, match="forward only"):
+        back.forecast("2003-01-01")

@@ -269,7 +269,11 @@ class MonitorState:
 
     def _default_time(self, time: Any) -> Any:
         if time is not None:
-            return self._coerce(time)
+            t = self._coerce(time)
+            if self._dt(t) < 0:
+                raise DataError(f"time {_time_label(t)} is earlier than the state's time "
+                                f"{_time_label(self.time)}: the filter forecasts forward only")
+            return t
         return self.time if not self.observed else self.next_time()
 
     def predict(self) -> xr.Dataset:
