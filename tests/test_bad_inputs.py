@@ -435,6 +435,11 @@ def test_library_errors_are_one_line(run, argv, cmd, needle, files):
     ("lat,lon,value\n", "no rows"),
     ("lat,lon,value\n10,10,1.0\n", "outside"),
     ("cell,value\n100000,1.0\n", "cell"),
+    ("cell,value\n12.7,1.0\n30,2\n", "integer"),
+    ("cell,value\n-1,1.0\n", "cell"),
+    ("lat,lon,value\nnan,-70,1.0\n", "finite"),
+    ("cell,value\n12,inf\n13,1\n", "finite"),
+    ("cell,value\n12,\n30,2.0\n", "singular"),
 ])
 def test_bad_observation_files(run, tmp_path, inputs_unchanged, content, needle, files):
     obs = tmp_path / "obs.csv"
