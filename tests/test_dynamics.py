@@ -326,3 +326,45 @@ def test_synthetic_field_default_is_unchanged_by_time_factors():
     xr.testing.assert_identical(da, same)
     with pytest.raises(DataError, match="time_factors"):
         synthetic_field(12, (5, 6), 2, seed=3, time_factors=np.zeros((2, 11)))
+
+
+# ----------------------------------------------------------------------------- validated blend
+def test_validation_blend_shrinks_without_persistence_and_keeps_it_with():
+    from lrm_cvx.glrm.dynamics import estimate
+    from lrm_cvx.glrm.posterior import empirical_moments
+
+    rng = np.random.default_rng(0)
+    white = rng.standard_normal((3, 120)) * np.array([[1.0], [0.5], [0.2]])
+    d0 = estimate("ar1", white, np.arange(120), validation=0.3)
+    assert d0.blend <= 0.3
+    persistent = _ar_series(np.diag([0.9, 0.8, 0.7]), 0.1 * np.eye(3), 120, rng)
+    d1 = estimate("ar1", persistent, np.arange(120), validation=0.3)
+    assert d1.blend >= 0.8
+    # the blend's closed form from the plain fit
+    plain = estimate_ar1(persistent, np.arange(120))
+    lam = d1.blend
+    _, S0 = empirical_moments(persistent)
+    np.testing.assert_allclose(d1.A, lam * plain.A)
+    np.testing.assert_allclose(d1.Q, (1 - lam ** 2) * S0 + lam ** 2 * plain.Q)
+    assert estimate("ar1", persistent, np.arange(120), validation=None).blend == 1.0
+    with pytest.raises(ModelError, match="validation"):
+        estimate("ar1", persistent, np.arange(120), validation=1.5)
+
+
+def test_blend_zero_is_the_memoryless_prior():
+    from lrm_cvx.glrm.dynamics import _blend, _stationary_cov
+    from lrm_cvx.glrm.posterior import empirical_moments
+
+    X = np.random.default_rng(1).standard_normal((2, 30))
+    dyn = estimate_ar1(X, np.arange(30))
+    Z = X - X.mean(axis=1, keepdims=True)
+    A0, Q0 = _blend(dyn.A, dyn.Q, _stationary_cov(Z), 0.0)
+    assert not np.any(A0)
+    np.testing.assert_allclose(Q0, empirical_moments(X)[1], rtol=1e-12)
+
+
+def test_blend_round_trips_through_the_model_file(tmp_path):
+    da = synthetic_dynamic_field(40, (5, 6), 2, seed=0)
+    model = _fit(da, temporal="ar1")
+    model.save(tmp_path / "m.nc")
+    assert GLRM.load(tmp_path / "m.nc").dynamics_.blend == model.dynamics_.blend

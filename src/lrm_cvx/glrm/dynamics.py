@@ -123,6 +123,7 @@ class Dynamics:
     season_means: np.ndarray | None = None   # (n_seasons, k)
     shrinkage: float = 0.0
     n_pairs: int = 0
+    blend: float = 1.0                  # validated blend towards the memoryless prior
     time: Any = field(default=None, compare=False)  # time of the initial belief
 
     def __post_init__(self) -> None:
@@ -218,7 +219,7 @@ class Dynamics:
         attrs = {"dynamics_kind": self.kind, "dynamics_step": float(self.step),
                  "dynamics_time_kind": self.time_kind,
                  "dynamics_season": self.season or "", "dynamics_shrinkage": self.shrinkage,
-                 "dynamics_n_pairs": int(self.n_pairs)}
+                 "dynamics_n_pairs": int(self.n_pairs), "dynamics_blend": float(self.blend)}
         return out, attrs
 
     @classmethod
@@ -237,7 +238,8 @@ class Dynamics:
                 time_kind=str(ds.attrs.get("dynamics_time_kind", "numeric")),
                 season=str(ds.attrs.get("dynamics_season", "")) or None, season_means=sm,
                 shrinkage=float(ds.attrs.get("dynamics_shrinkage", 0.0)),
-                n_pairs=int(ds.attrs.get("dynamics_n_pairs", 0)), time=time)
+                n_pairs=int(ds.attrs.get("dynamics_n_pairs", 0)),
+                blend=float(ds.attrs.get("dynamics_blend", 1.0)), time=time)
         except KeyError as exc:
             raise DataError(f"the model file's dynamics are incomplete (missing {exc})") from None
 
@@ -307,6 +309,64 @@ def _fit_var(Z: np.ndarray, idx: np.ndarray, shrinkage: float) -> tuple[np.ndarr
     return A, 0.5 * (Q + Q.T)
 
 
+_BLEND_GRID = np.linspace(0.0, 1.0, 11)
+
+
+def _stationary_cov(Z: np.ndarray) -> np.ndarray:
+    """Covariance (ddof 1) of the columns of ``Z`` plus 1e-9 x its mean eigenvalue (as the
+    empirical prior of :func:`~lrm_cvx.glrm.posterior.empirical_moments`)."""
+    k = Z.shape[0]
+    S = np.atleast_2d(np.cov(Z))
+    return S + 1e-9 * max(np.trace(S), 1e-300) / k * np.eye(k)
+
+
+def _blend(A: np.ndarray, Q: np.ndarray, S0: np.ndarray, lam: float
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """``(lam A, (1 - lam^2) S0 + lam^2 Q)``: ``lam = 0`` is the memoryless prior ``N(mu, S0)``
+    every step, ``lam = 1`` the AR(1) fit; every blend is stable with a PSD noise."""
+    return lam * A, (1.0 - lam * lam) * S0 + lam * lam * Q
+
+
+def _choose_blend(Z: np.ndarray, idx: np.ndarray, shrinkage: float, validation: float) -> float:
+    """The blend of :func:`_blend` with the best one-step Gaussian predictive log-likelihood
+    on the last ``validation`` fraction of the pairs, with ``A``, ``Q``, ``S0`` estimated on
+    the pairs and columns before them (1.0 when there are too few pairs to validate)."""
+    k = Z.shape[0]
+    n = idx.size
+    nv = int(round(validation * n))
+    if nv < 3 or n - nv < max(3, k + 1):
+        return 1.0
+    tr, va = idx[: n - nv], idx[n - nv:]
+    A, Q = _fit_var(Z, tr, shrinkage)
+    S0 = _stationary_cov(Z[:, : va[0]])
+    R0 = Z[:, va - 1]
+    Z1 = Z[:, va]
+    best, best_nll = 1.0, np.inf
+    for lam in _BLEND_GRID:  # 11 k x k evaluations
+        Al, Ql = _blend(A, Q, S0, float(lam))
+        r = Z1 - Al @ R0
+        sign, logdet = np.linalg.slogdet(Ql)
+        if sign <= 0:
+            continue
+        nll = 0.5 * (logdet + np.mean(np.sum(r * np.linalg.solve(Ql, r), axis=0)))
+        if nll < best_nll - 1e-12:
+            best, best_nll = float(lam), nll
+    return best
+
+
+def _check_validation(validation: Any) -> float | None:
+    if validation is None:
+        return None
+    try:
+        v = float(validation)
+    except (TypeError, ValueError):
+        raise ModelError(f"validation must be None or a fraction in (0, 1), got "
+                         f"{validation!r}") from None
+    if not 0.0 < v < 1.0:
+        raise ModelError(f"validation must be None or a fraction in (0, 1), got {validation!r}")
+    return v
+
+
 def _check_shrinkage(shrinkage: Any) -> float:
     try:
         s = float(shrinkage)
@@ -327,7 +387,7 @@ def _last_time(times: Any) -> Any:
 
 
 def estimate_ar1(X: Any, times: Any, shrinkage: float = 1e-3,
-                 initial_cov: Any = None) -> Dynamics:
+                 initial_cov: Any = None, validation: float | None = None) -> Dynamics:
     """AR(1) dynamics ``x_t - mu = A (x_{t-1} - mu) + w`` of the columns of ``X (k, T)``.
 
     ``mu`` is the mean column; ``A`` the least-squares fit over the consecutive pairs one step
@@ -335,29 +395,46 @@ def estimate_ar1(X: Any, times: Any, shrinkage: float = 1e-3,
     spectral radius is <= 0.99; ``Q`` the residual covariance (made PSD). The initial belief is
     the last column with ``initial_cov`` (default zeros: the last fitted snapshot is taken as
     known). ``times`` ``(T,)``: strictly increasing datetimes, cftime dates or numbers.
+
+    ``validation`` (a fraction, e.g. 0.2; None: off): choose a blend ``lam`` in [0, 1] towards
+    the memoryless prior, ``A_lam = lam A``, ``Q_lam = (1 - lam^2) S0 + lam^2 Q`` (``S0`` the
+    covariance of the columns), by the one-step predictive log-likelihood of the last
+    ``validation`` fraction of the pairs (``A``, ``Q``, ``S0`` fitted on the earlier ones),
+    then apply it to the fit on all pairs (``blend``). ``lam = 0`` is exactly the memoryless
+    filter; data without persistence get a small ``lam``.
     """
     shrinkage = _check_shrinkage(shrinkage)
+    validation = _check_validation(validation)
     X, t = _check_X(X, times)
     k = X.shape[0]
     step, idx = _step_pairs(t)
     mu = X.mean(axis=1)
-    A, Q = _fit_var(X - mu[:, None], idx, shrinkage)
+    Z = X - mu[:, None]
+    A, Q = _fit_var(Z, idx, shrinkage)
+    lam = 1.0
+    if validation is not None:
+        lam = _choose_blend(Z, idx, shrinkage, validation)
+        A, Q = _blend(A, Q, _stationary_cov(Z), lam)
     P0 = np.zeros((k, k)) if initial_cov is None else np.asarray(initial_cov, dtype=np.float64)
     return Dynamics(kind="ar1", A=A, Q=Q, mean=mu, initial_mean=X[:, -1].copy(),
                     initial_cov=P0, step=step, time_kind=_time_kind(times),
-                    shrinkage=shrinkage, n_pairs=int(idx.size), time=_last_time(times))
+                    shrinkage=shrinkage, n_pairs=int(idx.size), blend=lam,
+                    time=_last_time(times))
 
 
 def estimate_seasonal(X: Any, times: Any, shrinkage: float = 1e-3,
-                      initial_cov: Any = None) -> Dynamics:
+                      initial_cov: Any = None, validation: float | None = None) -> Dynamics:
     """Seasonal AR(1): ``m_s`` = mean of ``X``'s columns per season, AR(1) on the anomalies.
 
     The season is the month of year when the median step is 27-32 days (monthly data) and the
     day of year when it is at most 1.5 days (daily data); other steps, or a time coordinate
     that is not dates, raise ModelError. The seasons must be seen at least twice (median count
     over the seasons present: two years of data); seasons never seen get the overall mean.
+    ``validation``: as :func:`estimate_ar1` on the anomalies (``lam = 0``: the seasonal means
+    with the anomalies' covariance, every step).
     """
     shrinkage = _check_shrinkage(shrinkage)
+    validation = _check_validation(validation)
     X, t = _check_X(X, times)
     _, kind, _ = time_numbers(times, "times")
     if kind == "numeric":
@@ -382,18 +459,30 @@ def estimate_seasonal(X: Any, times: Any, shrinkage: float = 1e-3,
                      X.mean(axis=1)[None, :])
     Z = X - means[s].T
     A, Q = _fit_var(Z, idx, shrinkage)
+    lam = 1.0
+    if validation is not None:
+        lam = _choose_blend(Z, idx, shrinkage, validation)
+        A, Q = _blend(A, Q, _stationary_cov(Z), lam)
     P0 = np.zeros((k, k)) if initial_cov is None else np.asarray(initial_cov, dtype=np.float64)
     return Dynamics(kind="seasonal", A=A, Q=Q, mean=X.mean(axis=1),
                     initial_mean=X[:, -1].copy(), initial_cov=P0, step=step, time_kind=kind,
                     season=season, season_means=means, shrinkage=shrinkage,
-                    n_pairs=int(idx.size), time=_last_time(times))
+                    n_pairs=int(idx.size), blend=lam, time=_last_time(times))
+
+
+DEFAULT_VALIDATION = 0.2
 
 
 def estimate(temporal: str, X: Any, times: Any, shrinkage: float = 1e-3,
-             initial_cov: Any = None) -> Dynamics:
-    """Dispatch on ``temporal`` (``"ar1"`` or ``"seasonal"``); anything else is a ModelError."""
+             initial_cov: Any = None, validation: float | None = DEFAULT_VALIDATION
+             ) -> Dynamics:
+    """Dispatch on ``temporal`` (``"ar1"`` or ``"seasonal"``); anything else is a ModelError.
+
+    The model's dynamics (``GLRM(temporal=...)``, ``fit_dynamics``, campaigns, the CLI) come
+    from here, with the blend towards the memoryless prior validated on the last 20 % of the
+    pairs by default (``validation=None``: the plain AR(1) fit)."""
     if temporal == "ar1":
-        return estimate_ar1(X, times, shrinkage, initial_cov)
+        return estimate_ar1(X, times, shrinkage, initial_cov, validation)
     if temporal == "seasonal":
-        return estimate_seasonal(X, times, shrinkage, initial_cov)
+        return estimate_seasonal(X, times, shrinkage, initial_cov, validation)
     raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
