@@ -627,3 +627,86 @@ def test_guard_outputs(tmp_path):
 ])
 def test_join_coordinates(argv, joined):
     assert cli._join_coordinates(argv) == joined
+
+
+# ---------------------------------------------------------------------------- unusual data files
+def _unusual(kind: str) -> xr.DataArray | str:
+    da = _field()
+    if kind == "all-nan":
+        return da.where(False)
+    if kind == "one-nan-snapshot":
+        return da.where(da["time"] != da["time"][3])
+    if kind == "duplicate-times":
+        return da.assign_coords(time=np.r_[da["time"].values[:7], da["time"].values[:7]])
+    if kind in ("nan-lat", "inf-lon"):
+        dim = kind.split("-")[1]
+        c = da[dim].values.copy()
+        c[2] = np.nan if kind == "nan-lat" else np.inf
+        return da.assign_coords({dim: c})
+    if kind == "one-snapshot":
+        return da.isel(time=[0])
+    if kind == "fill-value-1e20":
+        v = da.copy()
+        v[0, 0, 0] = 1e20
+        return v
+    if kind == "descending-lat":
+        return da.isel(lat=slice(None, None, -1))
+    return "not a NetCDF file"
+
+
+@pytest.mark.parametrize("kind, code, needle", [
+    ("all-nan", 2, "no finite value"),
+    ("duplicate-times", 2, "more than once"),
+    ("nan-lat", 2, "non-finite"),
+    ("inf-lon", 2, "non-finite"),
+    ("one-snapshot", 2, "rank"),
+    ("text", 2, "cannot read"),
+    ("one-nan-snapshot", 0, "all-NaN"),
+    ("fill-value-1e20", 0, "1e+20"),
+    ("descending-lat", 0, ""),
+])
+def test_unusual_data_files(run, tmp_path, inputs_unchanged, kind, code, needle):
+    path = tmp_path / f"{kind}.nc"
+    data = _unusual(kind)
+    if isinstance(data, str):
+        path.write_text(data)
+    else:
+        data.to_netcdf(path)
+    inputs_unchanged.watch(path)
+    out = tmp_path / "model.nc"
+    got, _, err = run(["fit", str(path), "--rank", "2", "-o", str(out)])
+    assert got == code, err
+    if code:
+        one_line_error(err, "fit", needle)
+        assert not out.exists()
+    else:
+        assert all(line.startswith("lrm-cvx fit: warning: ") for line in err.splitlines())
+        assert needle in err
+        model = GLRM.load(out)
+        region = model.region_
+        cell = region.cell_of(-30.0, -78.0)  # a corner cell keeps its own coordinates
+        assert (region.cell_lat[cell], region.cell_lon[cell]) == (-30.0, -78.0)
+
+
+def test_one_cell_bbox_is_a_clear_error(run, tmp_path):
+    code, _, err = run(["fit", "{a}", "--bbox", "-30.5,-80.5,-29.5,-79.5", "--rank", "2", "-o",
+                        str(tmp_path / "m.nc")])
+    assert code == 2
+    one_line_error(err, "fit", "rank")
+
+
+def test_budget_zero_reports_the_forced_cells_honestly(run):
+    code, out, err = run(["plan", "{plain}", "--start", "-24", "-70", "--budget", "0"])
+    assert code == 0, err
+    assert "> (forced initial cells) budget 0" in out and "<=" not in out
+    assert err.startswith("lrm-cvx plan: warning: ") and "initial cells" in err
+
+
+def test_huge_budget_covers_the_region(run, files, tmp_path):
+    route = tmp_path / "r.csv"
+    code, out, err = run(["plan", "{plain}", "--start", "-24", "-70", "--budget", "1e9", "-o",
+                          str(route)])
+    assert code == 0, err
+    n_cells = GLRM.load(files["plain"]).region_.n_cells
+    assert pd.read_csv(route)["cell"].nunique() == n_cells
+    assert f"{n_cells} cells" in out and "<= budget 1e+09" in out

@@ -283,7 +283,8 @@ def _plan_from_args(args: argparse.Namespace):
 def _describe_plan(plan) -> str:
     value = (f"information {plan.information:.4f} nats" if plan.criterion == "fisher"
              else f"{plan.criterion} criterion {plan.information:.4g}")
-    return f"{len(plan.cells)} cells, cost {plan.cost:.3f} <= budget {plan.budget:g}, {value}"
+    within = "<=" if plan.cost <= plan.budget + 1e-9 else "> (forced initial cells)"
+    return f"{len(plan.cells)} cells, cost {plan.cost:.3f} {within} budget {plan.budget:g}, {value}"
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
