@@ -409,7 +409,12 @@ class LatentPosterior:
         dropped = int(v.size - keep.sum())
         cells, v = cells[keep], v[keep]
         if cells.size == 0:
-            return self if dropped == 0 else replace(self, n_dropped=self.n_dropped + dropped)
+            if dropped == 0:
+                return self
+            same = replace(self, n_dropped=self.n_dropped + dropped)
+            same.__dict__.update({key: self.__dict__[key] for key in ("cov", "mean")
+                                  if key in self.__dict__})  # the same belief, bit for bit
+            return same
         all_cells = np.concatenate([self.cells, cells])
         all_values = np.concatenate([self.values, v])
         if obs.is_spatial:  # correlated residuals: re-solve the GLS over all of today's cells
