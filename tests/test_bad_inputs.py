@@ -418,6 +418,16 @@ def test_help_exits_0(run):
     (["evaluate", "{a}", "--out", "x", "--budgets", "5,x"], "evaluate", "--budgets"),
     (["evaluate", "{a}", "--out", "x", "--budgets", "-5"], "evaluate", "--budgets"),
     (["evaluate", "{a}", "--out", "x", "--n-test", "7"], "evaluate", "--n-test"),
+    (["evaluate", "{a}", "{b}", "--out", "x", "--rank", "2", "--n-test", "2", "--starts", "500",
+      "--certify", "off"], "evaluate", "exceeds"),
+    (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "--ridge", "-1"], "plan",
+     "ridge"),
+    (["predict", "{model}", "--observations", "{obs}", "--ridge", "-1", "-o", "p.nc"],
+     "predict", "ridge"),
+    (["fit", "{a}", "--tol", "-1", "-o", "x.nc"], "fit", "tol"),
+    (["fit", "{a}", "--rank", "100", "-o", "x.nc"], "fit", "rank"),
+    (["plan", "{plain}", "--start", "-25,-70", "--budget", "4", "--criterion", "a-optimal"],
+     "plan", "ridge > 0"),
 ])
 def test_library_errors_are_one_line(run, argv, cmd, needle, files):
     code, _, err = run(argv)
