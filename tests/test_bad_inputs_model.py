@@ -247,7 +247,7 @@ def test_one_all_nan_row_is_refused_naming_its_position():
         GLRM(rank=2, progress=False).fit(D)
 
 
-# --------------------------------------------------------------------------- score / holdout / select_rank
+# ------------------------------------------------- score / holdout / select_rank
 @pytest.fixture(scope="module")
 def plain():
     return quiet_fit(GLRM(rank=2, **FAST), low_rank())
@@ -301,7 +301,9 @@ def saved(tmp_path_factory, field):
 @pytest.mark.parametrize("var", ["X", "Y", "objective", "unobserved_cells", "region_mask"])
 def test_load_missing_variable(saved, tmp_path, inputs_unchanged, var):
     bad = tmp_path / "bad.nc"
-    saved[1].drop_vars(var).to_netcdf(bad)
+    ds = saved[1].drop_vars(var)
+    ds.encoding = {}
+    ds.to_netcdf(bad)
     inputs_unchanged.watch(bad)
     with pytest.raises(DataError, match=rf"bad\.nc.*missing the variable.*'{var}'"):
         GLRM.load(bad)
@@ -461,3 +463,18 @@ def test_evaluate_warns_when_the_model_saw_the_test_times(field):
 def test_fit_bad_tol(tol):
     with pytest.raises(ModelError, match="tol"):
         GLRM(rank=1, tol=tol, progress=False).fit(low_rank(5, 6, k=1))
+
+
+def test_inf_only_snapshot_is_refused_with_count():
+    D = low_rank(8, 10)
+    D[3] = np.inf
+    with pytest.raises(DataError, match="10 non-finite"):
+        GLRM(rank=2, progress=False).fit(D)
+
+
+def test_snapshot_masked_out_entirely_is_refused():
+    D = low_rank(8, 10)
+    M = np.ones(D.shape, bool)
+    M[6] = False
+    with pytest.raises(DataError, match=r"positions \[6\]"):
+        GLRM(rank=2, progress=False).fit(D, mask=M)

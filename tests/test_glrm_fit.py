@@ -418,3 +418,20 @@ def test_quadratic_fit_history_sse_and_determinism(reg):
     one = fit_glrm(D, M, 3, Quadratic(), reg, reg, max_iter=1, tol=0.0,
                    rng=np.random.default_rng(0))
     assert np.isclose(one.objective[-1], h[1], rtol=1e-10)
+
+
+def test_noise_identifiability_brute_force():
+    """max_identifiable_rank is the largest k with n_obs > k (T + L_obs) - k^2 (+ L_obs with an
+    offset), by brute force over small shapes; noise_std refuses n_obs <= p."""
+    from lrm_cvx.glrm.fit import max_identifiable_rank, noise_std
+
+    for T in range(1, 7):
+        for L in range(1, 7):
+            for n_obs in range(1, T * L + 1):
+                for off in (False, True):
+                    ok = [k for k in range(1, min(T, L) + 1)
+                          if n_obs > k * (T + L) - k * k + (L if off else 0)]
+                    assert max_identifiable_rank(n_obs, T, L, offset=off) == max(ok, default=0)
+    with pytest.raises(ModelError, match="not identifiable"):
+        noise_std(1.0, 20, 2, 2, 10)
+    assert noise_std(4.0, 21, 2, 2, 10) == pytest.approx(2.0)
