@@ -197,6 +197,7 @@ def test_folder_input_writes_a_new_file_beside_its_data(run, files):
     (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "-o", "{obs}"], "plan",
      "already exists"),
     (["evaluate", "{a}", "--out", "{obs}"], "evaluate", "existing file"),
+    (["fit", "{a}", "--rank", "2", "-o", "{d}/*.nc"], "fit", "glob pattern"),
     (["evaluate", "{a}", "--out", "{ev}"], "evaluate", "already exists"),
 ])
 def test_bad_output_paths(run, argv, cmd, needle):

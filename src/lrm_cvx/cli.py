@@ -182,6 +182,9 @@ def _check_writable(paths: Sequence[Path]) -> None:
 
 def _guard(outputs: Sequence[str | Path], inputs: Sequence[str | Path],
            args: argparse.Namespace) -> list[Path]:
+    for out in outputs:
+        if any(c in Path(out).name for c in "*?["):
+            raise UsageError(f"output {out} looks like a glob pattern; give one file name")
     outs = guard_outputs(outputs, inputs, overwrite=args.overwrite)
     _check_writable(outs)
     return outs
