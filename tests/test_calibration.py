@@ -180,3 +180,31 @@ def test_calibration_scales_complete_std_and_survives_save_load(tmp_path):
         warnings.simplefilter("ignore")
         model.fit(data)
     assert model.calibration_ is None  # a refit invalidates it
+
+
+def test_blend_dynamics_endpoints_and_select_dynamics():
+    from lrm_cvx.glrm.calibration import blend_dynamics, select_dynamics
+    from lrm_cvx.io.samples import synthetic_dynamic_field
+    from lrm_cvx.monitor import MonitorState
+    from lrm_cvx.glrm.posterior import empirical_moments
+
+    data = synthetic_dynamic_field(30, (8, 10), rank=2, missing=0.1, noise=0.05, seed=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=2, temporal="ar1", progress=False, random_state=0).fit(data)
+    dyn = model.dynamics_
+    S = empirical_moments(model._Xv)[1]
+    assert blend_dynamics(dyn, 1.0, S).A == pytest.approx(dyn.A)
+    d0 = blend_dynamics(dyn, 0.0, S)
+    # alpha = 0: the filter's forecast is the memoryless empirical prior, whatever came before
+    a = MonitorState.from_model(model, dynamics=d0).forecast()
+    b = MonitorState.from_model(model, memoryless=True).forecast()
+    np.testing.assert_allclose(a["mean"].values, b["mean"].values, rtol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(a["std"].values, b["std"].values, rtol=1e-6, equal_nan=True)
+    with pytest.raises(ModelError, match="alpha"):
+        blend_dynamics(dyn, 1.5, S)
+    alpha, table = select_dynamics(model, data, alphas=(0.0, 1.0), sizes=(3, 10), n_val=6)
+    assert alpha in (0.0, 1.0) and table.shape == (2, 2)
+    # the choice never does worse than memoryless on the validation snapshots, at any size
+    assert np.all(table.loc[alpha].values <= table.loc[0.0].values + 1e-12)
+    assert model.dynamics_alpha_ == alpha

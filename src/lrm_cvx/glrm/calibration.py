@@ -40,6 +40,7 @@ from .._validation import as_generator
 from ..errors import DataError, ModelError
 
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
+           "blend_dynamics", "select_dynamics",
            "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
@@ -238,7 +239,7 @@ def _standardized(model: Any, values: np.ndarray, cells: np.ndarray, pred: np.nd
 def cv_residuals(model: Any, data: Any, *, n_blocks: int = 4, sizes: Sequence[int] = (5, 15, 50),
                  kinds: Sequence[str] = SET_KINDS, max_snapshots: int = 6,
                  prior: str = "empirical", spatial: bool | None = None,
-                 temporal: str | None = None, seed: Any = 0) -> np.ndarray:
+                 temporal: str | None = None, seed: Any = 0, twin: bool = False) -> Any:
     """Standardized cross-validated fold-in residuals (see the module docstring).
 
     ``data`` ``(time, lat, lon)``: the snapshots ``model`` was fitted on (its region is used).
@@ -246,7 +247,8 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 4, sizes: Sequence[in
     of each size and kind. With ``temporal`` (``"ar1"``/``"seasonal"``), forward-chaining folds
     and the filter instead (:func:`lrm_cvx.monitor`), one set per snapshot (kinds and sizes
     cycled). The residuals are standardized by the *uncalibrated* predictive std of the
-    refitted model. Returns a 1-D array.
+    refitted model. Returns a 1-D array; with ``temporal`` and ``twin=True`` a pair: the
+    filter's residuals and the memoryless model's through the same loop on the same cells.
     """
     region, V = _check_data(model, data)
     T = V.shape[0]
@@ -260,14 +262,15 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 4, sizes: Sequence[in
         raise ModelError(f"sizes must be positive integers, got {sizes}")
     spatial = _use_spatial(model, spatial)
     rng = as_generator(seed)
-    blocks = np.array_split(np.arange(T), int(n_blocks))
+    if temporal is not None:  # contiguous blocks, forward chaining from half the record on
+        blocks = np.array_split(np.arange(T), int(n_blocks))[int(n_blocks) // 2:]
+    else:  # interleaved folds: every n_blocks-th snapshot
+        blocks = [np.arange(b, T, int(n_blocks)) for b in range(int(n_blocks))]
     out: list[np.ndarray] = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for bi, block in enumerate(blocks):
+        for block in blocks:
             if temporal is not None:
-                if bi == 0:
-                    continue  # forward chaining: the first block has no past
                 train_idx = np.arange(block[0])
             else:
                 train_idx = np.setdiff1d(np.arange(T), block)
@@ -276,6 +279,10 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 4, sizes: Sequence[in
             sub.fit(data.isel(time=train_idx), region=region)
             sub.calibration_ = None
             if temporal is not None:
+                alpha = getattr(model, "dynamics_alpha_", 1.0)  # select_dynamics' choice
+                if alpha != 1.0:
+                    sub.dynamics_ = blend_dynamics(sub.dynamics_, alpha,
+                                                   _memoryless_cov(sub, sub.dynamics_))
                 out.extend(_filter_residuals(sub, data.isel(time=block), V[block], sizes, kinds,
                                              spatial, rng))
                 continue
@@ -296,14 +303,19 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 4, sizes: Sequence[in
                         out.append(_standardized(sub, V[t], cells, pred, std, spatial))
     if not out:
         raise ModelError("calibration produced no held-out residuals")
+    if temporal is not None:
+        z_t = np.concatenate([p[0] for p in out])
+        z_m = np.concatenate([p[1] for p in out])
+        return (z_t, z_m) if twin else z_t
     return np.concatenate(out)
 
 
 def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int],
                       kinds: Sequence[str], spatial: bool, rng: np.random.Generator):
-    """Standardized residuals of the filter run through one block, in time order."""
+    """Standardized residuals of the filter run through one block in time order, and of the
+    memoryless model through the same loop on the same cells: ``[(z_filter, z_memoryless)]``."""
     region = sub.region_
-    state = sub.monitor()
+    states = (sub.monitor(), sub.monitor(memoryless=True))
     times = block_data["time"].values
     combos = [(s, k) for s in sizes for k in kinds]
     out = []
@@ -311,12 +323,15 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
         observed = np.isfinite(Vb[i])
         size, kind = combos[i % len(combos)]
         cells = sample_sets(region, observed, size, kind, rng)
-        state.assimilate((cells, Vb[i, cells]), time=t)
-        mean, _ = state.posterior.predict()
-        pstd = state.posterior.predictive_std()
         held = np.isfinite(Vb[i])
         held[cells] = False
-        out.append((Vb[i, held] - mean[held]) / pstd[held])
+        pair = []
+        for state in states:
+            state.assimilate((cells, Vb[i, cells]), time=t)
+            mean, _ = state.posterior.predict(cells=np.flatnonzero(held))
+            pstd = state.posterior.predictive_std(cells=np.flatnonzero(held))
+            pair.append((Vb[i, held] - mean) / pstd)
+        out.append(tuple(pair))
     return out
 
 
@@ -342,8 +357,10 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 4, sizes: Sequence[int] 
         temporal = None
     t_scale, t_raw = None, np.full(2, np.nan)
     if temporal is not None:
-        zt = cv_residuals(model, data, seed=seed, temporal=temporal, **kw)
-        t_scale = fit_scale(zt)
+        # forward chaining trains on less data than the final model: take from it only the
+        # filter's scale *relative* to the memoryless model's on the same days and cells
+        zt, zm = cv_residuals(model, data, seed=seed, temporal=temporal, twin=True, **kw)
+        t_scale = scale * fit_scale(zt) / fit_scale(zm)
         t_raw = interval_coverage(zt, 0.0, 1.0)
     cal = Calibration(scale=scale, temporal_scale=t_scale, n_residuals=int(z.size),
                       coverage68_raw=float(raw[0]), coverage95_raw=float(raw[1]),
@@ -352,3 +369,94 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 4, sizes: Sequence[int] 
                       sizes=",".join(str(int(s)) for s in sizes))
     model.calibration_ = cal
     return cal
+
+
+# ----------------------------------------------------------------------------- dynamics
+def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
+    """Dynamics shrunk towards the memoryless model: ``A_a = alpha A``,
+    ``Q_a = alpha Q + (1 - alpha) S`` with ``S`` the memoryless prior covariance. ``alpha = 1``
+    keeps the estimate, ``alpha = 0`` is the memoryless model exactly (every forecast is the
+    prior ``N(mean, S)``; for ``"ar1"`` with ``S = cov(X_)`` that is the empirical prior)."""
+    from dataclasses import replace
+
+    a = float(alpha)
+    if not 0.0 <= a <= 1.0:
+        raise ModelError(f"alpha must be in [0, 1], got {alpha!r}")
+    S = np.asarray(stationary_cov, dtype=np.float64)
+    Q = a * dynamics.Q + (1.0 - a) * S
+    return replace(dynamics, A=a * dynamics.A, Q=0.5 * (Q + Q.T))
+
+
+def _memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
+    from .posterior import empirical_moments
+
+    if dynamics.kind == "ar1":
+        return empirical_moments(model._Xv)[1]
+    return dynamics.stationary_cov()
+
+
+def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.25, 0.5, 0.75,
+                                                                          1.0),
+                    n_val: int | None = None, sizes: Sequence[int] = (5, 15, 50),
+                    kinds: Sequence[str] = SET_KINDS, apply: bool = True,
+                    seed: Any = 0) -> tuple[float, Any]:
+    """Choose how far to trust the model's dynamics on validation snapshots.
+
+    The last ``n_val`` snapshots of ``data`` (the model's training snapshots; default a fifth,
+    at least 3) are held out; a copy of the model is refitted (with its ``temporal``) on the
+    snapshots before them, and for each ``alpha`` the filter with :func:`blend_dynamics` runs
+    through them, one campaign per sample-set size and kind (the same random cells for every
+    ``alpha``). The chosen ``alpha`` minimises the worst ratio, over the sizes, of its
+    validation MSE (held-out observed cells) to the memoryless one (``alpha = 0``, always
+    a candidate): the filter is trusted only as far as it helps at every size. With ``apply``
+    the model's ``dynamics_`` is replaced by the blend. Returns ``(alpha, table)``, the table a
+    DataFrame of validation MSE per alpha and size.
+    """
+    import pandas as pd
+
+    dyn = getattr(model, "dynamics_", None)
+    if dyn is None:
+        raise ModelError("select_dynamics needs a model fitted with temporal='ar1' or "
+                         "'seasonal' (it has no dynamics_)")
+    region, V = _check_data(model, data)
+    T = V.shape[0]
+    n_val = max(3, T // 5) if n_val is None else int(n_val)
+    if not 2 <= n_val <= T - 3:
+        raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
+    alphas = sorted({0.0, *(float(a) for a in alphas)})
+    sizes = [int(s) for s in sizes]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sub = _clone(model).fit(data.isel(time=slice(None, T - n_val)), region=region)
+    sub.calibration_ = None
+    S = _memoryless_cov(sub, sub.dynamics_)
+    val = data.isel(time=slice(T - n_val, None))
+    Vv = V[T - n_val:]
+    times = val["time"].values
+    rng = as_generator(seed)
+    sets = {(size, kind): [sample_sets(region, np.isfinite(Vv[i]), size, kind, rng)
+                           for i in range(n_val)] for size in sizes for kind in kinds}
+    from ..monitor import MonitorState
+
+    err = np.zeros((len(alphas), len(sizes)))
+    for a_i, alpha in enumerate(alphas):
+        d = blend_dynamics(sub.dynamics_, alpha, S)
+        for (size, kind), cell_sets in sets.items():
+            state = MonitorState.from_model(sub, dynamics=d)
+            for i, t in enumerate(times):
+                cells = cell_sets[i]
+                state.assimilate((cells, Vv[i, cells]), time=t)
+                held = np.isfinite(Vv[i])
+                held[cells] = False
+                mean, _ = state.posterior.predict(cells=np.flatnonzero(held))
+                err[a_i, sizes.index(size)] += float(np.mean((mean - Vv[i, held]) ** 2))
+    ratio = err / err[0]
+    worst = ratio.max(axis=1)
+    best = int(np.argmin(worst))
+    alpha = alphas[best]
+    table = pd.DataFrame(err, index=pd.Index(alphas, name="alpha"),
+                         columns=pd.Index(sizes, name="size"))
+    if apply:
+        model.dynamics_ = blend_dynamics(dyn, alpha, _memoryless_cov(model, dyn))
+        model.dynamics_alpha_ = alpha  # read by calibrate's forward-chaining refits
+    return alpha, table
