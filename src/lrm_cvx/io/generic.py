@@ -28,9 +28,15 @@ _RENAME = {"latitude": "lat", "longitude": "lon", "y": "lat", "x": "lon"}
 
 
 def _expand(paths: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
+    """Local paths with globs expanded. URLs are left out: they are not local files (so the
+    CLI's input guard skips them) and :func:`lrm_cvx.io.remote.expand_urls` lists them."""
+    from .remote import is_url
+
     items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     out: list[Path] = []
     for item in items:
+        if is_url(item):
+            continue
         text = str(item)
         matches = sorted(glob.glob(text)) if any(c in text for c in "*?[") else [text]
         if not matches:
@@ -120,6 +126,32 @@ def _choose_var(ds: xr.Dataset, var: str | None, source: str) -> xr.DataArray:
     return ds[var]
 
 
+def _open_netcdf_urls(urls: Sequence[str], var: str | None, bbox: Sequence[float] | None,
+                      storage_options: dict[str, Any] | None, cache: Any) -> xr.DataArray:
+    """:func:`open_netcdf` for URLs: each file opened lazily, subset to ``bbox``, loaded (with
+    retries, :func:`lrm_cvx.io.remote.read_remote`), then the pieces combined by coords."""
+    from .remote import read_remote
+
+    def subset(ds: xr.Dataset, url: str) -> xr.DataArray:
+        da = _choose_var(ds, var, url)
+        return to_geographic_order(da.rename(
+            {k: v for k, v in _RENAME.items() if k in da.dims and v not in da.dims}),
+            bbox, DataError).load()
+
+    pieces = [read_remote(u, lambda ds, u=u: subset(ds, u), storage_options=storage_options,
+                          cache=cache) for u in urls]
+    source = ", ".join(urls)
+    if len(pieces) == 1:
+        da = pieces[0]
+    else:
+        name = pieces[0].name
+        try:
+            da = xr.combine_by_coords([p.to_dataset(name=name) for p in pieces])[name]
+        except Exception as exc:
+            raise DataError(f"cannot combine {source}: {exc}") from None
+    return _normalise(da, source, None)
+
+
 def open_netcdf(paths: Sequence[Path], var: str | None = None,
                 bbox: Sequence[float] | None = None) -> xr.DataArray:
     """A ``(time, lat, lon)`` float32 DataArray from generic NetCDF file(s).
@@ -144,7 +176,8 @@ def open_netcdf(paths: Sequence[Path], var: str | None = None,
 
 
 def open_data(paths: Any, *, var: str | None = None, bbox: Sequence[float] | None = None,
-              chunks: Any = None) -> xr.DataArray:
+              chunks: Any = None, storage_options: dict[str, Any] | None = None,
+              cache: Any = None) -> xr.DataArray:
     """Open any supported source as a ``(time, lat, lon)`` DataArray.
 
     ``paths`` is ``sample:NAME`` (bundled samples), NOAA CDR NDVI files (by name), a folder of
@@ -153,6 +186,13 @@ def open_data(paths: Any, *, var: str | None = None, bbox: Sequence[float] | Non
     ``xarray.DataArray`` / ``Dataset`` (put through the same checks). ``bbox`` longitudes may
     use either convention; ``west > east`` crosses the antimeridian, and the columns of the
     result are always in geographic (eastward, contiguous) order.
+
+    Paths may also be URLs (``https://``, ``s3://``, globs of them; NOAA CDR NDVI or NetCDF
+    files, not images): each file is opened lazily over HTTP Range requests / S3 ranged GETs,
+    subset to ``bbox`` and loaded, so only the chunks covering the box travel.
+    ``storage_options`` go to fsspec (e.g. ``{"endpoint_url": ...}``; S3 is anonymous unless
+    credentials are in the environment) and ``cache`` is a folder for fsspec's block cache
+    (default ``$LRM_CVX_CACHE``). See :mod:`lrm_cvx.io.remote`.
     """
     if isinstance(paths, xr.DataArray):
         return _normalise(paths, "DataArray", bbox)
@@ -171,6 +211,22 @@ def open_data(paths: Any, *, var: str | None = None, bbox: Sequence[float] | Non
         from ..datasets import load_sample
 
         return _normalise(load_sample(str(items[0]).split(":", 1)[1]), str(items[0]), bbox)
+    from .remote import expand_urls, is_url
+
+    urls = [str(i) for i in items if is_url(i)]
+    if urls:
+        if len(urls) != len(items):
+            raise DataError("paths mixes URLs and local files; give one kind at a time")
+        urls = expand_urls(urls, storage_options)
+        names = [u.split("?", 1)[0].rstrip("/").rsplit("/", 1)[-1] for u in urls]
+        if all(_CDR_NAME.match(n) for n in names):
+            from .ndvi import open_ndvi_cdr
+
+            return open_ndvi_cdr(urls, bbox=bbox, chunks=chunks,
+                                 storage_options=storage_options, cache=cache)
+        if any(Path(n).suffix.lower() in _IMAGE_SUFFIXES for n in names):
+            raise DataError(f"images are read from local folders only, not from {urls[0]}")
+        return _open_netcdf_urls(urls, var, bbox, storage_options, cache)
     files = _expand(items)
     if len(files) == 1 and files[0].is_dir():
         folder = files[0]

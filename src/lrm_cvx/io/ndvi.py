@@ -85,7 +85,7 @@ _NAME = re.compile(
 
 def parse_cdr_name(path: str | os.PathLike) -> dict[str, Any]:
     """``{"product", "platform", "date"}`` from a CDR file name; DataError if it is not one."""
-    name = Path(path).name
+    name = _name(path)
     m = _NAME.match(name)
     if m is None:
         raise DataError(
@@ -137,11 +137,19 @@ def decode_qa(qa_raw: Any, product: str, flags: Iterable[str]) -> Any:
     return out
 
 
-def _expand(paths_or_glob: Any) -> list[Path]:
+def _expand(paths_or_glob: Any, storage_options: dict[str, Any] | None = None
+            ) -> list[Path | str]:
+    """Local files as Paths (globs and folders expanded) and URLs as strings (see
+    :func:`lrm_cvx.io.remote.expand_urls` for URL globs and folders)."""
+    from .remote import expand_urls, is_url
+
     items = [paths_or_glob] if isinstance(paths_or_glob, (str, os.PathLike)) else list(
         paths_or_glob)
-    files: list[Path] = []
+    files: list[Path | str] = []
     for item in items:
+        if is_url(item):
+            files.extend(expand_urls([item], storage_options))
+            continue
         p = Path(item)
         if p.is_dir():
             files.extend(sorted(p.glob("*.nc")))
@@ -154,6 +162,12 @@ def _expand(paths_or_glob: Any) -> list[Path]:
     if not files:
         raise DataError(f"no NOAA CDR NDVI file matches {paths_or_glob!r}")
     return files
+
+
+def _name(path: Path | str) -> str:
+    from .remote import is_url, url_name
+
+    return url_name(path) if is_url(path) else Path(path).name
 
 
 def _resolve_flags(mask_flags: Any, products: set[str]) -> dict[str, tuple[str, ...]]:
@@ -195,20 +209,20 @@ def _bbox_index(lat: np.ndarray, lon: np.ndarray, bbox: Sequence[float] | None, 
     return row_sel, col_sel, new_lon
 
 
-def _decode_file(ds: xr.Dataset, path: Path, product: str, flags: tuple[str, ...],
+def _decode_file(ds: xr.Dataset, name: str, product: str, flags: tuple[str, ...],
                  bbox: Sequence[float] | None) -> xr.DataArray:
     for var in ("NDVI", "QA"):
         if var not in ds.variables:
-            raise DataError(f"{path.name}: no {var!r} variable (has {sorted(ds.variables)})")
+            raise DataError(f"{name}: no {var!r} variable (has {sorted(ds.variables)})")
     ndvi_raw, qa_raw = ds["NDVI"], ds["QA"]
     expected = {"time", "latitude", "longitude"}
     for var in (ndvi_raw, qa_raw):
         if set(var.dims) != expected:
-            raise DataError(f"{path.name}: {var.name} has dims {var.dims}, expected "
+            raise DataError(f"{name}: {var.name} has dims {var.dims}, expected "
                             "(time, latitude, longitude)")
     lat = np.asarray(ds["latitude"].values, dtype=np.float64)
     lon = np.asarray(ds["longitude"].values, dtype=np.float64)
-    rows, cols, new_lon = _bbox_index(lat, lon, bbox, path.name)
+    rows, cols, new_lon = _bbox_index(lat, lon, bbox, name)
     sel = {"latitude": rows, "longitude": cols}
     ndvi_raw = ndvi_raw.transpose("time", "latitude", "longitude").isel(sel)
     qa_raw = qa_raw.transpose("time", "latitude", "longitude").isel(sel)
@@ -230,13 +244,18 @@ def open_ndvi_cdr(
     bbox: Sequence[float] | None = None,
     mask_flags: Any = None,
     chunks: Any = None,
+    *,
+    storage_options: dict[str, Any] | None = None,
+    cache: Any = None,
 ) -> xr.DataArray:
     """Daily NOAA CDR NDVI files -> ``(time, lat, lon)`` float32 NDVI in [-1, 1], NaN if unusable.
 
     Parameters
     ----------
-    paths_or_glob : a glob pattern, a folder, a path or a list of them (AVHRR v5 and VIIRS v1
-        files may be mixed; each file's QA is decoded with its own product's layout).
+    paths_or_glob : a glob pattern, a folder, a path, a URL (``https://``, ``s3://``; globs and
+        folder URLs as :func:`lrm_cvx.io.remote.expand_urls` lists them) or a list of them
+        (AVHRR v5 and VIIRS v1 files may be mixed; each file's QA is decoded with its own
+        product's layout).
     bbox : ``(south, west, north, east)`` in degrees; cells whose centre lies inside are kept.
         Each file is subset before anything is read, so a small box of the 3600 x 7200 global
         grid costs little.
@@ -246,12 +265,23 @@ def open_ndvi_cdr(
         ``{"AVHRR": [...], "VIIRS": [...]}``. Fill values, values outside ``valid_range`` and a
         missing QA always make a cell unusable.
     chunks : None loads each file's subset into memory as it is read (memory = the result);
-        a dask chunk spec (e.g. ``{"time": 1}``) returns a lazy dask-backed DataArray.
+        a dask chunk spec (e.g. ``{"time": 1}``) returns a lazy dask-backed DataArray (for a
+        URL, the bbox subset is read when opened and then chunked).
+    storage_options : options of the URLs' fsspec filesystem (e.g. ``{"anon": False}``,
+        ``{"endpoint_url": ...}`` for another S3 server, HTTP ``headers``); S3 is anonymous
+        unless credentials are in the environment.
+    cache : a folder for fsspec's block cache of URLs (e.g. ``"~/.cache/lrm-cvx"``; default
+        ``$LRM_CVX_CACHE`` if set; False: none). Only the blocks read are stored.
 
+    A URL is read with HTTP Range requests / S3 ranged GETs fetching only the chunks covering
+    ``bbox``, retried on transient failures; a 404, a refused or dropped connection is a
+    DataError naming the URL (:func:`lrm_cvx.io.remote.read_remote`).
     The time of each file is its date in the file name; files are sorted by time. Attributes
     record units, the flags used, the products and the source files.
     """
-    files = _expand(paths_or_glob)
+    from .remote import is_url, read_remote
+
+    files = _expand(paths_or_glob, storage_options)
     meta = [parse_cdr_name(f) for f in files]
     order = np.argsort([m["date"].value for m in meta], kind="stable")
     files = [files[i] for i in order]
@@ -260,14 +290,25 @@ def open_ndvi_cdr(
     flags = _resolve_flags(mask_flags, products)
     arrays = []
     for path, m in zip(files, meta, strict=True):
+        time = [np.datetime64(m["date"], "ns")]
+        if is_url(path):
+            def subset(ds: xr.Dataset, m: dict = m, path: Any = path) -> xr.DataArray:
+                da = _decode_file(ds, _name(path), m["product"], flags[m["product"]], bbox)
+                return da.load()
+
+            da = read_remote(str(path), subset, storage_options=storage_options, cache=cache,
+                             mask_and_scale=False, decode_times=False)
+            da = da.assign_coords(time=time)
+            arrays.append(da if chunks is None else da.chunk(chunks))
+            continue
         try:
             ds = xr.open_dataset(path, mask_and_scale=False, decode_times=False,
                                  chunks=chunks, engine="netcdf4")
         except Exception as exc:  # netCDF4/HDF5 raise several types for a corrupt file
             raise DataError(f"cannot read NDVI file {path}: {exc}") from None
         try:
-            da = _decode_file(ds, path, m["product"], flags[m["product"]], bbox)
-            da = da.assign_coords(time=[np.datetime64(m["date"], "ns")])
+            da = _decode_file(ds, _name(path), m["product"], flags[m["product"]], bbox)
+            da = da.assign_coords(time=time)
             if chunks is None:
                 da = da.load()
         except DataError:
@@ -284,7 +325,7 @@ def open_ndvi_cdr(
         if da.shape[1:] != ref.shape[1:] or not (
             np.allclose(da["lat"], ref["lat"]) and np.allclose(da["lon"], ref["lon"])
         ):
-            raise DataError(f"{path.name} has a different grid than {files[0].name}")
+            raise DataError(f"{_name(path)} has a different grid than {_name(files[0])}")
     out = xr.concat(arrays, dim="time", join="override", coords="minimal", compat="override")
     out.name = "ndvi"
     out["lat"] = out["lat"].astype(np.float64)
@@ -300,7 +341,7 @@ def open_ndvi_cdr(
         "source": "NOAA Climate Data Record of AVHRR/VIIRS Normalized Difference Vegetation Index",
         "products": " ".join(sorted(products)),
         "mask_flags": "; ".join(f"{p}: {' '.join(f)}" for p, f in sorted(flags.items())),
-        "source_files": "\n".join(p.name for p in files),
+        "source_files": "\n".join(_name(p) for p in files),
     }
     if chunks is None and not np.isfinite(out.values).any():
         raise DataError(
@@ -331,6 +372,7 @@ def write_ndvi_cdr(
     platform: str | None = None,
     qa: np.ndarray | None = None,
     complevel: int = 1,
+    chunks: tuple[int, int] | None = (512, 512),
 ) -> list:
     """Write ``field`` ``(time, lat, lon)`` as daily NOAA CDR NDVI NetCDF files, one per time.
 
@@ -341,6 +383,9 @@ def write_ndvi_cdr(
     set (AVHRR bit 1; VIIRS cloud state 1) and other cells with a clear QA; ``qa`` (int16,
     the field's shape) is written verbatim. Dates come from ``field.time`` or, when given,
     consecutive days from ``start_date``. Each file is written atomically; returns the paths.
+    ``chunks`` is the HDF5 tile ``(rows, cols)`` of NDVI and QA (clipped to the grid; the real
+    AVHRR files are tiled), compressed with zlib at ``complevel`` (0: none); ``None`` writes
+    them contiguous (untiled, uncompressed).
     """
     import netCDF4
 
@@ -358,11 +403,18 @@ def write_ndvi_cdr(
         raise DataError("field has no datetime time coordinate: pass start_date")
     if qa is not None and np.shape(qa) != field.shape:
         raise DataError(f"qa must have the field's shape {field.shape}, got {np.shape(qa)}")
+    if chunks is not None and (len(chunks) != 2 or min(int(c) for c in chunks) < 1):
+        raise DataError(f"chunks must be (rows, cols) of positive ints or None, got {chunks!r}")
     lat = np.asarray(field[field.dims[1]].values, dtype=np.float32)
     lon = np.asarray(field[field.dims[2]].values, dtype=np.float32)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     cloud_bit = AVHRR_FLAGS["cloudy"] if product == "AVHRR" else 1
+    if chunks is None:
+        layout: dict[str, Any] = {"contiguous": True}
+    else:
+        layout = {"zlib": complevel > 0, "complevel": max(complevel, 1),
+                  "chunksizes": (1, min(lat.size, int(chunks[0])), min(lon.size, int(chunks[1])))}
     paths = []
     for t in range(n_times):
         values = np.asarray(field[t].values, dtype=np.float32)
@@ -386,9 +438,7 @@ def write_ndvi_cdr(
                     v.units, v.standard_name = units, name
                     v[:] = values_1d
                 dims = ("time", "latitude", "longitude")
-                nv = nc.createVariable("NDVI", "i2", dims, zlib=complevel > 0,
-                                       complevel=max(complevel, 1), fill_value=NDVI_FILL,
-                                       chunksizes=(1, min(lat.size, 512), min(lon.size, 512)))
+                nv = nc.createVariable("NDVI", "i2", dims, fill_value=NDVI_FILL, **layout)
                 nv.set_auto_maskandscale(False)
                 nv.long_name = "NOAA Climate Data Record of Normalized Difference Vegetation Index"
                 nv.units = "1"
@@ -396,9 +446,7 @@ def write_ndvi_cdr(
                 nv.add_offset = np.float32(0.0)
                 nv.valid_range = np.array(NDVI_VALID_RANGE, dtype=np.int16)
                 nv[0] = raw
-                qv = nc.createVariable("QA", "i2", dims, zlib=complevel > 0,
-                                       complevel=max(complevel, 1), fill_value=QA_FILL,
-                                       chunksizes=(1, min(lat.size, 512), min(lon.size, 512)))
+                qv = nc.createVariable("QA", "i2", dims, fill_value=QA_FILL, **layout)
                 qv.set_auto_maskandscale(False)
                 qv.long_name = "quality assurance"
                 if product == "AVHRR":

@@ -1,0 +1,340 @@
+"""Reading NetCDF files from HTTP(S) and S3 servers without downloading them whole.
+
+A URL (``https://...``, ``http://...``, ``s3://...``; other fsspec protocols pass through) is
+opened as a random-access file object by fsspec (HTTP ``Range`` requests; s3fs ranged GETs) and
+read by h5netcdf (NetCDF-4/HDF5) or scipy (NetCDF-3). The callers open lazily, subset to the
+bbox, then load, so only the HDF5 chunks covering the bbox (plus the file's metadata) travel.
+
+- :func:`is_url`, :func:`url_name`: what is a URL, and its file name.
+- :func:`expand_urls`: lists and globs of URLs -> URLs. S3 globs list the bucket; HTTP globs
+  and folder URLs (ending in ``/``) need a server that lists the folder as an HTML page of links
+  (Apache, nginx autoindex, NOAA's NCEI, Python's ``http.server``); otherwise give explicit URLs.
+- :func:`read_remote`: ``func(xr.Dataset)`` on one opened URL with bounded retries and one
+  :class:`~lrm_cvx.errors.DataError` naming the URL (and the HTTP status) on failure.
+
+Cache: ``cache="~/.cache/lrm-cvx"`` wraps the filesystem in fsspec's ``blockcache``
+(``CachingFileSystem``): a sparse local copy of each file that holds only the blocks read so
+far. The whole-file ``filecache`` would download every 50 MB global daily file to read a
+2 x 2 degree window, which is what remote reading avoids; the block cache keeps the partial
+reads partial and serves a repeated read from disk without contacting the server. Files are
+taken as immutable (NOAA publishes reprocessed data under a new name): delete the folder to
+refresh it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import re
+import time
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+import xarray as xr
+
+from ..errors import DataError
+
+__all__ = [
+    "is_url",
+    "url_name",
+    "expand_urls",
+    "remote_filesystem",
+    "read_remote",
+    "BLOCK_SIZE",
+    "RETRIES",
+    "BACKOFF",
+]
+
+T = TypeVar("T")
+
+BLOCK_SIZE = 128 * 1024
+"""Bytes per ranged request (and per cached block). One 600 x 600 int16 HDF5 chunk compresses
+to ~0.1-0.5 MB, so a read over-fetches at most one block past each chunk it needs."""
+RETRIES = 3
+"""Attempts after the first on a transient failure (connection reset or dropped, 5xx, 429)."""
+BACKOFF = 0.5
+"""Seconds before the first retry; doubled before each next one (0.5, 1, 2 s by default)."""
+
+_URL = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://")
+_CACHE_ENV = "LRM_CVX_CACHE"
+_AWS_CREDENTIAL_ENV = ("AWS_ACCESS_KEY_ID", "AWS_PROFILE", "AWS_WEB_IDENTITY_TOKEN_FILE",
+                       "AWS_CONTAINER_CREDENTIALS_RELATIVE_URI",
+                       "AWS_CONTAINER_CREDENTIALS_FULL_URI")
+
+
+def is_url(item: Any) -> bool:
+    """True for a ``scheme://...`` string other than ``file://`` (read as a local path)."""
+    if not isinstance(item, str):
+        return False
+    m = _URL.match(item)
+    return m is not None and m["scheme"].lower() != "file"
+
+
+def url_name(url: str) -> str:
+    """The file name of ``url`` (last path segment, without query or fragment)."""
+    return url.split("?", 1)[0].split("#", 1)[0].rstrip("/").rsplit("/", 1)[-1]
+
+
+def _protocol(url: str) -> str:
+    return _URL.match(url)["scheme"].lower()
+
+
+def cache_folder(cache: Any) -> str | None:
+    """The cache folder to use: ``cache`` (``~`` expanded), else ``$LRM_CVX_CACHE``, else None.
+
+    ``cache=False`` turns the cache off even when the environment variable is set.
+    """
+    if cache is False:
+        return None
+    if cache is None or cache is True:
+        cache = os.environ.get(_CACHE_ENV) or ("~/.cache/lrm-cvx" if cache is True else None)
+    if cache is None:
+        return None
+    if not isinstance(cache, (str, os.PathLike)):
+        raise DataError(f"cache must be a folder path, True, False or None; got {cache!r}")
+    return str(Path(cache).expanduser())
+
+
+def remote_filesystem(url: str, storage_options: dict[str, Any] | None = None,
+                      cache: Any = None):
+    """The fsspec filesystem that reads ``url``, wrapped in a block cache when ``cache`` is set.
+
+    ``storage_options`` go to the filesystem (s3fs: ``anon``, ``key``, ``secret``,
+    ``endpoint_url``, ``client_kwargs``...; HTTP: ``headers``, ``client_kwargs``...). S3 is
+    anonymous unless credentials are given there or in the usual environment (``AWS_*``
+    variables, a profile); ``AWS_ENDPOINT_URL`` points it at another S3-compatible server.
+    """
+    import fsspec
+
+    protocol = _protocol(url)
+    if storage_options is not None and not isinstance(storage_options, dict):
+        raise DataError(f"storage_options must be a dict, got {type(storage_options).__name__}")
+    options = dict(storage_options or {})
+    if protocol == "s3":
+        if not any(k in options for k in ("anon", "key", "secret", "token", "profile")):
+            options["anon"] = not any(os.environ.get(k) for k in _AWS_CREDENTIAL_ENV)
+        if "endpoint_url" not in options and os.environ.get("AWS_ENDPOINT_URL"):
+            options["endpoint_url"] = os.environ["AWS_ENDPOINT_URL"]
+        options.setdefault("default_block_size", BLOCK_SIZE)
+    elif protocol in ("http", "https"):
+        options.setdefault("block_size", BLOCK_SIZE)
+    try:
+        fs = fsspec.filesystem(protocol, **options)
+    except ImportError as exc:
+        raise DataError(f"reading {protocol}:// URLs needs an extra package ({exc}); "
+                        "install it with: pip install 'lrm-cvx[remote]'") from None
+    except ValueError as exc:
+        raise DataError(f"cannot read {url}: {exc}") from None
+    folder = cache_folder(cache)
+    if folder is not None:
+        fs = fsspec.filesystem("blockcache", fs=fs, cache_storage=folder, check_files=False,
+                               expiry_time=False)
+    return fs
+
+
+def _has_glob(url: str, protocol: str) -> bool:
+    # "?" starts an HTTP query, so it is a wildcard only for object stores
+    chars = "*[" if protocol in ("http", "https") else "*?["
+    return any(c in url for c in chars)
+
+
+def expand_urls(urls: Sequence[str], storage_options: dict[str, Any] | None = None,
+                suffix: str = ".nc") -> list[str]:
+    """Explicit URLs as they are; globs and folder URLs (ending in ``/``) listed on the server.
+
+    A folder URL gives its files ending in ``suffix``. Raises DataError naming the URL when a
+    glob matches nothing or the server cannot list it (HTTP: no HTML index page).
+    """
+    out: list[str] = []
+    for url in urls:
+        protocol = _protocol(url)
+        folder = url.endswith("/")
+        if not folder and not _has_glob(url, protocol):
+            out.append(url)
+            continue
+        fs = remote_filesystem(url, storage_options)
+        pattern = url.rstrip("/") + "/*" + suffix if folder else url
+
+        def _glob(fs=fs, pattern=pattern) -> list[str]:
+            return sorted(fs.glob(pattern))
+
+        found = _with_retries(_glob, url)
+        found = [p if is_url(p) else fs.unstrip_protocol(p) for p in found]
+        if not found:
+            how = ("" if protocol not in ("http", "https") else
+                   " (HTTP globs need a server that lists the folder as an HTML page of links; "
+                   "otherwise give the URLs one by one)")
+            raise DataError(f"no file matches {url!r}{how}")
+        out.extend(found)
+    return out
+
+
+# --------------------------------------------------------------------------- errors, retries
+def _chain(exc: BaseException) -> Iterator[BaseException]:
+    seen: set[int] = set()
+    todo = [exc]
+    while todo:
+        e = todo.pop(0)
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        yield e
+        todo.extend([e.__cause__, e.__context__])
+
+
+def _classify(exc: BaseException) -> tuple[bool, str]:
+    """``(transient, reason)`` for a failure anywhere in ``exc``'s chain.
+
+    Transient (retried): a 5xx or 429 status, a connection reset, dropped or timed out. Not
+    transient: other statuses (404, 403...), a refused connection, an unknown host, a file
+    that is not NetCDF.
+    """
+    status = None
+    refused = dropped = missing = None
+    for e in _chain(exc):
+        name = type(e).__name__
+        code = getattr(e, "status", None)
+        if status is None and isinstance(code, int) and 100 <= code < 600:
+            status = code
+        response = getattr(e, "response", None)
+        if status is None and isinstance(response, dict):
+            meta_code = response.get("ResponseMetadata", {}).get("HTTPStatusCode")
+            if isinstance(meta_code, int):
+                status = meta_code
+        if isinstance(e, ConnectionRefusedError) or name in ("ClientConnectorError",
+                                                             "EndpointConnectionError"):
+            refused = refused or e
+        if isinstance(e, (ConnectionResetError, BrokenPipeError, TimeoutError,
+                          asyncio.TimeoutError, asyncio.IncompleteReadError)) or name in (
+                "ServerDisconnectedError", "ClientPayloadError", "ContentLengthError",
+                "TransferEncodingError", "ServerTimeoutError", "ReadTimeoutError",
+                "ConnectionClosedError", "ResponseStreamingError", "IncompleteRead"):
+            dropped = dropped or e
+        if isinstance(e, FileNotFoundError) or name in ("NoSuchKey", "NoSuchBucket"):
+            missing = missing or e
+    if status is not None:
+        transient = status >= 500 or status == 429
+        reason = f"HTTP status {status}" + (" (not found)" if status == 404 else "")
+    elif refused is not None:
+        transient, reason = False, f"connection refused or host unreachable ({refused})"
+    elif dropped is not None:
+        transient = True
+        reason = f"connection dropped while reading ({type(dropped).__name__}: {dropped})"
+    elif missing is not None:
+        transient, reason = False, "not found (HTTP status 404)"
+    else:
+        transient, reason = False, f"{type(exc).__name__}: {exc}"
+    return transient, reason
+
+
+def _with_retries(func: Callable[[], T], url: str, retries: int | None = None,
+                  backoff: float | None = None) -> T:
+    """``func()``, again after ``backoff * 2**k`` s on a transient failure, at most ``retries``
+    times (defaults: :data:`RETRIES`, :data:`BACKOFF`); any other failure, or the last, is a
+    DataError naming ``url``."""
+    retries = RETRIES if retries is None else int(retries)
+    backoff = BACKOFF if backoff is None else float(backoff)
+    for attempt in range(retries + 1):
+        try:
+            return func()
+        except DataError:
+            raise
+        except Exception as exc:
+            transient, reason = _classify(exc)
+            if transient and attempt < retries:
+                time.sleep(backoff * 2**attempt)
+                continue
+            tries = f" after {attempt + 1} attempts" if attempt else ""
+            raise DataError(f"cannot read {url}: {reason}{tries}") from None
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+class _RecordingFile:
+    """A file object that remembers the exception its ``read`` raised.
+
+    h5py turns an exception raised by a Python file object into its own OSError without a
+    cause; keeping the original lets the error name the HTTP status or the dropped connection.
+    """
+
+    def __init__(self, f: Any):
+        self._f = f
+        self.recorded: BaseException | None = None
+
+    def read(self, *args: Any) -> bytes:
+        try:
+            return self._f.read(*args)
+        except BaseException as exc:
+            self.recorded = exc
+            raise
+
+    def readinto(self, b: Any) -> int:
+        data = self.read(len(b))
+        b[: len(data)] = data
+        return len(data)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._f, name)
+
+
+def _engine(head: bytes, url: str) -> str:
+    if head.startswith(b"\x89HDF"):
+        return "h5netcdf"
+    if head.startswith(b"CDF"):
+        return "scipy"
+    raise DataError(f"{url} is not a NetCDF file (it starts with {head[:8]!r}, neither HDF5 "
+                    "nor NetCDF-3)")
+
+
+@contextlib.contextmanager
+def open_remote_dataset(url: str, storage_options: dict[str, Any] | None = None,
+                        cache: Any = None, **open_kwargs: Any) -> Iterator[xr.Dataset]:
+    """``xr.open_dataset`` on ``url`` read lazily through fsspec; closed on exit.
+
+    The engine is chosen from the file's first bytes (h5netcdf for NetCDF-4/HDF5, scipy for
+    NetCDF-3). Errors are raised as they are; :func:`read_remote` turns them into DataError.
+    """
+    fs = remote_filesystem(url, storage_options, cache)
+    f = fs.open(url, "rb")
+    rec = _RecordingFile(f)
+    ds = None
+    try:
+        engine = _engine(rec.read(8), url)
+        rec.seek(0)
+        try:
+            ds = xr.open_dataset(rec, engine=engine, **open_kwargs)
+        except Exception as exc:
+            if rec.recorded is not None:
+                raise exc from rec.recorded
+            raise
+        yield ds
+    except Exception as exc:
+        if rec.recorded is not None and exc.__cause__ is None:
+            raise exc from rec.recorded
+        raise
+    finally:
+        if ds is not None:
+            ds.close()
+        f.close()
+
+
+def read_remote(url: str, func: Callable[[xr.Dataset], T], *,
+                storage_options: dict[str, Any] | None = None, cache: Any = None,
+                retries: int | None = None, backoff: float | None = None,
+                **open_kwargs: Any) -> T:
+    """``func(ds)`` on ``url`` opened lazily (see :func:`open_remote_dataset`), with retries.
+
+    ``func`` must load what it returns (the file is closed afterwards): subset first, then
+    ``.load()``, so only the chunks covering the subset are fetched. A transient failure
+    (connection reset or dropped mid-read, HTTP 5xx/429) reopens and rereads the file after
+    ``backoff``, ``2*backoff``, ... seconds, at most ``retries`` times; a 404, a refused
+    connection, the last transient failure or a file that is not NetCDF raise one DataError
+    naming the URL and the HTTP status where there is one. Nothing partial is returned.
+    """
+
+    def attempt() -> T:
+        with open_remote_dataset(url, storage_options, cache, **open_kwargs) as ds:
+            return func(ds)
+
+    return _with_retries(attempt, url, retries, backoff)
