@@ -721,3 +721,17 @@ def test_huge_budget_covers_the_region(run, files, tmp_path):
     n_cells = GLRM.load(files["plain"]).region_.n_cells
     assert pd.read_csv(route)["cell"].nunique() == n_cells
     assert f"{n_cells} cells" in out and "<= budget 1e+09" in out
+
+
+def test_ctrl_c_during_the_write_keeps_the_old_file(run, tmp_path, monkeypatch):
+    out = tmp_path / "model.nc"
+    out.write_text("old")
+
+    def interrupted(self, *a, **k):
+        Path(a[0]).write_text("half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(xr.Dataset, "to_netcdf", interrupted)
+    code, _, err = run(["fit", "{a}", "--rank", "2", "-o", str(out), "--overwrite"])
+    assert code == 130 and err.strip() == "lrm-cvx fit: interrupted"
+    assert out.read_text() == "old" and leftovers(tmp_path) == []
