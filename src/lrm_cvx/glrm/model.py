@@ -22,7 +22,7 @@ from ..region import Region
 from . import kernels as K
 from .dynamics import TEMPORAL, Dynamics
 from .dynamics import estimate as estimate_dynamics
-from .fit import FitResult, check_data, fit_glrm
+from .fit import DataStats, FitResult, check_data, fit_glrm
 from .losses import get_loss
 from .posterior import LatentPosterior, fold_in_snapshots, model_prior
 from .predictive import PREDICTIVE_ATTRS, fit_predictive
@@ -181,7 +181,11 @@ class GLRM:
                            times=None if times is None else times.values)
         pre = fit_predictive(self, D, M, region, stage="before")  # offset / scale (opt-in)
         if pre is not None:  # the init's mean fill needs the transformed data's sums
-            D, owned, stats = pre.pop("data"), True, None
+            D, owned = pre.pop("data"), True
+            sc = getattr(self, "_pending_scale", None)
+            colsum = (np.zeros_like(stats.colsum) if self.offset  # centred: sums are 0
+                      else stats.colsum / sc)
+            stats = DataStats(stats[0], stats[1], colsum)
         res = fit_glrm(
             D, M, rank, loss, reg_x, reg_y, max_iter=self.max_iter, tol=self.tol,
             init=self.init, solver=self.solver, rng=rng, progress=bool(self.progress),
@@ -196,17 +200,23 @@ class GLRM:
 
     def _fit_dask(self, data, mask, region, rank, loss, reg_x, reg_y, rng) -> GLRM:
         from .chunked import fit_chunked
+        from .predictive import check_options, set_predictive
 
-        if (self.offset or self.scale or self.noise != "global" or self.spatial is not None):
-            raise ModelError("offset, scale, noise='per-cell' and spatial are not supported for "
-                             "dask-backed data yet; load the data or use the defaults")
+        # the same options as in memory, computed chunk by chunk (every statistic is per cell)
+        check_options(self, region is not None or getattr(data, "ndim", 0) == 3)
+        extras: dict = {}
         res, region, times, self._time_dim = fit_chunked(
             data, rank, loss, reg_x, reg_y, mask=mask, region=region, max_iter=self.max_iter,
             tol=self.tol, init=self.init, solver=self.solver, rng=rng,
             progress=bool(self.progress), keep_dask=bool(self.keep_dask),
+            offset=bool(self.offset), scale=bool(self.scale),
+            residual_moments=self.noise == "per-cell",
+            residual_rows=20 if self.spatial is not None else None, extras=extras,
             **(self.dask_options or {}))
         self._set_result(res, region, times, xarray=region is not None)
-        self._fit_dynamics()
+        set_predictive(self, region, extras["offset"], extras["scale"], extras.get("moments"),
+                       extras.get("sample"))
+        self._fit_dynamics(extras["last_mask"])
         return self
 
     def _prepare(self, data, mask, region):
