@@ -299,7 +299,11 @@ def open_ndvi_cdr(
             da = read_remote(str(path), subset, storage_options=storage_options, cache=cache,
                              mask_and_scale=False, decode_times=False)
             da = da.assign_coords(time=time)
-            arrays.append(da if chunks is None else da.chunk(chunks))
+            if chunks is not None:  # the file's dim names as the local path takes them
+                names = {"latitude": "lat", "longitude": "lon"}
+                da = da.chunk({names.get(k, k): v for k, v in chunks.items()}
+                              if isinstance(chunks, dict) else chunks)
+            arrays.append(da)
             continue
         try:
             ds = xr.open_dataset(path, mask_and_scale=False, decode_times=False,
