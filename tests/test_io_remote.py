@@ -42,6 +42,8 @@ class _State:
         self.body_bytes: dict[str, int] = {}
         self.requests: list[tuple[str, str, str | None]] = []
         self.drop_after: int | None = None  # close the connection after this many body bytes
+        self.drop_from = 0                   # ... in GET responses from this one on (0-based)
+        self.gets = 0
         self.fail_status: int | None = None  # answer this status ...
         self.fail_times = 0                  # ... to this many GET requests, then serve
 
@@ -75,6 +77,8 @@ class _RangeHandler(http_server_lib.SimpleHTTPRequestHandler):
             fail = not head and st.fail_times > 0 and st.fail_status is not None
             if fail:
                 st.fail_times -= 1
+            drop = (not head and st.drop_after is not None and st.gets >= st.drop_from)
+            st.gets += not head
         if fail:
             self.send_error(st.fail_status)
             return
@@ -112,14 +116,14 @@ class _RangeHandler(http_server_lib.SimpleHTTPRequestHandler):
         self.end_headers()
         if head:
             return
-        if st.drop_after is not None:
+        if drop:
             body = body[: st.drop_after]
             self.close_connection = True
         self.wfile.write(body)
         self.wfile.flush()
         with st.lock:
             st.body_bytes[path.name] = st.body_bytes.get(path.name, 0) + len(body)
-        if st.drop_after is not None:
+        if drop:
             self.connection.shutdown(2)
 
 
@@ -253,13 +257,14 @@ def test_http_404_is_data_error_naming_url(http):
         open_ndvi_cdr(url)
 
 
-def test_http_dropped_connection_is_data_error_after_bounded_retries(http, global_files):
+@pytest.mark.parametrize("drop_from", [0, 1])  # at the first request / after the metadata
+def test_http_dropped_connection_is_data_error_after_bounded_retries(http, global_files,
+                                                                     drop_from):
     path = global_files["tiled"]
-    http.drop_after = 100  # every response is cut after 100 body bytes
-    with pytest.raises(DataError, match=re.escape(url_of(http, path)) + ".*dropped"):
+    http.drop_after, http.drop_from = 100, drop_from  # responses cut after 100 body bytes
+    with pytest.raises(DataError, match=re.escape(url_of(http, path)) + ".*dropped.*4 attempts"):
         open_ndvi_cdr(url_of(http, path), bbox=BBOX)
-    gets = [r for r in http.requests if r[0] == "GET"]
-    assert 1 < len(gets) <= 4  # the first try and at most RETRIES=3 more
+    assert http.gets <= 4 + drop_from  # the first try and RETRIES=3 more, each stopped early
 
 
 def test_http_transient_5xx_is_retried(http, global_files):
@@ -335,6 +340,9 @@ def test_s3_glob_window_equals_local(s3_server, tmp_path, monkeypatch):
     local_one = open_ndvi_cdr(paths[1], bbox=BBOX)
     assert_same(open_data([one], bbox=BBOX, storage_options=opts), local_one)
     monkeypatch.setenv("AWS_ENDPOINT_URL", endpoint)  # the environment works as well
+    assert_same(open_ndvi_cdr(one, bbox=BBOX), local_one)
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")  # credentials in the environment:
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")  # signed requests
     assert_same(open_ndvi_cdr(one, bbox=BBOX), local_one)
     with pytest.raises(DataError, match=r"s3://noaa-cdr-ndvi-pds/data/1999/AVHRR.*404"):
         open_ndvi_cdr("s3://noaa-cdr-ndvi-pds/data/1999/"

@@ -203,9 +203,10 @@ def _classify(exc: BaseException) -> tuple[bool, str]:
             meta_code = response.get("ResponseMetadata", {}).get("HTTPStatusCode")
             if isinstance(meta_code, int):
                 status = meta_code
-        if isinstance(e, ConnectionRefusedError) or name in ("ClientConnectorError",
-                                                             "EndpointConnectionError"):
-            refused = refused or e
+        if isinstance(e, ConnectionRefusedError) or name in (
+                "EndpointConnectionError", "ConnectTimeoutError") or any(
+                c.__name__ == "ClientConnectorError" for c in type(e).__mro__):
+            refused = refused or e  # also an unknown host (ClientConnectorDNSError)
         if isinstance(e, (ConnectionResetError, BrokenPipeError, TimeoutError,
                           asyncio.TimeoutError, asyncio.IncompleteReadError)) or name in (
                 "ServerDisconnectedError", "ClientPayloadError", "ContentLengthError",
