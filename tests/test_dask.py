@@ -175,8 +175,12 @@ def test_errors():
         GLRM(rank=2, progress=False).fit(da.from_array(D), mask=da.from_array(D > 0).astype(int))
     with pytest.raises(DataError):
         GLRM(rank=2, progress=False).fit(da.from_array(D)[None])
-    with pytest.raises(ModelError, match="not supported"):
-        GLRM(rank=2, offset=True, progress=False).fit(da.from_array(D))
+    with pytest.raises(ModelError, match="spatial= needs"):  # a (T, L) array has no region
+        GLRM(rank=2, spatial="exponential", progress=False).fit(da.from_array(D))
+    with pytest.raises(ModelError, match="noise"):
+        GLRM(rank=2, noise="per-row", progress=False).fit(da.from_array(D))
+    with pytest.raises(ModelError, match="degrees of freedom"):  # the offset's L parameters
+        GLRM(rank=2, offset=True, progress=False).fit(da.from_array(D[:3]))
     with pytest.raises(DataError, match="all NaN"):
         fit_chunked(xr.DataArray(da.full((3, 4, 5), np.nan, chunks=1),
                                  dims=("time", "lat", "lon")), 1, *_defaults())
@@ -219,3 +223,143 @@ def test_convergence_warning_points_at_the_callers_line(field):
             model.fit(data)
         hits = [w for w in record if "max_iter=1" in str(w.message)]
         assert len(hits) == 1 and hits[0].filename == __file__
+
+
+# ----------------------------------------------------------------------------- every option
+OPTIONS = [
+    dict(offset=True),
+    dict(scale=True),
+    dict(offset=True, scale=True, noise="per-cell"),
+    dict(offset=True, noise="per-cell", spatial="exponential", temporal="ar1"),
+    dict(noise="per-cell", spatial="gaussian", reg_x="ridge", reg_y="ridge"),
+]
+CHUNKINGS = [  # (input time chunks, fit options): one chunk, several, ragged
+    ({"time": -1}, {"chunk_mb": 64}),
+    ({"time": 5}, SMALL_CHUNKS),
+    ({"time": (7, 1, 20, 20), "lat": 11}, {"chunk_mb": 0.013, "block_mb": 0.05}),
+]
+
+
+def _assert_model_equal(ref, out, rtol=1e-7):
+    """Objective history, factors and every fitted predictive statistic agree."""
+    np.testing.assert_allclose(out.objective_, ref.objective_, rtol=rtol)
+    for name in ("X_", "Y_"):
+        a, b = np.asarray(getattr(ref, name)), np.asarray(getattr(out, name))
+        np.testing.assert_allclose(b, a, rtol=0, atol=rtol * np.abs(a).max() * 10)
+    np.testing.assert_allclose(out.noise_std_, ref.noise_std_, rtol=rtol)
+    for name in ("offset_", "scale_", "noise_var_"):
+        a, b = getattr(ref, name), getattr(out, name)
+        assert (a is None) == (b is None), name
+        if a is not None:
+            np.testing.assert_allclose(b, a, rtol=rtol * 10, atol=1e-12, err_msg=name)
+    if ref.spatial_cov_ is None:
+        assert out.spatial_cov_ is None
+    else:
+        ra, oa = ref.spatial_cov_.to_attrs(), out.spatial_cov_.to_attrs()
+        assert ra.keys() == oa.keys()
+        sill = abs(ra["spatial_sill"])
+        for key, v in ra.items():
+            if isinstance(v, float):  # the nugget may be ~0 (1e-24): absolute in sill units
+                atol = 1e-6 * sill if key == "spatial_nugget" else 0.0
+                np.testing.assert_allclose(oa[key], v, rtol=1e-4, atol=atol, err_msg=key)
+            else:
+                assert oa[key] == v
+    if getattr(ref, "dynamics_", None) is not None:
+        for name in ("A", "Q", "mean", "initial_mean", "initial_cov"):
+            np.testing.assert_allclose(getattr(out.dynamics_, name),
+                                       getattr(ref.dynamics_, name), rtol=1e-5, atol=1e-9,
+                                       err_msg=name)
+    assert out.is_plain_low_rank == ref.is_plain_low_rank
+
+
+@pytest.mark.parametrize("chunking", range(len(CHUNKINGS)))
+@pytest.mark.parametrize("options", OPTIONS, ids=lambda o: ",".join(f"{k}={v}"
+                                                                     for k, v in o.items()))
+def test_every_option_same_model_as_in_memory(field, options, chunking):
+    chunks, fit_options = CHUNKINGS[chunking]
+    kw = dict(rank=3, max_iter=8, tol=0, random_state=3, progress=False, **options)
+    ref = GLRM(**kw).fit(field)
+    out = GLRM(**kw, dask_options=fit_options).fit(field.chunk(chunks))
+    _assert_model_equal(ref, out)
+
+
+def test_options_on_array_with_mask_and_randomized_init():
+    """(T, L) dask array + mask, above SMALL_SVD (randomized init), offset + scale + per-cell
+    noise, converging by tol: the same model."""
+    rng = np.random.default_rng(5)
+    T, L, k = 40, SMALL_SVD // 40 + 300, 2
+    D = (rng.standard_normal((T, k)) @ rng.standard_normal((k, L)) + 3.0
+         + rng.standard_normal(L)).astype(np.float32)
+    D += 0.05 * rng.standard_normal((T, L)).astype(np.float32)
+    M = rng.random((T, L)) > 0.4
+    M[:, 7] = False  # a cell never observed
+    Dz = np.where(M, D, np.float32(1e30))  # outside the mask never read
+    kw = dict(rank=k, max_iter=30, tol=1e-6, random_state=2, progress=False, offset=True,
+              scale=True, noise="per-cell")
+    ref = GLRM(**kw).fit(Dz, mask=M)
+    out = GLRM(**kw, dask_options={"chunk_mb": 3}).fit(
+        da.from_array(Dz, chunks=(9, -1)), mask=da.from_array(M, chunks=(9, -1)))
+    assert out.converged_ == ref.converged_ and out.n_iter_ == ref.n_iter_
+    _assert_model_equal(ref, out, rtol=1e-6)
+    assert out.unobserved_cells_.tolist() == [7]
+
+
+def test_dask_fitted_model_downstream(field):
+    """complete, the planner and evaluate accept a model fitted on dask (keep_dask Y_ too)."""
+    from lrm_cvx.evaluation import evaluate
+    from lrm_cvx.planning import plan_greedy
+
+    kw = dict(rank=3, max_iter=6, tol=0, random_state=0, progress=False, offset=True,
+              noise="per-cell", spatial="exponential")
+    ref = GLRM(**kw).fit(field.isel(time=slice(0, 40)))
+    out = GLRM(**kw, keep_dask=True, dask_options=SMALL_CHUNKS).fit(
+        field.isel(time=slice(0, 40)).chunk({"time": 8}))
+    assert is_dask_backed(out.Y_)
+    snap = field.isel(time=44)
+    for prior, spatial in ((None, False), ("empirical", True)):
+        a = ref.complete(snap, prior=prior, spatial=spatial)
+        b = out.complete(snap, prior=prior, spatial=spatial)
+        for var in ("prediction", "std"):
+            np.testing.assert_allclose(b[var].values, a[var].values, rtol=1e-4, atol=1e-6)
+    p1 = plan_greedy(ref.Y_, ref.region_, 0, 20.0, progress=False, ridge=1e-6,
+                     **ref.planner_kwargs())
+    p2 = plan_greedy(out.Y_, out.region_, 0, 20.0, progress=False, ridge=1e-6,
+                     **out.planner_kwargs())
+    assert list(p1.cells) == list(p2.cells)
+    e1 = evaluate(field, model=ref, n_test=4, budgets=(10,), n_starts=2, random_trials=2,
+                  methods=("greedy", "random"), certify=False, progress=False,
+                  min_observations=1)
+    e2 = evaluate(field, model=out, n_test=4, budgets=(10,), n_starts=2, random_trials=2,
+                  methods=("greedy", "random"), certify=False, progress=False,
+                  min_observations=1)
+    for var in e1.data_vars:  # fold-ins from ~10 cells amplify the 1e-8 factor differences
+        if np.issubdtype(e1[var].dtype, np.number):
+            np.testing.assert_allclose(e2[var].values, e1[var].values, rtol=2e-3, atol=1e-8,
+                                       err_msg=var)
+
+
+def test_rounds_make_two_passes():
+    """Pass counter (quadratic.PASSES): the in-memory quadratic fit reads the data once for
+    the checks, once to pack the mask, four times for the randomized-SVD init and twice a
+    round; the dask fit's kernels read the staged data twice a round plus once per init
+    product (its staging and preparation reads are file reads, counted apart)."""
+    from lrm_cvx.glrm import quadratic as Q
+
+    rng = np.random.default_rng(0)
+    T, L, k = 24, SMALL_SVD // 24 + 100, 2
+    D = (rng.standard_normal((T, k)) @ rng.standard_normal((k, L))).astype(np.float32)
+    D += 0.1 * rng.standard_normal((T, L)).astype(np.float32)
+    M = rng.random((T, L)) > 0.5
+    D[~M] = 0
+    kw = dict(rank=k, max_iter=5, tol=0, random_state=0, progress=False)
+    Q.PASSES.reset()
+    GLRM(**kw).fit(D, mask=M)
+    assert Q.PASSES.passes(D.shape) == 1 + 1 + 4 + 2 * 5
+    Q.PASSES.reset()
+    GLRM(**{**kw, "max_iter": 9}).fit(D, mask=M)
+    assert Q.PASSES.passes(D.shape) == 1 + 1 + 4 + 2 * 9
+    Dn = np.where(M, D, np.nan)
+    Q.PASSES.reset()
+    GLRM(**kw, dask_options={"chunk_mb": 1.5}).fit(da.from_array(Dn, chunks=(6, -1)))
+    # prepare (scan) 1, range 1, power 2, projection 1, rounds 2 x 5; no final pass
+    assert Q.PASSES.passes(D.shape) == pytest.approx(1 + 1 + 2 + 1 + 2 * 5)

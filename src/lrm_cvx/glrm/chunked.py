@@ -37,12 +37,22 @@ import numpy as np
 
 from ..errors import DataError, ModelError, RegionError
 from ..region import Region
+from . import quadratic as Q
 from .fit import (
     SMALL_SVD,
+    SSE_RTOL,
     FitResult,
+    _direct_sse,
+    _gram_values,
+    _is_quad,
+    _quad_loss,
+    _quad_ridge,
+    _quad_y,
     _rel_decrease,
     finish_convergence,
+    free_parameters,
     is_fast_capable,
+    max_identifiable_rank,
     noise_std,
     objective,
     progress_bar,
@@ -50,14 +60,20 @@ from .fit import (
     x_pass,
     y_block,
 )
-from .losses import Loss, Quadratic
+from .losses import Loss
+from .predictive import (
+    column_moments,
+    moments_to_transform,
+    residual_moments,
+    residual_sample,
+    standardize,
+)
 from .regularizers import Regularizer, ZeroReg
 
 __all__ = ["fit_chunked", "is_dask_backed", "ChunkStore", "stage"]
 
 _LOCK = threading.Lock()  # one compiled kernel at a time per process (they are parallel already)
 _ZERO = ZeroReg()
-_QUAD = Quadratic()
 
 
 def is_dask_backed(data: Any) -> bool:
@@ -291,49 +307,56 @@ def stage(
 
 
 # --------------------------------------------------------------------------- chunk tasks
-def _load(path: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(D, M)`` of one chunk: zero-filled float32 C-contiguous data and the observed mask."""
+def _codes_path(path: str) -> str:
+    return path[:-4] + "_codes.npy"
+
+
+def _t_prepare(path: str, offset: bool, scale: bool) -> dict:
+    """Turn one staged chunk (float32, NaN = missing) into what every later task reads, in one
+    read and one write: the zero-filled (with ``offset``/``scale``: standardized) data in place
+    and its packed mask beside it (:func:`~.quadratic.prepare`). Returns the chunk's
+    statistics: row / column counts, column sums (for the init's mean fill), per-time sums of
+    squares, the last time's mask and, when asked, the cells' offset and scale."""
     D = np.load(path)
     M = ~np.isnan(D)
     np.copyto(D, 0.0, where=~M)
-    return D, M
+    out: dict = {}
+    if offset or scale:
+        mean, std, _ = column_moments(D, M)
+        off, sc = moments_to_transform(offset, scale, mean, std)
+        D = standardize(D, M, off, sc)
+        out["offset"], out["scale"] = off, sc
+    md = Q.prepare(D, M, overwrite=True)
+    np.save(path, md.D)
+    np.save(_codes_path(path), md.codes)
+    out.update(rows=M.sum(axis=1).astype(np.int64), cols=M.sum(axis=0).astype(np.int64),
+               colsum=md.D.sum(axis=0, dtype=np.float64), ssq_rows=md.ssq_rows,
+               last=M[-1].copy())
+    return out
 
 
-def _t_stats(path):
-    D, M = _load(path)
-    cnt = M.sum(axis=0)
-    Dd = D.astype(np.float64)
-    return {
-        "rows": M.sum(axis=1).astype(np.int64), "cols": cnt.astype(np.int64),
-        "sum": float(Dd.sum()), "ssq": float(np.einsum("ij,ij->", Dd, Dd)),
-    }
+def _md(path: str, ssq_rows: np.ndarray) -> Q.MaskedData:
+    """The prepared chunk as :class:`~.quadratic.MaskedData` (one read, no pass over it)."""
+    return Q.MaskedData(np.load(path), np.load(_codes_path(path)), ssq_rows)
 
 
-def _filled(path, mu_global):
-    """The mean-filled chunk ``Z_c`` (float64): missing entries set to the cell's mean."""
-    D, M = _load(path)
-    cnt = M.sum(axis=0)
-    mu = np.where(cnt > 0, D.sum(axis=0, dtype=np.float64) / np.maximum(cnt, 1), mu_global)
-    return np.where(M, D.astype(np.float64), mu[None, :])
-
-
-def _t_gram(path, mu_global):
-    Z = _filled(path, mu_global)
+def _t_gram(path, ssq, mu):
+    md = _md(path, ssq)
+    Z = np.where(md.mask(), md.D, mu[None, :]).astype(np.float64)
     return Z @ Z.T
 
 
-def _t_range(path, mu_global, om_path):
-    Z = _filled(path, mu_global)
-    return Z @ np.load(om_path).T
+def _t_range(path, ssq, mu, om_path):
+    return Q.filled_matmul(_md(path, ssq), mu, np.load(om_path))
 
 
-def _t_power(path, mu_global, Q):
-    Z = _filled(path, mu_global)
-    return Z @ (Z.T @ Q)
+def _t_power(path, ssq, mu, W):
+    md = _md(path, ssq)
+    return Q.filled_matmul(md, mu, Q.filled_rmatmul(md, mu, W))
 
 
-def _t_project(path, mu_global, W):
-    B = W.T @ _filled(path, mu_global)
+def _t_project(path, ssq, mu, W):
+    B = Q.filled_rmatmul(_md(path, ssq), mu, W)
     return B, B @ B.T
 
 
@@ -359,30 +382,62 @@ def _t_load_y0(path, unobserved, minimizer):
     return Y
 
 
-def _t_round(path, X, Yc, loss, reg_y, step):
-    """Y step of one chunk, then its X-step statistics at the new ``Y``."""
-    D, M = _load(path)
+def _t_round(path, ssq, X, Yc, loss, reg_y, step, lams):
+    """Y step of one chunk, then its X-step statistics at the new ``Y`` (one read of the chunk;
+    the quadratic + ridge path makes exactly two passes over it, as in memory)."""
+    md = _md(path, ssq)
     with _LOCK:
+        if lams is not None:  # quadratic + ridge: the fused kernels on the packed mask
+            ry = reg_y.value(Yc)
+            Yn, before, _ = _quad_y(md, X, Yc, lams[0], None)
+            G, h, c = Q.x_stats(md, Yn)
+            return Yn, (before + ry, G, h, _gram_values(G, h, c, X))
+        D, M = md.D, md.mask()
         Yn, fy = y_block(D, M, X, Yc, loss, reg_y, step0=step)
         G, h, f = x_pass(D, M, X, Yn, loss, step=step)
     return Yn, (fy, G, h, f)
 
 
-def _t_fpass(path, X, Yc, loss, step):
-    D, M = _load(path)
+def _t_fpass(path, ssq, X, Yc, loss, step):
+    md = _md(path, ssq)
     with _LOCK:
-        return x_pass(D, M, X, Yc, loss, step=step)[2]
+        return x_pass(md.D, md.mask(), X, Yc, loss, step=step)[2]
 
 
-def _t_final(path, X, Yc, loss, reg_y, unobserved, minimizer):
-    D, M = _load(path)
-    with _LOCK:
-        f = objective(D, M, X, Yc, loss, _ZERO, _ZERO) + reg_y.value(Yc)
-        Yc = Yc.copy()
-        if unobserved.size:
-            Yc[:, unobserved] = minimizer[:, None]
-        sse = objective(D, M, X, Yc, _QUAD, _ZERO, _ZERO)
-    return Yc, (f, sse)
+def _t_final(path, ssq, X, Yc, loss, reg_y, unobserved, minimizer, need_loss):
+    """Final objective terms of one chunk: ``(Y_c, (loss, sse, reg_y))`` with unobserved cells
+    set to the minimiser; the data are read only when ``need_loss`` (a non-quadratic fit)."""
+    ry = reg_y.value(Yc)
+    f = sse = 0.0
+    if need_loss:
+        md = _md(path, ssq)
+        with _LOCK:
+            f = objective(md.D, md.mask(), X, Yc, loss, _ZERO, _ZERO)
+    Yc = Yc.copy()
+    if unobserved.size:
+        Yc[:, unobserved] = minimizer[:, None]
+    if need_loss:
+        with _LOCK:
+            sse = _quad_loss(md, X, Yc)
+    return Yc, (f, sse, ry)
+
+
+def _t_residuals(path, ssq, X, Yc, moments, rows, direct):
+    """Residual statistics of one chunk at the final factors: per-cell ``(sse, count)``
+    (``moments``), the sampled times' residuals (``rows``, float32 NaN = missing) and the
+    direct sum of squares (``direct``): the predictive options' and the SSE fallback's inputs,
+    the same functions as in memory on the chunk's cells."""
+    md = _md(path, ssq)
+    M = md.mask()
+    out = {}
+    if moments:
+        out["moments"] = residual_moments(md.D, M, X, Yc)
+    if rows is not None:
+        out["sample"] = residual_sample(md.D, M, X, Yc, max_times=int(rows))
+    if direct:
+        with _LOCK:
+            out["sse"] = _direct_sse(md.D, M, X, Yc)
+    return out
 
 
 def _add(parts):
@@ -417,29 +472,32 @@ def _draw_rows(store: ChunkStore, name: str, rng, rows: int, scale: float = 1.0)
     return paths
 
 
-def _svd_init(store, k, mu_g, rng, unobs_local, minimizer, n_power=1, oversample=5):
-    """``(X (k, T), [Y_c (k, Lc) delayed, persisted])`` as :func:`~.fit.initialize` (svd)."""
+def _svd_init(store, k, mus, ssqs, rng, unobs_local, minimizer, n_power=1, oversample=5):
+    """``(X (k, T), [Y_c (k, Lc) delayed, persisted])`` as :func:`~.fit.initialize` (svd):
+    one read of the data for the range, one per power iteration, one for the projection, each
+    chunk through the compiled mean-filled products (no filled copy of the chunk)."""
     import dask
 
     T, L = store.n_times, store.n_cells
     d = dask.delayed
     files = store.files
+    args = list(zip(files, ssqs, mus, strict=True))
     if T * L <= SMALL_SVD:
-        gram = dask.compute(_tree_sum([d(_t_gram, pure=False)(f, mu_g) for f in files]))[0]
+        gram = dask.compute(_tree_sum([d(_t_gram, pure=False)(*a) for a in args]))[0]
         ev, vec = np.linalg.eigh(gram)
         W = np.ascontiguousarray(vec[:, ::-1][:, :k])
     else:
         p = min(k + oversample, T, L)
         om = _draw_rows(store, "omega", rng, p)
-        A = dask.compute(_tree_sum([d(_t_range, pure=False)(f, mu_g, o)
-                                    for f, o in zip(files, om, strict=True)]))[0]
+        A = dask.compute(_tree_sum([d(_t_range, pure=False)(*a, o)
+                                    for a, o in zip(args, om, strict=True)]))[0]
         W, _ = np.linalg.qr(A)
         for _ in range(n_power):
-            A = dask.compute(_tree_sum([d(_t_power, pure=False)(f, mu_g, W) for f in files]))[0]
+            A = dask.compute(_tree_sum([d(_t_power, pure=False)(*a, W) for a in args]))[0]
             W, _ = np.linalg.qr(A)
-    proj = [d(_t_project, nout=2, pure=False)(f, mu_g, W) for f in files]
-    Bs = dask.persist(*[b for b, _ in proj])
-    BBt = dask.compute(_tree_sum([bb for _, bb in proj]))[0]
+    proj = [d(_t_project, nout=2, pure=False)(*a, W) for a in args]
+    *Bs, BBt = dask.persist(*[b for b, _ in proj], _tree_sum([bb for _, bb in proj]))
+    BBt = dask.compute(BBt)[0]  # (persisted together: one read of each chunk, not two)
     ev, R = np.linalg.eigh(BBt)
     ev, R = ev[::-1][:k], np.ascontiguousarray(R[:, ::-1][:, :k])
     S = np.sqrt(np.maximum(ev, 0.0))  # singular values of the mean-filled matrix
@@ -486,6 +544,11 @@ def fit_chunked(
     scratch_dir: str | None = None,
     block_mb: float = 256.0,
     timings: dict | None = None,
+    offset: bool = False,
+    scale: bool = False,
+    residual_moments: bool = False,
+    residual_rows: int | None = None,
+    extras: dict | None = None,
 ) -> tuple[FitResult, Region | None, Any, str]:
     """Fit a GLRM to (dask-backed) ``data`` chunk by chunk; return ``(result, region, times,
     time_dim)``.
@@ -497,6 +560,15 @@ def fit_chunked(
     ``init="random"``) in ``scratch_dir`` (default: the system temp dir), removed at the end.
     ``timings``, when a dict, receives wall seconds: ``"stage"`` (region + staging), ``"init"``
     (statistics + initialisation), ``"rounds"`` (list, one per round) and ``"final"``.
+
+    The predictive options of :class:`~.model.GLRM` chunk by chunk (each is per cell, so each
+    column chunk computes its own cells' part with the in-memory functions of
+    :mod:`.predictive`): ``offset`` / ``scale`` standardize the data while staging (the fit
+    then sees ``(D - offset) / scale``); ``residual_moments`` (``noise="per-cell"``) and
+    ``residual_rows`` (``spatial``: the number of sampled times) compute the residual
+    statistics at the final factors. ``extras``, when a dict, receives ``"offset"``,
+    ``"scale"``, ``"moments"`` (``(sse, count)``), ``"sample"`` and ``"last_mask"`` (the last
+    time's observed mask, ``(L,)``) for :func:`~.predictive.set_predictive`.
     """
     rng = np.random.default_rng() if rng is None else rng
     if solver not in ("auto", "fast", "cvxpy"):
@@ -518,7 +590,9 @@ def fit_chunked(
     clock.mark("stage")
     try:
         res = _fit_store(store, int(rank), loss, reg_x, reg_y, max_iter, tol, init, rng,
-                         progress, keep_dask, clock)
+                         progress, keep_dask, clock, offset=bool(offset), scale=bool(scale),
+                         moments=bool(residual_moments), rows=residual_rows,
+                         extras={} if extras is None else extras)
     finally:
         shutil.rmtree(store.directory, ignore_errors=True)
     return res, region, times, tdim
@@ -548,7 +622,7 @@ class _Clock:
 
 
 def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress, keep_dask,
-               clock=None):
+               clock=None, *, offset=False, scale=False, moments=False, rows=None, extras=None):
     import dask
     import dask.array as da
 
@@ -556,56 +630,80 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     T, L = store.n_times, store.n_cells
     files = store.files
     bounds = store.bounds
+    extras = {} if extras is None else extras
     if k < 1 or k > min(T, L):
         raise ModelError(f"rank must be in [1, min(T, L)] = [1, {min(T, L)}], got {k}")
-    stats = dask.compute(*[d(_t_stats, pure=False)(f) for f in files])
-    rows = np.sum([s["rows"] for s in stats], axis=0)
+    stats = dask.compute(*[d(_t_prepare, pure=False)(f, offset, scale) for f in files])
+    rows_n = np.sum([s["rows"] for s in stats], axis=0)
     cols = np.concatenate([s["cols"] for s in stats])
-    n_obs = int(rows.sum())
+    n_obs = int(rows_n.sum())
     if n_obs == 0:
         raise DataError("data has no observed value (all missing / all NaN)")
-    empty = np.flatnonzero(rows == 0)
+    empty = np.flatnonzero(rows_n == 0)
     if empty.size:
         raise DataError(f"times {empty[:10].tolist()} have no observation; drop them first")
-    mu_g = float(sum(s["sum"] for s in stats) / n_obs)
-    scale = float(np.sqrt(sum(s["ssq"] for s in stats) / n_obs))
-    del stats
-    loss = loss.with_scale(scale)
+    L_obs = int(np.count_nonzero(cols))
+    kmax = max_identifiable_rank(n_obs, T, L_obs, offset=offset)
+    if k > kmax:
+        raise ModelError(f"rank {k} leaves no residual degrees of freedom: {n_obs} observed "
+                         f"values vs {free_parameters(k, T, L_obs, offset=offset)} free "
+                         f"parameters (T={T} times, {L_obs} observed cells); use rank <= "
+                         f"{max(kmax, 1)} or more data")
+    colsum = np.concatenate([s["colsum"] for s in stats])
+    ssqs = [s["ssq_rows"] for s in stats]
+    ssq = float(np.sum(ssqs))
+    mu_g = float(colsum.sum() / n_obs)
+    mu = np.where(cols > 0, colsum / np.maximum(cols, 1), mu_g)
+    mus = [mu[bounds[c]: bounds[c + 1]] for c in range(len(files))]
+    extras["last_mask"] = np.concatenate([s["last"] for s in stats])
+    extras["offset"] = np.concatenate([s["offset"] for s in stats]) if offset else None
+    extras["scale"] = np.concatenate([s["scale"] for s in stats]) if scale else None
+    scale_ = float(np.sqrt(ssq / n_obs))
+    del stats, colsum
+    loss = loss.with_scale(scale_)
     unobserved = np.flatnonzero(cols == 0)
     del cols
     unobs_local = [unobserved[(unobserved >= bounds[c]) & (unobserved < bounds[c + 1])]
                    - bounds[c] for c in range(len(files))]
     minimizer = np.asarray(reg_y.minimizer(k), dtype=np.float64)
     if init == "random":
-        s = (max(scale, 1e-12) ** 2 / k) ** 0.25
+        s = (max(scale_, 1e-12) ** 2 / k) ** 0.25
         X = s * rng.standard_normal((k, T))
         y0 = _draw_rows(store, "y0", rng, k, s)
         Ys = list(dask.persist(*[d(_t_load_y0, pure=False)(p, u, minimizer)
                                  for p, u in zip(y0, unobs_local, strict=True)]))
     else:
-        X, Ys = _svd_init(store, k, mu_g, rng, unobs_local, minimizer)
+        X, Ys = _svd_init(store, k, mus, ssqs, rng, unobs_local, minimizer)
     clock = clock or _Clock(None)
     clock.mark("init")
 
+    lam_y, lam_x = _quad_ridge(loss, reg_y), _quad_ridge(loss, reg_x)
+    quad = lam_y is not None and lam_x is not None  # as fit_glrm: the fused quadratic path
+    lams = (lam_y, lam_x) if quad else None
+    f_loss = None  # quadratic path: the loss at the current (X, Y) from the round's Gram
     history: list[float] = []
     converged = False
     n_iter = 0
     bar = progress_bar(progress, max_iter, "GLRM (dask)")
     try:
         for it in range(max_iter):
-            outs = [d(_t_round, nout=2, pure=False)(f, X, y, loss, reg_y, it)
-                    for f, y in zip(files, Ys, strict=True)]
+            outs = [d(_t_round, nout=2, pure=False)(f, q, X, y, loss, reg_y, it, lams)
+                    for f, q, y in zip(files, ssqs, Ys, strict=True)]
             *Ys, tot = dask.persist(*[o[0] for o in outs], _tree_sum([o[1] for o in outs]))
             fy, G, h, f = dask.compute(tot)[0]
             del outs, tot
             history.append(fy + reg_x.value(X))
+            f_loss = float(np.sum(f)) if quad else None  # loss at (X, Y_new)
             if it >= 1 and _rel_decrease(history) < tol:
                 converged = True
                 break
             Xn = np.array(solve_block(G, h, reg_x, X), dtype=np.float64)
-            if not (loss.is_quadratic or loss.majorizer_exact):
-                f2 = dask.compute(_tree_sum([d(_t_fpass, pure=False)(p, Xn, y, loss, it + 1)
-                                             for p, y in zip(files, Ys, strict=True)]))[0]
+            if quad:  # loss at (X_new, Y_new) from the same statistics, no pass
+                f_loss = float(_gram_values(G, h, np.sum(ssqs, axis=0), Xn).sum())
+            elif not (loss.is_quadratic or loss.majorizer_exact):
+                f2 = dask.compute(_tree_sum([d(_t_fpass, pure=False)(p, q, Xn, y, loss, it + 1)
+                                             for p, q, y in zip(files, ssqs, Ys,
+                                                                strict=True)]))[0]
                 worse = ~(f2 + reg_x.evaluate(Xn) <= f + reg_x.evaluate(X))
                 Xn[:, worse] = X[:, worse]
             X = Xn
@@ -617,11 +715,27 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     finally:
         if bar is not None:
             bar.close()
-    outs = [d(_t_final, nout=2, pure=False)(f, X, y, loss, reg_y, u, minimizer)
-            for f, y, u in zip(files, Ys, unobs_local, strict=True)]
+    need = f_loss is None
+    outs = [d(_t_final, nout=2, pure=False)(f, q, X, y, loss, reg_y, u, minimizer, need)
+            for f, q, y, u in zip(files, ssqs, Ys, unobs_local, strict=True)]
     *Ys, tot = dask.persist(*[o[0] for o in outs], _tree_sum([o[1] for o in outs]))
-    fsum, sse = dask.compute(tot)[0]
-    history.append(float(fsum) + reg_x.value(X))
+    fsum, sse, ry = dask.compute(tot)[0]
+    if not need:  # the quadratic path (as fit_glrm): loss and SSE from the last statistics
+        fsum, sse = f_loss, max(f_loss, 0.0)
+    history.append(float(fsum) + reg_x.value(X) + ry)
+    direct = sse <= SSE_RTOL * ssq  # the Gram identity cancelled: sum the residuals directly
+    if moments or rows is not None or direct:
+        res = dask.compute(*[d(_t_residuals, pure=False)(f, q, X, y, moments, rows, direct)
+                             for f, q, y in zip(files, ssqs, Ys, strict=True)])
+        if moments:
+            extras["moments"] = tuple(np.concatenate([r["moments"][i] for r in res])
+                                      for i in range(2))
+        if rows is not None:
+            extras["sample"] = np.concatenate([r["sample"] for r in res], axis=1)
+        if direct:
+            sse = float(sum(r["sse"] for r in res))
+            if _is_quad(loss):
+                history[-1] = sse + reg_x.value(X) + ry
     converged = finish_convergence(history, converged, max_iter, tol, stacklevel=6)
     widths = np.diff(bounds)
     if keep_dask:
@@ -633,5 +747,6 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     return FitResult(
         X=np.ascontiguousarray(X), Y=Y, objective=history, n_iter=n_iter,
         converged=converged, unobserved_cells=unobserved.astype(np.int64), n_observed=n_obs,
-        sse=float(sse), noise_std=noise_std(sse, n_obs, k, T, L - unobserved.size), solver="fast",
+        sse=float(sse), noise_std=noise_std(sse, n_obs, k, T, L_obs,
+                                            extra=L_obs if offset else 0), solver="fast",
     )

@@ -110,6 +110,7 @@ def check_data(D: np.ndarray, M: np.ndarray, rank: int, *, check_finite: bool = 
     if rank < 1 or rank > min(T, L):
         raise ModelError(f"rank must be in [1, min(T, L)] = [1, {min(T, L)}], got {rank}")
     rows, cols, nbad, colsum = K.data_stats(D, M, check_finite)
+    Q.PASSES.add(D)  # one full read of the data (counted, see quadratic.PassCounter)
     if rows.sum() == 0:
         raise DataError("data has no observed value (all missing / all NaN)")
     if nbad:
@@ -797,6 +798,7 @@ def _direct_sse(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray) -> f
     G = np.zeros((nchunk, T, pa.size))
     h = np.zeros((nchunk, T, k))
     f = np.zeros((nchunk, T))
+    Q.PASSES.add(D)
     K.row_pass(D, M, np.ascontiguousarray(X, dtype=np.float64),
                np.ascontiguousarray(Y, dtype=np.float64), 0, 0.0, 0.0, pa, pb, nchunk, G, h, f)
     return float(f.sum())

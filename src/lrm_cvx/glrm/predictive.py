@@ -25,7 +25,8 @@ import numpy as np
 from ..errors import ModelError
 
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
-           "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample"]
+           "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
+           "check_options", "moments_to_transform", "set_predictive", "sample_rows"]
 
 NOISE_PRIOR_DF = 10.0  # pseudo-observations of the global variance in each per-cell estimate
 NOISE_MODELS = ("global", "per-cell")
@@ -44,33 +45,59 @@ def _check_params(model: Any) -> None:
         raise ModelError(f"spatial must be None or one of {MODELS}, got {model.spatial!r}")
 
 
+def check_options(model: Any, has_region: bool) -> None:
+    """Validate the predictive options of ``model`` before a fit (ModelError); ``spatial``
+    needs a region (a model fitted on a DataArray)."""
+    _check_params(model)
+    if model.spatial is not None and not has_region:
+        raise ModelError("spatial= needs a model fitted on a DataArray (with a region)")
+
+
+def moments_to_transform(offset: bool, scale: bool, mean: np.ndarray,
+                         std: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(offset_, scale_)`` from the per-cell observed mean and std (:func:`column_moments`):
+    the mean when ``offset``; the std when ``scale`` (the RMS about zero without ``offset``)."""
+    if scale and not offset:  # RMS about zero
+        rms = np.sqrt(std ** 2 + mean ** 2)
+        std = np.where(rms > 0, rms, 1.0)
+    return (mean if offset else None), (std if scale else None)
+
+
 def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage: str,
                    pre: dict | None = None) -> dict | None:
     """Called by ``GLRM.fit``: ``stage="before"`` returns ``{"data": transformed D}`` (or None
     when neither offset nor scale is asked); ``stage="after"`` sets ``noise_var_`` and
     ``spatial_cov_`` from the residuals of the (transformed) training data."""
     if stage == "before":
-        _check_params(model)
-        if model.spatial is not None and region is None:
-            raise ModelError("spatial= needs a model fitted on a DataArray (with a region)")
+        check_options(model, region is not None)
         model._pending_offset = model._pending_scale = None
         if not (model.offset or model.scale):
             return None
-        mean, std, count = column_moments(D, M)
-        if model.scale and not model.offset:  # RMS about zero
-            rms = np.sqrt(std ** 2 + mean ** 2)
-            std = np.where(rms > 0, rms, 1.0)
-        off = mean if model.offset else None
-        sc = std if model.scale else None
+        mean, std, _ = column_moments(D, M)
+        off, sc = moments_to_transform(model.offset, model.scale, mean, std)
         model._pending_offset, model._pending_scale = off, sc
         return {"data": standardize(D, M, off, sc)}
-    model.offset_ = getattr(model, "_pending_offset", None)
-    model.scale_ = getattr(model, "_pending_scale", None)
+    X, Y = model._Xv, model._Yv
+    moments = residual_moments(D, M, X, Y) if model.noise == "per-cell" else None
+    sample = residual_sample(D, M, X, Y) if model.spatial is not None else None
+    set_predictive(model, region, getattr(model, "_pending_offset", None),
+                   getattr(model, "_pending_scale", None), moments, sample)
+    return None
+
+
+def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
+                   scale: np.ndarray | None, moments: tuple[np.ndarray, np.ndarray] | None,
+                   sample: np.ndarray | None) -> None:
+    """Set ``offset_``, ``scale_``, ``noise_var_`` and ``spatial_cov_`` of a fitted ``model``
+    from statistics of the (transformed) training data: ``moments = (sse, count)`` of
+    :func:`residual_moments` (for ``noise="per-cell"``) and ``sample`` of
+    :func:`residual_sample` (for ``spatial``). Shared by the in-memory and the dask fit, which
+    computes the same statistics chunk by chunk."""
+    model.offset_, model.scale_ = offset, scale
     model.noise_var_ = None
     model.spatial_cov_ = None
-    X, Y = model._Xv, model._Yv
     if model.noise == "per-cell":
-        sse, cnt = residual_moments(D, M, X, Y)
+        sse, cnt = moments
         total = float(sse.sum())
         inflate = model.noise_std_ ** 2 * max(int(cnt.sum()), 1) / total if total > 0 else 1.0
         model.noise_var_ = shrink_noise(sse * inflate, cnt, model.noise_std_ ** 2,
@@ -78,10 +105,8 @@ def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage:
     if model.spatial is not None:
         from ..spatial import fit_residual_covariance
 
-        R = residual_sample(D, M, X, Y)
-        model.spatial_cov_ = fit_residual_covariance(R, region, model=model.spatial,
+        model.spatial_cov_ = fit_residual_covariance(sample, region, model=model.spatial,
                                                      random_state=0)
-    return None
 
 
 # ---------------------------------------------------------------------------- predictive model
@@ -155,12 +180,16 @@ def shrink_noise(sse: np.ndarray, count: np.ndarray, global_var: float,
     return (sse + prior_df * global_var) / (count + prior_df)
 
 
+def sample_rows(T: int, max_times: int = 20) -> np.ndarray:
+    """The times :func:`residual_sample` uses: at most ``max_times`` evenly spaced of ``T``."""
+    return np.unique(np.linspace(0, T - 1, min(T, max_times)).round().astype(np.int64))
+
+
 def residual_sample(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray,
                     max_times: int = 20) -> np.ndarray:
     """Training residuals of at most ``max_times`` evenly spaced times, ``(t, L)`` float32 with
     NaN where unobserved (for the variogram fit; bounded memory at millions of cells)."""
-    T = D.shape[0]
-    rows = np.unique(np.linspace(0, T - 1, min(T, max_times)).round().astype(np.int64))
+    rows = sample_rows(D.shape[0], max_times)
     R = (D[rows].astype(np.float64) - X[:, rows].T @ Y).astype(np.float32)
     R[~M[rows]] = np.nan
     return R

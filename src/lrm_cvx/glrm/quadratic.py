@@ -61,6 +61,34 @@ def _nchunk() -> int:
     return max(2 * numba.get_num_threads(), 2)
 
 
+class PassCounter:
+    """Entries of ``D`` read by the kernel calls of this module (and ``check_data``'s scan):
+    each call that reads all of a ``(T, L)`` data matrix adds ``T * L``, so
+    ``entries / (T * L)`` is the number of full passes over the data (a chunked fit adds
+    its chunks' sizes, so the ratio stays the number of passes). ``reset()`` before a fit."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self._lock = threading.Lock()
+        self.entries = 0
+
+    def add(self, D: np.ndarray) -> None:
+        with self._lock:
+            self.entries += int(D.shape[0]) * int(D.shape[1])
+
+    def reset(self) -> None:
+        with self._lock:
+            self.entries = 0
+
+    def passes(self, shape: tuple[int, int]) -> float:
+        """Full passes over a ``(T, L)`` matrix read since the last reset."""
+        return self.entries / max(int(shape[0]) * int(shape[1]), 1)
+
+
+PASSES = PassCounter()
+
+
 def pad_width(n: int) -> int:
     """``n`` rounded up to a multiple of 8 (one 512-bit vector of float64)."""
     return (n + 7) // 8 * 8
@@ -133,9 +161,11 @@ def prepare(D: np.ndarray, M: np.ndarray, *, overwrite: bool = False) -> MaskedD
         D, overwrite = np.ascontiguousarray(D), True
     codes = np.empty(((T + GROUP - 1) // GROUP, L), dtype=np.uint8)
     ssq, dirty = _scan(D, M, codes)
+    PASSES.add(D)
     if dirty:
         out = D if overwrite else np.empty_like(D)
         _zero_fill(D, M, out)
+        PASSES.add(D)
         D = out
     return MaskedData(D, codes, ssq)
 
@@ -379,6 +409,7 @@ def row_products(md: MaskedData, W: np.ndarray, V: np.ndarray, pa: np.ndarray,
     nch = _nchunk()
     H = np.empty((nch, T, W.shape[0]))
     G = np.empty((nch, T, pa.size))
+    PASSES.add(md.D)
     _row_products(md.D, md.codes, np.ascontiguousarray(W, dtype=np.float64),
                   np.ascontiguousarray(V, dtype=np.float64), pa, pb, nch, H, G)
     return H.sum(0), G.sum(0)
@@ -402,6 +433,7 @@ def y_step(md: MaskedData, X: np.ndarray, Y: np.ndarray, lam: float,
     pa, pb = _pairs(k)
     X = np.ascontiguousarray(X, dtype=np.float64)
     TAB = subset_tables(pair_products(X, pa, pb, pad_width(pa.size)), md.codes.shape[0])
+    PASSES.add(md.D)
     before, after, npinv = _y_step(md.D, md.codes, np.ascontiguousarray(X.T), TAB, float(lam),
                                    pa, pb, Y, out, _nchunk())
     ssq = float(md.ssq_rows.sum())
@@ -440,6 +472,7 @@ def filled_rmatmul(md: MaskedData, mu: np.ndarray, U: np.ndarray) -> np.ndarray:
     A = np.zeros((T, pad_width(p)))
     A[:, :p] = U
     out = np.empty((p, L))
+    PASSES.add(md.D)
     _filled_rmatmul(md.D, md.codes, U, subset_tables(A, md.codes.shape[0]),
                     np.ascontiguousarray(mu, dtype=np.float64), U.sum(axis=0), out)
     return out
