@@ -131,9 +131,12 @@ def test_refuses_to_overwrite_input(data_file, capsys):
 def test_demo_runs(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["-q", "demo", "--out", str(out)]) == 0
-    for name in ("results.nc", "summary.csv", "metrics.png", "metrics.pdf", "predictions.png"):
+    for name in ("results_recommended.nc", "results_paper.nc", "summary.csv", "summary.txt",
+                 "metrics.png", "metrics.pdf", "predictions.png"):
         assert (out / name).exists(), name
-    assert str(out.resolve()) in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert str(out.resolve()) in printed
+    assert printed.index("recommended:") < printed.index("paper:")  # recommended setting first
 
 
 # ------------------------------------------------------------------ parity with the Python API

@@ -13,7 +13,6 @@ import argparse
 import os
 import re
 import sys
-import time
 import traceback
 import warnings
 from collections.abc import Sequence
@@ -485,16 +484,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .datasets import load_sample
+    """The recommended setting beside the paper's on the SST sample (``lrm_cvx.demo``)."""
+    from .demo import run_demo
 
-    t0 = time.perf_counter()
     out = Path(args.out)
-    data = load_sample("sst")
-    print(f"sample 'sst': {dict(data.sizes)} ({data.attrs.get('long_name', data.name)})")
-    _run_evaluation(data, out, rank=5, n_test=8, budgets=(5, 10, 20, 40), n_starts=10,
-                    random_trials=20, min_observations=5, criterion="fisher", seed=0,
-                    certify=True, progress=not args.quiet)
-    print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {out.resolve()}")
+    result = run_demo(out, progress=None if args.quiet else print)
+    print(result.text)
+    print("wrote " + ", ".join(p.name for p in result.paths))
+    print(f"demo finished in {result.timings['total']:.1f} s; outputs in {out.resolve()}")
     return 0
 
 

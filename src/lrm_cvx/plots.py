@@ -17,7 +17,8 @@ import xarray as xr
 from ._validation import atomic_output
 from .errors import DataError
 
-__all__ = ["plot_metrics", "plot_predictions", "plot_map", "save_figure", "METHOD_STYLE"]
+__all__ = ["plot_metrics", "plot_predictions", "plot_map", "plot_prediction_panels",
+           "plot_demo_metrics", "save_figure", "METHOD_STYLE"]
 
 # Okabe-Ito colours, one marker each: distinguishable in colour and in grey-scale print.
 METHOD_STYLE: dict[str, dict[str, Any]] = {
@@ -84,24 +85,143 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
     return fig
 
 
+_LAND = "0.82"  # face colour behind masked (NaN) cells: land or no data, light grey
+
+
+def _coord_label(coord: xr.DataArray, name: str) -> str:
+    """Axis label with units: ``latitude (deg N)`` from CF ``degrees_north`` and the like."""
+    units = str(coord.attrs.get("units", "")).lower()
+    known = {"degrees_north": "\N{DEGREE SIGN}N", "degree_north": "\N{DEGREE SIGN}N",
+             "degrees_n": "\N{DEGREE SIGN}N", "degrees_east": "\N{DEGREE SIGN}E",
+             "degree_east": "\N{DEGREE SIGN}E", "degrees_e": "\N{DEGREE SIGN}E"}
+    if units in known:
+        return f"{name} ({known[units]})"
+    if not units and name in ("latitude", "longitude"):  # the Region's grids are in degrees
+        return f"{name} (\N{DEGREE SIGN}{'N' if name == 'latitude' else 'E'})"
+    return f"{name} ({units})" if units else name
+
+
+def _units(da: xr.DataArray) -> str:
+    return str(da.attrs.get("units", "")).strip()
+
+
+def _with_units(label: str, units: str) -> str:
+    return f"{label} ({units})" if units else label
+
+
 def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
-             route: xr.Dataset | None = None, **kwargs: Any):
-    """One ``(lat, lon)`` map (colour bar unless ``add_colorbar=False``), optionally with a
-    route (a Dataset with ``lat`` and ``lon`` per stop) drawn; returns the mappable's axes."""
+             route: xr.Dataset | None = None, label: str | None = None, **kwargs: Any):
+    """One ``(lat, lon)`` map with labelled axes (degrees north / east), masked (NaN) cells
+    shaded grey, a colour bar labelled ``label (units)`` unless ``add_colorbar=False``, and
+    optionally a route (a Dataset with ``lat`` and ``lon`` per stop, start starred) drawn over
+    it; returns the axes."""
     import matplotlib.pyplot as plt
 
-    if field.ndim != 2:
-        raise DataError(f"field must be a (lat, lon) DataArray, got dims {field.dims}")
+    if not isinstance(field, xr.DataArray) or field.ndim != 2:
+        raise DataError(f"field must be a (lat, lon) DataArray, got "
+                        f"{getattr(field, 'dims', type(field).__name__)}")
     if ax is None:
         _, ax = plt.subplots(figsize=(3.5, 3.0), constrained_layout=True)
+    lat_dim, lon_dim = field.dims
+    if kwargs.get("add_colorbar", True):
+        name = label or str(field.attrs.get("long_name", field.name or "value"))
+        kwargs.setdefault("cbar_kwargs", {"label": _with_units(name, _units(field))})
     field.plot.pcolormesh(ax=ax, cmap=cmap, add_labels=False, rasterized=True, **kwargs)
+    ax.set_facecolor(_LAND)
     if route is not None:
         ax.plot(route["lon"], route["lat"], "-", color="white", lw=1.6)
         ax.plot(route["lon"], route["lat"], "-o", color="#D55E00", lw=0.8, ms=1.8)
         ax.plot(route["lon"][:1], route["lat"][:1], "*", color="#D55E00", ms=7, mec="white",
                 mew=0.6)
+    ax.set_xlabel(_coord_label(field[lon_dim], "longitude"))
+    ax.set_ylabel(_coord_label(field[lat_dim], "latitude"))
     ax.set_aspect("equal", adjustable="box")
     return ax
+
+
+def plot_prediction_panels(truth: xr.DataArray, rows: Sequence[Mapping[str, Any]], *,
+                           cmap: str = "RdBu_r", std_cmap: str = "magma_r"):
+    """Truth, prediction and standard deviation side by side, one row per setting.
+
+    ``truth`` is the ``(lat, lon)`` snapshot (its ``units`` attr labels the colour bars);
+    each row is a mapping with ``label`` (str), ``prediction`` and ``std`` (``(lat, lon)``
+    DataArrays on the same grid) and optionally ``route`` (a Dataset with ``lat``/``lon``
+    per stop), drawn over every panel of the row. Truth and predictions share one colour
+    scale (symmetric about 0 when the data straddle it), the stds another; land / missing
+    cells are grey. Returns the figure.
+    """
+    import matplotlib.pyplot as plt
+
+    if not rows:
+        raise DataError("rows must hold at least one {label, prediction, std} mapping")
+    units = _units(truth)
+    name = str(truth.attrs.get("long_name", truth.name or "value")).split(",")[0]
+    lo, hi = np.nanpercentile(truth.values, [1, 99])
+    if lo < 0 < hi:  # anomalies: a diverging scale centred on zero
+        lo, hi = -max(-lo, hi), max(-lo, hi)
+    smax = max(float(np.nanpercentile(r["std"].values, 99)) for r in rows)
+    n = len(rows)
+    ny, nx = truth.shape
+    panel_w = 7.2 / 3
+    panel_h = panel_w * ny / nx + 0.45
+    with plt.rc_context(_PRINT_RC):
+        fig, axes = plt.subplots(n, 3, figsize=(7.2, panel_h * n + 1.0), squeeze=False,
+                                 sharex=True, sharey=True, constrained_layout=True)
+        for i, row in enumerate(rows):
+            route = row.get("route")
+            plot_map(truth, ax=axes[i, 0], cmap=cmap, vmin=lo, vmax=hi, route=route,
+                     add_colorbar=False)
+            plot_map(row["prediction"], ax=axes[i, 1], cmap=cmap, vmin=lo, vmax=hi,
+                     route=route, add_colorbar=False)
+            plot_map(row["std"], ax=axes[i, 2], cmap=std_cmap, vmin=0, vmax=smax, route=route,
+                     add_colorbar=False)
+            axes[i, 0].set_title("truth (held-out snapshot)")
+            axes[i, 1].set_title(f"prediction: {row['label']}")
+            axes[i, 2].set_title("standard deviation")
+            for ax in axes[i, 1:]:
+                ax.set_ylabel("")
+            if i < n - 1:
+                for ax in axes[i]:
+                    ax.set_xlabel("")
+        for cols, label, vmin, vmax, cm, ext in (
+                (axes[:, :2], name, lo, hi, cmap, "both"),
+                (axes[:, 2], "predictive std", 0, smax, std_cmap, "max")):
+            mappable = matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(vmin, vmax),
+                                                    cmap=cm)
+            fig.colorbar(mappable, ax=cols, location="bottom", shrink=0.8, aspect=30,
+                         label=_with_units(label, units), extend=ext)
+        fig.suptitle(f"{name}, {np.datetime_as_string(truth['time'].values, unit='D')}"
+                     if "time" in truth.coords else name)
+    return fig
+
+
+def plot_demo_metrics(table: Any, *, units: str = "", ax: Any = None):
+    """Reconstruction MSE vs budget per setting (rows of :attr:`DemoResult.table`: columns
+    ``setting``, ``budget``, ``mse_mean``, ``mse_se``), mean +- s.e., log scale. The first
+    setting (the recommended one) is drawn thickest. Returns the figure."""
+    import matplotlib.pyplot as plt
+
+    with plt.rc_context(_PRINT_RC):
+        if ax is None:
+            fig, ax = plt.subplots(figsize=(7.2, 3.0), constrained_layout=True)
+        else:
+            fig = ax.figure
+        colors = ["#D55E00", "#E69F00", "#000000", "#0072B2", "#56B4E9", "#009E73", "#CC79A7"]
+        for i, (setting, rows) in enumerate(table.groupby("setting", sort=False)):
+            x = rows["budget"].to_numpy()
+            y = rows["mse_mean"].to_numpy()
+            se = np.nan_to_num(rows["mse_se"].to_numpy())
+            ax.plot(x, y, marker="osD^v<>"[i % 7], color=colors[i % len(colors)],
+                    lw=2.0 if i == 0 else 1.0, ls="-" if i < 2 else "--", label=setting)
+            ax.fill_between(x, y - se, y + se, color=colors[i % len(colors)], alpha=0.15, lw=0)
+        ax.set_yscale("log")
+        ax.set_xlabel("budget (grid cells)")
+        ax.set_ylabel(_with_units("reconstruction MSE", f"{units}\N{SUPERSCRIPT TWO}"
+                                  if units else ""))
+        ax.grid(alpha=0.3, lw=0.5, which="both")
+        ax.set_title("reconstruction error on held-out snapshots, lower is better")
+        ax.legend(frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    return fig
 
 
 def plot_predictions(model: Any, snapshot: xr.DataArray, routes: Mapping[float, Sequence[int]],

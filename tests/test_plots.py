@@ -1,0 +1,94 @@
+"""Figures: labelled axes with units, colour bars with units, routes and masked cells drawn."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+import pytest  # noqa: E402
+import xarray as xr  # noqa: E402
+
+from lrm_cvx.errors import DataError  # noqa: E402
+from lrm_cvx.plots import plot_demo_metrics, plot_map, plot_prediction_panels  # noqa: E402
+
+
+@pytest.fixture
+def field() -> xr.DataArray:
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(4, 6)).astype(np.float32)
+    v[0, :2] = np.nan  # "land"
+    return xr.DataArray(
+        v, dims=("lat", "lon"),
+        coords={"lat": ("lat", [10.0, 15, 20, 25], {"units": "degrees_north"}),
+                "lon": ("lon", [200.0, 205, 210, 215, 220, 225], {"units": "degrees_east"}),
+                "time": np.datetime64("2005-01-15")},
+        attrs={"units": "K", "long_name": "sea surface temperature anomaly"})
+
+
+def _colorbar_labels(fig) -> list[str]:
+    return [ax.get_xlabel() or ax.get_ylabel() for ax in fig.axes
+            if ax.get_label() == "<colorbar>"]
+
+
+def test_plot_map_labels_units_colorbar_route_and_mask(field):
+    route = xr.Dataset({"lat": ("step", [10.0, 15.0]), "lon": ("step", [210.0, 215.0])})
+    ax = plot_map(field, route=route)
+    assert ax.get_xlabel() == "longitude (\N{DEGREE SIGN}E)"
+    assert ax.get_ylabel() == "latitude (\N{DEGREE SIGN}N)"
+    assert _colorbar_labels(ax.figure) == ["sea surface temperature anomaly (K)"]
+    # the route is drawn at its coordinates; masked cells show the grey face colour
+    xs = [tuple(line.get_xdata()) for line in ax.lines]
+    assert (210.0, 215.0) in xs
+    assert ax.get_facecolor()[:3] == pytest.approx(matplotlib.colors.to_rgb("0.82"))
+    plt.close("all")
+
+
+def test_plot_map_refuses_non_2d(field):
+    with pytest.raises(DataError, match="field"):
+        plot_map(field.expand_dims(t=2))
+    with pytest.raises(DataError, match="field"):
+        plot_map(field.values)
+
+
+def test_prediction_panels_truth_prediction_std_side_by_side(field):
+    rows = [{"label": f"setting {i}", "prediction": field * 0.5, "std": abs(field) * 0 + 0.1 * i,
+             "route": xr.Dataset({"lat": ("step", [10.0, 20.0]), "lon": ("step", [200.0, 210.0])})}
+            for i in (1, 2)]
+    fig = plot_prediction_panels(field, rows)
+    maps = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    assert len(maps) == 6
+    titles = [ax.get_title() for ax in maps]
+    assert titles[:3] == ["truth (held-out snapshot)", "prediction: setting 1",
+                          "standard deviation"]
+    assert all(ax.get_xlabel() == "longitude (\N{DEGREE SIGN}E)" for ax in maps[3:])
+    assert maps[0].get_ylabel() == "latitude (\N{DEGREE SIGN}N)"
+    assert all(len(ax.lines) >= 2 for ax in maps)  # the route over every panel
+    labels = _colorbar_labels(fig)
+    assert labels == ["sea surface temperature anomaly (K)", "predictive std (K)"]
+    # truth and prediction share one colour scale, symmetric about zero for anomalies
+    clims = {ax.collections[0].get_clim() for ax in maps if ax.get_title() != "standard deviation"}
+    assert len(clims) == 1
+    lo, hi = clims.pop()
+    assert lo == pytest.approx(-hi)
+    plt.close("all")
+
+
+def test_prediction_panels_needs_rows(field):
+    with pytest.raises(DataError, match="rows"):
+        plot_prediction_panels(field, [])
+
+
+def test_demo_metrics_axes_and_legend_order():
+    table = pd.DataFrame({"setting": ["rec"] * 2 + ["paper"] * 2, "budget": [10.0, 20] * 2,
+                          "mse_mean": [0.1, 0.05, 0.3, 0.2], "mse_se": [0.01] * 4})
+    fig = plot_demo_metrics(table, units="K")
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "budget (grid cells)"
+    assert ax.get_ylabel() == "reconstruction MSE (K\N{SUPERSCRIPT TWO})"
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["rec", "paper"]
+    assert ax.get_yscale() == "log"
+    plt.close("all")
