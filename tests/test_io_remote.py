@@ -43,6 +43,7 @@ class _State:
         self.requests: list[tuple[str, str, str | None]] = []
         self.drop_after: int | None = None  # close the connection after this many body bytes
         self.drop_from = 0                   # ... in GET responses from this one on (0-based)
+        self.stall = None                    # an Event: GET bodies wait for it before sending
         self.gets = 0
         self.fail_status: int | None = None  # answer this status ...
         self.fail_times = 0                  # ... to this many GET requests, then serve
@@ -116,6 +117,8 @@ class _RangeHandler(http_server_lib.SimpleHTTPRequestHandler):
         self.end_headers()
         if head:
             return
+        if st.stall is not None and not head:
+            st.stall.wait(timeout=10)  # released by the test (bounded anyway)
         if drop:
             body = body[: st.drop_after]
             self.close_connection = True
@@ -265,6 +268,20 @@ def test_http_dropped_connection_is_data_error_after_bounded_retries(http, globa
     with pytest.raises(DataError, match=re.escape(url_of(http, path)) + ".*dropped.*4 attempts"):
         open_ndvi_cdr(url_of(http, path), bbox=BBOX)
     assert http.gets <= 4 + drop_from  # the first try and RETRIES=3 more, each stopped early
+
+
+def test_http_stalled_server_times_out_after_bounded_retries(http, global_files,
+                                                            monkeypatch):
+    path = global_files["tiled"]
+    monkeypatch.setattr("lrm_cvx.io.remote.TIMEOUT", 0.2)
+    http.stall = threading.Event()
+    try:
+        with pytest.raises(DataError, match=re.escape(url_of(http, path)) +
+                           ".*timed out.*after 4 attempts"):
+            open_ndvi_cdr(url_of(http, path), bbox=BBOX)
+    finally:
+        http.stall.set()
+    assert http.gets == 4
 
 
 def test_http_transient_5xx_is_retried(http, global_files):

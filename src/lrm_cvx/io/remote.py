@@ -56,6 +56,9 @@ RETRIES = 3
 """Attempts after the first on a transient failure (connection reset or dropped, 5xx, 429)."""
 BACKOFF = 0.5
 """Seconds before the first retry; doubled before each next one (0.5, 1, 2 s by default)."""
+TIMEOUT = 60.0
+"""HTTP: seconds to connect, and seconds of silence while reading, before a try is abandoned
+(a transient failure, so retried). aiohttp's own default would wait up to 300 s a request."""
 
 _URL = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://")
 _CACHE_ENV = "LRM_CVX_CACHE"
@@ -120,6 +123,13 @@ def remote_filesystem(url: str, storage_options: dict[str, Any] | None = None,
         options.setdefault("default_block_size", BLOCK_SIZE)
     elif protocol in ("http", "https"):
         options.setdefault("block_size", BLOCK_SIZE)
+        client = dict(options.get("client_kwargs") or {})
+        if "timeout" not in client:
+            import aiohttp
+
+            client["timeout"] = aiohttp.ClientTimeout(total=None, sock_connect=TIMEOUT,
+                                                      sock_read=TIMEOUT)
+        options["client_kwargs"] = client
     try:
         fs = fsspec.filesystem(protocol, **options)
     except ImportError as exc:
@@ -192,7 +202,7 @@ def _classify(exc: BaseException) -> tuple[bool, str]:
     that is not NetCDF.
     """
     status = None
-    refused = dropped = missing = None
+    refused = dropped = missing = timeout = None
     for e in _chain(exc):
         name = type(e).__name__
         code = getattr(e, "status", None)
@@ -207,11 +217,14 @@ def _classify(exc: BaseException) -> tuple[bool, str]:
                 "EndpointConnectionError", "ConnectTimeoutError") or any(
                 c.__name__ == "ClientConnectorError" for c in type(e).__mro__):
             refused = refused or e  # also an unknown host (ClientConnectorDNSError)
-        if isinstance(e, (ConnectionResetError, BrokenPipeError, TimeoutError,
-                          asyncio.TimeoutError, asyncio.IncompleteReadError)) or name in (
+        if isinstance(e, (TimeoutError, asyncio.TimeoutError)) or name in (
+                "ServerTimeoutError", "ReadTimeoutError", "SocketTimeoutError"):
+            timeout = timeout or e
+        if isinstance(e, (ConnectionResetError, BrokenPipeError,
+                          asyncio.IncompleteReadError)) or name in (
                 "ServerDisconnectedError", "ClientPayloadError", "ContentLengthError",
-                "TransferEncodingError", "ServerTimeoutError", "ReadTimeoutError",
-                "ConnectionClosedError", "ResponseStreamingError", "IncompleteRead"):
+                "TransferEncodingError", "ConnectionClosedError", "ResponseStreamingError",
+                "IncompleteRead"):
             dropped = dropped or e
         if isinstance(e, FileNotFoundError) or name in ("NoSuchKey", "NoSuchBucket"):
             missing = missing or e
@@ -223,6 +236,8 @@ def _classify(exc: BaseException) -> tuple[bool, str]:
     elif dropped is not None:
         transient = True
         reason = f"connection dropped while reading ({type(dropped).__name__}: {dropped})"
+    elif timeout is not None:
+        transient, reason = True, f"timed out ({type(timeout).__name__}: {timeout})"
     elif missing is not None:
         transient, reason = False, "not found (HTTP status 404)"
     else:
@@ -248,6 +263,9 @@ def _with_retries(func: Callable[[], T], url: str, retries: int | None = None,
                 time.sleep(backoff * 2**attempt)
                 continue
             tries = f" after {attempt + 1} attempts" if attempt else ""
+            if url.startswith("s3://") and "status 403" in reason:
+                tries += (" (S3 reads are anonymous unless credentials are in the environment "
+                          "or storage_options)")
             raise DataError(f"cannot read {url}: {reason}{tries}") from None
     raise AssertionError("unreachable")  # pragma: no cover
 
