@@ -159,6 +159,8 @@ def http(http_server):
 @pytest.fixture(autouse=True)
 def _no_env_cache(monkeypatch):
     monkeypatch.delenv("LRM_CVX_CACHE", raising=False)
+    monkeypatch.setenv("NO_PROXY", "127.0.0.1,localhost")  # loopback never via a proxy
+    monkeypatch.setenv("no_proxy", "127.0.0.1,localhost")
     monkeypatch.setattr("lrm_cvx.io.remote.BACKOFF", 0.01)
 
 

@@ -273,8 +273,8 @@ def _with_retries(func: Callable[[], T], url: str, retries: int | None = None,
 class _RecordingFile:
     """A file object that remembers the exception its ``read`` raised.
 
-    h5py turns an exception raised by a Python file object into its own OSError without a
-    cause; keeping the original lets the error name the HTTP status or the dropped connection.
+    h5py may turn an exception raised by a Python file object into its own OSError; keeping
+    the original lets the error name the HTTP status or the dropped connection.
     """
 
     def __init__(self, f: Any):
