@@ -234,7 +234,8 @@ def _model_params(args: argparse.Namespace) -> dict:
     return {"offset": bool(args.offset or args.recommended),
             "spatial": _pick(args.spatial, args.recommended, "spatial", None),
             "scale": bool(args.scale),
-            "noise": args.noise}
+            "noise": args.noise,
+            "temporal": _prior(args.temporal)}
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -531,6 +532,7 @@ def _add_data(p: argparse.ArgumentParser) -> None:
 
 
 def _add_model_options(p: argparse.ArgumentParser) -> None:
+    from .glrm.dynamics import TEMPORAL
     from .glrm.predictive import NOISE_MODELS
     from .spatial import MODELS
 
@@ -540,6 +542,9 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
                    help="noise model (default: %(default)s)")
     p.add_argument("--spatial", choices=MODELS, default=None, metavar="KERNEL",
                    help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)})")
+    p.add_argument("--temporal", choices=[t or "none" for t in TEMPORAL], default="none",
+                   help="latent dynamics for persistent monitoring (docs/monitoring.md; "
+                   "default: %(default)s)")
 
 
 def _first(names):
