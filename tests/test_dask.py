@@ -212,6 +212,13 @@ def test_distributed_local_cluster(field, tmp_path):
             np.testing.assert_allclose(GLRM.load(tmp_path / "d.nc").Y_.values,
                                        ref4.Y_.values, rtol=1e-6, atol=1e-9)
             assert not any(p.name.startswith("lrm-dask-") for p in tmp_path.iterdir())
+            # every option runs unchanged on the cluster: the same model as in memory
+            kw = dict(rank=3, max_iter=5, tol=0, random_state=7, progress=False, offset=True,
+                      scale=True, noise="per-cell", spatial="exponential", temporal="ar1")
+            ref5 = GLRM(**kw).fit(field)
+            out5 = GLRM(**kw, dask_options={"chunk_mb": 0.05, "scratch_dir": str(tmp_path)}
+                        ).fit(field.chunk({"time": 6}))
+            _assert_model_equal(ref5, out5)
     finally:
         cluster.close()
 

@@ -1,17 +1,22 @@
 """Out-of-core GLRM fit on dask: the same alternating minimisation as :mod:`.fit`, chunk by chunk.
 
 The data never exist in memory as one ``(T, L)`` matrix. They are staged once into a scratch
-directory as column chunks (all times x a block of cells, one ``.npy`` file of float32 with NaN
-for missing values per chunk, ``T * L * 4`` bytes on disk), then every step is a dask task per
-chunk that loads its file, zero-fills it, and calls the public in-memory kernels of :mod:`.fit`:
+directory as column chunks (all times x a block of cells, one ``.npy`` file of float32 per
+chunk, ``T * L * 4`` bytes on disk). One preparation task per chunk then zero-fills it in place
+(standardized with ``offset`` / ``scale``) and writes its packed mask beside it
+(:func:`~.quadratic.prepare`), so every later task reads exactly what the in-memory kernels
+read, with no NaN test, zero-fill or packing:
 
-* Y step: :func:`~.fit.y_block` per chunk (cells are independent given ``X``);
-* X step: :func:`~.fit.x_pass` per chunk, the ``k x k`` Gram statistics summed over chunks,
-  then :func:`~.fit.solve_block` on the client (times are independent given ``Y``);
-* objective and diagnostics: :func:`~.fit.objective` per chunk, summed.
+* Y step: the fused quadratic kernel (:func:`~.fit._quad_y`) or :func:`~.fit.y_block` per chunk
+  (cells are independent given ``X``);
+* X step: the chunk's Gram statistics (:func:`~.quadratic.x_stats` / :func:`~.fit.x_pass`)
+  summed over chunks, then :func:`~.fit.solve_block` on the client (times are independent
+  given ``Y``);
+* predictive options: per-cell statistics of :mod:`.predictive` on each chunk's cells.
 
 The Y step and the X-step statistics of a round are one task per chunk (one read of the data
-per round). Chunks of ``Y`` are persisted between rounds (in the workers' memory with a
+per round, two passes over it in memory, as in memory; :data:`~.quadratic.PASSES` counts them).
+Chunks of ``Y`` are persisted between rounds (in the workers' memory with a
 ``dask.distributed`` Client, in the client process with the threaded scheduler). Whatever
 scheduler is active is used (``dask.compute`` / ``dask.persist``): the threaded default, or a
 ``distributed.Client`` (LocalCluster, dask-jobqueue, dask-kubernetes) when one exists. With a
@@ -320,18 +325,19 @@ def _t_prepare(path: str, offset: bool, scale: bool) -> dict:
     D = np.load(path)
     M = ~np.isnan(D)
     np.copyto(D, 0.0, where=~M)
-    out: dict = {}
+    out: dict = {"colsum": D.sum(axis=0, dtype=np.float64)}
     if offset or scale:
         mean, std, _ = column_moments(D, M)
         off, sc = moments_to_transform(offset, scale, mean, std)
         D = standardize(D, M, off, sc)
         out["offset"], out["scale"] = off, sc
+        # the transformed data's sums as GLRM.fit takes them: 0 when centred, else sums / scale
+        out["colsum"] = np.zeros_like(out["colsum"]) if offset else out["colsum"] / sc
     md = Q.prepare(D, M, overwrite=True)
     np.save(path, md.D)
     np.save(_codes_path(path), md.codes)
     out.update(rows=M.sum(axis=1).astype(np.int64), cols=M.sum(axis=0).astype(np.int64),
-               colsum=md.D.sum(axis=0, dtype=np.float64), ssq_rows=md.ssq_rows,
-               last=M[-1].copy())
+               ssq_rows=md.ssq_rows, last=M[-1].copy())
     return out
 
 
