@@ -290,3 +290,19 @@ def test_docs_name_every_command_and_flag():
             if long and long[0] not in ("--help",) and f"`{long[0]}" not in text:
                 missing.append(f"{name} {long[0]}")
     assert not missing, f"docs/cli.md does not mention {missing}"
+
+
+def test_fit_temporal_stores_the_same_dynamics_as_python(data_file, tmp_path):
+    """`fit --temporal ar1` saves the dynamics GLRM(temporal="ar1") estimates in Python."""
+    out = tmp_path / "dyn.nc"
+    assert main(["-q", "fit", str(data_file), "--rank", "3", "--temporal", "ar1",
+                 "-o", str(out)]) == 0
+    saved = GLRM.load(out)
+    da = xr.open_dataarray(data_file)
+    ref = GLRM(rank=3, temporal="ar1", random_state=0, progress=False).fit(da)
+    assert saved.dynamics_ is not None and saved.dynamics_.kind == "ar1"
+    np.testing.assert_allclose(saved.dynamics_.A, ref.dynamics_.A, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(saved.dynamics_.Q, ref.dynamics_.Q, rtol=1e-6, atol=1e-12)
+    plain = tmp_path / "plain.nc"
+    assert main(["-q", "fit", str(data_file), "--rank", "3", "-o", str(plain)]) == 0
+    assert GLRM.load(plain).dynamics_ is None
