@@ -63,6 +63,32 @@ def align(model, truth, n_train):
     return X @ Xc.T @ np.linalg.inv(Xc @ Xc.T)
 
 
+def a_recovery(n_times: int) -> None:
+    """Relative Frobenius error of ``A`` estimated from a fitted model's ``X_`` (aligned to the
+    true latent coordinates), and of least squares on the *true* latent series (the
+    finite-sample floor of any estimate from ``n_times`` snapshots)."""
+    p = dict(PLANTED, n_times=n_times)
+    data, truth = synthetic_dynamic_field(p.pop("n_times"), p.pop("shape"), p.pop("rank"),
+                                          return_truth=True, **p)
+    t0 = time.perf_counter()
+    model = GLRM(rank=PLANTED["rank"], offset=True, temporal="ar1", progress=False,
+                 random_state=0).fit(data)
+    fit_s = time.perf_counter() - t0
+    X = truth["mu"][:, None] + truth["Z"]
+    Xc = X - X.mean(axis=1, keepdims=True)
+    M = align(model, truth, n_times)
+    resid = model._Xv - model._Xv.mean(axis=1, keepdims=True) - M @ Xc
+    r2 = 1 - (resid ** 2).sum() / ((model._Xv - model._Xv.mean(axis=1, keepdims=True)) ** 2).sum()
+    A_hat = np.linalg.inv(M) @ model.dynamics_.A @ M
+    A = truth["A"]
+    err = np.linalg.norm(A_hat - A) / np.linalg.norm(A)
+    Z0, Z1 = Xc[:, :-1], Xc[:, 1:]
+    floor = np.linalg.norm(Z1 @ Z0.T @ np.linalg.inv(Z0 @ Z0.T) - A) / np.linalg.norm(A)
+    print(f"A recovery, {n_times} snapshots: relative Frobenius error {err:.3f} (target <= 0.10;"
+          f" least squares on the true latent series: {floor:.3f}; alignment R^2 {r2:.3f}; "
+          f"fit {fit_s:.1f} s)")
+
+
 def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
     data, truth, n_test, rank = load(name)
     train, test = data.isel(time=slice(None, -n_test)), data.isel(time=slice(-n_test, None))
@@ -83,9 +109,6 @@ def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
     if truth is not None:
         M = align(model, truth, train.sizes["time"])
         Minv = np.linalg.inv(M)
-        A_hat = Minv @ model.dynamics_.A @ M
-        err = np.linalg.norm(A_hat - truth["A"]) / np.linalg.norm(truth["A"])
-        print(f"A recovery: relative Frobenius error {err:.3f} (target <= 0.10)")
         oracle_dyn = replace(model.dynamics_, A=M @ truth["A"] @ Minv,
                              Q=M @ truth["Q"] @ M.T)
 
@@ -99,8 +122,7 @@ def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
     cal = calibrate(model, train, seed=0)
     print(f"calibration ({time.perf_counter() - t0:.1f} s): variance scale {cal.scale:.3f} "
           f"(cv coverage before: 68% {cal.coverage68_raw:.3f}, 95% {cal.coverage95_raw:.3f}); "
-          f"filter scale {cal.temporal_scale:.3f} (cv before: 68% "
-          f"{cal.temporal_coverage68_raw:.3f}, 95% {cal.temporal_coverage95_raw:.3f})")
+          "the filter uses the same scale")
 
     methods = (RECOMMENDED,) + TRANSECTS + ("random",)
     t0 = time.perf_counter()
@@ -160,6 +182,9 @@ def main() -> None:
     if a.quick:
         a.starts, a.budgets = 3, [5, 15]
     for name in a.data:
+        if name == "planted":
+            for n_times in (100, 400, 1600):
+                a_recovery(n_times)
         run(name, a.starts, tuple(a.budgets), a.random_trials)
 
 

@@ -121,7 +121,7 @@ def test_planted_gaussian_model_is_near_nominal_and_calibrate_keeps_it():
         model = GLRM(rank=3, progress=False, random_state=0).fit(train)
     raw = _coverage_on_test(model, test)
     assert raw[1] >= 0.9 and raw[0] >= 0.6  # data drawn exactly from the model
-    cal = calibrate(model, train, n_blocks=4, sizes=(5, 15, 40), max_snapshots=4)
+    cal = calibrate(model, train, n_blocks=6, sizes=(5, 15, 40), max_snapshots=3)
     assert model.calibration_ is cal
     assert 0.7 < cal.scale < 1.4  # cross-validation finds the model nearly right
     after = _coverage_on_test(model, test)
@@ -138,7 +138,7 @@ def test_overconfident_model_is_inflated_to_nominal():
     model.noise_std_ = model.noise_std_ / 3.0
     raw = _coverage_on_test(model, test)
     assert raw[1] < 0.8
-    cal = calibrate(model, train, n_blocks=4, sizes=(5, 15, 40), max_snapshots=4)
+    cal = calibrate(model, train, n_blocks=6, sizes=(5, 15, 40), max_snapshots=3)
     # cv refits estimate their own noise; the scale only fixes what they get wrong, so check
     # the effect on the (deliberately broken) model through a scale fitted on its own errors
     assert cal.scale > 0
