@@ -7,10 +7,12 @@ from typing import Any
 from .baselines import random_walk, transect
 from .greedy import initial_cells, plan_greedy
 from .plan import Plan
+from .refine import refine
 
 __all__ = [
     "Plan",
     "plan_greedy",
+    "refine",
     "initial_cells",
     "transect",
     "random_walk",

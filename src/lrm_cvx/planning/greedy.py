@@ -88,6 +88,7 @@ def plan_greedy(
     targets: Any = None,
     initial: str = "nearest",
     prior: Any = None,
+    refine: bool | dict[str, Any] = False,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner.
 
@@ -124,6 +125,9 @@ def plan_greedy(
         monitoring filter's forecast): its ``information()`` fills ``prior_precision``,
         ``noise_var``, ``target_weights`` and, when it has the spatial residual, ``prior_cov``
         and ``spatial_cov`` (giving one of those too is an error).
+    refine : run :func:`lrm_cvx.planning.refine.refine` on the greedy plan (a local search
+        of insertions and swaps that raises the information within the budget; Fisher only);
+        a dict is passed to it as keyword arguments. ``plan.refinement`` records the gain.
 
     If the initial cells alone already exceed the budget, the plan is still returned (the
     paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
@@ -211,7 +215,7 @@ def plan_greedy(
         key: np.asarray(v, dtype=np.int64 if key in ("cell", "n_evaluated") else np.float64)
         for key, v in hist.items()
     }
-    return Plan.build(
+    plan = Plan.build(
         region=region,
         cells=cells,
         route=coster.route,
@@ -227,3 +231,12 @@ def plan_greedy(
         Y=Yk,
         posterior=prior_precision is not None or noise_var is not None,
     )
+    if refine is not False and refine is not None:
+        from .refine import refine as _refine
+
+        opts = dict(refine) if isinstance(refine, dict) else {}
+        if plan.posterior:
+            opts.setdefault("prior_precision", prior_precision)
+            opts.setdefault("noise_var", noise_var)
+        plan = _refine(plan, **opts)
+    return plan

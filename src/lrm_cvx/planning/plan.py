@@ -68,6 +68,9 @@ class Plan:
         random walk; the grid steps walked for a transect (steps across masked positions count).
     posterior : the greedy's criterion was computed on the fold-in's posterior (a prior
         precision or per-cell noise), not on ``ridge I + sum y y^T``.
+    refinement : empty, or what :func:`~lrm_cvx.planning.refine.refine` gained:
+        ``information_before`` / ``information_after`` (nats), ``moves`` accepted, ``inserted``,
+        ``swapped``, ``rounds``, ``seconds`` (history keys ``refine_*`` list the moves).
     """
 
     cells: np.ndarray
@@ -86,6 +89,7 @@ class Plan:
     cost_function: str = "nearest-neighbor"
     route_cost: np.ndarray = field(default_factory=lambda: np.empty(0))
     posterior: bool = False
+    refinement: dict[str, Any] = field(default_factory=dict, compare=False)
     _Y: Any = field(default=None, repr=False, compare=False)
     _region: Any = field(default=None, repr=False, compare=False)
 

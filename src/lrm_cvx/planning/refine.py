@@ -1,0 +1,432 @@
+"""Plan refinement: a local search that raises a plan's information within its budget.
+
+The greedy planner stops when no single addition fits; refinement then tries
+
+* **insert** a stop (every candidate of the budget disk at once: exact cost increases from
+  :mod:`lrm_cvx.cost`, gains from the rank-one formula), and
+* **swap** a stop ``x`` for a candidate ``y`` (remove ``x``, insert ``y``; every pair of a
+  shortlist at once: the information of ``P - x + y`` in closed form, the exact cost of
+  ``P - x + y`` for all ``y`` by one incremental cost oracle per ``x``),
+* with route repair after every accepted move when the cost is a route (``cost="insertion"``:
+  2-opt and Or-opt on the visiting order, which only shorten it). For the paper's
+  nearest-neighbour cost the cost of a set *is* its nearest-neighbour tour, so repair means
+  re-evaluating that tour exactly.
+
+A move is accepted only when the information rises strictly (> 1e-9 nats, recomputed from
+scratch) and the exact path cost is within the budget (+1e-9, the greedy's tolerance). Removing
+a stop never raises log det, so removal appears only inside a swap. The start cell is never
+moved. The result is a :class:`~lrm_cvx.planning.plan.Plan` with ``refinement`` recording what
+was gained (docs/planning.md, "Refinement").
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from .._validation import as_factor_matrix
+from ..cost import NearestNeighborCost, nearest_neighbor_tour, route_length
+from ..errors import PlanningError
+from ..information import _fisher_set_value
+from .plan import Plan, check_region
+
+__all__ = ["refine"]
+
+_TOL = 1e-9  # budget tolerance, as in the greedy
+_EPS = 1e-9  # strict improvement (nats)
+_CHUNK = 4096
+
+
+class _Fisher:
+    """``log det(M0 + sum_P yw yw^T)`` (plain: ``M0 = ridge I``; posterior: a prior precision
+    and per-cell noise), with the closed-form information of swaps and insertions."""
+
+    def __init__(self, Y: np.ndarray, ridge: float, prior_precision: Any, noise_var: Any):
+        k, L = Y.shape
+        self.Y, self.ridge = Y, float(ridge)
+        self.kw: dict[str, Any] = {}
+        if noise_var is not None:
+            nv = np.broadcast_to(np.asarray(noise_var, float), (L,))
+            if not np.all(np.isfinite(nv)) or np.any(nv <= 0):
+                raise PlanningError(f"noise_var must be a positive scalar or ({L},) array")
+            self.Yw = np.ascontiguousarray(Y / np.sqrt(nv))
+            self.kw["noise_var"] = noise_var
+        else:
+            self.Yw = Y
+        if prior_precision is not None:
+            M0 = np.asarray(prior_precision, float)
+            if M0.shape != (k, k) or not np.all(np.isfinite(M0)):
+                raise PlanningError(f"prior_precision must be a finite ({k}, {k}) matrix")
+            self.M0 = 0.5 * (M0 + M0.T)
+            self.kw["prior_precision"] = prior_precision
+        else:
+            self.M0 = self.ridge * np.eye(k)
+
+    def value(self, cells: np.ndarray) -> float:
+        return float(_fisher_set_value(self.Y, cells, self.ridge, **self.kw))
+
+    def inverse(self, cells: np.ndarray) -> np.ndarray | None:
+        Yp = self.Yw[:, cells]
+        M = self.M0 + Yp @ Yp.T
+        try:
+            S = np.linalg.inv(M)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(S)) or np.linalg.cond(M) > 1e13:
+            return None
+        return 0.5 * (S + S.T)
+
+    def leverages(self, S: np.ndarray, cand: np.ndarray) -> np.ndarray:
+        out = np.empty(cand.size)
+        for a in range(0, cand.size, _CHUNK * 16):
+            Yc = self.Yw[:, cand[a:a + _CHUNK * 16]]
+            out[a:a + Yc.shape[1]] = np.einsum("ij,ij->j", Yc, S @ Yc)
+        return out
+
+
+# ----------------------------------------------------------------------------- routes
+def _dist(g: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    d = g[a] - g[b]
+    return np.sqrt((d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]).astype(np.float64))
+
+
+def _two_opt(g: np.ndarray, route: np.ndarray, max_iter: int = 1000) -> np.ndarray:
+    """2-opt on an open path with a fixed first stop: reverse ``route[i+1 .. j]`` while some
+    reversal shortens the path (best one each pass), vectorised over all ``(i, j)``."""
+    r = route.copy()
+    m = r.size
+    if m < 3:
+        return r
+    for _ in range(max_iter):
+        p = g[r].astype(np.float64)
+        i = np.arange(m - 1)[:, None]
+        j = np.arange(m)[None, :]
+        dij = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
+        seg = np.hypot(*(np.diff(p, axis=0).T))  # (m-1,)
+        nxt = np.minimum(j + 1, m - 1)
+        a_next = dij[np.minimum(i + 1, m - 1), nxt]  # d(r[i+1], r[j+1])
+        delta = dij[i, j] - seg[i]
+        delta = delta + np.where(j < m - 1, a_next - seg[np.minimum(j, m - 2)], 0.0)
+        valid = j > i + 1
+        delta = np.where(valid, delta, 0.0)
+        b = int(np.argmin(delta))
+        if not delta.flat[b] < -1e-10:
+            break
+        bi, bj = divmod(b, m)
+        r[bi + 1:bj + 1] = r[bi + 1:bj + 1][::-1].copy()
+    return r
+
+
+def _or_opt(g: np.ndarray, route: np.ndarray, max_iter: int = 1000) -> np.ndarray:
+    """Or-opt: move one stop (not the first) to the position where the path is shortest,
+    best move each pass, vectorised over all (stop, position) pairs."""
+    r = route.copy()
+    m = r.size
+    if m < 3:
+        return r
+    for _ in range(max_iter):
+        p = g[r].astype(np.float64)
+        D = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
+        s = np.arange(1, m)
+        prev, nxt = s - 1, s + 1
+        save = D[prev, s] + np.where(nxt < m, D[s, np.minimum(nxt, m - 1)]
+                                     - D[prev, np.minimum(nxt, m - 1)], 0.0)
+        # insert after position q (q != s, q != s-1), into the path without s
+        q = np.arange(m)[None, :]
+        qn = q + 1
+        has_next = qn < m
+        add = D[s[:, None], q] + np.where(has_next, D[s[:, None], np.minimum(qn, m - 1)]
+                                           - D[q, np.minimum(qn, m - 1)], 0.0)
+        # when q+1 == s the segment (q, q+1) does not exist after removing s: use (q, s+1)
+        bad = (q == s[:, None]) | (q == s[:, None] - 1)
+        fix = qn == s[:, None]
+        alt_next = np.minimum(s + 1, m - 1)[:, None]
+        add = np.where(fix & (s[:, None] + 1 < m),
+                       D[s[:, None], q] + D[s[:, None], alt_next] - D[q, alt_next], add)
+        add = np.where(fix & (s[:, None] + 1 >= m), D[s[:, None], q], add)
+        delta = np.where(bad, 0.0, add - save[:, None])
+        b = int(np.argmin(delta))
+        if not delta.flat[b] < -1e-10:
+            break
+        si, qi = divmod(b, m)
+        stop = int(r[s[si]])
+        rest = np.delete(r, s[si])
+        pos = qi if qi < s[si] else qi - 1
+        r = np.insert(rest, pos + 1, stop)
+    return r
+
+
+def _repair(g: np.ndarray, route: np.ndarray) -> np.ndarray:
+    """2-opt then Or-opt until neither shortens the path (each only shortens it)."""
+    best, best_len = route, route_length(g, route)
+    for _ in range(20):
+        r = _or_opt(g, _two_opt(g, best))
+        length = route_length(g, r)
+        if not length < best_len - 1e-10:
+            break
+        best, best_len = r, length
+    return best
+
+
+def _insertion_costs(g: np.ndarray, route: np.ndarray, cand: np.ndarray) -> tuple[
+        np.ndarray, np.ndarray]:
+    """Cheapest insertion of each candidate into ``route`` (segments or appending):
+    ``(increase, position after which it goes)``, ``(n,)`` each, exact floats per
+    :func:`lrm_cvx.cost.route_length` up to the order of summation."""
+    m = route.size
+    inc = np.empty(cand.size)
+    pos = np.empty(cand.size, dtype=np.int64)
+    seg = _dist(g, route[:-1], route[1:]) if m > 1 else np.empty(0)
+    for a in range(0, cand.size, _CHUNK):
+        c = cand[a:a + _CHUNK]
+        app = _dist(g, c, np.full(c.size, route[-1]))
+        if m > 1:
+            d = _dist(g, c[:, None], route[None, :])
+            v = d[:, :-1] + d[:, 1:] - seg[None, :]
+            j = np.argmin(v, axis=1)
+            bv = v[np.arange(c.size), j]
+            use = bv <= app
+            inc[a:a + c.size] = np.where(use, bv, app)
+            pos[a:a + c.size] = np.where(use, j, m - 1)
+        else:
+            inc[a:a + c.size] = app
+            pos[a:a + c.size] = m - 1
+    return inc, pos
+
+
+# ----------------------------------------------------------------------------- refine
+def _shortlist(g: np.ndarray, pool: np.ndarray, in_plan: np.ndarray, lev: np.ndarray,
+               cells: np.ndarray, size: int, radius: float) -> np.ndarray:
+    """Positions in ``pool``: the ``size`` largest leverages plus every cell within
+    ``radius`` of a plan cell (not in the plan)."""
+    free = np.flatnonzero(~in_plan)
+    if free.size == 0:
+        return free
+    top = free[np.argsort(-lev[free], kind="stable")[:size]]
+    near = np.zeros(0, np.int64)
+    if radius > 0:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(g[pool[free]].astype(np.float64))
+        hits = tree.query_ball_point(g[cells].astype(np.float64), radius + 1e-9)
+        if len(hits):
+            near = free[np.unique(np.concatenate([np.asarray(h, np.int64) for h in hits]))]
+    return np.union1d(top, near)
+
+
+def refine(
+    plan: Plan,
+    Y: Any = None,
+    region: Any = None,
+    *,
+    max_rounds: int = 200,
+    shortlist: int = 256,
+    radius: float = 2.0,
+    time_limit: float = 60.0,
+    prior_precision: Any = None,
+    noise_var: Any = None,
+    seed: int | None = None,
+) -> Plan:
+    """Local search on ``plan`` (insert / swap stops, route repair) that raises its Fisher
+    information and keeps its exact path cost within ``plan.budget``.
+
+    Parameters
+    ----------
+    plan : a greedy :class:`Plan` (criterion ``"fisher"``; a posterior-Fisher plan needs its
+        ``prior_precision`` / ``noise_var``). Its cost model (``plan.cost_function``) is kept:
+        ``"nearest-neighbor"`` (the cost of a set is its nearest-neighbour tour from the start)
+        or ``"insertion"`` (the cost is the length of the kept route, repaired by 2-opt and
+        Or-opt after every move).
+    Y, region : the model's ``(k, L)`` factors and region; default: the plan's own.
+    max_rounds : at most this many accepted moves.
+    shortlist : swap candidates = this many cells of largest leverage ``y^T M^-1 y`` plus every
+        cell within ``radius`` (grid units) of a plan cell.
+    time_limit : seconds; the search stops (keeping the best plan so far) when exceeded.
+    seed : unused (the search is deterministic: best move first, ties to the lowest index);
+        accepted for a uniform planner signature.
+
+    Returns a new :class:`Plan` (``method`` unchanged) whose ``information`` is ``>=`` the
+    input's and ``cost <= budget + 1e-9`` (or the input itself when no move helped), with
+    ``refinement = {"information_before", "information_after", "criterion_before",
+    "criterion_after", "moves", "inserted", "removed", "rounds", "seconds"}`` and history keys
+    ``refine_move`` (1 insert, 2 swap), ``refine_cell_in``, ``refine_cell_out``,
+    ``refine_value`` (criterion after each move).
+    """
+    del seed
+    if not isinstance(plan, Plan):
+        raise PlanningError(f"plan must be a Plan, got {type(plan).__name__}")
+    region = check_region(plan._region if region is None else region)
+    Y = plan._Y if Y is None else Y
+    if Y is None:
+        raise PlanningError("Y is required: the plan has no model attached")
+    Yk = as_factor_matrix(Y, region)
+    if plan.criterion not in ("fisher",):
+        raise PlanningError(
+            f"refine supports Fisher plans (criterion 'fisher'), got criterion="
+            f"{plan.criterion!r}")
+    if plan.posterior and prior_precision is None and noise_var is None:
+        raise PlanningError("this plan's Fisher criterion is on the fold-in's posterior: "
+                            "pass its prior_precision / noise_var to refine it")
+    if plan.cost_function not in ("nearest-neighbor", "insertion"):
+        raise PlanningError(f"cannot refine a plan with cost {plan.cost_function!r}")
+    for name, v in (("max_rounds", max_rounds), ("shortlist", shortlist)):
+        if not isinstance(v, (int, np.integer)) or v < 0:
+            raise PlanningError(f"{name} must be an integer >= 0, got {v!r}")
+    if not np.isfinite(radius) or radius < 0 or not time_limit > 0:
+        raise PlanningError("radius must be >= 0 and time_limit > 0")
+
+    t0 = time.perf_counter()
+    g = np.ascontiguousarray(region.grid_index, dtype=np.int64)
+    budget = float(plan.budget)
+    limit = budget + _TOL
+    nn = plan.cost_function == "nearest-neighbor"
+    crit = _Fisher(Yk, plan.ridge, prior_precision, noise_var)
+    start = int(plan.start)
+    cells = np.asarray(plan.cells, dtype=np.int64)
+    if cells.size == 0 or cells[0] != start:
+        cells = np.concatenate([[start], cells[cells != start]])
+    route = np.asarray(plan.route, dtype=np.int64)
+    from .greedy import _budget_pool
+
+    pool = _budget_pool(region, start, budget)
+    value = crit.value(cells)
+    before = value
+    cost = float(plan.cost)
+    if not nn:  # a route: repair it first (only ever shortens it)
+        r = _repair(g, route)
+        if route_length(g, r) < cost:
+            route, cost = r, route_length(g, r)
+    moves: list[tuple[int, int, int, float]] = []
+    rounds = 0
+    while rounds < max_rounds and time.perf_counter() - t0 < time_limit:
+        rounds += 1
+        S = crit.inverse(cells)
+        in_plan = np.isin(pool, cells)
+        if S is None:
+            break
+        lev = crit.leverages(S, pool)
+        move = _best_insert(g, pool, in_plan, lev, cells, route, cost, limit, value, nn, crit)
+        if move is None:
+            move = _best_swap(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit,
+                              shortlist, radius, start)
+        if move is None:
+            break
+        kind, cin, cout, cells, route, cost, value = move
+        moves.append((kind, cin, cout, value))
+    if not moves and cost == plan.cost:
+        return plan
+    info = float(_fisher_set_value(Yk, cells, plan.ridge))
+    hist = dict(plan.history)
+    hist["refine_move"] = np.array([m[0] for m in moves], dtype=np.int64)
+    hist["refine_cell_in"] = np.array([m[1] for m in moves], dtype=np.int64)
+    hist["refine_cell_out"] = np.array([m[2] for m in moves], dtype=np.int64)
+    hist["refine_value"] = np.array([m[3] for m in moves], dtype=np.float64)
+    out = Plan.build(
+        region=region, cells=cells, route=route, cost=cost, information=info,
+        criterion=plan.criterion, budget=budget, start=start, ridge=plan.ridge,
+        method=plan.method, history=hist, cost_function=plan.cost_function, Y=Yk,
+        posterior=plan.posterior,
+    )
+    out.refinement = {
+        "information_before": float(plan.information),
+        "information_after": info,
+        "criterion_before": float(before),
+        "criterion_after": float(value),
+        "moves": len(moves),
+        "inserted": int(sum(m[0] == 1 for m in moves)),
+        "swapped": int(sum(m[0] == 2 for m in moves)),
+        "rounds": rounds,
+        "seconds": time.perf_counter() - t0,
+    }
+    return out
+
+
+def _best_insert(g, pool, in_plan, lev, cells, route, cost, limit, value, nn, crit):
+    """The feasible insertion of largest gain per unit cost increase (the greedy's ratio),
+    verified from scratch; ``None`` when none raises the information."""
+    free = np.flatnonzero(~in_plan)
+    if free.size == 0:
+        return None
+    gain = np.log1p(lev[free])
+    if nn:
+        coster = NearestNeighborCost(g, cells, pool[free])
+        new_cost = coster.cost + coster.increases()
+    else:
+        inc, pos = _insertion_costs(g, route, pool[free])
+        new_cost = cost + inc
+    ok = (new_cost <= limit) & (gain > _EPS)
+    if not ok.any():
+        return None
+    dc = new_cost - cost
+    ratio = np.where(ok, gain / np.maximum(dc, 1e-12), -np.inf)
+    for b in np.argsort(-ratio, kind="stable")[:8]:
+        if not ok[b]:
+            break
+        x = int(pool[free[b]])
+        new_cells = np.append(cells, x)
+        if nn:
+            c, r = nearest_neighbor_tour(g, new_cells)
+        else:
+            r = np.insert(route, int(pos[b]) + 1, x)
+            r = _repair(g, r)
+            c = route_length(g, r)
+        v = crit.value(new_cells)
+        if c <= limit and v > value + _EPS:
+            return 1, x, -1, new_cells, r, c, v
+    return None
+
+
+def _best_swap(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit, size, radius,
+               start):
+    """The feasible swap ``P - x + y`` of largest information (closed form over every pair of
+    stops ``x`` and shortlisted ``y``, exact costs by one incremental oracle per ``x``),
+    verified from scratch; ``None`` when none raises the information."""
+    short = _shortlist(g, pool, in_plan, lev, cells, size, radius)
+    if short.size == 0:
+        return None
+    ys = pool[short]
+    Yw = crit.Yw
+    Yp = Yw[:, cells]
+    SYp = S @ Yp
+    q = np.einsum("ij,ij->j", Yp, SYp)  # leverages of the stops (< 1)
+    A = Yw[:, ys].T @ SYp  # (ny, m)
+    g0 = lev[short]
+    removable = (cells != start) & (q < 1 - 1e-10)
+    best = None
+    order = np.argsort(q, kind="stable")  # cheapest removals first
+    for xi in order:
+        if not removable[xi]:
+            continue
+        loss = np.log1p(-q[xi])  # I(P - x) - I(P), <= 0
+        gain = np.log1p(g0 + A[:, xi] ** 2 / (1.0 - q[xi]))
+        new_val = value + loss + gain
+        target = value + _EPS if best is None else best[6] + _EPS
+        cand = np.flatnonzero(new_val > target)
+        if cand.size == 0:
+            continue
+        rest = np.delete(cells, xi)
+        if nn:
+            coster = NearestNeighborCost(g, rest, ys[cand])
+            new_cost = coster.cost + coster.increases()
+        else:
+            r0 = route[route != cells[xi]]
+            inc, pos = _insertion_costs(g, r0, ys[cand])
+            new_cost = route_length(g, r0) + inc
+        ok = np.flatnonzero(new_cost <= limit)
+        if ok.size == 0:
+            continue
+        for b in ok[np.argsort(-new_val[cand[ok]], kind="stable")][:4]:
+            y = int(ys[cand[b]])
+            new_cells = np.append(rest, y)
+            if nn:
+                c, r = nearest_neighbor_tour(g, new_cells)
+            else:
+                r = _repair(g, np.insert(r0, int(pos[b]) + 1, y))
+                c = route_length(g, r)
+            v = crit.value(new_cells)
+            if c <= limit and v > target:
+                best = (2, y, int(cells[xi]), new_cells, r, c, v)
+                break
+    return best
