@@ -91,6 +91,23 @@ def test_temporal_campaigns_run_and_memoryless_loop_matches_the_protocol(data, m
     assert float(res.mse.sel(sel).mean()) < float(res.mse_memoryless.sel(sel).mean())
     df = summary(res)
     assert {"mse_memoryless_mean", "temporal_cut", "coverage95_mean"} <= set(df.columns)
+    row = df.set_index(["method", "budget"]).loc[("transect-up", 16.0)]
+    sel16 = {**sel, "budget": 16.0}
+    tm, ml = res.mse.sel(sel16), res.mse_memoryless.sel(sel16)
+    both = np.isfinite(tm) & np.isfinite(ml)
+    want = 1 - float(tm.where(both).mean()) / float(ml.where(both).mean())
+    assert row["temporal_cut"] == pytest.approx(want)
+    # the figures draw memoryless and temporal side by side
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from lrm_cvx.plots import plot_metrics, plot_temporal_metrics
+
+    fig = plot_temporal_metrics(res)
+    assert len(fig.axes) == 3 and len(fig.axes[0].lines) == 2 * len(res.method)
+    fig2 = plot_metrics(res)
+    labels = [ln.get_label() for ln in fig2.axes[1].lines]
+    assert sum(lab.endswith("(memoryless)") for lab in labels) == len(res.method)
 
 
 def test_unknown_temporal_is_refused(data, model):

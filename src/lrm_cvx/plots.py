@@ -17,7 +17,8 @@ import xarray as xr
 from ._validation import atomic_output
 from .errors import DataError
 
-__all__ = ["plot_metrics", "plot_predictions", "plot_map", "plot_prediction_panels",
+__all__ = ["plot_metrics", "plot_temporal_metrics", "plot_predictions", "plot_map",
+           "plot_prediction_panels",
            "plot_demo_metrics", "save_figure", "METHOD_STYLE"]
 
 # Okabe-Ito colours, one marker each: distinguishable in colour and in grey-scale print.
@@ -67,6 +68,10 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
                 se = np.nan_to_num(rows[f"{metric}_se"].to_numpy())
                 ax.plot(x, y, marker=st["marker"], color=st["color"], label=st["label"])
                 ax.fill_between(x, y - se, y + se, color=st["color"], alpha=0.18, lw=0)
+            if "mse_memoryless_mean" in rows:  # evaluate(temporal=...): memoryless dashed
+                axes[1].plot(rows["budget"].to_numpy(), rows["mse_memoryless_mean"].to_numpy(),
+                             marker=st["marker"], color=st["color"], ls="--", mfc="none",
+                             label=f"{st['label']} (memoryless)")
         complete = float(results["complete_mse"].mean())
         axes[1].axhline(complete, color="0.4", ls="--", lw=1, label="complete")
         axes[0].set_ylabel("Fisher information (nats)")
@@ -80,6 +85,63 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
         axes[0].set_title("(a) information, higher is better")
         axes[1].set_title("(b) reconstruction error, lower is better")
         axes[1].legend(frameon=False, ncol=1, loc="upper right")
+        if title:
+            fig.suptitle(title)
+    return fig
+
+
+def plot_temporal_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
+                          title: str | None = None):
+    """Memoryless vs temporal side by side for ``evaluate(temporal=...)`` results: (a) MSE vs
+    budget per method, solid with the filter and dashed memoryless; (b) the filter's cut
+    ``1 - mse / mse_memoryless``; (c) coverage of the 68 % / 95 % predictive intervals (filter:
+    filled markers, memoryless: open) against the nominal levels. Results of
+    ``evaluate(temporal=None)`` draw (a) and (c) without the memoryless lines. Returns the figure.
+    """
+    import matplotlib.pyplot as plt
+
+    from .evaluation import summary
+
+    df = summary(results)
+    temporal = "mse_memoryless_mean" in df
+    with plt.rc_context(_PRINT_RC):
+        if axes is None:
+            fig, axes = plt.subplots(1, 3, figsize=(10.5, 2.8), constrained_layout=True)
+        else:
+            fig = axes[0].figure
+        for i, (method, rows) in enumerate(df.groupby("method", sort=False)):
+            st = _style(method, i)
+            x = rows["budget"].to_numpy()
+            axes[0].plot(x, rows["mse_mean"], marker=st["marker"], color=st["color"],
+                         label=st["label"])
+            if temporal:
+                axes[0].plot(x, rows["mse_memoryless_mean"], marker=st["marker"],
+                             color=st["color"], ls="--", mfc="none")
+                axes[1].plot(x, 100 * rows["temporal_cut"], marker=st["marker"],
+                             color=st["color"])
+            for level, ls in ((68, ":"), (95, "-")):
+                if f"coverage{level}_mean" not in rows:
+                    continue
+                axes[2].plot(x, rows[f"coverage{level}_mean"], marker=st["marker"],
+                             color=st["color"], ls=ls)
+                if temporal:
+                    axes[2].plot(x, rows[f"coverage{level}_memoryless_mean"], ls=ls,
+                                 marker=st["marker"], color=st["color"], mfc="none", alpha=0.6)
+        for level in (0.68, 0.95):
+            axes[2].axhline(level, color="0.4", lw=0.8, ls="--")
+        units = results["mse"].attrs.get("units")
+        axes[0].set_ylabel(f"MSE ({units})" if units else "MSE")
+        axes[0].set_yscale("log")
+        axes[1].axhline(0.0, color="0.4", lw=0.8)
+        axes[1].set_ylabel("error cut by the filter (%)")
+        axes[2].set_ylabel("interval coverage")
+        axes[0].set_title("(a) MSE: filter solid, memoryless dashed")
+        axes[1].set_title("(b) 1 - MSE / MSE memoryless")
+        axes[2].set_title("(c) coverage: 95% solid, 68% dotted")
+        for ax in axes:
+            ax.set_xlabel("budget (grid cells)")
+            ax.grid(alpha=0.3, lw=0.5)
+        axes[0].legend(frameon=False, fontsize="small")
         if title:
             fig.suptitle(title)
     return fig
