@@ -379,18 +379,22 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
 
 # ----------------------------------------------------------------------------- dynamics
 def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
-    """Dynamics shrunk towards the memoryless model: ``A_a = alpha A``,
-    ``Q_a = alpha Q + (1 - alpha) S`` with ``S`` the memoryless prior covariance. ``alpha = 1``
-    keeps the estimate, ``alpha = 0`` is the memoryless model exactly (every forecast is the
-    prior ``N(mean, S)``; for ``"ar1"`` with ``S = cov(X_)`` that is the empirical prior)."""
+    """Dynamics shrunk towards the memoryless model with the blend of
+    :mod:`~lrm_cvx.glrm.dynamics` (``A_a = alpha A``, ``Q_a = (1 - alpha^2) S + alpha^2 Q``,
+    ``S`` the memoryless prior covariance). ``alpha = 1`` keeps the estimate, ``alpha = 0`` is
+    the memoryless model exactly (every forecast is the prior ``N(mean, S)``; for ``"ar1"``
+    with ``S = cov(X_)`` that is the empirical prior). Blends compose: ``blend`` records the
+    product with the fit's own validated blend."""
     from dataclasses import replace
+
+    from .dynamics import _blend
 
     a = float(alpha)
     if not 0.0 <= a <= 1.0:
         raise ModelError(f"alpha must be in [0, 1], got {alpha!r}")
-    S = np.asarray(stationary_cov, dtype=np.float64)
-    Q = a * dynamics.Q + (1.0 - a) * S
-    return replace(dynamics, A=a * dynamics.A, Q=0.5 * (Q + Q.T))
+    A, Q = _blend(dynamics.A, dynamics.Q, np.asarray(stationary_cov, dtype=np.float64), a)
+    return replace(dynamics, A=A, Q=0.5 * (Q + Q.T),
+                   blend=float(getattr(dynamics, "blend", 1.0)) * a)
 
 
 def _memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
@@ -402,7 +406,7 @@ def _memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
 
 
 def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.25, 0.5, 0.75,
-                                                                          1.0),
+                                                                          0.9, 1.0),
                     n_val: int | None = None, sizes: Sequence[int] = (5, 15, 50),
                     kinds: Sequence[str] = SET_KINDS, apply: bool = True,
                     seed: Any = 0) -> tuple[float, Any]:
@@ -417,6 +421,11 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     a candidate): the filter is trusted only as far as it helps at every size. With ``apply``
     the model's ``dynamics_`` is replaced by the blend. Returns ``(alpha, table)``, the table a
     DataFrame of validation MSE per alpha and size.
+
+    It complements the blend the fit can choose itself (``estimate_ar1(validation=...)``, the
+    one-step likelihood of the latent columns): here the criterion is the error of the maps
+    that sparse sample sets give, the quantity the issue's "never worse than memoryless"
+    target is about, and the two blends compose (``Dynamics.blend``).
     """
     import pandas as pd
 
