@@ -208,3 +208,27 @@ def test_blend_dynamics_endpoints_and_select_dynamics():
     # the choice never does worse than memoryless on the validation snapshots, at any size
     assert np.all(table.loc[alpha].values <= table.loc[0.0].values + 1e-12)
     assert model.dynamics_alpha_ == alpha
+
+
+def test_filter_scale_is_used_by_the_monitor_state():
+    from lrm_cvx.io.samples import synthetic_dynamic_field
+
+    data = synthetic_dynamic_field(40, (8, 10), rank=2, missing=0.1, noise=0.05, seed=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=2, temporal="ar1", progress=False, random_state=0).fit(data)
+    before = model.monitor().forecast()
+    cal = calibrate(model, data, n_blocks=4, sizes=(5, 20), max_snapshots=2, temporal="ar1")
+    assert cal.temporal_scale is not None and cal.temporal_scale > 0
+    after = model.monitor().forecast()
+    np.testing.assert_allclose(after["predictive_std"].values,
+                               np.sqrt(cal.temporal_scale) * before["predictive_std"].values,
+                               rtol=1e-10)
+    # the memoryless state uses the memoryless scale
+    ml0 = Calibration(scale=1.0)
+    model.calibration_ = ml0
+    base = model.monitor(memoryless=True).forecast()
+    model.calibration_ = cal
+    ml = model.monitor(memoryless=True).forecast()
+    np.testing.assert_allclose(ml["std"].values, np.sqrt(cal.scale) * base["std"].values,
+                               rtol=1e-10)
