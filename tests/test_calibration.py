@@ -184,9 +184,9 @@ def test_calibration_scales_complete_std_and_survives_save_load(tmp_path):
 
 def test_blend_dynamics_endpoints_and_select_dynamics():
     from lrm_cvx.glrm.calibration import blend_dynamics, select_dynamics
+    from lrm_cvx.glrm.posterior import empirical_moments
     from lrm_cvx.io.samples import synthetic_dynamic_field
     from lrm_cvx.monitor import MonitorState
-    from lrm_cvx.glrm.posterior import empirical_moments
 
     data = synthetic_dynamic_field(30, (8, 10), rank=2, missing=0.1, noise=0.05, seed=2)
     with warnings.catch_warnings():

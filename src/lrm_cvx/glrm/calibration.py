@@ -11,8 +11,8 @@ residuals instead: the training snapshots are split into ``n_blocks`` interleave
 ``n_blocks``-th snapshot; contiguous blocks leave out a whole period of a persistent record,
 whose state the other blocks' prior has not seen, and over-state the error); for each fold the
 model (same parameters, same region) is refitted on the other folds, and each held-out
-snapshot of the fold (at most ``max_snapshots``) is folded in from route-like (spatially clustered) and scattered sample
-sets of several sizes; the residuals at the snapshot's other observed cells, standardized by the
+snapshot of the fold (at most ``max_snapshots``) is folded in from route-like (spatially
+clustered) and scattered sample sets of several sizes; the residuals at the snapshot's other observed cells, standardized by the
 refitted model's own predictive std, are pooled. ``s`` is chosen so that the pooled standardized
 residuals hit the nominal 68% and 95% quantiles of a standard normal (the geometric mean of the
 two quantile ratios, squared): it targets the coverage that is reported, and is 1 for data drawn
@@ -456,7 +456,7 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     err = np.zeros((len(alphas), len(sizes)))
     for a_i, alpha in enumerate(alphas):
         d = blend_dynamics(sub.dynamics_, alpha, S)
-        for (size, kind), cell_sets in sets.items():
+        for (size, _kind), cell_sets in sets.items():
             state = MonitorState.from_model(sub, dynamics=d)
             for i, t in enumerate(times):
                 cells = cell_sets[i]
