@@ -6,19 +6,20 @@ the variance of a new measurement (the spatial nugget with ``spatial=True``, els
 variance, in data units), and ``s`` a variance scale estimated here.
 
 Training residuals under-state the error of a fold-in on a *new* snapshot (the factors were
-fitted to the training snapshots), so ``s`` is estimated from cross-validated fold-in
-residuals instead: the training snapshots are split into ``n_blocks`` interleaved folds (every
+fitted to the training snapshots), so ``s`` is estimated from cross-validated fold-in residuals
+instead: the training snapshots are split into ``n_blocks`` interleaved folds (every
 ``n_blocks``-th snapshot; contiguous blocks leave out a whole period of a persistent record,
 whose state the other blocks' prior has not seen, and over-state the error); for each fold the
-model (same parameters, same region) is refitted on the other folds, and each held-out
-snapshot of the fold (at most ``max_snapshots``) is folded in from route-like (spatially
-clustered) and scattered sample sets of several sizes; the residuals at the snapshot's other observed cells, standardized by the
-refitted model's own predictive std, are pooled. ``s`` is chosen so that the pooled standardized
-residuals hit the nominal 68% and 95% quantiles of a standard normal (the geometric mean of the
-two quantile ratios, squared): it targets the coverage that is reported, and is 1 for data drawn
-exactly from the model. Scaling every variance component of the model (prior covariance, noise,
-spatial covariance) by ``s`` leaves posterior means unchanged and scales every posterior and
-predictive variance by ``s``, so ``s`` is applied to the variances only.
+model (same parameters, same region) is refitted on the other folds, and each held-out snapshot
+of the fold (at most ``max_snapshots``) is folded in from route-like (spatially clustered) and
+scattered sample sets of several sizes; the residuals at the snapshot's other observed cells,
+standardized by the refitted model's own predictive std, are pooled. ``s`` is chosen so that the
+pooled standardized residuals hit the nominal 68% and 95% quantiles of a standard normal (the
+geometric mean of the two quantile ratios, squared): it targets the coverage that is reported,
+and is 1 for data drawn exactly from the model. Scaling every variance component of the model
+(prior covariance, noise, spatial covariance) by ``s`` leaves posterior means unchanged and
+scales every posterior and predictive variance by ``s``, so ``s`` is applied to the variances
+only.
 
 The filter (``MonitorState``) uses the same scale unless a separate one is asked for
 (``calibrate(..., temporal="ar1")``): then forward-chaining folds (the model refitted with its
