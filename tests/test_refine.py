@@ -174,4 +174,33 @@ def test_refine_bad_input():
     aopt = plan_greedy(Y, region, start, 4.0, ridge=1e-3, criterion="aopt", progress=False)
     with pytest.raises(PlanningError, match="Fisher"):
         refine(aopt)
-    assert refine(plan, max_rounds=0) is plan
+    assert refine(plan, max_rounds=0, restart=False) is plan
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_certificate_splits_the_gap_and_bounds_the_refined_plan(seed):
+    """``gap = plan_slack + bound_slack``, both >= 0; the bound covers the refined plan."""
+    region, Y, start = instance(seed, 9, 9, 3)
+    budget = float(4 + 2 * seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plan = plan_greedy(Y, region, start, budget, ridge=1e-6, progress=False)
+        cert = plan.certify(max_pieces=2)
+        done = plan_greedy(Y, region, start, budget, ridge=1e-6, progress=False, refine=True)
+        cert2 = done.certify(max_pieces=2)
+    assert cert.greedy_information == pytest.approx(plan.information)
+    assert cert.refined_information >= cert.greedy_information
+    assert cert.plan_slack >= 0 and cert.bound_slack >= -1e-9
+    assert cert.gap == pytest.approx(cert.plan_slack + cert.bound_slack, abs=1e-9)
+    assert cert.bound >= cert.refined_information - 1e-9
+    # an already refined plan: its own refinement is reported, the gap is its own
+    assert cert2.greedy_information == pytest.approx(plan.information)
+    assert cert2.refined_information == pytest.approx(done.information)
+    assert cert2.gap == pytest.approx(cert2.bound_slack, abs=1e-9)
+    assert cert2.refined_information == pytest.approx(cert.refined_information)
+    assert "gap split" in repr(cert) and "plan slack" in cert._repr_html_()
+    # no split without refinement, nor for another criterion
+    assert plan.certify(refine=False, tighten=False).refined_information is None
+    aopt = plan_greedy(Y, region, start, budget, ridge=1e-6, criterion="aopt", progress=False)
+    c3 = aopt.certify(tighten=False)
+    assert c3.plan_slack is None and c3.bound_slack is None

@@ -151,6 +151,27 @@ class PlanCertificate:
     leaves: tuple[tuple[float, float, float, float], ...] = field(default=(), repr=False)
     criterion: str = "fisher"
     plan_criterion: str | None = None
+    greedy_information: float | None = None
+    refined_information: float | None = None
+    refine_moves: int | None = None
+
+    @property
+    def plan_slack(self) -> float | None:
+        """``refined_information - greedy_information`` (nats, >= 0): what a local search on
+        the plan found; the part of the gap due to the planner."""
+        if self.greedy_information is None or self.refined_information is None:
+            return None
+        if self.refined_information == self.greedy_information:
+            return 0.0
+        return float(self.refined_information - self.greedy_information)
+
+    @property
+    def bound_slack(self) -> float | None:
+        """``bound - refined_information`` (nats, >= 0): the part of the gap nothing found yet,
+        an upper limit on what the relaxation over-counts plus what the search missed."""
+        if self.refined_information is None:
+            return None
+        return _gap(self.bound, self.refined_information, self.k)[0]
 
     @property
     def comparable(self) -> bool:
@@ -185,6 +206,14 @@ class PlanCertificate:
                 f"  certified gap        {self.gap:.4g} nats",
                 f"  volume ratio         {self.volume_ratio:.4f} (per dimension, 1 = optimal)",
             ]
+            if self.refined_information is not None:
+                lines += [
+                    f"  greedy information   {self.greedy_information:.6g} nats",
+                    f"  refined information  {self.refined_information:.6g} nats "
+                    f"({self.refine_moves} moves)",
+                    f"  gap split            plan slack {self.plan_slack:.4g} + bound slack "
+                    f"{self.bound_slack:.4g} nats",
+                ]
         lines += [
             f"  relaxation           {self.relaxation.value:.6g} (primal "
             f"{self.relaxation.primal:.6g}, status {self.relaxation.status})",
@@ -214,6 +243,13 @@ class PlanCertificate:
                 ("certified gap (nats)", f"{self.gap:.4g}"),
                 ("volume ratio (per dim.)", f"{self.volume_ratio:.4f}"),
             ]
+            if self.refined_information is not None:
+                rows += [
+                    ("greedy / refined information (nats)",
+                     f"{self.greedy_information:.6g} / {self.refined_information:.6g}"),
+                    ("plan slack / bound slack (nats)",
+                     f"{self.plan_slack:.4g} / {self.bound_slack:.4g}"),
+                ]
         rows += [
             ("relaxation value / primal", f"{self.relaxation.value:.6g} / "
                                           f"{self.relaxation.primal:.6g}"),
@@ -988,6 +1024,7 @@ def plan_bound(
     tighten: bool = True,
     cover: int = 2,
     max_pieces: int = 40,
+    refine: bool | dict[str, Any] = True,
 ) -> PlanCertificate:
     """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
 
@@ -1013,6 +1050,13 @@ def plan_bound(
     another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or
     ``plan.posterior``) the certificate reports the plan's Fisher information but
     ``gap = volume_ratio = nan``.
+
+    **Gap split.** For a Fisher greedy plan (``metric="grid"``) the certificate also reports
+    ``greedy_information`` (the plan before refinement), ``refined_information`` (after
+    :func:`~lrm_cvx.planning.refine.refine`: the plan's own refinement when it was refined,
+    else one run here when ``refine`` is true; a dict is passed to it as keyword arguments),
+    ``plan_slack = refined - greedy`` and ``bound_slack = bound - refined``; the online bound
+    at the refined plan is used as well (valid at any set).
 
     ``budget`` is in grid units (``metric="grid"``) or km (``metric="km"``).
     """
@@ -1072,6 +1116,12 @@ def plan_bound(
         if online is not None:
             bound = min(bound, max(init_info, online))
         plan_criterion = _plan_criterion(plan)
+        greedy_info, refined_info, n_moves, rcells = _refined(
+            plan, Y, region, refine, metric, plan_criterion, information)
+        if refined_info is not None and refined_info > information:
+            online_r = _online_bound(Y, rcells, cand, n_max, ridge, refined_info)
+            if online_r is not None:
+                bound = min(bound, max(init_info, online_r))
         if plan_criterion in (None, "fisher"):
             gap, ratio = _gap(bound, information, k)
         else:  # a bound on Fisher information says nothing of another criterion's gap
@@ -1082,7 +1132,33 @@ def plan_bound(
         ridge=ridge, metric=metric, initial_information=init_info, relaxation=relax,
         online_bound=online, tightened=bool(tighten), leaves=tuple(leaves),
         criterion="fisher", plan_criterion=_plan_criterion(plan) if plan is not None else None,
+        greedy_information=greedy_info if plan is not None else None,
+        refined_information=refined_info if plan is not None else None,
+        refine_moves=n_moves if plan is not None else None,
     )
+
+
+
+def _refined(plan: Any, Y: np.ndarray, region: Any, refine: Any, metric: str,
+             plan_criterion: str | None, information: float
+             ) -> tuple[float | None, float | None, int | None, np.ndarray]:
+    """``(greedy information, refined information, moves, refined cells)`` of a Fisher
+    greedy plan, or ``(None, None, None, plan cells)``."""
+    cells = np.asarray(plan.cells, dtype=np.int64)
+    if plan_criterion != "fisher" or metric != "grid":
+        return None, None, None, cells
+    done = getattr(plan, "refinement", None) or {}
+    if done:
+        return float(done["information_before"]), float(information), int(done["moves"]), cells
+    if refine is False or refine is None or not hasattr(plan, "cost_function"):
+        return None, None, None, cells
+    from .refine import refine as _refine
+
+    opts = dict(refine) if isinstance(refine, dict) else {}
+    better = _refine(plan, Y, region, **opts)
+    moves = int(better.refinement.get("moves", 0)) if better is not plan else 0
+    return (float(information), max(float(better.information), float(information)), moves,
+            np.asarray(better.cells, dtype=np.int64))
 
 
 def _plan_criterion(plan: Any) -> str | None:

@@ -196,6 +196,11 @@ class Plan:
         ``gap`` and ``volume_ratio`` are NaN when the plan was chosen for another criterion
         (``"a-optimal"``, ``"gp-variance"``, or Fisher on a posterior): a gap between two
         criteria means nothing (docs/certificate.md, "Which criterion is certified").
+
+        For a Fisher greedy plan the certificate also splits the gap: ``greedy_information``,
+        ``refined_information`` (this plan's refinement, or a :func:`refine` run here; pass
+        ``refine=False`` to skip it), ``plan_slack`` (greedy -> refined) and ``bound_slack``
+        (refined -> bound).
         """
         if self._Y is None or self._region is None:
             from ..errors import PlanningError

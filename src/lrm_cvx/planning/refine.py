@@ -225,6 +225,8 @@ def refine(
     shortlist: int = 256,
     radius: float = 2.0,
     time_limit: float = 60.0,
+    refill: int = 8,
+    restart: bool = True,
     prior_precision: Any = None,
     noise_var: Any = None,
     seed: int | None = None,
@@ -244,6 +246,13 @@ def refine(
     shortlist : swap candidates = this many cells of largest leverage ``y^T M^-1 y`` plus every
         cell within ``radius`` (grid units) of a plan cell.
     time_limit : seconds; the search stops (keeping the best plan so far) when exceeded.
+    refill : when no insertion or swap helps, try this many "drop and refill" moves per round:
+        remove a stop (smallest information loss first), then add shortlisted cells greedily
+        (the greedy's ratio, exact costs) while they fit; kept if the information rises.
+    restart : also run the greedy from the start cell alone (``initial="start"``, a ridge of
+        1e-9 of the mean ``|y|^2`` only to rank the first picks) and start the search from it
+        when its exact information is higher and its cost fits: this rescues plans whose
+        forced initial set already exceeds the budget (tiny budgets).
     seed : unused (the search is deterministic: best move first, ties to the lowest index);
         accepted for a uniform planner signature.
 
@@ -251,7 +260,7 @@ def refine(
     input's and ``cost <= budget + 1e-9`` (or the input itself when no move helped), with
     ``refinement = {"information_before", "information_after", "criterion_before",
     "criterion_after", "moves", "inserted", "removed", "rounds", "seconds"}`` and history keys
-    ``refine_move`` (1 insert, 2 swap), ``refine_cell_in``, ``refine_cell_out``,
+    ``refine_move`` (1 insert, 2 swap, 3 restart, 4 drop-and-refill), ``refine_cell_in``, ``refine_cell_out``,
     ``refine_value`` (criterion after each move).
     """
     del seed
@@ -299,6 +308,11 @@ def refine(
         if route_length(g, r) < cost:
             route, cost = r, route_length(g, r)
     moves: list[tuple[int, int, int, float]] = []
+    if restart and len(cells) > 1:
+        alt = _restart(Yk, region, start, budget, plan, crit)
+        if alt is not None and alt[2] <= limit and alt[3] > value + _EPS:
+            cells, route, cost, value = alt
+            moves.append((3, -1, -1, value))
     rounds = 0
     while rounds < max_rounds and time.perf_counter() - t0 < time_limit:
         rounds += 1
@@ -311,6 +325,9 @@ def refine(
         if move is None:
             move = _best_swap(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit,
                               shortlist, radius, start)
+        if move is None:
+            move = _best_refill(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit,
+                                shortlist, radius, start, refill)
         if move is None:
             break
         kind, cin, cout, cells, route, cost, value = move
@@ -337,6 +354,8 @@ def refine(
         "moves": len(moves),
         "inserted": int(sum(m[0] == 1 for m in moves)),
         "swapped": int(sum(m[0] == 2 for m in moves)),
+        "restarted": int(sum(m[0] == 3 for m in moves)),
+        "refilled": int(sum(m[0] == 4 for m in moves)),
         "rounds": rounds,
         "seconds": time.perf_counter() - t0,
     }
@@ -430,3 +449,84 @@ def _best_swap(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit, s
                 best = (2, y, int(cells[xi]), new_cells, r, c, v)
                 break
     return best
+
+
+def _restart(Yk, region, start, budget, plan, crit):
+    """``(cells, route, cost, value)`` of the greedy from the start cell alone, or ``None``."""
+    from .greedy import plan_greedy
+
+    guide = 1e-9 * float(np.mean(np.sum(crit.Yw * crit.Yw, axis=0))) + plan.ridge
+    try:
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            alt = plan_greedy(crit.Yw, region, start, budget, ridge=guide, initial="start",
+                              cost=plan.cost_function, progress=False)
+    except PlanningError:
+        return None
+    cells = np.asarray(alt.cells, dtype=np.int64)
+    return cells, np.asarray(alt.route, np.int64), float(alt.cost), crit.value(cells)
+
+
+def _best_refill(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit, size, radius,
+                 start, tries):
+    """Drop a stop and refill greedily (ratio of gain to exact cost increase) from the
+    shortlist; the first that raises the information, verified from scratch."""
+    if tries <= 0:
+        return None
+    short = _shortlist(g, pool, in_plan, lev, cells, size, radius)
+    if short.size == 0:
+        return None
+    ys = pool[short]
+    Yp = crit.Yw[:, cells]
+    q = np.einsum("ij,ij->j", Yp, S @ Yp)
+    removable = np.flatnonzero((cells != start) & (q < 1 - 1e-10))
+    for xi in removable[np.argsort(q[removable], kind="stable")][:tries]:
+        rest = np.delete(cells, xi)
+        Sx = crit.inverse(rest)
+        if Sx is None:
+            continue
+        r = route[route != cells[xi]]
+        if nn:
+            coster = NearestNeighborCost(g, rest, ys)
+            cur = coster.cost
+        else:
+            cur = route_length(g, r)
+        active = np.ones(ys.size, dtype=bool)
+        new_cells = rest
+        while True:
+            Yc = crit.Yw[:, ys]
+            gain = np.log1p(np.einsum("ij,ij->j", Yc, Sx @ Yc))
+            if nn:
+                dc = coster.increases()
+            else:
+                inc, pos = _insertion_costs(g, r, ys)
+                dc = inc
+            ok = active & (cur + dc <= limit) & (gain > _EPS)
+            if not ok.any():
+                break
+            ratio = np.where(ok, gain / np.maximum(np.where(ok, dc, 1.0), 1e-12), -np.inf)
+            b = int(np.argmax(ratio))
+            y = int(ys[b])
+            active[b] = False
+            new_cells = np.append(new_cells, y)
+            u = Sx @ crit.Yw[:, y]
+            Sx = Sx - np.outer(u, u) / (1.0 + float(crit.Yw[:, y] @ u))
+            if nn:
+                coster.add(y)
+                cur = coster.cost
+            else:
+                r = np.insert(r, int(pos[b]) + 1, y)
+                cur = route_length(g, r)
+        if new_cells.size <= rest.size:
+            continue
+        v = crit.value(new_cells)
+        if nn:
+            c, rr = nearest_neighbor_tour(g, new_cells)
+        else:
+            rr = _repair(g, r)
+            c = route_length(g, rr)
+        if c <= limit and v > value + _EPS:
+            return 4, int(new_cells[-1]), int(cells[xi]), new_cells, rr, c, v
+    return None
