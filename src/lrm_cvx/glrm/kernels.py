@@ -26,6 +26,16 @@ from numba import prange
 _FM = {"contract", "reassoc", "arcp", "nsz"}  # no 'nnan': unobserved entries may be NaN
 BLOCK_COLS = 256  # cells per block in the column (Y-step) kernel
 BLOCK_ROWS = 2048  # cells per block in the row (X-step) kernel
+#: Problems with at most this many entries (``T * L`` data entries, ``n * k * k`` for a batch of
+#: small solves) take the vectorised numpy paths instead of the compiled kernels: the same
+#: results (tested equal) without compiling (the first compile of the quadratic fit's kernels
+#: costs 40-100 s on a 2-core machine; the bundled samples are 2-4e4 entries).
+SMALL_ENTRIES = 1 << 20
+
+
+def is_small(entries: int) -> bool:
+    """Whether a problem of ``entries`` entries takes the numpy path (see SMALL_ENTRIES)."""
+    return int(entries) <= SMALL_ENTRIES
 
 
 def pair_index(k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -207,8 +217,59 @@ def row_pass(D, M, X, Y, code, p0, p1, pa, pb, nchunk, G, h, f):  # pragma: no c
                     h[c, t, a] += acc
 
 
+def chol_solve(G, h, lam, pa, pb, out):
+    """Solve ``(G_j + lam I) y_j = h_j`` for every block entry into ``out (n, k)``; returns
+    the ``(n,)`` int8 flags (0 Cholesky, 1 pseudo-inverse, 2 empty). Small batches take
+    :func:`chol_solve_numpy`, large ones the compiled :func:`chol_solve_compiled`."""
+    n, k = h.shape
+    if is_small(n * k * k):
+        return chol_solve_numpy(G, h, lam, pa, pb, out)
+    return chol_solve_compiled(G, h, lam, pa, pb, out)
+
+
+def chol_solve_numpy(G, h, lam, pa, pb, out):
+    """:func:`chol_solve_compiled` vectorised over the batch with numpy: the same Cholesky with
+    the same breakdown test (pivot ``<= 1e-12`` of the largest diagonal entry), the entries
+    that break down solved by the pseudo-inverse, all-zero systems give ``y = 0``."""
+    n, k = h.shape
+    A = np.empty((n, k, k))
+    A[:, pa, pb] = G
+    A[:, pb, pa] = G
+    idx = np.arange(k)
+    A[:, idx, idx] += lam
+    scale = np.maximum(A[:, idx, idx].max(axis=1, initial=0.0), 0.0)
+    flags = np.where(scale == 0.0, 2, 0).astype(np.int8)
+    Lc = np.zeros((n, k, k))
+    for a in range(k):
+        s = A[:, a, a] - np.einsum("nb,nb->n", Lc[:, a, :a], Lc[:, a, :a])
+        broke = (s <= 1e-12 * scale) & (flags == 0)
+        flags[broke] = 1
+        Lc[:, a, a] = np.sqrt(np.where(flags == 0, s, 1.0))
+        if a + 1 < k:
+            s2 = A[:, a + 1:, a] - np.einsum("nib,nb->ni", Lc[:, a + 1:, :a], Lc[:, a, :a])
+            Lc[:, a + 1:, a] = s2 / Lc[:, a, a][:, None]
+    y = np.zeros((n, k))
+    ok = flags == 0
+    if ok.any():
+        Lo = Lc[ok]
+        z = np.empty((Lo.shape[0], k))
+        hv = np.asarray(h, dtype=np.float64)[ok]
+        for a in range(k):
+            z[:, a] = (hv[:, a] - np.einsum("nb,nb->n", Lo[:, a, :a], z[:, :a])) / Lo[:, a, a]
+        yo = np.empty_like(z)
+        for a in range(k - 1, -1, -1):
+            yo[:, a] = (z[:, a] - np.einsum("nb,nb->n", Lo[:, a + 1:, a], yo[:, a + 1:])
+                        ) / Lo[:, a, a]
+        y[ok] = yo
+    bad = flags == 1
+    if bad.any():
+        y[bad] = np.einsum("nij,nj->ni", np.linalg.pinv(A[bad]), h[bad])
+    out[...] = y
+    return flags
+
+
 @numba.njit(parallel=True, cache=True)
-def chol_solve(G, h, lam, pa, pb, out):  # pragma: no cover - numba
+def chol_solve_compiled(G, h, lam, pa, pb, out):  # pragma: no cover - numba
     """Solve ``(G_j + lam I) y_j = h_j`` for every block entry; ``out (n, k)``.
 
     ``G (n, npair)`` packed. A per-entry k x k Cholesky; when it breaks down (fewer
@@ -238,8 +299,23 @@ def chol_solve(G, h, lam, pa, pb, out):  # pragma: no cover - numba
     return flags
 
 
+def data_stats(D, M, check):
+    """Observed counts per time ``(T,)`` and per cell ``(L,)``, the number of non-finite
+    observed entries (when ``check``, else 0) and each cell's sum of observed entries ``(L,)``
+    (float64); numpy for small data, :func:`data_stats_compiled` for large."""
+    if not is_small(D.size):
+        return data_stats_compiled(D, M, check)
+    M = np.asarray(M, dtype=np.bool_)
+    rows = M.sum(axis=1, dtype=np.int64)
+    cols = M.sum(axis=0, dtype=np.int64)
+    nbad = int(np.count_nonzero(M & ~np.isfinite(D))) if check else 0
+    with np.errstate(invalid="ignore", over="ignore"):
+        csum = np.where(M, D, 0).sum(axis=0, dtype=np.float64)
+    return rows, cols, np.int64(nbad), csum
+
+
 @numba.njit(parallel=True, cache=True, fastmath=_FM)
-def data_stats(D, M, check):  # pragma: no cover - numba
+def data_stats_compiled(D, M, check):  # pragma: no cover - numba
     """One pass: observed counts per time ``(T,)`` and per cell ``(L,)``, the number of
     non-finite observed entries (when ``check``, else 0) and the sum of the observed entries of
     each cell ``(L,)``. Cells split into disjoint ranges."""

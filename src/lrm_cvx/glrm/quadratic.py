@@ -27,7 +27,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from .kernels import _quad_value, _spd_solve
+from .kernels import _quad_value, _spd_solve, chol_solve_numpy, is_small
 
 _FM = {"contract", "reassoc", "arcp", "nsz"}
 GROUP = 8  # times per mask byte
@@ -159,6 +159,19 @@ def prepare(D: np.ndarray, M: np.ndarray, *, overwrite: bool = False) -> MaskedD
     M = np.ascontiguousarray(M, dtype=np.bool_)
     if not D.flags.c_contiguous:  # the kernels stream rows
         D, overwrite = np.ascontiguousarray(D), True
+    if is_small(D.size):  # numpy: same result, nothing to compile (kernels.SMALL_ENTRIES)
+        codes = np.packbits(M, axis=0, bitorder="little")
+        filled = np.where(M, D, 0).astype(D.dtype, copy=False)
+        ssq = np.square(filled, dtype=np.float64).sum(axis=1)
+        dirty = np.count_nonzero(~M & (D != 0))  # NaN != 0 counts, as in _scan
+        PASSES.add(D)
+        if dirty:
+            if overwrite:
+                D[...] = filled
+            else:
+                D = filled
+            PASSES.add(D)
+        return MaskedData(D, codes, ssq)
     codes = np.empty(((T + GROUP - 1) // GROUP, L), dtype=np.uint8)
     ssq, dirty = _scan(D, M, codes)
     PASSES.add(D)
@@ -406,6 +419,13 @@ def row_products(md: MaskedData, W: np.ndarray, V: np.ndarray, pa: np.ndarray,
     ``W (p1, L)`` and ``V (q, L)`` float64.
     """
     T = md.D.shape[0]
+    if is_small(md.D.size):
+        PASSES.add(md.D)
+        D = md.D.astype(np.float64, copy=False)
+        M = md.mask().astype(np.float64)
+        H = D @ np.asarray(W, dtype=np.float64).T
+        V = np.asarray(V, dtype=np.float64)
+        return H, M @ (V[pa] * V[pb]).T
     nch = _nchunk()
     H = np.empty((nch, T, W.shape[0]))
     G = np.empty((nch, T, pa.size))
@@ -432,12 +452,39 @@ def y_step(md: MaskedData, X: np.ndarray, Y: np.ndarray, lam: float,
     k, T = X.shape
     pa, pb = _pairs(k)
     X = np.ascontiguousarray(X, dtype=np.float64)
+    if is_small(md.D.size):
+        return _y_step_numpy(md, X, Y, lam, out, pa, pb)
     TAB = subset_tables(pair_products(X, pa, pb, pad_width(pa.size)), md.codes.shape[0])
     PASSES.add(md.D)
     before, after, npinv = _y_step(md.D, md.codes, np.ascontiguousarray(X.T), TAB, float(lam),
                                    pa, pb, Y, out, _nchunk())
     ssq = float(md.ssq_rows.sum())
     return before + ssq, after + ssq, npinv
+
+
+def _y_step_numpy(md: MaskedData, X: np.ndarray, Y: np.ndarray, lam: float, out: np.ndarray,
+                  pa: np.ndarray, pb: np.ndarray) -> tuple[float, float, int]:
+    """:func:`y_step` for small data with numpy (same Grams, same per-cell solves)."""
+    PASSES.add(md.D)
+    D = md.D.astype(np.float64, copy=False)
+    M = md.mask().astype(np.float64)
+    G = ((X[pa] * X[pb]) @ M).T  # (L, npair): sum_t m_tj x_ta x_tb
+    h = D.T @ X.T  # (L, k)
+    Yc = np.asarray(Y, dtype=np.float64)
+    k = X.shape[0]
+    A = np.empty((G.shape[0], k, k))
+    A[:, pa, pb] = G
+    A[:, pb, pa] = G
+
+    def q(Ym: np.ndarray) -> float:  # sum_j y_j^T G_j y_j - 2 h_j . y_j
+        return float(np.einsum("aj,jab,bj->", Ym, A, Ym) - 2.0 * np.einsum("ja,aj->", h, Ym))
+
+    before = q(Yc)
+    sol = np.empty((G.shape[0], k))
+    flags = chol_solve_numpy(np.ascontiguousarray(G), h, float(lam), pa, pb, sol)
+    out[...] = sol.T
+    ssq = float(md.ssq_rows.sum())
+    return before + ssq, q(out) + ssq, int(np.count_nonzero(flags == 1))
 
 
 def x_stats(md: MaskedData, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -469,6 +516,12 @@ def filled_rmatmul(md: MaskedData, mu: np.ndarray, U: np.ndarray) -> np.ndarray:
     T, L = md.D.shape
     p = U.shape[1]
     U = np.ascontiguousarray(U, dtype=np.float64)
+    mu = np.asarray(mu, dtype=np.float64)
+    if is_small(md.D.size):
+        PASSES.add(md.D)
+        D = md.D.astype(np.float64, copy=False)
+        M = md.mask().astype(np.float64)
+        return (D.T @ U).T + np.outer(U.sum(axis=0), mu) - (M.T @ U).T * mu[None, :]
     A = np.zeros((T, pad_width(p)))
     A[:, :p] = U
     out = np.empty((p, L))
