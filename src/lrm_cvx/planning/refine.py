@@ -227,9 +227,10 @@ def refine(
     time_limit: float = 60.0,
     refill: int = 8,
     restart: bool = True,
+    kicks: int = 10,
     prior_precision: Any = None,
     noise_var: Any = None,
-    seed: int | None = None,
+    seed: int | None = 0,
 ) -> Plan:
     """Local search on ``plan`` (insert / swap stops, route repair) that raises its Fisher
     information and keeps its exact path cost within ``plan.budget``.
@@ -253,17 +254,18 @@ def refine(
         1e-9 of the mean ``|y|^2`` only to rank the first picks) and start the search from it
         when its exact information is higher and its cost fits: this rescues plans whose
         forced initial set already exceeds the budget (tiny budgets).
-    seed : unused (the search is deterministic: best move first, ties to the lowest index);
-        accepted for a uniform planner signature.
+    kicks : after the local search converges, this many perturbations (iterated local search):
+        remove a random stretch of 5-20% of the route's stops, refill greedily (the removed
+        cells excluded), search again; the result is kept only when it beats the best plan.
+    seed : seeds the kicks (``numpy.random.default_rng``); the result is deterministic given it.
 
     Returns a new :class:`Plan` (``method`` unchanged) whose ``information`` is ``>=`` the
     input's and ``cost <= budget + 1e-9`` (or the input itself when no move helped), with
     ``refinement = {"information_before", "information_after", "criterion_before",
     "criterion_after", "moves", "inserted", "removed", "rounds", "seconds"}`` and history keys
-    ``refine_move`` (1 insert, 2 swap, 3 restart, 4 drop-and-refill), ``refine_cell_in``, ``refine_cell_out``,
+    ``refine_move`` (1 insert, 2 swap, 3 restart, 4 drop-and-refill, 5 kick), ``refine_cell_in``, ``refine_cell_out``,
     ``refine_value`` (criterion after each move).
     """
-    del seed
     if not isinstance(plan, Plan):
         raise PlanningError(f"plan must be a Plan, got {type(plan).__name__}")
     region = check_region(plan._region if region is None else region)
@@ -280,7 +282,8 @@ def refine(
                             "pass its prior_precision / noise_var to refine it")
     if plan.cost_function not in ("nearest-neighbor", "insertion"):
         raise PlanningError(f"cannot refine a plan with cost {plan.cost_function!r}")
-    for name, v in (("max_rounds", max_rounds), ("shortlist", shortlist)):
+    for name, v in (("max_rounds", max_rounds), ("shortlist", shortlist), ("refill", refill),
+                    ("kicks", kicks)):
         if not isinstance(v, (int, np.integer)) or v < 0:
             raise PlanningError(f"{name} must be an integer >= 0, got {v!r}")
     if not np.isfinite(radius) or radius < 0 or not time_limit > 0:
@@ -313,25 +316,24 @@ def refine(
         if alt is not None and alt[2] <= limit and alt[3] > value + _EPS:
             cells, route, cost, value = alt
             moves.append((3, -1, -1, value))
-    rounds = 0
-    while rounds < max_rounds and time.perf_counter() - t0 < time_limit:
-        rounds += 1
-        S = crit.inverse(cells)
-        in_plan = np.isin(pool, cells)
-        if S is None:
+    deadline = t0 + time_limit
+    ls = dict(g=g, pool=pool, limit=limit, nn=nn, crit=crit, size=shortlist, radius=radius,
+              start=start, refill=refill, deadline=deadline)
+    (cells, route, cost, value), found, rounds = _search((cells, route, cost, value), max_rounds,
+                                                         **ls)
+    moves += found
+    rng = np.random.default_rng(seed)
+    for _ in range(kicks):
+        if time.perf_counter() > deadline or len(moves) >= max_rounds:
             break
-        lev = crit.leverages(S, pool)
-        move = _best_insert(g, pool, in_plan, lev, cells, route, cost, limit, value, nn, crit)
-        if move is None:
-            move = _best_swap(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit,
-                              shortlist, radius, start)
-        if move is None:
-            move = _best_refill(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit,
-                                shortlist, radius, start, refill)
-        if move is None:
-            break
-        kind, cin, cout, cells, route, cost, value = move
-        moves.append((kind, cin, cout, value))
+        kicked = _kick((cells, route, cost, value), rng, **ls)
+        if kicked is None:
+            continue
+        state, found, r = _search(kicked, max_rounds - len(moves), **ls)
+        rounds += r
+        if state[2] <= limit and state[3] > value + _EPS:
+            cells, route, cost, value = state
+            moves.append((5, -1, -1, value))
     if not moves and cost == plan.cost:
         return plan
     info = float(_fisher_set_value(Yk, cells, plan.ridge))
@@ -356,6 +358,7 @@ def refine(
         "swapped": int(sum(m[0] == 2 for m in moves)),
         "restarted": int(sum(m[0] == 3 for m in moves)),
         "refilled": int(sum(m[0] == 4 for m in moves)),
+        "kicks": int(sum(m[0] == 5 for m in moves)),
         "rounds": rounds,
         "seconds": time.perf_counter() - t0,
     }
@@ -488,45 +491,107 @@ def _best_refill(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit,
         if Sx is None:
             continue
         r = route[route != cells[xi]]
-        if nn:
-            coster = NearestNeighborCost(g, rest, ys)
-            cur = coster.cost
-        else:
-            cur = route_length(g, r)
-        active = np.ones(ys.size, dtype=bool)
-        new_cells = rest
-        while True:
-            Yc = crit.Yw[:, ys]
-            gain = np.log1p(np.einsum("ij,ij->j", Yc, Sx @ Yc))
-            if nn:
-                dc = coster.increases()
-            else:
-                inc, pos = _insertion_costs(g, r, ys)
-                dc = inc
-            ok = active & (cur + dc <= limit) & (gain > _EPS)
-            if not ok.any():
-                break
-            ratio = np.where(ok, gain / np.maximum(np.where(ok, dc, 1.0), 1e-12), -np.inf)
-            b = int(np.argmax(ratio))
-            y = int(ys[b])
-            active[b] = False
-            new_cells = np.append(new_cells, y)
-            u = Sx @ crit.Yw[:, y]
-            Sx = Sx - np.outer(u, u) / (1.0 + float(crit.Yw[:, y] @ u))
-            if nn:
-                coster.add(y)
-                cur = coster.cost
-            else:
-                r = np.insert(r, int(pos[b]) + 1, y)
-                cur = route_length(g, r)
+        new_cells, rr, c = _fill(g, rest, r, ys, limit, nn, crit, Sx)
         if new_cells.size <= rest.size:
             continue
         v = crit.value(new_cells)
-        if nn:
-            c, rr = nearest_neighbor_tour(g, new_cells)
-        else:
-            rr = _repair(g, r)
-            c = route_length(g, rr)
         if c <= limit and v > value + _EPS:
             return 4, int(new_cells[-1]), int(cells[xi]), new_cells, rr, c, v
     return None
+
+
+def _search(state, max_rounds, *, g, pool, limit, nn, crit, size, radius, start, refill,
+            deadline):
+    """Best-improvement local search from ``state = (cells, route, cost, value)``: insert, then
+    swap, then drop-and-refill, until none improves. Returns ``(state, moves, rounds)``."""
+    cells, route, cost, value = state
+    moves: list[tuple[int, int, int, float]] = []
+    rounds = 0
+    while len(moves) < max_rounds and time.perf_counter() < deadline:
+        rounds += 1
+        S = crit.inverse(cells)
+        if S is None:
+            break
+        in_plan = np.isin(pool, cells)
+        lev = crit.leverages(S, pool)
+        move = _best_insert(g, pool, in_plan, lev, cells, route, cost, limit, value, nn, crit)
+        if move is None:
+            move = _best_swap(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit,
+                              size, radius, start)
+        if move is None:
+            move = _best_refill(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit,
+                                size, radius, start, refill)
+        if move is None:
+            break
+        kind, cin, cout, cells, route, cost, value = move
+        moves.append((kind, cin, cout, value))
+    return (cells, route, cost, value), moves, rounds
+
+
+def _kick(state, rng, *, g, pool, limit, nn, crit, size, radius, start, **_):
+    """Remove a random stretch of the route (not the start) and refill greedily without the
+    removed cells: ``(cells, route, cost, value)`` of a feasible plan, or ``None``."""
+    cells, route, cost, value = state
+    m = route.size
+    if m < 3:
+        return None
+    n_out = max(1, int(round(rng.uniform(0.05, 0.2) * (m - 1))))
+    a = int(rng.integers(1, m - n_out + 1))
+    out = route[a:a + n_out]
+    rest_route = np.concatenate([route[:a], route[a + n_out:]])
+    rest = cells[~np.isin(cells, out)]
+    S = crit.inverse(rest)
+    if S is None:
+        return None
+    free = ~np.isin(pool, cells)
+    lev = crit.leverages(S, pool)
+    short = _shortlist(g, pool, ~free, lev, rest, size, radius)
+    ys = pool[short]
+    filled = _fill(g, rest, rest_route, ys, limit, nn, crit, S)
+    if filled is None:
+        return None
+    new_cells, r, c = filled
+    if c > limit:
+        return None
+    return new_cells, r, c, crit.value(new_cells)
+
+
+def _fill(g, rest, r, ys, limit, nn, crit, Sx):
+    """Add cells of ``ys`` to ``rest`` greedily (gain / exact cost increase) while they fit:
+    ``(cells, route, cost)`` (route exact: the NN tour, or the repaired route)."""
+    if nn:
+        coster = NearestNeighborCost(g, rest, ys)
+        cur = coster.cost
+    else:
+        cur = route_length(g, r)
+    active = np.ones(ys.size, dtype=bool)
+    new_cells = rest
+    Yc = crit.Yw[:, ys]
+    while True:
+        gain = np.log1p(np.einsum("ij,ij->j", Yc, Sx @ Yc))
+        if nn:
+            dc = coster.increases()
+        else:
+            dc, pos = _insertion_costs(g, r, ys)
+        ok = active & (cur + dc <= limit) & (gain > _EPS)
+        if not ok.any():
+            break
+        ratio = np.where(ok, gain / np.maximum(np.where(ok, dc, 1.0), 1e-12), -np.inf)
+        b = int(np.argmax(ratio))
+        y = int(ys[b])
+        active[b] = False
+        new_cells = np.append(new_cells, y)
+        u = Sx @ crit.Yw[:, y]
+        Sx = Sx - np.outer(u, u) / (1.0 + float(crit.Yw[:, y] @ u))
+        if nn:
+            coster.add(y)
+            cur = coster.cost
+        else:
+            r = np.insert(r, int(pos[b]) + 1, y)
+            cur = route_length(g, r)
+    if nn:
+        c, rr = nearest_neighbor_tour(g, new_cells)
+    else:
+        rr = _repair(g, r)
+        c = route_length(g, rr)
+    return new_cells, rr, c
