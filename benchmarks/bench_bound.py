@@ -105,7 +105,8 @@ def run_synthetic(small: bool) -> None:
         print(f"refined plan: {len(refined.cells)} cells, cost {refined.cost:.2f}, information "
               f"{refined.information:.6g} nats ({t_ref:.1f} s, {mv.get('moves', 0)} moves)")
         print(f"certificate: bound {c.bound:.6g}, gap of the greedy "
-              f"{c.plan_slack + c.bound_slack:.4g} = plan slack {c.plan_slack:.4g} + bound slack {c.bound_slack:.4g} nats; "
+              f"{c.plan_slack + c.bound_slack:.4g} = plan slack {c.plan_slack:.4g} + bound "
+              f"slack {c.bound_slack:.4g} nats; "
               f"refined volume ratio {c.volume_ratio:.4f}, online bound {c.online_bound:.6g} "
               f"({t_cert:.2f} s)")
     print(f"peak RSS {rss_gb():.2f} GB")
