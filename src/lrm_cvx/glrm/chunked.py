@@ -152,15 +152,6 @@ def _time_blocks(arr: Any, row_bytes: int, block_mb: float) -> list[tuple[int, i
     return [(a, b) for a, b in blocks if b > a]
 
 
-def _materialize(*parts: Any) -> tuple:
-    """Numpy values of ``parts`` (dask collections computed together on the active scheduler)."""
-    import dask
-
-    if any(is_dask_backed(p) for p in parts if p is not None):
-        return dask.compute(*parts)
-    return parts
-
-
 def _pwrite_all(fd: int, buf: np.ndarray, offset: int) -> None:
     """Write all of the contiguous ``buf`` at byte ``offset`` of ``fd`` (pwrite may be short)."""
     view = memoryview(buf).cast("B")
@@ -169,44 +160,109 @@ def _pwrite_all(fd: int, buf: np.ndarray, offset: int) -> None:
         done += os.pwrite(fd, view[done:], offset + done)
 
 
-def _stream_stage(arr, mask, index, blocks, files, bounds, offsets) -> int:
-    """Stream ``arr`` block of times by block of times into the column files; return the
-    number of infs. Block ``b + 1`` is computed (on the active dask scheduler) while the client
-    writes block ``b``: at most two input blocks and one stacked block are in memory. Rows
-    ``t0:t1`` of a C-ordered ``(T, Lc)`` file are one contiguous byte range, written with
-    ``pwrite`` (no memory map: nothing of the staged matrix stays in the client's RSS)."""
-    from concurrent.futures import ThreadPoolExecutor
+class _Deferred:
+    """A dask collection carried into a task unevaluated (dask does not look inside): the task
+    computes it with the synchronous scheduler. A staging block's input is thousands of tiny
+    decode tasks (one per HDF5 tile and operation); run by the scheduler, their overhead
+    dominated staging (16-18 MB/s); run synchronously inside one task per block, they cost
+    what the decoding costs."""
 
-    def fetch(i):
-        t0, t1 = blocks[i]
-        return _materialize(arr[t0:t1], None if mask is None else mask[t0:t1])
+    def __init__(self, obj: Any) -> None:
+        self.obj = obj
 
-    n_inf = 0
-    fds = [os.open(p, os.O_WRONLY) for p in files]
-    try:
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            nxt = pool.submit(fetch, 0)
-            for i, (t0, t1) in enumerate(blocks):
-                block, mblock = nxt.result()
-                if i + 1 < len(blocks):
-                    nxt = pool.submit(fetch, i + 1)
-                tb = t1 - t0
-                flat = np.asarray(block).reshape(tb, -1)
-                if index is not None:
-                    flat = np.take(flat, index, axis=1)
-                flat = np.asarray(flat, dtype=np.float32)
-                del block
-                if mblock is not None:
-                    flat = np.where(np.asarray(mblock).reshape(tb, -1), flat, np.float32(np.nan))
-                n_inf += int(np.count_nonzero(np.isinf(flat)))
-                for c, fd in enumerate(fds):
-                    lo, hi = int(bounds[c]), int(bounds[c + 1])
-                    seg = np.ascontiguousarray(flat[:, lo:hi])
-                    _pwrite_all(fd, seg, offsets[c] + t0 * (hi - lo) * 4)
-                del flat, mblock
-    finally:
-        for fd in fds:
+    def value(self) -> np.ndarray:
+        if is_dask_backed(self.obj):
+            return np.asarray(self.obj.compute(scheduler="sync"))
+        return np.asarray(self.obj)
+
+
+def _deferred(obj: Any) -> Any:
+    """``obj`` wrapped for :func:`_value`, its graph culled to what it needs (a slice of an
+    array otherwise carries the whole input's graph into every task)."""
+    if obj is None or not is_dask_backed(obj):
+        return obj
+    import dask
+
+    return _Deferred(dask.optimize(obj)[0])
+
+
+def _value(obj: Any) -> Any:
+    return obj.value() if isinstance(obj, _Deferred) else obj
+
+
+def _t_valid(block) -> np.ndarray:
+    """Task: which cells of one time block are observed at least once (flattened grid)."""
+    b = _value(block)
+    return np.isfinite(b).any(axis=0).ravel()
+
+
+def _valid_cells(arr: Any, block_mb: float) -> np.ndarray:
+    """``isfinite(arr).any(axis=0)`` by time blocks, one task per block (see :class:`_Deferred`)."""
+    import dask
+
+    itemsize = max(4, np.dtype(arr.dtype).itemsize)
+    blocks = _time_blocks(arr, itemsize * int(np.prod(arr.shape[1:])), block_mb)
+    parts = dask.compute(*[dask.delayed(_t_valid, pure=False)(_deferred(arr[t0:t1]))
+                           for t0, t1 in blocks])
+    return np.logical_or.reduce(parts).reshape(arr.shape[1:])
+
+
+def _write_block(block, mblock, index, t0, files, bounds, offsets) -> int:
+    """Task: write the rows ``t0:t0 + len(block)`` of every column file from one input block
+    (``(tb, ...)`` data, optional mask, ``index`` of the region's cells in the flattened
+    grid); return the block's number of infs. Rows of a C-ordered ``(T, Lc)`` file are one
+    contiguous byte range, written with ``pwrite`` (disjoint ranges: tasks run in parallel,
+    in threads or worker processes, with no lock)."""
+    block, mblock = _value(block), _value(mblock)
+    tb = block.shape[0]
+    flat = np.asarray(block).reshape(tb, -1)
+    if index is not None:
+        flat = np.take(flat, index, axis=1)
+    flat = np.asarray(flat, dtype=np.float32)
+    del block
+    if mblock is not None:
+        flat = np.where(np.asarray(mblock).reshape(tb, -1), flat, np.float32(np.nan))
+    n_inf = int(np.count_nonzero(np.isinf(flat)))
+    for c, path in enumerate(files):
+        lo, hi = int(bounds[c]), int(bounds[c + 1])
+        fd = os.open(path, os.O_WRONLY)
+        try:
+            _pwrite_all(fd, np.ascontiguousarray(flat[:, lo:hi]), offsets[c] + t0 * (hi - lo) * 4)
+        finally:
             os.close(fd)
+    return n_inf
+
+
+def _parallel_slots() -> int:
+    """Threads of the active scheduler: the workers' with a distributed Client, else the
+    machine's cores (dask's threaded default)."""
+    try:
+        from distributed import get_client
+
+        return max(1, sum(get_client().nthreads().values()))
+    except (ImportError, ValueError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _stream_stage(arr, mask, index, blocks, files, bounds, offsets) -> int:
+    """Stage ``arr`` block of times by block of times into the column files; return the
+    number of infs. Each block is one task that computes its input (the files' decoding, on
+    the active dask scheduler) and writes its rows into every column file itself, so the data
+    never travel through the client. Blocks run in waves of twice the scheduler's threads:
+    at most that many blocks are in memory at once."""
+    import dask
+
+    d = dask.delayed
+    idx = None if index is None else d(index, pure=True)  # shipped once, not per task
+    wave = 2 * _parallel_slots()
+    n_inf = 0
+    for w0 in range(0, len(blocks), wave):
+        tasks = []
+        for t0, t1 in blocks[w0: w0 + wave]:
+            mb = None if mask is None else _deferred(mask[t0:t1])
+            tasks.append(d(_write_block, pure=False)(_deferred(arr[t0:t1]), mb, idx, t0, files,
+                                                      bounds, offsets))
+        n_inf += int(sum(dask.compute(*tasks)))
     return n_inf
 
 
@@ -225,16 +281,20 @@ def stage(
     those observed at least once, computed as a dask reduction, unless ``region`` is given), a
     ``(time, cell)`` DataArray with ``region``, or a ``(T, L)`` (dask) array with NaN, optionally
     with a boolean ``mask`` of the same shape (True = observed). Column chunks hold about
-    ``chunk_mb`` MB of float32 each. Staging streams: the input is read one block of about
-    ``block_mb`` MB of consecutive times at a time (whole input time chunks; computed on the
-    active dask scheduler, workers or threads), the client stacks the region's cells and appends
-    the block's rows to every column file. Peak memory is about ``3 * block_mb`` in the client
-    plus the scheduler's buffers, independent of ``T x L`` (no all-to-all rechunk).
+    ``chunk_mb`` MB of float32 each. Staging streams: the input is read in blocks of about
+    ``block_mb`` MB of consecutive times (whole input time chunks); one task per block, on the
+    active dask scheduler (workers or threads), computes the block, takes the region's cells
+    and writes the block's rows into every column file. Peak memory is about ``3 * block_mb``
+    per scheduler thread, independent of ``T x L`` (no all-to-all rechunk, nothing through the
+    client).
     The caller removes ``store.directory`` when done.
     """
-    import dask.array as da
     import xarray as xr
 
+    if not (np.isfinite(block_mb) and block_mb > 0):
+        raise DataError(f"block_mb must be > 0, got {block_mb!r}")
+    if not (np.isfinite(chunk_mb) and chunk_mb > 0):
+        raise DataError(f"chunk_mb must be > 0, got {chunk_mb!r}")
     times, tdim = None, "time"
     index = None
     if isinstance(data, xr.DataArray):
@@ -247,8 +307,7 @@ def stage(
             np.arange(data.shape[0]), dims=(tdim,))
         if data.ndim == 3:
             if region is None:
-                arr = data.data if is_dask_backed(data) else da.from_array(np.asarray(data))
-                valid = np.asarray(da.isfinite(arr).any(axis=0).compute(), dtype=bool)
+                valid = _valid_cells(data.data, block_mb)
                 if not valid.any():
                     raise DataError("da has no finite value: every cell is missing (all NaN)")
                 region = Region.from_dataarray(data, mask=valid)
@@ -281,10 +340,6 @@ def stage(
     L = int(index.size) if index is not None else int(arr.shape[1])
     if T == 0 or L == 0:
         raise DataError(f"data is empty, shape {tuple(arr.shape)}")
-    if not (np.isfinite(block_mb) and block_mb > 0):
-        raise DataError(f"block_mb must be > 0, got {block_mb!r}")
-    if not (np.isfinite(chunk_mb) and chunk_mb > 0):
-        raise DataError(f"chunk_mb must be > 0, got {chunk_mb!r}")
     width = max(1, min(L, int(chunk_mb * 2**20 / (4 * T))))
     bounds = np.append(np.arange(0, L, width), L).astype(np.int64)
     directory = tempfile.mkdtemp(prefix="lrm-dask-", dir=scratch_dir)
