@@ -69,7 +69,8 @@ def test_format_summary_keeps_row_order_and_units():
     assert "(K)^2" in lines[0]
     assert lines[1].split()[1:] == ["budget", "10", "budget", "20"]
     assert lines[3].split()[0] == "b" and lines[4].split()[0] == "a"
-    assert "2 +- 0.1" in lines[3] and "n/a" in lines[4]
+    assert "2.0000 +- 0.1000" in lines[3] and "n/a" in lines[4]
+    assert all("  " in ln[len("b"):] for ln in lines[3:5])  # columns never run together
     assert lines[-1] == "note"
 
 

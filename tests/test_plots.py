@@ -62,7 +62,7 @@ def test_prediction_panels_truth_prediction_std_side_by_side(field):
     maps = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
     assert len(maps) == 6
     titles = [ax.get_title() for ax in maps]
-    assert titles[:3] == ["truth (held-out snapshot)", "prediction: setting 1",
+    assert titles[:3] == ["truth (held-out snapshot)", "prediction\nsetting 1",
                           "standard deviation"]
     assert all(ax.get_xlabel() == "longitude (\N{DEGREE SIGN}E)" for ax in maps[3:])
     assert maps[0].get_ylabel() == "latitude (\N{DEGREE SIGN}N)"

@@ -73,15 +73,15 @@ def format_summary(table: Any, *, units: str = "", title: str = "", notes: Seque
     unit = f" ({units})^2" if units else ""
     lines = [title] if title else []
     lines.append(f"reconstruction MSE{unit}, mean +- s.e. over start cells x test snapshots")
-    head = f"{'setting':<{width}}" + "".join(f"{f'budget {b:g}':>17}" for b in budgets)
+    head = f"{'setting':<{width}}" + "".join(f"{f'budget {b:g}':>18}" for b in budgets)
     lines += [head, "-" * len(head)]
     for s in settings:
         rows = table[table["setting"] == s].set_index("budget")
         cells = []
         for b in budgets:
             m, se = rows.loc[b, "mse_mean"], rows.loc[b, "mse_se"]
-            cells.append(f"{m:.4g} +- {se:.2g}" if np.isfinite(m) else "n/a")
-        lines.append(f"{s:<{width}}" + "".join(f"{c:>17}" for c in cells))
+            cells.append(f"{m:.4f} +- {se:.4f}" if np.isfinite(m) else "n/a")
+        lines.append(f"{s:<{width}}" + "".join(f"{c:>18}" for c in cells))
     lines += list(notes)
     return "\n".join(lines)
 
@@ -225,6 +225,7 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
     paths += figs
     t = lap("figures", t)
     timings["total"] = time.perf_counter() - t_start
+    say("stage seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()))
     return DemoResult(table=table, text=text, paths=paths, timings=timings)
 
 

@@ -238,7 +238,7 @@ def plot_prediction_panels(truth: xr.DataArray, rows: Sequence[Mapping[str, Any]
             plot_map(row["std"], ax=axes[i, 2], cmap=std_cmap, vmin=0, vmax=smax, route=route,
                      add_colorbar=False)
             axes[i, 0].set_title("truth (held-out snapshot)")
-            axes[i, 1].set_title(f"prediction: {row['label']}")
+            axes[i, 1].set_title(f"prediction\n{row['label']}")
             axes[i, 2].set_title("standard deviation")
             for ax in axes[i, 1:]:
                 ax.set_ylabel("")
