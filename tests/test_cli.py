@@ -128,7 +128,12 @@ def test_refuses_to_overwrite_input(data_file, capsys):
     assert xr.load_dataarray(data_file).sizes["time"] == 20
 
 
-def test_demo_runs(tmp_path, capsys):
+def test_demo_runs(tmp_path, capsys, monkeypatch):
+    from lrm_cvx import demo
+
+    # the full protocol is timed by benchmarks/bench_first_run.py; a smaller one here
+    for key, value in {"budgets": (10.0, 20.0), "n_starts": 2, "random_trials": 2}.items():
+        monkeypatch.setitem(demo.DEMO_SETTINGS, key, value)
     out = tmp_path / "demo"
     assert main(["-q", "demo", "--out", str(out)]) == 0
     for name in ("results_recommended.nc", "results_paper.nc", "summary.csv", "summary.txt",
