@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from ._blas import single_threaded_blas
+
 __all__ = ["run_demo", "DemoResult", "DEMO_SETTINGS", "RECOMMENDED", "PAPER", "format_summary"]
 
 #: The demo's protocol (a reduced version of the paper's: same model rank and test split).
@@ -86,35 +88,15 @@ def format_summary(table: Any, *, units: str = "", title: str = "", notes: Seque
     return "\n".join(lines)
 
 
-def _single_threaded_blas() -> Any:
-    """Limit BLAS to one thread (a context manager; a no-op without ``threadpoolctl``).
-
-    The demo's linear algebra is on tiny matrices (k = 5, a few hundred cells) where OpenBLAS's
-    thread pool only adds synchronisation: on a loaded 2-core machine the kriging solves ran
-    ~10x slower with the default threads (measured: 5.2 s vs 0.56 s for one start cell).
-    threadpoolctl limits only the libraries loaded when it is called, so scipy's own OpenBLAS
-    (used by ``scipy.linalg``) is loaded first.
-    """
-    import scipy.linalg  # noqa: F401  (loads scipy's BLAS so that the limit reaches it)
-
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - threadpoolctl ships with most scientific stacks
-        from contextlib import nullcontext
-
-        return nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
-
-
 def run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None = print,
              settings: dict[str, Any] | None = None) -> DemoResult:
     """Run the demo pipeline and write its outputs into ``out_dir`` (created if needed).
 
     ``progress`` receives one line per stage (None: silent). ``settings`` overrides entries of
     :data:`DEMO_SETTINGS` (tests use a smaller protocol). Returns a :class:`DemoResult`.
-    BLAS runs single-threaded meanwhile (tiny matrices; see :func:`_single_threaded_blas`).
+    BLAS runs single-threaded meanwhile (tiny matrices; see ``lrm_cvx._blas``).
     """
-    with _single_threaded_blas():
+    with single_threaded_blas():
         return _run_demo(out_dir, progress=progress, settings=settings)
 
 

@@ -28,6 +28,7 @@ import pandas as pd
 import xarray as xr
 from tqdm.auto import tqdm
 
+from ._blas import single_threaded_blas
 from ._validation import as_factor_matrix, as_generator, atomic_output, check_positive
 from .errors import DataError, ModelError
 from .glrm.posterior import LatentPosterior, ObservationModel, check_cells
@@ -523,7 +524,8 @@ def evaluate(
 
     jobs = range(n_starts)
     bar = tqdm(total=n_starts, desc="evaluate (starts)", disable=not progress)
-    with warnings.catch_warnings(), ThreadPoolExecutor(max_workers=max(1, n_jobs)) as pool:
+    with warnings.catch_warnings(), single_threaded_blas(), \
+            ThreadPoolExecutor(max_workers=max(1, n_jobs)) as pool:  # tiny k x k algebra
         # at small budgets the forced initial cells exceed the budget: expected, not news
         warnings.filterwarnings("ignore", message=r"the \d+ initial cells")
         for results in pool.map(run_start, jobs):
