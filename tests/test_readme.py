@@ -22,3 +22,19 @@ def test_setup_commands_are_the_documented_two():
     text = README.read_text()
     block = re.search(r"## Set up\n\n```bash\n(.*?)```", text, flags=re.S).group(1)
     assert block.strip().splitlines() == ['pip install -e ".[dev]" && lrm-cvx demo', "pytest"]
+
+
+def test_persistent_monitoring_block_runs(tmp_path, monkeypatch):
+    """The README's monitoring loop runs as written and its state loads back with the model."""
+    from lrm_cvx.monitor import MonitorState
+
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    assert len(blocks) >= 2, "README has no persistent-monitoring block"
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(blocks[1], str(README), "exec"), namespace)  # noqa: S102 - our own README
+    state = namespace["state"]
+    assert state.time == namespace["test"].time.values[-1]
+    back = MonitorState.load(tmp_path / "state.nc", namespace["model"])
+    assert back.time == state.time
+    assert float(namespace["today"]["std"].max()) > 0
