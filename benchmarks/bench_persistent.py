@@ -135,7 +135,7 @@ def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
     df = summary(res).set_index(["method", "budget"])
     cols = ["mse_mean", "mse_memoryless_mean", "temporal_cut", "coverage68_mean",
             "coverage95_mean", "coverage68_memoryless_mean", "coverage95_memoryless_mean"]
-    print(df[cols].round(4).to_string())
+    print(df[cols].to_string(float_format="%.4g"))
 
     print(f"\n[{name}] recommended ({RECOMMENDED}) temporal vs memoryless:")
     for b in budgets:
@@ -162,7 +162,8 @@ def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
         oracle.__dict__.update(model.__dict__)
         oracle.dynamics_ = oracle_dyn
         for b in budgets:
-            est = res["mse"].sel(method=RECOMMENDED, budget=float(b)).isel(trial=0).values
+            # (a dict: ``method`` is also a keyword of ``sel``)
+            est = res["mse"].sel({"method": RECOMMENDED, "budget": float(b)}).isel(trial=0).values
             orc = np.array([simulate_campaign(oracle, test, int(s), float(b),
                                               method=RECOMMENDED, temporal="ar1",
                                               seed=0)["mse"].values for s in starts])
