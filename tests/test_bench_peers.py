@@ -152,3 +152,12 @@ def test_run_h2o_tiny(bp, tmp_path):
     assert run.iterations >= 1 and np.isfinite(run.rmse)
     # an exact rank-2 matrix: H2O's fit is close on the held-out entries too
     assert run.rmse < 0.1 * float(np.nanstd(D))
+
+
+def test_runs_cancelled(bp):
+    class H2OJobCancelled(Exception):
+        pass
+
+    assert bp.runs_cancelled(KeyboardInterrupt())
+    assert bp.runs_cancelled(H2OJobCancelled("job cancelled"))
+    assert not bp.runs_cancelled(RuntimeError("JVM did not start"))
