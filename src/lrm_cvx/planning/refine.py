@@ -224,7 +224,7 @@ def refine(
     max_rounds: int = 200,
     shortlist: int = 256,
     radius: float = 2.0,
-    time_limit: float = 60.0,
+    time_limit: float = 55.0,
     refill: int = 8,
     restart: bool = True,
     kicks: int = 10,
