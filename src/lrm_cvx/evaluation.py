@@ -517,8 +517,8 @@ def evaluate(
                     e, n = _model_mse(fold_prior, stats, plan.cells, min_observations)
                     c = _model_coverage(fold_prior, cov_values, cov_subsets, plan.cells,
                                         min_observations)
-                    cert = (plan.certify(tighten=certify == "tight").bound
-                            if certify and method == "greedy" else np.nan)
+                    cert = (plan.certify(tighten=certify == "tight", refine=False).bound
+                            if certify and method == "greedy" else np.nan)  # bound only
                     out.append((m, b, s, trial, plan, e, n, cert, c, None, None))
         return out
 
