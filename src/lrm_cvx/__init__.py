@@ -33,6 +33,7 @@ _LAZY = {
     "plan_greedy": "lrm_cvx.planning",
     "transect": "lrm_cvx.planning",
     "random_walk": "lrm_cvx.planning",
+    "refine": "lrm_cvx.planning",
     "plan_bound": "lrm_cvx.planning.bound",
     "dopt_upper_bound": "lrm_cvx.planning.bound",
     "evaluate": "lrm_cvx.evaluation",
