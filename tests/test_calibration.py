@@ -203,11 +203,26 @@ def test_blend_dynamics_endpoints_and_select_dynamics():
     np.testing.assert_allclose(a["std"].values, b["std"].values, rtol=1e-6, equal_nan=True)
     with pytest.raises(ModelError, match="alpha"):
         blend_dynamics(dyn, 1.5, S)
+    from lrm_cvx.glrm.calibration import unblended_dynamics
+    from lrm_cvx.glrm.dynamics import estimate_ar1
+
+    base = unblended_dynamics(model)  # the plain fit, without the fit's own blend
+    plain = estimate_ar1(model._Xv, model.X_["time"], initial_cov=dyn.initial_cov)
+    np.testing.assert_allclose(base.A, plain.A)
+    np.testing.assert_allclose(base.Q, plain.Q)
     alpha, table = select_dynamics(model, data, alphas=(0.0, 1.0), sizes=(3, 10), n_val=6)
-    assert alpha in (0.0, 1.0) and table.shape == (2, 2)
+    # candidates: the given alphas, 0 and the fit's own blend
+    assert set(table.index) == {0.0, 1.0, round(dyn.blend, 12)} and table.shape[1] == 2
+    assert alpha in set(table.index)
     # the choice never does worse than memoryless on the validation snapshots, at any size
     assert np.all(table.loc[alpha].values <= table.loc[0.0].values + 1e-12)
     assert model.dynamics_alpha_ == alpha
+    # one rule: the applied dynamics are the *unblended* estimate blended by alpha (the fit's
+    # blend does not compose with it)
+    np.testing.assert_allclose(model.dynamics_.A, alpha * plain.A, atol=1e-12)
+    np.testing.assert_allclose(model.dynamics_.Q, (1 - alpha ** 2) * S + alpha ** 2 * plain.Q,
+                               rtol=1e-9, atol=1e-12)
+    assert model.dynamics_.blend == pytest.approx(alpha)
 
 
 def test_filter_scale_is_used_by_the_monitor_state():

@@ -45,7 +45,7 @@ from .._validation import as_generator
 from ..errors import DataError, ModelError
 
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
-           "blend_dynamics", "select_dynamics",
+           "blend_dynamics", "select_dynamics", "unblended_dynamics",
            "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
@@ -284,10 +284,10 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
             sub.fit(data.isel(time=train_idx), region=region)
             sub.calibration_ = None
             if temporal is not None:
-                alpha = getattr(model, "dynamics_alpha_", 1.0)  # select_dynamics' choice
-                if alpha != 1.0:
-                    sub.dynamics_ = blend_dynamics(sub.dynamics_, alpha,
-                                                   _memoryless_cov(sub, sub.dynamics_))
+                alpha = getattr(model, "dynamics_alpha_", None)  # select_dynamics' choice
+                if alpha is not None:  # replaces the refit's own blend (one rule, as the model)
+                    base = unblended_dynamics(sub)
+                    sub.dynamics_ = blend_dynamics(base, alpha, _memoryless_cov(sub, base))
                 out.extend(_filter_residuals(sub, data.isel(time=block), V[block], sizes, kinds,
                                              spatial, rng))
                 continue
@@ -398,6 +398,20 @@ def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
                    blend=float(getattr(dynamics, "blend", 1.0)) * a)
 
 
+def unblended_dynamics(model: Any) -> Any:
+    """The model's dynamics re-estimated from ``X_`` without the fit's validated blend
+    (``validation=None``; same kind, shrinkage and initial belief): the starting point of
+    :func:`select_dynamics`."""
+    from .dynamics import estimate
+
+    dyn = model.dynamics_
+    X = model._Xv
+    xa = model.X_
+    times = xa[xa.dims[1]] if hasattr(xa, "dims") else np.arange(X.shape[1])
+    return estimate(dyn.kind, X, times, shrinkage=dyn.shrinkage,
+                    initial_cov=dyn.initial_cov, validation=None)
+
+
 def _memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
     from .posterior import empirical_moments
 
@@ -415,18 +429,17 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
 
     The last ``n_val`` snapshots of ``data`` (the model's training snapshots; default a fifth,
     at least 3) are held out; a copy of the model is refitted (with its ``temporal``) on the
-    snapshots before them, and for each ``alpha`` the filter with :func:`blend_dynamics` runs
-    through them, one campaign per sample-set size and kind (the same random cells for every
-    ``alpha``). The chosen ``alpha`` minimises the worst ratio, over the sizes, of its
-    validation MSE (held-out observed cells) to the memoryless one (``alpha = 0``, always
-    a candidate): the filter is trusted only as far as it helps at every size. With ``apply``
-    the model's ``dynamics_`` is replaced by the blend. Returns ``(alpha, table)``, the table a
-    DataFrame of validation MSE per alpha and size.
-
-    It complements the blend the fit can choose itself (``estimate_ar1(validation=...)``, the
-    one-step likelihood of the latent columns): here the criterion is the error of the maps
-    that sparse sample sets give, the quantity the issue's "never worse than memoryless"
-    target is about, and the two blends compose (``Dynamics.blend``).
+    snapshots before them, its dynamics re-estimated *without* the fit's own blend
+    (:func:`unblended_dynamics`), and for each ``alpha`` the filter with
+    :func:`blend_dynamics` runs through them, one campaign per sample-set size and kind (the
+    same random cells for every ``alpha``). The candidates are ``alphas``, 0 (memoryless) and
+    the blend the fit chose itself (``dynamics_.blend``, the one-step likelihood rule of
+    :mod:`~lrm_cvx.glrm.dynamics`). The chosen ``alpha`` minimises the worst ratio, over the
+    sizes, of its validation MSE (held-out observed cells) to the memoryless one: the filter is
+    trusted only as far as it helps at every size. With ``apply`` the model's ``dynamics_``
+    becomes the *unblended* estimate blended by ``alpha`` (so ``dynamics_.blend == alpha``:
+    this rule replaces the fit's, the two never compose). Returns ``(alpha, table)``, the table
+    a DataFrame of validation MSE per alpha and size.
     """
     import pandas as pd
 
@@ -439,13 +452,14 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     n_val = max(3, T // 5) if n_val is None else int(n_val)
     if not 2 <= n_val <= T - 3:
         raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
-    alphas = sorted({0.0, *(float(a) for a in alphas)})
+    alphas = sorted({0.0, round(float(dyn.blend), 12), *(float(a) for a in alphas)})
     sizes = [int(s) for s in sizes]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         sub = _clone(model).fit(data.isel(time=slice(None, T - n_val)), region=region)
     sub.calibration_ = None
-    S = _memoryless_cov(sub, sub.dynamics_)
+    sub_dyn = unblended_dynamics(sub)
+    S = _memoryless_cov(sub, sub_dyn)
     val = data.isel(time=slice(T - n_val, None))
     Vv = V[T - n_val:]
     times = val["time"].values
@@ -456,7 +470,7 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
 
     err = np.zeros((len(alphas), len(sizes)))
     for a_i, alpha in enumerate(alphas):
-        d = blend_dynamics(sub.dynamics_, alpha, S)
+        d = blend_dynamics(sub_dyn, alpha, S)
         for (size, _kind), cell_sets in sets.items():
             state = MonitorState.from_model(sub, dynamics=d)
             for i, t in enumerate(times):
@@ -473,6 +487,7 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     table = pd.DataFrame(err, index=pd.Index(alphas, name="alpha"),
                          columns=pd.Index(sizes, name="size"))
     if apply:
-        model.dynamics_ = blend_dynamics(dyn, alpha, _memoryless_cov(model, dyn))
+        base = unblended_dynamics(model)
+        model.dynamics_ = blend_dynamics(base, alpha, _memoryless_cov(model, base))
         model.dynamics_alpha_ = alpha  # read by calibrate's forward-chaining refits
     return alpha, table
