@@ -31,6 +31,7 @@ the rounds call the same kernels, so fits agree up to floating-point summation o
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import tempfile
@@ -266,6 +267,169 @@ def _stream_stage(arr, mask, index, blocks, files, bounds, offsets) -> int:
     return n_inf
 
 
+# ----------------------------------------------------- file-level staging of CDR NDVI files
+_NC_LOCK = threading.Lock()  # netCDF4 / HDF5 are not thread-safe: one read at a time per process
+
+
+def cdr_source(data: Any) -> dict | None:
+    """The daily files behind ``data`` when it is exactly what :func:`~lrm_cvx.io.open_ndvi_cdr`
+    returned lazily (local files; its dask graph untouched), else None."""
+    src = getattr(data, "encoding", {}).get("lrm_cvx_cdr")
+    if (src is None or not is_dask_backed(data) or getattr(data.data, "name", None) != src["name"]
+            or tuple(data.shape) != tuple(src["shape"])):
+        return None
+    return src
+
+
+def _t_stage_days(days, src, rows, cols, index, files, bounds, offsets, track) -> dict:
+    """Task: read, decode and write the days ``days`` (indices into ``src["files"]``): each
+    day's bbox window of raw NDVI and QA (netCDF4, under a per-process lock), decoded by table
+    lookup (:func:`~lrm_cvx.io.ndvi.decode_day`, the rules of :func:`open_ndvi_cdr`), the
+    region's cells taken, and row ``t`` of every column file written with ``pwrite``. Returns
+    seconds in read / decode / write and, with ``track``, the packed OR of finite cells."""
+    import time
+
+    from ..io.ndvi import decode_day, decode_tables, read_window
+
+    clock = time.perf_counter
+    secs = {"read": 0.0, "decode": 0.0, "write": 0.0}
+    seen = None
+    fds = [os.open(p, os.O_WRONLY) for p in files]
+    try:
+        for t in days:
+            t0 = clock()
+            with _NC_LOCK:
+                nd, qa, enc = read_window(src["files"][t], rows, cols)
+            t1 = clock()
+            prod = src["products"][t]
+            row = decode_day(nd, qa, decode_tables(prod, tuple(src["flags"][prod]), enc)).ravel()
+            del nd, qa
+            if track:
+                fin = np.isfinite(row)
+                seen = fin if seen is None else np.logical_or(seen, fin, out=seen)
+            if index is not None:
+                row = np.take(row, index)
+            t2 = clock()
+            for c, fd in enumerate(fds):
+                lo, hi = int(bounds[c]), int(bounds[c + 1])
+                _pwrite_all(fd, row[lo:hi], offsets[c] + t * (hi - lo) * 4)
+            t3 = clock()
+            secs["read"] += t1 - t0
+            secs["decode"] += t2 - t1
+            secs["write"] += t3 - t2
+    finally:
+        for fd in fds:
+            os.close(fd)
+    if track:
+        secs["seen"] = np.packbits(seen) if seen is not None else None
+    return secs
+
+
+def _run_tasks(fn, items) -> list:
+    """``[fn(i) for i in items]`` in parallel: on the workers of an active ``distributed``
+    Client, else on threads of this process (one per core; the decoding and writing release
+    the GIL, the netCDF4 reads are serialised by :data:`_NC_LOCK`)."""
+    try:
+        from distributed import get_client
+
+        client = get_client()
+    except (ImportError, ValueError):
+        client = None
+    if client is not None:
+        return client.gather(client.map(fn, items, pure=False))
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as ex:
+        return list(ex.map(fn, items))
+
+
+def _new_files(directory: str, T: int, bounds: np.ndarray, prefix: str = "data"
+               ) -> tuple[list[str], list[int]]:
+    """Empty ``(T, Lc)`` float32 ``.npy`` column files; their paths and data byte offsets."""
+    files, offsets = [], []
+    for c in range(bounds.size - 1):
+        p = os.path.join(directory, f"{prefix}_{c:05d}.npy")
+        mm = np.lib.format.open_memmap(p, mode="w+", dtype=np.float32,
+                                       shape=(T, int(bounds[c + 1] - bounds[c])))
+        offsets.append(int(mm.offset))
+        mm.flush()
+        del mm
+        files.append(p)
+    return files, offsets
+
+
+def _bounds(L: int, T: int, chunk_mb: float) -> np.ndarray:
+    width = max(1, min(L, int(chunk_mb * 2**20 / (4 * T))))
+    return np.append(np.arange(0, L, width), L).astype(np.int64)
+
+
+def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[str], np.ndarray,
+                                                                         Region]:
+    """Stage the CDR files of ``src`` straight into column files (one read of each file).
+
+    Without ``region`` the whole bbox grid is staged while the observed cells are OR-ed per
+    task; when some cell is never observed the files are compacted to the region's cells
+    (a read of the staged files from the page cache, far cheaper than decoding)."""
+    import time
+
+    from ..io.ndvi import window_index
+
+    T = int(data.shape[0])
+    grid = tuple(int(n) for n in data.shape[1:])
+    rows, cols = window_index(src["files"][0], src["bbox"])
+    track = region is None
+    index = None if track else np.flatnonzero(region.mask.ravel())
+    L = int(np.prod(grid)) if track else int(index.size)
+    bounds = _bounds(L, T, chunk_mb)
+    files, offsets = _new_files(directory, T, bounds)
+    n_tasks = min(T, 4 * _parallel_slots())
+    parts = [list(range(T))[i::n_tasks] for i in range(n_tasks)]  # interleaved: balanced
+    clock = time.perf_counter()
+    task = functools.partial(_t_stage_days, src=src, rows=rows, cols=cols, index=index,
+                             files=files, bounds=bounds, offsets=offsets, track=track)
+    res = _run_tasks(task, parts)
+    if timings is not None:
+        for k in ("read", "decode", "write"):
+            timings[f"stage_{k}"] = float(sum(r[k] for r in res))
+        timings["stage_pass"] = time.perf_counter() - clock
+    if not track:
+        return files, bounds, region
+    seen = np.zeros(int(np.prod(grid)), dtype=bool)
+    for r in res:
+        if r["seen"] is not None:
+            seen |= np.unpackbits(r["seen"], count=seen.size).astype(bool)
+    if not seen.any():
+        raise DataError("da has no finite value: every cell is missing (all NaN)")
+    region = Region.from_dataarray(data, mask=seen.reshape(grid))
+    if seen.all():
+        return files, bounds, region
+    index = np.flatnonzero(seen)
+    nb = _bounds(int(index.size), T, chunk_mb)
+    new, noffs = _new_files(directory, T, nb, prefix="compact")
+    old = [np.load(f, mmap_mode="r") for f in files]
+    for c in range(nb.size - 1):
+        g = index[nb[c]: nb[c + 1]]
+        owner = np.searchsorted(bounds, g, side="right") - 1
+        block = np.empty((T, g.size), dtype=np.float32)
+        for o in np.unique(owner):
+            sel = owner == o
+            block[:, sel] = old[o][:, g[sel] - bounds[o]]
+        fd = os.open(new[c], os.O_WRONLY)
+        try:
+            _pwrite_all(fd, block, noffs[c])
+        finally:
+            os.close(fd)
+    del old
+    for f in files:
+        os.remove(f)
+    final = []
+    for c, n in enumerate(new):
+        p = os.path.join(directory, f"data_{c:05d}.npy")
+        os.replace(n, p)
+        final.append(p)
+    return final, nb, region
+
+
 def stage(
     data: Any,
     *,
@@ -274,6 +438,7 @@ def stage(
     chunk_mb: float = 256.0,
     scratch_dir: str | None = None,
     block_mb: float = 256.0,
+    timings: dict | None = None,
 ) -> tuple[ChunkStore, Region | None, Any, str]:
     """Stage ``data`` into column chunks on disk; return ``(store, region, times, time_dim)``.
 
@@ -288,6 +453,13 @@ def stage(
     per scheduler thread, independent of ``T x L`` (no all-to-all rechunk, nothing through the
     client).
     The caller removes ``store.directory`` when done.
+
+    A DataArray exactly as :func:`~lrm_cvx.io.open_ndvi_cdr` returned it lazily (local files)
+    is staged from the files themselves (:func:`cdr_source`): one task per group of days reads
+    each day's window with netCDF4, decodes it by table lookup with the loader's own rules and
+    writes its rows (threads of this process, or the workers of an active distributed Client);
+    the same matrix, bit for bit, at the cost of one read of each file. ``timings``, when a
+    dict, then receives the summed seconds ``stage_read`` / ``stage_decode`` / ``stage_write``.
     """
     import xarray as xr
 
@@ -297,6 +469,19 @@ def stage(
         raise DataError(f"chunk_mb must be > 0, got {chunk_mb!r}")
     times, tdim = None, "time"
     index = None
+    src = cdr_source(data) if isinstance(data, xr.DataArray) and mask is None else None
+    if src is not None:
+        if region is not None and tuple(data.shape[1:]) != region.shape:
+            raise RegionError(f"data grid is {data.shape[1:]}, the region's is {region.shape}")
+        tdim = str(data.dims[0])
+        directory = tempfile.mkdtemp(prefix="lrm-dask-", dir=scratch_dir)
+        try:
+            files, bounds, region = _stage_cdr(data, src, region, chunk_mb, directory, timings)
+        except BaseException:
+            shutil.rmtree(directory, ignore_errors=True)
+            raise
+        return (ChunkStore(directory, int(data.shape[0]), bounds, files), region,
+                data[tdim], tdim)
     if isinstance(data, xr.DataArray):
         if mask is not None:
             raise DataError("mask is only accepted with an array; a DataArray uses NaN")
@@ -647,7 +832,8 @@ def fit_chunked(
         raise ModelError(f"rank must be an integer, got {rank!r}")
     clock = _Clock(timings)
     store, region, times, tdim = stage(data, mask=mask, region=region, chunk_mb=chunk_mb,
-                                       scratch_dir=scratch_dir, block_mb=block_mb)
+                                       scratch_dir=scratch_dir, block_mb=block_mb,
+                                       timings=timings)
     clock.mark("stage")
     try:
         res = _fit_store(store, int(rank), loss, reg_x, reg_y, max_iter, tol, init, rng,

@@ -226,17 +226,127 @@ def _decode_file(ds: xr.Dataset, name: str, product: str, flags: tuple[str, ...]
     sel = {"latitude": rows, "longitude": cols}
     ndvi_raw = ndvi_raw.transpose("time", "latitude", "longitude").isel(sel)
     qa_raw = qa_raw.transpose("time", "latitude", "longitude").isel(sel)
-    attrs = ds["NDVI"].attrs
-    scale = float(attrs.get("scale_factor", NDVI_SCALE))
-    offset = float(attrs.get("add_offset", 0.0))
-    fill = attrs.get("_FillValue", NDVI_FILL)
-    vmin, vmax = attrs.get("valid_range", NDVI_VALID_RANGE)
-    qa_fill = ds["QA"].attrs.get("_FillValue", QA_FILL)
-    usable = (ndvi_raw != fill) & (ndvi_raw >= vmin) & (ndvi_raw <= vmax) & (qa_raw != qa_fill)
-    usable = usable & ~decode_qa(qa_raw, product, flags)
-    ndvi = (ndvi_raw.astype(np.float32) * np.float32(scale) + np.float32(offset)).where(usable)
+    enc = _encoding(ds["NDVI"].attrs, ds["QA"].attrs)
+    usable = _ndvi_ok(ndvi_raw, enc) & _qa_ok(qa_raw, product, flags, enc)
+    ndvi = _ndvi_value(ndvi_raw, enc).where(usable)
     ndvi = ndvi.astype(np.float32).rename({"latitude": "lat", "longitude": "lon"})
     return ndvi.assign_coords(lon=new_lon)
+
+
+# ----------------------------------------------------------- decoding rules (the only copy)
+def _encoding(ndvi_attrs: Any, qa_attrs: Any) -> tuple:
+    """``(scale, offset, fill, vmin, vmax, qa_fill)`` of a file's NDVI / QA attributes."""
+    vmin, vmax = ndvi_attrs.get("valid_range", NDVI_VALID_RANGE)
+    return (float(ndvi_attrs.get("scale_factor", NDVI_SCALE)),
+            float(ndvi_attrs.get("add_offset", 0.0)),
+            int(ndvi_attrs.get("_FillValue", NDVI_FILL)), int(vmin), int(vmax),
+            int(qa_attrs.get("_FillValue", QA_FILL)))
+
+
+def _ndvi_ok(ndvi_raw: Any, enc: tuple) -> Any:
+    """Raw NDVI that is not fill and inside ``valid_range``."""
+    _, _, fill, vmin, vmax, _ = enc
+    return (ndvi_raw != fill) & (ndvi_raw >= vmin) & (ndvi_raw <= vmax)
+
+
+def _qa_ok(qa_raw: Any, product: str, flags: tuple[str, ...], enc: tuple) -> Any:
+    """QA present (not fill) with none of ``flags`` set."""
+    return (qa_raw != enc[5]) & ~decode_qa(qa_raw, product, flags)
+
+
+def _ndvi_value(ndvi_raw: Any, enc: tuple) -> Any:
+    """Physical NDVI, float32 arithmetic: ``raw * scale + offset``."""
+    return ndvi_raw.astype(np.float32) * np.float32(enc[0]) + np.float32(enc[1])
+
+
+_LUTS: dict = {}
+
+
+def decode_tables(product: str, flags: tuple[str, ...], enc: tuple
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``(values, qa_ok)``: the decoding rules above evaluated once on all 65 536 int16 codes.
+
+    ``values[u]`` (float32) is the NDVI of raw code ``u`` (``raw.view(uint16)``), NaN where
+    the raw value is unusable; ``qa_ok[u]`` is True where QA code ``u`` is usable. A day then
+    decodes as ``where(qa_ok[qa.view(uint16)], values[ndvi.view(uint16)], NaN)``, bit for bit
+    what :func:`open_ndvi_cdr` gives (the same functions computed each code's entry).
+    """
+    key = (product, tuple(flags), enc)
+    if key not in _LUTS:
+        codes = np.arange(65536, dtype=np.uint32).astype(np.uint16).view(np.int16)
+        values = np.where(_ndvi_ok(codes, enc), _ndvi_value(codes, enc), np.float32(np.nan))
+        _LUTS[key] = (values.astype(np.float32), np.asarray(_qa_ok(codes, product, flags, enc)))
+    return _LUTS[key]
+
+
+def decode_day(ndvi_raw: np.ndarray, qa_raw: np.ndarray, tables: tuple[np.ndarray, np.ndarray]
+               ) -> np.ndarray:
+    """One day's raw int16 NDVI and QA (same shape) -> float32 NDVI, NaN where unusable
+    (table lookups from :func:`decode_tables`; numpy releases the GIL)."""
+    values, qa_ok = tables
+    out = np.take(values, np.asarray(ndvi_raw, dtype=np.int16).view(np.uint16))
+    bad = ~np.take(qa_ok, np.asarray(qa_raw, dtype=np.int16).view(np.uint16))
+    np.copyto(out, np.float32(np.nan), where=bad)
+    return out
+
+
+def window_index(path: str | os.PathLike, bbox: Sequence[float] | None) -> tuple[Any, Any]:
+    """``(rows, cols)`` of ``bbox`` in the grid of CDR file ``path`` (as :func:`open_ndvi_cdr`
+    selects them: geographic column order)."""
+    import netCDF4
+
+    with netCDF4.Dataset(str(path)) as nc:
+        lat = np.asarray(nc.variables["latitude"][:], dtype=np.float64)
+        lon = np.asarray(nc.variables["longitude"][:], dtype=np.float64)
+    rows, cols, _ = _bbox_index(lat, lon, bbox, _name(path))
+    return rows, cols
+
+
+def read_window(path: str | os.PathLike, rows: Any, cols: Any
+                ) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Raw ``(NDVI, QA, encoding)`` of one CDR file's window ``rows x cols`` (slices or index
+    arrays, as :func:`_bbox_index` gives them) as ``(ny, nx)`` int16 arrays, with netCDF4
+    (not thread-safe: callers serialise calls in one process)."""
+    import netCDF4
+
+    try:
+        nc = netCDF4.Dataset(str(path))
+    except Exception as exc:
+        raise DataError(f"cannot read NDVI file {path}: {exc}") from None
+    try:
+        out = []
+        for var in ("NDVI", "QA"):
+            if var not in nc.variables:
+                raise DataError(f"{_name(path)}: no {var!r} variable")
+            v = nc.variables[var]
+            v.set_auto_maskandscale(False)
+            dims = tuple(v.dimensions)
+            if set(dims) != {"time", "latitude", "longitude"}:
+                raise DataError(f"{_name(path)}: {var} has dims {dims}, expected "
+                                "(time, latitude, longitude)")
+            span = {"time": 0}
+            for d, sel in (("latitude", rows), ("longitude", cols)):
+                span[d] = sel if isinstance(sel, slice) else slice(int(sel.min()),
+                                                                   int(sel.max()) + 1)
+            a = np.asarray(v[tuple(span[d] for d in dims)])
+            a = a.transpose([[d for d in dims if d != "time"].index(x)
+                             for x in ("latitude", "longitude")])
+            if not isinstance(rows, slice):
+                a = a[np.asarray(rows) - int(np.min(rows))]
+            if not isinstance(cols, slice):
+                a = a[:, np.asarray(cols) - int(np.min(cols))]
+            out.append(np.ascontiguousarray(a, dtype=np.int16))
+        enc = _encoding({k: v_.getncattr(k) for v_ in (nc.variables["NDVI"],)
+                         for k in v_.ncattrs()},
+                        {k: nc.variables["QA"].getncattr(k)
+                         for k in nc.variables["QA"].ncattrs()})
+    except DataError:
+        raise
+    except Exception as exc:
+        raise DataError(f"cannot decode NDVI file {path}: {exc}") from None
+    finally:
+        nc.close()
+    return out[0], out[1], enc
 
 
 def open_ndvi_cdr(
@@ -347,6 +457,13 @@ def open_ndvi_cdr(
         "mask_flags": "; ".join(f"{p}: {' '.join(f)}" for p, f in sorted(flags.items())),
         "source_files": "\n".join(_name(p) for p in files),
     }
+    if chunks is not None and not any(is_url(p) for p in files):
+        # what the file-level staging (glrm.chunked.stage) needs to read the files itself; valid
+        # only while out.data is this very graph (any operation renames it)
+        out.encoding["lrm_cvx_cdr"] = {
+            "files": [str(p) for p in files], "products": [m["product"] for m in meta],
+            "flags": flags, "bbox": None if bbox is None else tuple(float(b) for b in bbox),
+            "name": out.data.name, "shape": tuple(out.shape)}
     if chunks is None and not np.isfinite(out.values).any():
         raise DataError(
             f"every cell is masked in {len(files)} file(s) (bbox {bbox}, flags "
