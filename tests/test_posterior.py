@@ -66,6 +66,12 @@ def test_update_equals_naive_bayesian_regression(seed, offset, scale, per_cell):
     mc, sc_ = post.predict(cells=[3, 0])
     np.testing.assert_allclose(mc, pred[[3, 0]], rtol=1e-9)
     np.testing.assert_allclose(sc_, std[[3, 0]], rtol=1e-8)
+    for sel in (None, [3, 0]):  # the one-pass maps equal the naive ones
+        i = slice(None) if sel is None else sel
+        ma, sa, pa = post.predict_all(cells=sel)
+        np.testing.assert_allclose(ma, pred[i], rtol=1e-9)
+        np.testing.assert_allclose(sa, std[i], rtol=1e-8)
+        np.testing.assert_allclose(pa, pstd[i], rtol=1e-8)
 
 
 def test_flat_prior_is_the_papers_least_squares_fold_in():
@@ -265,6 +271,11 @@ def test_spatial_update_equals_the_gp_conditional(seed):
     np.testing.assert_allclose(sd ** 2, obs.scale ** 2 * var, rtol=1e-7, atol=1e-10)
     np.testing.assert_allclose(post.predictive_std() ** 2,
                                obs.scale ** 2 * (var + obs.spatial_cov.nugget), rtol=1e-7)
+    ma, sa, pa = post.predict_all()  # one kriging pass, the same three maps
+    np.testing.assert_allclose(ma, obs.scale * mean + obs.offset, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(sa ** 2, obs.scale ** 2 * var, rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(pa ** 2, obs.scale ** 2 * (var + obs.spatial_cov.nugget),
+                               rtol=1e-7)
     # the trend-only prediction is the GLS latent posterior mapped through Y
     mt, _ = post.predict(spatial=False)
     np.testing.assert_allclose(mt, obs.scale * (obs.Y.T @ post.mean) + obs.offset, rtol=1e-10)

@@ -264,8 +264,7 @@ class MonitorState:
         scalar ``time`` coordinate. Does not change the state."""
         t = self._default_time(time)
         post, _ = self._post_at(t)
-        mean, std = post.predict()
-        return self._dataset(mean, std, post.predictive_std(), t, "forecast")
+        return self._dataset(*post.predict_all(), t, "forecast")
 
     def _default_time(self, time: Any) -> Any:
         if time is not None:
@@ -279,8 +278,7 @@ class MonitorState:
     def predict(self) -> xr.Dataset:
         """Posterior ``mean``, ``std`` and ``predictive_std`` maps of the snapshot at the
         state's time (a Dataset on ``(lat, lon)``, scalar ``time`` coordinate)."""
-        mean, std = self.posterior.predict()
-        return self._dataset(mean, std, self.posterior.predictive_std(), self.time, "posterior")
+        return self._dataset(*self.posterior.predict_all(), self.time, "posterior")
 
     def planner_kwargs(self, criterion: str = "gp-variance", time: Any = None) -> dict:
         """Keyword arguments of :func:`~lrm_cvx.planning.plan_greedy` with the prior of the

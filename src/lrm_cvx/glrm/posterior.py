@@ -507,16 +507,30 @@ class LatentPosterior:
     def predictive_std(self, spatial: bool | None = None, cells: Any = None) -> np.ndarray:
         """Std of a new measurement at every cell (or ``cells``), data units: the latent
         variance plus the noise (``noise_var``; the nugget with the spatial residual)."""
+        return self.predict_all(spatial, cells)[2]
+
+    def predict_all(self, spatial: bool | None = None, cells: Any = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(mean, std, predictive_std)``: :meth:`predict` and :meth:`predictive_std` from one
+        evaluation of the latent variance (one kriging pass instead of two; the maps of
+        ``MonitorState.forecast``/``predict``)."""
         obs = self.obs_model
         sp_ = self._spatial(spatial)
         if cells is not None:
             cells = check_cells(cells, obs.n_cells)
-        idx = np.arange(obs.n_cells) if cells is None else cells
-        _, var = self._latent_var(sp_, cells)
-        noise = (np.full(idx.size, obs.spatial_cov.nugget) if sp_
-                 else obs.without_spatial().noise_at(idx))
-        std = np.sqrt(obs.variance_scale * (var + noise))
-        return std if obs.scale is None else std * obs.scale[idx]
+        idx = slice(None) if cells is None else cells
+        mu, var = self._latent_var(sp_, cells)
+        mean, std = obs.to_data_units(mu, np.sqrt(obs.variance_scale * var), idx)
+        if sp_:
+            var += obs.spatial_cov.nugget
+        else:
+            nv = obs.without_spatial().noise_var
+            var += nv if np.ndim(nv) == 0 else nv[idx]
+        var *= obs.variance_scale
+        pstd = np.sqrt(var, out=var)
+        if obs.scale is not None:
+            pstd *= obs.scale[idx]
+        return mean, std, pstd
 
     # ------------------------------------------------------------------ planner and filter
     def information(self) -> dict[str, Any]:
