@@ -93,6 +93,47 @@ def open_days(files: list[str]):
         return ds[name], "xarray.open_mfdataset"
 
 
+def stage_split(tm: dict, nbytes: int) -> str:
+    """The file-level staging's split (seconds summed over its tasks) and what bounds it."""
+    busy = tm["stage_read"] + tm["stage_decode"] + tm["stage_write"]
+    mb = nbytes / 2**20
+    return (f"file-level staging pass {tm['stage_pass']:.1f} s "
+            f"({mb / tm['stage_pass']:.0f} MB/s); task seconds (summed over parallel tasks): "
+            f"read+inflate {tm['stage_read']:.1f} s ({mb / tm['stage_read']:.0f} MB/s of "
+            f"float32 a task), decode {tm['stage_decode']:.1f} s "
+            f"({mb / tm['stage_decode']:.0f} MB/s), write {tm['stage_write']:.1f} s "
+            f"({mb / tm['stage_write']:.0f} MB/s); busy {busy:.1f} s"
+            + (f"; compaction to the region's cells {tm['stage_compact']:.1f} s"
+               if "stage_compact" in tm else ""))
+
+
+def stage_only(files: list[str], args, base: str) -> None:
+    """Open the files lazily and stage them (no fit); print MB/s and the split."""
+    import xarray as xr  # noqa: F401
+
+    from lrm_cvx.glrm.chunked import cdr_source, stage
+    from lrm_cvx.io import open_ndvi_cdr
+
+    da = open_ndvi_cdr(files, chunks={"time": 1})
+    assert cdr_source(da) is not None
+    with TreeRSS() as rss:
+        tm: dict = {}
+        t = time.perf_counter()
+        store, region, *_ = stage(da, chunk_mb=args.chunk_mb, scratch_dir=base, timings=tm)
+        total = time.perf_counter() - t
+    T, L = store.n_times, store.n_cells
+    nbytes = T * L * 4
+    try:
+        print(f"L = {L} cells, T = {T}: float32 matrix {nbytes / 2**30:.2f} GiB in "
+              f"{store.n_chunks} column chunks")
+        print(f"staging (file level, region found in the same pass): {total:.1f} s = "
+              f"{nbytes / 2**20 / total:.0f} MB/s of staged float32 "
+              f"(target >= 120 MB/s); peak RSS of the process tree {rss.peak / 2**30:.2f} GiB")
+        print(stage_split(tm, nbytes))
+    finally:
+        shutil.rmtree(store.directory, ignore_errors=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--small", action="store_true", help="quick smoke run")
@@ -108,6 +149,11 @@ def main() -> None:
     ap.add_argument("--block-mb", type=float, default=256.0, help="input read per staging block")
     ap.add_argument("--scratch", default=None, help="directory for files and the column store")
     ap.add_argument("--files", default=None, help="reuse daily files in this folder (not removed)")
+    ap.add_argument("--stage-only", action="store_true",
+                    help="only stage the files into column chunks (file-level path) and print "
+                         "MB/s with the read / decode / write split; no cluster, no fit")
+    ap.add_argument("--cluster", action="store_true",
+                    help="with --stage-only: stage on the LocalCluster's workers, not threads")
     args = ap.parse_args()
     if args.small:
         args.days, args.ny, args.nx, args.rounds = 40, 120, 200, 3
@@ -137,6 +183,9 @@ def main() -> None:
             print(f"write {len(files)} daily files: {time.perf_counter() - t:.1f} s", flush=True)
         size = sum(os.path.getsize(f) for f in files)
         print(f"daily files on disk: {size / 2**30:.2f} GiB", flush=True)
+        if args.stage_only and not args.cluster:
+            stage_only(files, args, base)
+            return
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             cluster = distributed.LocalCluster(
@@ -155,6 +204,9 @@ def main() -> None:
                 GLRM(rank=5, max_iter=1, tol=0, progress=False, dask_options=opts).fit(warm)
                 print(f"warm-up (compile in the workers): {time.perf_counter() - t:.1f} s",
                       flush=True)
+                if args.stage_only:
+                    stage_only(files, args, base)
+                    return
                 rss.peak = 0
                 timings: dict = {}
                 t = time.perf_counter()
@@ -169,6 +221,8 @@ def main() -> None:
                   f"(+ mask {T * L / 2**30:.2f} GiB as bool)")
             print(f"region reduction + streaming stage: {timings['stage']:.1f} s "
                   f"({T * L * 4 / 2**20 / timings['stage']:.0f} MB/s of staged float32)")
+            if "stage_read" in timings:
+                print(stage_split(timings, T * L * 4))
             print(f"statistics + randomized-SVD init: {timings['init']:.1f} s")
             print(f"rounds (Y step + X step): {', '.join(f'{r:.1f}' for r in rounds)} s; "
                   f"mean {np.mean(rounds):.1f} s per round")

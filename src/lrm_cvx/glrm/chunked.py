@@ -363,6 +363,22 @@ def _bounds(L: int, T: int, chunk_mb: float) -> np.ndarray:
     return np.append(np.arange(0, L, width), L).astype(np.int64)
 
 
+def _t_compact(c, index, nb, files, bounds, new, noffs, T) -> None:
+    """Task: write compacted column file ``c`` (the region's cells ``index[nb[c]:nb[c+1]]`` of
+    the whole-grid files ``files``) from the staged files (page cache)."""
+    g = index[nb[c]: nb[c + 1]]
+    owner = np.searchsorted(bounds, g, side="right") - 1
+    block = np.empty((T, g.size), dtype=np.float32)
+    for o in np.unique(owner):
+        sel = owner == o
+        block[:, sel] = np.load(files[o], mmap_mode="r")[:, g[sel] - bounds[o]]
+    fd = os.open(new[c], os.O_WRONLY)
+    try:
+        _pwrite_all(fd, block, noffs[c])
+    finally:
+        os.close(fd)
+
+
 def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[str], np.ndarray,
                                                                          Region]:
     """Stage the CDR files of ``src`` straight into column files (one read of each file).
@@ -406,20 +422,11 @@ def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[st
     index = np.flatnonzero(seen)
     nb = _bounds(int(index.size), T, chunk_mb)
     new, noffs = _new_files(directory, T, nb, prefix="compact")
-    old = [np.load(f, mmap_mode="r") for f in files]
-    for c in range(nb.size - 1):
-        g = index[nb[c]: nb[c + 1]]
-        owner = np.searchsorted(bounds, g, side="right") - 1
-        block = np.empty((T, g.size), dtype=np.float32)
-        for o in np.unique(owner):
-            sel = owner == o
-            block[:, sel] = old[o][:, g[sel] - bounds[o]]
-        fd = os.open(new[c], os.O_WRONLY)
-        try:
-            _pwrite_all(fd, block, noffs[c])
-        finally:
-            os.close(fd)
-    del old
+    clock = time.perf_counter()
+    _run_tasks(functools.partial(_t_compact, index=index, nb=nb, files=files, bounds=bounds,
+                                 new=new, noffs=noffs, T=T), list(range(nb.size - 1)))
+    if timings is not None:
+        timings["stage_compact"] = time.perf_counter() - clock
     for f in files:
         os.remove(f)
     final = []
