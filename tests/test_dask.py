@@ -483,3 +483,24 @@ def test_cdr_file_staging_errors(tmp_path):
     victim.write_bytes(b"not a netcdf file")
     with pytest.raises(DataError, match="cannot read NDVI file"):
         stage(lazy, scratch_dir=str(tmp_path))
+
+
+def test_cdr_file_staging_on_local_cluster(cdr_files, tmp_path):
+    """With a distributed Client the day groups run on the workers (processes): same bytes."""
+    distributed = pytest.importorskip("distributed")
+    from lrm_cvx.io import open_ndvi_cdr
+
+    d1, _ = cdr_files
+    lazy = open_ndvi_cdr(d1, chunks={"time": 1})
+    ref, r0, *_ = stage(lazy, chunk_mb=0.004, scratch_dir=str(tmp_path))  # threads
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                           dashboard_address=None, memory_limit="1GiB")
+    try:
+        with distributed.Client(cluster):
+            got, r1, *_ = stage(lazy, chunk_mb=0.004, scratch_dir=str(tmp_path))
+    finally:
+        cluster.close()
+    assert r1.equals(r0) and got.n_chunks == ref.n_chunks > 3
+    np.testing.assert_array_equal(_staged(got).view(np.uint32), _staged(ref).view(np.uint32))
