@@ -458,8 +458,10 @@ def test_cdr_file_staging_fit_equals_in_memory(cdr_files):
     from lrm_cvx.io import open_ndvi_cdr
 
     d1, _ = cdr_files
+    tm: dict = {}
     ref, out = _pair(open_ndvi_cdr(d1), open_ndvi_cdr(d1, chunks={"time": 1}),
-                     {"chunk_mb": 0.004}, max_iter=6)
+                     {"chunk_mb": 0.004, "timings": tm}, max_iter=6)
+    assert "stage_read" in tm  # GLRM.fit took the file-level path
     _same_fit(ref, out, rtol=1e-8)
     assert out.region_.equals(ref.region_)
 
