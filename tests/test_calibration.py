@@ -207,7 +207,8 @@ def test_blend_dynamics_endpoints_and_select_dynamics():
     from lrm_cvx.glrm.dynamics import estimate_ar1
 
     base = unblended_dynamics(model)  # the plain fit, without the fit's own blend
-    plain = estimate_ar1(model._Xv, model.X_["time"], initial_cov=dyn.initial_cov)
+    plain = estimate_ar1(model._Xv, model.X_["time"], initial_cov=dyn.initial_cov,
+                         error_cov=dyn.error_cov)
     np.testing.assert_allclose(base.A, plain.A)
     np.testing.assert_allclose(base.Q, plain.Q)
     alpha, table = select_dynamics(model, data, alphas=(0.0, 1.0), sizes=(3, 10), n_val=6)

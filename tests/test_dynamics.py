@@ -220,9 +220,11 @@ def test_model_dynamics_round_trip(field, tmp_path):
     model.save(tmp_path / "m.nc")
     back = GLRM.load(tmp_path / "m.nc")
     assert back.temporal == "ar1"
-    for name in ("A", "Q", "mean", "initial_mean", "initial_cov"):
+    for name in ("A", "Q", "mean", "initial_mean", "initial_cov", "error_cov"):
         np.testing.assert_array_equal(getattr(back.dynamics_, name), getattr(dyn, name))
     assert back.dynamics_.time == field.time.values[-1]
+    # the fit corrects for the columns' estimation error: the mean fold-in covariance
+    assert dyn.error_cov.shape == (3, 3) and np.linalg.eigvalsh(dyn.error_cov).min() > 0
 
 
 def test_model_seasonal_round_trip(tmp_path):
@@ -369,3 +371,60 @@ def test_blend_round_trips_through_the_model_file(tmp_path):
     model = _fit(da, temporal="ar1")
     model.save(tmp_path / "m.nc")
     assert GLRM.load(tmp_path / "m.nc").dynamics_.blend == model.dynamics_.blend
+
+
+# ----------------------------------------------------------------------------- errors in variables
+def test_error_corrected_estimate_equals_its_closed_form():
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(2, 9))
+    Se = np.array([[0.02, 0.005], [0.005, 0.01]])
+    dyn = estimate_ar1(X, np.arange(9.0), shrinkage=0.0, error_cov=Se)
+    Z = X - X.mean(axis=1, keepdims=True)
+    n = 8
+    C0 = sum(np.outer(Z[:, i], Z[:, i]) for i in range(n)) / n       # naive sums
+    C1 = sum(np.outer(Z[:, i + 1], Z[:, i]) for i in range(n)) / n
+    A = C1 @ np.linalg.inv(C0 - Se)                                   # bias-corrected Yule-Walker
+    assert max(abs(np.linalg.eigvals(A))) < 0.99  # (no stability rescaling on this input)
+    np.testing.assert_allclose(dyn.A, A, rtol=1e-10)
+    R = sum(np.outer(Z[:, i + 1] - A @ Z[:, i], Z[:, i + 1] - A @ Z[:, i]) for i in range(n))
+    np.testing.assert_allclose(dyn.Q, R / (n - 1) - Se - A @ Se @ A.T, rtol=1e-8)
+    np.testing.assert_array_equal(dyn.error_cov, Se)
+    # no error: plain least squares
+    plain = estimate_ar1(X, np.arange(9.0), shrinkage=0.0)
+    np.testing.assert_allclose(plain.A, C1 @ np.linalg.inv(C0), rtol=1e-10)
+    with pytest.raises(ModelError, match="error_cov"):
+        estimate_ar1(X, np.arange(9.0), error_cov=np.eye(3))
+
+
+def test_error_correction_removes_the_attenuation_of_noisy_columns():
+    rng = np.random.default_rng(0)
+    A = np.array([[0.9, 0.05], [0.0, 0.7]])
+    Q = 0.1 * np.eye(2)
+    X = _ar_series(A, Q, 20000, rng)
+    Se = np.diag([0.15, 0.05])  # the columns are estimates: x + e, e ~ N(0, Se)
+    Xn = X + np.linalg.cholesky(Se) @ rng.standard_normal(X.shape)
+    plain = estimate_ar1(Xn, np.arange(20000.0), shrinkage=0.0)
+    fixed = estimate_ar1(Xn, np.arange(20000.0), shrinkage=0.0, error_cov=Se)
+    assert _rel(plain.A, A) > 0.15      # least squares is biased towards 0
+    assert _rel(fixed.A, A) < 0.03
+    assert _rel(fixed.Q, Q) < 0.1
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fitted_model_recovers_planted_dynamics_in_the_planted_basis(seed):
+    """A from a fitted model's X_ (not the true latent series), mapped to the planted latent
+    coordinates (the fitted basis is a linear transform of the planted one)."""
+    from lrm_cvx.glrm.calibration import unblended_dynamics
+
+    da, truth = synthetic_dynamic_field(800, (12, 16), 3, missing=0.3, noise=0.02, seed=seed,
+                                        return_truth=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=3, offset=True, temporal="ar1", progress=False,
+                     random_state=0).fit(da)
+    X = truth["mu"][:, None] + truth["Z"]
+    Xc = X - X.mean(axis=1, keepdims=True)
+    Xf = model._Xv - model._Xv.mean(axis=1, keepdims=True)
+    M = Xf @ Xc.T @ np.linalg.inv(Xc @ Xc.T)          # X_ ~ M X_true (least squares)
+    dyn = unblended_dynamics(model).transformed(np.linalg.inv(M))
+    assert _rel(dyn.A, truth["A"]) < 0.10

@@ -400,8 +400,8 @@ def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
 
 def unblended_dynamics(model: Any) -> Any:
     """The model's dynamics re-estimated from ``X_`` without the fit's validated blend
-    (``validation=None``; same kind, shrinkage and initial belief): the starting point of
-    :func:`select_dynamics`."""
+    (``validation=None``; same kind, shrinkage, error correction and initial belief): the
+    starting point of :func:`select_dynamics`."""
     from .dynamics import estimate
 
     dyn = model.dynamics_
@@ -409,7 +409,8 @@ def unblended_dynamics(model: Any) -> Any:
     xa = model.X_
     times = xa[xa.dims[1]] if hasattr(xa, "dims") else np.arange(X.shape[1])
     return estimate(dyn.kind, X, times, shrinkage=dyn.shrinkage,
-                    initial_cov=dyn.initial_cov, validation=None)
+                    initial_cov=dyn.initial_cov, validation=None,
+                    error_cov=getattr(dyn, "error_cov", None))
 
 
 def _memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:

@@ -125,6 +125,7 @@ class Dynamics:
     n_pairs: int = 0
     blend: float = 1.0                  # validated blend towards the memoryless prior
     time: Any = field(default=None, compare=False)  # time of the initial belief
+    error_cov: np.ndarray | None = field(default=None, compare=False)  # (k, k) S_e corrected for
 
     def __post_init__(self) -> None:
         k = np.asarray(self.A).shape[0]
@@ -197,7 +198,9 @@ class Dynamics:
         sm = None if self.season_means is None else self.season_means @ T.T + b
         return replace(self, A=T @ self.A @ Ti, Q=T @ self.Q @ T.T, mean=T @ self.mean + b,
                        initial_mean=T @ self.initial_mean + b,
-                       initial_cov=T @ self.initial_cov @ T.T, season_means=sm)
+                       initial_cov=T @ self.initial_cov @ T.T, season_means=sm,
+                       error_cov=(None if self.error_cov is None
+                                  else T @ self.error_cov @ T.T))
 
     def with_initial(self, mean: np.ndarray, cov: np.ndarray, time: Any = None) -> Dynamics:
         return replace(self, initial_mean=np.asarray(mean, float),
@@ -216,6 +219,8 @@ class Dynamics:
         }
         if self.season_means is not None:
             out["dynamics_season_means"] = (("season", "component"), self.season_means)
+        if self.error_cov is not None:
+            out["dynamics_error_cov"] = (dims2, np.asarray(self.error_cov, dtype=np.float64))
         attrs = {"dynamics_kind": self.kind, "dynamics_step": float(self.step),
                  "dynamics_time_kind": self.time_kind,
                  "dynamics_season": self.season or "", "dynamics_shrinkage": self.shrinkage,
@@ -239,7 +244,9 @@ class Dynamics:
                 season=str(ds.attrs.get("dynamics_season", "")) or None, season_means=sm,
                 shrinkage=float(ds.attrs.get("dynamics_shrinkage", 0.0)),
                 n_pairs=int(ds.attrs.get("dynamics_n_pairs", 0)),
-                blend=float(ds.attrs.get("dynamics_blend", 1.0)), time=time)
+                blend=float(ds.attrs.get("dynamics_blend", 1.0)), time=time,
+                error_cov=(ds["dynamics_error_cov"].values if "dynamics_error_cov" in ds
+                           else None))
         except KeyError as exc:
             raise DataError(f"the model file's dynamics are incomplete (missing {exc})") from None
 
@@ -284,10 +291,20 @@ def _step_pairs(t: np.ndarray) -> tuple[float, np.ndarray]:
     return step, ok
 
 
-def _fit_var(Z: np.ndarray, idx: np.ndarray, shrinkage: float) -> tuple[np.ndarray, np.ndarray]:
+def _fit_var(Z: np.ndarray, idx: np.ndarray, shrinkage: float,
+             error_cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(A, Q)`` of ``z_i = A z_{i-1} + w`` over pairs ``idx``: ridge least squares with
     ``shrinkage * tr(Z0 Z0^T) / k`` towards 0, ``A`` scaled to spectral radius <= MAX_RADIUS,
-    ``Q`` the residual covariance with eigenvalues clipped to be PSD."""
+    ``Q`` the residual covariance with eigenvalues clipped to be PSD.
+
+    ``error_cov`` ``(k, k)`` (None: 0): the covariance ``S_e`` of the estimation error of each
+    column (the columns are noisy estimates ``z + e``; errors-in-variables bias least squares
+    towards 0). Then the bias-corrected Yule-Walker estimate ``A = C1 (C0 - S_e)^-1`` (``C0 =
+    Z0 Z0^T / n``, ``C1 = Z1 Z0^T / n``, the same ridge) and ``Q = R - S_e - A S_e A^T`` (``R``
+    the residual covariance: ``z1 + e1 - A (z0 + e0)`` has covariance ``Q + S_e + A S_e A^T``).
+    ``S_e`` is capped at half of ``C0`` in the whitened sense (eigenvalues of
+    ``C0^-1/2 S_e C0^-1/2`` <= 0.5), so ``C0 - S_e`` stays well conditioned.
+    """
     k = Z.shape[0]
     n = idx.size
     if n < 2:
@@ -296,17 +313,36 @@ def _fit_var(Z: np.ndarray, idx: np.ndarray, shrinkage: float) -> tuple[np.ndarr
     Z0, Z1 = Z[:, idx - 1], Z[:, idx]
     G = Z0 @ Z0.T
     lam = float(shrinkage) * max(np.trace(G), 1e-300) / k
-    A = np.linalg.solve(G + lam * np.eye(k), Z0 @ Z1.T).T
+    Se = np.zeros((k, k)) if error_cov is None else _cap_error_cov(G / n, error_cov)
+    A = np.linalg.solve(G - n * Se + lam * np.eye(k), Z0 @ Z1.T).T
     rho = float(np.max(np.abs(np.linalg.eigvals(A)))) if k else 0.0
     if rho > MAX_RADIUS:
         A = A * (MAX_RADIUS / rho)
     R = Z1 - A @ Z0
-    Q = R @ R.T / max(n - 1, 1)
+    Q = R @ R.T / max(n - 1, 1) - Se - A @ Se @ A.T
     Q = 0.5 * (Q + Q.T)
     w, V = np.linalg.eigh(Q)
     floor = 1e-9 * max(float(np.max(w)), 1e-300)
+    if error_cov is not None:  # the correction may overshoot: floor relative to the raw noise
+        floor = max(floor, 1e-3 * float(np.trace(R @ R.T)) / max(n - 1, 1) / k)
     Q = (V * np.maximum(w, floor)) @ V.T
     return A, 0.5 * (Q + Q.T)
+
+
+def _cap_error_cov(C0: np.ndarray, Se: Any) -> np.ndarray:
+    """``S_e`` symmetrised, PSD, and scaled down so ``C0^-1/2 S_e C0^-1/2 <= 0.5``."""
+    k = C0.shape[0]
+    Se = np.asarray(Se, dtype=np.float64)
+    if Se.shape != (k, k) or not np.all(np.isfinite(Se)):
+        raise ModelError(f"error_cov must be a finite ({k}, {k}) matrix, got shape {Se.shape}")
+    w, V = np.linalg.eigh(0.5 * (Se + Se.T))
+    Se = (V * np.maximum(w, 0.0)) @ V.T
+    c0w, c0v = np.linalg.eigh(0.5 * (C0 + C0.T))
+    if c0w.min() <= 0:
+        return np.zeros((k, k))
+    W = c0v / np.sqrt(c0w)  # C0^-1/2 (up to rotation)
+    top = float(np.max(np.linalg.eigvalsh(W.T @ Se @ W)))
+    return Se * min(1.0, 0.5 / top) if top > 0 else Se
 
 
 _BLEND_GRID = np.linspace(0.0, 1.0, 11)
@@ -327,7 +363,8 @@ def _blend(A: np.ndarray, Q: np.ndarray, S0: np.ndarray, lam: float
     return lam * A, (1.0 - lam * lam) * S0 + lam * lam * Q
 
 
-def _choose_blend(Z: np.ndarray, idx: np.ndarray, shrinkage: float, validation: float) -> float:
+def _choose_blend(Z: np.ndarray, idx: np.ndarray, shrinkage: float, validation: float,
+                  error_cov: np.ndarray | None = None) -> float:
     """The blend of :func:`_blend` with the best one-step Gaussian predictive log-likelihood
     on the last ``validation`` fraction of the pairs, with ``A``, ``Q``, ``S0`` estimated on
     the pairs and columns before them (1.0 when there are too few pairs to validate)."""
@@ -337,7 +374,7 @@ def _choose_blend(Z: np.ndarray, idx: np.ndarray, shrinkage: float, validation: 
     if nv < 3 or n - nv < max(3, k + 1):
         return 1.0
     tr, va = idx[: n - nv], idx[n - nv:]
-    A, Q = _fit_var(Z, tr, shrinkage)
+    A, Q = _fit_var(Z, tr, shrinkage, error_cov)
     S0 = _stationary_cov(Z[:, : va[0]])
     R0 = Z[:, va - 1]
     Z1 = Z[:, va]
@@ -377,6 +414,10 @@ def _check_shrinkage(shrinkage: Any) -> float:
     return s
 
 
+def _opt_cov(c: Any) -> np.ndarray | None:
+    return None if c is None else np.asarray(c, dtype=np.float64)
+
+
 def _time_kind(times: Any) -> str:
     return time_numbers(times, "times")[1]
 
@@ -387,7 +428,8 @@ def _last_time(times: Any) -> Any:
 
 
 def estimate_ar1(X: Any, times: Any, shrinkage: float = 1e-3,
-                 initial_cov: Any = None, validation: float | None = None) -> Dynamics:
+                 initial_cov: Any = None, validation: float | None = None,
+                 error_cov: Any = None) -> Dynamics:
     """AR(1) dynamics ``x_t - mu = A (x_{t-1} - mu) + w`` of the columns of ``X (k, T)``.
 
     ``mu`` is the mean column; ``A`` the least-squares fit over the consecutive pairs one step
@@ -402,6 +444,10 @@ def estimate_ar1(X: Any, times: Any, shrinkage: float = 1e-3,
     ``validation`` fraction of the pairs (``A``, ``Q``, ``S0`` fitted on the earlier ones),
     then apply it to the fit on all pairs (``blend``). ``lam = 0`` is exactly the memoryless
     filter; data without persistence get a small ``lam``.
+
+    ``error_cov`` ``(k, k)`` (None: off): the average covariance of the columns' estimation
+    error (for a fitted model, the fold-in covariance ``sigma^2 (Y_O Y_O^T)^-1`` averaged over
+    the snapshots); ``A`` and ``Q`` are then bias-corrected for it (:func:`_fit_var`).
     """
     shrinkage = _check_shrinkage(shrinkage)
     validation = _check_validation(validation)
@@ -410,20 +456,21 @@ def estimate_ar1(X: Any, times: Any, shrinkage: float = 1e-3,
     step, idx = _step_pairs(t)
     mu = X.mean(axis=1)
     Z = X - mu[:, None]
-    A, Q = _fit_var(Z, idx, shrinkage)
+    A, Q = _fit_var(Z, idx, shrinkage, error_cov)
     lam = 1.0
     if validation is not None:
-        lam = _choose_blend(Z, idx, shrinkage, validation)
+        lam = _choose_blend(Z, idx, shrinkage, validation, error_cov)
         A, Q = _blend(A, Q, _stationary_cov(Z), lam)
     P0 = np.zeros((k, k)) if initial_cov is None else np.asarray(initial_cov, dtype=np.float64)
     return Dynamics(kind="ar1", A=A, Q=Q, mean=mu, initial_mean=X[:, -1].copy(),
                     initial_cov=P0, step=step, time_kind=_time_kind(times),
                     shrinkage=shrinkage, n_pairs=int(idx.size), blend=lam,
-                    time=_last_time(times))
+                    time=_last_time(times), error_cov=_opt_cov(error_cov))
 
 
 def estimate_seasonal(X: Any, times: Any, shrinkage: float = 1e-3,
-                      initial_cov: Any = None, validation: float | None = None) -> Dynamics:
+                      initial_cov: Any = None, validation: float | None = None,
+                      error_cov: Any = None) -> Dynamics:
     """Seasonal AR(1): ``m_s`` = mean of ``X``'s columns per season, AR(1) on the anomalies.
 
     The season is the month of year when the median step is 27-32 days (monthly data) and the
@@ -431,7 +478,7 @@ def estimate_seasonal(X: Any, times: Any, shrinkage: float = 1e-3,
     that is not dates, raise ModelError. The seasons must be seen at least twice (median count
     over the seasons present: two years of data); seasons never seen get the overall mean.
     ``validation``: as :func:`estimate_ar1` on the anomalies (``lam = 0``: the seasonal means
-    with the anomalies' covariance, every step).
+    with the anomalies' covariance, every step); ``error_cov``: as :func:`estimate_ar1`.
     """
     shrinkage = _check_shrinkage(shrinkage)
     validation = _check_validation(validation)
@@ -458,31 +505,32 @@ def estimate_seasonal(X: Any, times: Any, shrinkage: float = 1e-3,
     means = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None],
                      X.mean(axis=1)[None, :])
     Z = X - means[s].T
-    A, Q = _fit_var(Z, idx, shrinkage)
+    A, Q = _fit_var(Z, idx, shrinkage, error_cov)
     lam = 1.0
     if validation is not None:
-        lam = _choose_blend(Z, idx, shrinkage, validation)
+        lam = _choose_blend(Z, idx, shrinkage, validation, error_cov)
         A, Q = _blend(A, Q, _stationary_cov(Z), lam)
     P0 = np.zeros((k, k)) if initial_cov is None else np.asarray(initial_cov, dtype=np.float64)
     return Dynamics(kind="seasonal", A=A, Q=Q, mean=X.mean(axis=1),
                     initial_mean=X[:, -1].copy(), initial_cov=P0, step=step, time_kind=kind,
                     season=season, season_means=means, shrinkage=shrinkage,
-                    n_pairs=int(idx.size), blend=lam, time=_last_time(times))
+                    n_pairs=int(idx.size), blend=lam, time=_last_time(times),
+                    error_cov=_opt_cov(error_cov))
 
 
 DEFAULT_VALIDATION = 0.2
 
 
 def estimate(temporal: str, X: Any, times: Any, shrinkage: float = 1e-3,
-             initial_cov: Any = None, validation: float | None = DEFAULT_VALIDATION
-             ) -> Dynamics:
+             initial_cov: Any = None, validation: float | None = DEFAULT_VALIDATION,
+             error_cov: Any = None) -> Dynamics:
     """Dispatch on ``temporal`` (``"ar1"`` or ``"seasonal"``); anything else is a ModelError.
 
     The model's dynamics (``GLRM(temporal=...)``, ``fit_dynamics``, campaigns, the CLI) come
     from here, with the blend towards the memoryless prior validated on the last 20 % of the
     pairs by default (``validation=None``: the plain AR(1) fit)."""
     if temporal == "ar1":
-        return estimate_ar1(X, times, shrinkage, initial_cov, validation)
+        return estimate_ar1(X, times, shrinkage, initial_cov, validation, error_cov)
     if temporal == "seasonal":
-        return estimate_seasonal(X, times, shrinkage, initial_cov, validation)
+        return estimate_seasonal(X, times, shrinkage, initial_cov, validation, error_cov)
     raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")

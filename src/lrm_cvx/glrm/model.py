@@ -194,7 +194,7 @@ class GLRM:
         )
         self._set_result(res, region, times, xarray=region is not None)
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
-        self._fit_dynamics(M[-1])
+        self._fit_dynamics(M[-1], mask=M)
         del D, M
         return self
 
@@ -441,25 +441,42 @@ class GLRM:
         return model_prior(self, prior, ridge=ridge, spatial=spatial)
 
     # ------------------------------------------------------------------ temporal dynamics
-    def _fit_dynamics(self, last_mask: Any = None) -> None:
-        """Set ``dynamics_`` from ``X_`` and its time coordinate (None when ``temporal`` is)."""
+    def _foldin_cov(self, observed: Any) -> np.ndarray | None:
+        """``sigma^2 (Y_O W Y_O^T)^-1`` ``(k, k)`` of one snapshot's training cells ``observed``
+        (bool ``(n,)``), or None when they do not determine ``x``."""
+        obs = np.flatnonzero(np.asarray(observed))
+        Ys = self._Yv[:, obs]
+        nv = getattr(self, "noise_var_", None)
+        w = 1.0 / (nv[obs] if nv is not None else max(self.noise_std_, 1e-300) ** 2)
+        G = (Ys * w) @ Ys.T
+        if obs.size < Ys.shape[0] or np.linalg.cond(G) >= 1e12:
+            return None
+        C = np.linalg.inv(G)
+        return 0.5 * (C + C.T)
+
+    def _fit_dynamics(self, last_mask: Any = None, mask: Any = None) -> None:
+        """Set ``dynamics_`` from ``X_`` and its time coordinate (None when ``temporal`` is).
+
+        ``mask`` ``(T, n)`` (the training cells of every snapshot): the average fold-in
+        covariance of the columns (over at most 64 evenly spaced snapshots) corrects ``A`` and
+        ``Q`` for the columns' estimation error (``error_cov`` of
+        :func:`~lrm_cvx.glrm.dynamics.estimate_ar1`)."""
         self.dynamics_ = None
         if self.temporal is None:
             return
         X = self._Xv
         times = (self.X_[self.X_.dims[1]] if isinstance(self.X_, xr.DataArray)
                  else np.arange(X.shape[1]))
-        init_cov = None
-        if last_mask is not None:  # the last snapshot's fold-in covariance from its training cells
-            obs = np.flatnonzero(np.asarray(last_mask))
-            Ys = self._Yv[:, obs]
-            nv = getattr(self, "noise_var_", None)
-            w = 1.0 / (nv[obs] if nv is not None else max(self.noise_std_, 1e-300) ** 2)
-            G = (Ys * w) @ Ys.T
-            if obs.size >= X.shape[0] and np.linalg.cond(G) < 1e12:
-                init_cov = np.linalg.inv(G)
-                init_cov = 0.5 * (init_cov + init_cov.T)
-        self.dynamics_ = estimate_dynamics(self.temporal, X, times, initial_cov=init_cov)
+        # the last snapshot's fold-in covariance from its training cells
+        init_cov = None if last_mask is None else self._foldin_cov(last_mask)
+        error_cov = None
+        if mask is not None:
+            T = X.shape[1]
+            picks = np.unique(np.linspace(0, T - 1, min(T, 64)).round().astype(int))
+            covs = [c for c in (self._foldin_cov(mask[t]) for t in picks) if c is not None]
+            error_cov = np.mean(covs, axis=0) if covs else None
+        self.dynamics_ = estimate_dynamics(self.temporal, X, times, initial_cov=init_cov,
+                                           error_cov=error_cov)
 
     def fit_dynamics(self, temporal: str = "ar1", **options: Any) -> GLRM:
         """Estimate ``dynamics_`` on an already fitted model (sets ``temporal``); ``options``
