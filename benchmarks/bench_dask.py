@@ -186,6 +186,11 @@ def main() -> None:
         if args.stage_only and not args.cluster:
             stage_only(files, args, base)
             return
+        import dask
+
+        # distributed's default MALLOC_TRIM_THRESHOLD_=65536 unmaps every large temporary
+        dask.config.set({"distributed.nanny.pre-spawn-environ":
+                         {"MALLOC_TRIM_THRESHOLD_": str(2**30)}})
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             cluster = distributed.LocalCluster(
