@@ -369,9 +369,9 @@ def _t_compact(c, index, nb, files, bounds, new, noffs, T) -> None:
     g = index[nb[c]: nb[c + 1]]
     owner = np.searchsorted(bounds, g, side="right") - 1
     block = np.empty((T, g.size), dtype=np.float32)
-    for o in np.unique(owner):
-        sel = owner == o
-        block[:, sel] = np.load(files[o], mmap_mode="r")[:, g[sel] - bounds[o]]
+    for o in np.unique(owner):  # a plain read, not a memory map: mapped pages count as the
+        sel = owner == o          # worker's memory (a LocalCluster paused its workers)
+        block[:, sel] = np.load(files[o])[:, g[sel] - bounds[o]]
     fd = os.open(new[c], os.O_WRONLY)
     try:
         _pwrite_all(fd, block, noffs[c])
