@@ -154,6 +154,7 @@ class PlanCertificate:
     greedy_information: float | None = None
     refined_information: float | None = None
     refine_moves: int | None = None
+    path_bound: float | None = None  # the path-aware relaxation's dual bound (path_aware=True)
 
     @property
     def plan_slack(self) -> float | None:
@@ -1025,6 +1026,7 @@ def plan_bound(
     cover: int = 2,
     max_pieces: int = 40,
     refine: bool | dict[str, Any] = True,
+    path_aware: bool | dict[str, Any] = False,
 ) -> PlanCertificate:
     """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
 
@@ -1057,6 +1059,11 @@ def plan_bound(
     else one run here when ``refine`` is true; a dict is passed to it as keyword arguments),
     ``plan_slack = refined - greedy`` and ``bound_slack = bound - refined``; the online bound
     at the refined plan is used as well (valid at any set).
+
+    ``path_aware=True`` (opt-in, grid metric) also computes the path-aware relaxation of
+    :mod:`lrm_cvx.planning.relaxation` (a dict passes options to ``path_relaxation_bound``)
+    and keeps the smaller valid bound (``path_bound``); if it fails, a warning says the disk
+    bound is used.
 
     ``budget`` is in grid units (``metric="grid"``) or km (``metric="km"``).
     """
@@ -1105,6 +1112,11 @@ def plan_bound(
         levels, caps = ([start_lv], [start_lim[1]]) if start_lim else ([], [])
         relax = _relaxation(Y, cand, _Polytope(n_max, cand.size, levels, caps), ridge, **opts)
     bound = max(init_info, relax.value)
+    path_value = None
+    if path_aware:
+        path_value = _path_aware(Y, region, start, budget, ridge, metric, path_aware)
+        if path_value is not None:
+            bound = min(bound, max(init_info, path_value))
 
     information = gap = ratio = online = None
     if plan is not None:
@@ -1135,7 +1147,27 @@ def plan_bound(
         greedy_information=greedy_info if plan is not None else None,
         refined_information=refined_info if plan is not None else None,
         refine_moves=n_moves if plan is not None else None,
+        path_bound=path_value,
     )
+
+
+def _path_aware(Y: np.ndarray, region: Any, start: int, budget: float, ridge: float,
+                metric: str, opts: Any) -> float | None:
+    """The path-aware relaxation's dual bound, or None (with a warning) when it fails."""
+    from . import relaxation
+
+    if metric != "grid":
+        warnings.warn("path_aware=True needs metric='grid'; the disk bound is used",
+                      UserWarning, stacklevel=3)
+        return None
+    kw = dict(opts) if isinstance(opts, dict) else {}
+    try:
+        return float(relaxation.path_relaxation_bound(Y, region, start, budget, ridge=ridge,
+                                                      **kw).value)
+    except (PlanningError, SolverError) as exc:
+        warnings.warn(f"path-aware relaxation failed ({exc}); the disk bound (looser) is used",
+                      UserWarning, stacklevel=3)
+        return None
 
 
 
