@@ -154,7 +154,7 @@ def _layout(gi: np.ndarray, start_rc: np.ndarray, b: int, Lmax: int):
 
 def path_polytope(
     region: Any, start: int, budget: float, *, block: int | None = None,
-    max_edges: int = 250_000,
+    max_edges: int = 20_000,
 ) -> PathPolytope:
     """The layered block-flow polytope of every route from ``start`` within ``budget``
     (grid metric). ``block=None`` picks the smallest block side whose graph has at most
@@ -280,7 +280,7 @@ def _dual_at(Yc: np.ndarray, M: np.ndarray, poly: PathPolytope, ridge: float
 
 def path_relaxation_bound(
     Y: Any, region: Any, start: Any, budget: float, *, ridge: float = 0.0,
-    block: int | None = None, max_edges: int = 250_000, solver: str = "CLARABEL",
+    block: int | None = None, max_edges: int = 20_000, solver: str = "CLARABEL",
     cvx_max_vars: int = 400_000, fw_steps: int = 8, warm: np.ndarray | None = None,
 ) -> PathBound:
     """Dual bound of the path-aware relaxation (grid metric): the Fisher information of every
