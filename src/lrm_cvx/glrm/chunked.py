@@ -44,6 +44,7 @@ import numpy as np
 from ..errors import DataError, ModelError, RegionError
 from ..region import Region
 from . import quadratic as Q
+from .dynamics import error_rows
 from .fit import (
     SMALL_SVD,
     SSE_RTOL,
@@ -584,8 +585,23 @@ def _t_prepare(path: str, offset: bool, scale: bool) -> dict:
     np.save(path, md.D)
     np.save(_codes_path(path), md.codes)
     out.update(rows=M.sum(axis=1).astype(np.int64), cols=M.sum(axis=0).astype(np.int64),
-               ssq_rows=md.ssq_rows, last=M[-1].copy())
+               ssq_rows=md.ssq_rows, last=M[-1].copy(),
+               error=np.packbits(M[error_rows(M.shape[0])], axis=1), n_cells=M.shape[1])
     return out
+
+
+class _PackedRows:
+    """The observed masks of the :func:`~.dynamics.error_rows` snapshots, bit-packed per column
+    chunk; ``rows[t]`` unpacks the whole row of time ``t`` (``(L,)`` bool) on demand."""
+
+    def __init__(self, n_times: int, chunks: list[tuple[np.ndarray, int]]) -> None:
+        self.index = {int(t): i for i, t in enumerate(error_rows(n_times))}
+        self.chunks = chunks
+
+    def __getitem__(self, t: int) -> np.ndarray:
+        i = self.index[int(t)]
+        return np.concatenate([np.unpackbits(p[i], count=n).astype(bool)
+                               for p, n in self.chunks])
 
 
 def _md(path: str, ssq_rows: np.ndarray) -> Q.MaskedData:
@@ -821,7 +837,9 @@ def fit_chunked(
     ``residual_rows`` (``spatial``: the number of sampled times) compute the residual
     statistics at the final factors. ``extras``, when a dict, receives ``"offset"``,
     ``"scale"``, ``"moments"`` (``(sse, count)``), ``"sample"`` and ``"last_mask"`` (the last
-    time's observed mask, ``(L,)``) for :func:`~.predictive.set_predictive`.
+    time's observed mask, ``(L,)``) for :func:`~.predictive.set_predictive`, and
+    ``"error_masks"`` (the masks of the :func:`~.dynamics.error_rows` snapshots, bit-packed,
+    ``error_masks[t]`` a row) for the dynamics' errors-in-variables correction.
     """
     rng = np.random.default_rng() if rng is None else rng
     if solver not in ("auto", "fast", "cvxpy"):
@@ -910,6 +928,7 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     mu = np.where(cols > 0, colsum / np.maximum(cols, 1), mu_g)
     mus = [mu[bounds[c]: bounds[c + 1]] for c in range(len(files))]
     extras["last_mask"] = np.concatenate([s["last"] for s in stats])
+    extras["error_masks"] = _PackedRows(T, [(s["error"], s["n_cells"]) for s in stats])
     extras["offset"] = np.concatenate([s["offset"] for s in stats]) if offset else None
     extras["scale"] = np.concatenate([s["scale"] for s in stats]) if scale else None
     scale_ = float(np.sqrt(ssq / n_obs))

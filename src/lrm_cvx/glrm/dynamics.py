@@ -26,11 +26,18 @@ import numpy as np
 from ..errors import DataError, ModelError
 
 __all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "time_numbers",
-           "check_times", "seasons"]
+           "check_times", "seasons", "error_rows"]
 
 TEMPORAL = (None, "ar1", "seasonal")
 MAX_RADIUS = 0.99  # spectral radius of A is forced below this
 _MIN_SNAPSHOTS = 3
+ERROR_ROWS = 64  # snapshots whose fold-in covariances average into the error covariance S_e
+
+
+def error_rows(n_times: int) -> np.ndarray:
+    """The (at most :data:`ERROR_ROWS`) evenly spaced snapshots whose fold-in covariances
+    estimate the columns' error covariance ``S_e`` (same rows in memory and on dask)."""
+    return np.unique(np.linspace(0, n_times - 1, min(n_times, ERROR_ROWS)).round().astype(int))
 
 
 # ----------------------------------------------------------------------------- times

@@ -20,7 +20,7 @@ from .._validation import as_generator, atomic_output, check_positive
 from ..errors import DataError, ModelError, NotFittedError
 from ..region import Region
 from . import kernels as K
-from .dynamics import TEMPORAL, Dynamics
+from .dynamics import TEMPORAL, Dynamics, error_rows
 from .dynamics import estimate as estimate_dynamics
 from .fit import DataStats, FitResult, check_data, fit_glrm
 from .losses import get_loss
@@ -216,7 +216,7 @@ class GLRM:
         self._set_result(res, region, times, xarray=region is not None)
         set_predictive(self, region, extras["offset"], extras["scale"], extras.get("moments"),
                        extras.get("sample"))
-        self._fit_dynamics(extras["last_mask"])
+        self._fit_dynamics(extras["last_mask"], mask=extras.get("error_masks"))
         return self
 
     def _prepare(self, data, mask, region):
@@ -457,7 +457,9 @@ class GLRM:
     def _fit_dynamics(self, last_mask: Any = None, mask: Any = None) -> None:
         """Set ``dynamics_`` from ``X_`` and its time coordinate (None when ``temporal`` is).
 
-        ``mask`` ``(T, n)`` (the training cells of every snapshot): the average fold-in
+        ``mask`` ``(T, n)`` (the training cells of every snapshot; or any object giving the
+        row of time ``t`` as ``mask[t]`` for the rows of :func:`~.dynamics.error_rows`, as the
+        dask fit does): the average fold-in
         covariance of the columns (over at most 64 evenly spaced snapshots) corrects ``A`` and
         ``Q`` for the columns' estimation error (``error_cov`` of
         :func:`~lrm_cvx.glrm.dynamics.estimate_ar1`)."""
@@ -470,9 +472,8 @@ class GLRM:
         # the last snapshot's fold-in covariance from its training cells
         init_cov = None if last_mask is None else self._foldin_cov(last_mask)
         error_cov = None
-        if mask is not None:
-            T = X.shape[1]
-            picks = np.unique(np.linspace(0, T - 1, min(T, 64)).round().astype(int))
+        if mask is not None:  # (T, n) array, or rows by time index (the dask fit's)
+            picks = error_rows(X.shape[1])
             covs = [c for c in (self._foldin_cov(mask[t]) for t in picks) if c is not None]
             error_cov = np.mean(covs, axis=0) if covs else None
         self.dynamics_ = estimate_dynamics(self.temporal, X, times, initial_cov=init_cov,
