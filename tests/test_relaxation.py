@@ -9,11 +9,11 @@ import cvxpy as cp
 import numpy as np
 import pytest
 import scipy.optimize
+from test_bound import _grid_Y, grid_distances, logdet, make_region, path_feasible_sets
 
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.planning import bound as B
 from lrm_cvx.planning import relaxation as R
-from test_bound import _grid_Y, grid_distances, logdet, make_region, path_feasible_sets
 
 
 def nn_tour_feasible_sets(D: np.ndarray, start: int, budget: float) -> set[frozenset]:

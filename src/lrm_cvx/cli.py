@@ -300,12 +300,17 @@ def cmd_plan(args: argparse.Namespace) -> int:
     _, plan = _plan_from_args(args)
     print(_describe_plan(plan))
     if out is not None:
-        if out.suffix.lower() == ".csv":
-            plan.to_csv(out)
-        else:
-            plan.to_geojson(out)
-        print(f"route written to {out}")
+        _write_plan(plan, out)
     return 0
+
+
+def _write_plan(plan, out: Path) -> None:
+    """Write ``plan`` as CSV or GeoJSON by ``out``'s suffix (checked by the caller)."""
+    if out.suffix.lower() == ".csv":
+        plan.to_csv(out)
+    else:
+        plan.to_geojson(out)
+    print(f"route written to {out}")
 
 
 def cmd_bound(args: argparse.Namespace) -> int:

@@ -72,7 +72,7 @@ def cmd_monitor_init(args: argparse.Namespace) -> int:
 
 
 def cmd_monitor_plan(args: argparse.Namespace) -> int:
-    from .cli import _describe_plan, _guard, _start
+    from .cli import _describe_plan, _guard, _start, _write_plan
     from .planning import plan_greedy
 
     suffix = Path(args.output).suffix.lower()
@@ -90,11 +90,7 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
                        progress=not args.quiet, initial="start", **kw)
     t = state._default_time(args.time)
     print(f"plan for {_label(t)}: {_describe_plan(plan)}")
-    if out.suffix.lower() == ".csv":
-        plan.to_csv(out)
-    else:
-        plan.to_geojson(out)
-    print(f"route written to {out}")
+    _write_plan(plan, out)
     return 0
 
 

@@ -753,11 +753,10 @@ class CriterionSpec:
     certified: bool
 
 
-def _fisher_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, prior_precision: Any = None,
-                      noise_var: Any = None, **_: Any) -> float:
-    """``log det M(cells)`` from scratch (the posterior precision with a prior / noise)."""
-    if prior_precision is None and noise_var is None:
-        return fisher_information(Y, cells, ridge)
+def _posterior_matrix(Y: Any, cells: Any, ridge: float, prior_precision: Any,
+                      noise_var: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``(Y (k, L), M (k, k))`` with ``M = P0 + sum_P y_p y_p^T / noise_var_p`` from scratch
+    (``P0 = ridge I`` without a prior precision)."""
     Yk = as_factor_matrix(Y)
     nv = np.broadcast_to(np.asarray(1.0 if noise_var is None else noise_var, float),
                          (Yk.shape[1],))
@@ -765,7 +764,15 @@ def _fisher_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, prior_precision
     P = _cells_array(cells, Yk.shape[1])
     P0 = (ridge * np.eye(Yk.shape[0]) if prior_precision is None
           else np.asarray(prior_precision, float))
-    M = P0 + Yw[:, P] @ Yw[:, P].T
+    return Yk, P0 + Yw[:, P] @ Yw[:, P].T
+
+
+def _fisher_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, prior_precision: Any = None,
+                      noise_var: Any = None, **_: Any) -> float:
+    """``log det M(cells)`` from scratch (the posterior precision with a prior / noise)."""
+    if prior_precision is None and noise_var is None:
+        return fisher_information(Y, cells, ridge)
+    _, M = _posterior_matrix(Y, cells, ridge, prior_precision, noise_var)
     sign, logdet = np.linalg.slogdet(M)
     return float(logdet) if sign > 0 else -np.inf
 
@@ -777,14 +784,7 @@ def _aopt_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, prior_precision: 
     if prior_precision is None and noise_var is None and target_weights is None \
             and weight is None:
         return a_optimal_value(Y, cells, ridge)
-    Yk = as_factor_matrix(Y)
-    nv = np.broadcast_to(np.asarray(1.0 if noise_var is None else noise_var, float),
-                         (Yk.shape[1],))
-    Yw = Yk / np.sqrt(nv)
-    P = _cells_array(cells, Yk.shape[1])
-    P0 = (ridge * np.eye(Yk.shape[0]) if prior_precision is None
-          else np.asarray(prior_precision, float))
-    M = P0 + Yw[:, P] @ Yw[:, P].T
+    Yk, M = _posterior_matrix(Y, cells, ridge, prior_precision, noise_var)
     if weight is not None:
         W = np.asarray(weight, float)
     elif target_weights is not None:

@@ -537,15 +537,7 @@ def stage(
     bounds = np.append(np.arange(0, L, width), L).astype(np.int64)
     directory = tempfile.mkdtemp(prefix="lrm-dask-", dir=scratch_dir)
     try:
-        files, offsets = [], []
-        for c in range(bounds.size - 1):
-            p = os.path.join(directory, f"data_{c:05d}.npy")
-            mm = np.lib.format.open_memmap(p, mode="w+", dtype=np.float32,
-                                           shape=(T, int(bounds[c + 1] - bounds[c])))
-            offsets.append(int(mm.offset))
-            mm.flush()
-            del mm
-            files.append(p)
+        files, offsets = _new_files(directory, T, bounds)
         itemsize = max(4, np.dtype(arr.dtype).itemsize)
         row_bytes = itemsize * int(np.prod(arr.shape[1:]))
         blocks = _time_blocks(arr, row_bytes, block_mb)

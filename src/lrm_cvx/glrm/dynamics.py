@@ -434,6 +434,18 @@ def _last_time(times: Any) -> Any:
     return values[-1]
 
 
+def _fit_anomalies(Z: np.ndarray, idx: np.ndarray, shrinkage: float, validation: Any,
+                   error_cov: Any) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(A, Q, blend)`` of the anomalies ``Z (k, T)``: the VAR(1) fit on the pairs ``idx``,
+    blended towards the stationary prior by the validated factor (1 without validation)."""
+    A, Q = _fit_var(Z, idx, shrinkage, error_cov)
+    lam = 1.0
+    if validation is not None:
+        lam = _choose_blend(Z, idx, shrinkage, validation, error_cov)
+        A, Q = _blend(A, Q, _stationary_cov(Z), lam)
+    return A, Q, lam
+
+
 def estimate_ar1(X: Any, times: Any, shrinkage: float = 1e-3,
                  initial_cov: Any = None, validation: float | None = None,
                  error_cov: Any = None) -> Dynamics:
@@ -463,11 +475,7 @@ def estimate_ar1(X: Any, times: Any, shrinkage: float = 1e-3,
     step, idx = _step_pairs(t)
     mu = X.mean(axis=1)
     Z = X - mu[:, None]
-    A, Q = _fit_var(Z, idx, shrinkage, error_cov)
-    lam = 1.0
-    if validation is not None:
-        lam = _choose_blend(Z, idx, shrinkage, validation, error_cov)
-        A, Q = _blend(A, Q, _stationary_cov(Z), lam)
+    A, Q, lam = _fit_anomalies(Z, idx, shrinkage, validation, error_cov)
     P0 = np.zeros((k, k)) if initial_cov is None else np.asarray(initial_cov, dtype=np.float64)
     return Dynamics(kind="ar1", A=A, Q=Q, mean=mu, initial_mean=X[:, -1].copy(),
                     initial_cov=P0, step=step, time_kind=_time_kind(times),
@@ -512,11 +520,7 @@ def estimate_seasonal(X: Any, times: Any, shrinkage: float = 1e-3,
     means = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None],
                      X.mean(axis=1)[None, :])
     Z = X - means[s].T
-    A, Q = _fit_var(Z, idx, shrinkage, error_cov)
-    lam = 1.0
-    if validation is not None:
-        lam = _choose_blend(Z, idx, shrinkage, validation, error_cov)
-        A, Q = _blend(A, Q, _stationary_cov(Z), lam)
+    A, Q, lam = _fit_anomalies(Z, idx, shrinkage, validation, error_cov)
     P0 = np.zeros((k, k)) if initial_cov is None else np.asarray(initial_cov, dtype=np.float64)
     return Dynamics(kind="seasonal", A=A, Q=Q, mean=X.mean(axis=1),
                     initial_mean=X[:, -1].copy(), initial_cov=P0, step=step, time_kind=kind,

@@ -294,7 +294,6 @@ def path_relaxation_bound(
     """
     t0 = time.perf_counter()
     Y = as_factor_matrix(Y, region)
-    k = Y.shape[0]
     start = region.resolve_cell(start, "start")
     if not (math.isfinite(float(ridge)) and ridge >= 0):
         raise PlanningError(f"ridge must be >= 0 and finite, got {ridge!r}")
