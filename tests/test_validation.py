@@ -58,3 +58,24 @@ def test_atomic_output_replaces_only_on_success(tmp_path):
     with pytest.raises(FileExistsError):
         with atomic_output(target, overwrite=False):
             pass
+
+
+def test_read_netcdf_names_what_and_path_for_every_unreadable_file(tmp_path):
+    """Folder, empty, missing and garbage files are DataErrors naming the kind of file; a good
+    file loads whole and equal to what was written."""
+    from lrm_cvx._validation import read_netcdf
+
+    good = tmp_path / "good.nc"
+    ds = xr.Dataset({"a": ("x", [1.0, 2.0])}, attrs={"format": "t"})
+    ds.to_netcdf(good)
+    xr.testing.assert_identical(read_netcdf(good, "state file", "W"), ds)
+    (tmp_path / "empty.nc").write_bytes(b"")
+    (tmp_path / "junk.nc").write_bytes(b"not netcdf\n" * 10)
+    cases = {tmp_path: "is a folder, expected a file written by W",
+             tmp_path / "empty.nc": "empty",
+             tmp_path / "nope.nc": "does not exist",
+             tmp_path / "junk.nc": "not a readable NetCDF file"}
+    for path, match in cases.items():
+        with pytest.raises(DataError, match=match) as err:
+            read_netcdf(path, "state file", "W")
+        assert "state file" in str(err.value)

@@ -15,7 +15,7 @@ import xarray as xr
 from .errors import DataError, ModelError
 
 __all__ = ["as_generator", "as_factor_matrix", "atomic_output", "atomic_outputs",
-           "check_positive", "guard_outputs", "same_file"]
+           "check_positive", "guard_outputs", "read_netcdf", "same_file"]
 
 
 def as_generator(random_state: Any) -> np.random.Generator:
@@ -181,3 +181,25 @@ def guard_outputs(
         if out.exists() and not overwrite:
             raise FileExistsError(f"output {out} already exists; pass {flag} to replace it")
     return outs
+
+
+def read_netcdf(path: str | os.PathLike, what: str, writer: str) -> xr.Dataset:
+    """Load a whole NetCDF file written by ``writer`` (e.g. ``"GLRM.save"``) into memory.
+
+    A folder, an empty, missing, truncated or corrupt file is a :class:`DataError` naming
+    ``what`` (e.g. ``"model file"``) and the path; the file is only read, never changed.
+    """
+    name = repr(os.fspath(path))
+    if os.path.isdir(path):
+        raise DataError(f"{what} {name} is a folder, expected a file written by {writer}")
+    if os.path.isfile(path) and os.path.getsize(path) == 0:
+        raise DataError(f"{what} {name} is empty (0 bytes)")
+    try:
+        with xr.open_dataset(path) as f:
+            return f.load()
+    except FileNotFoundError:
+        raise DataError(f"{what} {name} does not exist") from None
+    except Exception as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"{what} {name} is not a readable NetCDF file (corrupt or truncated?): "
+                        f"{first}") from exc

@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from ._validation import atomic_output
+from ._validation import atomic_output, read_netcdf
 from .errors import DataError, ModelError, RegionError
 from .glrm.dynamics import Dynamics, time_numbers
 from .glrm.posterior import LatentPosterior, ObservationModel, empirical_moments
@@ -423,14 +423,7 @@ class MonitorState:
         the state, ``model_path``) must be the model the state was started from (same
         fingerprint), else ModelError; a missing, corrupt or truncated file is a DataError."""
         spath = os.fspath(path)
-        try:
-            with xr.open_dataset(path) as f:
-                ds = f.load()
-        except FileNotFoundError:
-            raise DataError(f"state file {spath!r} does not exist") from None
-        except Exception as exc:
-            raise DataError(f"{spath!r} is not a readable state file (corrupt or truncated?): "
-                            f"{exc}") from None
+        ds = read_netcdf(path, "state file", "MonitorState.save")
         need = ("precision", "shift", "base_precision", "base_shift", "cells", "values")
         if ds.attrs.get("format") != _FORMAT or any(n not in ds for n in need):
             raise DataError(f"{spath!r} is not an lrm-cvx monitor state file")

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from .._validation import as_generator, atomic_output, check_positive
+from .._validation import as_generator, atomic_output, check_positive, read_netcdf
 from ..errors import DataError, ModelError, NotFittedError
 from ..region import Region
 from . import kernels as K
@@ -806,19 +806,7 @@ def _read_model_file(path: str | os.PathLike) -> tuple[xr.Dataset, dict]:
     """``(dataset, params)`` of a GLRM model file, validated (DataError naming the file and
     what is wrong)."""
     name = repr(os.fspath(path))
-    if os.path.isdir(path):
-        raise DataError(f"model file {name} is a folder, expected a file written by GLRM.save")
-    if os.path.isfile(path) and os.path.getsize(path) == 0:
-        raise DataError(f"model file {name} is empty (0 bytes)")
-    try:
-        with xr.open_dataset(path) as f:
-            ds = f.load()
-    except FileNotFoundError:
-        raise DataError(f"model file {name} does not exist") from None
-    except Exception as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise DataError(f"{name} is not a readable NetCDF file (truncated or corrupt?): "
-                        f"{first}") from exc
+    ds = read_netcdf(path, "model file", "GLRM.save")
     if ds.attrs.get("format") != _FORMAT:
         raise DataError(f"{name} is not an lrm-cvx GLRM model file (no format attribute "
                         f"{_FORMAT!r})")
