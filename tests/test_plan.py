@@ -32,7 +32,10 @@ def setup():
 def test_dataframe(setup):
     _, region, start, plan = setup
     df = plan.to_dataframe()
-    assert list(df.columns) == ["order", "cell", "lat", "lon", "row", "col", "cumulative_cost"]
+    assert list(df.columns) == ["robot", "order", "cell", "lat", "lon", "row", "col", "waypoint",
+                                "cumulative_cost"]
+    assert (df["robot"] == 0).all() and df["waypoint"].all()
+    assert df["order"].tolist() == list(range(len(df)))
     assert len(df) == plan.route.size and df["cell"].tolist() == plan.route.tolist()
     assert df["cumulative_cost"].iloc[0] == 0 and np.all(np.diff(df["cumulative_cost"]) > 0)
     assert df["cumulative_cost"].iloc[-1] == pytest.approx(plan.cost)

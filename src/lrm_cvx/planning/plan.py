@@ -41,6 +41,44 @@ def _path_cumulative(grid_index: np.ndarray) -> np.ndarray:
     return np.cumsum(np.concatenate([[0.0], steps]))
 
 
+PAPER_PATH: dict[str, Any] = {
+    "kind": "path", "metric": "grid", "speed": None, "stop_cost": 0.0, "traversable": "none",
+    "closed": False, "end": None, "unit": "grid units", "sense_along": False,
+}
+"""The path model of the paper (and of plans built without one): an open straight-line path in
+grid units, one robot, sensing only at its stops. :func:`path_dict` adds starts and budgets."""
+
+
+def path_dict(starts: Any, budgets: Any, **options: Any) -> dict[str, Any]:
+    """A plan's ``path`` description: :data:`PAPER_PATH` updated by ``options`` plus
+    ``starts`` / ``budgets`` (lists, one per robot) and ``n_robots``."""
+    out = dict(PAPER_PATH)
+    unknown = sorted(set(options) - set(out))
+    if unknown:
+        raise ValueError(f"unknown path options {unknown}")
+    out.update(options)
+    out["starts"] = [int(s) for s in np.atleast_1d(np.asarray(starts, dtype=np.int64))]
+    out["budgets"] = [float(b) for b in np.atleast_1d(np.asarray(budgets, dtype=np.float64))]
+    out["n_robots"] = max(len(out["starts"]), 1) if out["kind"] != "static" else 1
+    return out
+
+
+def is_paper_path(path: dict[str, Any]) -> bool:
+    """True when ``path`` is the paper's model: one robot, open straight-line path in grid
+    units, no stop cost, sensing only at the stops (what :func:`refine` supports)."""
+    return all(path.get(key) == value for key, value in PAPER_PATH.items()) and \
+        path.get("n_robots", 1) == 1
+
+
+def _robot_last(route_robot: np.ndarray, n_robots: int) -> np.ndarray:
+    """Index of the last route entry of each robot ``(n_robots,)`` (-1 for an empty route)."""
+    last = np.full(n_robots, -1, dtype=np.int64)
+    if route_robot.size:
+        idx = np.arange(route_robot.size)
+        np.maximum.at(last, route_robot, idx)
+    return last
+
+
 @dataclass(eq=False, repr=False)
 class Plan:
     """A sampling plan from ``start`` within ``budget``.
@@ -71,6 +109,18 @@ class Plan:
     refinement : empty, or what :func:`~lrm_cvx.planning.refine.refine` gained:
         ``information_before`` / ``information_after`` (nats), ``moves`` accepted, ``inserted``,
         ``swapped``, ``rounds``, ``seconds`` (history keys ``refine_*`` list the moves).
+    path : the path model (issue #15): ``kind`` (``"path"`` or ``"static"``), ``metric``,
+        ``speed``, ``stop_cost``, ``traversable`` (``"none"``, ``"valid"``, ``"mask"``),
+        ``closed``, ``end``, ``unit`` (of ``cost`` / ``budget``), ``sense_along``, ``starts`` and
+        ``budgets`` (one per robot) and ``n_robots``. Default: :data:`PAPER_PATH`.
+    route_robot, waypoint : ``(r,)`` per route entry: the robot travelling it, and whether it
+        is a sampling stop (False for a pass-through cell of a travel graph or of
+        ``sense_along``). A closed tour's route ends with its start again.
+    stops, stop_robot : ``(s,)`` the sampling stops in selection order and their robot.
+        ``cells`` is every observed cell: the stops, then (``sense_along``) the cells passed.
+    robot_costs : ``(n_robots,)`` each robot's cost; ``cost`` is their sum and ``budget`` the
+        sum of the robots' budgets. ``route_cost`` restarts at each robot's start (at its stop
+        cost) and ends at its cost.
     """
 
     cells: np.ndarray
@@ -90,8 +140,36 @@ class Plan:
     route_cost: np.ndarray = field(default_factory=lambda: np.empty(0))
     posterior: bool = False
     refinement: dict[str, Any] = field(default_factory=dict, compare=False)
+    path: dict[str, Any] = field(default_factory=dict)
+    route_robot: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    waypoint: np.ndarray = field(default_factory=lambda: np.empty(0, bool))
+    stops: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    stop_robot: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    robot_costs: np.ndarray = field(default_factory=lambda: np.empty(0))
     _Y: Any = field(default=None, repr=False, compare=False)
     _region: Any = field(default=None, repr=False, compare=False)
+    _path_models: Any = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # plans built the old way (baselines, by hand): the paper's path model, one robot
+        if not self.path:
+            self.path = path_dict([self.start], [self.budget])
+        r = np.asarray(self.route).size
+        if np.asarray(self.route_robot).size != r:
+            self.route_robot = np.zeros(r, dtype=np.int64)
+        if np.asarray(self.waypoint).size != r:
+            self.waypoint = np.ones(r, dtype=bool)
+        if np.asarray(self.stops).size == 0 and np.asarray(self.cells).size:
+            self.stops = np.asarray(self.cells, dtype=np.int64)
+        if np.asarray(self.stop_robot).size != np.asarray(self.stops).size:
+            self.stop_robot = np.zeros(np.asarray(self.stops).size, dtype=np.int64)
+        if np.asarray(self.robot_costs).size == 0:
+            self.robot_costs = np.array([float(self.cost)])
+
+    @property
+    def n_robots(self) -> int:
+        """Number of robots (1 for a single route and for static placement)."""
+        return int(self.path.get("n_robots", 1))
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -113,28 +191,62 @@ class Plan:
         Y: Any = None,
         route_cost: Any = None,
         posterior: bool = False,
+        path: dict[str, Any] | None = None,
+        route_robot: Any = None,
+        waypoint: Any = None,
+        stops: Any = None,
+        stop_robot: Any = None,
+        robot_costs: Any = None,
+        path_models: Any = None,
     ) -> Plan:
         """A plan with its coordinates looked up in ``region``.
 
-        ``route_cost`` (cumulative cost at each route stop) defaults to the grid-distance path
-        along ``route`` (summed in order, as the path costs are); ``cost`` defaults to its last
-        value. A given ``cost`` must equal the last ``route_cost`` (to 1e-9 relative).
+        ``route_cost`` (cumulative cost at each route entry) defaults to the grid-distance path
+        along each robot's route (summed in order, as the path costs are); each robot's cost
+        (``robot_costs``) defaults to its last value and ``cost`` to their sum. A given
+        ``cost`` / ``robot_costs`` must equal those last values (to 1e-9 relative).
+        ``route_robot`` defaults to one robot, ``waypoint`` to all True, ``stops`` to ``cells``,
+        ``path`` to the paper's (:func:`path_dict` with ``start`` and ``budget``).
         """
         route = np.asarray(route, dtype=np.int64)
         gi = np.asarray(region.grid_index[route], dtype=np.int64)
+        rr = (np.zeros(route.size, np.int64) if route_robot is None
+              else np.asarray(route_robot, dtype=np.int64))
+        if rr.shape != route.shape:
+            raise ValueError(f"route_robot must have the route's shape {route.shape}")
+        n_robots = int(path.get("n_robots", 1)) if path else 1
+        n_robots = max(n_robots, int(rr.max()) + 1 if rr.size else 1)
         if route_cost is None:
-            route_cost = _path_cumulative(gi)
-        route_cost = np.asarray(route_cost, dtype=np.float64)
+            route_cost = np.zeros(route.size)
+            for r in range(n_robots):
+                sel = np.flatnonzero(rr == r)
+                route_cost[sel] = _path_cumulative(gi[sel])
+        route_cost = np.asarray(route_cost, dtype=np.float64).copy()
         if route_cost.shape != route.shape:
             raise ValueError(f"route_cost must have the route's shape {route.shape}")
+        last = _robot_last(rr, n_robots)
+        ends = np.where(last >= 0, route_cost[np.maximum(last, 0)], 0.0)
+        if robot_costs is None:
+            if n_robots == 1 and cost is not None:
+                robot_costs = np.array([float(cost)])
+            else:
+                robot_costs = ends
+        robot_costs = np.asarray(robot_costs, dtype=np.float64).ravel()
+        if robot_costs.size != n_robots:
+            raise ValueError(f"robot_costs must have one cost per robot ({n_robots})")
         if cost is None:
-            cost = float(route_cost[-1]) if route.size else 0.0
-        if route.size and not np.isclose(route_cost[-1], cost, rtol=1e-9, atol=1e-9):
-            raise ValueError(f"the route's cost {route_cost[-1]!r} differs from cost={cost!r}")
-        if route.size:
-            route_cost[-1] = float(cost)  # the same float, not one rounded differently
+            cost = float(robot_costs.sum()) if n_robots > 1 else float(robot_costs[0])
+        has = last >= 0
+        if not np.allclose(ends[has], robot_costs[has], rtol=1e-9, atol=1e-9):
+            raise ValueError(f"the route's cost {ends[has]!r} differs from cost="
+                             f"{robot_costs[has]!r}")
+        total = float(robot_costs.sum()) if n_robots > 1 else float(robot_costs[0])
+        if not np.isclose(total, cost, rtol=1e-9, atol=1e-9):
+            raise ValueError(f"the robots' costs add to {total!r}, not cost={cost!r}")
+        route_cost[last[has]] = robot_costs[has]  # the same floats, not ones rounded differently
+        cells = np.asarray(cells, dtype=np.int64)
         return cls(
-            cells=np.asarray(cells, dtype=np.int64),
+            cells=cells,
             route=route,
             cost=float(cost),
             information=float(information),
@@ -150,9 +262,116 @@ class Plan:
             cost_function=cost_function,
             route_cost=route_cost,
             posterior=bool(posterior),
+            path=dict(path) if path else path_dict([start], [budget]),
+            route_robot=rr,
+            waypoint=(np.ones(route.size, bool) if waypoint is None
+                      else np.asarray(waypoint, dtype=bool)),
+            stops=cells.copy() if stops is None else np.asarray(stops, dtype=np.int64),
+            stop_robot=np.asarray([] if stop_robot is None else stop_robot, dtype=np.int64),
+            robot_costs=robot_costs,
             _Y=Y,
             _region=region,
+            _path_models=path_models,
         )
+
+    @classmethod
+    def from_robots(cls, plans: Any, *, Y: Any = None, ridge: float | None = None,
+                    method: str | None = None) -> Plan:
+        """One fleet plan from per-robot plans (robot ``i`` = ``plans[i]``), e.g. a baseline
+        run once per robot. The routes are concatenated; ``cells`` / ``stops`` are the distinct
+        cells in robot order; ``information`` is the **joint** Fisher information of all cells
+        (``Y``: default the first plan's model; ``nan`` without one; ``ridge``: default the
+        first plan's). Every plan must be on the same region and path model (``metric``,
+        ``traversable``, ...), one robot each."""
+        from ..errors import PlanningError
+        from ..information import fisher_information
+
+        plans = list(plans)
+        if not plans or not all(isinstance(p, Plan) for p in plans):
+            raise PlanningError("plans must be a non-empty list of Plan, one per robot")
+        region = plans[0]._region
+        if region is None or any(p._region is None or p._region.n_cells != region.n_cells
+                                 for p in plans):
+            raise PlanningError("plans must all carry the same region")
+        base = {k: v for k, v in plans[0].path.items() if k not in ("starts", "budgets",
+                                                                     "n_robots")}
+        for p in plans:
+            if p.n_robots != 1:
+                raise PlanningError("each plan of from_robots must be a single robot's plan")
+            other = {k: v for k, v in p.path.items() if k in base}
+            if other != base:
+                raise PlanningError(f"plans must share one path model, got {base} and {other}")
+        ridge = float(plans[0].ridge if ridge is None else ridge)
+        Yk = Y if Y is not None else plans[0]._Y
+        cells = list(dict.fromkeys(int(c) for p in plans for c in p.cells))
+        stops, stop_robot = [], []
+        seen: set[int] = set()
+        for r, p in enumerate(plans):
+            for c in p.stops.tolist():
+                if c not in seen:
+                    seen.add(c)
+                    stops.append(c)
+                    stop_robot.append(r)
+        if Yk is not None:
+            from .._validation import as_factor_matrix
+
+            Yk = as_factor_matrix(Yk, region)
+            info = fisher_information(Yk, cells, ridge)
+        else:
+            info = float("nan")
+        starts = [p.start for p in plans]
+        budgets = [p.budget for p in plans]
+        path = path_dict(starts, budgets, **base)
+        methods = list(dict.fromkeys(p.method for p in plans))
+        return cls.build(
+            region=region, cells=cells, route=np.concatenate([p.route for p in plans]),
+            cost=None, information=info, criterion=plans[0].criterion,
+            budget=float(sum(budgets)), start=starts[0], ridge=ridge,
+            method=method or "+".join(methods), history={},
+            cost_function=plans[0].cost_function, Y=Yk,
+            route_cost=np.concatenate([p.route_cost for p in plans]),
+            posterior=plans[0].posterior, path=path,
+            route_robot=np.concatenate([np.full(p.route.size, r, np.int64)
+                                        for r, p in enumerate(plans)]),
+            waypoint=np.concatenate([p.waypoint for p in plans]),
+            stops=stops, stop_robot=stop_robot,
+            robot_costs=[p.cost for p in plans],
+        )
+
+    @property
+    def robots(self) -> list[Plan]:
+        """One sub-plan per robot (``[self]`` for one robot): its route, stops, observed cells,
+        cost and budget; ``information`` is that robot's cells' own Fisher information."""
+        if self.n_robots == 1:
+            return [self]
+        from ..information import fisher_information
+
+        out = []
+        sense = bool(self.path.get("sense_along"))
+        budgets = self.path.get("budgets", [])
+        starts = self.path.get("starts", [])
+        for r in range(self.n_robots):
+            on = self.route_robot == r
+            stops = self.stops[self.stop_robot == r]
+            cells = list(dict.fromkeys(stops.tolist() + (self.route[on].tolist() if sense
+                                                         else [])))
+            info = (fisher_information(self._Y, cells, self.ridge) if self._Y is not None
+                    else float("nan"))
+            path = dict(self.path, starts=[starts[r]], budgets=[budgets[r]], n_robots=1)
+            hist = {}
+            if "robot" in self.history:
+                pick = self.history["robot"] == r
+                hist = {k: v[pick] for k, v in self.history.items() if k != "robot"}
+            out.append(Plan.build(
+                region=self._region, cells=cells, route=self.route[on],
+                cost=float(self.robot_costs[r]), information=info, criterion=self.criterion,
+                budget=float(budgets[r]), start=int(starts[r]), ridge=self.ridge,
+                method=self.method, history=hist, cost_function=self.cost_function, Y=self._Y,
+                route_cost=self.route_cost[on], posterior=self.posterior, path=path,
+                waypoint=self.waypoint[on], stops=stops,
+                path_models=None if self._path_models is None else [self._path_models[r]],
+            ))
+        return out
 
     # ------------------------------------------------------------------ basics
     def __len__(self) -> int:
@@ -160,6 +379,10 @@ class Plan:
 
     def __repr__(self) -> str:
         crit = f", criterion={self.criterion!r}" if self.criterion else ""
+        if self.n_robots > 1:
+            crit += f", {self.n_robots} robots"
+        if self.path.get("kind") == "static":
+            crit += ", static"
         return (
             f"Plan(method={self.method!r}{crit}, {len(self)} cells, route of "
             f"{self.route.size} stops, cost={self.cost:.4g} / budget={self.budget:.4g}, "
@@ -171,9 +394,11 @@ class Plan:
             return NotImplemented
         scalars = ("cost", "information", "criterion", "budget", "start", "ridge", "method",
                    "cost_function", "posterior")
-        arrays = ("cells", "route", "lat", "lon", "grid_index", "route_cost")
+        arrays = ("cells", "route", "lat", "lon", "grid_index", "route_cost", "route_robot",
+                  "waypoint", "stops", "stop_robot", "robot_costs")
         return (
-            all(
+            self.path == other.path
+            and all(
                 getattr(self, a) == getattr(other, a)
                 or (isinstance(getattr(self, a), float) and np.isnan(getattr(self, a))
                     and np.isnan(getattr(other, a)))
@@ -212,8 +437,19 @@ class Plan:
                           plan=self, **kwargs)
 
     # ------------------------------------------------------------------ exports
+    def _order(self) -> np.ndarray:
+        """Position of each route entry within its robot's route ``(r,)``."""
+        order = np.empty(self.route.size, dtype=np.int64)
+        for r in range(self.n_robots):
+            sel = np.flatnonzero(self.route_robot == r)
+            order[sel] = np.arange(sel.size)
+        return order
+
     def to_dataframe(self) -> Any:
-        """One row per route stop: order, cell, lat, lon, row, col, cumulative_cost."""
+        """One row per route entry: ``robot, order, cell, lat, lon, row, col, waypoint,
+        cumulative_cost``. ``order`` counts within each robot's route; ``waypoint`` is False for
+        a pass-through cell; a closed tour's last row is its start again; each robot's last
+        ``cumulative_cost`` is its cost (in ``path["unit"]``)."""
         import pandas as pd
 
         cum = self.route_cost
@@ -221,12 +457,14 @@ class Plan:
             cum = _path_cumulative(self.grid_index)
         return pd.DataFrame(
             {
-                "order": np.arange(self.route.size),
+                "robot": self.route_robot,
+                "order": self._order(),
                 "cell": self.route,
                 "lat": self.lat,
                 "lon": self.lon,
                 "row": self.grid_index[:, 0] if self.route.size else np.empty(0, np.int64),
                 "col": self.grid_index[:, 1] if self.route.size else np.empty(0, np.int64),
+                "waypoint": self.waypoint,
                 "cumulative_cost": cum,
             }
         )
@@ -239,24 +477,36 @@ class Plan:
         return path
 
     def to_geojson(self, path: str | Path | None = None) -> dict[str, Any]:
-        """GeoJSON FeatureCollection: the route as a LineString and each cell as a Point.
+        """GeoJSON FeatureCollection: each robot's route as a LineString and each sampling stop
+        as a Point.
 
-        Coordinates are ``[lon, lat]`` (RFC 7946). Point properties: ``cell``, ``order`` (first
-        visit on the route), ``selection`` (index in ``cells``), ``start``. The collection's
-        properties carry method, cost, budget and information. Written atomically when ``path``.
+        Coordinates are ``[lon, lat]`` (RFC 7946). LineString properties: ``kind`` ``"route"``,
+        ``robot``, ``cost``, ``budget``. Point properties: ``cell``, ``robot``, ``order`` (first
+        visit on its robot's route), ``selection`` (index in ``stops``), ``start``. The
+        collection's properties carry method, cost, budget, information and the path model.
+        Written atomically when ``path``.
         """
         coords = [[float(lo), float(la)] for lo, la in zip(self.lon, self.lat, strict=True)]
-        first: dict[int, int] = {}
-        for i, c in enumerate(self.route.tolist()):
-            first.setdefault(int(c), i)
-        sel = {int(c): i for i, c in enumerate(self.cells.tolist())}
-        features: list[dict[str, Any]] = [
-            {
+        order = self._order()
+        budgets = self.path.get("budgets") or [self.budget]
+        starts = set(int(s) for s in (self.path.get("starts") or [self.start]))
+        features: list[dict[str, Any]] = []
+        for r in range(self.n_robots):
+            sel = np.flatnonzero(self.route_robot == r)
+            features.append({
                 "type": "Feature",
-                "geometry": {"type": "LineString", "coordinates": coords},
-                "properties": {"kind": "route", "cost": self.cost},
-            }
-        ]
+                "geometry": {"type": "LineString", "coordinates": [coords[i] for i in sel]},
+                "properties": {"kind": "route", "robot": r,
+                               "cost": float(self.robot_costs[r]) if self.robot_costs.size
+                               > r else self.cost,
+                               "budget": float(budgets[r]) if len(budgets) > r else None},
+            })
+        sel_of = {int(c): i for i, c in enumerate(self.stops.tolist())}
+        first: dict[int, int] = {}
+        stopset = set(sel_of)
+        for i, c in enumerate(self.route.tolist()):
+            if c in stopset and bool(self.waypoint[i]):
+                first.setdefault(int(c), i)
         for c, i in first.items():
             features.append(
                 {
@@ -265,9 +515,10 @@ class Plan:
                     "properties": {
                         "kind": "cell",
                         "cell": c,
-                        "order": i,
-                        "selection": sel.get(c),
-                        "start": c == self.start,
+                        "robot": int(self.route_robot[i]),
+                        "order": int(order[i]),
+                        "selection": sel_of.get(c),
+                        "start": c in starts and int(order[i]) == 0,
                     },
                 }
             )
@@ -288,6 +539,8 @@ class Plan:
                 "ridge": self.ridge,
                 "start": self.start,
                 "n_cells": len(self),
+                "n_robots": self.n_robots,
+                "path": {k: v for k, v in self.path.items()},
             },
         }
         if path is not None:
@@ -316,13 +569,24 @@ class Plan:
             kw = {"shading": "nearest", "cmap": "viridis"} | background_kw
             mesh = ax.pcolormesh(lon, lat, values, **kw)
             ax.figure.colorbar(mesh, ax=ax, shrink=0.8)
-        ax.plot(self.lon, self.lat, "-", color="white", lw=2.5, alpha=0.8, zorder=2)
-        ax.plot(self.lon, self.lat, "-", color="crimson", lw=1.2, zorder=3, label="route")
+        colours = ["crimson", "royalblue", "darkorange", "seagreen", "purple", "saddlebrown"]
+        for r in range(self.n_robots):
+            sel = np.flatnonzero(self.route_robot == r)
+            label = "route" if self.n_robots == 1 else f"robot {r}"
+            ax.plot(self.lon[sel], self.lat[sel], "-", color="white", lw=2.5, alpha=0.8,
+                    zorder=2)
+            ax.plot(self.lon[sel], self.lat[sel], "-", color=colours[r % len(colours)], lw=1.2,
+                    zorder=3, label=label)
+        is_stop = self.waypoint & np.isin(self.route, self.stops)
         first = np.unique(self.route, return_index=True)[1]
+        first = first[is_stop[first]]
         ax.scatter(self.lon[first], self.lat[first], s=14, color="black", zorder=4,
-                   label="cells")
-        if self.route.size:
-            ax.scatter(self.lon[:1], self.lat[:1], s=120, marker="*", color="gold",
+                   label="stops" if self.n_robots > 1 or self.path.get("sense_along")
+                   else "cells")
+        heads = np.flatnonzero(self._order() == 0) if self.path.get("kind") != "static" \
+            else np.empty(0, np.int64)
+        if heads.size:
+            ax.scatter(self.lon[heads], self.lat[heads], s=120, marker="*", color="gold",
                        edgecolor="black", zorder=5, label="start")
         ax.set_xlabel("lon")
         ax.set_ylabel("lat")

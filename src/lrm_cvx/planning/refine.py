@@ -30,7 +30,7 @@ from .._validation import as_factor_matrix
 from ..cost import NearestNeighborCost, nearest_neighbor_tour, route_length
 from ..errors import PlanningError
 from ..information import _fisher_set_value
-from .plan import Plan, check_region
+from .plan import Plan, check_region, is_paper_path
 
 __all__ = ["refine"]
 
@@ -281,6 +281,13 @@ def refine(
     if plan.posterior and prior_precision is None and noise_var is None:
         raise PlanningError("this plan's Fisher criterion is on the fold-in's posterior: "
                             "pass its prior_precision / noise_var to refine it")
+    if not is_paper_path(plan.path):
+        raise PlanningError(
+            "refine supports only the paper's path model (one robot, metric 'grid', no "
+            "traversable, not closed, no end, stop_cost 0, no sense_along, not static); "
+            f"this plan's path is {plan.path.get('kind')!r} with {plan.path.get('n_robots')} "
+            f"robot(s), metric {plan.path.get('metric')!r}, traversable "
+            f"{plan.path.get('traversable')!r}, closed={plan.path.get('closed')}")
     if plan.cost_function not in ("nearest-neighbor", "insertion"):
         raise PlanningError(f"cannot refine a plan with cost {plan.cost_function!r}")
     for name, v in (("max_rounds", max_rounds), ("shortlist", shortlist), ("refill", refill),
