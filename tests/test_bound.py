@@ -1,4 +1,5 @@
-"""Tests of the D-optimal relaxation bound and the plan certificate (planning/bound.py).
+"""Tests of the D-optimal relaxation bound (planning/dopt.py) and the plan certificate
+(planning/certificate.py), through the old import location planning/bound.py.
 
 References are written plainly here: brute force over all subsets, a direct cvxpy model of the
 relaxation (``cp.log_det`` of the full weighted sum), and scans of the dual function.
@@ -20,6 +21,7 @@ from hypothesis import strategies as st
 
 from lrm_cvx.errors import ConvergenceWarning, PlanningError
 from lrm_cvx.planning import bound as B
+from lrm_cvx.planning import dopt as D
 from lrm_cvx.planning.bound import certify_weights, dopt_upper_bound, dual_value
 from lrm_cvx.region import Region
 
@@ -229,7 +231,7 @@ def test_trivial_singular_and_bad_input():
 def test_inexact_solver_still_certifies(monkeypatch):
     """With every conic solve failing, the Frank-Wolfe iterate still yields a valid bound."""
     Y = smooth_Y(3, 120, 1)
-    monkeypatch.setattr(B, "_solve_restricted", lambda *a, **k: (None, "forced failure"))
+    monkeypatch.setattr(D, "_solve_restricted", lambda *a, **k: (None, "forced failure"))
     opt = plain_relaxation(Y, 6, 0.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)

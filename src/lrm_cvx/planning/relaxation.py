@@ -1,6 +1,6 @@
 """A path-aware relaxation of the plan certificate (issue #16, item 1).
 
-The disk relaxation of :func:`~lrm_cvx.planning.bound.plan_bound` knows how many cells fit in
+The disk relaxation of :func:`~lrm_cvx.planning.certificate.plan_bound` knows how many cells fit in
 the budget disk, not that they lie on *one* path. Here the cells are aggregated into ``b x b``
 blocks and every route is mapped to a unit flow in a **layered block graph**: node ``(A, l)``
 is block ``A`` after a cumulative path length of at least ``l`` grid units; a leg from a cell of
@@ -33,7 +33,7 @@ import scipy.sparse.csgraph
 
 from .._validation import as_factor_matrix
 from ..errors import PlanningError
-from .bound import (
+from .dopt import (
     _CLARABEL_OPTS,
     _DIST_EPS,
     _SCS_OPTS,

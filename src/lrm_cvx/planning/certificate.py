@@ -1,0 +1,609 @@
+"""The plan certificate: an upper bound on the Fisher information of every feasible plan.
+
+A plan's cells are either the greedy's forced initial set or the stops (and, with
+``sense_along``, the pass-through cells) of a route within the budget of its path model. This
+module turns the path model into what the relaxation of :mod:`lrm_cvx.planning.dopt` needs: the
+candidate cells (every cell some feasible route can observe), a count limit ``n_max`` (budget,
+smallest spacing, stop cost) and nested distance limits (how many cells a route of bounded
+length can hold far from its start or from its midpoint). Fleets add their robots' counts over
+the union of their candidates; a static placement is the count-only bound over all valid cells.
+See ``docs/certificate.md`` §4-6 and §10 for the proofs.
+
+Data flows one way: paths -> greedy / baselines -> Plan -> certificate. This module imports
+neither the planner nor :class:`~lrm_cvx.planning.plan.Plan` at module level.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from .._validation import as_factor_matrix
+from ..errors import PlanningError, SolverError
+from .dopt import (
+    _DIST_EPS,
+    Bound,
+    _check_n_ridge,
+    _chol,
+    _inv_lower,
+    _leverages,
+    _moment,
+    _Polytope,
+    _relaxation,
+    _top_sum,
+)
+
+__all__ = ["PlanCertificate", "plan_bound"]
+
+
+@dataclass(frozen=True, eq=False)
+class PlanCertificate:
+    """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
+
+    ``bound = max(initial_information, relaxation.value)``: a plan of the greedy planner is
+    either its forced initial set (information ``initial_information``) or a set of at most
+    ``n_max`` cells within ``budget`` of the start (covered by the relaxation). ``gap =
+    bound - information`` (nats, >= 0 for every feasible plan) and ``volume_ratio =
+    exp(-gap / k)``: the plan's information-ellipsoid volume relative to the bound's, per
+    dimension (1 = certified optimal). ``online_bound`` is the submodularity bound
+    ``f(P) + sum of the n_max largest marginal gains at P`` (see docs/certificate.md), when a
+    plan was given; it is reported beside and ``bound`` already takes the smaller of the two.
+    ``tightened``: the relaxation had the path's distance limits (docs/certificate.md §6);
+    ``leaves``: the final squares of the midpoint cover ``(row0, col0, side, value)``, whose
+    largest value is ``relaxation.value`` (empty without the cover).
+
+    ``criterion`` is what the bound bounds: always ``"fisher"`` (``log det(ridge I + sum y
+    y^T)``). ``plan_criterion`` is what the plan was chosen for (``None`` for a baseline, which
+    optimises nothing and is judged by its Fisher information as in the paper; ``"fisher
+    (posterior)"`` for a Fisher greedy on the fold-in's posterior). When the two differ
+    (``comparable`` is False) ``information`` is still the plan's Fisher information but
+    ``gap`` and ``volume_ratio`` are NaN: a gap between different criteria means nothing.
+    """
+
+    bound: float
+    information: float | None
+    gap: float | None
+    volume_ratio: float | None
+    n_max: int
+    n_candidates: int
+    k: int
+    start: int
+    budget: float
+    ridge: float
+    metric: str
+    initial_information: float
+    relaxation: Bound
+    online_bound: float | None = None
+    tightened: bool = False
+    leaves: tuple[tuple[float, float, float, float], ...] = field(default=(), repr=False)
+    criterion: str = "fisher"
+    plan_criterion: str | None = None
+    greedy_information: float | None = None
+    refined_information: float | None = None
+    refine_moves: int | None = None
+    path_bound: float | None = None  # the path-aware relaxation's dual bound (path_aware=True)
+
+    @property
+    def plan_slack(self) -> float | None:
+        """``refined_information - greedy_information`` (nats, >= 0): what a local search on
+        the plan found; the part of the gap due to the planner."""
+        if self.greedy_information is None or self.refined_information is None:
+            return None
+        if self.refined_information == self.greedy_information:
+            return 0.0
+        return float(self.refined_information - self.greedy_information)
+
+    @property
+    def bound_slack(self) -> float | None:
+        """``bound - refined_information`` (nats, >= 0): the part of the gap nothing found yet,
+        an upper limit on what the relaxation over-counts plus what the search missed."""
+        if self.refined_information is None:
+            return None
+        return _gap(self.bound, self.refined_information, self.k)[0]
+
+    @property
+    def comparable(self) -> bool:
+        """The plan was chosen for the bounded criterion (or is a baseline): the gap means
+        something. False for a-optimal, gp-variance and posterior-Fisher plans."""
+        return self.plan_criterion in (None, self.criterion)
+
+    @property
+    def relative_gap(self) -> float | None:
+        """``gap / |bound|`` when both are finite (a unit-free view of the gap)."""
+        if self.gap is None or not np.isfinite(self.gap) or not np.isfinite(self.bound) \
+                or self.bound == 0:
+            return None
+        return self.gap / abs(self.bound)
+
+    def __repr__(self) -> str:
+        lines = [
+            f"PlanCertificate(start={self.start}, budget={self.budget:g} "
+            f"({self.metric}), k={self.k}, ridge={self.ridge:g})",
+            f"  upper bound          {self.bound:.6g} nats (on the {self.criterion} "
+            f"information of any plan)",
+        ]
+        if self.information is not None and not self.comparable:
+            lines += [
+                f"  plan information     {self.information:.6g} nats (Fisher)",
+                f"  no gap: the plan was chosen for the {self.plan_criterion} criterion, the "
+                f"bound is on {self.criterion}",
+            ]
+        elif self.information is not None:
+            lines += [
+                f"  plan information     {self.information:.6g} nats",
+                f"  certified gap        {self.gap:.4g} nats",
+                f"  volume ratio         {self.volume_ratio:.4f} (per dimension, 1 = optimal)",
+            ]
+            if self.refined_information is not None:
+                lines += [
+                    f"  greedy information   {self.greedy_information:.6g} nats",
+                    f"  refined information  {self.refined_information:.6g} nats "
+                    f"({self.refine_moves} moves)",
+                    f"  gap split            plan slack {self.plan_slack:.4g} + bound slack "
+                    f"{self.bound_slack:.4g} nats",
+                ]
+        lines += [
+            f"  relaxation           {self.relaxation.value:.6g} (primal "
+            f"{self.relaxation.primal:.6g}, status {self.relaxation.status})",
+            f"  initial set          {self.initial_information:.6g} nats",
+        ]
+        if self.online_bound is not None:
+            lines.append(f"  online bound         {self.online_bound:.6g} nats")
+        lines.append(
+            f"  at most {self.n_max} cells out of {self.n_candidates} candidates "
+            f"within the budget"
+        )
+        if self.tightened:
+            lines.append(f"  tightened: distance limits, midpoint cover of "
+                         f"{len(self.leaves)} squares")
+        return "\n".join(lines)
+
+    def _repr_html_(self) -> str:
+        rows = [("upper bound (nats)", f"{self.bound:.6g}"),
+                ("bounded criterion", self.criterion)]
+        if self.information is not None and not self.comparable:
+            rows += [("plan criterion", str(self.plan_criterion)),
+                     ("plan Fisher information (nats)", f"{self.information:.6g}"),
+                     ("certified gap", "none: different criteria")]
+        elif self.information is not None:
+            rows += [
+                ("plan information (nats)", f"{self.information:.6g}"),
+                ("certified gap (nats)", f"{self.gap:.4g}"),
+                ("volume ratio (per dim.)", f"{self.volume_ratio:.4f}"),
+            ]
+            if self.refined_information is not None:
+                rows += [
+                    ("greedy / refined information (nats)",
+                     f"{self.greedy_information:.6g} / {self.refined_information:.6g}"),
+                    ("plan slack / bound slack (nats)",
+                     f"{self.plan_slack:.4g} / {self.bound_slack:.4g}"),
+                ]
+        rows += [
+            ("relaxation value / primal", f"{self.relaxation.value:.6g} / "
+                                          f"{self.relaxation.primal:.6g}"),
+            ("initial set (nats)", f"{self.initial_information:.6g}"),
+            ("max cells / candidates", f"{self.n_max} / {self.n_candidates}"),
+            ("start, budget", f"{self.start}, {self.budget:g} ({self.metric})"),
+        ]
+        if self.online_bound is not None:
+            rows.append(("online bound (nats)", f"{self.online_bound:.6g}"))
+        body = "".join(f"<tr><td>{a}</td><td>{b}</td></tr>" for a, b in rows)
+        return f"<table><caption>PlanCertificate</caption>{body}</table>"
+
+
+# ----------------------------------------------------------------------------- plan bound
+def plan_bound(
+    Y: Any,
+    region: Any,
+    start: Any,
+    budget: float,
+    *,
+    ridge: float = 0.0,
+    plan: Any = None,
+    metric: Literal["grid", "km"] = "grid",
+    solver: Literal["CLARABEL", "SCS"] = "CLARABEL",
+    tol: float = 1e-3,
+    tighten: bool = True,
+    cover: int = 2,
+    max_pieces: int = 40,
+    refine: bool | dict[str, Any] = True,
+    path_aware: bool | dict[str, Any] = False,
+) -> PlanCertificate:
+    """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
+
+    Every plan of ``plan_greedy`` (any cost, since each is the length of a path from the start
+    through all the plan's cells), ``transect`` and ``random_walk`` is either the greedy's forced
+    initial set (start plus its k-1 nearest cells) or the cells visited by a path from the start
+    of length ``<= budget``. The latter are at most ``n_max = floor(budget / d_min) + 1`` cells
+    within ``budget`` of the start (``d_min`` = the smallest distance between two candidate
+    cells, 1 grid unit for ``metric="grid"``), so ``bound = max(I(initial set), relaxation)``.
+
+    With ``tighten=True`` (default) the relaxation also gets the path's *distance limits*: at
+    most ``floor((budget - r) / d_min) + 1`` cells at distance ``>= r`` from the start, for a
+    ladder of radii ``r``; and for ``metric="grid"`` (and ``budget >= 2``) the *midpoint cover*:
+    the path's midpoint lies in one of the squares of side ``budget / (2 cover)`` that tile the
+    disk of radius ``budget / 2`` around the start, the plan then lies within ``budget / 2`` of
+    that square and holds at most ``floor(budget - 2 s) + 2`` cells at distance ``>= s`` from it.
+    The bound is the maximum of one relaxation per square; the square with the largest bound is
+    split into four while at most ``max_pieces`` relaxations have been solved. ``tighten=False``
+    gives the plain disk relaxation. When the plan is given, the submodularity online bound is
+    computed too and the smaller one is kept. Proofs in docs/certificate.md.
+
+    The bound is on the **Fisher** information (``criterion="fisher"``). For a plan chosen for
+    another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or
+    ``plan.posterior``) the certificate reports the plan's Fisher information but
+    ``gap = volume_ratio = nan``.
+
+    **Gap split.** For a Fisher greedy plan (``metric="grid"``) the certificate also reports
+    ``greedy_information`` (the plan before refinement), ``refined_information`` (after
+    :func:`~lrm_cvx.planning.refine.refine`: the plan's own refinement when it was refined,
+    else one run here when ``refine`` is true; a dict is passed to it as keyword arguments),
+    ``plan_slack = refined - greedy`` and ``bound_slack = bound - refined``; the online bound
+    at the refined plan is used as well (valid at any set).
+
+    ``path_aware=True`` (opt-in, grid metric) also computes the path-aware relaxation of
+    :mod:`lrm_cvx.planning.relaxation` (a dict passes options to ``path_relaxation_bound``)
+    and keeps the smaller valid bound (``path_bound``); if it fails, a warning says the disk
+    bound is used.
+
+    ``budget`` is in grid units (``metric="grid"``) or km (``metric="km"``).
+    """
+    from ..information import fisher_information
+    from .greedy import _check_budget, initial_cells
+    from .plan import check_region
+
+    region = check_region(region)
+    Y = as_factor_matrix(Y, region)
+    k, L = Y.shape
+    start = region.resolve_cell(start, "start")
+    budget = _check_budget(budget)
+    _, ridge = _check_n_ridge(1.0, ridge)
+    if metric not in ("grid", "km"):
+        raise PlanningError(f"metric must be 'grid' or 'km', got {metric!r}")
+    if not isinstance(cover, (int, np.integer)) or cover < 1:
+        raise PlanningError(f"cover must be an integer >= 1, got {cover!r}")
+    if not isinstance(max_pieces, (int, np.integer)) or max_pieces < 1:
+        raise PlanningError(f"max_pieces must be an integer >= 1, got {max_pieces!r}")
+
+    dist = np.asarray(region.distance(start, np.arange(L), metric=metric), dtype=np.float64)
+    slack = _DIST_EPS * max(1.0, budget)
+    Bp = budget + slack  # every path cost the planners accept is <= Bp
+    cand = np.flatnonzero(dist <= Bp)
+    if metric == "grid":
+        d_min = 1.0
+    else:
+        d_min = _min_spacing_km(region, cand)
+    n_max = min(cand.size, math.floor(Bp / d_min) + 1) if d_min > 0 else cand.size
+
+    init = np.asarray(initial_cells(region, start, k), dtype=np.int64)
+    init_info = float(fisher_information(Y, init, ridge=ridge))
+    opts = {"solver": solver, "tol": tol}
+    leaves: list[tuple[float, float, float, float]] = []
+    start_lim = _start_limit(Bp, d_min, n_max) if tighten and math.isfinite(d_min) else None
+    start_lv = (
+        np.searchsorted(start_lim[0], dist[cand], side="right") if start_lim else None
+    )
+    if tighten and metric == "grid" and Bp >= 2.0:
+        centre = region.grid_index[start].astype(np.float64)
+        relax, leaves = _midpoint_cover(
+            Y, region, cand, start_lv, start_lim, centre, Bp, n_max, ridge, cover,
+            max_pieces, init_info, opts,
+        )
+    else:
+        levels, caps = ([start_lv], [start_lim[1]]) if start_lim else ([], [])
+        relax = _relaxation(Y, cand, _Polytope(n_max, cand.size, levels, caps), ridge, **opts)
+    bound = max(init_info, relax.value)
+    path_value = None
+    if path_aware:
+        path_value = _path_aware(Y, region, start, budget, ridge, metric, path_aware)
+        if path_value is not None:
+            bound = min(bound, max(init_info, path_value))
+
+    information = gap = ratio = online = None
+    if plan is not None:
+        cells = np.asarray(plan.cells, dtype=np.int64)
+        _check_plan_feasible(cells, init, cand, n_max, plan, budget, slack)
+        _check_plan_limits(cells, init, region, dist, start_lim, leaves, Bp, n_max, plan)
+        information = float(fisher_information(Y, cells, ridge=ridge))
+        online = _online_bound(Y, cells, cand, n_max, ridge, information)
+        if online is not None:
+            bound = min(bound, max(init_info, online))
+        plan_criterion = _plan_criterion(plan)
+        greedy_info, refined_info, n_moves, rcells = _refined(
+            plan, Y, region, refine, metric, plan_criterion, information)
+        if refined_info is not None and refined_info > information:
+            online_r = _online_bound(Y, rcells, cand, n_max, ridge, refined_info)
+            if online_r is not None:
+                bound = min(bound, max(init_info, online_r))
+        if plan_criterion in (None, "fisher"):
+            gap, ratio = _gap(bound, information, k)
+        else:  # a bound on Fisher information says nothing of another criterion's gap
+            gap, ratio = math.nan, math.nan
+    return PlanCertificate(
+        bound=float(bound), information=information, gap=gap, volume_ratio=ratio,
+        n_max=int(n_max), n_candidates=int(cand.size), k=k, start=int(start), budget=budget,
+        ridge=ridge, metric=metric, initial_information=init_info, relaxation=relax,
+        online_bound=online, tightened=bool(tighten), leaves=tuple(leaves),
+        criterion="fisher", plan_criterion=_plan_criterion(plan) if plan is not None else None,
+        greedy_information=greedy_info if plan is not None else None,
+        refined_information=refined_info if plan is not None else None,
+        refine_moves=n_moves if plan is not None else None,
+        path_bound=path_value,
+    )
+
+
+def _path_aware(Y: np.ndarray, region: Any, start: int, budget: float, ridge: float,
+                metric: str, opts: Any) -> float | None:
+    """The path-aware relaxation's dual bound, or None (with a warning) when it fails."""
+    from . import relaxation
+
+    if metric != "grid":
+        warnings.warn("path_aware=True needs metric='grid'; the disk bound is used",
+                      UserWarning, stacklevel=3)
+        return None
+    kw = dict(opts) if isinstance(opts, dict) else {}
+    try:
+        return float(relaxation.path_relaxation_bound(Y, region, start, budget, ridge=ridge,
+                                                      **kw).value)
+    except (PlanningError, SolverError) as exc:
+        warnings.warn(f"path-aware relaxation failed ({exc}); the disk bound (looser) is used",
+                      UserWarning, stacklevel=3)
+        return None
+
+
+
+def _refined(plan: Any, Y: np.ndarray, region: Any, refine: Any, metric: str,
+             plan_criterion: str | None, information: float
+             ) -> tuple[float | None, float | None, int | None, np.ndarray]:
+    """``(greedy information, refined information, moves, refined cells)`` of a Fisher
+    greedy plan, or ``(None, None, None, plan cells)``."""
+    cells = np.asarray(plan.cells, dtype=np.int64)
+    if plan_criterion != "fisher" or metric != "grid":
+        return None, None, None, cells
+    done = getattr(plan, "refinement", None) or {}
+    if done:
+        return float(done["information_before"]), float(information), int(done["moves"]), cells
+    if refine is False or refine is None or not hasattr(plan, "cost_function"):
+        return None, None, None, cells
+    from .refine import refine as _refine
+
+    opts = dict(refine) if isinstance(refine, dict) else {}
+    better = _refine(plan, Y, region, **opts)
+    moves = int(better.refinement.get("moves", 0)) if better is not plan else 0
+    return (float(information), max(float(better.information), float(information)), moves,
+            np.asarray(better.cells, dtype=np.int64))
+
+
+def _plan_criterion(plan: Any) -> str | None:
+    """The criterion a plan was chosen for, canonical (``None``: a baseline)."""
+    crit = getattr(plan, "criterion", None)
+    if crit is None:
+        return None
+    from ..information import CRITERION_REGISTRY
+
+    crit = CRITERION_REGISTRY.canonical(crit, "plan.criterion")
+    if crit == "fisher" and getattr(plan, "posterior", False):
+        return "fisher (posterior)"
+    return crit
+
+
+# ----------------------------------------------------------------------------- path limits
+_NUDGE = 1e-6  # radii sit this far (in d_min) inside their cap's interval, away from rounding
+
+
+def _cap_ladder(lo: int, hi: int, count: int = 10) -> np.ndarray:
+    """About ``2 count`` integer caps in ``[lo, hi)``: geometric (dense near ``lo``) + linear."""
+    if hi <= lo:
+        return np.zeros(0, np.int64)
+    geo = np.geomspace(lo, max(hi - 1, lo), count)
+    lin = np.linspace(lo, max(hi - 1, lo), count)
+    return np.unique(np.round(np.concatenate([geo, lin])).astype(np.int64))
+
+
+def _start_limit(Bp: float, d_min: float, n_max: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Distance limits from the start: ``(thresholds, caps)``, ascending thresholds.
+
+    A path of length ``<= Bp`` from the start holds at most ``floor((Bp - r) / d_min) + 1`` cells
+    at distance ``>= r`` from the start. For a cap ``c`` the largest such set has ``r`` just
+    above ``Bp - c d_min``; the cap is recomputed from ``r`` (not assumed), and the threshold is
+    nudged up so that float distances cannot put a cell into a set it does not belong to.
+    """
+    thr, caps = [], []
+    for c in _cap_ladder(1, n_max)[::-1]:
+        r = Bp - (c - _NUDGE) * d_min
+        if r <= 0:
+            continue
+        cap = math.floor((Bp - r) / d_min) + 1
+        thr.append(r * (1 + 1e-12) + 1e-12)
+        caps.append(cap)
+    if not thr:
+        return None
+    return np.asarray(thr), np.asarray(caps, dtype=np.float64)
+
+
+def _square_limit(Bp: float, n_max: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distance limits from the midpoint's square: at most ``floor(Bp - 2 s) + 2`` cells at
+    distance ``>= s > 0`` from it (grid units, ``d_min = 1``); ascending thresholds."""
+    thr, caps = [], []
+    for c in _cap_ladder(2, n_max)[::-1]:
+        s = (Bp - c + 1 + 2 * _NUDGE) / 2
+        if s <= 0:
+            continue
+        cap = math.floor(Bp - 2 * s) + 2
+        thr.append(s * (1 + 1e-12) + 1e-12)
+        caps.append(cap)
+    return np.asarray(thr), np.asarray(caps, dtype=np.float64)
+
+
+def _square_distance(points: np.ndarray, r0: float, c0: float, h: float) -> np.ndarray:
+    """Euclidean distance (grid units) from ``points`` (m, 2) to the square ``[r0, r0+h] x
+    [c0, c0+h]`` (0 inside)."""
+    pr, pc = points[:, 0], points[:, 1]
+    dr = np.maximum(np.maximum(r0 - pr, pr - (r0 + h)), 0.0)
+    dc = np.maximum(np.maximum(c0 - pc, pc - (c0 + h)), 0.0)
+    return np.hypot(dr, dc)
+
+
+def _cover_squares(
+    centre: np.ndarray, radius: float, r0: float, c0: float, h: float, parts: int
+) -> list[tuple[float, float, float]]:
+    """The ``parts x parts`` sub-squares of ``[r0, r0+h] x [c0, c0+h]`` meeting the disk
+    ``B(centre, radius)``, as ``(r0, c0, side)``."""
+    s = h / parts
+    out = []
+    for a in range(parts):
+        for b in range(parts):
+            q = (r0 + a * s, c0 + b * s, s)
+            if _square_distance(centre[None, :], *q)[0] <= radius:
+                out.append(q)
+    return out
+
+
+def _midpoint_cover(
+    Y: np.ndarray, region: Any, cand: np.ndarray, start_lv: np.ndarray | None,
+    start_lim: tuple[np.ndarray, np.ndarray] | None, centre: np.ndarray, Bp: float,
+    n_max: int, ridge: float, cover: int, max_pieces: int, floor_value: float,
+    opts: dict[str, Any],
+) -> tuple[Bound, list[tuple[float, float, float, float]]]:
+    """Max over a cover of the possible path midpoints of the relaxation restricted to each piece.
+
+    The midpoint lies in the closed disk ``B(start, Bp / 2)``, tiled by squares of side
+    ``Bp / (2 cover)`` with a corner at the start. Piece ``Q``: the candidates within ``Bp / 2``
+    of ``Q``, the start's distance limits and ``Q``'s distance limits. The piece with the largest
+    bound is split into four (children keep ``min(own, parent)``: both bound the midpoints in
+    the child) until ``max_pieces`` relaxations have been solved or it is below ``floor_value``
+    (the initial set's information, which the certificate takes the maximum with anyway).
+    Returns the largest piece's :class:`Bound` and every final piece ``(r0, c0, side, value)``.
+    """
+    pos = region.grid_index[cand].astype(np.float64)
+    sq_thr, sq_caps = _square_limit(Bp, n_max)
+    half = Bp / 2
+
+    def solve(q: tuple[float, float, float]) -> Bound:
+        dq = _square_distance(pos, *q)
+        sel = np.flatnonzero(dq <= half * (1 + 1e-12) + 1e-12)
+        levels = [np.searchsorted(sq_thr, dq[sel], side="right")]
+        caps = [sq_caps]
+        if start_lv is not None:
+            levels.append(start_lv[sel])
+            caps.append(start_lim[1])
+        poly = _Polytope(n_max, sel.size, levels, caps)
+        return _relaxation(Y, cand[sel], poly, ridge, **opts)
+
+    side = Bp / cover  # 2 cover squares across the disk's diameter Bp
+    squares = _cover_squares(centre, half, centre[0] - half, centre[1] - half, Bp, 2 * cover)
+    del side
+    pieces: list[tuple[tuple[float, float, float], Bound, float]] = []
+    for q in squares:
+        b = solve(q)
+        pieces.append((q, b, b.value))
+    solved = len(pieces)
+    while True:
+        i = max(range(len(pieces)), key=lambda j: (pieces[j][2], -j))
+        q, b, val = pieces[i]
+        children = _cover_squares(centre, half, q[0], q[1], q[2], 2)
+        if val <= floor_value or solved + len(children) > max_pieces or q[2] < 0.5:
+            break
+        new = []
+        for c in children:
+            bc = solve(c)
+            new.append((c, bc if bc.value < val else b, min(bc.value, val)))
+        solved += len(children)
+        pieces[i: i + 1] = new
+    i = max(range(len(pieces)), key=lambda j: (pieces[j][2], -j))
+    leaves = [(q[0], q[1], q[2], v) for q, _, v in pieces]
+    return pieces[i][1], leaves
+
+
+def _check_plan_limits(
+    cells: np.ndarray, init: np.ndarray, region: Any, dist: np.ndarray,
+    start_lim: tuple[np.ndarray, np.ndarray] | None,
+    leaves: list[tuple[float, float, float, float]], Bp: float, n_max: int, plan: Any,
+) -> None:
+    """A covered plan satisfies the start's distance limits and lies in some piece's set."""
+    if set(cells.tolist()) == set(init.tolist()):
+        return
+    cells = np.unique(cells)
+    msg = f"the plan is not a path of length <= {Bp:.6g} from start={plan.start}: "
+    if start_lim is not None:
+        d = dist[cells]
+        counts = (d[:, None] >= start_lim[0][None, :]).sum(axis=0)
+        if np.any(counts > start_lim[1]):
+            raise PlanningError(msg + "too many cells far from the start; the certificate "
+                                "does not cover it")
+    if not leaves:
+        return
+    pos = region.grid_index[cells].astype(np.float64)
+    sq_thr, sq_caps = _square_limit(Bp, n_max)
+    for r0, c0, h, _ in leaves:
+        dq = _square_distance(pos, r0, c0, h)
+        if np.all(dq <= Bp / 2 * (1 + 1e-12) + 1e-12) and np.all(
+            (dq[:, None] >= sq_thr[None, :]).sum(axis=0) <= sq_caps
+        ):
+            return
+    raise PlanningError(msg + "no piece of the midpoint cover holds it; the certificate does "
+                        "not cover it")
+
+
+def _gap(bound: float, information: float, k: int) -> tuple[float, float]:
+    if bound == -math.inf and information == -math.inf:
+        return 0.0, 1.0  # every feasible plan is singular: this one is optimal
+    gap = bound - information
+    return float(gap), float(math.exp(-gap / k)) if math.isfinite(gap) else 0.0
+
+
+def _check_plan_feasible(
+    cells: np.ndarray, init: np.ndarray, cand: np.ndarray, n_max: int, plan: Any,
+    budget: float, slack: float,
+) -> None:
+    """The certificate covers the initial set and plans of <= n_max cells in the budget disk."""
+    if set(cells.tolist()) == set(init.tolist()):
+        return
+    inside = np.isin(cells, cand)
+    if not inside.all() or np.unique(cells).size > n_max:
+        raise PlanningError(
+            f"the plan is not feasible for start={plan.start}, budget={budget:g}: "
+            f"{int((~inside).sum())} of its cells lie farther than the budget from the start "
+            f"or it holds more than {n_max} cells; the certificate does not cover it"
+        )
+
+
+def _online_bound(
+    Y: np.ndarray, cells: np.ndarray, cand: np.ndarray, n_max: int, ridge: float, f_S: float
+) -> float | None:
+    """``f(S) + sum of the n_max largest gains log(1 + y^T M_S^-1 y)`` over candidates not in S.
+
+    Valid for any set S with finite information because log det is monotone submodular:
+    ``f(O) <= f(S u O) <= f(S) + sum_{x in O \\ S} (f(S + x) - f(S))`` and ``|O| <= n_max``.
+    """
+    if not math.isfinite(f_S):
+        return None
+    M = _moment(Y, cells, np.ones(cells.size), ridge)
+    L = _chol(M)
+    if L is None:
+        return None
+    others = np.setdiff1d(cand, cells)
+    if others.size == 0:
+        return f_S
+    gains = np.log1p(_leverages(np.ascontiguousarray(Y[:, others]), _inv_lower(L)))
+    top, _ = _top_sum(gains, float(n_max))
+    return f_S + top
+
+
+def _min_spacing_km(region: Any, cand: np.ndarray) -> float:
+    """Smallest great-circle distance (km) between two distinct candidate cells (KD-tree)."""
+    if cand.size < 2:
+        return math.inf
+    from scipy.spatial import cKDTree
+
+    lat = np.radians(region.cell_lat[cand])
+    lon = np.radians(region.cell_lon[cand])
+    xyz = np.column_stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
+    _, nn = cKDTree(xyz).query(xyz, k=2)
+    d = np.asarray(region.distance(cand, cand[nn[:, 1]], metric="km"), dtype=np.float64)
+    # chord and great-circle distances are monotone in each other; shave rounding off
+    return float(d.min()) * (1 - 1e-9)
