@@ -1,9 +1,19 @@
-"""The paper's baselines: straight transects and the random walk.
+"""The paper's baselines: straight transects and the random walk, under any path model.
 
-Both move on the grid from the start cell and return a :class:`Plan` whose ``cells`` are the
-distinct valid cells visited (first-visit order) and whose ``route`` is the travel itself.
-Directions are geographic: ``"up"`` is north (increasing latitude), ``"down"`` south,
-``"left"`` west (decreasing longitude), ``"right"`` east, whatever the grid's row order.
+Both move on the grid from the start cell, one grid step at a time, and return a :class:`Plan`
+whose ``cells`` are the distinct valid cells visited (first-visit order) and whose ``route`` is
+the travel itself. Directions are geographic: ``"up"`` is north (increasing latitude),
+``"down"`` south, ``"left"`` west (decreasing longitude), ``"right"`` east, whatever the grid's
+row order.
+
+They obey the planners' path model (issue #15, :mod:`lrm_cvx.planning.paths`): the budget is
+in grid units (``metric="grid"``, the paper), great-circle km (``metric="km"``) or hours
+(``speed`` km/h); each step costs the distance between the two grid positions' centres (1 or
+sqrt 2 in grid units, haversine in km, divided by ``speed``); ``stop_cost`` is charged once per
+observed cell (its first visit, the start included), as the greedy charges it once per sampling
+stop; with ``traversable`` they never enter a cell the robot may not enter; ``closed=True``
+walks out while the remaining budget still pays the way back along the travelled path, then
+retraces it to the start. With every option at its default the plans are exactly the paper's.
 """
 
 from __future__ import annotations
@@ -16,7 +26,7 @@ import numpy as np
 from .._validation import as_factor_matrix, as_generator
 from ..errors import LrmError, PlanningError
 from ..information import fisher_information
-from ..region import Region
+from ..region import EARTH_RADIUS_KM, Region
 from .greedy import _check_budget
 from .plan import Plan, check_region
 
@@ -24,6 +34,7 @@ __all__ = ["transect", "random_walk", "DIRECTIONS"]
 
 DIRECTIONS: tuple[str, ...] = ("up", "down", "left", "right")
 _TOL = 1e-9
+_SQRT2 = math.sqrt(2.0)
 
 
 def _axis_sign(values: np.ndarray) -> int:
@@ -38,35 +49,230 @@ def _information(Y: Any, region: Region, cells: list[int], ridge: float) -> tupl
     return Yk, fisher_information(Yk, cells, ridge)
 
 
-def _first_visits(route: list[int]) -> list[int]:
-    return list(dict.fromkeys(route))
+# ---------------------------------------------------------------------------- path model
+class _Geometry:
+    """What a baseline walk needs from the path model: the step costs between grid positions,
+    the positions it may enter, the stop cost, and whether it must come back.
+
+    ``enter`` is ``None`` without a travel graph (``traversable=None``: a transect crosses
+    masked positions as in the paper, the random walk steps on valid cells) or the ``(ny, nx)``
+    bool grid of enterable positions (valid and allowed by ``traversable``).
+    """
+
+    def __init__(self, region: Region, model: Any, metric: str, speed: float | None,
+                 stop_cost: float, closed: bool, traversable: Any) -> None:
+        self.region = region
+        self.metric = metric
+        self.speed = speed
+        self.stop_cost = float(stop_cost)
+        self.closed = bool(closed)
+        self.graph = traversable is not None
+        self.model = model
+        self.enter: np.ndarray | None = None
+        if self.graph:
+            grid = region.cell_grid
+            ok = np.asarray(model.enterable(), dtype=bool)
+            self.enter = (grid >= 0) & ok[np.maximum(grid, 0)]
+        if metric == "km":
+            self._lat = np.radians(np.asarray(region.lat.values, dtype=np.float64))
+            self._lon = np.radians(np.asarray(region.lon.values, dtype=np.float64))
+
+    def inside(self, ny: int, nx: int, p: np.ndarray) -> bool:
+        if not (0 <= p[0] < ny and 0 <= p[1] < nx):
+            return False
+        return self.enter is None or bool(self.enter[p[0], p[1]])
+
+    def steps(self, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Cost of the steps from grid position ``(r0, c0)`` to each ``(rows, cols)`` (budget
+        unit): grid units (1 or sqrt 2), or the haversine km between the positions' centres
+        (divided by ``speed`` for hours)."""
+        if self.metric == "grid":
+            return np.where((rows != r0) & (cols != c0), _SQRT2, 1.0)
+        p1, p2 = self._lat[r0], self._lat[rows]
+        dlon = self._lon[cols] - self._lon[c0]
+        h = np.sin((p2 - p1) / 2) ** 2 + np.cos(p1) * np.cos(p2) * np.sin(dlon / 2) ** 2
+        km = 2 * EARTH_RADIUS_KM * np.arcsin(np.sqrt(np.clip(h, 0.0, 1.0)))
+        return km / self.speed if self.speed is not None else km
+
+    def step(self, p: np.ndarray, q: np.ndarray) -> float:
+        return float(self.steps(int(p[0]), int(p[1]), np.array([q[0]]), np.array([q[1]]))[0])
+
+    def fits(self, travel: float, stops: float, step: Any, new_stop: Any,
+             budget: float) -> Any:
+        """Whether a step (cost ``step``, ``new_stop`` for a first visit) fits the budget after
+        ``travel`` + ``stops``; for a closed tour, with the way back along the same path."""
+        if self.closed:
+            return 2.0 * (travel + step) + (stops + new_stop) <= budget + _TOL
+        return travel + stops + (step + new_stop) <= budget + _TOL
 
 
+def _path_setup(region: Region, start: Any, budget: Any, *, metric: str, speed: Any,
+                stop_cost: Any, traversable: Any, closed: Any) -> tuple[int, float, _Geometry,
+                                                                       dict[str, Any]]:
+    """Validate one robot's request against the path model: ``(start cell, budget, geometry,
+    path options for Plan.build)``. The paper's model (every option at its default) needs no
+    path model at all and keeps the paper's messages."""
+    start_cell = region.resolve_cell(start, "start")
+    default = (metric == "grid" and speed is None and traversable is None and closed is False
+               and isinstance(stop_cost, (int, float)) and stop_cost == 0)
+    if default:
+        budget = _check_budget(budget)
+        return start_cell, budget, _Geometry(region, None, "grid", None, 0.0, False, None), {}
+    from .paths import make_path_model
+
+    model = make_path_model(region, start_cell, budget, metric=metric, speed=speed,
+                            stop_cost=stop_cost, traversable=traversable, closed=closed)
+    geo = _Geometry(region, model, model.metric, model.speed, model.stop_cost, model.closed,
+                    traversable)
+    opts = {"metric": model.metric, "speed": model.speed, "stop_cost": model.stop_cost,
+            "traversable": model.traversable, "closed": model.closed, "unit": model.unit}
+    return start_cell, float(model.budget), geo, opts
+
+
+def _starts_budgets(start: Any, budget: Any) -> tuple[list[Any], list[Any]] | None:
+    """``(starts, budgets)`` for a fleet request (``start`` a list of cells or ``(lat, lon)``
+    pairs, ``budget`` a number or one per start), or None for one robot (a cell index or one
+    ``(lat, lon)`` pair; a list of two floats is a pair, as it always was)."""
+    if not isinstance(start, list) or len(start) == 0:
+        if isinstance(start, list):
+            raise PlanningError("start must be a cell, a (lat, lon) pair or a non-empty list "
+                                "of those (one per robot), got []")
+        return None
+    pairs = [isinstance(s, (tuple, list, np.ndarray)) for s in start]
+    ints = [isinstance(s, (int, np.integer)) and not isinstance(s, bool) for s in start]
+    if not all(p or i for p, i in zip(pairs, ints, strict=True)):
+        return None  # e.g. [lat, lon] floats: one (lat, lon) pair
+    starts = list(start)
+    if isinstance(budget, (list, tuple, np.ndarray)):
+        budgets = list(budget)
+        if len(budgets) != len(starts):
+            raise PlanningError(f"budget must be a number or a list with one budget per start "
+                                f"({len(starts)} starts), got {len(budgets)} budgets")
+    else:
+        budgets = [budget] * len(starts)
+    return starts, budgets
+
+
+def _finish(region: Region, positions: list[np.ndarray], step_costs: list[float],
+            geo: _Geometry, *, trim: bool) -> tuple[list[int], list[float], list[bool], float]:
+    """The route of a walk through grid ``positions`` (steps costing ``step_costs``): valid
+    positions only, each with its cumulative cost (travel + a stop cost at each first visit)
+    and whether it is a first visit (a sampling stop). A closed walk first drops trailing
+    masked positions (``trim``), then retraces its steps back to the start; an open walk ends
+    at its last valid position. Returns ``(route, route_cost, waypoint, cost)``."""
+    grid = region.cell_grid
+    cells = [int(grid[p[0], p[1]]) for p in positions]
+    if geo.closed:
+        if trim:
+            last = max(i for i, c in enumerate(cells) if c >= 0)
+            positions, cells, step_costs = positions[:last + 1], cells[:last + 1], \
+                step_costs[:last]
+        cells = cells + cells[-2::-1]
+        step_costs = step_costs + step_costs[::-1]
+    route: list[int] = []
+    route_cost: list[float] = []
+    waypoint: list[bool] = []
+    seen: set[int] = set()
+    travel = 0.0
+    stops = 0.0
+    for i, c in enumerate(cells):
+        if i:
+            travel += step_costs[i - 1]
+        if c < 0:
+            continue
+        first = c not in seen
+        if first:
+            seen.add(c)
+            stops += geo.stop_cost
+        route.append(c)
+        route_cost.append(travel + stops)
+        waypoint.append(first)
+    if geo.closed and len(route) > 1:
+        waypoint[-1] = True  # the tour ends at its start, a stop again
+    return route, route_cost, waypoint, route_cost[-1]
+
+
+def _build(region: Region, route: list[int], route_cost: list[float], waypoint: list[bool],
+           cost: float, *, Y: Any, ridge: float, budget: float, start: int, method: str,
+           cost_function: str, opts: dict[str, Any]) -> Plan:
+    from .plan import path_dict
+
+    cells = list(dict.fromkeys(route))
+    Yk, info = _information(Y, region, cells, ridge)
+    extra: dict[str, Any] = {}
+    if opts:
+        extra = {"path": path_dict([start], [budget], **opts), "waypoint": waypoint}
+    return Plan.build(
+        region=region, cells=cells, route=route, cost=cost, information=info,
+        route_cost=route_cost, criterion=None, budget=budget, start=start,
+        ridge=float(ridge), method=method, cost_function=cost_function, Y=Yk, history={},
+        **extra,
+    )
+
+
+def _fleet(one: Any, start: Any, budget: Any, Y: Any, ridge: float, method: str) -> Plan | None:
+    """A fleet request (``start`` a list): ``one(start_i, budget_i)`` per robot, joined by
+    :meth:`Plan.from_robots` (joint information); None for a single robot."""
+    split = _starts_budgets(start, budget)
+    if split is None:
+        return None
+    plans = [one(s, b) for s, b in zip(*split, strict=True)]
+    if len(plans) == 1:
+        return plans[0]
+    return Plan.from_robots(plans, Y=Y, ridge=float(ridge), method=method)
+
+
+# ---------------------------------------------------------------------------- transect
 def transect(
     region: Region,
     start: Any,
-    budget: float,
+    budget: Any,
     direction: str,
     *,
+    metric: str = "grid",
+    speed: float | None = None,
+    stop_cost: float = 0.0,
+    traversable: Any = None,
+    closed: bool = False,
     Y: Any = None,
     ridge: float = 0.0,
 ) -> Plan:
-    """A straight transect from ``start``, one grid step (cost 1) at a time.
+    """A straight transect from ``start``, one grid step at a time (a lawnmower at the edges).
 
-    ``direction`` is ``"up"`` (north), ``"down"``, ``"left"`` (west) or ``"right"``. The walk
-    makes ``floor(budget + 1e-9)`` steps. When the next step would leave the grid it instead
-    steps once orthogonally (east for up/down transects, south for left/right ones; the other
-    way when that is off the grid too, and from then on) and reverses direction (a lawnmower).
-    Every grid position passed is observed; masked positions are crossed (their steps count)
-    but are not among the plan's cells. The plan's ``cost`` is the number of steps walked up to
-    the last observed (valid) cell: steps over masked positions after it observe nothing and
-    are not part of the plan. ``Y`` (optional) gives the plan's Fisher information.
+    ``direction`` is ``"up"`` (north), ``"down"``, ``"left"`` (west) or ``"right"``. When the
+    next step would leave the grid (or, with ``traversable``, enter a cell the robot may not
+    enter) it instead steps once orthogonally (east for up/down transects, south for left/right
+    ones; the other way when that is blocked too, and from then on) and reverses direction. It
+    walks while the next step fits the budget (the paper's grid: ``floor(budget + 1e-9)`` unit
+    steps).
+
+    Path model (as :func:`~lrm_cvx.planning.plan_greedy`): ``metric`` ``"grid"`` (each step
+    costs 1) or ``"km"`` (the haversine distance between the two positions' centres),
+    ``speed`` (km/h, with ``"km"``) for a budget in hours; ``stop_cost`` (budget unit) is
+    charged at each cell's first visit, the start included; ``traversable`` (``"valid"`` or a
+    boolean ``(lat, lon)`` DataArray) makes non-enterable cells turn the transect like the grid
+    edge; ``closed=True`` walks out while the budget still pays the way back along the same
+    path, then retraces it (the route ends at the start).
+
+    Without ``traversable`` every grid position passed is observed; masked positions are
+    crossed (their steps count) but are not among the plan's cells. The plan's ``cost`` is the
+    cost walked up to the last observed (valid) cell: steps over masked positions after it
+    observe nothing and are not part of the plan (a closed transect turns back at that cell).
+    ``start`` a list (and ``budget`` a number or one per start): one transect per robot,
+    joined by :meth:`Plan.from_robots`. ``Y`` (optional) gives the plan's Fisher information.
     """
     if direction not in DIRECTIONS:
         raise PlanningError(f"direction must be one of {DIRECTIONS}, got {direction!r}")
     region = check_region(region)
-    start_cell = region.resolve_cell(start, "start")
-    budget = _check_budget(budget)
+    fleet = _fleet(lambda s, b: transect(region, s, b, direction, metric=metric, speed=speed,
+                                         stop_cost=stop_cost, traversable=traversable,
+                                         closed=closed, Y=Y, ridge=ridge),
+                   start, budget, Y, ridge, f"transect-{direction}")
+    if fleet is not None:
+        return fleet
+    start_cell, budget, geo, opts = _path_setup(
+        region, start, budget, metric=metric, speed=speed, stop_cost=stop_cost,
+        traversable=traversable, closed=closed)
     ny, nx = region.shape
     north = _axis_sign(region.lat.values)  # row step that goes north
     east = _axis_sign(region.lon.values)  # col step that goes east
@@ -75,103 +281,124 @@ def transect(
     orth = np.array(step["right"] if direction in ("up", "down") else step["down"])
     grid = region.cell_grid
     pos = region.grid_index[start_cell].copy()
-    inside = lambda p: 0 <= p[0] < ny and 0 <= p[1] < nx  # noqa: E731
-    route = [start_cell]
-    route_cost = [0.0]
-    n_steps = math.floor(budget + _TOL)
-    moves = 0
-    for _ in range(n_steps):
+    inside = lambda p: geo.inside(ny, nx, p)  # noqa: E731
+    positions = [pos]
+    step_costs: list[float] = []
+    seen = {start_cell}
+    travel, stops = 0.0, geo.stop_cost
+    while True:
         if inside(pos + d):
-            pos = pos + d
+            nxt = pos + d
         else:
             if not inside(pos + orth):
                 orth = -orth
             d = -d
             if inside(pos + orth):
-                pos = pos + orth
-            elif inside(pos + d):  # a one-wide grid: just turn back
-                pos = pos + d
+                nxt = pos + orth
+            elif inside(pos + d):  # a one-wide corridor: just turn back
+                nxt = pos + d
             else:
-                break  # a single grid position: nowhere to go
-        moves += 1
-        c = int(grid[pos[0], pos[1]])
+                break  # a single position: nowhere to go
+        s = geo.step(pos, nxt)
+        c = int(grid[nxt[0], nxt[1]])
+        new = geo.stop_cost if c >= 0 and c not in seen else 0.0
+        if not geo.fits(travel, stops, s, new, budget):
+            break
+        pos = nxt
+        positions.append(pos)
+        step_costs.append(s)
+        travel += s
+        stops += new
         if c >= 0:
-            route.append(c)
-            route_cost.append(float(moves))
-    cells = _first_visits(route)
-    Yk, info = _information(Y, region, cells, ridge)
-    return Plan.build(
-        region=region, cells=cells, route=route, cost=route_cost[-1], information=info,
-        route_cost=route_cost,
-        criterion=None, budget=budget, start=start_cell, ridge=float(ridge),
-        method=f"transect-{direction}", cost_function="steps", Y=Yk,
-        history={},
-    )
+            seen.add(c)
+    route, route_cost, waypoint, cost = _finish(region, positions, step_costs, geo, trim=True)
+    return _build(region, route, route_cost, waypoint, cost, Y=Y, ridge=ridge, budget=budget,
+                  start=start_cell, method=f"transect-{direction}", cost_function="steps",
+                  opts=opts)
 
 
-def _neighbours(grid: np.ndarray, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
-    """Valid 8-neighbours of a grid position: their cell indices (ascending) and step lengths."""
+# ---------------------------------------------------------------------------- random walk
+def _neighbours(grid: np.ndarray, row: int, col: int, enter: np.ndarray | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Valid (with ``enter``: enterable) 8-neighbours of a grid position: their cell indices
+    (ascending), rows and columns."""
     ny, nx = grid.shape
     r0, r1 = max(row - 1, 0), min(row + 2, ny)
     c0, c1 = max(col - 1, 0), min(col + 2, nx)
     rr, cc = np.mgrid[r0:r1, c0:c1]
     cells = grid[r0:r1, c0:c1]
     keep = (cells >= 0) & ~((rr == row) & (cc == col))
-    lengths = np.where((rr != row) & (cc != col), math.sqrt(2.0), 1.0)
-    return cells[keep], lengths[keep]
+    if enter is not None:
+        keep &= enter[r0:r1, c0:c1]
+    return cells[keep], rr[keep], cc[keep]
 
 
 def random_walk(
     region: Region,
     start: Any,
-    budget: float,
+    budget: Any,
     rng: Any = None,
     *,
+    metric: str = "grid",
+    speed: float | None = None,
+    stop_cost: float = 0.0,
+    traversable: Any = None,
+    closed: bool = False,
     Y: Any = None,
     ridge: float = 0.0,
 ) -> Plan:
     """The paper's random-sampling baseline: a random walk on valid 8-neighbours.
 
-    From the last cell, the neighbours are the valid (unmasked) cells among its 8 grid
-    neighbours whose step (1, or sqrt 2 diagonally) still fits in the remaining budget. A
-    random unvisited one is taken if any, else a random one among them; the walk stops when no
-    neighbour fits. The cost is the walk's Euclidean length in grid units. ``rng``: a seed or
-    ``numpy.random.Generator`` (deterministic given a seed).
+    From the last cell, the neighbours are the valid (unmasked; with ``traversable``,
+    enterable) cells among its 8 grid neighbours whose step still fits the budget (with
+    ``stop_cost`` added for a cell not yet visited; for ``closed=True``, with the way back
+    along the walk). A random unvisited one is taken if any, else a random one among them; the
+    walk stops when no neighbour fits. A step costs 1 or sqrt 2 grid units (``metric="grid"``,
+    the paper), the haversine km between the cells' centres (``"km"``), or that divided by
+    ``speed`` (hours). A closed walk then retraces its steps to the start. ``rng``: a seed or
+    ``numpy.random.Generator`` (deterministic given a seed). ``start`` a list: one walk per
+    robot (drawn in robot order from ``rng``), joined by :meth:`Plan.from_robots`.
     """
     region = check_region(region)
-    start_cell = region.resolve_cell(start, "start")
-    budget = _check_budget(budget)
     try:
         gen = as_generator(rng)
     except LrmError:
         raise PlanningError(f"rng must be None, an int seed or a numpy Generator, got {rng!r}") \
             from None
+    fleet = _fleet(lambda s, b: random_walk(region, s, b, gen, metric=metric, speed=speed,
+                                            stop_cost=stop_cost, traversable=traversable,
+                                            closed=closed, Y=Y, ridge=ridge),
+                   start, budget, Y, ridge, "random")
+    if fleet is not None:
+        return fleet
+    start_cell, budget, geo, opts = _path_setup(
+        region, start, budget, metric=metric, speed=speed, stop_cost=stop_cost,
+        traversable=traversable, closed=closed)
     grid = region.cell_grid
     gi = region.grid_index
-    route = [start_cell]
-    route_cost = [0.0]
+    positions = [gi[start_cell]]
+    step_costs: list[float] = []
     visited = {start_cell}
-    cost = 0.0
+    travel, stops = 0.0, geo.stop_cost
     cur = start_cell
     while True:
-        nb, lengths = _neighbours(grid, int(gi[cur, 0]), int(gi[cur, 1]))
-        fits = cost + lengths <= budget + _TOL
-        nb, lengths = nb[fits], lengths[fits]
+        row, col = int(gi[cur, 0]), int(gi[cur, 1])
+        nb, rows, cols = _neighbours(grid, row, col, geo.enter)
+        lengths = geo.steps(row, col, rows, cols)
+        fresh = np.array([c not in visited for c in nb.tolist()], dtype=bool)
+        new = np.where(fresh, geo.stop_cost, 0.0)
+        fits = geo.fits(travel, stops, lengths, new, budget)
+        nb, lengths, fresh, new = nb[fits], lengths[fits], fresh[fits], new[fits]
         if nb.size == 0:
             break
-        fresh = np.array([c not in visited for c in nb.tolist()], dtype=bool)
         pick = np.flatnonzero(fresh) if fresh.any() else np.arange(nb.size)
         j = int(pick[gen.integers(pick.size)])
         cur = int(nb[j])
-        cost += float(lengths[j])
-        route.append(cur)
-        route_cost.append(cost)
+        travel += float(lengths[j])
+        stops += float(new[j])
+        positions.append(gi[cur])
+        step_costs.append(float(lengths[j]))
         visited.add(cur)
-    cells = _first_visits(route)
-    Yk, info = _information(Y, region, cells, ridge)
-    return Plan.build(
-        region=region, cells=cells, route=route, cost=cost, information=info, criterion=None,
-        route_cost=route_cost,
-        budget=budget, start=start_cell, ridge=float(ridge), method="random",
-        cost_function="path", Y=Yk, history={},
-    )
+    route, route_cost, waypoint, cost = _finish(region, positions, step_costs, geo, trim=False)
+    return _build(region, route, route_cost, waypoint, cost, Y=Y, ridge=ridge, budget=budget,
+                  start=start_cell, method="random", cost_function="path", opts=opts)
