@@ -1,0 +1,1032 @@
+"""The path model (issue #15): how a robot travels, what a route costs, exact incremental costs.
+
+One :class:`PathModel` per robot (:func:`make_path_model`) answers every geometric question the
+planners, the baselines, :class:`~lrm_cvx.planning.plan.Plan` and the certificate ask:
+
+* the metric (``"grid"`` units, great-circle ``"km"``, or hours = km / ``speed``) and a per-stop
+  cost ``stop_cost`` (time on station), in the budget's unit;
+* straight-line travel between stops (``traversable=None``, the paper) or a travel graph:
+  shortest paths over the 8-connected grid of enterable cells (``"valid"`` or a boolean mask),
+  longitude wrapping on a grid spanning the full circle;
+* open paths (the paper), closed tours (``closed=True``) or routes to a given ``end``;
+* the route ordering heuristic ``cost``: the paper's nearest-neighbour tour or cheapest
+  insertion, with exact incremental costs ``C(P + x) - C(P)`` for a whole candidate pool
+  (:meth:`PathModel.coster`).
+
+The default model (``metric="grid"``, no graph, open, ``stop_cost=0``) reuses
+:class:`lrm_cvx.cost.NearestNeighborCost` / :class:`~lrm_cvx.cost.InsertionCost`, so its numbers
+are exactly those of the paper's planner. The other models keep an ``(n, m)`` matrix of travel
+distances from the pool to the route's stops (one column per stop, computed when the stop
+joins) and run the same exact incremental algorithms (docs/planning.md) on matrix lookups.
+
+Exactness of the distances: every straight-line distance comes from one compiled function
+(:func:`_dist_pairs`), symmetric by construction, so the same pair always gives the same float.
+Graph edge lengths are rounded *up* to a multiple of ``2**-20`` (of the budget's unit), so every
+path length is an exact float sum: shortest-path distances are exactly symmetric and
+independent of the summation order, and never shorter than the true path.
+
+Travel graph scope: the graph holds the enterable cells within straight-line reach of the start
+(the travel budget; half of it for a closed tour), and Dijkstra stops at the travel budget. Every
+point of a feasible route lies in that disk, so a route's cost is its true shortest-path cost
+whenever it is within the budget; distances beyond the reach are ``inf``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numba
+import numpy as np
+
+from ..cost import COST_REGISTRY, InsertionCost, NearestNeighborCost
+from ..errors import PlanningError
+from ..region import EARTH_RADIUS_KM, Region
+
+__all__ = [
+    "METRICS",
+    "PathModel",
+    "IncrementalCost",
+    "make_path_model",
+    "travel_distance",
+]
+
+METRICS = ("grid", "km")
+"""Travel metrics: Euclidean grid units (the paper) and great-circle km."""
+
+_QUANTUM = 2.0 ** -20  # graph edge lengths are multiples of this (budget unit): exact sums
+_TOL = 1e-9  # budget tolerance (as the greedy's)
+_CODES = {"grid": 0, "km": 1, "h": 2}
+
+
+# --------------------------------------------------------------------------- distances
+@numba.njit(cache=True, nogil=True)
+def _dist_pairs(code, ar, ac, br, bc, latr, lonr, coslat, speed):  # pragma: no cover
+    """Straight-line distance of each pair (a_i, b_i) given by grid rows/cols, budget unit.
+
+    ``code`` 0: Euclidean grid units; 1: haversine km; 2: haversine km / speed (hours).
+    Symmetric by construction (absolute differences, commutative products).
+    """
+    n = ar.shape[0]
+    out = np.empty(n, dtype=np.float64)
+    for i in range(n):
+        r1 = ar[i]
+        r2 = br[i]
+        if code == 0:
+            dr = r1 - r2
+            dc = ac[i] - bc[i]
+            out[i] = math.sqrt(float(dr * dr + dc * dc))
+        else:
+            dphi = abs(latr[r2] - latr[r1])
+            dlam = abs(lonr[bc[i]] - lonr[ac[i]])
+            s1 = math.sin(0.5 * dphi)
+            s2 = math.sin(0.5 * dlam)
+            h = s1 * s1 + (coslat[r1] * coslat[r2]) * (s2 * s2)
+            if h > 1.0:
+                h = 1.0
+            d = 2.0 * 6371.0088 * math.asin(math.sqrt(h))
+            if code == 2:
+                d = d / speed
+            out[i] = d
+    return out
+
+
+def _check_metric(metric: Any, speed: Any) -> tuple[str, float | None, str]:
+    """(metric, speed, unit) after validation."""
+    if not isinstance(metric, str) or metric.lower() not in METRICS:
+        raise PlanningError(f"metric must be one of {list(METRICS)}, got {metric!r}")
+    metric = metric.lower()
+    if speed is None:
+        return metric, None, "grid units" if metric == "grid" else "km"
+    if metric != "km":
+        raise PlanningError(
+            f"speed (km/h) needs metric='km' (a budget in hours), got metric={metric!r}")
+    if isinstance(speed, (str, bytes, bool, np.bool_)):
+        raise PlanningError(f"speed must be a number of km/h > 0, got {speed!r}")
+    try:
+        v = float(speed)
+    except (TypeError, ValueError):
+        raise PlanningError(f"speed must be a number of km/h > 0, got {speed!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise PlanningError(f"speed must be a finite number of km/h > 0, got {speed!r}")
+    return metric, v, "h"
+
+
+class _Geometry:
+    """Per-region arrays for :func:`_dist_pairs` (radians, cosines), built once per model."""
+
+    def __init__(self, region: Region, metric: str, speed: float | None) -> None:
+        self.region = region
+        self.code = _CODES["h" if speed is not None else metric]
+        self.speed = float(speed) if speed is not None else 1.0
+        self.latr = np.radians(np.asarray(region.lat.values, dtype=np.float64))
+        self.lonr = np.radians(np.asarray(region.lon.values, dtype=np.float64))
+        self.coslat = np.cos(self.latr)
+        gi = region.grid_index
+        self.rows = np.ascontiguousarray(gi[:, 0])
+        self.cols = np.ascontiguousarray(gi[:, 1])
+        if self.code and not region._sphere:
+            raise PlanningError("metric='km' needs a grid in degrees (lat in [-90, 90])")
+
+    def pairs(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Distances of the cell pairs ``(a_i, b_i)`` (equal-length int arrays)."""
+        a = np.ascontiguousarray(a, dtype=np.int64)
+        b = np.ascontiguousarray(b, dtype=np.int64)
+        return _dist_pairs(self.code, self.rows[a], self.cols[a], self.rows[b], self.cols[b],
+                           self.latr, self.lonr, self.coslat, self.speed)
+
+    def row(self, a: int, b: np.ndarray) -> np.ndarray:
+        """Distances from cell ``a`` to every cell of ``b``."""
+        b = np.asarray(b, dtype=np.int64)
+        return self.pairs(np.full(b.size, int(a), dtype=np.int64), b)
+
+    def matrix(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        a = np.asarray(a, dtype=np.int64)
+        b = np.asarray(b, dtype=np.int64)
+        return self.pairs(np.repeat(a, b.size), np.tile(b, a.size)).reshape(a.size, b.size)
+
+
+def travel_distance(region: Region, a: Any, b: Any, metric: str = "grid",
+                    speed: float | None = None) -> np.ndarray:
+    """Straight-line travel distance between cells ``a`` and ``b`` (broadcast), budget unit.
+
+    ``metric="grid"``: Euclidean distance between grid positions (grid units, the paper);
+    ``"km"``: great-circle distance between cell centres (haversine, ``EARTH_RADIUS_KM``,
+    longitude wraps); with ``speed`` (km/h, only with ``"km"``): hours ``km / speed``.
+    Returns a float64 array of the broadcast shape (a 0-d array for two scalars).
+    """
+    metric, speed, _ = _check_metric(metric, speed)
+    a = region.check_cells(a, "a")
+    b = region.check_cells(b, "b")
+    try:
+        a, b = np.broadcast_arrays(a, b)
+    except ValueError as exc:
+        raise PlanningError(f"a and b must broadcast: {exc}") from None
+    geo = _Geometry(region, metric, speed)
+    return geo.pairs(a.ravel(), b.ravel()).reshape(a.shape)
+
+
+def _ceil_quantum(w: np.ndarray) -> np.ndarray:
+    return np.ceil(w / _QUANTUM) * _QUANTUM
+
+
+def _wraps(region: Region) -> bool:
+    """True when the grid is in degrees and its columns span the full 360 degrees."""
+    lon = np.asarray(region.lon.values, dtype=np.float64)
+    if not region._sphere or lon.size < 3:
+        return False
+    step = np.diff(lon)
+    if not np.allclose(step, step[0], rtol=1e-6, atol=0):
+        return False
+    return bool(abs(abs(step[0]) * lon.size - 360.0) <= 1e-6 * abs(step[0]) * lon.size)
+
+
+# --------------------------------------------------------------------------- travel graph
+_DIRS = ((0, 1), (1, -1), (1, 0), (1, 1))  # half of the 8 neighbours; edges are symmetric
+
+
+class _Graph:
+    """Travel graph over the enterable cells within straight-line ``radius`` of the start.
+
+    ``cells`` (sorted region cell indices) are the nodes; CSR edges to 8-neighbours (wrapping
+    columns on a full-circle grid) weighted by the metric distance between centres, rounded up
+    to :data:`_QUANTUM`. Dijkstra rows (distance, predecessor) are cached per source cell.
+    """
+
+    def __init__(self, model: PathModel, radius: float, limit: float) -> None:
+        from scipy.sparse import csr_matrix
+
+        region = model.region
+        self.radius = float(radius)
+        self.limit = float(limit)
+        near = model._enter & (model._lower_bound_from_start() <= self.radius + model.tol)
+        near[model.start] = True
+        self.cells = np.flatnonzero(near).astype(np.int64)
+        ny, nx = region.shape
+        lookup = np.full(ny * nx, -1, dtype=np.int64)
+        gi = region.grid_index[self.cells]
+        lookup[gi[:, 0] * nx + gi[:, 1]] = np.arange(self.cells.size)
+        src, dst, wt = [], [], []
+        wrap = model._wrap
+        for dr, dc in _DIRS:
+            r = gi[:, 0] + dr
+            c = gi[:, 1] + dc
+            if wrap:
+                c = np.mod(c, nx)
+            ok = (r >= 0) & (r < ny) & (c >= 0) & (c < nx)
+            (i,) = np.nonzero(ok)
+            j = lookup[r[ok] * nx + c[ok]]
+            keep = j >= 0
+            i, j = i[keep], j[keep]
+            if model.metric == "grid":
+                w = np.full(i.size, math.sqrt(2.0) if dr and dc else 1.0)
+            else:
+                w = model._geo.pairs(self.cells[i], self.cells[j])
+            src += [i, j]
+            dst += [j, i]
+            wt += [w, w]
+        w = _ceil_quantum(np.concatenate(wt)) if wt else np.zeros(0)
+        n = self.cells.size
+        self.csr = csr_matrix((w, (np.concatenate(src), np.concatenate(dst))), shape=(n, n))
+        self.csr.sum_duplicates()
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def local(self, cells: np.ndarray) -> np.ndarray:
+        """Node index of each region cell, -1 where it is not a node."""
+        cells = np.asarray(cells, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(self.cells, cells), max(self.cells.size - 1, 0))
+        return np.where(self.cells[pos] == cells, pos, -1)
+
+    def run(self, cell: int) -> tuple[np.ndarray, np.ndarray]:
+        """(distance (n,), predecessor (n,)) from ``cell`` over the nodes, cached."""
+        cell = int(cell)
+        hit = self._cache.get(cell)
+        if hit is None:
+            from scipy.sparse.csgraph import dijkstra
+
+            (loc,) = self.local(np.array([cell]))
+            if loc < 0:
+                n = self.cells.size
+                hit = (np.full(n, np.inf), np.full(n, -9999, dtype=np.int32))
+            else:
+                d, p = dijkstra(self.csr, directed=True, indices=int(loc),
+                                limit=self.limit, return_predecessors=True)
+                hit = (np.asarray(d, dtype=np.float64), np.asarray(p, dtype=np.int32))
+            self._cache[cell] = hit
+        return hit
+
+    def to(self, cell: int, targets: np.ndarray) -> np.ndarray:
+        """Graph distances from ``cell`` to region cells ``targets`` (inf: not reachable)."""
+        d = self.run(cell)[0]
+        loc = self.local(targets)
+        return np.where(loc >= 0, d[np.maximum(loc, 0)], np.inf)
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk(pred, src, dst):  # pragma: no cover - compiled
+    """Nodes of the shortest path src -> dst (inclusive) from a Dijkstra predecessor row."""
+    n = 1
+    v = dst
+    while v != src:
+        v = pred[v]
+        if v < 0:
+            return np.empty(0, dtype=np.int64)
+        n += 1
+    out = np.empty(n, dtype=np.int64)
+    v = dst
+    for k in range(n - 1, -1, -1):
+        out[k] = v
+        if k:
+            v = pred[v]
+    return out
+
+
+# --------------------------------------------------------------------------- NN kernels
+@numba.njit(cache=True, nogil=True)
+def _nn_order(M, ids):  # pragma: no cover - compiled
+    """Positions of the nearest-neighbour order from input 0 over a distance matrix."""
+    m = M.shape[0]
+    order = np.empty(m, dtype=np.int64)
+    used = np.zeros(m, dtype=np.bool_)
+    cur = 0
+    used[0] = True
+    order[0] = 0
+    for step in range(1, m):
+        best = -1
+        bd = 0.0
+        for j in range(m):
+            if used[j]:
+                continue
+            dd = M[cur, j]
+            if best < 0 or dd < bd or (dd == bd and ids[j] < ids[best]):
+                best = j
+                bd = dd
+        used[best] = True
+        order[step] = best
+        cur = best
+    return order
+
+
+@numba.njit(cache=True, nogil=True)
+def _nn_eval(i, xid, t0, DT, S, ts, tid, r, back, vis, tail):  # pragma: no cover
+    """Exact route-cost increase of adding pool candidate i to the NN tour (cost.py's
+    ``_eval_nn`` on distance lookups).
+
+    ``DT[i, slot]``: distance from candidate i to stop ``slot``; ``S[slot, slot']`` between
+    stops; ``ts[p]`` the slot at tour position p, ``tid[p]`` its cell, ``r[p]`` the length of
+    step p. ``back`` the slot the route returns to after the tour (start or end), -1 if open.
+    Returns ``(increase, t_star, j, q)``: x is visited after step t_star, the new tail
+    (``tail[:q]``, tour positions) rejoins the old tour at position j (m when it never does).
+    """
+    m = ts.shape[0]
+    t = t0
+    dx = 0.0
+    while t < m - 1:
+        dx = DT[i, ts[t]]
+        if dx < r[t] or (dx == r[t] and xid < tid[t + 1]):
+            break
+        t += 1
+    if t == m - 1:
+        inc = DT[i, ts[m - 1]]
+        if back >= 0:
+            inc += DT[i, back] - S[ts[m - 1], back]
+        return inc, m - 1, m - 1, 0
+    xpart = dx
+    hi = t
+    nvis = 0
+    cpos = -1
+    q = 0
+    while True:
+        bp = -1
+        bd = 0.0
+        for p in range(t + 1, hi + 1):
+            if vis[p]:
+                continue
+            dd = DT[i, ts[p]] if cpos < 0 else S[ts[cpos], ts[p]]
+            if bp < 0 or dd < bd or (dd == bd and tid[p] < tid[bp]):
+                bp = p
+                bd = dd
+        if hi < m - 1:
+            if cpos == hi:
+                p = hi + 1
+                dd = r[hi]
+                if bp < 0 or dd < bd or (dd == bd and tid[p] < tid[bp]):
+                    bp = p
+                    bd = dd
+            else:
+                for p in range(hi + 1, m):
+                    dd = DT[i, ts[p]] if cpos < 0 else S[ts[cpos], ts[p]]
+                    if bp < 0 or dd < bd or (dd == bd and tid[p] < tid[bp]):
+                        bp = p
+                        bd = dd
+        xpart += bd
+        vis[bp] = True
+        nvis += 1
+        if bp > hi:
+            hi = bp
+        tail[q] = bp
+        q += 1
+        cpos = bp
+        if cpos == hi and nvis == hi - t:
+            break
+        if nvis == m - 1 - t:
+            break
+    for p in range(t + 1, hi + 1):
+        vis[p] = False
+    old = 0.0
+    for k in range(t, hi):
+        old += r[k]
+    rejoined = cpos == hi and nvis == hi - t
+    inc = xpart - old
+    if not rejoined and back >= 0:
+        inc += S[ts[cpos], back] - S[ts[m - 1], back]
+    return inc, t, hi if rejoined else m, q
+
+
+@numba.njit(cache=True, nogil=True)
+def _nn_eval_all(pid, active, t0s, DT, S, ts, tid, r, back, dc, tstar):  # pragma: no cover
+    m = ts.shape[0]
+    vis = np.zeros(m, dtype=np.bool_)
+    tail = np.empty(m, dtype=np.int64)
+    for i in range(pid.shape[0]):
+        if not active[i] or t0s[i] < 0:
+            continue
+        v, t, _, _ = _nn_eval(i, pid[i], t0s[i], DT, S, ts, tid, r, back, vis, tail)
+        dc[i] = v
+        tstar[i] = t
+
+
+# --------------------------------------------------------------------------- insertion
+@numba.njit(cache=True, nogil=True)
+def _seg_best(i, DT, seq, seg, lo, hi, bv, bp):  # pragma: no cover - compiled
+    """Best (increase, position) of inserting candidate i into segments lo..hi-1."""
+    for k in range(lo, hi):
+        v = DT[i, seq[k]] + DT[i, seq[k + 1]] - seg[k]
+        if bp < 0 or v < bv or (v == bv and k < bp):
+            bv = v
+            bp = k
+    return bv, bp
+
+
+@numba.njit(cache=True, nogil=True)
+def _ins_all(active, DT, seq, seg, sv, sp):  # pragma: no cover - compiled
+    for i in range(DT.shape[0]):
+        if active[i]:
+            sv[i], sp[i] = _seg_best(i, DT, seq, seg, 0, seq.shape[0] - 1, np.inf, -1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _ins_update(active, DT, seq, seg, s, sv, sp):  # pragma: no cover - compiled
+    """After inserting after position s: segment s split into new s and s+1, later shift."""
+    nseg = seq.shape[0] - 1
+    hi = min(s + 2, nseg)
+    for i in range(DT.shape[0]):
+        if not active[i]:
+            continue
+        if sp[i] == s:
+            sv[i], sp[i] = _seg_best(i, DT, seq, seg, 0, nseg, np.inf, -1)
+            continue
+        if sp[i] > s:
+            sp[i] += 1
+        sv[i], sp[i] = _seg_best(i, DT, seq, seg, s, hi, sv[i], sp[i])
+
+
+# --------------------------------------------------------------------------- costers
+class IncrementalCost:
+    """Exact ``route_cost(P + x) - route_cost(P)`` for every candidate of a pool.
+
+    Attributes: ``pool (n,)``, ``active (n,) bool``, ``cost`` (current route cost, stops and
+    closure included), ``route`` (ordered stops, start first; closed: start not repeated; with
+    ``end``: end last), ``n_evaluated`` (candidates re-evaluated at the last update).
+    Distances from the pool to the route's stops are held as an ``(n, m)`` matrix, one column
+    per stop (its straight-line row, or its Dijkstra row on the travel graph).
+    """
+
+    def __init__(self, model: PathModel, cells0: Any, pool: Any) -> None:
+        self.model = model
+        cells0 = model._check_stops(cells0, "cells0", order_free=True)
+        if model.end is not None:
+            cells0 = np.concatenate([cells0[cells0 != model.end], [model.end]])
+        self.pool = np.ascontiguousarray(np.asarray(pool, dtype=np.int64).ravel())
+        if self.pool.size and (self.pool.min() < 0 or self.pool.max() >= model.region.n_cells):
+            raise PlanningError(f"pool must hold cell indices in [0, {model.region.n_cells})")
+        n = self.pool.size
+        self._cap = max(16, 2 * cells0.size)
+        self._DT = np.full((n, self._cap), np.inf)
+        self._S = np.full((self._cap, self._cap), np.inf)
+        self._slot_cell = np.full(self._cap, -1, dtype=np.int64)
+        self._m = 0
+        if model._graph is not None:
+            self._ploc = model._graph.local(self.pool)
+        for c in cells0:
+            self._new_slot(int(c))
+        reach = np.isfinite(self._DT[:, 0]) & model._enter[self.pool]
+        self.active = reach & ~np.isin(self.pool, cells0)
+        self._slot_of = {int(c): k for k, c in enumerate(cells0)}
+        self._end_slot = self._slot_of[model.end] if model.end is not None else -1
+        self._back = 0 if model.closed else self._end_slot
+        self._nn = model.cost == "nearest-neighbor"
+        tour_cells = cells0[cells0 != model.end] if model.end is not None else cells0
+        slots = np.array([self._slot_of[int(c)] for c in tour_cells], dtype=np.int64)
+        slots = slots[_nn_order(self._S[np.ix_(slots, slots)].copy(), tour_cells)]
+        if not self._nn and model.end is not None:
+            slots = np.append(slots, self._end_slot)
+        self._set_tour(slots)
+        self._dc = np.full(n, np.nan)
+        if self._nn:
+            self._tstar = np.zeros(n, dtype=np.int64)
+            self._nn_refresh(np.zeros(n, dtype=np.int64))
+        else:
+            self._sv = np.full(n, np.inf)
+            self._sp = np.full(n, -1, dtype=np.int64)
+            _ins_all(self.active, self._DT, self._seq, self._seg, self._sv, self._sp)
+        self.n_evaluated = int(self.active.sum())
+
+    # ---------------------------------------------------------------- state
+    def _new_slot(self, cell: int) -> int:
+        k = self._m
+        if k == self._cap:
+            cap = 2 * self._cap
+            DT = np.full((self.pool.size, cap), np.inf)
+            DT[:, :k] = self._DT
+            S = np.full((cap, cap), np.inf)
+            S[:k, :k] = self._S
+            sc = np.full(cap, -1, dtype=np.int64)
+            sc[:k] = self._slot_cell
+            self._DT, self._S, self._slot_cell, self._cap = DT, S, sc, cap
+        model = self.model
+        prev = self._slot_cell[:k]
+        if model._graph is None:
+            self._DT[:, k] = model._geo.row(cell, self.pool)
+            row = model._geo.row(cell, prev)
+        else:
+            d = model._graph.run(cell)[0]
+            self._DT[:, k] = np.where(self._ploc >= 0, d[np.maximum(self._ploc, 0)], np.inf)
+            row = model._graph.to(cell, prev)
+        self._S[k, :k] = row
+        self._S[:k, k] = row
+        self._S[k, k] = 0.0
+        self._slot_cell[k] = cell
+        self._m = k + 1
+        return k
+
+    def _set_tour(self, slots: np.ndarray) -> None:
+        """NN: the tour's slots (end excluded); insertion: the route's slots (end last)."""
+        slots = np.ascontiguousarray(slots, dtype=np.int64)
+        route_slots = slots
+        if self._nn and self.model.end is not None:
+            route_slots = np.append(slots, self._end_slot)
+        self._ts = slots
+        self._tid = self._slot_cell[slots].copy()
+        self._r = self._S[slots[:-1], slots[1:]].copy()
+        self._route_slots = route_slots
+        seq = np.append(route_slots, 0) if self.model.closed else route_slots
+        self._seq = np.ascontiguousarray(seq, dtype=np.int64)
+        self._seg = self._S[self._seq[:-1], self._seq[1:]].copy()
+        self.cost = self.model._sum_route(self._seg, route_slots.size)
+
+    def _nn_refresh(self, t0s: np.ndarray) -> None:
+        _nn_eval_all(self.pool, self.active, t0s, self._DT, self._S, self._ts, self._tid,
+                     self._r, self._back, self._dc, self._tstar)
+
+    @property
+    def route(self) -> np.ndarray:
+        """The ordered stops (start first; closed: start not repeated; end last)."""
+        return self._slot_cell[self._route_slots].copy()
+
+    def increases(self) -> np.ndarray:
+        """``(n,)`` exact ``route_cost(P + x) - route_cost(P)``, ``nan`` where inactive."""
+        sc = self.model.stop_cost
+        if self._nn:
+            inc = self._dc
+        else:
+            inc = self._sv
+            if self.model.end is None and not self.model.closed:
+                append = self._DT[:, self._ts[-1]]
+                inc = np.where((self._sp >= 0) & (self._sv <= append), self._sv, append)
+        return np.where(self.active, inc + sc, np.nan)
+
+    def _positions(self) -> np.ndarray:
+        if self.model.end is None and not self.model.closed:
+            append = self._DT[:, self._ts[-1]]
+            return np.where((self._sp >= 0) & (self._sv <= append), self._sp, self._ts.size - 1)
+        return self._sp.copy()
+
+    def _index(self, cell: int) -> int:
+        (where,) = np.nonzero(self.pool == int(cell))
+        if where.size == 0 or not self.active[where[0]]:
+            raise PlanningError(f"cell {cell} is not an active candidate of the pool")
+        return int(where[0])
+
+    def add(self, cell: int) -> None:
+        """Add pool cell ``cell`` to the route and update every candidate's increase exactly."""
+        i = self._index(cell)
+        cell = int(cell)
+        if self._nn:
+            m = self._ts.size
+            vis = np.zeros(m, dtype=np.bool_)
+            tail = np.empty(m, dtype=np.int64)
+            _, s, j, q = _nn_eval(i, cell, 0, self._DT, self._S, self._ts, self._tid, self._r,
+                                  self._back, vis, tail)
+            s, j, q = int(s), int(j), int(q)
+            self.active[i] = False
+            k = self._new_slot(cell)
+            old = self._ts
+            new = np.concatenate([old[: s + 1], [k], old[tail[:q]], old[j + 1:]])
+            self._set_tour(new)
+            t0s = np.where(self.active, np.minimum(self._tstar, s), -1).astype(np.int64)
+            self.n_evaluated = int(self.active.sum())
+            self._nn_refresh(t0s)
+        else:
+            s = int(self._positions()[i])
+            self.active[i] = False
+            k = self._new_slot(cell)
+            self._set_tour(np.insert(self._route_slots, s + 1, k))
+            self.n_evaluated = int((self.active & (self._sp == s)).sum())
+            _ins_update(self.active, self._DT, self._seq, self._seg, s, self._sv, self._sp)
+
+    def deactivate(self, cell: int) -> None:
+        """A fleet-mate took ``cell``: it is no longer a candidate (the route is unchanged)."""
+        (where,) = np.nonzero(self.pool == int(cell))
+        self.active[where] = False
+
+
+class _DefaultNN(NearestNeighborCost):
+    """The paper's exact NN cost (cost.py) with the fleet's ``deactivate``."""
+
+    def deactivate(self, cell: int) -> None:
+        self.active[self.pool == int(cell)] = False
+
+
+class _DefaultInsertion(InsertionCost):
+    """cost.py's cheapest insertion with the fleet's ``deactivate``."""
+
+    def deactivate(self, cell: int) -> None:
+        self.active[self.pool == int(cell)] = False
+
+
+# --------------------------------------------------------------------------- the model
+def _number(value: Any, name: str, unit: str) -> float:
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        raise PlanningError(f"{name} ({unit}) must be a number, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise PlanningError(f"{name} ({unit}) must be a number, got {value!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise PlanningError(f"{name} ({unit}) must be >= 0 and finite, got {value!r}")
+    return v
+
+
+def _traversable_mask(region: Region, traversable: Any) -> tuple[str, np.ndarray]:
+    """(kind, (L,) enterable) for ``traversable`` None / "valid" / a boolean (lat, lon) grid."""
+    L = region.n_cells
+    if traversable is None:
+        return "none", np.ones(L, dtype=bool)
+    if isinstance(traversable, str):
+        if traversable.lower() == "valid":
+            return "valid", np.ones(L, dtype=bool)
+        raise PlanningError(
+            f"traversable must be None, 'valid' or a boolean (lat, lon) mask, got {traversable!r}")
+    values = getattr(traversable, "values", traversable)
+    arr = np.asarray(values)
+    if arr.shape != region.shape:
+        raise PlanningError(
+            f"traversable mask has shape {arr.shape}, expected the region's grid (lat, lon) = "
+            f"{region.shape}")
+    if arr.dtype != bool:
+        raise PlanningError(f"traversable mask must be boolean (True = may enter), got dtype "
+                            f"{arr.dtype}")
+    if hasattr(traversable, "dims") and hasattr(traversable, "coords"):
+        for k, (dim, coord) in enumerate(zip(traversable.dims, (region.lat, region.lon))):
+            if dim in traversable.coords:
+                mine = np.asarray(coord.values, dtype=np.float64)
+                theirs = np.asarray(traversable[dim].values, dtype=np.float64)
+                if not np.allclose(mine, theirs, rtol=0, atol=1e-6):
+                    raise PlanningError(
+                        f"traversable mask's {'lat' if k == 0 else 'lon'} coordinate "
+                        f"({dim}) differs from the region's grid")
+    gi = region.grid_index
+    return "mask", arr[gi[:, 0], gi[:, 1]].astype(bool)
+
+
+@dataclass(eq=False)
+class PathModel:
+    """How one robot travels and what its routes cost (built by :func:`make_path_model`).
+
+    Units: ``unit`` is ``"grid units"``, ``"km"`` or ``"h"``; ``budget`` and ``stop_cost`` are
+    in it. ``traversable`` is ``"none"`` (straight lines between stops, the paper), ``"valid"``
+    or ``"mask"`` (shortest paths over the 8-connected enterable cells). ``cost`` is the route
+    ordering heuristic (``"nearest-neighbor"`` or ``"insertion"``).
+    """
+
+    region: Region
+    start: int
+    budget: float
+    unit: str
+    metric: str
+    speed: float | None
+    stop_cost: float
+    closed: bool
+    end: int | None
+    traversable: str
+    cost: str
+    _enter: np.ndarray = field(repr=False)
+    _geo: _Geometry = field(repr=False)
+    _wrap: bool = field(repr=False, default=False)
+    _graph: _Graph | None = field(repr=False, default=None)
+
+    # ---------------------------------------------------------------- basics
+    @property
+    def tol(self) -> float:
+        """Budget tolerance: ``1e-9`` (grid units), ``1e-9 * max(1, budget)`` otherwise."""
+        return _TOL if self.metric == "grid" else _TOL * max(1.0, self.budget)
+
+    @property
+    def is_default(self) -> bool:
+        """True for the paper's model: grid units, straight lines, open path, no stop cost."""
+        return (self.metric == "grid" and self.traversable == "none" and not self.closed
+                and self.end is None and self.stop_cost == 0.0)
+
+    @property
+    def n_fixed_stops(self) -> int:
+        """Stops every route has: the start, and the end when given."""
+        return 1 + (self.end is not None)
+
+    @property
+    def travel_budget(self) -> float:
+        """The budget left for travel after the fixed stops' stop costs."""
+        return self.budget - self.stop_cost * self.n_fixed_stops
+
+    def enterable(self) -> np.ndarray:
+        """``(L,)`` bool: cells the robot may enter (all True when ``traversable="none"``)."""
+        return self._enter.copy()
+
+    def _sum_route(self, legs: np.ndarray, n_stops: int) -> float:
+        """Route cost from its legs: one float summation order for every caller."""
+        sc = self.stop_cost
+        total = sc
+        for k, leg in enumerate(legs):
+            total = total + float(leg)
+            if k + 1 < n_stops:
+                total = total + sc
+        return float(total)
+
+    def _lower_bound_from_start(self) -> np.ndarray:
+        """``(L,)`` straight-line distance from the start that no travel path beats
+        (grid units wrap on a full-circle grid, matching the graph's wrapped edges)."""
+        if self.metric == "grid":
+            gi = self.region.grid_index
+            dr = (gi[:, 0] - gi[self.start, 0]).astype(np.float64)
+            dc = np.abs(gi[:, 1] - gi[self.start, 1]).astype(np.float64)
+            if self._wrap:
+                dc = np.minimum(dc, self.region.shape[1] - dc)
+            return np.sqrt(dr * dr + dc * dc)
+        return self._geo.row(self.start, np.arange(self.region.n_cells))
+
+    # ---------------------------------------------------------------- distances
+    def distances(self, a: int, cells: Any = None) -> np.ndarray:
+        """Travel distance from cell ``a`` (budget unit; ``inf`` where not reachable within
+        the model's reach): ``(L,)``, or ``(len(cells),)`` for the given cells."""
+        a = int(self.region.check_cells(a, "a"))
+        targets = (np.arange(self.region.n_cells) if cells is None
+                   else self.region.check_cells(np.atleast_1d(cells), "cells").ravel())
+        if self._graph is None:
+            d = self._geo.row(a, targets)
+            return np.where(self._enter[targets] | (targets == a), d, np.inf)
+        return self._graph.to(a, targets)
+
+    def _pair_matrix(self, cells: np.ndarray) -> np.ndarray:
+        if self._graph is None:
+            return self._geo.matrix(cells, cells)
+        return np.stack([self._graph.to(int(c), cells) for c in cells])
+
+    def chart_distance(self, a: Any, b: Any) -> np.ndarray:
+        """Euclidean grid-unit distance between grid positions (broadcast), with columns
+        taken modulo the full circle on a grid that wraps: the chart of
+        :meth:`grid_budget_bound`."""
+        gi = self.region.grid_index
+        a = self.region.check_cells(a, "a")
+        b = self.region.check_cells(b, "b")
+        dr = (gi[a, 0] - gi[b, 0]).astype(np.float64)
+        dc = np.abs(gi[a, 1] - gi[b, 1]).astype(np.float64)
+        if self._wrap:
+            dc = np.minimum(dc, self.region.shape[1] - dc)
+        return np.sqrt(dr * dr + dc * dc)
+
+    # ---------------------------------------------------------------- routes
+    def _check_stops(self, stops: Any, name: str = "stops", order_free: bool = False
+                     ) -> np.ndarray:
+        arr = np.atleast_1d(np.asarray(stops))
+        if arr.ndim != 1 or arr.size == 0:
+            raise PlanningError(f"{name} must be a non-empty 1-D sequence of cells")
+        arr = self.region.check_cells(arr, name)
+        if int(arr[0]) != self.start:
+            raise PlanningError(f"{name} must start with the start cell {self.start}, "
+                                f"got {int(arr[0])}")
+        if np.unique(arr).size != arr.size:
+            raise PlanningError(f"{name} must not repeat a cell")
+        if not self._enter[arr].all():
+            bad = int(arr[~self._enter[arr]][0])
+            raise PlanningError(f"{name}: cell {bad} may not be entered (traversable)")
+        return arr.astype(np.int64)
+
+    def _with_end(self, stops: np.ndarray) -> np.ndarray:
+        if self.end is not None and int(stops[-1]) != self.end:
+            if np.any(stops == self.end):
+                raise PlanningError(f"the end cell {self.end} must be the last stop")
+            stops = np.append(stops, self.end)
+        return stops
+
+    def _legs(self, stops: np.ndarray) -> np.ndarray:
+        seq = np.append(stops, stops[0]) if self.closed else stops
+        if self._graph is None:
+            return self._geo.pairs(seq[:-1], seq[1:])
+        return np.array([self._graph.to(int(a), np.array([b]))[0]
+                         for a, b in zip(seq[:-1], seq[1:])], dtype=np.float64)
+
+    def route_cost(self, stops: Any) -> float:
+        """Exact cost of visiting ``stops`` in the given order (start first): travel, the way
+        back (closed) or to ``end`` (appended when not last), and ``stop_cost`` per stop."""
+        stops = self._with_end(self._check_stops(stops))
+        return self._sum_route(self._legs(stops), stops.size)
+
+    def order(self, stops: Any) -> np.ndarray:
+        """The nearest-neighbour visiting order of the set ``stops`` (start first; the end,
+        when given, last), by this model's distance, ties to the lowest cell index."""
+        stops = self._check_stops(stops, order_free=True)
+        if self.end is not None:
+            stops = stops[stops != self.end]
+        pos = _nn_order(self._pair_matrix(stops), stops)
+        out = stops[pos]
+        return np.append(out, self.end) if self.end is not None else out
+
+    def expand(self, route_stops: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The whole travel through the ordered stops.
+
+        Returns ``(cells (r,), cumulative_cost (r,), waypoint (r,) bool)``: with a travel
+        graph the pass-through cells are included (``waypoint=False``) and consecutive cells are
+        8-neighbours; a closed tour ends with the start again (``waypoint=True``, no second
+        stop cost); ``cumulative_cost[0] == stop_cost`` and ``cumulative_cost[-1] ==
+        route_cost(route_stops)``.
+        """
+        stops = self._with_end(self._check_stops(route_stops))
+        seq = np.append(stops, stops[0]) if self.closed else stops
+        legs = self._legs(stops)
+        sc = self.stop_cost
+        cells = [np.array([stops[0]])]
+        cum = [np.array([sc])]
+        way = [np.array([True])]
+        total = sc
+        for k in range(seq.size - 1):
+            a, b = int(seq[k]), int(seq[k + 1])
+            stop = k + 1 < stops.size
+            if self._graph is not None and np.isfinite(legs[k]):
+                d, pred = self._graph.run(a)
+                la, lb = self._graph.local(np.array([a, b]))
+                path = _walk(pred, int(la), int(lb))
+                mid = path[1:-1]
+                cells.append(self._graph.cells[mid])
+                cum.append(total + d[mid])
+                way.append(np.zeros(mid.size, dtype=bool))
+            total = total + float(legs[k])
+            if stop:
+                total = total + sc
+            cells.append(np.array([b]))
+            cum.append(np.array([total]))
+            way.append(np.array([True]))
+        return (np.concatenate(cells).astype(np.int64), np.concatenate(cum).astype(np.float64),
+                np.concatenate(way))
+
+    # ---------------------------------------------------------------- candidates
+    def candidates(self) -> np.ndarray:
+        """``(n,)`` sorted cells (start and end excluded) that are a stop of some feasible
+        route: reachable, and ``d(start, x) + d(x, back) + stop costs <= budget`` (+ tol)
+        where back is the start (closed), the end, or nothing (open)."""
+        L = self.region.n_cells
+        d0 = self.distances(self.start)
+        need = d0.copy()
+        if self.closed:
+            need = d0 + d0
+        elif self.end is not None:
+            need = d0 + self.distances(self.end)
+        n_stops = self.n_fixed_stops + 1
+        ok = self._enter & np.isfinite(need) & (need + self.stop_cost * n_stops
+                                                <= self.budget + self.tol)
+        ok[self.start] = False
+        if self.end is not None:
+            ok[self.end] = False
+        return np.flatnonzero(ok[:L]).astype(np.int64)
+
+    def initial_cells(self, k: int) -> np.ndarray:
+        """The start and its ``k - 1`` nearest enterable cells by this model's distance (ties
+        to the lowest index), start first; with ``end``: ``[start, end, ...]`` (k >= 2 cells).
+        With a travel graph the graph grows when fewer than ``k - 1`` cells are within reach."""
+        k = int(k)
+        if k < 1:
+            raise PlanningError(f"k must be >= 1, got {k}")
+        fixed = [self.start] + ([self.end] if self.end is not None else [])
+        n_more = max(k - len(fixed), 0)
+        while True:
+            d = self.distances(self.start)
+            d[self.start] = np.inf
+            if self.end is not None:
+                d[self.end] = np.inf
+            ok = np.flatnonzero(np.isfinite(d) & self._enter)
+            if ok.size >= n_more or self._graph is None or self._graph_is_whole():
+                break
+            self._grow_graph()
+        if ok.size < n_more:
+            raise PlanningError(f"the start can reach only {ok.size + len(fixed)} cells, fewer "
+                                f"than k = {k}")
+        key = np.lexsort((ok, d[ok]))
+        more = ok[key[:n_more]]
+        return np.concatenate([fixed, more]).astype(np.int64)
+
+    def _graph_is_whole(self) -> bool:
+        return self._graph is not None and not np.isfinite(self._graph.radius)
+
+    def _grow_graph(self) -> None:
+        g = self._graph
+        r = g.radius * 2 if g.radius > 0 else float(self._unit_step())
+        if r > self._lower_bound_from_start()[self._enter].max():
+            r = np.inf
+        self._graph = _Graph(self, r, max(g.limit, r))
+
+    def _unit_step(self) -> float:
+        """About two grid steps in the budget's unit (the first growth of a graph)."""
+        if self.metric == "grid":
+            return 2.0
+        lat = np.abs(np.diff(self.region.lat.values)).max() if self.region.shape[0] > 1 else 1.0
+        lon = np.abs(np.diff(self.region.lon.values)).max() if self.region.shape[1] > 1 else 1.0
+        km = 2.0 * EARTH_RADIUS_KM * float(np.radians(max(lat, lon)))
+        return km / (self.speed or 1.0)
+
+    def coster(self, cells0: Any, pool: Any) -> Any:
+        """Exact incremental costs ``route_cost(P + x) - route_cost(P)`` over ``pool``, from
+        the initial stops ``cells0`` (start first): an :class:`IncrementalCost` (or, for the
+        paper's default model, cost.py's exact classes with the same interface)."""
+        if self.is_default:
+            cls = _DefaultNN if self.cost == "nearest-neighbor" else _DefaultInsertion
+            cells0 = self._check_stops(cells0, "cells0", order_free=True)
+            return cls(self.region.grid_index, cells0, pool)
+        return IncrementalCost(self, cells0, pool)
+
+    # ---------------------------------------------------------------- certificate
+    def grid_budget_bound(self) -> float:
+        """Upper bound (grid units, :meth:`chart_distance`) on the length of the straight
+        polyline through any feasible route's stops in travel order (closed: back to start).
+
+        Why valid: a feasible route travels at most ``D = budget - stop_cost * n_fixed_stops``
+        (each route has the start, and the end when given, as stops). Grid metric: each leg is
+        a straight chart segment, or a graph path of chart steps 1 / sqrt 2 (rounded up), so
+        the stops' polyline is at most D (triangle inequality). km (hours: ``D * speed`` km):
+        along any curve on the sphere ``ds^2 = R^2 (dphi^2 + cos^2 phi dlambda^2) >=
+        k(phi)^2 (dr^2 + dc^2)`` with ``k(phi) = R min(dlat, cos(phi) dlon)`` (smallest grid
+        spacings, radians), so a leg of km length ``l`` spans at most ``l / k`` chart units when
+        ``k`` is the minimum over the latitudes it visits. Every point of a feasible route is
+        within ``D`` km of the start along the route (``D / 2`` for a closed tour), so its
+        latitude is within ``D / R`` (``D / 2R``) radians of the start's: ``phi_max = |phi_start|
+        + that`` bounds them all (``inf`` when the band reaches a pole).
+        """
+        D = self.travel_budget
+        if D <= 0:
+            return 0.0
+        if self.metric == "grid":
+            return float(D)
+        if self.speed is not None:
+            D = D * self.speed
+        lat = np.radians(np.asarray(self.region.lat.values, dtype=np.float64))
+        lon = np.radians(np.asarray(self.region.lon.values, dtype=np.float64))
+        dlat = float(np.abs(np.diff(lat)).min()) if lat.size > 1 else np.inf
+        dlon = float(np.abs(np.diff(lon)).min()) if lon.size > 1 else np.inf
+        reach = D / 2 if self.closed else D
+        phi = abs(float(lat[self.region.grid_index[self.start, 0]])) + reach / EARTH_RADIUS_KM
+        if phi >= np.pi / 2:
+            return float(np.inf)
+        k = EARTH_RADIUS_KM * min(dlat, math.cos(phi) * dlon)
+        if not np.isfinite(k):  # a single-cell grid: no chart movement at all
+            return 0.0
+        return float(D / k * (1 + 1e-12))
+
+
+def make_path_model(
+    region: Region,
+    start: Any,
+    budget: float,
+    *,
+    metric: str = "grid",
+    speed: float | None = None,
+    stop_cost: float = 0.0,
+    traversable: Any = None,
+    closed: bool = False,
+    end: Any = None,
+    cost: str = "nearest-neighbor",
+) -> PathModel:
+    """Build the path model of one robot (see :class:`PathModel`); validates every argument.
+
+    ``start`` / ``end``: a cell index or ``(lat, lon)``. ``budget`` (>= 0) and ``stop_cost``
+    (>= 0, charged per sampling stop, start and end included) are in the unit of ``metric``
+    (``"grid"`` units, ``"km"``, or hours with ``speed`` km/h). ``traversable``: None (straight
+    lines), ``"valid"`` or a boolean ``(lat, lon)`` DataArray / array (True = may enter).
+    ``closed``: return to the start. ``cost``: ``"nearest-neighbor"`` or ``"insertion"``.
+    """
+    if not isinstance(region, Region):
+        raise PlanningError(f"region must be a Region, got {type(region).__name__}")
+    metric, speed, unit = _check_metric(metric, speed)
+    budget = _number(budget, "budget", unit)
+    stop_cost = _number(stop_cost, "stop_cost", unit)
+    if not isinstance(closed, (bool, np.bool_)):
+        raise PlanningError(f"closed must be True or False, got {closed!r}")
+    closed = bool(closed)
+    if closed and end is not None:
+        raise PlanningError("closed=True and end= exclude each other: a closed tour ends at "
+                            "its start")
+    cost = COST_REGISTRY.canonical(cost, "cost")
+    start_cell = region.resolve_cell(start, "start")
+    end_cell = None if end is None else region.resolve_cell(end, "end")
+    if end_cell is not None and end_cell == start_cell:
+        raise PlanningError("end must differ from start (use closed=True for a tour back to "
+                            "the start)")
+    kind, enter = _traversable_mask(region, traversable)
+    if not enter[start_cell]:
+        raise PlanningError(f"start cell {start_cell} may not be entered (traversable mask)")
+    if end_cell is not None and not enter[end_cell]:
+        raise PlanningError(f"end cell {end_cell} may not be entered (traversable mask)")
+    geo = _Geometry(region, metric, speed)
+    model = PathModel(region=region, start=start_cell, budget=budget, unit=unit, metric=metric,
+                      speed=speed, stop_cost=stop_cost, closed=closed, end=end_cell,
+                      traversable=kind, cost=cost, _enter=enter, _geo=geo,
+                      _wrap=_wraps(region))
+    if kind == "none":
+        if region.n_cells < 2:
+            raise PlanningError(f"start {start_cell} cannot reach any other cell: the region "
+                                "has one cell")
+        return model
+    _check_start_moves(model)
+    travel = max(model.travel_budget, 0.0)
+    radius = travel / 2 if closed else travel
+    if end_cell is not None:
+        radius = max(radius, float(model._lower_bound_from_start()[end_cell]))
+    model._graph = _Graph(model, radius, max(travel, radius) + model.tol)
+    return model
+
+
+def _check_start_moves(model: PathModel) -> None:
+    """PlanningError when the start has no enterable 8-neighbour (it cannot go anywhere)."""
+    region = model.region
+    ny, nx = region.shape
+    grid = region.cell_grid
+    r0, c0 = region.grid_index[model.start]
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if not dr and not dc:
+                continue
+            r, c = r0 + dr, c0 + dc
+            if model._wrap:
+                c %= nx
+            if 0 <= r < ny and 0 <= c < nx and grid[r, c] >= 0 and model._enter[grid[r, c]]:
+                return
+    raise PlanningError(f"start cell {model.start} cannot reach any other cell (no enterable "
+                        "neighbour)")
