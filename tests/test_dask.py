@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import warnings
 
 import numpy as np
@@ -416,7 +417,8 @@ def test_cdr_file_staging_bit_identical(cdr_files, tmp_path, bbox, chunk_mb):
     assert cdr_source(lazy * 1.0) is None and cdr_source(lazy.isel(time=slice(1, 5))) is None
     tm: dict = {}
     fast, r1, t1, _ = stage(lazy, chunk_mb=chunk_mb, scratch_dir=str(tmp_path), timings=tm)
-    assert {"stage_read", "stage_decode", "stage_write"} <= set(tm)
+    assert {"stage_read", "stage_inflate", "stage_decode", "stage_write"} <= set(tm)
+    assert tm["stage_inflate"] > 0  # the AVHRR files (tiled, zlib) took the raw-chunk reader
     other = lazy.copy(data=lazy.data + 0.0)  # same values, a different graph: the old path
     assert cdr_source(other) is None
     slow, r2, t2, _ = stage(other, chunk_mb=chunk_mb, scratch_dir=str(tmp_path))
@@ -433,6 +435,96 @@ def test_cdr_file_staging_bit_identical(cdr_files, tmp_path, bbox, chunk_mb):
     st3, r3, *_ = stage(lazy, region=r1, chunk_mb=chunk_mb, scratch_dir=str(tmp_path))
     assert r3 is r1
     np.testing.assert_array_equal(_staged(st3).view(np.uint32), got.view(np.uint32))
+
+
+@pytest.mark.parametrize("chunks", [(8, 16), (5, 7), (20, 36)])
+def test_cdr_raw_chunk_staging_equals_loader(tmp_path, chunks):
+    """The raw-chunk reader (h5py chunks, zlib, compiled decode) stages bit for bit what
+    ``open_ndvi_cdr`` loads, for tiles that do and do not divide the grid, a window crossing
+    the antimeridian (columns as an index array, not a slice), with and without shuffle."""
+    import h5py
+
+    from lrm_cvx.io import open_ndvi_cdr, write_ndvi_cdr
+
+    f = synthetic_field(7, (20, 36), rank=3, seed=4, noise=0.03, land_fraction=0.8)
+    f = f.assign_coords(lon=np.arange(36) * 10.0 - 175.0)
+    qa = np.where(np.random.default_rng(1).random(f.shape) < 0.3, 2, 0).astype(np.int16)
+    write_ndvi_cdr(tmp_path / "d", f, qa=qa, chunks=chunks)
+    with h5py.File(sorted((tmp_path / "d").glob("*.nc"))[0]) as h:
+        assert h["NDVI"].compression == "gzip" and h["NDVI"].chunks == (1, *chunks)
+    for bbox in (None, (-30.0, 150.0, 30.0, -150.0), (-20.0, -60.0, 10.0, 40.0)):
+        lazy = open_ndvi_cdr(tmp_path / "d", bbox=bbox, chunks={"time": 1})
+        mem = open_ndvi_cdr(tmp_path / "d", bbox=bbox)
+        for chunk_mb in (0.0005, 1.0):
+            tm: dict = {}
+            st, reg, *_ = stage(lazy, chunk_mb=chunk_mb, scratch_dir=str(tmp_path), timings=tm)
+            assert tm["stage_inflate"] > 0
+            assert reg.equals(Region.from_dataarray(mem))
+            want = reg.stack(mem).astype(np.float32)
+            np.testing.assert_array_equal(_staged(st).view(np.uint32), want.view(np.uint32))
+            shutil.rmtree(st.directory)
+
+
+@pytest.mark.parametrize("shuffled", [True, False])
+def test_decode_tile_equals_decode_day(shuffled):
+    """The compiled tile decoder on byte-shuffled or plain little-endian int16 bytes equals
+    ``decode_day`` on every cell of a sub-window, and ORs exactly the finite cells."""
+    from lrm_cvx.glrm.chunked import _decode_tile
+    from lrm_cvx.io import ndvi as N
+
+    rng = np.random.default_rng(5)
+    cr, cc = 6, 10
+    nd = rng.integers(-12000, 12000, (cr, cc)).astype(np.int16)
+    nd[0, :3] = -9999
+    qa = rng.choice(np.array([0, 2, 4, 16, 64, -32767], np.int16), (cr, cc))
+    tables = N.decode_tables("AVHRR", N.DEFAULT_MASK_FLAGS["AVHRR"], N._encoding({}, {}))
+    want = N.decode_day(nd, qa, tables)
+
+    def raw(a):
+        b = a.astype("<i2").ravel().view(np.uint8)
+        return b.reshape(-1, 2).T.ravel().copy() if shuffled else b.copy()
+
+    out = np.full((4, 7), 7.0, dtype=np.float32)
+    seen = np.zeros_like(out, dtype=bool)
+    _decode_tile(raw(nd), raw(qa), shuffled, cc, cr * cc, 1, 5, 2, 9, *tables,
+                 np.float32(np.nan), out, 0, 0, seen, True)
+    np.testing.assert_array_equal(out.view(np.uint32), want[1:5, 2:9].view(np.uint32))
+    np.testing.assert_array_equal(seen, np.isfinite(want[1:5, 2:9]))
+    assert 0 < seen.sum() < seen.size
+
+
+def _first_chunk(path):
+    """Byte offset and size of the first NDVI chunk of a CDR file."""
+    import h5py
+
+    with h5py.File(path) as h:
+        info = h["NDVI"].id.get_chunk_info(0)
+    return info.byte_offset, info.size
+
+
+def test_cdr_staging_corrupt_or_truncated_file_names_it(tmp_path):
+    """A file whose compressed chunk is damaged, or which was cut short after it was opened,
+    is a DataError naming that file; nothing is left in the scratch directory."""
+    from lrm_cvx.io import open_ndvi_cdr, write_ndvi_cdr
+
+    f = synthetic_field(4, (20, 36), rank=2, seed=0, noise=0.05)
+    for case in ("corrupt", "truncated"):
+        d = tmp_path / case
+        write_ndvi_cdr(d, f, chunks=(8, 16))
+        lazy = open_ndvi_cdr(d, chunks={"time": 1})
+        victim = sorted(d.glob("*.nc"))[2]
+        data = bytearray(victim.read_bytes())
+        off, size = _first_chunk(victim)
+        if case == "corrupt":
+            data[off + 2: off + size] = bytes((b ^ 0x5A) for b in data[off + 2: off + size])
+        else:
+            data = data[: len(data) // 2]
+        victim.write_bytes(bytes(data))
+        scratch = tmp_path / f"scratch-{case}"
+        scratch.mkdir()
+        with pytest.raises(DataError, match=victim.name):
+            stage(lazy, scratch_dir=str(scratch))
+        assert list(scratch.iterdir()) == []
 
 
 def test_decode_tables_match_loader_on_every_code():

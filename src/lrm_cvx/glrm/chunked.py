@@ -39,6 +39,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 
 from ..errors import DataError, ModelError, RegionError
@@ -162,6 +163,17 @@ def _pwrite_all(fd: int, buf: np.ndarray, offset: int) -> None:
         done += os.pwrite(fd, view[done:], offset + done)
 
 
+def _pread_all(fd: int, buf: np.ndarray, offset: int) -> None:
+    """Fill the contiguous ``buf`` from byte ``offset`` of ``fd`` (preadv may be short)."""
+    view = memoryview(buf).cast("B")
+    done = 0
+    while done < len(view):
+        n = os.preadv(fd, [view[done:]], offset + done)
+        if n <= 0:
+            raise DataError(f"staged file ended early at byte {offset + done}")
+        done += n
+
+
 class _Deferred:
     """A dask collection carried into a task unevaluated (dask does not look inside): the task
     computes it with the synchronous scheduler. A staging block's input is thousands of tiny
@@ -282,32 +294,193 @@ def cdr_source(data: Any) -> dict | None:
     return src
 
 
+def _sel_span(sel: Any, n: int) -> tuple[int, int, np.ndarray | None]:
+    """``(lo, hi, pick)``: the index span ``lo:hi`` that selector ``sel`` (a slice or an index
+    array over ``n``) covers, and the positions to take from it (None: all of it, in order)."""
+    if isinstance(sel, slice):
+        lo, hi, step = sel.indices(n)
+        if step == 1:
+            return lo, max(lo, hi), None
+        sel = np.arange(lo, hi, step)
+    sel = np.asarray(sel, dtype=np.int64)
+    lo = int(sel.min())
+    return lo, int(sel.max()) + 1, sel - lo
+
+
+_CDR_DIMS = ("time", "latitude", "longitude")
+_ENC_KEYS = ("scale_factor", "add_offset", "_FillValue", "valid_range")
+
+
+def _h5_chunks(path: str, rows: Any, cols: Any) -> tuple | None:
+    """The raw (still compressed) HDF5 chunks of NDVI and QA covering the window ``rows x
+    cols`` of CDR file ``path``: ``(tiles, layout, spans, enc)`` with ``tiles`` a list of
+    ``(row0, col0, ndvi_bytes, qa_bytes)`` (the tile's first grid row and column), ``layout =
+    (chunk_rows, chunk_cols, deflate, shuffle)``, ``spans`` the :func:`_sel_span` of ``rows``
+    and ``cols`` and ``enc`` the file's NDVI/QA encoding (:func:`~lrm_cvx.io.ndvi._encoding`).
+
+    Read with h5py's ``read_direct_chunk``: only the bytes on disk are copied (under h5py's
+    lock); inflating them (zlib releases the GIL) and decoding happen outside any lock, in
+    parallel. None when the file is not laid out the way this reader decodes (int16
+    little-endian, tiled one day deep, deflate and/or shuffle only, the same tiles for NDVI and
+    QA, dims (time, latitude, longitude)) or cannot be opened: the caller then reads it with
+    netCDF4 (:func:`~lrm_cvx.io.ndvi.read_window`), which reads every layout and names the file
+    in its errors."""
+    import h5py
+
+    from ..io.ndvi import _encoding
+
+    try:
+        f = h5py.File(path, "r")
+    except Exception:  # noqa: BLE001 - read_window reports it, naming the file
+        return None
+    try:
+        dsets, layout, attrs = [], None, []
+        for var in ("NDVI", "QA"):
+            d = f.get(var)
+            if not isinstance(d, h5py.Dataset) or d.ndim != 3 or d.shape[0] != 1:
+                return None
+            dims = tuple(d.dims[i][0].name.lstrip("/") if len(d.dims[i]) == 1 else ""
+                         for i in range(3))
+            if (dims != _CDR_DIMS or d.dtype != np.dtype("<i2") or d.chunks is None
+                    or d.chunks[0] != 1 or d.compression not in (None, "gzip") or d.fletcher32
+                    or d.scaleoffset is not None or d.external):
+                return None
+            lay = (int(d.chunks[1]), int(d.chunks[2]), d.compression == "gzip", bool(d.shuffle))
+            if layout not in (None, lay) or (dsets and d.shape != dsets[0].shape):
+                return None
+            layout = lay
+            dsets.append(d)
+            attrs.append({k: (lambda a: a.item() if a.size == 1 else a)(np.asarray(d.attrs[k]))
+                          for k in _ENC_KEYS if k in d.attrs})
+        enc = _encoding(attrs[0], attrs[1])
+        ny, nx = (int(n) for n in dsets[0].shape[1:])
+        (r0, r1, rp), (c0, c1, cp) = _sel_span(rows, ny), _sel_span(cols, nx)
+        if not (0 <= r0 < r1 <= ny and 0 <= c0 < c1 <= nx):
+            return None
+        cr, cc = layout[:2]
+        tiles = []
+        for tr in range(r0 // cr * cr, r1, cr):
+            for tc in range(c0 // cc * cc, c1, cc):
+                parts = []
+                for d in dsets:
+                    fmask, buf = d.id.read_direct_chunk((0, tr, tc))
+                    if fmask:  # a filter was skipped for this chunk: let netCDF4 read it
+                        return None
+                    parts.append(buf)
+                tiles.append((tr, tc, parts[0], parts[1]))
+    except Exception:  # noqa: BLE001 - e.g. an unallocated chunk: the general reader
+        return None
+    finally:
+        f.close()
+    return tiles, layout, ((r0, r1, rp), (c0, c1, cp)), enc
+
+
+@numba.njit(nogil=True, cache=True)
+def _decode_tile(nd, qa, shuffled, cc, n, i0, i1, j0, j1, values, qa_ok, nan, out, oi, oj,
+                 seen, track):  # pragma: no cover - numba
+    """Decode rows ``i0:i1`` x columns ``j0:j1`` of one inflated tile (``n`` int16 values of
+    NDVI ``nd`` and QA ``qa`` as little-endian bytes, byte-shuffled or not; ``cc`` columns a
+    tile row) into ``out[oi:, oj:]``: ``values[ndvi]`` where ``qa_ok[qa]``, else ``nan``
+    (:func:`~lrm_cvx.io.ndvi.decode_day` bit for bit); with ``track``, ``seen`` |= finite."""
+    for i in range(i0, i1):
+        r = oi + i - i0
+        for j in range(j0, j1):
+            k = i * cc + j
+            if shuffled:
+                a = np.int64(nd[k]) | (np.int64(nd[n + k]) << 8)
+                b = np.int64(qa[k]) | (np.int64(qa[n + k]) << 8)
+            else:
+                a = np.int64(nd[2 * k]) | (np.int64(nd[2 * k + 1]) << 8)
+                b = np.int64(qa[2 * k]) | (np.int64(qa[2 * k + 1]) << 8)
+            v = values[a] if qa_ok[b] else nan
+            c = oj + j - j0
+            out[r, c] = v
+            if track and v == v:
+                seen[r, c] = True
+
+
+def _inflate(buf: bytes, deflate: bool, nbytes: int, path: str) -> np.ndarray:
+    """One raw HDF5 chunk as ``nbytes`` bytes (zlib-inflated when ``deflate``; the GIL is
+    released while inflating); a DataError naming ``path`` when it is corrupt or short."""
+    import zlib
+
+    try:
+        raw = zlib.decompress(buf) if deflate else buf
+    except zlib.error as exc:
+        raise DataError(f"cannot read NDVI file {path}: a compressed chunk is corrupt "
+                        f"({exc})") from None
+    if len(raw) != nbytes:
+        raise DataError(f"cannot read NDVI file {path}: a chunk holds {len(raw)} bytes, "
+                        f"expected {nbytes}")
+    return np.frombuffer(raw, dtype=np.uint8)
+
+
 def _t_stage_days(days, src, rows, cols, index, files, bounds, offsets, track) -> dict:
-    """Task: read, decode and write the days ``days`` (indices into ``src["files"]``): each
-    day's bbox window of raw NDVI and QA (netCDF4, under a per-process lock), decoded by table
-    lookup (:func:`~lrm_cvx.io.ndvi.decode_day`, the rules of :func:`open_ndvi_cdr`), the
-    region's cells taken, and row ``t`` of every column file written with ``pwrite``. Returns
-    seconds in read / decode / write and, with ``track``, the packed OR of finite cells."""
+    """Task: read, decode and write the days ``days`` (indices into ``src["files"]``).
+
+    Each day's bbox window of raw NDVI and QA is read as its raw HDF5 chunks
+    (:func:`_h5_chunks`, h5py's lock held only while copying the compressed bytes), inflated
+    with zlib (GIL released) and decoded tile by tile by table lookup in one compiled pass
+    (:func:`_decode_tile`: the rules of :func:`open_ndvi_cdr` via
+    :func:`~lrm_cvx.io.ndvi.decode_tables`; with ``track`` it also ORs the finite cells).
+    Files in another layout are read with netCDF4 under a per-process lock
+    (:func:`~lrm_cvx.io.ndvi.read_window`) and decoded with :func:`~lrm_cvx.io.ndvi.decode_day`.
+    The region's cells are taken and row ``t`` of every column file is written with ``pwrite``.
+    Returns seconds in read / inflate / decode / write and, with ``track``, the packed OR of
+    finite cells."""
     import time
 
     from ..io.ndvi import decode_day, decode_tables, read_window
 
     clock = time.perf_counter
-    secs = {"read": 0.0, "decode": 0.0, "write": 0.0}
+    secs = {"read": 0.0, "inflate": 0.0, "decode": 0.0, "write": 0.0}
     seen = None
+    nan = np.float32(np.nan)
     fds = [os.open(p, os.O_WRONLY) for p in files]
     try:
         for t in days:
-            t0 = clock()
-            with _NC_LOCK:
-                nd, qa, enc = read_window(src["files"][t], rows, cols)
-            t1 = clock()
+            path = src["files"][t]
             prod = src["products"][t]
-            row = decode_day(nd, qa, decode_tables(prod, tuple(src["flags"][prod]), enc)).ravel()
-            del nd, qa
-            if track:
-                fin = np.isfinite(row)
+            t0 = clock()
+            raw = _h5_chunks(path, rows, cols)
+            t1 = clock()
+            t_inf = 0.0
+            if raw is None:
+                with _NC_LOCK:
+                    nd, qa, enc = read_window(path, rows, cols)
+                t1 = clock()
+                win = decode_day(nd, qa, decode_tables(prod, tuple(src["flags"][prod]), enc))
+                del nd, qa
+                fin = np.isfinite(win) if track else None
+            else:
+                tiles, (cr, cc, deflate, shuffled), spans, enc = raw
+                (r0, r1, rp), (c0, c1, cp) = spans
+                values, qa_ok = decode_tables(prod, tuple(src["flags"][prod]), enc)
+                span = np.empty((r1 - r0, c1 - c0), dtype=np.float32)
+                direct = rp is None and cp is None  # the span is the window
+                if track and direct and seen is None:
+                    seen = np.zeros(span.shape, dtype=np.bool_)
+                sink = seen if (track and direct) else np.zeros((1, 1), dtype=np.bool_)
+                n = cr * cc
+                for tr, tc, bn, bq in tiles:
+                    ti = clock()
+                    a = _inflate(bn, deflate, 2 * n, path)
+                    b = _inflate(bq, deflate, 2 * n, path)
+                    t_inf += clock() - ti
+                    i0, i1 = max(r0 - tr, 0), min(r1 - tr, cr)
+                    j0, j1 = max(c0 - tc, 0), min(c1 - tc, cc)
+                    _decode_tile(a, b, shuffled, cc, n, i0, i1, j0, j1, values, qa_ok, nan,
+                                 span, tr + i0 - r0, tc + j0 - c0, sink, track and direct)
+                del tiles, raw
+                if direct:
+                    win, fin = span, None
+                else:
+                    win = span if rp is None else span[rp]
+                    win = win if cp is None else win[:, cp]
+                    fin = np.isfinite(win) if track else None
+            if fin is not None:
                 seen = fin if seen is None else np.logical_or(seen, fin, out=seen)
+            row = win.ravel()
             if index is not None:
                 row = np.take(row, index)
             t2 = clock()
@@ -316,13 +489,14 @@ def _t_stage_days(days, src, rows, cols, index, files, bounds, offsets, track) -
                 _pwrite_all(fd, row[lo:hi], offsets[c] + t * (hi - lo) * 4)
             t3 = clock()
             secs["read"] += t1 - t0
-            secs["decode"] += t2 - t1
+            secs["inflate"] += t_inf
+            secs["decode"] += t2 - t1 - t_inf
             secs["write"] += t3 - t2
     finally:
         for fd in fds:
             os.close(fd)
     if track:
-        secs["seen"] = np.packbits(seen) if seen is not None else None
+        secs["seen"] = np.packbits(seen.ravel()) if seen is not None else None
     return secs
 
 
@@ -364,15 +538,32 @@ def _bounds(L: int, T: int, chunk_mb: float) -> np.ndarray:
     return np.append(np.arange(0, L, width), L).astype(np.int64)
 
 
-def _t_compact(c, index, nb, files, bounds, new, noffs, T) -> None:
+def _t_compact(c, index, nb, files, bounds, offsets, new, noffs, T) -> None:
     """Task: write compacted column file ``c`` (the region's cells ``index[nb[c]:nb[c+1]]`` of
-    the whole-grid files ``files``) from the staged files (page cache)."""
+    the whole-grid files ``files``) from the staged files (page cache). Each source file
+    contributes one contiguous run of its columns: only that span of each row is read
+    (``preadv`` into one buffer; plain reads, not a memory map: mapped pages count as the
+    worker's memory and a LocalCluster paused its workers), then its kept columns gathered."""
     g = index[nb[c]: nb[c + 1]]
     owner = np.searchsorted(bounds, g, side="right") - 1
     block = np.empty((T, g.size), dtype=np.float32)
-    for o in np.unique(owner):  # a plain read, not a memory map: mapped pages count as the
-        sel = owner == o          # worker's memory (a LocalCluster paused its workers)
-        block[:, sel] = np.load(files[o])[:, g[sel] - bounds[o]]
+    cuts = np.flatnonzero(np.diff(owner)) + 1
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, g.size]):
+        o = int(owner[a])
+        w = int(bounds[o + 1] - bounds[o])
+        cells = g[a:b] - int(bounds[o])
+        lo, hi = int(cells[0]), int(cells[-1]) + 1
+        span = np.empty((T, hi - lo), dtype=np.float32)
+        fd = os.open(files[o], os.O_RDONLY)
+        try:
+            for t in range(T):  # one contiguous byte range per row
+                _pread_all(fd, span[t], offsets[o] + (t * w + lo) * 4)
+        finally:
+            os.close(fd)
+        if hi - lo == b - a:
+            block[:, a:b] = span
+        else:
+            block[:, a:b] = np.take(span, cells - lo, axis=1)
     fd = os.open(new[c], os.O_WRONLY)
     try:
         _pwrite_all(fd, block, noffs[c])
@@ -406,7 +597,7 @@ def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[st
                              files=files, bounds=bounds, offsets=offsets, track=track)
     res = _run_tasks(task, parts)
     if timings is not None:
-        for k in ("read", "decode", "write"):
+        for k in ("read", "inflate", "decode", "write"):
             timings[f"stage_{k}"] = float(sum(r[k] for r in res))
         timings["stage_pass"] = time.perf_counter() - clock
     if not track:
@@ -425,7 +616,8 @@ def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[st
     new, noffs = _new_files(directory, T, nb, prefix="compact")
     clock = time.perf_counter()
     _run_tasks(functools.partial(_t_compact, index=index, nb=nb, files=files, bounds=bounds,
-                                 new=new, noffs=noffs, T=T), list(range(nb.size - 1)))
+                                 offsets=offsets, new=new, noffs=noffs, T=T),
+               list(range(nb.size - 1)))
     if timings is not None:
         timings["stage_compact"] = time.perf_counter() - clock
     for f in files:
