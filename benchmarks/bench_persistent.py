@@ -49,14 +49,48 @@ warnings.filterwarnings("ignore")
 
 TRANSECTS = ("transect-up", "transect-down", "transect-left", "transect-right")
 RECOMMENDED = "greedy:gp-variance"
-PLANTED = dict(n_times=100, shape=(24, 32), rank=4, missing=0.3, noise=0.02, seed=0)
+
+
+def planted_dynamics(rank: int, eig_range: tuple = (0.90, 0.97), seed: int = 0
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """``(A, Q)`` of the planted field: ``A`` a random symmetric matrix with eigenvalues in
+    ``eig_range`` (strong persistence: the one-step forecast variance is 6-19 % of the
+    stationary one), ``Q = 0.1 (I - A^2)`` (stationary covariance ``0.1 I``, std 0.32 per
+    latent)."""
+    rng = np.random.default_rng(seed)
+    R, _ = np.linalg.qr(rng.standard_normal((rank, rank)))
+    A = (R * rng.uniform(*eig_range, rank)) @ R.T
+    A = 0.5 * (A + A.T)
+    Q = 0.1 * (np.eye(rank) - A @ A)
+    return A, 0.5 * (Q + Q.T)
+
+
+# The planted field (issue 13, targets on data with persistence). Last session's field (rank 4,
+# eigenvalues 0.70-0.90, mode amplitudes 0.2 x 0.6^(k-1)) left too little for any prior to do:
+# its weak modes carried almost none of the variance, so 15 samples pinned every mode that
+# matters (the filter with the *true* A, Q cut only 10 % at budget 15). Here the latent state is
+# not pinned by 15 samples: rank 6, every spatial mode of amplitude 0.2 (comparable weight),
+# stronger persistence (eigenvalues 0.90-0.97), noise 0.02, 30 % clouds, 200 days.
+PLANTED = dict(n_times=200, shape=(24, 32), rank=6, missing=0.3, noise=0.02, seed=0,
+               eig_range=(0.90, 0.97), mode_amplitude=0.2)
+
+
+def planted_field(n_times: int | None = None, seed: int | None = None, return_truth=True):
+    """The planted-dynamics field of the benchmark (``PLANTED``, :func:`planted_dynamics`)."""
+    p = dict(PLANTED)
+    if n_times is not None:
+        p["n_times"] = n_times
+    if seed is not None:
+        p["seed"] = seed
+    A, Q = planted_dynamics(p["rank"], p.pop("eig_range"), seed=p["seed"])
+    amp = np.full(p["rank"] - 1, p.pop("mode_amplitude"))
+    return synthetic_dynamic_field(p.pop("n_times"), p.pop("shape"), p.pop("rank"), A=A, Q=Q,
+                                   mode_amplitudes=amp, return_truth=return_truth, **p)
 
 
 def load(name: str):
     if name == "planted":
-        p = dict(PLANTED)
-        data, truth = synthetic_dynamic_field(p.pop("n_times"), p.pop("shape"), p.pop("rank"),
-                                              return_truth=True, **p)
+        data, truth = planted_field()
         return data, truth, 12, PLANTED["rank"]
     return lrm_cvx.load_sample(name), None, 8, 5
 
@@ -80,9 +114,7 @@ def a_recovery(n_times: int, seeds: tuple = (0, 1, 2)) -> None:
     from lrm_cvx.glrm.dynamics import estimate_ar1
 
     for seed in seeds:
-        p = dict(PLANTED, n_times=n_times, seed=seed)
-        data, truth = synthetic_dynamic_field(p.pop("n_times"), p.pop("shape"), p.pop("rank"),
-                                              return_truth=True, **p)
+        data, truth = planted_field(n_times, seed)
         t0 = time.perf_counter()
         model = GLRM(rank=PLANTED["rank"], offset=True, temporal="ar1", progress=False,
                      random_state=0).fit(data)
@@ -195,9 +227,12 @@ def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
                   f"(ratio {np.nanmean(est) / np.nanmean(orc):.3f}; target <= 1.10)")
 
 
-def paper_scale(small: bool = False) -> None:
+def paper_scale(small: bool = False, model_cache: str | None = None) -> None:
     """Paper-scale targets: ``temporal="ar1"`` fit overhead <= 5 %, one campaign day <= 20 s
-    and <= 6 GB peak. The fit uses the first 309 snapshots; the day observes the 310th."""
+    and <= 6 GB peak. The fit uses the first 309 snapshots; the day observes the 310th.
+    ``model_cache``: a model file; when it exists the fits are skipped (the model is loaded:
+    for timing the campaign day alone), else the ``temporal="ar1"`` model is saved there."""
+    import os
     import gc
     import resource
 
@@ -223,6 +258,12 @@ def paper_scale(small: bool = False) -> None:
                 random_state=0, progress=False)
     secs = {}
     models = {}
+    if model_cache and os.path.exists(model_cache):
+        model = GLRM.load(model_cache)
+        print(f"  fits skipped: model loaded from {model_cache}", flush=True)
+        del train
+        gc.collect()
+        return _paper_day(model, region, shape, truth, times)
     for temporal in (None, "ar1"):
         with PeakRSS() as pk:
             t0 = time.perf_counter()
@@ -245,6 +286,19 @@ def paper_scale(small: bool = False) -> None:
     model = models["ar1"]
     del models, train
     gc.collect()
+    if model_cache:
+        model.save(model_cache)
+    _paper_day(model, region, shape, truth, times)
+
+
+def _paper_day(model, region, shape, truth, times) -> None:
+    """One campaign day at paper scale, each stage timed, with the day's peak RSS."""
+    import resource
+
+    from bench_glrm import PeakRSS, rss_gib
+
+    from lrm_cvx.planning import plan_greedy
+
     cov = model.spatial_cov_
     print(f"  spatial residual: {cov}; dynamics {model.dynamics_.kind}")
     start = int(np.argmin(((region.grid_index - np.array(shape) // 2) ** 2).sum(1)))
@@ -288,17 +342,22 @@ def main() -> None:
     ap.add_argument("--budgets", type=float, nargs="+", default=[5, 15, 50])
     ap.add_argument("--random-trials", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="3 starts, budgets 5 and 15")
+    ap.add_argument("--recovery-sizes", type=int, nargs="*", default=[100, 200, 400],
+                    help="planted field: numbers of snapshots of the A-recovery check")
+    ap.add_argument("--model-cache", default=None,
+                    help="--paper-scale: load the fitted model from this file when it exists "
+                         "(skips the fits), else save it there")
     ap.add_argument("--paper-scale", action="store_true",
                     help="only the paper-scale targets (310 x 2.1M cells; --quick: 60 x 200 x 150)")
     a = ap.parse_args()
     if a.paper_scale:
-        paper_scale(small=a.quick)
+        paper_scale(small=a.quick, model_cache=a.model_cache)
         return
     if a.quick:
         a.starts, a.budgets = 3, [5, 15]
     for name in a.data:
         if name == "planted":
-            for n_times in (100, 400, 1600):
+            for n_times in a.recovery_sizes:
                 a_recovery(n_times)
         run(name, a.starts, tuple(a.budgets), a.random_trials)
 

@@ -423,24 +423,38 @@ def _memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
 
 def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.25, 0.5, 0.75,
                                                                           0.9, 1.0),
-                    n_val: int | None = None, sizes: Sequence[int] = (5, 15, 50),
+                    n_val: int | None = None, n_folds: int = 2, confidence: float = 1.645,
+                    tolerance: float = 0.01,
+                    sizes: Sequence[int] = (5, 15, 50),
                     kinds: Sequence[str] = SET_KINDS, apply: bool = True,
                     seed: Any = 0) -> tuple[float, Any]:
     """Choose how far to trust the model's dynamics on validation snapshots.
 
-    The last ``n_val`` snapshots of ``data`` (the model's training snapshots; default a fifth,
-    at least 3) are held out; a copy of the model is refitted (with its ``temporal``) on the
-    snapshots before them, its dynamics re-estimated *without* the fit's own blend
-    (:func:`unblended_dynamics`), and for each ``alpha`` the filter with
-    :func:`blend_dynamics` runs through them, one campaign per sample-set size and kind (the
-    same random cells for every ``alpha``). The candidates are ``alphas``, 0 (memoryless) and
-    the blend the fit chose itself (``dynamics_.blend``, the one-step likelihood rule of
-    :mod:`~lrm_cvx.glrm.dynamics`). The chosen ``alpha`` minimises the worst ratio, over the
-    sizes, of its validation MSE (held-out observed cells) to the memoryless one: the filter is
-    trusted only as far as it helps at every size. With ``apply`` the model's ``dynamics_``
-    becomes the *unblended* estimate blended by ``alpha`` (so ``dynamics_.blend == alpha``:
-    this rule replaces the fit's, the two never compose). Returns ``(alpha, table)``, the table
-    a DataFrame of validation MSE per alpha and size.
+    ``n_folds`` forward-chaining validation windows of ``n_val`` snapshots each (default a
+    fifth of ``data``, at least 3; the last window ends at the last training snapshot, the
+    others precede it): for each window a copy of the model is refitted (with its
+    ``temporal``) on the snapshots before it, its dynamics re-estimated *without* the fit's
+    own blend (:func:`unblended_dynamics`), and for each ``alpha`` the filter with
+    :func:`blend_dynamics` runs through the window, one campaign per sample-set size and kind
+    (the same random cells for every ``alpha``). The candidates are ``alphas``, 0
+    (memoryless) and the blend the fit chose itself (``dynamics_.blend``).
+
+    **Rule (validated, with a guard on harm).** For each ``alpha`` and size the per-day
+    differences ``d_t = mse_alpha(t) - mse_0(t)`` (validation days of every window, averaged
+    over the set kinds) give the relative change ``mean(d) / mean(mse_0)`` and its upper
+    confidence bound ``+ confidence * se(d) / mean(mse_0)`` (one-sided; 1.645: 95 %). A blend
+    is *admissible* when that bound is at most ``tolerance`` at every size (it is then, with
+    95 % confidence, at most ``tolerance`` worse than memoryless anywhere); ``alpha = 0`` (the
+    memoryless model, bound 0) always is. Among the admissible blends the one with the lowest
+    worst validation MSE ratio over the sizes is chosen. Data whose persistence is weak, or
+    does not carry over between periods, keep (nearly) the memoryless model.
+    ``confidence=0, tolerance=inf`` is the plain worst-ratio rule.
+
+    With ``apply`` the model's ``dynamics_`` becomes the *unblended* estimate blended by
+    ``alpha`` (so ``dynamics_.blend == alpha``: this rule replaces the fit's, the two never
+    compose). Returns ``(alpha, table)``: a DataFrame of validation MSE (summed over windows,
+    days and kinds) per alpha and size, with ``table.attrs["ucb"]`` the bounds
+    ``(alpha, size)`` and ``table.attrs["n_days"]``.
     """
     import pandas as pd
 
@@ -453,42 +467,66 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     n_val = max(3, T // 5) if n_val is None else int(n_val)
     if not 2 <= n_val <= T - 3:
         raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
+    n_folds = int(n_folds)
+    if n_folds < 1:
+        raise ModelError(f"n_folds must be >= 1, got {n_folds}")
+    n_folds = max(1, min(n_folds, (T - 3) // n_val))  # each refit keeps >= 3 snapshots
+    confidence = float(confidence)
+    if not (np.isfinite(confidence) and confidence >= 0):
+        raise ModelError(f"confidence must be a finite number >= 0, got {confidence!r}")
+    tolerance = float(tolerance)
+    if not tolerance >= 0:
+        raise ModelError(f"tolerance must be a number >= 0, got {tolerance!r}")
     alphas = sorted({0.0, round(float(dyn.blend), 12), *(float(a) for a in alphas)})
     sizes = [int(s) for s in sizes]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        sub = _clone(model).fit(data.isel(time=slice(None, T - n_val)), region=region)
-    sub.calibration_ = None
-    sub_dyn = unblended_dynamics(sub)
-    S = _memoryless_cov(sub, sub_dyn)
-    val = data.isel(time=slice(T - n_val, None))
-    Vv = V[T - n_val:]
-    times = val["time"].values
     rng = as_generator(seed)
-    sets = {(size, kind): [sample_sets(region, np.isfinite(Vv[i]), size, kind, rng)
-                           for i in range(n_val)] for size in sizes for kind in kinds}
     from ..monitor import MonitorState
 
-    err = np.zeros((len(alphas), len(sizes)))
-    for a_i, alpha in enumerate(alphas):
-        d = blend_dynamics(sub_dyn, alpha, S)
-        for (size, _kind), cell_sets in sets.items():
-            state = MonitorState.from_model(sub, dynamics=d)
-            for i, t in enumerate(times):
-                cells = cell_sets[i]
-                state.assimilate((cells, Vv[i, cells]), time=t)
-                held = np.isfinite(Vv[i])
-                held[cells] = False
-                mean, _ = state.posterior.predict(cells=np.flatnonzero(held))
-                err[a_i, sizes.index(size)] += float(np.mean((mean - Vv[i, held]) ** 2))
-    ratio = err / err[0]
-    worst = ratio.max(axis=1)
+    day_err: list[np.ndarray] = []  # per window: (n_alpha, n_size, n_val), kinds averaged
+    for f in range(n_folds):
+        end = T - f * n_val
+        lo = end - n_val
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sub = _clone(model).fit(data.isel(time=slice(None, lo)), region=region)
+        sub.calibration_ = None
+        sub_dyn = unblended_dynamics(sub)
+        S = _memoryless_cov(sub, sub_dyn)
+        Vv = V[lo:end]
+        times = data["time"].values[lo:end]
+        sets = {(size, kind): [sample_sets(region, np.isfinite(Vv[i]), size, kind, rng)
+                               for i in range(n_val)] for size in sizes for kind in kinds}
+        err = np.zeros((len(alphas), len(sizes), n_val))
+        for a_i, alpha in enumerate(alphas):
+            d = blend_dynamics(sub_dyn, alpha, S)
+            for (size, _kind), cell_sets in sets.items():
+                state = MonitorState.from_model(sub, dynamics=d)
+                for i, t in enumerate(times):
+                    cells = cell_sets[i]
+                    state.assimilate((cells, Vv[i, cells]), time=t)
+                    held = np.isfinite(Vv[i])
+                    held[cells] = False
+                    mean, _ = state.posterior.predict(cells=np.flatnonzero(held))
+                    err[a_i, sizes.index(size), i] += float(np.mean((mean - Vv[i, held]) ** 2))
+        day_err.append(err / len(kinds))
+    E = np.concatenate(day_err[::-1], axis=2)  # (alpha, size, days), in time order
+    base = E[0].mean(axis=-1)  # memoryless mean MSE per size
+    D = E - E[0]
+    n_days = E.shape[2]
+    se = D.std(axis=-1, ddof=1) / np.sqrt(n_days) if n_days > 1 else np.zeros(D.shape[:2])
+    ucb = (D.mean(axis=-1) + confidence * se) / base
+    ratio = E.mean(axis=-1) / base
+    admissible = ucb.max(axis=1) <= tolerance
+    admissible[0] = True  # memoryless
+    worst = np.where(admissible, ratio.max(axis=1), np.inf)
     best = int(np.argmin(worst))
     alpha = alphas[best]
-    table = pd.DataFrame(err, index=pd.Index(alphas, name="alpha"),
+    table = pd.DataFrame(E.sum(axis=-1), index=pd.Index(alphas, name="alpha"),
                          columns=pd.Index(sizes, name="size"))
+    table.attrs["ucb"] = pd.DataFrame(ucb, index=table.index, columns=table.columns)
+    table.attrs["n_days"] = int(n_days)
     if apply:
-        base = unblended_dynamics(model)
-        model.dynamics_ = blend_dynamics(base, alpha, _memoryless_cov(model, base))
+        base_dyn = unblended_dynamics(model)
+        model.dynamics_ = blend_dynamics(base_dyn, alpha, _memoryless_cov(model, base_dyn))
         model.dynamics_alpha_ = alpha  # read by calibrate's forward-chaining refits
     return alpha, table

@@ -83,6 +83,7 @@ def synthetic_field(
     return_truth: bool = False,
     time_factors: Any = None,
     clip: bool = True,
+    mode_amplitudes: Any = None,
 ) -> xr.DataArray | tuple[xr.DataArray, dict[str, Any]]:
     """A planted rank-``rank`` NDVI-like field ``(time, lat, lon)`` with land mask and cloud gaps.
 
@@ -102,6 +103,9 @@ def synthetic_field(
 
     ``time_factors`` ``(rank, n_times)``: use these as ``X`` instead of the built-in level +
     seasonal factors (e.g. a planted AR(1) process, :func:`synthetic_dynamic_field`).
+    ``mode_amplitudes`` ``(rank - 1,)``: the max-abs amplitudes of modes ``1..rank-1``
+    (default ``0.2 x 0.6^(k-1)``, floored at 0.05); e.g. equal amplitudes give modes of
+    comparable weight.
 
     With ``return_truth`` also returns ``{"X": (rank, T) float64, "Y": (rank, ny, nx) float32,
     "land_mask": (ny, nx) bool, "noise": noise}``; ``X.T @ Y`` is the noise-free field.
@@ -136,11 +140,18 @@ def synthetic_field(
     Y = np.empty((rank, ny, nx), dtype=np.float32)
     base = _smooth_field(rng, ay_m, ax_m)
     Y[0] = 0.45 + 0.35 * np.tanh(0.8 * base)
-    amplitudes = 0.2 * 0.6 ** np.arange(rank - 1)
+    if mode_amplitudes is None:
+        amplitudes = np.maximum(0.2 * 0.6 ** np.arange(rank - 1), 0.05)
+    else:
+        amplitudes = np.asarray(mode_amplitudes, dtype=np.float64).ravel()
+        if amplitudes.shape != (rank - 1,) or not np.all(np.isfinite(amplitudes)) or np.any(
+                amplitudes <= 0):
+            raise DataError(f"mode_amplitudes must be {rank - 1} finite numbers > 0, got "
+                            f"{mode_amplitudes!r}")
     for k in range(1, rank):
         mode = _smooth_field(rng, ay_f if k % 2 else ay_m, ax_f if k % 2 else ax_m)
         mode /= max(float(np.abs(mode).max()), 1e-12)
-        Y[k] = np.maximum(amplitudes[k - 1], 0.05) * mode
+        Y[k] = amplitudes[k - 1] * mode
     if time_factors is None:
         X = _time_factors(rng, rank, n_times)
     else:
