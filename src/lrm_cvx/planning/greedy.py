@@ -13,9 +13,9 @@ from ..cost import COST_REGISTRY, make_cost
 from ..errors import PlanningError
 from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
-from .plan import Plan, check_region
+from .plan import Plan, check_region, path_dict
 
-__all__ = ["initial_cells", "plan_greedy"]
+__all__ = ["initial_cells", "plan_greedy", "place_sensors"]
 
 _TOL = 1e-9  # budget tolerance (grid units)
 _MIN_DC = 1e-12  # floor of the cost increase in the ratio (NN tours can get shorter)
@@ -70,11 +70,98 @@ def _prior_terms(prior: Any) -> dict[str, Any]:
     return info()
 
 
+def _resolve_starts(region: Region, start: Any) -> tuple[list[int], bool]:
+    """``(cells, fleet)``: one start (a cell index or a ``(lat, lon)`` tuple) or a fleet (a
+    list, or a 1-D integer / ``(n, 2)`` array, of those)."""
+    if start is None:
+        raise PlanningError("start is required: a cell index, a (lat, lon) tuple, or a list "
+                            "of those (one per robot)")
+    if isinstance(start, np.ndarray):
+        if start.ndim == 1 and np.issubdtype(start.dtype, np.integer):
+            start = start.tolist()
+        elif start.ndim == 2 and start.shape[1] == 2:
+            start = [tuple(row) for row in start.tolist()]
+    if isinstance(start, list):
+        flat = all(isinstance(v, (int, float, np.integer, np.floating)) and
+                   not isinstance(v, (bool, np.bool_)) for v in start)
+        if len(start) == 2 and flat and not all(isinstance(v, (int, np.integer))
+                                                for v in start):
+            return [region.resolve_cell(tuple(start), "start")], False  # [lat, lon], as before
+        if not start:
+            raise PlanningError("start must not be an empty list (one start per robot)")
+        cells = [region.resolve_cell(tuple(v) if isinstance(v, list) else v, f"start[{i}]")
+                 for i, v in enumerate(start)]
+        return cells, True
+    return [region.resolve_cell(start, "start")], False
+
+
+def _resolve_budgets(budget: Any, n: int) -> list[float]:
+    """``budget`` (a number, or a list / array of ``n``) as ``n`` floats >= 0."""
+    if isinstance(budget, (list, tuple, np.ndarray)):
+        values = list(np.asarray(budget, dtype=object).ravel())
+        if len(values) != n:
+            raise PlanningError(f"budget has {len(values)} values but there are {n} starts: "
+                                "give one budget per robot, or one number for all")
+        return [_check_budget(b) for b in values]
+    if budget is None:
+        raise PlanningError("budget is required (a number, or one per robot)")
+    return [_check_budget(budget)] * n
+
+
+def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
+    """Each robot's forced cells: its model's ``initial_cells(k)`` (``initial="nearest"``) or
+    its start (and end) only; a cell already forced for an earlier robot is left out (the
+    robot's own start is always kept)."""
+    taken: set[int] = set()
+    out = []
+    for m in models:
+        if initial == "nearest":
+            c = np.asarray(m.initial_cells(k), dtype=np.int64)
+        else:
+            c = np.array([m.start] + ([] if m.end is None or m.end == m.start else [m.end]),
+                         dtype=np.int64)
+        keep = [int(x) for x in c if int(x) == m.start or int(x) not in taken]
+        taken.update(keep)
+        out.append(np.asarray(keep, dtype=np.int64))
+    return out
+
+
+def _resolve_prior(prior: Any, terms_given: dict[str, Any]) -> dict[str, Any]:
+    """The criterion's keyword terms from ``prior`` (or the ones given directly)."""
+    if prior is None:
+        return terms_given
+    terms = _prior_terms(prior)
+    clash = sorted(key for key in terms if terms_given.get(key) is not None)
+    if clash:
+        raise PlanningError(f"prior= already gives {clash}; pass either prior or those")
+    return {key: terms.get(key) for key in terms_given}
+
+
+def _oracle_extra(criterion: str, region: Region, pool: np.ndarray, t: dict[str, Any],
+                  targets: Any) -> dict[str, Any]:
+    if criterion == "gp-variance":
+        return dict(region=region, spatial_cov=t["spatial_cov"], prior_cov=t["prior_cov"],
+                    pool=pool, targets=targets, target_weights=t["target_weights"])
+    extra: dict[str, Any] = {}
+    if t["prior_precision"] is not None:
+        extra["prior_precision"] = t["prior_precision"]
+    if t["noise_var"] is not None:
+        extra["noise_var"] = t["noise_var"]
+    if t["target_weights"] is not None and criterion == "a-optimal":
+        extra["target_weights"] = t["target_weights"]
+    return extra
+
+
+def _history(hist: dict[str, list[float]]) -> dict[str, np.ndarray]:
+    return {key: np.asarray(v, dtype=np.int64 if key in ("cell", "n_evaluated", "robot")
+                            else np.float64) for key, v in hist.items()}
+
+
 def plan_greedy(
     Y: Any,
     region: Region,
-    start: Any,
-    budget: float,
+    start: Any = None,
+    budget: Any = None,
     *,
     criterion: str = "fisher",
     cost: str = "nearest-neighbor",
@@ -89,24 +176,48 @@ def plan_greedy(
     initial: str = "nearest",
     prior: Any = None,
     refine: bool | dict[str, Any] = False,
+    metric: str = "grid",
+    speed: float | None = None,
+    stop_cost: float = 0.0,
+    traversable: Any = None,
+    closed: bool = False,
+    end: Any = None,
+    sense_along: bool = False,
+    path: str = "route",
+    n_sensors: int | None = None,
 ) -> Plan:
-    """The paper's cost-benefit greedy path planner.
+    """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
 
-    1. ``P`` = the start cell and its ``k - 1`` nearest cells (:func:`initial_cells`).
-    2. Each iteration, for every valid cell ``x`` not in ``P`` with ``C(P + x) <= budget``
+    1. ``P`` = the start cell and its ``k - 1`` nearest cells (the path model's
+       ``initial_cells``; :func:`initial_cells` for the paper's).
+    2. Each iteration, for every candidate cell ``x`` not in ``P`` with ``C(P + x) <= budget``
        (tolerance 1e-9): ``D_x = (I(P + x) - I(P)) / max(C(P + x) - C(P), 1e-12)``; the cell
        with the largest ``D_x`` joins ``P`` (ties to the lowest cell index).
     3. Stop when no candidate has ``D_x > 0``.
+
+    ``C`` is the path model's exact route cost (:func:`lrm_cvx.planning.paths.make_path_model`):
+    the paper's is the nearest-neighbour open path in grid units, straight lines between
+    stops. With all path options at their defaults the result is the paper's, bit for bit.
+
+    Fleets (``start`` a list): one path model per robot; every robot's initial cells are forced
+    (a cell already forced for an earlier robot is left out; its start is always kept); each
+    step adds the ``(cell, robot)`` pair with the largest gain per unit of **that robot's**
+    cost increase, the gain counted jointly (one information oracle for the union of all
+    robots' cells), ties to the lowest cell then the lowest robot. A cell taken by one robot is
+    no longer a candidate of the others. ``plan.robots`` gives each robot's sub-plan.
 
     Parameters
     ----------
     Y : ``(k, L)`` factor matrix (array, or a model's ``Y_`` DataArray ``(component, cell)``
         or ``(component, lat, lon)``).
     region : the :class:`~lrm_cvx.region.Region` of ``Y``'s cells.
-    start : a cell index or a ``(lat, lon)`` pair.
-    budget : path-length budget in grid units, ``>= 0``.
+    start : a cell index or a ``(lat, lon)`` tuple (one robot), or a **list** of those, one per
+        robot (a fleet; also a 1-D integer array of cells or an ``(n, 2)`` array of lat/lon). A
+        list of two non-integer numbers is read as one ``[lat, lon]`` (as before).
+    budget : the path budget, ``>= 0``, in the path model's unit (grid units; km with
+        ``metric="km"``; hours with ``speed``): a number (every robot) or a list, one per robot.
     criterion : ``"fisher"`` (log det gain, the paper) or ``"a-optimal"`` (decrease of the
-        total prediction variance; needs ``ridge > 0``).
+        total prediction variance; needs ``ridge > 0``), or ``"gp-variance"``.
     cost : ``"nearest-neighbor"`` (the paper's ``C``, computed exactly) or ``"insertion"``
         (cheapest insertion route, cheaper and usually shorter).
     ridge : ``>= 0``, added to the information matrix (``ridge * I``).
@@ -119,124 +230,472 @@ def plan_greedy(
     prior_cov, spatial_cov, targets : for ``criterion="gp-variance"`` (the A-optimal criterion
         of the low-rank trend + GP residual model; :class:`~lrm_cvx.information.GPVarianceOracle`).
     initial : ``"nearest"`` (the paper: the start and its ``k - 1`` nearest cells are forced) or
-        ``"start"`` (only the start cell: with a prior the information matrix is nonsingular
-        from the start, so the budget is not spent on ``k - 1`` forced cells).
+        ``"start"`` (only the start cell, and the ``end`` cell when given: with a prior the
+        information matrix is nonsingular from the start, so the budget is not spent on
+        ``k - 1`` forced cells).
     prior : a :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (``GLRM.latent_prior(...)``, a
         monitoring filter's forecast): its ``information()`` fills ``prior_precision``,
         ``noise_var``, ``target_weights`` and, when it has the spatial residual, ``prior_cov``
         and ``spatial_cov`` (giving one of those too is an error).
     refine : run :func:`lrm_cvx.planning.refine.refine` on the greedy plan (a local search
-        of insertions and swaps that raises the information within the budget; Fisher only);
-        a dict is passed to it as keyword arguments. ``plan.refinement`` records the gain.
+        of insertions and swaps that raises the information within the budget; Fisher and the
+        paper's path model only); a dict is passed to it as keyword arguments.
+    metric, speed, stop_cost, traversable, closed, end : the path model (docs/planning.md,
+        "Path models"): ``"grid"`` or ``"km"`` (great circle); ``speed`` km/h makes the unit
+        hours; ``stop_cost`` is charged per sampling stop (start included); ``traversable``
+        ``None`` (straight lines), ``"valid"`` or a boolean ``(lat, lon)`` DataArray (travel
+        over the 8-connected grid of enterable cells, routes include the cells passed);
+        ``closed=True`` returns to the start; ``end`` (a cell or ``(lat, lon)``) is where every
+        route must finish.
+    sense_along : every cell a route passes through is observed: after each pick the route's
+        new pass-through cells join the information (cells a re-ordered route no longer passes
+        leave it). Candidates are still scored by **their own** gain per unit cost (not by the
+        pass-through cells their detour would add); cells already observed are not candidates.
+        Without a travel graph a straight leg passes the cells its segment crosses (between
+        grid positions; masked positions are skipped). ``plan.cells`` holds every observed
+        cell, ``plan.stops`` the sampling stops.
+    path : ``"route"`` (travel, the above) or ``"static"``: fixed sensors, no travel (see
+        :func:`place_sensors`; ``start`` must then be None and ``n_sensors`` (or ``budget``)
+        is the number of sensors).
+    n_sensors : the number of sensors of ``path="static"``.
 
-    If the initial cells alone already exceed the budget, the plan is still returned (the
-    paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
-    budget, start, criterion or cost, or a singular initial set with ``ridge=0``.
+    If the initial cells alone already exceed a robot's budget, the plan is still returned
+    (the paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
+    budget, start, criterion, cost or path option, or a singular initial set with ``ridge=0``.
     """
     region = check_region(region)
+    if path not in ("route", "static"):
+        raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
+    if path == "static":
+        if start is not None:
+            raise PlanningError("path='static' places fixed sensors and has no start: pass "
+                                "start=None")
+        if n_sensors is None:
+            n_sensors = budget
+        elif budget is not None and float(budget) != float(n_sensors):
+            raise PlanningError(f"path='static': give n_sensors ({n_sensors}) or budget "
+                                f"({budget}), not two different numbers")
+        if (metric, speed, stop_cost, closed, end, sense_along) != ("grid", None, 0.0, False,
+                                                                     None, False):
+            raise PlanningError("path='static' has no travel: metric, speed, stop_cost, closed, "
+                                "end and sense_along do not apply")
+        if refine is not False and refine is not None:
+            raise PlanningError("refine supports only the paper's path model, not "
+                                "path='static'")
+        return place_sensors(Y, region, n_sensors, criterion=criterion, ridge=ridge,
+                             progress=progress, prior_precision=prior_precision,
+                             noise_var=noise_var, target_weights=target_weights,
+                             prior_cov=prior_cov, spatial_cov=spatial_cov, targets=targets,
+                             prior=prior, traversable=traversable)
+    if n_sensors is not None:
+        raise PlanningError("n_sensors applies to path='static' only")
+    make_path_model = _path_model_factory()
+    if region.n_cells == 1 and traversable is None:  # nowhere to go: the start alone
+        make_path_model = _paper_model
+
     Yk = as_factor_matrix(Y, region)
-    k, _ = Yk.shape
-    start_cell = region.resolve_cell(start, "start")
-    budget = _check_budget(budget)
+    k, L = Yk.shape
+    starts, fleet = _resolve_starts(region, start)
+    budgets = _resolve_budgets(budget, len(starts))
     criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")  # aliases accepted
     cost = COST_REGISTRY.canonical(cost, "cost")
-    if initial == "nearest":
-        P0 = initial_cells(region, start_cell, k)
-    elif initial == "start":
-        P0 = np.array([start_cell], dtype=np.int64)
-    else:
+    if initial not in ("nearest", "start"):
         raise PlanningError(f"initial must be 'nearest' or 'start', got {initial!r}")
-    pool = _budget_pool(region, start_cell, budget)
-    if prior is not None:
-        terms = _prior_terms(prior)
-        given = dict(prior_precision=prior_precision, noise_var=noise_var,
-                     target_weights=target_weights, prior_cov=prior_cov, spatial_cov=spatial_cov)
-        clash = sorted(key for key in terms if given.get(key) is not None)
-        if clash:
-            raise PlanningError(f"prior= already gives {clash}; pass either prior or those")
-        prior_precision = terms.get("prior_precision")
-        noise_var = terms.get("noise_var")
-        target_weights = terms.get("target_weights")
-        prior_cov = terms.get("prior_cov")
-        spatial_cov = terms.get("spatial_cov")
-    extra: dict[str, Any] = {}
-    if criterion == "gp-variance":
-        extra = dict(region=region, spatial_cov=spatial_cov, prior_cov=prior_cov, pool=pool,
-                     targets=targets, target_weights=target_weights)
-    else:
-        if prior_precision is not None:
-            extra["prior_precision"] = prior_precision
-        if noise_var is not None:
-            extra["noise_var"] = noise_var
-        if target_weights is not None and criterion == "a-optimal":
-            extra["target_weights"] = target_weights
-    oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
-    coster = make_cost(cost, region.grid_index, P0, pool)
-    if coster.cost > budget + _TOL:
-        warnings.warn(
-            f"the {k} initial cells (start and its {k - 1} nearest, needed for a rank-{k} "
-            f"model) already cost {coster.cost:.4g} > budget {budget:.4g}",
-            UserWarning,
-            stacklevel=2,
-        )
-    cells = [int(c) for c in P0]
+    if not isinstance(sense_along, (bool, np.bool_)):
+        raise PlanningError(f"sense_along must be True or False, got {sense_along!r}")
+    end_cell = None if end is None else region.resolve_cell(end, "end")
+    models = [make_path_model(region, s, b, metric=metric, speed=speed, stop_cost=stop_cost,
+                              traversable=traversable, closed=closed, end=end_cell, cost=cost)
+              for s, b in zip(starts, budgets, strict=True)]
+    P0s = _robot_initial(models, k, initial)
+    cands = [np.asarray(m.candidates(), dtype=np.int64) for m in models]
+    union_pool = cands[0] if len(cands) == 1 else np.unique(np.concatenate(cands))
+    idx = [np.searchsorted(union_pool, c) for c in cands]
+    terms = _resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
+                                       target_weights=target_weights, prior_cov=prior_cov,
+                                       spatial_cov=spatial_cov))
+    posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
+    stops = list(dict.fromkeys(int(c) for P in P0s for c in P))
+    stop_robot = [next(r for r, P in enumerate(P0s) if c in P) for c in stops]
+    costers = [m.coster(P0, c) for m, P0, c in zip(models, P0s, cands, strict=True)]
+    init = stops
+    gp_pool = union_pool
+    sense = _Sensing(models, L) if sense_along else None
+    if sense is not None:
+        for r, cst in enumerate(costers):
+            sense.update(r, cst.route)
+        init = list(dict.fromkeys(stops + sense.observed().tolist()))
+        if criterion == "gp-variance":  # pass-through cells must be cells of the GP pool
+            gp_pool = np.union1d(union_pool, sense.reach())
+    extra = _oracle_extra(criterion, region, gp_pool, terms, targets)
+    oracle = make_oracle(criterion, Yk, ridge, init, **extra)
+    for r, cst in enumerate(costers):  # cells forced for other robots are taken
+        if len(costers) > 1:
+            for c in stops:
+                _take(cst, cands[r], c)
+        if cst.cost > budgets[r] + _TOL:
+            who = f"robot {r}'s " if fleet else ""
+            warnings.warn(
+                f"{who}{P0s[r].size} initial cells (start and its nearest, needed for a "
+                f"rank-{k} model) already cost {cst.cost:.4g} > budget {budgets[r]:.4g}",
+                UserWarning,
+                stacklevel=2,
+            )
     hist: dict[str, list[float]] = {
         "cell": [], "gain": [], "cost_increase": [], "ratio": [], "cost": [], "n_evaluated": []
     }
+    if fleet:
+        hist["robot"] = []
     bar = tqdm(desc="greedy plan", unit="pick", disable=not progress, leave=False)
     try:
         while True:
-            gains = oracle.gains(pool)
-            dc = coster.increases()
-            with np.errstate(invalid="ignore"):
-                ok = coster.active & (coster.cost + dc <= budget + _TOL)
-            ratio = np.where(ok, gains / np.maximum(np.where(ok, dc, 1.0), _MIN_DC), -np.inf)
-            if ratio.size == 0:
+            gains = oracle.gains(union_pool)
+            if sense is not None:
+                gains = np.where(sense.counts[union_pool] > 0, 0.0, gains)
+            best: tuple[float, int, int, int] | None = None  # (ratio, cell, robot, position)
+            for r, cst in enumerate(costers):
+                dc = cst.increases()
+                with np.errstate(invalid="ignore"):
+                    ok = cst.active & (cst.cost + dc <= budgets[r] + _TOL)
+                g = gains if len(costers) == 1 else gains[idx[r]]
+                ratio = np.where(ok, g / np.maximum(np.where(ok, dc, 1.0), _MIN_DC), -np.inf)
+                if ratio.size == 0:
+                    continue
+                b = int(np.argmax(ratio))
+                if not ratio[b] > 0:
+                    continue
+                cand = (float(ratio[b]), int(cands[r][b]), r, b)
+                if best is None or cand[0] > best[0] or (cand[0] == best[0]
+                                                         and cand[1] < best[1]):
+                    best = cand
+                    best_dc, best_gain = float(dc[b]), float(g[b])
+            if best is None:
                 break
-            best = int(np.argmax(ratio))
-            if not ratio[best] > 0:
-                break
-            cell = int(pool[best])
+            _, cell, r, _ = best
+            cst = costers[r]
             hist["cell"].append(cell)
-            hist["gain"].append(float(gains[best]))
-            hist["cost_increase"].append(float(dc[best]))
-            hist["ratio"].append(float(ratio[best]))
-            hist["n_evaluated"].append(int(getattr(coster, "n_evaluated", pool.size)))
-            oracle.add(cell)
-            coster.add(cell)
-            cells.append(cell)
-            hist["cost"].append(coster.cost)
+            hist["gain"].append(best_gain)
+            hist["cost_increase"].append(best_dc)
+            hist["ratio"].append(best[0])
+            hist["n_evaluated"].append(int(getattr(cst, "n_evaluated", cands[r].size)))
+            cst.add(cell)
+            for j, other in enumerate(costers):
+                if j != r:
+                    _take(other, cands[j], cell)
+            if sense is None:
+                oracle.add(cell)
+            else:
+                added, removed = sense.update(r, cst.route)
+                if removed.size:  # a re-ordered route no longer passes some cells
+                    oracle = make_oracle(criterion, Yk, ridge, sense.observed(), **extra)
+                else:
+                    for c in added.tolist():
+                        oracle.add(c)
+            stops.append(cell)
+            stop_robot.append(r)
+            if fleet:
+                hist["robot"].append(r)
+            hist["cost"].append(cst.cost)
             bar.update(1)
-            bar.set_postfix(cost=f"{coster.cost:.1f}/{budget:g}", refresh=False)
+            bar.set_postfix(cost=f"{cst.cost:.1f}/{budgets[r]:g}", refresh=False)
     finally:
         bar.close()
+    return _route_plan(
+        Yk, region, models, costers, stops, stop_robot, sense, hist, criterion=criterion,
+        ridge=float(ridge), cost=cost, posterior=posterior, budgets=budgets, refine=refine,
+        terms=terms, sense_along=bool(sense_along),
+    )
+
+
+def _path_model_factory() -> Any:
+    """``paths.make_path_model`` (imported here: paths imports greedy's helpers)."""
+    from .paths import make_path_model
+
+    return make_path_model
+
+
+class _PaperModel:
+    """The paper's path model on a one-cell region (the start alone)."""
+
+    metric, speed, stop_cost, closed, end, traversable, unit = ("grid", None, 0.0, False, None,
+                                                                "none", "grid units")
+
+    def __init__(self, region: Region, start: int, budget: float, cost: str) -> None:
+        self.region, self.start, self.budget, self.cost = region, int(start), float(budget), cost
+
+    def candidates(self) -> np.ndarray:
+        return _budget_pool(self.region, self.start, self.budget)
+
+    def initial_cells(self, k: int) -> np.ndarray:
+        return initial_cells(self.region, self.start, k)
+
+    def coster(self, cells0: Any, pool: Any) -> Any:
+        c = make_cost(self.cost, self.region.grid_index, cells0, pool)
+
+        def deactivate(cell: int) -> None:
+            c.active[c.pool == int(cell)] = False
+
+        c.deactivate = deactivate
+        return c
+
+    def expand(self, stops: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        from .plan import _path_cumulative
+
+        stops = np.asarray(stops, dtype=np.int64)
+        return (stops, _path_cumulative(self.region.grid_index[stops]),
+                np.ones(stops.size, bool))
+
+
+def _paper_model(region: Region, start: int, budget: float, *, metric: str = "grid",
+                 speed: Any = None, stop_cost: float = 0.0, traversable: Any = None,
+                 closed: bool = False, end: Any = None, cost: str = "nearest-neighbor") -> Any:
+    """The paper's model on a one-cell region (paths.make_path_model refuses a start that
+    cannot move; the paper's planner returns the start alone)."""
+    if (metric, speed, stop_cost, traversable, closed, end) != ("grid", None, 0.0, None, False,
+                                                                None):
+        from .paths import make_path_model
+
+        return make_path_model(region, start, budget, metric=metric, speed=speed,
+                               stop_cost=stop_cost, traversable=traversable, closed=closed,
+                               end=end, cost=cost)
+    return _PaperModel(region, start, budget, cost)
+
+
+def _take(coster: Any, pool: np.ndarray, cell: int) -> None:
+    """Deactivate ``cell`` in ``coster`` (a fleet-mate took it) when it is an active candidate."""
+    i = int(np.searchsorted(pool, cell))
+    if i < pool.size and pool[i] == cell and coster.active[i]:
+        coster.deactivate(int(cell))
+
+
+class _Sensing:
+    """Cells observed along the robots' routes (``sense_along``): per-robot sets and counts."""
+
+    def __init__(self, models: list[Any], L: int) -> None:
+        self.models = models
+        self.counts = np.zeros(L, dtype=np.int32)
+        self.sets: list[np.ndarray] = [np.empty(0, np.int64) for _ in models]
+
+    def update(self, r: int, route: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Robot ``r``'s route changed: ``(newly observed, no longer observed)`` cells."""
+        from .plan import sensed_route
+
+        cells = np.unique(sensed_route(self.models[r], route)[0])
+        old = self.sets[r]
+        self.counts[old] -= 1
+        removed = old[self.counts[old] == 0]
+        fresh = cells[self.counts[cells] == 0]
+        self.counts[cells] += 1
+        self.sets[r] = cells
+        gone = np.setdiff1d(removed, cells)
+        return fresh, gone
+
+    def observed(self) -> np.ndarray:
+        return np.flatnonzero(self.counts > 0).astype(np.int64)
+
+    def reach(self) -> np.ndarray:
+        """Every cell a route may pass: within each robot's budget of its start."""
+        out = [np.flatnonzero(np.isfinite(m.distances(m.start))
+                              & (m.distances(m.start) <= m.budget + _POOL_SLACK))
+               for m in self.models]
+        return np.unique(np.concatenate(out)).astype(np.int64)
+
+
+def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, criterion,
+                ridge, cost, posterior, budgets, refine, terms, sense_along) -> Plan:
+    """The :class:`Plan` of the greedy's final routes (and its refinement)."""
+    from .plan import sensed_route
+
+    routes, cums, ways, robot = [], [], [], []
+    for r, (m, cst) in enumerate(zip(models, costers, strict=True)):
+        cells, cum, way = (sensed_route(m, cst.route) if sense_along
+                           else m.expand(cst.route))
+        routes.append(np.asarray(cells, np.int64))
+        cums.append(np.asarray(cum, np.float64))
+        ways.append(np.asarray(way, bool))
+        robot.append(np.full(len(cells), r, np.int64))
+    if sense_along:
+        cells = list(dict.fromkeys(list(stops) + np.concatenate(routes).tolist()))
+    else:
+        cells = list(stops)
     info = fisher_information(Yk, cells, ridge)
-    history = {
-        key: np.asarray(v, dtype=np.int64 if key in ("cell", "n_evaluated") else np.float64)
-        for key, v in hist.items()
-    }
+    m0 = models[0]
+    path = path_dict(
+        [m.start for m in models], budgets, metric=m0.metric, speed=m0.speed,
+        stop_cost=float(m0.stop_cost), traversable=m0.traversable, closed=bool(m0.closed),
+        end=None if m0.end is None else int(m0.end), unit=m0.unit, sense_along=sense_along,
+    )
+    robot_costs = np.array([c.cost for c in costers], dtype=np.float64)
+    n = len(models)
     plan = Plan.build(
         region=region,
         cells=cells,
-        route=coster.route,
-        cost=coster.cost,
+        route=np.concatenate(routes),
+        cost=float(robot_costs.sum()) if n > 1 else float(robot_costs[0]),
         information=info,
         criterion=criterion,
-        budget=budget,
-        start=start_cell,
-        ridge=float(ridge),
+        budget=float(sum(budgets)) if n > 1 else budgets[0],
+        start=models[0].start,
+        ridge=ridge,
         method="greedy",
-        history=history,
+        history=_history(hist),
         cost_function=cost,
         Y=Yk,
-        posterior=prior_precision is not None or noise_var is not None,
+        posterior=posterior,
+        route_cost=np.concatenate(cums),
+        path=path,
+        route_robot=np.concatenate(robot),
+        waypoint=np.concatenate(ways),
+        stops=stops,
+        stop_robot=stop_robot,
+        robot_costs=robot_costs,
+        path_models=models,
     )
     if refine is not False and refine is not None:
         from .refine import refine as _refine
 
         opts = dict(refine) if isinstance(refine, dict) else {}
         if plan.posterior:
-            opts.setdefault("prior_precision", prior_precision)
-            opts.setdefault("noise_var", noise_var)
+            opts.setdefault("prior_precision", terms["prior_precision"])
+            opts.setdefault("noise_var", terms["noise_var"])
         plan = _refine(plan, **opts)
     return plan
+
+
+# --------------------------------------------------------------------------- static placement
+def _qr_start(Yk: np.ndarray, allowed: np.ndarray, k: int) -> np.ndarray:
+    """The ``k`` cells of a column-pivoted QR of ``Y[:, allowed]`` (QR-DEIM / PySensors' QR
+    placement): a well-conditioned set of ``k`` cells, so the information is nonsingular."""
+    from scipy.linalg import qr
+
+    _, _, piv = qr(Yk[:, allowed], mode="economic", pivoting=True)
+    return allowed[piv[:k]].astype(np.int64)
+
+
+def place_sensors(
+    Y: Any,
+    region: Region,
+    n_sensors: int,
+    *,
+    criterion: str = "fisher",
+    ridge: float = 0.0,
+    prior: Any = None,
+    progress: bool = False,
+    prior_precision: Any = None,
+    noise_var: Any = None,
+    target_weights: Any = None,
+    prior_cov: Any = None,
+    spatial_cov: Any = None,
+    targets: Any = None,
+    traversable: Any = None,
+) -> Plan:
+    """Static placement: ``n_sensors`` fixed sensors (moorings, stations), no travel.
+
+    The greedy of :func:`plan_greedy` with every sensor costing 1: candidates are all valid
+    cells (or the cells of a boolean ``(lat, lon)`` DataArray ``traversable``: where a sensor
+    may stand), and each step adds the cell of largest gain (ties to the lowest cell) until
+    ``n_sensors`` are placed (or no cell gains anything). The criteria, ``prior`` and posterior
+    terms are those of :func:`plan_greedy`.
+
+    Initial cells: none when the information is nonsingular from the start (``ridge > 0``, a
+    prior precision, or ``"gp-variance"``); else (Fisher with ``ridge=0`` and no prior) the
+    first ``k`` pivots of a column-pivoted QR of ``Y`` (the QR placement of PySensors), and
+    ``n_sensors`` must be ``>= k``. Returns a :class:`Plan` with ``path["kind"] == "static"``,
+    ``route`` = the sensors in selection order (no travel), ``route_cost`` = the number of
+    sensors placed so far, ``cost`` = the number of sensors, ``start = -1``.
+    """
+    region = check_region(region)
+    Yk = as_factor_matrix(Y, region)
+    k, L = Yk.shape
+    if isinstance(n_sensors, (bool, np.bool_)) or n_sensors is None:
+        raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
+    try:
+        n = int(n_sensors)
+        ok = n == float(n_sensors) and n >= 1
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
+    criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")
+    if traversable is None or (isinstance(traversable, str) and traversable == "valid"):
+        allowed = np.arange(L, dtype=np.int64)
+    else:
+        mask = _site_mask(region, traversable)
+        gi = region.grid_index
+        allowed = np.flatnonzero(mask[gi[:, 0], gi[:, 1]]).astype(np.int64)
+        if allowed.size == 0:
+            raise PlanningError("traversable allows no valid cell for a sensor")
+    if n > allowed.size:
+        raise PlanningError(f"n_sensors = {n} but only {allowed.size} cells can hold a sensor")
+    terms = _resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
+                                       target_weights=target_weights, prior_cov=prior_cov,
+                                       spatial_cov=spatial_cov))
+    posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
+    extra = _oracle_extra(criterion, region, allowed, terms, targets)
+    P0 = np.empty(0, dtype=np.int64)
+    try:
+        oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
+    except PlanningError as exc:
+        if criterion != "fisher" or "singular" not in str(exc):
+            raise
+        if n < k:
+            raise PlanningError(
+                f"n_sensors = {n} < rank k = {k}: with ridge=0 and no prior the information "
+                f"of fewer than {k} sensors is singular; pass ridge > 0 or a prior") from None
+        P0 = _qr_start(Yk, allowed, k)
+        oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
+    cells = [int(c) for c in P0]
+    active = np.ones(allowed.size, dtype=bool)
+    active[np.searchsorted(allowed, P0)] = False
+    hist: dict[str, list[float]] = {
+        "cell": [], "gain": [], "cost_increase": [], "ratio": [], "cost": [], "n_evaluated": []
+    }
+    bar = tqdm(desc="sensor placement", unit="sensor", disable=not progress, leave=False)
+    try:
+        while len(cells) < n:
+            gains = np.where(active, oracle.gains(allowed), -np.inf)
+            b = int(np.argmax(gains))
+            if not gains[b] > 0:
+                break
+            cell = int(allowed[b])
+            active[b] = False
+            oracle.add(cell)
+            cells.append(cell)
+            for key, v in (("cell", cell), ("gain", gains[b]), ("cost_increase", 1.0),
+                           ("ratio", gains[b]), ("cost", float(len(cells))),
+                           ("n_evaluated", int(active.sum()) + 1)):
+                hist[key].append(v)
+            bar.update(1)
+    finally:
+        bar.close()
+    route_cost = np.arange(1, len(cells) + 1, dtype=np.float64)
+    return Plan.build(
+        region=region, cells=cells, route=cells, cost=float(len(cells)),
+        information=fisher_information(Yk, cells, ridge), criterion=criterion,
+        budget=float(n), start=-1, ridge=float(ridge), method="greedy",
+        history=_history(hist), cost_function="sensors", Y=Yk, posterior=posterior,
+        route_cost=route_cost,
+        path=path_dict([], [float(n)], kind="static", unit="sensors",
+                       traversable="none" if allowed.size == L else "mask"),
+    )
+
+
+def _site_mask(region: Region, traversable: Any) -> np.ndarray:
+    """``traversable`` as a ``(ny, nx)`` bool array on the region's grid (a DataArray must
+    have the region's lat/lon), else a PlanningError naming it."""
+    arr = np.asarray(getattr(traversable, "values", traversable))
+    bad = arr.shape != tuple(region.shape) or arr.dtype != bool
+    if not bad and hasattr(traversable, "dims"):
+        from ..region import spatial_dims
+
+        try:
+            la, lo = spatial_dims(traversable)
+            bad = not (np.allclose(traversable[la].values, region.lat.values)
+                       and np.allclose(traversable[lo].values, region.lon.values))
+        except Exception:
+            bad = True
+    if bad:
+        raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
+                            f"DataArray on the region's grid {tuple(region.shape)}, got "
+                            f"{type(traversable).__name__} of shape {arr.shape}")
+    return arr

@@ -79,6 +79,59 @@ def _robot_last(route_robot: np.ndarray, n_robots: int) -> np.ndarray:
     return last
 
 
+def line_cells(region: Any, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Cells strictly between cells ``a`` and ``b`` that the straight segment between their
+    grid positions crosses, in travel order, and where ``(k,)`` each is along it (``t`` in
+    (0, 1), the middle of the segment's stretch in the cell). A segment through a grid corner
+    passes diagonally (consecutive positions are 8-neighbours); masked positions are skipped.
+    """
+    g = region.grid_index
+    p0 = g[int(a)].astype(np.float64)
+    d = g[int(b)].astype(np.float64) - p0
+    ts = [np.array([0.0, 1.0])]
+    for axis in (0, 1):
+        if d[axis] != 0:
+            lo, hi = sorted((p0[axis], p0[axis] + d[axis]))
+            h = np.arange(np.floor(lo) + 0.5, hi, 1.0)
+            ts.append((h - p0[axis]) / d[axis])
+    t = np.unique(np.clip(np.concatenate(ts), 0.0, 1.0))
+    mid = 0.5 * (t[1:] + t[:-1])[1:-1]  # the first and last stretches are a's and b's cells
+    if mid.size == 0:
+        return np.empty(0, np.int64), np.empty(0)
+    pos = np.rint(p0[None, :] + mid[:, None] * d[None, :]).astype(np.int64)
+    cells = region.cell_grid[pos[:, 0], pos[:, 1]]
+    keep = (cells >= 0) & (cells != a) & (cells != b)
+    return cells[keep].astype(np.int64), mid[keep]
+
+
+def sensed_route(model: Any, stops: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The route a sensing-along robot observes: ``model.expand(stops)`` and, without a travel
+    graph (``model.traversable == "none"``), the cells each straight leg crosses
+    (:func:`line_cells`) as pass-through entries (``waypoint=False``), their cumulative cost
+    interpolated along the leg's straight-line travel. Returns ``(cells, cumulative_cost,
+    waypoint)`` like ``expand``."""
+    cells, cum, way = (np.asarray(v) for v in model.expand(np.asarray(stops, np.int64)))
+    if getattr(model, "traversable", "none") != "none" or cells.size < 2:
+        return cells.astype(np.int64), cum.astype(np.float64), way.astype(bool)
+    from .paths import travel_distance
+
+    region = model.region
+    out_c, out_k, out_w = [cells[:1]], [cum[:1]], [way[:1]]
+    for i in range(cells.size - 1):
+        a, b = int(cells[i]), int(cells[i + 1])
+        mid, t = line_cells(region, a, b)
+        if mid.size:
+            leg = float(travel_distance(region, a, b, metric=model.metric, speed=model.speed))
+            out_c.append(mid)
+            out_k.append(np.minimum(cum[i] + t * leg, cum[i + 1]))
+            out_w.append(np.zeros(mid.size, bool))
+        out_c.append(cells[i + 1:i + 2])
+        out_k.append(cum[i + 1:i + 2])
+        out_w.append(way[i + 1:i + 2])
+    return (np.concatenate(out_c).astype(np.int64), np.concatenate(out_k).astype(np.float64),
+            np.concatenate(out_w).astype(bool))
+
+
 @dataclass(eq=False, repr=False)
 class Plan:
     """A sampling plan from ``start`` within ``budget``.
