@@ -36,6 +36,7 @@ from .dopt import (
     _relaxation,
     _top_sum,
 )
+from .paths import make_path_model
 
 __all__ = ["PlanCertificate", "plan_bound"]
 
@@ -86,6 +87,7 @@ class PlanCertificate:
     refined_information: float | None = None
     refine_moves: int | None = None
     path_bound: float | None = None  # the path-aware relaxation's dual bound (path_aware=True)
+    path: dict[str, Any] = field(default_factory=dict, repr=False)  # the path model bounded
 
     @property
     def plan_slack(self) -> float | None:
@@ -200,11 +202,19 @@ def plan_bound(
     Y: Any,
     region: Any,
     start: Any,
-    budget: float,
+    budget: Any,
     *,
     ridge: float = 0.0,
     plan: Any = None,
     metric: Literal["grid", "km"] = "grid",
+    speed: float | None = None,
+    stop_cost: float = 0.0,
+    traversable: Any = None,
+    closed: bool = False,
+    end: Any = None,
+    sense_along: bool = False,
+    path: str = "route",
+    n_sensors: int | None = None,
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL",
     tol: float = 1e-3,
     tighten: bool = True,
@@ -233,6 +243,19 @@ def plan_bound(
     gives the plain disk relaxation. When the plan is given, the submodularity online bound is
     computed too and the smaller one is kept. Proofs in docs/certificate.md.
 
+    **Every path model** (issue #15, docs/certificate.md §10). ``speed``, ``stop_cost``,
+    ``traversable``, ``closed``, ``end``, ``sense_along`` describe the route as in
+    :func:`~lrm_cvx.planning.plan_greedy` (``budget`` in the path model's unit: grid units, km
+    or hours); ``start`` and ``budget`` may be lists (a fleet); ``path="static"`` with
+    ``n_sensors`` bounds every placement of ``n_sensors`` cells anywhere in the region. When a
+    ``plan`` with a ``path`` description is given, its path model is used and these keywords
+    are ignored. The candidates are the cells some feasible route can observe (shortest travel
+    distances: ``d(start, x) + d(x, back) + stop costs <= budget``, ``back`` = nothing, the start
+    of a closed tour or the ``end``); the count limit uses the smallest spacing and the stop
+    cost; the start's distance limits use the path model's travel distances; the midpoint
+    cover needs ``metric="grid"``. A fleet's bound is the count-only relaxation over the union
+    of its robots' candidates with their count limits summed (valid, looser than one robot's).
+
     The bound is on the **Fisher** information (``criterion="fisher"``). For a plan chosen for
     another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or
     ``plan.posterior``) the certificate reports the plan's Fisher information but
@@ -243,55 +266,44 @@ def plan_bound(
     :func:`~lrm_cvx.planning.refine.refine`: the plan's own refinement when it was refined,
     else one run here when ``refine`` is true; a dict is passed to it as keyword arguments),
     ``plan_slack = refined - greedy`` and ``bound_slack = bound - refined``; the online bound
-    at the refined plan is used as well (valid at any set).
+    at the refined plan is used as well (valid at any set). Refinement exists for the paper's
+    path model only: for every other model these are None.
 
-    ``path_aware=True`` (opt-in, grid metric) also computes the path-aware relaxation of
-    :mod:`lrm_cvx.planning.relaxation` (a dict passes options to ``path_relaxation_bound``)
-    and keeps the smaller valid bound (``path_bound``); if it fails, a warning says the disk
-    bound is used.
-
-    ``budget`` is in grid units (``metric="grid"``) or km (``metric="km"``).
+    ``path_aware=True`` (opt-in, grid metric, the paper's path model) also computes the
+    path-aware relaxation of :mod:`lrm_cvx.planning.relaxation` (a dict passes options to
+    ``path_relaxation_bound``) and keeps the smaller valid bound (``path_bound``); if it
+    fails, a warning says the disk bound is used.
     """
     from ..information import fisher_information
-    from .greedy import _check_budget, initial_cells
-    from .plan import check_region
 
-    region = check_region(region)
+    region = _check_region(region)
     Y = as_factor_matrix(Y, region)
     k, L = Y.shape
-    start = region.resolve_cell(start, "start")
-    budget = _check_budget(budget)
     _, ridge = _check_n_ridge(1.0, ridge)
-    if metric not in ("grid", "km"):
-        raise PlanningError(f"metric must be 'grid' or 'km', got {metric!r}")
     if not isinstance(cover, (int, np.integer)) or cover < 1:
         raise PlanningError(f"cover must be an integer >= 1, got {cover!r}")
     if not isinstance(max_pieces, (int, np.integer)) or max_pieces < 1:
         raise PlanningError(f"max_pieces must be an integer >= 1, got {max_pieces!r}")
-
-    dist = np.asarray(region.distance(start, np.arange(L), metric=metric), dtype=np.float64)
-    slack = _DIST_EPS * max(1.0, budget)
-    Bp = budget + slack  # every path cost the planners accept is <= Bp
-    cand = np.flatnonzero(dist <= Bp)
-    if metric == "grid":
-        d_min = 1.0
-    else:
-        d_min = _min_spacing_km(region, cand)
-    n_max = min(cand.size, math.floor(Bp / d_min) + 1) if d_min > 0 else cand.size
-
-    init = np.asarray(initial_cells(region, start, k), dtype=np.int64)
-    init_info = float(fisher_information(Y, init, ridge=ridge))
+    spec = _path_spec(region, plan, start, budget, metric=metric, speed=speed,
+                      stop_cost=stop_cost, traversable=traversable, closed=closed, end=end,
+                      sense_along=sense_along, path=path, n_sensors=n_sensors)
+    fam = _family(spec, region, k)
+    cand, n_max, init, budget0 = fam.cand, fam.n_max, fam.init, spec.budgets[0]
+    metric = spec.metric
+    init_info = float(fisher_information(Y, init, ridge=ridge)) if init.size else -math.inf
     opts = {"solver": solver, "tol": tol}
     leaves: list[tuple[float, float, float, float]] = []
-    start_lim = _start_limit(Bp, d_min, n_max) if tighten and math.isfinite(d_min) else None
+    start_lim = None
+    if tighten and fam.dist is not None and math.isfinite(fam.d_min) and fam.d_min > 0:
+        start_lim = _start_limit(fam.travel, fam.d_min, n_max)
     start_lv = (
-        np.searchsorted(start_lim[0], dist[cand], side="right") if start_lim else None
+        np.searchsorted(start_lim[0], fam.dist[cand], side="right") if start_lim else None
     )
-    if tighten and metric == "grid" and Bp >= 2.0:
-        centre = region.grid_index[start].astype(np.float64)
+    if tighten and fam.cover_budget is not None and fam.cover_budget >= 2.0:
+        centre = region.grid_index[spec.starts[0]].astype(np.float64)
         relax, leaves = _midpoint_cover(
-            Y, region, cand, start_lv, start_lim, centre, Bp, n_max, ridge, cover,
-            max_pieces, init_info, opts,
+            Y, region, cand, start_lv, start_lim, centre, fam.cover_budget, n_max, ridge,
+            cover, max_pieces, init_info, opts,
         )
     else:
         levels, caps = ([start_lv], [start_lim[1]]) if start_lim else ([], [])
@@ -299,22 +311,30 @@ def plan_bound(
     bound = max(init_info, relax.value)
     path_value = None
     if path_aware:
-        path_value = _path_aware(Y, region, start, budget, ridge, metric, path_aware)
+        if fam.paper:
+            path_value = _path_aware(Y, region, spec.starts[0], budget0, ridge, metric,
+                                     path_aware)
+        else:
+            warnings.warn("path_aware=True needs the paper's path model (grid, open, one "
+                          "robot); the disk bound is used", UserWarning, stacklevel=2)
         if path_value is not None:
             bound = min(bound, max(init_info, path_value))
 
     information = gap = ratio = online = None
+    greedy_info = refined_info = n_moves = None
     if plan is not None:
         cells = np.asarray(plan.cells, dtype=np.int64)
-        _check_plan_feasible(cells, init, cand, n_max, plan, budget, slack)
-        _check_plan_limits(cells, init, region, dist, start_lim, leaves, Bp, n_max, plan)
+        _check_plan_feasible(cells, init, cand, n_max, plan, fam.budget_text, 0.0)
+        _check_plan_limits(cells, init, region, fam.dist, start_lim, leaves,
+                           fam.cover_budget, n_max, plan)
         information = float(fisher_information(Y, cells, ridge=ridge))
         online = _online_bound(Y, cells, cand, n_max, ridge, information)
         if online is not None:
             bound = min(bound, max(init_info, online))
         plan_criterion = _plan_criterion(plan)
         greedy_info, refined_info, n_moves, rcells = _refined(
-            plan, Y, region, refine, metric, plan_criterion, information)
+            plan, Y, region, refine if fam.paper else False, metric, plan_criterion,
+            information)
         if refined_info is not None and refined_info > information:
             online_r = _online_bound(Y, rcells, cand, n_max, ridge, refined_info)
             if online_r is not None:
@@ -325,15 +345,283 @@ def plan_bound(
             gap, ratio = math.nan, math.nan
     return PlanCertificate(
         bound=float(bound), information=information, gap=gap, volume_ratio=ratio,
-        n_max=int(n_max), n_candidates=int(cand.size), k=k, start=int(start), budget=budget,
-        ridge=ridge, metric=metric, initial_information=init_info, relaxation=relax,
-        online_bound=online, tightened=bool(tighten), leaves=tuple(leaves),
+        n_max=int(n_max), n_candidates=int(cand.size), k=k, start=int(spec.starts[0]),
+        budget=float(budget0), ridge=ridge, metric=metric, initial_information=init_info,
+        relaxation=relax, online_bound=online, tightened=bool(tighten and (
+            start_lim is not None or bool(leaves))), leaves=tuple(leaves),
         criterion="fisher", plan_criterion=_plan_criterion(plan) if plan is not None else None,
-        greedy_information=greedy_info if plan is not None else None,
-        refined_information=refined_info if plan is not None else None,
-        refine_moves=n_moves if plan is not None else None,
-        path_bound=path_value,
+        greedy_information=greedy_info, refined_information=refined_info,
+        refine_moves=n_moves, path_bound=path_value, path=spec.summary(),
     )
+
+
+# ----------------------------------------------------------------------------- path models
+@dataclass(frozen=True)
+class _PathSpec:
+    """What the certificate needs to know of a plan's path model (validated)."""
+
+    kind: str  # "path" or "static"
+    starts: tuple[int, ...]
+    budgets: tuple[float, ...]
+    metric: str
+    speed: float | None
+    stop_cost: float
+    traversable: Any  # None, "valid" or a mask (DataArray)
+    closed: bool
+    end: int | None
+    sense_along: bool
+    n_sensors: int | None
+    models: tuple[Any, ...] | None = None  # the plan's own PathModels, one per robot
+
+    @property
+    def paper(self) -> bool:
+        """The paper's path model (one robot, open, straight lines, no stop cost)."""
+        return (self.kind == "path" and len(self.starts) == 1 and self.speed is None
+                and self.stop_cost == 0 and self.traversable is None and not self.closed
+                and self.end is None and not self.sense_along)
+
+    def summary(self) -> dict[str, Any]:
+        trav = self.traversable
+        return {
+            "kind": self.kind, "metric": self.metric, "speed": self.speed,
+            "stop_cost": self.stop_cost,
+            "traversable": trav if trav is None or isinstance(trav, str) else "mask",
+            "closed": self.closed, "end": self.end, "sense_along": self.sense_along,
+            "starts": list(self.starts), "budgets": list(self.budgets),
+            "n_robots": len(self.starts), "n_sensors": self.n_sensors,
+        }
+
+
+def _check_region(region: Any) -> Any:
+    from .plan import check_region  # Plan's module is a leaf: no cycle through here
+
+    return check_region(region)
+
+
+def _check_budget(budget: Any, name: str = "budget") -> float:
+    """``budget`` as a float >= 0; a string or a bool is refused, not converted."""
+    from .._validation import check_positive
+
+    if isinstance(budget, (str, bytes, bool, np.bool_)):
+        raise PlanningError(f"{name} must be a number, got {budget!r}")
+    return check_positive(budget, name, error=PlanningError)
+
+
+def _as_list(x: Any) -> list[Any]:
+    if isinstance(x, (list, tuple)) and not (
+        len(x) == 2 and all(isinstance(v, (float, np.floating)) for v in x)
+    ):
+        return list(x)
+    return [x]
+
+
+def _is_paper_description(desc: dict[str, Any]) -> bool:
+    """``plan.path`` describes the paper's path model (old plans, the default): the caller's
+    keywords (e.g. ``metric="km"``) then apply, as before issue #15."""
+    trav = desc.get("traversable")
+    return (desc.get("kind", "path") == "path" and int(desc.get("n_robots", 1) or 1) == 1
+            and desc.get("metric", "grid") == "grid" and desc.get("speed") is None
+            and not desc.get("stop_cost") and (trav is None or trav == "none")
+            and not desc.get("closed") and desc.get("end") is None
+            and not desc.get("sense_along"))
+
+
+def _path_spec(region: Any, plan: Any, start: Any, budget: Any, **kw: Any) -> _PathSpec:
+    """The path model of the request: ``plan.path`` when the plan has one, else ``kw``."""
+    desc = getattr(plan, "path", None) if plan is not None else None
+    if isinstance(desc, dict) and desc and not _is_paper_description(desc):
+        kind = desc.get("kind", "path")
+        starts = desc.get("starts") or _as_list(getattr(plan, "start", start))
+        budgets = desc.get("budgets") or _as_list(getattr(plan, "budget", budget))
+        trav = desc.get("traversable")
+        if isinstance(trav, str) and trav.lower() == "none":
+            trav = None
+        elif isinstance(trav, str) and trav == "mask":
+            mask = desc.get("mask", getattr(plan, "traversable_mask", None))
+            # enterable = valid & mask: travel over all valid cells is never longer, so
+            # "valid" gives a valid (looser) certificate when the mask itself is not kept
+            trav = mask if mask is not None else "valid"
+        n_sensors = desc.get("n_sensors")
+        if kind == "static" and n_sensors is None:
+            n_sensors = int(round(budgets[0])) if budgets else int(np.unique(plan.cells).size)
+        kw = dict(metric=desc.get("metric", "grid"), speed=desc.get("speed"),
+                  stop_cost=desc.get("stop_cost", 0.0) or 0.0, traversable=trav,
+                  closed=bool(desc.get("closed", False)), end=desc.get("end"),
+                  sense_along=bool(desc.get("sense_along", False)), path=kind,
+                  n_sensors=n_sensors)
+    else:
+        starts, budgets = _as_list(start), _as_list(budget)
+        if plan is not None and getattr(plan, "start", None) is not None and start is None:
+            starts = [plan.start]
+    kind = {"route": "path", "path": "path", "static": "static"}.get(str(kw["path"]))
+    if kind is None:
+        raise PlanningError(f"path must be 'route' or 'static', got {kw['path']!r}")
+    metric = kw["metric"]
+    if metric not in ("grid", "km"):
+        raise PlanningError(f"metric must be 'grid' or 'km', got {metric!r}")
+    speed = kw["speed"]
+    if speed is not None:
+        if metric != "km":
+            raise PlanningError("speed (km/h) needs metric='km'")
+        speed = _check_budget(speed, "speed (km/h)")
+        if speed <= 0:
+            raise PlanningError(f"speed must be > 0 km/h, got {speed!r}")
+    stop_cost = _check_budget(kw["stop_cost"], "stop_cost")
+    if kind == "static":
+        n = kw["n_sensors"]
+        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise PlanningError(f"n_sensors must be an integer >= 1 for path='static', "
+                                f"got {n!r}")
+        return _PathSpec("static", (), (), metric, speed, stop_cost, None, False, None, False,
+                         int(n))
+    cells = tuple(int(region.resolve_cell(s, "start")) for s in starts)
+    if len(budgets) == 1 and len(cells) > 1:
+        budgets = budgets * len(cells)
+    if len(budgets) != len(cells):
+        raise PlanningError(f"budget has {len(budgets)} entries for {len(cells)} starts; give "
+                            "one budget or one per start")
+    budgets_f = tuple(_check_budget(b) for b in budgets)
+    closed = bool(kw["closed"])
+    end = kw["end"]
+    if end is not None:
+        if closed:
+            raise PlanningError("closed=True with end= is contradictory: a closed tour ends "
+                                "at its start")
+        end = int(region.resolve_cell(end, "end"))
+    trav = kw["traversable"]
+    if isinstance(trav, str):
+        if trav.lower() == "none":
+            trav = None
+        elif trav != "valid":
+            raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
+                                f"mask, got {trav!r}")
+    models = getattr(plan, "_path_models", None) if plan is not None else None
+    if models is not None and (len(models) != len(cells) or any(
+            int(m.start) != c for m, c in zip(models, cells, strict=True))):
+        models = None
+    return _PathSpec("path", cells, budgets_f, metric, speed, stop_cost, trav, closed, end,
+                     bool(kw["sense_along"]), None, tuple(models) if models else None)
+
+
+@dataclass(frozen=True)
+class _Family:
+    """Every plan's cells: the initial set ``init`` or at most ``n_max`` of ``cand``.
+
+    ``dist`` (L,) and ``travel``: the start's distance limits (no more than
+    ``floor((travel - r) / d_min) + 1`` cells at distance ``>= r``); None: no limits.
+    ``cover_budget``: grid length of the path the midpoint cover may assume (None: no cover).
+    """
+
+    cand: np.ndarray
+    n_max: int
+    init: np.ndarray
+    dist: np.ndarray | None
+    d_min: float
+    travel: float
+    cover_budget: float | None
+    paper: bool
+    budget_text: str
+
+
+def _family(spec: _PathSpec, region: Any, k: int) -> _Family:
+    """The candidates and count limits of ``spec`` (proofs: docs/certificate.md §10)."""
+    L = region.n_cells
+    if spec.kind == "static":
+        return _Family(np.arange(L, dtype=np.int64), min(spec.n_sensors, L),
+                       np.zeros(0, np.int64), None, math.inf, math.inf, None, False,
+                       f"{spec.n_sensors} sensors")
+    if spec.paper:
+        return _paper_family(spec, region, k)
+    parts = [_robot_family(spec, region, k, r) for r in range(len(spec.starts))]
+    if len(parts) == 1:
+        return parts[0]
+    # a fleet: each robot's cells are its initial set or a feasible route's; the union of
+    # the robots' sets lies in the union of their candidates and holds at most the sum
+    cand = np.unique(np.concatenate([np.union1d(p.cand, p.init) for p in parts]))
+    n_max = min(cand.size, sum(max(p.n_max, p.init.size) for p in parts))
+    text = "fleet budgets " + ", ".join(f"{b:g}" for b in spec.budgets)
+    return _Family(cand, n_max, np.zeros(0, np.int64), None, math.inf, math.inf, None, False,
+                   text)
+
+
+def _paper_family(spec: _PathSpec, region: Any, k: int) -> _Family:
+    """The paper's path (grid or km, straight lines, open, no stop cost): as issue #5."""
+
+    start, budget, metric = spec.starts[0], spec.budgets[0], spec.metric
+    L = region.n_cells
+    dist = np.asarray(region.distance(start, np.arange(L), metric=metric), dtype=np.float64)
+    Bp = budget + _DIST_EPS * max(1.0, budget)  # every path cost the planners accept is <= Bp
+    cand = np.flatnonzero(dist <= Bp)
+    d_min = 1.0 if metric == "grid" else _min_spacing_km(region, cand)
+    n_max = min(cand.size, math.floor(Bp / d_min) + 1) if d_min > 0 else cand.size
+    init = _paper_initial_cells(region, start, budget, k)
+    return _Family(cand, int(n_max), init, dist, d_min, Bp, Bp if metric == "grid" else None,
+                   True, f"budget={budget:g}")
+
+
+def _paper_initial_cells(region: Any, start: int, budget: float, k: int) -> np.ndarray:
+    """The greedy's forced initial set on the paper's path: start + k-1 nearest (grid)."""
+    return np.asarray(make_path_model(region, start, budget).initial_cells(k), np.int64)
+
+
+def _robot_family(spec: _PathSpec, region: Any, k: int, r: int) -> _Family:
+    """One robot of any path model: candidates by travel distance, count by spacing and stop
+    cost, the start's limits in the model's travel distance (docs/certificate.md §10)."""
+    from .paths import make_path_model
+
+    start, budget = spec.starts[r], spec.budgets[r]
+    if spec.models is not None:  # the plan's own model (keeps a traversable mask)
+        pm = spec.models[r]
+    else:
+        pm = make_path_model(region, start, budget, metric=spec.metric, speed=spec.speed,
+                             stop_cost=spec.stop_cost, traversable=spec.traversable,
+                             closed=spec.closed, end=spec.end)
+    c = spec.stop_cost
+    Bp = budget + _DIST_EPS * max(1.0, budget)
+    d_s = np.asarray(pm.distances(start), dtype=np.float64)
+    if spec.closed:
+        d_back = d_s
+    elif spec.end is not None:
+        d_back = np.asarray(pm.distances(spec.end), dtype=np.float64)
+    else:
+        d_back = np.zeros_like(d_s)
+    fixed = 1 + int(spec.end is not None and spec.end != start)  # stops every route has
+    with np.errstate(invalid="ignore"):
+        through = d_s + d_back + c * fixed  # the cheapest route observing x on its way
+        stop = through + c  # ... and stopping at x
+    reach = stop if not spec.sense_along else through
+    cand = np.flatnonzero(np.isfinite(reach) & (reach <= Bp))
+    cand = np.union1d(cand, [start] + ([spec.end] if spec.end is not None else []))
+    d_min = _spacing(region, cand, spec)
+    travel = max(Bp - c * fixed, 0.0)  # no route travels farther
+    if d_min <= 0 or not math.isfinite(d_min):
+        n_max = cand.size
+    elif spec.sense_along:  # stops pay c, pass-through cells only their spacing
+        n_max = math.floor(travel / d_min) + 1
+    else:  # n stops: n c + (n - 1) d_min <= budget
+        n_max = math.floor((Bp + d_min) / (c + d_min))
+    n_max = int(max(1, min(cand.size, n_max)))
+    init = np.asarray(pm.initial_cells(k), dtype=np.int64)
+    # the straight chart path through the observed cells is no longer than the travel in
+    # grid units (a travel graph's steps are the Euclidean grid lengths of 8-neighbour moves)
+    # (km: PathModel.grid_budget_bound's curvature argument). Not on a grid that wraps: the
+    # cover's squares live on the unwrapped chart.
+    cover_budget = None
+    if not getattr(pm, "_wrap", True):
+        cover_budget = travel if spec.metric == "grid" else float(pm.grid_budget_bound()) * (
+            1 + 1e-9)
+        if not math.isfinite(cover_budget):
+            cover_budget = None
+    return _Family(cand, n_max, init, np.where(np.isfinite(d_s), d_s, np.inf), d_min, travel,
+                   cover_budget, False, f"budget={budget:g} ({pm.unit})")
+
+
+def _spacing(region: Any, cand: np.ndarray, spec: _PathSpec) -> float:
+    """Smallest travel distance between two distinct candidates, in the budget's unit."""
+    if spec.metric == "grid":
+        return 1.0
+    d = _min_spacing_km(region, cand)
+    return d / spec.speed if spec.speed is not None else d
 
 
 def _path_aware(Y: np.ndarray, region: Any, start: int, budget: float, ridge: float,
@@ -522,13 +810,14 @@ def _midpoint_cover(
 def _check_plan_limits(
     cells: np.ndarray, init: np.ndarray, region: Any, dist: np.ndarray,
     start_lim: tuple[np.ndarray, np.ndarray] | None,
-    leaves: list[tuple[float, float, float, float]], Bp: float, n_max: int, plan: Any,
+    leaves: list[tuple[float, float, float, float]], Bp: float | None, n_max: int, plan: Any,
 ) -> None:
     """A covered plan satisfies the start's distance limits and lies in some piece's set."""
     if set(cells.tolist()) == set(init.tolist()):
         return
     cells = np.unique(cells)
-    msg = f"the plan is not a path of length <= {Bp:.6g} from start={plan.start}: "
+    length = f"{Bp:.6g}" if Bp is not None else "the budget"
+    msg = f"the plan is not a path of length <= {length} from start={plan.start}: "
     if start_lim is not None:
         d = dist[cells]
         counts = (d[:, None] >= start_lim[0][None, :]).sum(axis=0)
@@ -566,7 +855,8 @@ def _check_plan_feasible(
     inside = np.isin(cells, cand)
     if not inside.all() or np.unique(cells).size > n_max:
         raise PlanningError(
-            f"the plan is not feasible for start={plan.start}, budget={budget:g}: "
+            f"the plan is not feasible for start={plan.start}, "
+            f"{budget if isinstance(budget, str) else f'budget={budget:g}'}: "
             f"{int((~inside).sum())} of its cells lie farther than the budget from the start "
             f"or it holds more than {n_max} cells; the certificate does not cover it"
         )
