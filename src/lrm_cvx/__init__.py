@@ -31,6 +31,7 @@ _LAZY = {
     "nearest_neighbor_tour": "lrm_cvx.cost",
     "Plan": "lrm_cvx.planning",
     "plan_greedy": "lrm_cvx.planning",
+    "place_sensors": "lrm_cvx.planning",
     "transect": "lrm_cvx.planning",
     "random_walk": "lrm_cvx.planning",
     "refine": "lrm_cvx.planning",

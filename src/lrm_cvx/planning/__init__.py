@@ -5,13 +5,14 @@ from __future__ import annotations
 from typing import Any
 
 from .baselines import random_walk, transect
-from .greedy import initial_cells, plan_greedy
+from .greedy import initial_cells, place_sensors, plan_greedy
 from .plan import Plan
 from .refine import refine
 
 __all__ = [
     "Plan",
     "plan_greedy",
+    "place_sensors",
     "refine",
     "initial_cells",
     "transect",

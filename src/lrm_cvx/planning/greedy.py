@@ -95,8 +95,11 @@ def _resolve_starts(region: Region, start: Any) -> tuple[list[int], bool]:
     return [region.resolve_cell(start, "start")], False
 
 
-def _resolve_budgets(budget: Any, n: int) -> list[float]:
-    """``budget`` (a number, or a list / array of ``n``) as ``n`` floats >= 0."""
+def _resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
+    """``budget`` (a number, or for a fleet a list / array of ``n``) as ``n`` floats >= 0."""
+    if isinstance(budget, (list, tuple, np.ndarray)) and not fleet:
+        raise PlanningError(f"budget must be a number for one robot, got {budget!r} (a list "
+                            "of budgets needs a list of starts, one per robot)")
     if isinstance(budget, (list, tuple, np.ndarray)):
         values = list(np.asarray(budget, dtype=object).ravel())
         if len(values) != n:
@@ -296,7 +299,7 @@ def plan_greedy(
     Yk = as_factor_matrix(Y, region)
     k, L = Yk.shape
     starts, fleet = _resolve_starts(region, start)
-    budgets = _resolve_budgets(budget, len(starts))
+    budgets = _resolve_budgets(budget, len(starts), fleet)
     criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")  # aliases accepted
     cost = COST_REGISTRY.canonical(cost, "cost")
     if initial not in ("nearest", "start"):
@@ -307,7 +310,10 @@ def plan_greedy(
     models = [make_path_model(region, s, b, metric=metric, speed=speed, stop_cost=stop_cost,
                               traversable=traversable, closed=closed, end=end_cell, cost=cost)
               for s, b in zip(starts, budgets, strict=True)]
+    if initial == "nearest" and k > region.n_cells:
+        raise PlanningError(f"the region has {region.n_cells} cells, fewer than the rank k = {k}")
     P0s = _robot_initial(models, k, initial)
+    tols = [float(getattr(m, "tol", _TOL)) for m in models]  # 1e-9 (x budget off the grid)
     cands = [np.asarray(m.candidates(), dtype=np.int64) for m in models]
     union_pool = cands[0] if len(cands) == 1 else np.unique(np.concatenate(cands))
     idx = [np.searchsorted(union_pool, c) for c in cands]
@@ -333,7 +339,7 @@ def plan_greedy(
         if len(costers) > 1:
             for c in stops:
                 _take(cst, cands[r], c)
-        if cst.cost > budgets[r] + _TOL:
+        if cst.cost > budgets[r] + tols[r]:
             who = f"robot {r}'s " if fleet else ""
             warnings.warn(
                 f"{who}{P0s[r].size} initial cells (start and its nearest, needed for a "
@@ -356,7 +362,7 @@ def plan_greedy(
             for r, cst in enumerate(costers):
                 dc = cst.increases()
                 with np.errstate(invalid="ignore"):
-                    ok = cst.active & (cst.cost + dc <= budgets[r] + _TOL)
+                    ok = cst.active & (cst.cost + dc <= budgets[r] + tols[r])
                 g = gains if len(costers) == 1 else gains[idx[r]]
                 ratio = np.where(ok, g / np.maximum(np.where(ok, dc, 1.0), _MIN_DC), -np.inf)
                 if ratio.size == 0:
