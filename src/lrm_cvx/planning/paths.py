@@ -33,6 +33,7 @@ whenever it is within the budget; distances beyond the reach are ``inf``.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -639,7 +640,8 @@ def _traversable_mask(region: Region, traversable: Any) -> tuple[str, np.ndarray
         raise PlanningError(f"traversable mask must be boolean (True = may enter), got dtype "
                             f"{arr.dtype}")
     if hasattr(traversable, "dims") and hasattr(traversable, "coords"):
-        for k, (dim, coord) in enumerate(zip(traversable.dims, (region.lat, region.lon))):
+        pairs = zip(traversable.dims, (region.lat, region.lon), strict=True)
+        for k, (dim, coord) in enumerate(pairs):
             if dim in traversable.coords:
                 mine = np.asarray(coord.values, dtype=np.float64)
                 theirs = np.asarray(traversable[dim].values, dtype=np.float64)
@@ -784,7 +786,7 @@ class PathModel:
         if self._graph is None:
             return self._geo.pairs(seq[:-1], seq[1:])
         return np.array([self._graph.to(int(a), np.array([b]))[0]
-                         for a, b in zip(seq[:-1], seq[1:])], dtype=np.float64)
+                         for a, b in itertools.pairwise(seq)], dtype=np.float64)
 
     def route_cost(self, stops: Any) -> float:
         """Exact cost of visiting ``stops`` in the given order (start first): travel, the way
