@@ -66,10 +66,67 @@ def _check_lat(value: float, what: str) -> None:
                          "(latitude comes first)")
 
 
-def _start(text: str) -> tuple[float, float]:
-    lat, lon = _floats(text, 2, "--start LAT,LON")
-    _check_lat(lat, "--start")
+def _start(text: str, flag: str = "--start") -> tuple[float, float]:
+    lat, lon = _floats(text, 2, f"{flag} LAT,LON")
+    _check_lat(lat, flag)
     return (lat, lon)
+
+
+def _starts_budgets(args: argparse.Namespace) -> tuple[object, object]:
+    """``--start`` once (one robot) or several times (a fleet), ``--budget`` once (every robot)
+    or once per start: the ``start`` / ``budget`` of ``plan_greedy``."""
+    starts = args.start if isinstance(args.start, list) else [args.start]
+    budgets = args.budget if isinstance(args.budget, list) else [args.budget]
+    if len(budgets) not in (1, len(starts)):
+        raise UsageError(f"--budget must be given once (every robot) or once per --start "
+                         f"({len(starts)} starts), got {len(budgets)} budgets")
+    points = [_start(s) for s in starts]
+    if len(points) == 1:
+        return points[0], budgets[0]
+    return points, (budgets[0] if len(budgets) == 1 else budgets)
+
+
+def _traversable(text: str | None):
+    """``--traversable``: None, ``"valid"``, or a NetCDF file holding one boolean (or 0/1)
+    ``(lat, lon)`` variable (True = the robot may enter), read as a DataArray."""
+    if text is None or text.strip().lower() == "valid":
+        return None if text is None else "valid"
+    from ._validation import read_netcdf
+
+    ds = read_netcdf(text, "--traversable mask file", "a (lat, lon) boolean mask")
+    names = [v for v in ds.data_vars if ds[v].ndim == 2]
+    if len(names) != 1:
+        raise UsageError(f"--traversable {text} must hold exactly one 2-D (lat, lon) variable "
+                         f"(True = may enter), found {list(ds.data_vars)}")
+    mask = ds[names[0]]
+    if mask.dtype != bool:
+        values = np.asarray(mask.values)
+        if not np.issubdtype(values.dtype, np.number) or not np.isin(values, (0, 1)).all():
+            raise UsageError(f"--traversable {text}: variable {names[0]!r} must be boolean or "
+                             f"0/1 (True = may enter), got dtype {values.dtype}")
+        mask = mask.astype(bool)
+    return mask
+
+
+def _path_kwargs(args: argparse.Namespace, *, fleet_end: bool = True) -> dict:
+    """The path-model options of ``plan`` / ``bound`` / ``evaluate`` as keyword arguments
+    (only those given, so the defaults stay the paper's calls)."""
+    kw: dict = {}
+    if args.metric != "grid":
+        kw["metric"] = args.metric
+    if args.speed is not None:
+        kw["speed"] = args.speed
+    if args.stop_cost:
+        kw["stop_cost"] = args.stop_cost
+    if args.traversable is not None:
+        kw["traversable"] = _traversable(args.traversable)
+    if args.closed:
+        kw["closed"] = True
+    if fleet_end and getattr(args, "end", None) is not None:
+        kw["end"] = _start(args.end, "--end")
+    if getattr(args, "sense_along", False):
+        kw["sense_along"] = True
+    return kw
 
 
 def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
@@ -110,7 +167,7 @@ def _number(text: str) -> float:
 
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _NUM_LIST = re.compile(rf"^,?{_NUM}(?:,{_NUM})*,?$")
-_COORDINATE_FLAGS = {"--start": 2, "--bbox": 4}
+_COORDINATE_FLAGS = {"--start": 2, "--end": 2, "--bbox": 4}
 
 
 def _join_coordinates(argv: Sequence[str]) -> list[str]:
@@ -260,7 +317,8 @@ def _plan_from_args(args: argparse.Namespace):
     from .planning import plan_greedy
 
     model = _load_model(args.model)
-    start = _start(args.start)
+    start, budget = _starts_budgets(args)
+    path = _path_kwargs(args)
     from .information import CRITERIA
 
     criterion = _canonical(CRITERIA, _pick(args.criterion, args.recommended, "criterion",
@@ -277,17 +335,37 @@ def _plan_from_args(args: argparse.Namespace):
     elif prior is not None:
         kw = {k: v for k, v in model.planner_kwargs(prior=prior).items()
               if k not in ("prior_cov", "spatial_cov")}
-    plan = plan_greedy(model.Y_, model.region_, start, args.budget, criterion=criterion,
+    plan = plan_greedy(model.Y_, model.region_, start, budget, criterion=criterion,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
-                       initial=initial, **kw)
+                       initial=initial, **kw, **path)
     return model, plan
 
 
 def _describe_plan(plan) -> str:
     value = (f"information {plan.information:.4f} nats" if plan.criterion == "fisher"
              else f"{plan.criterion} criterion {plan.information:.4g}")
-    within = "<=" if plan.cost <= plan.budget + 1e-9 else "> (forced initial cells)"
-    return f"{len(plan.cells)} cells, cost {plan.cost:.3f} {within} budget {plan.budget:g}, {value}"
+    path = getattr(plan, "path", None) or {}
+    unit = path.get("unit", "grid units")
+    budgets = path.get("budgets") or [plan.budget]
+    costs = np.atleast_1d(getattr(plan, "robot_costs", [plan.cost]))
+    if len(costs) != len(budgets):
+        costs, budgets = np.array([plan.cost]), [plan.budget]
+    over = bool(np.any(costs > np.asarray(budgets, dtype=float) + 1e-9))
+    within = "> (forced initial cells)" if over else "<="
+    if len(costs) == 1:
+        text = f"cost {plan.cost:.3f} {within} budget {plan.budget:g}"
+    else:  # a fleet: each robot's cost and budget
+        text = f"{len(costs)} robots, costs " + ", ".join(
+            f"{c:.3f}/{b:g}" for c, b in zip(costs, budgets, strict=True)) + \
+            f" (total {plan.cost:.3f}; {'over' if over else 'within'} the budgets)"
+    if unit != "grid units":
+        text += f" {unit}"
+    extras = ["closed" if path.get("closed") else "",
+              f"traversable {path['traversable']}" if path.get("traversable", "none") != "none"
+              else ""]
+    extras = [e for e in extras if e]
+    return f"{len(plan.cells)} cells, {text}, {value}" + (f" ({', '.join(extras)})" if extras
+                                                         else "")
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
@@ -296,12 +374,18 @@ def cmd_plan(args: argparse.Namespace) -> int:
         suffix = Path(args.output).suffix.lower()
         if suffix not in (".csv", ".geojson", ".json"):
             raise UsageError(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
-        (out,) = _guard([args.output], [args.model], args)
+        (out,) = _guard([args.output], [args.model, *_mask_file(args)], args)
     _, plan = _plan_from_args(args)
     print(_describe_plan(plan))
     if out is not None:
         _write_plan(plan, out)
     return 0
+
+
+def _mask_file(args: argparse.Namespace) -> list[str]:
+    """The ``--traversable`` mask file, an input (never overwritten), or nothing."""
+    t = getattr(args, "traversable", None)
+    return [] if t is None or t.strip().lower() == "valid" else [t]
 
 
 def _write_plan(plan, out: Path) -> None:
@@ -390,9 +474,11 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
                     cost: str = "nearest-neighbor", ridge: float = 0.0, fold_ridge: float = 0.0,
                     model_params: dict | None = None, fold_in: dict | None = None,
                     n_jobs: int = 1, inputs: Sequence[str | Path] = (),
-                    overwrite: bool = True) -> list[Path]:
+                    overwrite: bool = True, **path) -> list[Path]:
     """Fit, evaluate, summarise and draw everything in memory, then write every output in one
-    all-or-nothing step (:func:`~lrm_cvx._validation.atomic_outputs`); returns the paths."""
+    all-or-nothing step (:func:`~lrm_cvx._validation.atomic_outputs`); returns the paths.
+    ``path``: the path-model options of :func:`~lrm_cvx.evaluation.evaluate` (``metric``,
+    ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``n_robots``)."""
     import matplotlib.pyplot as plt
 
     from .evaluation import METHODS, evaluate, summary
@@ -417,7 +503,7 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
                        min_observations=min_observations, criterion=criterion, cost=cost,
                        ridge=ridge, fold_ridge=fold_ridge, certify=certify, seed=seed,
                        n_jobs=n_jobs, progress=progress, model=model,
-                       model_params=model_params or None, fold_in=fold_in or None)
+                       model_params=model_params or None, fold_in=fold_in or None, **path)
     table = summary(results)
     figures = {"metrics": plot_metrics(results)}
     if "greedy" in methods:
@@ -451,8 +537,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     out_dir = Path(args.out)
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"--out {out_dir} is an existing file; give a folder")
-    inputs = _input_files(args.data)
+    inputs = _input_files(args.data) + [Path(p) for p in _mask_file(args)]
     _guard([out_dir / name for name in EVALUATION_FILES], inputs, args)
+    path = _path_kwargs(args, fleet_end=False)
     budgets = _floats(args.budgets, None, "--budgets")
     if min(budgets) < 0:
         raise UsageError(f"--budgets must be numbers >= 0, got {args.budgets!r}")
@@ -485,7 +572,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                     seed=args.seed, certify=False if args.certify == "off" else args.certify,
                     progress=not args.quiet, methods=methods, cost=args.cost, ridge=args.ridge,
                     fold_ridge=args.fold_ridge, model_params=params, fold_in=fold_in,
-                    n_jobs=args.jobs, inputs=inputs, overwrite=args.overwrite)
+                    n_jobs=args.jobs, inputs=inputs, overwrite=args.overwrite,
+                    n_robots=args.robots, **path)
     return 0
 
 
@@ -568,9 +656,12 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
     from .information import CRITERIA
 
     p.add_argument("model", help="model file written by 'lrm-cvx fit'")
-    p.add_argument("--start", required=True,
-                   help="start location LAT,LON or LAT LON in degrees (e.g. --start -10 150)")
-    p.add_argument("--budget", required=True, type=_number, help="path budget in grid cells")
+    p.add_argument("--start", required=True, action="append",
+                   help="start location LAT,LON or LAT LON in degrees (e.g. --start -10 150); "
+                   "repeat it for a fleet, one --start per robot")
+    p.add_argument("--budget", required=True, type=_number, action="append",
+                   help="path budget in the metric's unit (grid cells; km with --metric km; "
+                   "hours with --speed), once for every robot or once per --start")
     p.add_argument("--criterion", choices=CRITERIA, default=None,
                    help="planning criterion (default fisher; gp-variance with --recommended)")
     p.add_argument("--cost", default=_first(COSTS), choices=COSTS,
@@ -582,8 +673,39 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--initial", default=None,
                    help="forced initial cells: nearest (the start and its k-1 nearest cells, "
                    "the paper; default) or start (the start alone; with --recommended)")
+    _add_path_options(p)
+    p.add_argument("--end", default=None,
+                   help="LAT,LON where every route must finish (a sampling stop; not with "
+                   "--closed)")
+    p.add_argument("--sense-along", action="store_true",
+                   help="observe every cell the route passes, not only its stops")
     _add_recommended(p, "criterion gp-variance, prior empirical, initial start (needs a "
                         "model fitted with --spatial or --recommended)")
+
+
+def _metric_choices() -> tuple[str, ...]:
+    try:
+        from .planning.paths import METRICS
+    except ImportError:  # pragma: no cover - the path model defines them
+        return ("grid", "km")
+    return tuple(METRICS)
+
+
+def _add_path_options(p: argparse.ArgumentParser) -> None:
+    """The path model (docs/planning.md): budget unit, travel graph, closed tours."""
+    p.add_argument("--metric", default="grid", choices=_metric_choices(),
+                   help="budget unit: grid (grid cells, the paper; default) or km (great-circle "
+                   "km between cell centres)")
+    p.add_argument("--speed", type=_number, default=None,
+                   help="speed in km/h (with --metric km): the budget is then in hours")
+    p.add_argument("--stop-cost", type=_number, default=0.0,
+                   help="cost of each sampling stop in the budget's unit (time on station; "
+                   "default 0)")
+    p.add_argument("--traversable", default=None, metavar="valid|PATH.nc",
+                   help="travel only through enterable cells: valid (the model's cells) or a "
+                   "NetCDF file with one boolean (lat, lon) variable (True = may enter)")
+    p.add_argument("--closed", action="store_true",
+                   help="closed tours: every route returns to its start")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -665,6 +787,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fold-spatial", action="store_true",
                    help="predict with the kriged GP residual (needs --spatial)")
     _add_model_options(p)
+    _add_path_options(p)
+    p.add_argument("--robots", type=_int_at_least(1), default=1,
+                   help="robots per start (a fleet of distinct random start cells; the budget "
+                   "is per robot; default 1)")
     p.add_argument("--seed", type=_int_at_least(0), default=0)
     p.add_argument("--jobs", type=_int_at_least(1), default=1, help="threads over start cells")
     p.add_argument("--certify", choices=CERTIFY_LEVELS, default="fast",

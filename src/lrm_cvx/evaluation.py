@@ -30,14 +30,14 @@ from tqdm.auto import tqdm
 
 from ._blas import single_threaded_blas
 from ._validation import as_factor_matrix, as_generator, atomic_output, check_positive
-from .errors import DataError, ModelError
+from .errors import DataError, ModelError, PlanningError
 from .glrm.posterior import LatentPosterior, ObservationModel, check_cells
 from .information import CRITERION_REGISTRY
 from .region import Region
 from .registry import Choices, Registry
 
 __all__ = ["evaluate", "summary", "save_results", "METHODS", "GREEDY_VARIANTS",
-           "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse"]
+           "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse", "path_label"]
 
 METHOD_REGISTRY = Registry("method", ModelError)
 """Methods of :func:`evaluate` (objects: ``(planner, criterion)``); ``METHODS`` are the paper's
@@ -263,24 +263,93 @@ def _campaign_errors(model: Any, test: xr.DataArray, start: int, budget: float, 
             int(np.unique(route).size), route)
 
 
-def _plan(method: str, Y: np.ndarray, region: Region, start: int, budget: float,
+def _plan(method: str, Y: np.ndarray, region: Region, start: Any, budget: float,
           rng: np.random.Generator, criterion: str, cost: str, ridge: float,
-          model: Any = None, fold_in: dict | None = None):
+          model: Any = None, fold_in: dict | None = None, path: dict | None = None):
+    """One method's plan from ``start`` (a cell, or a list of cells: a fleet, ``budget`` per
+    robot) under the path options ``path`` (only the non-default ones; :func:`_path_options`)."""
     from .planning import plan_greedy, random_walk, transect
 
+    path = dict(path or {})
     if method.startswith("greedy:"):
         crit = method.split(":", 1)[1]
         prior = model.latent_prior("empirical", spatial=crit == "gp-variance")
         return plan_greedy(Y, region, start, budget, criterion=crit, cost=cost, ridge=ridge,
-                           progress=False, initial="start", prior=prior)
+                           progress=False, initial="start", prior=prior, **path)
     if method == "greedy":
         return plan_greedy(Y, region, start, budget, criterion=criterion, cost=cost,
-                           ridge=ridge, progress=False)
+                           ridge=ridge, progress=False, **path)
     if method.startswith("transect-"):
-        return transect(region, start, budget, method.split("-", 1)[1], Y=Y, ridge=ridge)
+        return transect(region, start, budget, method.split("-", 1)[1], Y=Y, ridge=ridge,
+                        **path)
     if method == "random":
-        return random_walk(region, start, budget, rng, Y=Y, ridge=ridge)
+        return random_walk(region, start, budget, rng, Y=Y, ridge=ridge, **path)
     raise ModelError(f"unknown method {method!r}; expected one of {METHODS}")
+
+
+def _path_options(metric: Any, speed: Any, stop_cost: Any, traversable: Any,
+                  closed: Any) -> dict[str, Any]:
+    """The path model options of :func:`evaluate` checked before any work (the path model's
+    PlanningErrors, naming the argument), as the keyword arguments every planner takes: only
+    those that differ from the paper's, so the default calls stay exactly the paper's."""
+    from .planning.paths import _check_metric, _number
+
+    metric, speed, unit = _check_metric(metric, speed)
+    out: dict[str, Any] = {}
+    if metric != "grid":
+        out["metric"] = metric
+    if speed is not None:
+        out["speed"] = speed
+    stop_cost = _number(stop_cost, "stop_cost", unit)
+    if stop_cost:
+        out["stop_cost"] = stop_cost
+    if not isinstance(closed, (bool, np.bool_)):
+        raise PlanningError(f"closed must be True or False, got {closed!r}")
+    if closed:
+        out["closed"] = True
+    if traversable is not None:
+        if isinstance(traversable, str):
+            if traversable.strip().lower() != "valid":
+                raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, "
+                                    f"lon) mask, got {traversable!r}")
+            traversable = "valid"
+        elif not isinstance(traversable, (xr.DataArray, np.ndarray)):
+            raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
+                                f"mask, got {type(traversable).__name__}")
+        out["traversable"] = traversable
+    return out
+
+
+def _start_cells(region: Region, path: dict[str, Any]) -> np.ndarray:
+    """Cells a robot may start from: every valid cell (the paper), or with a travel graph the
+    enterable cells with at least one enterable 8-neighbour (columns wrapping on a full-circle
+    grid, as the travel graph's), since a start must reach another cell. A bad
+    ``traversable`` (e.g. a mask on another grid) raises its PlanningError here, before any
+    plan."""
+    if "traversable" not in path:
+        return np.arange(region.n_cells)
+    from .planning.paths import _traversable_mask, _wraps
+
+    _, ok = _traversable_mask(region, path["traversable"])
+    grid = region.cell_grid
+    enter = (grid >= 0) & ok[np.maximum(grid, 0)]
+    ny, nx = enter.shape
+    wrap = _wraps(region)
+    padded = np.pad(enter, ((1, 1), (0, 0)))
+    count = np.zeros(enter.shape, dtype=np.int64)
+    for dr in (-1, 0, 1):
+        rows = padded[1 + dr:1 + dr + ny]
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                shifted = np.roll(rows, -dc, axis=1)
+                if not wrap:  # no neighbour across the grid's east / west edge
+                    if dc == 1:
+                        shifted[:, -1] = False
+                    elif dc == -1:
+                        shifted[:, 0] = False
+                count += shifted
+    gi = region.grid_index
+    return np.flatnonzero(ok & (count[gi[:, 0], gi[:, 1]] > 0))
 
 
 def _int_arg(value: Any, name: str, minimum: int, error: type[Exception] = ModelError) -> int:
@@ -360,6 +429,12 @@ def evaluate(
     model_params: dict | None = None,
     fold_in: dict | None = None,
     temporal: str | None = None,
+    metric: str = "grid",
+    speed: float | None = None,
+    stop_cost: float = 0.0,
+    traversable: Any = None,
+    closed: bool = False,
+    n_robots: int = 1,
 ) -> xr.Dataset:
     """Run the paper's evaluation protocol on ``data`` ``(time, lat, lon)``.
 
@@ -403,6 +478,19 @@ def evaluate(
     ``information``, ``cost``, ``n_cells`` and ``greedy_route`` are those of the first day's
     plan; ``bound`` is not computed (NaN).
 
+    Path model (issue #15, docs/evaluation.md; defaults are the paper's): ``metric``
+    (``"grid"`` or ``"km"``), ``speed`` (km/h: budgets in hours), ``stop_cost`` (budget unit
+    per sampling stop), ``traversable`` (``None``, ``"valid"`` or a boolean ``(lat, lon)``
+    DataArray) and ``closed`` are passed to every method, the greedy and the baselines alike.
+    ``n_robots > 1``: every start is a fleet of ``n_robots`` distinct start cells (drawn with
+    the seed; ``start_cell`` is the first robot's, ``fleet_start_cell`` ``(start, robot)`` all
+    of them), each robot with the whole ``budget``; ``cost`` is the fleet's total and
+    ``robot_cost`` ``(method, budget, start, trial, robot)`` each robot's. With a travel graph
+    the starts are enterable cells with an enterable neighbour. Bad options raise
+    PlanningError before the fit; ``temporal`` campaigns support only the paper's model. The
+    options are recorded in the attrs (``metric``, ``speed``, ``stop_cost``, ``traversable``,
+    ``closed``, ``n_robots``, ``budget_unit``).
+
     ``coverage68`` / ``coverage95`` ``(method, budget, start, trial, test_time)``: fraction of
     the held-out observed cells (at most 4096 per snapshot, a fixed subset, minus the sampled
     cells) inside the central 68 % / 95 % predictive interval of the fold-in used for ``mse``
@@ -434,6 +522,12 @@ def evaluate(
     ridge = check_positive(ridge, "ridge", error=ModelError)
     fold_ridge = check_positive(fold_ridge, "fold_ridge", error=ModelError)
     temporal = _check_temporal(temporal)
+    path = _path_options(metric, speed, stop_cost, traversable, closed)
+    n_robots = _int_arg(n_robots, "n_robots", 1, PlanningError)
+    if temporal is not None and (path or n_robots > 1):
+        raise PlanningError("temporal campaigns support only the paper's path model: drop "
+                            "metric, speed, stop_cost, traversable, closed and n_robots, or "
+                            "temporal")
     model_params = dict(model_params or {})
     fold_in = dict(fold_in or {})
     bad = set(fold_in) - {"prior", "spatial", "ridge"}
@@ -475,9 +569,20 @@ def evaluate(
                                      spatial=bool(fold_in.get("spatial", False)))
                   if use_model else paper_prior)
     rng = as_generator(seed)
-    if n_starts > region.n_cells:
-        raise DataError(f"n_starts={n_starts} exceeds the {region.n_cells} valid cells")
-    starts = np.sort(rng.choice(region.n_cells, size=n_starts, replace=False))
+    candidates = _start_cells(region, path)
+    if n_starts * n_robots > candidates.size:
+        where = ("valid cells" if "traversable" not in path else
+                 "enterable cells with an enterable neighbour")
+        raise DataError(f"n_starts={n_starts}" + (f" x n_robots={n_robots}" if n_robots > 1
+                                                   else "")
+                        + f" exceeds the {candidates.size} {where}")
+    if n_robots == 1:
+        starts = candidates[np.sort(rng.choice(candidates.size, size=n_starts, replace=False))]
+        fleets = starts[:, None]
+    else:  # distinct cells, each fleet's in ascending order
+        fleets = np.sort(candidates[rng.choice(candidates.size, size=(n_starts, n_robots),
+                                               replace=False)], axis=1)
+        starts = fleets[:, 0]
     n_trials = random_trials if "random" in methods else 1
     shape = (len(methods), len(budgets), n_starts, n_trials)
     info = np.full(shape, np.nan)
@@ -493,8 +598,10 @@ def evaluate(
     camp_opts = {"cost": cost, "ridge": ridge, "criterion": criterion}
     camp_spatial = fold_in.get("spatial") if "spatial" in fold_in else None
     bound = np.full((len(budgets), n_starts), np.nan)
+    robot_cost = np.full(shape + (n_robots,), np.nan) if n_robots > 1 else None
     max_route = 0
     routes: dict[tuple[int, int], np.ndarray] = {}
+    route_robots: dict[tuple[int, int], np.ndarray] = {}
     seeds = np.random.SeedSequence(seed).spawn(n_starts)
 
     def run_start(s: int) -> list[tuple]:
@@ -512,8 +619,9 @@ def evaluate(
                         plan = _CampaignPlan(inf, cst, ncell, route)
                         out.append((m, b, s, trial, plan, e, n, np.nan, c, ml[0], ml[2]))
                         continue
-                    plan = _plan(method, Y, region, int(starts[s]), budget, start_rng,
-                                 criterion, cost, ridge, model, fold_in)
+                    where = int(starts[s]) if n_robots == 1 else [int(c) for c in fleets[s]]
+                    plan = _plan(method, Y, region, where, budget, start_rng,
+                                 criterion, cost, ridge, model, fold_in, path)
                     e, n = _model_mse(fold_prior, stats, plan.cells, min_observations)
                     c = _model_coverage(fold_prior, cov_values, cov_subsets, plan.cells,
                                         min_observations)
@@ -533,6 +641,8 @@ def evaluate(
                 info[m, b, s, trial] = plan.information
                 cost_[m, b, s, trial] = plan.cost
                 n_cells[m, b, s, trial] = len(plan.cells)
+                if robot_cost is not None:
+                    robot_cost[m, b, s, trial] = plan.robot_costs
                 mse[m, b, s, trial] = e
                 n_obs[m, b, s, trial] = n
                 coverage[m, b, s, trial] = c
@@ -542,6 +652,7 @@ def evaluate(
                 if methods[m] == "greedy":
                     bound[b, s] = cert
                     routes[(b, s)] = np.asarray(plan.route)
+                    route_robots[(b, s)] = np.asarray(getattr(plan, "route_robot", []))
                     max_route = max(max_route, len(plan.route))
             bar.update()
     bar.close()
@@ -549,6 +660,7 @@ def evaluate(
     greedy_route = np.full((len(budgets), n_starts, max(max_route, 1)), -1, dtype=np.int64)
     for (b, s), r in routes.items():
         greedy_route[b, s, : len(r)] = r
+    unit = ("grid units" if "metric" not in path else "h" if "speed" in path else "km")
     # a plan counts for the information metric when it yields enough observations in at
     # least one test snapshot (the paper excludes trials with fewer than min_observations)
     usable = (n_obs >= min_observations).any(axis=-1)
@@ -559,7 +671,9 @@ def evaluate(
                              "units": "nats"}),
             "information_usable": (("method", "budget", "start", "trial"), usable),
             "cost": (("method", "budget", "start", "trial"), cost_,
-                     {"long_name": "path cost", "units": "grid cells"}),
+                     {"long_name": "path cost" + (" (the fleet's total)" if n_robots > 1
+                                                  else ""),
+                      "units": "grid cells" if unit == "grid units" else unit}),
             "n_cells": (("method", "budget", "start", "trial"), n_cells),
             "mse": (("method", "budget", "start", "trial", "test_time"), mse,
                     {"long_name": "mean squared reconstruction error over observed cells",
@@ -599,8 +713,29 @@ def evaluate(
             "model_params": repr(model_params),
             "fold_in": repr(fold_in),
             "temporal": "none" if temporal is None else temporal,
+            "metric": path.get("metric", "grid"),
+            "speed": float(path.get("speed", np.nan)),
+            "stop_cost": float(path.get("stop_cost", 0.0)),
+            "traversable": ("none" if "traversable" not in path else "valid"
+                            if isinstance(path["traversable"], str) else "mask"),
+            "closed": int(bool(path.get("closed", False))),
+            "n_robots": int(n_robots),
+            "budget_unit": unit,
         },
     )
+    if n_robots > 1:
+        ds = ds.assign_coords(robot=np.arange(n_robots))
+        ds["fleet_start_cell"] = (("start", "robot"), fleets)
+        ds["fleet_start_lat"] = (("start", "robot"), region.cell_lat[fleets])
+        ds["fleet_start_lon"] = (("start", "robot"), region.cell_lon[fleets])
+        ds["robot_cost"] = (("method", "budget", "start", "trial", "robot"), robot_cost,
+                            {"long_name": "each robot's path cost", "units": unit})
+        route_robot = np.full(greedy_route.shape, -1, dtype=np.int64)
+        for (b, s), r in route_robots.items():
+            route_robot[b, s, : len(r)] = r
+        ds["greedy_route_robot"] = (("budget", "start", "step"), route_robot,
+                                    {"long_name": "robot of each greedy_route entry (-1: "
+                                                  "padding)"})
     dims5 = ("method", "budget", "start", "trial", "test_time")
     for i, level in enumerate((68, 95)):
         ds[f"coverage{level}"] = (dims5, coverage[..., i], {
@@ -628,7 +763,8 @@ def summary(results: xr.Dataset) -> pd.DataFrame:
     ``coverage95_mean`` average the per-pair coverage. Results of ``evaluate(temporal=...)``
     put memoryless and temporal side by side: ``mse_memoryless_mean`` / ``_se``, the
     memoryless coverage, and ``temporal_cut`` = ``1 - mse / mse_memoryless`` over the pairs
-    where both are defined (positive: the filter lowers the error).
+    where both are defined (positive: the filter lowers the error). ``path`` describes the path
+    model (:func:`path_label`: ``"grid"`` for the paper's).
     """
     rows = []
     for method in results["method"].values:
@@ -651,8 +787,28 @@ def summary(results: xr.Dataset) -> pd.DataFrame:
             })
     df = pd.DataFrame(rows)
     df["temporal"] = str(results.attrs.get("temporal", "none"))
+    df["path"] = path_label(results.attrs)
     df["complete_mse"] = float(results["complete_mse"].mean())
     return df
+
+
+def path_label(attrs: dict[str, Any]) -> str:
+    """A short description of the path model recorded in ``evaluate``'s attrs: ``"grid"``
+    for the paper's, else e.g. ``"km, speed 1.5 km/h, stop 0.5 h, traversable valid, closed,
+    2 robots"`` (the ``path`` column of :func:`summary`)."""
+    parts = [str(attrs.get("metric", "grid"))]
+    speed = attrs.get("speed", np.nan)
+    if speed is not None and np.isfinite(speed):
+        parts.append(f"speed {float(speed):g} km/h")
+    if attrs.get("stop_cost", 0.0):
+        parts.append(f"stop {float(attrs['stop_cost']):g} {attrs.get('budget_unit', '')}".strip())
+    if attrs.get("traversable", "none") != "none":
+        parts.append(f"traversable {attrs['traversable']}")
+    if attrs.get("closed", 0):
+        parts.append("closed")
+    if int(attrs.get("n_robots", 1)) > 1:
+        parts.append(f"{int(attrs['n_robots'])} robots")
+    return ", ".join(parts)
 
 
 def _finite_mean(v: Any) -> float:

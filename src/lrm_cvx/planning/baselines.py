@@ -26,7 +26,7 @@ import numpy as np
 from .._validation import as_factor_matrix, as_generator
 from ..errors import LrmError, PlanningError
 from ..information import fisher_information
-from ..region import EARTH_RADIUS_KM, Region
+from ..region import Region
 from .greedy import _check_budget
 from .plan import Plan, check_region
 
@@ -56,43 +56,51 @@ class _Geometry:
 
     ``enter`` is ``None`` without a travel graph (``traversable=None``: a transect crosses
     masked positions as in the paper, the random walk steps on valid cells) or the ``(ny, nx)``
-    bool grid of enterable positions (valid and allowed by ``traversable``).
+    bool grid of enterable positions (valid and allowed by ``traversable``); with it, columns
+    wrap on a grid spanning the full circle of longitude (``wrap``), as the planners' travel
+    graph does. Step costs are the path model's straight-line distances between the positions'
+    centres (:func:`lrm_cvx.planning.paths.travel_distance`: 1 or sqrt 2 grid units, haversine
+    km, or hours), not rounded.
     """
 
-    def __init__(self, region: Region, model: Any, metric: str, speed: float | None,
-                 stop_cost: float, closed: bool, traversable: Any) -> None:
+    def __init__(self, region: Region, *, metric: str = "grid", speed: float | None = None,
+                 stop_cost: float = 0.0, closed: bool = False,
+                 enter: np.ndarray | None = None, wrap: bool = False) -> None:
         self.region = region
-        self.metric = metric
-        self.speed = speed
         self.stop_cost = float(stop_cost)
         self.closed = bool(closed)
-        self.graph = traversable is not None
-        self.model = model
-        self.enter: np.ndarray | None = None
-        if self.graph:
-            grid = region.cell_grid
-            ok = np.asarray(model.enterable(), dtype=bool)
-            self.enter = (grid >= 0) & ok[np.maximum(grid, 0)]
-        if metric == "km":
-            self._lat = np.radians(np.asarray(region.lat.values, dtype=np.float64))
-            self._lon = np.radians(np.asarray(region.lon.values, dtype=np.float64))
+        self.enter = enter
+        self.wrap = bool(wrap and enter is not None)
+        self.ny, self.nx = region.shape
+        self._paths = None
+        if metric != "grid" or speed is not None:
+            from .paths import _Geometry as _PathGeometry
 
-    def inside(self, ny: int, nx: int, p: np.ndarray) -> bool:
-        if not (0 <= p[0] < ny and 0 <= p[1] < nx):
-            return False
-        return self.enter is None or bool(self.enter[p[0], p[1]])
+            self._paths = _PathGeometry(region, metric, speed)
+
+    def move(self, p: np.ndarray) -> np.ndarray | None:
+        """Grid position ``p`` (column wrapped on a full circle) if the walk may enter it."""
+        if self.wrap:
+            p = np.array([p[0], p[1] % self.nx])
+        if not (0 <= p[0] < self.ny and 0 <= p[1] < self.nx):
+            return None
+        if self.enter is not None and not self.enter[p[0], p[1]]:
+            return None
+        return p
 
     def steps(self, r0: int, c0: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """Cost of the steps from grid position ``(r0, c0)`` to each ``(rows, cols)`` (budget
-        unit): grid units (1 or sqrt 2), or the haversine km between the positions' centres
-        (divided by ``speed`` for hours)."""
-        if self.metric == "grid":
+        """Cost of the steps from grid position ``(r0, c0)`` to each 8-neighbour ``(rows,
+        cols)`` (budget unit)."""
+        if self._paths is None:
             return np.where((rows != r0) & (cols != c0), _SQRT2, 1.0)
-        p1, p2 = self._lat[r0], self._lat[rows]
-        dlon = self._lon[cols] - self._lon[c0]
-        h = np.sin((p2 - p1) / 2) ** 2 + np.cos(p1) * np.cos(p2) * np.sin(dlon / 2) ** 2
-        km = 2 * EARTH_RADIUS_KM * np.arcsin(np.sqrt(np.clip(h, 0.0, 1.0)))
-        return km / self.speed if self.speed is not None else km
+        from .paths import _dist_pairs
+
+        g = self._paths
+        n = rows.size
+        return _dist_pairs(g.code, np.full(n, r0, np.int64), np.full(n, c0, np.int64),
+                           np.ascontiguousarray(rows, np.int64),
+                           np.ascontiguousarray(cols, np.int64), g.latr, g.lonr, g.coslat,
+                           g.speed)
 
     def step(self, p: np.ndarray, q: np.ndarray) -> float:
         return float(self.steps(int(p[0]), int(p[1]), np.array([q[0]]), np.array([q[1]]))[0])
@@ -109,48 +117,36 @@ class _Geometry:
 def _path_setup(region: Region, start: Any, budget: Any, *, metric: str, speed: Any,
                 stop_cost: Any, traversable: Any, closed: Any) -> tuple[int, float, _Geometry,
                                                                        dict[str, Any]]:
-    """Validate one robot's request against the path model: ``(start cell, budget, geometry,
-    path options for Plan.build)``. The paper's model (every option at its default) needs no
-    path model at all and keeps the paper's messages."""
+    """Validate one robot's request as :func:`~lrm_cvx.planning.paths.make_path_model` does
+    (same checks and messages, without building its travel graph): ``(start cell, budget,
+    geometry, path options for Plan.build)``. The paper's model (every option at its default)
+    keeps the paper's checks and messages."""
     start_cell = region.resolve_cell(start, "start")
-    default = (metric == "grid" and speed is None and traversable is None and closed is False
+    default = (isinstance(metric, str) and metric == "grid" and speed is None
+               and traversable is None and closed is False
+               and not isinstance(stop_cost, (bool, np.bool_))
                and isinstance(stop_cost, (int, float)) and stop_cost == 0)
     if default:
-        budget = _check_budget(budget)
-        return start_cell, budget, _Geometry(region, None, "grid", None, 0.0, False, None), {}
-    from .paths import make_path_model
+        return start_cell, _check_budget(budget), _Geometry(region), {}
+    from .paths import _check_metric, _number, _traversable_mask, _wraps
 
-    model = make_path_model(region, start_cell, budget, metric=metric, speed=speed,
-                            stop_cost=stop_cost, traversable=traversable, closed=closed)
-    geo = _Geometry(region, model, model.metric, model.speed, model.stop_cost, model.closed,
-                    traversable)
-    opts = {"metric": model.metric, "speed": model.speed, "stop_cost": model.stop_cost,
-            "traversable": model.traversable, "closed": model.closed, "unit": model.unit}
-    return start_cell, float(model.budget), geo, opts
-
-
-def _starts_budgets(start: Any, budget: Any) -> tuple[list[Any], list[Any]] | None:
-    """``(starts, budgets)`` for a fleet request (``start`` a list of cells or ``(lat, lon)``
-    pairs, ``budget`` a number or one per start), or None for one robot (a cell index or one
-    ``(lat, lon)`` pair; a list of two floats is a pair, as it always was)."""
-    if not isinstance(start, list) or len(start) == 0:
-        if isinstance(start, list):
-            raise PlanningError("start must be a cell, a (lat, lon) pair or a non-empty list "
-                                "of those (one per robot), got []")
-        return None
-    pairs = [isinstance(s, (tuple, list, np.ndarray)) for s in start]
-    ints = [isinstance(s, (int, np.integer)) and not isinstance(s, bool) for s in start]
-    if not all(p or i for p, i in zip(pairs, ints, strict=True)):
-        return None  # e.g. [lat, lon] floats: one (lat, lon) pair
-    starts = list(start)
-    if isinstance(budget, (list, tuple, np.ndarray)):
-        budgets = list(budget)
-        if len(budgets) != len(starts):
-            raise PlanningError(f"budget must be a number or a list with one budget per start "
-                                f"({len(starts)} starts), got {len(budgets)} budgets")
-    else:
-        budgets = [budget] * len(starts)
-    return starts, budgets
+    metric, speed, unit = _check_metric(metric, speed)
+    budget = _number(budget, "budget", unit)
+    stop_cost = _number(stop_cost, "stop_cost", unit)
+    if not isinstance(closed, (bool, np.bool_)):
+        raise PlanningError(f"closed must be True or False, got {closed!r}")
+    kind, ok = _traversable_mask(region, traversable)
+    enter = None
+    if kind != "none":
+        if not ok[start_cell]:
+            raise PlanningError(f"start cell {start_cell} may not be entered (traversable mask)")
+        grid = region.cell_grid
+        enter = (grid >= 0) & ok[np.maximum(grid, 0)]
+    geo = _Geometry(region, metric=metric, speed=speed, stop_cost=stop_cost,
+                    closed=bool(closed), enter=enter, wrap=_wraps(region))
+    opts = {"metric": metric, "speed": speed, "stop_cost": stop_cost, "traversable": kind,
+            "closed": bool(closed), "unit": unit}
+    return start_cell, budget, geo, opts
 
 
 def _finish(region: Region, positions: list[np.ndarray], step_costs: list[float],
@@ -210,13 +206,18 @@ def _build(region: Region, route: list[int], route_cost: list[float], waypoint: 
     )
 
 
-def _fleet(one: Any, start: Any, budget: Any, Y: Any, ridge: float, method: str) -> Plan | None:
-    """A fleet request (``start`` a list): ``one(start_i, budget_i)`` per robot, joined by
+def _fleet(one: Any, region: Region, start: Any, budget: Any, Y: Any, ridge: float,
+           method: str) -> Plan | None:
+    """A fleet request (``start`` a list, as :func:`~lrm_cvx.planning.plan_greedy` reads it;
+    ``budget`` a number or one per start): ``one(start_i, budget_i)`` per robot, joined by
     :meth:`Plan.from_robots` (joint information); None for a single robot."""
-    split = _starts_budgets(start, budget)
-    if split is None:
+    from .greedy import _resolve_budgets, _resolve_starts
+
+    cells, fleet = _resolve_starts(region, start)
+    if not fleet:
         return None
-    plans = [one(s, b) for s, b in zip(*split, strict=True)]
+    budgets = _resolve_budgets(budget, len(cells), True)
+    plans = [one(c, b) for c, b in zip(cells, budgets, strict=True)]
     if len(plans) == 1:
         return plans[0]
     return Plan.from_robots(plans, Y=Y, ridge=float(ridge), method=method)
@@ -267,13 +268,12 @@ def transect(
     fleet = _fleet(lambda s, b: transect(region, s, b, direction, metric=metric, speed=speed,
                                          stop_cost=stop_cost, traversable=traversable,
                                          closed=closed, Y=Y, ridge=ridge),
-                   start, budget, Y, ridge, f"transect-{direction}")
+                   region, start, budget, Y, ridge, f"transect-{direction}")
     if fleet is not None:
         return fleet
     start_cell, budget, geo, opts = _path_setup(
         region, start, budget, metric=metric, speed=speed, stop_cost=stop_cost,
         traversable=traversable, closed=closed)
-    ny, nx = region.shape
     north = _axis_sign(region.lat.values)  # row step that goes north
     east = _axis_sign(region.lon.values)  # col step that goes east
     step = {"up": (north, 0), "down": (-north, 0), "left": (0, -east), "right": (0, east)}
@@ -281,23 +281,20 @@ def transect(
     orth = np.array(step["right"] if direction in ("up", "down") else step["down"])
     grid = region.cell_grid
     pos = region.grid_index[start_cell].copy()
-    inside = lambda p: geo.inside(ny, nx, p)  # noqa: E731
     positions = [pos]
     step_costs: list[float] = []
     seen = {start_cell}
     travel, stops = 0.0, geo.stop_cost
     while True:
-        if inside(pos + d):
-            nxt = pos + d
-        else:
-            if not inside(pos + orth):
+        nxt = geo.move(pos + d)
+        if nxt is None:  # the grid's edge or a cell it may not enter: turn
+            if geo.move(pos + orth) is None:
                 orth = -orth
             d = -d
-            if inside(pos + orth):
-                nxt = pos + orth
-            elif inside(pos + d):  # a one-wide corridor: just turn back
-                nxt = pos + d
-            else:
+            nxt = geo.move(pos + orth)
+            if nxt is None:
+                nxt = geo.move(pos + d)  # a one-wide corridor: just turn back
+            if nxt is None:
                 break  # a single position: nowhere to go
         s = geo.step(pos, nxt)
         c = int(grid[nxt[0], nxt[1]])
@@ -318,11 +315,18 @@ def transect(
 
 
 # ---------------------------------------------------------------------------- random walk
-def _neighbours(grid: np.ndarray, row: int, col: int, enter: np.ndarray | None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _neighbours(grid: np.ndarray, row: int, col: int, enter: np.ndarray | None,
+                wrap: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Valid (with ``enter``: enterable) 8-neighbours of a grid position: their cell indices
-    (ascending), rows and columns."""
+    (ascending), rows and columns (columns wrapped on a full-circle grid when ``wrap``)."""
     ny, nx = grid.shape
+    if wrap:
+        rr, cc = np.mgrid[max(row - 1, 0):min(row + 2, ny), col - 1:col + 2]
+        cc = cc % nx
+        cells = grid[rr, cc]
+        keep = (cells >= 0) & ~((rr == row) & (cc == col)) & enter[rr, cc]
+        order = np.argsort(cells[keep], kind="stable")
+        return cells[keep][order], rr[keep][order], cc[keep][order]
     r0, r1 = max(row - 1, 0), min(row + 2, ny)
     c0, c1 = max(col - 1, 0), min(col + 2, nx)
     rr, cc = np.mgrid[r0:r1, c0:c1]
@@ -368,7 +372,7 @@ def random_walk(
     fleet = _fleet(lambda s, b: random_walk(region, s, b, gen, metric=metric, speed=speed,
                                             stop_cost=stop_cost, traversable=traversable,
                                             closed=closed, Y=Y, ridge=ridge),
-                   start, budget, Y, ridge, "random")
+                   region, start, budget, Y, ridge, "random")
     if fleet is not None:
         return fleet
     start_cell, budget, geo, opts = _path_setup(
@@ -383,7 +387,7 @@ def random_walk(
     cur = start_cell
     while True:
         row, col = int(gi[cur, 0]), int(gi[cur, 1])
-        nb, rows, cols = _neighbours(grid, row, col, geo.enter)
+        nb, rows, cols = _neighbours(grid, row, col, geo.enter, geo.wrap)
         lengths = geo.steps(row, col, rows, cols)
         fresh = np.array([c not in visited for c in nb.tolist()], dtype=bool)
         new = np.where(fresh, geo.stop_cost, 0.0)
