@@ -8,7 +8,7 @@ iterations with tol=0. Prints the seconds of each phase (region + streaming stag
 round, final pass) and the peak resident memory of the whole process tree (client + scheduler +
 workers; psutil every 0.2 s) next to the size of the float32 matrix.
 
-    flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_dask.py [--small]
+    flock /tmp/bench.lock python benchmarks/bench_dask.py [--small] [--stage-only [--floors]]
 """
 
 from __future__ import annotations
@@ -93,42 +93,171 @@ def open_days(files: list[str]):
         return ds[name], "xarray.open_mfdataset"
 
 
+def load() -> str:
+    """The machine's load averages (1, 5, 15 min) and cores: the cores are shared."""
+    a, b, c = os.getloadavg()
+    return f"load {a:.1f} / {b:.1f} / {c:.1f} on {os.cpu_count()} cores"
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process (all its threads) so far."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def stage_split(tm: dict, nbytes: int) -> str:
     """The file-level staging's split (seconds summed over its tasks) and what bounds it."""
-    busy = tm["stage_read"] + tm["stage_decode"] + tm["stage_write"]
+    keys = [k for k in ("read", "inflate", "decode", "write") if f"stage_{k}" in tm]
+    busy = sum(tm[f"stage_{k}"] for k in keys)
     mb = nbytes / 2**20
+    what = {"read": "read (h5py raw chunks, serial)", "inflate": "inflate (zlib)",
+            "decode": "decode+OR", "write": "write (pwrite)"}
+    cpu = tm.get("stage_pass_cpu")
     return (f"file-level staging pass {tm['stage_pass']:.1f} s "
-            f"({mb / tm['stage_pass']:.0f} MB/s); task seconds (summed over parallel tasks): "
-            f"read+inflate {tm['stage_read']:.1f} s ({mb / tm['stage_read']:.0f} MB/s of "
-            f"float32 a task), decode {tm['stage_decode']:.1f} s "
-            f"({mb / tm['stage_decode']:.0f} MB/s), write {tm['stage_write']:.1f} s "
-            f"({mb / tm['stage_write']:.0f} MB/s); busy {busy:.1f} s"
-            + (f"; compaction to the region's cells {tm['stage_compact']:.1f} s"
+            f"({mb / tm['stage_pass']:.0f} MB/s)"
+            + (f", CPU {cpu:.1f} s" if cpu is not None else "")
+            + "; CPU seconds of the tasks' threads (MB/s per CPU-second): "
+            + ", ".join(f"{what[k]} {tm[f'stage_{k}']:.1f} s "
+                        f"({mb / max(tm[f'stage_{k}'], 1e-9):.0f})" for k in keys)
+            + f"; sum {busy:.1f} s"
+            + (f"; compaction to the region's cells {tm['stage_compact']:.1f} s "
+               f"(CPU {tm.get('stage_compact_cpu', float('nan')):.1f} s)"
                if "stage_compact" in tm else ""))
 
 
+def floors(files: list[str], days: int = 24) -> dict:
+    """The raw floors of staging, in MB/s of float32 staged (one float32 per grid cell):
+
+    * ``disk``: the files read from disk with a cold cache (this benchmark's own files are
+      written back, then dropped from the page cache with ``posix_fadvise(DONTNEED)``; no
+      global cache drop), 16 MiB reads on one thread; the files' bytes scaled by the ratio of
+      float32 bytes to file bytes;
+    * ``chunks``: h5py's raw-chunk read of ``days`` files from the page cache (serial: h5py's
+      lock), the part of the pass no second thread can share;
+    * ``inflate1`` / ``inflate2``: zlib inflation of those days' chunks on 1 and 2 threads;
+    * ``decode2``: the compiled table decode of the inflated tiles on 2 threads.
+    Each with the load average when measured."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from lrm_cvx.glrm.chunked import _decode_tile, _h5_chunks
+    from lrm_cvx.io import ndvi as N
+
+    out: dict = {}
+    f32 = None
+    size = sum(os.path.getsize(f) for f in files)
+    for f in files:
+        fd = os.open(f, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+            os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+        finally:
+            os.close(fd)
+    t = time.perf_counter()
+    got = 0
+    for f in files:
+        with open(f, "rb", buffering=0) as fh:
+            while True:
+                b = fh.read(16 << 20)
+                if not b:
+                    break
+                got += len(b)
+    dt = time.perf_counter() - t
+    sample = files[: min(days, len(files))]
+    t = time.perf_counter()
+    raws = [_h5_chunks(f, slice(None), slice(None)) for f in sample]
+    t_chunks = time.perf_counter() - t
+    if any(r is None for r in raws):
+        out["note"] = "files not in the raw-chunk layout"
+        return out
+    (r0, r1, _), (c0, c1, _) = raws[0][2]
+    cells = (r1 - r0) * (c1 - c0)
+    f32 = 4 * cells * len(files)
+    ratio = f32 / size
+    out["disk"] = (got / dt / 2**20, got / dt * ratio / 2**20, load())
+    mb = 4 * cells * len(sample) / 2**20
+    out["chunks"] = (mb / t_chunks, load())
+    import zlib
+
+    bufs = [b for r in raws for (_, _, bn, bq) in r[0] for b in (bn, bq)]
+    for n in (1, 2):
+        t = time.perf_counter()
+        with ThreadPoolExecutor(n) as ex:
+            inflated = list(ex.map(zlib.decompress, bufs, chunksize=16))
+        out[f"inflate{n}"] = (mb / (time.perf_counter() - t), load())
+    cr, cc, _, shuffled = raws[0][1]
+    enc = raws[0][3]
+    tables = N.decode_tables("AVHRR", N.DEFAULT_MASK_FLAGS["AVHRR"], enc)
+    spans = [np.empty((r1 - r0, c1 - c0), np.float32) for _ in range(2)]
+    seen = [np.zeros((r1 - r0, c1 - c0), bool) for _ in range(2)]
+    tiles = [(r[0][i][0], r[0][i][1]) for r in raws for i in range(len(r[0]))]
+    jobs = list(zip(tiles, inflated[0::2], inflated[1::2], strict=True))
+
+    def dec(k):
+        for (tr, tc), a, b in jobs[k::2]:
+            i1, j1 = min(r1 - tr, cr), min(c1 - tc, cc)
+            _decode_tile(np.frombuffer(a, np.uint8), np.frombuffer(b, np.uint8), shuffled, cc,
+                         cr * cc, 0, i1, 0, j1, *tables, np.float32(np.nan), spans[k], tr, tc,
+                         seen[k], True)
+
+    dec(0)  # compile / load the kernel
+    t = time.perf_counter()
+    with ThreadPoolExecutor(2) as ex:
+        list(ex.map(dec, (0, 1)))
+    out["decode2"] = (mb / (time.perf_counter() - t), load())
+    out["ratio"] = ratio
+    return out
+
+
+def print_floors(fl: dict, files: list[str]) -> None:
+    if "disk" not in fl:
+        print(f"floors: not measured ({fl.get('note')})")
+        return
+    print(f"raw floors, MB/s of staged float32 (files are {fl['ratio']:.1f}x smaller than "
+          "the float32 they hold):")
+    print(f"  disk, cold cache, 1 reader: {fl['disk'][0]:.0f} MB/s of file bytes = "
+          f"{fl['disk'][1]:.0f} MB/s float32  [{fl['disk'][2]}]")
+    print(f"  h5py raw-chunk reads, page cache, serial: {fl['chunks'][0]:.0f} MB/s  "
+          f"[{fl['chunks'][1]}]")
+    print(f"  zlib inflate, 1 thread: {fl['inflate1'][0]:.0f} MB/s; 2 threads: "
+          f"{fl['inflate2'][0]:.0f} MB/s  [{fl['inflate2'][1]}]")
+    print(f"  compiled decode + OR, 2 threads: {fl['decode2'][0]:.0f} MB/s  "
+          f"[{fl['decode2'][1]}]")
+
+
 def stage_only(files: list[str], args, base: str) -> None:
-    """Open the files lazily and stage them (no fit); print MB/s and the split."""
+    """Open the files lazily and stage them (no fit); print MB/s, the split, the CPU seconds
+    and the load next to the raw floors."""
     import xarray as xr  # noqa: F401
 
     from lrm_cvx.glrm.chunked import cdr_source, stage
     from lrm_cvx.io import open_ndvi_cdr
 
+    if args.floors:
+        print_floors(floors(files), files)
     da = open_ndvi_cdr(files, chunks={"time": 1})
     assert cdr_source(da) is not None
+    print(f"before staging: {load()}", flush=True)
     with TreeRSS() as rss:
         tm: dict = {}
+        cpu = cpu_seconds()
         t = time.perf_counter()
         store, region, *_ = stage(da, chunk_mb=args.chunk_mb, scratch_dir=base, timings=tm)
         total = time.perf_counter() - t
+        cpu = cpu_seconds() - cpu
     T, L = store.n_times, store.n_cells
     nbytes = T * L * 4
     try:
-        print(f"L = {L} cells, T = {T}: float32 matrix {nbytes / 2**30:.2f} GiB in "
+        gb = nbytes / 2**30
+        print(f"L = {L} cells, T = {T}: float32 matrix {gb:.2f} GiB in "
               f"{store.n_chunks} column chunks")
         print(f"staging (file level, region found in the same pass): {total:.1f} s = "
               f"{nbytes / 2**20 / total:.0f} MB/s of staged float32 "
               f"(target >= 120 MB/s); peak RSS of the process tree {rss.peak / 2**30:.2f} GiB")
+        print(f"  CPU {cpu:.1f} s = {cpu / gb:.2f} CPU-s per GiB ({cpu / total:.2f} cores busy "
+              f"on average); with both cores to itself: ~{cpu / 2:.0f} s = "
+              f"{nbytes / 2**20 / (cpu / 2):.0f} MB/s; after staging: {load()}")
         print(stage_split(tm, nbytes))
     finally:
         shutil.rmtree(store.directory, ignore_errors=True)
@@ -152,6 +281,9 @@ def main() -> None:
     ap.add_argument("--stage-only", action="store_true",
                     help="only stage the files into column chunks (file-level path) and print "
                          "MB/s with the read / decode / write split; no cluster, no fit")
+    ap.add_argument("--floors", action="store_true",
+                    help="with --stage-only: first measure the raw floors (cold disk read, "
+                         "h5py chunk reads, zlib inflate on 1 and 2 threads, decode)")
     ap.add_argument("--cluster", action="store_true",
                     help="with --stage-only: stage on the LocalCluster's workers, not threads")
     args = ap.parse_args()
