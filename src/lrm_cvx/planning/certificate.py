@@ -288,7 +288,9 @@ def plan_bound(
                       stop_cost=stop_cost, traversable=traversable, closed=closed, end=end,
                       sense_along=sense_along, path=path, n_sensors=n_sensors)
     fam = _family(spec, region, k)
-    cand, n_max, init, budget0 = fam.cand, fam.n_max, fam.init, spec.budgets[0]
+    cand, n_max, init = fam.cand, fam.n_max, fam.init
+    budget0 = spec.budgets[0] if spec.budgets else float(spec.n_sensors)
+    start0 = spec.starts[0] if spec.starts else -1
     metric = spec.metric
     init_info = float(fisher_information(Y, init, ridge=ridge)) if init.size else -math.inf
     opts = {"solver": solver, "tol": tol}
@@ -345,7 +347,7 @@ def plan_bound(
             gap, ratio = math.nan, math.nan
     return PlanCertificate(
         bound=float(bound), information=information, gap=gap, volume_ratio=ratio,
-        n_max=int(n_max), n_candidates=int(cand.size), k=k, start=int(spec.starts[0]),
+        n_max=int(n_max), n_candidates=int(cand.size), k=k, start=int(start0),
         budget=float(budget0), ridge=ridge, metric=metric, initial_information=init_info,
         relaxation=relax, online_bound=online, tightened=bool(tighten and (
             start_lim is not None or bool(leaves))), leaves=tuple(leaves),
@@ -376,7 +378,7 @@ class _PathSpec:
     @property
     def paper(self) -> bool:
         """The paper's path model (one robot, open, straight lines, no stop cost)."""
-        return (self.kind == "path" and len(self.starts) == 1 and self.speed is None
+        return (self.kind == "path" and len(self.starts) == 1 and self.metric == "grid"
                 and self.stop_cost == 0 and self.traversable is None and not self.closed
                 and self.end is None and not self.sense_along)
 
@@ -407,10 +409,20 @@ def _check_budget(budget: Any, name: str = "budget") -> float:
     return check_positive(budget, name, error=PlanningError)
 
 
-def _as_list(x: Any) -> list[Any]:
-    if isinstance(x, (list, tuple)) and not (
-        len(x) == 2 and all(isinstance(v, (float, np.floating)) for v in x)
+def _starts_list(x: Any) -> list[Any]:
+    """One start (a cell, or a ``(lat, lon)`` tuple) or a list of them (a fleet)."""
+    if isinstance(x, list) or (isinstance(x, np.ndarray) and x.ndim == 1):
+        return list(x)
+    if isinstance(x, tuple) and not (
+        len(x) == 2 and any(isinstance(v, (float, np.floating)) for v in x)
     ):
+        return list(x)
+    return [x]
+
+
+def _budgets_list(x: Any) -> list[Any]:
+    """One budget or one per robot."""
+    if isinstance(x, (list, tuple)) or (isinstance(x, np.ndarray) and x.ndim == 1):
         return list(x)
     return [x]
 
@@ -431,8 +443,8 @@ def _path_spec(region: Any, plan: Any, start: Any, budget: Any, **kw: Any) -> _P
     desc = getattr(plan, "path", None) if plan is not None else None
     if isinstance(desc, dict) and desc and not _is_paper_description(desc):
         kind = desc.get("kind", "path")
-        starts = desc.get("starts") or _as_list(getattr(plan, "start", start))
-        budgets = desc.get("budgets") or _as_list(getattr(plan, "budget", budget))
+        starts = desc.get("starts") or _starts_list(getattr(plan, "start", start))
+        budgets = desc.get("budgets") or _budgets_list(getattr(plan, "budget", budget))
         trav = desc.get("traversable")
         if isinstance(trav, str) and trav.lower() == "none":
             trav = None
@@ -450,7 +462,7 @@ def _path_spec(region: Any, plan: Any, start: Any, budget: Any, **kw: Any) -> _P
                   sense_along=bool(desc.get("sense_along", False)), path=kind,
                   n_sensors=n_sensors)
     else:
-        starts, budgets = _as_list(start), _as_list(budget)
+        starts, budgets = _starts_list(start), _budgets_list(budget)
         if plan is not None and getattr(plan, "start", None) is not None and start is None:
             starts = [plan.start]
     kind = {"route": "path", "path": "path", "static": "static"}.get(str(kw["path"]))
