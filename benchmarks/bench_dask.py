@@ -136,7 +136,8 @@ def floors(files: list[str], days: int = 24) -> dict:
       float32 bytes to file bytes;
     * ``chunks``: h5py's raw-chunk read of ``days`` files from the page cache (serial: h5py's
       lock), the part of the pass no second thread can share;
-    * ``inflate1`` / ``inflate2``: zlib inflation of those days' chunks on 1 and 2 threads;
+    * ``inflate1:<module>`` / ``inflate2:<module>``: inflating those days' chunks on 1 and 2
+      threads with the standard library's zlib and (when installed) ``isal.isal_zlib``;
     * ``decode2``: the compiled table decode of the inflated tiles on 2 threads.
     Each with the load average when measured."""
     from concurrent.futures import ThreadPoolExecutor
@@ -180,12 +181,20 @@ def floors(files: list[str], days: int = 24) -> dict:
     out["chunks"] = (mb / t_chunks, load())
     import zlib
 
+    from lrm_cvx.glrm.chunked import _zlib
+
     bufs = [b for r in raws for (_, _, bn, bq) in r[0] for b in (bn, bq)]
-    for n in (1, 2):
-        t = time.perf_counter()
-        with ThreadPoolExecutor(n) as ex:
-            inflated = list(ex.map(zlib.decompress, bufs, chunksize=16))
-        out[f"inflate{n}"] = (mb / (time.perf_counter() - t), load())
+    nbytes = 2 * raws[0][1][0] * raws[0][1][1]
+    mods = [zlib] if _zlib() is zlib else [zlib, _zlib()]
+    for z in mods:
+        for n in (1, 2):
+            t = time.perf_counter()
+            c = time.process_time()
+            with ThreadPoolExecutor(n) as ex:
+                inflated = list(ex.map(lambda b, z=z: z.decompress(b, 15, nbytes), bufs,
+                                       chunksize=16))
+            dt = time.perf_counter() - t
+            out[f"inflate{n}:{z.__name__}"] = (mb / dt, mb / (time.process_time() - c), load())
     cr, cc, _, shuffled = raws[0][1]
     enc = raws[0][3]
     tables = N.decode_tables("AVHRR", N.DEFAULT_MASK_FLAGS["AVHRR"], enc)
@@ -220,8 +229,10 @@ def print_floors(fl: dict, files: list[str]) -> None:
           f"{fl['disk'][1]:.0f} MB/s float32  [{fl['disk'][2]}]")
     print(f"  h5py raw-chunk reads, page cache, serial: {fl['chunks'][0]:.0f} MB/s  "
           f"[{fl['chunks'][1]}]")
-    print(f"  zlib inflate, 1 thread: {fl['inflate1'][0]:.0f} MB/s; 2 threads: "
-          f"{fl['inflate2'][0]:.0f} MB/s  [{fl['inflate2'][1]}]")
+    for k in sorted(k for k in fl if k.startswith("inflate")):
+        n, mod = k[len("inflate"):].split(":")
+        print(f"  inflate with {mod}, {n} thread(s): {fl[k][0]:.0f} MB/s ({fl[k][1]:.0f} MB/s "
+              f"per CPU-second)  [{fl[k][2]}]")
     print(f"  compiled decode + OR, 2 threads: {fl['decode2'][0]:.0f} MB/s  "
           f"[{fl['decode2'][1]}]")
 
@@ -231,9 +242,15 @@ def stage_only(files: list[str], args, base: str) -> None:
     and the load next to the raw floors."""
     import xarray as xr  # noqa: F401
 
+    from lrm_cvx.glrm import chunked
     from lrm_cvx.glrm.chunked import cdr_source, stage
     from lrm_cvx.io import open_ndvi_cdr
 
+    if args.stdlib_zlib:
+        import zlib
+
+        chunked._zlib = lambda: zlib
+    print(f"inflating with {chunked._zlib().__name__}")
     if args.floors:
         print_floors(floors(files), files)
     da = open_ndvi_cdr(files, chunks={"time": 1})
@@ -281,6 +298,8 @@ def main() -> None:
     ap.add_argument("--stage-only", action="store_true",
                     help="only stage the files into column chunks (file-level path) and print "
                          "MB/s with the read / decode / write split; no cluster, no fit")
+    ap.add_argument("--stdlib-zlib", action="store_true",
+                    help="inflate with the standard library's zlib even when isal is installed")
     ap.add_argument("--floors", action="store_true",
                     help="with --stage-only: first measure the raw floors (cold disk read, "
                          "h5py chunk reads, zlib inflate on 1 and 2 threads, decode)")

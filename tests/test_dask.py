@@ -493,6 +493,23 @@ def test_decode_tile_equals_decode_day(shuffled):
     assert 0 < seen.sum() < seen.size
 
 
+def test_cdr_staging_with_stdlib_zlib(cdr_files, tmp_path, monkeypatch):
+    """Without the optional ISA-L inflater the standard library's zlib stages the same bytes."""
+    import zlib
+
+    from lrm_cvx.glrm import chunked
+    from lrm_cvx.io import open_ndvi_cdr
+
+    d1, _ = cdr_files
+    lazy = open_ndvi_cdr(d1, chunks={"time": 1})
+    ref, *_ = stage(lazy, chunk_mb=0.004, scratch_dir=str(tmp_path))
+    monkeypatch.setattr(chunked, "_zlib", lambda: zlib)
+    tm: dict = {}
+    got, *_ = stage(lazy, chunk_mb=0.004, scratch_dir=str(tmp_path), timings=tm)
+    assert tm["stage_inflate"] > 0
+    np.testing.assert_array_equal(_staged(got).view(np.uint32), _staged(ref).view(np.uint32))
+
+
 def _first_chunk(path):
     """Byte offset and size of the first NDVI chunk of a CDR file."""
     import h5py

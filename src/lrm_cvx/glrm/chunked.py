@@ -418,7 +418,7 @@ def _inflate(buf: bytes, deflate: bool, nbytes: int, path: str) -> np.ndarray:
     short."""
     z = _zlib()
     try:
-        raw = z.decompress(buf) if deflate else buf
+        raw = z.decompress(buf, 15, nbytes) if deflate else buf  # output size known
     except z.error as exc:
         raise DataError(f"cannot read NDVI file {path}: a compressed chunk is corrupt "
                         f"({exc})") from None
