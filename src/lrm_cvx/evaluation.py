@@ -635,7 +635,7 @@ def evaluate(
     with warnings.catch_warnings(), single_threaded_blas(), \
             ThreadPoolExecutor(max_workers=max(1, n_jobs)) as pool:  # tiny k x k algebra
         # at small budgets the forced initial cells exceed the budget: expected, not news
-        warnings.filterwarnings("ignore", message=r"the \d+ initial cells")
+        warnings.filterwarnings("ignore", message=r"(the|robot \d+.s) \d+ initial cells")
         for results in pool.map(run_start, jobs):
             for m, b, s, trial, plan, e, n, cert, c, e_ml, c_ml in results:
                 info[m, b, s, trial] = plan.information
