@@ -4,6 +4,7 @@ route, static placement, and the Plan of all of these."""
 import json
 import math
 import warnings
+import zlib
 from itertools import combinations
 
 import numpy as np
@@ -33,9 +34,15 @@ def logdet(Y, cells, ridge):
 
 
 def naive_greedy(Y, region, starts, budgets, ridge, cost="nearest-neighbor", initial="nearest",
-                 **opts):
+                 guide=None, **opts):
     """The joint greedy literally: every robot's cost of every candidate set recomputed from
-    scratch (``route_cost(order(P + x))``, or every insertion position), every log det too."""
+    scratch (``route_cost(order(P + x))``, or every insertion position), every log det too.
+
+    Ratios within 1e-12 (relative) of the best are ties: a cost increase is a difference of
+    float sums, so ratios equal in exact arithmetic (two robots appending the same cell at the
+    same distance, a detour equal to a straight step) may differ in their last bits, here or in
+    the planner. Ties go to ``guide``'s pick (the planner's ``(cell, robot)`` at that step)
+    when it is one of them, else to the lowest cell, then robot."""
     k, L = Y.shape
     models = [make_path_model(region, s, b, cost=cost, **opts)
               for s, b in zip(starts, budgets, strict=True)]
@@ -53,21 +60,33 @@ def naive_greedy(Y, region, starts, budgets, ridge, cost="nearest-neighbor", ini
         if cost == "nearest-neighbor":
             new = list(m.order(P[r] + [x]))
             return m.route_cost(new), new
+        # cheapest insertion: the position of least increase d(a, x) + d(x, b) - d(a, b)
+        # (the closing leg of a tour included; after the last stop of an open path without
+        # end: d(last, x)), ties to the earliest; the new route's cost from scratch
         route = routes[r]
-        last = len(route) - (1 if m.end is not None else 0)
+        seq = route + [route[0]] if m.closed else route
         best = None
-        for i in range(last):
-            new = route[: i + 1] + [x] + route[i + 1:]
-            c = m.route_cost(new)
-            if best is None or c < best[0]:
-                best = (c, new)
-        return best
+        for i in range(len(seq) - 1):
+            a, b = seq[i], seq[i + 1]
+            inc = (m.distances(a, [x])[0] + m.distances(x, [b])[0]
+                   - m.distances(a, [b])[0])
+            if best is None or inc < best[0]:
+                best = (inc, i)
+        if not m.closed and m.end is None:
+            inc = m.distances(route[-1], [x])[0]
+            if best is None or inc < best[0]:
+                best = (inc, len(route) - 1)
+        if best is None or not np.isfinite(best[0]):
+            return np.inf, None
+        new = route[: best[1] + 1] + [x] + route[best[1] + 1:]
+        return m.route_cost(new), new
 
     union = [c for p in P for c in p]
     union = list(dict.fromkeys(union))
+    step = 0
     while True:
         v0 = logdet(Y, union, ridge)
-        best = None
+        found = []
         for r, m in enumerate(models):
             c0 = m.route_cost(routes[r])
             enter = m.enterable()
@@ -78,13 +97,16 @@ def naive_greedy(Y, region, starts, budgets, ridge, cost="nearest-neighbor", ini
                 if not c1 <= m.budget + m.tol:
                     continue
                 ratio = (logdet(Y, union + [x], ridge) - v0) / max(c1 - c0, 1e-12)
-                if not ratio > 0:
-                    continue
-                if best is None or ratio > best[0] or (ratio == best[0] and x < best[1]):
-                    best = (ratio, x, r, new)
-        if best is None:
+                if ratio > 0:
+                    found.append((ratio, x, r, new))
+        if not found:
             return P, routes, models
-        _, x, r, new = best
+        top = max(f[0] for f in found)
+        near = [f for f in found if top - f[0] <= 1e-12 * top]
+        want = guide[step] if guide is not None and step < len(guide) else None
+        pick = [f for f in near if (f[1], f[2]) == want]
+        _, x, r, new = pick[0] if pick else min(near, key=lambda f: (f[1], f[2]))
+        step += 1
         P[r].append(x)
         union.append(x)
         routes[r] = new
@@ -140,15 +162,15 @@ def _opts(region, rng, model, starts):
                                                                 if k != "scale") or "paper")
 @pytest.mark.parametrize("cost", ["nearest-neighbor", "insertion"])
 def test_greedy_equals_naive_for_every_path_model(model, cost):
-    rng = np.random.default_rng(hash((str(model), cost)) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(f"{model}{cost}".encode()))
     runs = picks = 0
-    for trial in range(6):
+    for trial in range(8):
         region = random_case(rng)
         L = region.n_cells
         if L < 8:
             continue
         k = int(rng.integers(1, 4))
-        n_robots = 1 if trial < 2 else int(rng.integers(2, 4))
+        n_robots = 1 if trial < 3 or "end" in model else int(rng.integers(2, 4))
         starts = [int(s) for s in rng.choice(L, n_robots, replace=False)]
         opts, scale = _opts(region, rng, model, starts)
         if "end" in opts and (n_robots > 1 or opts["end"] in starts):
@@ -157,17 +179,17 @@ def test_greedy_equals_naive_for_every_path_model(model, cost):
         ridge = 1e-3 if rng.random() < 0.5 else 0.0
         Y = rng.standard_normal((k, L))
         try:
-            P, routes, models = naive_greedy(Y, region, starts, budgets, 1e-3 + ridge, cost,
-                                             **opts)
-        except PlanningError:  # e.g. a start on a masked island: plan_greedy must say so too
+            plan = greedy(Y, region, starts if n_robots > 1 else starts[0],
+                          budgets if n_robots > 1 else budgets[0], ridge=1e-3 + ridge,
+                          cost=cost, **opts)
+        except PlanningError:  # e.g. a start on a masked island: the naive must fail too
             with pytest.raises(PlanningError):
-                greedy(Y, region, starts if n_robots > 1 else starts[0],
-                       budgets if n_robots > 1 else budgets[0], ridge=1e-3 + ridge, cost=cost,
-                       **opts)
+                naive_greedy(Y, region, starts, budgets, 1e-3 + ridge, cost, **opts)
             continue
-        plan = greedy(Y, region, starts if n_robots > 1 else starts[0],
-                      budgets if n_robots > 1 else budgets[0], ridge=1e-3 + ridge, cost=cost,
-                      **opts)
+        robot = plan.history.get("robot", np.zeros(plan.history["cell"].size, np.int64))
+        guide = list(zip(plan.history["cell"].tolist(), robot.tolist(), strict=True))
+        P, routes, models = naive_greedy(Y, region, starts, budgets, 1e-3 + ridge, cost,
+                                         guide=guide, **opts)
         subs = plan.robots
         assert len(subs) == n_robots
         for r, sub in enumerate(subs):
@@ -184,7 +206,7 @@ def test_greedy_equals_naive_for_every_path_model(model, cost):
         assert plan.information == pytest.approx(fisher_information(Y, union, 1e-3 + ridge))
         runs += 1
         picks += len(union)
-    assert runs >= 3 and picks > 3 * runs
+    assert runs >= 5 and picks > 3 * runs
 
 
 # --------------------------------------------------------------------------- fleets

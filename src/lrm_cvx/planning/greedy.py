@@ -321,23 +321,24 @@ def plan_greedy(
                                        target_weights=target_weights, prior_cov=prior_cov,
                                        spatial_cov=spatial_cov))
     posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
-    stops = list(dict.fromkeys(int(c) for P in P0s for c in P))
-    stop_robot = [next(r for r, P in enumerate(P0s) if c in P) for c in stops]
+    # (robot, stop) pairs: a cell is a stop of one robot, except starts shared by two robots
+    stops = [int(c) for P in P0s for c in P]
+    stop_robot = [r for r, P in enumerate(P0s) for _ in P]
     costers = [m.coster(P0, c) for m, P0, c in zip(models, P0s, cands, strict=True)]
-    init = stops
+    init = list(dict.fromkeys(stops))
     gp_pool = union_pool
     sense = _Sensing(models, L) if sense_along else None
     if sense is not None:
         for r, cst in enumerate(costers):
             sense.update(r, cst.route)
-        init = list(dict.fromkeys(stops + sense.observed().tolist()))
+        init = list(dict.fromkeys(init + sense.observed().tolist()))
         if criterion == "gp-variance":  # pass-through cells must be cells of the GP pool
             gp_pool = np.union1d(union_pool, sense.reach())
     extra = _oracle_extra(criterion, region, gp_pool, terms, targets)
     oracle = make_oracle(criterion, Yk, ridge, init, **extra)
     for r, cst in enumerate(costers):  # cells forced for other robots are taken
         if len(costers) > 1:
-            for c in stops:
+            for c in init:
                 _take(cst, cands[r], c)
         if cst.cost > budgets[r] + tols[r]:
             who = f"robot {r}'s " if fleet else ""
@@ -520,10 +521,8 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
         cums.append(np.asarray(cum, np.float64))
         ways.append(np.asarray(way, bool))
         robot.append(np.full(len(cells), r, np.int64))
-    if sense_along:
-        cells = list(dict.fromkeys(list(stops) + np.concatenate(routes).tolist()))
-    else:
-        cells = list(stops)
+    cells = list(dict.fromkeys(list(stops) + (np.concatenate(routes).tolist() if sense_along
+                                              else [])))
     info = fisher_information(Yk, cells, ridge)
     m0 = models[0]
     path = path_dict(

@@ -169,8 +169,9 @@ class Plan:
     route_robot, waypoint : ``(r,)`` per route entry: the robot travelling it, and whether it
         is a sampling stop (False for a pass-through cell of a travel graph or of
         ``sense_along``). A closed tour's route ends with its start again.
-    stops, stop_robot : ``(s,)`` the sampling stops in selection order and their robot.
-        ``cells`` is every observed cell: the stops, then (``sense_along``) the cells passed.
+    stops, stop_robot : ``(s,)`` the sampling stops in selection order and their robot (a cell
+        is the stop of one robot, except a start shared by two robots). ``cells`` is every
+        distinct observed cell: the stops, then (``sense_along``) the cells passed.
     robot_costs : ``(n_robots,)`` each robot's cost; ``cost`` is their sum and ``budget`` the
         sum of the robots' budgets. ``route_cost`` restarts at each robot's start (at its stop
         cost) and ends at its cost.
@@ -357,14 +358,8 @@ class Plan:
         ridge = float(plans[0].ridge if ridge is None else ridge)
         Yk = Y if Y is not None else plans[0]._Y
         cells = list(dict.fromkeys(int(c) for p in plans for c in p.cells))
-        stops, stop_robot = [], []
-        seen: set[int] = set()
-        for r, p in enumerate(plans):
-            for c in p.stops.tolist():
-                if c not in seen:
-                    seen.add(c)
-                    stops.append(c)
-                    stop_robot.append(r)
+        stops = [int(c) for p in plans for c in p.stops]
+        stop_robot = [r for r, p in enumerate(plans) for _ in p.stops]
         if Yk is not None:
             from .._validation import as_factor_matrix
 
@@ -554,13 +549,16 @@ class Plan:
                                > r else self.cost,
                                "budget": float(budgets[r]) if len(budgets) > r else None},
             })
-        sel_of = {int(c): i for i, c in enumerate(self.stops.tolist())}
-        first: dict[int, int] = {}
-        stopset = set(sel_of)
-        for i, c in enumerate(self.route.tolist()):
-            if c in stopset and bool(self.waypoint[i]):
-                first.setdefault(int(c), i)
-        for c, i in first.items():
+        sel_of: dict[tuple[int, int], int] = {}
+        for i, (c, r) in enumerate(zip(self.stops.tolist(), self.stop_robot.tolist(),
+                                       strict=True)):
+            sel_of.setdefault((int(r), int(c)), i)
+        first: dict[tuple[int, int], int] = {}
+        for i, (c, r) in enumerate(zip(self.route.tolist(), self.route_robot.tolist(),
+                                       strict=True)):
+            if (r, c) in sel_of and bool(self.waypoint[i]):
+                first.setdefault((r, c), i)
+        for (_, c), i in first.items():
             features.append(
                 {
                     "type": "Feature",
@@ -570,7 +568,7 @@ class Plan:
                         "cell": c,
                         "robot": int(self.route_robot[i]),
                         "order": int(order[i]),
-                        "selection": sel_of.get(c),
+                        "selection": sel_of.get((int(self.route_robot[i]), c)),
                         "start": c in starts and int(order[i]) == 0,
                     },
                 }
