@@ -248,3 +248,58 @@ def test_filter_scale_is_used_by_the_monitor_state():
     ml = model.monitor(memoryless=True).forecast()
     np.testing.assert_allclose(ml["std"].values, np.sqrt(cal.scale) * base["std"].values,
                                rtol=1e-10)
+
+
+def test_fit_adaptive_scale_finds_informative_innovations():
+    """Per-snapshot scales that the innovations reveal: a finite dof and a likelihood gain;
+    innovations unrelated to the held-out scale: (nearly) the fixed scale."""
+    from lrm_cvx.glrm.calibration import fit_adaptive_scale
+
+    rng = np.random.default_rng(0)
+    n = 30
+    rec_info, rec_noise = [], []
+    for t in range(80):
+        s_t = np.exp(rng.normal(0, 0.6))  # stormy and calm snapshots
+        z = np.sqrt(s_t) * rng.standard_normal(400)
+        q = s_t * rng.chisquare(n)
+        rec_info.append((z, q, n, t))
+        rec_noise.append((z, rng.chisquare(n), n, t))
+    scale, dof, disc, gain = fit_adaptive_scale(rec_info)
+    assert dof is not None and dof <= 16 and gain > 0.01
+    # the scales it implies calibrate the held-out residuals snapshot by snapshot
+    s_i = np.array([(dof * scale + r[1]) / (dof + r[2]) for r in rec_info])
+    cover = np.mean([np.mean(np.abs(r[0]) / np.sqrt(s) <= 1.96) for r, s in zip(rec_info, s_i)])
+    assert abs(cover - 0.95) < 0.02
+    _, dof2, _, gain2 = fit_adaptive_scale(rec_noise)
+    assert dof2 is None or dof2 >= 32
+    assert gain2 < 0.01
+
+
+def test_calibration_attrs_keep_the_adaptive_scale():
+    cal = Calibration(scale=1.3, dof=16.0, discount=0.8, dof_loglik_gain=0.01)
+    back = Calibration.from_attrs(cal.to_attrs())
+    assert back.dof == 16.0 and back.discount == 0.8
+    assert Calibration.from_attrs(Calibration(scale=1.1).to_attrs()).dof is None
+
+
+def test_select_dynamics_keeps_memoryless_without_significant_gain():
+    from lrm_cvx.glrm.calibration import select_dynamics
+    from lrm_cvx.io.samples import synthetic_dynamic_field
+
+    data = synthetic_dynamic_field(40, (8, 10), rank=2, missing=0.1, noise=0.05, seed=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=2, temporal="ar1", progress=False, random_state=0).fit(data)
+    # an impossible guard (no harm at all allowed, with a huge confidence): memoryless
+    alpha, table = select_dynamics(model, data, alphas=(0.5, 1.0), sizes=(3,), n_val=6,
+                                   confidence=50.0, tolerance=0.0, apply=False)
+    assert alpha == 0.0
+    ucb = table.attrs["ucb"]
+    assert np.all(ucb.loc[0.0].values == 0.0) and table.attrs["n_days"] == 12  # 2 windows
+    # no guard: the plain best worst ratio
+    alpha2, table2 = select_dynamics(model, data, alphas=(0.5, 1.0), sizes=(3,), n_val=6,
+                                     confidence=0.0, tolerance=np.inf, apply=False)
+    ratio = (table2 / table2.loc[0.0]).max(axis=1)
+    assert alpha2 == ratio.idxmin()
+    with pytest.raises(ModelError, match="n_folds"):
+        select_dynamics(model, data, n_folds=0)

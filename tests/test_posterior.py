@@ -413,3 +413,78 @@ def test_plan_greedy_takes_the_posterior_as_prior():
                     prior=post, noise_var=1.0)
     with pytest.raises(PlanningError, match="LatentPosterior"):
         plan_greedy(m.Y_, m.region_, 5, 6.0, progress=False, prior="empirical")
+
+
+# ----------------------------------------------------------------------------- adaptive scale
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("spatial", [False, True])
+def test_innovation_statistic_equals_the_dense_mahalanobis_norm(seed, spatial):
+    from dataclasses import replace
+
+    rng, obs = grid_obs(seed) if spatial else problem(seed, L=30)
+    k, L = obs.k, obs.n_cells
+    B = rng.normal(size=(k, k))
+    S0 = B @ B.T + 0.5 * np.eye(k)
+    m0 = rng.normal(size=k)
+    cells = np.sort(rng.choice(L, 9, replace=False))
+    values = rng.normal(5, 2, cells.size)
+    z = obs.to_fit_units(cells, values)
+    Ys = obs.Y[:, cells]
+    if spatial:
+        g = obs.region.grid_index[cells].astype(float)
+        R = obs.spatial_cov.covariance(cdist(g, g), nugget=False) + obs.spatial_cov.nugget * np.eye(
+            cells.size)
+    else:
+        R = np.diag(np.broadcast_to(obs.noise_var, (L,))[cells])
+    e = z - Ys.T @ m0
+    q_ref = float(e @ np.linalg.solve(Ys.T @ S0 @ Ys + R, e))
+    prior = LatentPosterior.from_moments(obs, m0, S0)
+    q, n = prior.innovation(cells, values)
+    assert n == cells.size and q == pytest.approx(q_ref, rel=1e-9)
+    # a flat prior: the GLS residual sum of squares, k degrees of freedom fewer
+    W = np.linalg.inv(R)
+    beta = np.linalg.solve(Ys @ W @ Ys.T, Ys @ W @ z)
+    r = z - Ys.T @ beta
+    q, n = LatentPosterior.from_moments(obs).innovation(cells, values)
+    assert n == cells.size - k and q == pytest.approx(float(r @ W @ r), rel=1e-8)
+    # the adaptive scale: (nu s0 + q) / (nu + n) after the update, s0 without observations
+    ad = replace(obs, variance_scale=1.7, adaptive_dof=4.0, scale_discount=0.5)
+    p0 = LatentPosterior.from_moments(ad, m0, S0)
+    assert p0.variance_scale == pytest.approx(1.7)
+    post = p0.update(cells, values)
+    s = (4.0 * 1.7 + q_ref) / (4.0 + cells.size)
+    assert post.variance_scale == pytest.approx(s, rel=1e-9)
+    # every output variance carries it; the mean does not change
+    fixed = LatentPosterior.from_moments(replace(obs, variance_scale=s), m0, S0).update(
+        cells, values)
+    for a, b in zip(post.predict_all(), fixed.predict_all()):
+        np.testing.assert_allclose(a, b, rtol=1e-9)
+    # the next snapshot starts from the discounted evidence of this one
+    nxt = post.propagate(np.zeros((k, k)), S0)
+    assert nxt.scale_q == pytest.approx(0.5 * q_ref) and nxt.scale_n == pytest.approx(
+        0.5 * cells.size)
+    assert nxt.variance_scale == pytest.approx((4.0 * 1.7 + 0.5 * q_ref) / (4.0 + 4.5))
+    two = post.propagate(np.zeros((k, k)), S0, steps=2)
+    assert two.scale_n == pytest.approx(0.25 * cells.size)
+
+
+def test_innovation_scale_is_unbiased_for_data_from_the_model():
+    """q / n_eff averages the true variance scale on data drawn from the model."""
+    rng, obs = grid_obs(7)
+    k, L = obs.k, obs.n_cells
+    S0 = np.eye(k) * 0.8
+    prior = LatentPosterior.from_moments(obs, np.zeros(k), S0)
+    g = obs.region.grid_index.astype(float)
+    K = obs.Y.T @ S0 @ obs.Y + obs.spatial_cov.covariance(cdist(g, g), nugget=False)
+    K += obs.spatial_cov.nugget * np.eye(L)
+    Lk = np.linalg.cholesky(K)
+    s_true = 2.5
+    cells = np.arange(0, L, 2)
+    qs, ns = [], []
+    for _ in range(400):
+        f = np.sqrt(s_true) * (Lk @ rng.standard_normal(L))
+        vals = obs.offset + obs.scale * f
+        q, n = prior.innovation(cells, vals[cells])
+        qs.append(q)
+        ns.append(n)
+    assert np.sum(qs) / np.sum(ns) == pytest.approx(s_true, rel=0.05)

@@ -230,7 +230,7 @@ class MonitorState:
             return self.posterior
         n = dyn.n_steps(self.time, t)
         A, Q, c = dyn.transition(n, self.time, t)
-        return self.posterior.propagate(A, Q, c)
+        return self.posterior.propagate(A, Q, c, steps=n)
 
     # ------------------------------------------------------------------ maps
     def _dataset(self, mean: np.ndarray, std: np.ndarray, pstd: np.ndarray, t: Any,
@@ -405,6 +405,8 @@ class MonitorState:
             "observed": int(self.observed), "memoryless": int(self.memoryless),
             "spatial": int(p.obs_model.is_spatial), "n_assimilated": self.n_assimilated,
             "n_dropped": self.n_dropped, "posterior_n_dropped": int(p.n_dropped),
+            "day_q": float(p.day_q), "day_n": float(p.day_n), "scale_q": float(p.scale_q),
+            "scale_n": float(p.scale_n),
             "model_path": str(getattr(self, "model_path", "") or ""),
             **dyn_attrs,
         }
@@ -447,11 +449,17 @@ class MonitorState:
         try:
             dynamics = Dynamics.from_dataset(ds)
             obs = ObservationModel.from_model(model, spatial=bool(int(ds.attrs["spatial"])))
+            if not int(ds.attrs["memoryless"]):  # the filter's scale, as in from_model
+                from .glrm.calibration import variance_scale
+
+                obs = replace(obs, variance_scale=variance_scale(model, temporal=True))
+            ev = [float(ds.attrs.get(key, 0.0)) for key in ("day_q", "day_n", "scale_q",
+                                                            "scale_n")]
             post = LatentPosterior(obs, ds["precision"].values, ds["shift"].values,
                                    ds["base_precision"].values, ds["base_shift"].values,
                                    ds["cells"].values.astype(np.int64),
                                    ds["values"].values.astype(np.float64),
-                                   int(ds.attrs.get("posterior_n_dropped", 0)))
+                                   int(ds.attrs.get("posterior_n_dropped", 0)), *ev)
             kind = str(ds.attrs["time_kind"])
             t = _coerce_time(ds.attrs["time"], kind, str(ds.attrs.get("calendar")) or None)
             if kind == "numeric":

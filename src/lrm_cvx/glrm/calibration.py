@@ -46,7 +46,8 @@ from ..errors import DataError, ModelError
 
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
            "blend_dynamics", "select_dynamics", "unblended_dynamics",
-           "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95"]
+           "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95",
+           "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
 Z95 = 1.959963984540054   # two-sided 95%
@@ -59,7 +60,14 @@ class Calibration:
     """Variance scales of a model's predictive distribution, estimated by cross-validation.
 
     ``scale``: multiplier of the memoryless fold-in's predictive variance; ``temporal_scale``:
-    of the filter's (None when not estimated: the filter then uses ``scale``). ``n_residuals``
+    of the filter's (None when not estimated: the filter then uses ``scale``). ``dof``: prior
+    degrees of freedom of the per-snapshot scale (None: the scale is fixed); with it each
+    snapshot's variances are scaled by ``(dof * scale + q) / (dof + n)``, ``q`` the squared
+    norm of the standardized innovations of its ``n`` observations
+    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`), plus the earlier snapshots'
+    ``q`` and ``n`` weighted by ``discount`` per step (0: each snapshot on its own; carried by
+    ``MonitorState``). ``dof_loglik_gain``: the cross-validated Gaussian log-likelihood per
+    residual gained over the fixed scale. ``n_residuals``
     and ``coverage68_raw`` / ``coverage95_raw`` (the cross-validated coverage before scaling)
     document the estimate; ``n_blocks`` and ``sizes`` how it was made.
     """
@@ -73,9 +81,12 @@ class Calibration:
     temporal_coverage95_raw: float = float("nan")
     n_blocks: int = 0
     sizes: str = ""
+    dof: float | None = None
+    discount: float = 0.0
+    dof_loglik_gain: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("scale", "temporal_scale"):
+        for name in ("scale", "temporal_scale", "dof"):
             v = getattr(self, name)
             if v is None:
                 continue
@@ -105,7 +116,7 @@ class Calibration:
         for key in cls.__dataclass_fields__:
             if _PREFIX + key in attrs:
                 v = attrs[_PREFIX + key]
-                if key == "temporal_scale":
+                if key in ("temporal_scale", "dof"):
                     v = None if not np.isfinite(float(v)) else float(v)
                 elif key in ("n_residuals", "n_blocks"):
                     v = int(v)
@@ -244,7 +255,8 @@ def _standardized(model: Any, values: np.ndarray, cells: np.ndarray, pred: np.nd
 def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] = (5, 15, 50),
                  kinds: Sequence[str] = SET_KINDS, max_snapshots: int = 3,
                  prior: str = "empirical", spatial: bool | None = None,
-                 temporal: str | None = None, seed: Any = 0, twin: bool = False) -> Any:
+                 temporal: str | None = None, seed: Any = 0, twin: bool = False,
+                 innovations: bool = False) -> Any:
     """Standardized cross-validated fold-in residuals (see the module docstring).
 
     ``data`` ``(time, lat, lon)``: the snapshots ``model`` was fitted on (its region is used).
@@ -254,7 +266,12 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     cycled). The residuals are standardized by the *uncalibrated* predictive std of the
     refitted model. Returns a 1-D array; with ``temporal`` and ``twin=True`` a pair: the
     filter's residuals and the memoryless model's through the same loop on the same cells.
+    With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t)`` per fold-in: its
+    standardized residuals and the innovation statistic of its samples
+    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`).
     """
+    from .posterior import model_prior
+
     region, V = _check_data(model, data)
     T = V.shape[0]
     if not 2 <= int(n_blocks) <= T // 2:
@@ -294,25 +311,98 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
             pick = block[np.unique(np.linspace(0, block.size - 1,
                                                min(block.size, max_snapshots)).round()
                                    .astype(int))]
+            base = model_prior(sub, prior, spatial=spatial)
             for t in pick:
                 observed = np.isfinite(V[t])
                 for size in sizes:
                     for kind in kinds:
                         cells = sample_sets(region, observed, size, kind, rng)
-                        try:
-                            ds = sub.complete((cells, V[t, cells]), prior=prior, spatial=spatial)
-                        except ModelError:
+                        post = base.update(cells, V[t, cells])
+                        held = observed.copy()
+                        held[cells] = False
+                        hidx = np.flatnonzero(held)
+                        if not post.is_proper or hidx.size == 0:
                             continue
-                        pred = region.stack(ds["prediction"]).astype(np.float64)
-                        std = region.stack(ds["std"]).astype(np.float64)
-                        out.append(_standardized(sub, V[t], cells, pred, std, spatial))
+                        mean, _, pstd = post.predict_all(cells=hidx)
+                        z = (V[t, hidx] - mean) / pstd
+                        if innovations:
+                            q, n_eff = base.innovation(cells, V[t, cells])
+                            out.append((z, q, n_eff, int(t)))
+                        else:
+                            out.append(z)
     if not out:
         raise ModelError("calibration produced no held-out residuals")
     if temporal is not None:
         z_t = np.concatenate([p[0] for p in out])
         z_m = np.concatenate([p[1] for p in out])
         return (z_t, z_m) if twin else z_t
-    return np.concatenate(out)
+    return out if innovations else np.concatenate(out)
+
+
+DOF_GRID = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 1024.0)
+DISCOUNT_GRID = (0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 1.0)
+
+
+def fit_adaptive_scale(records: Sequence[tuple], dofs: Sequence[float] = DOF_GRID,
+                       discounts: Sequence[float] = DISCOUNT_GRID
+                       ) -> tuple[float, float | None, float, float]:
+    """``(scale, dof, discount, gain)``: the adaptive scale of :class:`Calibration` from
+    cross-validated records ``(z, q, n_eff, t)`` (:func:`cv_residuals` with ``innovations``).
+
+    A record's variance scale is ``s_i = (dof scale + E_q + q_i) / (dof + E_n + n_i)``, with
+    ``E_q``, ``E_n`` the evidence of the records of *earlier* snapshots ``t' < t`` (their mean
+    ``q`` and ``n`` per snapshot, weighted by ``discount^(t - t')``; what ``MonitorState``
+    carries from day to day). For each ``(dof, discount)`` of the grids (and the fixed scale,
+    ``dof = None``) the base ``scale`` solves the quantile rule of :func:`fit_scale` for the
+    residuals standardized by ``s_i`` (a fixed point); the pair with the highest mean Gaussian
+    log-likelihood of the held-out residuals under ``N(0, s_i)`` wins. ``gain`` is its
+    log-likelihood per residual minus the fixed scale's (>= 0)."""
+    z = [np.asarray(r[0], dtype=np.float64) for r in records]
+    q = np.array([float(r[1]) for r in records])
+    n = np.array([float(r[2]) for r in records])
+    t = np.array([int(r[3]) if len(r) > 3 else 0 for r in records])
+    ok = np.isfinite(q) & (n > 0)
+    q, n = np.where(ok, q, 0.0), np.where(ok, n, 0.0)
+    sizes = np.array([zi.size for zi in z])
+    zall = np.concatenate(z)
+    snaps = np.unique(t)
+    qbar = np.array([q[t == u].mean() for u in snaps])
+    nbar = np.array([n[t == u].mean() for u in snaps])
+    gap = t[:, None] - snaps[None, :]  # (records, snapshots): steps back to each earlier one
+
+    def evidence(disc: float) -> tuple[np.ndarray, np.ndarray]:
+        if disc == 0.0:
+            return np.zeros(len(z)), np.zeros(len(z))
+        w = np.where(gap > 0, disc ** np.maximum(gap, 0).astype(np.float64), 0.0)
+        return w @ qbar, w @ nbar
+
+    def scales(s0: float, dof: float | None, eq: np.ndarray, en: np.ndarray) -> np.ndarray:
+        if dof is None:
+            return np.full(len(z), s0)
+        return (dof * s0 + eq + q) / (dof + en + n)
+
+    def loglik(s_i: np.ndarray) -> float:
+        si = np.repeat(s_i, sizes)
+        return float(np.mean(-0.5 * np.log(si) - 0.5 * zall * zall / si))
+
+    best = None
+    base_ll = None
+    zero = np.zeros(len(z))
+    for dof in (None, *dofs):
+        for disc in ((0.0,) if dof is None else discounts):
+            eq, en = evidence(float(disc)) if dof is not None else (zero, zero)
+            s0 = fit_scale(zall)
+            for _ in range(50):  # fixed point of the quantile rule
+                f = fit_scale(zall / np.sqrt(np.repeat(scales(s0, dof, eq, en), sizes)))
+                s0 *= f
+                if abs(f - 1.0) < 1e-6 or dof is None:
+                    break
+            ll = loglik(scales(s0, dof, eq, en))
+            if dof is None:
+                base_ll = ll
+            if best is None or ll > best[3]:
+                best = (s0, dof, float(disc), ll)
+    return float(best[0]), best[1], best[2], float(best[3] - base_ll)
 
 
 def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int],
@@ -342,9 +432,16 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
 
 def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] = (5, 15, 50),
               kinds: Sequence[str] = SET_KINDS, max_snapshots: int = 3,
-              temporal: str | None | bool = None, seed: Any = 0) -> Calibration:
+              temporal: str | None | bool = None, adaptive: bool = True,
+              seed: Any = 0) -> Calibration:
     """Estimate the model's variance scale from cross-validated fold-in residuals on its
     training snapshots ``data`` and store it as ``model.calibration_`` (returned).
+
+    ``adaptive`` (default): also estimate a per-snapshot scale (:func:`fit_adaptive_scale`,
+    ``Calibration.dof``; None when the fixed scale fits the held-out residuals best): each
+    snapshot's predictive variances are then rescaled by how surprising its own samples were
+    under the prior (the conjugate update of the scale by the standardized innovations), so a
+    calm period gets narrower intervals and a stormy one wider ones, memoryless or filtered.
 
     The filter (``MonitorState``) uses the same scale by default: measured on held-out
     campaigns (docs/monitoring.md) that calibrates it as well as the memoryless fold-in, while a
@@ -354,8 +451,12 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
     fold-ins.
     """
     kw = dict(n_blocks=n_blocks, sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
-    z = cv_residuals(model, data, seed=seed, **kw)
-    scale = fit_scale(z)
+    records = cv_residuals(model, data, seed=seed, innovations=True, **kw)
+    z = np.concatenate([r[0] for r in records])
+    if adaptive:
+        scale, dof, discount, gain = fit_adaptive_scale(records)
+    else:
+        scale, dof, discount, gain = fit_scale(z), None, 0.0, 0.0
     raw = interval_coverage(z, 0.0, 1.0)
     if temporal == "auto":
         dyn = getattr(model, "dynamics_", None)
@@ -373,7 +474,8 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
                       coverage68_raw=float(raw[0]), coverage95_raw=float(raw[1]),
                       temporal_coverage68_raw=float(t_raw[0]),
                       temporal_coverage95_raw=float(t_raw[1]), n_blocks=int(n_blocks),
-                      sizes=",".join(str(int(s)) for s in sizes))
+                      sizes=",".join(str(int(s)) for s in sizes), dof=dof,
+                      discount=float(discount), dof_loglik_gain=float(gain))
     model.calibration_ = cal
     return cal
 

@@ -122,6 +122,8 @@ class ObservationModel:
     region: Any = None
     ref_var: float | None = None
     variance_scale: float = 1.0  # calibration (glrm/calibration.py): multiplies output variances
+    adaptive_dof: float | None = None  # calibration: prior dof of the per-snapshot scale
+    scale_discount: float = 0.0  # calibration: weight per step of earlier snapshots' evidence
 
     def __post_init__(self) -> None:
         Y = np.asarray(self.Y)
@@ -148,6 +150,14 @@ class ObservationModel:
             raise ModelError("noise_var must be finite and >= 0")
         nv = np.maximum(nv, _NOISE_FLOOR)
         object.__setattr__(self, "noise_var", float(nv) if nv.ndim == 0 else nv)
+        for name in ("variance_scale", "adaptive_dof"):
+            val = getattr(self, name)
+            if val is None and name == "adaptive_dof":
+                continue
+            if not (np.isfinite(val) and val > 0):
+                raise ModelError(f"{name} must be a finite number > 0, got {val!r}")
+        if not 0.0 <= float(self.scale_discount) <= 1.0:
+            raise ModelError(f"scale_discount must be in [0, 1], got {self.scale_discount!r}")
         if self.spatial_cov is not None:
             from ..spatial import ResidualCovariance
 
@@ -181,7 +191,9 @@ class ObservationModel:
                    spatial_cov=cov if spatial else None,
                    region=model.region_ if spatial else None,
                    ref_var=cov.total_variance if spatial else max(sigma2, _NOISE_FLOOR),
-                   variance_scale=_variance_scale(model))
+                   variance_scale=_variance_scale(model),
+                   adaptive_dof=_adaptive_dof(model),
+                   scale_discount=_scale_discount(model))
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -238,11 +250,16 @@ class ObservationModel:
         """``(Y_S W Y_S^T (k, k), Y_S W z (k,))`` of observations ``z`` (fit units) at ``cells``:
         ``W = diag(1 / noise_var)``, or ``C^-1`` with the spatial residual (GLS; the cells must
         then be distinct)."""
+        return self._terms(cells, z)[:2]
+
+    def _terms(self, cells: np.ndarray, z: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, float]:
+        """:meth:`observation_terms` and ``z^T W z``."""
         Ys = self.Y[:, cells]
         if not self.is_spatial:
             w = 1.0 / self.noise_at(cells)
             Yw = Ys * w
-            return Yw @ Ys.T, Yw @ z
+            return Yw @ Ys.T, Yw @ z, float(z @ (w * z))
         from .. import spatial as sp
 
         cov = self.spatial_cov
@@ -252,7 +269,7 @@ class ObservationModel:
         Lc = sp._cholesky(C, cov.total_variance, "observation")
         Ws = scipy.linalg.solve_triangular(Lc, Ys.T, lower=True)
         zs = scipy.linalg.solve_triangular(Lc, z, lower=True)
-        return Ws.T @ Ws, Ws.T @ zs
+        return Ws.T @ Ws, Ws.T @ zs, float(zs @ zs)
 
 
 # ============================================================================ the belief
@@ -276,6 +293,10 @@ class LatentPosterior:
     cells: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     values: np.ndarray = field(default_factory=lambda: np.zeros(0))
     n_dropped: int = 0
+    day_q: float = 0.0  # innovation statistic of this snapshot's observations (adaptive scale)
+    day_n: float = 0.0  # its degrees of freedom
+    scale_q: float = 0.0  # evidence about the scale carried from earlier snapshots (discounted)
+    scale_n: float = 0.0
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -417,15 +438,64 @@ class LatentPosterior:
             return same
         all_cells = np.concatenate([self.cells, cells])
         all_values = np.concatenate([self.values, v])
+        adaptive = obs.adaptive_dof is not None
         if obs.is_spatial:  # correlated residuals: re-solve the GLS over all of today's cells
             uc, zc = _average_repeats(all_cells, obs.to_fit_units(all_cells, all_values))
-            G, b = obs.observation_terms(uc, zc)
+            G, b, zz = obs._terms(uc, zc)
             P, h = self.base_precision + G, self.base_shift + b
+            n_all = uc.size
         else:
             G, b = obs.observation_terms(cells, obs.to_fit_units(cells, v))
             P, h = self.precision + G, self.shift + b
+            if adaptive:  # the innovation is over all of today's cells, from the day's prior
+                G, b, zz = obs._terms(all_cells, obs.to_fit_units(all_cells, all_values))
+            n_all = all_cells.size
+        dq, dn = 0.0, 0.0
+        if adaptive:
+            q, n_eff = _innovation(self.base_precision, self.base_shift, G, b, zz, n_all)
+            if n_eff > 0 and np.isfinite(q):
+                dq, dn = q, float(n_eff)
         return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
-                               all_cells, all_values, self.n_dropped + dropped)
+                               all_cells, all_values, self.n_dropped + dropped, dq, dn,
+                               self.scale_q, self.scale_n)
+
+    @property
+    def variance_scale(self) -> float:
+        """The multiplier of every output variance. Fixed calibration: the model's
+        ``obs_model.variance_scale`` ``s0``. Adaptive (``obs_model.adaptive_dof = nu``): the
+        conjugate estimate ``(nu s0 + q_carried + q_day) / (nu + n_carried + n_day)``, with
+        ``q_day`` the innovation statistic of this snapshot's observations (``n_day`` dof) and
+        ``q_carried`` / ``n_carried`` the earlier snapshots' evidence, discounted by
+        ``scale_discount`` per step (:meth:`propagate`)."""
+        obs = self.obs_model
+        if obs.adaptive_dof is None:
+            return obs.variance_scale
+        nu = float(obs.adaptive_dof)
+        return float((nu * obs.variance_scale + self.scale_q + self.day_q)
+                     / (nu + self.scale_n + self.day_n))
+
+    def carried_evidence(self, steps: int = 1) -> tuple[float, float]:
+        """``(q, n)`` of the scale evidence passed on to a snapshot ``steps`` later."""
+        d = float(self.obs_model.scale_discount) ** max(int(steps), 1)
+        return d * (self.scale_q + self.day_q), d * (self.scale_n + self.day_n)
+
+    def innovation(self, cells: Any, values: Any) -> tuple[float, int]:
+        """``(q, n_eff)``: the squared Mahalanobis norm of the innovations of ``values`` at
+        ``cells`` (data units, NaN dropped) under this belief as the prior, ``q = e^T S_e^-1 e``
+        with ``e = z - Y_S^T m`` and ``S_e = Y_S^T cov Y_S + R`` (``R`` the noise, or the spatial
+        covariance), unscaled (``variance_scale`` 1), and its degrees of freedom ``n_eff`` (the
+        number of values, minus the latent directions the belief leaves flat). For data from
+        the model ``q ~ s chi2(n_eff)`` with ``s`` the true variance scale."""
+        obs = self.obs_model
+        cells = check_cells(cells, obs.n_cells)
+        v = np.asarray(values, dtype=np.float64).reshape(cells.shape)
+        keep = ~np.isnan(v)
+        cells, v = cells[keep], v[keep]
+        z = obs.to_fit_units(cells, v)
+        if obs.is_spatial:
+            cells, z = _average_repeats(cells, z)
+        G, b, zz = obs._terms(cells, z)
+        return _innovation(self.precision, self.shift, G, b, zz, cells.size)
 
     def batch_means(self, cells: Any, values: Any) -> tuple[np.ndarray, np.ndarray]:
         """Posterior means of ``m`` independent updates that share ``cells``: ``values (m, n)``
@@ -501,7 +571,7 @@ class LatentPosterior:
         if cells is not None:
             cells = check_cells(cells, self.obs_model.n_cells)
         mu, var = self._latent_var(sp_, cells)
-        return self.obs_model.to_data_units(mu, np.sqrt(self.obs_model.variance_scale * var),
+        return self.obs_model.to_data_units(mu, np.sqrt(self.variance_scale * var),
                                             slice(None) if cells is None else cells)
 
     def predictive_std(self, spatial: bool | None = None, cells: Any = None) -> np.ndarray:
@@ -520,13 +590,13 @@ class LatentPosterior:
             cells = check_cells(cells, obs.n_cells)
         idx = slice(None) if cells is None else cells
         mu, var = self._latent_var(sp_, cells)
-        mean, std = obs.to_data_units(mu, np.sqrt(obs.variance_scale * var), idx)
+        mean, std = obs.to_data_units(mu, np.sqrt(self.variance_scale * var), idx)
         if sp_:
             var += obs.spatial_cov.nugget
         else:
             nv = obs.without_spatial().noise_var
             var += nv if np.ndim(nv) == 0 else nv[idx]
-        var *= obs.variance_scale
+        var *= self.variance_scale
         pstd = np.sqrt(var, out=var)
         if obs.scale is not None:
             pstd *= obs.scale[idx]
@@ -552,10 +622,11 @@ class LatentPosterior:
             out["spatial_cov"] = obs.spatial_cov
         return out
 
-    def propagate(self, A: Any, Q: Any, c: Any = None) -> LatentPosterior:
+    def propagate(self, A: Any, Q: Any, c: Any = None, steps: int = 1) -> LatentPosterior:
         """The belief about the next snapshot under ``x' = A x + c + w``, ``w ~ N(0, Q)``:
         mean ``A m + c``, covariance ``A S A^T + Q``. Clears the cells (a new snapshot).
-        ``A = 0`` is allowed from any belief (then it is ``N(c, Q)`` exactly)."""
+        ``A = 0`` is allowed from any belief (then it is ``N(c, Q)`` exactly). The adaptive
+        scale's evidence is carried over ``steps`` steps (:meth:`carried_evidence`)."""
         k = self.k
         A = np.asarray(A, dtype=np.float64)
         Q = np.asarray(Q, dtype=np.float64)
@@ -567,9 +638,17 @@ class LatentPosterior:
         if c.shape != (k,) or not np.all(np.isfinite(c)):
             raise ModelError(f"c must be a finite ({k},) vector, got shape {c.shape}")
         if not np.any(A):
-            return LatentPosterior.from_moments(self.obs_model, c, Q)
-        return LatentPosterior.from_moments(self.obs_model, A @ self.mean + c,
-                                            A @ self.cov @ A.T + Q)
+            out = LatentPosterior.from_moments(self.obs_model, c, Q)
+        else:
+            out = LatentPosterior.from_moments(self.obs_model, A @ self.mean + c,
+                                               A @ self.cov @ A.T + Q)
+        if self.obs_model.adaptive_dof is not None:
+            q, n = self.carried_evidence(steps)
+            carried = replace(out, scale_q=q, scale_n=n)
+            carried.__dict__.update({key: out.__dict__[key] for key in ("cov", "mean")
+                                     if key in out.__dict__})
+            return carried
+        return out
 
     def with_obs_model(self, obs_model: ObservationModel) -> LatentPosterior:
         """The same belief (no cells) under another observation model of the same rank."""
@@ -581,6 +660,29 @@ class LatentPosterior:
         state = "flat" if self.is_flat else ("proper" if self.is_proper else "improper")
         return (f"LatentPosterior(k={self.k}, {state}, n_obs={self.cells.size}, "
                 f"spatial={self.obs_model.is_spatial})")
+
+
+def _innovation(P0: np.ndarray, h0: np.ndarray, G: np.ndarray, b: np.ndarray, zz: float,
+                n: int) -> tuple[float, int]:
+    """``(q, n_eff)`` of :meth:`LatentPosterior.innovation` from the prior's information form
+    ``(P0, h0)`` and the observation terms ``G = Y W Y^T``, ``b = Y W z``, ``zz = z^T W z``
+    (``W`` the inverse noise / spatial covariance): by Woodbury,
+    ``q = (z - Y^T m)^T W (z - Y^T m) - r^T (P0 + G)^-1 r``, ``r = b - G m``, ``m`` the prior
+    mean (0 along flat directions, which then cost one degree of freedom each)."""
+    k = P0.shape[0]
+    ev, U = np.linalg.eigh(_sym(P0))
+    top = max(float(ev[-1]), 0.0)
+    ok = ev > _SINGULAR * top if top > 0 else np.zeros(k, dtype=bool)
+    m = U[:, ok] @ ((U[:, ok].T @ h0) / ev[ok])
+    r = b - G @ m
+    P = _sym(P0 + G)
+    try:
+        Lp = np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return float("nan"), 0
+    w = scipy.linalg.solve_triangular(Lp, r, lower=True)
+    q = zz - 2.0 * float(m @ b) + float(m @ G @ m) - float(w @ w)
+    return max(q, 0.0), int(n - (k - int(ok.sum())))
 
 
 def _average_repeats(cells: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -650,6 +752,18 @@ def fold_in_snapshots(prior: LatentPosterior, V: np.ndarray, spatial: bool | Non
         pred[t], std[t] = post.predict(spatial)
         xs[t] = post.mean
     return pred, std, xs, counts
+
+
+def _adaptive_dof(model: Any) -> float | None:
+    """The calibration's prior degrees of freedom of the per-snapshot scale (None: fixed)."""
+    cal = getattr(model, "calibration_", None)
+    return None if cal is None else getattr(cal, "dof", None)
+
+
+def _scale_discount(model: Any) -> float:
+    """The calibration's per-step discount of earlier snapshots' scale evidence (0: none)."""
+    cal = getattr(model, "calibration_", None)
+    return 0.0 if cal is None else float(getattr(cal, "discount", 0.0) or 0.0)
 
 
 def _variance_scale(model: Any, temporal: bool = False) -> float:
