@@ -4,7 +4,12 @@ Prints seconds, |P| and Fisher information for budgets 5, 50, 100, 200 with the 
 nearest-neighbour cost and with cheapest insertion, then the speed-up over a naive
 implementation (every tour and log det from scratch) on a 60 x 60 grid, and peak RSS.
 
-    flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_planner.py [--small]
+Issue #15 targets (``--paths-only`` runs only these): a glider-like path model at paper scale,
+``metric="km"`` with the km budget equivalent to 200 grid units at the start,
+``traversable="valid"``, ``closed=True``: one robot <= 15 s, a fleet of 3 <= 30 s, peak memory
+<= 4 GB; each figure is printed beside its target.
+
+    flock /tmp/bench.lock python benchmarks/bench_planner.py [--small] [--paths-only]
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ import numpy as np
 
 from lrm_cvx import Region
 from lrm_cvx.io.samples import synthetic_field
-from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning import place_sensors, plan_greedy
 
 RIDGE = 1e-6  # the planted factors are so smooth that 5 adjacent cells are singular
 
@@ -79,6 +84,8 @@ def _naive_greedy(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--small", action="store_true", help="quick smoke run (300 x 280)")
+    parser.add_argument("--paths-only", action="store_true",
+                        help="only the issue #15 path-model targets")
     args = parser.parse_args()
     shape = (300, 280) if args.small else (1500, 1400)
     budgets = (5, 50) if args.small else (5, 50, 100, 200)
@@ -89,6 +96,10 @@ def main() -> None:
     print(f"grid {shape[0]} x {shape[1]}, {region.n_cells} land cells, rank {Y.shape[0]}, "
           f"start cell {start} at {tuple(region.grid_index[start].tolist())}, ridge {RIDGE:g}; "
           f"setup {time.perf_counter() - t0:.1f} s")
+    if args.paths_only:
+        _path_targets(Y, region, start, 40.0 if args.small else 200.0)
+        print(f"peak RSS {_peak_gib():.2f} GiB (target <= 4 GB = 3.73 GiB)")
+        return
     # compile once, outside the timings
     plan_greedy(Y[:, :200], _small_region(region, 200), 0, 3, ridge=RIDGE, progress=False)
     plan_greedy(Y[:, :200], _small_region(region, 200), 0, 3, cost="insertion", ridge=RIDGE,
@@ -126,7 +137,70 @@ def main() -> None:
     print(f"60 x 60 grid ({rs.n_cells} cells), budget {nb:g}: fast {t_fast:.3f} s, naive "
           f"{t_naive:.1f} s, speed-up {t_naive / t_fast:.0f}x, same picks: {same} "
           f"(|P| = {len(fast)})")
-    print(f"peak RSS {_peak_gib():.2f} GiB")
+    _path_targets(Y, region, start, 40.0 if args.small else 200.0)
+    print(f"peak RSS {_peak_gib():.2f} GiB (target <= 4 GB = 3.73 GiB)")
+
+
+def _km_per_grid_unit(region: Region, start: int) -> float:
+    """Mean great-circle length (km) of one row step and one column step at the start."""
+    from lrm_cvx.planning.paths import travel_distance
+
+    g = region.grid_index[start]
+    out = []
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        r, c = g[0] + dr, g[1] + dc
+        if 0 <= r < region.shape[0] and 0 <= c < region.shape[1] and region.cell_grid[r, c] >= 0:
+            out.append(float(travel_distance(region, start, int(region.cell_grid[r, c]),
+                                             metric="km")))
+    return float(np.mean(out))
+
+
+def _nearest_valid(region: Region, row: int, col: int) -> int:
+    gi = region.grid_index
+    return int(np.argmin((gi[:, 0] - row) ** 2 + (gi[:, 1] - col) ** 2))
+
+
+def _path_targets(Y: np.ndarray, region: Region, start: int, grid_budget: float) -> None:
+    """Issue #15: km budget equivalent to ``grid_budget`` grid units, traversable="valid",
+    closed tours; one robot (target 15 s) and a fleet of 3 (target 30 s), on the noisy
+    factors (scattered picks, like a fitted model's)."""
+    noisy = Y + 0.3 * Y.std(axis=1, keepdims=True) * np.random.default_rng(0).standard_normal(
+        Y.shape)
+    km = grid_budget * _km_per_grid_unit(region, start)
+    opts = dict(metric="km", traversable="valid", closed=True, ridge=RIDGE, progress=False)
+    # compile the path model's kernels once, outside the timings
+    small = _small_region(region, 400)
+    plan_greedy(Y[:, :400], small, 0, 3 * _km_per_grid_unit(region, start), **opts)
+    g = region.grid_index[start]
+    off = int(0.75 * grid_budget)
+    fleet = [start, _nearest_valid(region, g[0] - off, g[1] - off),
+             _nearest_valid(region, g[0] + off, g[1] + off)]
+    print(f"issue #15 path model: metric km, budget {km:.1f} km (= {grid_budget:g} grid units "
+          f"x {km / grid_budget:.3f} km), traversable 'valid', closed tours")
+    print(f"{'robots':>6} {'cost':>17} {'seconds':>8} {'target':>7} {'|P|':>5} "
+          f"{'robot costs (km)':>28} {'information':>11} {'route rows':>10}")
+    for starts, target in (([start], 15.0), (fleet, 30.0)):
+        for cost in ("nearest-neighbor", "insertion"):
+            t = time.perf_counter()
+            plan = plan_greedy(noisy, region, starts if len(starts) > 1 else starts[0], km,
+                               cost=cost, **opts)
+            sec = time.perf_counter() - t
+            ok = "ok" if sec <= target else "MISSED"
+            costs = " ".join(f"{c:.1f}" for c in plan.robot_costs)
+            assert all(c <= km * (1 + 1e-9) for c in plan.robot_costs)
+            print(f"{len(starts):6d} {cost:>17} {sec:8.2f} {target:5.0f} s {len(plan):5d} "
+                  f"{costs:>28} {plan.information:11.4f} {plan.route.size:10d}  {ok}")
+    # no targets: sensing along the route (one robot) and a static placement of as many
+    # sensors as the route has stops
+    t = time.perf_counter()
+    plan = plan_greedy(noisy, region, start, km, sense_along=True, **opts)
+    print(f"sense_along, 1 robot: {time.perf_counter() - t:.2f} s, {plan.stops.size} stops, "
+          f"{len(plan)} cells observed, information {plan.information:.4f}")
+    t = time.perf_counter()
+    static = place_sensors(noisy, region, 200, ridge=RIDGE)
+    print(f"static placement of 200 sensors over all {region.n_cells} cells: "
+          f"{time.perf_counter() - t:.2f} s, information {static.information:.4f}")
+    print(f"peak RSS so far {_peak_gib():.2f} GiB")
 
 
 def _small_region(region: Region, n: int) -> Region:

@@ -263,7 +263,7 @@ def test_fleet_plan_contents(sea):
     json.dumps(doc)
     # the history says which robot picked each cell
     assert plan.history["robot"].size == plan.history["cell"].size
-    for r, sub in enumerate(plan.robots):
+    for sub in plan.robots:
         assert set(sub.history["cell"].tolist()) <= set(sub.stops.tolist())
 
 

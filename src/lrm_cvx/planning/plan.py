@@ -144,11 +144,13 @@ class Plan:
         nearest-neighbour cost: the nearest-neighbour tour of ``cells``; with the insertion
         cost: the cheapest-insertion route; random walk: the walk itself (cells may repeat);
         transect: the valid cells passed, in order.
-    cost : length of the travel in grid units (the cost the budget constrains).
+    cost : the route's cost (the one the budget constrains) in ``path["unit"]``: grid units
+        for the paper; km, hours, or the number of sensors of a static placement.
     information : Fisher information ``log det(ridge I + sum_cells y y^T)`` of ``cells``
         (``-inf`` if singular, ``nan`` when a baseline was built without ``Y``).
     criterion : the greedy's criterion (``"fisher"`` / ``"a-optimal"``), ``None`` for baselines.
-    budget, start, ridge : the request (``start`` is a cell index).
+    budget, start, ridge : the request (``start`` is a cell index: the first robot's for a
+        fleet, ``-1`` for a static placement; ``budget`` is the robots' total).
     lat, lon, grid_index : ``(r,)``, ``(r,)``, ``(r, 2)`` coordinates of each *route* entry.
     history : per greedy iteration, arrays ``cell``, ``gain``, ``cost_increase``, ``ratio``,
         ``cost`` (route cost after the pick) and ``n_evaluated`` (candidates whose exact cost
