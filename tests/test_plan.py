@@ -243,3 +243,38 @@ def test_certify_baseline_is_judged_by_fisher(tiny):
     walk = transect(region, start, 4, "up", Y=Y, ridge=1e-3)
     cert = walk.certify(tighten=False)
     assert cert.plan_criterion is None and cert.comparable and np.isfinite(cert.gap)
+
+
+# ---------------------------------------------------------------------- issue 15: path models
+def test_fleet_csv_roundtrip_and_closed_tours(setup, tmp_path):
+    Y, region, start, _ = setup
+    other = int(region.cell_grid[2, 3]) if region.cell_grid[2, 3] >= 0 else 0
+    plan = plan_greedy(Y, region, [start, other], 600.0, metric="km", traversable="valid",
+                       closed=True, stop_cost=10.0, sense_along=True, ridge=1e-6,
+                       progress=False)
+    back = pd.read_csv(plan.to_csv(tmp_path / "fleet.csv"))
+    pd.testing.assert_frame_equal(back, plan.to_dataframe(), check_dtype=False)
+    for r, rows in back.groupby("robot"):
+        assert rows["cell"].iloc[0] == rows["cell"].iloc[-1] == plan.path["starts"][r]
+        assert rows["cumulative_cost"].iloc[0] == 10.0  # the start's stop cost
+        assert rows["cumulative_cost"].iloc[-1] == pytest.approx(plan.robot_costs[r], rel=1e-12)
+        assert rows["cumulative_cost"].iloc[-1] <= 600.0 * (1 + 1e-9)
+    assert plan == plan_greedy(Y, region, [start, other], 600.0, metric="km",
+                               traversable="valid", closed=True, stop_cost=10.0,
+                               sense_along=True, ridge=1e-6, progress=False)
+    assert plan != plan_greedy(Y, region, [start, other], 600.0, metric="km",
+                               traversable="valid", closed=True, stop_cost=10.0, ridge=1e-6,
+                               progress=False)
+    doc = plan.to_geojson()
+    assert doc["properties"]["path"]["closed"] and doc["properties"]["n_robots"] == 2
+    assert "2 robots" in repr(plan)
+
+
+def test_plan_built_by_hand_gets_the_papers_path(setup):
+    Y, region, start, plan = setup
+    built = Plan.build(region=region, cells=plan.cells, route=plan.route, cost=None,
+                       information=0.0, criterion=None, budget=20.0, start=start, ridge=0.0,
+                       method="greedy")
+    assert built.path["kind"] == "path" and built.path["starts"] == [start]
+    assert built.n_robots == 1 and built.robots == [built]
+    assert built.stops.tolist() == built.cells.tolist() and built.waypoint.all()

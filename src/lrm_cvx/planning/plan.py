@@ -435,7 +435,8 @@ class Plan:
             crit += ", static"
         return (
             f"Plan(method={self.method!r}{crit}, {len(self)} cells, route of "
-            f"{self.route.size} stops, cost={self.cost:.4g} / budget={self.budget:.4g}, "
+            f"{self.route.size} {'stops' if self.waypoint.all() else 'entries'}, "
+            f"cost={self.cost:.4g} / budget={self.budget:.4g}, "
             f"information={self.information:.6g}, start={self.start})"
         )
 
