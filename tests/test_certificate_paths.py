@@ -205,6 +205,51 @@ def test_end_restricts_candidates_to_the_ellipse_and_stop_cost_caps_the_count():
     assert capped.n_max == 2
 
 
+def route_orders(D: np.ndarray, start: int, budget: float, closed: bool = False):
+    """Every visiting order (start first) of a route with cost <= budget (no stop cost)."""
+    tol = 1e-9 * max(1.0, budget)
+
+    def dfs(used: list[int], travel: float):
+        back = D[used[-1], start] if closed else 0.0
+        if travel + back <= budget + tol:
+            yield list(used)
+        for x in range(D.shape[0]):
+            if x not in used and travel + D[used[-1], x] <= budget + tol:
+                used.append(x)
+                yield from dfs(used, travel + D[used[-2], x])
+                used.pop()
+
+    yield from dfs([start], 0.0)
+
+
+@pytest.mark.parametrize("closed, budget", [(False, 2.9), (True, 4.2)])
+def test_sensing_along_straight_legs_covers_every_route(closed, budget):
+    """``sense_along`` without a travel graph observes every cell a leg crosses
+    (``plan.line_cells``): more cells than stops, so the count limit is sqrt 2 per unit."""
+    from lrm_cvx.planning.plan import line_cells
+
+    region = make_region(5, 6, masked=[(0, 5)])
+    Y = field_Y(region, 2, 11)
+    start = int(region.cell_grid[2, 2])
+    D = straight(region, "grid", None)
+    seen: set[frozenset] = set()
+    for order in route_orders(D, start, budget, closed):
+        legs = list(zip(order[:-1], order[1:], strict=True))
+        if closed and len(order) > 1:
+            legs.append((order[-1], start))
+        cells = set(order)
+        for a, b in legs:
+            cells.update(line_cells(region, a, b)[0].tolist())
+        seen.add(frozenset(cells))
+    best = best_over(Y, seen, 0.0)
+    if not closed:  # more cells than a stops-only route of this length can hold
+        assert max(len(S) for S in seen) > math.floor(budget) + 1
+    cert = plan_bound(Y, region, start, budget, closed=closed, sense_along=True, tol=1e-6)
+    assert cert.bound >= best - 1e-7
+    assert cert.n_max >= max(len(S) for S in seen)
+    assert cert.n_candidates >= len(set().union(*seen))
+
+
 # ----------------------------------------------------------------------------- fleet, static
 def test_fleet_of_two_covers_every_pair_of_routes():
     region = make_region(5, 5, masked=MASKED)
@@ -244,6 +289,8 @@ PLANS = [
     dict(metric="km", speed=15.0),
     dict(traversable="valid", closed=True),
     dict(traversable="valid", sense_along=True),
+    dict(sense_along=True),
+    dict(sense_along=True, closed=True, metric="km"),
     dict(metric="km", traversable="valid", sense_along=True, closed=True),
 ]
 

@@ -579,8 +579,6 @@ def _paper_initial_cells(region: Any, start: int, budget: float, k: int) -> np.n
 def _robot_family(spec: _PathSpec, region: Any, k: int, r: int) -> _Family:
     """One robot of any path model: candidates by travel distance, count by spacing and stop
     cost, the start's limits in the model's travel distance (docs/certificate.md §10)."""
-    from .paths import make_path_model
-
     start, budget = spec.starts[r], spec.budgets[r]
     if spec.models is not None:  # the plan's own model (keeps a traversable mask)
         pm = spec.models[r]
@@ -588,6 +586,8 @@ def _robot_family(spec: _PathSpec, region: Any, k: int, r: int) -> _Family:
         pm = make_path_model(region, start, budget, metric=spec.metric, speed=spec.speed,
                              stop_cost=spec.stop_cost, traversable=spec.traversable,
                              closed=spec.closed, end=spec.end)
+    if spec.sense_along and pm.traversable == "none":
+        return _straight_sensing_family(spec, pm, region, k)
     c = spec.stop_cost
     Bp = budget + _DIST_EPS * max(1.0, budget)
     d_s = np.asarray(pm.distances(start), dtype=np.float64)
@@ -626,6 +626,40 @@ def _robot_family(spec: _PathSpec, region: Any, k: int, r: int) -> _Family:
             cover_budget = None
     return _Family(cand, n_max, init, np.where(np.isfinite(d_s), d_s, np.inf), d_min, travel,
                    cover_budget, False, f"budget={budget:g} ({pm.unit})")
+
+
+def _straight_sensing_family(spec: _PathSpec, pm: Any, region: Any, k: int) -> _Family:
+    """Sensing along straight legs (``sense_along`` without a travel graph).
+
+    The observed cells are those whose unit square a leg's chart segment crosses
+    (:func:`~lrm_cvx.planning.plan.line_cells`): a segment from ``(r0, c0)`` to ``(r1, c1)``
+    crosses at most ``|r1 - r0| + |c1 - c0| + 1 <= sqrt 2 l + 1`` squares, consecutive legs
+    share their stop, so a route whose stops' chart polyline has length ``<= G``
+    (:meth:`PathModel.grid_budget_bound`; the travel itself on the grid) observes at most
+    ``floor(sqrt 2 G) + 1`` cells, each within ``sqrt 2 / 2`` of a point of the polyline:
+    ``chart(start, x) + chart(x, back) <= G + sqrt 2``. No distance limits. On a grid whose
+    longitudes wrap the chart argument does not apply: every cell, no count limit.
+    """
+    L = region.n_cells
+    start = pm.start
+    init = np.asarray(pm.initial_cells(k), dtype=np.int64)
+    text = f"budget={pm.budget:g} ({pm.unit})"
+    G = float(pm.grid_budget_bound()) * (1 + 1e-9) + 1e-9
+    if getattr(pm, "_wrap", True) or not math.isfinite(G):
+        return _Family(np.arange(L, dtype=np.int64), L, init, None, math.inf, math.inf,
+                       None, False, text)
+    everything = np.arange(L)
+    cs = np.asarray(pm.chart_distance(start, everything), dtype=np.float64)
+    if spec.closed:
+        cb = cs
+    elif spec.end is not None:
+        cb = np.asarray(pm.chart_distance(spec.end, everything), dtype=np.float64)
+    else:
+        cb = np.zeros(L)
+    cand = np.flatnonzero(cs + cb <= G + math.sqrt(2.0) * (1 + 1e-9))
+    cand = np.union1d(cand, [start] + ([spec.end] if spec.end is not None else []))
+    n_max = int(max(1, min(cand.size, math.floor(math.sqrt(2.0) * G) + 1)))
+    return _Family(cand, n_max, init, None, math.inf, math.inf, None, False, text)
 
 
 def _spacing(region: Any, cand: np.ndarray, spec: _PathSpec) -> float:
