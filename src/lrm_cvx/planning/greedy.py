@@ -114,7 +114,7 @@ def _resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
 def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
     """Each robot's forced cells: its model's ``initial_cells(k)`` (``initial="nearest"``) or
     its start (and end) only; a cell already forced for an earlier robot is left out (the
-    robot's own start is always kept)."""
+    robot's own start and end are always kept: every route has them)."""
     taken: set[int] = set()
     out = []
     for m in models:
@@ -123,7 +123,7 @@ def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
         else:
             c = np.array([m.start] + ([] if m.end is None or m.end == m.start else [m.end]),
                          dtype=np.int64)
-        keep = [int(x) for x in c if int(x) == m.start or int(x) not in taken]
+        keep = [int(x) for x in c if int(x) in (m.start, m.end) or int(x) not in taken]
         taken.update(keep)
         out.append(np.asarray(keep, dtype=np.int64))
     return out
