@@ -458,6 +458,18 @@ def test_bad_path_inputs_name_the_argument(sea):
         assert word in str(info.value), (kw, str(info.value))
 
 
+def test_traversable_mask_is_kept(sea):
+    Y, region, starts = sea
+    m = np.ones(region.shape, dtype=bool)
+    m[:, 9] = False  # a wall with no gap
+    plan = greedy(Y, region, starts[0], 12.0, traversable=m)
+    gi = region.grid_index
+    np.testing.assert_array_equal(plan.traversable_mask[gi[:, 0], gi[:, 1]],
+                                  m[gi[:, 0], gi[:, 1]])
+    assert np.all(gi[plan.route, 1] < 9)  # the route never crosses the wall
+    assert greedy(Y, region, starts[0], 12.0).traversable_mask is None
+
+
 def test_refine_refuses_other_path_models(sea):
     Y, region, starts = sea
     for kw in (dict(closed=True), dict(metric="km"), dict(stop_cost=0.5)):

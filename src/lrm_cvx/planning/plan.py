@@ -223,6 +223,19 @@ class Plan:
             self.robot_costs = np.array([float(self.cost)])
 
     @property
+    def traversable_mask(self) -> np.ndarray | None:
+        """``(ny, nx)`` bool: where the robots may travel (``path["traversable"] == "mask"``,
+        from the plan's path models; masked grid positions False), else None."""
+        if self.path.get("traversable") != "mask" or not self._path_models:
+            return None
+        region = self._region
+        enter = np.asarray(self._path_models[0].enterable(), dtype=bool)
+        out = np.zeros(region.shape, dtype=bool)
+        gi = region.grid_index
+        out[gi[:, 0], gi[:, 1]] = enter
+        return out
+
+    @property
     def n_robots(self) -> int:
         """Number of robots (1 for a single route and for static placement)."""
         return int(self.path.get("n_robots", 1))
