@@ -114,3 +114,74 @@ def test_oracle_errors(Y):
     with pytest.raises(PlanningError):
         oracle.gains([30])
     assert isinstance(make_oracle("fisher", Y, 1.0), FisherOracle)
+
+
+# --------------------------------------------------------------------------- gp-variance, trend
+def _gp_setup(seed, sill, rng_range=1.5, ny=7, nx=8):
+    from lrm_cvx import Region
+    from lrm_cvx.spatial import ResidualCovariance
+
+    rng = np.random.default_rng(seed)
+    da = xr.DataArray(np.zeros((ny, nx)), dims=("lat", "lon"),
+                      coords=dict(lat=np.arange(ny) * 1.0, lon=np.arange(nx) * 1.0))
+    region = Region.from_dataarray(da, mask=rng.random((ny, nx)) > 0.15)
+    L = region.n_cells
+    Y = rng.normal(size=(2, L))
+    B = rng.normal(size=(2, 2))
+    S0 = B @ B.T + 0.3 * np.eye(2)
+    cov = ResidualCovariance("exponential", sill=sill, range=rng_range, nugget=0.1)
+    c = rng.uniform(0.5, 2.0, L)
+    return rng, region, Y, S0, cov, c
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_gp_residual_share_equals_the_dense_numerators(seed):
+    from scipy.spatial.distance import cdist
+
+    from lrm_cvx.information import gp_residual_share
+
+    rng, region, Y, S0, cov, c = _gp_setup(seed, sill=0.3)
+    L = region.n_cells
+    pool = np.sort(rng.choice(L, L // 2, replace=False))
+    g = region.grid_index.astype(float)
+    Kt = Y.T @ S0 @ Y
+    K = Kt + cov.covariance(cdist(g, g), nugget=False)
+    N = (c[:, None] * K[:, pool] ** 2).sum(0)
+    Nt = (c[:, None] * Kt[:, pool] ** 2).sum(0)
+    ref = float(np.max(np.abs(N - Nt) / N))
+    got = gp_residual_share(Y, region, cov, S0, pool, target_weights=c)
+    assert got == pytest.approx(ref, rel=1e-9)
+
+
+def test_trend_oracle_is_the_gp_criterion_with_the_residual_as_noise(monkeypatch):
+    import lrm_cvx.information as info
+
+    rng, region, Y, S0, cov, c = _gp_setup(5, sill=0.3)
+    L = region.n_cells
+    kw = dict(region=region, spatial_cov=cov, prior_cov=S0, target_weights=c)
+    o = info.make_oracle("gp-variance", Y, 0.0, [0], gp_method="trend", **kw)
+    assert isinstance(o, info.TrendGPVarianceOracle)
+    picks = [0]
+    for cell in (5, 11, 5):
+        o.add(cell)
+        picks.append(cell)
+    # brute force: latent posterior under independent noise sill + nugget
+    sig2 = cov.nugget + cov.sill
+    P = np.array(picks)
+    S = np.linalg.inv(np.linalg.inv(S0) + Y[:, P] @ Y[:, P].T / sig2)
+    C = Y.T @ S @ Y
+    ref = (c[:, None] * C ** 2).sum(0) / (np.diag(C) + sig2)
+    np.testing.assert_allclose(o.gains(np.arange(L)), ref, rtol=1e-10)
+    assert o.value == pytest.approx(float(c @ (np.diag(C) + cov.sill)), rel=1e-10)
+    # auto: a negligible residual switches to it, a real one does not
+    monkeypatch.setattr(info, "GP_STRUCTURED_MIN_ENTRIES", 0.0)
+    from lrm_cvx.spatial import ResidualCovariance
+
+    tiny = ResidualCovariance("exponential", sill=1e-14, range=1.5, nugget=0.1)
+    auto = info.make_oracle("gp-variance", Y, 0.0, [0], **dict(kw, spatial_cov=tiny))
+    assert isinstance(auto, info.TrendGPVarianceOracle)
+    assert auto.prior_residual_share <= info.GP_RESIDUAL_TOL
+    auto.add(3)
+    assert 0 <= auto.residual_share() < 1e-3
+    assert isinstance(info.make_oracle("gp-variance", Y, 0.0, [0], **kw),
+                      info.StructuredGPVarianceOracle)

@@ -47,6 +47,9 @@ __all__ = [
     "GPVarianceOracle",
     "gp_variance_value",
     "StructuredGPVarianceOracle",
+    "TrendGPVarianceOracle",
+    "gp_residual_share",
+    "GP_RESIDUAL_TOL",
     "GP_STRUCTURED_MIN_ENTRIES",
     "CRITERIA",
     "CRITERION_REGISTRY",
@@ -716,11 +719,136 @@ class StructuredGPVarianceOracle:
         return self._value
 
 
+GP_RESIDUAL_TOL: float = 1e-6
+"""``make_oracle("gp-variance")`` (``gp_method="auto"``, structured size, grid metric) plans with
+:class:`TrendGPVarianceOracle` when the spatial residual changes no prior gain of the pool by
+more than this fraction (:func:`gp_residual_share`)."""
+
+
+def _residual_terms(Yk: np.ndarray, region: Any, spatial_cov: Any, P: np.ndarray,
+                    cT: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(u (k, |P|), s (|P|))``: ``u(x) = sum_i c_i y_i k(i, x)``, ``s(x) = sum_i c_i
+    k(i, x)^2`` at the cells ``P`` by ``k + 1`` FFT convolutions over the grid (terms below
+    ``1e-17`` sill left out)."""
+    k = Yk.shape[0]
+    if spatial_cov.sill <= 0:
+        return np.zeros((k, P.size)), np.zeros(P.size)
+    gi = region.grid_index
+    shape = region.shape
+    gP = gi[P]
+    lo, hi = gP.min(axis=0), gP.max(axis=0)
+    out = (int(lo[0]), int(lo[1]), int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
+    oidx = (gP[:, 0] - out[0], gP[:, 1] - out[1])
+    wb = _rect(lo, hi, spatial_cov.cutoff_distance(1e-17), shape)
+    sl = (slice(wb[0], wb[0] + wb[2]), slice(wb[1], wb[1] + wb[3]))
+
+    def kern(d):
+        return spatial_cov.covariance(d, nugget=False)
+
+    conv = _GridConv(wb, out, kern)
+    buf = np.zeros(shape)
+    u = np.empty((k, P.size))
+    for j in range(k):
+        buf[gi[:, 0], gi[:, 1]] = cT * Yk[j]
+        u[j] = conv(buf[sl])[oidx]
+    buf[gi[:, 0], gi[:, 1]] = cT
+    sx = _GridConv(wb, out, lambda d: kern(d) ** 2)(buf[sl])[oidx]
+    return u, sx
+
+
+def _share(S: np.ndarray, YP: np.ndarray, W: np.ndarray, u: np.ndarray, sx: np.ndarray
+           ) -> float:
+    a = S @ YP
+    trend = np.einsum("an,an->n", a, W @ a)
+    extra = 2.0 * np.einsum("an,an->n", a, u) + sx
+    return float(np.max(np.abs(extra) / np.maximum(trend + extra, 1e-300))) if sx.size else 0.0
+
+
+def _targets_weights(L: int, targets: Any, target_weights: Any) -> np.ndarray:
+    T = np.arange(L) if targets is None else np.unique(_cells_array(targets, L))
+    c = np.ones(L) if target_weights is None else np.asarray(target_weights, float)
+    cT = np.zeros(L)
+    cT[T] = c[T]
+    return cT
+
+
+def gp_residual_share(Y: Any, region: Any, spatial_cov: Any, prior_cov: Any, pool: Any,
+                      targets: Any = None, target_weights: Any = None) -> float:
+    """Largest relative change, over the ``pool`` cells, of the prior ``"gp-variance"`` gain
+    numerator ``N(x) = sum_i c_i K(i, x)^2`` that the *correlation* of the spatial residual
+    makes: ``N(x) = T(x) + 2 a_x^T u(x) + s(x)`` with the trend part
+    ``T(x) = a_x^T W a_x`` (``a_x = S0 y_x``, ``W = sum_i c_i y_i y_i^T``), ``u(x) = sum_i c_i
+    y_i k(i, x)`` and ``s(x) = sum_i c_i k(i, x)^2`` (``k`` the residual covariance without its
+    nugget; ``k + 1`` FFT convolutions over the grid, exact up to rounding and terms below
+    ``1e-17`` sill). Returns ``max_x |2 a_x^T u(x) + s(x)| / N(x)``: the prior gains of the
+    exact criterion and of :class:`TrendGPVarianceOracle` (the residual as independent noise,
+    same denominators) differ by at most this fraction. Grid metric only."""
+    Yk = as_factor_matrix(Y)
+    S0 = _check_gp_inputs(Yk, region, spatial_cov, prior_cov)
+    if spatial_cov.metric != "grid":
+        raise PlanningError("gp_residual_share needs spatial_cov.metric 'grid'")
+    L = Yk.shape[1]
+    P = np.unique(_cells_array(pool, L)) if pool is not None else np.arange(L)
+    cT = _targets_weights(L, targets, target_weights)
+    u, sx = _residual_terms(Yk, region, spatial_cov, P, cT)
+    return _share(S0, Yk[:, P], (Yk * cT) @ Yk.T, u, sx)
+
+
+class TrendGPVarianceOracle(AOptimalOracle):
+    """``"gp-variance"`` with the spatial residual as independent noise (planning surrogate).
+
+    The residual ``r`` keeps its variance (``sill``) but loses its correlation: the observation
+    noise is ``sill + nugget``, so the gain of ``x`` is ``a_x^T W a_x / (y_x^T S y_x + sill +
+    nugget)`` (``S`` the latent posterior covariance, ``a_x = S y_x``, ``W = sum_i c_i y_i
+    y_i^T``): the A-optimal oracle, ``O(k^2)`` per candidate, no grid convolution. Its gain
+    numerators leave out exactly the residual's terms ``2 a_x^T u(x) + s(x)`` of the exact
+    criterion (same denominators): :func:`make_oracle` uses it only when their share
+    (:func:`gp_residual_share`) is at most :data:`GP_RESIDUAL_TOL`; :meth:`residual_share`
+    re-measures it after the picks (with the prior ``s(x)``). ``value``: the total
+    posterior variance of ``f`` over the targets under this surrogate (``trace(S W) + sill
+    sum_i c_i``)."""
+
+    criterion = "gp-variance"
+
+    def __init__(self, Y: Any, cells: Any = None, *, region: Any = None, spatial_cov: Any = None,
+                 prior_cov: Any = None, pool: Any = None, targets: Any = None,
+                 target_weights: Any = None, **_: Any) -> None:
+        Yk = as_factor_matrix(Y)
+        S0 = _check_gp_inputs(Yk, region, spatial_cov, prior_cov)
+        L = Yk.shape[1]
+        cT = _targets_weights(L, targets, target_weights)
+        P0 = np.linalg.inv(S0)
+        noise = _gp_noise(spatial_cov) + float(spatial_cov.sill)
+        super().__init__(Yk, 0.0, cells, prior_precision=0.5 * (P0 + P0.T), noise_var=noise,
+                         target_weights=cT)
+        self.pool = np.arange(L) if pool is None else np.unique(_cells_array(pool, L))
+        self._resid = float(spatial_cov.sill) * float(cT.sum())
+        self._share_terms = None
+        if spatial_cov.metric == "grid":
+            self._share_terms = _residual_terms(Yk, region, spatial_cov, self.pool, cT)
+        self.prior_residual_share = self.residual_share()
+
+    def residual_share(self) -> float:
+        """:func:`gp_residual_share` at the current latent covariance (after the picks so far):
+        the largest relative change of a pool cell's gain numerator the residual's
+        correlation would make now (NaN for the ``"km"`` metric)."""
+        if self._share_terms is None:
+            return float("nan")
+        u, sx = self._share_terms
+        return _share(self.S, self.Y[:, self.pool], self.W, u, sx)
+
+    @property
+    def value(self) -> float:
+        """Total posterior variance over the targets (surrogate: residual variance kept)."""
+        return float(np.sum(self.S * self.W)) + self._resid
+
+
 def _gp_oracle(Y: Any, cells: Any, gp_method: str = "auto", **kwargs: Any
-               ) -> GPVarianceOracle | StructuredGPVarianceOracle:
-    """Dense or structured gp-variance oracle (see :func:`make_oracle`)."""
-    if gp_method not in ("auto", "dense", "structured"):
-        raise PlanningError(f"gp_method must be 'auto', 'dense' or 'structured', got {gp_method!r}")
+               ) -> GPVarianceOracle | StructuredGPVarianceOracle | TrendGPVarianceOracle:
+    """Dense, structured or trend gp-variance oracle (see :func:`make_oracle`)."""
+    if gp_method not in ("auto", "dense", "structured", "trend"):
+        raise PlanningError("gp_method must be 'auto', 'dense', 'structured' or 'trend', got "
+                            f"{gp_method!r}")
     if gp_method == "auto":
         Yk = as_factor_matrix(Y)
         L = Yk.shape[1]
@@ -731,6 +859,12 @@ def _gp_oracle(Y: Any, cells: Any, gp_method: str = "auto", **kwargs: Any
         metric = getattr(kwargs.get("spatial_cov"), "metric", "grid")
         big = float(n_rows) * float(n_pool) > GP_STRUCTURED_MIN_ENTRIES
         gp_method = "structured" if big and metric == "grid" else "dense"
+        if gp_method == "structured":
+            trend = TrendGPVarianceOracle(Y, cells=cells, **kwargs)
+            if trend.prior_residual_share <= GP_RESIDUAL_TOL:
+                return trend
+    if gp_method == "trend":
+        return TrendGPVarianceOracle(Y, cells=cells, **kwargs)
     if gp_method == "structured":
         return StructuredGPVarianceOracle(Y, cells=cells, **kwargs)
     return GPVarianceOracle(Y, cells=cells, **kwargs)
