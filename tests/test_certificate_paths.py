@@ -192,6 +192,29 @@ def test_closed_tour_stops_lie_within_half_the_budget():
     assert cert.n_candidates < open_.n_candidates
 
 
+def test_closed_tour_distance_limits_hold_on_random_tours():
+    """Lemma 1 both ways: a closed tour of length T holds at most floor((T - 2 r)) + 1 cells
+    at distance >= r from its start (grid units, distinct integer points)."""
+    from lrm_cvx.planning.certificate import _start_limit
+
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        m = int(rng.integers(2, 12))
+        pts = np.unique(rng.integers(-6, 7, (m, 2)), axis=0)
+        pts = pts[np.any(pts != 0, axis=1)]
+        tour = np.vstack([[0, 0], pts[rng.permutation(len(pts))], [0, 0]]).astype(float)
+        T = float(np.hypot(*np.diff(tour, axis=0).T).sum())
+        lim = _start_limit(T * (1 + 1e-12), 1.0, len(pts) + 1, ways=2)
+        if lim is None:
+            continue
+        d = np.hypot(pts[:, 0], pts[:, 1])
+        counts = (d[:, None] >= lim[0][None, :]).sum(axis=0)
+        assert np.all(counts <= lim[1])
+        # and the two-way limit is tighter than the one-way one at the same radius
+        one = np.floor(T - lim[0]) + 1
+        assert np.all(lim[1] <= one)
+
+
 def test_end_restricts_candidates_to_the_ellipse_and_stop_cost_caps_the_count():
     region = make_region(5, 5)
     Y = field_Y(region, 2, 4)

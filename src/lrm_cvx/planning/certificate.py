@@ -297,7 +297,7 @@ def plan_bound(
     leaves: list[tuple[float, float, float, float]] = []
     start_lim = None
     if tighten and fam.dist is not None and math.isfinite(fam.d_min) and fam.d_min > 0:
-        start_lim = _start_limit(fam.travel, fam.d_min, n_max)
+        start_lim = _start_limit(fam.travel, fam.d_min, n_max, fam.ways)
     start_lv = (
         np.searchsorted(start_lim[0], fam.dist[cand], side="right") if start_lim else None
     )
@@ -533,6 +533,7 @@ class _Family:
     cover_budget: float | None
     paper: bool
     budget_text: str
+    ways: int = 1  # 2: a closed tour comes back, so the start's limits count both ways
 
 
 def _family(spec: _PathSpec, region: Any, k: int) -> _Family:
@@ -625,7 +626,8 @@ def _robot_family(spec: _PathSpec, region: Any, k: int, r: int) -> _Family:
         if not math.isfinite(cover_budget):
             cover_budget = None
     return _Family(cand, n_max, init, np.where(np.isfinite(d_s), d_s, np.inf), d_min, travel,
-                   cover_budget, False, f"budget={budget:g} ({pm.unit})")
+                   cover_budget, False, f"budget={budget:g} ({pm.unit})",
+                   2 if spec.closed else 1)
 
 
 def _straight_sensing_family(spec: _PathSpec, pm: Any, region: Any, k: int) -> _Family:
@@ -738,20 +740,23 @@ def _cap_ladder(lo: int, hi: int, count: int = 10) -> np.ndarray:
     return np.unique(np.round(np.concatenate([geo, lin])).astype(np.int64))
 
 
-def _start_limit(Bp: float, d_min: float, n_max: int) -> tuple[np.ndarray, np.ndarray] | None:
+def _start_limit(Bp: float, d_min: float, n_max: int, ways: int = 1
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Distance limits from the start: ``(thresholds, caps)``, ascending thresholds.
 
     A path of length ``<= Bp`` from the start holds at most ``floor((Bp - r) / d_min) + 1`` cells
     at distance ``>= r`` from the start. For a cap ``c`` the largest such set has ``r`` just
     above ``Bp - c d_min``; the cap is recomputed from ``r`` (not assumed), and the threshold is
     nudged up so that float distances cannot put a cell into a set it does not belong to.
+    ``ways=2``: a closed tour, which also travels ``>= r`` back from the last such cell, holds
+    at most ``floor((Bp - 2 r) / d_min) + 1`` (docs/certificate.md §10).
     """
     thr, caps = [], []
     for c in _cap_ladder(1, n_max)[::-1]:
-        r = Bp - (c - _NUDGE) * d_min
+        r = (Bp - (c - _NUDGE) * d_min) / ways
         if r <= 0:
             continue
-        cap = math.floor((Bp - r) / d_min) + 1
+        cap = math.floor((Bp - ways * r) / d_min) + 1
         thr.append(r * (1 + 1e-12) + 1e-12)
         caps.append(cap)
     if not thr:
