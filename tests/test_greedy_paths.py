@@ -510,3 +510,64 @@ def test_plot_fleet(sea):
     assert {"robot 0", "robot 1", "robot 2"} <= set(labels)
     plt.close("all")
     assert math.isfinite(plan.information)
+
+
+# --------------------------------------------------------------------------- properties
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=list(HealthCheck))
+@given(seed=st.integers(0, 10_000), model=st.sampled_from(MODELS),
+       n_robots=st.integers(1, 3), sense_along=st.booleans(),
+       cost=st.sampled_from(["nearest-neighbor", "insertion"]))
+def test_plan_invariants_on_every_path_model(seed, model, n_robots, sense_along, cost):
+    rng = np.random.default_rng(seed)
+    region = random_case(rng)
+    L = region.n_cells
+    n_robots = min(n_robots, L)
+    starts = [int(s) for s in rng.choice(L, n_robots, replace=False)]
+    opts, scale = _opts(region, rng, model, starts)
+    if "end" in opts and opts["end"] in starts:
+        return
+    budget = float(scale * rng.uniform(0, 9))
+    Y = rng.standard_normal((int(rng.integers(1, 4)), L))
+    try:
+        plan = greedy(Y, region, starts, budget, ridge=1e-3, cost=cost, sense_along=sense_along,
+                      **opts)
+    except PlanningError as exc:  # only for a start (or end) that cannot move
+        assert "cannot reach" in str(exc) or "reach only" in str(exc), str(exc)
+        return
+    models = plan._path_models
+    df = plan.to_dataframe()
+    gi = region.grid_index
+    for r, sub in enumerate(plan.robots):
+        rows = df[df["robot"] == r]
+        cum = rows["cumulative_cost"].to_numpy()
+        assert rows["cell"].iloc[0] == starts[r]
+        assert cum[0] == pytest.approx(opts.get("stop_cost", 0.0))
+        if sub.cost > budget + models[r].tol:
+            # the forced initial cells alone exceed the budget (a warning); with a travel
+            # graph cut at the budget's reach their legs may even be unreachable (inf)
+            assert sub.history["cell"].size == 0
+            continue
+        assert np.all(np.diff(cum) >= -1e-9 * max(1.0, budget))
+        assert cum[-1] == plan.robot_costs[r] == sub.cost
+        assert sub.cost == pytest.approx(models[r].route_cost(
+            sub.route[sub.waypoint][:-1] if models[r].closed else sub.route[sub.waypoint]),
+            rel=1e-9, abs=1e-9)
+        if sub.history["cell"].size:  # beyond the forced cells: within the budget
+            assert sub.cost <= budget + models[r].tol
+        if models[r].closed:
+            assert rows["cell"].iloc[-1] == starts[r]
+        if models[r].end is not None:
+            assert rows["cell"].iloc[-1] == models[r].end
+        if models[r].traversable != "none":
+            cells = rows["cell"].to_numpy()
+            assert models[r].enterable()[cells].all()
+            steps = np.abs(np.diff(gi[cells], axis=0))
+            assert steps.size == 0 or steps.max() <= 1
+    expected = list(dict.fromkeys(plan.stops.tolist() + (plan.route.tolist() if sense_along
+                                                        else [])))
+    assert plan.cells.tolist() == expected
+    assert plan.information == pytest.approx(fisher_information(Y, plan.cells, 1e-3))
