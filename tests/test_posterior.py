@@ -253,8 +253,13 @@ def gp_conditional(obs, m0, S0, cells, z):
     return mean, var
 
 
-@pytest.mark.parametrize("seed", range(3))
-def test_spatial_update_equals_the_gp_conditional(seed):
+@pytest.mark.parametrize("seed,fft", [(0, False), (1, False), (2, False), (0, True),
+                                      (1, True)])
+def test_spatial_update_equals_the_gp_conditional(seed, fft, monkeypatch):
+    if fft:  # the whole-map FFT kriging (spatial.krige_grid_fft) instead of direct kriging
+        import lrm_cvx.spatial as sp
+
+        monkeypatch.setattr(sp, "FFT_KRIGE_MIN_WORK", 0.0)
     rng, obs = grid_obs(seed)
     k = obs.k
     B = rng.normal(size=(k, k))

@@ -475,3 +475,37 @@ def test_low_rank_plus_kriging_beats_low_rank_alone():
     assert rmse["ols"] < 0.8 * rmse["low-rank"]
     assert rmse["gls"] < 0.8 * rmse["low-rank"]
     assert rmse["gls"] <= rmse["ols"] * 1.05
+
+
+# ----------------------------------------------------------------------------- FFT kriging
+@pytest.mark.parametrize("sill,rng_range,nugget", [(1.1e-5, 30.0, 2.4e-3), (0.5, 4.0, 0.05),
+                                                   (0.3, 10.0, 0.01)])
+def test_krige_grid_fft_equals_direct_kriging(sill, rng_range, nugget):
+    import xarray as xr
+
+    from lrm_cvx import Region
+    from lrm_cvx import spatial as sp
+
+    rng = np.random.default_rng(3)
+    ny, nx = 30, 34
+    da = xr.DataArray(np.zeros((ny, nx)), dims=("lat", "lon"),
+                      coords=dict(lat=np.arange(ny) * 1.0, lon=np.arange(nx) * 1.0))
+    region = Region.from_dataarray(da, mask=rng.random((ny, nx)) > 0.1)
+    L = region.n_cells
+    cov = sp.ResidualCovariance("exponential", sill=sill, range=rng_range, nugget=nugget)
+    obs = np.sort(rng.choice(L, 60, replace=False))
+    z = rng.normal(0, np.sqrt(sill + nugget), obs.size)
+    Y = rng.normal(size=(3, L))
+    B = rng.normal(size=(3, 3))
+    cx = 0.01 * B @ B.T
+    m1, v1 = sp._krige_core(cov, sp._coords(region, "grid", obs), z[:, None],
+                            sp._coords(region, "grid"), method="direct", neighbors=32,
+                            cutoff=None, want_var=True, Ys=Y[:, obs],
+                            Yt=lambda sel: Y[:, sel], cov_x=cx)
+    m2, v2, M = sp.krige_grid_fft(cov, region, obs, z, Ys=Y[:, obs], Yall=Y, cov_x=cx)
+    assert 0 < M <= obs.size
+    np.testing.assert_allclose(m2, m1[0], rtol=0, atol=1e-12 * np.sqrt(sill + nugget))
+    np.testing.assert_allclose(v2, v1, rtol=0, atol=sp.FFT_KRIGE_VAR_TOL * nugget)
+    km = sp.ResidualCovariance("exponential", sill=sill, range=100.0, nugget=nugget, metric="km")
+    with pytest.raises(ModelError, match="grid"):
+        sp.krige_grid_fft(km, region, obs, z)

@@ -493,7 +493,7 @@ class _GridConv:
     def __call__(self, f: np.ndarray) -> np.ndarray:
         import scipy.fft as sfft
 
-        full = sfft.irfft2(sfft.rfft2(f, s=self.s) * self.H, s=self.s)
+        full = sfft.irfft2(sfft.rfft2(f, s=self.s, workers=-1) * self.H, s=self.s, workers=-1)
         return full[self.a - 1:self.a - 1 + self.oa, self.b - 1:self.b - 1 + self.ob]
 
 

@@ -665,6 +665,98 @@ def _krige_core(
     return mean, var
 
 
+FFT_KRIGE_MIN_WORK: float = 2e7
+""":func:`krige_grid_fft` replaces direct kriging of a whole grid-metric region when
+``n_obs x n_targets`` exceeds this (``LatentPosterior.predict``)."""
+FFT_KRIGE_VAR_TOL: float = 1e-6
+"""Variance tolerance of :func:`krige_grid_fft`, relative to the nugget."""
+
+
+def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarray,
+                   z: np.ndarray, *, Ys: np.ndarray | None = None, Yall: np.ndarray | None = None,
+                   cov_x: np.ndarray | None = None, var_tol: float = FFT_KRIGE_VAR_TOL
+                   ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Kriging of the residuals ``z`` (``(n,)``, at the distinct ``obs_cells``) at *every*
+    cell of a grid-metric region by FFT convolutions (no distance matrix to the targets).
+
+    The residual covariance at the observations is ``C = sill R + nugget I``; with
+    ``R = U diag(mu) U^T`` and ``lambda = sill mu + nugget``, for a target ``t`` with
+    ``k_t = (k(t, o_j))_j`` and projections ``p_m(t) = u_m^T k_t`` (one convolution each):
+
+    * mean ``k_t^T C^-1 z = sum_j alpha_j k(t, o_j)``: one convolution, exact (up to rounding);
+    * variance reduction ``k_t^T C^-1 k_t = sum_m p_m^2 / lambda_m``: the leading ``M``
+      eigenvectors exactly, the rest through ``||k_t||^2 - sum_{m<=M} p_m^2`` (one convolution
+      with ``k^2``) at the weight ``1 / nugget``: an over-estimate by at most
+      ``(lambda_{M+1} - nugget) / nugget^2 * max_t ||k_t||^2``, and ``M`` is the smallest for
+      which that is ``<= var_tol * nugget`` (the predictive variance is >= the nugget);
+    * universal kriging (``Ys (k, n)`` the trend basis at the observations, ``Yall (k, L)`` at
+      every cell, ``cov_x`` the GLS covariance of the trend coefficients): ``+ u_t^T cov_x
+      u_t``, ``u_t = y_t - Ys C^-1 k_t``, ``Ys C^-1 k_t`` by ``k`` convolutions with the
+      weights ``C^-1 Ys^T`` (exact).
+
+    Returns ``(mean (L,), latent variance (L,), M)`` in the region's cell order. Needs a
+    nugget > 0 and ``metric="grid"``.
+    """
+    from .information import _GridConv
+
+    if cov.metric != "grid":
+        raise ModelError("krige_grid_fft needs metric='grid'")
+    nug = float(cov.nugget)
+    if not nug > 0:
+        raise ModelError("krige_grid_fft needs a nugget > 0")
+    obs_cells = np.asarray(obs_cells, dtype=np.int64)
+    z = np.asarray(z, dtype=np.float64).ravel()
+    gi = region.grid_index
+    shape = region.shape
+    go = gi[obs_cells]
+    xo = go.astype(np.float64)
+    R = cov.covariance(cdist(xo, xo), nugget=False) / cov.sill
+    np.fill_diagonal(R, 1.0)
+    mu, U = np.linalg.eigh(0.5 * (R + R.T))
+    mu = np.maximum(mu, 0.0)
+    lam = cov.sill * mu + nug
+    alpha = U @ ((U.T @ z) / lam)
+    lo, hi = go.min(axis=0), go.max(axis=0)
+    window = (int(lo[0]), int(lo[1]), int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
+    out = (0, 0, int(shape[0]), int(shape[1]))
+    loc = (go[:, 0] - window[0], go[:, 1] - window[1])
+
+    def kern(d):
+        return cov.covariance(d, nugget=False)
+
+    conv = _GridConv(window, out, kern)
+    img = np.zeros(window[2:])
+    rows, cols = gi[:, 0], gi[:, 1]
+
+    def apply(c: _GridConv, w: np.ndarray) -> np.ndarray:
+        img[...] = 0.0
+        np.add.at(img, loc, w)
+        return c(img)[rows, cols]
+
+    mean = apply(conv, alpha)
+    kk = apply(_GridConv(window, out, lambda d: kern(d) ** 2), np.ones(z.size))
+    kmax = float(np.max(kk)) if kk.size else 0.0
+    # leading eigenvectors: those whose weight differs from 1/nugget by more than the
+    # tolerance allows (the error is <= (lambda_cut - nugget) / nugget^2 * max_t ||k_t||^2)
+    thresh = var_tol * nug ** 3 / max(kmax, 1e-300)
+    trend = Ys is not None and Yall is not None and cov_x is not None
+    order = np.argsort(-lam)
+    lead = order[(lam[order] - nug) > thresh]
+    var = np.full(gi.shape[0], float(cov.sill))
+    red = kk / nug
+    for m in lead:
+        p = apply(conv, U[:, m])
+        red += (1.0 / lam[m] - 1.0 / nug) * p * p
+    var -= red
+    if trend:  # Ys C^-1 k_t = sum_j (C^-1 Ys^T)_j k(t, o_j): k convolutions, exact
+        CY = U @ ((U.T @ Ys.T) / lam[:, None])
+        u = np.array(Yall, dtype=np.float64, copy=True)
+        for a in range(Ys.shape[0]):
+            u[a] -= apply(conv, CY[:, a])
+        var += np.einsum("kc,kl,lc->c", u, cov_x, u)
+    return mean, var, int(lead.size)
+
+
 @numba.njit(cache=True)
 def _rho_nb(model_id: int, h: float) -> float:
     if model_id == 0:

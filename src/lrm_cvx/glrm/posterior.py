@@ -550,6 +550,11 @@ class LatentPosterior:
         uc, zc = _average_repeats(self.cells, obs.to_fit_units(self.cells, self.values))
         Ys = obs.Y[:, uc]
         res = zc - Ys.T @ m
+        if (cells is None and cov.metric == "grid" and cov.nugget > 0 and cov.sill > 0
+                and float(uc.size) * obs.n_cells > sp.FFT_KRIGE_MIN_WORK):
+            # the whole map: FFT convolutions instead of an (L, n) covariance block
+            r_mu, var, _ = sp.krige_grid_fft(cov, region, uc, res, Ys=Ys, Yall=obs.Y, cov_x=S)
+            return mu + r_mu, np.maximum(var, 0.0)
         tg = np.arange(obs.n_cells) if cells is None else np.asarray(cells)
         meth = "direct" if uc.size <= sp._MAX_DIRECT else "neighbors"
         r_mu, var = sp._krige_core(
