@@ -34,7 +34,7 @@ def logdet(Y, cells, ridge):
 
 
 def naive_greedy(Y, region, starts, budgets, ridge, cost="nearest-neighbor", initial="nearest",
-                 guide=None, **opts):
+                 guide=None, sense_along=False, **opts):
     """The joint greedy literally: every robot's cost of every candidate set recomputed from
     scratch (``route_cost(order(P + x))``, or every insertion position), every log det too.
 
@@ -42,7 +42,13 @@ def naive_greedy(Y, region, starts, budgets, ridge, cost="nearest-neighbor", ini
     float sums, so ratios equal in exact arithmetic (two robots appending the same cell at the
     same distance, a detour equal to a straight step) may differ in their last bits, here or in
     the planner. Ties go to ``guide``'s pick (the planner's ``(cell, robot)`` at that step)
-    when it is one of them, else to the lowest cell, then robot."""
+    when it is one of them, else to the lowest cell, then robot.
+
+    ``sense_along``: the observed set is every cell of every robot's current expanded route
+    (``sensed_route``); a candidate's gain is its own gain on that set; observed cells are
+    not candidates."""
+    from lrm_cvx.planning.plan import sensed_route
+
     k, L = Y.shape
     models = [make_path_model(region, s, b, cost=cost, **opts)
               for s, b in zip(starts, budgets, strict=True)]
@@ -86,18 +92,23 @@ def naive_greedy(Y, region, starts, budgets, ridge, cost="nearest-neighbor", ini
     union = list(dict.fromkeys(union))
     step = 0
     while True:
-        v0 = logdet(Y, union, ridge)
+        seen = list(union)
+        if sense_along:
+            for r, m in enumerate(models):
+                seen += sensed_route(m, routes[r])[0].tolist()
+            seen = list(dict.fromkeys(seen))
+        v0 = logdet(Y, seen, ridge)
         found = []
         for r, m in enumerate(models):
             c0 = m.route_cost(routes[r])
             enter = m.enterable()
             for x in range(L):
-                if x in union or not enter[x] or x == m.end:
+                if x in seen or not enter[x] or x == m.end:
                     continue
                 c1, new = options(r, x)
                 if not c1 <= m.budget + m.tol:
                     continue
-                ratio = (logdet(Y, union + [x], ridge) - v0) / max(c1 - c0, 1e-12)
+                ratio = (logdet(Y, seen + [x], ridge) - v0) / max(c1 - c0, 1e-12)
                 if ratio > 0:
                     found.append((ratio, x, r, new))
         if not found:
@@ -208,6 +219,37 @@ def test_greedy_equals_naive_for_every_path_model(model, cost):
         runs += 1
         picks += len(union)
     assert runs >= 5 and picks > 3 * runs
+
+
+@pytest.mark.parametrize("opts", [dict(), dict(cost="insertion"),
+                                  dict(cost="insertion", closed=True),
+                                  dict(traversable="valid", closed=True),
+                                  dict(metric="km", end="far")], ids=str)
+def test_sense_along_greedy_equals_naive(opts):
+    rng = np.random.default_rng(zlib.crc32(str(opts).encode()))
+    runs = 0
+    for trial in range(6):
+        region = random_case(rng, p=0.9)
+        L = region.n_cells
+        n_robots = 1 if trial < 3 else 2
+        starts = [int(s) for s in rng.choice(L, n_robots, replace=False)]
+        kw, _ = _opts(region, rng, opts, starts)
+        if "end" in kw and kw["end"] in starts:
+            continue
+        scale = 111.0 if kw.get("metric") == "km" else 1.0
+        budgets = [float(scale * rng.choice([4.0, 6.0, 8.0])) for _ in starts]
+        Y = rng.standard_normal((2, L))
+        cost = kw.pop("cost", "nearest-neighbor")
+        plan = greedy(Y, region, starts, budgets, ridge=1e-2, cost=cost, sense_along=True,
+                      initial="start", **kw)
+        robot = plan.history["robot"] if n_robots > 1 else np.zeros(plan.history["cell"].size,
+                                                                    np.int64)
+        guide = list(zip(plan.history["cell"].tolist(), robot.tolist(), strict=True))
+        P, routes, _ = naive_greedy(Y, region, starts, budgets, 1e-2, cost, initial="start",
+                                    guide=guide, sense_along=True, **kw)
+        assert [sorted(s.stops.tolist()) for s in plan.robots] == [sorted(p) for p in P]
+        runs += 1
+    assert runs >= 4
 
 
 # --------------------------------------------------------------------------- fleets

@@ -338,7 +338,7 @@ def plan_greedy(
     oracle = make_oracle(criterion, Yk, ridge, init, **extra)
     for r, cst in enumerate(costers):  # cells forced for other robots are taken
         if len(costers) > 1:
-            for c in init:
+            for c in set(stops):
                 _take(cst, cands[r], c)
         if cst.cost > budgets[r] + tols[r]:
             who = f"robot {r}'s " if fleet else ""
@@ -489,13 +489,13 @@ class _Sensing:
 
         cells = np.unique(sensed_route(self.models[r], route)[0])
         old = self.sets[r]
+        touched = np.union1d(old, cells)
+        before = self.counts[touched] > 0
         self.counts[old] -= 1
-        removed = old[self.counts[old] == 0]
-        fresh = cells[self.counts[cells] == 0]
         self.counts[cells] += 1
+        after = self.counts[touched] > 0
         self.sets[r] = cells
-        gone = np.setdiff1d(removed, cells)
-        return fresh, gone
+        return touched[after & ~before], touched[before & ~after]
 
     def observed(self) -> np.ndarray:
         return np.flatnonzero(self.counts > 0).astype(np.int64)
