@@ -148,11 +148,12 @@ class PlanCertificate:
                     f"  gap split            plan slack {self.plan_slack:.4g} + bound slack "
                     f"{self.bound_slack:.4g} nats",
                 ]
-        lines += [
+        lines.append(
             f"  relaxation           {self.relaxation.value:.6g} (primal "
-            f"{self.relaxation.primal:.6g}, status {self.relaxation.status})",
-            f"  initial set          {self.initial_information:.6g} nats",
-        ]
+            f"{self.relaxation.primal:.6g}, status {self.relaxation.status})")
+        if self.path.get("kind", "path") == "path" and self.path.get("n_robots", 1) == 1:
+            # (a fleet's and a static placement's forced cells are inside the relaxation)
+            lines.append(f"  initial set          {self.initial_information:.6g} nats")
         if self.online_bound is not None:
             lines.append(f"  online bound         {self.online_bound:.6g} nats")
         lines.append(
@@ -162,6 +163,9 @@ class PlanCertificate:
         if self.tightened:
             lines.append(f"  tightened: distance limits, midpoint cover of "
                          f"{len(self.leaves)} squares")
+        model = _describe_path(self.path)
+        if model:
+            lines.append(f"  path model           {model}")
         return "\n".join(lines)
 
     def _repr_html_(self) -> str:
@@ -358,6 +362,30 @@ def plan_bound(
 
 
 # ----------------------------------------------------------------------------- path models
+def _describe_path(path: dict[str, Any]) -> str:
+    """One line for a non-paper path model (empty for the paper's)."""
+    if not path or _is_paper_description(path):
+        return ""
+    if path.get("kind") == "static":
+        return f"static placement of {path.get('n_sensors')} sensors"
+    parts = [str(path.get("metric", "grid"))]
+    if path.get("speed") is not None:
+        parts.append(f"{path['speed']:g} km/h (budget in hours)")
+    if path.get("stop_cost"):
+        parts.append(f"stop cost {path['stop_cost']:g}")
+    if path.get("traversable") not in (None, "none"):
+        parts.append(f"travel graph ({path['traversable']})")
+    if path.get("closed"):
+        parts.append("closed")
+    if path.get("end") is not None:
+        parts.append(f"end {path['end']}")
+    if path.get("sense_along"):
+        parts.append("sensing along")
+    if path.get("n_robots", 1) > 1:
+        parts.append(f"{path['n_robots']} robots (count-only union bound)")
+    return ", ".join(parts)
+
+
 @dataclass(frozen=True)
 class _PathSpec:
     """What the certificate needs to know of a plan's path model (validated)."""
