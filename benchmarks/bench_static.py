@@ -19,7 +19,8 @@ squared error over all cells). Placements:
 * PySensors ``SSPOR(basis=SVD(m modes), optimizer=QR())`` on the mean-filled training
   snapshots, for m in {5, 10, 15, 20, 30, n} (n capped at T - 1, the most an SVD of T
   snapshots has): the "any number of modes" of the target. (PySensors' SVD basis is sklearn's
-  randomized TruncatedSVD; its pivots can differ slightly between runs and machines.) ``QR best`` is the smallest **test** error over m (QR's best case, chosen with
+  randomized TruncatedSVD; its pivots can differ slightly between runs and machines.)
+  ``QR best`` is the smallest **test** error over m (QR's best case, chosen with
   the test set: in QR's favour); ``QR (val)`` uses the m chosen on validation.
 
 Honest choice: nothing is tuned on the test snapshots. The placement method is chosen per data
