@@ -515,10 +515,11 @@ def _t_stage_days(days, src, rows, cols, index, files, bounds, offsets, track) -
     return secs
 
 
-def _run_tasks(fn, items) -> list:
+def _run_tasks(fn, items, on_done=None) -> list:
     """``[fn(i) for i in items]`` in parallel: on the workers of an active ``distributed``
     Client, else on threads of this process (one per core; the decoding and writing release
-    the GIL, the netCDF4 reads are serialised by :data:`_NC_LOCK`)."""
+    the GIL, the netCDF4 reads are serialised by :data:`_NC_LOCK`). Items start in order;
+    ``on_done(item, result)``, when given, is called in this thread as each task finishes."""
     try:
         from distributed import get_client
 
@@ -526,11 +527,23 @@ def _run_tasks(fn, items) -> list:
     except (ImportError, ValueError):
         client = None
     if client is not None:
-        return client.gather(client.map(fn, items, pure=False))
-    from concurrent.futures import ThreadPoolExecutor
+        futs = client.map(fn, items, pure=False)
+        if on_done is not None:
+            from distributed import as_completed
+
+            where = {f.key: i for i, f in enumerate(futs)}
+            for f in as_completed(futs):
+                on_done(items[where[f.key]], f.result())
+        return client.gather(futs)
+    from concurrent.futures import ThreadPoolExecutor, as_completed
 
     with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as ex:
-        return list(ex.map(fn, items))
+        futs = [ex.submit(fn, i) for i in items]
+        if on_done is not None:
+            where = {f: i for i, f in enumerate(futs)}
+            for f in as_completed(futs):
+                on_done(items[where[f]], f.result())
+        return [f.result() for f in futs]
 
 
 def _new_files(directory: str, T: int, bounds: np.ndarray, prefix: str = "data"
@@ -659,14 +672,29 @@ def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[st
     new, noffs = _new_files(directory, T, nb, prefix="compact")
     clock = time.perf_counter()
     cpu0 = time.process_time()
+    # each whole-grid file is removed as soon as the last compacted file reading it is
+    # written: the page cache never holds both copies of the matrix (it did: 21.6 GB at
+    # paper scale, and the kernel reclaimed pages while we wrote)
+    first = np.searchsorted(bounds, index[nb[:-1]], side="right") - 1
+    last = np.searchsorted(bounds, index[nb[1:] - 1], side="right") - 1
+    readers = np.zeros(len(files), dtype=np.int64)
+    for a, b in zip(first, last, strict=True):
+        readers[a: b + 1] += 1
+
+    def done(c: int, _: Any) -> None:
+        for o in range(int(first[c]), int(last[c]) + 1):
+            readers[o] -= 1
+            if readers[o] == 0:
+                os.remove(files[o])
+
+    for o in np.flatnonzero(readers == 0):  # whole files of never-observed cells
+        os.remove(files[o])
     _run_tasks(functools.partial(_t_compact, index=index, nb=nb, files=files, bounds=bounds,
                                  offsets=offsets, new=new, noffs=noffs, T=T),
-               list(range(nb.size - 1)))
+               list(range(nb.size - 1)), on_done=done)
     if timings is not None:
         timings["stage_compact"] = time.perf_counter() - clock
         timings["stage_compact_cpu"] = time.process_time() - cpu0
-    for f in files:
-        os.remove(f)
     final = []
     for c, n in enumerate(new):
         p = os.path.join(directory, f"data_{c:05d}.npy")
