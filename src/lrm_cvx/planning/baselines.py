@@ -65,8 +65,10 @@ class _Geometry:
 
     def __init__(self, region: Region, *, metric: str = "grid", speed: float | None = None,
                  stop_cost: float = 0.0, closed: bool = False,
-                 enter: np.ndarray | None = None, wrap: bool = False) -> None:
+                 enter: np.ndarray | None = None, wrap: bool = False,
+                 grid: np.ndarray | None = None) -> None:
         self.region = region
+        self.grid = region.cell_grid if grid is None else grid  # (ny, nx) cell or -1
         self.stop_cost = float(stop_cost)
         self.closed = bool(closed)
         self.enter = enter
@@ -136,14 +138,14 @@ def _path_setup(region: Region, start: Any, budget: Any, *, metric: str, speed: 
     if not isinstance(closed, (bool, np.bool_)):
         raise PlanningError(f"closed must be True or False, got {closed!r}")
     kind, ok = _traversable_mask(region, traversable)
+    grid = region.cell_grid
     enter = None
     if kind != "none":
         if not ok[start_cell]:
             raise PlanningError(f"start cell {start_cell} may not be entered (traversable mask)")
-        grid = region.cell_grid
         enter = (grid >= 0) & ok[np.maximum(grid, 0)]
     geo = _Geometry(region, metric=metric, speed=speed, stop_cost=stop_cost,
-                    closed=bool(closed), enter=enter, wrap=_wraps(region))
+                    closed=bool(closed), enter=enter, wrap=_wraps(region), grid=grid)
     opts = {"metric": metric, "speed": speed, "stop_cost": stop_cost, "traversable": kind,
             "closed": bool(closed), "unit": unit}
     return start_cell, budget, geo, opts
@@ -156,7 +158,7 @@ def _finish(region: Region, positions: list[np.ndarray], step_costs: list[float]
     and whether it is a first visit (a sampling stop). A closed walk first drops trailing
     masked positions (``trim``), then retraces its steps back to the start; an open walk ends
     at its last valid position. Returns ``(route, route_cost, waypoint, cost)``."""
-    grid = region.cell_grid
+    grid = geo.grid
     cells = [int(grid[p[0], p[1]]) for p in positions]
     if geo.closed:
         if trim:
@@ -279,7 +281,7 @@ def transect(
     step = {"up": (north, 0), "down": (-north, 0), "left": (0, -east), "right": (0, east)}
     d = np.array(step[direction])
     orth = np.array(step["right"] if direction in ("up", "down") else step["down"])
-    grid = region.cell_grid
+    grid = geo.grid
     pos = region.grid_index[start_cell].copy()
     positions = [pos]
     step_costs: list[float] = []
@@ -378,7 +380,7 @@ def random_walk(
     start_cell, budget, geo, opts = _path_setup(
         region, start, budget, metric=metric, speed=speed, stop_cost=stop_cost,
         traversable=traversable, closed=closed)
-    grid = region.cell_grid
+    grid = geo.grid
     gi = region.grid_index
     positions = [gi[start_cell]]
     step_costs: list[float] = []
