@@ -362,7 +362,9 @@ def _describe_plan(plan) -> str:
         text += f" {unit}"
     extras = ["closed" if path.get("closed") else "",
               f"traversable {path['traversable']}" if path.get("traversable", "none") != "none"
-              else ""]
+              else "",
+              f"ends at cell {path['end']}" if path.get("end") is not None else "",
+              "sensing along the route" if path.get("sense_along") else ""]
     extras = [e for e in extras if e]
     return f"{len(plan.cells)} cells, {text}, {value}" + (f" ({', '.join(extras)})" if extras
                                                          else "")
