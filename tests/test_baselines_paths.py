@@ -243,9 +243,22 @@ def test_closed_random_walk_returns_within_budget_in_hours():
                            closed=True, traversable="valid")
         assert plan.route[0] == plan.route[-1] == 27 and plan.cost <= 300.0 + 1e-9
         np.testing.assert_allclose(plan.route_cost, reference_cost(plan, 2.0, 3.0), rtol=1e-12)
-        # it stopped because no further step leaves enough budget for the way back
         out = plan.route[: (plan.route.size + 1) // 2]
         assert plan.route[(plan.route.size - 1) // 2:].tolist() == out[::-1].tolist()
+        # it turned back because no further step leaves enough budget for the way back
+        m = out.size - 1
+        lat, lon = region.cell_lat, region.cell_lon
+        travel = sum(haversine(lat[a], lon[a], lat[b], lon[b]) / 2.0
+                     for a, b in zip(out[:-1], out[1:], strict=True))
+        stops = 3.0 * len(set(out.tolist()))
+        r, c = region.grid_index[out[m]]
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if (dr or dc) and 0 <= r + dr < 8 and 0 <= c + dc < 8:
+                    n = int(region.cell_grid[r + dr, c + dc])
+                    step = haversine(lat[out[m]], lon[out[m]], lat[n], lon[n]) / 2.0
+                    new = 0.0 if n in set(out.tolist()) else 3.0
+                    assert 2 * (travel + step) + stops + new > 300.0 + 1e-9
 
 
 # ---------------------------------------------------------------- longitude wrap
