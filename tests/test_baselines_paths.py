@@ -76,6 +76,29 @@ def test_defaults_are_the_paper_and_explicit_defaults_change_nothing():
                             closed=False)
 
 
+def test_defaults_are_bit_identical_to_the_baselines_before_the_path_model():
+    """Routes, costs and cumulative costs of 200 default plans on random masked grids hash to
+    the digest computed with the pre-#15 implementation (git 3ac9058:baselines.py)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    rng = np.random.default_rng(2024)
+    for t in range(40):
+        mask = rng.random((int(rng.integers(1, 10)), int(rng.integers(1, 10)))) < 0.7
+        mask[0, 0] = True
+        ny, nx = mask.shape
+        lat, lon = np.arange(ny, dtype=float)[::-1].copy(), np.arange(nx, dtype=float)
+        region = Region(lat=xr.DataArray(lat, dims="lat", coords={"lat": lat}),
+                        lon=xr.DataArray(lon, dims="lon", coords={"lon": lon}), mask=mask)
+        s, b = int(rng.integers(region.n_cells)), float(rng.uniform(0, 30))
+        plans = [transect(region, s, b, d) for d in DIRS] + [random_walk(region, s, b, t)]
+        for p in plans:
+            h.update(p.route.astype("<i8").tobytes())
+            h.update(np.float64(p.cost).astype("<f8").tobytes())
+            h.update(p.route_cost.astype("<f8").tobytes())
+    assert h.hexdigest() == "abe235100d44e306fefbf1aeea28ade394d32f44ab6a9eaed9856839a2542638"
+
+
 def test_the_path_model_branch_reproduces_the_paper_branch():
     """metric="GRID" takes the path-model code path (validated by paths.py) but is the same
     model: identical routes, costs and cells as the paper's branch."""
