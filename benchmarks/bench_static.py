@@ -240,7 +240,7 @@ def main(argv=None) -> int:
             chosen = min(METHODS, key=lambda m: v[m])
             qrs = [key for key in t if key.startswith("QR")]
             qr_best = min(qrs, key=lambda key: t[key])
-            qr_val = min(qrs, key=lambda key: v[key])
+            qr_val = min((key for key in qrs if key in v), key=lambda key: v[key])
             print(f"  n = {n}")
             print(f"    {'placement':28s} {'validation MSE':>15s} {'test MSE':>12s}")
             for key in t:
