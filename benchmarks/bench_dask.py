@@ -127,7 +127,7 @@ def stage_split(tm: dict, nbytes: int) -> str:
                if "stage_compact" in tm else ""))
 
 
-def floors(files: list[str], days: int = 24) -> dict:
+def floors(files: list[str], scratch: str, chunk_mb: float, days: int = 24) -> dict:
     """The raw floors of staging, in MB/s of float32 staged (one float32 per grid cell):
 
     * ``disk``: the files read from disk with a cold cache (this benchmark's own files are
@@ -138,7 +138,8 @@ def floors(files: list[str], days: int = 24) -> dict:
       lock), the part of the pass no second thread can share;
     * ``inflate1:<module>`` / ``inflate2:<module>``: inflating those days' chunks on 1 and 2
       threads with the standard library's zlib and (when installed) ``isal.isal_zlib``;
-    * ``decode2``: the compiled table decode of the inflated tiles on 2 threads.
+    * ``decode2``: the compiled table decode of the inflated tiles on 2 threads;
+    * ``write2``: :func:`write_floor`, writing the whole matrix into the page cache.
     Each with the load average when measured."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -216,7 +217,45 @@ def floors(files: list[str], days: int = 24) -> dict:
         list(ex.map(dec, (0, 1)))
     out["decode2"] = (mb / (time.perf_counter() - t), load())
     out["ratio"] = ratio
+    out["write2"] = write_floor(scratch, len(files), cells, chunk_mb)
     return out
+
+
+def write_floor(scratch: str, T: int, L: int, chunk_mb: float) -> tuple:
+    """``pwrite`` of a ``(T, L)`` float32 matrix in the staging's layout and order (day by
+    day, a row slice into every ``chunk_mb`` column file; 2 threads, one reused row buffer):
+    the page-cache write cost alone, at full size (on this VM first-touched memory costs more
+    than a small test shows). Returns (MB/s, MB/s per CPU-second, load)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from lrm_cvx.glrm.chunked import _bounds, _new_files, _pwrite_all
+
+    d = tempfile.mkdtemp(prefix="write-floor-", dir=scratch)
+    try:
+        bounds = _bounds(L, T, chunk_mb)
+        files, offsets = _new_files(d, T, bounds)
+        row = np.random.default_rng(0).random(L, dtype=np.float32)
+
+        def days(k):
+            fds = [os.open(p, os.O_WRONLY) for p in files]
+            try:
+                for t in range(k, T, 2):
+                    for c, fd in enumerate(fds):
+                        lo, hi = int(bounds[c]), int(bounds[c + 1])
+                        _pwrite_all(fd, row[lo:hi], offsets[c] + t * (hi - lo) * 4)
+            finally:
+                for fd in fds:
+                    os.close(fd)
+
+        t = time.perf_counter()
+        c = time.process_time()
+        with ThreadPoolExecutor(2) as ex:
+            list(ex.map(days, (0, 1)))
+        dt, cpu = time.perf_counter() - t, time.process_time() - c
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
+    mb = T * L * 4 / 2**20
+    return mb / dt, mb / cpu, load()
 
 
 def print_floors(fl: dict, files: list[str]) -> None:
@@ -235,6 +274,9 @@ def print_floors(fl: dict, files: list[str]) -> None:
               f"per CPU-second)  [{fl[k][2]}]")
     print(f"  compiled decode + OR, 2 threads: {fl['decode2'][0]:.0f} MB/s  "
           f"[{fl['decode2'][1]}]")
+    print(f"  pwrite of the whole matrix into the page cache (staging layout and order), "
+          f"2 threads: {fl['write2'][0]:.0f} MB/s ({fl['write2'][1]:.0f} MB/s per CPU-second)"
+          f"  [{fl['write2'][2]}]")
 
 
 def stage_only(files: list[str], args, base: str) -> None:
@@ -252,7 +294,7 @@ def stage_only(files: list[str], args, base: str) -> None:
         chunked._zlib = lambda: zlib
     print(f"inflating with {chunked._zlib().__name__}")
     if args.floors:
-        print_floors(floors(files), files)
+        print_floors(floors(files, base, args.chunk_mb), files)
     da = open_ndvi_cdr(files, chunks={"time": 1})
     assert cdr_source(da) is not None
     print(f"before staging: {load()}", flush=True)
