@@ -92,3 +92,20 @@ def test_demo_metrics_axes_and_legend_order():
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["rec", "paper"]
     assert ax.get_yscale() == "log"
     plt.close("all")
+
+
+def test_route_lines_break_between_robots():
+    """A fleet's routes are separate lines: a NaN row where the robot changes, padding dropped."""
+    from lrm_cvx.plots import _route_lines
+    from lrm_cvx.region import Region
+
+    da = xr.DataArray(np.zeros((3, 4)), dims=("lat", "lon"),
+                      coords={"lat": [0.0, 1.0, 2.0], "lon": [10.0, 11.0, 12.0, 13.0]})
+    region = Region.from_dataarray(da)
+    cells = [0, 1, 2, 5, 6, -1]
+    route = _route_lines(region, cells, [0, 0, 0, 1, 1, -1])
+    lon = route["lon"].values
+    assert np.isnan(lon[3]) and lon.size == 6
+    np.testing.assert_array_equal(lon[[0, 1, 2, 4, 5]], region.cell_lon[[0, 1, 2, 5, 6]])
+    single = _route_lines(region, cells, None)
+    np.testing.assert_array_equal(single["lon"].values, region.cell_lon[[0, 1, 2, 5, 6]])

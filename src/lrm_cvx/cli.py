@@ -514,7 +514,12 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
         chosen = [bvals[i] for i in sorted({0, len(bvals) // 2, len(bvals) - 1})]
         routes = {float(b): results["greedy_route"].sel(budget=b).isel(start=0).values
                   for b in chosen}
-        figures["predictions"] = plot_predictions(model, data.isel(time=n_time - n_test), routes)
+        robots = None
+        if "greedy_route_robot" in results:
+            robots = {float(b): results["greedy_route_robot"].sel(budget=b).isel(start=0).values
+                      for b in chosen}
+        figures["predictions"] = plot_predictions(model, data.isel(time=n_time - n_test), routes,
+                                                  robots=robots)
     targets = [out_dir / "results.nc", out_dir / "summary.csv"]
     targets += [out_dir / f"{name}.{fmt}" for name in figures for fmt in ("png", "pdf")]
     guard_outputs(targets, inputs, overwrite=overwrite)

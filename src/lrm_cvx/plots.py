@@ -287,13 +287,16 @@ def plot_demo_metrics(table: Any, *, units: str = "", ax: Any = None):
 
 
 def plot_predictions(model: Any, snapshot: xr.DataArray, routes: Mapping[float, Sequence[int]],
-                     *, ridge: float = 0.0, cmap: str = "viridis", error_cmap: str = "gray_r"):
+                     *, ridge: float = 0.0, cmap: str = "viridis", error_cmap: str = "gray_r",
+                     robots: Mapping[float, Sequence[int]] | None = None):
     """The qualitative figure: for each budget, the error heat map and the predicted map.
 
     ``snapshot`` is one test snapshot ``(lat, lon)`` on the model's grid; ``routes`` maps a
     budget to the route's cell indices. The prediction folds in the snapshot's values at the
     route's cells (cells it lacks are skipped); the error map is ``|prediction - snapshot|``
-    on the snapshot's observed cells, darker = larger, as in the paper.
+    on the snapshot's observed cells, darker = larger, as in the paper. ``robots`` (a fleet)
+    maps a budget to the robot of each route entry (same length, -1 = padding): each robot's
+    route is drawn as its own line.
     """
     import matplotlib.pyplot as plt
 
@@ -315,10 +318,9 @@ def plot_predictions(model: Any, snapshot: xr.DataArray, routes: Mapping[float, 
             errors[budget] = abs(pred - snapshot).where(np.isfinite(snapshot))
         emax = max(float(e.quantile(0.98)) for e in errors.values())
         for row, (budget, cells) in enumerate(routes.items()):
+            route = _route_lines(region, cells, None if robots is None else robots[budget])
             cells = np.asarray(cells, dtype=np.int64)
             cells = cells[cells >= 0]
-            route = xr.Dataset({"lat": ("step", region.cell_lat[cells]),
-                                "lon": ("step", region.cell_lon[cells])})
             plot_map(errors[budget], ax=axes[row, 0], cmap=error_cmap, vmin=0, vmax=emax,
                      route=route, add_colorbar=False)
             plot_map(preds[budget], ax=axes[row, 1], cmap=cmap, vmin=lo, vmax=hi, route=route,
@@ -335,6 +337,21 @@ def plot_predictions(model: Any, snapshot: xr.DataArray, routes: Mapping[float, 
                          label=f"{label} ({units})" if units else label,
                          extend="max" if col == 0 else "both")
     return fig
+
+
+def _route_lines(region: Any, cells: Sequence[int], robot: Sequence[int] | None) -> xr.Dataset:
+    """``lat``/``lon`` per route entry (padding ``-1`` dropped); with ``robot`` ids, a NaN row
+    between robots so each robot's route is its own line."""
+    cells = np.asarray(cells, dtype=np.int64)
+    keep = cells >= 0
+    lat = region.cell_lat[cells[keep]].astype(float)
+    lon = region.cell_lon[cells[keep]].astype(float)
+    if robot is not None:
+        rid = np.asarray(robot, dtype=np.int64)[keep]
+        breaks = np.flatnonzero(np.diff(rid) != 0) + 1
+        lat = np.insert(lat, breaks, np.nan)
+        lon = np.insert(lon, breaks, np.nan)
+    return xr.Dataset({"lat": ("step", lat), "lon": ("step", lon)})
 
 
 def save_figure(fig: Any, path: str | Path, formats: Sequence[str] = ("png", "pdf")) -> list[Path]:
