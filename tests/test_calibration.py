@@ -147,6 +147,7 @@ def test_overconfident_model_is_inflated_to_nominal():
     region = model.region_
     V = region.stack(train).astype(float)
     rng = np.random.default_rng(5)
+    model.calibration_ = None  # the broken model's own errors, uncalibrated
     zs = []
     for t in range(0, V.shape[0], 5):
         cells = sample_sets(region, np.isfinite(V[t]), 15, "scattered", rng)
@@ -234,7 +235,8 @@ def test_filter_scale_is_used_by_the_monitor_state():
         warnings.simplefilter("ignore")
         model = GLRM(rank=2, temporal="ar1", progress=False, random_state=0).fit(data)
     before = model.monitor().forecast()
-    cal = calibrate(model, data, n_blocks=4, sizes=(5, 20), max_snapshots=2, temporal="ar1")
+    cal = calibrate(model, data, n_blocks=4, sizes=(5, 20), max_snapshots=2, temporal="ar1",
+                    adaptive=False, residual=False)  # a pure variance scale
     assert cal.temporal_scale is not None and cal.temporal_scale > 0
     after = model.monitor().forecast()
     np.testing.assert_allclose(after["predictive_std"].values,

@@ -47,12 +47,13 @@ from ..errors import DataError, ModelError
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
            "blend_dynamics", "select_dynamics", "unblended_dynamics",
            "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95",
-           "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID"]
+           "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "RESIDUAL_SCALES"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
 Z95 = 1.959963984540054   # two-sided 95%
 _PREFIX = "calibration_"
 SET_KINDS = ("route", "scattered")
+ALL_KINDS = ("route", "scattered", "line")  # line: a transect-like straight run of cells
 
 
 @dataclass(frozen=True)
@@ -83,10 +84,11 @@ class Calibration:
     sizes: str = ""
     dof: float | None = None
     discount: float = 0.0
+    residual_scale: float = 1.0
     dof_loglik_gain: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("scale", "temporal_scale", "dof"):
+        for name in ("scale", "temporal_scale", "dof", "residual_scale"):
             v = getattr(self, name)
             if v is None:
                 continue
@@ -202,8 +204,10 @@ def fit_scale(z: Any) -> float:
 def sample_sets(region: Any, observed: np.ndarray, size: int, kind: str,
                 rng: np.random.Generator) -> np.ndarray:
     """Cells of one sample set among the ``observed`` cells (bool ``(L,)``): ``"scattered"``
-    (uniformly at random) or ``"route"`` (the ``size`` observed cells nearest, on the grid, to
-    a random observed cell: a spatially clustered set like a short route)."""
+    (uniformly at random), ``"route"`` (the ``size`` observed cells nearest, on the grid, to
+    a random observed cell: a spatially clustered set like a short route) or ``"line"`` (the
+    observed cells of the grid row or column (random) through a random observed cell, the
+    ``size`` nearest to it: a straight transect)."""
     pool = np.flatnonzero(observed)
     size = int(min(size, pool.size))
     if size == 0:
@@ -215,7 +219,15 @@ def sample_sets(region: Any, observed: np.ndarray, size: int, kind: str,
         c = g[rng.integers(pool.size)]
         d = ((g - c) ** 2).sum(axis=1) + 1e-6 * rng.random(pool.size)  # random tie-break
         return np.sort(pool[np.argpartition(d, size - 1)[:size]])
-    raise ModelError(f"kind must be one of {SET_KINDS}, got {kind!r}")
+    if kind == "line":
+        g = np.asarray(region.grid_index, dtype=np.int64)[pool]
+        c = g[rng.integers(pool.size)]
+        axis = int(rng.integers(2))
+        on = np.flatnonzero(g[:, axis] == c[axis])
+        d = np.abs(g[on, 1 - axis] - c[1 - axis]) + 1e-6 * rng.random(on.size)
+        m = min(size, on.size)
+        return np.sort(pool[on[np.argpartition(d, m - 1)[:m]]])
+    raise ModelError(f"kind must be one of {ALL_KINDS}, got {kind!r}")
 
 
 # ----------------------------------------------------------------------------- estimation
@@ -256,7 +268,8 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                  kinds: Sequence[str] = SET_KINDS, max_snapshots: int = 3,
                  prior: str = "empirical", spatial: bool | None = None,
                  temporal: str | None = None, seed: Any = 0, twin: bool = False,
-                 innovations: bool = False) -> Any:
+                 innovations: bool = False, residual_scales: Sequence[float] | None = None
+                 ) -> Any:
     """Standardized cross-validated fold-in residuals (see the module docstring).
 
     ``data`` ``(time, lat, lon)``: the snapshots ``model`` was fitted on (its region is used).
@@ -266,9 +279,12 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     cycled). The residuals are standardized by the *uncalibrated* predictive std of the
     refitted model. Returns a 1-D array; with ``temporal`` and ``twin=True`` a pair: the
     filter's residuals and the memoryless model's through the same loop on the same cells.
-    With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t)`` per fold-in: its
-    standardized residuals and the innovation statistic of its samples
-    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`).
+    With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t, log_sd)`` per
+    fold-in: its standardized residuals, the innovation statistic of its samples, the snapshot
+    and the sum of the log predictive stds it was standardized by
+    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`). With ``residual_scales``
+    (memoryless, innovations) a dict ``{rho: records}``: the same fold-ins (same cells) with
+    the refitted model's residual and noise variances multiplied by ``rho``.
     """
     from .posterior import model_prior
 
@@ -277,8 +293,8 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     if not 2 <= int(n_blocks) <= T // 2:
         raise ModelError(f"n_blocks must be in [2, {T // 2}] for {T} snapshots, got {n_blocks}")
     for kind in kinds:
-        if kind not in SET_KINDS:
-            raise ModelError(f"kinds must be among {SET_KINDS}, got {kind!r}")
+        if kind not in ALL_KINDS:
+            raise ModelError(f"kinds must be among {ALL_KINDS}, got {kind!r}")
     sizes = [int(s) for s in sizes]
     if not sizes or min(sizes) < 1:
         raise ModelError(f"sizes must be positive integers, got {sizes}")
@@ -312,35 +328,62 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                                                min(block.size, max_snapshots)).round()
                                    .astype(int))]
             base = model_prior(sub, prior, spatial=spatial)
+            rhos = [1.0] if residual_scales is None else [float(r) for r in residual_scales]
+            bases = {rho: base if rho == 1.0 else _rescaled(base, rho) for rho in rhos}
             for t in pick:
                 observed = np.isfinite(V[t])
                 for size in sizes:
                     for kind in kinds:
                         cells = sample_sets(region, observed, size, kind, rng)
-                        post = base.update(cells, V[t, cells])
                         held = observed.copy()
                         held[cells] = False
                         hidx = np.flatnonzero(held)
-                        if not post.is_proper or hidx.size == 0:
-                            continue
-                        mean, _, pstd = post.predict_all(cells=hidx)
-                        z = (V[t, hidx] - mean) / pstd
-                        if innovations:
-                            q, n_eff = base.innovation(cells, V[t, cells])
-                            out.append((z, q, n_eff, int(t)))
-                        else:
-                            out.append(z)
+                        recs = {}
+                        for rho, b in bases.items():
+                            post = b.update(cells, V[t, cells])
+                            if not post.is_proper or hidx.size == 0:
+                                break
+                            mean, _, pstd = post.predict_all(cells=hidx)
+                            z = (V[t, hidx] - mean) / pstd
+                            if innovations:
+                                q, n_eff = b.innovation(cells, V[t, cells])
+                                recs[rho] = (z, q, n_eff, int(t), float(np.sum(np.log(pstd))))
+                            else:
+                                recs[rho] = z
+                        if len(recs) == len(bases):
+                            out.append(recs if residual_scales is not None else recs[1.0])
     if not out:
         raise ModelError("calibration produced no held-out residuals")
     if temporal is not None:
         z_t = np.concatenate([p[0] for p in out])
         z_m = np.concatenate([p[1] for p in out])
         return (z_t, z_m) if twin else z_t
+    if residual_scales is not None:
+        return {rho: [r[rho] for r in out] for rho in out[0]}
     return out if innovations else np.concatenate(out)
 
 
-DOF_GRID = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 1024.0)
-DISCOUNT_GRID = (0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 1.0)
+def _rescaled(prior: Any, rho: float) -> Any:
+    """``prior`` with its observation model's residual and noise variances times ``rho``."""
+    from dataclasses import replace
+
+    from .posterior import LatentPosterior
+
+    obs = prior.obs_model
+    nv = obs.noise_var * rho if np.ndim(obs.noise_var) else float(obs.noise_var) * rho
+    cov = obs.spatial_cov
+    if cov is not None:
+        cov = replace(cov, sill=cov.sill * rho, nugget=cov.nugget * rho)
+    new = replace(obs, noise_var=nv, spatial_cov=cov, ref_var=None)
+    return LatentPosterior(new, prior.precision, prior.shift, prior.base_precision,
+                           prior.base_shift)
+
+
+RESIDUAL_SCALES = (0.5, 0.71, 1.0, 1.41, 2.0, 2.83, 4.0, 5.66, 8.0)
+
+
+DOF_GRID = (1.0, 4.0, 16.0, 64.0, 256.0, 1024.0)
+DISCOUNT_GRID = (0.0, 0.5, 0.8, 0.95, 1.0)
 
 
 def fit_adaptive_scale(records: Sequence[tuple], dofs: Sequence[float] = DOF_GRID,
@@ -392,10 +435,10 @@ def fit_adaptive_scale(records: Sequence[tuple], dofs: Sequence[float] = DOF_GRI
         for disc in ((0.0,) if dof is None else discounts):
             eq, en = evidence(float(disc)) if dof is not None else (zero, zero)
             s0 = fit_scale(zall)
-            for _ in range(50):  # fixed point of the quantile rule
+            for _ in range(30):  # fixed point of the quantile rule
                 f = fit_scale(zall / np.sqrt(np.repeat(scales(s0, dof, eq, en), sizes)))
                 s0 *= f
-                if abs(f - 1.0) < 1e-6 or dof is None:
+                if abs(f - 1.0) < 1e-4 or dof is None:
                     break
             ll = loglik(scales(s0, dof, eq, en))
             if dof is None:
@@ -403,6 +446,38 @@ def fit_adaptive_scale(records: Sequence[tuple], dofs: Sequence[float] = DOF_GRI
             if best is None or ll > best[3]:
                 best = (s0, dof, float(disc), ll)
     return float(best[0]), best[1], best[2], float(best[3] - base_ll)
+
+
+def _loglik(records: Sequence[tuple], scale: float, dof: float | None, discount: float
+            ) -> float:
+    """Mean Gaussian log-likelihood of the records' residuals under the scales that
+    ``(scale, dof, discount)`` give them (:func:`fit_adaptive_scale`'s model)."""
+    z = [np.asarray(r[0], dtype=np.float64) for r in records]
+    sizes = np.array([zi.size for zi in z])
+    zall = np.concatenate(z)
+    if dof is None:
+        s_i = np.full(len(z), scale)
+    else:
+        q = np.array([float(r[1]) for r in records])
+        n = np.array([float(r[2]) for r in records])
+        t = np.array([int(r[3]) for r in records])
+        ok = np.isfinite(q) & (n > 0)
+        q, n = np.where(ok, q, 0.0), np.where(ok, n, 0.0)
+        snaps = np.unique(t)
+        qbar = np.array([q[t == u].mean() for u in snaps])
+        nbar = np.array([n[t == u].mean() for u in snaps])
+        gap = t[:, None] - snaps[None, :]
+        if discount > 0:
+            w = np.where(gap > 0, discount ** np.maximum(gap, 0).astype(np.float64), 0.0)
+            eq, en = w @ qbar, w @ nbar
+        else:
+            eq, en = np.zeros(len(z)), np.zeros(len(z))
+        s_i = (dof * scale + eq + q) / (dof + en + n)
+    si = np.repeat(s_i, sizes)
+    # the density of the raw residuals (data units): the standardization's Jacobian counts,
+    # so models with different predictive stds (residual scales) compare on the same footing
+    logsd = sum(float(r[4]) for r in records) if all(len(r) > 4 for r in records) else 0.0
+    return float(np.mean(-0.5 * np.log(si) - 0.5 * zall * zall / si) - logsd / zall.size)
 
 
 def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int],
@@ -431,9 +506,9 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
 
 
 def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] = (5, 15, 50),
-              kinds: Sequence[str] = SET_KINDS, max_snapshots: int = 3,
+              kinds: Sequence[str] = ALL_KINDS, max_snapshots: int = 3,
               temporal: str | None | bool = None, adaptive: bool = True,
-              seed: Any = 0) -> Calibration:
+              residual: bool = True, seed: Any = 0) -> Calibration:
     """Estimate the model's variance scale from cross-validated fold-in residuals on its
     training snapshots ``data`` and store it as ``model.calibration_`` (returned).
 
@@ -442,6 +517,12 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
     snapshot's predictive variances are then rescaled by how surprising its own samples were
     under the prior (the conjugate update of the scale by the standardized innovations), so a
     calm period gets narrower intervals and a stormy one wider ones, memoryless or filtered.
+    ``residual`` (default): also re-estimate the residual and noise variances by a factor
+    ``Calibration.residual_scale`` among :data:`RESIDUAL_SCALES` (the same cross-validated
+    fold-ins redone with each; the factor whose scaled residuals have the highest Gaussian
+    log-likelihood *of the raw residuals* wins): the fitted nugget and sill come from training
+    residuals, which
+    under-state a new snapshot's.
 
     The filter (``MonitorState``) uses the same scale by default: measured on held-out
     campaigns (docs/monitoring.md) that calibrates it as well as the memoryless fold-in, while a
@@ -451,12 +532,20 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
     fold-ins.
     """
     kw = dict(n_blocks=n_blocks, sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
-    records = cv_residuals(model, data, seed=seed, innovations=True, **kw)
-    z = np.concatenate([r[0] for r in records])
-    if adaptive:
-        scale, dof, discount, gain = fit_adaptive_scale(records)
-    else:
-        scale, dof, discount, gain = fit_scale(z), None, 0.0, 0.0
+    rhos = RESIDUAL_SCALES if residual else (1.0,)
+    by_rho = cv_residuals(model, data, seed=seed, innovations=True, residual_scales=rhos, **kw)
+    best = None
+    for rho, records in by_rho.items():
+        zr = np.concatenate([r[0] for r in records])
+        if adaptive:
+            fit = fit_adaptive_scale(records)
+        else:
+            fit = (fit_scale(zr), None, 0.0, 0.0)
+        ll = _loglik(records, *fit[:3])
+        if best is None or ll > best[0]:
+            best = (ll, rho, fit)
+    _, rho, (scale, dof, discount, gain) = best
+    z = np.concatenate([r[0] for r in by_rho[1.0]])
     raw = interval_coverage(z, 0.0, 1.0)
     if temporal == "auto":
         dyn = getattr(model, "dynamics_", None)
@@ -475,7 +564,8 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
                       temporal_coverage68_raw=float(t_raw[0]),
                       temporal_coverage95_raw=float(t_raw[1]), n_blocks=int(n_blocks),
                       sizes=",".join(str(int(s)) for s in sizes), dof=dof,
-                      discount=float(discount), dof_loglik_gain=float(gain))
+                      discount=float(discount), dof_loglik_gain=float(gain),
+                      residual_scale=float(rho))
     model.calibration_ = cal
     return cal
 

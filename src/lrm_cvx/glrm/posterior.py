@@ -185,6 +185,12 @@ class ObservationModel:
                              "(or another covariance model)")
         nv = getattr(model, "noise_var_", None)
         sigma2 = float(model.noise_std_) ** 2
+        rho = _residual_scale(model)
+        if rho != 1.0:  # calibration: the residual and noise variances re-estimated by CV
+            sigma2 *= rho
+            nv = None if nv is None else np.asarray(nv, dtype=np.float64) * rho
+            if cov is not None:
+                cov = replace(cov, sill=cov.sill * rho, nugget=cov.nugget * rho)
         return cls(Y=model._Yv, offset=getattr(model, "offset_", None),
                    scale=getattr(model, "scale_", None),
                    noise_var=sigma2 if nv is None else nv,
@@ -763,6 +769,12 @@ def _adaptive_dof(model: Any) -> float | None:
     """The calibration's prior degrees of freedom of the per-snapshot scale (None: fixed)."""
     cal = getattr(model, "calibration_", None)
     return None if cal is None else getattr(cal, "dof", None)
+
+
+def _residual_scale(model: Any) -> float:
+    """The calibration's factor of the residual and noise variances (1: as fitted)."""
+    cal = getattr(model, "calibration_", None)
+    return 1.0 if cal is None else float(getattr(cal, "residual_scale", 1.0) or 1.0)
 
 
 def _scale_discount(model: Any) -> float:
