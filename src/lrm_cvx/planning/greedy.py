@@ -118,7 +118,9 @@ def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
     taken: set[int] = set()
     out = []
     for m in models:
-        if initial == "nearest":
+        if initial == "nearest" and getattr(m, "is_default", False):
+            c = initial_cells(m.region, m.start, k)  # the same cells, O(L) not O(L log L)
+        elif initial == "nearest":
             c = np.asarray(m.initial_cells(k), dtype=np.int64)
         else:
             c = np.array([m.start] + ([] if m.end is None or m.end == m.start else [m.end]),
