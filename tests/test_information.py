@@ -185,3 +185,40 @@ def test_trend_oracle_is_the_gp_criterion_with_the_residual_as_noise(monkeypatch
     assert 0 <= auto.residual_share() < 1e-3
     assert isinstance(info.make_oracle("gp-variance", Y, 0.0, [0], **kw),
                       info.StructuredGPVarianceOracle)
+
+
+def test_structured_gp_lag_table_matches_the_exact_convolution():
+    """Equal target weights, a pool far from the region's edge: g(p, x) from the lattice
+    autocorrelation table (no per-pick FFT) gives the exact oracle's gains to ~1e-6."""
+    from lrm_cvx import Region
+    from lrm_cvx.spatial import ResidualCovariance
+
+    import lrm_cvx.information as info
+
+    rng = np.random.default_rng(0)
+    ny, nx = 70, 80
+    da = xr.DataArray(np.zeros((ny, nx)), dims=("lat", "lon"),
+                      coords=dict(lat=np.arange(ny) * 1.0, lon=np.arange(nx) * 1.0))
+    region = Region.from_dataarray(da)
+    L = region.n_cells
+    Y = rng.normal(size=(2, L))
+    S0 = np.diag([1e-6, 2e-6])  # a pinned trend: the residual is the whole criterion
+    cov = ResidualCovariance("exponential", sill=1.0, range=3.0, nugget=0.1)
+    gi = region.grid_index
+    pool = np.flatnonzero((np.abs(gi[:, 0] - 35) <= 8) & (np.abs(gi[:, 1] - 40) <= 8))
+    start = int(pool[len(pool) // 2])
+    kw = dict(region=region, spatial_cov=cov, prior_cov=S0, pool=pool)
+    a = info.make_oracle("gp-variance", Y, 0.0, [start], gp_method="structured", **kw)
+    b = info.StructuredGPVarianceOracle(Y, [start], **kw)  # the class default: exact
+    assert a._k2 is not None and b._k2 is None and a.boundary_bound < 1e-6
+    for c in pool[::7][:6]:
+        a.add(int(c))
+        b.add(int(c))
+    ga, gb = a.gains(pool), b.gains(pool)
+    assert np.max(np.abs(ga - gb)) <= 1e-6 * np.max(gb)
+    assert a.value == pytest.approx(b.value, rel=1e-9)
+    # a pool at the edge: the boundary term is not negligible, the exact convolution stays
+    edge = np.flatnonzero((gi[:, 0] <= 6) & (gi[:, 1] <= 6))
+    c = info.StructuredGPVarianceOracle(Y, [int(edge[0])], boundary_tol=1e-3,
+                                        **dict(kw, pool=edge))
+    assert c._k2 is None and c.boundary_bound > 1e-3

@@ -50,6 +50,7 @@ __all__ = [
     "TrendGPVarianceOracle",
     "gp_residual_share",
     "GP_RESIDUAL_TOL",
+    "GP_BOUNDARY_TOL",
     "GP_STRUCTURED_MIN_ENTRIES",
     "CRITERIA",
     "CRITERION_REGISTRY",
@@ -545,7 +546,8 @@ class StructuredGPVarianceOracle:
 
     def __init__(self, Y: Any, cells: Any = None, *, region: Any = None, spatial_cov: Any = None,
                  prior_cov: Any = None, pool: Any = None, targets: Any = None,
-                 target_weights: Any = None, truncation: float = 1e-9, **_: Any) -> None:
+                 target_weights: Any = None, truncation: float = 1e-9,
+                 boundary_tol: float = 0.0, **_: Any) -> None:
         self.Y = as_factor_matrix(Y)
         S0 = _check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
         if spatial_cov.metric != "grid":
@@ -592,7 +594,10 @@ class StructuredGPVarianceOracle:
             uX[a] = conv(buf[sl])[self._oidx]
         del conv
         sX = _GridConv(wb, out, lambda d: kern(d) ** 2)(cgrid[sl])[self._oidx]
-        # g(p, x): one convolution per pick over the smaller window
+        # g(p, x) = sum_i c_i k(p, i) k(i, x): with equal weights on the targets, the lattice
+        # autocorrelation K2(x - p) of k minus the targets' complement (bounded below), a table
+        # gather per pick; else one convolution per pick over the smaller window
+        self._k2 = self._lag_table(cT, sX, spatial_cov, lo, hi, boundary_tol)
         self._wg = _rect(lo, hi, spatial_cov.cutoff_distance(truncation), shape)
         wg = self._wg
         self._gconv = _GridConv(wg, out, kern)
@@ -624,6 +629,50 @@ class StructuredGPVarianceOracle:
     @property
     def k(self) -> int:
         return int(self.Y.shape[0])
+
+    def _lag_table(self, cT: np.ndarray, sX: np.ndarray, cov: Any, lo: np.ndarray,
+                   hi: np.ndarray, tol: float) -> tuple | None:
+        """``(K2, off_r, off_c, c0)`` when ``g(p, x) = c0 K2(x - p)`` holds to ``tol``, else None.
+
+        With every target weighted ``c0`` (and the rest 0),
+        ``g(p, x) = c0 (K2(x - p) - B(p, x))``: ``K2(d) = sum_{i in Z^2} k(i) k(i - d)`` (the
+        lattice autocorrelation of the kernel, one FFT over lags up to the pool's extent; the
+        lattice is cut where both kernel factors of a left-out term are below ``3e-5 sill``) and ``B(p, x) = sum_{i not a target} k(p, i)
+        k(i, x) <= sqrt(E(p) E(x))``, ``E(y) = K2(0) - s(y) / c0`` (Cauchy-Schwarz; ``s`` is
+        exact). The table is used when ``max_y E(y) <= tol * K2(0)`` over the pool: every ``g``
+        is then within ``tol K2(0) c0`` (``tol`` of the largest ``g``) of its exact value, the
+        only approximation (``tol = 0``, the class default, switches the table off;
+        :func:`make_oracle` passes :data:`GP_BOUNDARY_TOL`). Pools near the region's edge or
+        among masked cells keep the exact per-pick convolution."""
+        tol = float(tol)
+        w = cT[cT > 0]
+        if tol <= 0 or w.size == 0 or not np.allclose(w, w[0], rtol=1e-12, atol=0):
+            return None
+        c0 = float(w[0])
+        ext = (hi - lo).astype(np.int64)
+        reach = int(np.ceil(cov.cutoff_distance(1e-9) / 2.0)) + 1  # k(i) k(i - d) tail
+        R = ext + reach  # lattice half-widths covering the lags and the tail
+        ar = np.arange(-R[0], R[0] + 1, dtype=np.float64)
+        ac = np.arange(-R[1], R[1] + 1, dtype=np.float64)
+        kgrid = cov.covariance(np.sqrt(ar[:, None] ** 2 + ac[None, :] ** 2), nugget=False)
+        import scipy.fft as sfft
+
+        shp = (sfft.next_fast_len(kgrid.shape[0] + ext[0], real=True),
+               sfft.next_fast_len(kgrid.shape[1] + ext[1], real=True))
+        F = sfft.rfft2(kgrid, s=shp, workers=-1)
+        ac_full = sfft.irfft2(F * np.conj(F), s=shp, workers=-1)  # circular autocorrelation
+        del F
+        # lags -ext..ext (wrapped indices), arranged with lag 0 at (ext0, ext1)
+        rr = np.r_[np.arange(shp[0] - ext[0], shp[0]), np.arange(0, ext[0] + 1)]
+        cc = np.r_[np.arange(shp[1] - ext[1], shp[1]), np.arange(0, ext[1] + 1)]
+        tab = ac_full[np.ix_(rr, cc)]
+        del ac_full
+        k2_0 = float(tab[ext[0], ext[1]])
+        e_max = float(np.max(k2_0 - sX / c0)) if sX.size else 0.0
+        self.boundary_bound = e_max / max(k2_0, 1e-300)
+        if e_max > tol * k2_0:
+            return None
+        return np.ascontiguousarray(tab), int(ext[0]), int(ext[1]), c0
 
     def _xpos(self, cells: np.ndarray) -> np.ndarray:
         return np.minimum(np.searchsorted(self._X, cells), self._X.size - 1)
@@ -678,9 +727,15 @@ class StructuredGPVarianceOracle:
         kp = self.cov.covariance(dist, nugget=False)
         fk = (kp - ell @ Fk) / d                                  # GP part of the new row
         phi = (ap @ self._YX) / d + fk                            # C_P(p, x) / d
-        win = self.cov.covariance(np.sqrt((self._wr[:, None] - gxp[0]) ** 2
-                                          + (self._wc[None, :] - gxp[1]) ** 2), nugget=False)
-        g = self._gconv(win * self._cwin)[self._oidx]            # g(p, x)
+        if self._k2 is not None:  # translation-invariant table (see _lag_table)
+            tab, o0, o1, c0 = self._k2
+            g = c0 * tab[self._oidx[0] - self._oidx[0][j] + o0,
+                         self._oidx[1] - self._oidx[1][j] + o1]
+        else:
+            win = self.cov.covariance(np.sqrt((self._wr[:, None] - gxp[0]) ** 2
+                                              + (self._wc[None, :] - gxp[1]) ** 2),
+                                      nugget=False)
+            g = self._gconv(win * self._cwin)[self._oidx]        # g(p, x)
         Rkp = Rk[:, j].copy()
         Ql = Qk @ ell
         gam = (Rkp - Ql) / d
@@ -718,6 +773,11 @@ class StructuredGPVarianceOracle:
         """Total posterior variance over the targets for the current set."""
         return self._value
 
+
+GP_BOUNDARY_TOL: float = 1e-3
+"""The structured oracle of :func:`make_oracle` takes ``g(p, x)`` from the kernel's lattice
+autocorrelation (no per-pick FFT) when the targets' complement changes no ``g`` by more than
+this fraction of the largest (``StructuredGPVarianceOracle._lag_table``)."""
 
 GP_RESIDUAL_TOL: float = 1e-6
 """``make_oracle("gp-variance")`` (``gp_method="auto"``, structured size, grid metric) plans with
@@ -812,7 +872,7 @@ class TrendGPVarianceOracle(AOptimalOracle):
 
     def __init__(self, Y: Any, cells: Any = None, *, region: Any = None, spatial_cov: Any = None,
                  prior_cov: Any = None, pool: Any = None, targets: Any = None,
-                 target_weights: Any = None, **_: Any) -> None:
+                 target_weights: Any = None, share_terms: Any = None, **_: Any) -> None:
         Yk = as_factor_matrix(Y)
         S0 = _check_gp_inputs(Yk, region, spatial_cov, prior_cov)
         L = Yk.shape[1]
@@ -823,8 +883,8 @@ class TrendGPVarianceOracle(AOptimalOracle):
                          target_weights=cT)
         self.pool = np.arange(L) if pool is None else np.unique(_cells_array(pool, L))
         self._resid = float(spatial_cov.sill) * float(cT.sum())
-        self._share_terms = None
-        if spatial_cov.metric == "grid":
+        self._share_terms = share_terms  # (u, s) at the pool cells, when already computed
+        if share_terms is None and spatial_cov.metric == "grid":
             self._share_terms = _residual_terms(Yk, region, spatial_cov, self.pool, cT)
         self.prior_residual_share = self.residual_share()
 
@@ -860,12 +920,20 @@ def _gp_oracle(Y: Any, cells: Any, gp_method: str = "auto", **kwargs: Any
         big = float(n_rows) * float(n_pool) > GP_STRUCTURED_MIN_ENTRIES
         gp_method = "structured" if big and metric == "grid" else "dense"
         if gp_method == "structured":
-            trend = TrendGPVarianceOracle(Y, cells=cells, **kwargs)
-            if trend.prior_residual_share <= GP_RESIDUAL_TOL:
-                return trend
+            kwargs.setdefault("boundary_tol", GP_BOUNDARY_TOL)
+            st = StructuredGPVarianceOracle(Y, cells=cells, **kwargs)
+            pos = st._xpos(st.pool)  # the residual's share of the prior gains, from its terms
+            S0 = _check_gp_inputs(st.Y, kwargs.get("region"), kwargs.get("spatial_cov"),
+                                  kwargs.get("prior_cov"))
+            terms = (st._uX[:, pos], st._sX[pos])
+            if _share(S0, st.Y[:, st.pool], st._W, *terms) > GP_RESIDUAL_TOL:
+                return st
+            del st
+            return TrendGPVarianceOracle(Y, cells=cells, share_terms=terms, **kwargs)
     if gp_method == "trend":
         return TrendGPVarianceOracle(Y, cells=cells, **kwargs)
     if gp_method == "structured":
+        kwargs.setdefault("boundary_tol", GP_BOUNDARY_TOL)
         return StructuredGPVarianceOracle(Y, cells=cells, **kwargs)
     return GPVarianceOracle(Y, cells=cells, **kwargs)
 
