@@ -305,3 +305,22 @@ def test_select_dynamics_keeps_memoryless_without_significant_gain():
     assert alpha2 == ratio.idxmin()
     with pytest.raises(ModelError, match="n_folds"):
         select_dynamics(model, data, n_folds=0)
+
+
+def test_residual_scale_multiplies_the_residual_and_noise_variances():
+    from lrm_cvx.glrm.posterior import ObservationModel
+
+    data = _planted(T=20)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=3, spatial="exponential", progress=False, random_state=0).fit(data)
+    base = ObservationModel.from_model(model)
+    model.calibration_ = Calibration(scale=1.0, residual_scale=2.0)
+    obs = ObservationModel.from_model(model)
+    assert obs.spatial_cov.sill == pytest.approx(2 * base.spatial_cov.sill)
+    assert obs.spatial_cov.nugget == pytest.approx(2 * base.spatial_cov.nugget)
+    assert obs.spatial_cov.range == base.spatial_cov.range
+    plain = ObservationModel.from_model(model, spatial=False)
+    assert plain.noise_var == pytest.approx(2 * float(model.noise_std_) ** 2)
+    back = Calibration.from_attrs(model.calibration_.to_attrs())
+    assert back.residual_scale == 2.0
