@@ -300,7 +300,9 @@ def plan_bound(
     opts = {"solver": solver, "tol": tol}
     leaves: list[tuple[float, float, float, float]] = []
     start_lim = None
-    if tighten and fam.dist is not None and math.isfinite(fam.d_min) and fam.d_min > 0:
+    if tighten and fam.limits is not None:
+        start_lim = fam.limits
+    elif tighten and fam.dist is not None and math.isfinite(fam.d_min) and fam.d_min > 0:
         start_lim = _start_limit(fam.travel, fam.d_min, n_max, fam.ways)
     start_lv = (
         np.searchsorted(start_lim[0], fam.dist[cand], side="right") if start_lim else None
@@ -382,7 +384,8 @@ def _describe_path(path: dict[str, Any]) -> str:
     if path.get("sense_along"):
         parts.append("sensing along")
     if path.get("n_robots", 1) > 1:
-        parts.append(f"{path['n_robots']} robots (count-only union bound)")
+        parts.append(f"{path['n_robots']} robots (union bound: counts added, limits from the "
+                     "nearest start)")
     return ", ".join(parts)
 
 
@@ -562,6 +565,7 @@ class _Family:
     paper: bool
     budget_text: str
     ways: int = 1  # 2: a closed tour comes back, so the start's limits count both ways
+    limits: tuple[np.ndarray, np.ndarray] | None = None  # precomputed limits on ``dist``
 
 
 def _family(spec: _PathSpec, region: Any, k: int) -> _Family:
@@ -581,8 +585,42 @@ def _family(spec: _PathSpec, region: Any, k: int) -> _Family:
     cand = np.unique(np.concatenate([np.union1d(p.cand, p.init) for p in parts]))
     n_max = min(cand.size, sum(max(p.n_max, p.init.size) for p in parts))
     text = "fleet budgets " + ", ".join(f"{b:g}" for b in spec.budgets)
-    return _Family(cand, n_max, np.zeros(0, np.int64), None, math.inf, math.inf, None, False,
-                   text)
+    dist, limits = _fleet_limits(parts, n_max)
+    return _Family(cand, n_max, np.zeros(0, np.int64), dist, math.inf, math.inf, None, False,
+                   text, 1, limits)
+
+
+def _fleet_limits(parts: list[_Family], n_max: int
+                  ) -> tuple[np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
+    """A fleet's distance limits on ``D(x) = min_r d_r(x)`` (distance to the nearest start).
+
+    A cell with ``D(x) >= rho`` is at least ``rho`` from its own robot's start, so robot r
+    holds at most ``max(#{init_r : D >= rho}, floor((T_r - w_r rho) / d_r) + 1)`` of them
+    (its initial set, or a route: Lemma 1, ``w_r = 2`` for a closed tour, none when
+    ``w_r rho > T_r``); the fleet holds at most the sum. ``(None, None)`` when a robot has no
+    distance limits (sensing along straight legs).
+    """
+    if any(p.dist is None or not (math.isfinite(p.d_min) and p.d_min > 0) for p in parts):
+        return None, None
+    D = np.min(np.stack([p.dist for p in parts]), axis=0)
+    thr = []
+    for p in parts:
+        lim = _start_limit(p.travel, p.d_min, max(p.n_max, 2), p.ways)
+        if lim is not None:
+            thr.append(lim[0])
+    if not thr:
+        return D, None
+    thr = np.unique(np.concatenate(thr))
+    caps = np.zeros(thr.size)
+    for p in parts:
+        route = np.where(p.ways * thr <= p.travel,
+                         np.floor((p.travel - p.ways * thr) / p.d_min + 1e-9) + 1, 0.0)
+        init = (D[p.init][:, None] >= thr[None, :]).sum(axis=0) if p.init.size else 0
+        caps += np.maximum(route, init)
+    keep = caps < n_max  # a cap at the count limit adds nothing
+    if not keep.any():
+        return D, None
+    return D, (thr[keep], caps[keep])
 
 
 def _paper_family(spec: _PathSpec, region: Any, k: int) -> _Family:
