@@ -295,7 +295,7 @@ def plan_bound(
     cand, n_max, init = fam.cand, fam.n_max, fam.init
     budget0 = spec.budgets[0] if spec.budgets else float(spec.n_sensors)
     start0 = spec.starts[0] if spec.starts else -1
-    metric = spec.metric
+    metric = spec.metric if spec.kind == "path" else "sensors"
     init_info = float(fisher_information(Y, init, ridge=ridge)) if init.size else -math.inf
     opts = {"solver": solver, "tol": tol}
     leaves: list[tuple[float, float, float, float]] = []
