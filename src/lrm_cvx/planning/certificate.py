@@ -785,6 +785,8 @@ def _plan_criterion(plan: Any) -> str | None:
     crit = getattr(plan, "criterion", None)
     if crit is None:
         return None
+    if crit == "risk":  # static placement on the training error (planning/static.py)
+        return crit
     from ..information import CRITERION_REGISTRY
 
     crit = CRITERION_REGISTRY.canonical(crit, "plan.criterion")

@@ -190,6 +190,8 @@ def plan_greedy(
     sense_along: bool = False,
     path: str = "route",
     n_sensors: int | None = None,
+    training: Any = None,
+    exchange: bool = False,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
 
@@ -263,6 +265,8 @@ def plan_greedy(
         :func:`place_sensors`; ``start`` must then be None and ``n_sensors`` (or ``budget``)
         is the number of sensors).
     n_sensors : the number of sensors of ``path="static"``.
+    training, exchange : ``path="static"`` only (:func:`place_sensors`): the training snapshots
+        of ``criterion="risk"`` and the exchange search.
 
     If the initial cells alone already exceed a robot's budget, the plan is still returned
     (the paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
@@ -291,9 +295,12 @@ def plan_greedy(
                              progress=progress, prior_precision=prior_precision,
                              noise_var=noise_var, target_weights=target_weights,
                              prior_cov=prior_cov, spatial_cov=spatial_cov, targets=targets,
-                             prior=prior, traversable=traversable)
+                             prior=prior, traversable=traversable, training=training,
+                             exchange=exchange)
     if n_sensors is not None:
         raise PlanningError("n_sensors applies to path='static' only")
+    if training is not None or exchange is not False:
+        raise PlanningError("training and exchange apply to path='static' only")
     make_path_model = _path_model_factory()
     if region.n_cells == 1 and traversable is None:  # nowhere to go: the start alone
         make_path_model = _paper_model
@@ -595,6 +602,9 @@ def place_sensors(
     spatial_cov: Any = None,
     targets: Any = None,
     traversable: Any = None,
+    training: Any = None,
+    exchange: bool = False,
+    sweeps: int = 5,
 ) -> Plan:
     """Static placement: ``n_sensors`` fixed sensors (moorings, stations), no travel.
 
@@ -610,6 +620,14 @@ def place_sensors(
     ``n_sensors`` must be ``>= k``. Returns a :class:`Plan` with ``path["kind"] == "static"``,
     ``route`` = the sensors in selection order (no travel), ``route_cost`` = the number of
     sensors placed so far, ``cost`` = the number of sensors, ``start = -1``.
+
+    ``criterion="risk"`` (:mod:`lrm_cvx.planning.static`): the greedy on the fold-in's own
+    squared reconstruction error over the ``training`` snapshots (a ``(time, lat, lon)``
+    DataArray on the region's grid); ``prior`` is the fold-in's belief
+    (``model.latent_prior("empirical", spatial=True)``) or the fitted GLRM. It places exactly
+    ``n_sensors``. ``exchange=True`` (``"risk"`` or ``"gp-variance"``) then swaps sensors while
+    a swap lowers the objective (at most ``sweeps`` sweeps; never worse). Both hold a dense
+    ``L x L`` covariance: at most ``static.RISK_MAX_CELLS`` cells.
     """
     region = check_region(region)
     Yk = as_factor_matrix(Y, region)
@@ -623,7 +641,9 @@ def place_sensors(
         ok = False
     if not ok:
         raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
-    criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")
+    risk = isinstance(criterion, str) and criterion == "risk"
+    if not risk:
+        criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")
     if traversable is None or (isinstance(traversable, str) and traversable == "valid"):
         allowed = np.arange(L, dtype=np.int64)
     else:
@@ -634,6 +654,15 @@ def place_sensors(
             raise PlanningError("traversable allows no valid cell for a sensor")
     if n > allowed.size:
         raise PlanningError(f"n_sensors = {n} but only {allowed.size} cells can hold a sensor")
+    if risk or exchange is not False or training is not None:  # planning/static.py
+        from .static import place_static
+
+        return place_static(Yk, region, n, allowed, criterion=criterion, prior=prior,
+                            training=training, exchange=exchange, sweeps=sweeps, other=dict(
+                                ridge=ridge, progress=progress, prior_precision=prior_precision,
+                                noise_var=noise_var, target_weights=target_weights,
+                                prior_cov=prior_cov, spatial_cov=spatial_cov, targets=targets,
+                                traversable=traversable))
     terms = _resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
                                        target_weights=target_weights, prior_cov=prior_cov,
                                        spatial_cov=spatial_cov))

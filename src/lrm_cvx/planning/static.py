@@ -1,0 +1,442 @@
+"""Static sensor placement on the fold-in's own error: the ``"risk"`` criterion and the exchange
+search (issue #15, docs/planning.md "Static placement").
+
+:func:`~lrm_cvx.planning.place_sensors` delegates here for ``criterion="risk"`` and for
+``exchange=True``.
+
+**Risk.** The recommended fold-in (``complete(prior=..., spatial=...)``) predicts a snapshot
+from sensors ``S`` by Gaussian conditioning: with ``C0`` the prior covariance of the latent
+field (``Y^T S0 Y``, plus the GP residual ``sill rho(d)`` with the spatial residual), ``N`` the
+observation noise (the nugget, or the per-cell noise variance) and ``m`` the prior mean,
+``pred = m + C0[:, S] (C0[S, S] + N_S)^-1 (z_S - m_S)`` (fit units; the data units scale the
+error at cell ``i`` by ``scale_i``). The risk of ``S`` is that predictor's squared error over
+the **training** snapshots, ``J(S) = sum_t sum_i w_i (z_ti - pred_ti)^2`` (``w = scale^2``:
+data units; cells missing in a training snapshot count as residual 0, i.e. the prior mean).
+Adding a cell ``x`` is one exact rank-one conditioning step: with ``C`` the posterior
+covariance given ``S``, ``Z`` the current errors (``T x L``) and ``d = C_xx + N_x``,
+``Z' = Z - Z[:, x] C[x, :] / d`` and ``C' = C - C[:, x] C[x, :] / d``, so the decrease of ``J``
+is ``2 u.P_x / d - |u|^2 cc_x / d^2`` (``u = Z[:, x]``, ``P = Z W C``, ``cc_x = C[:, x]^T W
+C[:, x]``). ``P`` and ``cc`` are kept up to date by the same rank-one algebra, so each pick is
+``O(L^2 + T L)`` (one matrix-vector product and one rank-one update of ``C``).
+
+**Exchange.** From a placement, each sensor in turn is removed (an exact rank-one
+*un*-conditioning: ``C_R = C_S + v v^T / M_ss``, ``v = C0[:, S] M[:, s]``,
+``M = (C0[S, S] + N_S)^-1``) and replaced by the cell with the largest gain if that gain beats
+putting the sensor back by more than ``1e-9`` of the objective; sweeps repeat until a sweep
+changes nothing (a local optimum: no single swap improves) or ``sweeps`` is reached. The
+objective never increases. The state is rebuilt from scratch at the start of every sweep
+(no drift). Available for ``"risk"`` and ``"gp-variance"`` (total posterior variance).
+
+**Memory and cost.** Dense: the ``L x L`` posterior covariance (``8 L^2`` bytes: 16 MB at
+1,421 cells, 3.2 GB at 20,000) plus ``O(T L)``; it is built in row blocks, so the peak is one
+``L x L`` matrix plus blocks. Set-up ``O(L^2 (T + k))``, each pick ``O(L^2 + T L)``, each
+exchange sweep ``n`` removals and re-additions (``O(n L^2)``) plus a rebuild ``O(L^2 (n + T))``.
+Regions above :data:`RISK_MAX_CELLS` cells raise :class:`PlanningError` (use
+``criterion="gp-variance"``, whose structured oracle scales to millions of cells).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+
+from .._validation import as_factor_matrix
+from ..errors import DataError, ModelError, PlanningError, RegionError
+from ..information import CRITERION_REGISTRY, fisher_information
+from ..region import Region
+from .plan import Plan, check_region, path_dict
+
+__all__ = ["RISK_MAX_CELLS", "STATIC_CRITERIA", "place_static", "risk_objective",
+           "training_residuals"]
+
+RISK_MAX_CELLS: int = 20_000
+"""Largest region (cells) of the dense risk / exchange state (``8 L^2`` bytes: 3.2 GB)."""
+
+STATIC_CRITERIA: tuple[str, ...] = ("risk",)
+"""Criteria of :func:`~lrm_cvx.planning.place_sensors` beyond the planning criteria registry
+(static placement only: they need training snapshots)."""
+
+EXCHANGE_SWEEPS: int = 5
+_REL_TOL = 1e-9  # a swap must lower the objective by more than this fraction
+_BLOCK = 1024  # rows per block of the L x L updates (bounds the temporaries)
+
+
+# --------------------------------------------------------------------------- the fold-in's prior
+class _FoldIn:
+    """The fold-in's Gaussian process on the region's cells (fit units).
+
+    ``block(rows)`` -> ``C0[rows, :]`` ``(len(rows), L)``; ``noise (L,)``; ``w (L,)`` the
+    error weights (``scale^2``, ones without a scale); ``mean (L,)`` the prior mean of the
+    latent value (``Y^T m0``; None for the gp-variance terms, which have no mean)."""
+
+    def __init__(self, Y: np.ndarray, S0: np.ndarray, region: Region, spatial_cov: Any,
+                 noise: np.ndarray, w: np.ndarray, mean: np.ndarray | None) -> None:
+        self.Y, self.S0, self.region, self.spatial_cov = Y, 0.5 * (S0 + S0.T), region, spatial_cov
+        self.noise, self.w, self.mean = noise, w, mean
+        self.L = Y.shape[1]
+        self._all = np.arange(self.L)
+
+    def block(self, rows: np.ndarray) -> np.ndarray:
+        if self.spatial_cov is None:
+            return self.Y[:, rows].T @ self.S0 @ self.Y
+        from ..information import _gp_latent_cov
+
+        return _gp_latent_cov(self.Y, self.S0, self.region, self.spatial_cov, rows, self._all)
+
+    def cols(self, cells: np.ndarray) -> np.ndarray:
+        """``C0[:, cells]`` ``(L, n)`` (symmetric: the rows' block transposed)."""
+        return self.block(np.asarray(cells, dtype=np.int64)).T
+
+
+def _fold_in_from_prior(prior: Any, Yk: np.ndarray, region: Region) -> tuple[_FoldIn, Any]:
+    """``(fold-in, observation model)`` of ``prior`` (a :class:`LatentPosterior` or a fitted
+    GLRM) for the risk."""
+    from ..glrm.posterior import LatentPosterior
+
+    if prior is None:
+        raise PlanningError("criterion='risk' needs prior=: the fold-in's belief "
+                            "(model.latent_prior('empirical', spatial=True)) or the fitted GLRM")
+    if not isinstance(prior, LatentPosterior):
+        if hasattr(prior, "latent_prior") and hasattr(prior, "Y_"):
+            try:
+                prior = prior.latent_prior("empirical",
+                                           spatial=getattr(prior, "spatial_cov_", None) is not None)
+            except ModelError as exc:
+                raise PlanningError(f"prior: {exc}") from None
+        else:
+            raise PlanningError("prior must be a LatentPosterior (model.latent_prior("
+                                f"'empirical', spatial=True)) or a fitted GLRM, got "
+                                f"{type(prior).__name__}")
+    if prior.cells.size:
+        raise PlanningError("prior has observations assimilated already; pass the belief "
+                            "before any observation (model.latent_prior(...))")
+    if not prior.is_proper:
+        raise PlanningError("criterion='risk' needs a proper prior (prior='empirical'), not a "
+                            "flat one: the fold-in of a few sensors must be defined")
+    obs = prior.obs_model
+    if obs.Y.shape != Yk.shape or not np.allclose(obs.Y, Yk, rtol=1e-6, atol=1e-12):
+        raise PlanningError(f"Y {Yk.shape} is not the prior's factor matrix {obs.Y.shape}: "
+                            "pass the model's Y_ with its latent_prior")
+    L = Yk.shape[1]
+    if obs.is_spatial:
+        from ..information import _gp_noise
+
+        if obs.region is not None and obs.region.n_cells != region.n_cells:
+            raise PlanningError("region is not the prior's region")
+        noise = np.full(L, _gp_noise(obs.spatial_cov))
+    else:
+        noise = np.asarray(obs.noise_at(np.arange(L)), dtype=np.float64)
+    w = np.ones(L) if obs.scale is None else np.asarray(obs.scale, np.float64) ** 2
+    return _FoldIn(Yk, np.asarray(prior.cov, np.float64), region, obs.spatial_cov, noise, w,
+                   Yk.T @ np.asarray(prior.mean, np.float64)), obs
+
+
+def training_residuals(training: Any, region: Region, obs: Any, mean: np.ndarray
+                       ) -> np.ndarray:
+    """``(T, L)`` training snapshots in fit units minus the fold-in's prior mean (0 where a
+    value is missing). ``training``: a ``(time, lat, lon)`` DataArray on the region's grid, a
+    ``(time, cell)`` DataArray, or a ``(T, L)`` / ``(T, ny, nx)`` array."""
+    if training is None:
+        raise PlanningError("criterion='risk' needs training=: the training snapshots, a "
+                            "(time, lat, lon) DataArray on the region's grid")
+    if hasattr(training, "latent_prior") and hasattr(training, "Y_"):
+        raise PlanningError("training must be the training snapshots (a (time, lat, lon) "
+                            "DataArray); a fitted GLRM does not keep its data: pass it as prior=")
+    try:
+        if hasattr(training, "dims"):
+            V = region.stack(training)
+        else:
+            V = np.asarray(training)
+            if V.ndim == 3:
+                V = region.stack(V)
+            elif V.ndim != 2 or V.shape[1] != region.n_cells:
+                raise RegionError(f"an array must be (T, {region.n_cells}) or (T, ny, nx), "
+                                  f"got shape {V.shape}")
+    except (RegionError, DataError, ValueError, TypeError) as exc:
+        raise PlanningError(f"training is not on the region's grid: {exc}") from None
+    V = np.asarray(V, dtype=np.float64)
+    if V.ndim == 1:
+        V = V[None, :]
+    if V.ndim != 2 or V.shape[0] < 1:
+        raise PlanningError(f"training must hold snapshots (time, cells), got shape {V.shape}")
+    if np.isinf(V).any():
+        raise PlanningError("training values must be finite (NaN marks a missing value)")
+    if not np.isfinite(V).any():
+        raise PlanningError("training has no finite value")
+    Z = obs.to_fit_units(np.arange(region.n_cells), V) - mean[None, :]
+    return np.where(np.isfinite(Z), Z, 0.0)
+
+
+# --------------------------------------------------------------------------- the dense state
+class _State:
+    """Posterior covariance ``C (L, L)`` given ``cells`` and, for the risk, the training errors
+    ``Z (T, L)`` with ``P = Z W C`` and ``cc = diag(C W C)``; ``R`` the prior errors."""
+
+    def __init__(self, gp: _FoldIn, R: np.ndarray | None, cells: list[int]) -> None:
+        self.gp, self.R = gp, R
+        self.rebuild(cells)
+
+    def rebuild(self, cells: list[int]) -> None:
+        gp, L = self.gp, self.gp.L
+        C = np.empty((L, L))
+        for a in range(0, L, _BLOCK):
+            C[a:a + _BLOCK] = gp.block(np.arange(a, min(a + _BLOCK, L)))
+        C = 0.5 * (C + C.T) if L <= _BLOCK else C
+        S = np.asarray(cells, dtype=np.int64)
+        Z = None if self.R is None else self.R.copy()
+        if S.size:
+            A = C[np.ix_(S, S)] + np.diag(gp.noise[S])
+            Lc = np.linalg.cholesky(0.5 * (A + A.T))
+            B = scipy.linalg.solve_triangular(Lc, C[S, :], lower=True)  # (n, L)
+            if Z is not None:
+                Z -= scipy.linalg.solve_triangular(Lc, self.R[:, S].T, lower=True).T @ B
+            for a in range(0, L, _BLOCK):
+                C[a:a + _BLOCK] -= B[:, a:a + _BLOCK].T @ B
+        self.C, self.Z, self.cells = C, Z, [int(c) for c in S]
+        w = gp.w
+        self.cc = np.zeros(L)
+        for a in range(0, L, _BLOCK):
+            self.cc += w[a:a + _BLOCK] @ (C[a:a + _BLOCK] ** 2)
+        self.P = None if Z is None else (Z * w) @ C
+
+    @property
+    def value(self) -> float:
+        """The objective: training squared error (risk) or total posterior variance."""
+        w = self.gp.w
+        if self.Z is None:
+            return float(w @ np.diag(self.C))
+        return float(w @ np.einsum("ti,ti->i", self.Z, self.Z))
+
+    def gains(self) -> np.ndarray:
+        """``(L,)`` decrease of the objective from adding each cell (exact)."""
+        d = np.diag(self.C) + self.gp.noise
+        if self.Z is None:
+            return self.cc / d
+        cross = np.einsum("ti,ti->i", self.Z, self.P)
+        zz = np.einsum("ti,ti->i", self.Z, self.Z)
+        return 2.0 * cross / d - zz * self.cc / d ** 2
+
+    def _rank_one(self, alpha: float, a: np.ndarray, b: np.ndarray | None) -> None:
+        """``C += alpha a a^T``, ``Z += alpha b a^T``, with ``P`` and ``cc`` kept exact."""
+        w = self.gp.w
+        q = self.C @ (w * a)  # C W a
+        aw = float(a @ (w * a))
+        self.cc += 2.0 * alpha * a * q + alpha ** 2 * aw * a * a
+        if self.Z is not None:
+            zwa = self.Z @ (w * a)  # Z W a
+            self.P += alpha * (np.outer(zwa, a) + np.outer(b, q)) \
+                + alpha ** 2 * aw * np.outer(b, a)
+            self.Z += alpha * np.outer(b, a)
+        L = a.size
+        for s in range(0, L, _BLOCK):
+            self.C[s:s + _BLOCK] += alpha * np.outer(a[s:s + _BLOCK], a)
+
+    def add(self, x: int) -> None:
+        """Condition on a sensor at ``x``."""
+        a = self.C[:, x].copy()
+        d = float(a[x] + self.gp.noise[x])
+        b = None if self.Z is None else self.Z[:, x].copy()
+        self._rank_one(-1.0 / d, a, b)
+        self.cells.append(int(x))
+
+    def remove(self, x: int) -> None:
+        """Forget the sensor at ``x`` (exact un-conditioning from ``M = (C0[S,S] + N)^-1``)."""
+        S = np.asarray(self.cells, dtype=np.int64)
+        j = int(np.flatnonzero(S == x)[0])
+        G = self.gp.cols(S)  # (L, n)
+        A = G[S] + np.diag(self.gp.noise[S])
+        m = scipy.linalg.solve(0.5 * (A + A.T), np.eye(S.size)[:, j], assume_a="pos")
+        v = G @ m
+        b = None if self.Z is None else self.R[:, S] @ m
+        self._rank_one(1.0 / float(m[j]), v, b)
+        self.cells.pop(j)
+
+
+# --------------------------------------------------------------------------- algorithms
+def _greedy(state: _State, n: int, allowed: np.ndarray, hist: dict[str, list]) -> None:
+    active = np.zeros(state.gp.L, dtype=bool)
+    active[allowed] = True
+    active[state.cells] = False
+    while len(state.cells) < n:
+        g = np.where(active, state.gains(), -np.inf)
+        x = int(np.argmax(g))  # ties: the lowest cell
+        if not np.isfinite(g[x]):
+            break
+        state.add(x)
+        active[x] = False
+        for key, v in (("cell", x), ("gain", g[x]), ("cost_increase", 1.0), ("ratio", g[x]),
+                       ("cost", float(len(state.cells))), ("n_evaluated", int(active.sum()) + 1),
+                       ("objective", state.value)):
+            hist[key].append(v)
+
+
+def _exchange(state: _State, allowed: np.ndarray, sweeps: int) -> dict[str, Any]:
+    """Swap sensors while a swap lowers the objective (see the module docstring)."""
+    t0 = time.perf_counter()
+    before = state.value
+    moves: dict[str, list] = {"exchange_out": [], "exchange_in": [], "exchange_gain": []}
+    done, n_sweeps = False, 0
+    for n_sweeps in range(1, sweeps + 1):
+        state.rebuild(state.cells)
+        changed = False
+        for i in range(len(state.cells)):
+            s = state.cells[i]
+            state.remove(s)
+            g = state.gains()
+            ok = np.zeros(g.size, dtype=bool)
+            ok[allowed] = True
+            ok[state.cells] = False
+            g = np.where(ok, g, -np.inf)
+            x = int(np.argmax(g))
+            tol = _REL_TOL * max(abs(state.value), 1e-300)
+            if x != s and g[x] > g[s] + tol:
+                state.add(x)
+                moves["exchange_out"].append(s)
+                moves["exchange_in"].append(x)
+                moves["exchange_gain"].append(float(g[x] - g[s]))
+                changed = True
+            else:
+                state.add(s)
+            state.cells.insert(i, state.cells.pop())  # keep the sensor's slot
+        if not changed:
+            done = True
+            break
+    state.rebuild(state.cells)
+    after = state.value
+    if after > before:  # rounding only; never worse than the start
+        raise PlanningError("exchange increased the objective (numerical trouble)")
+    return dict(method="exchange", objective_before=before, objective_after=after,
+                swaps=len(moves["exchange_out"]), sweeps=n_sweeps, converged=done,
+                seconds=time.perf_counter() - t0, moves=moves)
+
+
+def _check_size(L: int, what: str) -> None:
+    if L > RISK_MAX_CELLS:
+        raise PlanningError(
+            f"{what} holds the dense L x L posterior covariance; the region has {L} cells > "
+            f"RISK_MAX_CELLS = {RISK_MAX_CELLS} ({8 * L * L / 1e9:.1f} GB): use "
+            "criterion='gp-variance' without exchange (scales to millions of cells), or a "
+            "coarser region")
+
+
+def _check_sweeps(sweeps: Any) -> int:
+    if isinstance(sweeps, (bool, np.bool_)) or not isinstance(sweeps, (int, np.integer)) \
+            or sweeps < 1:
+        raise PlanningError(f"sweeps must be an integer >= 1, got {sweeps!r}")
+    return int(sweeps)
+
+
+def risk_objective(prior: Any, training: Any, cells: Any, region: Region | None = None) -> float:
+    """``J(cells)``: the fold-in's squared error over the training snapshots (data units,
+    summed over snapshots and cells; missing training values count as the prior mean), from
+    scratch. ``prior``: a LatentPosterior or a fitted GLRM."""
+    from ..glrm.posterior import LatentPosterior
+
+    if not isinstance(prior, LatentPosterior) and hasattr(prior, "latent_prior"):
+        region = prior.region_ if region is None else region
+    elif region is None:
+        region = prior.obs_model.region
+    region = check_region(region)
+    Y = (prior.obs_model.Y if isinstance(prior, LatentPosterior) else prior._Yv)
+    gp, obs = _fold_in_from_prior(prior, np.asarray(Y, np.float64), region)
+    R = training_residuals(training, region, obs, gp.mean)
+    S = np.asarray(cells, dtype=np.int64)
+    if S.size == 0:
+        return float(gp.w @ np.einsum("ti,ti->i", R, R))
+    G = gp.cols(S)
+    A = G[S] + np.diag(gp.noise[S])
+    Z = R - R[:, S] @ np.linalg.solve(A, G.T)
+    return float(gp.w @ np.einsum("ti,ti->i", Z, Z))
+
+
+def place_static(
+    Y: Any,
+    region: Region,
+    n: int,
+    allowed: np.ndarray,
+    *,
+    criterion: str,
+    prior: Any = None,
+    training: Any = None,
+    exchange: bool = False,
+    sweeps: int = EXCHANGE_SWEEPS,
+    other: dict[str, Any] | None = None,
+) -> Plan:
+    """``criterion="risk"`` (greedy on the training error, then optionally the exchange), or
+    the exchange after the registry criterion's greedy (``"gp-variance"`` only). Called by
+    :func:`~lrm_cvx.planning.place_sensors` with ``n`` and ``allowed`` (the candidate cells)
+    validated; ``other`` holds its remaining keyword arguments (passed on for gp-variance)."""
+    region = check_region(region)
+    Yk = as_factor_matrix(Y, region)
+    L = Yk.shape[1]
+    other = dict(other or {})
+    sweeps = _check_sweeps(sweeps)
+    if not isinstance(exchange, (bool, np.bool_)):
+        raise PlanningError(f"exchange must be True or False, got {exchange!r}")
+    if isinstance(criterion, str) and criterion == "risk":
+        given = sorted(key for key, v in other.items()
+                       if v is not None and not (key in ("ridge",) and float(v) == 0.0)
+                       and key not in ("progress", "traversable"))
+        if given:
+            raise PlanningError(f"criterion='risk' takes its terms from prior= and training=; "
+                                f"{given} do not apply")
+        _check_size(L, "criterion='risk'")
+        gp, obs = _fold_in_from_prior(prior, Yk, region)
+        R = training_residuals(training, region, obs, gp.mean)
+        state = _State(gp, R, [])
+        hist: dict[str, list] = {k: [] for k in ("cell", "gain", "cost_increase", "ratio",
+                                                 "cost", "n_evaluated", "objective")}
+        _greedy(state, n, allowed, hist)
+        crit, posterior = "risk", True
+    else:
+        if training is not None:
+            raise PlanningError("training= is for criterion='risk' only")
+        crit = CRITERION_REGISTRY.canonical(criterion, "criterion")
+        if crit != "gp-variance":
+            raise PlanningError(f"exchange=True is available for criterion 'risk' and "
+                                f"'gp-variance', not {crit!r}")
+        if other.get("targets") is not None:
+            raise PlanningError("exchange=True with gp-variance sums the variance over every "
+                                "cell: targets= does not apply")
+        _check_size(L, "exchange=True")
+        from .greedy import _resolve_prior, place_sensors
+
+        base = place_sensors(Yk, region, n, criterion=crit, prior=prior, exchange=False, **other)
+        terms = _resolve_prior(prior, {k: other.get(k) for k in (
+            "prior_precision", "noise_var", "target_weights", "prior_cov", "spatial_cov")})
+        from ..information import _check_gp_inputs, _gp_noise
+
+        S0 = _check_gp_inputs(Yk, region, terms["spatial_cov"], terms["prior_cov"])
+        tw = terms["target_weights"]
+        gp = _FoldIn(Yk, S0, region, terms["spatial_cov"],
+                     np.full(L, _gp_noise(terms["spatial_cov"])),
+                     np.ones(L) if tw is None else np.asarray(tw, np.float64), None)
+        state = _State(gp, None, [int(c) for c in base.cells])
+        hist = {k: list(v) for k, v in base.history.items()}
+        hist["objective"] = []  # the gp greedy's own value per pick is not recorded
+        posterior = bool(base.posterior)
+    info: dict[str, Any] = {}
+    if exchange and state.cells:
+        info = _exchange(state, allowed, sweeps)
+    cells = list(state.cells)
+    hist_out = {key: np.asarray(v, dtype=np.int64 if key in ("cell", "n_evaluated",
+                                                            "exchange_out", "exchange_in")
+                                else np.float64)
+                for key, v in {**hist, **info.pop("moves", {})}.items() if key != "objective"
+                or len(v)}
+    plan = Plan.build(
+        region=region, cells=cells, route=cells, cost=float(len(cells)),
+        information=fisher_information(Yk, cells, 0.0) if cells else -np.inf,
+        criterion=crit, budget=float(n), start=-1, ridge=float(other.get("ridge") or 0.0),
+        method="greedy+exchange"
+        if exchange else "greedy", history=hist_out, cost_function="sensors", Y=Yk,
+        posterior=posterior, route_cost=np.arange(1, len(cells) + 1, dtype=np.float64),
+        path=path_dict([], [float(n)], kind="static", unit="sensors",
+                       traversable="none" if allowed.size == L else "mask"),
+    )
+    plan.refinement.update(info)
+    plan.refinement["objective"] = state.value
+    return plan
