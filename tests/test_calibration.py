@@ -324,3 +324,41 @@ def test_residual_scale_multiplies_the_residual_and_noise_variances():
     assert plain.noise_var == pytest.approx(2 * float(model.noise_std_) ** 2)
     back = Calibration.from_attrs(model.calibration_.to_attrs())
     assert back.residual_scale == 2.0
+
+
+def test_adaptive_scale_is_carried_by_the_monitor_state_and_saved(tmp_path):
+    from lrm_cvx.io.samples import synthetic_dynamic_field
+    from lrm_cvx.monitor import MonitorState
+
+    data = synthetic_dynamic_field(30, (8, 10), rank=2, missing=0.1, noise=0.05, seed=4)
+    train, test = data.isel(time=slice(None, -3)), data.isel(time=slice(-3, None))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=2, temporal="ar1", progress=False, random_state=0).fit(train)
+    model.calibration_ = Calibration(scale=1.5, dof=8.0, discount=0.5)
+    state = model.monitor()
+    region = model.region_
+    V = region.stack(test).astype(float)
+    qs, ns = [], []
+    for i, t in enumerate(test["time"].values):
+        cells = np.flatnonzero(np.isfinite(V[i]))[::5]
+        prior = state._propagated(state._coerce(t))
+        q, n = prior.innovation(cells, V[i, cells])
+        state.assimilate((cells, V[i, cells]), time=t)
+        qs.append(q)
+        ns.append(n)
+    # the day's scale: (dof s0 + discounted earlier evidence + today's) / (dof + ...)
+    eq = 0.25 * qs[0] + 0.5 * qs[1]
+    en = 0.25 * ns[0] + 0.5 * ns[1]
+    s_day = (8.0 * 1.5 + eq + qs[2]) / (8.0 + en + ns[2])
+    assert state.posterior.variance_scale == pytest.approx(s_day, rel=1e-9)
+    path = tmp_path / "state.nc"
+    model_path = tmp_path / "model.nc"
+    model.save(model_path)
+    state.model_path = str(model_path)
+    state.save(path)
+    back = MonitorState.load(path, model)
+    assert back.posterior.variance_scale == pytest.approx(s_day, rel=1e-9)
+    np.testing.assert_allclose(back.predict()["predictive_std"].values,
+                               state.predict()["predictive_std"].values, rtol=1e-9,
+                               equal_nan=True)
