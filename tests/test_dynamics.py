@@ -428,3 +428,47 @@ def test_fitted_model_recovers_planted_dynamics_in_the_planted_basis(seed):
     M = Xf @ Xc.T @ np.linalg.inv(Xc @ Xc.T)          # X_ ~ M X_true (least squares)
     dyn = unblended_dynamics(model).transformed(np.linalg.inv(M))
     assert _rel(dyn.A, truth["A"]) < 0.10
+
+
+def test_rts_smoother_equals_the_dense_joint_posterior():
+    from lrm_cvx.glrm.dynamics import rts_smooth
+
+    rng = np.random.default_rng(0)
+    T, k = 7, 3
+    B = rng.normal(size=(k, k))
+    A = 0.6 * B / np.abs(np.linalg.eigvals(B)).max()
+    Q = np.eye(k) * 0.2 + 0.05 * np.ones((k, k))
+    mu = rng.normal(size=k)
+    P0 = np.eye(k) * 0.7
+    G = np.empty((T, k, k))
+    for t in range(T):
+        C = rng.normal(size=(k, 2 + t % 3))
+        G[t] = C @ C.T  # some steps leave directions unobserved
+    b = rng.normal(size=(T, k))
+    # dense: joint precision of x_0..x_{T-1} (prior AR chain + observations)
+    n = T * k
+    Qi, P0i = np.linalg.inv(Q), np.linalg.inv(P0)
+    J = np.zeros((n, n))
+    h = np.zeros(n)
+    J[:k, :k] += P0i
+    h[:k] += P0i @ mu
+    c = mu - A @ mu  # x_t = A x_{t-1} + c + w
+    for t in range(1, T):
+        i, j = slice(t * k, (t + 1) * k), slice((t - 1) * k, t * k)
+        J[i, i] += Qi
+        J[j, j] += A.T @ Qi @ A
+        J[i, j] -= Qi @ A
+        J[j, i] -= A.T @ Qi
+        h[i] += Qi @ c
+        h[j] -= A.T @ Qi @ c
+    for t in range(T):
+        s = slice(t * k, (t + 1) * k)
+        J[s, s] += G[t]
+        h[s] += b[t]
+    cov = np.linalg.inv(J)
+    mean = cov @ h
+    ms, Ps = rts_smooth(G, b, A, Q, mu, P0)
+    np.testing.assert_allclose(ms.ravel(), mean, rtol=1e-9, atol=1e-10)
+    for t in range(T):
+        s = slice(t * k, (t + 1) * k)
+        np.testing.assert_allclose(Ps[t], cov[s, s], rtol=1e-8, atol=1e-10)

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import DataError, ModelError
 
-__all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "time_numbers",
+__all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "time_numbers", "rts_smooth",
            "check_times", "seasons", "error_rows"]
 
 TEMPORAL = (None, "ar1", "seasonal")
@@ -545,3 +545,49 @@ def estimate(temporal: str, X: Any, times: Any, shrinkage: float = 1e-3,
     if temporal == "seasonal":
         return estimate_seasonal(X, times, shrinkage, initial_cov, validation, error_cov)
     raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
+
+
+def rts_smooth(G: Any, b: Any, A: Any, Q: Any, mean: Any = None, P0: Any = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Rauch-Tung-Striebel smoother of ``x_t - mean = A (x_{t-1} - mean) + w_t``,
+    ``w_t ~ N(0, Q)``, given per-step information-form observations ``G_t x_t ~ b_t``
+    (``G (T, k, k)`` PSD, ``b (T, k)``: e.g. ``G_t = Y_O W Y_O^T``, ``b_t = Y_O W z`` of a
+    snapshot's observed cells, the fold-in's terms). ``x_0 ~ N(mean, P0)`` (default the
+    stationary covariance). Returns the smoothed means ``(T, k)`` and covariances
+    ``(T, k, k)``: the exact joint Gaussian posterior's marginals (a loop over time steps).
+    Used to smooth the fitted latent columns with the AR prior (docs/monitoring.md)."""
+    G = np.asarray(G, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    A = np.asarray(A, dtype=np.float64)
+    Q = np.asarray(Q, dtype=np.float64)
+    T, k = b.shape
+    if G.shape != (T, k, k) or A.shape != (k, k) or Q.shape != (k, k):
+        raise ModelError(f"rts_smooth needs G (T, k, k), b (T, k), A and Q (k, k); got "
+                         f"{G.shape}, {b.shape}, {A.shape}, {Q.shape}")
+    mu = np.zeros(k) if mean is None else np.asarray(mean, dtype=np.float64)
+    if P0 is None:
+        import scipy.linalg
+
+        P0 = scipy.linalg.solve_discrete_lyapunov(A, Q)
+    P0 = np.asarray(P0, dtype=np.float64)
+    mf = np.empty((T, k))
+    Pf = np.empty((T, k, k))
+    mp = np.empty((T, k))
+    Pp = np.empty((T, k, k))
+    m, P = mu.copy(), P0
+    for t in range(T):  # forward filter in information form
+        if t > 0:
+            m = mu + A @ (mf[t - 1] - mu)
+            P = A @ Pf[t - 1] @ A.T + Q
+        mp[t], Pp[t] = m, 0.5 * (P + P.T)
+        Pinv = np.linalg.inv(Pp[t])
+        Ppost = np.linalg.inv(0.5 * (Pinv + Pinv.T) + G[t])
+        mf[t] = Ppost @ (Pinv @ m + b[t])
+        Pf[t] = 0.5 * (Ppost + Ppost.T)
+    ms, Ps = mf.copy(), Pf.copy()
+    for t in range(T - 2, -1, -1):  # backward pass
+        J = Pf[t] @ A.T @ np.linalg.inv(Pp[t + 1])
+        ms[t] = mf[t] + J @ (ms[t + 1] - mp[t + 1])
+        Ps[t] = Pf[t] + J @ (Ps[t + 1] - Pp[t + 1]) @ J.T
+        Ps[t] = 0.5 * (Ps[t] + Ps[t].T)
+    return ms, Ps
