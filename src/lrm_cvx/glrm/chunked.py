@@ -729,10 +729,14 @@ def stage(
 
     A DataArray exactly as :func:`~lrm_cvx.io.open_ndvi_cdr` returned it lazily (local files)
     is staged from the files themselves (:func:`cdr_source`): one task per group of days reads
-    each day's window with netCDF4, decodes it by table lookup with the loader's own rules and
-    writes its rows (threads of this process, or the workers of an active distributed Client);
-    the same matrix, bit for bit, at the cost of one read of each file. ``timings``, when a
-    dict, then receives the summed seconds ``stage_read`` / ``stage_decode`` / ``stage_write``.
+    each day's window as raw HDF5 chunks (:func:`_h5_chunks`; netCDF4 for other layouts),
+    inflates and decodes it by table lookup with the loader's own rules and writes its rows
+    (threads of this process, or the workers of an active distributed Client); the same
+    matrix, bit for bit, at the cost of one read of each file. A corrupt or truncated file is
+    a DataError naming it. ``timings``, when a dict, then receives the tasks' summed CPU
+    seconds ``stage_read`` / ``stage_inflate`` / ``stage_decode`` / ``stage_write`` and the
+    wall and CPU seconds ``stage_pass`` / ``stage_pass_cpu`` (and ``stage_compact`` /
+    ``stage_compact_cpu`` when never-observed cells were dropped).
     """
     import xarray as xr
 
