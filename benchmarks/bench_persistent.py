@@ -239,13 +239,11 @@ def paper_scale(small: bool = False, model_cache: str | None = None,
     and <= 6 GB peak. The fit uses the first 309 snapshots; the day observes the 310th.
     ``model_cache``: a model file; when it exists the fits are skipped (the model is loaded:
     for timing the campaign day alone), else the ``temporal="ar1"`` model is saved there."""
-    import os
     import gc
-    import resource
+    import os
 
     from bench_glrm import PeakRSS, make_data, rss_gib
 
-    from lrm_cvx.planning import plan_greedy
 
     n_times, shape = (60, (200, 150)) if small else (310, (1500, 1400))
     t0 = time.perf_counter()

@@ -270,7 +270,8 @@ def test_fit_adaptive_scale_finds_informative_innovations():
     assert dof is not None and dof <= 16 and gain > 0.01
     # the scales it implies calibrate the held-out residuals snapshot by snapshot
     s_i = np.array([(dof * scale + r[1]) / (dof + r[2]) for r in rec_info])
-    cover = np.mean([np.mean(np.abs(r[0]) / np.sqrt(s) <= 1.96) for r, s in zip(rec_info, s_i)])
+    cover = np.mean([np.mean(np.abs(r[0]) / np.sqrt(s) <= 1.96)
+                     for r, s in zip(rec_info, s_i, strict=True)])
     assert abs(cover - 0.95) < 0.02
     _, dof2, _, gain2 = fit_adaptive_scale(rec_noise)
     assert dof2 is None or dof2 >= 32

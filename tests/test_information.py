@@ -190,10 +190,9 @@ def test_trend_oracle_is_the_gp_criterion_with_the_residual_as_noise(monkeypatch
 def test_structured_gp_lag_table_matches_the_exact_convolution():
     """Equal target weights, a pool far from the region's edge: g(p, x) from the lattice
     autocorrelation table (no per-pick FFT) gives the exact oracle's gains to ~1e-6."""
+    import lrm_cvx.information as info
     from lrm_cvx import Region
     from lrm_cvx.spatial import ResidualCovariance
-
-    import lrm_cvx.information as info
 
     rng = np.random.default_rng(0)
     ny, nx = 70, 80

@@ -462,7 +462,7 @@ def test_innovation_statistic_equals_the_dense_mahalanobis_norm(seed, spatial):
     # every output variance carries it; the mean does not change
     fixed = LatentPosterior.from_moments(replace(obs, variance_scale=s), m0, S0).update(
         cells, values)
-    for a, b in zip(post.predict_all(), fixed.predict_all()):
+    for a, b in zip(post.predict_all(), fixed.predict_all(), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-9)
     # the next snapshot starts from the discounted evidence of this one
     nxt = post.propagate(np.zeros((k, k)), S0)

@@ -637,7 +637,8 @@ class StructuredGPVarianceOracle:
         With every target weighted ``c0`` (and the rest 0),
         ``g(p, x) = c0 (K2(x - p) - B(p, x))``: ``K2(d) = sum_{i in Z^2} k(i) k(i - d)`` (the
         lattice autocorrelation of the kernel, one FFT over lags up to the pool's extent; the
-        lattice is cut where both kernel factors of a left-out term are below ``3e-5 sill``) and ``B(p, x) = sum_{i not a target} k(p, i)
+        lattice is cut where both kernel factors of a left-out term are below ``3e-5 sill``)
+        and ``B(p, x) = sum_{i not a target} k(p, i)
         k(i, x) <= sqrt(E(p) E(x))``, ``E(y) = K2(0) - s(y) / c0`` (Cauchy-Schwarz; ``s`` is
         exact). The table is used when ``max_y E(y) <= tol * K2(0)`` over the pool: every ``g``
         is then within ``tol K2(0) c0`` (``tol`` of the largest ``g``) of its exact value, the

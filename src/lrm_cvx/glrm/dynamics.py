@@ -25,8 +25,8 @@ import numpy as np
 
 from ..errors import DataError, ModelError
 
-__all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "time_numbers", "rts_smooth",
-           "check_times", "seasons", "error_rows"]
+__all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "time_numbers",
+           "rts_smooth", "check_times", "seasons", "error_rows"]
 
 TEMPORAL = (None, "ar1", "seasonal")
 MAX_RADIUS = 0.99  # spectral radius of A is forced below this
