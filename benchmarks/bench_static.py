@@ -11,11 +11,14 @@ squared error over all cells). Placements:
 * ``gp-variance``: ``place_sensors(Y, region, n, criterion="gp-variance", prior=model prior
   with the spatial residual)``, the static greedy of the project (posterior variance of the
   model's Gaussian process).
-* ``gp-variance + exchange``: the same criterion, then an exchange search (replace one sensor by
-  the best other cell while the total posterior variance drops; at most 5 sweeps).
-* ``training risk``: a greedy on the fold-in's own squared error over the *training*
-  snapshots (the linear Gaussian-process predictor of the fold-in, updated by one rank-one
-  conditioning step per sensor: exact for any data), and ``training risk + exchange``.
+* ``gp-variance + exchange``: the same with ``exchange=True`` (replace one sensor by the best
+  other cell while the total posterior variance drops; at most 5 sweeps).
+* ``training risk``: ``place_sensors(..., criterion="risk", training=train)``, the greedy on
+  the fold-in's own squared error over the *training* snapshots (the linear Gaussian-process
+  predictor of the fold-in, updated by one exact rank-one conditioning step per sensor), and
+  ``training risk + exchange`` (``exchange=True``).
+  All four are the package's (``lrm_cvx.planning.place_sensors`` / ``planning/static.py``);
+  the ``seconds`` column is the placement's wall time on the full training set.
 * PySensors ``SSPOR(basis=SVD(m modes), optimizer=QR())`` on the mean-filled training
   snapshots, for m in {5, 10, 15, 20, 30, n} (n capped at T - 1, the most an SVD of T
   snapshots has): the "any number of modes" of the target. (PySensors' SVD basis is sklearn's
@@ -44,7 +47,7 @@ import numpy as np
 from lrm_cvx.datasets import load_sample
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.posterior import fold_in_snapshots
-from lrm_cvx.information import _gp_latent_cov, _gp_noise
+from lrm_cvx.planning import place_sensors
 
 HOLDOUT = 8
 SWEEPS = 5
@@ -68,110 +71,14 @@ def score(model: GLRM, values: np.ndarray, cells: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------- placements
-def gp_prior(model: GLRM) -> tuple[np.ndarray, float]:
-    """``(C0 (L, L), nugget)``: the fold-in's prior covariance of the latent field (low-rank
-    trend with the empirical prior + GP residual) and its observation noise."""
-    kw = model.planner_kwargs(prior="empirical", spatial=True)
-    S0 = np.asarray(kw["prior_cov"], dtype=np.float64)
-    a = np.arange(model.region_.n_cells)
-    C0 = _gp_latent_cov(model._Yv, 0.5 * (S0 + S0.T), model.region_, kw["spatial_cov"], a, a)
-    return C0, _gp_noise(kw["spatial_cov"])
-
-
-def training_residuals(model: GLRM, train) -> np.ndarray:
-    """``(T, L)`` training snapshots minus the fold-in's prior mean (0 where missing)."""
-    post = model.latent_prior("empirical", spatial=True)
-    mean, _ = post.predict(True)
-    R = model.region_.stack(train).astype(np.float64) - np.asarray(mean, np.float64)[None, :]
-    return np.where(np.isfinite(R), R, 0.0)
-
-
-def place_gp(model: GLRM, n: int) -> np.ndarray:
-    """The project's static placement with the gp-variance criterion."""
-    from lrm_cvx.planning import place_sensors
-
+def place(model: GLRM, train, n: int, criterion: str, exchange: bool) -> np.ndarray:
+    """The package's static placement (``lrm_cvx.planning.place_sensors``; the risk criterion
+    and the exchange search live in ``lrm_cvx.planning.static``) with the fold-in's prior."""
     prior = model.latent_prior("empirical", spatial=True)
-    plan = place_sensors(model.Y_, model.region_, n, criterion="gp-variance", prior=prior)
+    extra = {"training": train} if criterion == "risk" else {}
+    plan = place_sensors(model.Y_, model.region_, n, criterion=criterion, prior=prior,
+                         exchange=exchange, sweeps=SWEEPS, **extra)
     return np.asarray(plan.cells, dtype=np.int64)
-
-
-def _conditioned(C0: np.ndarray, noise: float, S: list[int]) -> np.ndarray:
-    if not S:
-        return C0.copy()
-    G = C0[:, S]
-    A = C0[np.ix_(S, S)] + noise * np.eye(len(S))
-    return C0 - G @ np.linalg.solve(A, G.T)
-
-
-def _residual(C0: np.ndarray, noise: float, R: np.ndarray, S: list[int]) -> np.ndarray:
-    """``R - pred(R | S)``: the fold-in's errors on the training snapshots from ``S``."""
-    if not S:
-        return R.copy()
-    A = C0[np.ix_(S, S)] + noise * np.eye(len(S))
-    return R - R[:, S] @ np.linalg.solve(A, C0[S, :])
-
-
-def _gains(C: np.ndarray, noise: float, Z: np.ndarray | None) -> np.ndarray:
-    """Decrease of the objective from adding each cell to the set whose posterior covariance
-    is ``C``: total posterior variance (``Z`` None) or the training error ``||Z||^2``.
-
-    One more sensor at x updates the predictor by ``C[:, x] / (C[x, x] + noise)`` times the
-    innovation ``Z[:, x]`` (Gaussian conditioning), so ``||Z'||^2 = ||Z||^2 - 2 u.Zv + |u|^2
-    |v|^2`` with ``u = Z[:, x]``, ``v = C[x, :] / d_x``."""
-    d = np.diag(C) + noise
-    cc = (C * C).sum(axis=0)
-    if Z is None:
-        return cc / d
-    cross = (Z * (Z @ C)).sum(axis=0) / d
-    return 2 * cross - (Z * Z).sum(axis=0) * cc / d ** 2
-
-
-def place_risk(C0: np.ndarray, noise: float, R: np.ndarray, n: int) -> np.ndarray:
-    """Greedy on the fold-in's squared error over the training snapshots ``R``."""
-    C, Z = C0.copy(), R.copy()
-    picked: list[int] = []
-    for _ in range(n):
-        g = _gains(C, noise, Z)
-        g[picked] = -np.inf
-        x = int(np.argmax(g))
-        d = C[x, x] + noise
-        cx = C[:, x].copy()
-        Z -= np.outer(Z[:, x], cx / d)
-        C -= np.outer(cx, cx) / d
-        picked.append(x)
-    return np.asarray(picked, dtype=np.int64)
-
-
-def exchange(C0: np.ndarray, noise: float, S: np.ndarray, R: np.ndarray | None,
-             sweeps: int = SWEEPS) -> np.ndarray:
-    """Replace one sensor at a time by the best other cell while the objective (total
-    posterior variance, or the training error when ``R`` is given) strictly drops."""
-    S = [int(c) for c in S]
-
-    def value(cells: list[int]) -> float:
-        if R is None:
-            return float(np.trace(_conditioned(C0, noise, cells)))
-        Z = _residual(C0, noise, R, cells)
-        return float((Z * Z).sum())
-
-    best = value(S)
-    for _ in range(sweeps):
-        improved = False
-        for i in range(len(S)):
-            rest = S[:i] + S[i + 1:]
-            C = _conditioned(C0, noise, rest)
-            g = _gains(C, noise, None if R is None else _residual(C0, noise, R, rest))
-            g[rest] = -np.inf
-            x = int(np.argmax(g))
-            if x == S[i]:
-                continue
-            trial = rest[:i] + [x] + rest[i:]
-            v = value(trial)
-            if v < best * (1 - 1e-9):
-                S, best, improved = trial, v, True
-        if not improved:
-            break
-    return np.asarray(S, dtype=np.int64)
 
 
 def qr_cells(model: GLRM, train, n: int, modes: int, exact: bool = False) -> np.ndarray:
@@ -196,25 +103,24 @@ def qr_cells(model: GLRM, train, n: int, modes: int, exact: bool = False) -> np.
     return np.asarray(sp.get_selected_sensors()[:n], dtype=np.int64)
 
 
-METHODS = ("gp-variance", "gp-variance + exchange", "training risk", "training risk + exchange")
+METHODS = {"gp-variance": ("gp-variance", False),
+           "gp-variance + exchange": ("gp-variance", True),
+           "training risk": ("risk", False),
+           "training risk + exchange": ("risk", True)}
 
 
 def run_split(train, held, ns) -> dict:
     """Every method's and every QR's error on ``held`` for each n: ``{n: {name: mse}}``."""
     model = fit(train)
     values = model.region_.stack(held).astype(np.float64)
-    C0, noise = gp_prior(model)
-    R = training_residuals(model, train)
     T = train.sizes["time"]
     out: dict = {}
     for n in ns:
         row: dict = {}
-        gp = place_gp(model, n)
-        row["gp-variance"] = score(model, values, gp)
-        row["gp-variance + exchange"] = score(model, values, exchange(C0, noise, gp, None))
-        risk = place_risk(C0, noise, R, n)
-        row["training risk"] = score(model, values, risk)
-        row["training risk + exchange"] = score(model, values, exchange(C0, noise, risk, R))
+        for name, (crit, ex) in METHODS.items():
+            t0 = time.perf_counter()
+            row[name] = score(model, values, place(model, train, n, crit, ex))
+            row[f"_s {name}"] = time.perf_counter() - t0
         for m in sorted({5, 10, 15, 20, 30, min(n, T - 1)}):
             if m <= T - 1:
                 row[f"QR {m} modes"] = score(model, values, qr_cells(model, train, n, m))
@@ -253,10 +159,14 @@ def main(argv=None) -> int:
             qr_best = min(qrs, key=lambda key: t[key])
             qr_val = min((key for key in qrs if key in v), key=lambda key: v[key])
             print(f"  n = {n}")
-            print(f"    {'placement':30s} {'validation MSE':>15s} {'test MSE':>12s}")
+            print(f"    {'placement':30s} {'validation MSE':>15s} {'test MSE':>12s} "
+                  f"{'seconds':>8s}")
             for key in t:
+                if key.startswith("_s "):
+                    continue
                 mark = "  <- chosen on validation" if key == chosen else ""
-                print(f"    {key:30s} {v.get(key, np.nan):15.5g} {t[key]:12.5g}{mark}")
+                sec = f"{t[f'_s {key}']:8.2f}" if f"_s {key}" in t else f"{'':8s}"
+                print(f"    {key:30s} {v.get(key, np.nan):15.5g} {t[key]:12.5g} {sec}{mark}")
             ok = t[chosen] <= t[qr_best]
             verdicts.append((name, n, chosen, t[chosen], qr_best, t[qr_best], t[qr_val], ok))
             print(f"    -> lrm-cvx ({chosen}) {t[chosen]:.5g} vs QR best {t[qr_best]:.5g} "
