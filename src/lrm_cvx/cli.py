@@ -384,6 +384,62 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_place(args: argparse.Namespace) -> int:
+    """Static placement (docs/planning.md "Static placement"): fixed sensors, no travel."""
+    from .information import CRITERIA
+    from .planning import place_sensors
+
+    out = None
+    if args.output:
+        suffix = Path(args.output).suffix.lower()
+        if suffix not in (".csv", ".geojson", ".json"):
+            raise UsageError(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
+        ins = [args.model, *_mask_file(args), *(_input_files(args.data) if args.data else [])]
+        (out,) = _guard([args.output], ins, args)
+    criterion = args.criterion or ("risk" if args.data else "gp-variance")
+    if criterion != "risk":
+        criterion = _canonical(CRITERIA, criterion)
+        if criterion not in CRITERIA:
+            raise UsageError(f"--criterion must be risk or one of {', '.join(CRITERIA)}, got "
+                             f"{args.criterion!r}")
+        if args.data:
+            raise UsageError(f"DATA (training snapshots) is for --criterion risk, not "
+                             f"{criterion}")
+    elif not args.data:
+        raise UsageError("--criterion risk needs DATA: the training snapshots (the same data "
+                         "and --bbox as 'lrm-cvx fit')")
+    model = _load_model(args.model)
+    if criterion == "gp-variance":
+        _need_spatial(model, args.model, "--criterion gp-variance")
+    kw: dict = {"training": _load(args)} if criterion == "risk" else {}
+    if args.traversable is not None:
+        kw["traversable"] = _traversable(args.traversable)
+    prior = model.latent_prior("empirical", spatial=getattr(model, "spatial_cov_", None)
+                               is not None and criterion in ("gp-variance", "risk"))
+    plan = place_sensors(model.Y_, model.region_, args.sensors, criterion=criterion,
+                         prior=prior, exchange=args.exchange, sweeps=args.sweeps,
+                         progress=not args.quiet, **kw)
+    ref = plan.refinement
+    text = f"{len(plan.cells)} sensors placed by the {criterion} greedy"
+    if "objective" in ref:
+        what = ("training squared error" if criterion == "risk"
+                else "total posterior variance")
+        text += f"; {what} {ref['objective']:.6g}"
+    if args.exchange:
+        text += (f"; exchange: {ref.get('swaps', 0)} swaps in {ref.get('sweeps', 0)} sweeps "
+                 f"({'a local optimum' if ref.get('converged') else 'sweep limit reached'}), "
+                 f"{ref.get('objective_before', np.nan):.6g} -> "
+                 f"{ref.get('objective_after', np.nan):.6g}")
+    print(text)
+    if out is not None:
+        if out.suffix.lower() == ".csv":
+            plan.to_csv(out)
+        else:
+            plan.to_geojson(out)
+        print(f"sensors written to {out}")
+    return 0
+
+
 def _mask_file(args: argparse.Namespace) -> list[str]:
     """The ``--traversable`` mask file, an input (never overwritten), or nothing."""
     t = getattr(args, "traversable", None)
@@ -755,6 +811,30 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fast: the budget-disk relaxation; tight: with distance limits and "
                    "the midpoint cover (default)")
     p.set_defaults(func=cmd_bound)
+
+    p = sub.add_parser("place", help="place fixed sensors (static placement, no travel)")
+    p.add_argument("model", help="model file written by 'lrm-cvx fit'")
+    p.add_argument("data", nargs="*", help="training snapshots for --criterion risk (the "
+                   "data and --bbox the model was fitted on)")
+    p.add_argument("--var", help="variable name in a generic NetCDF file")
+    p.add_argument("--bbox", help="region S,W,N,E in degrees (as for 'lrm-cvx fit')")
+    p.add_argument("--sensors", required=True, type=_int_at_least(1),
+                   help="number of sensors to place")
+    p.add_argument("--criterion", default=None, metavar="CRITERION",
+                   help="risk (the fold-in's squared error over the training snapshots DATA; "
+                   "the default when DATA is given) or a planning criterion "
+                   f"({', '.join(CRITERIA)}; default gp-variance without DATA)")
+    p.add_argument("--exchange", action="store_true",
+                   help="after the greedy, swap sensors while a swap lowers the objective "
+                   "(risk and gp-variance)")
+    p.add_argument("--sweeps", type=_int_at_least(1), default=5,
+                   help="exchange sweeps at most (default: %(default)s)")
+    p.add_argument("--traversable", default=None, metavar="valid|PATH.nc",
+                   help="cells that may hold a sensor: valid (all, default) or a NetCDF file "
+                   "with one boolean (lat, lon) variable")
+    p.add_argument("-o", "--output", help="sensors.csv or sensors.geojson")
+    _add_output(p)
+    p.set_defaults(func=cmd_place)
 
     p = sub.add_parser("predict", help="predict the map from observations")
     p.add_argument("model", help="model file written by 'lrm-cvx fit'")

@@ -542,7 +542,7 @@ class Plan:
 
     def to_geojson(self, path: str | Path | None = None) -> dict[str, Any]:
         """GeoJSON FeatureCollection: each robot's route as a LineString and each sampling stop
-        as a Point.
+        as a Point (a static placement: a Point per sensor, no LineString).
 
         Coordinates are ``[lon, lat]`` (RFC 7946). LineString properties: ``kind`` ``"route"``,
         ``robot``, ``cost``, ``budget``. Point properties: ``cell``, ``robot``, ``order`` (first
@@ -555,8 +555,8 @@ class Plan:
         budgets = self.path.get("budgets") or [self.budget]
         starts = set(int(s) for s in (self.path.get("starts") or [self.start]))
         features: list[dict[str, Any]] = []
-        for r in range(self.n_robots):
-            sel = np.flatnonzero(self.route_robot == r)
+        for r in range(self.n_robots if self.path.get("kind") != "static" else 0):
+            sel = np.flatnonzero(self.route_robot == r)  # (fixed sensors: Points only)
             features.append({
                 "type": "Feature",
                 "geometry": {"type": "LineString", "coordinates": [coords[i] for i in sel]},
