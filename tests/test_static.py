@@ -190,3 +190,62 @@ def test_bad_inputs_name_the_argument(monkeypatch):
         _place(region, Y, prior, train, 3)
     with pytest.raises(PlanningError, match="RISK_MAX_CELLS"):
         place_sensors(Y, region, 3, criterion="gp-variance", prior=prior, exchange=True)
+
+
+# --------------------------------------------------------------------------- the CLI
+@pytest.fixture(scope="module")
+def cli_files(tmp_path_factory):
+    from lrm_cvx.cli import main
+
+    rng = np.random.default_rng(1)
+    T, ny, nx, k = 12, 6, 7, 2
+    X, Y = rng.normal(size=(k, T)), rng.normal(size=(k, ny * nx))
+    v = (X.T @ Y + 0.3 * rng.normal(size=(T, ny * nx))).reshape(T, ny, nx)
+    da = xr.DataArray(v.astype(np.float32), dims=("time", "lat", "lon"), name="temp",
+                      coords={"time": np.arange(T), "lat": 40 + np.arange(ny) * 0.5,
+                              "lon": -70 + np.arange(nx) * 0.5})
+    d = tmp_path_factory.mktemp("place")
+    data, model = d / "field.nc", d / "model.nc"
+    da.to_netcdf(data)
+    assert main(["-q", "fit", str(data), "--rank", "2", "--recommended", "-o", str(model)]) == 0
+    return d, data, model
+
+
+def test_cli_place_writes_the_python_placement(cli_files, capsys):
+    import pandas as pd
+
+    from lrm_cvx.cli import main
+    from lrm_cvx.glrm import GLRM
+
+    d, data, model_path = cli_files
+    out = d / "sensors.csv"
+    assert main(["-q", "place", str(model_path), str(data), "--sensors", "4", "--exchange",
+                 "-o", str(out)]) == 0
+    assert "risk greedy" in capsys.readouterr().out
+    model = GLRM.load(model_path)
+    ref = place_sensors(model.Y_, model.region_, 4, criterion="risk",
+                        prior=model.latent_prior("empirical", spatial=True),
+                        training=xr.open_dataarray(data), exchange=True)
+    assert pd.read_csv(out)["cell"].tolist() == [int(c) for c in ref.cells]
+    geo = d / "sensors.geojson"
+    assert main(["-q", "place", str(model_path), "--sensors", "3", "-o", str(geo)]) == 0
+    import json
+
+    feats = json.loads(geo.read_text())["features"]
+    assert [f["geometry"]["type"] for f in feats] == ["Point"] * 3
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--sensors", "3", "--criterion", "risk"], "needs DATA"),
+    (["DATA", "--sensors", "3", "--criterion", "fisher"], "is for --criterion risk"),
+    (["--sensors", "3", "--criterion", "bogus"], "--criterion must be"),
+    (["--sensors", "0"], "sensors"),
+    (["--sensors", "999"], "n_sensors"),
+])
+def test_cli_place_bad_input_exits_2(cli_files, capsys, argv, message):
+    from lrm_cvx.cli import main
+
+    _, data, model_path = cli_files
+    argv = [str(data) if a == "DATA" else a for a in argv]
+    assert main(["-q", "place", str(model_path), *argv]) == 2
+    assert message in capsys.readouterr().err
