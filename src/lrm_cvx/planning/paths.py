@@ -26,9 +26,11 @@ path length is an exact float sum: shortest-path distances are exactly symmetric
 independent of the summation order, and never shorter than the true path.
 
 Travel graph scope: the graph holds the enterable cells within straight-line reach of the start
-(the travel budget; half of it for a closed tour), and Dijkstra stops at the travel budget. Every
+(the travel budget; half of it for a closed tour), and Dijkstra stops at that reach (no leg of a
+feasible closed tour is longer than half the budget: the rest of the tour is a way back). Every
 point of a feasible route lies in that disk, so a route's cost is its true shortest-path cost
-whenever it is within the budget; distances beyond the reach are ``inf``.
+whenever it is within the budget; distances beyond the reach are ``inf`` (such routes are
+infeasible either way).
 """
 
 from __future__ import annotations
@@ -59,6 +61,7 @@ METRICS = ("grid", "km")
 _QUANTUM = 2.0 ** -20  # graph edge lengths are multiples of this (budget unit): exact sums
 _TOL = 1e-9  # budget tolerance (as the greedy's)
 _CODES = {"grid": 0, "km": 1, "h": 2}
+_TAIL = 8  # cached tail steps per NN candidate (longer tails are re-evaluated at every add)
 
 
 # --------------------------------------------------------------------------- distances
@@ -201,7 +204,8 @@ class _Graph:
         region = model.region
         self.radius = float(radius)
         self.limit = float(limit)
-        near = model._enter & (model._lower_bound_from_start() <= self.radius + model.tol)
+        near = model._enter & (model._lower_bound_from_start(self.radius)
+                               <= self.radius + model.tol)
         near[model.start] = True
         self.cells = np.flatnonzero(near).astype(np.int64)
         ny, nx = region.shape
@@ -230,7 +234,6 @@ class _Graph:
         w = _ceil_quantum(np.concatenate(wt)) if wt else np.zeros(0)
         n = self.cells.size
         self.csr = csr_matrix((w, (np.concatenate(src), np.concatenate(dst))), shape=(n, n))
-        self.csr.sum_duplicates()
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def local(self, cells: np.ndarray) -> np.ndarray:
@@ -244,16 +247,13 @@ class _Graph:
         cell = int(cell)
         hit = self._cache.get(cell)
         if hit is None:
-            from scipy.sparse.csgraph import dijkstra
-
             (loc,) = self.local(np.array([cell]))
             if loc < 0:
                 n = self.cells.size
                 hit = (np.full(n, np.inf), np.full(n, -9999, dtype=np.int32))
             else:
-                d, p = dijkstra(self.csr, directed=True, indices=int(loc),
-                                limit=self.limit, return_predecessors=True)
-                hit = (np.asarray(d, dtype=np.float64), np.asarray(p, dtype=np.int32))
+                hit = _dijkstra(self.csr.indptr, self.csr.indices, self.csr.data, int(loc),
+                                self.limit)
             self._cache[cell] = hit
         return hit
 
@@ -262,6 +262,75 @@ class _Graph:
         d = self.run(cell)[0]
         loc = self.local(targets)
         return np.where(loc >= 0, d[np.maximum(loc, 0)], np.inf)
+
+
+@numba.njit(cache=True, nogil=True)
+def _dijkstra(indptr, indices, data, src, limit):  # pragma: no cover - compiled
+    """Shortest distances and predecessors from node ``src`` (indexed binary heap with
+    decrease-key); nodes farther than ``limit`` stay ``inf`` (predecessor -9999). Edge lengths
+    are multiples of a power of two, so every distance is an exact sum: any correct Dijkstra
+    gives the same distances bit for bit."""
+    n = indptr.shape[0] - 1
+    dist = np.full(n, np.inf)
+    pred = np.full(n, -9999, dtype=np.int32)
+    pos = np.full(n, -1, dtype=np.int32)  # heap position, -1 never seen, -2 settled
+    heap = np.empty(n, dtype=np.int32)
+    key = np.empty(n, dtype=np.float64)  # key[i] == dist[heap[i]] (no indirection)
+    dist[src] = 0.0
+    heap[0] = src
+    key[0] = 0.0
+    pos[src] = 0
+    size = 1
+    while size > 0:
+        u = heap[0]
+        du = key[0]
+        pos[u] = -2
+        size -= 1
+        if size > 0:
+            v = heap[size]
+            dv = key[size]
+            i = 0
+            while True:
+                c = 2 * i + 1
+                if c >= size:
+                    break
+                if c + 1 < size and key[c + 1] < key[c]:
+                    c += 1
+                if key[c] < dv:
+                    heap[i] = heap[c]
+                    key[i] = key[c]
+                    pos[heap[i]] = i
+                    i = c
+                else:
+                    break
+            heap[i] = v
+            key[i] = dv
+            pos[v] = i
+        for e in range(indptr[u], indptr[u + 1]):
+            w = indices[e]
+            if pos[w] == -2:
+                continue
+            nd = du + data[e]
+            if nd < dist[w] and nd <= limit:
+                dist[w] = nd
+                pred[w] = u
+                i = pos[w]
+                if i < 0:
+                    i = size
+                    size += 1
+                while i > 0:  # sift up
+                    par = (i - 1) >> 1
+                    if key[par] > nd:
+                        heap[i] = heap[par]
+                        key[i] = key[par]
+                        pos[heap[i]] = i
+                        i = par
+                    else:
+                        break
+                heap[i] = w
+                key[i] = nd
+                pos[w] = i
+    return dist, pred
 
 
 @numba.njit(cache=True, nogil=True)
@@ -386,16 +455,77 @@ def _nn_eval(i, xid, t0, DT, S, ts, tid, r, back, vis, tail):  # pragma: no cove
 
 
 @numba.njit(cache=True, nogil=True)
-def _nn_eval_all(pid, active, t0s, DT, S, ts, tid, r, back, dc, tstar):  # pragma: no cover
+def _nn_eval_all(pid, active, t0s, DT, S, ts, tid, r, back, dc, tstar, js, tl, tails):
+    # pragma: no cover - compiled
+    """Fresh evaluation of every active candidate with ``t0s >= 0`` (scan from t0s); caches
+    ``(t_star, j, tail)`` (tails longer than ``tails.shape[1]``: ``tl = -1``)."""
     m = ts.shape[0]
     vis = np.zeros(m, dtype=np.bool_)
     tail = np.empty(m, dtype=np.int64)
+    cap = tails.shape[1]
     for i in range(pid.shape[0]):
         if not active[i] or t0s[i] < 0:
             continue
-        v, t, _, _ = _nn_eval(i, pid[i], t0s[i], DT, S, ts, tid, r, back, vis, tail)
+        v, t, j, q = _nn_eval(i, pid[i], t0s[i], DT, S, ts, tid, r, back, vis, tail)
         dc[i] = v
         tstar[i] = t
+        js[i] = j
+        if q <= cap:
+            tl[i] = q
+            for u in range(q):
+                tails[i, u] = tail[u]
+        else:
+            tl[i] = -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _nn_update(pid, active, DT, S, ots, otid, nts, ntid, nr, s, q_p, j_p, pslot, p_id,
+               tstar, js, tl, tails, t0s):  # pragma: no cover - compiled
+    """After p (slot ``pslot``) joined the tour after old position s, its tail rejoining at
+    j_p: ``t0s[i] = -1`` where candidate i's cached increase provably stays (cost.py's
+    ``_nn_update`` on distance lookups; positions remapped), else the step its fresh scan may
+    start from. The closing leg is unchanged in both kept cases: the tour's last cell is."""
+    for i in range(pid.shape[0]):
+        if not active[i]:
+            t0s[i] = -1
+            continue
+        t = tstar[i]
+        if t < s:
+            t0s[i] = t
+            q = tl[i]
+            if js[i] <= s and q >= 0:
+                ok = True
+                c = -1
+                for u in range(q):
+                    a = tails[i, u]
+                    if c < 0:
+                        dp = DT[i, pslot]
+                        dn = DT[i, ots[a]]
+                    else:
+                        dp = S[ots[c], pslot]
+                        dn = S[ots[c], ots[a]]
+                    if dp < dn or (dp == dn and p_id < otid[a]):
+                        ok = False
+                        break
+                    c = a
+                if ok:
+                    t0s[i] = -1
+        elif t > j_p:
+            t0s[i] = s
+            ok = True
+            for u in range(s, s + q_p + 1):
+                dx = DT[i, nts[u]]
+                if dx < nr[u] or (dx == nr[u] and pid[i] < ntid[u + 1]):
+                    ok = False
+                    break
+            if ok:
+                t0s[i] = -1
+                tstar[i] = t + 1
+                js[i] = js[i] + 1
+                for u in range(tl[i]):
+                    tails[i, u] += 1
+        else:
+            t0s[i] = s
 
 
 # --------------------------------------------------------------------------- insertion
@@ -477,6 +607,9 @@ class IncrementalCost:
         self._dc = np.full(n, np.nan)
         if self._nn:
             self._tstar = np.zeros(n, dtype=np.int64)
+            self._js = np.zeros(n, dtype=np.int64)
+            self._tl = np.zeros(n, dtype=np.int64)
+            self._tails = np.zeros((n, _TAIL), dtype=np.int64)
             self._nn_refresh(np.zeros(n, dtype=np.int64))
         else:
             self._sv = np.full(n, np.inf)
@@ -489,9 +622,9 @@ class IncrementalCost:
         k = self._m
         if k == self._cap:
             cap = 2 * self._cap
-            DT = np.full((self.pool.size, cap), np.inf)
+            DT = np.empty((self.pool.size, cap))  # columns >= k are written before use
             DT[:, :k] = self._DT
-            S = np.full((cap, cap), np.inf)
+            S = np.empty((cap, cap))
             S[:k, :k] = self._S
             sc = np.full(cap, -1, dtype=np.int64)
             sc[:k] = self._slot_cell
@@ -529,7 +662,8 @@ class IncrementalCost:
 
     def _nn_refresh(self, t0s: np.ndarray) -> None:
         _nn_eval_all(self.pool, self.active, t0s, self._DT, self._S, self._ts, self._tid,
-                     self._r, self._back, self._dc, self._tstar)
+                     self._r, self._back, self._dc, self._tstar, self._js, self._tl,
+                     self._tails)
 
     @property
     def route(self) -> np.ndarray:
@@ -573,11 +707,14 @@ class IncrementalCost:
             s, j, q = int(s), int(j), int(q)
             self.active[i] = False
             k = self._new_slot(cell)
-            old = self._ts
+            old, old_tid = self._ts, self._tid
             new = np.concatenate([old[: s + 1], [k], old[tail[:q]], old[j + 1:]])
             self._set_tour(new)
-            t0s = np.where(self.active, np.minimum(self._tstar, s), -1).astype(np.int64)
-            self.n_evaluated = int(self.active.sum())
+            t0s = np.empty(self.pool.size, dtype=np.int64)
+            _nn_update(self.pool, self.active, self._DT, self._S, old, old_tid, self._ts,
+                       self._tid, self._r, s, q, j, k, cell, self._tstar, self._js, self._tl,
+                       self._tails, t0s)
+            self.n_evaluated = int((t0s >= 0).sum())
             self._nn_refresh(t0s)
         else:
             s = int(self._positions()[i])
@@ -715,17 +852,32 @@ class PathModel:
                 total = total + sc
         return float(total)
 
-    def _lower_bound_from_start(self) -> np.ndarray:
+    def _lower_bound_from_start(self, radius: float = np.inf) -> np.ndarray:
         """``(L,)`` straight-line distance from the start that no travel path beats
-        (grid units wrap on a full-circle grid, matching the graph's wrapped edges)."""
+        (grid units wrap on a full-circle grid, matching the graph's wrapped edges); only
+        cells whose latitude (row) alone keeps them within ``radius`` are computed, the
+        others are ``inf`` (great-circle distance >= R |dlat|)."""
+        gi = self.region.grid_index
+        r0 = gi[self.start, 0]
         if self.metric == "grid":
-            gi = self.region.grid_index
-            dr = (gi[:, 0] - gi[self.start, 0]).astype(np.float64)
-            dc = np.abs(gi[:, 1] - gi[self.start, 1]).astype(np.float64)
+            band = np.abs(np.arange(self.region.shape[0]) - r0) <= radius
+        else:
+            lat = self._geo.latr
+            gap = EARTH_RADIUS_KM * np.abs(lat - lat[r0]) / self._geo.speed
+            band = gap <= radius * (1 + 1e-9) + self.tol
+        rows = np.flatnonzero(band)
+        lo, hi = np.searchsorted(gi[:, 0], [rows.min(), rows.max() + 1])
+        out = np.full(self.region.n_cells, np.inf)
+        cells = np.arange(lo, hi)
+        if self.metric == "grid":
+            dr = (gi[cells, 0] - r0).astype(np.float64)
+            dc = np.abs(gi[cells, 1] - gi[self.start, 1]).astype(np.float64)
             if self._wrap:
                 dc = np.minimum(dc, self.region.shape[1] - dc)
-            return np.sqrt(dr * dr + dc * dc)
-        return self._geo.row(self.start, np.arange(self.region.n_cells))
+            out[cells] = np.sqrt(dr * dr + dc * dc)
+        else:
+            out[cells] = self._geo.row(self.start, cells)
+        return out
 
     # ---------------------------------------------------------------- distances
     def distances(self, a: int, cells: Any = None) -> np.ndarray:
@@ -1008,10 +1160,12 @@ def make_path_model(
         return model
     _check_start_moves(model)
     travel = max(model.travel_budget, 0.0)
-    radius = travel / 2 if closed else travel
+    # every point of a feasible route is within `radius` of the start, every leg <= `limit`
+    # (a closed tour's leg is at most half of it: the rest of the tour is a way back)
+    radius = limit = travel / 2 if closed else travel
     if end_cell is not None:
-        radius = max(radius, float(model._lower_bound_from_start()[end_cell]))
-    model._graph = _Graph(model, radius, max(travel, radius) + model.tol)
+        radius = limit = max(radius, float(model._lower_bound_from_start()[end_cell]))
+    model._graph = _Graph(model, radius, limit + model.tol)
     return model
 
 
