@@ -181,6 +181,7 @@ class _State:
 
     def rebuild(self, cells: list[int]) -> None:
         gp, L = self.gp, self.gp.L
+        self.C = self.P = None  # free the old state first: one L x L matrix at a time
         C = np.empty((L, L))
         for a in range(0, L, _BLOCK):
             C[a:a + _BLOCK] = gp.block(np.arange(a, min(a + _BLOCK, L)))
