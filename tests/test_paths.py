@@ -548,3 +548,48 @@ def test_start_as_lat_lon_and_deactivate():
     c.deactivate(int(pool[0]))
     assert not c.active[0] and np.isnan(c.increases()[0])
     assert make_path_model(region, cell, 1.0, metric="km", speed=2).unit == "h"
+
+
+@pytest.mark.parametrize("trav, closed, with_end", [(None, True, False), ("valid", False, True),
+                                                    ("mask", True, False), (None, False, True)])
+def test_nn_cache_reuse_long_routes(trav, closed, with_end):
+    """Many additions (the cached-candidate updates of cost.py's argument, on matrix lookups):
+    every increase still equals the from-scratch NN tour difference, and most candidates are
+    kept without re-evaluation at some step."""
+    rng = np.random.default_rng(11)
+    kept = 0
+    for _ in range(5):
+        region = random_region(rng, max_side=10, keep=0.9)
+        tr = random_trav(rng, region, trav) if trav else None
+        enter = enter_of(region, tr)
+        cands = np.flatnonzero(enter)
+        if cands.size < 6:
+            continue
+        start = int(cands[0])
+        end = int(cands[-1]) if with_end else None
+        try:
+            model = make_path_model(region, start, 1e9, metric="km", stop_cost=2.0,
+                                    traversable=tr, closed=closed, end=end)
+        except PlanningError:
+            continue
+        D = dist_lookup(model)
+        pool = np.arange(region.n_cells)
+        P0 = [start] + ([end] if end is not None else [])
+        c = model.coster(P0, pool)
+        route = naive_nn_order(D, P0, end)
+        for _ in range(18):
+            base = naive_route_cost(D, route, closed, 2.0)
+            inc = c.increases()
+            assert c.route.tolist() == route
+            for i in np.flatnonzero(c.active):
+                x = int(pool[i])
+                ref = naive_route_cost(D, naive_nn_order(D, route + [x], end), closed, 2.0) - base
+                assert inc[i] == pytest.approx(ref, rel=1e-9, abs=1e-6)
+            act = np.flatnonzero(c.active & np.isfinite(inc))
+            if not act.size:
+                break
+            pick = int(pool[rng.choice(act)])
+            c.add(pick)
+            kept += int(c.active.sum()) - c.n_evaluated
+            route = naive_nn_order(D, route + [pick], end)
+    assert kept > 0
