@@ -515,10 +515,11 @@ def _t_stage_days(days, src, rows, cols, index, files, bounds, offsets, track) -
     return secs
 
 
-def _run_tasks(fn, items, on_done=None) -> list:
-    """``[fn(i) for i in items]`` in parallel: on the workers of an active ``distributed``
-    Client, else on threads of this process (one per core; the decoding and writing release
-    the GIL, the netCDF4 reads are serialised by :data:`_NC_LOCK`). Items start in order;
+def _run_tasks(fn, items, on_done=None, **shared) -> list:
+    """``[fn(i, **shared) for i in items]`` in parallel: on the workers of an active
+    ``distributed`` Client (``shared`` scattered to them once, not shipped with every task),
+    else on threads of this process (one per core; the decoding and writing release the GIL,
+    the netCDF4 reads are serialised by :data:`_NC_LOCK`). Items start in order;
     ``on_done(item, result)``, when given, is called in this thread as each task finishes."""
     try:
         from distributed import get_client
@@ -527,7 +528,8 @@ def _run_tasks(fn, items, on_done=None) -> list:
     except (ImportError, ValueError):
         client = None
     if client is not None:
-        futs = client.map(fn, items, pure=False)
+        sent = {k: client.scatter(v, broadcast=True) for k, v in shared.items()}
+        futs = client.map(fn, items, pure=False, **sent)
         if on_done is not None:
             from distributed import as_completed
 
@@ -538,7 +540,7 @@ def _run_tasks(fn, items, on_done=None) -> list:
     from concurrent.futures import ThreadPoolExecutor, as_completed
 
     with ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1)) as ex:
-        futs = [ex.submit(fn, i) for i in items]
+        futs = [ex.submit(fn, i, **shared) for i in items]
         if on_done is not None:
             where = {f: i for i, f in enumerate(futs)}
             for f in as_completed(futs):
@@ -591,15 +593,16 @@ def _scratch(key: str, n: int, dtype: Any) -> np.ndarray:
     return buf[: n * dtype.itemsize].view(dtype)
 
 
-def _t_compact(c, index, nb, files, bounds, offsets, new, noffs, T) -> None:
-    """Task: write compacted column file ``c`` (the region's cells ``index[nb[c]:nb[c+1]]`` of
-    the whole-grid files ``files``) from the staged files (page cache), row by row: each source
+def _t_compact(job, files, bounds, offsets, new, noffs, T) -> None:
+    """Task: write compacted column file ``c`` of ``job = (c, g)`` (the region's cells ``g``,
+    grid indices into the whole-grid files ``files``; only this chunk's slice of the region is
+    shipped to a worker) from the staged files (page cache), row by row: each source
     file contributes one contiguous run of its columns, so row ``t`` is one ``preadv`` of that
     span per source file, a gather of the kept columns and one ``pwrite``. The two row buffers
     are reused (this thread's :func:`_scratch`): no fresh pages to fault in, nothing held but
     a row (plain reads, not a memory map: mapped pages count as the worker's memory and a
     LocalCluster paused its workers)."""
-    g = index[nb[c]: nb[c + 1]]
+    c, g = job
     owner = np.searchsorted(bounds, g, side="right") - 1
     cuts = np.flatnonzero(np.diff(owner)) + 1
     runs = []
@@ -648,9 +651,9 @@ def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[st
     parts = [list(range(T))[i::n_tasks] for i in range(n_tasks)]  # interleaved: balanced
     clock = time.perf_counter()
     cpu0 = time.process_time()
-    task = functools.partial(_t_stage_days, src=src, rows=rows, cols=cols, index=index,
-                             files=files, bounds=bounds, offsets=offsets, track=track)
-    res = _run_tasks(task, parts)
+    task = functools.partial(_t_stage_days, src=src, rows=rows, cols=cols, files=files,
+                             bounds=bounds, offsets=offsets, track=track)
+    res = _run_tasks(task, parts, index=index)  # the region's cells: sent to a worker once
     if timings is not None:
         for k in ("read", "inflate", "decode", "write"):
             timings[f"stage_{k}"] = float(sum(r[k] for r in res))
@@ -681,7 +684,8 @@ def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[st
     for a, b in zip(first, last, strict=True):
         readers[a: b + 1] += 1
 
-    def done(c: int, _: Any) -> None:
+    def done(job: tuple, _: Any) -> None:
+        c = job[0]
         for o in range(int(first[c]), int(last[c]) + 1):
             readers[o] -= 1
             if readers[o] == 0:
@@ -689,9 +693,9 @@ def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[st
 
     for o in np.flatnonzero(readers == 0):  # whole files of never-observed cells
         os.remove(files[o])
-    _run_tasks(functools.partial(_t_compact, index=index, nb=nb, files=files, bounds=bounds,
-                                 offsets=offsets, new=new, noffs=noffs, T=T),
-               list(range(nb.size - 1)), on_done=done)
+    _run_tasks(functools.partial(_t_compact, files=files, bounds=bounds, offsets=offsets,
+                                 new=new, noffs=noffs, T=T),
+               [(c, index[nb[c]: nb[c + 1]]) for c in range(nb.size - 1)], on_done=done)
     if timings is not None:
         timings["stage_compact"] = time.perf_counter() - clock
         timings["stage_compact_cpu"] = time.process_time() - cpu0
