@@ -100,11 +100,19 @@ def load() -> str:
 
 
 def cpu_seconds() -> float:
-    """User + system CPU seconds of this process (all its threads) so far."""
-    import resource
+    """User + system CPU seconds so far of this process (all its threads) and of its live
+    children (a LocalCluster's worker processes and nanny)."""
+    import psutil
 
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+    total = 0.0
+    me = psutil.Process()
+    for p in [me, *me.children(recursive=True)]:
+        try:
+            t = p.cpu_times()
+            total += t.user + t.system
+        except psutil.Error:
+            pass
+    return total
 
 
 def stage_split(tm: dict, nbytes: int) -> str:
