@@ -103,6 +103,26 @@ def test_refine_never_lowers_information_nor_breaks_budget(seed, ny, nx, k, budg
         assert again == out  # plan_greedy(refine=...) is refine(plan_greedy(...)), deterministic
 
 
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), ny=st.integers(4, 8), nx=st.integers(4, 8),
+       k=st.integers(2, 3), budget=st.floats(2.0, 14.0),
+       cost=st.sampled_from(["nearest-neighbor", "insertion"]))
+def test_refine_restarts_never_lower_information_nor_break_budget(seed, ny, nx, k, budget,
+                                                                  cost):
+    """Several iterated-local-search chains: still feasible and never below the input; chain 0
+    is the single chain of ``restarts=1`` (same seed), so with no time limit binding the best
+    over the chains is at least the single chain's."""
+    region, Y, start = instance(seed, ny, nx, k, True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plan = plan_greedy(Y, region, start, budget, ridge=1e-6, cost=cost, progress=False)
+    one = refine(plan, shortlist=8, radius=1.5, kicks=3, time_limit=1e6)
+    many = refine(plan, shortlist=8, radius=1.5, kicks=3, restarts=3, time_limit=1e6)
+    check_plan(many, plan, region, Y)
+    assert many.information >= one.information - 1e-12
+    assert many == refine(plan, shortlist=8, radius=1.5, kicks=3, restarts=3, time_limit=1e6)
+
+
 def brute_force(region, Y, start, budget, ridge):
     """Largest Fisher information over every set holding the start whose nearest-neighbour
     tour costs <= budget (+1e-9)."""
@@ -171,6 +191,9 @@ def test_refine_bad_input():
         refine("plan")
     with pytest.raises(PlanningError, match="max_rounds"):
         refine(plan, max_rounds=-1)
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(PlanningError, match="restarts"):
+            refine(plan, restarts=bad)
     aopt = plan_greedy(Y, region, start, 4.0, ridge=1e-3, criterion="aopt", progress=False)
     with pytest.raises(PlanningError, match="Fisher"):
         refine(aopt)

@@ -228,6 +228,7 @@ def refine(
     refill: int = 8,
     restart: bool = True,
     kicks: int = 10,
+    restarts: int = 1,
     prior_precision: Any = None,
     noise_var: Any = None,
     seed: int | None = 0,
@@ -257,6 +258,9 @@ def refine(
     kicks : after the local search converges, this many perturbations (iterated local search):
         remove a random stretch of 5-20% of the route's stops, refill greedily (the removed
         cells excluded), search again; the result is kept only when it beats the best plan.
+    restarts : independent chains of ``kicks`` kicks (iterated local search restarted from the
+        local optimum, chain ``j`` seeded with ``seed + j``; the time left is split evenly); the
+        best plan over all chains is kept. ``1`` is the single chain of earlier versions.
     seed : seeds the kicks (``numpy.random.default_rng``); the result is deterministic given it.
 
     Returns a new :class:`Plan` (``method`` unchanged) whose ``information`` is ``>=`` the
@@ -294,6 +298,9 @@ def refine(
                     ("kicks", kicks)):
         if not isinstance(v, (int, np.integer)) or v < 0:
             raise PlanningError(f"{name} must be an integer >= 0, got {v!r}")
+    if isinstance(restarts, bool) or not isinstance(restarts, (int, np.integer)) \
+            or restarts < 1:
+        raise PlanningError(f"restarts must be an integer >= 1, got {restarts!r}")
     if not np.isfinite(radius) or radius < 0 or not time_limit > 0:
         raise PlanningError("radius must be >= 0 and time_limit > 0")
 
@@ -330,18 +337,27 @@ def refine(
     (cells, route, cost, value), found, rounds = _search((cells, route, cost, value), max_rounds,
                                                          **ls)
     moves += found
-    rng = np.random.default_rng(seed)
-    for _ in range(kicks):
-        if time.perf_counter() > deadline or len(moves) >= max_rounds:
-            break
-        kicked = _kick((cells, route, cost, value), rng, **ls)
-        if kicked is None:
-            continue
-        state, found, r = _search(kicked, max_rounds - len(moves), **ls)
-        rounds += r
-        if state[2] <= limit and state[3] > value + _EPS:
-            cells, route, cost, value = state
-            moves.append((5, -1, -1, value))
+    # iterated local search: ``restarts`` independent chains of ``kicks`` kicks, each from the
+    # local optimum above, the remaining time split evenly; the best plan over all is kept
+    local = (cells, route, cost, value)
+    t_kick = time.perf_counter()
+    for j in range(restarts if kicks else 0):
+        rng = np.random.default_rng(seed if j == 0 or seed is None else seed + j)
+        chain_end = min(deadline, t_kick + (j + 1) * (deadline - t_kick) / restarts)
+        cur = local
+        for _ in range(kicks):
+            if time.perf_counter() > chain_end or len(moves) >= max_rounds:
+                break
+            kicked = _kick(cur, rng, **ls)
+            if kicked is None:
+                continue
+            state, found, r = _search(kicked, max_rounds - len(moves), **ls)
+            rounds += r
+            if state[2] <= limit and state[3] > cur[3] + _EPS:
+                cur = state
+                if state[3] > value + _EPS:
+                    cells, route, cost, value = state
+                    moves.append((5, -1, -1, value))
     if not moves and cost == plan.cost:
         return plan
     info = float(_fisher_set_value(Yk, cells, plan.ridge))
