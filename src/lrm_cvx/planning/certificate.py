@@ -225,7 +225,7 @@ def plan_bound(
     cover: int = 2,
     max_pieces: int = 40,
     refine: bool | dict[str, Any] = True,
-    path_aware: bool | dict[str, Any] = False,
+    path_aware: bool | str | dict[str, Any] = False,
 ) -> PlanCertificate:
     """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
 
@@ -276,7 +276,9 @@ def plan_bound(
     ``path_aware=True`` (opt-in, grid metric, the paper's path model) also computes the
     path-aware relaxation of :mod:`lrm_cvx.planning.relaxation` (a dict passes options to
     ``path_relaxation_bound``) and keeps the smaller valid bound (``path_bound``); if it
-    fails, a warning says the disk bound is used.
+    fails, a warning says the disk bound is used. ``path_aware="walk"`` (or a dict with
+    ``"method": "walk"``) uses the king-walk relaxation ``walk_relaxation_bound`` instead
+    (tighter on small regions; its columns are dense, so not for paper scale).
     """
     from ..information import fisher_information
 
@@ -747,8 +749,17 @@ def _path_aware(Y: np.ndarray, region: Any, start: int, budget: float, ridge: fl
         warnings.warn("path_aware=True needs metric='grid'; the disk bound is used",
                       UserWarning, stacklevel=3)
         return None
+    if isinstance(opts, str) and opts != "walk":
+        raise PlanningError(f"path_aware must be a bool, 'walk' or a dict, got {opts!r}")
     kw = dict(opts) if isinstance(opts, dict) else {}
+    method = kw.pop("method", "walk" if opts == "walk" else "flow")
+    if method not in ("walk", "flow"):
+        raise PlanningError(f"path_aware method must be 'walk' or 'flow', got {method!r}")
+    walk = method == "walk"
     try:
+        if walk:  # the king-walk relaxation (docs/certificate.md §9, "walk relaxation")
+            return float(relaxation.walk_relaxation_bound(Y, region, start, budget,
+                                                          ridge=ridge, **kw).value)
         return float(relaxation.path_relaxation_bound(Y, region, start, budget, ridge=ridge,
                                                       **kw).value)
     except (PlanningError, SolverError) as exc:

@@ -45,7 +45,8 @@ from .dopt import (
 
 _LP_METHOD = "highs-ipm"
 
-__all__ = ["PathBound", "PathPolytope", "path_polytope", "path_relaxation_bound"]
+__all__ = ["PathBound", "PathPolytope", "WalkBound", "path_polytope", "path_relaxation_bound",
+           "walk_relaxation_bound"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -354,3 +355,277 @@ def path_relaxation_bound(
         n_layers=poly.n_layers, n_edges=poly.n_edges, n_candidates=int(N), n_max=poly.n_max,
         solver=used, status=status, seconds=time.perf_counter() - t0,
     )
+
+
+# ----------------------------------------------------------------------------- king walks
+# docs/certificate.md §9, "A walk relaxation": a leg of Euclidean length d is max(|dr|, |dc|)
+# <= d king moves, so every route within the budget passes through its cells on a king walk of
+# at most floor(B') unit steps from the start. The walk polytope is used through its exact
+# pricing oracle (a dynamic program over steps), never as an explicit layered graph.
+_KING = tuple((dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0))
+
+
+class _KingWalks:
+    """Best king walk from the start for per-visit rewards (every visit is paid, revisits too).
+
+    Positions are the grid positions within Chebyshev distance ``steps`` of the start (land
+    included: a walk may pass anywhere in the plane); ``cells`` (N,) are the candidates, their
+    window positions ``pos`` (N,). ``best(r)`` returns ``(value, visits)``: the largest
+    ``sum_t r[p_t]`` over walks ``p_0 = start, ..., p_T``, ``T <= steps`` (exact, by dynamic
+    programming), and the visit counts (N,) of one optimal walk.
+    """
+
+    def __init__(self, region: Any, start: int, cells: np.ndarray, steps: int) -> None:
+        ny, nx = region.shape
+        s = np.asarray(region.grid_index[start], dtype=np.int64)
+        self.r0, self.c0 = max(0, s[0] - steps), max(0, s[1] - steps)
+        r1, c1 = min(ny, s[0] + steps + 1), min(nx, s[1] + steps + 1)
+        self.shape = (r1 - self.r0, c1 - self.c0)
+        gi = np.asarray(region.grid_index[cells], dtype=np.int64)
+        self.pos = (gi[:, 0] - self.r0) * self.shape[1] + (gi[:, 1] - self.c0)
+        self.s = (int(s[0] - self.r0), int(s[1] - self.c0))
+        self.steps = int(steps)
+
+    def best(self, r: np.ndarray) -> tuple[float, np.ndarray]:
+        h, w = self.shape
+        R = np.zeros(h * w)
+        np.add.at(R, self.pos, np.maximum(np.asarray(r, float), 0.0))
+        R = R.reshape(h, w)
+        F = np.zeros((h, w))
+        arg = np.full((self.steps + 1, h, w), -1, np.int8)
+        pad = np.full((h + 2, w + 2), -np.inf)
+        for T in range(1, self.steps + 1):
+            pad[1:-1, 1:-1] = R + F
+            cand = np.stack([pad[1 + dr: 1 + dr + h, 1 + dc: 1 + dc + w] for dr, dc in _KING])
+            j = np.argmax(cand, axis=0)
+            top = np.take_along_axis(cand, j[None], 0)[0]
+            arg[T] = np.where(top > 0, j, -1)
+            F = np.maximum(top, 0.0)
+        value = float(R[self.s] + F[self.s])
+        vis = np.zeros((h, w))
+        p = self.s
+        vis[p] += 1
+        for T in range(self.steps, 0, -1):
+            j = int(arg[T][p])
+            if j < 0:
+                break
+            p = (p[0] + _KING[j][0], p[1] + _KING[j][1])
+            vis[p] += 1
+        return value, vis.ravel()[self.pos]
+
+
+@dataclass(frozen=True, eq=False)
+class WalkBound:
+    """Dual bound (nats) of the walk relaxation: ``value`` valid whatever the solvers did;
+    ``primal`` the best ``log det M(w)`` of a design in the relaxation; ``walks`` columns used;
+    ``rounds`` conic solves; ``seconds`` wall time; ``history`` the bound after each design."""
+
+    value: float
+    primal: float
+    n_candidates: int
+    n_max: int
+    walks: int
+    rounds: int
+    seconds: float
+    history: tuple[float, ...] = ()
+
+
+class _WalkLP:
+    """``max g.w`` over ``{0 <= w <= 1, A w <= b (count and distance rows), w <= V theta,
+    theta >= 0, sum theta = 1}``: column generation over king walks (columns of ``V``) with an
+    exact dual bound at every round::
+
+        max g.w  <=  b.y + sum_i max(0, g_i - (A^T y)_i - lam_i) + max_walk lam.visits
+
+    for any ``y >= 0``, ``lam >= 0`` (Lagrangian of the linking rows ``w <= visits``; the last
+    term is exact by :class:`_KingWalks`)."""
+
+    def __init__(self, walks: _KingWalks, A: scipy.sparse.csr_array, b: np.ndarray) -> None:
+        self.walks, self.A, self.b = walks, A, b
+        self.V = np.zeros((A.shape[1], 0))
+
+    def add(self, vis: np.ndarray) -> None:
+        if self.V.shape[1] and np.any(np.all(self.V == vis[:, None], axis=0)):
+            return
+        self.V = np.column_stack([self.V, vis])
+
+    def bound(self, g: np.ndarray, y: np.ndarray, lam: np.ndarray) -> tuple[float, np.ndarray]:
+        y, lam = np.maximum(y, 0.0), np.maximum(lam, 0.0)
+        red = g - self.A.T @ y - lam
+        walk, vis = self.walks.best(lam)
+        return float(self.b @ y + np.maximum(red, 0.0).sum() + walk), vis
+
+    def support(self, g: np.ndarray, rounds: int = 60) -> tuple[float, np.ndarray]:
+        """``(upper bound on max g.w, the last master's w)``."""
+        N = g.size
+        if self.V.shape[1] == 0:
+            self.add(self.walks.best(g)[1])
+        best, w = math.inf, np.zeros(N)
+        scale = float(np.abs(g).max()) or 1.0
+        for _ in range(rounds):
+            m = self.V.shape[1]
+            A_ub = scipy.sparse.vstack([
+                scipy.sparse.hstack([self.A, scipy.sparse.csr_array((self.A.shape[0], m))]),
+                scipy.sparse.hstack([scipy.sparse.eye_array(N),
+                                     scipy.sparse.csr_array(-self.V)]),
+            ]).tocsr()
+            b_ub = np.concatenate([self.b, np.zeros(N)])
+            A_eq = np.concatenate([np.zeros(N), np.ones(m)])[None, :]
+            bounds = [(0.0, 1.0)] * N + [(0.0, None)] * m
+            res = scipy.optimize.linprog(
+                -np.concatenate([g, np.zeros(m)]) / scale, A_ub=A_ub, b_ub=b_ub, A_eq=A_eq,
+                b_eq=[1.0], bounds=bounds, method="highs")
+            if res.status != 0 or res.ineqlin is None:
+                y, lam = np.zeros(self.A.shape[0]), np.maximum(g, 0.0)
+                val, vis = self.bound(g, y, lam)
+                return min(best, val), w
+            dual = -np.asarray(res.ineqlin.marginals) * scale
+            y, lam = dual[: self.A.shape[0]], dual[self.A.shape[0]:]
+            w = np.clip(res.x[:N], 0.0, 1.0)
+            val, vis = self.bound(g, y, lam)
+            best = min(best, val)
+            if best - (-res.fun * scale) <= 1e-9 * max(1.0, abs(best)):
+                break
+            n_before = self.V.shape[1]
+            self.add(vis)
+            if self.V.shape[1] == n_before:
+                break
+        return best, w
+
+
+def _count_rows(n_max: int, levels: list[np.ndarray], caps: list[np.ndarray], N: int
+                ) -> tuple[scipy.sparse.csr_array, np.ndarray]:
+    from .dopt import _Polytope
+
+    return _Polytope(n_max, N, levels, caps)._rows(np.arange(N))
+
+
+def walk_relaxation_bound(
+    Y: Any, region: Any, start: Any, budget: float, *, ridge: float = 0.0,
+    rounds: int = 6, lp_rounds: int = 60, limits: bool = True,
+) -> WalkBound:
+    """Dual bound of the walk relaxation (grid metric, the paper's open path): the Fisher
+    information of every route from ``start`` within ``budget`` is at most ``value``.
+
+    The relaxation: ``max log det M(w)`` over ``w`` with ``0 <= w <= 1``, ``sum w <= n_max``,
+    Lemma 1's distance limits (``limits=True``) and ``w <= visits`` of a convex combination of
+    king walks of ``floor(B')`` steps from the start (docs/certificate.md §9). Each design
+    ``M`` gives ``log det M + k log(S / k)`` with ``S = ridge tr M^-1 + `` an exact dual bound
+    on ``max g.w`` (:class:`_WalkLP`); designs: the disk relaxation's (with the limits), then
+    ``rounds`` cvxpy solves over the walks generated so far. Raises :class:`PlanningError`
+    for a budget that no nonsingular design fits.
+    """
+    from .certificate import _start_limit
+    from .dopt import _Polytope, _relaxation
+
+    t0 = time.perf_counter()
+    Y = as_factor_matrix(Y, region)
+    k = Y.shape[0]
+    start = region.resolve_cell(start, "start")
+    budget = float(budget)
+    if not (math.isfinite(budget) and budget >= 0):
+        raise PlanningError(f"budget must be >= 0 and finite, got {budget!r}")
+    if not (math.isfinite(float(ridge)) and ridge >= 0):
+        raise PlanningError(f"ridge must be >= 0 and finite, got {ridge!r}")
+    Bp = budget + _DIST_EPS * max(1.0, budget)
+    dist = np.asarray(region.distance(start, np.arange(region.n_cells), metric="grid"), float)
+    cells = np.flatnonzero(dist <= Bp)
+    steps = math.floor(Bp)
+    n_max = int(min(cells.size, steps + 1))
+    N = cells.size
+    levels, caps = [], []
+    lim = _start_limit(Bp, 1.0, n_max) if limits else None
+    if lim is not None:
+        levels.append(np.searchsorted(lim[0], dist[cells], side="right"))
+        caps.append(lim[1])
+    A, b = _count_rows(n_max, levels, caps, N)
+    lp = _WalkLP(_KingWalks(region, start, cells, steps), A, b)
+    Yc = np.ascontiguousarray(Y[:, cells], dtype=np.float64)
+
+    def evaluate(M: np.ndarray) -> tuple[float, float]:
+        L = _chol(M)
+        if L is None:
+            return math.inf, -math.inf
+        Linv = _inv_lower(L)
+        g = _leverages(Yc, Linv)
+        top, _ = lp.support(g, lp_rounds)
+        S = ridge * float((Linv * Linv).sum()) + top
+        logdet = 2.0 * float(np.log(np.diag(L)).sum())
+        if not (np.isfinite(S) and S > 0):
+            return math.inf, logdet
+        return logdet + k * math.log(max(S, 1e-300) / k), logdet
+
+    disk = _relaxation(Y, cells, _Polytope(n_max, N, levels, caps), ridge, tol=1e-4)
+    hist = []
+    best, primal = math.inf, -math.inf
+    if math.isfinite(disk.value):
+        w0 = disk.weights.toarray()[cells]
+        val, _ = evaluate(_moment(Yc, np.arange(N), w0, ridge))
+        best = min(best, val)
+        hist.append(val)
+    used = 0
+    for _ in range(rounds):
+        w = _solve_walk_cvx(Yc, ridge, A, b, lp.V, n_max)
+        if w is None:
+            break
+        used += 1
+        val, ld = evaluate(_moment(Yc, np.arange(N), w, ridge))
+        hist.append(val)
+        primal = max(primal, ld)
+        best = min(best, val)
+        if best - primal <= 1e-3:
+            break
+    if not math.isfinite(best):
+        raise PlanningError("the walk relaxation has no nonsingular design (fewer than k cells "
+                            "reachable with ridge = 0); use the disk bound")
+    return WalkBound(value=float(best), primal=float(primal), n_candidates=int(N),
+                     n_max=n_max, walks=int(lp.V.shape[1]), rounds=used,
+                     seconds=time.perf_counter() - t0, history=tuple(hist))
+
+
+def _solve_walk_cvx(Yc: np.ndarray, ridge: float, A: Any, b: np.ndarray, V: np.ndarray,
+                    n_max: int) -> np.ndarray | None:
+    """``max log det M(w)`` over the walks ``V`` found so far (a restriction of the walk
+    relaxation: its design is feasible), congruence-scaled; ``None`` when the solvers fail.
+    The returned ``w`` is made feasible for the rows ``A w <= b`` by scaling down."""
+    import cvxpy as cp
+
+    k, N = Yc.shape
+    m = V.shape[1]
+    w0 = np.minimum(1.0, V.mean(axis=1))
+    M0 = _moment(Yc, np.arange(N), w0, ridge) + 1e-9 * np.eye(k)
+    L0 = _chol(M0)
+    if L0 is None:
+        return None
+    T = _inv_lower(L0)
+    Yw = T @ Yc
+    iu, ju = np.triu_indices(k)
+    F = Yw[iu] * Yw[ju]
+    p = iu.size
+    r = np.concatenate([iu * k + ju, ju * k + iu])
+    c = np.concatenate([np.arange(p), np.arange(p)])
+    keep = np.ones(r.size, bool)
+    keep[p:] = iu != ju
+    Esc = scipy.sparse.csr_array((np.ones(int(keep.sum())), (r[keep], c[keep])), shape=(k * k, p))
+    C = ridge * (T @ T.T)
+    w = cp.Variable(N)
+    th = cp.Variable(m)
+    Mexpr = cp.reshape(C.ravel() + Esc @ (F @ w), (k, k), order="C")
+    cons = [w >= 0, w <= 1, th >= 0, cp.sum(th) == 1, w <= V @ th, A @ w <= b]
+    prob = cp.Problem(cp.Maximize(cp.log_det(Mexpr)), cons)
+    attempts = [("CLARABEL", o) for o in _CLARABEL_OPTS] + [("SCS", _SCS_OPTS)]
+    for name, opts in attempts:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                prob.solve(solver=name, **opts)
+        except (cp.error.SolverError, ValueError, ArithmeticError):
+            continue
+        if w.value is not None and str(prob.status) in ("optimal", "optimal_inaccurate"):
+            wv = np.clip(np.asarray(w.value, float), 0.0, 1.0)
+            wv[wv < 1e-9] = 0.0
+            over = A @ wv
+            with np.errstate(divide="ignore", invalid="ignore"):
+                f = np.where(over > b, b / over, 1.0)
+            return wv * min(1.0, float(f.min()) if f.size else 1.0)
+    return None
