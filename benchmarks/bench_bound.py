@@ -9,8 +9,11 @@ from ``synthetic_field(..., return_truth=True)``, budget 200 grid units from a c
 
 ``--small`` runs a 300 x 280 grid with budget 40; ``--sample`` certifies the greedy plan at
 budgets 5, 50, 100, 200 on the bundled real sample (``load_sample("sst")``, rank 5, three
-starts). Every run also refines the greedy plan (``refine``: its time and gain) and splits the
-certified gap into plan slack (greedy -> refined) and bound slack (refined -> bound).
+starts; refinement ``SAMPLE_REFINE``: four chains of 150 kicks within 120 s), and with
+``--path-aware [walk|flow]`` also the king-walk (default) or layered-block relaxation of issue
+#16 (the certificate keeps the smaller bound). Every run also refines the greedy plan
+(``refine``: its time and gain) and splits the certified gap into plan slack (greedy ->
+refined) and bound slack (refined -> bound).
 
 Run under the shared lock::
 
