@@ -316,3 +316,24 @@ def test_walk_bound_in_the_certificate():
         B.plan_bound(Y, region, start, 6.0, refine=False, path_aware={"method": "x"})
     with pytest.raises(PlanningError, match="budget"):
         R.walk_relaxation_bound(Y, region, start, -1.0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_walk_bound_is_above_the_refined_plan_on_random_instances(seed):
+    from lrm_cvx.planning.greedy import plan_greedy
+    from lrm_cvx.planning.refine import refine
+
+    rng = np.random.default_rng(seed)
+    ny, nx = rng.integers(6, 10, size=2)
+    masked = [tuple(p) for p in rng.integers(0, [ny, nx], size=(4, 2))
+              if tuple(p) != (ny // 2, nx // 2)]
+    region = make_region(int(ny), int(nx), masked=masked)
+    Y = _grid_Y(region, 3, seed) + 0.3 * rng.normal(size=(3, region.n_cells))
+    start = int(region.cell_grid[ny // 2, nx // 2])
+    budget = float(rng.uniform(4.0, 9.0))
+    plan = refine(plan_greedy(Y, region, start, budget, ridge=1e-6, progress=False),
+                  kicks=5, restarts=2)
+    wb = R.walk_relaxation_bound(Y, region, start, budget, ridge=1e-6)
+    if plan.cost <= budget + 1e-9:  # a route within the budget (not the forced initial set)
+        assert wb.value >= plan.information - 1e-7
+    assert wb.value <= wb.primal + 1e-2
