@@ -1154,10 +1154,7 @@ def make_path_model(
                       traversable=kind, cost=cost, _enter=enter, _geo=geo,
                       _wrap=_wraps(region))
     if kind == "none":
-        if region.n_cells < 2:
-            raise PlanningError(f"start {start_cell} cannot reach any other cell: the region "
-                                "has one cell")
-        return model
+        return model  # straight lines: a one-cell region plans the start alone (the paper's)
     _check_start_moves(model)
     travel = max(model.travel_budget, 0.0)
     # every point of a feasible route is within `radius` of the start, every leg <= `limit`
