@@ -613,3 +613,23 @@ def test_plan_invariants_on_every_path_model(seed, model, n_robots, sense_along,
                                                         else [])))
     assert plan.cells.tolist() == expected
     assert plan.information == pytest.approx(fisher_information(Y, plan.cells, 1e-3))
+
+
+@pytest.mark.parametrize("closed", [False, True])
+def test_forced_initial_cells_beyond_a_tiny_budget_have_a_finite_route(closed):
+    """A budget smaller than one step: the rank's forced cells lie outside the travel graph's
+    reach; the plan warns, and its cost is the true route through the graph (finite, equal to
+    the expanded route's last cumulative cost; every row an enterable 8-neighbour step)."""
+    mask = np.ones((6, 7), dtype=bool)
+    mask[2, 1:5] = False  # a wall to walk around
+    region = make_region(mask)
+    Y = np.random.default_rng(3).normal(size=(4, region.n_cells))
+    with pytest.warns(UserWarning, match="initial cells"):
+        plan = plan_greedy(Y, region, 3, 0.5, metric="km", traversable="valid", closed=closed,
+                           progress=False)
+    assert np.isfinite(plan.cost) and plan.cost > 0.5
+    df = plan.to_dataframe()
+    assert df["cumulative_cost"].iloc[-1] == pytest.approx(plan.cost)
+    gi = region.grid_index[df["cell"].to_numpy()]
+    assert np.abs(np.diff(gi, axis=0)).max() <= 1
+    assert len(plan.cells) == 4

@@ -1046,7 +1046,9 @@ class PathModel:
         r = g.radius * 2 if g.radius > 0 else float(self._unit_step())
         if r > self._lower_bound_from_start()[self._enter].max():
             r = np.inf
-        self._graph = _Graph(self, r, max(g.limit, r))
+        # the forced initial cells may lie beyond the budget: their legs are then unlimited
+        # within the grown graph (every node of it is connected to the start inside it)
+        self._graph = _Graph(self, r, np.inf)
 
     def _unit_step(self) -> float:
         """About two grid steps in the budget's unit (the first growth of a graph)."""
