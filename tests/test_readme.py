@@ -28,13 +28,35 @@ def test_persistent_monitoring_block_runs(tmp_path, monkeypatch):
     """The README's monitoring loop runs as written and its state loads back with the model."""
     from lrm_cvx.monitor import MonitorState
 
-    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
-    assert len(blocks) >= 2, "README has no persistent-monitoring block"
     monkeypatch.chdir(tmp_path)
     namespace: dict = {}
-    exec(compile(blocks[1], str(README), "exec"), namespace)  # noqa: S102 - our own README
+    exec(compile(_block("model.monitor()"), str(README), "exec"), namespace)  # noqa: S102
     state = namespace["state"]
     assert state.time == namespace["test"].time.values[-1]
     back = MonitorState.load(tmp_path / "state.nc", namespace["model"])
     assert back.time == state.time
     assert float(namespace["today"]["std"].max()) > 0
+
+
+def _block(marker: str) -> str:
+    """The README's python block that contains ``marker``."""
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    found = [b for b in blocks if marker in b]
+    assert found, f"README has no python block with {marker!r}"
+    return found[0]
+
+
+def test_robots_block_runs(tmp_path, monkeypatch, capsys):
+    """Two closed gliders in km: each within 8000 km, each route ends at its start, the printed
+    table has the documented columns, the certificate bounds the plan."""
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(_block('metric="km"'), str(README), "exec"), namespace)  # noqa: S102
+    plan = namespace["plan"]
+    assert len(plan.robot_costs) == 2 and max(plan.robot_costs) <= 8000 + 1e-6
+    df = plan.to_dataframe()
+    for _, rows in df.groupby("robot"):
+        assert rows["cell"].iloc[-1] == rows["cell"].iloc[0]
+    assert "waypoint" in capsys.readouterr().out
+    cert = plan.certify()
+    assert cert.bound >= plan.information
