@@ -633,3 +633,14 @@ def test_forced_initial_cells_beyond_a_tiny_budget_have_a_finite_route(closed):
     gi = region.grid_index[df["cell"].to_numpy()]
     assert np.abs(np.diff(gi, axis=0)).max() <= 1
     assert len(plan.cells) == 4
+
+
+def test_fleet_certificate_reports_the_total_budget():
+    """A fleet's certificate, like its Plan, reports the robots' total budget and bounds the
+    joint information."""
+    region = make_region(np.ones((6, 7), dtype=bool))
+    Y = np.random.default_rng(5).normal(size=(3, region.n_cells))
+    plan = plan_greedy(Y, region, [0, region.n_cells - 1], [4.0, 2.5], progress=False)
+    cert = plan.certify(tighten=False)
+    assert plan.budget == pytest.approx(6.5) and cert.budget == pytest.approx(plan.budget)
+    assert cert.bound >= plan.information - 1e-9

@@ -295,7 +295,8 @@ def plan_bound(
                       sense_along=sense_along, path=path, n_sensors=n_sensors)
     fam = _family(spec, region, k)
     cand, n_max, init = fam.cand, fam.n_max, fam.init
-    budget0 = spec.budgets[0] if spec.budgets else float(spec.n_sensors)
+    # a fleet's certificate reports the total budget, as Plan.budget does
+    budget0 = float(sum(spec.budgets)) if spec.budgets else float(spec.n_sensors)
     start0 = spec.starts[0] if spec.starts else -1
     metric = spec.metric if spec.kind == "path" else "sensors"
     init_info = float(fisher_information(Y, init, ridge=ridge)) if init.size else -math.inf
