@@ -556,6 +556,24 @@ def _frank_wolfe(
 
 
 # ----------------------------------------------------------------------------- cvxpy
+def _moment_map(Yw: np.ndarray) -> tuple[np.ndarray, scipy.sparse.csr_array]:
+    """``M(w) - C = Y diag(w) Y^T`` as an affine map of ``w`` without forming it:
+    ``vec(M) = E @ (F @ w)`` (row-major), with ``F[(a, b), j] = y_aj y_bj`` over the k(k+1)/2
+    pairs ``a <= b`` and ``E`` the constant 0/1 ``(k*k, k(k+1)/2)`` scatter into both halves."""
+    k = Yw.shape[0]
+    iu, ju = np.triu_indices(k)
+    F = Yw[iu] * Yw[ju]  # (p, m)
+    p = iu.size
+    rows = np.concatenate([iu * k + ju, ju * k + iu])  # row-major positions a*k + b
+    cols = np.concatenate([np.arange(p), np.arange(p)])
+    keep = np.ones(rows.size, bool)
+    keep[p:] = iu != ju  # diagonal entries once
+    E = scipy.sparse.csr_array(
+        (np.ones(int(keep.sum())), (rows[keep], cols[keep])), shape=(k * k, p)
+    )
+    return F, E
+
+
 def _solve_restricted(
     Yw: np.ndarray, C: np.ndarray, n: float, solver: str, verbose: bool = False,
     rows: tuple[Any, np.ndarray] | None = None,
@@ -571,16 +589,7 @@ def _solve_restricted(
 
     limit_rows = rows
     k, m = Yw.shape
-    iu, ju = np.triu_indices(k)
-    F = Yw[iu] * Yw[ju]  # (p, m)
-    p = iu.size
-    rows = np.concatenate([iu * k + ju, ju * k + iu])  # row-major positions a*k + b
-    cols = np.concatenate([np.arange(p), np.arange(p)])
-    keep = np.ones(rows.size, bool)
-    keep[p:] = iu != ju  # diagonal entries once
-    E = scipy.sparse.csr_array(
-        (np.ones(int(keep.sum())), (rows[keep], cols[keep])), shape=(k * k, p)
-    )
+    F, E = _moment_map(Yw)
     w = cp.Variable(m)
     vecM = C.ravel() + E @ (F @ w)
     Mexpr = cp.reshape(vecM, (k, k), order="C")

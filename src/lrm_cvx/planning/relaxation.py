@@ -41,6 +41,7 @@ from .dopt import (
     _inv_lower,
     _leverages,
     _moment,
+    _moment_map,
 )
 
 _LP_METHOD = "highs-ipm"
@@ -232,14 +233,7 @@ def _solve_cvx(Yw: np.ndarray, C: np.ndarray, poly: PathPolytope, solver: str
     import cvxpy as cp
 
     k, N = Yw.shape
-    iu, ju = np.triu_indices(k)
-    F = Yw[iu] * Yw[ju]
-    p = iu.size
-    r = np.concatenate([iu * k + ju, ju * k + iu])
-    c = np.concatenate([np.arange(p), np.arange(p)])
-    keep = np.ones(r.size, bool)
-    keep[p:] = iu != ju
-    Esc = scipy.sparse.csr_array((np.ones(int(keep.sum())), (r[keep], c[keep])), shape=(k * k, p))
+    F, Esc = _moment_map(Yw)
     v = cp.Variable(poly.n_vars)
     w = v[:N]
     Mexpr = cp.reshape(C.ravel() + Esc @ (F @ w), (k, k), order="C")
@@ -599,14 +593,7 @@ def _solve_walk_cvx(Yc: np.ndarray, ridge: float, A: Any, b: np.ndarray, V: np.n
         return None
     T = _inv_lower(L0)
     Yw = T @ Yc
-    iu, ju = np.triu_indices(k)
-    F = Yw[iu] * Yw[ju]
-    p = iu.size
-    r = np.concatenate([iu * k + ju, ju * k + iu])
-    c = np.concatenate([np.arange(p), np.arange(p)])
-    keep = np.ones(r.size, bool)
-    keep[p:] = iu != ju
-    Esc = scipy.sparse.csr_array((np.ones(int(keep.sum())), (r[keep], c[keep])), shape=(k * k, p))
+    F, Esc = _moment_map(Yw)
     C = ridge * (T @ T.T)
     w = cp.Variable(N)
     th = cp.Variable(m)
