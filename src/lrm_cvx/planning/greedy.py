@@ -9,10 +9,11 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .._validation import as_factor_matrix, check_positive
-from ..cost import COST_REGISTRY, make_cost
+from ..cost import COST_REGISTRY
 from ..errors import PlanningError
 from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
+from .paths import make_path_model
 from .plan import Plan, check_region, path_dict
 
 __all__ = ["initial_cells", "plan_greedy", "place_sensors"]
@@ -301,9 +302,6 @@ def plan_greedy(
         raise PlanningError("n_sensors applies to path='static' only")
     if training is not None or exchange is not False:
         raise PlanningError("training and exchange apply to path='static' only")
-    make_path_model = _path_model_factory()
-    if region.n_cells == 1 and traversable is None:  # nowhere to go: the start alone
-        make_path_model = _paper_model
 
     Yk = as_factor_matrix(Y, region)
     k, L = Yk.shape
@@ -421,60 +419,6 @@ def plan_greedy(
         ridge=float(ridge), cost=cost, posterior=posterior, budgets=budgets, refine=refine,
         terms=terms, sense_along=bool(sense_along),
     )
-
-
-def _path_model_factory() -> Any:
-    """``paths.make_path_model`` (imported here: paths imports greedy's helpers)."""
-    from .paths import make_path_model
-
-    return make_path_model
-
-
-class _PaperModel:
-    """The paper's path model on a one-cell region (the start alone)."""
-
-    metric, speed, stop_cost, closed, end, traversable, unit = ("grid", None, 0.0, False, None,
-                                                                "none", "grid units")
-
-    def __init__(self, region: Region, start: int, budget: float, cost: str) -> None:
-        self.region, self.start, self.budget, self.cost = region, int(start), float(budget), cost
-
-    def candidates(self) -> np.ndarray:
-        return _budget_pool(self.region, self.start, self.budget)
-
-    def initial_cells(self, k: int) -> np.ndarray:
-        return initial_cells(self.region, self.start, k)
-
-    def coster(self, cells0: Any, pool: Any) -> Any:
-        c = make_cost(self.cost, self.region.grid_index, cells0, pool)
-
-        def deactivate(cell: int) -> None:
-            c.active[c.pool == int(cell)] = False
-
-        c.deactivate = deactivate
-        return c
-
-    def expand(self, stops: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        from .plan import _path_cumulative
-
-        stops = np.asarray(stops, dtype=np.int64)
-        return (stops, _path_cumulative(self.region.grid_index[stops]),
-                np.ones(stops.size, bool))
-
-
-def _paper_model(region: Region, start: int, budget: float, *, metric: str = "grid",
-                 speed: Any = None, stop_cost: float = 0.0, traversable: Any = None,
-                 closed: bool = False, end: Any = None, cost: str = "nearest-neighbor") -> Any:
-    """The paper's model on a one-cell region (paths.make_path_model refuses a start that
-    cannot move; the paper's planner returns the start alone)."""
-    if (metric, speed, stop_cost, traversable, closed, end) != ("grid", None, 0.0, None, False,
-                                                                None):
-        from .paths import make_path_model
-
-        return make_path_model(region, start, budget, metric=metric, speed=speed,
-                               stop_cost=stop_cost, traversable=traversable, closed=closed,
-                               end=end, cost=cost)
-    return _PaperModel(region, start, budget, cost)
 
 
 def _take(coster: Any, pool: np.ndarray, cell: int) -> None:
