@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from lrm_cvx import Region
 from lrm_cvx.cost import InsertionCost, NearestNeighborCost
 from lrm_cvx.errors import PlanningError, RegionError
-from lrm_cvx.planning.paths import make_path_model, travel_distance
+from lrm_cvx.planning.paths import make_path_model, startable_cells, travel_distance
 from lrm_cvx.region import _haversine
 
 R_KM = 6371.0088
@@ -316,6 +316,67 @@ def test_wrap_connects_first_and_last_column():
     assert not m2._wrap
     assert np.isinf(m2.distances(a, [b])[0])
     assert b not in m2.candidates()
+
+
+def naive_startable(region, tr, wrap):
+    """Reference: per cell, enterable and one of its 8 grid neighbours a valid enterable cell."""
+    enter = enter_of(region, tr)
+    grid = region.cell_grid
+    ny, nx = region.shape
+    out = []
+    for cell, (r0, c0) in enumerate(region.grid_index):
+        if tr is None:  # straight lines: every valid cell starts
+            out.append(cell)
+            continue
+        if not enter[cell]:
+            continue
+        for dr, dc in itertools.product((-1, 0, 1), repeat=2):
+            r, c = r0 + dr, c0 + dc
+            if wrap:
+                c %= nx
+            if (dr or dc) and 0 <= r < ny and 0 <= c < nx and grid[r, c] >= 0 \
+                    and enter[grid[r, c]]:
+                out.append(cell)
+                break
+    return np.array(out, dtype=np.int64)
+
+
+@pytest.mark.parametrize("wrap", [False, True])
+def test_startable_cells_naive_reference(wrap):
+    # sparse masks (many isolated cells), wrapped and not; every start it lists is accepted by
+    # make_path_model, every other cell refused
+    rng = np.random.default_rng(41 + wrap)
+    isolated = 0
+    for _ in range(25):
+        region = random_region(rng, keep=0.45, wrap=wrap)
+        for kind in (None, "valid", "mask"):
+            tr = random_trav(rng, region, kind) if kind else None
+            got = startable_cells(region, tr)
+            ref = naive_startable(region, tr, wrap)
+            assert got.dtype == np.int64
+            np.testing.assert_array_equal(got, ref)
+            isolated += region.n_cells - got.size
+            for cell in range(region.n_cells):
+                if cell in got:
+                    make_path_model(region, cell, 3.0, traversable=tr)
+                else:
+                    with pytest.raises(PlanningError, match="start"):
+                        make_path_model(region, cell, 3.0, traversable=tr)
+    assert isolated > 0  # the masks did leave cells with nowhere to go
+
+
+def test_startable_cells_wrap_seam():
+    # a valid cell in the first column whose only valid neighbour is across the seam
+    nx = 8
+    mask = np.zeros((3, nx), bool)
+    mask[1, 0] = mask[1, nx - 1] = True
+    ring = grid_region(3, nx, mask, lat0=-10, lon0=0.0, dlat=10.0, dlon=45.0)
+    assert startable_cells(ring, "valid").tolist() == [0, 1]
+    flat = grid_region(3, nx, mask, lat0=-10, lon0=0.0, dlat=10.0, dlon=40.0)
+    assert startable_cells(flat, "valid").size == 0
+    assert startable_cells(flat, None).tolist() == [0, 1]
+    with pytest.raises(PlanningError, match="traversable"):
+        startable_cells(flat, np.ones((2, 2), bool))
 
 
 # --------------------------------------------------------------------------- routes

@@ -320,38 +320,6 @@ def _path_options(metric: Any, speed: Any, stop_cost: Any, traversable: Any,
     return out
 
 
-def _start_cells(region: Region, path: dict[str, Any]) -> np.ndarray:
-    """Cells a robot may start from: every valid cell (the paper), or with a travel graph the
-    enterable cells with at least one enterable 8-neighbour (columns wrapping on a full-circle
-    grid, as the travel graph's), since a start must reach another cell. A bad
-    ``traversable`` (e.g. a mask on another grid) raises its PlanningError here, before any
-    plan."""
-    if "traversable" not in path:
-        return np.arange(region.n_cells)
-    from .planning.paths import _traversable_mask, _wraps
-
-    _, ok = _traversable_mask(region, path["traversable"])
-    grid = region.cell_grid
-    enter = (grid >= 0) & ok[np.maximum(grid, 0)]
-    ny, nx = enter.shape
-    wrap = _wraps(region)
-    padded = np.pad(enter, ((1, 1), (0, 0)))
-    count = np.zeros(enter.shape, dtype=np.int64)
-    for dr in (-1, 0, 1):
-        rows = padded[1 + dr:1 + dr + ny]
-        for dc in (-1, 0, 1):
-            if dr or dc:
-                shifted = np.roll(rows, -dc, axis=1)
-                if not wrap:  # no neighbour across the grid's east / west edge
-                    if dc == 1:
-                        shifted[:, -1] = False
-                    elif dc == -1:
-                        shifted[:, 0] = False
-                count += shifted
-    gi = region.grid_index
-    return np.flatnonzero(ok & (count[gi[:, 0], gi[:, 1]] > 0))
-
-
 def _int_arg(value: Any, name: str, minimum: int, error: type[Exception] = ModelError) -> int:
     """``value`` as an int >= ``minimum`` (bools, floats with a fraction, NaN refused)."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float,
@@ -502,6 +470,7 @@ def evaluate(
     routes (``greedy_route``, padded with -1) for the qualitative figures.
     """
     from .glrm import GLRM
+    from .planning.paths import startable_cells
 
     if not isinstance(data, xr.DataArray) or data.ndim != 3:
         raise DataError("data must be a (time, lat, lon) DataArray")
@@ -569,7 +538,8 @@ def evaluate(
                                      spatial=bool(fold_in.get("spatial", False)))
                   if use_model else paper_prior)
     rng = as_generator(seed)
-    candidates = _start_cells(region, path)
+    # the cells a robot may start from; a bad traversable raises here, before any plan
+    candidates = startable_cells(region, path.get("traversable"))
     if n_starts * n_robots > candidates.size:
         where = ("valid cells" if "traversable" not in path else
                  "enterable cells with an enterable neighbour")

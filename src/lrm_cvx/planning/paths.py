@@ -53,6 +53,7 @@ __all__ = [
     "IncrementalCost",
     "make_path_model",
     "travel_distance",
+    "startable_cells",
 ]
 
 METRICS = ("grid", "km")
@@ -1170,18 +1171,45 @@ def make_path_model(
 
 def _check_start_moves(model: PathModel) -> None:
     """PlanningError when the start has no enterable 8-neighbour (it cannot go anywhere)."""
-    region = model.region
+    start = np.array([model.start], dtype=np.int64)
+    if not _can_leave(model.region, model._enter, model._wrap, start)[0]:
+        raise PlanningError(f"start cell {model.start} cannot reach any other cell (no "
+                            "enterable neighbour)")
+
+
+def _can_leave(region: Region, enter: np.ndarray, wrap: bool, cells: np.ndarray) -> np.ndarray:
+    """``(len(cells),)`` bool: which ``cells`` have an enterable 8-neighbour (``enter``: the
+    ``(L,)`` enterable cells; columns wrap when ``wrap``, as the travel graph's edges do)."""
     ny, nx = region.shape
     grid = region.cell_grid
-    r0, c0 = region.grid_index[model.start]
+    gi = region.grid_index[cells]
+    out = np.zeros(cells.size, dtype=bool)
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
             if not dr and not dc:
                 continue
-            r, c = r0 + dr, c0 + dc
-            if model._wrap:
-                c %= nx
-            if 0 <= r < ny and 0 <= c < nx and grid[r, c] >= 0 and model._enter[grid[r, c]]:
-                return
-    raise PlanningError(f"start cell {model.start} cannot reach any other cell (no enterable "
-                        "neighbour)")
+            r = gi[:, 0] + dr
+            c = gi[:, 1] + dc
+            if wrap:
+                c = np.mod(c, nx)
+            inside = (r >= 0) & (r < ny) & (c >= 0) & (c < nx)
+            nb = grid[np.clip(r, 0, ny - 1), np.clip(c, 0, nx - 1)]
+            out |= inside & (nb >= 0) & enter[np.maximum(nb, 0)]
+    return out
+
+
+def startable_cells(region: Region, traversable: Any = None) -> np.ndarray:
+    """``(n,)`` sorted int64 cells a robot may start from under ``traversable``.
+
+    With straight lines (``traversable=None``, the paper) every valid cell; with a travel graph
+    (``"valid"`` or a boolean ``(lat, lon)`` mask) the enterable cells with at least one
+    enterable 8-neighbour (columns wrapping on a full-circle grid, as the travel graph's), since
+    a start must reach another cell: exactly the starts :func:`make_path_model` accepts. A bad
+    ``traversable`` raises its PlanningError (as :func:`traversable_mask`).
+    """
+    kind, enter = _traversable_mask(region, traversable)
+    cells = np.arange(region.n_cells, dtype=np.int64)
+    if kind == "none":
+        return cells
+    ok = enter & _can_leave(region, enter, _wraps(region), cells)
+    return np.flatnonzero(ok).astype(np.int64)
