@@ -24,7 +24,7 @@ from lrm_cvx import Region
 from lrm_cvx.information import GPVarianceOracle, StructuredGPVarianceOracle
 from lrm_cvx.io.samples import synthetic_field
 from lrm_cvx.planning import plan_greedy
-from lrm_cvx.planning.greedy import _budget_pool
+from lrm_cvx.planning.greedy import budget_pool
 from lrm_cvx.spatial import ResidualCovariance
 
 S0 = np.diag([1.0, 0.5, 0.25, 0.12, 0.06])  # prior covariance of x (decaying mode variances)
@@ -54,7 +54,7 @@ def _cov(rng: float) -> ResidualCovariance:
 
 def agreement(shape: tuple[int, int], budget: float) -> None:
     Y, region, start = _problem(shape, 1)
-    pool = _budget_pool(region, start, budget)
+    pool = budget_pool(region, start, budget)
     for r in (2.0, 6.0):
         cov = _cov(r)
         kw = dict(region=region, spatial_cov=cov, prior_cov=S0, pool=pool)
@@ -114,7 +114,7 @@ def main() -> None:
     for r in (5.0, 20.0):
         cov = _cov(r)
         for budget in budgets:
-            pool = _budget_pool(region, start, budget)
+            pool = budget_pool(region, start, budget)
             t = time.perf_counter()
             StructuredGPVarianceOracle(Y, [start], region=region, spatial_cov=cov, prior_cov=S0,
                                        pool=pool)

@@ -232,14 +232,14 @@ def test_certificate_splits_the_gap_and_bounds_the_refined_plan(seed):
 def test_refine_posterior_fisher_plan_raises_its_own_criterion():
     """A Fisher plan on the fold-in's posterior is refined on that posterior (the criterion it
     was chosen for), never lowering it; without the posterior terms refine refuses."""
-    from lrm_cvx.information import _fisher_set_value
+    from lrm_cvx.information import fisher_set_value
 
     region, Y, start = instance(3, 9, 9, 3)
     P0, nv = 0.5 * np.eye(3), np.linspace(0.5, 2.0, Y.shape[1])
     kw = dict(prior_precision=P0, noise_var=nv, progress=False, initial="start")
     plan = plan_greedy(Y, region, start, 8.0, **kw)
     out = plan_greedy(Y, region, start, 8.0, refine=True, **kw)
-    value = lambda c: _fisher_set_value(Y, c, 0.0, prior_precision=P0, noise_var=nv)  # noqa: E731
+    value = lambda c: fisher_set_value(Y, c, 0.0, prior_precision=P0, noise_var=nv)  # noqa: E731
     assert value(out.cells) >= value(plan.cells) - 1e-12
     assert out.refinement["criterion_after"] == pytest.approx(value(out.cells))
     assert out.cost <= 8.0 + 1e-9 and out.posterior

@@ -43,6 +43,17 @@ def test_check_positive():
         check_positive(0, "ridge", strict=True)
 
 
+@pytest.mark.parametrize("bad", ["2.5", b"2", True, np.bool_(False)])
+def test_check_positive_numbers_only(bad):
+    # a string or a bool is refused (not converted) with the same message as a non-number
+    with pytest.raises(PlanningError, match=r"^budget \(km\) must be a number, got "):
+        check_positive(bad, "budget (km)", error=PlanningError, numbers_only=True)
+    assert check_positive(np.float32(2.5), "budget", numbers_only=True) == 2.5
+    assert check_positive(3, "budget", numbers_only=True) == 3.0
+    with pytest.raises(DataError, match="must be >= 0 and finite"):
+        check_positive(np.inf, "budget", numbers_only=True)
+
+
 def test_atomic_output_replaces_only_on_success(tmp_path):
     target = tmp_path / "out.txt"
     target.write_text("old")

@@ -62,9 +62,15 @@ def as_factor_matrix(Y: Any, region: Any = None, name: str = "Y") -> np.ndarray:
 
 
 def check_positive(
-    value: Any, name: str, *, strict: bool = False, error: type[Exception] = DataError
+    value: Any, name: str, *, strict: bool = False, error: type[Exception] = DataError,
+    numbers_only: bool = False,
 ) -> float:
-    """``value`` as a finite float, >= 0 (or > 0 when ``strict``), else ``error`` naming it."""
+    """``value`` as a finite float, >= 0 (or > 0 when ``strict``), else ``error`` naming it.
+
+    ``numbers_only``: a string, bytes or a bool is refused, not converted (budgets, stop
+    costs: ``"5"`` or ``True`` is a caller's mistake, not a number)."""
+    if numbers_only and isinstance(value, (str, bytes, bool, np.bool_)):
+        raise error(f"{name} must be a number, got {value!r}")
     try:
         v = float(value)
     except (TypeError, ValueError):

@@ -49,8 +49,8 @@ def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
 def _plan_day(state: MonitorState, method: str, start: int, budget: float,
               rng: np.random.Generator, options: dict) -> Any:
     """One day's plan: the greedy variants with the state's forecast as prior; the paper's
-    greedy and the baselines through :func:`lrm_cvx.evaluation._plan`."""
-    from .evaluation import _plan
+    greedy and the baselines through :func:`lrm_cvx.evaluation.plan_method`."""
+    from .evaluation import plan_method
     from .planning import plan_greedy
 
     model = state.model
@@ -63,8 +63,8 @@ def _plan_day(state: MonitorState, method: str, start: int, budget: float,
         extra = {k: v for k, v in options.items() if k not in ("cost", "ridge", "criterion")}
         return plan_greedy(Y, region, start, budget, criterion=crit, cost=cost, ridge=ridge,
                            progress=False, initial="start", **kw, **extra)
-    return _plan(method, Y, region, start, budget, rng, options.get("criterion", "fisher"),
-                 cost, ridge)
+    return plan_method(method, Y, region, start, budget, rng,
+                       options.get("criterion", "fisher"), cost, ridge)
 
 
 def simulate_campaign(
@@ -102,9 +102,9 @@ def simulate_campaign(
     plan's criterion value), ``logdet_cov`` (log det of the latent posterior covariance),
     ``route_cost`` and ``routes`` ``(time, stop)`` (the plan's route, padded with -1).
     """
-    from .evaluation import _check_method
+    from .evaluation import check_method
 
-    method = _check_method(method)
+    method = check_method(method)
     budget = check_positive(budget, "budget")
     rng = as_generator(seed)
     dynamics, memoryless = _dynamics_for(model, temporal)

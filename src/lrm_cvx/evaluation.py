@@ -37,7 +37,8 @@ from .region import Region
 from .registry import Choices, Registry
 
 __all__ = ["evaluate", "summary", "save_results", "METHODS", "GREEDY_VARIANTS",
-           "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse", "path_label"]
+           "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse", "path_label", "check_method",
+           "plan_method"]
 
 METHOD_REGISTRY = Registry("method", ModelError)
 """Methods of :func:`evaluate` (objects: ``(planner, criterion)``); ``METHODS`` are the paper's
@@ -62,7 +63,7 @@ GREEDY_VARIANTS: tuple[str, ...] = Choices(tuple(m for m in METHOD_REGISTRY.choi
                                                  if m not in METHODS), METHOD_REGISTRY)
 
 
-def _check_method(m: str) -> str:
+def check_method(m: str) -> str:
     """The canonical name of method ``m`` (aliases accepted); ModelError if unknown."""
     return METHOD_REGISTRY.canonical(m, "method")
 
@@ -263,11 +264,15 @@ def _campaign_errors(model: Any, test: xr.DataArray, start: int, budget: float, 
             int(np.unique(route).size), route)
 
 
-def _plan(method: str, Y: np.ndarray, region: Region, start: Any, budget: float,
-          rng: np.random.Generator, criterion: str, cost: str, ridge: float,
-          model: Any = None, fold_in: dict | None = None, path: dict | None = None):
-    """One method's plan from ``start`` (a cell, or a list of cells: a fleet, ``budget`` per
-    robot) under the path options ``path`` (only the non-default ones; :func:`_path_options`)."""
+def plan_method(method: str, Y: np.ndarray, region: Region, start: Any, budget: float,
+                rng: np.random.Generator, criterion: str, cost: str, ridge: float,
+                model: Any = None, fold_in: dict | None = None, path: dict | None = None
+                ) -> Any:
+    """One method's :class:`~lrm_cvx.planning.Plan` from ``start`` (a cell, or a list of
+    cells: a fleet, ``budget`` per robot) under the path options ``path`` (only the
+    non-default ones; :func:`_path_options`). ``method`` is canonical (:func:`check_method`);
+    the ``greedy:<criterion>`` variants need ``model`` (their prior: the model's empirical
+    latent prior); ``rng`` drives the random walk."""
     from .planning import plan_greedy, random_walk, transect
 
     path = dict(path or {})
@@ -292,15 +297,15 @@ def _path_options(metric: Any, speed: Any, stop_cost: Any, traversable: Any,
     """The path model options of :func:`evaluate` checked before any work (the path model's
     PlanningErrors, naming the argument), as the keyword arguments every planner takes: only
     those that differ from the paper's, so the default calls stay exactly the paper's."""
-    from .planning.paths import _check_metric, _number
+    from .planning.paths import check_amount, check_metric
 
-    metric, speed, unit = _check_metric(metric, speed)
+    metric, speed, unit = check_metric(metric, speed)
     out: dict[str, Any] = {}
     if metric != "grid":
         out["metric"] = metric
     if speed is not None:
         out["speed"] = speed
-    stop_cost = _number(stop_cost, "stop_cost", unit)
+    stop_cost = check_amount(stop_cost, "stop_cost", unit)
     if stop_cost:
         out["stop_cost"] = stop_cost
     if not isinstance(closed, (bool, np.bool_)):
@@ -477,7 +482,7 @@ def evaluate(
     data = _time_ordered(data)
     if isinstance(methods, str):
         methods = (methods,)
-    methods = tuple(_check_method(m) for m in methods)
+    methods = tuple(check_method(m) for m in methods)
     if not methods:
         raise ModelError(f"methods must name at least one method of {METHODS}")
     if len(set(methods)) != len(methods):
@@ -590,8 +595,8 @@ def evaluate(
                         out.append((m, b, s, trial, plan, e, n, np.nan, c, ml[0], ml[2]))
                         continue
                     where = int(starts[s]) if n_robots == 1 else [int(c) for c in fleets[s]]
-                    plan = _plan(method, Y, region, where, budget, start_rng,
-                                 criterion, cost, ridge, model, fold_in, path)
+                    plan = plan_method(method, Y, region, where, budget, start_rng,
+                                       criterion, cost, ridge, model, fold_in, path)
                     e, n = _model_mse(fold_prior, stats, plan.cells, min_observations)
                     c = _model_coverage(fold_prior, cov_values, cov_subsets, plan.cells,
                                         min_observations)

@@ -55,6 +55,10 @@ __all__ = [
     "CRITERIA",
     "CRITERION_REGISTRY",
     "CriterionSpec",
+    "fisher_set_value",
+    "gp_noise",
+    "gp_latent_cov",
+    "check_gp_inputs",
 ]
 
 Criterion = Literal["fisher", "a-optimal", "gp-variance"]
@@ -314,13 +318,13 @@ def make_oracle(
 
 
 # --------------------------------------------------------------------------- GP variance
-def _gp_noise(spatial_cov: Any) -> float:
+def gp_noise(spatial_cov: Any) -> float:
     """Observation noise of the GP criterion: the nugget, floored at 1e-9 x the total variance
     (a fitted nugget of ~0 would make the posterior variance at observed cells exactly 0)."""
     return max(float(spatial_cov.nugget), 1e-9 * float(spatial_cov.total_variance))
 
 
-def _gp_latent_cov(Y: np.ndarray, S0: np.ndarray, region: Any, spatial_cov: Any,
+def gp_latent_cov(Y: np.ndarray, S0: np.ndarray, region: Any, spatial_cov: Any,
                    rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """``K(rows, cols) = y_i^T S0 y_j + sill rho(d_ij)``: prior covariance of the latent field
     (low-rank trend with prior ``N(., S0)`` plus the GP residual without its nugget)."""
@@ -335,7 +339,11 @@ def _gp_latent_cov(Y: np.ndarray, S0: np.ndarray, region: Any, spatial_cov: Any,
     return K
 
 
-def _check_gp_inputs(Y, region, spatial_cov, prior_cov):
+def check_gp_inputs(Y: np.ndarray, region: Any, spatial_cov: Any, prior_cov: Any
+                    ) -> np.ndarray:
+    """The gp-variance criterion's inputs checked (PlanningError naming the missing one): a
+    Region, a ResidualCovariance and a finite ``(k, k)`` prior covariance of the latent vector
+    (``k = Y.shape[0]``); returns the symmetrised prior covariance ``S0``."""
     from .region import Region
     from .spatial import ResidualCovariance
 
@@ -356,9 +364,9 @@ def gp_variance_value(Y: Any, region: Any, spatial_cov: Any, prior_cov: Any, cel
                       targets: Any = None, target_weights: Any = None) -> float:
     """Total posterior variance ``sum_{i in targets} c_i Var(f_i | d_cells)`` of the latent
     field ``f = Y^T x + r``, ``x ~ N(., prior_cov)``, ``r ~ GP(spatial_cov)``, observed with
-    noise :func:`_gp_noise` at ``cells``. Dense reference (``O(|targets| n)`` memory)."""
+    noise :func:`gp_noise` at ``cells``. Dense reference (``O(|targets| n)`` memory)."""
     Y = as_factor_matrix(Y)
-    S0 = _check_gp_inputs(Y, region, spatial_cov, prior_cov)
+    S0 = check_gp_inputs(Y, region, spatial_cov, prior_cov)
     L = Y.shape[1]
     T = np.arange(L) if targets is None else np.asarray(targets, dtype=np.int64)
     c = np.ones(T.size) if target_weights is None else np.asarray(target_weights, float)[T]
@@ -366,8 +374,8 @@ def gp_variance_value(Y: Any, region: Any, spatial_cov: Any, prior_cov: Any, cel
     prior = np.einsum("ai,ab,bi->i", Y[:, T], S0, Y[:, T]) + spatial_cov.sill
     if P.size == 0:
         return float(c @ prior)
-    KPP = _gp_latent_cov(Y, S0, region, spatial_cov, P, P) + _gp_noise(spatial_cov) * np.eye(P.size)
-    KTP = _gp_latent_cov(Y, S0, region, spatial_cov, T, P)
+    KPP = gp_latent_cov(Y, S0, region, spatial_cov, P, P) + gp_noise(spatial_cov) * np.eye(P.size)
+    KTP = gp_latent_cov(Y, S0, region, spatial_cov, T, P)
     red = np.einsum("ip,ip->i", KTP, np.linalg.solve(KPP, KTP.T).T)
     return float(c @ (prior - red))
 
@@ -391,7 +399,7 @@ class GPVarianceOracle:
                  prior_cov: Any = None, pool: Any = None, targets: Any = None,
                  target_weights: Any = None, max_entries: float = 1e8, **_: Any) -> None:
         self.Y = as_factor_matrix(Y)
-        S0 = _check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
+        S0 = check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
         L = self.Y.shape[1]
         self.pool = (np.arange(L) if pool is None
                      else np.unique(_cells_array(pool, L)))
@@ -406,19 +414,19 @@ class GPVarianceOracle:
         self._tpos = np.searchsorted(rows, T)
         self._tw = c[T]
         self._pool_in_rows = np.searchsorted(rows, self.pool)
-        self.noise = _gp_noise(spatial_cov)
+        self.noise = gp_noise(spatial_cov)
         self.cells: list[int] = [int(v) for v in _cells_array(cells, L)]
-        C = _gp_latent_cov(self.Y, S0, region, spatial_cov, rows, self.pool)
+        C = gp_latent_cov(self.Y, S0, region, spatial_cov, rows, self.pool)
         prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
         self._value = float(self._tw @ prior_var)
         if self.cells:
             P = np.asarray(self.cells, dtype=np.int64)
-            KPP = _gp_latent_cov(self.Y, S0, region, spatial_cov, P, P)
+            KPP = gp_latent_cov(self.Y, S0, region, spatial_cov, P, P)
             KPP += self.noise * np.eye(P.size)
             Lp = np.linalg.cholesky(KPP)
             from scipy.linalg import solve_triangular
 
-            A = solve_triangular(Lp, _gp_latent_cov(self.Y, S0, region, spatial_cov, P, rows),
+            A = solve_triangular(Lp, gp_latent_cov(self.Y, S0, region, spatial_cov, P, rows),
                                  lower=True)
             C -= A.T @ A[:, self._pool_in_rows]
             self._value -= float(self._tw @ np.einsum("pi,pi->i", A[:, self._tpos],
@@ -549,7 +557,7 @@ class StructuredGPVarianceOracle:
                  target_weights: Any = None, truncation: float = 1e-9,
                  boundary_tol: float = 0.0, **_: Any) -> None:
         self.Y = as_factor_matrix(Y)
-        S0 = _check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
+        S0 = check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
         if spatial_cov.metric != "grid":
             raise PlanningError("the structured gp-variance oracle needs spatial_cov.metric "
                                 "'grid'; use GPVarianceOracle for 'km'")
@@ -567,7 +575,7 @@ class StructuredGPVarianceOracle:
         init = _cells_array(cells, L)
         X = np.union1d(self.pool, init)
         self._X = X
-        self.noise = _gp_noise(spatial_cov)
+        self.noise = gp_noise(spatial_cov)
         self.cov = spatial_cov
         gi = region.grid_index
         shape = region.shape
@@ -845,7 +853,7 @@ def gp_residual_share(Y: Any, region: Any, spatial_cov: Any, prior_cov: Any, poo
     exact criterion and of :class:`TrendGPVarianceOracle` (the residual as independent noise,
     same denominators) differ by at most this fraction. Grid metric only."""
     Yk = as_factor_matrix(Y)
-    S0 = _check_gp_inputs(Yk, region, spatial_cov, prior_cov)
+    S0 = check_gp_inputs(Yk, region, spatial_cov, prior_cov)
     if spatial_cov.metric != "grid":
         raise PlanningError("gp_residual_share needs spatial_cov.metric 'grid'")
     L = Yk.shape[1]
@@ -875,11 +883,11 @@ class TrendGPVarianceOracle(AOptimalOracle):
                  prior_cov: Any = None, pool: Any = None, targets: Any = None,
                  target_weights: Any = None, share_terms: Any = None, **_: Any) -> None:
         Yk = as_factor_matrix(Y)
-        S0 = _check_gp_inputs(Yk, region, spatial_cov, prior_cov)
+        S0 = check_gp_inputs(Yk, region, spatial_cov, prior_cov)
         L = Yk.shape[1]
         cT = _targets_weights(L, targets, target_weights)
         P0 = np.linalg.inv(S0)
-        noise = _gp_noise(spatial_cov) + float(spatial_cov.sill)
+        noise = gp_noise(spatial_cov) + float(spatial_cov.sill)
         super().__init__(Yk, 0.0, cells, prior_precision=0.5 * (P0 + P0.T), noise_var=noise,
                          target_weights=cT)
         self.pool = np.arange(L) if pool is None else np.unique(_cells_array(pool, L))
@@ -924,7 +932,7 @@ def _gp_oracle(Y: Any, cells: Any, gp_method: str = "auto", **kwargs: Any
             kwargs.setdefault("boundary_tol", GP_BOUNDARY_TOL)
             st = StructuredGPVarianceOracle(Y, cells=cells, **kwargs)
             pos = st._xpos(st.pool)  # the residual's share of the prior gains, from its terms
-            S0 = _check_gp_inputs(st.Y, kwargs.get("region"), kwargs.get("spatial_cov"),
+            S0 = check_gp_inputs(st.Y, kwargs.get("region"), kwargs.get("spatial_cov"),
                                   kwargs.get("prior_cov"))
             terms = (st._uX[:, pos], st._sX[pos])
             if _share(S0, st.Y[:, st.pool], st._W, *terms) > GP_RESIDUAL_TOL:
@@ -970,9 +978,11 @@ def _posterior_matrix(Y: Any, cells: Any, ridge: float, prior_precision: Any,
     return Yk, P0 + Yw[:, P] @ Yw[:, P].T
 
 
-def _fisher_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, prior_precision: Any = None,
+def fisher_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, prior_precision: Any = None,
                       noise_var: Any = None, **_: Any) -> float:
-    """``log det M(cells)`` from scratch (the posterior precision with a prior / noise)."""
+    """``log det M(cells)`` from scratch: :func:`fisher_information` of ``cells`` (``(n,)``
+    cell indices of ``Y`` ``(k, L)``), or with a prior precision ``(k, k)`` / per-cell noise
+    variance the log det of the posterior precision (``-inf`` when it is not positive)."""
     if prior_precision is None and noise_var is None:
         return fisher_information(Y, cells, ridge)
     _, M = _posterior_matrix(Y, cells, ridge, prior_precision, noise_var)
@@ -1005,7 +1015,7 @@ def _gp_set_value(Y: Any, cells: Any, ridge: float = 0.0, *, region: Any = None,
 
 CRITERION_REGISTRY.register(
     "fisher",
-    CriterionSpec(oracle=FisherOracle, value=_fisher_set_value, maximize=True, certified=True),
+    CriterionSpec(oracle=FisherOracle, value=fisher_set_value, maximize=True, certified=True),
     description="D-optimal, the paper's: log det of the information matrix "
                 "`ridge I + sum y y^T` (or the fold-in's posterior precision)",
 )

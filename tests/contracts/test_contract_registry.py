@@ -99,7 +99,7 @@ def test_aliases_are_accepted_by_the_public_functions_and_normalised():
 
     from lrm_cvx import Region
     from lrm_cvx.cost import make_cost
-    from lrm_cvx.evaluation import _check_method
+    from lrm_cvx.evaluation import check_method
     from lrm_cvx.glrm.losses import Absolute, get_loss
     from lrm_cvx.glrm.regularizers import L1, NonNegative, ZeroReg, get_regularizer
     from lrm_cvx.information import AOptimalOracle, make_oracle
@@ -123,8 +123,8 @@ def test_aliases_are_accepted_by_the_public_functions_and_normalised():
     assert isinstance(get_regularizer("lasso"), L1)
     assert isinstance(get_regularizer("nonnegative"), NonNegative)
     assert isinstance(get_regularizer(None), ZeroReg)
-    assert _check_method("greedy:aopt") == "greedy:a-optimal"
-    assert _check_method("Transect-Up") == "transect-up"
+    assert check_method("greedy:aopt") == "greedy:a-optimal"
+    assert check_method("Transect-Up") == "transect-up"
     assert prior_value(None) is None and prior_value("none") is None
     assert prior_value("Empirical") == "empirical"
 

@@ -27,7 +27,7 @@ from .._validation import as_factor_matrix, as_generator
 from ..errors import LrmError, PlanningError
 from ..information import fisher_information
 from ..region import Region
-from .greedy import _check_budget
+from .greedy import check_budget
 from .plan import Plan, check_region
 
 __all__ = ["transect", "random_walk", "DIRECTIONS"]
@@ -76,9 +76,9 @@ class _Geometry:
         self.ny, self.nx = region.shape
         self._paths = None
         if metric != "grid" or speed is not None:
-            from .paths import _Geometry as _PathGeometry
+            from .paths import TravelGeometry
 
-            self._paths = _PathGeometry(region, metric, speed)
+            self._paths = TravelGeometry(region, metric, speed)
 
     def move(self, p: np.ndarray) -> np.ndarray | None:
         """Grid position ``p`` (column wrapped on a full circle) if the walk may enter it."""
@@ -95,14 +95,9 @@ class _Geometry:
         cols)`` (budget unit)."""
         if self._paths is None:
             return np.where((rows != r0) & (cols != c0), _SQRT2, 1.0)
-        from .paths import _dist_pairs
-
-        g = self._paths
         n = rows.size
-        return _dist_pairs(g.code, np.full(n, r0, np.int64), np.full(n, c0, np.int64),
-                           np.ascontiguousarray(rows, np.int64),
-                           np.ascontiguousarray(cols, np.int64), g.latr, g.lonr, g.coslat,
-                           g.speed)
+        return self._paths.position_pairs(np.full(n, r0, np.int64), np.full(n, c0, np.int64),
+                                          rows, cols)
 
     def step(self, p: np.ndarray, q: np.ndarray) -> float:
         return float(self.steps(int(p[0]), int(p[1]), np.array([q[0]]), np.array([q[1]]))[0])
@@ -129,15 +124,15 @@ def _path_setup(region: Region, start: Any, budget: Any, *, metric: str, speed: 
                and not isinstance(stop_cost, (bool, np.bool_))
                and isinstance(stop_cost, (int, float)) and stop_cost == 0)
     if default:
-        return start_cell, _check_budget(budget), _Geometry(region), {}
-    from .paths import _check_metric, _number, _traversable_mask, _wraps
+        return start_cell, check_budget(budget), _Geometry(region), {}
+    from .paths import check_amount, check_metric, grid_wraps, traversable_mask
 
-    metric, speed, unit = _check_metric(metric, speed)
-    budget = _number(budget, "budget", unit)
-    stop_cost = _number(stop_cost, "stop_cost", unit)
+    metric, speed, unit = check_metric(metric, speed)
+    budget = check_amount(budget, "budget", unit)
+    stop_cost = check_amount(stop_cost, "stop_cost", unit)
     if not isinstance(closed, (bool, np.bool_)):
         raise PlanningError(f"closed must be True or False, got {closed!r}")
-    kind, ok = _traversable_mask(region, traversable)
+    kind, ok = traversable_mask(region, traversable)
     grid = region.cell_grid
     enter = None
     if kind != "none":
@@ -145,7 +140,7 @@ def _path_setup(region: Region, start: Any, budget: Any, *, metric: str, speed: 
             raise PlanningError(f"start cell {start_cell} may not be entered (traversable mask)")
         enter = (grid >= 0) & ok[np.maximum(grid, 0)]
     geo = _Geometry(region, metric=metric, speed=speed, stop_cost=stop_cost,
-                    closed=bool(closed), enter=enter, wrap=_wraps(region), grid=grid)
+                    closed=bool(closed), enter=enter, wrap=grid_wraps(region), grid=grid)
     opts = {"metric": metric, "speed": speed, "stop_cost": stop_cost, "traversable": kind,
             "closed": bool(closed), "unit": unit}
     return start_cell, budget, geo, opts
@@ -213,12 +208,12 @@ def _fleet(one: Any, region: Region, start: Any, budget: Any, Y: Any, ridge: flo
     """A fleet request (``start`` a list, as :func:`~lrm_cvx.planning.plan_greedy` reads it;
     ``budget`` a number or one per start): ``one(start_i, budget_i)`` per robot, joined by
     :meth:`Plan.from_robots` (joint information); None for a single robot."""
-    from .greedy import _resolve_budgets, _resolve_starts
+    from .greedy import resolve_budgets, resolve_starts
 
-    cells, fleet = _resolve_starts(region, start)
+    cells, fleet = resolve_starts(region, start)
     if not fleet:
         return None
-    budgets = _resolve_budgets(budget, len(cells), True)
+    budgets = resolve_budgets(budget, len(cells), True)
     plans = [one(c, b) for c, b in zip(cells, budgets, strict=True)]
     if len(plans) == 1:
         return plans[0]

@@ -16,7 +16,8 @@ from ..region import Region
 from .paths import make_path_model
 from .plan import Plan, check_region, path_dict
 
-__all__ = ["initial_cells", "plan_greedy", "place_sensors"]
+__all__ = ["initial_cells", "plan_greedy", "place_sensors", "check_budget", "budget_pool",
+           "resolve_starts", "resolve_budgets", "resolve_prior"]
 
 _TOL = 1e-9  # budget tolerance (grid units)
 _MIN_DC = 1e-12  # floor of the cost increase in the ratio (NN tours can get shorter)
@@ -47,19 +48,23 @@ def initial_cells(region: Region, start: int, k: int) -> np.ndarray:
     return part[np.argsort(key[part], kind="stable")].astype(np.int64)
 
 
-def _check_budget(budget: Any) -> float:
-    """``budget`` as a float >= 0; a string or a bool is refused, not converted."""
-    if isinstance(budget, (str, bytes, bool, np.bool_)):
-        raise PlanningError(f"budget (grid units) must be a number, got {budget!r}")
-    return check_positive(budget, "budget (grid units)", error=PlanningError)
+def check_budget(budget: Any) -> float:
+    """The paper's ``budget`` (grid units) as a float >= 0; a string or a bool is refused."""
+    return check_positive(budget, "budget (grid units)", error=PlanningError,
+                          numbers_only=True)
 
 
-def _budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
-    """Cells within ``budget`` (+ slack) of the start: the only ones any feasible plan reaches."""
+def budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
+    """``(n,)`` int64 cells within Euclidean grid distance ``budget`` (+ slack) of ``start``:
+    the only ones any feasible plan of the paper's model reaches (a superset of its
+    candidates)."""
     g = region.grid_index
     d = g - g[start]
     d2 = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]).astype(np.float64)
     return np.flatnonzero(d2 <= (budget + _POOL_SLACK) ** 2).astype(np.int64)
+
+
+_budget_pool = budget_pool  # old name, still imported by benchmarks/bench_persistent.py
 
 
 def _prior_terms(prior: Any) -> dict[str, Any]:
@@ -71,7 +76,7 @@ def _prior_terms(prior: Any) -> dict[str, Any]:
     return info()
 
 
-def _resolve_starts(region: Region, start: Any) -> tuple[list[int], bool]:
+def resolve_starts(region: Region, start: Any) -> tuple[list[int], bool]:
     """``(cells, fleet)``: one start (a cell index or a ``(lat, lon)`` tuple) or a fleet (a
     list, or a 1-D integer / ``(n, 2)`` array, of those)."""
     if start is None:
@@ -96,7 +101,7 @@ def _resolve_starts(region: Region, start: Any) -> tuple[list[int], bool]:
     return [region.resolve_cell(start, "start")], False
 
 
-def _resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
+def resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
     """``budget`` (a number, or for a fleet a list / array of ``n``) as ``n`` floats >= 0."""
     if isinstance(budget, (list, tuple, np.ndarray)) and not fleet:
         raise PlanningError(f"budget must be a number for one robot, got {budget!r} (a list "
@@ -106,10 +111,10 @@ def _resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
         if len(values) != n:
             raise PlanningError(f"budget has {len(values)} values but there are {n} starts: "
                                 "give one budget per robot, or one number for all")
-        return [_check_budget(b) for b in values]
+        return [check_budget(b) for b in values]
     if budget is None:
         raise PlanningError("budget is required (a number, or one per robot)")
-    return [_check_budget(budget)] * n
+    return [check_budget(budget)] * n
 
 
 def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
@@ -132,7 +137,7 @@ def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
     return out
 
 
-def _resolve_prior(prior: Any, terms_given: dict[str, Any]) -> dict[str, Any]:
+def resolve_prior(prior: Any, terms_given: dict[str, Any]) -> dict[str, Any]:
     """The criterion's keyword terms from ``prior`` (or the ones given directly)."""
     if prior is None:
         return terms_given
@@ -305,8 +310,8 @@ def plan_greedy(
 
     Yk = as_factor_matrix(Y, region)
     k, L = Yk.shape
-    starts, fleet = _resolve_starts(region, start)
-    budgets = _resolve_budgets(budget, len(starts), fleet)
+    starts, fleet = resolve_starts(region, start)
+    budgets = resolve_budgets(budget, len(starts), fleet)
     criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")  # aliases accepted
     cost = COST_REGISTRY.canonical(cost, "cost")
     if initial not in ("nearest", "start"):
@@ -324,7 +329,7 @@ def plan_greedy(
     cands = [np.asarray(m.candidates(), dtype=np.int64) for m in models]
     union_pool = cands[0] if len(cands) == 1 else np.unique(np.concatenate(cands))
     idx = [np.searchsorted(union_pool, c) for c in cands]
-    terms = _resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
+    terms = resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
                                        target_weights=target_weights, prior_cov=prior_cov,
                                        spatial_cov=spatial_cov))
     posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
@@ -607,7 +612,7 @@ def place_sensors(
                                 noise_var=noise_var, target_weights=target_weights,
                                 prior_cov=prior_cov, spatial_cov=spatial_cov, targets=targets,
                                 traversable=traversable))
-    terms = _resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
+    terms = resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
                                        target_weights=target_weights, prior_cov=prior_cov,
                                        spatial_cov=spatial_cov))
     posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None

@@ -43,6 +43,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from .._validation import check_positive
 from ..cost import COST_REGISTRY, InsertionCost, NearestNeighborCost
 from ..errors import PlanningError
 from ..region import EARTH_RADIUS_KM, Region
@@ -54,6 +55,11 @@ __all__ = [
     "make_path_model",
     "travel_distance",
     "startable_cells",
+    "TravelGeometry",
+    "check_metric",
+    "check_amount",
+    "traversable_mask",
+    "grid_wraps",
 ]
 
 METRICS = ("grid", "km")
@@ -97,8 +103,10 @@ def _dist_pairs(code, ar, ac, br, bc, latr, lonr, coslat, speed):  # pragma: no 
     return out
 
 
-def _check_metric(metric: Any, speed: Any) -> tuple[str, float | None, str]:
-    """(metric, speed, unit) after validation."""
+def check_metric(metric: Any, speed: Any) -> tuple[str, float | None, str]:
+    """``(metric, speed, unit)`` after validation: metric lower-cased (one of :data:`METRICS`),
+    speed a float km/h > 0 or None (only with ``"km"``), unit ``"grid units"``, ``"km"`` or
+    ``"h"`` (the budget's); PlanningError naming the argument otherwise."""
     if not isinstance(metric, str) or metric.lower() not in METRICS:
         raise PlanningError(f"metric must be one of {list(METRICS)}, got {metric!r}")
     metric = metric.lower()
@@ -118,8 +126,16 @@ def _check_metric(metric: Any, speed: Any) -> tuple[str, float | None, str]:
     return metric, v, "h"
 
 
-class _Geometry:
-    """Per-region arrays for :func:`_dist_pairs` (radians, cosines), built once per model."""
+def check_amount(value: Any, name: str, unit: str) -> float:
+    """A budget or stop cost ``value`` in ``unit`` as a finite float >= 0 (PlanningError naming
+    ``name (unit)``; a string or a bool is refused, not converted)."""
+    return check_positive(value, f"{name} ({unit})", error=PlanningError, numbers_only=True)
+
+
+class TravelGeometry:
+    """Straight-line distances (budget unit) between cells or grid positions of ``region``
+    under ``metric`` / ``speed`` (already checked, :func:`check_metric`): the per-region arrays
+    of :func:`_dist_pairs` (radians, cosines), built once per model."""
 
     def __init__(self, region: Region, metric: str, speed: float | None) -> None:
         self.region = region
@@ -139,6 +155,16 @@ class _Geometry:
         a = np.ascontiguousarray(a, dtype=np.int64)
         b = np.ascontiguousarray(b, dtype=np.int64)
         return _dist_pairs(self.code, self.rows[a], self.cols[a], self.rows[b], self.cols[b],
+                           self.latr, self.lonr, self.coslat, self.speed)
+
+    def position_pairs(self, ar: np.ndarray, ac: np.ndarray, br: np.ndarray,
+                       bc: np.ndarray) -> np.ndarray:
+        """Distances between grid positions ``(ar_i, ac_i)`` and ``(br_i, bc_i)`` (rows and
+        columns inside the grid, valid cells or not; equal-length int arrays)."""
+        return _dist_pairs(self.code, np.ascontiguousarray(ar, dtype=np.int64),
+                           np.ascontiguousarray(ac, dtype=np.int64),
+                           np.ascontiguousarray(br, dtype=np.int64),
+                           np.ascontiguousarray(bc, dtype=np.int64),
                            self.latr, self.lonr, self.coslat, self.speed)
 
     def row(self, a: int, b: np.ndarray) -> np.ndarray:
@@ -161,14 +187,14 @@ def travel_distance(region: Region, a: Any, b: Any, metric: str = "grid",
     longitude wraps); with ``speed`` (km/h, only with ``"km"``): hours ``km / speed``.
     Returns a float64 array of the broadcast shape (a 0-d array for two scalars).
     """
-    metric, speed, _ = _check_metric(metric, speed)
+    metric, speed, _ = check_metric(metric, speed)
     a = region.check_cells(a, "a")
     b = region.check_cells(b, "b")
     try:
         a, b = np.broadcast_arrays(a, b)
     except ValueError as exc:
         raise PlanningError(f"a and b must broadcast: {exc}") from None
-    geo = _Geometry(region, metric, speed)
+    geo = TravelGeometry(region, metric, speed)
     return geo.pairs(a.ravel(), b.ravel()).reshape(a.shape)
 
 
@@ -176,8 +202,9 @@ def _ceil_quantum(w: np.ndarray) -> np.ndarray:
     return np.ceil(w / _QUANTUM) * _QUANTUM
 
 
-def _wraps(region: Region) -> bool:
-    """True when the grid is in degrees and its columns span the full 360 degrees."""
+def grid_wraps(region: Region) -> bool:
+    """True when the grid is in degrees and its columns span the full 360 degrees (the first
+    and last columns are then neighbours in a travel graph)."""
     lon = np.asarray(region.lon.values, dtype=np.float64)
     if not region._sphere or lon.size < 3:
         return False
@@ -746,20 +773,11 @@ class _DefaultInsertion(InsertionCost):
 
 
 # --------------------------------------------------------------------------- the model
-def _number(value: Any, name: str, unit: str) -> float:
-    if isinstance(value, (str, bytes, bool, np.bool_)):
-        raise PlanningError(f"{name} ({unit}) must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise PlanningError(f"{name} ({unit}) must be a number, got {value!r}") from None
-    if not np.isfinite(v) or v < 0:
-        raise PlanningError(f"{name} ({unit}) must be >= 0 and finite, got {value!r}")
-    return v
-
-
-def _traversable_mask(region: Region, traversable: Any) -> tuple[str, np.ndarray]:
-    """(kind, (L,) enterable) for ``traversable`` None / "valid" / a boolean (lat, lon) grid."""
+def traversable_mask(region: Region, traversable: Any) -> tuple[str, np.ndarray]:
+    """``(kind, enterable)`` for ``traversable`` None / ``"valid"`` / a boolean ``(lat, lon)``
+    grid: kind ``"none"``, ``"valid"`` or ``"mask"``, enterable the ``(L,)`` bool per cell
+    (all True but for a mask). PlanningError for another string, a shape, dtype or coordinate
+    that does not match the region's grid."""
     L = region.n_cells
     if traversable is None:
         return "none", np.ones(L, dtype=bool)
@@ -813,7 +831,7 @@ class PathModel:
     traversable: str
     cost: str
     _enter: np.ndarray = field(repr=False)
-    _geo: _Geometry = field(repr=False)
+    _geo: TravelGeometry = field(repr=False)
     _wrap: bool = field(repr=False, default=False)
     _graph: _Graph | None = field(repr=False, default=None)
 
@@ -1131,9 +1149,9 @@ def make_path_model(
     """
     if not isinstance(region, Region):
         raise PlanningError(f"region must be a Region, got {type(region).__name__}")
-    metric, speed, unit = _check_metric(metric, speed)
-    budget = _number(budget, "budget", unit)
-    stop_cost = _number(stop_cost, "stop_cost", unit)
+    metric, speed, unit = check_metric(metric, speed)
+    budget = check_amount(budget, "budget", unit)
+    stop_cost = check_amount(stop_cost, "stop_cost", unit)
     if not isinstance(closed, (bool, np.bool_)):
         raise PlanningError(f"closed must be True or False, got {closed!r}")
     closed = bool(closed)
@@ -1146,16 +1164,16 @@ def make_path_model(
     if end_cell is not None and end_cell == start_cell:
         raise PlanningError("end must differ from start (use closed=True for a tour back to "
                             "the start)")
-    kind, enter = _traversable_mask(region, traversable)
+    kind, enter = traversable_mask(region, traversable)
     if not enter[start_cell]:
         raise PlanningError(f"start cell {start_cell} may not be entered (traversable mask)")
     if end_cell is not None and not enter[end_cell]:
         raise PlanningError(f"end cell {end_cell} may not be entered (traversable mask)")
-    geo = _Geometry(region, metric, speed)
+    geo = TravelGeometry(region, metric, speed)
     model = PathModel(region=region, start=start_cell, budget=budget, unit=unit, metric=metric,
                       speed=speed, stop_cost=stop_cost, closed=closed, end=end_cell,
                       traversable=kind, cost=cost, _enter=enter, _geo=geo,
-                      _wrap=_wraps(region))
+                      _wrap=grid_wraps(region))
     if kind == "none":
         return model  # straight lines: a one-cell region plans the start alone (the paper's)
     _check_start_moves(model)
@@ -1207,9 +1225,9 @@ def startable_cells(region: Region, traversable: Any = None) -> np.ndarray:
     a start must reach another cell: exactly the starts :func:`make_path_model` accepts. A bad
     ``traversable`` raises its PlanningError (as :func:`traversable_mask`).
     """
-    kind, enter = _traversable_mask(region, traversable)
+    kind, enter = traversable_mask(region, traversable)
     cells = np.arange(region.n_cells, dtype=np.int64)
     if kind == "none":
         return cells
-    ok = enter & _can_leave(region, enter, _wraps(region), cells)
+    ok = enter & _can_leave(region, enter, grid_wraps(region), cells)
     return np.flatnonzero(ok).astype(np.int64)

@@ -29,7 +29,7 @@ import numpy as np
 from .._validation import as_factor_matrix
 from ..cost import NearestNeighborCost, nearest_neighbor_tour, route_length
 from ..errors import PlanningError
-from ..information import _fisher_set_value
+from ..information import fisher_set_value
 from .plan import Plan, check_region, is_paper_path
 
 __all__ = ["refine"]
@@ -65,7 +65,7 @@ class _Fisher:
             self.M0 = self.ridge * np.eye(k)
 
     def value(self, cells: np.ndarray) -> float:
-        return float(_fisher_set_value(self.Y, cells, self.ridge, **self.kw))
+        return float(fisher_set_value(self.Y, cells, self.ridge, **self.kw))
 
     def inverse(self, cells: np.ndarray) -> np.ndarray | None:
         Yp = self.Yw[:, cells]
@@ -315,9 +315,9 @@ def refine(
     if cells.size == 0 or cells[0] != start:
         cells = np.concatenate([[start], cells[cells != start]])
     route = np.asarray(plan.route, dtype=np.int64)
-    from .greedy import _budget_pool
+    from .greedy import budget_pool
 
-    pool = _budget_pool(region, start, budget)
+    pool = budget_pool(region, start, budget)
     value = crit.value(cells)
     before = value
     cost = float(plan.cost)
@@ -360,7 +360,7 @@ def refine(
                     moves.append((5, -1, -1, value))
     if not moves and cost == plan.cost:
         return plan
-    info = float(_fisher_set_value(Yk, cells, plan.ridge))
+    info = float(fisher_set_value(Yk, cells, plan.ridge))
     hist = dict(plan.history)
     hist["refine_move"] = np.array([m[0] for m in moves], dtype=np.int64)
     hist["refine_cell_in"] = np.array([m[1] for m in moves], dtype=np.int64)

@@ -82,9 +82,9 @@ class _FoldIn:
     def block(self, rows: np.ndarray) -> np.ndarray:
         if self.spatial_cov is None:
             return self.Y[:, rows].T @ self.S0 @ self.Y
-        from ..information import _gp_latent_cov
+        from ..information import gp_latent_cov
 
-        return _gp_latent_cov(self.Y, self.S0, self.region, self.spatial_cov, rows, self._all)
+        return gp_latent_cov(self.Y, self.S0, self.region, self.spatial_cov, rows, self._all)
 
     def cols(self, cells: np.ndarray) -> np.ndarray:
         """``C0[:, cells]`` ``(L, n)`` (symmetric: the rows' block transposed)."""
@@ -122,11 +122,11 @@ def _fold_in_from_prior(prior: Any, Yk: np.ndarray, region: Region) -> tuple[_Fo
                             "pass the model's Y_ with its latent_prior")
     L = Yk.shape[1]
     if obs.is_spatial:
-        from ..information import _gp_noise
+        from ..information import gp_noise
 
         if obs.region is not None and obs.region.n_cells != region.n_cells:
             raise PlanningError("region is not the prior's region")
-        noise = np.full(L, _gp_noise(obs.spatial_cov))
+        noise = np.full(L, gp_noise(obs.spatial_cov))
     else:
         noise = np.asarray(obs.noise_at(np.arange(L)), dtype=np.float64)
     w = np.ones(L) if obs.scale is None else np.asarray(obs.scale, np.float64) ** 2
@@ -408,17 +408,17 @@ def place_static(
             raise PlanningError("exchange=True with gp-variance sums the variance over every "
                                 "cell: targets= does not apply")
         _check_size(L, "exchange=True")
-        from .greedy import _resolve_prior, place_sensors
+        from .greedy import place_sensors, resolve_prior
 
         base = place_sensors(Yk, region, n, criterion=crit, prior=prior, exchange=False, **other)
-        terms = _resolve_prior(prior, {k: other.get(k) for k in (
+        terms = resolve_prior(prior, {k: other.get(k) for k in (
             "prior_precision", "noise_var", "target_weights", "prior_cov", "spatial_cov")})
-        from ..information import _check_gp_inputs, _gp_noise
+        from ..information import check_gp_inputs, gp_noise
 
-        S0 = _check_gp_inputs(Yk, region, terms["spatial_cov"], terms["prior_cov"])
+        S0 = check_gp_inputs(Yk, region, terms["spatial_cov"], terms["prior_cov"])
         tw = terms["target_weights"]
         gp = _FoldIn(Yk, S0, region, terms["spatial_cov"],
-                     np.full(L, _gp_noise(terms["spatial_cov"])),
+                     np.full(L, gp_noise(terms["spatial_cov"])),
                      np.ones(L) if tw is None else np.asarray(tw, np.float64), None)
         state = _State(gp, None, [int(c) for c in base.cells])
         hist = {k: list(v) for k, v in base.history.items()}
