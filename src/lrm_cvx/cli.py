@@ -10,7 +10,6 @@ together), and an existing output is replaced only with ``--overwrite``.
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import sys
 import traceback
@@ -21,6 +20,20 @@ from pathlib import Path
 import numpy as np
 
 from ._validation import atomic_outputs, guard_outputs
+from .cli_common import (
+    UsageError,
+    add_common,
+    add_output,
+    check_lat,
+    describe_plan,
+    finite_number,
+    guard_paths,
+    load_model,
+    parse_floats,
+    parse_start,
+    read_observations_csv,
+    write_plan,
+)
 from .errors import LrmError
 
 __all__ = ["main", "build_parser", "RECOMMENDED"]
@@ -41,37 +54,7 @@ EVALUATION_FILES = ("results.nc", "summary.csv", "metrics.png", "metrics.pdf",
                     "predictions.png", "predictions.pdf")
 
 
-class UsageError(LrmError, ValueError):
-    """A command-line argument is malformed."""
-
-
 # ---------------------------------------------------------------------------- arguments
-def _floats(text: str, n: int | None, what: str) -> list[float]:
-    try:
-        values = [float(v) for v in str(text).split(",") if v.strip()]
-    except ValueError:
-        raise UsageError(f"{what} must be comma-separated numbers, got {text!r}") from None
-    if n is not None and len(values) != n:
-        raise UsageError(f"{what} must have {n} comma-separated numbers, got {text!r}")
-    if not values:
-        raise UsageError(f"{what} needs at least one number, got {text!r}")
-    if not all(np.isfinite(values)):
-        raise UsageError(f"{what} must be finite numbers, got {text!r}")
-    return values
-
-
-def _check_lat(value: float, what: str) -> None:
-    if not -90 <= value <= 90:
-        raise UsageError(f"{what} latitude must be in [-90, 90], got {value:g} "
-                         "(latitude comes first)")
-
-
-def _start(text: str, flag: str = "--start") -> tuple[float, float]:
-    lat, lon = _floats(text, 2, f"{flag} LAT,LON")
-    _check_lat(lat, flag)
-    return (lat, lon)
-
-
 def _starts_budgets(args: argparse.Namespace) -> tuple[object, object]:
     """``--start`` once (one robot) or several times (a fleet), ``--budget`` once (every robot)
     or once per start: the ``start`` / ``budget`` of ``plan_greedy``."""
@@ -80,7 +63,7 @@ def _starts_budgets(args: argparse.Namespace) -> tuple[object, object]:
     if len(budgets) not in (1, len(starts)):
         raise UsageError(f"--budget must be given once (every robot) or once per --start "
                          f"({len(starts)} starts), got {len(budgets)} budgets")
-    points = [_start(s) for s in starts]
+    points = [parse_start(s) for s in starts]
     if len(points) == 1:
         return points[0], budgets[0]
     return points, (budgets[0] if len(budgets) == 1 else budgets)
@@ -123,7 +106,7 @@ def _path_kwargs(args: argparse.Namespace, *, fleet_end: bool = True) -> dict:
     if args.closed:
         kw["closed"] = True
     if fleet_end and getattr(args, "end", None) is not None:
-        kw["end"] = _start(args.end, "--end")
+        kw["end"] = parse_start(args.end, "--end")
     if getattr(args, "sense_along", False):
         kw["sense_along"] = True
     return kw
@@ -132,9 +115,9 @@ def _path_kwargs(args: argparse.Namespace, *, fleet_end: bool = True) -> dict:
 def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
     if text is None:
         return None
-    south, west, north, east = _floats(text, 4, "--bbox S,W,N,E")
-    _check_lat(south, "--bbox south")
-    _check_lat(north, "--bbox north")
+    south, west, north, east = parse_floats(text, 4, "--bbox S,W,N,E")
+    check_lat(south, "--bbox south")
+    check_lat(north, "--bbox north")
     if south >= north:
         raise UsageError(f"--bbox south ({south:g}) must be below north ({north:g}); the order "
                          "is S,W,N,E")
@@ -153,16 +136,6 @@ def _int_at_least(low: int):
 
     convert.__name__ = f"int>={low}"
     return convert
-
-
-def _number(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
-    return value
 
 
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
@@ -223,43 +196,10 @@ def _input_files(items: Sequence[str]) -> list[Path]:
     return files
 
 
-def _check_writable(paths: Sequence[Path]) -> None:
-    """Fail before any work when an output's existing folder cannot take a new file."""
-    import tempfile
-
-    for folder in {p.parent for p in paths}:
-        if folder.is_dir():
-            fd, probe = tempfile.mkstemp(prefix=".lrm-cvx-probe.", dir=folder)
-            os.close(fd)
-            os.unlink(probe)
-        elif folder.exists():
-            raise NotADirectoryError(f"cannot write into {folder}: it is a file, not a folder")
-
-
-def _guard(outputs: Sequence[str | Path], inputs: Sequence[str | Path],
-           args: argparse.Namespace) -> list[Path]:
-    for out in outputs:
-        if any(c in Path(out).name for c in "*?["):
-            raise UsageError(f"output {out} looks like a glob pattern; give one file name")
-    outs = guard_outputs(outputs, inputs, overwrite=args.overwrite)
-    _check_writable(outs)
-    return outs
-
-
 def _load(args: argparse.Namespace):
     from .io import open_data
 
     return open_data(args.data, var=args.var, bbox=_bbox(args.bbox))
-
-
-def _load_model(path: str, *, need_region: bool = True):
-    from .glrm import GLRM
-
-    model = GLRM.load(path)
-    if need_region and model.region_ is None:
-        raise UsageError(f"model {path} was fitted on a plain array and has no region (lat/lon "
-                         "grid); refit it with 'lrm-cvx fit' on gridded data")
-    return model
 
 
 def _need_spatial(model, path: str, why: str) -> None:
@@ -298,7 +238,7 @@ def _model_params(args: argparse.Namespace) -> dict:
 def cmd_fit(args: argparse.Namespace) -> int:
     from .glrm import GLRM
 
-    (out,) = _guard([args.output], _input_files(args.data), args)
+    (out,) = guard_paths([args.output], _input_files(args.data), args)
     data = _load(args)
     model = GLRM(rank=args.rank, loss=args.loss, max_iter=args.max_iter, tol=args.tol,
                  random_state=args.seed, progress=not args.quiet,
@@ -316,7 +256,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 def _plan_from_args(args: argparse.Namespace):
     from .planning import plan_greedy
 
-    model = _load_model(args.model)
+    model = load_model(args.model)
     start, budget = _starts_budgets(args)
     path = _path_kwargs(args)
     from .information import CRITERIA
@@ -341,46 +281,17 @@ def _plan_from_args(args: argparse.Namespace):
     return model, plan
 
 
-def _describe_plan(plan) -> str:
-    value = (f"information {plan.information:.4f} nats" if plan.criterion == "fisher"
-             else f"{plan.criterion} criterion {plan.information:.4g}")
-    path = getattr(plan, "path", None) or {}
-    unit = path.get("unit", "grid units")
-    budgets = path.get("budgets") or [plan.budget]
-    costs = np.atleast_1d(getattr(plan, "robot_costs", [plan.cost]))
-    if len(costs) != len(budgets):
-        costs, budgets = np.array([plan.cost]), [plan.budget]
-    over = bool(np.any(costs > np.asarray(budgets, dtype=float) + 1e-9))
-    within = "> (forced initial cells)" if over else "<="
-    if len(costs) == 1:
-        text = f"cost {plan.cost:.3f} {within} budget {plan.budget:g}"
-    else:  # a fleet: each robot's cost and budget
-        text = f"{len(costs)} robots, costs " + ", ".join(
-            f"{c:.3f}/{b:g}" for c, b in zip(costs, budgets, strict=True)) + \
-            f" (total {plan.cost:.3f}; {'over' if over else 'within'} the budgets)"
-    if unit != "grid units":
-        text += f" {unit}"
-    extras = ["closed" if path.get("closed") else "",
-              f"traversable {path['traversable']}" if path.get("traversable", "none") != "none"
-              else "",
-              f"ends at cell {path['end']}" if path.get("end") is not None else "",
-              "sensing along the route" if path.get("sense_along") else ""]
-    extras = [e for e in extras if e]
-    return f"{len(plan.cells)} cells, {text}, {value}" + (f" ({', '.join(extras)})" if extras
-                                                         else "")
-
-
 def cmd_plan(args: argparse.Namespace) -> int:
     out = None
     if args.output:
         suffix = Path(args.output).suffix.lower()
         if suffix not in (".csv", ".geojson", ".json"):
             raise UsageError(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
-        (out,) = _guard([args.output], [args.model, *_mask_file(args)], args)
+        (out,) = guard_paths([args.output], [args.model, *_mask_file(args)], args)
     _, plan = _plan_from_args(args)
-    print(_describe_plan(plan))
+    print(describe_plan(plan))
     if out is not None:
-        _write_plan(plan, out)
+        write_plan(plan, out)
     return 0
 
 
@@ -395,7 +306,7 @@ def cmd_place(args: argparse.Namespace) -> int:
         if suffix not in (".csv", ".geojson", ".json"):
             raise UsageError(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
         ins = [args.model, *_mask_file(args), *(_input_files(args.data) if args.data else [])]
-        (out,) = _guard([args.output], ins, args)
+        (out,) = guard_paths([args.output], ins, args)
     criterion = args.criterion or ("risk" if args.data else "gp-variance")
     if criterion != "risk":
         criterion = _canonical(CRITERIA, criterion)
@@ -408,7 +319,7 @@ def cmd_place(args: argparse.Namespace) -> int:
     elif not args.data:
         raise UsageError("--criterion risk needs DATA: the training snapshots (the same data "
                          "and --bbox as 'lrm-cvx fit')")
-    model = _load_model(args.model)
+    model = load_model(args.model)
     if criterion == "gp-variance":
         _need_spatial(model, args.model, "--criterion gp-variance")
     kw: dict = {"training": _load(args)} if criterion == "risk" else {}
@@ -446,20 +357,11 @@ def _mask_file(args: argparse.Namespace) -> list[str]:
     return [] if t is None or t.strip().lower() == "valid" else [t]
 
 
-def _write_plan(plan, out: Path) -> None:
-    """Write ``plan`` as CSV or GeoJSON by ``out``'s suffix (checked by the caller)."""
-    if out.suffix.lower() == ".csv":
-        plan.to_csv(out)
-    else:
-        plan.to_geojson(out)
-    print(f"route written to {out}")
-
-
 def cmd_bound(args: argparse.Namespace) -> int:
     _, plan = _plan_from_args(args)
     cert = plan.certify(tighten=args.certify == "tight")
     bounded = getattr(cert, "criterion", "fisher")
-    print(f"greedy plan: {_describe_plan(plan)}")
+    print(f"greedy plan: {describe_plan(plan)}")
     print(f"certified upper bound on the {bounded} criterion of any feasible plan: "
           f"{cert.bound:.4f}{' nats' if bounded == 'fisher' else ''}")
     if not cert.comparable or cert.gap is None:
@@ -471,43 +373,14 @@ def cmd_bound(args: argparse.Namespace) -> int:
     return 0
 
 
-def _observations(args: argparse.Namespace, region) -> tuple[np.ndarray, np.ndarray]:
-    import pandas as pd
-
-    try:
-        obs = pd.read_csv(args.observations)
-    except (OSError, ValueError) as exc:
-        raise UsageError(f"cannot read --observations {args.observations}: "
-                         f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
-                         ) from None
-    if "value" not in obs:
-        raise UsageError(f"--observations {args.observations} needs a 'value' column and "
-                         f"'cell' or 'lat','lon' columns; it has {list(obs.columns)}")
-    if obs.empty:
-        raise UsageError(f"--observations {args.observations} has no rows")
-    numeric = obs.apply(pd.to_numeric, errors="coerce")
-    for col in ("value", "cell", "lat", "lon"):
-        if col in obs and (numeric[col].isna() & obs[col].notna()).any():
-            raise UsageError(f"--observations column {col!r} must hold numbers")
-    if "cell" in obs:
-        cells = region.check_cells(numeric["cell"].to_numpy(), "cell")
-    elif {"lat", "lon"} <= set(obs.columns):
-        cells = np.atleast_1d(region.cell_of(numeric["lat"].to_numpy(),
-                                             numeric["lon"].to_numpy()))
-    else:
-        raise UsageError(f"--observations {args.observations} needs a 'cell' column or 'lat' "
-                         f"and 'lon' columns; it has {list(obs.columns)}")
-    return cells, numeric["value"].to_numpy(dtype=float)
-
-
 def cmd_predict(args: argparse.Namespace) -> int:
-    (out,) = _guard([args.output], [args.model, args.observations], args)
-    model = _load_model(args.model)
+    (out,) = guard_paths([args.output], [args.model, args.observations], args)
+    model = load_model(args.model)
     prior = _prior(_pick(args.prior, args.recommended, "prior", None))
     spatial = bool(args.spatial or args.recommended)
     if spatial:
         _need_spatial(model, args.model, "--spatial" if args.spatial else "--recommended")
-    cells, values = _observations(args, model.region_)
+    cells, values = read_observations_csv(args.observations, model.region_)
     result = model.complete((cells, values), ridge=args.ridge, prior=prior, spatial=spatial)
     with atomic_outputs([out], overwrite=True) as (tmp,):
         result.to_netcdf(tmp, engine="netcdf4")
@@ -601,9 +474,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"--out {out_dir} is an existing file; give a folder")
     inputs = _input_files(args.data) + [Path(p) for p in _mask_file(args)]
-    _guard([out_dir / name for name in EVALUATION_FILES], inputs, args)
+    guard_paths([out_dir / name for name in EVALUATION_FILES], inputs, args)
     path = _path_kwargs(args, fleet_end=False)
-    budgets = _floats(args.budgets, None, "--budgets")
+    budgets = parse_floats(args.budgets, None, "--budgets")
     if min(budgets) < 0:
         raise UsageError(f"--budgets must be numbers >= 0, got {args.budgets!r}")
     if args.methods is not None:
@@ -660,19 +533,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
-def _add_common(p: argparse.ArgumentParser) -> None:
-    """-q and --debug after the command too (SUPPRESS keeps the global value otherwise)."""
-    p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
-                   help="no progress bars")
-    p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                   help="print the traceback of an error")
-
-
-def _add_output(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace existing output files (never an input file)")
-
-
 def _add_recommended(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--recommended", action="store_true",
                    help=f"the recommended setting of docs/reconstruction.md: {what}; explicit "
@@ -722,14 +582,15 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", required=True, action="append",
                    help="start location LAT,LON or LAT LON in degrees (e.g. --start -10 150); "
                    "repeat it for a fleet, one --start per robot")
-    p.add_argument("--budget", required=True, type=_number, action="append",
+    p.add_argument("--budget", required=True, type=finite_number, action="append",
                    help="path budget in the metric's unit (grid cells; km with --metric km; "
                    "hours with --speed), once for every robot or once per --start")
     p.add_argument("--criterion", choices=CRITERIA, default=None,
                    help="planning criterion (default fisher; gp-variance with --recommended)")
     p.add_argument("--cost", default=_first(COSTS), choices=COSTS,
                    help="path cost (default: %(default)s)")
-    p.add_argument("--ridge", type=_number, default=0.0, help="ridge added to the information")
+    p.add_argument("--ridge", type=finite_number, default=0.0,
+                   help="ridge added to the information")
     p.add_argument("--prior", choices=_prior_choices(), default=None,
                    help="plan with the fold-in's posterior under this prior (default none; "
                    "empirical with --recommended or gp-variance)")
@@ -759,9 +620,9 @@ def _add_path_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--metric", default="grid", choices=_metric_choices(),
                    help="budget unit: grid (grid cells, the paper; default) or km (great-circle "
                    "km between cell centres)")
-    p.add_argument("--speed", type=_number, default=None,
+    p.add_argument("--speed", type=finite_number, default=None,
                    help="speed in km/h (with --metric km): the budget is then in hours")
-    p.add_argument("--stop-cost", type=_number, default=0.0,
+    p.add_argument("--stop-cost", type=finite_number, default=0.0,
                    help="cost of each sampling stop in the budget's unit (time on station; "
                    "default 0)")
     p.add_argument("--traversable", default=None, metavar="valid|PATH.nc",
@@ -791,18 +652,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rank", type=_int_at_least(1), default=5)
     p.add_argument("--loss", default="quadratic", choices=LOSSES)
     p.add_argument("--max-iter", type=_int_at_least(1), default=100)
-    p.add_argument("--tol", type=_number, default=1e-4)
+    p.add_argument("--tol", type=finite_number, default=1e-4)
     p.add_argument("--seed", type=_int_at_least(0), default=0)
     _add_model_options(p)
     _add_recommended(p, "--offset --spatial exponential")
     p.add_argument("-o", "--output", required=True, help="model file (.nc)")
-    _add_output(p)
+    add_output(p)
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("plan", help="plan a sampling route with the greedy planner")
     _add_plan(p)
     p.add_argument("-o", "--output", help="route.csv or route.geojson")
-    _add_output(p)
+    add_output(p)
     p.set_defaults(func=cmd_plan)
 
     p = sub.add_parser("bound", help="certify the greedy plan's optimality gap")
@@ -833,14 +694,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cells that may hold a sensor: valid (all, default) or a NetCDF file "
                    "with one boolean (lat, lon) variable")
     p.add_argument("-o", "--output", help="sensors.csv or sensors.geojson")
-    _add_output(p)
+    add_output(p)
     p.set_defaults(func=cmd_place)
 
     p = sub.add_parser("predict", help="predict the map from observations")
     p.add_argument("model", help="model file written by 'lrm-cvx fit'")
     p.add_argument("--observations", required=True,
                    help="CSV with columns value and cell, or value, lat and lon")
-    p.add_argument("--ridge", type=_number, default=0.0)
+    p.add_argument("--ridge", type=finite_number, default=0.0)
     p.add_argument("--prior", choices=_prior_choices(), default=None,
                    help="fold-in prior; empirical: the training latent vectors' mean and "
                    "covariance (default none)")
@@ -848,7 +709,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add the kriged GP residual (model fitted with a spatial covariance)")
     _add_recommended(p, "--prior empirical --spatial")
     p.add_argument("-o", "--output", required=True, help="output NetCDF map")
-    _add_output(p)
+    add_output(p)
     p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser("evaluate", help="run the paper's evaluation protocol")
@@ -867,8 +728,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="criterion of the 'greedy' method (default: %(default)s)")
     p.add_argument("--cost", default=_first(COSTS), choices=COSTS,
                    help="path cost of the greedy (default: %(default)s)")
-    p.add_argument("--ridge", type=_number, default=0.0, help="the planners' information ridge")
-    p.add_argument("--fold-ridge", type=_number, default=0.0, help="the fold-in's ridge")
+    p.add_argument("--ridge", type=finite_number, default=0.0,
+                   help="the planners' information ridge")
+    p.add_argument("--fold-ridge", type=finite_number, default=0.0, help="the fold-in's ridge")
     p.add_argument("--prior", choices=_prior_choices(), default=None,
                    help="fold-in prior of every prediction (default none)")
     p.add_argument("--fold-spatial", action="store_true",
@@ -886,7 +748,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="same as --certify off")
     _add_recommended(p, "--offset --spatial exponential --prior empirical --fold-spatial and "
                         "method greedy:gp-variance first")
-    _add_output(p)
+    add_output(p)
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("demo", help="the whole pipeline on the bundled real sample data")
@@ -896,7 +758,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_monitor_parser(sub)
     for action in sub.choices.values():
-        _add_common(action)
+        add_common(action)
     return parser
 
 

@@ -22,6 +22,19 @@ from typing import Any
 
 import numpy as np
 
+from .cli_common import (
+    UsageError,
+    add_common,
+    add_output,
+    describe_plan,
+    finite_number,
+    guard_paths,
+    load_model,
+    parse_start,
+    read_observations_csv,
+    write_plan,
+)
+
 __all__ = ["add_monitor_parser"]
 
 _PLAN_SUFFIXES = (".csv", ".geojson", ".json")
@@ -29,8 +42,6 @@ _MAP_SUFFIXES = (".nc", ".png", ".pdf")
 
 
 def _usage(message: str) -> Exception:
-    from .cli import UsageError
-
     return UsageError(message)
 
 
@@ -46,11 +57,10 @@ def _save_state(state: Any, path: str | Path) -> None:
 
 # ----------------------------------------------------------------------------- commands
 def cmd_monitor_init(args: argparse.Namespace) -> int:
-    from .cli import _guard, _load_model
     from .monitor import MonitorState
 
-    (out,) = _guard([args.state], [args.model], args)
-    model = _load_model(args.model)
+    (out,) = guard_paths([args.state], [args.model], args)
+    model = load_model(args.model)
     if args.memoryless and args.temporal:
         raise _usage("--memoryless and --temporal exclude each other")
     dynamics = None
@@ -72,25 +82,24 @@ def cmd_monitor_init(args: argparse.Namespace) -> int:
 
 
 def cmd_monitor_plan(args: argparse.Namespace) -> int:
-    from .cli import _describe_plan, _guard, _start, _write_plan
     from .planning import plan_greedy
 
     suffix = Path(args.output).suffix.lower()
     if suffix not in _PLAN_SUFFIXES:
         raise _usage(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
-    (out,) = _guard([args.output], [args.state], args)
+    (out,) = guard_paths([args.output], [args.state], args)
     state = _load_state(args.state)
     model = state.model
     criterion = args.criterion
     if criterion is None:
         criterion = "gp-variance" if state.posterior.obs_model.is_spatial else "fisher"
     kw = state.planner_kwargs(criterion=criterion, time=args.time)
-    plan = plan_greedy(model._Yv, model.region_, _start(args.start), args.budget,
+    plan = plan_greedy(model._Yv, model.region_, parse_start(args.start), args.budget,
                        criterion=criterion, cost=args.cost, ridge=args.ridge,
                        progress=not args.quiet, initial="start", **kw)
     t = state._default_time(args.time)
-    print(f"plan for {_label(t)}: {_describe_plan(plan)}")
-    _write_plan(plan, out)
+    print(f"plan for {_label(t)}: {describe_plan(plan)}")
+    write_plan(plan, out)
     return 0
 
 
@@ -121,9 +130,7 @@ def _read_observations(path: str, region: Any, var: str | None) -> Any:
             raise _usage(f"{path}: variable {names[0]!r} must be a (lat, lon) map, got dims "
                          f"{da.dims}")
         return da
-    from .cli import _observations
-
-    return _observations(argparse.Namespace(observations=path), region)
+    return read_observations_csv(path, region)
 
 
 def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
@@ -141,12 +148,11 @@ def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
 
 
 def cmd_monitor_map(args: argparse.Namespace) -> int:
-    from .cli import _guard
 
     suffix = Path(args.output).suffix.lower()
     if suffix not in _MAP_SUFFIXES:
         raise _usage(f"-o must end in .nc, .png or .pdf, got {Path(args.output).name!r}")
-    (out,) = _guard([args.output], [args.state], args)
+    (out,) = guard_paths([args.output], [args.state], args)
     state = _load_state(args.state)
     ds = state.forecast(args.time) if args.forecast else state.predict()
     what = "forecast" if args.forecast else "posterior"
@@ -188,7 +194,6 @@ def _label(t: Any) -> str:
 # ----------------------------------------------------------------------------- parser
 def add_monitor_parser(sub: Any) -> None:
     """Add ``monitor init|plan|assimilate|map`` to ``lrm-cvx``'s subcommands."""
-    from .cli import _add_common, _add_output, _number
     from .cost import COSTS
     from .information import CRITERIA
 
@@ -206,25 +211,26 @@ def add_monitor_parser(sub: Any) -> None:
                    "model's own, fitted with temporal=...)")
     q.add_argument("--memoryless", action="store_true",
                    help="no dynamics: every day's prior is the empirical prior")
-    _add_output(q)
+    add_output(q)
     q.set_defaults(func=cmd_monitor_init)
 
     q = msub.add_parser("plan", help="plan the next route with the state's forecast as prior")
     q.add_argument("state", help="state file written by 'lrm-cvx monitor init'")
     q.add_argument("--start", required=True,
                    help="start location LAT,LON or LAT LON in degrees")
-    q.add_argument("--budget", required=True, type=_number, help="path budget in grid cells")
+    q.add_argument("--budget", required=True, type=finite_number, help="path budget in grid cells")
     q.add_argument("--criterion", choices=CRITERIA, default=None,
                    help="planning criterion (default gp-variance with a spatial model, else "
                    "fisher)")
     q.add_argument("--cost", default=COSTS[0], choices=COSTS,
                    help="path cost (default: %(default)s)")
-    q.add_argument("--ridge", type=_number, default=0.0, help="ridge added to the information")
+    q.add_argument("--ridge", type=finite_number, default=0.0,
+                   help="ridge added to the information")
     q.add_argument("--time", default=None,
                    help="plan for this time (default: the next step, or the state's time if "
                    "not observed yet)")
     q.add_argument("-o", "--output", required=True, help="plan.csv or plan.geojson")
-    _add_output(q)
+    add_output(q)
     q.set_defaults(func=cmd_monitor_plan)
 
     q = msub.add_parser("assimilate", help="fold a day's observations into the state")
@@ -244,7 +250,7 @@ def add_monitor_parser(sub: Any) -> None:
                    help="the forecast for --time (default the next step) instead of the "
                    "posterior")
     q.add_argument("--time", default=None, help="time of the forecast")
-    _add_output(q)
+    add_output(q)
     q.set_defaults(func=cmd_monitor_map)
     for action in msub.choices.values():
-        _add_common(action)
+        add_common(action)

@@ -1,0 +1,189 @@
+"""Helpers the ``lrm-cvx`` commands share (:mod:`lrm_cvx.cli` and :mod:`lrm_cvx.cli_monitor`).
+
+Argument readers (``LAT,LON``, finite numbers), the output guard of the CLI contract (never onto
+an input, ``--overwrite``, a folder that can take the file), the common options, loading a
+model, reading an observations CSV, and describing / writing a plan. Errors a user can fix are
+:class:`UsageError` (one line, exit status 2; docs/cli.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._validation import guard_outputs
+from .errors import LrmError
+
+__all__ = ["UsageError", "parse_floats", "check_lat", "parse_start", "finite_number",
+           "add_common", "add_output", "check_writable", "guard_paths", "load_model",
+           "read_observations_csv", "describe_plan", "write_plan"]
+
+
+class UsageError(LrmError, ValueError):
+    """A command-line argument is malformed."""
+
+
+def parse_floats(text: str, n: int | None, what: str) -> list[float]:
+    """Comma-separated finite numbers (``n`` of them unless None); UsageError naming ``what``."""
+    try:
+        values = [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise UsageError(f"{what} must be comma-separated numbers, got {text!r}") from None
+    if n is not None and len(values) != n:
+        raise UsageError(f"{what} must have {n} comma-separated numbers, got {text!r}")
+    if not values:
+        raise UsageError(f"{what} needs at least one number, got {text!r}")
+    if not all(np.isfinite(values)):
+        raise UsageError(f"{what} must be finite numbers, got {text!r}")
+    return values
+
+
+def check_lat(value: float, what: str) -> None:
+    """UsageError unless ``value`` is a latitude in [-90, 90] (``what``: the flag)."""
+    if not -90 <= value <= 90:
+        raise UsageError(f"{what} latitude must be in [-90, 90], got {value:g} "
+                         "(latitude comes first)")
+
+
+def parse_start(text: str, flag: str = "--start") -> tuple[float, float]:
+    """``LAT,LON`` of ``flag`` (``--start``, ``--end``) as a ``(lat, lon)`` tuple."""
+    lat, lon = parse_floats(text, 2, f"{flag} LAT,LON")
+    check_lat(lat, flag)
+    return (lat, lon)
+
+
+def finite_number(text: str) -> float:
+    """argparse ``type=``: a finite float (ArgumentTypeError otherwise)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+def add_common(p: argparse.ArgumentParser) -> None:
+    """-q and --debug after the command too (SUPPRESS keeps the global value otherwise)."""
+    p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                   help="no progress bars")
+    p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                   help="print the traceback of an error")
+
+
+def add_output(p: argparse.ArgumentParser) -> None:
+    """``--overwrite`` (a command that writes files)."""
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing output files (never an input file)")
+
+
+def check_writable(paths: Sequence[Path]) -> None:
+    """Fail before any work when an output's existing folder cannot take a new file."""
+    import tempfile
+
+    for folder in {p.parent for p in paths}:
+        if folder.is_dir():
+            fd, probe = tempfile.mkstemp(prefix=".lrm-cvx-probe.", dir=folder)
+            os.close(fd)
+            os.unlink(probe)
+        elif folder.exists():
+            raise NotADirectoryError(f"cannot write into {folder}: it is a file, not a folder")
+
+
+def guard_paths(outputs: Sequence[str | Path], inputs: Sequence[str | Path],
+                args: argparse.Namespace) -> list[Path]:
+    """The resolved ``outputs`` after the CLI's checks: no glob pattern, never one of
+    ``inputs``, an existing file only with ``args.overwrite``, a folder that can take it."""
+    for out in outputs:
+        if any(c in Path(out).name for c in "*?["):
+            raise UsageError(f"output {out} looks like a glob pattern; give one file name")
+    outs = guard_outputs(outputs, inputs, overwrite=args.overwrite)
+    check_writable(outs)
+    return outs
+
+
+def load_model(path: str, *, need_region: bool = True) -> Any:
+    """The GLRM saved at ``path``; UsageError when ``need_region`` and it has no lat/lon grid."""
+    from .glrm import GLRM
+
+    model = GLRM.load(path)
+    if need_region and model.region_ is None:
+        raise UsageError(f"model {path} was fitted on a plain array and has no region (lat/lon "
+                         "grid); refit it with 'lrm-cvx fit' on gridded data")
+    return model
+
+
+def read_observations_csv(path: str, region: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``(cells, values)`` of an observations CSV: a ``value`` column and ``cell`` or
+    ``lat``,``lon`` columns (UsageError naming ``--observations`` otherwise)."""
+    import pandas as pd
+
+    try:
+        obs = pd.read_csv(path)
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"cannot read --observations {path}: "
+                         f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                         ) from None
+    if "value" not in obs:
+        raise UsageError(f"--observations {path} needs a 'value' column and "
+                         f"'cell' or 'lat','lon' columns; it has {list(obs.columns)}")
+    if obs.empty:
+        raise UsageError(f"--observations {path} has no rows")
+    numeric = obs.apply(pd.to_numeric, errors="coerce")
+    for col in ("value", "cell", "lat", "lon"):
+        if col in obs and (numeric[col].isna() & obs[col].notna()).any():
+            raise UsageError(f"--observations column {col!r} must hold numbers")
+    if "cell" in obs:
+        cells = region.check_cells(numeric["cell"].to_numpy(), "cell")
+    elif {"lat", "lon"} <= set(obs.columns):
+        cells = np.atleast_1d(region.cell_of(numeric["lat"].to_numpy(),
+                                             numeric["lon"].to_numpy()))
+    else:
+        raise UsageError(f"--observations {path} needs a 'cell' column or 'lat' "
+                         f"and 'lon' columns; it has {list(obs.columns)}")
+    return cells, numeric["value"].to_numpy(dtype=float)
+
+
+def describe_plan(plan: Any) -> str:
+    """One line about a :class:`~lrm_cvx.planning.Plan`: cells, cost against the budget(s)
+    (each robot's for a fleet), the criterion value and the non-default path options."""
+    value = (f"information {plan.information:.4f} nats" if plan.criterion == "fisher"
+             else f"{plan.criterion} criterion {plan.information:.4g}")
+    path = getattr(plan, "path", None) or {}
+    unit = path.get("unit", "grid units")
+    budgets = path.get("budgets") or [plan.budget]
+    costs = np.atleast_1d(getattr(plan, "robot_costs", [plan.cost]))
+    if len(costs) != len(budgets):
+        costs, budgets = np.array([plan.cost]), [plan.budget]
+    over = bool(np.any(costs > np.asarray(budgets, dtype=float) + 1e-9))
+    within = "> (forced initial cells)" if over else "<="
+    if len(costs) == 1:
+        text = f"cost {plan.cost:.3f} {within} budget {plan.budget:g}"
+    else:  # a fleet: each robot's cost and budget
+        text = f"{len(costs)} robots, costs " + ", ".join(
+            f"{c:.3f}/{b:g}" for c, b in zip(costs, budgets, strict=True)) + \
+            f" (total {plan.cost:.3f}; {'over' if over else 'within'} the budgets)"
+    if unit != "grid units":
+        text += f" {unit}"
+    extras = ["closed" if path.get("closed") else "",
+              f"traversable {path['traversable']}" if path.get("traversable", "none") != "none"
+              else "",
+              f"ends at cell {path['end']}" if path.get("end") is not None else "",
+              "sensing along the route" if path.get("sense_along") else ""]
+    extras = [e for e in extras if e]
+    return f"{len(plan.cells)} cells, {text}, {value}" + (f" ({', '.join(extras)})" if extras
+                                                         else "")
+
+
+def write_plan(plan: Any, out: Path) -> None:
+    """Write ``plan`` as CSV or GeoJSON by ``out``'s suffix (checked by the caller)."""
+    if out.suffix.lower() == ".csv":
+        plan.to_csv(out)
+    else:
+        plan.to_geojson(out)
+    print(f"route written to {out}")
