@@ -21,6 +21,10 @@ on all snapshots but the last ``n_test`` (12 planted, 8 real), then
 Planted field only: ``A`` recovery (relative Frobenius error after aligning the fitted latent
 coordinates to the true ones by least squares) and campaign MSE of the filter that knows the
 true ``A`` and ``Q`` (mapped into the fitted coordinates) vs the estimated filter.
+``--rolling N`` runs only a rolling-origin check of the calibration (:func:`rolling`): each of
+the last ``N`` blocks of ``n_test`` snapshots is held out in turn, with the whole pipeline
+(fit, dynamics selection, calibration) on the snapshots before it; it prints each block's
+pooled coverage and their mean, which separates calibration bias from one period's calmness.
 ``--paper-scale`` runs only the paper-scale targets (:func:`paper_scale`): 310 snapshots of a
 1500 x 1400 grid (2.1M cells, rank 5, the data of ``bench_glrm.py``), the recommended model
 fitted with and without ``temporal="ar1"`` (both timed), then one campaign day (forecast,
@@ -142,11 +146,13 @@ def a_recovery(n_times: int, seeds: tuple = (0, 1, 2)) -> None:
               f"alignment R^2 {r2:.3f}; fit {fit_s:.1f} s)", flush=True)
 
 
-def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
-    data, truth, n_test, rank = load(name)
-    train, test = data.isel(time=slice(None, -n_test)), data.isel(time=slice(-n_test, None))
-    print(f"\n=== {name}: {data.sizes['time']} snapshots ({n_test} test), "
-          f"{int(np.isfinite(data.isel(time=0)).sum())}+ cells, rank {rank} ===", flush=True)
+def fit_and_evaluate(data, n_test: int, rank: int, budgets: tuple, n_starts: int,
+                     random_trials: int, verbose: bool = True):
+    """The recommended pipeline on ``data`` (its last ``n_test`` snapshots held out): fit with
+    and without dynamics, select the dynamics' blend and calibrate on the training snapshots
+    only, then ``evaluate(temporal="ar1")``. Returns ``(model, res)``."""
+    train = data.isel(time=slice(None, -n_test))
+    say = print if verbose else (lambda *a, **k: None)
     t0 = time.perf_counter()
     plain = GLRM(rank=rank, offset=True, spatial="exponential", progress=False,
                  random_state=0).fit(train)
@@ -155,32 +161,26 @@ def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
     model = GLRM(rank=rank, offset=True, spatial="exponential", temporal="ar1", progress=False,
                  random_state=0).fit(train)
     t_temporal = time.perf_counter() - t0
-    print(f"fit: {t_plain:.2f} s without dynamics, {t_temporal:.2f} s with temporal='ar1'; "
-          f"spectral radius of A {np.abs(np.linalg.eigvals(model.dynamics_.A)).max():.3f}")
+    say(f"fit: {t_plain:.2f} s without dynamics, {t_temporal:.2f} s with temporal='ar1'; "
+        f"spectral radius of A {np.abs(np.linalg.eigvals(model.dynamics_.A)).max():.3f}")
     del plain
-
-    if truth is not None:
-        M = align(model, truth, train.sizes["time"])
-        Minv = np.linalg.inv(M)
-        oracle_dyn = replace(model.dynamics_, A=M @ truth["A"] @ Minv,
-                             Q=M @ truth["Q"] @ M.T)
 
     t0 = time.perf_counter()
     alpha, table = select_dynamics(model, train, seed=0)
-    print(f"dynamics shrinkage on validation snapshots: alpha = {alpha:g} "
-          f"({time.perf_counter() - t0:.1f} s, {table.attrs['n_days']} validation days); "
-          "validation MSE ratio to memoryless per size, then the 95 % upper bound of the "
-          "relative change (admissible <= 0.01):")
-    print((table / table.loc[0.0]).round(3).to_string())
-    print(table.attrs["ucb"].round(3).to_string())
+    say(f"dynamics shrinkage on validation snapshots: alpha = {alpha:g} "
+        f"({time.perf_counter() - t0:.1f} s, {table.attrs['n_days']} validation days); "
+        "validation MSE ratio to memoryless per size, then the 95 % upper bound of the "
+        "relative change (admissible <= 0.01):")
+    say((table / table.loc[0.0]).round(3).to_string())
+    say(table.attrs["ucb"].round(3).to_string())
 
     t0 = time.perf_counter()
     cal = calibrate(model, train, seed=0)
-    print(f"calibration ({time.perf_counter() - t0:.1f} s): variance scale {cal.scale:.3f}, "
-          f"residual variance factor {cal.residual_scale:g}, adaptive scale dof {cal.dof} "
-          f"discount {cal.discount:g} (cv log-likelihood gain {cal.dof_loglik_gain:.4f}) "
-          f"(cv coverage before: 68% {cal.coverage68_raw:.3f}, 95% {cal.coverage95_raw:.3f}); "
-          "the filter uses the same calibration")
+    say(f"calibration ({time.perf_counter() - t0:.1f} s): variance scale {cal.scale:.3f}, "
+        f"residual variance factor {cal.residual_scale:g}, adaptive scale dof {cal.dof} "
+        f"discount {cal.discount:g} (cv log-likelihood gain {cal.dof_loglik_gain:.4f}) "
+        f"(cv coverage before: 68% {cal.coverage68_raw:.3f}, 95% {cal.coverage95_raw:.3f}); "
+        "the filter uses the same calibration")
 
     methods = (RECOMMENDED,) + TRANSECTS + ("random",)
     t0 = time.perf_counter()
@@ -188,8 +188,66 @@ def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
                    methods=methods, random_trials=random_trials, min_observations=1,
                    certify=False, progress=False, temporal="ar1", seed=0,
                    fold_in={"prior": "empirical", "spatial": True})
-    print(f"evaluate(temporal='ar1'): {time.perf_counter() - t0:.0f} s, {n_starts} starts, "
-          f"budgets {budgets}")
+    say(f"evaluate(temporal='ar1'): {time.perf_counter() - t0:.0f} s, {n_starts} starts, "
+        f"budgets {budgets}")
+    return model, res
+
+
+def pooled_coverage(res) -> dict:
+    """Coverage pooled over every (plan, snapshot) of every method and budget:
+    ``{"filter": (c68, c95), "memoryless": (c68, c95)}``."""
+    return {mode: (float(np.nanmean(res[f"coverage68{sfx}"].values)),
+                   float(np.nanmean(res[f"coverage95{sfx}"].values)))
+            for mode, sfx in (("filter", ""), ("memoryless", "_memoryless"))}
+
+
+def rolling(name: str, n_windows: int, n_starts: int, budgets: tuple, random_trials: int
+            ) -> None:
+    """Rolling-origin check of the calibration: the last ``n_windows`` blocks of ``n_test``
+    snapshots are each held out in turn, the model fitted, its dynamics selected and its
+    variance calibrated on the snapshots before the block only, and the block's campaigns
+    scored. One block's coverage mixes calibration error with how calm that period was; the
+    mean over blocks measures the calibration."""
+    data, _, n_test, rank = load(name)
+    T = data.sizes["time"]
+    print(f"\n=== {name}: rolling origin, {n_windows} blocks of {n_test} test snapshots, "
+          f"{n_starts} starts, budgets {budgets} ===", flush=True)
+    rows = []
+    for w in range(n_windows):
+        end = T - w * n_test
+        if end - n_test < 16:
+            break
+        sub = data.isel(time=slice(0, end))
+        _, res = fit_and_evaluate(sub, n_test, rank, budgets, n_starts, random_trials,
+                                  verbose=False)
+        cov = pooled_coverage(res)
+        t = sub["time"].values
+        label = f"{str(t[-n_test])[:10]} .. {str(t[-1])[:10]}"
+        rows.append((cov["filter"], cov["memoryless"]))
+        print(f"[{name}] test block {label} ({end - n_test} training snapshots): coverage "
+              f"filter 68% {cov['filter'][0]:.3f} 95% {cov['filter'][1]:.3f}; memoryless "
+              f"68% {cov['memoryless'][0]:.3f} 95% {cov['memoryless'][1]:.3f}", flush=True)
+    f = np.array([r[0] for r in rows])
+    m = np.array([r[1] for r in rows])
+    print(f"[{name}] mean over {len(rows)} blocks: filter 68% {f[:, 0].mean():.3f} "
+          f"95% {f[:, 1].mean():.3f}; memoryless 68% {m[:, 0].mean():.3f} "
+          f"95% {m[:, 1].mean():.3f} (targets 0.63-0.73, 0.93-0.97); spread of one block "
+          f"(filter 68%): {f[:, 0].min():.3f} - {f[:, 0].max():.3f}")
+
+
+def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
+    data, truth, n_test, rank = load(name)
+    train, test = data.isel(time=slice(None, -n_test)), data.isel(time=slice(-n_test, None))
+    print(f"\n=== {name}: {data.sizes['time']} snapshots ({n_test} test), "
+          f"{int(np.isfinite(data.isel(time=0)).sum())}+ cells, rank {rank} ===", flush=True)
+    model, res = fit_and_evaluate(data, n_test, rank, budgets, n_starts, random_trials)
+
+    if truth is not None:
+        M = align(model, truth, train.sizes["time"])
+        Minv = np.linalg.inv(M)
+        oracle_dyn = replace(model.dynamics_, A=M @ truth["A"] @ Minv,
+                             Q=M @ truth["Q"] @ M.T)
+
     df = summary(res).set_index(["method", "budget"])
     cols = ["mse_mean", "mse_memoryless_mean", "temporal_cut", "coverage68_mean",
             "coverage95_mean", "coverage68_memoryless_mean", "coverage95_memoryless_mean"]
@@ -208,9 +266,7 @@ def run(name: str, n_starts: int, budgets: tuple, random_trials: int) -> None:
                  ("random",) + TRANSECTS]
         print(f"  budget {b:>4g}: " + ", ".join(parts))
     # coverage pooled over every (plan, snapshot) of every method and budget
-    for mode, sfx in (("filter", ""), ("memoryless", "_memoryless")):
-        c68 = np.nanmean(res[f"coverage68{sfx}"].values)
-        c95 = np.nanmean(res[f"coverage95{sfx}"].values)
+    for mode, (c68, c95) in pooled_coverage(res).items():
         print(f"[{name}] coverage ({mode}, calibrated, all methods and budgets): "
               f"68% {c68:.3f}  95% {c95:.3f}  (targets 0.63-0.73, 0.93-0.97)")
 
@@ -435,6 +491,9 @@ def main() -> None:
     ap.add_argument("--budgets", type=float, nargs="+", default=[5, 15, 50])
     ap.add_argument("--random-trials", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="3 starts, budgets 5 and 15")
+    ap.add_argument("--rolling", type=int, default=0, metavar="N",
+                    help="only the rolling-origin calibration check on --data: the last N "
+                         "blocks of test snapshots held out in turn (5 starts unless --starts)")
     ap.add_argument("--rts", action="store_true",
                     help="only the RTS-smoothed fit experiment (optional item) on --data")
     ap.add_argument("--check-exact", action="store_true",
@@ -457,6 +516,11 @@ def main() -> None:
         a.starts, a.budgets = 3, [5, 15]
     if a.planted_times is not None:
         PLANTED["n_times"] = a.planted_times
+    if a.rolling:
+        starts = a.starts if "--starts" in __import__("sys").argv else 5
+        for name in a.data:
+            rolling(name, a.rolling, starts, tuple(a.budgets), a.random_trials)
+        return
     if a.rts:
         for name in a.data:
             rts_experiment(name, n_starts=3 if a.quick else 5, budgets=tuple(a.budgets))
