@@ -388,7 +388,7 @@ def test_greedy_posterior_criteria_equal_naive(seed):
 
 # --------------------------------------------------------------------------- scalable gp-variance
 def test_grid_convolution_equals_brute_force():
-    from lrm_cvx.information import _GridConv
+    from lrm_cvx.information import GridConv
 
     rng = np.random.default_rng(0)
     win, out = (2, 3, 7, 9), (4, 5, 3, 4)
@@ -397,7 +397,7 @@ def test_grid_convolution_equals_brute_force():
         return np.exp(-np.asarray(d) / 1.7)
 
     f = rng.normal(size=(7, 9))
-    got = _GridConv(win, out, h)(f)
+    got = GridConv(win, out, h)(f)
     ref = np.zeros((3, 4))
     for a in range(3):
         for b in range(4):

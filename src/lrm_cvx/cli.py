@@ -176,7 +176,7 @@ def _join_coordinates(argv: Sequence[str]) -> list[str]:
 def _input_files(items: Sequence[str]) -> list[Path]:
     """Every file a data argument reads: globs expanded (as ``open_data`` does), a folder and
     every file in it, and the package file behind ``sample:NAME``."""
-    from .io.generic import _expand
+    from .io.generic import expand_paths
 
     files: list[Path] = []
     plain = []
@@ -189,7 +189,7 @@ def _input_files(items: Sequence[str]) -> list[Path]:
             files.append(Path(str(resources.files("lrm_cvx") / "data" / f"{name}.nc")))
         else:
             plain.append(text)
-    for path in _expand(plain) if plain else []:
+    for path in expand_paths(plain) if plain else []:
         files.append(path)
         if path.is_dir():
             files.extend(q for q in sorted(path.iterdir()) if q.is_file())

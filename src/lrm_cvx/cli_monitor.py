@@ -183,12 +183,12 @@ def cmd_monitor_map(args: argparse.Namespace) -> int:
 
 
 def _label(t: Any) -> str:
-    from .monitor import _time_label
+    from .monitor import time_label
 
     t = t.item() if isinstance(t, np.ndarray) and t.ndim == 0 and t.dtype == object else t
     if isinstance(t, np.ndarray) and t.ndim == 0:
         t = t[()]
-    return _time_label(t)
+    return time_label(t)
 
 
 # ----------------------------------------------------------------------------- parser

@@ -59,6 +59,7 @@ __all__ = [
     "gp_noise",
     "gp_latent_cov",
     "check_gp_inputs",
+    "GridConv",
 ]
 
 Criterion = Literal["fisher", "a-optimal", "gp-variance"]
@@ -477,7 +478,7 @@ GP_STRUCTURED_MIN_ENTRIES: float = 2e7
 covariances (``|targets + pool| x |pool|``) and the covariance's metric is ``"grid"``."""
 
 
-class _GridConv:
+class GridConv:
     """``out[x] = sum_{i in window} f[i] h(|i - x|)`` for ``x`` in an output rectangle, by FFT.
 
     ``window`` and ``out`` are grid rectangles ``(row0, col0, n_rows, n_cols)`` (grid units);
@@ -594,21 +595,21 @@ class StructuredGPVarianceOracle:
         # are below 1e-17 sill each
         wb = _rect(lo, hi, spatial_cov.cutoff_distance(1e-17), shape)
         sl = (slice(wb[0], wb[0] + wb[2]), slice(wb[1], wb[1] + wb[3]))
-        conv = _GridConv(wb, out, kern)
+        conv = GridConv(wb, out, kern)
         uX = np.empty((k, X.size))
         buf = np.zeros(shape)
         for a in range(k):
             buf[gi[:, 0], gi[:, 1]] = cT * self.Y[a]
             uX[a] = conv(buf[sl])[self._oidx]
         del conv
-        sX = _GridConv(wb, out, lambda d: kern(d) ** 2)(cgrid[sl])[self._oidx]
+        sX = GridConv(wb, out, lambda d: kern(d) ** 2)(cgrid[sl])[self._oidx]
         # g(p, x) = sum_i c_i k(p, i) k(i, x): with equal weights on the targets, the lattice
         # autocorrelation K2(x - p) of k minus the targets' complement (bounded below), a table
         # gather per pick; else one convolution per pick over the smaller window
         self._k2 = self._lag_table(cT, sX, spatial_cov, lo, hi, boundary_tol)
         self._wg = _rect(lo, hi, spatial_cov.cutoff_distance(truncation), shape)
         wg = self._wg
-        self._gconv = _GridConv(wg, out, kern)
+        self._gconv = GridConv(wg, out, kern)
         self._cwin = cgrid[wg[0]:wg[0] + wg[2], wg[1]:wg[1] + wg[3]]
         self._wr = np.arange(wg[0], wg[0] + wg[2], dtype=np.float64)
         self._wc = np.arange(wg[1], wg[1] + wg[3], dtype=np.float64)
@@ -814,14 +815,14 @@ def _residual_terms(Yk: np.ndarray, region: Any, spatial_cov: Any, P: np.ndarray
     def kern(d):
         return spatial_cov.covariance(d, nugget=False)
 
-    conv = _GridConv(wb, out, kern)
+    conv = GridConv(wb, out, kern)
     buf = np.zeros(shape)
     u = np.empty((k, P.size))
     for j in range(k):
         buf[gi[:, 0], gi[:, 1]] = cT * Yk[j]
         u[j] = conv(buf[sl])[oidx]
     buf[gi[:, 0], gi[:, 1]] = cT
-    sx = _GridConv(wb, out, lambda d: kern(d) ** 2)(buf[sl])[oidx]
+    sx = GridConv(wb, out, lambda d: kern(d) ** 2)(buf[sl])[oidx]
     return u, sx
 
 

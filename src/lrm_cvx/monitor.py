@@ -32,7 +32,7 @@ from .errors import DataError, ModelError, RegionError
 from .glrm.dynamics import Dynamics, time_numbers
 from .glrm.posterior import LatentPosterior, ObservationModel, empirical_moments
 
-__all__ = ["MonitorState", "model_fingerprint", "memoryless_dynamics"]
+__all__ = ["MonitorState", "model_fingerprint", "memoryless_dynamics", "time_label"]
 
 _FORMAT = "lrm-cvx MonitorState"
 _FORMAT_VERSION = 1
@@ -114,7 +114,9 @@ def _time_to_str(t: Any) -> str:
     return repr(float(t))
 
 
-def _time_label(t: Any) -> str:
+def time_label(t: Any) -> str:
+    """A time for messages and labels: a datetime64 to the second, a cftime date in ISO form,
+    a number as its repr."""
     if isinstance(t, np.datetime64):
         return str(np.datetime64(t, "s"))
     return _time_to_str(t)
@@ -200,8 +202,8 @@ class MonitorState:
         dt = self._dt(t)
         if force or dt > 0 or (dt == 0 and not self.observed):
             return
-        raise DataError(f"time {_time_label(t)} is {'equal to' if dt == 0 else 'earlier than'} "
-                        f"the state's time {_time_label(self.time)}: observations must come in "
+        raise DataError(f"time {time_label(t)} is {'equal to' if dt == 0 else 'earlier than'} "
+                        f"the state's time {time_label(self.time)}: observations must come in "
                         "time order (pass force=True / --force to override)")
 
     def next_time(self) -> Any:
@@ -270,8 +272,8 @@ class MonitorState:
         if time is not None:
             t = self._coerce(time)
             if self._dt(t) < 0:
-                raise DataError(f"time {_time_label(t)} is earlier than the state's time "
-                                f"{_time_label(self.time)}: the filter forecasts forward only")
+                raise DataError(f"time {time_label(t)} is earlier than the state's time "
+                                f"{time_label(self.time)}: the filter forecasts forward only")
             return t
         return self.time if not self.observed else self.next_time()
 
@@ -477,7 +479,7 @@ class MonitorState:
         return state
 
     def __repr__(self) -> str:
-        return (f"MonitorState(time={_time_label(self.time)}, observed={self.observed}, "
+        return (f"MonitorState(time={time_label(self.time)}, observed={self.observed}, "
                 f"dynamics={'memoryless' if self.memoryless else self.dynamics.kind}, "
                 f"n_obs_today={self.posterior.cells.size}, n_assimilated={self.n_assimilated})")
 

@@ -697,7 +697,7 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     Returns ``(mean (L,), latent variance (L,), M)`` in the region's cell order. Needs a
     nugget > 0 and ``metric="grid"``.
     """
-    from .information import _GridConv
+    from .information import GridConv
 
     if cov.metric != "grid":
         raise ModelError("krige_grid_fft needs metric='grid'")
@@ -724,17 +724,17 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     def kern(d):
         return cov.covariance(d, nugget=False)
 
-    conv = _GridConv(window, out, kern)
+    conv = GridConv(window, out, kern)
     img = np.zeros(window[2:])
     rows, cols = gi[:, 0], gi[:, 1]
 
-    def apply(c: _GridConv, w: np.ndarray) -> np.ndarray:
+    def apply(c: GridConv, w: np.ndarray) -> np.ndarray:
         img[...] = 0.0
         np.add.at(img, loc, w)
         return c(img)[rows, cols]
 
     mean = apply(conv, alpha)
-    kk = apply(_GridConv(window, out, lambda d: kern(d) ** 2), np.ones(z.size))
+    kk = apply(GridConv(window, out, lambda d: kern(d) ** 2), np.ones(z.size))
     kmax = float(np.max(kk)) if kk.size else 0.0
     # leading eigenvectors: those whose weight differs from 1/nugget by more than the
     # tolerance allows (the error is <= (lambda_cut - nugget) / nugget^2 * max_t ||k_t||^2)

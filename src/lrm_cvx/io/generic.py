@@ -20,14 +20,14 @@ import xarray as xr
 from ..errors import DataError
 from ..region import to_geographic_order
 
-__all__ = ["open_data", "open_netcdf"]
+__all__ = ["open_data", "open_netcdf", "expand_paths"]
 
 _CDR_NAME = re.compile(r"^(AVHRR|VIIRS)-Land_v\d{3}")
 _IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff"}
 _RENAME = {"latitude": "lat", "longitude": "lon", "y": "lat", "x": "lon"}
 
 
-def _expand(paths: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
+def expand_paths(paths: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
     """Local paths with globs expanded. URLs are left out: they are not local files (so the
     CLI's input guard skips them) and :func:`lrm_cvx.io.remote.expand_urls` lists them."""
     from .remote import is_url
@@ -227,7 +227,7 @@ def open_data(paths: Any, *, var: str | None = None, bbox: Sequence[float] | Non
         if any(Path(n).suffix.lower() in _IMAGE_SUFFIXES for n in names):
             raise DataError(f"images are read from local folders only, not from {urls[0]}")
         return _open_netcdf_urls(urls, var, bbox, storage_options, cache)
-    files = _expand(items)
+    files = expand_paths(items)
     if len(files) == 1 and files[0].is_dir():
         folder = files[0]
         images = [p for p in sorted(folder.iterdir()) if p.suffix.lower() in _IMAGE_SUFFIXES]
