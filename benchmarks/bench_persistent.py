@@ -391,11 +391,11 @@ def _paper_day(model, region, shape, truth, times, check_exact: bool = False) ->
         print(f"  {name:20s} {s:7.2f} s")
     if check_exact:  # the same plan with the exact per-pick convolution (untimed for the day)
         import lrm_cvx.information as info
-        from lrm_cvx.planning.greedy import _budget_pool
+        from lrm_cvx.planning.greedy import budget_pool
 
         o = info.make_oracle("gp-variance", model._Yv, 0.0, np.array([start]), region=region,
                              spatial_cov=kw["spatial_cov"], prior_cov=kw["prior_cov"],
-                             pool=_budget_pool(region, start, 200.0),
+                             pool=budget_pool(region, start, 200.0),
                              target_weights=kw.get("target_weights"))
         print(f"  oracle: {type(o).__name__}, lag table used: {getattr(o, '_k2', None) is not None}"
               f", boundary bound {getattr(o, 'boundary_bound', float('nan')):.2e} of the "

@@ -64,7 +64,6 @@ def budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
     return np.flatnonzero(d2 <= (budget + _POOL_SLACK) ** 2).astype(np.int64)
 
 
-_budget_pool = budget_pool  # old name, still imported by benchmarks/bench_persistent.py
 
 
 def _prior_terms(prior: Any) -> dict[str, Any]:
