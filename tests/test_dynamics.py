@@ -355,13 +355,13 @@ def test_validation_blend_shrinks_without_persistence_and_keeps_it_with():
 
 
 def test_blend_zero_is_the_memoryless_prior():
-    from lrm_cvx.glrm.dynamics import _blend, _stationary_cov
+    from lrm_cvx.glrm.dynamics import _stationary_cov, blend_moments
     from lrm_cvx.glrm.posterior import empirical_moments
 
     X = np.random.default_rng(1).standard_normal((2, 30))
     dyn = estimate_ar1(X, np.arange(30))
     Z = X - X.mean(axis=1, keepdims=True)
-    A0, Q0 = _blend(dyn.A, dyn.Q, _stationary_cov(Z), 0.0)
+    A0, Q0 = blend_moments(dyn.A, dyn.Q, _stationary_cov(Z), 0.0)
     assert not np.any(A0)
     np.testing.assert_allclose(Q0, empirical_moments(X)[1], rtol=1e-12)
 

@@ -580,12 +580,12 @@ def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
     product with the fit's own validated blend."""
     from dataclasses import replace
 
-    from .dynamics import _blend
+    from .dynamics import blend_moments
 
     a = float(alpha)
     if not 0.0 <= a <= 1.0:
         raise ModelError(f"alpha must be in [0, 1], got {alpha!r}")
-    A, Q = _blend(dynamics.A, dynamics.Q, np.asarray(stationary_cov, dtype=np.float64), a)
+    A, Q = blend_moments(dynamics.A, dynamics.Q, np.asarray(stationary_cov, dtype=np.float64), a)
     return replace(dynamics, A=A, Q=0.5 * (Q + Q.T),
                    blend=float(getattr(dynamics, "blend", 1.0)) * a)
 

@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import DataError, ModelError
 
 __all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "time_numbers",
-           "rts_smooth", "check_times", "seasons", "error_rows"]
+           "rts_smooth", "check_times", "seasons", "error_rows", "blend_moments"]
 
 TEMPORAL = (None, "ar1", "seasonal")
 MAX_RADIUS = 0.99  # spectral radius of A is forced below this
@@ -363,7 +363,7 @@ def _stationary_cov(Z: np.ndarray) -> np.ndarray:
     return S + 1e-9 * max(np.trace(S), 1e-300) / k * np.eye(k)
 
 
-def _blend(A: np.ndarray, Q: np.ndarray, S0: np.ndarray, lam: float
+def blend_moments(A: np.ndarray, Q: np.ndarray, S0: np.ndarray, lam: float
            ) -> tuple[np.ndarray, np.ndarray]:
     """``(lam A, (1 - lam^2) S0 + lam^2 Q)``: ``lam = 0`` is the memoryless prior ``N(mu, S0)``
     every step, ``lam = 1`` the AR(1) fit; every blend is stable with a PSD noise."""
@@ -372,7 +372,7 @@ def _blend(A: np.ndarray, Q: np.ndarray, S0: np.ndarray, lam: float
 
 def _choose_blend(Z: np.ndarray, idx: np.ndarray, shrinkage: float, validation: float,
                   error_cov: np.ndarray | None = None) -> float:
-    """The blend of :func:`_blend` with the best one-step Gaussian predictive log-likelihood
+    """The blend of :func:`blend_moments` with the best one-step Gaussian predictive log-likelihood
     on the last ``validation`` fraction of the pairs, with ``A``, ``Q``, ``S0`` estimated on
     the pairs and columns before them (1.0 when there are too few pairs to validate)."""
     k = Z.shape[0]
@@ -387,7 +387,7 @@ def _choose_blend(Z: np.ndarray, idx: np.ndarray, shrinkage: float, validation: 
     Z1 = Z[:, va]
     best, best_nll = 1.0, np.inf
     for lam in _BLEND_GRID:  # 11 k x k evaluations
-        Al, Ql = _blend(A, Q, S0, float(lam))
+        Al, Ql = blend_moments(A, Q, S0, float(lam))
         r = Z1 - Al @ R0
         sign, logdet = np.linalg.slogdet(Ql)
         if sign <= 0:
@@ -442,7 +442,7 @@ def _fit_anomalies(Z: np.ndarray, idx: np.ndarray, shrinkage: float, validation:
     lam = 1.0
     if validation is not None:
         lam = _choose_blend(Z, idx, shrinkage, validation, error_cov)
-        A, Q = _blend(A, Q, _stationary_cov(Z), lam)
+        A, Q = blend_moments(A, Q, _stationary_cov(Z), lam)
     return A, Q, lam
 
 

@@ -64,8 +64,6 @@ def budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
     return np.flatnonzero(d2 <= (budget + _POOL_SLACK) ** 2).astype(np.int64)
 
 
-
-
 def _prior_terms(prior: Any) -> dict[str, Any]:
     """The planner's keyword terms of a latent belief (``LatentPosterior.information()``)."""
     info = getattr(prior, "information", None)
