@@ -438,9 +438,7 @@ def _check_budget(budget: Any, name: str = "budget") -> float:
     """``budget`` as a float >= 0; a string or a bool is refused, not converted."""
     from .._validation import check_positive
 
-    if isinstance(budget, (str, bytes, bool, np.bool_)):
-        raise PlanningError(f"{name} must be a number, got {budget!r}")
-    return check_positive(budget, name, error=PlanningError)
+    return check_positive(budget, name, error=PlanningError, numbers_only=True)
 
 
 def _starts_list(x: Any) -> list[Any]:
