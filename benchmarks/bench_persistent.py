@@ -215,7 +215,7 @@ def rolling(name: str, n_windows: int, n_starts: int, budgets: tuple, random_tri
     rows = []
     for w in range(n_windows):
         end = T - w * n_test
-        if end - n_test < 16:
+        if end - n_test < 16:  # calibrate's 8 interleaved folds need >= 16 training snapshots
             break
         sub = data.isel(time=slice(0, end))
         _, res = fit_and_evaluate(sub, n_test, rank, budgets, n_starts, random_trials,
@@ -487,7 +487,8 @@ def rts_experiment(name: str, n_starts: int = 5, budgets: tuple = (5, 15, 50),
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", nargs="+", default=["planted", "sst", "hgt500"])
-    ap.add_argument("--starts", type=int, default=10)
+    ap.add_argument("--starts", type=int, default=None,
+                    help="starts per data set (default 10; 5 with --rolling, 3 with --quick)")
     ap.add_argument("--budgets", type=float, nargs="+", default=[5, 15, 50])
     ap.add_argument("--random-trials", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="3 starts, budgets 5 and 15")
@@ -513,13 +514,12 @@ def main() -> None:
         paper_scale(small=a.quick, model_cache=a.model_cache, check_exact=a.check_exact)
         return
     if a.quick:
-        a.starts, a.budgets = 3, [5, 15]
+        a.starts, a.budgets = a.starts or 3, [5, 15]
     if a.planted_times is not None:
         PLANTED["n_times"] = a.planted_times
     if a.rolling:
-        starts = a.starts if "--starts" in __import__("sys").argv else 5
         for name in a.data:
-            rolling(name, a.rolling, starts, tuple(a.budgets), a.random_trials)
+            rolling(name, a.rolling, a.starts or 5, tuple(a.budgets), a.random_trials)
         return
     if a.rts:
         for name in a.data:
@@ -529,7 +529,7 @@ def main() -> None:
         if name == "planted":
             for n_times in a.recovery_sizes:
                 a_recovery(n_times)
-        run(name, a.starts, tuple(a.budgets), a.random_trials)
+        run(name, a.starts or 10, tuple(a.budgets), a.random_trials)
 
 
 if __name__ == "__main__":
