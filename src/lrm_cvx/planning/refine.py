@@ -21,6 +21,7 @@ was gained (docs/planning.md, "Refinement").
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
@@ -229,6 +230,7 @@ def refine(
     restart: bool = True,
     kicks: int = 10,
     restarts: int = 1,
+    shapes: int = 2000,
     prior_precision: Any = None,
     noise_var: Any = None,
     seed: int | None = 0,
@@ -261,14 +263,21 @@ def refine(
     restarts : independent chains of ``kicks`` kicks (iterated local search restarted from the
         local optimum, chain ``j`` seeded with ``seed + j``; the time left is split evenly); the
         best plan over all chains is kept. ``1`` is the single chain of earlier versions.
-    seed : seeds the kicks (``numpy.random.default_rng``); the result is deterministic given it.
+    shapes : after the local search converges, score this many random polyline routes from the
+        start (at most 25 per grid unit of budget; 2-4 legs,
+        :func:`~lrm_cvx.planning.shapes.search_shapes`), hill-climb the best four's
+        waypoints, and run the local search from the best one; it replaces the plan when it
+        ends higher. A global move: on smooth fields the best route's shape (an L, a
+        hook) can be far from the greedy's. Uses at most a third of ``time_limit``; 0 skips it.
+    seed : seeds the kicks and the shapes (``numpy.random.default_rng``); the result is
+        deterministic given it (and a ``time_limit`` that is not reached).
 
     Returns a new :class:`Plan` (``method`` unchanged) whose ``information`` is ``>=`` the
     input's and ``cost <= budget + 1e-9`` (or the input itself when no move helped), with
     ``refinement = {"information_before", "information_after", "criterion_before",
     "criterion_after", "moves", "inserted", "swapped", "restarted", "refilled", "kicks",
     "rounds", "seconds"}`` and history keys ``refine_move`` (1 insert, 2 swap, 3 restart,
-    4 drop-and-refill, 5 kick), ``refine_cell_in``, ``refine_cell_out``, ``refine_value``
+    4 drop-and-refill, 5 kick, 6 shape), ``refine_cell_in``, ``refine_cell_out``, ``refine_value``
     (criterion after each move).
     """
     if not isinstance(plan, Plan):
@@ -295,7 +304,7 @@ def refine(
     if plan.cost_function not in ("nearest-neighbor", "insertion"):
         raise PlanningError(f"cannot refine a plan with cost {plan.cost_function!r}")
     for name, v in (("max_rounds", max_rounds), ("shortlist", shortlist), ("refill", refill),
-                    ("kicks", kicks)):
+                    ("kicks", kicks), ("shapes", shapes)):
         if not isinstance(v, (int, np.integer)) or v < 0:
             raise PlanningError(f"{name} must be an integer >= 0, got {v!r}")
     if isinstance(restarts, bool) or not isinstance(restarts, (int, np.integer)) \
@@ -337,6 +346,14 @@ def refine(
     (cells, route, cost, value), found, rounds = _search((cells, route, cost, value), max_rounds,
                                                          **ls)
     moves += found
+    if shapes and len(moves) < max_rounds:
+        shaped = _shape_restart(region, shapes, seed, time_limit, **ls)
+        if shaped is not None and shaped[3] > value + _EPS:
+            state, found, r = _search(shaped, max_rounds - len(moves) - 1, **ls)
+            rounds += r
+            cells, route, cost, value = state
+            moves.append((6, -1, -1, shaped[3]))
+            moves += found
     # iterated local search: ``restarts`` independent chains of ``kicks`` kicks, each from the
     # local optimum above, the remaining time split evenly; the best plan over all is kept
     local = (cells, route, cost, value)
@@ -383,6 +400,7 @@ def refine(
         "restarted": int(sum(m[0] == 3 for m in moves)),
         "refilled": int(sum(m[0] == 4 for m in moves)),
         "kicks": int(sum(m[0] == 5 for m in moves)),
+        "shapes": int(sum(m[0] == 6 for m in moves)),
         "rounds": rounds,
         "seconds": time.perf_counter() - t0,
     }
@@ -550,6 +568,32 @@ def _search(state, max_rounds, *, g, pool, limit, nn, crit, size, radius, start,
         kind, cin, cout, cells, route, cost, value = move
         moves.append((kind, cin, cout, value))
     return (cells, route, cost, value), moves, rounds
+
+
+def _shape_restart(region, samples, seed, time_limit, *, g, start, limit, nn, crit,
+                   deadline, **_):
+    """The best polyline route (:mod:`.shapes`) as a feasible ``(cells, route, cost, value)``
+    under the plan's cost (a nearest-neighbour plan drops cells from the route's end until
+    its tour fits), or ``None``. Searches for at most a third of ``time_limit``."""
+    from .shapes import search_shapes
+
+    stop = min(deadline, time.perf_counter() + time_limit / 3)
+    samples = min(samples, 25 * math.ceil(limit))  # few distinct shapes fit a small budget
+    found = search_shapes(crit.value, region.cell_grid, g, start, limit, samples=samples,
+                          rng=np.random.default_rng(seed), deadline=stop)
+    if found is None:
+        return None
+    route = found[0]
+    if not nn:
+        rr = _repair(g, route)
+        return route, rr, route_length(g, rr), crit.value(route)
+    for m in range(route.size, 0, -1):  # the NN tour of a staircase is usually the staircase
+        c, rr = nearest_neighbor_tour(g, route[:m])
+        if c <= limit:
+            return route[:m], rr, c, crit.value(route[:m])
+        if route.size - m >= 32:
+            break
+    return None
 
 
 def _kick(state, rng, *, g, pool, limit, nn, crit, size, radius, start, **_):

@@ -1,0 +1,158 @@
+"""Route-shape search: a global move for plan refinement (issue #16).
+
+Insert, swap and refill moves keep a plan's overall shape. On smooth fields the information
+of a route depends mostly on its shape (a straight line sees nearly collinear factor vectors;
+an L or a hook sees more directions), and the greedy's shape is fixed by its first myopic
+steps. This module searches shapes directly: a route is the sequence of valid cells a
+*polyline* from the start passes through (a 4-connected staircase along each leg, first visits
+only, in order), cut where its exact path length would exceed the budget. Random polylines of
+2-4 legs are scored by the exact Fisher information, and the best are hill-climbed by moving
+and inserting waypoints (compass search, steps halving down to one grid unit).
+
+Every route returned is a path from the start of length ``<= limit`` over valid cells, in
+visiting order, so whatever cost the caller uses only has to be checked, never trusted.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+__all__ = ["polyline_cells", "search_shapes"]
+
+_SAMPLES_PER_UNIT = 4  # polyline samples per grid unit (enough to catch every crossed cell)
+_COMPASS = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+
+
+def polyline_cells(points: np.ndarray, cell_grid: np.ndarray) -> np.ndarray:
+    """Valid cells a polyline passes through, first visits in order.
+
+    ``points`` ``(m, 2)`` are (row, col) grid positions (floats; ``points[0]`` the start's
+    centre), ``cell_grid`` ``(ny, nx)`` the cell index at each position (-1 where masked, as
+    ``Region.cell_grid``). Each leg is sampled at ``1/4`` grid unit and rounded to cells; a
+    diagonal jump between consecutive cells gets the corner cell in between (so consecutive
+    cells of the staircase are 4-neighbours), positions outside the grid or masked are dropped,
+    and a cell passed twice keeps its first visit. Returns cell indices ``(n,)``.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    seg = np.diff(p, axis=0)
+    steps = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) * _SAMPLES_PER_UNIT), 1)
+    steps = steps.astype(np.int64)
+    leg = np.repeat(np.arange(len(seg)), steps)
+    frac = (np.arange(steps.sum()) - np.repeat(np.cumsum(steps) - steps, steps) + 1) / \
+        np.repeat(steps, steps)
+    pts = np.vstack([p[:1], p[leg] + seg[leg] * frac[:, None]])
+    rc = np.rint(pts).astype(np.int64)
+    keep = np.ones(len(rc), dtype=bool)
+    keep[1:] = np.any(rc[1:] != rc[:-1], axis=1)
+    rc = rc[keep]
+    # a diagonal move (both coordinates change) goes through the corner (row_prev, col_next)
+    diag = np.flatnonzero(np.all(rc[1:] != rc[:-1], axis=1))
+    if diag.size:
+        corners = np.column_stack([rc[diag, 0], rc[diag + 1, 1]])
+        rc = np.insert(rc, diag + 1, corners, axis=0)
+    ny, nx = cell_grid.shape
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < ny) & (rc[:, 1] >= 0) & (rc[:, 1] < nx)
+    rc = rc[inside]
+    cells = cell_grid[rc[:, 0], rc[:, 1]]
+    cells = cells[cells >= 0]
+    _, first = np.unique(cells, return_index=True)
+    return cells[np.sort(first)]
+
+
+def _prefix_within(g: np.ndarray, cells: np.ndarray, limit: float) -> np.ndarray:
+    """The longest prefix of the ordered ``cells`` whose path length is ``<= limit``."""
+    if cells.size < 2:
+        return cells
+    d = np.diff(g[cells].astype(np.float64), axis=0)
+    length = np.concatenate([[0.0], np.cumsum(np.hypot(d[:, 0], d[:, 1]))])
+    return cells[: int(np.searchsorted(length, limit, side="right"))]
+
+
+def search_shapes(
+    value: Callable[[np.ndarray], float],
+    cell_grid: np.ndarray,
+    grid_index: np.ndarray,
+    start: int,
+    limit: float,
+    *,
+    samples: int,
+    climbs: int = 4,
+    rng: np.random.Generator,
+    deadline: float,
+) -> tuple[np.ndarray, float] | None:
+    """Best route found over polylines from ``start``: ``(route, information)`` or ``None``.
+
+    ``value(route)`` is the information of a cell set (nats); ``limit`` the path-length budget
+    (grid units, the tolerance included). ``samples`` random polylines (2-4 legs, directions
+    uniform, lengths uniform in ``[0.05, 1] limit``, the last leg stretched so the polyline is
+    ``>= 1.5 limit`` long and the budget, not the polyline, ends the route); the ``climbs`` best
+    are hill-climbed: each waypoint (not the start) moves by ``+-step`` along rows or columns,
+    and a waypoint may be inserted at a leg's midpoint, while the information rises; the step
+    starts at ``limit / 12`` and halves down to 1. Stops at ``deadline`` (``time.perf_counter``).
+    """
+    g = np.asarray(grid_index)
+    s0 = g[start].astype(np.float64)
+
+    def route_of(points: list[np.ndarray]) -> np.ndarray:
+        return _prefix_within(g, polyline_cells(np.asarray(points), cell_grid), limit)
+
+    def score(points: list[np.ndarray]) -> tuple[float, np.ndarray]:
+        r = route_of(points)
+        return (value(r) if r.size else -np.inf), r
+
+    found: list[tuple[float, list[np.ndarray]]] = []
+    for _ in range(samples):
+        if time.perf_counter() > deadline:
+            break
+        legs = int(rng.integers(2, 5))
+        angles = rng.uniform(0.0, 2 * np.pi, legs)
+        lengths = rng.uniform(0.05, 1.0, legs) * limit
+        lengths[-1] += max(0.0, 1.5 * limit - lengths.sum())
+        pts = [s0]
+        for a, ln in zip(angles, lengths, strict=True):
+            pts.append(pts[-1] + ln * np.array([np.sin(a), np.cos(a)]))
+        v, _ = score(pts)
+        if np.isfinite(v):
+            found.append((v, pts))
+    if not found:
+        return None
+    found.sort(key=lambda t: -t[0])
+    best_v, best_pts = found[0]
+    for v, pts in found[:climbs]:
+        v, pts = _climb(score, pts, v, limit, deadline)
+        if v > best_v:
+            best_v, best_pts = v, pts
+    return route_of(best_pts), float(best_v)
+
+
+def _climb(score: Any, pts: list[np.ndarray], v: float, limit: float, deadline: float,
+           max_points: int = 8) -> tuple[float, list[np.ndarray]]:
+    """Compass search on the waypoints (and midpoint insertions), steps halving to 1."""
+    step = max(1.0, limit / 12)
+    while step >= 1.0 and time.perf_counter() < deadline:
+        improved = False
+        for i in range(1, len(pts)):
+            for d in _COMPASS:
+                new = [q.copy() for q in pts]
+                new[i] = new[i] + step * d
+                w, _ = score(new)
+                if w > v + 1e-9:
+                    pts, v, improved = new, w, True
+        if len(pts) < max_points:
+            for i in range(1, len(pts)):
+                mid = 0.5 * (pts[i - 1] + pts[i])
+                for d in _COMPASS:
+                    new = [*pts[:i], mid + step * d, *pts[i:]]
+                    w, _ = score(new)
+                    if w > v + 1e-9:
+                        pts, v, improved = new, w, True
+                        break
+                if len(pts) >= max_points:
+                    break
+        if not improved:
+            step /= 2
+    return v, pts
