@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from references import naive_tour
 from test_refine import check_plan, make_region
 
 from lrm_cvx.information import fisher_information
@@ -103,6 +104,17 @@ def test_search_shapes_routes_are_feasible_scored_exactly_and_deterministic():
     again = search_shapes(value, region.cell_grid, g, start, limit, samples=300,
                           rng=np.random.default_rng(3), deadline=time.perf_counter() + 1e6)
     assert again[1] == v and np.array_equal(again[0], route)
+    # with a cost of the caller's (here the nearest-neighbour tour), every route is cut to fit it
+    tour = {}
+
+    def fits(cells):
+        tour[len(cells)] = naive_tour(g, [int(c) for c in cells])[0]
+        return tour[len(cells)] <= limit
+
+    nn_route, nn_v = search_shapes(value, region.cell_grid, g, start, limit, samples=300,
+                                   rng=np.random.default_rng(3), deadline=1e18, fits=fits)
+    assert naive_tour(g, [int(c) for c in nn_route])[0] <= limit
+    assert nn_v == pytest.approx(value(nn_route), abs=1e-12) and nn_route[0] == start
     # the best of 300 random polylines is at least as good as any straight route tried alone
     best_line = max(value(_prefix_within(g, polyline_cells(
         np.array([g[start], g[start] + 40 * np.array([math.sin(a), math.cos(a)])]),

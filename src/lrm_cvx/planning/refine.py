@@ -231,6 +231,7 @@ def refine(
     kicks: int = 10,
     restarts: int = 1,
     shapes: int = 2000,
+    climbs: int = 8,
     prior_precision: Any = None,
     noise_var: Any = None,
     seed: int | None = 0,
@@ -264,11 +265,13 @@ def refine(
         local optimum, chain ``j`` seeded with ``seed + j``; the time left is split evenly); the
         best plan over all chains is kept. ``1`` is the single chain of earlier versions.
     shapes : after the local search converges, score this many random polyline routes from the
-        start (at most 25 per grid unit of budget; 2-4 legs,
-        :func:`~lrm_cvx.planning.shapes.search_shapes`), hill-climb the best four's
-        waypoints, and run the local search from the best one; it replaces the plan when it
-        ends higher. A global move: on smooth fields the best route's shape (an L, a
-        hook) can be far from the greedy's. Uses at most a third of ``time_limit``; 0 skips it.
+        start (2-4 legs, :func:`~lrm_cvx.planning.shapes.search_shapes`; at most 10 per square
+        grid unit of budget, as few distinct shapes fit a small one), hill-climb the best
+        ``climbs`` of them (moving and inserting waypoints), and run the local search from the
+        best route found; it replaces the plan when it ends higher. A global move: on smooth
+        fields the best route's shape (an L, a hook, a loop) can be far from the greedy's.
+        Uses at most a third of ``time_limit``; 0 skips it.
+    climbs : how many of the best shapes are hill-climbed.
     seed : seeds the kicks and the shapes (``numpy.random.default_rng``); the result is
         deterministic given it (and a ``time_limit`` that is not reached).
 
@@ -304,7 +307,7 @@ def refine(
     if plan.cost_function not in ("nearest-neighbor", "insertion"):
         raise PlanningError(f"cannot refine a plan with cost {plan.cost_function!r}")
     for name, v in (("max_rounds", max_rounds), ("shortlist", shortlist), ("refill", refill),
-                    ("kicks", kicks), ("shapes", shapes)):
+                    ("kicks", kicks), ("shapes", shapes), ("climbs", climbs)):
         if not isinstance(v, (int, np.integer)) or v < 0:
             raise PlanningError(f"{name} must be an integer >= 0, got {v!r}")
     if isinstance(restarts, bool) or not isinstance(restarts, (int, np.integer)) \
@@ -347,7 +350,7 @@ def refine(
                                                          **ls)
     moves += found
     if shapes and len(moves) < max_rounds:
-        shaped = _shape_restart(region, shapes, seed, time_limit, **ls)
+        shaped = _shape_restart(region, shapes, climbs, seed, time_limit, **ls)
         if shaped is not None and shaped[3] > value + _EPS:
             state, found, r = _search(shaped, max_rounds - len(moves) - 1, **ls)
             rounds += r
@@ -570,30 +573,28 @@ def _search(state, max_rounds, *, g, pool, limit, nn, crit, size, radius, start,
     return (cells, route, cost, value), moves, rounds
 
 
-def _shape_restart(region, samples, seed, time_limit, *, g, start, limit, nn, crit,
+def _shape_restart(region, samples, climbs, seed, time_limit, *, g, start, limit, nn, crit,
                    deadline, **_):
     """The best polyline route (:mod:`.shapes`) as a feasible ``(cells, route, cost, value)``
-    under the plan's cost (a nearest-neighbour plan drops cells from the route's end until
-    its tour fits), or ``None``. Searches for at most a third of ``time_limit``."""
+    under the plan's cost (for a nearest-neighbour plan every route is cut to a prefix whose
+    tour fits), or ``None``. Searches for at most a third of ``time_limit``."""
     from .shapes import search_shapes
 
     stop = min(deadline, time.perf_counter() + time_limit / 3)
-    samples = min(samples, 25 * math.ceil(limit))  # few distinct shapes fit a small budget
+    samples = min(samples, 10 * math.ceil(limit) ** 2)  # few distinct shapes fit a small budget
+    fits = (lambda cells: nearest_neighbor_tour(g, cells)[0] <= limit) if nn else None
     found = search_shapes(crit.value, region.cell_grid, g, start, limit, samples=samples,
-                          rng=np.random.default_rng(seed), deadline=stop)
+                          climbs=climbs, rng=np.random.default_rng(seed), deadline=stop,
+                          fits=fits)
     if found is None:
         return None
     route = found[0]
-    if not nn:
+    if nn:
+        c, rr = nearest_neighbor_tour(g, route)
+    else:
         rr = _repair(g, route)
-        return route, rr, route_length(g, rr), crit.value(route)
-    for m in range(route.size, 0, -1):  # the NN tour of a staircase is usually the staircase
-        c, rr = nearest_neighbor_tour(g, route[:m])
-        if c <= limit:
-            return route[:m], rr, c, crit.value(route[:m])
-        if route.size - m >= 32:
-            break
-    return None
+        c = route_length(g, rr)
+    return (route, rr, c, crit.value(route)) if c <= limit else None
 
 
 def _kick(state, rng, *, g, pool, limit, nn, crit, size, radius, start, **_):

@@ -83,6 +83,7 @@ def search_shapes(
     climbs: int = 4,
     rng: np.random.Generator,
     deadline: float,
+    fits: Callable[[np.ndarray], bool] | None = None,
 ) -> tuple[np.ndarray, float] | None:
     """Best route found over polylines from ``start``: ``(route, information)`` or ``None``.
 
@@ -93,12 +94,25 @@ def search_shapes(
     are hill-climbed: each waypoint (not the start) moves by ``+-step`` along rows or columns,
     and a waypoint may be inserted at a leg's midpoint, while the information rises; the step
     starts at ``limit / 12`` and halves down to 1. Stops at ``deadline`` (``time.perf_counter``).
+    ``fits(cells)``: whether the caller's cost of a cell set (e.g. its nearest-neighbour tour)
+    is within the budget; a route is then cut further, to the longest prefix found by bisection
+    that fits (verified, so every route returned fits).
     """
     g = np.asarray(grid_index)
     s0 = g[start].astype(np.float64)
 
     def route_of(points: list[np.ndarray]) -> np.ndarray:
-        return _prefix_within(g, polyline_cells(np.asarray(points), cell_grid), limit)
+        r = _prefix_within(g, polyline_cells(np.asarray(points), cell_grid), limit)
+        if fits is None or r.size <= 1 or fits(r):
+            return r
+        lo, hi = 1, r.size - 1  # r[:lo] fits (the start alone), r[:hi + 1] does not
+        while lo < hi:
+            m = (lo + hi + 1) // 2
+            if fits(r[:m]):
+                lo = m
+            else:
+                hi = m - 1
+        return r[:lo]
 
     def score(points: list[np.ndarray]) -> tuple[float, np.ndarray]:
         r = route_of(points)
