@@ -191,6 +191,10 @@ def test_refine_bad_input():
         refine("plan")
     with pytest.raises(PlanningError, match="max_rounds"):
         refine(plan, max_rounds=-1)
+    for name in ("shapes", "climbs"):
+        for bad in (-1, 1.5, "2"):
+            with pytest.raises(PlanningError, match=name):
+                refine(plan, **{name: bad})
     for bad in (0, -1, 1.5, True, "2"):
         with pytest.raises(PlanningError, match="restarts"):
             refine(plan, restarts=bad)

@@ -30,7 +30,7 @@ def check_region(region: Any, name: str = "region") -> Any:
     )
 
 
-def _path_cumulative(grid_index: np.ndarray) -> np.ndarray:
+def path_cumulative(grid_index: np.ndarray) -> np.ndarray:
     """Cumulative Euclidean grid length ``(r,)`` of the path through ``grid_index`` ``(r, 2)``,
     summed in order from 0 exactly as :func:`lrm_cvx.cost.route_length` sums it."""
     g = np.asarray(grid_index, dtype=np.int64).reshape(-1, 2)
@@ -289,7 +289,7 @@ class Plan:
             route_cost = np.zeros(route.size)
             for r in range(n_robots):
                 sel = np.flatnonzero(rr == r)
-                route_cost[sel] = _path_cumulative(gi[sel])
+                route_cost[sel] = path_cumulative(gi[sel])
         route_cost = np.asarray(route_cost, dtype=np.float64).copy()
         if route_cost.shape != route.shape:
             raise ValueError(f"route_cost must have the route's shape {route.shape}")
@@ -518,7 +518,7 @@ class Plan:
 
         cum = self.route_cost
         if cum.shape != self.route.shape:  # a Plan built by hand without route_cost
-            cum = _path_cumulative(self.grid_index)
+            cum = path_cumulative(self.grid_index)
         return pd.DataFrame(
             {
                 "robot": self.route_robot,

@@ -279,7 +279,7 @@ def refine(
     input's and ``cost <= budget + 1e-9`` (or the input itself when no move helped), with
     ``refinement = {"information_before", "information_after", "criterion_before",
     "criterion_after", "moves", "inserted", "swapped", "restarted", "refilled", "kicks",
-    "rounds", "seconds"}`` and history keys ``refine_move`` (1 insert, 2 swap, 3 restart,
+    "shapes", "rounds", "seconds"}`` and history keys ``refine_move`` (1 insert, 2 swap, 3 restart,
     4 drop-and-refill, 5 kick, 6 shape), ``refine_cell_in``, ``refine_cell_out``, ``refine_value``
     (criterion after each move).
     """

@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
+
+from .plan import path_cumulative
 
 __all__ = ["polyline_cells", "search_shapes"]
 
@@ -65,10 +66,7 @@ def polyline_cells(points: np.ndarray, cell_grid: np.ndarray) -> np.ndarray:
 
 def _prefix_within(g: np.ndarray, cells: np.ndarray, limit: float) -> np.ndarray:
     """The longest prefix of the ordered ``cells`` whose path length is ``<= limit``."""
-    if cells.size < 2:
-        return cells
-    d = np.diff(g[cells].astype(np.float64), axis=0)
-    length = np.concatenate([[0.0], np.cumsum(np.hypot(d[:, 0], d[:, 1]))])
+    length = path_cumulative(g[cells])
     return cells[: int(np.searchsorted(length, limit, side="right"))]
 
 
@@ -80,7 +78,7 @@ def search_shapes(
     limit: float,
     *,
     samples: int,
-    climbs: int = 4,
+    climbs: int = 8,
     rng: np.random.Generator,
     deadline: float,
     fits: Callable[[np.ndarray], bool] | None = None,
@@ -114,9 +112,9 @@ def search_shapes(
                 hi = m - 1
         return r[:lo]
 
-    def score(points: list[np.ndarray]) -> tuple[float, np.ndarray]:
+    def score(points: list[np.ndarray]) -> float:
         r = route_of(points)
-        return (value(r) if r.size else -np.inf), r
+        return value(r) if r.size else -np.inf
 
     found: list[tuple[float, list[np.ndarray]]] = []
     for _ in range(samples):
@@ -129,7 +127,7 @@ def search_shapes(
         pts = [s0]
         for a, ln in zip(angles, lengths, strict=True):
             pts.append(pts[-1] + ln * np.array([np.sin(a), np.cos(a)]))
-        v, _ = score(pts)
+        v = score(pts)
         if np.isfinite(v):
             found.append((v, pts))
     if not found:
@@ -143,8 +141,9 @@ def search_shapes(
     return route_of(best_pts), float(best_v)
 
 
-def _climb(score: Any, pts: list[np.ndarray], v: float, limit: float, deadline: float,
-           max_points: int = 8) -> tuple[float, list[np.ndarray]]:
+def _climb(score: Callable[[list[np.ndarray]], float], pts: list[np.ndarray], v: float,
+           limit: float, deadline: float, max_points: int = 8
+           ) -> tuple[float, list[np.ndarray]]:
     """Compass search on the waypoints (and midpoint insertions), steps halving to 1."""
     step = max(1.0, limit / 12)
     while step >= 1.0 and time.perf_counter() < deadline:
@@ -153,7 +152,7 @@ def _climb(score: Any, pts: list[np.ndarray], v: float, limit: float, deadline: 
             for d in _COMPASS:
                 new = [q.copy() for q in pts]
                 new[i] = new[i] + step * d
-                w, _ = score(new)
+                w = score(new)
                 if w > v + 1e-9:
                     pts, v, improved = new, w, True
         if len(pts) < max_points:
@@ -161,7 +160,7 @@ def _climb(score: Any, pts: list[np.ndarray], v: float, limit: float, deadline: 
                 mid = 0.5 * (pts[i - 1] + pts[i])
                 for d in _COMPASS:
                     new = [*pts[:i], mid + step * d, *pts[i:]]
-                    w, _ = score(new)
+                    w = score(new)
                     if w > v + 1e-9:
                         pts, v, improved = new, w, True
                         break
