@@ -14,7 +14,10 @@ starts; refinement ``SAMPLE_REFINE``: 20000 polyline shapes with
 ``--path-aware [walk|flow]`` also the king-walk (default) or layered-block relaxation of issue
 #16 (the certificate keeps the smaller bound). Every run also refines the greedy plan
 (``refine``: its time and gain) and splits the certified gap into plan slack (greedy ->
-refined) and bound slack (refined -> bound). ``--window 50 100`` compares the king-walk
+refined) and bound slack (refined -> bound), and prints the convex floor (``convex_floor``
+with the refined route in the pool: no convex relaxation containing every route is below it;
+at paper scale also the floors of midpoint covers of several square sides, docs/certificate.md
+§9). ``--window 50 100`` compares the king-walk
 relaxation with the default bound on windows of the paper-scale field (docs/certificate.md §9).
 
 Run under the shared lock::
@@ -62,6 +65,62 @@ def greedy_certificate(Y, region, start, budget, ridge=0.0, path_aware=False, re
     t = time.perf_counter()
     cert = plan_bound(Y, region, start, budget, ridge=ridge, plan=refined, path_aware=path_aware)
     return (plan, refined, cert, t_plan, t_refine, time.perf_counter() - t), ""
+
+
+def midpoint_floors(Y, region, start, budget, n_routes=40_000, seed=1):
+    """How fine a midpoint cover (docs/certificate.md §6) would have to be: ``n_routes`` random
+    polyline routes are binned by the square of side ``s`` (``budget / 4`` as the cover's first
+    squares, then halved four times; corner at the start) holding their midpoint (the point at
+    half their arc length, Lemma 2); the best mixture within one square is reached by every
+    convex relaxation that contains the routes with their midpoint there, so the largest over
+    the squares is a floor for *any* bound of the form "max over midpoint squares of side s of
+    a convex relaxation". Prints it per side."""
+    from lrm_cvx.planning.floor import route_mixture
+    from lrm_cvx.planning.plan import path_cumulative
+    from lrm_cvx.planning.shapes import polyline_route, random_polyline
+
+    t = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    g, cg = region.grid_index, region.cell_grid
+    origin = g[start].astype(float)
+    Yt = np.ascontiguousarray(Y.T)
+    Ms = np.empty((n_routes, Y.shape[0], Y.shape[0]))
+    mids = np.empty((n_routes, 2))
+    for i in range(n_routes):
+        r = polyline_route(np.asarray(random_polyline(rng, origin, budget, legs=(1, 4))), cg, g,
+                           budget)
+        p, c = g[r].astype(float), path_cumulative(g[r])
+        half = c[-1] / 2
+        j = min(int(np.searchsorted(c, half, side="right")) - 1, max(len(r) - 2, 0))
+        f = (half - c[j]) / (c[j + 1] - c[j]) if len(r) > 1 else 0.0
+        mids[i] = p[j] + f * (p[min(j + 1, len(r) - 1)] - p[j]) - origin
+        Ms[i] = Yt[r].T @ Yt[r]
+    print(f"midpoint-pinned floors from {n_routes} random routes "
+          f"({time.perf_counter() - t:.1f} s to sample):")
+    for side in budget / 4 / 2.0 ** np.arange(5):
+        _, inv, cnt = np.unique(np.floor(mids / side).astype(int), axis=0, return_inverse=True,
+                                return_counts=True)
+        inv = inv.ravel()
+        best = (-np.inf, 0)
+        for b in np.argsort(-cnt)[:400]:  # the 400 best-populated squares
+            idx = np.flatnonzero(inv == b)
+            if idx.size >= 2:
+                v = route_mixture(Ms[idx], max_iter=500)[1]
+                best = max(best, (v, idx.size))
+        print(f"  squares of side {side:6.3f}: {cnt.size:5d} squares hold a midpoint; the best "
+              f"mixture within one square {best[0]:.3f} nats ({best[1]} routes)")
+
+
+def print_floor(Y, region, start, budget, refined) -> None:
+    """The convex floor (docs/certificate.md §9) with the refined plan's route in the pool."""
+    from lrm_cvx.planning.floor import convex_floor
+
+    t = time.perf_counter()
+    f = convex_floor(Y, region, start, budget, routes=[refined.route], random_state=0)
+    print(f"convex floor {f.value:.4f} nats ({time.perf_counter() - t:.1f} s, {f.pool} routes, "
+          f"support {len(f.routes)}, pool gap {f.pool_gap:.1e}; best single route "
+          f"{f.best_route:.4f}): every convex relaxation containing the routes is >= it, so "
+          f"certifies the refined plan to no less than {f.value - refined.information:.3f} nats")
 
 
 def run_synthetic(small: bool) -> None:
@@ -114,6 +173,8 @@ def run_synthetic(small: bool) -> None:
               f"slack {c.bound_slack:.4g} nats; "
               f"refined volume ratio {c.volume_ratio:.4f}, online bound {c.online_bound:.6g} "
               f"({t_cert:.2f} s)")
+        print_floor(Y, region, start, budget, refined)
+        midpoint_floors(Y, region, start, budget)
     print(f"peak RSS {rss_gb():.2f} GB")
 
 
@@ -187,8 +248,10 @@ def run_sample(path_aware: bool = False) -> None:
           f"refine{SAMPLE_REFINE}")
     rng = np.random.default_rng(0)
     starts = [central_cell(region), *map(int, rng.choice(region.n_cells, 2, replace=False))]
+    from lrm_cvx.planning.floor import convex_floor
+
     print("start  budget  cells  greedy     refined    bound      gap     plan slack  "
-          "bound slack  refine s  total s")
+          "bound slack  refine s  total s  convex floor")
     for start in starts:
         for budget in (5.0, 50.0, 100.0, 200.0):
             t = time.perf_counter()
@@ -198,10 +261,13 @@ def run_sample(path_aware: bool = False) -> None:
                 print(f"skipped: {why}")
                 return
             plan, refined, c, t_plan, t_ref, t_cert = out
+            total = time.perf_counter() - t
+            floor = convex_floor(Y, region, start, budget, routes=[refined.route],
+                                 random_state=0).value
             print(f"{start:5d}  {budget:6g}  {len(refined.cells):5d}  {plan.information:9.4f}  "
                   f"{refined.information:9.4f}  {c.bound:9.4f}  "
                   f"{c.plan_slack + c.bound_slack:6.3f}  {c.plan_slack:10.3f}  "
-                  f"{c.bound_slack:11.3f}  {t_ref:8.2f}  {time.perf_counter() - t:7.1f}"
+                  f"{c.bound_slack:11.3f}  {t_ref:8.2f}  {total:7.1f}  {floor:12.4f}"
                   + (f"  path bound {c.path_bound:.4f}" if c.path_bound is not None else ""))
     print(f"peak RSS {rss_gb():.2f} GB")
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from .baselines import random_walk, transect
+from .floor import ConvexFloor, convex_floor
 from .greedy import initial_cells, place_sensors, plan_greedy
 from .plan import Plan
 from .refine import refine
@@ -19,6 +20,8 @@ __all__ = [
     "random_walk",
     "plan_bound",
     "dopt_upper_bound",
+    "convex_floor",
+    "ConvexFloor",
 ]
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from .plan import path_cumulative
 
-__all__ = ["polyline_cells", "search_shapes"]
+__all__ = ["hill_climb", "polyline_cells", "polyline_route", "random_polyline", "search_shapes"]
 
 _SAMPLES_PER_UNIT = 4  # polyline samples per grid unit (enough to catch every crossed cell)
 _COMPASS = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
@@ -70,6 +70,28 @@ def _prefix_within(g: np.ndarray, cells: np.ndarray, limit: float) -> np.ndarray
     return cells[: int(np.searchsorted(length, limit, side="right"))]
 
 
+def polyline_route(points: np.ndarray, cell_grid: np.ndarray, grid_index: np.ndarray,
+                   limit: float) -> np.ndarray:
+    """The route along a polyline: its valid cells (:func:`polyline_cells`) cut to the longest
+    prefix of path length ``<= limit`` (grid units). Cell indices ``(n,)`` in visiting order."""
+    return _prefix_within(grid_index, polyline_cells(points, cell_grid), limit)
+
+
+def random_polyline(rng: np.random.Generator, origin: np.ndarray, limit: float,
+                    legs: tuple[int, int] = (2, 4)) -> list[np.ndarray]:
+    """A random polyline from ``origin`` (row, col): ``legs[0]..legs[1]`` legs, directions
+    uniform, lengths uniform in ``[0.05, 1] limit``, the last leg stretched so the polyline is
+    ``>= 1.5 limit`` long (the budget, not the polyline, ends the route). Waypoints ``(2,)``."""
+    n = int(rng.integers(legs[0], legs[1] + 1))
+    angles = rng.uniform(0.0, 2 * np.pi, n)
+    lengths = rng.uniform(0.05, 1.0, n) * limit
+    lengths[-1] += max(0.0, 1.5 * limit - lengths.sum())
+    pts = [np.asarray(origin, dtype=np.float64)]
+    for a, ln in zip(angles, lengths, strict=True):
+        pts.append(pts[-1] + ln * np.array([np.sin(a), np.cos(a)]))
+    return pts
+
+
 def search_shapes(
     value: Callable[[np.ndarray], float],
     cell_grid: np.ndarray,
@@ -100,7 +122,7 @@ def search_shapes(
     s0 = g[start].astype(np.float64)
 
     def route_of(points: list[np.ndarray]) -> np.ndarray:
-        r = _prefix_within(g, polyline_cells(np.asarray(points), cell_grid), limit)
+        r = polyline_route(np.asarray(points), cell_grid, g, limit)
         if fits is None or r.size <= 1 or fits(r):
             return r
         lo, hi = 1, r.size - 1  # r[:lo] fits (the start alone), r[:hi + 1] does not
@@ -120,13 +142,7 @@ def search_shapes(
     for _ in range(samples):
         if time.perf_counter() > deadline:
             break
-        legs = int(rng.integers(2, 5))
-        angles = rng.uniform(0.0, 2 * np.pi, legs)
-        lengths = rng.uniform(0.05, 1.0, legs) * limit
-        lengths[-1] += max(0.0, 1.5 * limit - lengths.sum())
-        pts = [s0]
-        for a, ln in zip(angles, lengths, strict=True):
-            pts.append(pts[-1] + ln * np.array([np.sin(a), np.cos(a)]))
+        pts = random_polyline(rng, s0, limit)
         v = score(pts)
         if np.isfinite(v):
             found.append((v, pts))
@@ -135,16 +151,19 @@ def search_shapes(
     found.sort(key=lambda t: -t[0])
     best_v, best_pts = found[0]
     for v, pts in found[:climbs]:
-        v, pts = _climb(score, pts, v, limit, deadline)
+        v, pts = hill_climb(score, pts, v, limit, deadline)
         if v > best_v:
             best_v, best_pts = v, pts
     return route_of(best_pts), float(best_v)
 
 
-def _climb(score: Callable[[list[np.ndarray]], float], pts: list[np.ndarray], v: float,
-           limit: float, deadline: float, max_points: int = 8
-           ) -> tuple[float, list[np.ndarray]]:
-    """Compass search on the waypoints (and midpoint insertions), steps halving to 1."""
+def hill_climb(score: Callable[[list[np.ndarray]], float], pts: list[np.ndarray], v: float,
+               limit: float, deadline: float, max_points: int = 8
+               ) -> tuple[float, list[np.ndarray]]:
+    """Compass search on the waypoints of ``pts`` (value ``v = score(pts)``): each waypoint but
+    the first moves ``+-step`` along rows or columns and a waypoint may be inserted at a leg's
+    midpoint (up to ``max_points``) while ``score`` rises; the step starts at ``limit / 12`` and
+    halves down to 1 grid unit. Stops at ``deadline``. Returns ``(value, waypoints)``."""
     step = max(1.0, limit / 12)
     while step >= 1.0 and time.perf_counter() < deadline:
         improved = False
