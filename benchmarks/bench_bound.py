@@ -89,11 +89,9 @@ def midpoint_floors(Y, region, start, budget, n_routes=40_000, seed=1):
     for i in range(n_routes):
         r = polyline_route(np.asarray(random_polyline(rng, origin, budget, legs=(1, 4))), cg, g,
                            budget)
-        p, c = g[r].astype(float), path_cumulative(g[r])
-        half = c[-1] / 2
-        j = min(int(np.searchsorted(c, half, side="right")) - 1, max(len(r) - 2, 0))
-        f = (half - c[j]) / (c[j + 1] - c[j]) if len(r) > 1 else 0.0
-        mids[i] = p[j] + f * (p[min(j + 1, len(r) - 1)] - p[j]) - origin
+        p, c = g[r].astype(float), path_cumulative(g[r])  # c strictly increasing
+        mids[i] = [np.interp(c[-1] / 2, c, p[:, 0]), np.interp(c[-1] / 2, c, p[:, 1])]
+        mids[i] -= origin
         Ms[i] = Yt[r].T @ Yt[r]
     print(f"midpoint-pinned floors from {n_routes} random routes "
           f"({time.perf_counter() - t:.1f} s to sample):")

@@ -107,8 +107,8 @@ def test_floor_routes_are_feasible_and_value_exact(seed, budget):
     f = convex_floor(Y, region, start, budget, samples=60, rounds=2, random_state=seed)
     if math.isfinite(f.value):
         check_floor(f, Y, region, start, budget)
-    else:  # every route too short to span the factors (rank < k): no mixture is nonsingular
-        assert budget < 3 or f.best_route == -math.inf
+    else:  # no mixture is nonsingular, so no single route is either
+        assert f.best_route == -math.inf
 
 
 def test_floor_is_deterministic_and_includes_the_given_route():
@@ -127,6 +127,11 @@ def test_floor_is_deterministic_and_includes_the_given_route():
     assert a.value >= logdet(Y[:, L] @ Y[:, L].T) - 1e-9
     assert a.best_route >= logdet(Y[:, L] @ Y[:, L].T) - 1e-9
     check_floor(a, Y, region, start, 8.0)
+    # a plan's route may use the planners' tolerance: 8 > 8 - 1e-10 is accepted, 8.5 is not
+    assert convex_floor(Y, region, start, 8.0 - 1e-10, routes=[L], samples=5, rounds=0,
+                        random_state=3).value >= logdet(Y[:, L] @ Y[:, L].T) - 1e-9
+    with pytest.raises(PlanningError, match="path length"):
+        convex_floor(Y, region, start, 7.5, routes=[L], samples=5, rounds=0)
 
 
 def test_on_a_smooth_field_the_floor_is_far_above_every_single_route():
@@ -164,9 +169,13 @@ def test_floor_bad_input():
         convex_floor(Y, region, start, 3.0, routes=[[cg[3, 4], start]])
     with pytest.raises(PlanningError, match=r"routes\[0\].*path length"):
         convex_floor(Y, region, start, 3.0, routes=[[start, cg[3, 4], cg[3, 5], cg[1, 5]]])
+    with pytest.raises(RegionError, match=r"routes\[0\]"):
+        convex_floor(Y, region, start, 3.0, routes=[[start, region.n_cells]])
     with pytest.raises(PlanningError, match=r"routes\[1\].*distinct"):
         convex_floor(Y, region, start, 3.0, routes=[[start], [start, cg[3, 4], start]])
     with pytest.raises(PlanningError, match="moments"):
         route_mixture(np.zeros((0, 2, 2)))
+    with pytest.raises(PlanningError, match="ridge"):
+        route_mixture(np.stack([np.eye(2)] * 2), ridge=-1.0)
     with pytest.raises(PlanningError, match="weights"):
         route_mixture(np.stack([np.eye(2)] * 2), weights=np.array([-1.0, 2.0]))

@@ -95,6 +95,7 @@ def route_mixture(
     if Ms.ndim != 3 or Ms.shape[1] != Ms.shape[2] or Ms.shape[0] == 0:
         raise PlanningError(f"moments must be a nonempty (m, k, k) array, got shape {Ms.shape}")
     m, k, _ = Ms.shape
+    ridge = check_positive(ridge, "ridge", error=PlanningError, numbers_only=True)
     lam = np.full(m, 1.0 / m) if weights is None else np.asarray(weights, dtype=np.float64)
     if lam.shape != (m,) or np.any(lam < 0) or not lam.sum() > 0:
         raise PlanningError(f"weights must be ({m},) nonnegative with a positive sum")
@@ -132,24 +133,24 @@ def route_mixture(
     return lam, f, max(gap, 0.0)
 
 
-def _check_routes(routes: Any, g: np.ndarray, n_cells: int, start: int, budget: float
-                  ) -> list[np.ndarray]:
-    """Each route as int cells: distinct, valid, from ``start``, path length ``<= budget``."""
+def _check_routes(routes: Any, region: Any, start: int, budget: float) -> list[np.ndarray]:
+    """Each route as int64 cells: valid (``Region.check_cells``), distinct, from ``start``, of
+    path length ``<= budget`` up to the planners' tolerance (``B' = budget + 1e-9 max(1,
+    budget)``, which every certificate covers, so a plan's own route is accepted)."""
+    limit = budget + 1e-9 * max(1.0, budget)
     out = []
     for j, r in enumerate(routes):
-        r = np.asarray(r).reshape(-1)
-        if r.size == 0 or not np.issubdtype(r.dtype, np.integer):
-            raise PlanningError(f"routes[{j}] must be a nonempty sequence of cell indices")
-        if r.min() < 0 or r.max() >= n_cells or np.unique(r).size != r.size:
-            raise PlanningError(f"routes[{j}] must hold distinct cell indices in [0, {n_cells})")
+        r = region.check_cells(np.asarray(r).reshape(-1), f"routes[{j}]")
+        if r.size == 0 or np.unique(r).size != r.size:
+            raise PlanningError(f"routes[{j}] must be a nonempty sequence of distinct cells")
         if int(r[0]) != start:
             raise PlanningError(f"routes[{j}] must begin at the start cell {start}, "
                                 f"got {int(r[0])}")
-        length = float(path_cumulative(g[r])[-1])
-        if length > budget:
+        length = float(path_cumulative(region.grid_index[r])[-1])
+        if length > limit:
             raise PlanningError(f"routes[{j}] has path length {length:.6g} > budget {budget:g} "
                                 "(grid units, in the given order)")
-        out.append(r.astype(np.int64))
+        out.append(r)
     return out
 
 
@@ -204,7 +205,7 @@ def convex_floor(
                 out.append(r)
         return out
 
-    pool = distinct(_check_routes(routes, g, region.n_cells, start, budget))
+    pool = distinct(_check_routes(routes, region, start, budget))
     pool += distinct([route_of(random_polyline(rng, origin, budget, legs=(1, 4)))
                       for _ in range(int(samples))])
     moments = np.stack([Yt[r].T @ Yt[r] for r in pool])
