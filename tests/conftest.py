@@ -70,3 +70,22 @@ def inputs_unchanged():
     guard = InputGuard()
     yield guard
     guard.check()
+
+
+# ------------------------------------------------------------------------------ slow tests
+SLOW_ENV = "LRM_CVX_SLOW_TESTS"
+
+
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers", f"slow: minutes-long checks (a fresh install); run when ${SLOW_ENV}=1, as "
+        ".ci/run does")
+
+
+def pytest_collection_modifyitems(config, items):
+    if os.environ.get(SLOW_ENV) == "1":
+        return
+    skip = pytest.mark.skip(reason=f"slow: set {SLOW_ENV}=1 to run (.ci/run does)")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)

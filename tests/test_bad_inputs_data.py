@@ -382,3 +382,28 @@ def test_ndvi_cdr_bbox_in_the_other_convention(tmp_path, untouched):
         full = open_data(tmp_path)
     np.testing.assert_allclose(out.lon.values, [183.5, 184.5, 185.5])
     np.testing.assert_array_equal(out.values, full.sel(lon=[-176.5, -175.5, -174.5]).values)
+
+
+# ------------------------------------------------------------- issue 26: a NaT time
+def _with_nat() -> xr.DataArray:
+    import pandas as pd
+
+    rng = np.random.default_rng(0)
+    t = pd.date_range("2000-01-01", periods=8, freq="D").values.copy()
+    t[3] = np.datetime64("NaT")
+    return xr.DataArray(rng.normal(size=(8, 4, 5)).astype(np.float32),
+                        dims=("time", "lat", "lon"),
+                        coords={"time": t, "lat": np.arange(4.0), "lon": np.arange(5.0)})
+
+
+def test_nat_time_is_refused_by_open_data_and_fit(tmp_path):
+    from lrm_cvx.glrm import GLRM
+
+    da = _with_nat()
+    with pytest.raises(DataError, match=r"time has 1 missing value\(s\) \(NaT\) at position"):
+        open_data(da)
+    da.to_netcdf(tmp_path / "nat.nc")
+    with pytest.raises(DataError, match=r"NaT\) at position\(s\) \[3\]"):
+        open_data(tmp_path / "nat.nc")
+    with pytest.raises(DataError, match="NaT"):  # a plain fit never carries NaT into X_.time
+        GLRM(2, progress=False).fit(da)

@@ -478,3 +478,23 @@ def test_snapshot_masked_out_entirely_is_refused():
     M[6] = False
     with pytest.raises(DataError, match=r"positions \[6\]"):
         GLRM(rank=2, progress=False).fit(D, mask=M)
+
+
+# ------------------------------------------------------------- issue 26: a constant field
+def test_constant_field_warns_and_its_empirical_fold_in_returns_the_constant():
+    import pandas as pd
+
+    da = xr.DataArray(np.full((10, 6, 7), 3.0, np.float32), dims=("time", "lat", "lon"),
+                      coords={"time": pd.date_range("2000", periods=10),
+                              "lat": np.arange(6.0), "lon": np.arange(7.0)})
+    with pytest.warns(UserWarning, match="do not vary over time"):
+        model = GLRM(2, random_state=0, progress=False).fit(da)
+    for ridge in (0.0, 1e-3):  # prior='empirical' was asked: no "use prior='empirical'" error
+        out = model.complete(([0, 5, 9], [3.0, 3.0, 3.0]), prior="empirical", ridge=ridge)
+        np.testing.assert_allclose(out["prediction"].values, 3.0, rtol=1e-9)
+    # a field that varies keeps its prior: no warning, the same moments as before
+    rng = np.random.default_rng(0)
+    varied = da + xr.DataArray(rng.normal(size=da.shape), dims=da.dims)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        GLRM(2, random_state=0, progress=False).fit(varied)

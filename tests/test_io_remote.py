@@ -9,6 +9,8 @@ from __future__ import annotations
 import http.server as http_server_lib
 import os
 import re
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -47,6 +49,7 @@ class _State:
         self.gets = 0
         self.fail_status: int | None = None  # answer this status ...
         self.fail_times = 0                  # ... to this many GET requests, then serve
+        self.ignore_range = False            # a server without Range support: always 200
 
 
 class _RangeHandler(http_server_lib.SimpleHTTPRequestHandler):
@@ -88,7 +91,7 @@ class _RangeHandler(http_server_lib.SimpleHTTPRequestHandler):
             return super().do_HEAD() if head else super().do_GET()  # 404 or a folder listing
         data = path.read_bytes()
         size = len(data)
-        rng = self.headers.get("Range")
+        rng = None if st.ignore_range else self.headers.get("Range")
         start, end = 0, size - 1
         if rng:
             m = re.fullmatch(r"bytes=(\d*)-(\d*)", rng.strip())
@@ -269,7 +272,9 @@ def test_http_dropped_connection_is_data_error_after_bounded_retries(http, globa
     http.drop_after, http.drop_from = 100, drop_from  # responses cut after 100 body bytes
     with pytest.raises(DataError, match=re.escape(url_of(http, path)) + ".*dropped.*4 attempts"):
         open_ndvi_cdr(url_of(http, path), bbox=BBOX)
-    assert http.gets <= 4 + drop_from  # the first try and RETRIES=3 more, each stopped early
+    # the first try (with its 1-byte Range probe of the file's end, which succeeds once the
+    # metadata did) and RETRIES=3 more, each stopped early
+    assert http.gets <= 4 + 2 * drop_from
 
 
 def test_http_stalled_server_times_out_after_bounded_retries(http, global_files,
@@ -380,3 +385,40 @@ def test_cli_fit_reads_a_url(http, tmp_path):
                  "--rank", "2", "--max-iter", "3", "-q", "-o", str(out)])
     assert code in (0, None) and out.exists()
     assert os.path.getsize(out) > 0
+
+
+# ------------------------------------------------------- a server without Range (issue 26)
+@pytest.fixture
+def no_range_file(http):
+    """A 0.5 MB NetCDF-4 file (larger than one block) served without Range support."""
+    rng = np.random.default_rng(0)
+    da = xr.DataArray(rng.normal(size=(20, 60, 100)).astype(np.float32), name="v",
+                      dims=("time", "lat", "lon"),
+                      coords={"time": pd.date_range("2000", periods=20), "lat":
+                              np.linspace(-30, 30, 60), "lon": np.linspace(0, 80, 100)})
+    path = http.root / "norange.nc"
+    da.to_netcdf(path, engine="netcdf4")
+    assert path.stat().st_size > 2 * 128 * 1024
+    http.ignore_range = True
+    return url_of(http, path)
+
+
+def test_a_server_without_range_support_is_one_clear_error(no_range_file, tmp_path):
+    with pytest.raises(DataError, match="does not support HTTP Range requests"):
+        open_data(no_range_file)
+    for cache in (None, tmp_path / "cache", tmp_path / "cache"):  # twice: no poisoned cache
+        with pytest.raises(DataError, match="does not support HTTP Range requests"):
+            open_data(no_range_file, cache=cache)
+
+
+def test_cli_exits_2_cleanly_after_a_server_without_range(no_range_file, tmp_path):
+    # the issue's crash: the one-line error, then SIGSEGV at exit (139); the exit status is 2
+    env = dict(os.environ, LRM_CVX_CACHE=str(tmp_path / "cache"))
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, "-m", "lrm_cvx.cli", "-q", "fit", no_range_file,
+                               "-o", str(tmp_path / "m.nc")], capture_output=True, text=True,
+                              timeout=300, env=env)
+        assert proc.returncode == 2, (proc.returncode, proc.stderr)
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and "does not support HTTP Range requests" in lines[0]
+    assert not (tmp_path / "m.nc").exists()

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
+import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -15,7 +17,8 @@ import xarray as xr
 from .errors import DataError, ModelError
 
 __all__ = ["as_generator", "as_factor_matrix", "atomic_output", "atomic_outputs",
-           "check_positive", "guard_outputs", "read_netcdf", "same_file"]
+           "check_positive", "check_target", "check_time_labels", "file_lock", "guard_outputs",
+           "read_netcdf", "remove_stale_temps", "same_file"]
 
 
 def as_generator(random_state: Any) -> np.random.Generator:
@@ -80,6 +83,18 @@ def check_positive(
     return v
 
 
+def check_time_labels(times: Any, source: str = "data") -> None:
+    """DataError when a time label is missing (NaT, NaN or None): a snapshot without a time
+    cannot be ordered, stepped by the dynamics or named in a result."""
+    import pandas as pd
+
+    missing = np.flatnonzero(pd.isnull(np.asarray(times)))
+    if missing.size:
+        raise DataError(f"{source}: time has {missing.size} missing value(s) (NaT) at "
+                        f"position(s) {missing[:10].tolist()}; drop those snapshots or fix "
+                        "their times")
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -87,15 +102,104 @@ def _umask() -> int:
 
 
 def _temp_beside(path: Path) -> Path:
-    """An empty temporary file in ``path``'s folder (same file system, so the rename is atomic),
-    with the permissions a plain ``open(path, "w")`` would give (``mkstemp`` makes it 0600)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    """An empty temporary file ``.NAME.PID.RANDOM.tmp`` in ``path``'s folder (same file system,
+    so the rename is atomic), with the permissions a plain ``open(path, "w")`` would give
+    (``mkstemp`` makes it 0600). The PID tells a later run whether its writer is still alive."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp",
+                               dir=path.parent)
     try:
         os.fchmod(fd, 0o666 & ~_umask())
     except (AttributeError, OSError):  # pragma: no cover - platforms without fchmod
         pass
     os.close(fd)
     return Path(tmp)
+
+
+#: A temporary file without a writer's PID (written before PIDs were recorded) is taken as
+#: left by a killed write once it is this old (seconds).
+STALE_AFTER = 60.0
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # e.g. PermissionError: the process exists
+        return True
+    return True
+
+
+def remove_stale_temps(path: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files a killed write of ``path`` left beside it; return them.
+
+    A temporary file ``.NAME.PID.RANDOM.tmp`` is stale when process PID is gone; an older one
+    without a PID (``.NAME.RANDOM.tmp``) when it is more than :data:`STALE_AFTER` s old. A
+    write in progress in another live process is never touched."""
+    path = Path(path)
+    removed = []
+    if not path.parent.is_dir():
+        return removed
+    head = f".{path.name}."
+    for tmp in path.parent.iterdir():
+        name = tmp.name
+        if not (name.startswith(head) and name.endswith(".tmp")):
+            continue
+        pid, dot, _ = name[len(head):-len(".tmp")].partition(".")
+        try:
+            if dot and pid.isdigit():
+                if _pid_alive(int(pid)):
+                    continue
+            elif time.time() - tmp.lstat().st_mtime < STALE_AFTER:
+                continue
+            if tmp.is_file():
+                tmp.unlink()
+                removed.append(tmp)
+        except OSError:  # gone already, or not ours to remove
+            continue
+    return removed
+
+
+def check_target(path: str | os.PathLike) -> Path:
+    """``path`` as a Path, refused (``IsADirectoryError`` / ``FileExistsError``) when it exists
+    and is not a regular file: a folder, a device node, a FIFO or a socket is never replaced by
+    an output."""
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"output {path} is an existing folder; give a file name")
+    if (path.exists() or path.is_symlink()) and not path.is_file():
+        raise FileExistsError(f"output {path} exists and is not a regular file (a device, FIFO, "
+                              "socket or broken link); refusing to replace it")
+    return path
+
+
+_SPACE_ERRORS = {errno.ENOSPC: "no space left on device",
+                 errno.EFBIG: "file too large (a file-size limit such as 'ulimit -f')",
+                 errno.EDQUOT: "disk quota exceeded"}
+
+
+def _space_error(exc: BaseException, tmp: Path) -> int | None:
+    """The errno (ENOSPC, EFBIG, EDQUOT) when a failed write of ``tmp`` ran out of room
+    although the error ``exc`` does not say so.
+
+    Libraries such as HDF5 report a full disk as a generic error ("NetCDF: HDF error"); a probe
+    (appending 64 KiB to the temporary file) tells the cause."""
+    if isinstance(exc, (KeyboardInterrupt, SystemExit)) or not tmp.exists():
+        return None
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_APPEND)
+    except OSError:
+        return None
+    try:
+        left = memoryview(bytes(65536))
+        while left:  # a short write stops at a limit; the next one reports it
+            left = left[os.write(fd, left):]
+        os.fsync(fd)
+    except OSError as probe:
+        return probe.errno if probe.errno in _SPACE_ERRORS else None
+    finally:
+        os.close(fd)
+    return None
 
 
 @contextlib.contextmanager
@@ -118,12 +222,14 @@ def atomic_outputs(
     When the block succeeds every temporary file is renamed onto its target (``os.replace``,
     atomic per file); when it raises, no target is touched and every temporary file is removed,
     so a failure while writing the third output leaves the first two as they were. With
-    ``overwrite=False`` an existing target is a ``FileExistsError`` before anything is written.
+    ``overwrite=False`` an existing target is a ``FileExistsError`` before anything is written;
+    a target that exists and is not a regular file (folder, device, FIFO) is always refused.
+    A write that fails for lack of room is an ``OSError`` saying so (ENOSPC, EFBIG, EDQUOT),
+    whatever the writing library reported. Temporary files that a killed earlier write left
+    beside a target are removed first (:func:`remove_stale_temps`).
     """
-    targets = [Path(p) for p in paths]
+    targets = [check_target(p) for p in paths]
     for path in targets:
-        if path.is_dir():
-            raise IsADirectoryError(f"{path} is a folder; give a file name")
         if not overwrite and path.exists():
             raise FileExistsError(f"refusing to overwrite existing file {path}")
     tmps: list[Path] = []
@@ -134,8 +240,19 @@ def atomic_outputs(
             missing = [d for d in (path.parent, *path.parent.parents) if not d.exists()]
             path.parent.mkdir(parents=True, exist_ok=True)
             created += missing
+            remove_stale_temps(path)
             tmps.append(_temp_beside(path))
-        yield list(tmps)
+        try:
+            yield list(tmps)
+        except BaseException as exc:
+            said = any(isinstance(e, OSError) and e.errno in _SPACE_ERRORS
+                       for e in (exc, exc.__cause__, exc.__context__))
+            for tmp, path in zip(tmps, targets, strict=False) if not said else ():
+                code = _space_error(exc, tmp)
+                if code is not None:
+                    raise OSError(code, f"writing {path} failed: {_SPACE_ERRORS[code]}; the "
+                                  "previous file, if any, is intact", str(path)) from exc
+            raise
         for tmp, path in zip(tmps, targets, strict=True):
             os.replace(tmp, path)
         done = True
@@ -147,6 +264,51 @@ def atomic_outputs(
             for folder in created:  # deepest first
                 with contextlib.suppress(OSError):
                     folder.rmdir()
+
+
+@contextlib.contextmanager
+def file_lock(path: str | os.PathLike, *, timeout: float = 60.0, what: str = "file"
+              ) -> Iterator[None]:
+    """Hold an exclusive lock on ``path`` for the block: a read-modify-write of a file that
+    several processes update (a monitor state) never loses an update.
+
+    The lock is an advisory ``flock`` on ``.NAME.lock`` beside ``path`` (``path`` itself is
+    replaced by atomic renames, so its inode cannot carry the lock), removed again on release;
+    a lock taken on a lock file that was removed meanwhile is dropped and taken again, so two
+    holders never coexist. A process that cannot get it within ``timeout`` seconds raises
+    ``TimeoutError`` naming ``what``. The kernel releases the lock when its process dies, so a
+    killed writer never leaves it held.
+    """
+    import fcntl
+
+    path = Path(path)
+    lock = path.parent / f".{path.name}.lock"
+    deadline = time.monotonic() + float(timeout)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            if time.monotonic() >= deadline:
+                raise TimeoutError(
+                    f"{what} {path} is being updated by another process (waited {timeout:g} s);"
+                    " nothing was changed, run the command again") from None
+            time.sleep(0.05)
+            continue
+        try:
+            current = os.stat(lock).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            current = False
+        if current:
+            break
+        os.close(fd)  # the holder before us removed this lock file: take the new one
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock)
+        os.close(fd)  # releases the flock
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
@@ -171,19 +333,25 @@ def guard_outputs(
     """Check, before any work, that writing ``outputs`` loses nothing; return them as Paths.
 
     Refuses (``FileExistsError``) an output that is one of ``inputs`` (compared with
-    :func:`same_file`, so globs and folders must be expanded by the caller) whatever
+    :func:`same_file`, so globs and folders must be expanded by the caller) or lies in an input
+    folder (every file there is read as input), whatever
     ``overwrite`` says, an existing output unless ``overwrite`` (the message names ``flag``),
-    and (``IsADirectoryError``) an output that is an existing folder.
+    and an output that exists but is not a regular file (:func:`check_target`).
     """
     outs = [Path(p) for p in outputs]
+    folders = [Path(p) for p in inputs if Path(p).is_dir()]
     for out in outs:
         for inp in inputs:
             if same_file(out, inp):
                 raise FileExistsError(
                     f"refusing to overwrite the input file {inp} with the output {out}; choose "
                     "another output (--overwrite never replaces an input)")
-        if out.is_dir():
-            raise IsADirectoryError(f"output {out} is an existing folder; give a file name")
+        for folder in folders:
+            if out.parent.is_dir() and same_file(out.parent, folder):
+                raise FileExistsError(
+                    f"refusing to write the output {out} into the input folder {folder}: every "
+                    "file there is read as input; choose another folder")
+        check_target(out)
         if out.exists() and not overwrite:
             raise FileExistsError(f"output {out} already exists; pass {flag} to replace it")
     return outs

@@ -782,11 +782,14 @@ def _describe(exc: BaseException) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``lrm-cvx`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
     try:
+        parser = build_parser()
         args = parser.parse_args(_join_coordinates(argv))
     except SystemExit as exc:  # --help (0) or a one-line usage error (2)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    except KeyboardInterrupt:
+        print("lrm-cvx: interrupted", file=sys.stderr)
+        return 130
     prefix = f"lrm-cvx {args.command}"
 
     def show(message, category, filename, lineno, file=None, line=None):

@@ -138,9 +138,21 @@ def read_observations_csv(path: str, region: Any) -> tuple[np.ndarray, np.ndarra
     for col in ("value", "cell", "lat", "lon"):
         if col in obs and (numeric[col].isna() & obs[col].notna()).any():
             raise UsageError(f"--observations column {col!r} must hold numbers")
+    has_coords = {"lat", "lon"} <= set(obs.columns)
     if "cell" in obs:
         cells = region.check_cells(numeric["cell"].to_numpy(), "cell")
-    elif {"lat", "lon"} <= set(obs.columns):
+        if has_coords:  # both given: they must name the same cells
+            at = np.atleast_1d(region.cell_of(numeric["lat"].to_numpy(),
+                                              numeric["lon"].to_numpy()))
+            bad = np.flatnonzero(at != cells)
+            if bad.size:
+                i = int(bad[0])
+                raise UsageError(
+                    f"--observations {path}: {bad.size} row(s) give a 'cell' that is not at "
+                    f"their 'lat','lon' (row {i + 1}: cell {int(cells[i])}, but lat "
+                    f"{numeric['lat'].iloc[i]:g}, lon {numeric['lon'].iloc[i]:g} is cell "
+                    f"{int(at[i])}); give one of the two")
+    elif has_coords:
         cells = np.atleast_1d(region.cell_of(numeric["lat"].to_numpy(),
                                              numeric["lon"].to_numpy()))
     else:
@@ -152,8 +164,13 @@ def read_observations_csv(path: str, region: Any) -> tuple[np.ndarray, np.ndarra
 def describe_plan(plan: Any) -> str:
     """One line about a :class:`~lrm_cvx.planning.Plan`: cells, cost against the budget(s)
     (each robot's for a fleet), the criterion value and the non-default path options."""
-    value = (f"information {plan.information:.4f} nats" if plan.criterion == "fisher"
-             else f"{plan.criterion} criterion {plan.information:.4g}")
+    # plan.information is always the Fisher log det (nats) of the plan's cells, whatever
+    # criterion chose them; -inf while fewer cells than the rank are observed
+    value = f"Fisher information {plan.information:.4f} nats"
+    if not np.isfinite(plan.information):
+        value += " (fewer informative cells than the rank)"
+    if plan.criterion != "fisher":
+        value += f", planned by the {plan.criterion} criterion"
     path = getattr(plan, "path", None) or {}
     unit = path.get("unit", "grid units")
     budgets = path.get("budgets") or [plan.budget]

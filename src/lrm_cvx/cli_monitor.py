@@ -45,6 +45,11 @@ def _usage(message: str) -> Exception:
     return UsageError(message)
 
 
+#: Seconds a command waits for another one updating the same state file before it gives up
+#: (nothing changed; run it again).
+LOCK_TIMEOUT = 60.0
+
+
 def _load_state(path: str):
     from .monitor import MonitorState
 
@@ -55,11 +60,32 @@ def _save_state(state: Any, path: str | Path) -> None:
     state.save(path)
 
 
+def _state_lock(path: str | Path):
+    """The state file's lock: ``init`` and ``assimilate`` read, change and write the state
+    under it, so two commands on one state run one after the other and no update is lost."""
+    from ._validation import file_lock
+
+    return file_lock(path, timeout=LOCK_TIMEOUT, what="state file")
+
+
+def _guard_state_outputs(out: str, state: Any, args: argparse.Namespace) -> Path:
+    """``out`` after the output checks, with the state file *and the model file it points to*
+    as inputs: neither is ever replaced by a plan or a map, ``--overwrite`` or not."""
+    inputs = [args.state] + ([state.model_path] if getattr(state, "model_path", "") else [])
+    (path,) = guard_paths([out], inputs, args)
+    return path
+
+
 # ----------------------------------------------------------------------------- commands
 def cmd_monitor_init(args: argparse.Namespace) -> int:
+    (out,) = guard_paths([args.state], [args.model], args)
+    with _state_lock(out):
+        return _init_locked(args, out)
+
+
+def _init_locked(args: argparse.Namespace, out: Path) -> int:
     from .monitor import MonitorState
 
-    (out,) = guard_paths([args.state], [args.model], args)
     model = load_model(args.model)
     if args.memoryless and args.temporal:
         raise _usage("--memoryless and --temporal exclude each other")
@@ -87,8 +113,9 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
     suffix = Path(args.output).suffix.lower()
     if suffix not in _PLAN_SUFFIXES:
         raise _usage(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
-    (out,) = guard_paths([args.output], [args.state], args)
+    guard_paths([args.output], [args.state], args)  # before the (slower) state read
     state = _load_state(args.state)
+    out = _guard_state_outputs(args.output, state, args)
     model = state.model
     criterion = args.criterion
     if criterion is None:
@@ -134,11 +161,12 @@ def _read_observations(path: str, region: Any, var: str | None) -> Any:
 
 
 def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
-    state = _load_state(args.state)
-    obs = _read_observations(args.observations, state.model.region_, args.var)
-    before = state.n_dropped
-    state.assimilate(obs, args.time, force=args.force)
-    _save_state(state, args.state)
+    with _state_lock(args.state):  # read, update and write back with no other writer between
+        state = _load_state(args.state)
+        obs = _read_observations(args.observations, state.model.region_, args.var)
+        before = state.n_dropped
+        state.assimilate(obs, args.time, force=args.force)
+        _save_state(state, args.state)
     n_today = int(state.posterior.cells.size)
     dropped = state.n_dropped - before
     note = f"; {dropped} NaN value(s) ignored" if dropped else ""
@@ -152,8 +180,9 @@ def cmd_monitor_map(args: argparse.Namespace) -> int:
     suffix = Path(args.output).suffix.lower()
     if suffix not in _MAP_SUFFIXES:
         raise _usage(f"-o must end in .nc, .png or .pdf, got {Path(args.output).name!r}")
-    (out,) = guard_paths([args.output], [args.state], args)
+    guard_paths([args.output], [args.state], args)
     state = _load_state(args.state)
+    out = _guard_state_outputs(args.output, state, args)
     ds = state.forecast(args.time) if args.forecast else state.predict()
     what = "forecast" if args.forecast else "posterior"
     if suffix == ".nc":

@@ -37,6 +37,7 @@ import numba
 import numpy as np
 from scipy.linalg import solve_triangular
 
+from .._validation import check_time_labels
 from ..errors import ConvergenceWarning, DataError, ModelError, SolverError
 from . import kernels as K
 from . import quadratic as Q
@@ -109,6 +110,8 @@ def check_data(D: np.ndarray, M: np.ndarray, rank: int, *, check_finite: bool = 
         raise ModelError(f"rank must be an integer, got {rank!r}")
     if rank < 1 or rank > min(T, L):
         raise ModelError(f"rank must be in [1, min(T, L)] = [1, {min(T, L)}], got {rank}")
+    if times is not None:
+        check_time_labels(times)  # no NaT
     rows, cols, nbad, colsum = K.data_stats(D, M, check_finite)
     Q.PASSES.add(D)  # one full read of the data (counted, see quadratic.PassCounter)
     if rows.sum() == 0:

@@ -196,6 +196,7 @@ class GLRM:
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
         self._fit_dynamics(M[-1], mask=M)
         del D, M
+        _warn_if_static(self._Xv)
         return self
 
     def _fit_dask(self, data, mask, region, rank, loss, reg_x, reg_y, rng) -> GLRM:
@@ -912,3 +913,17 @@ def _check_temporal(temporal: Any, data: Any) -> None:
         from .dynamics import check_times
 
         check_times(data[tdim], f"data[{tdim!r}]")
+
+
+def _warn_if_static(X: np.ndarray) -> None:
+    """Warn when the fitted latent vectors ``X (k, T)`` do not vary over time (a constant
+    field): every snapshot looks the same to the model, so there is nothing to plan for."""
+    X = np.asarray(X, dtype=np.float64)
+    if X.shape[1] < 2:
+        return
+    spread = float(np.ptp(X, axis=1).max())
+    if spread <= 1e-9 * max(float(np.abs(X).max()), 1e-300):
+        warnings.warn("the fitted latent vectors X_ do not vary over time (is the data constant "
+                      "in time?): every snapshot looks the same to the model, a fold-in with "
+                      "prior='empirical' returns the training mean, and planning has nothing "
+                      "to learn", UserWarning, stacklevel=3)

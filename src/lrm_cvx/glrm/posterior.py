@@ -90,14 +90,20 @@ def _inverse(P: np.ndarray) -> np.ndarray | None:
 
 def empirical_moments(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(mean (k,), cov (k, k))`` of the training columns of ``X (k, T)`` (ddof 1, plus 1e-9 x
-    its mean eigenvalue on the diagonal so it is invertible)."""
+    its mean eigenvalue on the diagonal so it is invertible). When ``X`` does not vary over time
+    (a constant field) the floor is 1e-21 x the mean's squared norm instead: the prior then pins
+    every fold-in to the training mean, which is the right prediction, rather than failing."""
     X = np.asarray(X, dtype=np.float64)
     k, T = X.shape
     if T < 2:
         raise ModelError("prior='empirical' needs a model fitted on at least 2 times")
     S0 = np.atleast_2d(np.cov(X))
-    S0 = S0 + 1e-9 * max(np.trace(S0), 1e-300) / k * np.eye(k)
-    return X.mean(axis=1), S0
+    mean = X.mean(axis=1)
+    scale = np.trace(S0)
+    if not scale > 1e-12 * float(mean @ mean):  # no spread over time
+        scale = max(1e-12 * float(mean @ mean), scale)
+    S0 = S0 + 1e-9 * max(scale, 1e-300) / k * np.eye(k)
+    return mean, S0
 
 
 # ============================================================================ observation model

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from .._validation import check_time_labels
 from ..errors import DataError
 from ..region import to_geographic_order
 
@@ -78,6 +79,7 @@ def _normalise(da: xr.DataArray, source: str, bbox: Sequence[float] | None, *,
     if empty:
         raise DataError(f"{source}: variable {name!r} is empty (dim {empty[0]!r} has size 0)")
     if "time" in da.coords:
+        check_time_labels(da["time"].values, source)
         index = da.indexes["time"]
         if not index.is_unique:
             dup = index[index.duplicated()][0]

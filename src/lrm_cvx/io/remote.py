@@ -306,6 +306,47 @@ def _engine(head: bytes, url: str) -> str:
                     "nor NetCDF-3)")
 
 
+def _no_ranges(url: str, size: Any = None) -> DataError:
+    if size is None:  # a stream: no Content-Length, so no seeking
+        return DataError(f"cannot read {url}: the server does not report the file's size (no "
+                         "Content-Length), so the file cannot be read in place; download the "
+                         "file and open the local copy")
+    return DataError(f"cannot read {url}: the server does not support HTTP Range requests, which "
+                     "reading a file in place needs; download the file and open the local copy")
+
+
+def _probe_end(f: Any, url: str) -> None:
+    """Read the last byte of the HTTP file ``f`` (then rewind): DataError when the server
+    ignores ``Range`` requests or sends no size. h5py must never get a file object that fails
+    mid-read: that is what left a crash for interpreter exit. A file of one block is read whole
+    in one request and needs no ranges."""
+    size = getattr(f, "size", None)
+    if size is None:
+        raise _no_ranges(url)
+    if size > getattr(f, "blocksize", 0):
+        f.seek(size - 1)
+        try:
+            f.read(1)
+        except ValueError as exc:
+            if "range" not in str(exc).lower():
+                raise
+            raise _no_ranges(url, size) from None
+    f.seek(0)
+
+
+def _check_ranges(fs: Any, url: str) -> None:
+    """:func:`_probe_end` on a fresh uncached HTTP file, before a block cache sees the URL (a
+    cache would record a failed block as read). A file already in the cache needs no server."""
+    raw = getattr(fs, "fs", fs)  # the HTTP filesystem behind a block cache
+    if raw is fs or _protocol(url) not in ("http", "https"):
+        return
+    with contextlib.suppress(Exception):
+        if fs._check_file(url):
+            return
+    with raw.open(url, "rb") as f:
+        _probe_end(f, url)
+
+
 @contextlib.contextmanager
 def open_remote_dataset(url: str, storage_options: dict[str, Any] | None = None,
                         cache: Any = None, **open_kwargs: Any) -> Iterator[xr.Dataset]:
@@ -315,11 +356,15 @@ def open_remote_dataset(url: str, storage_options: dict[str, Any] | None = None,
     NetCDF-3). Errors are raised as they are; :func:`read_remote` turns them into DataError.
     """
     fs = remote_filesystem(url, storage_options, cache)
+    _check_ranges(fs, url)
     f = fs.open(url, "rb")
     rec = _RecordingFile(f)
     ds = None
+    failed = True
     try:
         engine = _engine(rec.read(8), url)
+        if fs is getattr(fs, "fs", fs) and _protocol(url) in ("http", "https"):
+            _probe_end(f, url)  # uncached: the probe's block is one h5py would read anyway
         rec.seek(0)
         try:
             ds = xr.open_dataset(rec, engine=engine, **open_kwargs)
@@ -328,6 +373,7 @@ def open_remote_dataset(url: str, storage_options: dict[str, Any] | None = None,
                 raise exc from rec.recorded
             raise
         yield ds
+        failed = False
     except Exception as exc:
         if rec.recorded is not None and exc.__cause__ is None:
             raise exc from rec.recorded
@@ -336,6 +382,9 @@ def open_remote_dataset(url: str, storage_options: dict[str, Any] | None = None,
         if ds is not None:
             ds.close()
         f.close()
+        if failed and hasattr(fs, "pop_from_cache"):  # never keep blocks of a failed read
+            with contextlib.suppress(Exception):
+                fs.pop_from_cache(url)
 
 
 def read_remote(url: str, func: Callable[[xr.Dataset], T], *,
