@@ -445,8 +445,9 @@ def test_static_pairs_brute_force_and_naive_greedy():
     assert len(plan) == 5 and np.isfinite(plan.information)
     with pytest.raises(PlanningError, match="n_sensors"):
         place_sensors(Y, region, 2)  # fewer sensors than the rank with ridge 0
-    df = plan.to_dataframe()
-    assert df["cumulative_cost"].tolist() == [1.0, 2.0, 3.0, 4.0, 5.0]
+    df = plan.to_dataframe()  # fixed sensors: their own columns, not a route's (issue #25)
+    assert df["sensor"].tolist() == [0, 1, 2, 3, 4]
+    assert df["cell"].tolist() == plan.cells.tolist() and "cumulative_cost" not in df
     assert plan.route.tolist() == plan.cells.tolist()
 
 

@@ -21,10 +21,13 @@ import numpy as np
 
 from ._validation import atomic_outputs, guard_outputs
 from .cli_common import (
+    SENSOR_SUFFIXES,
     UsageError,
     add_common,
+    add_mission_options,
     add_output,
     check_lat,
+    check_plan_output,
     describe_plan,
     finite_number,
     guard_paths,
@@ -284,14 +287,12 @@ def _plan_from_args(args: argparse.Namespace):
 def cmd_plan(args: argparse.Namespace) -> int:
     out = None
     if args.output:
-        suffix = Path(args.output).suffix.lower()
-        if suffix not in (".csv", ".geojson", ".json"):
-            raise UsageError(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
+        check_plan_output(args.output)
         (out,) = guard_paths([args.output], [args.model, *_mask_file(args)], args)
     _, plan = _plan_from_args(args)
     print(describe_plan(plan))
     if out is not None:
-        write_plan(plan, out)
+        write_plan(plan, out, args)
     return 0
 
 
@@ -302,9 +303,7 @@ def cmd_place(args: argparse.Namespace) -> int:
 
     out = None
     if args.output:
-        suffix = Path(args.output).suffix.lower()
-        if suffix not in (".csv", ".geojson", ".json"):
-            raise UsageError(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
+        check_plan_output(args.output, SENSOR_SUFFIXES)
         ins = [args.model, *_mask_file(args), *(_input_files(args.data) if args.data else [])]
         (out,) = guard_paths([args.output], ins, args)
     criterion = args.criterion or ("risk" if args.data else "gp-variance")
@@ -343,11 +342,7 @@ def cmd_place(args: argparse.Namespace) -> int:
                  f"{ref.get('objective_after', np.nan):.6g}")
     print(text)
     if out is not None:
-        if out.suffix.lower() == ".csv":
-            plan.to_csv(out)
-        else:
-            plan.to_geojson(out)
-        print(f"sensors written to {out}")
+        write_plan(plan, out)
     return 0
 
 
@@ -662,7 +657,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("plan", help="plan a sampling route with the greedy planner")
     _add_plan(p)
-    p.add_argument("-o", "--output", help="route.csv or route.geojson")
+    p.add_argument("-o", "--output", help="route.csv, route.geojson, or a mission: "
+                   "route.plan (QGroundControl), route.waypoints (MAVLink QGC WPL 110), "
+                   "route.gpx, route.kml")
+    add_mission_options(p)
     add_output(p)
     p.set_defaults(func=cmd_plan)
 

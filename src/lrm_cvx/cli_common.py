@@ -21,7 +21,8 @@ from .errors import LrmError
 
 __all__ = ["UsageError", "parse_floats", "check_lat", "parse_start", "finite_number",
            "add_common", "add_output", "check_writable", "guard_paths", "load_model",
-           "read_observations_csv", "describe_plan", "write_plan"]
+           "read_observations_csv", "describe_plan", "write_plan", "PLAN_SUFFIXES",
+           "SENSOR_SUFFIXES", "check_plan_output", "add_mission_options"]
 
 
 class UsageError(LrmError, ValueError):
@@ -197,10 +198,45 @@ def describe_plan(plan: Any) -> str:
                                                          else "")
 
 
-def write_plan(plan: Any, out: Path) -> None:
-    """Write ``plan`` as CSV or GeoJSON by ``out``'s suffix (checked by the caller)."""
-    if out.suffix.lower() == ".csv":
+#: ``-o`` of a plan: a table, GeoJSON, or a mission file an autopilot or GIS loads.
+PLAN_SUFFIXES = (".csv", ".geojson", ".json", ".plan", ".waypoints", ".gpx", ".kml")
+#: ``-o`` of a static placement (no route, so no mission file).
+SENSOR_SUFFIXES = (".csv", ".geojson", ".json")
+
+
+def check_plan_output(path: str, suffixes: Sequence[str] = PLAN_SUFFIXES) -> None:
+    """UsageError unless ``path`` ends in one of ``suffixes``."""
+    if Path(path).suffix.lower() not in suffixes:
+        raise UsageError(f"-o must end in {', '.join(suffixes)}; got {Path(path).name!r}")
+
+
+def add_mission_options(p: argparse.ArgumentParser) -> None:
+    """``--altitude`` and ``--robot`` of the mission files (.plan, .waypoints, .gpx, .kml)."""
+    from .planning.missions import DEFAULT_ALTITUDE
+
+    p.add_argument("--altitude", type=finite_number, default=None,
+                   help="mission altitude in m above home (.plan, .waypoints; default "
+                   f"{DEFAULT_ALTITUDE:g}) or above ground (.gpx, .kml; default none)")
+    p.add_argument("--robot", type=int, default=0,
+                   help="which robot of a fleet a .plan / .waypoints mission is for "
+                   "(default 0; .gpx and .kml hold every robot)")
+
+
+def write_plan(plan: Any, out: Path, args: argparse.Namespace | None = None) -> None:
+    """Write ``plan`` by ``out``'s suffix (checked by the caller): CSV, GeoJSON, or a mission
+    file (:func:`lrm_cvx.planning.missions.write_mission`, ``args.altitude`` / ``args.robot``).
+    """
+    suffix = out.suffix.lower()
+    if suffix == ".csv":
         plan.to_csv(out)
-    else:
+    elif suffix in (".geojson", ".json"):
         plan.to_geojson(out)
-    print(f"route written to {out}")
+    else:
+        from .planning.missions import DEFAULT_ALTITUDE, write_mission
+
+        altitude = getattr(args, "altitude", None)
+        write_mission(plan, out, robot=getattr(args, "robot", 0), altitude=altitude)
+        if altitude is None and suffix in (".plan", ".waypoints"):
+            print(f"mission altitude {DEFAULT_ALTITUDE:g} m above home (the default; set "
+                  "--altitude)")
+    print(f"{'sensors' if plan.path.get('kind') == 'static' else 'route'} written to {out}")

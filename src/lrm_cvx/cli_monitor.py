@@ -25,7 +25,9 @@ import numpy as np
 from .cli_common import (
     UsageError,
     add_common,
+    add_mission_options,
     add_output,
+    check_plan_output,
     describe_plan,
     finite_number,
     guard_paths,
@@ -37,7 +39,6 @@ from .cli_common import (
 
 __all__ = ["add_monitor_parser"]
 
-_PLAN_SUFFIXES = (".csv", ".geojson", ".json")
 _MAP_SUFFIXES = (".nc", ".png", ".pdf")
 
 
@@ -110,9 +111,7 @@ def _init_locked(args: argparse.Namespace, out: Path) -> int:
 def cmd_monitor_plan(args: argparse.Namespace) -> int:
     from .planning import plan_greedy
 
-    suffix = Path(args.output).suffix.lower()
-    if suffix not in _PLAN_SUFFIXES:
-        raise _usage(f"-o must end in .csv or .geojson, got {Path(args.output).name!r}")
+    check_plan_output(args.output)
     guard_paths([args.output], [args.state], args)  # before the (slower) state read
     state = _load_state(args.state)
     out = _guard_state_outputs(args.output, state, args)
@@ -126,7 +125,7 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
                        progress=not args.quiet, initial="start", **kw)
     t = state._default_time(args.time)
     print(f"plan for {_label(t)}: {describe_plan(plan)}")
-    write_plan(plan, out)
+    write_plan(plan, out, args)
     return 0
 
 
@@ -258,7 +257,9 @@ def add_monitor_parser(sub: Any) -> None:
     q.add_argument("--time", default=None,
                    help="plan for this time (default: the next step, or the state's time if "
                    "not observed yet)")
-    q.add_argument("-o", "--output", required=True, help="plan.csv or plan.geojson")
+    q.add_argument("-o", "--output", required=True, help="plan.csv, plan.geojson, or a "
+                   "mission: .plan (QGroundControl), .waypoints (MAVLink), .gpx, .kml")
+    add_mission_options(q)
     add_output(q)
     q.set_defaults(func=cmd_monitor_plan)
 

@@ -511,11 +511,17 @@ class Plan:
 
     def to_dataframe(self) -> Any:
         """One row per route entry: ``robot, order, cell, lat, lon, row, col, waypoint,
-        cumulative_cost``. ``order`` counts within each robot's route; ``waypoint`` is False for
+        cumulative_cost`` (a static placement: one row per sensor, ``sensor, cell, lat, lon,
+        gain``, see :func:`~lrm_cvx.planning.missions.sensors_dataframe`). ``order`` counts
+        within each robot's route; ``waypoint`` is False for
         a pass-through cell; a closed tour's last row is its start again; each robot's last
         ``cumulative_cost`` is its cost (in ``path["unit"]``)."""
         import pandas as pd
 
+        if self.path.get("kind") == "static":  # fixed sensors: their own columns
+            from .missions import sensors_dataframe
+
+            return sensors_dataframe(self)
         cum = self.route_cost
         if cum.shape != self.route.shape:  # a Plan built by hand without route_cost
             cum = path_cumulative(self.grid_index)
@@ -544,76 +550,32 @@ class Plan:
         """GeoJSON FeatureCollection: each robot's route as a LineString and each sampling stop
         as a Point (a static placement: a Point per sensor, no LineString).
 
-        Coordinates are ``[lon, lat]`` (RFC 7946). LineString properties: ``kind`` ``"route"``,
-        ``robot``, ``cost``, ``budget``. Point properties: ``cell``, ``robot``, ``order`` (first
-        visit on its robot's route), ``selection`` (index in ``stops``), ``start``. The
+        Coordinates are ``[lon, lat]`` with longitudes in [-180, 180) (RFC 7946); a route that
+        crosses the antimeridian is a MultiLineString cut there. LineString properties: ``kind``
+        ``"route"``, ``robot``, ``cost``, ``budget``. Point properties: ``cell``, ``robot``,
+        ``order`` (first visit on its robot's route), ``selection`` (index in ``stops``),
+        ``start`` (a sensor: ``kind`` ``"sensor"``, ``sensor``, ``cell``, ``gain``). The
         collection's properties carry method, cost, budget, information and the path model.
         Written atomically when ``path``.
         """
-        coords = [[float(lo), float(la)] for lo, la in zip(self.lon, self.lat, strict=True)]
-        order = self._order()
-        budgets = self.path.get("budgets") or [self.budget]
-        starts = set(int(s) for s in (self.path.get("starts") or [self.start]))
-        features: list[dict[str, Any]] = []
-        for r in range(self.n_robots if self.path.get("kind") != "static" else 0):
-            sel = np.flatnonzero(self.route_robot == r)  # (fixed sensors: Points only)
-            features.append({
-                "type": "Feature",
-                "geometry": {"type": "LineString", "coordinates": [coords[i] for i in sel]},
-                "properties": {"kind": "route", "robot": r,
-                               "cost": float(self.robot_costs[r]) if self.robot_costs.size
-                               > r else self.cost,
-                               "budget": float(budgets[r]) if len(budgets) > r else None},
-            })
-        sel_of: dict[tuple[int, int], int] = {}
-        for i, (c, r) in enumerate(zip(self.stops.tolist(), self.stop_robot.tolist(),
-                                       strict=True)):
-            sel_of.setdefault((int(r), int(c)), i)
-        first: dict[tuple[int, int], int] = {}
-        for i, (c, r) in enumerate(zip(self.route.tolist(), self.route_robot.tolist(),
-                                       strict=True)):
-            if (r, c) in sel_of and bool(self.waypoint[i]):
-                first.setdefault((r, c), i)
-        for (_, c), i in first.items():
-            features.append(
-                {
-                    "type": "Feature",
-                    "geometry": {"type": "Point", "coordinates": coords[i]},
-                    "properties": {
-                        "kind": "cell",
-                        "cell": c,
-                        "robot": int(self.route_robot[i]),
-                        "order": int(order[i]),
-                        "selection": sel_of.get((int(self.route_robot[i]), c)),
-                        "start": c in starts and int(order[i]) == 0,
-                    },
-                }
-            )
+        from .missions import plan_geojson
 
-        def num(v: float) -> float | None:
-            return float(v) if np.isfinite(v) else None
-
-        doc = {
-            "type": "FeatureCollection",
-            "features": features,
-            "properties": {
-                "method": self.method,
-                "criterion": self.criterion,
-                "cost_function": self.cost_function,
-                "cost": num(self.cost),
-                "budget": num(self.budget),
-                "information": num(self.information),
-                "ridge": self.ridge,
-                "start": self.start,
-                "n_cells": len(self),
-                "n_robots": self.n_robots,
-                "path": {k: v for k, v in self.path.items()},
-            },
-        }
+        doc = plan_geojson(self)
         if path is not None:
             with atomic_output(path) as tmp:
                 tmp.write_text(json.dumps(doc))
         return doc
+
+    def to_mission(self, path: str | Path, *, robot: int = 0, altitude: float | None = None,
+                   speed: float | None = None, hold: float = 0.0) -> Path:
+        """Write the route as a mission file by ``path``'s suffix: ``.plan`` (QGroundControl),
+        ``.waypoints`` (MAVLink ``QGC WPL 110``), ``.gpx`` or ``.kml``; ``altitude`` in m
+        (default 50 m above home for the autopilot formats). See
+        :mod:`lrm_cvx.planning.missions`."""
+        from .missions import write_mission
+
+        return write_mission(self, path, robot=robot, altitude=altitude, speed=speed,
+                             hold=hold)
 
     def plot(self, ax: Any = None, background: Any = None, **background_kw: Any) -> Any:
         """Draw the plan on a map: optional ``background`` (a ``(lat, lon)`` DataArray or array
