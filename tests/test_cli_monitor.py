@@ -148,3 +148,70 @@ def test_a_crash_during_the_state_write_keeps_the_old_state(files, tmp_path, mon
     s = MonitorState.load(state)
     assert s.time == da.time.values[29] and s.posterior.cells.size == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["state.nc"]  # no temporary left
+
+
+# ----------------------------------------------- issue 25, item 5: a user's own record
+def test_mid_month_stamps_are_kept(tmp_path):
+    # a monthly record stamped mid-month (16 Jan 12:00, 15 Feb 00:00, 16 Mar 12:00, 16 Apr
+    # 00:00, ...): the next time is the record's own April stamp, not 16 Apr 12:00
+    rng = np.random.default_rng(0)
+    starts = pd.date_range("2005-01-01", periods=37, freq="MS")
+    mids = [a + (b - a) / 2 for a, b in zip(starts[:-1], starts[1:], strict=True)]
+    da = xr.DataArray(rng.normal(size=(36, 4, 5)).astype(np.float32),
+                      dims=("time", "lat", "lon"),
+                      coords={"time": mids, "lat": np.arange(4.0), "lon": np.arange(5.0)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(2, temporal="ar1", progress=False, random_state=0).fit(
+            da.isel(time=slice(0, 27)))
+    state = MonitorState.from_model(model)
+    assert pd.Timestamp(state.time) == pd.Timestamp("2007-03-16T12:00")
+    assert state.next_time() == da.time.values[27]  # 2007-04-16T00:00
+
+
+def test_a_360_day_calendar_date_is_a_valid_time(tmp_path, capsys):
+    import cftime
+
+    rng = np.random.default_rng(1)
+    times = [cftime.datetime(2090 + i // 12, i % 12 + 1, 15, calendar="360_day")
+             for i in range(40)]
+    da = xr.DataArray(rng.normal(size=(40, 4, 5)).astype(np.float32),
+                      dims=("time", "lat", "lon"),
+                      coords={"time": times, "lat": np.arange(4.0), "lon": np.arange(5.0)})
+    da.to_dataset(name="tas").to_netcdf(tmp_path / "tas.nc")
+    model = tmp_path / "m.nc"
+    # fit on a 360-day record up to a date that only that calendar has
+    assert _run("fit", tmp_path / "tas.nc", "--rank", 2, "--temporal", "ar1", "--until",
+                "2092-02-30", "-o", model) == 0
+    assert "held out the last 14 of 40" in capsys.readouterr().out
+    state = tmp_path / "s.nc"
+    assert _run("monitor", "init", model, "--state", state) == 0
+    assert _run("monitor", "plan", state, "--start", "1,1", "--budget", 3, "--time",
+                "2092-04-30", "-o", tmp_path / "p.csv") == 0
+    assert "plan for 2092-04-30" in capsys.readouterr().out
+    assert _run("monitor", "plan", state, "--start", "1,1", "--budget", 3, "--time",
+                "2092-04-31", "-o", tmp_path / "q.csv") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("lrm-cvx monitor: error: --time") or "360_day calendar" in err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "q.csv").exists()
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--hold-out", "39"], "leaves 1 of 40"),
+    (["--until", "2000-01-01"], "keeps 0 of 40"),
+    (["--until", "2091-13-01"], "360_day calendar"),
+    (["--hold-out", "3", "--until", "2092-01-01"], "exclude each other"),
+])
+def test_fit_hold_out_bad_input(tmp_path, capsys, argv, needle):
+    import cftime
+
+    times = [cftime.datetime(2090 + i // 12, i % 12 + 1, 15, calendar="360_day")
+             for i in range(40)]
+    da = xr.DataArray(np.random.default_rng(2).normal(size=(40, 3, 4)).astype(np.float32),
+                      dims=("time", "lat", "lon"),
+                      coords={"time": times, "lat": np.arange(3.0), "lon": np.arange(4.0)})
+    da.to_dataset(name="tas").to_netcdf(tmp_path / "tas.nc")
+    assert _run("fit", tmp_path / "tas.nc", "--rank", 2, *argv, "-o", tmp_path / "m.nc") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err, err
+    assert not (tmp_path / "m.nc").exists()

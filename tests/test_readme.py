@@ -60,3 +60,13 @@ def test_robots_block_runs(tmp_path, monkeypatch, capsys):
     assert "waypoint" in capsys.readouterr().out
     cert = plan.certify()
     assert cert.bound >= plan.information
+
+
+def test_own_record_block_runs(tmp_path, monkeypatch):
+    """The README's 'own record' block: open_data on a NetCDF file, the last 8 held out."""
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(_block("open_data("), str(README), "exec"), namespace)  # noqa: S102
+    da, model = namespace["da"], namespace["model"]
+    assert da.dims == ("time", "lat", "lon")
+    assert model.X_.sizes[model.X_.dims[1]] == da.sizes["time"] - 8

@@ -242,7 +242,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from .glrm import GLRM
 
     (out,) = guard_paths([args.output], _input_files(args.data), args)
-    data = _load(args)
+    data = _hold_out(_load(args), args)
     model = GLRM(rank=args.rank, loss=args.loss, max_iter=args.max_iter, tol=args.tol,
                  random_state=args.seed, progress=not args.quiet,
                  **_model_params(args)).fit(data)
@@ -254,6 +254,36 @@ def cmd_fit(args: argparse.Namespace) -> int:
           f"{data.sizes['time']} snapshots x {model.region_.n_cells} cells in {model.n_iter_} "
           f"iterations (noise std {model.noise_std_:.4g}); saved {out}")
     return 0
+
+
+def _hold_out(data, args: argparse.Namespace):
+    """The snapshots ``fit`` trains on: all, all but the last ``--hold-out N``, or those at or
+    before ``--until DATE`` (any calendar of the data); says what was held out."""
+    n_all = data.sizes["time"]
+    if args.hold_out is not None and args.until is not None:
+        raise UsageError("--hold-out and --until exclude each other")
+    if args.hold_out is not None:
+        keep = n_all - args.hold_out
+        if keep < 2:
+            raise UsageError(f"--hold-out {args.hold_out} leaves {max(keep, 0)} of {n_all} "
+                             "snapshots to fit on; at least 2 are needed")
+    elif args.until is not None:
+        from .monitor import parse_time
+
+        until = parse_time(args.until, data["time"], "--until")
+        keep = int(np.count_nonzero(data["time"].values <= until))
+        if keep < 2:
+            raise UsageError(f"--until {args.until} keeps {keep} of {n_all} snapshots (the "
+                             f"first is {data['time'].values[0]}); at least 2 are needed")
+    else:
+        return data
+    if keep < n_all:
+        from .monitor import time_label
+
+        times = data["time"].values
+        print(f"held out the last {n_all - keep} of {n_all} snapshots ({time_label(times[keep])}"
+              f" .. {time_label(times[-1])}); fitting on {keep}")
+    return data.isel(time=slice(0, keep))
 
 
 def _plan_from_args(args: argparse.Namespace):
@@ -651,6 +681,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_int_at_least(0), default=0)
     _add_model_options(p)
     _add_recommended(p, "--offset --spatial exponential")
+    p.add_argument("--hold-out", type=_int_at_least(0), default=None, metavar="N",
+                   help="leave the last N snapshots out of the fit (to test or monitor on)")
+    p.add_argument("--until", default=None, metavar="DATE",
+                   help="fit on the snapshots at or before DATE only (YYYY-MM-DD[THH:MM], in "
+                   "the data's calendar: 2093-02-30 is a 360-day date)")
     p.add_argument("-o", "--output", required=True, help="model file (.nc)")
     add_output(p)
     p.set_defaults(func=cmd_fit)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import os
+import re
 from dataclasses import replace
 from typing import Any
 
@@ -91,9 +92,11 @@ def _coerce_time(value: Any, kind: str, calendar: str | None, name: str = "time"
 
             if hasattr(value, "calendar"):
                 return value
-            ts = pd.Timestamp(str(value))
-            return cftime.datetime(ts.year, ts.month, ts.day, ts.hour, ts.minute, ts.second,
-                                   calendar=calendar or "standard")
+            m = _ISO_DATE.match(str(value).strip())
+            if m is None:  # read by the calendar itself: 2093-02-30 is a 360-day date
+                raise ValueError("expected YYYY-MM-DD[THH[:MM[:SS]]]")
+            y, mo, d, h, mi, sec = (int(float(g)) if g else 0 for g in m.groups())
+            return cftime.datetime(y, mo, d, h, mi, sec, calendar=calendar or "standard")
         v = float(value)
         if not np.isfinite(v):
             raise ValueError("not finite")
@@ -104,6 +107,17 @@ def _coerce_time(value: Any, kind: str, calendar: str | None, name: str = "time"
                     "numeric": "a number"}[kind]
         raise DataError(f"{name} must be {expected} (the model's time coordinate), got "
                         f"{value!r}: {exc}") from None
+
+
+def parse_time(value: Any, times: Any, name: str = "time") -> Any:
+    """``value`` (a string such as ``"2093-02-30"``, a date or a number) as a time of the same
+    kind and calendar as ``times`` (a time coordinate); DataError naming ``name`` otherwise."""
+    _, kind, calendar = time_numbers(np.asarray(getattr(times, "values", times))[:1], name)
+    return _coerce_time(value, kind, calendar, name)
+
+
+_ISO_DATE = re.compile(r"^(-?\d{1,4})-(\d{1,2})-(\d{1,2})(?:[T ](\d{1,2})(?::(\d{1,2})"
+                       r"(?::(\d{1,2}(?:\.\d*)?))?)?)?$")
 
 
 def _time_to_str(t: Any) -> str:
@@ -207,23 +221,50 @@ class MonitorState:
                         "time order (pass force=True / --force to override)")
 
     def next_time(self) -> Any:
-        """The time one step after the state's (one month for monthly data)."""
+        """The time one step after the state's (one month for monthly data). Monthly data keep
+        their own stamps: when every training snapshot of the next calendar month has the same
+        day and time of day (mid-month records: 16 Jan 12:00, 15 Feb 00:00, ...), the next time
+        takes them; otherwise the state's day and time one month on."""
         step = self.dynamics.step
         t = self.time
         monthly = self._time_kind != "numeric" and 27.0 <= step <= 32.0
         if self._time_kind == "datetime":
             ts = pd.Timestamp(t)
             ts = ts + (pd.DateOffset(months=1) if monthly else pd.Timedelta(days=step))
+            if monthly and (stamp := self._month_stamp(ts.month)) is not None:
+                ts = (ts.normalize().replace(day=1)
+                      + pd.Timedelta(days=stamp[0] - 1, seconds=stamp[1]))
             return np.datetime64(ts, "ns")
         if self._time_kind == "cftime":
             if monthly:
                 y, m = divmod(t.month, 12)
+                stamp = self._month_stamp(m + 1)
+                if stamp is not None:
+                    first = t.replace(year=t.year + y, month=m + 1, day=1, hour=0, minute=0,
+                                      second=0, microsecond=0)
+                    return first + _dt.timedelta(days=stamp[0] - 1, seconds=stamp[1])
                 try:
                     return t.replace(year=t.year + y, month=m + 1)
                 except ValueError:
                     return t.replace(year=t.year + y, month=m + 1, day=28)
             return t + _dt.timedelta(days=step)
         return float(t) + step
+
+    def _month_stamp(self, month: int) -> tuple[int, int] | None:
+        """``(day, seconds into the day)`` shared by every training time in calendar
+        ``month``, or None (no such time, or they differ)."""
+        stamps = set()
+        for v in np.asarray(_model_times(self.model)).ravel():
+            if isinstance(v, np.datetime64):
+                ts = pd.Timestamp(v)
+            elif hasattr(v, "calendar"):
+                ts = v
+            else:
+                return None
+            if ts.month == month:
+                stamps.add((int(ts.day), int(ts.hour) * 3600 + int(ts.minute) * 60
+                            + int(ts.second)))
+        return stamps.pop() if len(stamps) == 1 else None
 
     def _propagated(self, t: Any) -> LatentPosterior:
         """The belief about the snapshot at ``t`` before its observations."""

