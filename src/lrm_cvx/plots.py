@@ -171,10 +171,55 @@ def _with_units(label: str, units: str) -> str:
     return f"{label} ({units})" if units else label
 
 
+MAX_MAP_ASPECT = 6.0
+"""Widest width : height a map is drawn at; a thinner strip of a domain (5 x 100 cells) is
+stretched in latitude up to this shape, else it is a line of pixels."""
+
+
+def _spans(lat: Any, lon: Any) -> tuple[float, float]:
+    """Extents in degrees of a grid's cell centres plus one cell: (latitude, longitude)."""
+    lat, lon = np.asarray(lat, dtype=float), np.asarray(lon, dtype=float)
+    span_lat = max(float(np.ptp(lat)), 1e-9) + (abs(lat[1] - lat[0]) if lat.size > 1 else 1)
+    span_lon = max(float(np.ptp(lon)), 1e-9) + (abs(lon[1] - lon[0]) if lon.size > 1 else 1)
+    return span_lat, span_lon
+
+
+def map_layout(lat: Any, lon: Any, n_panels: int = 1, *, width: float = 7.5
+               ) -> tuple[int, int, tuple[float, float]]:
+    """``(nrows, ncols, figsize)`` for ``n_panels`` maps of one ``(lat, lon)`` grid in a
+    figure ``width`` inches wide: side by side when the domain is about as tall as wide, one
+    above the other when it is wide and thin (a 5 x 100 strip stays readable), each panel's
+    height from the domain's aspect (degrees, as :func:`plot_map` draws them) plus room for
+    its colour bar and labels."""
+    span_lat, span_lon = _spans(lat, lon)
+    aspect = min(span_lon / span_lat, MAX_MAP_ASPECT)  # width / height of one map as drawn
+    stacked = n_panels > 1 and aspect > 1.6 * n_panels
+    nrows, ncols = (n_panels, 1) if stacked else (1, n_panels)
+    map_w = width / ncols - 1.3  # minus the colour bar and the latitude labels
+    map_h = min(max(map_w / aspect, 0.9), 6.0)
+    return nrows, ncols, (width, nrows * (map_h + 0.9))
+
+
+def _readable_ticks(ax: Any) -> None:
+    """At most one longitude tick per ~0.9 inch and latitude tick per ~0.35 inch of the axes,
+    so labels never overlap whatever the figure's shape."""
+    from matplotlib.ticker import MaxNLocator
+
+    fig = ax.figure
+    fig.canvas.draw_idle()
+    box = ax.get_position()
+    w_in, h_in = box.width * fig.get_figwidth(), box.height * fig.get_figheight()
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=max(2, int(w_in / 0.9)), steps=[1, 2, 5, 10]))
+    ax.yaxis.set_major_locator(MaxNLocator(nbins=max(2, int(h_in / 0.35)), steps=[1, 2, 5, 10]))
+
+
 def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
-             route: xr.Dataset | None = None, label: str | None = None, **kwargs: Any):
-    """One ``(lat, lon)`` map with labelled axes (degrees north / east), masked (NaN) cells
-    shaded grey, a colour bar labelled ``label (units)`` unless ``add_colorbar=False``, and
+             route: xr.Dataset | None = None, label: str | None = None,
+             coast: bool = True, **kwargs: Any):
+    """One ``(lat, lon)`` map with labelled axes (degrees north / east, ticks spaced so their
+    labels never overlap), masked (NaN) cells shaded grey and outlined (``coast``: the coast
+    as the data know it), a colour bar labelled ``label (units)`` unless
+    ``add_colorbar=False``, and
     optionally a route (a Dataset with ``lat`` and ``lon`` per stop, start starred) drawn over
     it; returns the axes."""
     import matplotlib.pyplot as plt
@@ -190,6 +235,13 @@ def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
         kwargs.setdefault("cbar_kwargs", {"label": _with_units(name, _units(field))})
     field.plot.pcolormesh(ax=ax, cmap=cmap, add_labels=False, rasterized=True, **kwargs)
     ax.set_facecolor(_LAND)
+    valid = np.isfinite(field.values)
+    if coast and valid.any() and not valid.all() and min(valid.shape) > 1:
+        # the coast as the data know it: the outline of the cells with values (cartopy's
+        # coastlines would download Natural Earth files at first use, which a field laptop
+        # or this package's CI cannot)
+        ax.contour(field[lon_dim].values, field[lat_dim].values, valid.astype(float),
+                   levels=[0.5], colors="0.25", linewidths=0.6)
     if route is not None:
         ax.plot(route["lon"], route["lat"], "-", color="white", lw=1.6)
         ax.plot(route["lon"], route["lat"], "-o", color="#D55E00", lw=0.8, ms=1.8)
@@ -197,7 +249,10 @@ def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
                 mew=0.6)
     ax.set_xlabel(_coord_label(field[lon_dim], "longitude"))
     ax.set_ylabel(_coord_label(field[lat_dim], "latitude"))
-    ax.set_aspect("equal", adjustable="box")
+    span_lat, span_lon = _spans(field[lat_dim].values, field[lon_dim].values)
+    stretch = max(1.0, span_lon / span_lat / MAX_MAP_ASPECT)  # a thin strip: drawn taller
+    ax.set_aspect(1.0 * stretch, adjustable="box")
+    _readable_ticks(ax)
     return ax
 
 

@@ -577,6 +577,29 @@ class Plan:
         return write_mission(self, path, robot=robot, altitude=altitude, speed=speed,
                              hold=hold)
 
+    def explore(self, background: Any = None, *, cmap: str = "viridis",
+                tiles: str | None = "OpenStreetMap") -> Any:
+        """An interactive ``folium.Map`` for notebooks: each robot's route, its sampling stops
+        and, when given, ``background`` (a ``(lat, lon)`` field on the region's grid, e.g. a
+        prediction or its std) as a layer. Needs folium (``lrm-cvx[explore]``)."""
+        from ..interactive import explore_map
+
+        region = check_region(self._region, "the plan's region")
+        fields = {}
+        if background is not None:
+            values = np.asarray(getattr(background, "values", background), dtype=float)
+            if values.ndim == 1:
+                values = region.unstack(values).values
+            name = str(getattr(background, "name", None) or "background")
+            fields[name] = (values, cmap)
+        routes = [(self.lat[self.route_robot == r], self.lon[self.route_robot == r])
+                  for r in range(self.n_robots if self.path.get("kind") != "static" else 0)]
+        first = np.unique(self.route, return_index=True)[1]
+        first = first[np.isin(self.route[first], self.stops) & self.waypoint[first]]
+        stops = [(self.lat[i], self.lon[i], f"cell {int(self.route[i])}") for i in first]
+        return explore_map(region.lat.values, region.lon.values, fields, routes=routes,
+                           stops=stops, tiles=tiles)
+
     def plot(self, ax: Any = None, background: Any = None, **background_kw: Any) -> Any:
         """Draw the plan on a map: optional ``background`` (a ``(lat, lon)`` DataArray or array
         on the region's grid), the route line, the cells and the start (star). Returns ``ax``."""
