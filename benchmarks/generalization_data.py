@@ -259,13 +259,19 @@ def load_mecca_t_daily() -> xr.DataArray:
         da = ds["t"].load()
     days = da["time"].values.astype("int64")
     da = da.assign_coords(time=pd.Timestamp("2000-01-01") + pd.to_timedelta(days - 1, "D"))
-    da = da.assign_coords(lat=da["lat"].astype("float64"), lon=da["lon"].astype("float64"))
+    # the file's longitudes are a 7.5 degree grid rounded to integers (-180, -172, -165, ...):
+    # restore the exact grid (the rounded one has uneven gaps), lat kept as stored
+    lon = -180.0 + 7.5 * np.arange(da.sizes["lon"])
+    if np.abs(lon - da["lon"].values).max() > 0.5:
+        raise AssertionError("meccatemp.cdf: lon is not a rounded 7.5 degree grid")
+    da = da.assign_coords(lat=da["lat"].astype("float64"), lon=lon)
     da = da.isel(lon=slice(None, -1))           # lon -180 and 180 are the same meridian
     return _finish(da.rename("t"), units="K", long_name="surface air temperature (model)",
                    source="libncarg-data 6.6.2 (Debian): /usr/share/ncarg/data/cdf/meccatemp.cdf",
                    license="BSD-4-clause (UCAR/NCAR)",
-                   history="day numbers 1-31 stamped 2000-01-01..31 (nominal); duplicate "
-                           "meridian dropped; float32",
+                   history="day numbers 1-31 stamped 2000-01-01..31 (nominal); integer lon "
+                           "restored to the 7.5 degree grid; duplicate meridian dropped; "
+                           "float32",
                    kind="atmosphere, global (model)", cadence="daily")
 
 

@@ -318,6 +318,17 @@ class MonitorState:
             return t
         return self.time if not self.observed else self.next_time()
 
+    def replan(self, plan: Any, done: Any, observations: Any = None, *, time: Any = None,
+               criterion: str | None = None, progress: bool = False) -> Any:
+        """Replan the rest of ``plan`` en route: fold in ``observations`` (today's measurements
+        so far) at ``time``, keep each robot's first ``done`` route entries, and plan the rest
+        from where it is with the budget left and the same end (home for a closed tour), under
+        the same path model. See :func:`lrm_cvx.replanning.replan`."""
+        from .replanning import replan
+
+        return replan(self, plan, done, observations, time=time, criterion=criterion,
+                      progress=progress)
+
     def explore(self, plan: Any = None, *, forecast: bool = False, time: Any = None,
                 tiles: str | None = "OpenStreetMap") -> Any:
         """An interactive ``folium.Map`` for notebooks: the belief's mean, ``std`` and

@@ -1,0 +1,215 @@
+"""Replanning en route (issue #25, item 2): after each leg, the robot folds in what it has just
+measured and plans the rest of its route with the budget it has left and the same end.
+
+:func:`replan` (``MonitorState.replan``) keeps every route entry already flown, starts a new
+greedy plan at the robot's current cell with ``budget - cost so far``, ends it where the original
+had to end (home for a closed tour, ``end`` for a fixed end), under the original path model
+(metric, speed, stop cost, cells it may enter, sensing along), and stitches the two. So the
+stitched route is feasible whenever the original was: its cost is at most the budget (the
+current cell's stop cost is charged twice, never less), it enters only cells the original's path
+model allows, and it ends where the original ended. A fleet is replanned robot by robot; each
+later robot's prior counts the earlier robots' new stops as observed (a planning variance does
+not depend on the values), so two robots do not chase the same gap.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from .errors import PlanningError
+
+__all__ = ["replan", "route_feasible"]
+
+_TOL = 1e-9
+
+
+def _done_per_robot(plan: Any, done: int | Sequence[int]) -> list[int]:
+    n = plan.n_robots
+    values = [done] if np.ndim(done) == 0 else list(done)
+    if len(values) != n:
+        raise PlanningError(f"done must give one count per robot ({n}), got {done!r}")
+    out = []
+    for r, k in enumerate(values):
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
+            raise PlanningError(f"done[{r}] must be an integer (route entries flown), got {k!r}")
+        size = int(np.count_nonzero(plan.route_robot == r))
+        if not 1 <= int(k) <= size:
+            raise PlanningError(f"done[{r}] must be in [1, {size}] (robot {r}'s route has "
+                                f"{size} entries, its start counts as flown), got {k}")
+        out.append(int(k))
+    return out
+
+
+def _path_options(plan: Any) -> dict[str, Any]:
+    path = plan.path
+    if path.get("kind") == "static":
+        raise PlanningError("a static placement has no route to replan")
+    opts: dict[str, Any] = {"metric": path.get("metric", "grid"),
+                            "stop_cost": float(path.get("stop_cost", 0.0) or 0.0),
+                            "sense_along": bool(path.get("sense_along", False))}
+    if path.get("speed") is not None:
+        opts["speed"] = path["speed"]
+    kind = path.get("traversable", "none")
+    if kind == "valid":
+        opts["traversable"] = "valid"
+    elif kind == "mask":
+        opts["traversable"] = plan.traversable_mask
+    return opts
+
+
+def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any = None, *,
+           time: Any = None, criterion: str | None = None, cost: str | None = None,
+           ridge: float | None = None, progress: bool = False) -> Any:
+    """The plan with each robot's first ``done`` route entries kept (flown) and the rest
+    replanned from where the robot is, after folding ``observations`` (today's measurements
+    so far, any form :meth:`MonitorState.assimilate` takes) into ``state`` at ``time``.
+
+    ``done``: route entries flown (one count for one robot, one per robot for a fleet; the
+    start counts, so ``done >= 1``). ``criterion`` defaults to the original plan's, ``cost`` and
+    ``ridge`` likewise. Raises PlanningError when a robot has spent its budget (or cannot get
+    back to its end with what is left): nothing is changed then.
+    """
+    from .information import fisher_information
+    from .planning import Plan, plan_greedy
+
+    done_r = _done_per_robot(plan, done)
+    opts = _path_options(plan)
+    region = state.model.region_
+    if region is None:
+        raise PlanningError("replanning needs a model fitted on gridded data")
+    Y = np.asarray(state.model.Y_.values, dtype=np.float64).reshape(state.model.rank, -1)
+    if Y.shape[1] != region.n_cells:
+        Y = region.stack(state.model.Y_).astype(np.float64)
+    path = plan.path
+    starts = [int(s) for s in (path.get("starts") or [plan.start])]
+    budgets = [float(b) for b in (path.get("budgets") or [plan.budget])]
+    closed, end = bool(path.get("closed")), path.get("end")
+    criterion = criterion or plan.criterion or "fisher"
+    cost = cost or plan.cost_function or "nearest-neighbor"
+    ridge = float(plan.ridge if ridge is None else ridge)
+    pieces = []  # per robot: the flown part and where it stands
+    for r, k in enumerate(done_r):
+        sel = np.flatnonzero(plan.route_robot == r)
+        here = int(plan.route[sel[k - 1]])
+        spent = float(plan.route_cost[sel[k - 1]])
+        left = budgets[r] - spent
+        goal = starts[r] if closed else (None if end is None else int(end))
+        finished = k == sel.size  # the whole route is flown: nothing to replan
+        if not finished and (left < -_TOL or (goal is not None and goal != here
+                                              and left <= _TOL)):
+            unit = f" {path.get('unit')}" if path.get("unit") else ""
+            raise PlanningError(f"robot {r} has spent its budget ({spent:.6g} of "
+                                f"{budgets[r]:.6g}{unit}) at route entry {k - 1}: nothing "
+                                "left to replan")
+        pieces.append((sel[:k], here, spent, max(left, 0.0), None if finished else goal,
+                       finished))
+    if observations is not None:
+        if time is None:
+            raise PlanningError("time is required with observations (the day they belong to)")
+        t = state._coerce(time)
+        state.assimilate(observations, t, force=bool(state.observed and state._dt(t) == 0))
+        time = state.time
+    base = state._post_at(state._default_time(time))[0]
+    new_plans, taken = [], []
+    for _, here, _, left, goal, finished in pieces:
+        if finished:
+            new_plans.append(None)
+            continue
+        post = base
+        if taken:  # the earlier robots' new stops: planned, so count them as observed
+            cells = np.asarray(taken, dtype=np.int64)
+            mean = post.predict(cells=cells)[0] if post.is_proper else np.zeros(cells.size)
+            post = post.update(cells, mean)
+        kw = post.information()
+        if criterion != "gp-variance":
+            kw = {key: v for key, v in kw.items() if key not in ("prior_cov", "spatial_cov")}
+        ends: dict[str, Any] = {}
+        if goal is not None:
+            ends = {"closed": True} if goal == here else {"end": goal}
+        new = plan_greedy(Y, region, here, left, criterion=criterion, cost=cost, ridge=ridge,
+                          initial="start", progress=progress, **opts, **ends, **kw)
+        new_plans.append(new)
+        taken += [int(c) for c in new.stops if int(c) != here]
+    return _stitch(plan, pieces, new_plans, Y, region, criterion, ridge, Plan,
+                   fisher_information)
+
+
+def _stitch(plan, pieces, new_plans, Y, region, criterion, ridge, Plan, fisher_information):
+    route, route_cost, robot, waypoint, stops, stop_robot, costs = [], [], [], [], [], [], []
+    empty = np.empty(0, np.int64)
+    for r, ((flown, _, spent, *_), new) in enumerate(zip(pieces, new_plans, strict=True)):
+        first_cost = float(new.route_cost[0]) if new is not None and new.route_cost.size else 0.
+        tail = new.route[1:] if new is not None else empty
+        route += [plan.route[flown], tail]
+        route_cost += [plan.route_cost[flown],
+                       spent + new.route_cost[1:] - first_cost if new is not None
+                       else np.empty(0)]
+        waypoint += [plan.waypoint[flown], new.waypoint[1:] if new is not None
+                     else np.empty(0, bool)]
+        robot.append(np.full(flown.size + tail.size, r, np.int64))
+        flown_cells = set(plan.route[flown][plan.waypoint[flown]].tolist())
+        old = [int(c) for c in plan.stops[plan.stop_robot == r] if int(c) in flown_cells]
+        fresh = [] if new is None else [int(c) for c in new.stops if int(c) not in flown_cells]
+        stops += old + fresh
+        stop_robot += [r] * (len(old) + len(fresh))
+        costs.append(spent + new.cost - first_cost if tail.size else spent)
+    cells = list(dict.fromkeys(stops + (np.concatenate(route).tolist()
+                                        if plan.path.get("sense_along") else [])))
+    return Plan.build(
+        region=region, cells=cells, route=np.concatenate(route), cost=None,
+        information=fisher_information(Y, cells, ridge), criterion=criterion,
+        budget=plan.budget, start=plan.start, ridge=ridge, method=f"{plan.method}+replan",
+        cost_function=plan.cost_function, Y=Y, route_cost=np.concatenate(route_cost),
+        posterior=True, path=dict(plan.path.items()), route_robot=np.concatenate(robot),
+        waypoint=np.concatenate(waypoint), stops=stops, stop_robot=stop_robot,
+        robot_costs=costs, path_models=plan._path_models)  # the same path model
+
+
+def route_feasible(plan: Any, region: Any, *, tol: float = 1e-6) -> list[str]:
+    """Brute-force check of a plan's routes against its own path model: what is wrong (an
+    empty list when nothing is). Each robot's leg lengths are recomputed from the cell
+    coordinates (grid units: Euclidean row/column steps; km: haversine; hours: km / speed),
+    summed with the stop
+    costs and compared with its budget; every route cell must be enterable (``traversable``);
+    a closed tour must end at its start and a fixed end at ``end``."""
+    from .region import EARTH_RADIUS_KM
+
+    problems = []
+    path = plan.path
+    budgets = path.get("budgets") or [plan.budget]
+    starts = path.get("starts") or [plan.start]
+    metric = path.get("metric", "grid")
+    enter = None
+    if path.get("traversable") == "mask":
+        m = plan.traversable_mask
+        gi = region.grid_index
+        enter = m[gi[:, 0], gi[:, 1]]
+    stop_cost = float(path.get("stop_cost", 0.0) or 0.0)
+    speed = path.get("speed")
+    for r in range(plan.n_robots):
+        sel = np.flatnonzero(plan.route_robot == r)
+        cells = plan.route[sel]
+        if metric == "grid":
+            g = region.grid_index[cells].astype(float)
+            legs = np.hypot(np.diff(g[:, 0]), np.diff(g[:, 1]))
+        else:
+            la, lo = np.radians(region.cell_lat[cells]), np.radians(region.cell_lon[cells])
+            h = (np.sin(np.diff(la) / 2) ** 2
+                 + np.cos(la[:-1]) * np.cos(la[1:]) * np.sin(np.diff(lo) / 2) ** 2)
+            legs = 2 * EARTH_RADIUS_KM * np.arcsin(np.sqrt(np.clip(h, 0, 1)))
+            if speed is not None:  # a budget in hours
+                legs = legs / float(speed)
+        n_stops = int(np.count_nonzero(plan.waypoint[sel]))
+        total = float(legs.sum()) + stop_cost * n_stops
+        if total > float(budgets[r]) * (1 + tol) + tol:
+            problems.append(f"robot {r}: route length {total:.6g} > budget {budgets[r]:.6g}")
+        if enter is not None and not enter[cells].all():
+            problems.append(f"robot {r}: enters a no-go cell")
+        if path.get("closed") and cells.size and cells[-1] != int(starts[r]):
+            problems.append(f"robot {r}: a closed tour that does not end at its start")
+        if path.get("end") is not None and cells.size and cells[-1] != int(path["end"]):
+            problems.append(f"robot {r}: does not end at the fixed end")
+    return problems

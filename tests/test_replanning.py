@@ -1,0 +1,121 @@
+"""Replanning en route (issue #25, item 2): the flown part is kept, the rest is replanned from
+where the robot is, and the stitched route stays feasible for the original path model (budget,
+no-go cells, return home), checked against a brute-force recomputation of its length."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from lrm_cvx import GLRM, load_sample, plan_greedy
+from lrm_cvx.errors import PlanningError
+from lrm_cvx.monitor import MonitorState
+from lrm_cvx.replanning import route_feasible
+
+
+@pytest.fixture(scope="module")
+def setup():
+    sst = load_sample("sst")
+    train, test = sst.isel(time=slice(None, -3)), sst.isel(time=slice(-3, None))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(5, offset=True, spatial="exponential", temporal="ar1", random_state=0,
+                     progress=False).fit(train)
+    return model, test
+
+
+def _state_and_plan(model, day, starts, budget, **path):
+    state = MonitorState.from_model(model)
+    prior = state.planner_kwargs(time=day.time.values)
+    plan = plan_greedy(model.Y_, model.region_, starts, budget, criterion="gp-variance",
+                       initial="start", progress=False, **prior, **path)
+    return state, plan
+
+
+def _flown(plan, done):
+    done = [done] if np.ndim(done) == 0 else done
+    return np.concatenate([plan.route[plan.route_robot == r][:k] for r, k in enumerate(done)])
+
+
+def _no_go(model):
+    """A no-go band: the cells between 0 and 10 N are closed to the robots."""
+    region = model.region_
+    mask = np.zeros(region.shape, dtype=bool)
+    gi = region.grid_index
+    open_ = ~((region.cell_lat >= 0) & (region.cell_lat <= 10))
+    mask[gi[:, 0], gi[:, 1]] = open_
+    import xarray as xr
+
+    return xr.DataArray(mask, dims=("lat", "lon"),
+                        coords={"lat": region.lat.values, "lon": region.lon.values})
+
+
+CASES = {
+    "paper": dict(starts=(10.0, 200.0), budget=30.0, path={}),
+    "fleet-km-closed": dict(starts=[(10.0, 200.0), (-20.0, 240.0)], budget=6000.0,
+                            path=dict(metric="km", traversable="valid", closed=True)),
+    "no-go-end": dict(starts=(20.0, 200.0), budget=8000.0,
+                      path=dict(metric="km", traversable="mask", end=(30.0, 220.0))),
+    "hours-stops": dict(starts=(-20.0, 240.0), budget=400.0,
+                        path=dict(metric="km", speed=20.0, stop_cost=2.0, closed=True,
+                                  traversable="valid")),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_replanned_route_keeps_the_flown_part_and_stays_feasible(setup, case):
+    model, test = setup
+    spec = dict(CASES[case])
+    path = dict(spec["path"])
+    if path.get("traversable") == "mask":
+        path["traversable"] = _no_go(model)
+    day = test.isel(time=0)
+    state, plan = _state_and_plan(model, day, spec["starts"], spec["budget"], **path)
+    region = model.region_
+    assert route_feasible(plan, region) == []  # the checker agrees with the planner
+    sizes = [int(np.count_nonzero(plan.route_robot == r)) for r in range(plan.n_robots)]
+    done = [max(1, s // 3) for s in sizes]
+    done = done[0] if plan.n_robots == 1 else done
+    truth = region.stack(day)
+    seen = _flown(plan, done)
+    new = state.replan(plan, done, (seen, truth[seen]), time=day.time.values)
+    assert route_feasible(new, region) == []
+    for r, k in enumerate([done] if np.ndim(done) == 0 else done):
+        np.testing.assert_array_equal(new.route[new.route_robot == r][:k],
+                                      plan.route[plan.route_robot == r][:k])
+        assert new.robot_costs[r] <= plan.path["budgets"][r] * (1 + 1e-9)
+    assert new.path == plan.path and new.method.endswith("+replan")
+    assert state.posterior.cells.size == int(np.isfinite(truth[seen]).sum())
+
+
+def test_the_checker_catches_what_it_checks(setup):
+    model, test = setup
+    day = test.isel(time=0)
+    _, plan = _state_and_plan(model, day, (10.0, 200.0), 3000.0, metric="km", closed=True,
+                              traversable="valid")
+    region = model.region_
+    tight = plan.path["budgets"][0] * 0.5
+    plan.path["budgets"] = [tight]
+    assert any("budget" in p for p in route_feasible(plan, region))
+    plan.path["budgets"] = [3000.0]
+    plan.route[-1] = plan.route[-2]
+    assert any("closed tour" in p for p in route_feasible(plan, region))
+
+
+def test_a_finished_route_is_kept_and_a_spent_budget_is_an_error(setup):
+    model, test = setup
+    day = test.isel(time=0)
+    state, plan = _state_and_plan(model, day, (10.0, 200.0), 2000.0, metric="km",
+                                  closed=True, traversable="valid")
+    whole = int(plan.route.size)
+    same = state.replan(plan, whole)
+    np.testing.assert_array_equal(same.route, plan.route)
+    # a robot that has used (almost) all its budget away from home cannot replan
+    plan.path["budgets"] = [float(plan.route_cost[1])]
+    with pytest.raises(PlanningError, match="spent its budget"):
+        state.replan(plan, 2)
+    for bad in (0, whole + 1, 1.5, [1, 1]):
+        with pytest.raises(PlanningError, match="done"):
+            state.replan(plan, bad)
