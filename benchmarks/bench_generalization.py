@@ -27,7 +27,7 @@ from the documented recommended setting). Printed per set and budget:
   of the greedy's maps, per temporal mode;
 * ``ar1_vs_mem`` / ``seas_vs_mem``: the greedy's MSE change from memoryless (negative: better).
 
-Cost: ``--quick`` 43 s wall (30 s CPU) for the six sets on the shared 2-core machine; the full
+Cost: ``--quick`` 43-104 s wall (30-46 s CPU) for the six sets on the shared 2-core machine; full
 run does about 12x the campaigns (3 budgets, 10 starts, 5 random walks), ~10-15 min on 2 idle
 cores (estimate from the quick run's CPU time; ``--jobs 2`` runs evaluate's starts in parallel).
 
