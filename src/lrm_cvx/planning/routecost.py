@@ -162,6 +162,22 @@ def _steps(rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # --------------------------------------------------------------------------- tours
+@numba.njit(cache=True, nogil=True, inline="always")
+def _nearest(A, B, C, D, here, lo, hi, done, ids):  # pragma: no cover - compiled
+    """``(position, key)`` of the nearest tour position in ``lo..hi-1`` not ``done`` from cursor
+    ``here``, ties to the lowest of ``ids``; position -1 when every one is done."""
+    bp = -1
+    bd = 0
+    for p in range(lo, hi):
+        if done[p]:
+            continue
+        dd = _key(A, B, C, D, here, p)
+        if bp < 0 or dd < bd or (dd == bd and ids[p] < ids[bp]):
+            bp = p
+            bd = dd
+    return bp, bd
+
+
 @numba.njit(cache=True, nogil=True)
 def _nn_order(A, B, C, D, ids):  # pragma: no cover - compiled
     """Positions (into the tour) of the nearest-neighbour order from position 0."""
@@ -172,16 +188,7 @@ def _nn_order(A, B, C, D, ids):  # pragma: no cover - compiled
     used[0] = True
     order[0] = 0
     for step in range(1, m):
-        best = -1
-        bd = 0
-        here = _stop(A, B, C, D, cur)
-        for j in range(m):
-            if used[j]:
-                continue
-            dd = _key(A, B, C, D, here, j)
-            if best < 0 or dd < bd or (dd == bd and ids[j] < ids[best]):
-                best = j
-                bd = dd
+        best = _nearest(A, B, C, D, _stop(A, B, C, D, cur), 0, m, used, ids)[0]
         used[best] = True
         order[step] = best
         cur = best
@@ -263,15 +270,7 @@ def _nn_eval(A, B, C, D, i, xid, t0, tid, r2, d, back, vis, tail):  # pragma: no
     q = 0
     cap = tail.shape[0]
     while True:
-        bp = -1
-        bd = 0
-        for p in range(t + 1, hi + 1):
-            if vis[p]:
-                continue
-            dd = _key(A, B, C, D, here, p)
-            if bp < 0 or dd < bd or (dd == bd and tid[p] < tid[bp]):
-                bp = p
-                bd = dd
+        bp, bd = _nearest(A, B, C, D, here, t + 1, hi + 1, vis, tid)
         if hi < m - 1:
             if cpos == hi:
                 p = hi + 1
