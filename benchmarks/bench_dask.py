@@ -151,8 +151,8 @@ def floors(files: list[str], scratch: str, chunk_mb: float, days: int = 24) -> d
     Each with the load average when measured."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from lrm_cvx.glrm.chunked import _decode_tile, _h5_chunks
     from lrm_cvx.io import ndvi as N
+    from lrm_cvx.io.staging import _decode_tile, _h5_chunks
 
     out: dict = {}
     f32 = None
@@ -190,7 +190,7 @@ def floors(files: list[str], scratch: str, chunk_mb: float, days: int = 24) -> d
     out["chunks"] = (mb / t_chunks, load())
     import zlib
 
-    from lrm_cvx.glrm.chunked import _zlib
+    from lrm_cvx.io.staging import _zlib
 
     bufs = [b for r in raws for (_, _, bn, bq) in r[0] for b in (bn, bq)]
     nbytes = 2 * raws[0][1][0] * raws[0][1][1]
@@ -236,7 +236,7 @@ def write_floor(scratch: str, T: int, L: int, chunk_mb: float) -> tuple:
     than a small test shows). Returns (MB/s, MB/s per CPU-second, load)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from lrm_cvx.glrm.chunked import _bounds, _new_files, _pwrite_all
+    from lrm_cvx.io.staging import _bounds, _new_files, _pwrite_all
 
     d = tempfile.mkdtemp(prefix="write-floor-", dir=scratch)
     try:
@@ -292,15 +292,14 @@ def stage_only(files: list[str], args, base: str) -> None:
     and the load next to the raw floors."""
     import xarray as xr  # noqa: F401
 
-    from lrm_cvx.glrm import chunked
-    from lrm_cvx.glrm.chunked import cdr_source, stage
-    from lrm_cvx.io import open_ndvi_cdr
+    from lrm_cvx.io import open_ndvi_cdr, staging
+    from lrm_cvx.io.staging import cdr_source, stage
 
     if args.stdlib_zlib:
         import zlib
 
-        chunked._zlib = lambda: zlib
-    print(f"inflating with {chunked._zlib().__name__}")
+        staging._zlib = lambda: zlib
+    print(f"inflating with {staging._zlib().__name__}")
     if args.floors:
         print_floors(floors(files, base, args.chunk_mb), files)
     da = open_ndvi_cdr(files, chunks={"time": 1})

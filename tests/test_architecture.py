@@ -14,8 +14,6 @@ SRC = Path(lrm_cvx.__file__).parent
 
 # (importer, owner): private names the importer may still take from the owner
 KNOWN_DEBT = {
-    ("lrm_cvx.glrm.chunked", "lrm_cvx.glrm.fit"),
-    ("lrm_cvx.glrm.chunked", "lrm_cvx.io.ndvi"),
     ("lrm_cvx.glrm.quadratic", "lrm_cvx.glrm.kernels"),
     ("lrm_cvx.planning.bound", "lrm_cvx.planning.certificate"),  # the old import location
     ("lrm_cvx.planning.bound", "lrm_cvx.planning.dopt"),  # re-exports every name

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 from references import naive_tour
 
-from lrm_cvx.cost import (
+from lrm_cvx.errors import PlanningError
+from lrm_cvx.planning.routecost import (
     InsertionCost,
     NearestNeighborCost,
     make_cost,
     nearest_neighbor_tour,
     route_length,
 )
-from lrm_cvx.errors import PlanningError
 
 
 def random_grid(rng, max_side=14, keep=0.8):
@@ -162,3 +162,12 @@ def test_insertion_hand_checked():
     oracle.add(2)
     assert oracle.tour.tolist() == [0, 2, 1]
     assert oracle.cost == pytest.approx(2 * math.sqrt(5))
+
+
+def test_old_cost_module_still_works_and_warns():
+    import lrm_cvx.cost as old
+    from lrm_cvx.planning import routecost
+
+    for name in old.__all__:
+        with pytest.warns(DeprecationWarning, match="routecost"):
+            assert getattr(old, name) is getattr(routecost, name)

@@ -18,9 +18,10 @@ from hypothesis import strategies as st  # noqa: E402
 
 from lrm_cvx.errors import DataError, ModelError  # noqa: E402
 from lrm_cvx.glrm import GLRM  # noqa: E402
-from lrm_cvx.glrm.chunked import _time_blocks, fit_chunked, is_dask_backed, stage  # noqa: E402
+from lrm_cvx.glrm.chunked import fit_chunked, is_dask_backed  # noqa: E402
 from lrm_cvx.glrm.fit import SMALL_SVD  # noqa: E402
 from lrm_cvx.io.samples import synthetic_field  # noqa: E402
+from lrm_cvx.io.staging import _time_blocks, stage  # noqa: E402
 from lrm_cvx.region import Region  # noqa: E402
 
 SMALL_CHUNKS = {"chunk_mb": 0.05, "block_mb": 0.2}  # several column chunks and time blocks
@@ -409,8 +410,8 @@ def _staged(store):
 def test_cdr_file_staging_bit_identical(cdr_files, tmp_path, bbox, chunk_mb):
     """The file-level path stages exactly what the dask-graph path stages (same region, same
     bounds, same bytes, NaN included), for several column chunkings and a bbox window."""
-    from lrm_cvx.glrm.chunked import cdr_source
     from lrm_cvx.io import open_ndvi_cdr
+    from lrm_cvx.io.staging import cdr_source
 
     d1, d2 = cdr_files
     lazy = open_ndvi_cdr([d1, d2], bbox=bbox, chunks={"time": 1})
@@ -475,8 +476,8 @@ def test_cdr_raw_chunk_staging_equals_loader(tmp_path, chunks):
 def test_decode_tile_equals_decode_day(shuffled):
     """The compiled tile decoder on byte-shuffled or plain little-endian int16 bytes equals
     ``decode_day`` on every cell of a sub-window, and ORs exactly the finite cells."""
-    from lrm_cvx.glrm.chunked import _decode_tile
     from lrm_cvx.io import ndvi as N
+    from lrm_cvx.io.staging import _decode_tile
 
     rng = np.random.default_rng(5)
     cr, cc = 6, 10
@@ -503,13 +504,12 @@ def test_cdr_staging_with_stdlib_zlib(cdr_files, tmp_path, monkeypatch):
     """Without the optional ISA-L inflater the standard library's zlib stages the same bytes."""
     import zlib
 
-    from lrm_cvx.glrm import chunked
-    from lrm_cvx.io import open_ndvi_cdr
+    from lrm_cvx.io import open_ndvi_cdr, staging
 
     d1, _ = cdr_files
     lazy = open_ndvi_cdr(d1, chunks={"time": 1})
     ref, *_ = stage(lazy, chunk_mb=0.004, scratch_dir=str(tmp_path))
-    monkeypatch.setattr(chunked, "_zlib", lambda: zlib)
+    monkeypatch.setattr(staging, "_zlib", lambda: zlib)
     tm: dict = {}
     got, *_ = stage(lazy, chunk_mb=0.004, scratch_dir=str(tmp_path), timings=tm)
     assert tm["stage_inflate"] > 0
@@ -621,3 +621,12 @@ def test_cdr_file_staging_on_local_cluster(cdr_files, tmp_path):
         cluster.close()
     assert r1.equals(r0) and got.n_chunks == ref.n_chunks > 3
     np.testing.assert_array_equal(_staged(got).view(np.uint32), _staged(ref).view(np.uint32))
+
+
+def test_old_chunked_staging_names_still_work_and_warn():
+    from lrm_cvx.glrm import chunked
+    from lrm_cvx.io import staging
+
+    for name in ("stage", "ChunkStore", "cdr_source"):
+        with pytest.warns(DeprecationWarning, match="io.staging"):
+            assert getattr(chunked, name) is getattr(staging, name)

@@ -10,10 +10,10 @@ import xarray as xr
 from references import naive_tour
 
 from lrm_cvx import Region
-from lrm_cvx.cost import nearest_neighbor_tour
 from lrm_cvx.errors import DataError, PlanningError, RegionError
 from lrm_cvx.information import fisher_information
 from lrm_cvx.planning import initial_cells, plan_greedy
+from lrm_cvx.planning.routecost import nearest_neighbor_tour
 
 
 # --------------------------------------------------------------------------- references

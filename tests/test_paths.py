@@ -11,9 +11,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lrm_cvx import Region
-from lrm_cvx.cost import InsertionCost, NearestNeighborCost
 from lrm_cvx.errors import PlanningError, RegionError
 from lrm_cvx.planning.paths import make_path_model, startable_cells, travel_distance
+from lrm_cvx.planning.routecost import InsertionCost, NearestNeighborCost
 from lrm_cvx.region import _haversine
 
 R_KM = 6371.0088

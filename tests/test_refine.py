@@ -17,7 +17,7 @@ from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import fisher_information
 from lrm_cvx.planning import plan_greedy, refine
-from lrm_cvx.planning.refine import _or_opt, _repair, _two_opt
+from lrm_cvx.planning.routecost import or_opt, repair_route, two_opt
 
 
 def make_region(mask):
@@ -173,7 +173,7 @@ def test_route_repair_only_shortens_and_keeps_the_stops():
     g = np.unique(g, axis=0)
     for _ in range(20):
         route = rng.permutation(g.shape[0])[:12]
-        for fix in (_two_opt, _or_opt, _repair):
+        for fix in (two_opt, or_opt, repair_route):
             r = fix(g, route)
             assert r[0] == route[0]
             assert sorted(r.tolist()) == sorted(route.tolist())
@@ -181,7 +181,7 @@ def test_route_repair_only_shortens_and_keeps_the_stops():
         # on 6 stops the repaired path is no longer than the best of a few random orders
         small = route[:6]
         best = min(path_length(g, [small[0], *p]) for p in itertools.permutations(small[1:]))
-        assert path_length(g, _repair(g, small).tolist()) <= 1.3 * best + 1e-9
+        assert path_length(g, repair_route(g, small).tolist()) <= 1.3 * best + 1e-9
 
 
 def test_refine_bad_input():

@@ -28,7 +28,7 @@ _LAZY = {
     "open_image_stack": "lrm_cvx.io.imagery",
     "synthetic_field": "lrm_cvx.io.samples",
     "fisher_information": "lrm_cvx.information",
-    "nearest_neighbor_tour": "lrm_cvx.cost",
+    "nearest_neighbor_tour": "lrm_cvx.planning.routecost",
     "Plan": "lrm_cvx.planning",
     "plan_greedy": "lrm_cvx.planning",
     "place_sensors": "lrm_cvx.planning",

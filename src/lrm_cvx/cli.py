@@ -600,8 +600,8 @@ def _prior_choices() -> list[str]:
 
 
 def _add_plan(p: argparse.ArgumentParser) -> None:
-    from .cost import COSTS
     from .information import CRITERIA
+    from .planning.routecost import COSTS
 
     p.add_argument("model", help="model file written by 'lrm-cvx fit'")
     p.add_argument("--start", required=True, action="append",
@@ -658,10 +658,10 @@ def _add_path_options(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .cost import COSTS
     from .evaluation import GREEDY_VARIANTS, METHODS
     from .glrm.losses import LOSSES
     from .information import CRITERIA
+    from .planning.routecost import COSTS
 
     parser = _Parser(
         prog="lrm-cvx",

@@ -228,8 +228,8 @@ def _label(t: Any) -> str:
 # ----------------------------------------------------------------------------- parser
 def add_monitor_parser(sub: Any) -> None:
     """Add ``monitor init|plan|assimilate|map`` to ``lrm-cvx``'s subcommands."""
-    from .cost import COSTS
     from .information import CRITERIA
+    from .planning.routecost import COSTS
 
     p = sub.add_parser("monitor", help="the field loop: a filter state carried from day to day "
                        "(init, plan, assimilate, map)")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from references import naive_tour
 
-from lrm_cvx.cost import COST_REGISTRY, route_length
+from lrm_cvx.planning.routecost import COST_REGISTRY, route_length
 
 NAMES = list(COST_REGISTRY.choices())
 

@@ -61,6 +61,13 @@ __all__ = [
     "free_parameters",
     "max_identifiable_rank",
     "noise_std",
+    "is_plain_quadratic",
+    "quadratic_ridge",
+    "gram_values",
+    "quadratic_y_step",
+    "quadratic_loss",
+    "relative_decrease",
+    "direct_sse",
 ]
 
 Y_CHUNK = 1 << 17  # cells per Y-step chunk (bounds the Gram buffers to ~30 MB)
@@ -290,14 +297,14 @@ def _mm_block(pass_fn, F, loss, reg, max_inner, inner_tol, step0=0):
     return F, first
 
 
-def _is_quad(loss) -> bool:
+def is_plain_quadratic(loss) -> bool:
     """True for the plain quadratic loss ``r^2`` (compiled code 0, its own majoriser)."""
     return bool(loss.is_quadratic and loss.kernel_spec is not None and loss.kernel_spec[0] == 0)
 
 
-def _quad_ridge(loss, reg) -> float | None:
+def quadratic_ridge(loss, reg) -> float | None:
     """The ridge weight when the block problem is exactly quadratic + ridge (else None)."""
-    if not _is_quad(loss):
+    if not is_plain_quadratic(loss):
         return None
     lam = reg.ridge_coefficient
     return None if lam is None else float(lam)
@@ -307,7 +314,7 @@ def _nchunk() -> int:
     return max(4 * numba.get_num_threads(), 4)
 
 
-def _gram_values(G, h, c, F):
+def gram_values(G, h, c, F):
     """Quadratic loss per column by the Gram identity: ``f_i^T G_i f_i - 2 h_i . f_i + c_i``.
 
     ``G (n, npair)`` packed, ``h (n, k)``, ``c (n,)``, ``F (k, n)``; returns ``(n,)``.
@@ -318,7 +325,7 @@ def _gram_values(G, h, c, F):
     return np.einsum("ni,nij,nj->n", Ft, A, Ft) - 2.0 * np.einsum("ni,ni->n", h, Ft) + c
 
 
-def _quad_y(md, X, Y, lam, out):
+def quadratic_y_step(md, X, Y, lam, out):
     """Exact quadratic + ridge Y step on prepared data; ``(Y_new, loss_before, loss_after)``
     (no ridge term)."""
     Yc = np.ascontiguousarray(Y, dtype=np.float64)
@@ -340,13 +347,16 @@ def _quad_x(md, X, Y, lam):
     out = np.empty(h.shape)
     K.chol_solve(G, h, lam, pa, pb, out)
     Xn = np.ascontiguousarray(out.T)
-    return Xn, float(_gram_values(G, h, c, X).sum()), float(_gram_values(G, h, c, Xn).sum())
+    return Xn, float(gram_values(G, h, c, X).sum()), float(gram_values(G, h, c, Xn).sum())
 
 
-def _quad_loss(md, X, Y) -> float:
+_quad_y = quadratic_y_step  # its name before issue #27 (benchmarks/bench_glrm.py)
+
+
+def quadratic_loss(md, X, Y) -> float:
     """The quadratic loss over observed entries at ``(X, Y)`` (Gram identity, one pass)."""
     G, h, c = Q.x_stats(md, Y)
-    return float(_gram_values(G, h, c, np.asarray(X, dtype=np.float64)).sum())
+    return float(gram_values(G, h, c, np.asarray(X, dtype=np.float64)).sum())
 
 
 def y_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, out=None, step0=0):
@@ -358,10 +368,10 @@ def y_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, out=None, step
     and objective per cell, no intermediate buffers).
     """
     k, L = Y.shape
-    lam = _quad_ridge(loss, reg)
+    lam = quadratic_ridge(loss, reg)
     if lam is not None:
         rv = reg.value(Y)
-        res, before, _ = _quad_y(Q.prepare(D, M), X, Y, lam, out)
+        res, before, _ = quadratic_y_step(Q.prepare(D, M), X, Y, lam, out)
         return res, before + rv
     pa, pb = K.pair_index(k)
     npair = pa.size
@@ -394,7 +404,7 @@ def x_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, step0=0):
     Returns ``(X_new (k, T), objective_before)`` (loss at ``(X, Y)`` plus ``reg(X)``).
     """
     k, T = X.shape
-    lam = _quad_ridge(loss, reg)
+    lam = quadratic_ridge(loss, reg)
     if lam is not None:
         Xn, before, _ = _quad_x(Q.prepare(D, M), X, Y, lam)
         return Xn, before + reg.value(X)
@@ -425,9 +435,9 @@ def x_pass(D, M, X, Y, loss, step=0):
     """
     k, T = X.shape
     lo = loss.smoothed(step)
-    if _is_quad(lo):
+    if is_plain_quadratic(lo):
         G, h, c = Q.x_stats(Q.prepare(D, M), Y)
-        return G, h, _gram_values(G, h, c, np.asarray(X, dtype=np.float64))
+        return G, h, gram_values(G, h, c, np.asarray(X, dtype=np.float64))
     pa, pb = K.pair_index(k)
     nchunk = _nchunk()
     code, p0, p1 = lo.kernel_spec
@@ -458,7 +468,7 @@ def _loss_sum(D, M, X, Y, loss) -> float:
         R = X.T @ Y - np.where(M, D, 0.0)
         return float(np.sum(np.where(M, loss.evaluate(R), 0.0)))
     if loss.kernel_spec[0] == 0:
-        return _quad_loss(Q.prepare(D, M), X, Y)
+        return quadratic_loss(Q.prepare(D, M), X, Y)
     k, T = X.shape
     code, p0, p1 = loss.kernel_spec
     pa, pb = K.pair_index(k)
@@ -688,7 +698,7 @@ def fit_glrm(
     X, Y = initialize(md, rank, init, rng, mu, scale)
     unobserved = np.flatnonzero(cols == 0)
     Y[:, unobserved] = reg_y.minimizer(rank)[:, None]
-    lam_y, lam_x = _quad_ridge(loss, reg_y), _quad_ridge(loss, reg_x)
+    lam_y, lam_x = quadratic_ridge(loss, reg_y), quadratic_ridge(loss, reg_x)
     quad = fast and lam_y is not None and lam_x is not None
     f_loss = None  # quadratic path: loss at the current (X, Y) from the last step's Gram
 
@@ -701,7 +711,7 @@ def fit_glrm(
         for it in range(max_iter):
             if quad:
                 ry = reg_y.value(Y)
-                Y, lb, f_loss = _quad_y(md, X, Y, lam_y, Y)
+                Y, lb, f_loss = quadratic_y_step(md, X, Y, lam_y, Y)
                 fy = lb + ry
             elif fast:
                 Y, fy = y_block(D, M, X, Y, loss, reg_y, max_inner=max_inner, out=Y,
@@ -709,7 +719,7 @@ def fit_glrm(
             else:
                 Y, fy = cvxpy_y_block(D, M, X, Y, loss, reg_y, cache)
             history.append(fy + reg_x.value(X))
-            if it >= 1 and _rel_decrease(history) < tol:
+            if it >= 1 and relative_decrease(history) < tol:
                 converged = True
                 break
             if quad:
@@ -731,10 +741,10 @@ def fit_glrm(
     history.append(f_loss + reg_x.value(X) + reg_y.value(Y))
     converged = finish_convergence(history, converged, max_iter, tol, stacklevel=4)
     Y[:, unobserved] = reg_y.minimizer(rank)[:, None]  # (unobserved columns add no loss)
-    sse = max(f_loss, 0.0) if _is_quad(loss) else _quad_loss(md, X, Y)
+    sse = max(f_loss, 0.0) if is_plain_quadratic(loss) else quadratic_loss(md, X, Y)
     if sse <= SSE_RTOL * ssq:  # the Gram identity cancelled: sum the residuals directly
-        sse = _direct_sse(D, M, X, Y)
-        if _is_quad(loss):
+        sse = direct_sse(D, M, X, Y)
+        if is_plain_quadratic(loss):
             history[-1] = sse + reg_x.value(X) + reg_y.value(Y)
     return FitResult(
         X=X, Y=Y, objective=history, n_iter=n_iter, converged=converged,
@@ -755,7 +765,8 @@ def progress_bar(progress: bool, total: int, desc: str):
     return tqdm(total=total, desc=desc, unit="it")
 
 
-def _rel_decrease(history: list[float]) -> float:
+def relative_decrease(history: list[float]) -> float:
+    """``(prev - cur) / |prev|`` of the last two objectives (0 when ``prev`` is 0)."""
     prev, cur = history[-2], history[-1]
     if prev == 0:
         return 0.0
@@ -767,7 +778,7 @@ def finish_convergence(history: list[float], converged: bool, max_iter: int, tol
     """Convergence after the last objective is appended; ConvergenceWarning when ``tol > 0``
     was not reached within ``max_iter`` rounds."""
     if not converged and max_iter >= 1 and len(history) >= 2:
-        converged = _rel_decrease(history) < tol
+        converged = relative_decrease(history) < tol
     if not converged and tol > 0:
         warnings.warn(
             f"GLRM fit stopped at max_iter={max_iter} before the relative decrease of the "
@@ -791,7 +802,7 @@ def noise_std(sse: float, n_obs: int, k: int, T: int, L_obs: int, extra: int = 0
 SSE_RTOL = 1e-8  # below this fraction of the data's sum of squares the SSE is summed directly
 
 
-def _direct_sse(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray) -> float:
+def direct_sse(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray) -> float:
     """Sum of squared residuals over observed entries, from the residuals themselves (one
     compiled pass, float64): exact where the Gram identity ``y^T G y - 2 h.y + c`` cancels
     (a fit that explains all but a 1e-8 fraction of the data's energy)."""

@@ -226,7 +226,7 @@ def _decode_file(ds: xr.Dataset, name: str, product: str, flags: tuple[str, ...]
     sel = {"latitude": rows, "longitude": cols}
     ndvi_raw = ndvi_raw.transpose("time", "latitude", "longitude").isel(sel)
     qa_raw = qa_raw.transpose("time", "latitude", "longitude").isel(sel)
-    enc = _encoding(ds["NDVI"].attrs, ds["QA"].attrs)
+    enc = file_encoding(ds["NDVI"].attrs, ds["QA"].attrs)
     usable = _ndvi_ok(ndvi_raw, enc) & _qa_ok(qa_raw, product, flags, enc)
     ndvi = _ndvi_value(ndvi_raw, enc).where(usable)
     ndvi = ndvi.astype(np.float32).rename({"latitude": "lat", "longitude": "lon"})
@@ -234,13 +234,16 @@ def _decode_file(ds: xr.Dataset, name: str, product: str, flags: tuple[str, ...]
 
 
 # ----------------------------------------------------------- decoding rules (the only copy)
-def _encoding(ndvi_attrs: Any, qa_attrs: Any) -> tuple:
+def file_encoding(ndvi_attrs: Any, qa_attrs: Any) -> tuple:
     """``(scale, offset, fill, vmin, vmax, qa_fill)`` of a file's NDVI / QA attributes."""
     vmin, vmax = ndvi_attrs.get("valid_range", NDVI_VALID_RANGE)
     return (float(ndvi_attrs.get("scale_factor", NDVI_SCALE)),
             float(ndvi_attrs.get("add_offset", 0.0)),
             int(ndvi_attrs.get("_FillValue", NDVI_FILL)), int(vmin), int(vmax),
             int(qa_attrs.get("_FillValue", QA_FILL)))
+
+
+_encoding = file_encoding  # its name before issue #27
 
 
 def _ndvi_ok(ndvi_raw: Any, enc: tuple) -> Any:
@@ -336,7 +339,7 @@ def read_window(path: str | os.PathLike, rows: Any, cols: Any
             if not isinstance(cols, slice):
                 a = a[:, np.asarray(cols) - int(np.min(cols))]
             out.append(np.ascontiguousarray(a, dtype=np.int16))
-        enc = _encoding({k: v_.getncattr(k) for v_ in (nc.variables["NDVI"],)
+        enc = file_encoding({k: v_.getncattr(k) for v_ in (nc.variables["NDVI"],)
                          for k in v_.ncattrs()},
                         {k: nc.variables["QA"].getncattr(k)
                          for k in nc.variables["QA"].ncattrs()})
@@ -458,7 +461,7 @@ def open_ndvi_cdr(
         "source_files": "\n".join(_name(p) for p in files),
     }
     if chunks is not None and not any(is_url(p) for p in files):
-        # what the file-level staging (glrm.chunked.stage) needs to read the files itself; valid
+        # what the file-level staging (io.staging.stage) needs to read the files itself; valid
         # only while out.data is this very graph (any operation renames it)
         out.encoding["lrm_cvx_cdr"] = {
             "files": [str(p) for p in files], "products": [m["product"] for m in meta],

@@ -9,12 +9,12 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .._validation import as_factor_matrix, check_positive
-from ..cost import COST_REGISTRY
 from ..errors import PlanningError
 from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
 from .paths import make_path_model
 from .plan import Plan, check_region, path_dict
+from .routecost import COST_REGISTRY
 
 __all__ = ["initial_cells", "plan_greedy", "place_sensors", "check_budget", "budget_pool",
            "resolve_starts", "resolve_budgets", "resolve_prior"]

@@ -13,11 +13,13 @@ planners, the baselines, :class:`~lrm_cvx.planning.plan.Plan` and the certificat
   insertion, with exact incremental costs ``C(P + x) - C(P)`` for a whole candidate pool
   (:meth:`PathModel.coster`).
 
-The default model (``metric="grid"``, no graph, open, ``stop_cost=0``) reuses
-:class:`lrm_cvx.cost.NearestNeighborCost` / :class:`~lrm_cvx.cost.InsertionCost`, so its numbers
+The route-cost algorithms live in :mod:`lrm_cvx.planning.routecost`. The default model
+(``metric="grid"``, no graph, open, ``stop_cost=0``) uses its coordinate oracles
+(:class:`~lrm_cvx.planning.routecost.NearestNeighborCost` / ``InsertionCost``), so its numbers
 are exactly those of the paper's planner. The other models keep an ``(n, m)`` matrix of travel
 distances from the pool to the route's stops (one column per stop, computed when the stop
-joins) and run the same exact incremental algorithms (docs/planning.md) on matrix lookups.
+joins) and run the same exact incremental kernels (docs/planning.md) on matrix lookups
+(:class:`IncrementalCost`).
 
 Exactness of the distances: every straight-line distance comes from one compiled function
 (:func:`_dist_pairs`), symmetric by construction, so the same pair always gives the same float.
@@ -44,9 +46,15 @@ import numba
 import numpy as np
 
 from .._validation import check_positive
-from ..cost import COST_REGISTRY, InsertionCost, NearestNeighborCost
 from ..errors import PlanningError
 from ..region import EARTH_RADIUS_KM, Region
+from .routecost import (
+    COST_REGISTRY,
+    InsertionCost,
+    MatrixRouteCost,
+    NearestNeighborCost,
+    nearest_neighbor_order,
+)
 
 __all__ = [
     "METRICS",
@@ -68,7 +76,6 @@ METRICS = ("grid", "km")
 _QUANTUM = 2.0 ** -20  # graph edge lengths are multiples of this (budget unit): exact sums
 _TOL = 1e-9  # budget tolerance (as the greedy's)
 _CODES = {"grid": 0, "km": 1, "h": 2}
-_TAIL = 8  # cached tail steps per NN candidate (longer tails are re-evaluated at every add)
 
 
 # --------------------------------------------------------------------------- distances
@@ -380,396 +387,34 @@ def _walk(pred, src, dst):  # pragma: no cover - compiled
     return out
 
 
-# --------------------------------------------------------------------------- NN kernels
-@numba.njit(cache=True, nogil=True)
-def _nn_order(M, ids):  # pragma: no cover - compiled
-    """Positions of the nearest-neighbour order from input 0 over a distance matrix."""
-    m = M.shape[0]
-    order = np.empty(m, dtype=np.int64)
-    used = np.zeros(m, dtype=np.bool_)
-    cur = 0
-    used[0] = True
-    order[0] = 0
-    for step in range(1, m):
-        best = -1
-        bd = 0.0
-        for j in range(m):
-            if used[j]:
-                continue
-            dd = M[cur, j]
-            if best < 0 or dd < bd or (dd == bd and ids[j] < ids[best]):
-                best = j
-                bd = dd
-        used[best] = True
-        order[step] = best
-        cur = best
-    return order
-
-
-@numba.njit(cache=True, nogil=True)
-def _nn_eval(i, xid, t0, DT, S, ts, tid, r, back, vis, tail):  # pragma: no cover
-    """Exact route-cost increase of adding pool candidate i to the NN tour (cost.py's
-    ``_eval_nn`` on distance lookups).
-
-    ``DT[i, slot]``: distance from candidate i to stop ``slot``; ``S[slot, slot']`` between
-    stops; ``ts[p]`` the slot at tour position p, ``tid[p]`` its cell, ``r[p]`` the length of
-    step p. ``back`` the slot the route returns to after the tour (start or end), -1 if open.
-    Returns ``(increase, t_star, j, q)``: x is visited after step t_star, the new tail
-    (``tail[:q]``, tour positions) rejoins the old tour at position j (m when it never does).
-    """
-    m = ts.shape[0]
-    t = t0
-    dx = 0.0
-    while t < m - 1:
-        dx = DT[i, ts[t]]
-        if dx < r[t] or (dx == r[t] and xid < tid[t + 1]):
-            break
-        t += 1
-    if t == m - 1:
-        inc = DT[i, ts[m - 1]]
-        if back >= 0:
-            inc += DT[i, back] - S[ts[m - 1], back]
-        return inc, m - 1, m - 1, 0
-    xpart = dx
-    hi = t
-    nvis = 0
-    cpos = -1
-    q = 0
-    while True:
-        bp = -1
-        bd = 0.0
-        for p in range(t + 1, hi + 1):
-            if vis[p]:
-                continue
-            dd = DT[i, ts[p]] if cpos < 0 else S[ts[cpos], ts[p]]
-            if bp < 0 or dd < bd or (dd == bd and tid[p] < tid[bp]):
-                bp = p
-                bd = dd
-        if hi < m - 1:
-            if cpos == hi:
-                p = hi + 1
-                dd = r[hi]
-                if bp < 0 or dd < bd or (dd == bd and tid[p] < tid[bp]):
-                    bp = p
-                    bd = dd
-            else:
-                for p in range(hi + 1, m):
-                    dd = DT[i, ts[p]] if cpos < 0 else S[ts[cpos], ts[p]]
-                    if bp < 0 or dd < bd or (dd == bd and tid[p] < tid[bp]):
-                        bp = p
-                        bd = dd
-        xpart += bd
-        vis[bp] = True
-        nvis += 1
-        if bp > hi:
-            hi = bp
-        tail[q] = bp
-        q += 1
-        cpos = bp
-        if cpos == hi and nvis == hi - t:
-            break
-        if nvis == m - 1 - t:
-            break
-    for p in range(t + 1, hi + 1):
-        vis[p] = False
-    old = 0.0
-    for k in range(t, hi):
-        old += r[k]
-    rejoined = cpos == hi and nvis == hi - t
-    inc = xpart - old
-    if not rejoined and back >= 0:
-        inc += S[ts[cpos], back] - S[ts[m - 1], back]
-    return inc, t, hi if rejoined else m, q
-
-
-@numba.njit(cache=True, nogil=True)
-def _nn_eval_all(pid, active, t0s, DT, S, ts, tid, r, back, dc, tstar, js, tl, tails):
-    # pragma: no cover - compiled
-    """Fresh evaluation of every active candidate with ``t0s >= 0`` (scan from t0s); caches
-    ``(t_star, j, tail)`` (tails longer than ``tails.shape[1]``: ``tl = -1``)."""
-    m = ts.shape[0]
-    vis = np.zeros(m, dtype=np.bool_)
-    tail = np.empty(m, dtype=np.int64)
-    cap = tails.shape[1]
-    for i in range(pid.shape[0]):
-        if not active[i] or t0s[i] < 0:
-            continue
-        v, t, j, q = _nn_eval(i, pid[i], t0s[i], DT, S, ts, tid, r, back, vis, tail)
-        dc[i] = v
-        tstar[i] = t
-        js[i] = j
-        if q <= cap:
-            tl[i] = q
-            for u in range(q):
-                tails[i, u] = tail[u]
-        else:
-            tl[i] = -1
-
-
-@numba.njit(cache=True, nogil=True)
-def _nn_update(pid, active, DT, S, ots, otid, nts, ntid, nr, s, q_p, j_p, pslot, p_id,
-               tstar, js, tl, tails, t0s):  # pragma: no cover - compiled
-    """After p (slot ``pslot``) joined the tour after old position s, its tail rejoining at
-    j_p: ``t0s[i] = -1`` where candidate i's cached increase provably stays (cost.py's
-    ``_nn_update`` on distance lookups; positions remapped), else the step its fresh scan may
-    start from. The closing leg is unchanged in both kept cases: the tour's last cell is."""
-    for i in range(pid.shape[0]):
-        if not active[i]:
-            t0s[i] = -1
-            continue
-        t = tstar[i]
-        if t < s:
-            t0s[i] = t
-            q = tl[i]
-            if js[i] <= s and q >= 0:
-                ok = True
-                c = -1
-                for u in range(q):
-                    a = tails[i, u]
-                    if c < 0:
-                        dp = DT[i, pslot]
-                        dn = DT[i, ots[a]]
-                    else:
-                        dp = S[ots[c], pslot]
-                        dn = S[ots[c], ots[a]]
-                    if dp < dn or (dp == dn and p_id < otid[a]):
-                        ok = False
-                        break
-                    c = a
-                if ok:
-                    t0s[i] = -1
-        elif t > j_p:
-            t0s[i] = s
-            ok = True
-            for u in range(s, s + q_p + 1):
-                dx = DT[i, nts[u]]
-                if dx < nr[u] or (dx == nr[u] and pid[i] < ntid[u + 1]):
-                    ok = False
-                    break
-            if ok:
-                t0s[i] = -1
-                tstar[i] = t + 1
-                js[i] = js[i] + 1
-                for u in range(tl[i]):
-                    tails[i, u] += 1
-        else:
-            t0s[i] = s
-
-
-# --------------------------------------------------------------------------- insertion
-@numba.njit(cache=True, nogil=True)
-def _seg_best(i, DT, seq, seg, lo, hi, bv, bp):  # pragma: no cover - compiled
-    """Best (increase, position) of inserting candidate i into segments lo..hi-1."""
-    for k in range(lo, hi):
-        v = DT[i, seq[k]] + DT[i, seq[k + 1]] - seg[k]
-        if bp < 0 or v < bv or (v == bv and k < bp):
-            bv = v
-            bp = k
-    return bv, bp
-
-
-@numba.njit(cache=True, nogil=True)
-def _ins_all(active, DT, seq, seg, sv, sp):  # pragma: no cover - compiled
-    for i in range(DT.shape[0]):
-        if active[i]:
-            sv[i], sp[i] = _seg_best(i, DT, seq, seg, 0, seq.shape[0] - 1, np.inf, -1)
-
-
-@numba.njit(cache=True, nogil=True)
-def _ins_update(active, DT, seq, seg, s, sv, sp):  # pragma: no cover - compiled
-    """After inserting after position s: segment s split into new s and s+1, later shift."""
-    nseg = seq.shape[0] - 1
-    hi = min(s + 2, nseg)
-    for i in range(DT.shape[0]):
-        if not active[i]:
-            continue
-        if sp[i] == s:
-            sv[i], sp[i] = _seg_best(i, DT, seq, seg, 0, nseg, np.inf, -1)
-            continue
-        if sp[i] > s:
-            sp[i] += 1
-        sv[i], sp[i] = _seg_best(i, DT, seq, seg, s, hi, sv[i], sp[i])
-
-
 # --------------------------------------------------------------------------- costers
-class IncrementalCost:
-    """Exact ``route_cost(P + x) - route_cost(P)`` for every candidate of a pool.
-
-    Attributes: ``pool (n,)``, ``active (n,) bool``, ``cost`` (current route cost, stops and
-    closure included), ``route`` (ordered stops, start first; closed: start not repeated; with
-    ``end``: end last), ``n_evaluated`` (candidates re-evaluated at the last update).
-    Distances from the pool to the route's stops are held as an ``(n, m)`` matrix, one column
-    per stop (its straight-line row, or its Dijkstra row on the travel graph).
-    """
+class IncrementalCost(MatrixRouteCost):
+    """Exact ``route_cost(P + x) - route_cost(P)`` for every candidate of a pool under
+    ``model``: :class:`~lrm_cvx.planning.routecost.MatrixRouteCost` fed with the model's
+    travel distances (a stop's straight-line row, or its Dijkstra row on the travel graph)."""
 
     def __init__(self, model: PathModel, cells0: Any, pool: Any) -> None:
         self.model = model
         cells0 = model._check_stops(cells0, "cells0", order_free=True)
-        if model.end is not None:
-            cells0 = np.concatenate([cells0[cells0 != model.end], [model.end]])
-        self.pool = np.ascontiguousarray(np.asarray(pool, dtype=np.int64).ravel())
-        if self.pool.size and (self.pool.min() < 0 or self.pool.max() >= model.region.n_cells):
+        pool = np.ascontiguousarray(np.asarray(pool, dtype=np.int64).ravel())
+        if pool.size and (pool.min() < 0 or pool.max() >= model.region.n_cells):
             raise PlanningError(f"pool must hold cell indices in [0, {model.region.n_cells})")
-        n = self.pool.size
-        self._cap = max(16, 2 * cells0.size)
-        self._DT = np.full((n, self._cap), np.inf)
-        self._S = np.full((self._cap, self._cap), np.inf)
-        self._slot_cell = np.full(self._cap, -1, dtype=np.int64)
-        self._m = 0
-        if model._graph is not None:
-            self._ploc = model._graph.local(self.pool)
-        for c in cells0:
-            self._new_slot(int(c))
-        reach = np.isfinite(self._DT[:, 0]) & model._enter[self.pool]
-        self.active = reach & ~np.isin(self.pool, cells0)
-        self._slot_of = {int(c): k for k, c in enumerate(cells0)}
-        self._end_slot = self._slot_of[model.end] if model.end is not None else -1
-        self._back = 0 if model.closed else self._end_slot
-        self._nn = model.cost == "nearest-neighbor"
-        tour_cells = cells0[cells0 != model.end] if model.end is not None else cells0
-        slots = np.array([self._slot_of[int(c)] for c in tour_cells], dtype=np.int64)
-        slots = slots[_nn_order(self._S[np.ix_(slots, slots)].copy(), tour_cells)]
-        if not self._nn and model.end is not None:
-            slots = np.append(slots, self._end_slot)
-        self._set_tour(slots)
-        self._dc = np.full(n, np.nan)
-        if self._nn:
-            self._tstar = np.zeros(n, dtype=np.int64)
-            self._js = np.zeros(n, dtype=np.int64)
-            self._tl = np.zeros(n, dtype=np.int64)
-            self._tails = np.zeros((n, _TAIL), dtype=np.int64)
-            self._nn_refresh(np.zeros(n, dtype=np.int64))
-        else:
-            self._sv = np.full(n, np.inf)
-            self._sp = np.full(n, -1, dtype=np.int64)
-            _ins_all(self.active, self._DT, self._seq, self._seg, self._sv, self._sp)
-        self.n_evaluated = int(self.active.sum())
+        ploc = model._graph.local(pool) if model._graph is not None else None
 
-    # ---------------------------------------------------------------- state
-    def _new_slot(self, cell: int) -> int:
-        k = self._m
-        if k == self._cap:
-            cap = 2 * self._cap
-            DT = np.empty((self.pool.size, cap))  # columns >= k are written before use
-            DT[:, :k] = self._DT
-            S = np.empty((cap, cap))
-            S[:k, :k] = self._S
-            sc = np.full(cap, -1, dtype=np.int64)
-            sc[:k] = self._slot_cell
-            self._DT, self._S, self._slot_cell, self._cap = DT, S, sc, cap
-        model = self.model
-        prev = self._slot_cell[:k]
-        if model._graph is None:
-            self._DT[:, k] = model._geo.row(cell, self.pool)
-            row = model._geo.row(cell, prev)
-        else:
+        def to_pool(cell: int) -> np.ndarray:
+            if model._graph is None:
+                return model._geo.row(cell, pool)
             d = model._graph.run(cell)[0]
-            self._DT[:, k] = np.where(self._ploc >= 0, d[np.maximum(self._ploc, 0)], np.inf)
-            row = model._graph.to(cell, prev)
-        self._S[k, :k] = row
-        self._S[:k, k] = row
-        self._S[k, k] = 0.0
-        self._slot_cell[k] = cell
-        self._m = k + 1
-        return k
+            return np.where(ploc >= 0, d[np.maximum(ploc, 0)], np.inf)
 
-    def _set_tour(self, slots: np.ndarray) -> None:
-        """NN: the tour's slots (end excluded); insertion: the route's slots (end last)."""
-        slots = np.ascontiguousarray(slots, dtype=np.int64)
-        route_slots = slots
-        if self._nn and self.model.end is not None:
-            route_slots = np.append(slots, self._end_slot)
-        self._ts = slots
-        self._tid = self._slot_cell[slots].copy()
-        self._r = self._S[slots[:-1], slots[1:]].copy()
-        self._route_slots = route_slots
-        seq = np.append(route_slots, 0) if self.model.closed else route_slots
-        self._seq = np.ascontiguousarray(seq, dtype=np.int64)
-        self._seg = self._S[self._seq[:-1], self._seq[1:]].copy()
-        self.cost = self.model._sum_route(self._seg, route_slots.size)
+        def between(cell: int, cells: np.ndarray) -> np.ndarray:
+            if model._graph is None:
+                return model._geo.row(cell, cells)
+            return model._graph.to(cell, cells)
 
-    def _nn_refresh(self, t0s: np.ndarray) -> None:
-        _nn_eval_all(self.pool, self.active, t0s, self._DT, self._S, self._ts, self._tid,
-                     self._r, self._back, self._dc, self._tstar, self._js, self._tl,
-                     self._tails)
-
-    @property
-    def route(self) -> np.ndarray:
-        """The ordered stops (start first; closed: start not repeated; end last)."""
-        return self._slot_cell[self._route_slots].copy()
-
-    def increases(self) -> np.ndarray:
-        """``(n,)`` exact ``route_cost(P + x) - route_cost(P)``, ``nan`` where inactive."""
-        sc = self.model.stop_cost
-        if self._nn:
-            inc = self._dc
-        else:
-            inc = self._sv
-            if self.model.end is None and not self.model.closed:
-                append = self._DT[:, self._ts[-1]]
-                inc = np.where((self._sp >= 0) & (self._sv <= append), self._sv, append)
-        return np.where(self.active, inc + sc, np.nan)
-
-    def _positions(self) -> np.ndarray:
-        if self.model.end is None and not self.model.closed:
-            append = self._DT[:, self._ts[-1]]
-            return np.where((self._sp >= 0) & (self._sv <= append), self._sp, self._ts.size - 1)
-        return self._sp.copy()
-
-    def _index(self, cell: int) -> int:
-        (where,) = np.nonzero(self.pool == int(cell))
-        if where.size == 0 or not self.active[where[0]]:
-            raise PlanningError(f"cell {cell} is not an active candidate of the pool")
-        return int(where[0])
-
-    def add(self, cell: int) -> None:
-        """Add pool cell ``cell`` to the route and update every candidate's increase exactly."""
-        i = self._index(cell)
-        cell = int(cell)
-        if self._nn:
-            m = self._ts.size
-            vis = np.zeros(m, dtype=np.bool_)
-            tail = np.empty(m, dtype=np.int64)
-            _, s, j, q = _nn_eval(i, cell, 0, self._DT, self._S, self._ts, self._tid, self._r,
-                                  self._back, vis, tail)
-            s, j, q = int(s), int(j), int(q)
-            self.active[i] = False
-            k = self._new_slot(cell)
-            old, old_tid = self._ts, self._tid
-            new = np.concatenate([old[: s + 1], [k], old[tail[:q]], old[j + 1:]])
-            self._set_tour(new)
-            t0s = np.empty(self.pool.size, dtype=np.int64)
-            _nn_update(self.pool, self.active, self._DT, self._S, old, old_tid, self._ts,
-                       self._tid, self._r, s, q, j, k, cell, self._tstar, self._js, self._tl,
-                       self._tails, t0s)
-            self.n_evaluated = int((t0s >= 0).sum())
-            self._nn_refresh(t0s)
-        else:
-            s = int(self._positions()[i])
-            self.active[i] = False
-            k = self._new_slot(cell)
-            self._set_tour(np.insert(self._route_slots, s + 1, k))
-            self.n_evaluated = int((self.active & (self._sp == s)).sum())
-            _ins_update(self.active, self._DT, self._seq, self._seg, s, self._sv, self._sp)
-
-    def deactivate(self, cell: int) -> None:
-        """A fleet-mate took ``cell``: it is no longer a candidate (the route is unchanged)."""
-        (where,) = np.nonzero(self.pool == int(cell))
-        self.active[where] = False
-
-
-class _DefaultNN(NearestNeighborCost):
-    """The paper's exact NN cost (cost.py) with the fleet's ``deactivate``."""
-
-    def deactivate(self, cell: int) -> None:
-        self.active[self.pool == int(cell)] = False
-
-
-class _DefaultInsertion(InsertionCost):
-    """cost.py's cheapest insertion with the fleet's ``deactivate``."""
-
-    def deactivate(self, cell: int) -> None:
-        self.active[self.pool == int(cell)] = False
+        super().__init__(cells0, pool, to_pool, between, nn=model.cost == "nearest-neighbor",
+                         closed=model.closed, end=model.end, stop_cost=model.stop_cost,
+                         sum_route=model._sum_route, reachable=model._enter[pool])
 
 
 # --------------------------------------------------------------------------- the model
@@ -971,7 +616,7 @@ class PathModel:
         stops = self._check_stops(stops, order_free=True)
         if self.end is not None:
             stops = stops[stops != self.end]
-        pos = _nn_order(self._pair_matrix(stops), stops)
+        pos = nearest_neighbor_order(self._pair_matrix(stops), stops)
         out = stops[pos]
         return np.append(out, self.end) if self.end is not None else out
 
@@ -1081,9 +726,9 @@ class PathModel:
     def coster(self, cells0: Any, pool: Any) -> Any:
         """Exact incremental costs ``route_cost(P + x) - route_cost(P)`` over ``pool``, from
         the initial stops ``cells0`` (start first): an :class:`IncrementalCost` (or, for the
-        paper's default model, cost.py's exact classes with the same interface)."""
+        paper's default model, routecost's exact classes on grid coordinates, same interface)."""
         if self.is_default:
-            cls = _DefaultNN if self.cost == "nearest-neighbor" else _DefaultInsertion
+            cls = NearestNeighborCost if self.cost == "nearest-neighbor" else InsertionCost
             cells0 = self._check_stops(cells0, "cells0", order_free=True)
             return cls(self.region.grid_index, cells0, pool)
         return IncrementalCost(self, cells0, pool)

@@ -3,12 +3,12 @@
 The greedy planner stops when no single addition fits; refinement then tries
 
 * **insert** a stop (every candidate of the budget disk at once: exact cost increases from
-  :mod:`lrm_cvx.cost`, gains from the rank-one formula), and
+  :mod:`lrm_cvx.planning.routecost`, gains from the rank-one formula), and
 * **swap** a stop ``x`` for a candidate ``y`` (remove ``x``, insert ``y``; every pair of a
   shortlist at once: the information of ``P - x + y`` in closed form, the exact cost of
   ``P - x + y`` for all ``y`` by one incremental cost oracle per ``x``),
 * with route repair after every accepted move when the cost is a route (``cost="insertion"``:
-  2-opt and Or-opt on the visiting order, which only shorten it). For the paper's
+  routecost's 2-opt and Or-opt on the visiting order, which only shorten it). For the paper's
   nearest-neighbour cost the cost of a set *is* its nearest-neighbour tour, so repair means
   re-evaluating that tour exactly.
 
@@ -28,10 +28,16 @@ from typing import Any
 import numpy as np
 
 from .._validation import as_factor_matrix
-from ..cost import NearestNeighborCost, nearest_neighbor_tour, route_length
 from ..errors import PlanningError
 from ..information import fisher_set_value
 from .plan import Plan, check_region, is_paper_path
+from .routecost import (
+    NearestNeighborCost,
+    insertion_costs,
+    nearest_neighbor_tour,
+    repair_route,
+    route_length,
+)
 
 __all__ = ["refine"]
 
@@ -85,116 +91,6 @@ class _Fisher:
             Yc = self.Yw[:, cand[a:a + _CHUNK * 16]]
             out[a:a + Yc.shape[1]] = np.einsum("ij,ij->j", Yc, S @ Yc)
         return out
-
-
-# ----------------------------------------------------------------------------- routes
-def _dist(g: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    d = g[a] - g[b]
-    return np.sqrt((d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]).astype(np.float64))
-
-
-def _two_opt(g: np.ndarray, route: np.ndarray, max_iter: int = 1000) -> np.ndarray:
-    """2-opt on an open path with a fixed first stop: reverse ``route[i+1 .. j]`` while some
-    reversal shortens the path (best one each pass), vectorised over all ``(i, j)``."""
-    r = route.copy()
-    m = r.size
-    if m < 3:
-        return r
-    for _ in range(max_iter):
-        p = g[r].astype(np.float64)
-        i = np.arange(m - 1)[:, None]
-        j = np.arange(m)[None, :]
-        dij = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
-        seg = np.hypot(*(np.diff(p, axis=0).T))  # (m-1,)
-        nxt = np.minimum(j + 1, m - 1)
-        a_next = dij[np.minimum(i + 1, m - 1), nxt]  # d(r[i+1], r[j+1])
-        delta = dij[i, j] - seg[i]
-        delta = delta + np.where(j < m - 1, a_next - seg[np.minimum(j, m - 2)], 0.0)
-        valid = j > i + 1
-        delta = np.where(valid, delta, 0.0)
-        b = int(np.argmin(delta))
-        if not delta.flat[b] < -1e-10:
-            break
-        bi, bj = divmod(b, m)
-        r[bi + 1:bj + 1] = r[bi + 1:bj + 1][::-1].copy()
-    return r
-
-
-def _or_opt(g: np.ndarray, route: np.ndarray, max_iter: int = 1000) -> np.ndarray:
-    """Or-opt: move one stop (not the first) to the position where the path is shortest,
-    best move each pass, vectorised over all (stop, position) pairs."""
-    r = route.copy()
-    m = r.size
-    if m < 3:
-        return r
-    for _ in range(max_iter):
-        p = g[r].astype(np.float64)
-        D = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
-        s = np.arange(1, m)
-        prev, nxt = s - 1, s + 1
-        save = D[prev, s] + np.where(nxt < m, D[s, np.minimum(nxt, m - 1)]
-                                     - D[prev, np.minimum(nxt, m - 1)], 0.0)
-        # insert after position q (q != s, q != s-1), into the path without s
-        q = np.arange(m)[None, :]
-        qn = q + 1
-        has_next = qn < m
-        add = D[s[:, None], q] + np.where(has_next, D[s[:, None], np.minimum(qn, m - 1)]
-                                           - D[q, np.minimum(qn, m - 1)], 0.0)
-        # when q+1 == s the segment (q, q+1) does not exist after removing s: use (q, s+1)
-        bad = (q == s[:, None]) | (q == s[:, None] - 1)
-        fix = qn == s[:, None]
-        alt_next = np.minimum(s + 1, m - 1)[:, None]
-        add = np.where(fix & (s[:, None] + 1 < m),
-                       D[s[:, None], q] + D[s[:, None], alt_next] - D[q, alt_next], add)
-        add = np.where(fix & (s[:, None] + 1 >= m), D[s[:, None], q], add)
-        delta = np.where(bad, 0.0, add - save[:, None])
-        b = int(np.argmin(delta))
-        if not delta.flat[b] < -1e-10:
-            break
-        si, qi = divmod(b, m)
-        stop = int(r[s[si]])
-        rest = np.delete(r, s[si])
-        pos = qi if qi < s[si] else qi - 1
-        r = np.insert(rest, pos + 1, stop)
-    return r
-
-
-def _repair(g: np.ndarray, route: np.ndarray) -> np.ndarray:
-    """2-opt then Or-opt until neither shortens the path (each only shortens it)."""
-    best, best_len = route, route_length(g, route)
-    for _ in range(20):
-        r = _or_opt(g, _two_opt(g, best))
-        length = route_length(g, r)
-        if not length < best_len - 1e-10:
-            break
-        best, best_len = r, length
-    return best
-
-
-def _insertion_costs(g: np.ndarray, route: np.ndarray, cand: np.ndarray) -> tuple[
-        np.ndarray, np.ndarray]:
-    """Cheapest insertion of each candidate into ``route`` (segments or appending):
-    ``(increase, position after which it goes)``, ``(n,)`` each, exact floats per
-    :func:`lrm_cvx.cost.route_length` up to the order of summation."""
-    m = route.size
-    inc = np.empty(cand.size)
-    pos = np.empty(cand.size, dtype=np.int64)
-    seg = _dist(g, route[:-1], route[1:]) if m > 1 else np.empty(0)
-    for a in range(0, cand.size, _CHUNK):
-        c = cand[a:a + _CHUNK]
-        app = _dist(g, c, np.full(c.size, route[-1]))
-        if m > 1:
-            d = _dist(g, c[:, None], route[None, :])
-            v = d[:, :-1] + d[:, 1:] - seg[None, :]
-            j = np.argmin(v, axis=1)
-            bv = v[np.arange(c.size), j]
-            use = bv <= app
-            inc[a:a + c.size] = np.where(use, bv, app)
-            pos[a:a + c.size] = np.where(use, j, m - 1)
-        else:
-            inc[a:a + c.size] = app
-            pos[a:a + c.size] = m - 1
-    return inc, pos
 
 
 # ----------------------------------------------------------------------------- refine
@@ -334,7 +230,7 @@ def refine(
     before = value
     cost = float(plan.cost)
     if not nn:  # a route: repair it first (only ever shortens it)
-        r = _repair(g, route)
+        r = repair_route(g, route)
         if route_length(g, r) < cost:
             route, cost = r, route_length(g, r)
     moves: list[tuple[int, int, int, float]] = []
@@ -421,7 +317,7 @@ def _best_insert(g, pool, in_plan, lev, cells, route, cost, limit, value, nn, cr
         coster = NearestNeighborCost(g, cells, pool[free])
         new_cost = coster.cost + coster.increases()
     else:
-        inc, pos = _insertion_costs(g, route, pool[free])
+        inc, pos = insertion_costs(g, route, pool[free])
         new_cost = cost + inc
     ok = (new_cost <= limit) & (gain > _EPS)
     if not ok.any():
@@ -437,7 +333,7 @@ def _best_insert(g, pool, in_plan, lev, cells, route, cost, limit, value, nn, cr
             c, r = nearest_neighbor_tour(g, new_cells)
         else:
             r = np.insert(route, int(pos[b]) + 1, x)
-            r = _repair(g, r)
+            r = repair_route(g, r)
             c = route_length(g, r)
         v = crit.value(new_cells)
         if c <= limit and v > value + _EPS:
@@ -479,7 +375,7 @@ def _best_swap(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit, s
             new_cost = coster.cost + coster.increases()
         else:
             r0 = route[route != cells[xi]]
-            inc, pos = _insertion_costs(g, r0, ys[cand])
+            inc, pos = insertion_costs(g, r0, ys[cand])
             new_cost = route_length(g, r0) + inc
         ok = np.flatnonzero(new_cost <= limit)
         if ok.size == 0:
@@ -490,7 +386,7 @@ def _best_swap(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit, s
             if nn:
                 c, r = nearest_neighbor_tour(g, new_cells)
             else:
-                r = _repair(g, np.insert(r0, int(pos[b]) + 1, y))
+                r = repair_route(g, np.insert(r0, int(pos[b]) + 1, y))
                 c = route_length(g, r)
             v = crit.value(new_cells)
             if c <= limit and v > target:
@@ -592,7 +488,7 @@ def _shape_restart(region, samples, climbs, seed, time_limit, *, g, start, limit
     if nn:
         c, rr = nearest_neighbor_tour(g, route)
     else:
-        rr = _repair(g, route)
+        rr = repair_route(g, route)
         c = route_length(g, rr)
     return (route, rr, c, crit.value(route)) if c <= limit else None
 
@@ -641,7 +537,7 @@ def _fill(g, rest, r, ys, limit, nn, crit, Sx):
         if nn:
             dc = coster.increases()
         else:
-            dc, pos = _insertion_costs(g, r, ys)
+            dc, pos = insertion_costs(g, r, ys)
         ok = active & (cur + dc <= limit) & (gain > _EPS)
         if not ok.any():
             break
@@ -661,6 +557,6 @@ def _fill(g, rest, r, ys, limit, nn, crit, Sx):
     if nn:
         c, rr = nearest_neighbor_tour(g, new_cells)
     else:
-        rr = _repair(g, r)
+        rr = repair_route(g, r)
         c = route_length(g, rr)
     return new_cells, rr, c
