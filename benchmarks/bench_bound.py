@@ -54,7 +54,7 @@ def greedy_certificate(Y, region, start, budget, ridge=0.0, path_aware=False, re
         from lrm_cvx.planning.refine import refine
     except ImportError as exc:
         return None, f"plan_greedy unavailable ({exc})"
-    from lrm_cvx.planning.bound import plan_bound
+    from lrm_cvx.planning.certificate import plan_bound
 
     t = time.perf_counter()
     plan = plan_greedy(Y, region, start, budget, ridge=ridge, progress=False)
@@ -123,7 +123,8 @@ def print_floor(Y, region, start, budget, refined) -> None:
 
 def run_synthetic(small: bool) -> None:
     from lrm_cvx.io.samples import synthetic_field
-    from lrm_cvx.planning.bound import dopt_upper_bound, plan_bound
+    from lrm_cvx.planning.certificate import plan_bound
+    from lrm_cvx.planning.dopt import dopt_upper_bound
     from lrm_cvx.region import Region
 
     shape, budget = ((300, 280), 40.0) if small else ((1500, 1400), 200.0)
@@ -182,7 +183,7 @@ def run_window(budgets: list[float]) -> None:
     paper-scale run within the budget disk), per budget: greedy, refined (defaults), the disk
     bound (§4), the default tightened bound (§6) and ``walk_relaxation_bound``."""
     from lrm_cvx.io.samples import synthetic_field
-    from lrm_cvx.planning.bound import plan_bound
+    from lrm_cvx.planning.certificate import plan_bound
     from lrm_cvx.planning.greedy import plan_greedy
     from lrm_cvx.planning.refine import refine
     from lrm_cvx.planning.relaxation import walk_relaxation_bound

@@ -27,8 +27,12 @@ __all__ = [
 
 def __getattr__(name: str) -> Any:
     # the certificate module (cvxpy, scipy) is imported only when used
-    if name in ("plan_bound", "dopt_upper_bound"):
-        from . import bound
+    if name == "plan_bound":
+        from .certificate import plan_bound
 
-        return getattr(bound, name)
+        return plan_bound
+    if name == "dopt_upper_bound":
+        from .dopt import dopt_upper_bound
+
+        return dopt_upper_bound
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
