@@ -497,9 +497,15 @@ class GLRM:
         (or at ``time``), filtering with ``dynamics_``; a model without dynamics gives the
         memoryless filter (every day's prior is the empirical prior). ``options``:
         ``dynamics``, ``spatial``, ``memoryless`` of ``MonitorState.from_model``.
-        See docs/monitoring.md."""
-        from ..monitor import MonitorState
+        See docs/monitoring.md.
 
+        Deprecated: use ``lrm_cvx.monitor.MonitorState.from_model(model, ...)`` (the model
+        layer does not import the monitoring layer above it); removed in the next release."""
+        from ..monitor import MonitorState  # the deprecated shim's upward import
+
+        warnings.warn("GLRM.monitor() is deprecated: use "
+                      "lrm_cvx.monitor.MonitorState.from_model(model, ...)",
+                      DeprecationWarning, stacklevel=2)
         self._check_fitted()
         return MonitorState.from_model(self, time=time, **options)
 
@@ -792,7 +798,7 @@ class GLRM:
         model._set_result(res, region, ds[tdim], xarray=region is not None)
         PREDICTIVE_ATTRS.restore(model, ds)
         model.dynamics_ = Dynamics.from_dataset(ds, time=ds[tdim].values[-1])
-        from .calibration import Calibration
+        from .calibrated import Calibration
 
         model.calibration_ = Calibration.from_attrs(ds.attrs)
         return model

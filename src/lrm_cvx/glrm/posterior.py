@@ -785,6 +785,6 @@ def _scale_discount(model: Any) -> float:
 
 def _variance_scale(model: Any, temporal: bool = False) -> float:
     """The model's calibrated variance scale (``calibration_``; 1.0 when not calibrated)."""
-    from .calibration import variance_scale
+    from .calibrated import variance_scale
 
     return variance_scale(model, temporal)
