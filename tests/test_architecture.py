@@ -25,8 +25,9 @@ SRC = Path(lrm_cvx.__file__).parent
 # lowest first; a module belongs to the layer of its longest matching prefix (a package name
 # covers its submodules). An import may go sideways (same layer) or down, never up.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    # base: errors, shared checks, BLAS threads, the Registry class
-    ("lrm_cvx.errors", "lrm_cvx._validation", "lrm_cvx._blas", "lrm_cvx.registry"),
+    # base: errors, shared checks, BLAS threads, the Registry class, the recommended setting
+    ("lrm_cvx.errors", "lrm_cvx._validation", "lrm_cvx._blas", "lrm_cvx.registry",
+     "lrm_cvx.recommended"),
     # grid geometry (the readers crop and order by it, so it sits below io)
     ("lrm_cvx.region",),
     # loaders and writers; the bundled samples (io.generic's `sample:NAME`)
@@ -45,7 +46,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("lrm_cvx.monitor", "lrm_cvx.campaign"),
     # the paper's protocol
     ("lrm_cvx.evaluation",),
-    # the edges: commands, the demo, figures, the xarray accessor, the recommended setting
+    # the edges: commands, the demo, figures, the xarray accessor
     ("lrm_cvx.cli", "lrm_cvx.cli_common", "lrm_cvx.cli_monitor", "lrm_cvx.demo",
      "lrm_cvx.plots", "lrm_cvx.accessor"),
 )

@@ -17,7 +17,7 @@ import xarray as xr
 
 from ._validation import as_generator, check_positive
 from .errors import DataError, ModelError
-from .glrm.dynamics import TEMPORAL, check_times
+from .glrm.dynamics import check_times, temporal_value
 from .glrm.dynamics import estimate as estimate_dynamics
 from .monitor import MonitorState
 
@@ -34,8 +34,7 @@ def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
 
     if isinstance(temporal, Dynamics):
         return temporal, False
-    if temporal not in TEMPORAL:
-        raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
+    temporal = temporal_value(temporal)
     if temporal is None:
         return None, True
     dyn = getattr(model, "dynamics_", None)

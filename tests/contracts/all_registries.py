@@ -13,6 +13,7 @@ def registries() -> dict[str, Registry]:
     """Every registry of the package by kind (imports the modules that own them)."""
     from lrm_cvx.cost import COST_REGISTRY
     from lrm_cvx.evaluation import METHOD_REGISTRY
+    from lrm_cvx.glrm.dynamics import TEMPORAL
     from lrm_cvx.glrm.losses import LOSS_REGISTRY
     from lrm_cvx.glrm.regularizers import REGULARIZER_REGISTRY
     from lrm_cvx.information import CRITERION_REGISTRY
@@ -26,4 +27,5 @@ def registries() -> dict[str, Registry]:
         "prior": PRIOR_REGISTRY,
         "kernel": KERNEL_REGISTRY,
         "method": METHOD_REGISTRY,
+        "temporal": TEMPORAL,
     }

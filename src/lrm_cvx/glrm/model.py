@@ -20,7 +20,7 @@ from .._validation import as_generator, atomic_output, check_positive, read_netc
 from ..errors import DataError, ModelError, NotFittedError
 from ..region import Region
 from . import kernels as K
-from .dynamics import TEMPORAL, Dynamics, error_rows
+from .dynamics import TEMPORAL, Dynamics, error_rows, temporal_value
 from .dynamics import estimate as estimate_dynamics
 from .fit import DataStats, FitResult, check_data, fit_glrm
 from .losses import get_loss
@@ -464,7 +464,7 @@ class GLRM:
         ``Q`` for the columns' estimation error (``error_cov`` of
         :func:`~lrm_cvx.glrm.dynamics.estimate_ar1`)."""
         self.dynamics_ = None
-        if self.temporal is None:
+        if temporal_value(self.temporal) is None:
             return
         X = self._Xv
         times = (self.X_[self.X_.dims[1]] if isinstance(self.X_, xr.DataArray)
@@ -483,7 +483,7 @@ class GLRM:
         """Estimate ``dynamics_`` on an already fitted model (sets ``temporal``); ``options``
         go to :func:`~lrm_cvx.glrm.dynamics.estimate_ar1` (``shrinkage``). Returns ``self``."""
         self._check_fitted()
-        if temporal not in TEMPORAL or temporal is None:
+        if TEMPORAL.resolve(temporal) in (None, "none"):
             raise ModelError(f"temporal must be 'ar1' or 'seasonal', got {temporal!r}")
         self.temporal = temporal
         X = self._Xv
@@ -902,9 +902,7 @@ def _same(a: Any, b: Any) -> bool:
 
 def _check_temporal(temporal: Any, data: Any) -> None:
     """Refuse an unknown ``temporal`` or a DataArray without a time coordinate, before fitting."""
-    if temporal not in TEMPORAL:
-        raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
-    if temporal is None:
+    if temporal_value(temporal) is None:
         return
     n_times = np.shape(data)[0] if np.ndim(data) >= 2 else 0
     if n_times < 3:
