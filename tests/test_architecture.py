@@ -73,6 +73,10 @@ KNOWN_VIOLATIONS: dict[tuple[str, str], str] = {
         "deprecated shim GLRM.monitor -> MonitorState.from_model, remove next release",
     ("lrm_cvx.spatial", "lrm_cvx.glrm.foldin"):
         "deprecated shim spatial.gls_fold_in / residual_correction, remove next release",
+    ("lrm_cvx.planning", "lrm_cvx.experimental.floor"):
+        "deprecated shim planning.convex_floor / ConvexFloor, remove next release",
+    ("lrm_cvx.planning.floor", "lrm_cvx.experimental.floor"):
+        "deprecated shim module planning/floor.py, remove next release",
 }
 
 

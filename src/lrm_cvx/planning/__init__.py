@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Any
 
 from .baselines import random_walk, transect
-from .floor import ConvexFloor, convex_floor
 from .greedy import initial_cells, place_sensors, plan_greedy
 from .plan import Plan
 from .refine import refine
@@ -20,12 +19,18 @@ __all__ = [
     "random_walk",
     "plan_bound",
     "dopt_upper_bound",
-    "convex_floor",
-    "ConvexFloor",
 ]
 
 
 def __getattr__(name: str) -> Any:
+    if name in ("convex_floor", "ConvexFloor"):  # deprecated shim: moved to lrm_cvx.experimental
+        import warnings
+
+        from ..experimental import floor
+
+        warnings.warn(f"lrm_cvx.planning.{name} moved to lrm_cvx.experimental.{name}",
+                      DeprecationWarning, stacklevel=2)
+        return getattr(floor, name)
     # the certificate module (cvxpy, scipy) is imported only when used
     if name == "plan_bound":
         from .certificate import plan_bound
