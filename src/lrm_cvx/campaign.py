@@ -41,8 +41,8 @@ def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
     if dyn is not None and dyn.kind == temporal:
         return dyn, False
     X = model.X_
-    times = X[X.dims[1]] if isinstance(X, xr.DataArray) else np.arange(model._Xv.shape[1])
-    return estimate_dynamics(temporal, model._Xv, times), False
+    times = X[X.dims[1]] if isinstance(X, xr.DataArray) else np.arange(model.X.shape[1])
+    return estimate_dynamics(temporal, model.X, times), False
 
 
 def _plan_day(state: MonitorState, method: str, start: int, budget: float,
@@ -53,7 +53,7 @@ def _plan_day(state: MonitorState, method: str, start: int, budget: float,
     from .planning import plan_greedy
 
     model = state.model
-    Y, region = model._Yv, model.region_
+    Y, region = model.Y, model.region_
     cost = options.get("cost", "nearest-neighbor")
     ridge = float(options.get("ridge", 0.0))
     if method.startswith("greedy:"):

@@ -34,7 +34,7 @@ def model_fingerprint(model: Any) -> str:
     """SHA-256 (hex, 16 chars) of the model's factors ``X_``, ``Y_`` (float64) and its
     offset/scale: a state is only valid with the model it was started from."""
     h = hashlib.sha256()
-    for arr in (model._Xv, model._Yv, getattr(model, "offset_", None),
+    for arr in (model.X, model.Y, getattr(model, "offset_", None),
                 getattr(model, "scale_", None)):
         if arr is not None:
             a = np.ascontiguousarray(np.asarray(arr, dtype=np.float64))
@@ -47,13 +47,13 @@ def _model_times(model: Any) -> np.ndarray:
     X = model.X_
     if isinstance(X, xr.DataArray):
         return np.asarray(X[X.dims[1]].values)
-    return np.arange(model._Xv.shape[1])
+    return np.arange(model.X.shape[1])
 
 
 def memoryless_dynamics(model: Any) -> Dynamics:
     """``A = 0``, ``Q = cov(X_)``, mean ``mean(X_)``: each snapshot's prior is the empirical
     prior whatever came before (the memoryless model through the filter)."""
-    X = model._Xv
+    X = model.X
     m0, S0 = empirical_moments(X)
     times = _model_times(model)
     t, kind, _ = time_numbers(times, "time")
@@ -161,7 +161,7 @@ class LatentFilter:
                                  "call model.fit_dynamics()), or pass memoryless=True")
         if not isinstance(dynamics, Dynamics):
             raise ModelError(f"dynamics must be a Dynamics, got {type(dynamics).__name__}")
-        k = model._Yv.shape[0]
+        k = model.Y.shape[0]
         if dynamics.rank != k:
             raise ModelError(f"dynamics have rank {dynamics.rank}, the model {k}")
         obs = ObservationModel.from_model(model, spatial=spatial)

@@ -294,14 +294,26 @@ class GLRM:
 
     # ------------------------------------------------------------------ accessors
     @property
-    def _Xv(self) -> np.ndarray:
+    def X(self) -> np.ndarray:
+        """The fitted ``X_`` as a ``(k, T)`` float64 numpy array (read-only property: the
+        model's own array, not a copy; do not modify it). NotFittedError before ``fit``."""
         self._check_fitted()
         return np.asarray(getattr(self.X_, "values", self.X_), dtype=np.float64)
 
     @property
-    def _Yv(self) -> np.ndarray:
+    def Y(self) -> np.ndarray:
+        """The fitted ``Y_`` as a ``(k, L)`` float64 numpy array (read-only property, as
+        :attr:`X`): what the planners and the fold-in take."""
         self._check_fitted()
         return np.asarray(getattr(self.Y_, "values", self.Y_), dtype=np.float64)
+
+    @property
+    def _Xv(self) -> np.ndarray:  # the old private name (tests use it)
+        return self.X
+
+    @property
+    def _Yv(self) -> np.ndarray:
+        return self.Y
 
     @property
     def Y_grid(self) -> xr.DataArray:
