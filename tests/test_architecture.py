@@ -317,6 +317,14 @@ def test_checker_allows_a_package_importing_its_children(tmp_path):
     assert layer_problems(src, FAKE_LAYERS, {}) == []
 
 
+def test_nothing_outside_glrm_reads_the_models_private_arrays():
+    # GLRM.X / GLRM.Y are the public (k, T) / (k, L) arrays
+    found = [f"{path}:{i}" for path in sorted(SRC.rglob("*.py")) if "glrm" not in path.parts
+             for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+             if "._Xv" in line or "._Yv" in line]
+    assert not found, "use model.X / model.Y:\n" + "\n".join(found)
+
+
 # ------------------------------------------------------------------------------ private names
 # (importer, owner): private names the importer may still take from the owner
 KNOWN_DEBT = {
