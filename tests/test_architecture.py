@@ -330,7 +330,6 @@ def test_nothing_outside_glrm_reads_the_models_private_arrays():
 KNOWN_DEBT = {
     ("lrm_cvx.glrm.chunked", "lrm_cvx.glrm.fit"),
     ("lrm_cvx.glrm.chunked", "lrm_cvx.io.ndvi"),
-    ("lrm_cvx.glrm.quadratic", "lrm_cvx.glrm.kernels"),
     ("lrm_cvx.planning.certificate", "lrm_cvx.planning.dopt"),
     ("lrm_cvx.planning.relaxation", "lrm_cvx.planning.certificate"),
     ("lrm_cvx.planning.relaxation", "lrm_cvx.planning.dopt"),
