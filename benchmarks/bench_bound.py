@@ -54,7 +54,7 @@ def greedy_certificate(Y, region, start, budget, ridge=0.0, path_aware=False, re
         from lrm_cvx.planning.refine import refine
     except ImportError as exc:
         return None, f"plan_greedy unavailable ({exc})"
-    from lrm_cvx.planning.bound import plan_bound
+    from lrm_cvx.planning.certificate import plan_bound
 
     t = time.perf_counter()
     plan = plan_greedy(Y, region, start, budget, ridge=ridge, progress=False)
@@ -75,7 +75,7 @@ def midpoint_floors(Y, region, start, budget, n_routes=40_000, seed=1):
     convex relaxation that contains the routes with their midpoint there, so the largest over
     the squares is a floor for *any* bound of the form "max over midpoint squares of side s of
     a convex relaxation". Prints it per side."""
-    from lrm_cvx.planning.floor import route_mixture
+    from lrm_cvx.experimental.floor import route_mixture
     from lrm_cvx.planning.plan import path_cumulative
     from lrm_cvx.planning.shapes import polyline_route, random_polyline
 
@@ -111,7 +111,7 @@ def midpoint_floors(Y, region, start, budget, n_routes=40_000, seed=1):
 
 def print_floor(Y, region, start, budget, refined) -> None:
     """The convex floor (docs/certificate.md §9) with the refined plan's route in the pool."""
-    from lrm_cvx.planning.floor import convex_floor
+    from lrm_cvx.experimental.floor import convex_floor
 
     t = time.perf_counter()
     f = convex_floor(Y, region, start, budget, routes=[refined.route], random_state=0)
@@ -123,7 +123,8 @@ def print_floor(Y, region, start, budget, refined) -> None:
 
 def run_synthetic(small: bool) -> None:
     from lrm_cvx.io.samples import synthetic_field
-    from lrm_cvx.planning.bound import dopt_upper_bound, plan_bound
+    from lrm_cvx.planning.certificate import plan_bound
+    from lrm_cvx.planning.dopt import dopt_upper_bound
     from lrm_cvx.region import Region
 
     shape, budget = ((300, 280), 40.0) if small else ((1500, 1400), 200.0)
@@ -182,7 +183,7 @@ def run_window(budgets: list[float]) -> None:
     paper-scale run within the budget disk), per budget: greedy, refined (defaults), the disk
     bound (§4), the default tightened bound (§6) and ``walk_relaxation_bound``."""
     from lrm_cvx.io.samples import synthetic_field
-    from lrm_cvx.planning.bound import plan_bound
+    from lrm_cvx.planning.certificate import plan_bound
     from lrm_cvx.planning.greedy import plan_greedy
     from lrm_cvx.planning.refine import refine
     from lrm_cvx.planning.relaxation import walk_relaxation_bound
@@ -246,7 +247,7 @@ def run_sample(path_aware: bool = False) -> None:
           f"refine{SAMPLE_REFINE}")
     rng = np.random.default_rng(0)
     starts = [central_cell(region), *map(int, rng.choice(region.n_cells, 2, replace=False))]
-    from lrm_cvx.planning.floor import convex_floor
+    from lrm_cvx.experimental.floor import convex_floor
 
     print("start  budget  cells  greedy     refined    bound      gap     plan slack  "
           "bound slack  refine s  total s  convex floor")

@@ -150,7 +150,7 @@ def lrm_rounds_to_target(D: np.ndarray, train: np.ndarray, test: np.ndarray, tar
     ``(rounds, seconds, rmse)``, or None when none is. The same rule as H2O's runs."""
     for it in schedule:
         m, sec = fit_lrm(D, train, rank, tol=0.0, max_iter=it)
-        rmse = heldout_rmse(m._Xv.T, m._Yv, D, test)
+        rmse = heldout_rmse(m.X.T, m.Y, D, test)
         if within(rmse, target):
             return it, sec, rmse
     return None
@@ -300,7 +300,7 @@ def bench_h2o(args) -> None:
         GLRM(rank=2, max_iter=2, progress=False).fit(w, mask=w > 0.2)
     model, t_lrm = fit_lrm(D, train)
     c_lrm = LAST_CPU["lrm"]
-    target = heldout_rmse(model._Xv.T, model._Yv, D, test)
+    target = heldout_rmse(model.X.T, model.Y, D, test)
     print(f"  lrm-cvx GLRM(rank=5) to convergence (tol 1e-6): {t_lrm:.2f} s (CPU {c_lrm:.2f} s), "
           f"{model.n_iter_} rounds, converged {model.converged_}; held-out RMSE {target:.5f} "
           f"(target: <= {1.01 * target:.5f}); {load()}")
@@ -369,9 +369,9 @@ def greedy_sets(paper: GLRM, model: GLRM, n: int) -> dict[str, np.ndarray]:
     L = model.region_.n_cells
     kw_gp = model.planner_kwargs(prior="empirical", spatial=True)
     return {
-        "fisher": cost_free_greedy(make_oracle("fisher", paper._Yv, 1e-6), n, L),
+        "fisher": cost_free_greedy(make_oracle("fisher", paper.Y, 1e-6), n, L),
         "gp": cost_free_greedy(GPVarianceOracle(
-            model._Yv, region=model.region_, spatial_cov=kw_gp["spatial_cov"],
+            model.Y, region=model.region_, spatial_cov=kw_gp["spatial_cov"],
             prior_cov=kw_gp["prior_cov"]), n, L),
     }
 
@@ -407,7 +407,7 @@ def bench_placement(args) -> None:
         for n in ns:
             sel = greedy_sets(paper, model, n)
             if not why:
-                sel["qr"] = qr_same_basis(model._Yv, n)
+                sel["qr"] = qr_same_basis(model.Y, n)
                 sel["qrn"], _ = qr_cells(paper, train, n, modes=n)
             row = []
             for key, _ in PLACE_COLS[:-1]:

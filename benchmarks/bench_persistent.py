@@ -104,7 +104,7 @@ def align(model, truth, n_train):
     """``M`` with ``X_ ~ M (X_true - mean)`` over the training snapshots (least squares)."""
     Xt = truth["mu"][:, None] + truth["Z"][:, :n_train]
     Xc = Xt - Xt.mean(axis=1, keepdims=True)
-    X = model._Xv
+    X = model.X
     return X @ Xc.T @ np.linalg.inv(Xc @ Xc.T)
 
 
@@ -127,7 +127,7 @@ def a_recovery(n_times: int, seeds: tuple = (0, 1, 2)) -> None:
         X = truth["mu"][:, None] + truth["Z"]
         Xc = X - X.mean(axis=1, keepdims=True)
         M = align(model, truth, n_times)
-        Xf = model._Xv - model._Xv.mean(axis=1, keepdims=True)
+        Xf = model.X - model.X.mean(axis=1, keepdims=True)
         r2 = 1 - ((Xf - M @ Xc) ** 2).sum() / (Xf ** 2).sum()
         A = truth["A"]
         Minv = np.linalg.inv(M)
@@ -136,7 +136,7 @@ def a_recovery(n_times: int, seeds: tuple = (0, 1, 2)) -> None:
             return np.linalg.norm(dyn.transformed(Minv).A - A) / np.linalg.norm(A)
 
         est = unblended_dynamics(model)
-        raw = estimate_ar1(model._Xv, model.X_["time"])
+        raw = estimate_ar1(model.X, model.X_["time"])
         Z0, Z1 = Xc[:, :-1], Xc[:, 1:]
         floor = np.linalg.norm(Z1 @ Z0.T @ np.linalg.inv(Z0 @ Z0.T) - A) / np.linalg.norm(A)
         print(f"A recovery, {n_times} snapshots, seed {seed}: relative Frobenius error "
@@ -373,7 +373,7 @@ def _paper_day(model, region, shape, truth, times, check_exact: bool = False) ->
         stages["forecast (maps)"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         kw = state.planner_kwargs("gp-variance")
-        plan = plan_greedy(model._Yv, region, start, 200, criterion="gp-variance",
+        plan = plan_greedy(model.Y, region, start, 200, criterion="gp-variance",
                            cost="insertion", initial="start", progress=False, **kw)
         stages["plan (budget 200)"] = time.perf_counter() - t0
         cells = np.unique(np.asarray(plan.cells, dtype=np.int64))
@@ -393,7 +393,7 @@ def _paper_day(model, region, shape, truth, times, check_exact: bool = False) ->
         import lrm_cvx.information as info
         from lrm_cvx.planning.greedy import budget_pool
 
-        o = info.make_oracle("gp-variance", model._Yv, 0.0, np.array([start]), region=region,
+        o = info.make_oracle("gp-variance", model.Y, 0.0, np.array([start]), region=region,
                              spatial_cov=kw["spatial_cov"], prior_cov=kw["prior_cov"],
                              pool=budget_pool(region, start, 200.0),
                              target_weights=kw.get("target_weights"))
@@ -403,7 +403,7 @@ def _paper_day(model, region, shape, truth, times, check_exact: bool = False) ->
         del o
         saved, info.GP_BOUNDARY_TOL = info.GP_BOUNDARY_TOL, 0.0
         t0 = time.perf_counter()
-        exact = plan_greedy(model._Yv, region, start, 200, criterion="gp-variance",
+        exact = plan_greedy(model.Y, region, start, 200, criterion="gp-variance",
                             cost="insertion", initial="start", progress=False, **kw)
         info.GP_BOUNDARY_TOL = saved
         a, b = set(np.asarray(plan.cells).tolist()), set(np.asarray(exact.cells).tolist())
@@ -434,7 +434,7 @@ def _als_continue(model, train, n_iter: int, rts: bool):
     off = np.zeros(D.shape[1]) if getattr(m, "offset_", None) is None else m.offset_
     Z = np.where(M, D - off, 0.0)
     Mf = M.astype(np.float64)
-    X, Y = m._Xv.copy(), m._Yv.copy()
+    X, Y = m.X.copy(), m.Y.copy()
     k = X.shape[0]
     s2 = float(m.noise_std_) ** 2
     times = m.X_["time"]

@@ -170,8 +170,8 @@ def run_free(name: str, da: xr.DataArray, ns, n_random) -> None:
     region = model.region_
     L = region.n_cells
     vals = region.stack(test).astype(np.float64)
-    Yp = paper._Yv
-    Y = model._Yv
+    Yp = paper.Y
+    Y = model.Y
     kw_post = model.planner_kwargs(prior="empirical")
     kw_gp = model.planner_kwargs(prior="empirical", spatial=True)
     rng = np.random.default_rng(0)

@@ -29,13 +29,9 @@ def rss_gb() -> float:
 
 
 def main() -> None:
+    from lrm_cvx.glrm.foldin import residual_correction
     from lrm_cvx.region import Region
-    from lrm_cvx.spatial import (
-        ResidualCovariance,
-        fit_residual_covariance,
-        krige,
-        residual_correction,
-    )
+    from lrm_cvx.spatial import ResidualCovariance, fit_residual_covariance, krige
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--small", action="store_true")

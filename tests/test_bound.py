@@ -1,5 +1,5 @@
 """Tests of the D-optimal relaxation bound (planning/dopt.py) and the plan certificate
-(planning/certificate.py), through the old import location planning/bound.py.
+(planning/certificate.py).
 
 References are written plainly here: brute force over all subsets, a direct cvxpy model of the
 relaxation (``cp.log_det`` of the full weighted sum), and scans of the dual function.
@@ -20,9 +20,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lrm_cvx.errors import ConvergenceWarning, PlanningError
-from lrm_cvx.planning import bound as B
+from lrm_cvx.planning import certificate as B
 from lrm_cvx.planning import dopt as D
-from lrm_cvx.planning.bound import certify_weights, dopt_upper_bound, dual_value
+from lrm_cvx.planning.dopt import certify_weights, dopt_upper_bound, dual_value
 from lrm_cvx.region import Region
 
 
@@ -137,7 +137,7 @@ def test_closed_form_scale_and_multiplier_match_a_scan(n):
     value, primal = certify_weights(Y, w, n, ridge=ridge)
     # closed form: t = k / S, nu = t * mu with mu from the sort
     g = np.einsum("ai,ab,bi->i", Y, Minv, Y)
-    top, mu = B._top_sum(g, n)
+    top, mu = D._top_sum(g, n)
     S = ridge * np.trace(Minv) + top
     t_best = k / S
     closed = dual_value(Y, t_best * Minv, t_best * mu, n, ridge=ridge)
@@ -167,7 +167,7 @@ def test_top_sum_matches_sorting():
     for n in [0.3, 1, 2.5, 7, 29.9, 30, 45]:
         m = math.floor(n)
         expect = desc[:m].sum() + (n - m) * (desc[m] if m < g.size else 0.0)
-        got, mu = B._top_sum(g, n)
+        got, mu = D._top_sum(g, n)
         assert got == pytest.approx(expect)
         # mu minimises mu n + sum max(0, g - mu)
         def obj(x, n=n):
@@ -197,9 +197,9 @@ def test_column_generation_equals_solving_all_candidates_at_once():
     b = dopt_upper_bound(Y, n, tol=1e-6)
     assert b.n_working < L  # column generation did not need every cell
     # one cvxpy solve over every candidate at once (no working set, no scaling)
-    w_all, status = B._solve_restricted(Y, np.zeros((k, k)), n, "CLARABEL")
+    w_all, status = D._solve_restricted(Y, np.zeros((k, k)), n, "CLARABEL")
     assert w_all is not None, status
-    v_all, p_all = certify_weights(Y, B._feasible(w_all, n), n)
+    v_all, p_all = certify_weights(Y, D._feasible(w_all, n), n)
     assert b.primal == pytest.approx(p_all, abs=1e-5)
     assert b.value == pytest.approx(v_all, abs=1e-5)
 
@@ -409,7 +409,7 @@ def test_polytope_lp_reduction_and_dual_term_match_the_full_lp():
     rng = np.random.default_rng(4)
     for trial in range(15):
         N = int(rng.integers(20, 200))
-        poly = B._Polytope(float(rng.integers(3, 12)), N, *random_levels(rng, N, (3, 4)))
+        poly = D._Polytope(float(rng.integers(3, 12)), N, *random_levels(rng, N, (3, 4)))
         g = rng.uniform(0, 1, N)
         if trial % 3 == 0:  # ties, as on a smooth field
             g = np.round(g, 1)

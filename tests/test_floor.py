@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 from test_bound import _grid_Y, grid_distances, logdet, make_region, path_feasible_sets
 
 from lrm_cvx.errors import PlanningError, RegionError
+from lrm_cvx.experimental.floor import convex_floor, route_mixture
 from lrm_cvx.planning import relaxation as R
-from lrm_cvx.planning.floor import convex_floor, route_mixture
 from lrm_cvx.planning.plan import path_cumulative
 
 

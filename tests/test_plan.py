@@ -94,7 +94,7 @@ def test_len_repr_eq(setup):
 
 
 def test_certify_calls_plan_bound(setup, monkeypatch):
-    from lrm_cvx.planning import bound
+    from lrm_cvx.planning import certificate as bound
 
     Y, region, start, plan = setup
     seen = {}

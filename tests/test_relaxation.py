@@ -12,7 +12,7 @@ import scipy.optimize
 from test_bound import _grid_Y, grid_distances, logdet, make_region, path_feasible_sets
 
 from lrm_cvx.errors import PlanningError
-from lrm_cvx.planning import bound as B
+from lrm_cvx.planning import certificate as B
 from lrm_cvx.planning import relaxation as R
 
 

@@ -11,16 +11,15 @@ from scipy.special import kv
 
 from lrm_cvx import Region
 from lrm_cvx.errors import DataError, LrmError, ModelError, RegionError
+from lrm_cvx.glrm.foldin import gls_fold_in, residual_correction
 from lrm_cvx.spatial import (
     MODELS,
     ResidualCovariance,
     correlation,
     empirical_variogram,
     fit_residual_covariance,
-    gls_fold_in,
     krige,
     krige_many,
-    residual_correction,
 )
 
 

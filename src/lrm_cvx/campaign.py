@@ -17,7 +17,7 @@ import xarray as xr
 
 from ._validation import as_generator, check_positive
 from .errors import DataError, ModelError
-from .glrm.dynamics import TEMPORAL, check_times
+from .glrm.dynamics import check_times, temporal_value
 from .glrm.dynamics import estimate as estimate_dynamics
 from .monitor import MonitorState
 
@@ -34,16 +34,15 @@ def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
 
     if isinstance(temporal, Dynamics):
         return temporal, False
-    if temporal not in TEMPORAL:
-        raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
+    temporal = temporal_value(temporal)
     if temporal is None:
         return None, True
     dyn = getattr(model, "dynamics_", None)
     if dyn is not None and dyn.kind == temporal:
         return dyn, False
     X = model.X_
-    times = X[X.dims[1]] if isinstance(X, xr.DataArray) else np.arange(model._Xv.shape[1])
-    return estimate_dynamics(temporal, model._Xv, times), False
+    times = X[X.dims[1]] if isinstance(X, xr.DataArray) else np.arange(model.X.shape[1])
+    return estimate_dynamics(temporal, model.X, times), False
 
 
 def _plan_day(state: MonitorState, method: str, start: int, budget: float,
@@ -54,7 +53,7 @@ def _plan_day(state: MonitorState, method: str, start: int, budget: float,
     from .planning import plan_greedy
 
     model = state.model
-    Y, region = model._Yv, model.region_
+    Y, region = model.Y, model.region_
     cost = options.get("cost", "nearest-neighbor")
     ridge = float(options.get("ridge", 0.0))
     if method.startswith("greedy:"):

@@ -38,17 +38,11 @@ from .cli_common import (
     write_plan,
 )
 from .errors import LrmError
+from .recommended import RECOMMENDED  # switched on by --recommended (one dict with the demo)
 
 __all__ = ["main", "build_parser", "RECOMMENDED"]
 
 DEMO_DIR = Path("lrm-cvx-demo")
-
-#: The recommended setting of docs/reconstruction.md, switched on by ``--recommended``:
-#: fit ``GLRM(offset=True, spatial="exponential")``, plan with the gp-variance criterion from
-#: the start cell alone, predict with the empirical prior and the kriged GP residual.
-RECOMMENDED = {"offset": True, "spatial": "exponential", "criterion": "gp-variance",
-               "method": "greedy:gp-variance", "initial": "start", "prior": "empirical",
-               "fold_spatial": True}
 
 #: ``--certify`` levels: the library's ``certify="fast"|"tight"`` and ``"off"`` (False).
 CERTIFY_LEVELS = ("fast", "tight", "off")

@@ -95,7 +95,7 @@ def _init_locked(args: argparse.Namespace, out: Path) -> int:
         from .glrm.dynamics import estimate
 
         X = model.X_
-        dynamics = estimate(args.temporal, model._Xv, X[X.dims[1]])
+        dynamics = estimate(args.temporal, model.X, X[X.dims[1]])
     elif not args.memoryless and getattr(model, "dynamics_", None) is None:
         raise _usage(f"model {args.model} has no dynamics: pass --temporal ar1 (or seasonal) "
                      "to estimate them from the model, or --memoryless")
@@ -120,7 +120,7 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
     if criterion is None:
         criterion = "gp-variance" if state.posterior.obs_model.is_spatial else "fisher"
     kw = state.planner_kwargs(criterion=criterion, time=args.time)
-    plan = plan_greedy(model._Yv, model.region_, parse_start(args.start), args.budget,
+    plan = plan_greedy(model.Y, model.region_, parse_start(args.start), args.budget,
                        criterion=criterion, cost=args.cost, ridge=args.ridge,
                        progress=not args.quiet, initial="start", **kw)
     t = state._default_time(args.time)

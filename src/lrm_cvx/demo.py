@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from ._blas import single_threaded_blas
+from .recommended import RECOMMENDED as SETTING  # the setting; RECOMMENDED here is its label
 
 __all__ = ["run_demo", "DemoResult", "DEMO_SETTINGS", "RECOMMENDED", "PAPER", "format_summary"]
 
@@ -135,7 +136,7 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
     train = data.isel(time=slice(None, -n_test))
     say(f"sample {cfg['sample']!r}: {dict(data.sizes)} {data.attrs.get('long_name', '')} "
         f"({units}); training on {train.sizes['time']}, testing on the last {n_test} snapshots")
-    rec = GLRM(rank, offset=True, spatial="exponential", random_state=seed,
+    rec = GLRM(rank, offset=SETTING["offset"], spatial=SETTING["spatial"], random_state=seed,
                progress=False).fit(train)
     t = lap("fit recommended", t)
     paper = GLRM(rank, random_state=seed, progress=False).fit(train)
@@ -145,15 +146,16 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
     common = dict(rank=rank, n_test=n_test, budgets=cfg["budgets"], n_starts=int(cfg["n_starts"]),
                   random_trials=int(cfg["random_trials"]),
                   min_observations=int(cfg["min_observations"]), seed=seed, progress=False)
-    res_rec = evaluate(data, model=rec, methods=("greedy:gp-variance", *BASELINES),
-                       fold_in={"prior": "empirical", "spatial": True}, certify=False, **common)
+    res_rec = evaluate(data, model=rec, methods=(SETTING["method"], *BASELINES),
+                       fold_in={"prior": SETTING["prior"], "spatial": SETTING["fold_spatial"]},
+                       certify=False, **common)
     t = lap("evaluate recommended", t)
     res_paper = evaluate(data, model=paper, methods=("greedy",), certify="fast", **common)
     t = lap("evaluate paper (+ certify)", t)
     say(f"evaluated {len(cfg['budgets'])} budgets x {cfg['n_starts']} starts x {n_test} test "
         f"snapshots ({timings['evaluate recommended'] + timings[list(timings)[-1]]:.1f} s)")
 
-    rows = _mse_rows(res_rec, "greedy:gp-variance", RECOMMENDED)
+    rows = _mse_rows(res_rec, SETTING["method"], RECOMMENDED)
     rows += _mse_rows(res_paper, "greedy", PAPER)
     for m in BASELINES:
         rows += _mse_rows(res_rec, m, _BASELINE_LABEL[m])
@@ -189,14 +191,14 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
     start = int(res_rec["start_cell"].values[0])
     snap = data.isel(time=train.sizes["time"])
     values = region.stack(snap)
-    kw = rec.planner_kwargs(prior="empirical", spatial=True)
+    kw = rec.planner_kwargs(prior=SETTING["prior"], spatial=True)
     panel_rows = []
     budgets = cfg["budgets"]
     for b in sorted({budgets[0], budgets[-1]}):
-        plan = plan_greedy(rec.Y_, region, start, b, criterion="gp-variance", initial="start",
-                           progress=False, **kw)
+        plan = plan_greedy(rec.Y_, region, start, b, criterion=SETTING["criterion"],
+                           initial=SETTING["initial"], progress=False, **kw)
         panel_rows.append(_panel(rec, values, plan.route, region, f"recommended, budget {b:g}",
-                                 units, prior="empirical", spatial=True))
+                                 units, prior=SETTING["prior"], spatial=SETTING["fold_spatial"]))
     route = res_paper["greedy_route"].sel(budget=budgets[-1]).isel(start=0).values
     route = route[route >= 0]
     panel_rows.append(_panel(paper, values, route, region,

@@ -236,11 +236,9 @@ def _model_coverage(prior: LatentPosterior, values: np.ndarray, subsets: list[np
 
 
 def _check_temporal(temporal: Any) -> str | None:
-    from .glrm.dynamics import TEMPORAL
+    from .glrm.dynamics import temporal_value
 
-    if temporal not in TEMPORAL:
-        raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
-    return temporal
+    return temporal_value(temporal)
 
 
 def _campaign_errors(model: Any, test: xr.DataArray, start: int, budget: float, method: str,

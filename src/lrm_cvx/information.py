@@ -31,12 +31,24 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
-import numba
 import numpy as np
 
-from ._validation import as_factor_matrix, check_positive
+from ._validation import as_factor_matrix
 from .errors import PlanningError
+from .oracles import (  # noqa: F401  (the Fisher and A-optimal oracles: re-exported)
+    AOptimalOracle,
+    FisherOracle,
+    a_optimal_value,
+    cells_array,
+    fisher_information,
+)
 from .registry import Registry
+from .spatial.kriging import (  # noqa: F401  (GridConv and the GP helpers: the old location)
+    GridConv,
+    check_gp_inputs,
+    gp_latent_cov,
+    gp_noise,
+)
 
 __all__ = [
     "fisher_information",
@@ -68,242 +80,6 @@ CRITERION_REGISTRY = Registry("criterion", PlanningError)
 module; ``CRITERIA`` is its ``choices()``."""
 
 
-def _gram(Y: np.ndarray, cells: np.ndarray, ridge: float) -> np.ndarray:
-    """``ridge * I + Y[:, cells] Y[:, cells]^T`` as a ``(k, k)`` float64 matrix."""
-    Yp = Y[:, cells]
-    return ridge * np.eye(Y.shape[0]) + Yp @ Yp.T
-
-
-def _cells_array(cells: Any, n_cols: int) -> np.ndarray:
-    arr = np.asarray(cells if cells is not None else [], dtype=np.int64).ravel()
-    if arr.size and (arr.min() < 0 or arr.max() >= n_cols):
-        raise PlanningError(f"cells must be column indices in [0, {n_cols}), got {arr}")
-    return arr
-
-
-def fisher_information(Y: Any, cells: Any, ridge: float = 0.0) -> float:
-    """``log det(ridge I + sum_{p in cells} y_p y_p^T)``; ``-inf`` when the matrix is singular.
-
-    ``Y`` is ``(k, L)`` (array or a model's ``Y_`` DataArray ``(component, cell)``), ``cells``
-    column indices (repeats count twice), ``ridge >= 0``.
-    """
-    Y = as_factor_matrix(Y)
-    ridge = check_positive(ridge, "ridge", error=PlanningError)
-    cells = _cells_array(cells, Y.shape[1])
-    sign, logdet = np.linalg.slogdet(_gram(Y, cells, ridge))
-    return float(logdet) if sign > 0 else -np.inf
-
-
-def a_optimal_value(Y: Any, cells: Any, ridge: float) -> float:
-    """Total prediction variance ``sum_i y_i^T (ridge I + sum_{p in cells} y_p y_p^T)^-1 y_i``.
-
-    The sum runs over every column ``i`` of ``Y``; ``ridge`` must be ``> 0``. Lower is better;
-    the A-optimal gain of a cell is the decrease of this value when the cell is added.
-    """
-    Y = as_factor_matrix(Y)
-    ridge = check_positive(ridge, "ridge", error=PlanningError)
-    if ridge <= 0:
-        raise PlanningError("the a-optimal criterion needs ridge > 0 (e.g. ridge=1e-6)")
-    cells = _cells_array(cells, Y.shape[1])
-    M = _gram(Y, cells, ridge)
-    W = Y @ Y.T
-    return float(np.trace(np.linalg.solve(M, W)))
-
-
-# --------------------------------------------------------------------------- compiled kernels
-@numba.njit(cache=True, nogil=True)
-def _fisher_gains(Y, S, idx, out):  # pragma: no cover - compiled
-    """out[j] = log1p(y^T S y) for y = Y[:, idx[j]] (idx < 0: all columns in order)."""
-    k = Y.shape[0]
-    n = out.shape[0]
-    y = np.empty(k)
-    for j in range(n):
-        c = j if idx.shape[0] == 0 else idx[j]
-        for a in range(k):
-            y[a] = Y[a, c]
-        q = 0.0
-        for a in range(k):
-            s = 0.0
-            for b in range(k):
-                s += S[a, b] * y[b]
-            q += y[a] * s
-        out[j] = np.log1p(q)
-
-
-@numba.njit(cache=True, nogil=True)
-def _aopt_gains(Y, S, SWS, idx, out):  # pragma: no cover - compiled
-    """out[j] = (y^T SWS y) / (1 + y^T S y) for y = Y[:, idx[j]]."""
-    k = Y.shape[0]
-    n = out.shape[0]
-    y = np.empty(k)
-    for j in range(n):
-        c = j if idx.shape[0] == 0 else idx[j]
-        for a in range(k):
-            y[a] = Y[a, c]
-        q = 0.0
-        r = 0.0
-        for a in range(k):
-            s = 0.0
-            t = 0.0
-            for b in range(k):
-                s += S[a, b] * y[b]
-                t += SWS[a, b] * y[b]
-            q += y[a] * s
-            r += y[a] * t
-        out[j] = r / (1.0 + q)
-
-
-# --------------------------------------------------------------------------- oracles
-class _Oracle:
-    """Shared state: the factor matrix, the current set and ``S = M^-1`` in float64."""
-
-    criterion: str = ""
-
-    def __init__(self, Y: Any, ridge: float = 0.0, cells: Any = None, *,
-                 prior_precision: Any = None, noise_var: Any = None) -> None:
-        self.Y = as_factor_matrix(Y)
-        k, L = self.Y.shape
-        self.ridge = check_positive(ridge, "ridge", error=PlanningError)
-        self.cells: list[int] = [int(c) for c in _cells_array(cells, self.Y.shape[1])]
-        self.Yw = self.Y
-        if noise_var is not None:
-            nv = np.asarray(noise_var, dtype=np.float64)
-            if nv.ndim == 0:
-                nv = np.full(L, float(nv))
-            if nv.shape != (L,) or not np.all(np.isfinite(nv)) or np.any(nv <= 0):
-                raise PlanningError(f"noise_var must be a positive scalar or ({L},) array")
-            self.Yw = np.ascontiguousarray(self.Y / np.sqrt(nv))
-        self.P0 = None
-        if prior_precision is not None:
-            P0 = np.asarray(prior_precision, dtype=np.float64)
-            if P0.shape != (k, k) or not np.all(np.isfinite(P0)):
-                raise PlanningError(f"prior_precision must be a finite ({k}, {k}) matrix")
-            self.P0 = 0.5 * (P0 + P0.T)
-        M = self._M(np.asarray(self.cells, dtype=np.int64))
-        sign, logdet = np.linalg.slogdet(M)
-        if sign <= 0 or np.linalg.cond(M) > 1e13:
-            raise PlanningError(
-                f"the information matrix of the {len(self.cells)} initial cells is singular "
-                f"(rank {np.linalg.matrix_rank(M)} < k = {self.Y.shape[0]}); "
-                "pass a small ridge (e.g. ridge=1e-6) or start with more cells"
-            )
-        self.S = np.linalg.inv(M)
-        self.S = 0.5 * (self.S + self.S.T)
-        self._logdet = float(logdet)
-
-    def _M(self, cells: np.ndarray) -> np.ndarray:
-        """``P0 (or ridge I) + sum_{p in cells} w_p y_p y_p^T``."""
-        if self.P0 is None:
-            return _gram(self.Yw, cells, self.ridge)
-        Yp = self.Yw[:, cells]
-        return self.P0 + Yp @ Yp.T
-
-    @property
-    def k(self) -> int:
-        return int(self.Y.shape[0])
-
-    @property
-    def fisher(self) -> float:
-        """Fisher information (log det) of the current set, tracked by the rank-one updates."""
-        return self._logdet
-
-    def _idx(self, candidates: Any) -> np.ndarray:
-        if candidates is None:
-            return np.empty(0, dtype=np.int64)
-        idx = np.ascontiguousarray(candidates, dtype=np.int64).ravel()
-        if idx.size and (idx.min() < 0 or idx.max() >= self.Y.shape[1]):
-            raise PlanningError(f"candidates must be column indices in [0, {self.Y.shape[1]})")
-        return idx
-
-    def add(self, cell: int) -> None:
-        """Add ``cell`` to the set: Sherman-Morrison update of ``S``, ``O(k^2)``."""
-        y = self.Yw[:, int(cell)]
-        u = self.S @ y
-        q = float(y @ u)
-        self.S -= np.outer(u, u) / (1.0 + q)
-        self.S = 0.5 * (self.S + self.S.T)
-        self._logdet += float(np.log1p(q))
-        self.cells.append(int(cell))
-        self._after_add()
-
-    def _after_add(self) -> None:
-        pass
-
-
-class FisherOracle(_Oracle):
-    """Gains ``I(P + x) - I(P) = log(1 + y_x^T M^-1 y_x)`` of the Fisher information.
-
-    Parameters
-    ----------
-    Y : ``(k, L)`` factor matrix.
-    ridge : ``>= 0``; ``M = ridge I + sum_P y_p y_p^T``.
-    cells : the initial set ``P``; ``M`` must be nonsingular (else :class:`PlanningError`).
-    """
-
-    criterion = "fisher"
-
-    def gains(self, candidates: Any = None) -> np.ndarray:
-        """Gain of every column (``(L,)``) or of the given column indices (``(n,)``), float64."""
-        idx = self._idx(candidates)
-        out = np.empty(idx.size if candidates is not None else self.Y.shape[1])
-        _fisher_gains(self.Yw, self.S, idx, out)
-        return out
-
-    @property
-    def value(self) -> float:
-        """The criterion's value for the current set: its Fisher information."""
-        return self._logdet
-
-
-class AOptimalOracle(_Oracle):
-    """Gains of the A-optimal criterion: decrease of ``V(P) = sum_i y_i^T M^-1 y_i``.
-
-    ``gain(x) = (y_x^T S W S y_x) / (1 + y_x^T S y_x)`` with ``S = M^-1`` and ``W = Y Y^T`` over
-    all columns of ``Y`` (or ``weight`` when given, a ``(k, k)`` PSD matrix, or
-    ``sum_i c_i y_i y_i^T`` with ``target_weights`` ``c``). Needs ``ridge > 0`` or a
-    ``prior_precision``; with ``noise_var`` the candidates' ``y`` are ``y / sigma``.
-    """
-
-    criterion = "a-optimal"
-
-    def __init__(self, Y: Any, ridge: float = 0.0, cells: Any = None, weight: Any = None, *,
-                 prior_precision: Any = None, noise_var: Any = None,
-                 target_weights: Any = None) -> None:
-        if (check_positive(ridge, "ridge", error=PlanningError) <= 0
-                and prior_precision is None):
-            raise PlanningError("the a-optimal criterion needs ridge > 0 (e.g. ridge=1e-6) or "
-                                "a prior_precision")
-        super().__init__(Y, ridge, cells, prior_precision=prior_precision, noise_var=noise_var)
-        if weight is not None:
-            self.W = np.asarray(weight, dtype=np.float64)
-        elif target_weights is not None:
-            c = np.asarray(target_weights, dtype=np.float64)
-            if c.shape != (self.Y.shape[1],) or np.any(c < 0):
-                raise PlanningError(f"target_weights must be ({self.Y.shape[1]},) and >= 0")
-            self.W = (self.Y * c) @ self.Y.T
-        else:
-            self.W = self.Y @ self.Y.T
-        if self.W.shape != (self.k, self.k):
-            raise PlanningError(f"weight must be ({self.k}, {self.k}), got {self.W.shape}")
-        self._after_add()
-
-    def _after_add(self) -> None:
-        self.SWS = self.S @ self.W @ self.S
-        self.SWS = 0.5 * (self.SWS + self.SWS.T)
-
-    def gains(self, candidates: Any = None) -> np.ndarray:
-        """Variance reduction of every column (``(L,)``) or of the given columns (``(n,)``)."""
-        idx = self._idx(candidates)
-        out = np.empty(idx.size if candidates is not None else self.Y.shape[1])
-        _aopt_gains(self.Yw, self.S, self.SWS, idx, out)
-        return out
-
-    @property
-    def value(self) -> float:
-        """The criterion's value for the current set: total variance ``trace(S W)``."""
-        return float(np.sum(self.S * self.W))
-
-
 def make_oracle(
     criterion: str, Y: Any, ridge: float = 0.0, cells: Any = None, **kwargs: Any
 ) -> FisherOracle | AOptimalOracle | GPVarianceOracle | StructuredGPVarianceOracle:
@@ -319,48 +95,6 @@ def make_oracle(
 
 
 # --------------------------------------------------------------------------- GP variance
-def gp_noise(spatial_cov: Any) -> float:
-    """Observation noise of the GP criterion: the nugget, floored at 1e-9 x the total variance
-    (a fitted nugget of ~0 would make the posterior variance at observed cells exactly 0)."""
-    return max(float(spatial_cov.nugget), 1e-9 * float(spatial_cov.total_variance))
-
-
-def gp_latent_cov(Y: np.ndarray, S0: np.ndarray, region: Any, spatial_cov: Any,
-                   rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """``K(rows, cols) = y_i^T S0 y_j + sill rho(d_ij)``: prior covariance of the latent field
-    (low-rank trend with prior ``N(., S0)`` plus the GP residual without its nugget)."""
-    from scipy.spatial.distance import cdist
-
-    from . import spatial as sp
-
-    a = sp._coords(region, spatial_cov.metric, rows)
-    b = sp._coords(region, spatial_cov.metric, cols)
-    K = spatial_cov.covariance(sp._arc(cdist(a, b), spatial_cov.metric), nugget=False)
-    K += Y[:, rows].T @ S0 @ Y[:, cols]
-    return K
-
-
-def check_gp_inputs(Y: np.ndarray, region: Any, spatial_cov: Any, prior_cov: Any
-                    ) -> np.ndarray:
-    """The gp-variance criterion's inputs checked (PlanningError naming the missing one): a
-    Region, a ResidualCovariance and a finite ``(k, k)`` prior covariance of the latent vector
-    (``k = Y.shape[0]``); returns the symmetrised prior covariance ``S0``."""
-    from .region import Region
-    from .spatial import ResidualCovariance
-
-    if not isinstance(region, Region):
-        raise PlanningError("the gp-variance criterion needs the region")
-    if not isinstance(spatial_cov, ResidualCovariance):
-        raise PlanningError("the gp-variance criterion needs spatial_cov (a ResidualCovariance, "
-                            "e.g. model.spatial_cov_ of GLRM(spatial='exponential'))")
-    k = Y.shape[0]
-    S0 = np.asarray(prior_cov, dtype=np.float64) if prior_cov is not None else None
-    if S0 is None or S0.shape != (k, k) or not np.all(np.isfinite(S0)):
-        raise PlanningError(f"the gp-variance criterion needs prior_cov, a ({k}, {k}) matrix "
-                            "(the prior covariance of x, e.g. from prior='empirical')")
-    return 0.5 * (S0 + S0.T)
-
-
 def gp_variance_value(Y: Any, region: Any, spatial_cov: Any, prior_cov: Any, cells: Any,
                       targets: Any = None, target_weights: Any = None) -> float:
     """Total posterior variance ``sum_{i in targets} c_i Var(f_i | d_cells)`` of the latent
@@ -371,7 +105,7 @@ def gp_variance_value(Y: Any, region: Any, spatial_cov: Any, prior_cov: Any, cel
     L = Y.shape[1]
     T = np.arange(L) if targets is None else np.asarray(targets, dtype=np.int64)
     c = np.ones(T.size) if target_weights is None else np.asarray(target_weights, float)[T]
-    P = _cells_array(cells, L)
+    P = cells_array(cells, L)
     prior = np.einsum("ai,ab,bi->i", Y[:, T], S0, Y[:, T]) + spatial_cov.sill
     if P.size == 0:
         return float(c @ prior)
@@ -403,8 +137,8 @@ class GPVarianceOracle:
         S0 = check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
         L = self.Y.shape[1]
         self.pool = (np.arange(L) if pool is None
-                     else np.unique(_cells_array(pool, L)))
-        T = np.arange(L) if targets is None else np.unique(_cells_array(targets, L))
+                     else np.unique(cells_array(pool, L)))
+        T = np.arange(L) if targets is None else np.unique(cells_array(targets, L))
         rows = np.union1d(T, self.pool)
         if rows.size * self.pool.size > max_entries:
             raise PlanningError(
@@ -416,7 +150,7 @@ class GPVarianceOracle:
         self._tw = c[T]
         self._pool_in_rows = np.searchsorted(rows, self.pool)
         self.noise = gp_noise(spatial_cov)
-        self.cells: list[int] = [int(v) for v in _cells_array(cells, L)]
+        self.cells: list[int] = [int(v) for v in cells_array(cells, L)]
         C = gp_latent_cov(self.Y, S0, region, spatial_cov, rows, self.pool)
         prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
         self._value = float(self._tw @ prior_var)
@@ -478,35 +212,6 @@ GP_STRUCTURED_MIN_ENTRIES: float = 2e7
 covariances (``|targets + pool| x |pool|``) and the covariance's metric is ``"grid"``."""
 
 
-class GridConv:
-    """``out[x] = sum_{i in window} f[i] h(|i - x|)`` for ``x`` in an output rectangle, by FFT.
-
-    ``window`` and ``out`` are grid rectangles ``(row0, col0, n_rows, n_cols)`` (grid units);
-    ``h`` a function of the Euclidean grid distance. Linear (not circular) convolution: the FFT
-    size is ``window + out - 1`` per axis, so the result is exact up to float rounding.
-    """
-
-    def __init__(self, window: tuple[int, int, int, int], out: tuple[int, int, int, int],
-                 h: Any) -> None:
-        import scipy.fft as sfft
-
-        r0, c0, a, b = window
-        o_r, o_c, oa, ob = out
-        self.a, self.b, self.oa, self.ob = a, b, oa, ob
-        self.s = (sfft.next_fast_len(a + oa - 1, real=True),
-                  sfft.next_fast_len(b + ob - 1, real=True))
-        dr = np.arange(o_r - r0 - a + 1, o_r + oa - r0, dtype=np.float64)
-        dc = np.arange(o_c - c0 - b + 1, o_c + ob - c0, dtype=np.float64)
-        tab = h(np.sqrt(dr[:, None] ** 2 + dc[None, :] ** 2))
-        self.H = sfft.rfft2(tab, s=self.s)
-
-    def __call__(self, f: np.ndarray) -> np.ndarray:
-        import scipy.fft as sfft
-
-        full = sfft.irfft2(sfft.rfft2(f, s=self.s, workers=-1) * self.H, s=self.s, workers=-1)
-        return full[self.a - 1:self.a - 1 + self.oa, self.b - 1:self.b - 1 + self.ob]
-
-
 def _rect(lo: np.ndarray, hi: np.ndarray, margin: float, shape: tuple[int, int]
           ) -> tuple[int, int, int, int]:
     """Grid rectangle ``(row0, col0, n_rows, n_cols)`` of ``[lo - margin, hi + margin]``,
@@ -566,14 +271,14 @@ class StructuredGPVarianceOracle:
         if not 0 < truncation < 1:
             raise PlanningError(f"truncation must be in (0, 1), got {truncation}")
         k, L = self.Y.shape
-        self.pool = np.arange(L) if pool is None else np.unique(_cells_array(pool, L))
-        T = np.arange(L) if targets is None else np.unique(_cells_array(targets, L))
+        self.pool = np.arange(L) if pool is None else np.unique(cells_array(pool, L))
+        T = np.arange(L) if targets is None else np.unique(cells_array(targets, L))
         c = np.ones(L) if target_weights is None else np.asarray(target_weights, float)
         if c.shape != (L,) or np.any(c < 0) or not np.all(np.isfinite(c)):
             raise PlanningError(f"target_weights must be ({L},), finite and >= 0")
         cT = np.zeros(L)
         cT[T] = c[T]
-        init = _cells_array(cells, L)
+        init = cells_array(cells, L)
         X = np.union1d(self.pool, init)
         self._X = X
         self.noise = gp_noise(spatial_cov)
@@ -835,7 +540,7 @@ def _share(S: np.ndarray, YP: np.ndarray, W: np.ndarray, u: np.ndarray, sx: np.n
 
 
 def _targets_weights(L: int, targets: Any, target_weights: Any) -> np.ndarray:
-    T = np.arange(L) if targets is None else np.unique(_cells_array(targets, L))
+    T = np.arange(L) if targets is None else np.unique(cells_array(targets, L))
     c = np.ones(L) if target_weights is None else np.asarray(target_weights, float)
     cT = np.zeros(L)
     cT[T] = c[T]
@@ -858,7 +563,7 @@ def gp_residual_share(Y: Any, region: Any, spatial_cov: Any, prior_cov: Any, poo
     if spatial_cov.metric != "grid":
         raise PlanningError("gp_residual_share needs spatial_cov.metric 'grid'")
     L = Yk.shape[1]
-    P = np.unique(_cells_array(pool, L)) if pool is not None else np.arange(L)
+    P = np.unique(cells_array(pool, L)) if pool is not None else np.arange(L)
     cT = _targets_weights(L, targets, target_weights)
     u, sx = _residual_terms(Yk, region, spatial_cov, P, cT)
     return _share(S0, Yk[:, P], (Yk * cT) @ Yk.T, u, sx)
@@ -891,7 +596,7 @@ class TrendGPVarianceOracle(AOptimalOracle):
         noise = gp_noise(spatial_cov) + float(spatial_cov.sill)
         super().__init__(Yk, 0.0, cells, prior_precision=0.5 * (P0 + P0.T), noise_var=noise,
                          target_weights=cT)
-        self.pool = np.arange(L) if pool is None else np.unique(_cells_array(pool, L))
+        self.pool = np.arange(L) if pool is None else np.unique(cells_array(pool, L))
         self._resid = float(spatial_cov.sill) * float(cT.sum())
         self._share_terms = share_terms  # (u, s) at the pool cells, when already computed
         if share_terms is None and spatial_cov.metric == "grid":
@@ -923,8 +628,8 @@ def _gp_oracle(Y: Any, cells: Any, gp_method: str = "auto", **kwargs: Any
         Yk = as_factor_matrix(Y)
         L = Yk.shape[1]
         pool, targets = kwargs.get("pool"), kwargs.get("targets")
-        n_pool = L if pool is None else np.unique(_cells_array(pool, L)).size
-        T = np.arange(L) if targets is None else np.unique(_cells_array(targets, L))
+        n_pool = L if pool is None else np.unique(cells_array(pool, L)).size
+        T = np.arange(L) if targets is None else np.unique(cells_array(targets, L))
         n_rows = L if pool is None else np.union1d(T, np.asarray(pool, dtype=np.int64)).size
         metric = getattr(kwargs.get("spatial_cov"), "metric", "grid")
         big = float(n_rows) * float(n_pool) > GP_STRUCTURED_MIN_ENTRIES
@@ -973,7 +678,7 @@ def _posterior_matrix(Y: Any, cells: Any, ridge: float, prior_precision: Any,
     nv = np.broadcast_to(np.asarray(1.0 if noise_var is None else noise_var, float),
                          (Yk.shape[1],))
     Yw = Yk / np.sqrt(nv)
-    P = _cells_array(cells, Yk.shape[1])
+    P = cells_array(cells, Yk.shape[1])
     P0 = (ridge * np.eye(Yk.shape[0]) if prior_precision is None
           else np.asarray(prior_precision, float))
     return Yk, P0 + Yw[:, P] @ Yw[:, P].T

@@ -4,7 +4,8 @@ Criteria, path costs, losses, regularisers, priors, spatial kernels and evaluati
 each a :class:`Registry`: canonical name -> object, with aliases and a one-line description.
 Functions resolve names through :meth:`Registry.get` / :meth:`Registry.canonical`; the CLI's
 ``choices``, the docs' tables (``tests/test_docs_choices.py``) and the contract tests
-(``tests/contracts/``) read the same registries.
+(``tests/contracts/``, which gather them all in ``all_registries.py``) read the same
+registries.
 
 The rule for names (docs/architecture.md, "Names and aliases"): every entry has one canonical
 lower-case name; its aliases are accepted everywhere a name is (Python API, CLI, ``evaluate``'s
@@ -24,7 +25,7 @@ from typing import Any
 
 from .errors import LrmError, ModelError
 
-__all__ = ["Registry", "Entry", "Choices", "PRIOR_REGISTRY", "prior_value", "registries"]
+__all__ = ["Registry", "Entry", "Choices", "PRIOR_REGISTRY", "prior_value"]
 
 
 @dataclass(frozen=True)
@@ -186,24 +187,3 @@ def prior_value(name: Any) -> Any:
     """The value :mod:`lrm_cvx.glrm.predictive` takes for a prior name (``None`` for no prior)."""
     canon = PRIOR_REGISTRY.canonical(name)
     return None if canon == "none" else canon
-
-
-def registries() -> dict[str, Registry]:
-    """Every registry of the package by kind (imports the modules that own them)."""
-    from .cost import COST_REGISTRY
-    from .evaluation import METHOD_REGISTRY
-    from .glrm.losses import LOSS_REGISTRY
-    from .glrm.regularizers import REGULARIZER_REGISTRY
-    from .information import CRITERION_REGISTRY
-    from .spatial import KERNEL_REGISTRY
-
-    return {
-        "criterion": CRITERION_REGISTRY,
-        "cost": COST_REGISTRY,
-        "loss": LOSS_REGISTRY,
-        "regularizer": REGULARIZER_REGISTRY,
-        "prior": PRIOR_REGISTRY,
-        "kernel": KERNEL_REGISTRY,
-        "method": METHOD_REGISTRY,
-    }
-

@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from all_registries import registries
 
 from lrm_cvx.errors import ModelError, PlanningError
-from lrm_cvx.registry import PRIOR_REGISTRY, Choices, Registry, prior_value, registries
+from lrm_cvx.registry import PRIOR_REGISTRY, Choices, Registry, prior_value
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 

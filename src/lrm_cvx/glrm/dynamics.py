@@ -24,11 +24,19 @@ from typing import Any
 import numpy as np
 
 from ..errors import DataError, ModelError
+from ..registry import Registry
 
-__all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "time_numbers",
-           "rts_smooth", "check_times", "seasons", "error_rows", "blend_moments"]
+__all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "temporal_value",
+           "time_numbers", "rts_smooth", "check_times", "seasons", "error_rows",
+           "blend_moments"]
 
-TEMPORAL = (None, "ar1", "seasonal")
+TEMPORAL = Registry("temporal", ModelError)
+"""The temporal models (``GLRM(temporal=...)``, ``evaluate``, campaigns, the CLI's
+``--temporal``): the object is the estimator of the dynamics (None: snapshots independent).
+Read through :func:`temporal_value`; ``ar1`` and ``seasonal`` are registered below their
+estimators."""
+TEMPORAL.register("none", None, description="snapshots independent: no dynamics (the paper's "
+                  "model; pass `None`)", aliases=(None,))
 MAX_RADIUS = 0.99  # spectral radius of A is forced below this
 _MIN_SNAPSHOTS = 3
 ERROR_ROWS = 64  # snapshots whose fold-in covariances average into the error covariance S_e
@@ -529,6 +537,19 @@ def estimate_seasonal(X: Any, times: Any, shrinkage: float = 1e-3,
                     error_cov=_opt_cov(error_cov))
 
 
+TEMPORAL.register("ar1", estimate_ar1, description="AR(1) on the latent vector around its "
+                  "mean, the blend towards the memoryless prior validated")
+TEMPORAL.register("seasonal", estimate_seasonal, description="AR(1) around per-season means "
+                  "(month or day of year; needs two years of dated snapshots)")
+
+
+def temporal_value(temporal: Any, argument: str = "temporal") -> str | None:
+    """The canonical name of ``temporal`` (None for no dynamics): the one check of a temporal
+    choice; an unknown one is a ModelError listing the choices."""
+    canon = TEMPORAL.canonical(temporal, argument)
+    return None if canon == "none" else canon
+
+
 DEFAULT_VALIDATION = 0.2
 
 
@@ -540,11 +561,11 @@ def estimate(temporal: str, X: Any, times: Any, shrinkage: float = 1e-3,
     The model's dynamics (``GLRM(temporal=...)``, ``fit_dynamics``, campaigns, the CLI) come
     from here, with the blend towards the memoryless prior validated on the last 20 % of the
     pairs by default (``validation=None``: the plain AR(1) fit)."""
-    if temporal == "ar1":
-        return estimate_ar1(X, times, shrinkage, initial_cov, validation, error_cov)
-    if temporal == "seasonal":
-        return estimate_seasonal(X, times, shrinkage, initial_cov, validation, error_cov)
-    raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
+    kind = temporal_value(temporal)
+    if kind is None:
+        raise ModelError(f"temporal must be 'ar1' or 'seasonal' to estimate dynamics, got "
+                         f"{temporal!r}")
+    return TEMPORAL.get(kind)(X, times, shrinkage, initial_cov, validation, error_cov)
 
 
 def rts_smooth(G: Any, b: Any, A: Any, Q: Any, mean: Any = None, P0: Any = None

@@ -10,19 +10,26 @@ observations, ``Cov(x) = sigma^2 (Y_S Y_S^T + ridge I)^-1`` (for ``ridge > 0`` t
 covariance under the prior ``x ~ N(0, sigma^2 / ridge I)``). For a fitted model use
 ``GLRM.complete`` or ``GLRM.latent_prior`` (offset, scale, per-cell noise, priors, spatial
 residual).
+
+:func:`gls_fold_in` and :func:`residual_correction` (moved here from ``lrm_cvx.spatial``, which
+still offers them with a DeprecationWarning) are the same fold-in under the GP residual
+covariance: generalised least squares, and trend + kriged residual.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
-from .._validation import check_positive
+from .._validation import as_factor_matrix, check_positive
 from ..errors import DataError, ModelError
+from ..region import Region
+from ..spatial.covariance import ResidualCovariance, cell_xyz
+from ..spatial.kriging import MAX_DIRECT, check_cov, krige_core, prepare_kriging
 from .posterior import LatentPosterior, ObservationModel
 
-__all__ = ["fold_in", "fold_in_many"]
+__all__ = ["fold_in", "fold_in_many", "gls_fold_in", "residual_correction"]
 
 
 def _belief(Y: Any, ridge: float, noise_std: float | None) -> LatentPosterior:
@@ -75,3 +82,107 @@ def fold_in_many(
         post = base.update(obs, V[t, obs])
         x[t], cov[t] = post.mean, post.cov
     return x, cov, n_obs
+
+
+# ------------------------------------------------------------------- GLS and the GP residual
+def _observations(Y: Any, cells: Any, values: Any, region: Region, cov: Any):
+    cov = check_cov(cov)
+    if not isinstance(region, Region):
+        raise DataError(f"region must be a Region, got {type(region).__name__}")
+    Y = as_factor_matrix(Y, region)
+    cells = region.check_cells(np.ravel(cells), "cells")
+    v = np.asarray(values, dtype=np.float64).ravel()
+    if v.size != cells.size:
+        raise DataError(f"values has {v.size} entries, cells has {cells.size}")
+    if np.isinf(v).any():
+        raise DataError("values has infinite entries")
+    if np.unique(cells).size != cells.size:
+        raise DataError("cells has repeated cell indices: give one value per observed cell")
+    ok = np.isfinite(v)
+    return cov, Y, cells[ok], v[ok]
+
+
+def gls_fold_in(
+    Y: Any, cells: Any, values: Any, cov: ResidualCovariance, region: Region, ridge: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised-least-squares fold-in of a new snapshot under the GP residual covariance.
+
+    ``x = (Y_S C^-1 Y_S^T + ridge I)^-1 Y_S C^-1 d_S`` with ``C = K_SS + nugget I`` (``n x n``,
+    one Cholesky), and ``cov_x = (Y_S C^-1 Y_S^T + ridge I)^-1``, the covariance of ``x`` (the
+    posterior covariance under a ``N(0, I / ridge)`` prior when ``ridge > 0``). ``Y`` is
+    ``(k, L)``; NaN values are ignored. Returns ``x (k,)`` and ``cov_x (k, k)``.
+    """
+    cov, Y, cells, d = _observations(Y, cells, values, region, cov)
+    ridge = check_positive(ridge, "ridge", error=ModelError)
+    x, cov_x = _gls(Y, cells, d, cov, region, ridge)
+    return x, cov_x
+
+
+def _gls(Y, cells, d, cov, region, ridge):
+    """GLS fold-in: the posterior of :class:`~lrm_cvx.glrm.posterior.LatentPosterior` with the
+    GP residual and the prior precision ``ridge I`` (flat at 0). Returns ``(x, cov_x)``."""
+    k = Y.shape[0]
+    if cells.size == 0 and ridge == 0:
+        raise ModelError("gls_fold_in needs at least one observation or ridge > 0")
+    obs = ObservationModel(Y, spatial_cov=cov, region=region)
+    post = LatentPosterior.from_moments(obs, precision=ridge * np.eye(k)).update(cells, d)
+    if not post.is_proper:
+        raise ModelError(
+            f"the GLS normal matrix is singular: {cells.size} observations do not determine "
+            f"rank {k} factors (observe more cells or set ridge > 0)")
+    return post.mean, post.cov
+
+
+def residual_correction(
+    Y: Any,
+    cells: Any,
+    values: Any,
+    cov: ResidualCovariance,
+    region: Region,
+    *,
+    fold_in: Literal["gls", "ols"] = "gls",
+    targets: Any = None,
+    ridge: float = 0.0,
+    neighbors: int = 32,
+    method: Literal["auto", "direct", "neighbors"] = "auto",
+    cutoff: float | None = 1e-6,
+    include_nugget: bool = False,
+    return_std: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Prediction ``Y_t^T x + kriged residual`` at ``targets`` (default all cells) and its std.
+
+    ``fold_in="gls"`` (universal kriging): ``x`` from :func:`gls_fold_in`, and the std includes
+    the trend-estimation term, so it is the exact BLUP error under the model. ``fold_in="ols"``
+    (regression kriging): the paper's fold-in ``x = (Y_S Y_S^T + ridge I)^-1 Y_S d_S``, then
+    simple kriging of ``d_S - Y_S^T x``; its std is the residual's kriging std only (the trend is
+    treated as known, so it is optimistic). NaN values are ignored.
+    """
+    cov, Y, cells, d = _observations(Y, cells, values, region, cov)
+    ridge = check_positive(ridge, "ridge", error=ModelError)
+    if fold_in not in ("gls", "ols"):
+        raise ModelError(f"fold_in must be 'gls' or 'ols', got {fold_in!r}")
+    cov, _, tg, neighbors, cutoff, method = prepare_kriging(
+        cov, region, cells, targets, neighbors, cutoff, method)
+    k = Y.shape[0]
+    Ys = Y[:, cells]
+    if fold_in == "gls":
+        x, cov_x = _gls(Y, cells, d, cov, region, ridge)
+    else:
+        G = Ys @ Ys.T + ridge * np.eye(k)
+        x, *_ = np.linalg.lstsq(G, Ys @ d, rcond=None)
+        cov_x = None
+    res = d - Ys.T @ x
+    n = cells.size
+    meth = method if method != "auto" else ("direct" if n <= MAX_DIRECT else "neighbors")
+    trend = fold_in == "gls"
+    mu, var = krige_core(
+        cov, cell_xyz(region, cov.metric, cells), res[:, None], cell_xyz(region, cov.metric, tg),
+        method=meth, neighbors=neighbors, cutoff=cutoff, want_var=return_std,
+        Ys=Ys if trend else None, Yt=(lambda sel: Y[:, tg[sel]]) if trend else None, cov_x=cov_x,
+    )
+    pred = Y[:, tg].T @ x + mu[0]
+    if not return_std:
+        return pred, None
+    if include_nugget:
+        var = var + cov.nugget
+    return pred, np.sqrt(np.maximum(var, 0.0))

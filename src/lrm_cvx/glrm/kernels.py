@@ -293,7 +293,7 @@ def chol_solve_compiled(G, h, lam, pa, pb, out):  # pragma: no cover - numba
                 A[pb[p], pa[p]] = G[j, p]
             for a in range(k):
                 hv[a] = h[j, a]
-            flags[j] = _spd_solve(A, hv, lam, Lc, z, y)
+            flags[j] = spd_solve(A, hv, lam, Lc, z, y)
             for a in range(k):
                 out[j, a] = y[a]
     return flags
@@ -356,7 +356,7 @@ def data_stats_compiled(D, M, check):  # pragma: no cover - numba
 
 
 @numba.njit(inline="always", cache=True)
-def _spd_solve(A, hv, lam, Lc, z, y):  # pragma: no cover - numba
+def spd_solve(A, hv, lam, Lc, z, y):  # pragma: no cover - numba
     """Solve ``(A + lam I) y = hv`` for one ``k x k`` system in place (``A`` is modified).
 
     Cholesky; when it breaks down (singular without ridge) the minimum-norm ``pinv``
@@ -403,7 +403,7 @@ def _spd_solve(A, hv, lam, Lc, z, y):  # pragma: no cover - numba
 
 
 @numba.njit(inline="always", cache=True)
-def _quad_value(A, hv, c, y):  # pragma: no cover - numba
+def quad_value(A, hv, c, y):  # pragma: no cover - numba
     """``y^T A y - 2 hv . y + c`` (``A`` symmetric, full)."""
     k = hv.shape[0]
     v = c

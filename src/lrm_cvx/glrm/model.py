@@ -16,22 +16,20 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from .._validation import as_generator, atomic_output, check_positive, read_netcdf
+from .._validation import as_generator, atomic_output, check_positive
 from ..errors import DataError, ModelError, NotFittedError
 from ..region import Region
 from . import kernels as K
-from .dynamics import TEMPORAL, Dynamics, error_rows
+from .dynamics import TEMPORAL, Dynamics, error_rows, temporal_value
 from .dynamics import estimate as estimate_dynamics
 from .fit import DataStats, FitResult, check_data, fit_glrm
 from .losses import get_loss
+from .modelfile import MODEL_FORMAT, MODEL_FORMAT_VERSION, read_model_file
 from .posterior import LatentPosterior, fold_in_snapshots, model_prior
 from .predictive import PREDICTIVE_ATTRS, fit_predictive
 from .regularizers import get_regularizer
 
 __all__ = ["GLRM"]
-
-_FORMAT = "lrm-cvx GLRM"
-_FORMAT_VERSION = 1
 
 
 class GLRM:
@@ -295,14 +293,26 @@ class GLRM:
 
     # ------------------------------------------------------------------ accessors
     @property
-    def _Xv(self) -> np.ndarray:
+    def X(self) -> np.ndarray:
+        """The fitted ``X_`` as a ``(k, T)`` float64 numpy array (read-only property: the
+        model's own array, not a copy; do not modify it). NotFittedError before ``fit``."""
         self._check_fitted()
         return np.asarray(getattr(self.X_, "values", self.X_), dtype=np.float64)
 
     @property
-    def _Yv(self) -> np.ndarray:
+    def Y(self) -> np.ndarray:
+        """The fitted ``Y_`` as a ``(k, L)`` float64 numpy array (read-only property, as
+        :attr:`X`): what the planners and the fold-in take."""
         self._check_fitted()
         return np.asarray(getattr(self.Y_, "values", self.Y_), dtype=np.float64)
+
+    @property
+    def _Xv(self) -> np.ndarray:  # the old private name (tests use it)
+        return self.X
+
+    @property
+    def _Yv(self) -> np.ndarray:
+        return self.Y
 
     @property
     def Y_grid(self) -> xr.DataArray:
@@ -465,7 +475,7 @@ class GLRM:
         ``Q`` for the columns' estimation error (``error_cov`` of
         :func:`~lrm_cvx.glrm.dynamics.estimate_ar1`)."""
         self.dynamics_ = None
-        if self.temporal is None:
+        if temporal_value(self.temporal) is None:
             return
         X = self._Xv
         times = (self.X_[self.X_.dims[1]] if isinstance(self.X_, xr.DataArray)
@@ -484,7 +494,7 @@ class GLRM:
         """Estimate ``dynamics_`` on an already fitted model (sets ``temporal``); ``options``
         go to :func:`~lrm_cvx.glrm.dynamics.estimate_ar1` (``shrinkage``). Returns ``self``."""
         self._check_fitted()
-        if temporal not in TEMPORAL or temporal is None:
+        if TEMPORAL.resolve(temporal) in (None, "none"):
             raise ModelError(f"temporal must be 'ar1' or 'seasonal', got {temporal!r}")
         self.temporal = temporal
         X = self._Xv
@@ -498,9 +508,15 @@ class GLRM:
         (or at ``time``), filtering with ``dynamics_``; a model without dynamics gives the
         memoryless filter (every day's prior is the empirical prior). ``options``:
         ``dynamics``, ``spatial``, ``memoryless`` of ``MonitorState.from_model``.
-        See docs/monitoring.md."""
-        from ..monitor import MonitorState
+        See docs/monitoring.md.
 
+        Deprecated: use ``lrm_cvx.monitor.MonitorState.from_model(model, ...)`` (the model
+        layer does not import the monitoring layer above it); removed in the next release."""
+        from ..monitor import MonitorState  # the deprecated shim's upward import
+
+        warnings.warn("GLRM.monitor() is deprecated: use "
+                      "lrm_cvx.monitor.MonitorState.from_model(model, ...)",
+                      DeprecationWarning, stacklevel=2)
         self._check_fitted()
         return MonitorState.from_model(self, time=time, **options)
 
@@ -726,7 +742,7 @@ class GLRM:
             else:
                 params[key] = value
         attrs = {
-            "format": _FORMAT, "format_version": _FORMAT_VERSION,
+            "format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION,
             "params": json.dumps(params, default=str),
             "noise_std": self.noise_std_, "n_iter": self.n_iter_,
             "converged": int(self.converged_), "n_observed": self.n_observed_,
@@ -763,7 +779,7 @@ class GLRM:
         (named), inconsistent factor shapes, or a file written by a newer lrm-cvx
         (``format_version`` above this version's).
         """
-        ds, params = _read_model_file(path)
+        ds, params = read_model_file(path)
         for key in ("loss", "reg_x", "reg_y"):
             spec = params.get(key)
             if isinstance(spec, dict) and spec.get("name") == "custom":
@@ -793,75 +809,10 @@ class GLRM:
         model._set_result(res, region, ds[tdim], xarray=region is not None)
         PREDICTIVE_ATTRS.restore(model, ds)
         model.dynamics_ = Dynamics.from_dataset(ds, time=ds[tdim].values[-1])
-        from .calibration import Calibration
+        from .calibrated import Calibration
 
         model.calibration_ = Calibration.from_attrs(ds.attrs)
         return model
-
-
-_MODEL_VARS = ("X", "Y", "objective", "unobserved_cells")
-_MODEL_ATTRS = ("params", "noise_std", "n_iter", "converged", "n_observed")
-
-
-def _read_model_file(path: str | os.PathLike) -> tuple[xr.Dataset, dict]:
-    """``(dataset, params)`` of a GLRM model file, validated (DataError naming the file and
-    what is wrong)."""
-    name = repr(os.fspath(path))
-    ds = read_netcdf(path, "model file", "GLRM.save")
-    if ds.attrs.get("format") != _FORMAT:
-        raise DataError(f"{name} is not an lrm-cvx GLRM model file (no format attribute "
-                        f"{_FORMAT!r})")
-    try:
-        version = int(ds.attrs.get("format_version", 1))
-    except (TypeError, ValueError):
-        raise DataError(f"model file {name} has an unreadable format_version "
-                        f"{ds.attrs.get('format_version')!r}") from None
-    if version > _FORMAT_VERSION:
-        raise DataError(f"model file {name} has format_version {version}, written by a newer "
-                        f"lrm-cvx; this version reads up to {_FORMAT_VERSION}: upgrade lrm-cvx")
-    missing = [v for v in _MODEL_VARS if v not in ds.variables]
-    if missing:
-        raise DataError(f"model file {name} is missing the variable(s) {missing}")
-    missing = [a for a in _MODEL_ATTRS if a not in ds.attrs]
-    if missing:
-        raise DataError(f"model file {name} is missing the attribute(s) {missing}")
-    tdim = ds.attrs.get("time_dim", "time")
-    X, Y = ds["X"], ds["Y"]
-    if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.dims[1] != tdim:
-        raise DataError(f"model file {name} has inconsistent factors: X {X.dims} {X.shape}, "
-                        f"Y {Y.dims} {Y.shape} (expected (component, {tdim}) and "
-                        "(component, cell) with the same number of components)")
-    if tdim not in ds.variables:
-        raise DataError(f"model file {name} is missing the variable {tdim!r} (the time "
-                        "coordinate)")
-    try:
-        params = json.loads(ds.attrs["params"])
-        noise = float(ds.attrs["noise_std"])
-        int(ds.attrs["n_iter"]), int(ds.attrs["converged"]), int(ds.attrs["n_observed"])
-        json.loads(ds.attrs.get("region_attrs", "{}"))
-    except (TypeError, ValueError) as exc:
-        raise DataError(f"model file {name} has a corrupt attribute: {exc}") from None
-    if not isinstance(params, dict):
-        raise DataError(f"model file {name} has a corrupt 'params' attribute (not a mapping)")
-    if not np.isfinite(noise) or noise < 0:
-        raise DataError(f"model file {name} has noise_std {noise}, expected a finite number "
-                        ">= 0")
-    if noise == 0:
-        warnings.warn(f"model file {name} has noise_std 0: the noise was not identifiable at "
-                      "its rank (fitted by an older lrm-cvx?), so every std map is 0; refit "
-                      "with a lower rank", UserWarning, stacklevel=3)
-    if int(ds.attrs.get("has_region", 0)):
-        if "region_mask" not in ds.variables:
-            raise DataError(f"model file {name} is missing the variable(s) ['region_mask']")
-        n_valid = int(np.count_nonzero(ds["region_mask"].values))
-        if n_valid != Y.shape[1]:
-            raise DataError(f"model file {name}: the region has {n_valid} valid cells but Y has "
-                            f"{Y.shape[1]}")
-    for key in [k for k in ds.variables if str(k).startswith("predictive_")]:
-        if ds[key].shape != (Y.shape[1],):
-            raise DataError(f"model file {name}: {key} has shape {ds[key].shape}, expected "
-                            f"({Y.shape[1]},) (one value per cell)")
-    return ds, params
 
 
 def _check_ranks(ranks: Any) -> list[int]:
@@ -897,9 +848,7 @@ def _same(a: Any, b: Any) -> bool:
 
 def _check_temporal(temporal: Any, data: Any) -> None:
     """Refuse an unknown ``temporal`` or a DataArray without a time coordinate, before fitting."""
-    if temporal not in TEMPORAL:
-        raise ModelError(f"temporal must be one of {TEMPORAL}, got {temporal!r}")
-    if temporal is None:
+    if temporal_value(temporal) is None:
         return
     n_times = np.shape(data)[0] if np.ndim(data) >= 2 else 0
     if n_times < 3:

@@ -275,10 +275,10 @@ class ObservationModel:
         from .. import spatial as sp
 
         cov = self.spatial_cov
-        xyz = sp._coords(self.region, cov.metric, cells)
-        C = cov.covariance(sp._arc(cdist(xyz, xyz), cov.metric), nugget=False)
+        xyz = sp.cell_xyz(self.region, cov.metric, cells)
+        C = cov.covariance(sp.arc_distance(cdist(xyz, xyz), cov.metric), nugget=False)
         C[np.diag_indices_from(C)] = cov.total_variance
-        Lc = sp._cholesky(C, cov.total_variance, "observation")
+        Lc = sp.jittered_cholesky(C, cov.total_variance, "observation")
         Ws = scipy.linalg.solve_triangular(Lc, Ys.T, lower=True)
         zs = scipy.linalg.solve_triangular(Lc, z, lower=True)
         return Ws.T @ Ws, Ws.T @ zs, float(zs @ zs)
@@ -568,10 +568,10 @@ class LatentPosterior:
             r_mu, var, _ = sp.krige_grid_fft(cov, region, uc, res, Ys=Ys, Yall=obs.Y, cov_x=S)
             return mu + r_mu, np.maximum(var, 0.0)
         tg = np.arange(obs.n_cells) if cells is None else np.asarray(cells)
-        meth = "direct" if uc.size <= sp._MAX_DIRECT else "neighbors"
-        r_mu, var = sp._krige_core(
-            cov, sp._coords(region, cov.metric, uc), res[:, None],
-            sp._coords(region, cov.metric, tg), method=meth, neighbors=32, cutoff=1e-6,
+        meth = "direct" if uc.size <= sp.MAX_DIRECT else "neighbors"
+        r_mu, var = sp.krige_core(
+            cov, sp.cell_xyz(region, cov.metric, uc), res[:, None],
+            sp.cell_xyz(region, cov.metric, tg), method=meth, neighbors=32, cutoff=1e-6,
             want_var=True, Ys=Ys, Yt=lambda sel: obs.Y[:, tg[sel]], cov_x=S)
         return mu + r_mu[0], np.maximum(var, 0.0)
 
@@ -791,6 +791,6 @@ def _scale_discount(model: Any) -> float:
 
 def _variance_scale(model: Any, temporal: bool = False) -> float:
     """The model's calibrated variance scale (``calibration_``; 1.0 when not calibrated)."""
-    from .calibration import variance_scale
+    from .calibrated import variance_scale
 
     return variance_scale(model, temporal)

@@ -27,7 +27,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from .kernels import _quad_value, _spd_solve, chol_solve_numpy, is_small
+from .kernels import chol_solve_numpy, is_small, quad_value, spd_solve
 
 _FM = {"contract", "reassoc", "arcp", "nsz"}
 GROUP = 8  # times per mask byte
@@ -325,11 +325,11 @@ def _y_step(D, codes, Xt, TAB, lam, pa, pb, Y, out, nchunk):  # pragma: no cover
                 for a in range(k):
                     hv[a] = hb[a, jj]
                     y[a] = Y[a, j]
-                fb += _quad_value(A, hv, 0.0, y)
-                npinv += _spd_solve(A, hv, lam, Lc, z, y) == 1
+                fb += quad_value(A, hv, 0.0, y)
+                npinv += spd_solve(A, hv, lam, Lc, z, y) == 1
                 for a in range(k):
                     A[a, a] -= lam
-                fa += _quad_value(A, hv, 0.0, y)
+                fa += quad_value(A, hv, 0.0, y)
                 for a in range(k):
                     out[a, j] = y[a]
         part[c, 0] = fb

@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Any
 
 from .baselines import random_walk, transect
-from .floor import ConvexFloor, convex_floor
 from .greedy import initial_cells, place_sensors, plan_greedy
 from .plan import Plan
 from .refine import refine
@@ -20,15 +19,25 @@ __all__ = [
     "random_walk",
     "plan_bound",
     "dopt_upper_bound",
-    "convex_floor",
-    "ConvexFloor",
 ]
 
 
 def __getattr__(name: str) -> Any:
-    # the certificate module (cvxpy, scipy) is imported only when used
-    if name in ("plan_bound", "dopt_upper_bound"):
-        from . import bound
+    if name in ("convex_floor", "ConvexFloor"):  # deprecated shim: moved to lrm_cvx.experimental
+        import warnings
 
-        return getattr(bound, name)
+        from ..experimental import floor
+
+        warnings.warn(f"lrm_cvx.planning.{name} moved to lrm_cvx.experimental.{name}",
+                      DeprecationWarning, stacklevel=2)
+        return getattr(floor, name)
+    # the certificate module (cvxpy, scipy) is imported only when used
+    if name == "plan_bound":
+        from .certificate import plan_bound
+
+        return plan_bound
+    if name == "dopt_upper_bound":
+        from .dopt import dopt_upper_bound
+
+        return dopt_upper_bound
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -479,7 +479,7 @@ class Plan:
     def certify(self, **kwargs: Any) -> Any:
         """Upper bound on the achievable Fisher information and this plan's optimality gap.
 
-        Calls :func:`lrm_cvx.planning.bound.plan_bound` with this plan's model, region, start,
+        Calls :func:`lrm_cvx.planning.certificate.plan_bound` with this plan's model, region, start,
         budget and ridge; keyword arguments are passed on (e.g. ``tol``). The certificate
         always bounds the **Fisher** information (``certificate.criterion == "fisher"``); its
         ``gap`` and ``volume_ratio`` are NaN when the plan was chosen for another criterion
@@ -495,7 +495,7 @@ class Plan:
             from ..errors import PlanningError
 
             raise PlanningError("this plan has no model Y attached: build it with Y to certify")
-        from .bound import plan_bound
+        from .certificate import plan_bound
 
         return plan_bound(self._Y, self._region, self.start, self.budget, ridge=self.ridge,
                           plan=self, **kwargs)

@@ -346,7 +346,7 @@ def risk_objective(prior: Any, training: Any, cells: Any, region: Region | None 
     elif region is None:
         region = prior.obs_model.region
     region = check_region(region)
-    Y = (prior.obs_model.Y if isinstance(prior, LatentPosterior) else prior._Yv)
+    Y = (prior.obs_model.Y if isinstance(prior, LatentPosterior) else prior.Y)
     gp, obs = _fold_in_from_prior(prior, np.asarray(Y, np.float64), region)
     R = training_residuals(training, region, obs, gp.mean)
     S = np.asarray(cells, dtype=np.int64)

@@ -1,0 +1,365 @@
+"""The filter core of persistent monitoring: a Kalman filter on a fitted GLRM's latent vector.
+
+:class:`LatentFilter` carries the Gaussian belief about the current snapshot's latent vector (a
+:class:`~lrm_cvx.glrm.posterior.LatentPosterior`) from one snapshot to the next with the model's
+dynamics (:class:`~lrm_cvx.glrm.dynamics.Dynamics`): ``from_model`` starts it after the last
+fitted snapshot, ``assimilate`` moves it to a time (predict step) and folds observations in
+(update step). It lives in ``glrm`` so the calibration (``select_dynamics``, the temporal
+scale) runs the same filter as :class:`lrm_cvx.monitor.MonitorState`, which adds the maps, the
+planner's prior and the state file on top.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import re
+from dataclasses import replace
+from typing import Any, Self
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from ..errors import DataError, ModelError, RegionError
+from .calibrated import variance_scale
+from .dynamics import Dynamics, time_numbers
+from .posterior import LatentPosterior, ObservationModel, check_cells, empirical_moments
+
+__all__ = ["LatentFilter", "model_fingerprint", "memoryless_dynamics", "time_label",
+           "coerce_time", "time_to_str"]
+
+
+# ----------------------------------------------------------------------------- helpers
+def model_fingerprint(model: Any) -> str:
+    """SHA-256 (hex, 16 chars) of the model's factors ``X_``, ``Y_`` (float64) and its
+    offset/scale: a state is only valid with the model it was started from."""
+    h = hashlib.sha256()
+    for arr in (model.X, model.Y, getattr(model, "offset_", None),
+                getattr(model, "scale_", None)):
+        if arr is not None:
+            a = np.ascontiguousarray(np.asarray(arr, dtype=np.float64))
+            h.update(str(a.shape).encode())
+            h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def _model_times(model: Any) -> np.ndarray:
+    X = model.X_
+    if isinstance(X, xr.DataArray):
+        return np.asarray(X[X.dims[1]].values)
+    return np.arange(model.X.shape[1])
+
+
+def memoryless_dynamics(model: Any) -> Dynamics:
+    """``A = 0``, ``Q = cov(X_)``, mean ``mean(X_)``: each snapshot's prior is the empirical
+    prior whatever came before (the memoryless model through the filter)."""
+    X = model.X
+    m0, S0 = empirical_moments(X)
+    times = _model_times(model)
+    t, kind, _ = time_numbers(times, "time")
+    d = np.diff(t)
+    step = float(np.median(d)) if d.size and np.all(d > 0) else 1.0
+    k = X.shape[0]
+    return Dynamics(kind="ar1", A=np.zeros((k, k)), Q=S0, mean=m0, initial_mean=X[:, -1].copy(),
+                    initial_cov=S0, step=step, time_kind=kind, time=times[-1])
+
+
+def coerce_time(value: Any, kind: str, calendar: str | None, name: str = "time") -> Any:
+    """``value`` (a string, datetime, cftime date or number) as a time of ``kind``."""
+    if value is None:
+        raise DataError(f"{name} is required")
+    try:
+        if kind == "datetime":
+            if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+                    value, bool):
+                raise TypeError("a number is not a date")
+            ts = pd.Timestamp(str(value) if hasattr(value, "calendar") else value)
+            if ts is pd.NaT:
+                raise ValueError("NaT")
+            return np.datetime64(ts.tz_localize(None) if ts.tzinfo else ts, "ns")
+        if kind == "cftime":
+            import cftime
+
+            if hasattr(value, "calendar"):
+                return value
+            m = _ISO_DATE.match(str(value).strip())
+            if m is None:  # read by the calendar itself: 2093-02-30 is a 360-day date
+                raise ValueError("expected YYYY-MM-DD[THH[:MM[:SS]]]")
+            y, mo, d, h, mi, sec = (int(float(g)) if g else 0 for g in m.groups())
+            return cftime.datetime(y, mo, d, h, mi, sec, calendar=calendar or "standard")
+        v = float(value)
+        if not np.isfinite(v):
+            raise ValueError("not finite")
+        return v
+    except (TypeError, ValueError, OverflowError) as exc:
+        expected = {"datetime": "a date such as '2020-03-01'",
+                    "cftime": f"a date in the {calendar} calendar",
+                    "numeric": "a number"}[kind]
+        raise DataError(f"{name} must be {expected} (the model's time coordinate), got "
+                        f"{value!r}: {exc}") from None
+
+
+def parse_time(value: Any, times: Any, name: str = "time") -> Any:
+    """``value`` (a string such as ``"2093-02-30"``, a date or a number) as a time of the same
+    kind and calendar as ``times`` (a time coordinate); DataError naming ``name`` otherwise."""
+    _, kind, calendar = time_numbers(np.asarray(getattr(times, "values", times))[:1], name)
+    return coerce_time(value, kind, calendar, name)
+
+
+_ISO_DATE = re.compile(r"^(-?\d{1,4})-(\d{1,2})-(\d{1,2})(?:[T ](\d{1,2})(?::(\d{1,2})"
+                       r"(?::(\d{1,2}(?:\.\d*)?))?)?)?$")
+
+
+def time_to_str(t: Any) -> str:
+    if isinstance(t, np.datetime64):
+        return str(np.datetime64(t, "ns"))
+    if hasattr(t, "calendar"):
+        return t.isoformat()
+    return repr(float(t))
+
+
+def time_label(t: Any) -> str:
+    """A time for messages and labels: a datetime64 to the second, a cftime date in ISO form,
+    a number as its repr."""
+    if isinstance(t, np.datetime64):
+        return str(np.datetime64(t, "s"))
+    return time_to_str(t)
+
+
+# ----------------------------------------------------------------------------- the filter
+class LatentFilter:
+    """The filter's belief about the latent vector of the snapshot at ``time``.
+
+    Build with :meth:`from_model`. ``posterior`` is the
+    :class:`~lrm_cvx.glrm.posterior.LatentPosterior` of the current snapshot (its ``cells`` and
+    ``values`` are today's observations), ``observed`` whether the snapshot at ``time`` has
+    been observed (the last fitted snapshot counts as observed; a state positioned at a later
+    time by ``from_model(model, time=T)`` has not, so observations at ``T`` are accepted).
+    Mutating methods return ``self``.
+    """
+
+    def __init__(self, model: Any, posterior: LatentPosterior, time: Any, dynamics: Dynamics,
+                 *, observed: bool = True, memoryless: bool = False,
+                 n_assimilated: int = 0, n_dropped: int = 0) -> None:
+        self.model = model
+        self.posterior = posterior
+        self.time = time
+        self.dynamics = dynamics
+        self.observed = bool(observed)
+        self.memoryless = bool(memoryless)
+        self.n_assimilated = int(n_assimilated)
+        self.n_dropped = int(n_dropped)
+        _, self._time_kind, self._calendar = time_numbers(_model_times(model)[:1], "time")
+        self.fingerprint = model_fingerprint(model)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_model(cls, model: Any, time: Any = None, *, dynamics: Dynamics | None = None,
+                   spatial: bool | None = None, memoryless: bool | None = None) -> Self:
+        """A state after the last fitted snapshot (belief ``N(x_T, initial_cov)``), or
+        forecast to ``time`` (not yet observed there).
+
+        ``dynamics``: default the model's ``dynamics_``; ``memoryless=True`` (default when the
+        model has none) uses :func:`memoryless_dynamics`. ``spatial``: use the model's spatial
+        residual (None: whenever it has one)."""
+        model._check_fitted()
+        if memoryless is None:
+            memoryless = dynamics is None and getattr(model, "dynamics_", None) is None
+        if memoryless:
+            dynamics = memoryless_dynamics(model)
+        elif dynamics is None:
+            dynamics = getattr(model, "dynamics_", None)
+            if dynamics is None:
+                raise ModelError("the model has no dynamics_: fit it with temporal='ar1' (or "
+                                 "call model.fit_dynamics()), or pass memoryless=True")
+        if not isinstance(dynamics, Dynamics):
+            raise ModelError(f"dynamics must be a Dynamics, got {type(dynamics).__name__}")
+        k = model.Y.shape[0]
+        if dynamics.rank != k:
+            raise ModelError(f"dynamics have rank {dynamics.rank}, the model {k}")
+        obs = ObservationModel.from_model(model, spatial=spatial)
+        if not memoryless:  # the filter's own calibrated variance scale (glrm/calibration.py)
+            obs = replace(obs, variance_scale=variance_scale(model, temporal=True))
+        P0 = dynamics.initial_cov
+        jitter = 1e-9 * max(float(np.trace(dynamics.Q)), 1e-300) / k
+        post = LatentPosterior.from_moments(obs, dynamics.initial_mean, P0 + jitter * np.eye(k))
+        t_last = _model_times(model)[-1]
+        state = cls(model, post, t_last, dynamics, observed=True, memoryless=memoryless)
+        if time is not None:
+            t = state._coerce(time)
+            state._check_order(t, force=False)
+            state.posterior = state._propagated(t)
+            state.time, state.observed = t, False
+        return state
+
+    # ------------------------------------------------------------------ time handling
+    def _coerce(self, time: Any, name: str = "time") -> Any:
+        return coerce_time(time, self._time_kind, self._calendar, name)
+
+    def _dt(self, t: Any) -> float:
+        tt, _, _ = time_numbers(_time_array([self.time, t]), "time")
+        return float(tt[1] - tt[0])
+
+    def _check_order(self, t: Any, force: bool) -> None:
+        dt = self._dt(t)
+        if force or dt > 0 or (dt == 0 and not self.observed):
+            return
+        raise DataError(f"time {time_label(t)} is {'equal to' if dt == 0 else 'earlier than'} "
+                        f"the state's time {time_label(self.time)}: observations must come in "
+                        "time order (pass force=True / --force to override)")
+
+    def next_time(self) -> Any:
+        """The time one step after the state's (one month for monthly data). Monthly data keep
+        their own stamps: when every training snapshot of the next calendar month has the same
+        day and time of day (mid-month records: 16 Jan 12:00, 15 Feb 00:00, ...), the next time
+        takes them; otherwise the state's day and time one month on."""
+        step = self.dynamics.step
+        t = self.time
+        monthly = self._time_kind != "numeric" and 27.0 <= step <= 32.0
+        if self._time_kind == "datetime":
+            ts = pd.Timestamp(t)
+            ts = ts + (pd.DateOffset(months=1) if monthly else pd.Timedelta(days=step))
+            if monthly and (stamp := self._month_stamp(ts.month)) is not None:
+                ts = (ts.normalize().replace(day=1)
+                      + pd.Timedelta(days=stamp[0] - 1, seconds=stamp[1]))
+            return np.datetime64(ts, "ns")
+        if self._time_kind == "cftime":
+            if monthly:
+                y, m = divmod(t.month, 12)
+                stamp = self._month_stamp(m + 1)
+                if stamp is not None:
+                    first = t.replace(year=t.year + y, month=m + 1, day=1, hour=0, minute=0,
+                                      second=0, microsecond=0)
+                    return first + _dt.timedelta(days=stamp[0] - 1, seconds=stamp[1])
+                try:
+                    return t.replace(year=t.year + y, month=m + 1)
+                except ValueError:
+                    return t.replace(year=t.year + y, month=m + 1, day=28)
+            return t + _dt.timedelta(days=step)
+        return float(t) + step
+
+    def _month_stamp(self, month: int) -> tuple[int, int] | None:
+        """``(day, seconds into the day)`` shared by every training time in calendar
+        ``month``, or None (no such time, or they differ)."""
+        stamps = set()
+        for v in np.asarray(_model_times(self.model)).ravel():
+            if isinstance(v, np.datetime64):
+                ts = pd.Timestamp(v)
+            elif hasattr(v, "calendar"):
+                ts = v
+            else:
+                return None
+            if ts.month == month:
+                stamps.add((int(ts.day), int(ts.hour) * 3600 + int(ts.minute) * 60
+                            + int(ts.second)))
+        return stamps.pop() if len(stamps) == 1 else None
+
+    def _propagated(self, t: Any) -> LatentPosterior:
+        """The belief about the snapshot at ``t`` before its observations."""
+        dyn = self.dynamics
+        if self._dt(t) == 0:
+            return self.posterior
+        n = dyn.n_steps(self.time, t)
+        A, Q, c = dyn.transition(n, self.time, t)
+        return self.posterior.propagate(A, Q, c, steps=n)
+
+
+    # ------------------------------------------------------------------ assimilation
+    def observation_cells(self, observations: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``(cells int64, values float64)`` from ``(cells, values)``, a ``(lat, lon)``
+        DataArray with NaN where not observed, or a DataFrame with ``lat``, ``lon``, ``value``
+        columns. Points outside the grid or on masked cells raise RegionError naming them."""
+        region = self.model.region_
+        L = self.model.n_cells_
+        if isinstance(observations, pd.DataFrame):
+            missing = {"lat", "lon", "value"} - set(observations.columns)
+            if missing:
+                raise DataError(f"observations table needs columns lat, lon, value; missing "
+                                f"{sorted(missing)}")
+            if region is None:
+                raise DataError("lat/lon observations need a model fitted with a region")
+            try:
+                values = observations["value"].to_numpy(dtype=np.float64)
+                lat = observations["lat"].to_numpy(dtype=np.float64)
+                lon = observations["lon"].to_numpy(dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                raise DataError(f"observations lat, lon, value must be numbers: {exc}") from None
+            if values.size == 0:
+                return np.zeros(0, np.int64), np.zeros(0)
+            cells = np.atleast_1d(region.cell_of(lat, lon)).astype(np.int64)
+            return cells, values
+        if isinstance(observations, xr.Dataset):
+            names = list(observations.data_vars)
+            if len(names) != 1:
+                raise DataError(f"observations Dataset must have one data variable, got {names}")
+            observations = observations[names[0]]
+        if isinstance(observations, xr.DataArray):
+            da = observations
+            if da.dims and da.dims[-1] == "cell":
+                vals = np.asarray(da.values, dtype=np.float64).reshape(-1)
+                if vals.size != L:
+                    raise DataError(f"observations have {vals.size} cells, the model has {L}")
+            else:
+                if region is None:
+                    raise DataError("gridded observations need a model fitted with a region")
+                if da.ndim != 2:
+                    raise DataError(f"observations must have dims (lat, lon), got {da.dims}")
+                grid = np.asarray(da.values, dtype=np.float64)
+                vals = region.stack(da).astype(np.float64)  # checks the grid
+                off = np.isfinite(grid) & ~region.mask
+                if off.any():
+                    r, c = np.argwhere(off)[0]
+                    raise RegionError(
+                        f"observations at {int(off.sum())} masked cell(s) outside the region, "
+                        f"e.g. (lat={float(region.lat.values[r]):g}, "
+                        f"lon={float(region.lon.values[c]):g})")
+                vals = grid.reshape(-1)[region._flat]
+            cells = np.flatnonzero(~np.isnan(vals))
+            return cells, vals[cells]
+        if isinstance(observations, tuple) and len(observations) == 2:
+            cells, values = observations
+            c = np.asarray(cells)
+            if c.size and (not np.issubdtype(c.dtype, np.number) or c.dtype == np.bool_):
+                raise DataError(f"observation cells must be integer indices, got dtype {c.dtype}")
+            cf = c.astype(np.float64).reshape(-1)
+            bad = np.flatnonzero(~np.isfinite(cf) | (cf < 0) | (cf >= L))
+            if bad.size:
+                raise RegionError(f"observation cells {cf[bad][:5].tolist()} are outside the "
+                                  f"region's {L} cells")
+            v = np.asarray(values, dtype=np.float64).reshape(-1)
+            if v.shape != cf.shape:
+                raise DataError(f"observation values have {v.size} entries, cells {cf.size}")
+            return check_cells(cf, L, "observation cells"), v
+        raise DataError("observations must be (cells, values), a (lat, lon) DataArray with NaN "
+                        "where not observed, or a DataFrame with lat, lon, value; got "
+                        f"{type(observations).__name__}")
+
+    def assimilate(self, observations: Any, time: Any, *, force: bool = False) -> Self:
+        """Move the state to ``time`` and fold ``observations`` in (see
+        :meth:`observation_cells` for the forms). A ``time`` earlier than or equal to the
+        state's (already observed) time is refused unless ``force`` (then an equal time adds to
+        the same snapshot and an earlier one counts as one step). NaN values are ignored and
+        counted (``n_dropped``); a repeated cell is a repeated measurement. Returns ``self``."""
+        t = self._coerce(time)
+        self._check_order(t, force)
+        cells, values = self.observation_cells(observations)
+        prior = self._propagated(t) if (self._dt(t) != 0) else self.posterior
+        post = prior.update(cells, values)
+        dropped = int(np.count_nonzero(np.isnan(values)))
+        self.posterior = post
+        self.time = t
+        self.observed = True
+        self.n_assimilated += int(cells.size - dropped)
+        self.n_dropped += dropped
+        return self
+
+
+def _time_array(values: list) -> np.ndarray:
+    if any(isinstance(v, np.datetime64) for v in values):
+        return np.asarray(values, dtype="datetime64[ns]")
+    if any(hasattr(v, "calendar") for v in values):
+        arr = np.empty(len(values), dtype=object)
+        arr[:] = values
+        return arr
+    return np.asarray(values, dtype=np.float64)

@@ -1,0 +1,88 @@
+"""The GLRM model file: its format constants and the validated reader ``GLRM.load`` uses.
+
+``GLRM.save`` writes ``X``, ``Y``, ``objective``, ``unobserved_cells`` and the attributes below
+to NetCDF; :func:`read_model_file` opens one and refuses a file that is not a model, is newer
+than this version or is inconsistent (DataError naming the file and what is wrong).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+
+import numpy as np
+import xarray as xr
+
+from .._validation import read_netcdf
+from ..errors import DataError
+
+__all__ = ["MODEL_FORMAT", "MODEL_FORMAT_VERSION", "MODEL_VARS", "MODEL_ATTRS",
+           "read_model_file"]
+
+MODEL_FORMAT = "lrm-cvx GLRM"
+MODEL_FORMAT_VERSION = 1
+MODEL_VARS = ("X", "Y", "objective", "unobserved_cells")
+MODEL_ATTRS = ("params", "noise_std", "n_iter", "converged", "n_observed")
+
+
+def read_model_file(path: str | os.PathLike) -> tuple[xr.Dataset, dict]:
+    """``(dataset, params)`` of a GLRM model file, validated (DataError naming the file and
+    what is wrong)."""
+    name = repr(os.fspath(path))
+    ds = read_netcdf(path, "model file", "GLRM.save")
+    if ds.attrs.get("format") != MODEL_FORMAT:
+        raise DataError(f"{name} is not an lrm-cvx GLRM model file (no format attribute "
+                        f"{MODEL_FORMAT!r})")
+    try:
+        version = int(ds.attrs.get("format_version", 1))
+    except (TypeError, ValueError):
+        raise DataError(f"model file {name} has an unreadable format_version "
+                        f"{ds.attrs.get('format_version')!r}") from None
+    if version > MODEL_FORMAT_VERSION:
+        raise DataError(f"model file {name} has format_version {version}, written by a newer "
+                        f"lrm-cvx; this version reads up to {MODEL_FORMAT_VERSION}: upgrade "
+                        "lrm-cvx")
+    missing = [v for v in MODEL_VARS if v not in ds.variables]
+    if missing:
+        raise DataError(f"model file {name} is missing the variable(s) {missing}")
+    missing = [a for a in MODEL_ATTRS if a not in ds.attrs]
+    if missing:
+        raise DataError(f"model file {name} is missing the attribute(s) {missing}")
+    tdim = ds.attrs.get("time_dim", "time")
+    X, Y = ds["X"], ds["Y"]
+    if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.dims[1] != tdim:
+        raise DataError(f"model file {name} has inconsistent factors: X {X.dims} {X.shape}, "
+                        f"Y {Y.dims} {Y.shape} (expected (component, {tdim}) and "
+                        "(component, cell) with the same number of components)")
+    if tdim not in ds.variables:
+        raise DataError(f"model file {name} is missing the variable {tdim!r} (the time "
+                        "coordinate)")
+    try:
+        params = json.loads(ds.attrs["params"])
+        noise = float(ds.attrs["noise_std"])
+        int(ds.attrs["n_iter"]), int(ds.attrs["converged"]), int(ds.attrs["n_observed"])
+        json.loads(ds.attrs.get("region_attrs", "{}"))
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"model file {name} has a corrupt attribute: {exc}") from None
+    if not isinstance(params, dict):
+        raise DataError(f"model file {name} has a corrupt 'params' attribute (not a mapping)")
+    if not np.isfinite(noise) or noise < 0:
+        raise DataError(f"model file {name} has noise_std {noise}, expected a finite number "
+                        ">= 0")
+    if noise == 0:
+        warnings.warn(f"model file {name} has noise_std 0: the noise was not identifiable at "
+                      "its rank (fitted by an older lrm-cvx?), so every std map is 0; refit "
+                      "with a lower rank", UserWarning, stacklevel=3)
+    if int(ds.attrs.get("has_region", 0)):
+        if "region_mask" not in ds.variables:
+            raise DataError(f"model file {name} is missing the variable(s) ['region_mask']")
+        n_valid = int(np.count_nonzero(ds["region_mask"].values))
+        if n_valid != Y.shape[1]:
+            raise DataError(f"model file {name}: the region has {n_valid} valid cells but Y has "
+                            f"{Y.shape[1]}")
+    for key in [k for k in ds.variables if str(k).startswith("predictive_")]:
+        if ds[key].shape != (Y.shape[1],):
+            raise DataError(f"model file {name}: {key} has shape {ds[key].shape}, expected "
+                            f"({Y.shape[1]},) (one value per cell)")
+    return ds, params

@@ -1,0 +1,473 @@
+"""The GP residual model: covariance functions, the empirical semivariogram and its fit.
+
+``C(d) = sill * rho(d / range) + nugget * [d == 0]`` between cells at distance ``d`` (grid units
+or great-circle km, see the package docstring); :func:`fit_residual_covariance` fits it to a
+model's training residuals. :func:`cell_xyz` and :func:`arc_distance` place cells so that
+KD-tree chord distances map to the metric's distances (the kriging and the GP criterion share
+them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any, Literal
+
+import numpy as np
+from scipy.optimize import brentq, least_squares
+
+from .._validation import as_generator, check_positive
+from ..errors import DataError, ModelError, SolverError
+from ..region import EARTH_RADIUS_KM, Region
+from ..registry import Registry
+
+__all__ = ["MODELS", "KERNEL_REGISTRY", "ResidualCovariance", "EmpiricalVariogram",
+           "correlation", "empirical_variogram", "fit_residual_covariance", "cell_xyz",
+           "arc_distance", "chord_distance"]
+
+Model = Literal["exponential", "matern32", "matern52", "gaussian"]
+Metric = Literal["grid", "km"]
+_METRICS = ("grid", "km")
+_SQRT3 = np.sqrt(3.0)
+_SQRT5 = np.sqrt(5.0)
+_ATTR_PREFIX = "spatial_"
+
+
+# ---------------------------------------------------------------------------- covariance models
+def correlation(model: str, h: Any) -> np.ndarray:
+    """Correlation ``rho(h)`` of ``model`` at scaled distance ``h = d / range >= 0``."""
+    h = np.asarray(h, dtype=np.float64)
+    if model == "exponential":
+        return np.exp(-h)
+    if model == "matern32":
+        s = _SQRT3 * h
+        return (1.0 + s) * np.exp(-s)
+    if model == "matern52":
+        s = _SQRT5 * h
+        return (1.0 + s + s * s / 3.0) * np.exp(-s)
+    if model == "gaussian":
+        return np.exp(-h * h)
+    raise ModelError(f"model must be one of {MODELS}, got {model!r}")
+
+
+KERNEL_REGISTRY = Registry("spatial model", ModelError)
+"""Spatial covariance models (objects: their correlation ``rho(h)`` at scaled distance
+``h = d / range``); ``MODELS`` is its ``choices()`` (the order is the compiled kernels' id)."""
+KERNEL_REGISTRY.register("exponential", partial(correlation, "exponential"),
+                         description="`exp(-h)` (Matern 1/2)")
+KERNEL_REGISTRY.register("matern32", partial(correlation, "matern32"),
+                         description="`(1 + sqrt(3) h) exp(-sqrt(3) h)`")
+KERNEL_REGISTRY.register("matern52", partial(correlation, "matern52"),
+                         description="`(1 + sqrt(5) h + 5 h^2 / 3) exp(-sqrt(5) h)`")
+KERNEL_REGISTRY.register("gaussian", partial(correlation, "gaussian"),
+                         description="`exp(-h^2)`")
+MODELS: tuple[str, ...] = KERNEL_REGISTRY.choices()
+"""Canonical spatial model names; the registry's ``choices()``."""
+
+
+def _scaled_cutoff(model: str, rel: float) -> float:
+    """Scaled distance ``h`` beyond which ``rho(h) < rel`` (rho is decreasing)."""
+    if model == "exponential":
+        return float(np.log(1.0 / rel))
+    if model == "gaussian":
+        return float(np.sqrt(np.log(1.0 / rel)))
+    hi = 2.0 * np.log(1.0 / rel) + 10.0
+    return float(brentq(lambda h: float(correlation(model, h)) - rel, 0.0, hi, xtol=1e-12))
+
+
+@dataclass(frozen=True)
+class EmpiricalVariogram:
+    """Binned empirical semivariogram: mean distance, ``gamma`` and pair count of each bin."""
+
+    distance: np.ndarray
+    gamma: np.ndarray
+    counts: np.ndarray
+    max_distance: float
+    metric: str
+
+    @property
+    def n_pairs(self) -> int:
+        """Number of pairs used over all bins."""
+        return int(self.counts.sum())
+
+
+@dataclass(frozen=True)
+class ResidualCovariance:
+    """A stationary isotropic covariance ``C(d) = sill rho(d / range) + nugget [d == 0]``.
+
+    Parameters
+    ----------
+    model : ``"exponential"``, ``"matern32"``, ``"matern52"`` or ``"gaussian"``.
+    sill : partial sill, the spatially predictable variance (data units squared), ``>= 0``.
+    range : scale parameter ``> 0`` in ``metric`` units (grid cells or km).
+    nugget : variance of the spatially unpredictable part (noise), ``>= 0``.
+    metric : ``"grid"`` (grid units) or ``"km"`` (great-circle kilometres).
+    variogram : the empirical variogram it was fitted to, if any (not compared, not stored).
+    """
+
+    model: str
+    sill: float
+    range: float
+    nugget: float = 0.0
+    metric: str = "grid"
+    variogram: EmpiricalVariogram | None = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "model", KERNEL_REGISTRY.canonical(self.model, "model"))
+        if self.metric not in _METRICS:
+            raise ModelError(f"metric must be 'grid' or 'km', got {self.metric!r}")
+        object.__setattr__(self, "sill", check_positive(self.sill, "sill", error=ModelError))
+        object.__setattr__(
+            self, "range", check_positive(self.range, "range", strict=True, error=ModelError)
+        )
+        object.__setattr__(self, "nugget", check_positive(self.nugget, "nugget", error=ModelError))
+        if self.sill + self.nugget <= 0:
+            raise ModelError("sill + nugget must be > 0 (a covariance of zero variance)")
+
+    # ------------------------------------------------------------------ evaluation
+    @property
+    def total_variance(self) -> float:
+        """``sill + nugget``: the prior variance of a new measurement."""
+        return self.sill + self.nugget
+
+    def correlation(self, d: Any) -> np.ndarray:
+        """``rho(d / range)`` of the spatial part at distances ``d`` (any shape, metric units)."""
+        return correlation(self.model, np.asarray(d, dtype=np.float64) / self.range)
+
+    def covariance(self, d: Any, *, nugget: bool = True) -> np.ndarray:
+        """``sill rho(d / range)`` plus the nugget where ``d == 0`` (unless ``nugget=False``)."""
+        d = np.asarray(d, dtype=np.float64)
+        c = self.sill * self.correlation(d)
+        if nugget and self.nugget:
+            c = c + self.nugget * (d == 0)
+        return c
+
+    def semivariogram(self, d: Any) -> np.ndarray:
+        """``gamma(d) = nugget [d > 0] + sill (1 - rho(d / range))``."""
+        d = np.asarray(d, dtype=np.float64)
+        return self.nugget * (d > 0) + self.sill * (1.0 - self.correlation(d))
+
+    def cutoff_distance(self, rel: float = 1e-6) -> float:
+        """Distance (metric units) beyond which the spatial covariance is below ``rel * sill``."""
+        rel = check_positive(rel, "rel", strict=True, error=ModelError)
+        if rel >= 1:
+            return 0.0
+        return self.range * _scaled_cutoff(self.model, rel)
+
+    @property
+    def effective_range(self) -> float:
+        """Distance at which the correlation falls to 0.05 (the geostatistical practical range)."""
+        return self.cutoff_distance(0.05)
+
+    # ------------------------------------------------------------------ persistence
+    def to_attrs(self) -> dict[str, Any]:
+        """Flat NetCDF-safe attributes (``spatial_model``, ``spatial_sill``, ...)."""
+        return {
+            f"{_ATTR_PREFIX}model": self.model,
+            f"{_ATTR_PREFIX}sill": float(self.sill),
+            f"{_ATTR_PREFIX}range": float(self.range),
+            f"{_ATTR_PREFIX}nugget": float(self.nugget),
+            f"{_ATTR_PREFIX}metric": self.metric,
+        }
+
+    @classmethod
+    def from_attrs(cls, attrs: dict[str, Any]) -> ResidualCovariance:
+        """Inverse of :meth:`to_attrs` (extra keys are ignored)."""
+        keys = ("model", "sill", "range", "nugget", "metric")
+        missing = [f"{_ATTR_PREFIX}{k}" for k in keys if f"{_ATTR_PREFIX}{k}" not in attrs]
+        if missing:
+            raise ModelError(f"attrs do not hold a spatial covariance: missing {missing}")
+        get = {k: attrs[f"{_ATTR_PREFIX}{k}"] for k in keys}
+        return cls(
+            model=str(get["model"]),
+            sill=float(np.asarray(get["sill"]).item()),
+            range=float(np.asarray(get["range"]).item()),
+            nugget=float(np.asarray(get["nugget"]).item()),
+            metric=str(get["metric"]),
+        )
+
+    def __repr__(self) -> str:
+        unit = "cells" if self.metric == "grid" else "km"
+        return (
+            f"ResidualCovariance({self.model}, sill={self.sill:.4g}, range={self.range:.4g} "
+            f"{unit}, nugget={self.nugget:.4g})"
+        )
+
+
+# ---------------------------------------------------------------------------- geometry
+def _check_metric(metric: str) -> str:
+    if metric not in _METRICS:
+        raise ModelError(f"metric must be 'grid' or 'km', got {metric!r}")
+    return metric
+
+
+def cell_xyz(region: Region, metric: str, cells: np.ndarray | None = None) -> np.ndarray:
+    """Point coordinates whose Euclidean distances map monotonically onto ``metric`` distances.
+
+    ``grid``: ``(n, 2)`` (row, col). ``km``: ``(n, 3)`` points on a sphere of the Earth's radius
+    (Euclidean = chord length; see :func:`arc_distance`).
+    """
+    gi = region.grid_index if cells is None else region.grid_index[cells]
+    if metric == "grid":
+        return gi.astype(np.float64)
+    lat = np.radians(region.lat.values[gi[:, 0]])
+    lon = np.radians(region.lon.values[gi[:, 1]])
+    cl = np.cos(lat)
+    return EARTH_RADIUS_KM * np.column_stack([cl * np.cos(lon), cl * np.sin(lon), np.sin(lat)])
+
+
+def arc_distance(chord: np.ndarray, metric: str) -> np.ndarray:
+    """Metric distance from the Euclidean distance between :func:`cell_xyz` points."""
+    if metric == "grid":
+        return chord
+    return 2.0 * EARTH_RADIUS_KM * np.arcsin(np.clip(chord / (2.0 * EARTH_RADIUS_KM), 0.0, 1.0))
+
+
+def chord_distance(d: float, metric: str) -> float:
+    """Inverse of :func:`arc_distance` (infinite beyond half the circumference)."""
+    if metric == "grid":
+        return d
+    if d >= np.pi * EARTH_RADIUS_KM:
+        return np.inf
+    return float(2.0 * EARTH_RADIUS_KM * np.sin(d / (2.0 * EARTH_RADIUS_KM)))
+
+
+def _min_step(region: Region, metric: str) -> float:
+    """Smallest distance between grid neighbours (1 in grid units)."""
+    if metric == "grid":
+        return 1.0
+    lat = np.radians(region.lat.values)
+    lon = np.radians(region.lon.values)
+    steps = []
+    if lat.size > 1:
+        steps.append(np.abs(np.diff(lat)).min())
+    if lon.size > 1:
+        steps.append(np.abs(np.diff(lon)).min() * np.cos(np.abs(lat).max()))
+    step = EARTH_RADIUS_KM * min(steps) if steps else 1.0
+    return float(step) if step > 0 else 1.0
+
+
+def _default_max_distance(region: Region, metric: str) -> float:
+    """Half the region's diagonal extent."""
+    ny, nx = region.shape
+    if metric == "grid":
+        return max(float(np.hypot(ny - 1, nx - 1)) / 2.0, 1.0)
+    lat, lon = np.radians(region.cell_lat), np.radians(region.cell_lon)
+    pts = np.array([[lat.min(), lon.min()], [lat.max(), lon.max()]])
+    xyz = EARTH_RADIUS_KM * np.column_stack(
+        [np.cos(pts[:, 0]) * np.cos(pts[:, 1]), np.cos(pts[:, 0]) * np.sin(pts[:, 1]),
+         np.sin(pts[:, 0])]
+    )
+    diag = float(arc_distance(np.linalg.norm(xyz[0] - xyz[1]), "km"))
+    return max(diag / 2.0, _min_step(region, "km"))
+
+
+# ---------------------------------------------------------------------------- variogram fit
+def _as_residuals(residuals: Any, region: Region) -> np.ndarray:
+    r = np.asarray(getattr(residuals, "values", residuals))
+    if r.ndim == 1:
+        r = r[None, :]
+    if r.ndim != 2:
+        raise DataError(f"residuals must be a (T, L) matrix, got shape {r.shape}")
+    if r.shape[1] != region.n_cells:
+        raise DataError(
+            f"residuals have {r.shape[1]} columns, the region has {region.n_cells} cells"
+        )
+    if not np.issubdtype(r.dtype, np.floating):
+        r = r.astype(np.float64)
+    return r
+
+
+def _sample_pairs(
+    r: np.ndarray, region: Region, metric: str, max_distance: float, max_pairs: int,
+    spacing: str, rng: np.random.Generator, scale: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Random ``(time, cell, cell)`` pairs within ``max_distance``: distances and half squared
+    differences. Anchors are uniform over cells and times, offsets have a uniform (or
+    log-uniform) length and uniform direction on the grid; bounded, vectorised work."""
+    T, L = r.shape
+    ny, nx = region.shape
+    grid = region.cell_grid
+    gi = region.grid_index
+    step = _min_step(region, metric)
+    radius = max_distance / step  # in grid units (km: the largest grid offset that can fit)
+    radius = min(radius, float(np.hypot(ny, nx)))
+    lo = 0.5
+    if radius <= lo:
+        raise ModelError(
+            f"max_distance={max_distance:g} is below one grid step ({step:g}): no pair fits"
+        )
+    dists: list[np.ndarray] = []
+    halves: list[np.ndarray] = []
+    got = 0
+    for _ in range(8):
+        b = max(2 * (max_pairs - got), 1024)
+        t = rng.integers(0, T, size=b)
+        i = rng.integers(0, L, size=b)
+        if spacing == "log":
+            rad = np.exp(rng.uniform(np.log(lo), np.log(radius), size=b))
+        else:
+            rad = rng.uniform(lo, radius, size=b)
+        ang = rng.uniform(0.0, 2.0 * np.pi, size=b)
+        rows = gi[i, 0] + np.rint(rad * np.sin(ang)).astype(np.int64)
+        cols = gi[i, 1] + np.rint(rad * np.cos(ang)).astype(np.int64)
+        ok = (rows >= 0) & (rows < ny) & (cols >= 0) & (cols < nx)
+        t, i, rows, cols = t[ok], i[ok], rows[ok], cols[ok]
+        j = grid[rows, cols]
+        ok = (j >= 0) & (j != i)
+        t, i, j = t[ok], i[ok], j[ok]
+        a = r[t, i].astype(np.float64)
+        c = r[t, j].astype(np.float64)
+        ok = np.isfinite(a) & np.isfinite(c)
+        t, i, j, a, c = t[ok], i[ok], j[ok], a[ok], c[ok]
+        if metric == "grid":
+            dg = gi[i] - gi[j]
+            d = np.hypot(dg[:, 0], dg[:, 1]).astype(np.float64)
+        else:
+            chord = np.linalg.norm(cell_xyz(region, metric, i) - cell_xyz(region, metric, j),
+                                   axis=1)
+            d = arc_distance(chord, metric)
+        ok = (d > 0) & (d <= max_distance)
+        diff = a[ok] - c[ok]
+        if scale is not None:
+            diff = diff * scale[t[ok]]
+        dists.append(d[ok])
+        halves.append(0.5 * diff * diff)
+        got += int(ok.sum())
+        if got >= max_pairs:
+            break
+    d = np.concatenate(dists)[:max_pairs]
+    h = np.concatenate(halves)[:max_pairs]
+    return d, h
+
+
+def empirical_variogram(
+    residuals: Any,
+    region: Region,
+    *,
+    metric: Metric = "grid",
+    max_pairs: int = 200_000,
+    n_bins: int = 20,
+    max_distance: float | None = None,
+    spacing: Literal["log", "linear"] = "log",
+    standardize: bool = False,
+    random_state: Any = 0,
+) -> EmpiricalVariogram:
+    """Binned Matheron semivariogram ``gamma(h) = mean of (r_t(i) - r_t(j))^2 / 2`` of ``(T, L)``
+    residuals (NaN = missing) from at most ``max_pairs`` random same-time pairs within
+    ``max_distance`` (default: half the region's diagonal). ``spacing="log"`` uses geometric bins
+    from one grid step (short lags carry the range information); ``standardize`` divides each time
+    by its standard deviation, then rescales gamma by the mean per-time variance. Empty bins are
+    dropped. Deterministic given ``random_state``."""
+    metric = _check_metric(metric)
+    r = _as_residuals(residuals, region)
+    max_pairs = int(max_pairs)
+    n_bins = int(n_bins)
+    if max_pairs < 10:
+        raise ModelError(f"max_pairs must be >= 10, got {max_pairs}")
+    if n_bins < 3:
+        raise ModelError(f"n_bins must be >= 3 (three parameters are fitted), got {n_bins}")
+    if spacing not in ("log", "linear"):
+        raise ModelError(f"spacing must be 'log' or 'linear', got {spacing!r}")
+    if max_distance is None:
+        max_distance = _default_max_distance(region, metric)
+    max_distance = check_positive(max_distance, "max_distance", strict=True, error=ModelError)
+    rng = as_generator(random_state)
+    scale = None
+    var_scale = 1.0
+    if standardize:
+        sd = np.array([np.nanstd(r[t]) if np.isfinite(r[t]).any() else np.nan
+                       for t in range(r.shape[0])])
+        good = np.isfinite(sd) & (sd > 0)
+        if not good.any():
+            raise DataError("residuals have no time with a finite, non-constant row")
+        scale = np.where(good, 1.0 / np.where(good, sd, 1.0), np.nan)
+        var_scale = float(np.mean(sd[good] ** 2))
+    d, half = _sample_pairs(r, region, metric, max_distance, max_pairs, spacing, rng, scale)
+    ok = np.isfinite(half)
+    d, half = d[ok], half[ok]
+    if d.size == 0:
+        raise DataError(
+            "residuals have no pair of finite values within max_distance "
+            "(are they all NaN, or the region a single cell?)"
+        )
+    step = _min_step(region, metric)
+    if spacing == "log":
+        edges = np.geomspace(0.999 * min(step, max_distance), max_distance, n_bins + 1)
+        edges[0] = 0.0
+    else:
+        edges = np.linspace(0.0, max_distance, n_bins + 1)
+    b = np.clip(np.searchsorted(edges, d, side="left") - 1, 0, n_bins - 1)
+    counts = np.bincount(b, minlength=n_bins)
+    sum_d = np.bincount(b, weights=d, minlength=n_bins)
+    sum_g = np.bincount(b, weights=half, minlength=n_bins)
+    keep = counts > 0
+    return EmpiricalVariogram(
+        distance=sum_d[keep] / counts[keep],
+        gamma=var_scale * sum_g[keep] / counts[keep],
+        counts=counts[keep].astype(np.int64),
+        max_distance=float(max_distance),
+        metric=metric,
+    )
+
+
+def fit_residual_covariance(
+    residuals: Any,
+    region: Region,
+    *,
+    model: Model = "exponential",
+    metric: Metric = "grid",
+    max_pairs: int = 200_000,
+    n_bins: int = 20,
+    max_distance: float | None = None,
+    spacing: Literal["log", "linear"] = "log",
+    standardize: bool = False,
+    random_state: Any = 0,
+) -> ResidualCovariance:
+    """Fit ``sill``, ``range`` and ``nugget`` of ``model`` to the residuals' empirical variogram.
+
+    ``residuals`` is ``(T, L)`` (training data minus the low-rank reconstruction, NaN = missing).
+    The binned semivariogram (:func:`empirical_variogram`) is fitted by
+    ``scipy.optimize.least_squares`` with bin weights proportional to the pair counts, from three
+    starting ranges (the best fit wins). The range is bounded to ``[1e-3, 10] * max_distance``:
+    a range much beyond the largest lag is not identifiable. Deterministic given ``random_state``.
+    """
+    model = KERNEL_REGISTRY.canonical(model, "model")
+    vg = empirical_variogram(
+        residuals, region, metric=metric, max_pairs=max_pairs, n_bins=n_bins,
+        max_distance=max_distance, spacing=spacing, standardize=standardize,
+        random_state=random_state,
+    )
+    if vg.distance.size < 3:
+        raise DataError(
+            f"only {vg.distance.size} non-empty variogram bins: too few pairs of finite residuals "
+            "to fit a covariance (need 3)"
+        )
+    g_scale = float(np.average(vg.gamma, weights=vg.counts))
+    if not g_scale > 0:
+        raise DataError("residuals are spatially constant (zero semivariance): nothing to fit")
+    h = vg.distance / vg.max_distance
+    g = vg.gamma / g_scale
+    w = np.sqrt(vg.counts / vg.counts.sum())
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        sill, rng_, nug = p
+        return w * (nug + sill * (1.0 - correlation(model, h / rng_)) - g)
+
+    nug0 = min(0.5 * g[0], 0.5 * g.max())
+    sill0 = max(g.max() - nug0, 1e-3)
+    lower = [0.0, 1e-3, 0.0]
+    upper = [10.0 * g.max() + 1.0, 10.0, 2.0 * g.max() + 1.0]
+    best = None
+    for r0 in (0.05, 0.2, 1.0):
+        sol = least_squares(resid, x0=[sill0, r0, nug0], bounds=(lower, upper), method="trf",
+                            x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=2000)
+        if best is None or sol.cost < best.cost - 1e-15:
+            best = sol
+    sill, rng_, nug = best.x
+    if sill + nug <= 0:
+        raise SolverError("the variogram fit (scipy least_squares) returned a zero covariance")
+    return ResidualCovariance(
+        model=model, sill=float(sill * g_scale), range=float(rng_ * vg.max_distance),
+        nugget=float(nug * g_scale), metric=vg.metric, variogram=vg,
+    )

@@ -1,0 +1,104 @@
+"""Issue #27, layers: the names that moved keep working (old locations warn), the single
+registries and settings are the ones every reader uses, and ``GLRM.X`` / ``Y`` are the arrays."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+from lrm_cvx import GLRM
+from lrm_cvx.errors import ModelError
+from lrm_cvx.io.samples import synthetic_dynamic_field
+
+
+@pytest.fixture(scope="module")
+def model():
+    field = synthetic_dynamic_field(24, (6, 7), 3, seed=2, noise=0.03)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return GLRM(3, progress=False, max_iter=20, random_state=0, temporal="ar1").fit(field)
+
+
+def test_glrm_x_y_are_the_fitted_arrays(model):
+    assert model.X.shape == model.X_.shape and model.Y.shape == model.Y_.shape
+    assert model.X.dtype == np.float64 and model.Y.dtype == np.float64
+    np.testing.assert_array_equal(model.Y, model.Y_.values)
+    np.testing.assert_array_equal(model._Xv, model.X)
+    with pytest.raises(AttributeError):
+        model.Y = np.zeros((3, 4))
+    with pytest.raises(ModelError):
+        _ = GLRM(2).Y
+
+
+def test_glrm_monitor_warns_and_equals_from_model(model):
+    from lrm_cvx.monitor import MonitorState
+
+    with pytest.warns(DeprecationWarning, match="MonitorState.from_model"):
+        old = model.monitor()
+    new = MonitorState.from_model(model)
+    assert isinstance(old, MonitorState)
+    np.testing.assert_array_equal(old.forecast()["mean"], new.forecast()["mean"])
+
+
+def test_moved_spatial_fold_ins_warn():
+    import lrm_cvx.spatial as sp
+    from lrm_cvx.glrm import foldin
+
+    for name in ("gls_fold_in", "residual_correction"):
+        with pytest.warns(DeprecationWarning, match="glrm.foldin"):
+            assert getattr(sp, name) is getattr(foldin, name)
+    with pytest.raises(AttributeError):
+        _ = sp.no_such_name
+
+
+def test_moved_floor_warns():
+    import lrm_cvx.planning as planning
+    from lrm_cvx.experimental import floor
+
+    with pytest.warns(DeprecationWarning, match="experimental"):
+        assert planning.convex_floor is floor.convex_floor
+    sys.modules.pop("lrm_cvx.planning.floor", None)
+    with pytest.warns(DeprecationWarning, match="experimental.floor"):
+        old = importlib.import_module("lrm_cvx.planning.floor")
+    assert old.route_mixture is floor.route_mixture
+
+
+def test_old_locations_of_moved_helpers_are_the_same_objects():
+    import lrm_cvx.information as info
+    import lrm_cvx.monitor as monitor
+    import lrm_cvx.spatial as sp
+    from lrm_cvx.glrm import calibrated, calibration, filter
+
+    assert info.GridConv is sp.GridConv and info.gp_noise is sp.gp_noise
+    assert info.gp_latent_cov is sp.gp_latent_cov and info.check_gp_inputs is sp.check_gp_inputs
+    assert calibration.Calibration is calibrated.Calibration
+    assert calibration.variance_scale is calibrated.variance_scale
+    assert monitor.time_label is filter.time_label
+    assert issubclass(monitor.MonitorState, filter.LatentFilter)
+
+
+def test_one_temporal_registry():
+    from lrm_cvx.cli import build_parser
+    from lrm_cvx.glrm.dynamics import TEMPORAL, temporal_value
+
+    assert TEMPORAL.choices() == ("none", "ar1", "seasonal")
+    assert temporal_value(None) is None and temporal_value("none") is None
+    assert temporal_value("AR1") == "ar1"
+    with pytest.raises(ModelError, match="temporal must be one of"):
+        temporal_value("ar2")
+    sub = next(a for a in build_parser()._actions if hasattr(a, "_name_parser_map"))
+    found = [a for p in sub.choices.values() for a in p._actions
+             if "--temporal" in a.option_strings]
+    assert found and all(list(a.choices) == list(TEMPORAL.choices()) for a in found)
+
+
+def test_one_recommended_setting():
+    from lrm_cvx import cli, demo
+    from lrm_cvx.recommended import RECOMMENDED
+
+    assert cli.RECOMMENDED is RECOMMENDED
+    assert demo.SETTING is RECOMMENDED
