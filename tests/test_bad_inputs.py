@@ -193,7 +193,7 @@ def test_folder_input_writes_a_new_file_beside_its_data(run, files):
     (["fit", "{a}", "--rank", "2", "-o", "{obs}/x.nc"], "fit", "not a folder"),
     (["predict", "{model}", "--observations", "{obs}", "-o", "{d}"], "predict", "folder"),
     (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "-o", "{m}/r.txt"], "plan",
-     ".csv or .geojson"),
+     ".csv, .geojson"),
     (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "-o", "{obs}"], "plan",
      "already exists"),
     (["evaluate", "{a}", "--out", "{obs}"], "evaluate", "existing file"),
