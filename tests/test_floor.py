@@ -53,7 +53,7 @@ def test_route_mixture_matches_cvxpy(seed, m, k, rank, ridge):
     assert value >= ref - max(gap, 0.0) - 1e-6
     # converged: within 1e-5 of cvxpy, or within the solver's own certified gap when that is
     # looser (hypothesis found seed=10, m=8, k=2, rank=2: 1.37e-5 off with its gap bounding it)
-    assert value == pytest.approx(ref, abs=max(1e-5, gap + 1e-6))
+    assert gap <= 1e-4 and value == pytest.approx(ref, abs=max(1e-5, gap + 1e-6))
     singles = [logdet(ridge * np.eye(k) + M) for M in Ms]
     assert value >= max(singles) - 1e-9
 
