@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -36,7 +37,8 @@ from .dopt import (
     _relaxation,
     _top_sum,
 )
-from .paths import make_path_model
+from .paths import make_path_model, path_model
+from .request import Fleet, PathOptions, PlanPath
 
 __all__ = ["PlanCertificate", "plan_bound"]
 
@@ -210,15 +212,7 @@ def plan_bound(
     *,
     ridge: float = 0.0,
     plan: Any = None,
-    metric: Literal["grid", "km"] = "grid",
-    speed: float | None = None,
-    stop_cost: float = 0.0,
-    traversable: Any = None,
-    closed: bool = False,
-    end: Any = None,
-    sense_along: bool = False,
-    path: str = "route",
-    n_sensors: int | None = None,
+    path: PathOptions | str | None = None,
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL",
     tol: float = 1e-3,
     tighten: bool = True,
@@ -226,6 +220,7 @@ def plan_bound(
     max_pieces: int = 40,
     refine: bool | dict[str, Any] = True,
     path_aware: bool | str | dict[str, Any] = False,
+    **options: Any,
 ) -> PlanCertificate:
     """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
 
@@ -247,18 +242,20 @@ def plan_bound(
     gives the plain disk relaxation. When the plan is given, the submodularity online bound is
     computed too and the smaller one is kept. Proofs in docs/certificate.md.
 
-    **Every path model** (issue #15, docs/certificate.md §10). ``speed``, ``stop_cost``,
-    ``traversable``, ``closed``, ``end``, ``sense_along`` describe the route as in
-    :func:`~lrm_cvx.planning.plan_greedy` (``budget`` in the path model's unit: grid units, km
-    or hours); ``start`` and ``budget`` may be lists (a fleet); ``path="static"`` with
-    ``n_sensors`` bounds every placement of ``n_sensors`` cells anywhere in the region. When a
-    ``plan`` with a ``path`` description is given, its path model is used and these keywords
-    are ignored. The candidates are the cells some feasible route can observe (shortest travel
-    distances: ``d(start, x) + d(x, back) + stop costs <= budget``, ``back`` = nothing, the start
-    of a closed tour or the ``end``); the count limit uses the smallest spacing and the stop
-    cost; the start's distance limits use the path model's travel distances; the midpoint
-    cover needs ``metric="grid"``. A fleet's bound is the count-only relaxation over the union
-    of its robots' candidates with their count limits summed (valid, looser than one robot's).
+    **Every path model** (issue #15, docs/certificate.md §10). ``path`` (a
+    :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords in ``**options``
+    (``metric``, ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``end``,
+    ``sense_along``) describe the route as in :func:`~lrm_cvx.planning.plan_greedy` (``budget``
+    in the path model's unit: grid units, km or hours); ``start`` and ``budget`` may be lists (a
+    fleet); ``path="static"`` with ``n_sensors`` (in ``**options``) bounds every placement of
+    ``n_sensors`` cells anywhere in the region. When a ``plan`` with a ``path`` description is
+    given, its path model is used and these keywords are ignored. The candidates are the cells
+    some feasible route can observe (shortest travel distances: ``d(start, x) + d(x, back) +
+    stop costs <= budget``, ``back`` = nothing, the start of a closed tour or the ``end``); the
+    count limit uses the smallest spacing and the stop cost; the start's distance limits use the
+    path model's travel distances; the midpoint cover needs ``metric="grid"``. A fleet's bound
+    is the count-only relaxation over the union of its robots' candidates with their count
+    limits summed (valid, looser than one robot's).
 
     The bound is on the **Fisher** information (``criterion="fisher"``). For a plan chosen for
     another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or
@@ -290,9 +287,15 @@ def plan_bound(
         raise PlanningError(f"cover must be an integer >= 1, got {cover!r}")
     if not isinstance(max_pieces, (int, np.integer)) or max_pieces < 1:
         raise PlanningError(f"max_pieces must be an integer >= 1, got {max_pieces!r}")
-    spec = _path_spec(region, plan, start, budget, metric=metric, speed=speed,
-                      stop_cost=stop_cost, traversable=traversable, closed=closed, end=end,
-                      sense_along=sense_along, path=path, n_sensors=n_sensors)
+    n_sensors = options.pop("n_sensors", None)
+    kind = "path"
+    if isinstance(path, str) or path is None:
+        kind = {"route": "path", "static": "static", None: "path"}.get(path)
+        if kind is None:
+            raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
+        path = None
+    request = PathOptions.from_kwargs(path, where="plan_bound", **options)
+    spec = _path_spec(region, plan, start, budget, request, kind, n_sensors)
     fam = _family(spec, region, k)
     cand, n_max, init = fam.cand, fam.n_max, fam.init
     # a fleet's certificate reports the total budget, as Plan.budget does
@@ -394,27 +397,29 @@ def _describe_path(path: dict[str, Any]) -> str:
 
 @dataclass(frozen=True)
 class _PathSpec:
-    """What the certificate needs to know of a plan's path model (validated)."""
+    """What the certificate needs to know of a plan's path model (validated): the request's
+    :class:`PathOptions` and :class:`Fleet` (none for a static placement)."""
 
     kind: str  # "path" or "static"
-    starts: tuple[int, ...]
-    budgets: tuple[float, ...]
-    metric: str
-    speed: float | None
-    stop_cost: float
-    traversable: Any  # None, "valid" or a mask (DataArray)
-    closed: bool
-    end: int | None
-    sense_along: bool
+    options: PathOptions
+    fleet: Fleet
     n_sensors: int | None
     models: tuple[Any, ...] | None = None  # the plan's own PathModels, one per robot
+
+    starts = property(lambda self: self.fleet.starts)
+    budgets = property(lambda self: self.fleet.budgets)
+    metric = property(lambda self: self.options.metric)
+    speed = property(lambda self: self.options.speed)
+    stop_cost = property(lambda self: self.options.stop_cost)
+    traversable = property(lambda self: self.options.traversable)
+    closed = property(lambda self: self.options.closed)
+    end = property(lambda self: self.options.end)
+    sense_along = property(lambda self: self.options.sense_along)
 
     @property
     def paper(self) -> bool:
         """The paper's path model (one robot, open, straight lines, no stop cost)."""
-        return (self.kind == "path" and len(self.starts) == 1 and self.metric == "grid"
-                and self.stop_cost == 0 and self.traversable is None and not self.closed
-                and self.end is None and not self.sense_along)
+        return self.kind == "path" and len(self.starts) == 1 and self.options.is_paper
 
     def summary(self) -> dict[str, Any]:
         trav = self.traversable
@@ -434,32 +439,17 @@ def _check_region(region: Any) -> Any:
     return check_region(region)
 
 
-def _check_budget(budget: Any, name: str = "budget") -> float:
-    """``budget`` as a float >= 0; a string or a bool is refused, not converted."""
-    from .._validation import check_positive
-
-    return check_positive(budget, name, error=PlanningError, numbers_only=True)
-
-
-def _starts_list(x: Any) -> list[Any]:
-    """One start (a cell, or a ``(lat, lon)`` tuple) or a list of them (a fleet)."""
-    if isinstance(x, list) or (isinstance(x, np.ndarray) and x.ndim == 1):
-        return list(x)
+def _starts_list(x: Any) -> Any:
+    """The certificate's reading of ``start``: a tuple of cell indices is a fleet (a tuple
+    with a float is one ``(lat, lon)``); else as :meth:`Fleet.resolve` reads it."""
     if isinstance(x, tuple) and not (
         len(x) == 2 and any(isinstance(v, (float, np.floating)) for v in x)
     ):
         return list(x)
-    return [x]
+    return x
 
 
-def _budgets_list(x: Any) -> list[Any]:
-    """One budget or one per robot."""
-    if isinstance(x, (list, tuple)) or (isinstance(x, np.ndarray) and x.ndim == 1):
-        return list(x)
-    return [x]
-
-
-def _is_paper_description(desc: dict[str, Any]) -> bool:
+def _is_paper_description(desc: Any) -> bool:
     """``plan.path`` describes the paper's path model (old plans, the default): the caller's
     keywords (e.g. ``metric="km"``) then apply, as before issue #15."""
     trav = desc.get("traversable")
@@ -470,81 +460,65 @@ def _is_paper_description(desc: dict[str, Any]) -> bool:
             and not desc.get("sense_along"))
 
 
-def _path_spec(region: Any, plan: Any, start: Any, budget: Any, **kw: Any) -> _PathSpec:
-    """The path model of the request: ``plan.path`` when the plan has one, else ``kw``."""
+def _plan_request(plan: Any, desc: Any) -> PathOptions:
+    """The path options of a plan's path record (a :class:`PlanPath` or its mapping); a
+    traversable mask the record does not keep is the plan's ``traversable_mask``, else
+    ``"valid"`` (enterable = valid & mask: travel over all valid cells is never longer, so it
+    gives a valid, looser certificate)."""
+    if isinstance(desc, PlanPath) and desc.options is not None:
+        return desc.options
+    trav = desc.get("traversable")
+    if isinstance(trav, str) and trav.lower() == "none":
+        trav = None
+    elif isinstance(trav, str) and trav == "mask":
+        mask = desc.get("mask", getattr(plan, "traversable_mask", None))
+        trav = mask if mask is not None else "valid"
+    return PathOptions(metric=desc.get("metric", "grid"), speed=desc.get("speed"),
+                       stop_cost=desc.get("stop_cost", 0.0) or 0.0, traversable=trav,
+                       closed=bool(desc.get("closed", False)), end=desc.get("end"),
+                       sense_along=bool(desc.get("sense_along", False)))
+
+
+def _path_spec(region: Any, plan: Any, start: Any, budget: Any, request: PathOptions,
+               kind: str, n_sensors: Any) -> _PathSpec:
+    """The path model of the request: ``plan.path`` when the plan has one, else ``request``
+    (``kind`` ``"path"`` or ``"static"``, ``n_sensors`` for the latter)."""
     desc = getattr(plan, "path", None) if plan is not None else None
-    if isinstance(desc, dict) and desc and not _is_paper_description(desc):
+    if isinstance(desc, Mapping) and desc and not _is_paper_description(desc):
         kind = desc.get("kind", "path")
-        starts = desc.get("starts") or _starts_list(getattr(plan, "start", start))
-        budgets = desc.get("budgets") or _budgets_list(getattr(plan, "budget", budget))
-        trav = desc.get("traversable")
-        if isinstance(trav, str) and trav.lower() == "none":
-            trav = None
-        elif isinstance(trav, str) and trav == "mask":
-            mask = desc.get("mask", getattr(plan, "traversable_mask", None))
-            # enterable = valid & mask: travel over all valid cells is never longer, so
-            # "valid" gives a valid (looser) certificate when the mask itself is not kept
-            trav = mask if mask is not None else "valid"
+        start = desc.get("starts") or getattr(plan, "start", start)
+        budget = desc.get("budgets") or getattr(plan, "budget", budget)
         n_sensors = desc.get("n_sensors")
-        if kind == "static" and n_sensors is None:
-            n_sensors = int(round(budgets[0])) if budgets else int(np.unique(plan.cells).size)
-        kw = dict(metric=desc.get("metric", "grid"), speed=desc.get("speed"),
-                  stop_cost=desc.get("stop_cost", 0.0) or 0.0, traversable=trav,
-                  closed=bool(desc.get("closed", False)), end=desc.get("end"),
-                  sense_along=bool(desc.get("sense_along", False)), path=kind,
-                  n_sensors=n_sensors)
-    else:
-        starts, budgets = _starts_list(start), _budgets_list(budget)
-        if plan is not None and getattr(plan, "start", None) is not None and start is None:
-            starts = [plan.start]
-    kind = {"route": "path", "path": "path", "static": "static"}.get(str(kw["path"]))
-    if kind is None:
-        raise PlanningError(f"path must be 'route' or 'static', got {kw['path']!r}")
-    metric = kw["metric"]
-    if metric not in ("grid", "km"):
-        raise PlanningError(f"metric must be 'grid' or 'km', got {metric!r}")
-    speed = kw["speed"]
-    if speed is not None:
-        if metric != "km":
-            raise PlanningError("speed (km/h) needs metric='km'")
-        speed = _check_budget(speed, "speed (km/h)")
-        if speed <= 0:
-            raise PlanningError(f"speed must be > 0 km/h, got {speed!r}")
-    stop_cost = _check_budget(kw["stop_cost"], "stop_cost")
+        if kind == "static":
+            budgets = list(np.atleast_1d(budget))
+            if n_sensors is None:
+                n_sensors = (int(round(budgets[0])) if budgets
+                             else int(np.unique(plan.cells).size))
+            request = PathOptions()
+        else:
+            request = _plan_request(plan, desc)
+    elif plan is not None and getattr(plan, "start", None) is not None and start is None:
+        start = plan.start
     if kind == "static":
-        n = kw["n_sensors"]
+        n = n_sensors
         if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
             raise PlanningError(f"n_sensors must be an integer >= 1 for path='static', "
                                 f"got {n!r}")
-        return _PathSpec("static", (), (), metric, speed, stop_cost, None, False, None, False,
-                         int(n))
-    cells = tuple(int(region.resolve_cell(s, "start")) for s in starts)
-    if len(budgets) == 1 and len(cells) > 1:
-        budgets = budgets * len(cells)
-    if len(budgets) != len(cells):
-        raise PlanningError(f"budget has {len(budgets)} entries for {len(cells)} starts; give "
-                            "one budget or one per start")
-    budgets_f = tuple(_check_budget(b) for b in budgets)
-    closed = bool(kw["closed"])
-    end = kw["end"]
-    if end is not None:
-        if closed:
-            raise PlanningError("closed=True with end= is contradictory: a closed tour ends "
-                                "at its start")
-        end = int(region.resolve_cell(end, "end"))
-    trav = kw["traversable"]
-    if isinstance(trav, str):
-        if trav.lower() == "none":
-            trav = None
-        elif trav != "valid":
-            raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
-                                f"mask, got {trav!r}")
+        return _PathSpec("static", request, Fleet((), ()), int(n))
+    start = _starts_list(start)
+    if (isinstance(budget, (list, tuple, np.ndarray)) and len(budget) == 1
+            and isinstance(start, (list, np.ndarray)) and len(start) > 1):
+        budget = budget[0]  # one budget for every robot of a fleet
+    if not isinstance(start, (list, np.ndarray)) and isinstance(budget, (list, tuple,
+                                                                         np.ndarray)):
+        start = [start]  # a one-robot fleet: plan.path's lists
+    fleet = Fleet.resolve(region, start, budget, request.unit)
+    request = request.resolved(region)
     models = getattr(plan, "_path_models", None) if plan is not None else None
-    if models is not None and (len(models) != len(cells) or any(
-            int(m.start) != c for m, c in zip(models, cells, strict=True))):
+    if models is not None and (len(models) != fleet.n_robots or any(
+            int(m.start) != c for m, c in zip(models, fleet.starts, strict=True))):
         models = None
-    return _PathSpec("path", cells, budgets_f, metric, speed, stop_cost, trav, closed, end,
-                     bool(kw["sense_along"]), None, tuple(models) if models else None)
+    return _PathSpec("path", request, fleet, None, tuple(models) if models else None)
 
 
 @dataclass(frozen=True)
@@ -651,9 +625,7 @@ def _robot_family(spec: _PathSpec, region: Any, k: int, r: int) -> _Family:
     if spec.models is not None:  # the plan's own model (keeps a traversable mask)
         pm = spec.models[r]
     else:
-        pm = make_path_model(region, start, budget, metric=spec.metric, speed=spec.speed,
-                             stop_cost=spec.stop_cost, traversable=spec.traversable,
-                             closed=spec.closed, end=spec.end)
+        pm = path_model(region, start, budget, spec.options)
     if spec.sense_along and pm.traversable == "none":
         return _straight_sensing_family(spec, pm, region, k)
     c = spec.stop_cost

@@ -8,16 +8,23 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._validation import as_factor_matrix, check_positive
+from .._validation import as_factor_matrix
 from ..cost import COST_REGISTRY
 from ..errors import PlanningError
 from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
-from .paths import make_path_model
-from .plan import Plan, check_region, path_dict
+from .paths import path_model
+from .plan import Plan, check_region
+from .request import Fleet, PathOptions, PlanPath, pop_options, resolve_budgets, resolve_starts
 
 __all__ = ["initial_cells", "plan_greedy", "place_sensors", "check_budget", "budget_pool",
            "resolve_starts", "resolve_budgets", "resolve_prior"]
+
+PRIOR_TERMS = ("prior_precision", "noise_var", "target_weights", "prior_cov", "spatial_cov",
+               "targets")
+"""The criterion's posterior terms a planner takes as keywords (or from ``prior=``)."""
+STATIC_OPTIONS = ("n_sensors", "training", "exchange")
+"""The keywords of ``plan_greedy(static=True)`` only."""
 
 _TOL = 1e-9  # budget tolerance (grid units)
 _MIN_DC = 1e-12  # floor of the cost increase in the ratio (NN tours can get shorter)
@@ -50,8 +57,7 @@ def initial_cells(region: Region, start: int, k: int) -> np.ndarray:
 
 def check_budget(budget: Any) -> float:
     """The paper's ``budget`` (grid units) as a float >= 0; a string or a bool is refused."""
-    return check_positive(budget, "budget (grid units)", error=PlanningError,
-                          numbers_only=True)
+    return Fleet.check_budget(budget)
 
 
 def budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
@@ -71,47 +77,6 @@ def _prior_terms(prior: Any) -> dict[str, Any]:
         raise PlanningError("prior must be a LatentPosterior (e.g. model.latent_prior("
                             f"'empirical')), got {type(prior).__name__}")
     return info()
-
-
-def resolve_starts(region: Region, start: Any) -> tuple[list[int], bool]:
-    """``(cells, fleet)``: one start (a cell index or a ``(lat, lon)`` tuple) or a fleet (a
-    list, or a 1-D integer / ``(n, 2)`` array, of those)."""
-    if start is None:
-        raise PlanningError("start is required: a cell index, a (lat, lon) tuple, or a list "
-                            "of those (one per robot)")
-    if isinstance(start, np.ndarray):
-        if start.ndim == 1 and np.issubdtype(start.dtype, np.integer):
-            start = start.tolist()
-        elif start.ndim == 2 and start.shape[1] == 2:
-            start = [tuple(row) for row in start.tolist()]
-    if isinstance(start, list):
-        flat = all(isinstance(v, (int, float, np.integer, np.floating)) and
-                   not isinstance(v, (bool, np.bool_)) for v in start)
-        if len(start) == 2 and flat and not all(isinstance(v, (int, np.integer))
-                                                for v in start):
-            return [region.resolve_cell(tuple(start), "start")], False  # [lat, lon], as before
-        if not start:
-            raise PlanningError("start must not be an empty list (one start per robot)")
-        cells = [region.resolve_cell(tuple(v) if isinstance(v, list) else v, f"start[{i}]")
-                 for i, v in enumerate(start)]
-        return cells, True
-    return [region.resolve_cell(start, "start")], False
-
-
-def resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
-    """``budget`` (a number, or for a fleet a list / array of ``n``) as ``n`` floats >= 0."""
-    if isinstance(budget, (list, tuple, np.ndarray)) and not fleet:
-        raise PlanningError(f"budget must be a number for one robot, got {budget!r} (a list "
-                            "of budgets needs a list of starts, one per robot)")
-    if isinstance(budget, (list, tuple, np.ndarray)):
-        values = list(np.asarray(budget, dtype=object).ravel())
-        if len(values) != n:
-            raise PlanningError(f"budget has {len(values)} values but there are {n} starts: "
-                                "give one budget per robot, or one number for all")
-        return [check_budget(b) for b in values]
-    if budget is None:
-        raise PlanningError("budget is required (a number, or one per robot)")
-    return [check_budget(budget)] * n
 
 
 def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
@@ -175,26 +140,12 @@ def plan_greedy(
     cost: str = "nearest-neighbor",
     ridge: float = 0.0,
     progress: bool = True,
-    prior_precision: Any = None,
-    noise_var: Any = None,
-    target_weights: Any = None,
-    prior_cov: Any = None,
-    spatial_cov: Any = None,
-    targets: Any = None,
     initial: str = "nearest",
     prior: Any = None,
     refine: bool | dict[str, Any] = False,
-    metric: str = "grid",
-    speed: float | None = None,
-    stop_cost: float = 0.0,
-    traversable: Any = None,
-    closed: bool = False,
-    end: Any = None,
-    sense_along: bool = False,
-    path: str = "route",
-    n_sensors: int | None = None,
-    training: Any = None,
-    exchange: bool = False,
+    path: PathOptions | str | None = None,
+    static: bool = False,
+    **options: Any,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
 
@@ -232,13 +183,14 @@ def plan_greedy(
         (cheapest insertion route, cheaper and usually shorter).
     ridge : ``>= 0``, added to the information matrix (``ridge * I``).
     progress : show a tqdm progress bar.
-    prior_precision, noise_var, target_weights : the fold-in's posterior (issue #8,
+    prior_precision, noise_var, target_weights : (``**options``) the fold-in's posterior (issue #8,
         docs/reconstruction.md): ``M = prior_precision + sum_P y_p y_p^T / noise_var_p``
         replaces ``ridge I + sum_P y_p y_p^T`` in ``"fisher"`` and ``"a-optimal"``, and the
         A-optimal target is ``sum_i target_weights_i y_i y_i^T``. ``GLRM.planner_kwargs()``
         returns them for a fitted model. Default None: the paper.
-    prior_cov, spatial_cov, targets : for ``criterion="gp-variance"`` (the A-optimal criterion
-        of the low-rank trend + GP residual model; :class:`~lrm_cvx.information.GPVarianceOracle`).
+    prior_cov, spatial_cov, targets : (``**options``) for ``criterion="gp-variance"`` (the
+        A-optimal criterion of the low-rank trend + GP residual model;
+        :class:`~lrm_cvx.information.GPVarianceOracle`).
     initial : ``"nearest"`` (the paper: the start and its ``k - 1`` nearest cells are forced) or
         ``"start"`` (only the start cell, and the ``end`` cell when given: with a prior the
         information matrix is nonsingular from the start, so the budget is not spent on
@@ -250,75 +202,67 @@ def plan_greedy(
     refine : run :func:`lrm_cvx.planning.refine.refine` on the greedy plan (a local search
         of insertions and swaps that raises the information within the budget; Fisher and the
         paper's path model only); a dict is passed to it as keyword arguments.
-    metric, speed, stop_cost, traversable, closed, end : the path model (docs/planning.md,
-        "Path models"): ``"grid"`` or ``"km"`` (great circle); ``speed`` km/h makes the unit
-        hours; ``stop_cost`` is charged per sampling stop (start included); ``traversable``
-        ``None`` (straight lines), ``"valid"`` or a boolean ``(lat, lon)`` DataArray (travel
-        over the 8-connected grid of enterable cells, routes include the cells passed);
+    path : a :class:`~lrm_cvx.planning.request.PathOptions` (default: the paper's), or its
+        keywords below in ``**options`` (they update ``path``).
+    metric, speed, stop_cost, traversable, closed, end : (``**options``) the path model
+        (docs/planning.md, "Path models"): ``"grid"`` or ``"km"`` (great circle); ``speed``
+        km/h makes the unit hours; ``stop_cost`` is charged per sampling stop (start
+        included); ``traversable`` ``None`` (straight lines), ``"valid"`` or a boolean
+        ``(lat, lon)`` DataArray (travel over the 8-connected grid of enterable cells, routes
+        include the cells passed);
         ``closed=True`` returns to the start; ``end`` (a cell or ``(lat, lon)``) is where every
         route must finish.
-    sense_along : every cell a route passes through is observed: after each pick the route's
-        new pass-through cells join the information (cells a re-ordered route no longer passes
-        leave it). Candidates are still scored by **their own** gain per unit cost (not by the
-        pass-through cells their detour would add); cells already observed are not candidates.
+    sense_along : (``**options``) every cell a route passes through is observed: after each
+        pick the route's new pass-through cells join the information (cells a re-ordered route
+        no longer passes leave it). Candidates are still scored by **their own** gain per unit
+        cost (not by the pass-through cells their detour would add); cells already observed
+        are not candidates.
         Without a travel graph a straight leg passes the cells its segment crosses (between
         grid positions; masked positions are skipped). ``plan.cells`` holds every observed
         cell, ``plan.stops`` the sampling stops.
-    path : ``"route"`` (travel, the above) or ``"static"``: fixed sensors, no travel (see
-        :func:`place_sensors`; ``start`` must then be None and ``n_sensors`` (or ``budget``)
-        is the number of sensors).
-    n_sensors : the number of sensors of ``path="static"``.
-    training, exchange : ``path="static"`` only (:func:`place_sensors`): the training snapshots
-        of ``criterion="risk"`` and the exchange search.
+    static : fixed sensors, no travel (see :func:`~lrm_cvx.planning.static.place_sensors`;
+        ``start`` must then be None and ``n_sensors`` (or ``budget``) is the number of
+        sensors). ``path="static"`` is the old spelling (DeprecationWarning).
+    n_sensors, training, exchange : (``**options``) ``static=True`` only: the number of
+        sensors, the training snapshots of ``criterion="risk"`` and the exchange search.
 
     If the initial cells alone already exceed a robot's budget, the plan is still returned
     (the paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
     budget, start, criterion, cost or path option, or a singular initial set with ``ridge=0``.
     """
     region = check_region(region)
-    if path not in ("route", "static"):
-        raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
-    if path == "static":
-        if start is not None:
-            raise PlanningError("path='static' places fixed sensors and has no start: pass "
-                                "start=None")
-        if n_sensors is None:
-            n_sensors = budget
-        elif budget is not None and float(budget) != float(n_sensors):
-            raise PlanningError(f"path='static': give n_sensors ({n_sensors}) or budget "
-                                f"({budget}), not two different numbers")
-        if (metric, speed, stop_cost, closed, end, sense_along) != ("grid", None, 0.0, False,
-                                                                     None, False):
-            raise PlanningError("path='static' has no travel: metric, speed, stop_cost, closed, "
-                                "end and sense_along do not apply")
-        if refine is not False and refine is not None:
-            raise PlanningError("refine supports only the paper's path model, not "
-                                "path='static'")
-        return place_sensors(Y, region, n_sensors, criterion=criterion, ridge=ridge,
-                             progress=progress, prior_precision=prior_precision,
-                             noise_var=noise_var, target_weights=target_weights,
-                             prior_cov=prior_cov, spatial_cov=spatial_cov, targets=targets,
-                             prior=prior, traversable=traversable, training=training,
-                             exchange=exchange)
-    if n_sensors is not None:
+    terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
+    static_opts = pop_options(options, STATIC_OPTIONS)
+    if isinstance(path, str):
+        if path not in ("route", "static"):
+            raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
+        if path == "static":
+            warnings.warn("plan_greedy(path='static') is deprecated: pass static=True (or use "
+                          "lrm_cvx.planning.static.place_sensors)", DeprecationWarning,
+                          stacklevel=2)
+            static = True
+        path = None
+    request = PathOptions.from_kwargs(path, where="plan_greedy", **options)
+    if static:
+        return _static(Y, region, start, budget, request, options, static_opts, refine,
+                       dict(criterion=criterion, ridge=ridge, progress=progress, prior=prior,
+                            **terms_given))
+    if "n_sensors" in static_opts:
         raise PlanningError("n_sensors applies to path='static' only")
-    if training is not None or exchange is not False:
+    if static_opts:
         raise PlanningError("training and exchange apply to path='static' only")
 
     Yk = as_factor_matrix(Y, region)
     k, L = Yk.shape
-    starts, fleet = resolve_starts(region, start)
-    budgets = resolve_budgets(budget, len(starts), fleet)
+    fleet = Fleet.resolve(region, start, budget, request.unit)
+    starts, budgets = list(fleet.starts), list(fleet.budgets)
     criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")  # aliases accepted
     cost = COST_REGISTRY.canonical(cost, "cost")
     if initial not in ("nearest", "start"):
         raise PlanningError(f"initial must be 'nearest' or 'start', got {initial!r}")
-    if not isinstance(sense_along, (bool, np.bool_)):
-        raise PlanningError(f"sense_along must be True or False, got {sense_along!r}")
-    end_cell = None if end is None else region.resolve_cell(end, "end")
-    models = [make_path_model(region, s, b, metric=metric, speed=speed, stop_cost=stop_cost,
-                              traversable=traversable, closed=closed, end=end_cell, cost=cost)
-              for s, b in zip(starts, budgets, strict=True)]
+    request = request.resolved(region)
+    models = [path_model(region, s, b, request, cost) for s, b in zip(starts, budgets,
+                                                                       strict=True)]
     if initial == "nearest" and k > region.n_cells:
         raise PlanningError(f"the region has {region.n_cells} cells, fewer than the rank k = {k}")
     P0s = _robot_initial(models, k, initial)
@@ -326,10 +270,10 @@ def plan_greedy(
     cands = [np.asarray(m.candidates(), dtype=np.int64) for m in models]
     union_pool = cands[0] if len(cands) == 1 else np.unique(np.concatenate(cands))
     idx = [np.searchsorted(union_pool, c) for c in cands]
-    terms = resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
-                                       target_weights=target_weights, prior_cov=prior_cov,
-                                       spatial_cov=spatial_cov))
+    targets = terms_given.pop("targets")
+    terms = resolve_prior(prior, terms_given)
     posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
+    sense_along = request.sense_along
     # (robot, stop) pairs: a cell is a stop of one robot, except starts shared by two robots
     stops = [int(c) for P in P0s for c in P]
     stop_robot = [r for r, P in enumerate(P0s) for _ in P]
@@ -350,7 +294,7 @@ def plan_greedy(
             for c in set(stops):
                 _take(cst, cands[r], c)
         if cst.cost > budgets[r] + tols[r]:
-            who = f"robot {r}'s " if fleet else ""
+            who = f"robot {r}'s " if fleet.is_fleet else ""
             warnings.warn(
                 f"{who}{P0s[r].size} initial cells (start and its nearest, needed for a "
                 f"rank-{k} model) already cost {cst.cost:.4g} > budget {budgets[r]:.4g}",
@@ -360,7 +304,7 @@ def plan_greedy(
     hist: dict[str, list[float]] = {
         "cell": [], "gain": [], "cost_increase": [], "ratio": [], "cost": [], "n_evaluated": []
     }
-    if fleet:
+    if fleet.is_fleet:
         hist["robot"] = []
     bar = tqdm(desc="greedy plan", unit="pick", disable=not progress, leave=False)
     try:
@@ -409,7 +353,7 @@ def plan_greedy(
                         oracle.add(c)
             stops.append(cell)
             stop_robot.append(r)
-            if fleet:
+            if fleet.is_fleet:
                 hist["robot"].append(r)
             hist["cost"].append(cst.cost)
             bar.update(1)
@@ -418,9 +362,33 @@ def plan_greedy(
         bar.close()
     return _route_plan(
         Yk, region, models, costers, stops, stop_robot, sense, hist, criterion=criterion,
-        ridge=float(ridge), cost=cost, posterior=posterior, budgets=budgets, refine=refine,
-        terms=terms, sense_along=bool(sense_along),
+        ridge=float(ridge), cost=cost, posterior=posterior, fleet=fleet, refine=refine,
+        terms=terms, request=request,
     )
+
+
+def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOptions,
+            given: dict[str, Any], static_opts: dict[str, Any], refine: Any,
+            common: dict[str, Any]) -> Plan:
+    """``plan_greedy(static=True)``: :func:`~lrm_cvx.planning.static.place_sensors` of the
+    request (``given``: the path keywords as passed; only ``traversable`` applies)."""
+    if start is not None:
+        raise PlanningError("path='static' places fixed sensors and has no start: pass "
+                        "start=None")
+    n_sensors = static_opts.pop("n_sensors", None)
+    if n_sensors is None:
+        n_sensors = budget
+    elif budget is not None and float(budget) != float(n_sensors):
+        raise PlanningError(f"path='static': give n_sensors ({n_sensors}) or budget "
+                            f"({budget}), not two different numbers")
+    if set(request.changed()) - {"traversable"}:
+        raise PlanningError("path='static' has no travel: metric, speed, stop_cost, closed, "
+                            "end and sense_along do not apply")
+    if refine is not False and refine is not None:
+        raise PlanningError("refine supports only the paper's path model, not "
+                            "path='static'")
+    return place_sensors(Y, region, n_sensors, traversable=given.get("traversable"),
+                         **static_opts, **common)
 
 
 def _take(coster: Any, pool: np.ndarray, cell: int) -> None:
@@ -464,9 +432,11 @@ class _Sensing:
 
 
 def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, criterion,
-                ridge, cost, posterior, budgets, refine, terms, sense_along) -> Plan:
+                ridge, cost, posterior, fleet, refine, terms, request) -> Plan:
     """The :class:`Plan` of the greedy's final routes (and its refinement)."""
     from .plan import sensed_route
+
+    sense_along, budgets = request.sense_along, list(fleet.budgets)
 
     routes, cums, ways, robot = [], [], [], []
     for r, (m, cst) in enumerate(zip(models, costers, strict=True)):
@@ -479,12 +449,7 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
     cells = list(dict.fromkeys(list(stops) + (np.concatenate(routes).tolist() if sense_along
                                               else [])))
     info = fisher_information(Yk, cells, ridge)
-    m0 = models[0]
-    path = path_dict(
-        [m.start for m in models], budgets, metric=m0.metric, speed=m0.speed,
-        stop_cost=float(m0.stop_cost), traversable=m0.traversable, closed=bool(m0.closed),
-        end=None if m0.end is None else int(m0.end), unit=m0.unit, sense_along=sense_along,
-    )
+    path = PlanPath.describe(request, fleet, traversable=models[0].traversable)
     robot_costs = np.array([c.cost for c in costers], dtype=np.float64)
     n = len(models)
     plan = Plan.build(
@@ -541,16 +506,11 @@ def place_sensors(
     ridge: float = 0.0,
     prior: Any = None,
     progress: bool = False,
-    prior_precision: Any = None,
-    noise_var: Any = None,
-    target_weights: Any = None,
-    prior_cov: Any = None,
-    spatial_cov: Any = None,
-    targets: Any = None,
     traversable: Any = None,
     training: Any = None,
     exchange: bool = False,
     sweeps: int = 5,
+    **terms: Any,
 ) -> Plan:
     """Static placement: ``n_sensors`` fixed sensors (moorings, stations), no travel.
 
@@ -576,6 +536,10 @@ def place_sensors(
     ``L x L`` covariance: at most ``static.RISK_MAX_CELLS`` cells.
     """
     region = check_region(region)
+    bad = set(terms) - set(PRIOR_TERMS)
+    if bad:
+        raise TypeError(f"place_sensors() got an unexpected keyword argument {sorted(bad)[0]!r}")
+    terms = {key: terms.get(key) for key in PRIOR_TERMS}
     Yk = as_factor_matrix(Y, region)
     k, L = Yk.shape
     if isinstance(n_sensors, (bool, np.bool_)) or n_sensors is None:
@@ -605,13 +569,10 @@ def place_sensors(
 
         return place_static(Yk, region, n, allowed, criterion=criterion, prior=prior,
                             training=training, exchange=exchange, sweeps=sweeps, other=dict(
-                                ridge=ridge, progress=progress, prior_precision=prior_precision,
-                                noise_var=noise_var, target_weights=target_weights,
-                                prior_cov=prior_cov, spatial_cov=spatial_cov, targets=targets,
-                                traversable=traversable))
-    terms = resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
-                                       target_weights=target_weights, prior_cov=prior_cov,
-                                       spatial_cov=spatial_cov))
+                                ridge=ridge, progress=progress, traversable=traversable,
+                                **terms))
+    targets = terms.pop("targets")
+    terms = resolve_prior(prior, terms)
     posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
     extra = _oracle_extra(criterion, region, allowed, terms, targets)
     P0 = np.empty(0, dtype=np.int64)
@@ -657,8 +618,8 @@ def place_sensors(
         budget=float(n), start=-1, ridge=float(ridge), method="greedy",
         history=_history(hist), cost_function="sensors", Y=Yk, posterior=posterior,
         route_cost=route_cost,
-        path=path_dict([], [float(n)], kind="static", unit="sensors",
-                       traversable="none" if allowed.size == L else "mask"),
+        path=PlanPath(kind="static", unit="sensors", budgets=[float(n)],
+                      traversable="none" if allowed.size == L else "mask"),
     )
 
 
