@@ -6,9 +6,20 @@ from typing import Any
 
 from .baselines import random_walk, transect
 from .floor import ConvexFloor, convex_floor
-from .greedy import initial_cells, place_sensors, plan_greedy
+from .greedy import initial_cells, plan_greedy
 from .plan import Plan
+from .planners import (
+    METHOD_REGISTRY,
+    GreedyPlanner,
+    Planner,
+    RandomWalk,
+    Refined,
+    StaticPlacement,
+    Transect,
+)
 from .refine import refine
+from .request import Fleet, PathOptions, PlanPath
+from .static import place_sensors
 
 __all__ = [
     "Plan",
@@ -22,6 +33,16 @@ __all__ = [
     "dopt_upper_bound",
     "convex_floor",
     "ConvexFloor",
+    "PathOptions",
+    "Fleet",
+    "PlanPath",
+    "Planner",
+    "GreedyPlanner",
+    "StaticPlacement",
+    "Transect",
+    "RandomWalk",
+    "Refined",
+    "METHOD_REGISTRY",
 ]
 
 

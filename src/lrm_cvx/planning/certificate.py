@@ -753,10 +753,10 @@ def _refined(plan: Any, Y: np.ndarray, region: Any, refine: Any, metric: str,
         return float(done["information_before"]), float(information), int(done["moves"]), cells
     if refine is False or refine is None or not hasattr(plan, "cost_function"):
         return None, None, None, cells
-    from .refine import refine as _refine
+    from .plan import REFINERS  # the search registers itself: no import of the planner
 
     opts = dict(refine) if isinstance(refine, dict) else {}
-    better = _refine(plan, Y, region, **opts)
+    better = REFINERS.get("local")(plan, dict(opts, Y=Y, region=region), {})
     moves = int(better.refinement.get("moves", 0)) if better is not plan else 0
     return (float(information), max(float(better.information), float(information)), moves,
             np.asarray(better.cells, dtype=np.int64))

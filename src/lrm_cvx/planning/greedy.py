@@ -13,16 +13,15 @@ from ..cost import COST_REGISTRY
 from ..errors import PlanningError
 from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
+from . import request as _request
 from .paths import path_model
-from .plan import Plan, check_region
-from .request import Fleet, PathOptions, PlanPath, pop_options, resolve_budgets, resolve_starts
+from .plan import REFINERS, Plan, check_region
+from .request import Fleet, PathOptions, PlanPath, pop_options
+from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
 
-__all__ = ["initial_cells", "plan_greedy", "place_sensors", "check_budget", "budget_pool",
-           "resolve_starts", "resolve_budgets", "resolve_prior"]
+__all__ = ["initial_cells", "plan_greedy", "check_budget", "budget_pool", "resolve_prior",
+           "PRIOR_TERMS", "STATIC_OPTIONS"]
 
-PRIOR_TERMS = ("prior_precision", "noise_var", "target_weights", "prior_cov", "spatial_cov",
-               "targets")
-"""The criterion's posterior terms a planner takes as keywords (or from ``prior=``)."""
 STATIC_OPTIONS = ("n_sensors", "training", "exchange")
 """The keywords of ``plan_greedy(static=True)`` only."""
 
@@ -70,15 +69,6 @@ def budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
     return np.flatnonzero(d2 <= (budget + _POOL_SLACK) ** 2).astype(np.int64)
 
 
-def _prior_terms(prior: Any) -> dict[str, Any]:
-    """The planner's keyword terms of a latent belief (``LatentPosterior.information()``)."""
-    info = getattr(prior, "information", None)
-    if not callable(info):
-        raise PlanningError("prior must be a LatentPosterior (e.g. model.latent_prior("
-                            f"'empirical')), got {type(prior).__name__}")
-    return info()
-
-
 def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
     """Each robot's forced cells: its model's ``initial_cells(k)`` (``initial="nearest"``) or
     its start (and end) only; a cell already forced for an earlier robot is left out (the
@@ -97,37 +87,6 @@ def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
         taken.update(keep)
         out.append(np.asarray(keep, dtype=np.int64))
     return out
-
-
-def resolve_prior(prior: Any, terms_given: dict[str, Any]) -> dict[str, Any]:
-    """The criterion's keyword terms from ``prior`` (or the ones given directly)."""
-    if prior is None:
-        return terms_given
-    terms = _prior_terms(prior)
-    clash = sorted(key for key in terms if terms_given.get(key) is not None)
-    if clash:
-        raise PlanningError(f"prior= already gives {clash}; pass either prior or those")
-    return {key: terms.get(key) for key in terms_given}
-
-
-def _oracle_extra(criterion: str, region: Region, pool: np.ndarray, t: dict[str, Any],
-                  targets: Any) -> dict[str, Any]:
-    if criterion == "gp-variance":
-        return dict(region=region, spatial_cov=t["spatial_cov"], prior_cov=t["prior_cov"],
-                    pool=pool, targets=targets, target_weights=t["target_weights"])
-    extra: dict[str, Any] = {}
-    if t["prior_precision"] is not None:
-        extra["prior_precision"] = t["prior_precision"]
-    if t["noise_var"] is not None:
-        extra["noise_var"] = t["noise_var"]
-    if t["target_weights"] is not None and criterion == "a-optimal":
-        extra["target_weights"] = t["target_weights"]
-    return extra
-
-
-def _history(hist: dict[str, list[float]]) -> dict[str, np.ndarray]:
-    return {key: np.asarray(v, dtype=np.int64 if key in ("cell", "n_evaluated", "robot")
-                            else np.float64) for key, v in hist.items()}
 
 
 def plan_greedy(
@@ -287,7 +246,7 @@ def plan_greedy(
         init = list(dict.fromkeys(init + sense.observed().tolist()))
         if criterion == "gp-variance":  # pass-through cells must be cells of the GP pool
             gp_pool = np.union1d(union_pool, sense.reach())
-    extra = _oracle_extra(criterion, region, gp_pool, terms, targets)
+    extra = oracle_terms(criterion, region, gp_pool, terms, targets)
     oracle = make_oracle(criterion, Yk, ridge, init, **extra)
     for r, cst in enumerate(costers):  # cells forced for other robots are taken
         if len(costers) > 1:
@@ -387,6 +346,8 @@ def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOption
     if refine is not False and refine is not None:
         raise PlanningError("refine supports only the paper's path model, not "
                             "path='static'")
+    from .static import place_sensors
+
     return place_sensors(Y, region, n_sensors, traversable=given.get("traversable"),
                          **static_opts, **common)
 
@@ -463,7 +424,7 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
         start=models[0].start,
         ridge=ridge,
         method="greedy",
-        history=_history(hist),
+        history=history_arrays(hist),
         cost_function=cost,
         Y=Yk,
         posterior=posterior,
@@ -476,169 +437,31 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
         robot_costs=robot_costs,
         path_models=models,
     )
-    if refine is not False and refine is not None:
-        from .refine import refine as _refine
-
-        opts = dict(refine) if isinstance(refine, dict) else {}
-        if plan.posterior:
-            opts.setdefault("prior_precision", terms["prior_precision"])
-            opts.setdefault("noise_var", terms["noise_var"])
-        plan = _refine(plan, **opts)
+    if refine is not False and refine is not None:  # refine.py registers it
+        plan = REFINERS.get("local")(plan, refine, terms)
     return plan
 
 
-# --------------------------------------------------------------------------- static placement
-def _qr_start(Yk: np.ndarray, allowed: np.ndarray, k: int) -> np.ndarray:
-    """The ``k`` cells of a column-pivoted QR of ``Y[:, allowed]`` (QR-DEIM / PySensors' QR
-    placement): a well-conditioned set of ``k`` cells, so the information is nonsingular."""
-    from scipy.linalg import qr
-
-    _, _, piv = qr(Yk[:, allowed], mode="economic", pivoting=True)
-    return allowed[piv[:k]].astype(np.int64)
+def _resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
+    return [check_budget(b) for b in _request.resolve_budgets(budget, n, fleet)]
 
 
-def place_sensors(
-    Y: Any,
-    region: Region,
-    n_sensors: int,
-    *,
-    criterion: str = "fisher",
-    ridge: float = 0.0,
-    prior: Any = None,
-    progress: bool = False,
-    traversable: Any = None,
-    training: Any = None,
-    exchange: bool = False,
-    sweeps: int = 5,
-    **terms: Any,
-) -> Plan:
-    """Static placement: ``n_sensors`` fixed sensors (moorings, stations), no travel.
-
-    The greedy of :func:`plan_greedy` with every sensor costing 1: candidates are all valid
-    cells (or the cells of a boolean ``(lat, lon)`` DataArray ``traversable``: where a sensor
-    may stand), and each step adds the cell of largest gain (ties to the lowest cell) until
-    ``n_sensors`` are placed (or no cell gains anything). The criteria, ``prior`` and posterior
-    terms are those of :func:`plan_greedy`.
-
-    Initial cells: none when the information is nonsingular from the start (``ridge > 0``, a
-    prior precision, or ``"gp-variance"``); else (Fisher with ``ridge=0`` and no prior) the
-    first ``k`` pivots of a column-pivoted QR of ``Y`` (the QR placement of PySensors), and
-    ``n_sensors`` must be ``>= k``. Returns a :class:`Plan` with ``path["kind"] == "static"``,
-    ``route`` = the sensors in selection order (no travel), ``route_cost`` = the number of
-    sensors placed so far, ``cost`` = the number of sensors, ``start = -1``.
-
-    ``criterion="risk"`` (:mod:`lrm_cvx.planning.static`): the greedy on the fold-in's own
-    squared reconstruction error over the ``training`` snapshots (a ``(time, lat, lon)``
-    DataArray on the region's grid); ``prior`` is the fold-in's belief
-    (``model.latent_prior("empirical", spatial=True)``) or the fitted GLRM. It places exactly
-    ``n_sensors``. ``exchange=True`` (``"risk"`` or ``"gp-variance"``) then swaps sensors while
-    a swap lowers the objective (at most ``sweeps`` sweeps; never worse). Both hold a dense
-    ``L x L`` covariance: at most ``static.RISK_MAX_CELLS`` cells.
-    """
-    region = check_region(region)
-    bad = set(terms) - set(PRIOR_TERMS)
-    if bad:
-        raise TypeError(f"place_sensors() got an unexpected keyword argument {sorted(bad)[0]!r}")
-    terms = {key: terms.get(key) for key in PRIOR_TERMS}
-    Yk = as_factor_matrix(Y, region)
-    k, L = Yk.shape
-    if isinstance(n_sensors, (bool, np.bool_)) or n_sensors is None:
-        raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
-    try:
-        n = int(n_sensors)
-        ok = n == float(n_sensors) and n >= 1
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
-    risk = isinstance(criterion, str) and criterion == "risk"
-    if not risk:
-        criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")
-    if traversable is None or (isinstance(traversable, str) and traversable == "valid"):
-        allowed = np.arange(L, dtype=np.int64)
-    else:
-        mask = _site_mask(region, traversable)
-        gi = region.grid_index
-        allowed = np.flatnonzero(mask[gi[:, 0], gi[:, 1]]).astype(np.int64)
-        if allowed.size == 0:
-            raise PlanningError("traversable allows no valid cell for a sensor")
-    if n > allowed.size:
-        raise PlanningError(f"n_sensors = {n} but only {allowed.size} cells can hold a sensor")
-    if risk or exchange is not False or training is not None:  # planning/static.py
-        from .static import place_static
-
-        return place_static(Yk, region, n, allowed, criterion=criterion, prior=prior,
-                            training=training, exchange=exchange, sweeps=sweeps, other=dict(
-                                ridge=ridge, progress=progress, traversable=traversable,
-                                **terms))
-    targets = terms.pop("targets")
-    terms = resolve_prior(prior, terms)
-    posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
-    extra = _oracle_extra(criterion, region, allowed, terms, targets)
-    P0 = np.empty(0, dtype=np.int64)
-    try:
-        oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
-    except PlanningError as exc:
-        if criterion != "fisher" or "singular" not in str(exc):
-            raise
-        if n < k:
-            raise PlanningError(
-                f"n_sensors = {n} < rank k = {k}: with ridge=0 and no prior the information "
-                f"of fewer than {k} sensors is singular; pass ridge > 0 or a prior") from None
-        P0 = _qr_start(Yk, allowed, k)
-        oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
-    cells = [int(c) for c in P0]
-    active = np.ones(allowed.size, dtype=bool)
-    active[np.searchsorted(allowed, P0)] = False
-    hist: dict[str, list[float]] = {
-        "cell": [], "gain": [], "cost_increase": [], "ratio": [], "cost": [], "n_evaluated": []
-    }
-    bar = tqdm(desc="sensor placement", unit="sensor", disable=not progress, leave=False)
-    try:
-        while len(cells) < n:
-            gains = np.where(active, oracle.gains(allowed), -np.inf)
-            b = int(np.argmax(gains))
-            if not gains[b] > 0:
-                break
-            cell = int(allowed[b])
-            active[b] = False
-            oracle.add(cell)
-            cells.append(cell)
-            for key, v in (("cell", cell), ("gain", gains[b]), ("cost_increase", 1.0),
-                           ("ratio", gains[b]), ("cost", float(len(cells))),
-                           ("n_evaluated", int(active.sum()) + 1)):
-                hist[key].append(v)
-            bar.update(1)
-    finally:
-        bar.close()
-    route_cost = np.arange(1, len(cells) + 1, dtype=np.float64)
-    return Plan.build(
-        region=region, cells=cells, route=cells, cost=float(len(cells)),
-        information=fisher_information(Yk, cells, ridge), criterion=criterion,
-        budget=float(n), start=-1, ridge=float(ridge), method="greedy",
-        history=_history(hist), cost_function="sensors", Y=Yk, posterior=posterior,
-        route_cost=route_cost,
-        path=PlanPath(kind="static", unit="sensors", budgets=[float(n)],
-                      traversable="none" if allowed.size == L else "mask"),
-    )
+_MOVED = {"resolve_starts": (lambda: _request.resolve_starts, "Fleet.resolve"),
+          "resolve_budgets": (lambda: _resolve_budgets, "Fleet.resolve")}
 
 
-def _site_mask(region: Region, traversable: Any) -> np.ndarray:
-    """``traversable`` as a ``(ny, nx)`` bool array on the region's grid (a DataArray must
-    have the region's lat/lon), else a PlanningError naming it."""
-    arr = np.asarray(getattr(traversable, "values", traversable))
-    bad = arr.shape != tuple(region.shape) or arr.dtype != bool
-    if not bad and hasattr(traversable, "dims"):
-        from ..region import spatial_dims
+def __getattr__(name: str) -> Any:
+    # moved names (issue #27): the old locations warn for one release
+    if name in _MOVED:
+        get, new = _MOVED[name]
+        warnings.warn(f"lrm_cvx.planning.greedy.{name} is deprecated: use lrm_cvx.planning."
+                      f"request.{new}", DeprecationWarning, stacklevel=2)
+        return get()
+    if name == "place_sensors":
+        warnings.warn("lrm_cvx.planning.greedy.place_sensors moved to "
+                      "lrm_cvx.planning.static.place_sensors (or lrm_cvx.planning."
+                      "place_sensors)", DeprecationWarning, stacklevel=2)
+        from .static import place_sensors
 
-        try:
-            la, lo = spatial_dims(traversable)
-            bad = not (np.allclose(traversable[la].values, region.lat.values)
-                       and np.allclose(traversable[lo].values, region.lon.values))
-        except Exception:
-            bad = True
-    if bad:
-        raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
-                            f"DataArray on the region's grid {tuple(region.shape)}, got "
-                            f"{type(traversable).__name__} of shape {arr.shape}")
-    return arr
+        return place_sensors
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 
 from .._validation import atomic_output
+from ..errors import PlanningError
+from ..registry import Registry
 from .request import PAPER_PATH, PlanPath
 
 __all__ = ["Plan", "PAPER_PATH"]
@@ -40,6 +42,14 @@ def path_cumulative(grid_index: np.ndarray) -> np.ndarray:
     d = np.diff(g, axis=0)
     steps = np.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]).astype(np.float64))
     return np.cumsum(np.concatenate([[0.0], steps]))
+
+
+REFINERS = Registry("refinement", PlanningError)
+"""Local searches that improve a finished plan, ``name -> refine(plan, options, terms) -> Plan``
+(``options``: True or a dict of keyword arguments; ``terms``: the criterion's resolved prior
+terms). :mod:`~lrm_cvx.planning.refine` registers ``"local"``. ``plan_greedy(refine=...)`` and
+the certificate's gap split look the refinement up here, so neither imports the search (which
+itself runs the greedy)."""
 
 
 def path_dict(starts: Any, budgets: Any, **options: Any) -> PlanPath:

@@ -197,12 +197,28 @@ _PAPER = PathOptions()
 
 @dataclass(frozen=True)
 class Fleet:
-    """Who travels: one start cell and one budget per robot (``budgets`` in the path options'
-    unit). ``is_fleet``: the request named a list of starts (a fleet, even of one robot)."""
+    """Who travels: one start cell and one budget per robot, ``budgets`` in ``unit`` (the path
+    options' unit: ``"grid units"``, ``"km"``, ``"h"``; ``"sensors"`` for a static placement).
+    ``is_fleet``: the request named a list of starts (a fleet, even of one robot). Every budget
+    of the package is checked here (>= 0 and finite; a string or a bool is refused).
+
+    >>> Fleet((3, 8), (10.0, 12.5)).n_robots
+    2
+    """
 
     starts: tuple[int, ...]
     budgets: tuple[float, ...]
     is_fleet: bool = False
+    unit: str = "grid units"
+
+    def __post_init__(self) -> None:
+        if len(self.budgets) != len(self.starts) and self.starts:
+            raise PlanningError(f"budget has {len(self.budgets)} values but there are "
+                                f"{len(self.starts)} starts: give one budget per robot, or one "
+                                "number for all")
+        object.__setattr__(self, "starts", tuple(int(s) for s in self.starts))
+        object.__setattr__(self, "budgets", tuple(self.check_budget(b, self.unit)
+                                                  for b in self.budgets))
 
     @property
     def n_robots(self) -> int:
@@ -212,11 +228,17 @@ class Fleet:
     def resolve(cls, region: Any, start: Any, budget: Any, unit: str = "grid units") -> Fleet:
         """The fleet of ``start`` (a cell index or ``(lat, lon)``: one robot; a list, 1-D
         integer array or ``(n, 2)`` array of those: a fleet; a list of two non-integer numbers
-        is one ``[lat, lon]``) and ``budget`` (a number, or for a fleet one per robot, each
-        >= 0 in ``unit``). Every budget of the package is checked here."""
+        is one ``[lat, lon]``; or a :class:`Fleet`, then ``budget`` is None) and ``budget`` (a
+        number, or for a fleet one per robot, each >= 0 in ``unit``)."""
+        if isinstance(start, Fleet):
+            if budget is not None:
+                raise PlanningError("a Fleet carries its budgets: pass budget=None")
+            if start.unit != unit:
+                return replace(start, unit=unit)
+            return start
         starts, fleet = resolve_starts(region, start)
-        return cls(tuple(starts), tuple(resolve_budgets(budget, len(starts), fleet, unit)),
-                   fleet)
+        return cls(tuple(starts), tuple(resolve_budgets(budget, len(starts), fleet)), fleet,
+                   unit)
 
     @staticmethod
     def check_budget(budget: Any, unit: str = "grid units") -> float:
@@ -249,8 +271,9 @@ def resolve_starts(region: Any, start: Any) -> tuple[list[int], bool]:
     return [region.resolve_cell(start, "start")], False
 
 
-def resolve_budgets(budget: Any, n: int, fleet: bool, unit: str = "grid units") -> list[float]:
-    """``budget`` (a number, or for a fleet a list / array of ``n``) as ``n`` floats >= 0."""
+def resolve_budgets(budget: Any, n: int, fleet: bool) -> list[Any]:
+    """``budget`` (a number, or for a fleet a list / array of ``n``) as ``n`` values, one per
+    robot (:class:`Fleet` checks them)."""
     if isinstance(budget, (list, tuple, np.ndarray)) and not fleet:
         raise PlanningError(f"budget must be a number for one robot, got {budget!r} (a list "
                             "of budgets needs a list of starts, one per robot)")
@@ -259,10 +282,10 @@ def resolve_budgets(budget: Any, n: int, fleet: bool, unit: str = "grid units") 
         if len(values) != n:
             raise PlanningError(f"budget has {len(values)} values but there are {n} starts: "
                                 "give one budget per robot, or one number for all")
-        return [check_amount(b, "budget", unit) for b in values]
+        return values
     if budget is None:
         raise PlanningError("budget is required (a number, or one per robot)")
-    return [check_amount(budget, "budget", unit)] * n
+    return [budget] * n
 
 
 # ------------------------------------------------------------------------------ plan.path
@@ -332,7 +355,7 @@ class PlanPath(Mapping):
     @property
     def fleet(self) -> Fleet:
         return Fleet(tuple(self._items["starts"]), tuple(self._items["budgets"]),
-                     len(self._items["starts"]) > 1)
+                     len(self._items["starts"]) > 1, self.unit)
 
     @property
     def options(self) -> PathOptions | None:
