@@ -160,10 +160,12 @@ class Plan:
     refinement : empty, or what :func:`~lrm_cvx.planning.refine.refine` gained:
         ``information_before`` / ``information_after`` (nats), ``moves`` accepted, ``inserted``,
         ``swapped``, ``rounds``, ``seconds`` (history keys ``refine_*`` list the moves).
-    path : the path model (issue #15): ``kind`` (``"path"`` or ``"static"``), ``metric``,
-        ``speed``, ``stop_cost``, ``traversable`` (``"none"``, ``"valid"``, ``"mask"``),
-        ``closed``, ``end``, ``unit`` (of ``cost`` / ``budget``), ``sense_along``, ``starts`` and
-        ``budgets`` (one per robot) and ``n_robots``. Default: :data:`PAPER_PATH`.
+    path : the path request (:class:`~lrm_cvx.planning.request.PlanPath`: ``options``, a
+        ``PathOptions``, and ``fleet``), a read-only mapping of ``kind`` (``"path"`` or
+        ``"static"``), ``metric``, ``speed``, ``stop_cost``, ``traversable`` (``"none"``,
+        ``"valid"``, ``"mask"``), ``closed``, ``end``, ``unit`` (of ``cost`` / ``budget``),
+        ``sense_along``, ``starts`` and ``budgets`` (one per robot) and ``n_robots``. Default:
+        :data:`PAPER_PATH`.
     route_robot, waypoint : ``(r,)`` per route entry: the robot travelling it, and whether it
         is a sampling stop (False for a pass-through cell of a travel graph or of
         ``sense_along``). A closed tour's route ends with its start again.
