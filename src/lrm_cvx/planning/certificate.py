@@ -48,7 +48,7 @@ from .request import PathOptions
 
 __all__ = ["PlanCertificate", "plan_bound"]
 
-# the old names (relaxation.py, bound.py and the tests import them)
+# the old names (bound.py and the tests import them)
 _start_limit, _cap_ladder, _min_spacing_km = start_limit, cap_ladder, min_spacing_km
 
 
