@@ -169,8 +169,8 @@ class PathOptions:
         them is the paper's call when there are none)."""
         out = {}
         for f in PATH_FIELDS:
-            value = getattr(self, f)
-            if value is not None if f == "traversable" else value != getattr(_PAPER, f):
+            value, default = getattr(self, f), getattr(_PAPER, f)
+            if value is not None if default is None else value != default:
                 out[f] = value
         return out
 
@@ -181,7 +181,7 @@ class PathOptions:
         same_mask = a is b or (isinstance(a, str) and a == b) or (
             a is not None and b is not None and not isinstance(a, str)
             and not isinstance(b, str) and np.array_equal(np.asarray(a), np.asarray(b)))
-        return same_mask and all(getattr(self, f) == getattr(other, f) for f in PATH_FIELDS
+        return same_mask and all(_same(getattr(self, f), getattr(other, f)) for f in PATH_FIELDS
                                  if f != "traversable")
 
     __hash__ = None  # type: ignore[assignment]
@@ -193,6 +193,13 @@ class PathOptions:
 
 
 _PAPER = PathOptions()
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal option values (an ``end`` may be an array ``(lat, lon)``)."""
+    if a is None or b is None:
+        return a is b
+    return bool(np.array_equal(np.asarray(a, dtype=object), np.asarray(b, dtype=object)))
 
 
 @dataclass(frozen=True)
