@@ -44,7 +44,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # research tools used by tests and benchmarks (the convex floor); nothing imports them
     ("lrm_cvx.experimental",),
     # persistent monitoring: the filter state and the day-after-day simulation
-    ("lrm_cvx.monitor", "lrm_cvx.campaign", "lrm_cvx.replanning"),
+    # and scoring: a plan's scores on held-out snapshots (evaluation and campaigns)
+    ("lrm_cvx.monitor", "lrm_cvx.campaign", "lrm_cvx.replanning", "lrm_cvx.scoring"),
     # the paper's protocol
     ("lrm_cvx.evaluation",),
     # the edges: commands, the demo, figures, the xarray accessor
@@ -52,24 +53,10 @@ LAYERS: tuple[tuple[str, ...], ...] = (
      "lrm_cvx.plots", "lrm_cvx.accessor"),
 )
 
-# (importer, imported): an import the layer / cycle checks still accept, with the reason. The
-# entries marked "(branch request)" go when the path-request work of issue #27 merges (the test
-# below fails on an entry whose import is gone); the deprecated shims go next release.
+# (importer, imported): an import the layer / cycle checks still accept, with the reason: the
+# deprecated shims, which go next release (the test below fails on an entry whose import is
+# gone).
 KNOWN_VIOLATIONS: dict[tuple[str, str], str] = {
-    # branch `request`: the certificate's gap split reaches the planner through refine
-    ("lrm_cvx.planning.certificate", "lrm_cvx.planning.refine"):
-        "cycle certificate -> refine -> greedy -> plan -> certificate (branch request)",
-    ("lrm_cvx.planning.greedy", "lrm_cvx.planning.refine"):
-        "cycle greedy <-> refine, plan_greedy(refine=) (branch request)",
-    ("lrm_cvx.planning.greedy", "lrm_cvx.planning.static"):
-        "cycle greedy <-> static, place_sensors (branch request)",
-    ("lrm_cvx.planning.certificate", "lrm_cvx.planning.plan"):
-        "cycle certificate <-> plan: check_region vs Plan.certify (branch request)",
-    ("lrm_cvx.planning.relaxation", "lrm_cvx.planning.certificate"):
-        "cycle relaxation <-> certificate: _start_limit (branch request)",
-    # branch `request`: evaluation <-> campaign
-    ("lrm_cvx.campaign", "lrm_cvx.evaluation"):
-        "campaign uses evaluation.plan_method / check_method (branch request)",
     # deprecated shims: an old entry point kept for one release that must import upward
     ("lrm_cvx.glrm.model", "lrm_cvx.monitor"):
         "deprecated shim GLRM.monitor -> MonitorState.from_model, remove next release",

@@ -97,9 +97,9 @@ def test_the_checker_catches_what_it_checks(setup):
                               traversable="valid")
     region = model.region_
     tight = plan.path["budgets"][0] * 0.5
-    plan.path["budgets"] = [tight]
+    plan.path = {**dict(plan.path.items()), "budgets": [tight]}
     assert any("budget" in p for p in route_feasible(plan, region))
-    plan.path["budgets"] = [3000.0]
+    plan.path = {**dict(plan.path.items()), "budgets": [3000.0]}
     plan.route[-1] = plan.route[-2]
     assert any("closed tour" in p for p in route_feasible(plan, region))
 
@@ -113,7 +113,7 @@ def test_a_finished_route_is_kept_and_a_spent_budget_is_an_error(setup):
     same = state.replan(plan, whole)
     np.testing.assert_array_equal(same.route, plan.route)
     # a robot that has used (almost) all its budget away from home cannot replan
-    plan.path["budgets"] = [float(plan.route_cost[1])]
+    plan.path = {**dict(plan.path.items()), "budgets": [float(plan.route_cost[1])]}
     with pytest.raises(PlanningError, match="spent its budget"):
         state.replan(plan, 2)
     for bad in (0, whole + 1, 1.5, [1, 1]):

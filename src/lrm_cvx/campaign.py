@@ -47,23 +47,25 @@ def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
 
 def _plan_day(state: MonitorState, method: str, start: int, budget: float,
               rng: np.random.Generator, options: dict) -> Any:
-    """One day's plan: the greedy variants with the state's forecast as prior; the paper's
-    greedy and the baselines through :func:`lrm_cvx.evaluation.plan_method`."""
-    from .evaluation import plan_method
+    """One day's plan by the method's planner (:data:`~lrm_cvx.planning.planners.
+    METHOD_REGISTRY`): a planner on the model's belief (the ``greedy:<criterion>`` methods)
+    plans on the state's forecast, with the other ``options`` of ``plan_greedy``; the paper's
+    greedy and the baselines on the paper's path model."""
     from .planning import plan_greedy
+    from .planning.planners import planner_for
+    from .planning.request import Fleet
 
     model = state.model
     Y, region = model.Y, model.region_
     cost = options.get("cost", "nearest-neighbor")
     ridge = float(options.get("ridge", 0.0))
-    if method.startswith("greedy:"):
-        crit = method.split(":", 1)[1]
-        kw = state.planner_kwargs(criterion=crit)
+    planner = planner_for(method, criterion=options.get("criterion", "fisher"), cost=cost)
+    if getattr(planner, "model_prior", False):
+        kw = state.planner_kwargs(criterion=planner.criterion)
         extra = {k: v for k, v in options.items() if k not in ("cost", "ridge", "criterion")}
-        return plan_greedy(Y, region, start, budget, criterion=crit, cost=cost, ridge=ridge,
-                           progress=False, initial="start", **kw, **extra)
-    return plan_method(method, Y, region, start, budget, rng,
-                       options.get("criterion", "fisher"), cost, ridge)
+        return plan_greedy(Y, region, start, budget, criterion=planner.criterion, cost=cost,
+                           ridge=ridge, progress=False, initial=planner.initial, **kw, **extra)
+    return planner.plan(Y, region, Fleet.resolve(region, start, budget), rng=rng, ridge=ridge)
 
 
 def simulate_campaign(
@@ -83,15 +85,16 @@ def simulate_campaign(
 
     ``model``: a fitted GLRM with a region (``test_data`` on its grid, its times after the
     model's last fitted time, sorted and unique). ``start``: a cell index or ``(lat, lon)``.
-    ``method``: any planner of :func:`~lrm_cvx.evaluation.evaluate` (``"greedy:fisher"``,
-    ``"greedy:a-optimal"``, ``"greedy:gp-variance"`` plan with the filter's forecast as prior;
-    ``"greedy"``, the transects and ``"random"`` ignore it). ``temporal``: None (memoryless),
-    ``"ar1"`` or ``"seasonal"`` (the model's ``dynamics_`` when of that kind, else estimated
-    from ``X_``), or a :class:`~lrm_cvx.glrm.dynamics.Dynamics` (e.g. the true dynamics of a
-    planted field, in the model's latent coordinates). ``replan=False`` plans once, on the
-    first day, and flies that route every day. ``planner_options``: ``cost``, ``ridge``,
-    ``criterion`` (for ``"greedy"``) and other :func:`~lrm_cvx.planning.plan_greedy`
-    options. ``spatial``: use the model's spatial residual (None: when it has one).
+    ``method``: any method of :data:`~lrm_cvx.planning.planners.METHOD_REGISTRY`
+    (``"greedy:fisher"``, ``"greedy:a-optimal"``, ``"greedy:gp-variance"`` plan with the
+    filter's forecast as prior; ``"greedy"``, the transects and ``"random"`` ignore it).
+    ``temporal``: None (memoryless), ``"ar1"`` or ``"seasonal"`` (the model's ``dynamics_`` when
+    of that kind, else estimated from ``X_``), or a :class:`~lrm_cvx.glrm.dynamics.Dynamics`
+    (e.g. the true dynamics of a planted field, in the model's latent coordinates).
+    ``replan=False`` plans once, on the first day, and flies that route every day.
+    ``planner_options``: ``cost``, ``ridge``, ``criterion`` (for ``"greedy"``) and other
+    :func:`~lrm_cvx.planning.plan_greedy` options. ``spatial``: use the model's spatial residual
+    (None: when it has one).
 
     Each day: forecast, plan, observe the true snapshot at the plan's cells (cells it lacks
     give no observation), assimilate, predict. Returns a Dataset over ``time`` with ``mse``
@@ -101,7 +104,7 @@ def simulate_campaign(
     plan's criterion value), ``logdet_cov`` (log det of the latent posterior covariance),
     ``route_cost`` and ``routes`` ``(time, stop)`` (the plan's route, padded with -1).
     """
-    from .evaluation import check_method
+    from .planning.planners import check_method
 
     method = check_method(method)
     budget = check_positive(budget, "budget")

@@ -16,6 +16,7 @@ import traceback
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -88,25 +89,18 @@ def _traversable(text: str | None):
     return mask
 
 
-def _path_kwargs(args: argparse.Namespace, *, fleet_end: bool = True) -> dict:
-    """The path-model options of ``plan`` / ``bound`` / ``evaluate`` as keyword arguments
-    (only those given, so the defaults stay the paper's calls)."""
-    kw: dict = {}
-    if args.metric != "grid":
-        kw["metric"] = args.metric
-    if args.speed is not None:
-        kw["speed"] = args.speed
-    if args.stop_cost:
-        kw["stop_cost"] = args.stop_cost
-    if args.traversable is not None:
-        kw["traversable"] = _traversable(args.traversable)
-    if args.closed:
-        kw["closed"] = True
-    if fleet_end and getattr(args, "end", None) is not None:
-        kw["end"] = parse_start(args.end, "--end")
-    if getattr(args, "sense_along", False):
-        kw["sense_along"] = True
-    return kw
+def _path_options(args: argparse.Namespace, *, fleet_end: bool = True):
+    """The path request of ``plan`` / ``bound`` / ``evaluate``: one
+    :class:`~lrm_cvx.planning.request.PathOptions` read from the flags (the paper's when none
+    is given)."""
+    from .planning.request import PathOptions
+
+    end = getattr(args, "end", None) if fleet_end else None
+    return PathOptions(
+        metric=args.metric, speed=args.speed, stop_cost=args.stop_cost or 0.0,
+        traversable=None if args.traversable is None else _traversable(args.traversable),
+        closed=bool(args.closed), end=None if end is None else parse_start(end, "--end"),
+        sense_along=bool(getattr(args, "sense_along", False)))
 
 
 def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
@@ -285,7 +279,7 @@ def _plan_from_args(args: argparse.Namespace):
 
     model = load_model(args.model)
     start, budget = _starts_budgets(args)
-    path = _path_kwargs(args)
+    path = _path_options(args)
     from .information import CRITERIA
 
     criterion = _canonical(CRITERIA, _pick(args.criterion, args.recommended, "criterion",
@@ -304,7 +298,7 @@ def _plan_from_args(args: argparse.Namespace):
               if k not in ("prior_cov", "spatial_cov")}
     plan = plan_greedy(model.Y_, model.region_, start, budget, criterion=criterion,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
-                       initial=initial, **kw, **path)
+                       initial=initial, path=path, **kw)
     return model, plan
 
 
@@ -424,11 +418,11 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
                     cost: str = "nearest-neighbor", ridge: float = 0.0, fold_ridge: float = 0.0,
                     model_params: dict | None = None, fold_in: dict | None = None,
                     n_jobs: int = 1, inputs: Sequence[str | Path] = (),
-                    overwrite: bool = True, **path) -> list[Path]:
+                    overwrite: bool = True, n_robots: int = 1, path: Any = None) -> list[Path]:
     """Fit, evaluate, summarise and draw everything in memory, then write every output in one
     all-or-nothing step (:func:`~lrm_cvx._validation.atomic_outputs`); returns the paths.
-    ``path``: the path-model options of :func:`~lrm_cvx.evaluation.evaluate` (``metric``,
-    ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``n_robots``)."""
+    ``path``: the path request of :func:`~lrm_cvx.evaluation.evaluate` (a
+    :class:`~lrm_cvx.planning.request.PathOptions`), ``n_robots`` per start."""
     import matplotlib.pyplot as plt
 
     from .evaluation import METHODS, evaluate, summary
@@ -453,7 +447,8 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
                        min_observations=min_observations, criterion=criterion, cost=cost,
                        ridge=ridge, fold_ridge=fold_ridge, certify=certify, seed=seed,
                        n_jobs=n_jobs, progress=progress, model=model,
-                       model_params=model_params or None, fold_in=fold_in or None, **path)
+                       model_params=model_params or None, fold_in=fold_in or None,
+                       n_robots=n_robots, path=path)
     table = summary(results)
     figures = {"metrics": plot_metrics(results)}
     if "greedy" in methods:
@@ -494,7 +489,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {out_dir} is an existing file; give a folder")
     inputs = _input_files(args.data) + [Path(p) for p in _mask_file(args)]
     guard_paths([out_dir / name for name in EVALUATION_FILES], inputs, args)
-    path = _path_kwargs(args, fleet_end=False)
+    path = _path_options(args, fleet_end=False)
     budgets = parse_floats(args.budgets, None, "--budgets")
     if min(budgets) < 0:
         raise UsageError(f"--budgets must be numbers >= 0, got {args.budgets!r}")
@@ -528,7 +523,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                     progress=not args.quiet, methods=methods, cost=args.cost, ridge=args.ridge,
                     fold_ridge=args.fold_ridge, model_params=params, fold_in=fold_in,
                     n_jobs=args.jobs, inputs=inputs, overwrite=args.overwrite,
-                    n_robots=args.robots, **path)
+                    n_robots=args.robots, path=path)
     return 0
 
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -31,156 +31,28 @@ from tqdm.auto import tqdm
 from ._blas import single_threaded_blas
 from ._validation import as_factor_matrix, as_generator, atomic_output, check_positive
 from .errors import DataError, ModelError, PlanningError
-from .glrm.posterior import LatentPosterior, ObservationModel, check_cells
-from .information import CRITERION_REGISTRY
+from .glrm.posterior import LatentPosterior
+from .planning.planners import (
+    GREEDY_VARIANTS,
+    METHOD_REGISTRY,
+    METHODS,
+    check_method,
+    planner_for,
+)
+from .planning.request import Fleet, PathOptions, pop_options
 from .region import Region
-from .registry import Choices, Registry
+from .scoring import (
+    SnapshotStatistics,
+    complete_mse,
+    coverage_subset,
+    foldin_mse,
+    model_coverage,
+    model_mse,
+)
 
-__all__ = ["evaluate", "summary", "save_results", "METHODS", "GREEDY_VARIANTS",
-           "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse", "path_label", "check_method",
-           "plan_method"]
-
-METHOD_REGISTRY = Registry("method", ModelError)
-"""Methods of :func:`evaluate` (objects: ``(planner, criterion)``); ``METHODS`` are the paper's
-(the default), ``GREEDY_VARIANTS`` the greedy with a criterion and the model's predictive
-fold-in (docs/reconstruction.md). ``greedy:<alias>`` is accepted for every criterion alias."""
-METHOD_REGISTRY.register("greedy", ("greedy", None), description="the paper's cost-benefit "
-                         "greedy (Fisher information, the paper's fold-in)")
-for _d in ("up", "down", "left", "right"):
-    METHOD_REGISTRY.register(f"transect-{_d}", (f"transect-{_d}", None),
-                             description=f"straight transect going {_d} (a lawnmower at the "
-                                         "edge)")
-METHOD_REGISTRY.register("random", ("random", None), description="random walk on valid "
-                         "8-neighbours (`random_trials` walks per start)")
-METHODS: tuple[str, ...] = METHOD_REGISTRY.choices()
-for _c in CRITERION_REGISTRY.entries():
-    METHOD_REGISTRY.register(
-        f"greedy:{_c.name}", ("greedy", _c.name),
-        aliases=tuple(f"greedy:{a}" for a in _c.aliases),
-        description=f"greedy with the `{_c.name}` criterion and the model's predictive fold-in",
-    )
-GREEDY_VARIANTS: tuple[str, ...] = Choices(tuple(m for m in METHOD_REGISTRY.choices()
-                                                 if m not in METHODS), METHOD_REGISTRY)
-
-
-def check_method(m: str) -> str:
-    """The canonical name of method ``m`` (aliases accepted); ModelError if unknown."""
-    return METHOD_REGISTRY.canonical(m, "method")
-
-
-@dataclass(frozen=True)
-class SnapshotStatistics:
-    """Sufficient statistics of the test snapshots for exact fold-in errors in data units.
-
-    With ``z = (values - offset) / scale`` (fit units) and weights ``w = scale^2`` on each
-    snapshot's observed cells ``O`` (1 without a scale), ``gram = sum_O w y y^T`` ``(n_test, k,
-    k)``, ``cross = sum_O w z y`` ``(n_test, k)``, ``sq = sum_O w z^2`` ``(n_test,)`` and ``count
-    = |O|``, so that the squared error of the map ``offset + scale * Y^T x`` over ``O`` is
-    ``x^T gram x - 2 cross^T x + sq`` (:meth:`mse_many`). ``values`` ``(n_test, L)`` stay in data
-    units (float32 with NaN); the statistics are float64.
-    """
-
-    values: np.ndarray
-    gram: np.ndarray
-    cross: np.ndarray
-    sq: np.ndarray
-    count: np.ndarray
-
-    @classmethod
-    def from_values(cls, Y: np.ndarray, values: np.ndarray, offset: np.ndarray | None = None,
-                    scale: np.ndarray | None = None) -> SnapshotStatistics:
-        """Statistics of ``values (n_test, L)`` (NaN = not observed) for factors ``Y (k, L)``
-        and the model's ``offset``/``scale`` (``(L,)`` or None)."""
-        observed = np.isfinite(values)
-        z = values.astype(np.float64)
-        if offset is not None:
-            z -= offset
-        if scale is not None:
-            z /= scale
-        d = np.where(observed, z, 0.0)
-        del z
-        w = observed.astype(np.float64)
-        if scale is not None:
-            w *= np.square(scale)
-        gram = np.einsum("kl,jl,tl->tkj", Y, Y, w, optimize=True)
-        dw = d * w
-        return cls(values=values, gram=gram, cross=dw @ Y.T, sq=np.einsum("tl,tl->t", dw, d),
-                   count=observed.sum(axis=1))
-
-    def mse_many(self, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """Mean squared errors (data units) of snapshots ``rows`` (``(m,)``) mapped from latent
-        vectors ``x (m, k)`` over their observed cells (NaN for NaN ``x`` or no cell)."""
-        G, b = self.gram[rows], self.cross[rows]
-        err = (np.einsum("tk,tkj,tj->t", x, G, x) - 2.0 * np.einsum("tk,tk->t", b, x)
-               + self.sq[rows])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self.count[rows] > 0, np.maximum(err, 0.0) / self.count[rows],
-                            np.nan)
-
-
-def _plain_prior(Y: np.ndarray, ridge: float) -> LatentPosterior:
-    """The paper's fold-in on bare factors: flat, or the ridge prior (unit noise)."""
-    return LatentPosterior.prior(ObservationModel(Y), "ridge", ridge)
-
-
-def foldin_mse(Y: np.ndarray, stats: SnapshotStatistics, cells: np.ndarray, ridge: float = 0.0,
-               min_observations: int = 1, *, prior: LatentPosterior | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """Fold each test snapshot in from its values at ``cells``; MSE over its observed cells.
-
-    The fold-in is ``prior.update(cells, values)`` (default: the paper's least squares with
-    ``ridge`` on ``Y``; pass a model's ``latent_prior(...)`` for its offset, scale, noise and
-    prior, with ``stats`` built with the same offset and scale). ``O(n k^2 + k^2)`` per
-    snapshot: the error comes from ``stats``, never from a map. Returns ``(mse, n_obs)``, each
-    ``(n_test,)``; ``mse`` is NaN where a snapshot has fewer than ``max(min_observations, 1)``
-    observations at ``cells`` or they do not determine ``x`` (flat prior, rank-deficient).
-    """
-    if prior is None:
-        prior = _plain_prior(Y, ridge)
-    elif ridge:
-        raise ModelError("give ridge through the prior (latent_prior(ridge=...)), not both")
-    if prior.obs_model.is_spatial:
-        raise ModelError("foldin_mse is the trend-only fold-in; a spatial prior needs full maps")
-    cells = check_cells(cells, stats.values.shape[1])
-    vals = stats.values[:, cells].astype(np.float64)  # (n_test, n)
-    n_obs = np.isfinite(vals).sum(axis=1)
-    mse = np.full(len(n_obs), np.nan)
-    ok = np.flatnonzero(n_obs >= max(min_observations, 1))
-    if ok.size:
-        means, _ = prior.batch_means(cells, vals[ok])  # every snapshot's fold-in at once
-        mse[ok] = stats.mse_many(ok, means)
-    return mse, n_obs
-
-
-def _complete_mse(stats: SnapshotStatistics, prior: LatentPosterior) -> np.ndarray:
-    """The "complete" condition: fold-in from every observed cell of each snapshot (data
-    units; NaN where that does not determine ``x``)."""
-    allc = np.arange(stats.values.shape[1])
-    means, _ = prior.batch_means(allc, stats.values)
-    return stats.mse_many(np.arange(len(stats.count)), means)
-
-
-def _model_mse(prior: LatentPosterior, stats: SnapshotStatistics, cells: np.ndarray,
-               min_observations: int) -> tuple[np.ndarray, np.ndarray]:
-    """Like :func:`foldin_mse` for a model's belief (``GLRM.latent_prior``): the exact
-    statistics path without the spatial residual; with it, full predicted maps (kriging) and
-    the MSE over each snapshot's observed cells, ``O(n_test L k)`` (plus kriging) per plan."""
-    if not prior.obs_model.is_spatial:
-        return foldin_mse(prior.obs_model.Y, stats, cells, 0.0, min_observations, prior=prior)
-    values = stats.values
-    cells = check_cells(cells, values.shape[1])
-    vals = values[:, cells].astype(np.float64)
-    obs = np.isfinite(vals)
-    n_obs = obs.sum(axis=1)
-    mse = np.full(values.shape[0], np.nan)
-    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):
-        post = prior.update(cells[obs[t]], vals[t, obs[t]])
-        if not post.is_proper or stats.count[t] == 0:
-            continue
-        pred, _ = post.predict()
-        mse[t] = float(np.nanmean((pred - values[t]) ** 2))
-    return mse, n_obs
-
+__all__ = ["evaluate", "EvaluationProtocol", "summary", "save_results", "METHODS",
+           "GREEDY_VARIANTS", "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse", "path_label",
+           "check_method", "plan_method"]
 
 @dataclass(frozen=True)
 class _CampaignPlan:
@@ -194,45 +66,6 @@ class _CampaignPlan:
     @property
     def cells(self) -> range:
         return range(self.n)
-
-
-_COVERAGE_CELLS = 4096  # held-out cells scored for coverage per snapshot (a fixed subset)
-
-
-def _coverage_subset(values: np.ndarray, seed: int = 0) -> list[np.ndarray]:
-    """Per test snapshot, at most ``_COVERAGE_CELLS`` of its observed cells (sorted, a fixed
-    seeded subset): the cells whose predictive interval ``evaluate`` scores."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for t in range(values.shape[0]):
-        obs = np.flatnonzero(np.isfinite(values[t]))
-        if obs.size > _COVERAGE_CELLS:
-            obs = np.sort(rng.choice(obs, size=_COVERAGE_CELLS, replace=False))
-        out.append(obs)
-    return out
-
-
-def _model_coverage(prior: LatentPosterior, values: np.ndarray, subsets: list[np.ndarray],
-                    cells: np.ndarray, min_observations: int) -> np.ndarray:
-    """Coverage of the central 68 % / 95 % predictive intervals (``mean +- z *
-    predictive_std``, calibrated when the model is: glrm/calibration.py) over each test
-    snapshot's held-out observed cells (its ``subsets`` entry minus the sampled ``cells``).
-    Returns ``(n_test, 2)``, NaN where the snapshot has too few observations."""
-    from .glrm.calibration import interval_coverage
-
-    cells = check_cells(cells, values.shape[1])
-    vals = values[:, cells].astype(np.float64)
-    obs = np.isfinite(vals)
-    n_obs = obs.sum(axis=1)
-    out = np.full((values.shape[0], 2), np.nan)
-    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):  # a loop over snapshots
-        post = prior.update(cells[obs[t]], vals[t, obs[t]])
-        held = np.setdiff1d(subsets[t], cells, assume_unique=True)
-        if not post.is_proper or held.size == 0:
-            continue
-        mean, _ = post.predict(cells=held)
-        out[t] = interval_coverage(values[t, held], mean, post.predictive_std(cells=held))
-    return out
 
 
 def _check_temporal(temporal: Any) -> str | None:
@@ -264,63 +97,19 @@ def _campaign_errors(model: Any, test: xr.DataArray, start: int, budget: float, 
 
 def plan_method(method: str, Y: np.ndarray, region: Region, start: Any, budget: float,
                 rng: np.random.Generator, criterion: str, cost: str, ridge: float,
-                model: Any = None, fold_in: dict | None = None, path: dict | None = None
-                ) -> Any:
+                model: Any = None, fold_in: dict | None = None, path: Any = None) -> Any:
     """One method's :class:`~lrm_cvx.planning.Plan` from ``start`` (a cell, or a list of
-    cells: a fleet, ``budget`` per robot) under the path options ``path`` (only the
-    non-default ones; :func:`_path_options`). ``method`` is canonical (:func:`check_method`);
-    the ``greedy:<criterion>`` variants need ``model`` (their prior: the model's empirical
-    latent prior); ``rng`` drives the random walk."""
-    from .planning import plan_greedy, random_walk, transect
-
-    path = dict(path or {})
-    if method.startswith("greedy:"):
-        crit = method.split(":", 1)[1]
-        prior = model.latent_prior("empirical", spatial=crit == "gp-variance")
-        return plan_greedy(Y, region, start, budget, criterion=crit, cost=cost, ridge=ridge,
-                           progress=False, initial="start", prior=prior, **path)
-    if method == "greedy":
-        return plan_greedy(Y, region, start, budget, criterion=criterion, cost=cost,
-                           ridge=ridge, progress=False, **path)
-    if method.startswith("transect-"):
-        return transect(region, start, budget, method.split("-", 1)[1], Y=Y, ridge=ridge,
-                        **path)
-    if method == "random":
-        return random_walk(region, start, budget, rng, Y=Y, ridge=ridge, **path)
-    raise ModelError(f"unknown method {method!r}; expected one of {METHODS}")
-
-
-def _path_options(metric: Any, speed: Any, stop_cost: Any, traversable: Any,
-                  closed: Any) -> dict[str, Any]:
-    """The path model options of :func:`evaluate` checked before any work (the path model's
-    PlanningErrors, naming the argument), as the keyword arguments every planner takes: only
-    those that differ from the paper's, so the default calls stay exactly the paper's."""
-    from .planning.paths import check_amount, check_metric
-
-    metric, speed, unit = check_metric(metric, speed)
-    out: dict[str, Any] = {}
-    if metric != "grid":
-        out["metric"] = metric
-    if speed is not None:
-        out["speed"] = speed
-    stop_cost = check_amount(stop_cost, "stop_cost", unit)
-    if stop_cost:
-        out["stop_cost"] = stop_cost
-    if not isinstance(closed, (bool, np.bool_)):
-        raise PlanningError(f"closed must be True or False, got {closed!r}")
-    if closed:
-        out["closed"] = True
-    if traversable is not None:
-        if isinstance(traversable, str):
-            if traversable.strip().lower() != "valid":
-                raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, "
-                                    f"lon) mask, got {traversable!r}")
-            traversable = "valid"
-        elif not isinstance(traversable, (xr.DataArray, np.ndarray)):
-            raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
-                                f"mask, got {type(traversable).__name__}")
-        out["traversable"] = traversable
-    return out
+    cells: a fleet, ``budget`` per robot) under the path request ``path`` (a
+    :class:`~lrm_cvx.planning.request.PathOptions` or a dict of its keywords): the method's
+    planner looked up in :data:`~lrm_cvx.planning.planners.METHOD_REGISTRY`; the
+    ``greedy:<criterion>`` variants need ``model`` (their prior: the model's empirical latent
+    prior); ``rng`` drives the random walk."""
+    planner = planner_for(method, criterion=criterion, cost=cost)
+    request = (path if isinstance(path, PathOptions)
+               else PathOptions.from_kwargs(None, where="plan_method", **dict(path or {})))
+    fleet = Fleet.resolve(region, start, budget, request.unit)
+    return planner.plan(Y, region, fleet, request, rng=rng, ridge=ridge,
+                        prior=planner.prior_of(model))
 
 
 def _int_arg(value: Any, name: str, minimum: int, error: type[Exception] = ModelError) -> int:
@@ -378,6 +167,428 @@ def _check_given_model(model: Any, test: xr.DataArray) -> None:
                           UserWarning, stacklevel=3)
 
 
+_EVALUATE_OPTIONS = ("random_trials", "min_observations", "fold_ridge", "certify", "n_jobs",
+                     "progress", "model_params", "fold_in")
+"""The keywords of :func:`evaluate` it takes through ``**options`` (besides the path options)."""
+
+_EVALUATE_PATH = ("metric", "speed", "stop_cost", "traversable", "closed")
+"""The path options ``evaluate`` passes to every method (no ``end``, no ``sense_along``)."""
+
+
+@dataclass(frozen=True)
+class _Fitted:
+    """What every plan of a protocol run shares: the model and its test statistics."""
+
+    model: Any
+    region: Region
+    Y: np.ndarray
+    train: xr.DataArray
+    test: xr.DataArray
+    stats: SnapshotStatistics
+    use_model: bool
+    paper_prior: LatentPosterior
+    fold_prior: LatentPosterior
+
+
+@dataclass(eq=False)
+class EvaluationProtocol:
+    """The paper's evaluation protocol as an object: the data split (``n_test``), the model
+    (``rank``, ``model_params``, or a fitted ``model``), the requests (``budgets``, ``n_starts``
+    start cells, ``n_robots`` per start, the path request ``path``), the ``methods`` (names of
+    :data:`~lrm_cvx.planning.planners.METHOD_REGISTRY`), the prediction (``fold_in``,
+    ``fold_ridge``) and ``temporal`` campaigns; validated when built, :meth:`run` returns the
+    Dataset of :func:`evaluate` (which is ``EvaluationProtocol(data, ...).run()``; every
+    argument is documented there).
+
+    >>> EvaluationProtocol(da, budgets=(5, 25), methods=("greedy", "random")).run()
+    """
+
+    data: xr.DataArray
+    rank: int = 5
+    n_test: int = 8
+    budgets: Sequence[float] = (5, 25, 50, 100, 200)
+    n_starts: int = 10
+    methods: Sequence[str] = METHODS
+    random_trials: int = 70
+    min_observations: int = 10
+    criterion: str = "fisher"
+    cost: str = "nearest-neighbor"
+    ridge: float = 0.0
+    fold_ridge: float = 0.0
+    certify: bool | str = "fast"
+    model: Any = None
+    seed: int = 0
+    n_jobs: int = 1
+    progress: bool = True
+    model_params: dict | None = None
+    fold_in: dict | None = None
+    temporal: str | None = None
+    path: PathOptions | None = None
+    n_robots: int = 1
+
+    def __post_init__(self) -> None:
+        self._check()
+
+    # ------------------------------------------------------------------ validation
+    def _check(self) -> None:
+        """Every argument checked (and normalised) before any work: the named errors of
+        :func:`evaluate`."""
+        if not isinstance(self.data, xr.DataArray) or self.data.ndim != 3:
+            raise DataError("data must be a (time, lat, lon) DataArray")
+        self.data = _time_ordered(self.data)
+        self.methods = _check_methods(self.methods)
+        self.n_test = _int_arg(self.n_test, "n_test", 1, DataError)
+        self.n_starts = _int_arg(self.n_starts, "n_starts", 1)
+        if "random" in self.methods:
+            self.random_trials = _int_arg(self.random_trials, "random_trials", 1)
+        self.min_observations = _int_arg(self.min_observations, "min_observations", 0)
+        self.n_jobs = _int_arg(self.n_jobs, "n_jobs", 1)
+        self.ridge = check_positive(self.ridge, "ridge", error=ModelError)
+        self.fold_ridge = check_positive(self.fold_ridge, "fold_ridge", error=ModelError)
+        self.temporal = _check_temporal(self.temporal)
+        self.path = PathOptions.from_kwargs(self.path, where="evaluate",
+                                            allowed=_EVALUATE_PATH)
+        self.n_robots = _int_arg(self.n_robots, "n_robots", 1, PlanningError)
+        if self.temporal is not None and (not self.path.is_paper or self.n_robots > 1):
+            raise PlanningError("temporal campaigns support only the paper's path model: drop "
+                                "metric, speed, stop_cost, traversable, closed and n_robots, or "
+                                "temporal")
+        self.model_params = dict(self.model_params or {})
+        self.fold_in = dict(self.fold_in or {})
+        bad = set(self.fold_in) - {"prior", "spatial", "ridge"}
+        if bad:
+            raise ModelError(f"fold_in keys must be among prior, spatial, ridge; got "
+                             f"{sorted(bad)}")
+        self.budgets = _check_budgets(self.budgets)
+        if self.certify not in (False, "fast", "tight", True):
+            raise ModelError(f"certify must be False, 'fast' or 'tight', got {self.certify!r}")
+        self.certify = "tight" if self.certify is True else self.certify
+        if not 0 < self.n_test < self.data.sizes["time"]:
+            raise DataError(f"n_test must be in [1, {self.data.sizes['time'] - 1}], got "
+                            f"{self.n_test}")
+
+    # ------------------------------------------------------------------ the steps
+    def run(self) -> xr.Dataset:
+        """Fit (or take the model), draw the starts, plan and score every (method, budget,
+        start, trial), and return the Dataset of :func:`evaluate`."""
+        fit = self._fit()
+        starts, fleets = self._starts(fit.region)
+        results = self._plan_all(fit, starts, fleets)
+        return self._dataset(fit, starts, fleets, results)
+
+    def _fit(self) -> _Fitted:
+        """The split, the model (fitted on the training snapshots unless given) and the test
+        snapshots' statistics and fold-in beliefs."""
+        from .glrm import GLRM
+
+        data, n_test = self.data, self.n_test
+        train, test = data.isel(time=slice(None, -n_test)), data.isel(time=slice(-n_test, None))
+        model = self.model
+        if model is not None:
+            _check_given_model(model, test)
+        if model is None:
+            model = GLRM(rank=self.rank, random_state=self.seed, progress=self.progress,
+                         **self.model_params).fit(train)
+        region = model.region_
+        if region is None:
+            raise ModelError("model must have been fitted on a DataArray (it has no region)")
+        Y = as_factor_matrix(model.Y_, region)
+        test_values = region.stack(test)
+        # one observation model for every error: the model's offset / scale / noise (data units)
+        stats = SnapshotStatistics.from_values(Y, test_values, getattr(model, "offset_", None),
+                                               getattr(model, "scale_", None))
+        fold_in = self.fold_in
+        use_model = bool(fold_in) or not model.is_plain_low_rank
+        paper_prior = model.latent_prior(None, ridge=self.fold_ridge)  # the paper's fold-in
+        fold_prior = (model.latent_prior(fold_in.get("prior"),
+                                         ridge=float(fold_in.get("ridge", self.fold_ridge)),
+                                         spatial=bool(fold_in.get("spatial", False)))
+                      if use_model else paper_prior)
+        return _Fitted(model, region, Y, train, test, stats, use_model, paper_prior, fold_prior)
+
+    def _starts(self, region: Region) -> tuple[np.ndarray, np.ndarray]:
+        """``(starts (n_starts,), fleets (n_starts, n_robots))``: seeded distinct cells a robot
+        may start from (a bad traversable raises here, before any plan)."""
+        from .planning.paths import startable_cells
+
+        n_starts, n_robots = self.n_starts, self.n_robots
+        rng = as_generator(self.seed)
+        candidates = startable_cells(region, self.path.traversable)
+        if n_starts * n_robots > candidates.size:
+            where = ("valid cells" if self.path.traversable is None else
+                     "enterable cells with an enterable neighbour")
+            raise DataError(f"n_starts={n_starts}" + (f" x n_robots={n_robots}" if n_robots > 1
+                                                       else "")
+                            + f" exceeds the {candidates.size} {where}")
+        if n_robots == 1:
+            starts = candidates[np.sort(rng.choice(candidates.size, size=n_starts,
+                                                   replace=False))]
+            return starts, starts[:, None]
+        # distinct cells, each fleet's in ascending order
+        fleets = np.sort(candidates[rng.choice(candidates.size, size=(n_starts, n_robots),
+                                               replace=False)], axis=1)
+        return fleets[:, 0], fleets
+
+    def _plan_all(self, fit: _Fitted, starts: np.ndarray, fleets: np.ndarray) -> _Results:
+        """Every start's plans and errors (threads over starts, one seeded stream each)."""
+        n_trials = self.random_trials if "random" in self.methods else 1
+        out = _Results.empty(len(self.methods), len(self.budgets), self.n_starts, n_trials,
+                             self.n_test, self.n_robots, self.temporal is not None)
+        seeds = np.random.SeedSequence(self.seed).spawn(self.n_starts)
+        cov = (coverage_subset(fit.stats.values, self.seed),
+               fit.stats.values.astype(np.float64))
+        planners = [planner_for(m, criterion=self.criterion, cost=self.cost)
+                    for m in self.methods]
+        bar = tqdm(total=self.n_starts, desc="evaluate (starts)", disable=not self.progress)
+        with warnings.catch_warnings(), single_threaded_blas(), \
+                ThreadPoolExecutor(max_workers=max(1, self.n_jobs)) as pool:  # tiny k x k
+            # at small budgets the forced initial cells exceed the budget: expected, not news
+            warnings.filterwarnings("ignore", message=r"(the|robot \d+.s) \d+ initial cells")
+            jobs = [(s, np.random.default_rng(seeds[s]), starts[s], fleets[s])
+                    for s in range(self.n_starts)]
+            for results in pool.map(lambda job: self._run_start(fit, planners, cov, *job),
+                                    jobs):
+                for row in results:
+                    out.record(row, self.methods)
+                bar.update()
+        bar.close()
+        return out
+
+    def _run_start(self, fit: _Fitted, planners: list[Any], cov: tuple, s: int,
+                   start_rng: np.random.Generator, start: Any, fleet: np.ndarray
+                   ) -> list[tuple]:
+        """One start's rows ``(m, b, s, trial, plan, mse, n_obs, bound, coverage, mse_ml,
+        coverage_ml)`` over budgets x methods x trials, in the protocol's order."""
+        out = []
+        n_trials = self.random_trials if "random" in self.methods else 1
+        for b, budget in enumerate(self.budgets):
+            for m, method in enumerate(self.methods):
+                for trial in range(n_trials if method == "random" else 1):
+                    if self.temporal is not None:
+                        out.append((m, b, s, trial, *self._campaign(fit, int(start), budget,
+                                                                     method, start_rng)))
+                        continue
+                    robots = Fleet(tuple(int(c) for c in fleet), (budget,) * fleet.size,
+                                   self.n_robots > 1, self.path.unit)
+                    planner = planners[m]
+                    plan = planner.plan(fit.Y, fit.region, robots, self.path, rng=start_rng,
+                                        ridge=self.ridge, prior=planner.prior_of(fit.model))
+                    out.append((m, b, s, trial, plan, *self._score(fit, plan, method, cov)))
+        return out
+
+    def _score(self, fit: _Fitted, plan: Any, method: str, cov: tuple) -> tuple:
+        """``(mse, n_obs, bound, coverage, None, None)`` of one plan on the test snapshots."""
+        e, n = model_mse(fit.fold_prior, fit.stats, plan.cells, self.min_observations)
+        c = model_coverage(fit.fold_prior, cov[1], cov[0], plan.cells, self.min_observations)
+        certify = self.certify
+        cert = (plan.certify(tighten=certify == "tight", refine=False).bound
+                if certify and method == "greedy" else np.nan)  # bound only
+        return e, n, cert, c, None, None
+
+    def _campaign(self, fit: _Fitted, start: int, budget: float, method: str,
+                  start_rng: np.random.Generator) -> tuple:
+        """``(plan, mse, n_obs, nan, coverage, mse_memoryless, coverage_memoryless)`` of one
+        campaign and its memoryless twin (the same seed)."""
+        cseed = int(start_rng.integers(2**31))
+        spatial = self.fold_in.get("spatial") if "spatial" in self.fold_in else None
+        options = {"cost": self.cost, "ridge": self.ridge, "criterion": self.criterion}
+        runs = [_campaign_errors(fit.model, fit.test, start, budget, method, tm, cseed,
+                                 spatial, self.min_observations, options)
+                for tm in (self.temporal, None)]
+        (e, n, c, inf, cst, ncell, route), ml = runs
+        return _CampaignPlan(inf, cst, ncell, route), e, n, np.nan, c, ml[0], ml[2]
+
+    def _dataset(self, fit: _Fitted, starts: np.ndarray, fleets: np.ndarray,
+                 res: _Results) -> xr.Dataset:
+        """The results as the Dataset of :func:`evaluate`."""
+        data, region, path, n_robots = self.data, fit.region, self.path, self.n_robots
+        unit = path.unit
+        units = f"({data.attrs.get('units', '1')})^2"
+        dims4 = ("method", "budget", "start", "trial")
+        ds = xr.Dataset(
+            {
+                "information": (dims4, res.info,
+                                {"long_name": "Fisher information log det(sum Y_p Y_p^T)",
+                                 "units": "nats"}),
+                "information_usable": (dims4, (res.n_obs >= self.min_observations).any(
+                    axis=-1)),  # enough observations in at least one test snapshot
+                "cost": (dims4, res.cost,
+                         {"long_name": "path cost" + (" (the fleet's total)" if n_robots > 1
+                                                      else ""),
+                          "units": "grid cells" if unit == "grid units" else unit}),
+                "n_cells": (dims4, res.n_cells),
+                "mse": (dims4 + ("test_time",), res.mse,
+                        {"long_name": "mean squared reconstruction error over observed cells",
+                         "units": units}),
+                "n_obs": (dims4 + ("test_time",), res.n_obs),
+                "bound": (("budget", "start"), res.bound,
+                          {"long_name": "certified upper bound on the information of any "
+                                        "plan", "units": "nats"}),
+                "complete_mse": (("test_time",), complete_mse(fit.stats, fit.paper_prior),
+                                 {"long_name": "fold-in error from every observed cell",
+                                  "units": units}),
+                "start_cell": (("start",), starts),
+                "start_lat": (("start",), region.cell_lat[starts]),
+                "start_lon": (("start",), region.cell_lon[starts]),
+                "greedy_route": (("budget", "start", "step"), res.padded(res.routes)),
+            },
+            coords={
+                "method": list(self.methods),
+                "budget": list(self.budgets),
+                "start": np.arange(self.n_starts),
+                "trial": np.arange(res.info.shape[3]),
+                "test_time": (fit.test["time"].values if "time" in fit.test.coords
+                              else np.arange(self.n_test)),
+            },
+            attrs=self._attrs(fit),
+        )
+        if n_robots > 1:
+            ds = ds.assign_coords(robot=np.arange(n_robots))
+            ds["fleet_start_cell"] = (("start", "robot"), fleets)
+            ds["fleet_start_lat"] = (("start", "robot"), region.cell_lat[fleets])
+            ds["fleet_start_lon"] = (("start", "robot"), region.cell_lon[fleets])
+            ds["robot_cost"] = (dims4 + ("robot",), res.robot_cost,
+                                {"long_name": "each robot's path cost", "units": unit})
+            ds["greedy_route_robot"] = (("budget", "start", "step"),
+                                        res.padded(res.route_robots),
+                                        {"long_name": "robot of each greedy_route entry (-1: "
+                                                      "padding)"})
+        dims5 = dims4 + ("test_time",)
+        for i, level in enumerate((68, 95)):
+            ds[f"coverage{level}"] = (dims5, res.coverage[..., i], {
+                "long_name": f"fraction of held-out observed cells inside the central {level}% "
+                             "predictive interval"})
+        if self.temporal is not None:
+            ds["mse_memoryless"] = (dims5, res.mse_ml, {
+                "long_name": "campaign MSE of the memoryless model through the same loop",
+                "units": ds["mse"].attrs["units"]})
+            for i, level in enumerate((68, 95)):
+                ds[f"coverage{level}_memoryless"] = (dims5, res.coverage_ml[..., i])
+        if fit.use_model:
+            fold_in = self.fold_in
+            cm = complete_mse(fit.stats, fit.model.latent_prior(
+                fold_in.get("prior"), ridge=float(fold_in.get("ridge", self.fold_ridge))))
+            ds["complete_mse_model"] = (("test_time",), cm, {
+                "long_name": "model fold-in error from every observed cell"})
+        return ds
+
+    def _attrs(self, fit: _Fitted) -> dict[str, Any]:
+        """The Dataset's attrs: the protocol's settings and the path request."""
+        path = self.path
+        return {
+            "title": "lrm-cvx evaluation (Ricci, Udell, Knepper protocol)",
+            "rank": int(fit.Y.shape[0]),
+            "n_train": int(fit.train.sizes["time"]),
+            "n_test": int(self.n_test),
+            "n_cells_region": int(fit.region.n_cells),
+            "min_observations": int(self.min_observations),
+            "criterion": self.criterion,
+            "cost_function": self.cost,
+            "ridge": float(self.ridge),
+            "fold_ridge": float(self.fold_ridge),
+            "random_trials": int(self.random_trials),
+            "seed": int(self.seed),
+            "model_params": repr(self.model_params),
+            "fold_in": repr(self.fold_in),
+            "temporal": "none" if self.temporal is None else self.temporal,
+            "metric": path.metric,
+            "speed": float(np.nan if path.speed is None else path.speed),
+            "stop_cost": float(path.stop_cost),
+            "traversable": path.traversable_kind,
+            "closed": int(bool(path.closed)),
+            "n_robots": int(self.n_robots),
+            "budget_unit": path.unit,
+        }
+
+
+@dataclass
+class _Results:
+    """The arrays a protocol run fills, ``(method, budget, start, trial[, test_time])``."""
+
+    info: np.ndarray
+    cost: np.ndarray
+    n_cells: np.ndarray
+    mse: np.ndarray
+    n_obs: np.ndarray
+    coverage: np.ndarray
+    mse_ml: np.ndarray | None
+    coverage_ml: np.ndarray | None
+    bound: np.ndarray
+    robot_cost: np.ndarray | None
+    routes: dict = field(default_factory=dict)
+    route_robots: dict = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, n_methods: int, n_budgets: int, n_starts: int, n_trials: int, n_test: int,
+              n_robots: int, temporal: bool) -> _Results:
+        shape = (n_methods, n_budgets, n_starts, n_trials)
+        return cls(
+            info=np.full(shape, np.nan), cost=np.full(shape, np.nan),
+            n_cells=np.zeros(shape, dtype=np.int32), mse=np.full(shape + (n_test,), np.nan),
+            n_obs=np.zeros(shape + (n_test,), dtype=np.int32),
+            coverage=np.full(shape + (n_test, 2), np.nan),
+            mse_ml=np.full(shape + (n_test,), np.nan) if temporal else None,
+            coverage_ml=np.full(shape + (n_test, 2), np.nan) if temporal else None,
+            bound=np.full((n_budgets, n_starts), np.nan),
+            robot_cost=np.full(shape + (n_robots,), np.nan) if n_robots > 1 else None,
+        )
+
+    def record(self, row: tuple, methods: tuple[str, ...]) -> None:
+        """Store one row of :meth:`EvaluationProtocol._run_start`."""
+        m, b, s, trial, plan, e, n, cert, c, e_ml, c_ml = row
+        at = (m, b, s, trial)
+        self.info[at] = plan.information
+        self.cost[at] = plan.cost
+        self.n_cells[at] = len(plan.cells)
+        if self.robot_cost is not None:
+            self.robot_cost[at] = plan.robot_costs
+        self.mse[at] = e
+        self.n_obs[at] = n
+        self.coverage[at] = c
+        if self.mse_ml is not None:
+            self.mse_ml[at] = e_ml
+            self.coverage_ml[at] = c_ml
+        if methods[m] == "greedy":
+            self.bound[b, s] = cert
+            self.routes[(b, s)] = np.asarray(plan.route)
+            self.route_robots[(b, s)] = np.asarray(getattr(plan, "route_robot", []))
+
+    def padded(self, entries: dict) -> np.ndarray:
+        """``(budget, start, step)`` int64 of the greedy's ``entries``, padded with -1."""
+        width = max([len(r) for r in self.routes.values()] + [1])
+        out = np.full(self.bound.shape + (width,), -1, dtype=np.int64)
+        for (b, s), r in entries.items():
+            out[b, s, : len(r)] = r
+        return out
+
+
+def _check_methods(methods: Any) -> tuple[str, ...]:
+    """``methods`` as canonical names, non-empty, without repeats (ModelError)."""
+    if isinstance(methods, str):
+        methods = (methods,)
+    methods = tuple(check_method(m) for m in methods)
+    if not methods:
+        raise ModelError(f"methods must name at least one method of {METHODS}")
+    if len(set(methods)) != len(methods):
+        raise ModelError(f"methods must not repeat, got {list(methods)}")
+    return methods
+
+
+def _check_budgets(budgets: Any) -> tuple[float, ...]:
+    """``budgets`` as distinct finite floats >= 0 (ModelError)."""
+    try:
+        budgets = tuple(float(b) for b in np.atleast_1d(np.asarray(budgets, dtype=object)))
+    except (TypeError, ValueError):
+        raise ModelError(f"budgets must be a non-empty sequence of numbers >= 0, got "
+                         f"{budgets!r}") from None
+    if not budgets or min(budgets) < 0 or not np.all(np.isfinite(budgets)):
+        raise ModelError(f"budgets must be a non-empty sequence of finite numbers >= 0, got "
+                         f"{budgets}")
+    if len(set(budgets)) != len(budgets):
+        raise ModelError(f"budgets must not repeat, got {list(budgets)}")
+    return budgets
+
+
 def evaluate(
     data: xr.DataArray,
     *,
@@ -386,26 +597,15 @@ def evaluate(
     budgets: Sequence[float] = (5, 25, 50, 100, 200),
     n_starts: int = 10,
     methods: Sequence[str] = METHODS,
-    random_trials: int = 70,
-    min_observations: int = 10,
     criterion: str = "fisher",
     cost: str = "nearest-neighbor",
     ridge: float = 0.0,
-    fold_ridge: float = 0.0,
-    certify: bool | str = "fast",
     model: Any = None,
     seed: int = 0,
-    n_jobs: int = 1,
-    progress: bool = True,
-    model_params: dict | None = None,
-    fold_in: dict | None = None,
     temporal: str | None = None,
-    metric: str = "grid",
-    speed: float | None = None,
-    stop_cost: float = 0.0,
-    traversable: Any = None,
-    closed: bool = False,
     n_robots: int = 1,
+    path: PathOptions | None = None,
+    **options: Any,
 ) -> xr.Dataset:
     """Run the paper's evaluation protocol on ``data`` ``(time, lat, lon)``.
 
@@ -449,7 +649,8 @@ def evaluate(
     ``information``, ``cost``, ``n_cells`` and ``greedy_route`` are those of the first day's
     plan; ``bound`` is not computed (NaN).
 
-    Path model (issue #15, docs/evaluation.md; defaults are the paper's): ``metric``
+    Path model (issue #15, docs/evaluation.md; defaults are the paper's): ``path`` (a
+    :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords ``metric``
     (``"grid"`` or ``"km"``), ``speed`` (km/h: budgets in hours), ``stop_cost`` (budget unit
     per sampling stop), ``traversable`` (``None``, ``"valid"`` or a boolean ``(lat, lon)``
     DataArray) and ``closed`` are passed to every method, the greedy and the baselines alike.
@@ -472,260 +673,16 @@ def evaluate(
     ``(budget, start)``, ``complete_mse`` ``(test_time)``, the start cells, and the greedy
     routes (``greedy_route``, padded with -1) for the qualitative figures.
     """
-    from .glrm import GLRM
-    from .planning.paths import startable_cells
-
-    if not isinstance(data, xr.DataArray) or data.ndim != 3:
-        raise DataError("data must be a (time, lat, lon) DataArray")
-    data = _time_ordered(data)
-    if isinstance(methods, str):
-        methods = (methods,)
-    methods = tuple(check_method(m) for m in methods)
-    if not methods:
-        raise ModelError(f"methods must name at least one method of {METHODS}")
-    if len(set(methods)) != len(methods):
-        raise ModelError(f"methods must not repeat, got {list(methods)}")
-    n_test = _int_arg(n_test, "n_test", 1, DataError)
-    n_starts = _int_arg(n_starts, "n_starts", 1)
-    if "random" in methods:
-        random_trials = _int_arg(random_trials, "random_trials", 1)
-    min_observations = _int_arg(min_observations, "min_observations", 0)
-    n_jobs = _int_arg(n_jobs, "n_jobs", 1)
-    ridge = check_positive(ridge, "ridge", error=ModelError)
-    fold_ridge = check_positive(fold_ridge, "fold_ridge", error=ModelError)
-    temporal = _check_temporal(temporal)
-    path = _path_options(metric, speed, stop_cost, traversable, closed)
-    n_robots = _int_arg(n_robots, "n_robots", 1, PlanningError)
-    if temporal is not None and (path or n_robots > 1):
-        raise PlanningError("temporal campaigns support only the paper's path model: drop "
-                            "metric, speed, stop_cost, traversable, closed and n_robots, or "
-                            "temporal")
-    model_params = dict(model_params or {})
-    fold_in = dict(fold_in or {})
-    bad = set(fold_in) - {"prior", "spatial", "ridge"}
+    bad = set(options) - set(_EVALUATE_OPTIONS) - set(_EVALUATE_PATH)
     if bad:
-        raise ModelError(f"fold_in keys must be among prior, spatial, ridge; got {sorted(bad)}")
-    try:
-        budgets = tuple(float(b) for b in np.atleast_1d(np.asarray(budgets, dtype=object)))
-    except (TypeError, ValueError):
-        raise ModelError(f"budgets must be a non-empty sequence of numbers >= 0, got "
-                         f"{budgets!r}") from None
-    if not budgets or min(budgets) < 0 or not np.all(np.isfinite(budgets)):
-        raise ModelError(f"budgets must be a non-empty sequence of finite numbers >= 0, got "
-                         f"{budgets}")
-    if len(set(budgets)) != len(budgets):
-        raise ModelError(f"budgets must not repeat, got {list(budgets)}")
-    if certify not in (False, "fast", "tight", True):
-        raise ModelError(f"certify must be False, 'fast' or 'tight', got {certify!r}")
-    certify = "tight" if certify is True else certify
-    if not 0 < n_test < data.sizes["time"]:
-        raise DataError(f"n_test must be in [1, {data.sizes['time'] - 1}], got {n_test}")
-    train, test = data.isel(time=slice(None, -n_test)), data.isel(time=slice(-n_test, None))
-    if model is not None:
-        _check_given_model(model, test)
-    if model is None:
-        model = GLRM(rank=rank, random_state=seed, progress=progress,
-                     **model_params).fit(train)
-    region = model.region_
-    if region is None:
-        raise ModelError("model must have been fitted on a DataArray (it has no region)")
-    Y = as_factor_matrix(model.Y_, region)
-    test_values = region.stack(test)
-    # one observation model for every error: the model's offset / scale / noise (data units)
-    stats = SnapshotStatistics.from_values(Y, test_values, getattr(model, "offset_", None),
-                                           getattr(model, "scale_", None))
-    use_model = bool(fold_in) or not model.is_plain_low_rank
-    paper_prior = model.latent_prior(None, ridge=fold_ridge)  # the paper's fold-in
-    fold_prior = (model.latent_prior(fold_in.get("prior"),
-                                     ridge=float(fold_in.get("ridge", fold_ridge)),
-                                     spatial=bool(fold_in.get("spatial", False)))
-                  if use_model else paper_prior)
-    rng = as_generator(seed)
-    # the cells a robot may start from; a bad traversable raises here, before any plan
-    candidates = startable_cells(region, path.get("traversable"))
-    if n_starts * n_robots > candidates.size:
-        where = ("valid cells" if "traversable" not in path else
-                 "enterable cells with an enterable neighbour")
-        raise DataError(f"n_starts={n_starts}" + (f" x n_robots={n_robots}" if n_robots > 1
-                                                   else "")
-                        + f" exceeds the {candidates.size} {where}")
-    if n_robots == 1:
-        starts = candidates[np.sort(rng.choice(candidates.size, size=n_starts, replace=False))]
-        fleets = starts[:, None]
-    else:  # distinct cells, each fleet's in ascending order
-        fleets = np.sort(candidates[rng.choice(candidates.size, size=(n_starts, n_robots),
-                                               replace=False)], axis=1)
-        starts = fleets[:, 0]
-    n_trials = random_trials if "random" in methods else 1
-    shape = (len(methods), len(budgets), n_starts, n_trials)
-    info = np.full(shape, np.nan)
-    cost_ = np.full(shape, np.nan)
-    n_cells = np.zeros(shape, dtype=np.int32)
-    mse = np.full(shape + (n_test,), np.nan)
-    n_obs = np.zeros(shape + (n_test,), dtype=np.int32)
-    coverage = np.full(shape + (n_test, 2), np.nan)
-    mse_ml = np.full(shape + (n_test,), np.nan) if temporal else None
-    coverage_ml = np.full(shape + (n_test, 2), np.nan) if temporal else None
-    cov_subsets = _coverage_subset(stats.values, seed)
-    cov_values = stats.values.astype(np.float64)
-    camp_opts = {"cost": cost, "ridge": ridge, "criterion": criterion}
-    camp_spatial = fold_in.get("spatial") if "spatial" in fold_in else None
-    bound = np.full((len(budgets), n_starts), np.nan)
-    robot_cost = np.full(shape + (n_robots,), np.nan) if n_robots > 1 else None
-    max_route = 0
-    routes: dict[tuple[int, int], np.ndarray] = {}
-    route_robots: dict[tuple[int, int], np.ndarray] = {}
-    seeds = np.random.SeedSequence(seed).spawn(n_starts)
-
-    def run_start(s: int) -> list[tuple]:
-        out = []
-        start_rng = np.random.default_rng(seeds[s])
-        for b, budget in enumerate(budgets):
-            for m, method in enumerate(methods):
-                for trial in range(n_trials if method == "random" else 1):
-                    if temporal is not None:
-                        cseed = int(start_rng.integers(2**31))
-                        runs = [_campaign_errors(model, test, int(starts[s]), budget, method,
-                                                 tm, cseed, camp_spatial, min_observations,
-                                                 camp_opts) for tm in (temporal, None)]
-                        (e, n, c, inf, cst, ncell, route), ml = runs
-                        plan = _CampaignPlan(inf, cst, ncell, route)
-                        out.append((m, b, s, trial, plan, e, n, np.nan, c, ml[0], ml[2]))
-                        continue
-                    where = int(starts[s]) if n_robots == 1 else [int(c) for c in fleets[s]]
-                    plan = plan_method(method, Y, region, where, budget, start_rng,
-                                       criterion, cost, ridge, model, fold_in, path)
-                    e, n = _model_mse(fold_prior, stats, plan.cells, min_observations)
-                    c = _model_coverage(fold_prior, cov_values, cov_subsets, plan.cells,
-                                        min_observations)
-                    cert = (plan.certify(tighten=certify == "tight", refine=False).bound
-                            if certify and method == "greedy" else np.nan)  # bound only
-                    out.append((m, b, s, trial, plan, e, n, cert, c, None, None))
-        return out
-
-    jobs = range(n_starts)
-    bar = tqdm(total=n_starts, desc="evaluate (starts)", disable=not progress)
-    with warnings.catch_warnings(), single_threaded_blas(), \
-            ThreadPoolExecutor(max_workers=max(1, n_jobs)) as pool:  # tiny k x k algebra
-        # at small budgets the forced initial cells exceed the budget: expected, not news
-        warnings.filterwarnings("ignore", message=r"(the|robot \d+.s) \d+ initial cells")
-        for results in pool.map(run_start, jobs):
-            for m, b, s, trial, plan, e, n, cert, c, e_ml, c_ml in results:
-                info[m, b, s, trial] = plan.information
-                cost_[m, b, s, trial] = plan.cost
-                n_cells[m, b, s, trial] = len(plan.cells)
-                if robot_cost is not None:
-                    robot_cost[m, b, s, trial] = plan.robot_costs
-                mse[m, b, s, trial] = e
-                n_obs[m, b, s, trial] = n
-                coverage[m, b, s, trial] = c
-                if temporal is not None:
-                    mse_ml[m, b, s, trial] = e_ml
-                    coverage_ml[m, b, s, trial] = c_ml
-                if methods[m] == "greedy":
-                    bound[b, s] = cert
-                    routes[(b, s)] = np.asarray(plan.route)
-                    route_robots[(b, s)] = np.asarray(getattr(plan, "route_robot", []))
-                    max_route = max(max_route, len(plan.route))
-            bar.update()
-    bar.close()
-
-    greedy_route = np.full((len(budgets), n_starts, max(max_route, 1)), -1, dtype=np.int64)
-    for (b, s), r in routes.items():
-        greedy_route[b, s, : len(r)] = r
-    unit = ("grid units" if "metric" not in path else "h" if "speed" in path else "km")
-    # a plan counts for the information metric when it yields enough observations in at
-    # least one test snapshot (the paper excludes trials with fewer than min_observations)
-    usable = (n_obs >= min_observations).any(axis=-1)
-    ds = xr.Dataset(
-        {
-            "information": (("method", "budget", "start", "trial"), info,
-                            {"long_name": "Fisher information log det(sum Y_p Y_p^T)",
-                             "units": "nats"}),
-            "information_usable": (("method", "budget", "start", "trial"), usable),
-            "cost": (("method", "budget", "start", "trial"), cost_,
-                     {"long_name": "path cost" + (" (the fleet's total)" if n_robots > 1
-                                                  else ""),
-                      "units": "grid cells" if unit == "grid units" else unit}),
-            "n_cells": (("method", "budget", "start", "trial"), n_cells),
-            "mse": (("method", "budget", "start", "trial", "test_time"), mse,
-                    {"long_name": "mean squared reconstruction error over observed cells",
-                     "units": f"({data.attrs.get('units', '1')})^2"}),
-            "n_obs": (("method", "budget", "start", "trial", "test_time"), n_obs),
-            "bound": (("budget", "start"), bound,
-                      {"long_name": "certified upper bound on the information of any plan",
-                       "units": "nats"}),
-            "complete_mse": (("test_time",), _complete_mse(stats, paper_prior),
-                             {"long_name": "fold-in error from every observed cell",
-                              "units": f"({data.attrs.get('units', '1')})^2"}),
-            "start_cell": (("start",), starts),
-            "start_lat": (("start",), region.cell_lat[starts]),
-            "start_lon": (("start",), region.cell_lon[starts]),
-            "greedy_route": (("budget", "start", "step"), greedy_route),
-        },
-        coords={
-            "method": list(methods),
-            "budget": list(budgets),
-            "start": np.arange(n_starts),
-            "trial": np.arange(n_trials),
-            "test_time": test["time"].values if "time" in test.coords else np.arange(n_test),
-        },
-        attrs={
-            "title": "lrm-cvx evaluation (Ricci, Udell, Knepper protocol)",
-            "rank": int(Y.shape[0]),
-            "n_train": int(train.sizes["time"]),
-            "n_test": int(n_test),
-            "n_cells_region": int(region.n_cells),
-            "min_observations": int(min_observations),
-            "criterion": criterion,
-            "cost_function": cost,
-            "ridge": float(ridge),
-            "fold_ridge": float(fold_ridge),
-            "random_trials": int(random_trials),
-            "seed": int(seed),
-            "model_params": repr(model_params),
-            "fold_in": repr(fold_in),
-            "temporal": "none" if temporal is None else temporal,
-            "metric": path.get("metric", "grid"),
-            "speed": float(path.get("speed", np.nan)),
-            "stop_cost": float(path.get("stop_cost", 0.0)),
-            "traversable": ("none" if "traversable" not in path else "valid"
-                            if isinstance(path["traversable"], str) else "mask"),
-            "closed": int(bool(path.get("closed", False))),
-            "n_robots": int(n_robots),
-            "budget_unit": unit,
-        },
-    )
-    if n_robots > 1:
-        ds = ds.assign_coords(robot=np.arange(n_robots))
-        ds["fleet_start_cell"] = (("start", "robot"), fleets)
-        ds["fleet_start_lat"] = (("start", "robot"), region.cell_lat[fleets])
-        ds["fleet_start_lon"] = (("start", "robot"), region.cell_lon[fleets])
-        ds["robot_cost"] = (("method", "budget", "start", "trial", "robot"), robot_cost,
-                            {"long_name": "each robot's path cost", "units": unit})
-        route_robot = np.full(greedy_route.shape, -1, dtype=np.int64)
-        for (b, s), r in route_robots.items():
-            route_robot[b, s, : len(r)] = r
-        ds["greedy_route_robot"] = (("budget", "start", "step"), route_robot,
-                                    {"long_name": "robot of each greedy_route entry (-1: "
-                                                  "padding)"})
-    dims5 = ("method", "budget", "start", "trial", "test_time")
-    for i, level in enumerate((68, 95)):
-        ds[f"coverage{level}"] = (dims5, coverage[..., i], {
-            "long_name": f"fraction of held-out observed cells inside the central {level}% "
-                         "predictive interval"})
-    if temporal is not None:
-        ds["mse_memoryless"] = (dims5, mse_ml, {
-            "long_name": "campaign MSE of the memoryless model through the same loop",
-            "units": ds["mse"].attrs["units"]})
-        for i, level in enumerate((68, 95)):
-            ds[f"coverage{level}_memoryless"] = (dims5, coverage_ml[..., i])
-    if use_model:
-        cm = _complete_mse(stats, model.latent_prior(
-            fold_in.get("prior"), ridge=float(fold_in.get("ridge", fold_ridge))))
-        ds["complete_mse_model"] = (("test_time",), cm,
-                                    {"long_name": "model fold-in error from every observed cell"})
-    return ds
+        raise TypeError(f"evaluate() got an unexpected keyword argument {sorted(bad)[0]!r}")
+    request = PathOptions.from_kwargs(path, where="evaluate", allowed=_EVALUATE_PATH,
+                                      **pop_options(options, _EVALUATE_PATH))
+    return EvaluationProtocol(data, rank=rank, n_test=n_test, budgets=budgets,
+                              n_starts=n_starts, methods=methods, criterion=criterion,
+                              cost=cost, ridge=ridge, model=model, seed=seed,
+                              temporal=temporal, n_robots=n_robots, path=request,
+                              **options).run()
 
 
 def summary(results: xr.Dataset) -> pd.DataFrame:

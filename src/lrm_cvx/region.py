@@ -20,7 +20,7 @@ from .errors import DataError, RegionError
 
 __all__ = [
     "Region", "BBox", "EARTH_RADIUS_KM", "spatial_dims", "check_bbox", "check_coords",
-    "geographic_order", "lon_in_box", "to_geographic_order",
+    "geographic_order", "lon_in_box", "to_geographic_order", "check_region",
 ]
 
 BBox = tuple[float, float, float, float]
@@ -715,3 +715,17 @@ def _nearest_index(grid: np.ndarray, points: np.ndarray, what: str) -> np.ndarra
         bad = np.ravel(points)[np.flatnonzero(np.ravel(outside))[0]]
         raise RegionError(f"{what}={bad:g} is outside the grid ({lo:g} .. {hi:g})")
     return idx
+
+
+def check_region(region: Any, name: str = "region") -> Any:
+    """``region`` if it is a :class:`~lrm_cvx.region.Region`, else a :class:`PlanningError`
+    naming it (a model fitted on a plain array has no region and cannot plan)."""
+    if isinstance(region, Region):
+        return region
+    from .errors import PlanningError
+
+    raise PlanningError(
+        f"{name} must be a lrm_cvx.Region (the grid of the model's cells), got "
+        f"{type(region).__name__}: a model fitted on a plain array has no region; fit it on a "
+        "(time, lat, lon) DataArray or pass region=Region.from_dataarray(data)"
+    )

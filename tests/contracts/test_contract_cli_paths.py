@@ -4,13 +4,21 @@ with the library's choices, on every command that plans, and docs/cli.md names i
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
 from pathlib import Path
 
+import numpy as np
+import pytest
+import xarray as xr
+
+from lrm_cvx import Region
 from lrm_cvx.cli import build_parser
+from lrm_cvx.errors import PlanningError
 from lrm_cvx.evaluation import evaluate
 from lrm_cvx.planning import plan_greedy, random_walk, transect
 from lrm_cvx.planning.paths import METRICS
+from lrm_cvx.planning.request import PathOptions
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 
@@ -33,17 +41,28 @@ def _flags(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
 
 
 def test_the_python_api_takes_every_path_option():
+    # issue #27: a path option is a field of the one request object (PathOptions), taken as
+    # `path=PathOptions(...)` or as its keyword through `**options`, with the request's defaults
+    fields = {f.name: f.default for f in dataclasses.fields(PathOptions)}
     for fn, names in ((plan_greedy, PLAN_OPTIONS), (evaluate, EVALUATE_OPTIONS),
                       (transect, BASELINE_OPTIONS), (random_walk, BASELINE_OPTIONS)):
         params = inspect.signature(fn).parameters
-        missing = [n for n in names if n not in params]
+        takes_request = "path" in params and any(
+            p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+        missing = [n for n in names if n not in params and not (takes_request and n in fields)]
         assert not missing, f"{fn.__name__} lacks {missing}"
-    # the baselines and evaluate default to the paper exactly as the planner does
-    greedy = inspect.signature(plan_greedy).parameters
-    for fn in (transect, random_walk, evaluate):
-        params = inspect.signature(fn).parameters
-        for n in BASELINE_OPTIONS:
-            assert params[n].default == greedy[n].default, (fn.__name__, n)
+    # the baselines, evaluate and the planner share the paper's defaults: the request's
+    assert {n: fields[n] for n in BASELINE_OPTIONS} == {
+        "metric": "grid", "speed": None, "stop_cost": 0.0, "traversable": None, "closed": False}
+    region = Region.from_dataarray(xr.DataArray(np.zeros((1, 3, 3)), dims=("time", "lat", "lon"),
+                                                coords={"lat": [0.0, 1, 2], "lon": [0.0, 1, 2]}))
+    for call in (lambda **k: plan_greedy(np.eye(1, 9), region, 0, 2.0, progress=False, **k),
+                 lambda **k: transect(region, 0, 2.0, "up", **k),
+                 lambda **k: random_walk(region, 0, 2.0, 0, **k)):
+        with pytest.raises(PlanningError, match="metric"):
+            call(metric="miles")
+        with pytest.raises(TypeError, match="nonsense"):
+            call(nonsense=1)
 
 
 def test_every_path_option_has_its_flag_on_every_planning_command():

@@ -5,9 +5,20 @@ from __future__ import annotations
 from typing import Any
 
 from .baselines import random_walk, transect
-from .greedy import initial_cells, place_sensors, plan_greedy
+from .greedy import initial_cells, plan_greedy
 from .plan import Plan
+from .planners import (
+    METHOD_REGISTRY,
+    GreedyPlanner,
+    Planner,
+    RandomWalk,
+    Refined,
+    StaticPlacement,
+    Transect,
+)
 from .refine import refine
+from .request import Fleet, PathOptions, PlanPath
+from .static import place_sensors
 
 __all__ = [
     "Plan",
@@ -19,6 +30,16 @@ __all__ = [
     "random_walk",
     "plan_bound",
     "dopt_upper_bound",
+    "PathOptions",
+    "Fleet",
+    "PlanPath",
+    "Planner",
+    "GreedyPlanner",
+    "StaticPlacement",
+    "Transect",
+    "RandomWalk",
+    "Refined",
+    "METHOD_REGISTRY",
 ]
 
 

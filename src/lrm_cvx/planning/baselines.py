@@ -27,8 +27,8 @@ from .._validation import as_factor_matrix, as_generator
 from ..errors import LrmError, PlanningError
 from ..information import fisher_information
 from ..region import Region
-from .greedy import check_budget
 from .plan import Plan, check_region
+from .request import Fleet, PathOptions, PlanPath
 
 __all__ = ["transect", "random_walk", "DIRECTIONS"]
 
@@ -111,39 +111,38 @@ class _Geometry:
         return travel + stops + (step + new_stop) <= budget + _TOL
 
 
-def _path_setup(region: Region, start: Any, budget: Any, *, metric: str, speed: Any,
-                stop_cost: Any, traversable: Any, closed: Any) -> tuple[int, float, _Geometry,
-                                                                       dict[str, Any]]:
-    """Validate one robot's request as :func:`~lrm_cvx.planning.paths.make_path_model` does
-    (same checks and messages, without building its travel graph): ``(start cell, budget,
-    geometry, path options for Plan.build)``. The paper's model (every option at its default)
-    keeps the paper's checks and messages."""
-    start_cell = region.resolve_cell(start, "start")
-    default = (isinstance(metric, str) and metric == "grid" and speed is None
-               and traversable is None and closed is False
-               and not isinstance(stop_cost, (bool, np.bool_))
-               and isinstance(stop_cost, (int, float)) and stop_cost == 0)
-    if default:
-        return start_cell, check_budget(budget), _Geometry(region), {}
-    from .paths import check_amount, check_metric, grid_wraps, traversable_mask
+BASELINE_FIELDS = ("metric", "speed", "stop_cost", "traversable", "closed")
+"""The path options the baselines follow (no ``end``, no ``sense_along``)."""
 
-    metric, speed, unit = check_metric(metric, speed)
-    budget = check_amount(budget, "budget", unit)
-    stop_cost = check_amount(stop_cost, "stop_cost", unit)
-    if not isinstance(closed, (bool, np.bool_)):
-        raise PlanningError(f"closed must be True or False, got {closed!r}")
-    kind, ok = traversable_mask(region, traversable)
+
+def _path_setup(region: Region, start: int, budget: float, request: PathOptions
+                ) -> tuple[_Geometry, PlanPath | None]:
+    """One robot's walk geometry under ``request`` (checked as
+    :func:`~lrm_cvx.planning.paths.make_path_model` checks it, without building its travel
+    graph) and the plan's path record (None for the paper's model: the Plan's default)."""
+    if request.is_paper:
+        return _Geometry(region), None
+    from .paths import grid_wraps, traversable_mask
+
+    kind, ok = traversable_mask(region, request.traversable)
     grid = region.cell_grid
     enter = None
     if kind != "none":
-        if not ok[start_cell]:
-            raise PlanningError(f"start cell {start_cell} may not be entered (traversable mask)")
+        if not ok[start]:
+            raise PlanningError(f"start cell {start} may not be entered (traversable mask)")
         enter = (grid >= 0) & ok[np.maximum(grid, 0)]
-    geo = _Geometry(region, metric=metric, speed=speed, stop_cost=stop_cost,
-                    closed=bool(closed), enter=enter, wrap=grid_wraps(region), grid=grid)
-    opts = {"metric": metric, "speed": speed, "stop_cost": stop_cost, "traversable": kind,
-            "closed": bool(closed), "unit": unit}
-    return start_cell, budget, geo, opts
+    geo = _Geometry(region, metric=request.metric, speed=request.speed,
+                    stop_cost=request.stop_cost, closed=request.closed, enter=enter,
+                    wrap=grid_wraps(region), grid=grid)
+    return geo, PlanPath.describe(request, Fleet((start,), (budget,)), traversable=kind)
+
+
+def _request(where: str, region: Any, start: Any, budget: Any, path: Any,
+             options: dict[str, Any]) -> tuple[Region, PathOptions, Fleet]:
+    """The baseline's request read once: region, path options, fleet."""
+    region = check_region(region)
+    request = PathOptions.from_kwargs(path, where=where, allowed=BASELINE_FIELDS, **options)
+    return region, request, Fleet.resolve(region, start, budget, request.unit)
 
 
 def _finish(region: Region, positions: list[np.ndarray], step_costs: list[float],
@@ -187,14 +186,12 @@ def _finish(region: Region, positions: list[np.ndarray], step_costs: list[float]
 
 def _build(region: Region, route: list[int], route_cost: list[float], waypoint: list[bool],
            cost: float, *, Y: Any, ridge: float, budget: float, start: int, method: str,
-           cost_function: str, opts: dict[str, Any]) -> Plan:
-    from .plan import path_dict
-
+           cost_function: str, record: PlanPath | None) -> Plan:
     cells = list(dict.fromkeys(route))
     Yk, info = _information(Y, region, cells, ridge)
     extra: dict[str, Any] = {}
-    if opts:
-        extra = {"path": path_dict([start], [budget], **opts), "waypoint": waypoint}
+    if record is not None:
+        extra = {"path": record, "waypoint": waypoint}
     return Plan.build(
         region=region, cells=cells, route=route, cost=cost, information=info,
         route_cost=route_cost, criterion=None, budget=budget, start=start,
@@ -203,18 +200,11 @@ def _build(region: Region, route: list[int], route_cost: list[float], waypoint: 
     )
 
 
-def _fleet(one: Any, region: Region, start: Any, budget: Any, Y: Any, ridge: float,
-           method: str) -> Plan | None:
-    """A fleet request (``start`` a list, as :func:`~lrm_cvx.planning.plan_greedy` reads it;
-    ``budget`` a number or one per start): ``one(start_i, budget_i)`` per robot, joined by
-    :meth:`Plan.from_robots` (joint information); None for a single robot."""
-    from .greedy import resolve_budgets, resolve_starts
-
-    cells, fleet = resolve_starts(region, start)
-    if not fleet:
-        return None
-    budgets = resolve_budgets(budget, len(cells), True)
-    plans = [one(c, b) for c, b in zip(cells, budgets, strict=True)]
+def _per_robot(one: Any, fleet: Fleet, Y: Any, ridge: float, method: str) -> Plan:
+    """``one(start_i, budget_i)`` per robot of ``fleet``; a fleet request (``start`` a list,
+    as :func:`~lrm_cvx.planning.plan_greedy` reads it) of several robots is joined by
+    :meth:`Plan.from_robots` (joint information)."""
+    plans = [one(c, b) for c, b in zip(fleet.starts, fleet.budgets, strict=True)]
     if len(plans) == 1:
         return plans[0]
     return Plan.from_robots(plans, Y=Y, ridge=float(ridge), method=method)
@@ -227,13 +217,10 @@ def transect(
     budget: Any,
     direction: str,
     *,
-    metric: str = "grid",
-    speed: float | None = None,
-    stop_cost: float = 0.0,
-    traversable: Any = None,
-    closed: bool = False,
     Y: Any = None,
     ridge: float = 0.0,
+    path: PathOptions | None = None,
+    **options: Any,
 ) -> Plan:
     """A straight transect from ``start``, one grid step at a time (a lawnmower at the edges).
 
@@ -244,8 +231,9 @@ def transect(
     walks while the next step fits the budget (the paper's grid: ``floor(budget + 1e-9)`` unit
     steps).
 
-    Path model (as :func:`~lrm_cvx.planning.plan_greedy`): ``metric`` ``"grid"`` (each step
-    costs 1) or ``"km"`` (the haversine distance between the two positions' centres),
+    Path model (as :func:`~lrm_cvx.planning.plan_greedy`: ``path`` a
+    :class:`~lrm_cvx.planning.request.PathOptions` and / or its keywords): ``metric`` ``"grid"``
+    (each step costs 1) or ``"km"`` (the haversine distance between the two positions' centres),
     ``speed`` (km/h, with ``"km"``) for a budget in hours; ``stop_cost`` (budget unit) is
     charged at each cell's first visit, the start included; ``traversable`` (``"valid"`` or a
     boolean ``(lat, lon)`` DataArray) makes non-enterable cells turn the transect like the grid
@@ -261,16 +249,15 @@ def transect(
     """
     if direction not in DIRECTIONS:
         raise PlanningError(f"direction must be one of {DIRECTIONS}, got {direction!r}")
-    region = check_region(region)
-    fleet = _fleet(lambda s, b: transect(region, s, b, direction, metric=metric, speed=speed,
-                                         stop_cost=stop_cost, traversable=traversable,
-                                         closed=closed, Y=Y, ridge=ridge),
-                   region, start, budget, Y, ridge, f"transect-{direction}")
-    if fleet is not None:
-        return fleet
-    start_cell, budget, geo, opts = _path_setup(
-        region, start, budget, metric=metric, speed=speed, stop_cost=stop_cost,
-        traversable=traversable, closed=closed)
+    region, request, fleet = _request("transect", region, start, budget, path, options)
+    return _per_robot(lambda s, b: _transect(region, s, b, direction, request, Y, ridge),
+                      fleet, Y, ridge, f"transect-{direction}")
+
+
+def _transect(region: Region, start_cell: int, budget: float, direction: str,
+              request: PathOptions, Y: Any, ridge: float) -> Plan:
+    """One robot's transect (:func:`transect`)."""
+    geo, record = _path_setup(region, start_cell, budget, request)
     north = _axis_sign(region.lat.values)  # row step that goes north
     east = _axis_sign(region.lon.values)  # col step that goes east
     step = {"up": (north, 0), "down": (-north, 0), "left": (0, -east), "right": (0, east)}
@@ -308,7 +295,7 @@ def transect(
     route, route_cost, waypoint, cost = _finish(region, positions, step_costs, geo, trim=True)
     return _build(region, route, route_cost, waypoint, cost, Y=Y, ridge=ridge, budget=budget,
                   start=start_cell, method=f"transect-{direction}", cost_function="steps",
-                  opts=opts)
+                  record=record)
 
 
 # ---------------------------------------------------------------------------- random walk
@@ -340,13 +327,10 @@ def random_walk(
     budget: Any,
     rng: Any = None,
     *,
-    metric: str = "grid",
-    speed: float | None = None,
-    stop_cost: float = 0.0,
-    traversable: Any = None,
-    closed: bool = False,
     Y: Any = None,
     ridge: float = 0.0,
+    path: PathOptions | None = None,
+    **options: Any,
 ) -> Plan:
     """The paper's random-sampling baseline: a random walk on valid 8-neighbours.
 
@@ -366,15 +350,15 @@ def random_walk(
     except LrmError:
         raise PlanningError(f"rng must be None, an int seed or a numpy Generator, got {rng!r}") \
             from None
-    fleet = _fleet(lambda s, b: random_walk(region, s, b, gen, metric=metric, speed=speed,
-                                            stop_cost=stop_cost, traversable=traversable,
-                                            closed=closed, Y=Y, ridge=ridge),
-                   region, start, budget, Y, ridge, "random")
-    if fleet is not None:
-        return fleet
-    start_cell, budget, geo, opts = _path_setup(
-        region, start, budget, metric=metric, speed=speed, stop_cost=stop_cost,
-        traversable=traversable, closed=closed)
+    region, request, fleet = _request("random_walk", region, start, budget, path, options)
+    return _per_robot(lambda s, b: _random_walk(region, s, b, gen, request, Y, ridge), fleet,
+                      Y, ridge, "random")
+
+
+def _random_walk(region: Region, start_cell: int, budget: float, gen: np.random.Generator,
+                 request: PathOptions, Y: Any, ridge: float) -> Plan:
+    """One robot's random walk (:func:`random_walk`)."""
+    geo, record = _path_setup(region, start_cell, budget, request)
     grid = geo.grid
     gi = region.grid_index
     positions = [gi[start_cell]]
@@ -402,4 +386,4 @@ def random_walk(
         visited.add(cur)
     route, route_cost, waypoint, cost = _finish(region, positions, step_costs, geo, trim=False)
     return _build(region, route, route_cost, waypoint, cost, Y=Y, ridge=ridge, budget=budget,
-                  start=start_cell, method="random", cost_function="path", opts=opts)
+                  start=start_cell, method="random", cost_function="path", record=record)

@@ -25,7 +25,6 @@ import numpy as np
 from .._validation import as_factor_matrix
 from ..errors import PlanningError, SolverError
 from .dopt import (
-    _DIST_EPS,
     Bound,
     _check_n_ridge,
     _chol,
@@ -36,9 +35,21 @@ from .dopt import (
     _relaxation,
     _top_sum,
 )
-from .paths import make_path_model
+from .families import NUDGE as _NUDGE
+from .families import (
+    cap_ladder,
+    describe_path,
+    family,
+    min_spacing_km,
+    path_spec,
+    start_limit,
+)
+from .request import PathOptions
 
 __all__ = ["PlanCertificate", "plan_bound"]
+
+# the old names (bound.py and the tests import them)
+_start_limit, _cap_ladder, _min_spacing_km = start_limit, cap_ladder, min_spacing_km
 
 
 @dataclass(frozen=True, eq=False)
@@ -163,7 +174,7 @@ class PlanCertificate:
         if self.tightened:
             lines.append(f"  tightened: distance limits, midpoint cover of "
                          f"{len(self.leaves)} squares")
-        model = _describe_path(self.path)
+        model = describe_path(self.path)
         if model:
             lines.append(f"  path model           {model}")
         return "\n".join(lines)
@@ -210,15 +221,7 @@ def plan_bound(
     *,
     ridge: float = 0.0,
     plan: Any = None,
-    metric: Literal["grid", "km"] = "grid",
-    speed: float | None = None,
-    stop_cost: float = 0.0,
-    traversable: Any = None,
-    closed: bool = False,
-    end: Any = None,
-    sense_along: bool = False,
-    path: str = "route",
-    n_sensors: int | None = None,
+    path: PathOptions | str | None = None,
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL",
     tol: float = 1e-3,
     tighten: bool = True,
@@ -226,6 +229,7 @@ def plan_bound(
     max_pieces: int = 40,
     refine: bool | dict[str, Any] = True,
     path_aware: bool | str | dict[str, Any] = False,
+    **options: Any,
 ) -> PlanCertificate:
     """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
 
@@ -247,18 +251,20 @@ def plan_bound(
     gives the plain disk relaxation. When the plan is given, the submodularity online bound is
     computed too and the smaller one is kept. Proofs in docs/certificate.md.
 
-    **Every path model** (issue #15, docs/certificate.md §10). ``speed``, ``stop_cost``,
-    ``traversable``, ``closed``, ``end``, ``sense_along`` describe the route as in
-    :func:`~lrm_cvx.planning.plan_greedy` (``budget`` in the path model's unit: grid units, km
-    or hours); ``start`` and ``budget`` may be lists (a fleet); ``path="static"`` with
-    ``n_sensors`` bounds every placement of ``n_sensors`` cells anywhere in the region. When a
-    ``plan`` with a ``path`` description is given, its path model is used and these keywords
-    are ignored. The candidates are the cells some feasible route can observe (shortest travel
-    distances: ``d(start, x) + d(x, back) + stop costs <= budget``, ``back`` = nothing, the start
-    of a closed tour or the ``end``); the count limit uses the smallest spacing and the stop
-    cost; the start's distance limits use the path model's travel distances; the midpoint
-    cover needs ``metric="grid"``. A fleet's bound is the count-only relaxation over the union
-    of its robots' candidates with their count limits summed (valid, looser than one robot's).
+    **Every path model** (issue #15, docs/certificate.md §10). ``path`` (a
+    :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords in ``**options``
+    (``metric``, ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``end``,
+    ``sense_along``) describe the route as in :func:`~lrm_cvx.planning.plan_greedy` (``budget``
+    in the path model's unit: grid units, km or hours); ``start`` and ``budget`` may be lists (a
+    fleet); ``path="static"`` with ``n_sensors`` (in ``**options``) bounds every placement of
+    ``n_sensors`` cells anywhere in the region. When a ``plan`` with a ``path`` description is
+    given, its path model is used and these keywords are ignored. The candidates are the cells
+    some feasible route can observe (shortest travel distances: ``d(start, x) + d(x, back) +
+    stop costs <= budget``, ``back`` = nothing, the start of a closed tour or the ``end``); the
+    count limit uses the smallest spacing and the stop cost; the start's distance limits use the
+    path model's travel distances; the midpoint cover needs ``metric="grid"``. A fleet's bound
+    is the count-only relaxation over the union of its robots' candidates with their count
+    limits summed (valid, looser than one robot's).
 
     The bound is on the **Fisher** information (``criterion="fisher"``). For a plan chosen for
     another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or
@@ -281,8 +287,9 @@ def plan_bound(
     (tighter on small regions; its columns are dense, so not for paper scale).
     """
     from ..information import fisher_information
+    from ..region import check_region
 
-    region = _check_region(region)
+    region = check_region(region)
     Y = as_factor_matrix(Y, region)
     k, L = Y.shape
     _, ridge = _check_n_ridge(1.0, ridge)
@@ -290,10 +297,16 @@ def plan_bound(
         raise PlanningError(f"cover must be an integer >= 1, got {cover!r}")
     if not isinstance(max_pieces, (int, np.integer)) or max_pieces < 1:
         raise PlanningError(f"max_pieces must be an integer >= 1, got {max_pieces!r}")
-    spec = _path_spec(region, plan, start, budget, metric=metric, speed=speed,
-                      stop_cost=stop_cost, traversable=traversable, closed=closed, end=end,
-                      sense_along=sense_along, path=path, n_sensors=n_sensors)
-    fam = _family(spec, region, k)
+    n_sensors = options.pop("n_sensors", None)
+    kind = "path"
+    if isinstance(path, str) or path is None:
+        kind = {"route": "path", "static": "static", None: "path"}.get(path)
+        if kind is None:
+            raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
+        path = None
+    request = PathOptions.from_kwargs(path, where="plan_bound", **options)
+    spec = path_spec(region, plan, start, budget, request, kind, n_sensors)
+    fam = family(spec, region, k)
     cand, n_max, init = fam.cand, fam.n_max, fam.init
     # a fleet's certificate reports the total budget, as Plan.budget does
     budget0 = float(sum(spec.budgets)) if spec.budgets else float(spec.n_sensors)
@@ -306,7 +319,7 @@ def plan_bound(
     if tighten and fam.limits is not None:
         start_lim = fam.limits
     elif tighten and fam.dist is not None and math.isfinite(fam.d_min) and fam.d_min > 0:
-        start_lim = _start_limit(fam.travel, fam.d_min, n_max, fam.ways)
+        start_lim = start_limit(fam.travel, fam.d_min, n_max, fam.ways)
     start_lv = (
         np.searchsorted(start_lim[0], fam.dist[cand], side="right") if start_lim else None
     )
@@ -366,379 +379,6 @@ def plan_bound(
     )
 
 
-# ----------------------------------------------------------------------------- path models
-def _describe_path(path: dict[str, Any]) -> str:
-    """One line for a non-paper path model (empty for the paper's)."""
-    if not path or _is_paper_description(path):
-        return ""
-    if path.get("kind") == "static":
-        return f"static placement of {path.get('n_sensors')} sensors"
-    parts = [str(path.get("metric", "grid"))]
-    if path.get("speed") is not None:
-        parts.append(f"{path['speed']:g} km/h (budget in hours)")
-    if path.get("stop_cost"):
-        parts.append(f"stop cost {path['stop_cost']:g}")
-    if path.get("traversable") not in (None, "none"):
-        parts.append(f"travel graph ({path['traversable']})")
-    if path.get("closed"):
-        parts.append("closed")
-    if path.get("end") is not None:
-        parts.append(f"end {path['end']}")
-    if path.get("sense_along"):
-        parts.append("sensing along")
-    if path.get("n_robots", 1) > 1:
-        parts.append(f"{path['n_robots']} robots (union bound: counts added, limits from the "
-                     "nearest start)")
-    return ", ".join(parts)
-
-
-@dataclass(frozen=True)
-class _PathSpec:
-    """What the certificate needs to know of a plan's path model (validated)."""
-
-    kind: str  # "path" or "static"
-    starts: tuple[int, ...]
-    budgets: tuple[float, ...]
-    metric: str
-    speed: float | None
-    stop_cost: float
-    traversable: Any  # None, "valid" or a mask (DataArray)
-    closed: bool
-    end: int | None
-    sense_along: bool
-    n_sensors: int | None
-    models: tuple[Any, ...] | None = None  # the plan's own PathModels, one per robot
-
-    @property
-    def paper(self) -> bool:
-        """The paper's path model (one robot, open, straight lines, no stop cost)."""
-        return (self.kind == "path" and len(self.starts) == 1 and self.metric == "grid"
-                and self.stop_cost == 0 and self.traversable is None and not self.closed
-                and self.end is None and not self.sense_along)
-
-    def summary(self) -> dict[str, Any]:
-        trav = self.traversable
-        return {
-            "kind": self.kind, "metric": self.metric, "speed": self.speed,
-            "stop_cost": self.stop_cost,
-            "traversable": trav if trav is None or isinstance(trav, str) else "mask",
-            "closed": self.closed, "end": self.end, "sense_along": self.sense_along,
-            "starts": list(self.starts), "budgets": list(self.budgets),
-            "n_robots": len(self.starts), "n_sensors": self.n_sensors,
-        }
-
-
-def _check_region(region: Any) -> Any:
-    from .plan import check_region  # Plan's module is a leaf: no cycle through here
-
-    return check_region(region)
-
-
-def _check_budget(budget: Any, name: str = "budget") -> float:
-    """``budget`` as a float >= 0; a string or a bool is refused, not converted."""
-    from .._validation import check_positive
-
-    return check_positive(budget, name, error=PlanningError, numbers_only=True)
-
-
-def _starts_list(x: Any) -> list[Any]:
-    """One start (a cell, or a ``(lat, lon)`` tuple) or a list of them (a fleet)."""
-    if isinstance(x, list) or (isinstance(x, np.ndarray) and x.ndim == 1):
-        return list(x)
-    if isinstance(x, tuple) and not (
-        len(x) == 2 and any(isinstance(v, (float, np.floating)) for v in x)
-    ):
-        return list(x)
-    return [x]
-
-
-def _budgets_list(x: Any) -> list[Any]:
-    """One budget or one per robot."""
-    if isinstance(x, (list, tuple)) or (isinstance(x, np.ndarray) and x.ndim == 1):
-        return list(x)
-    return [x]
-
-
-def _is_paper_description(desc: dict[str, Any]) -> bool:
-    """``plan.path`` describes the paper's path model (old plans, the default): the caller's
-    keywords (e.g. ``metric="km"``) then apply, as before issue #15."""
-    trav = desc.get("traversable")
-    return (desc.get("kind", "path") == "path" and int(desc.get("n_robots", 1) or 1) == 1
-            and desc.get("metric", "grid") == "grid" and desc.get("speed") is None
-            and not desc.get("stop_cost") and (trav is None or trav == "none")
-            and not desc.get("closed") and desc.get("end") is None
-            and not desc.get("sense_along"))
-
-
-def _path_spec(region: Any, plan: Any, start: Any, budget: Any, **kw: Any) -> _PathSpec:
-    """The path model of the request: ``plan.path`` when the plan has one, else ``kw``."""
-    desc = getattr(plan, "path", None) if plan is not None else None
-    if isinstance(desc, dict) and desc and not _is_paper_description(desc):
-        kind = desc.get("kind", "path")
-        starts = desc.get("starts") or _starts_list(getattr(plan, "start", start))
-        budgets = desc.get("budgets") or _budgets_list(getattr(plan, "budget", budget))
-        trav = desc.get("traversable")
-        if isinstance(trav, str) and trav.lower() == "none":
-            trav = None
-        elif isinstance(trav, str) and trav == "mask":
-            mask = desc.get("mask", getattr(plan, "traversable_mask", None))
-            # enterable = valid & mask: travel over all valid cells is never longer, so
-            # "valid" gives a valid (looser) certificate when the mask itself is not kept
-            trav = mask if mask is not None else "valid"
-        n_sensors = desc.get("n_sensors")
-        if kind == "static" and n_sensors is None:
-            n_sensors = int(round(budgets[0])) if budgets else int(np.unique(plan.cells).size)
-        kw = dict(metric=desc.get("metric", "grid"), speed=desc.get("speed"),
-                  stop_cost=desc.get("stop_cost", 0.0) or 0.0, traversable=trav,
-                  closed=bool(desc.get("closed", False)), end=desc.get("end"),
-                  sense_along=bool(desc.get("sense_along", False)), path=kind,
-                  n_sensors=n_sensors)
-    else:
-        starts, budgets = _starts_list(start), _budgets_list(budget)
-        if plan is not None and getattr(plan, "start", None) is not None and start is None:
-            starts = [plan.start]
-    kind = {"route": "path", "path": "path", "static": "static"}.get(str(kw["path"]))
-    if kind is None:
-        raise PlanningError(f"path must be 'route' or 'static', got {kw['path']!r}")
-    metric = kw["metric"]
-    if metric not in ("grid", "km"):
-        raise PlanningError(f"metric must be 'grid' or 'km', got {metric!r}")
-    speed = kw["speed"]
-    if speed is not None:
-        if metric != "km":
-            raise PlanningError("speed (km/h) needs metric='km'")
-        speed = _check_budget(speed, "speed (km/h)")
-        if speed <= 0:
-            raise PlanningError(f"speed must be > 0 km/h, got {speed!r}")
-    stop_cost = _check_budget(kw["stop_cost"], "stop_cost")
-    if kind == "static":
-        n = kw["n_sensors"]
-        if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise PlanningError(f"n_sensors must be an integer >= 1 for path='static', "
-                                f"got {n!r}")
-        return _PathSpec("static", (), (), metric, speed, stop_cost, None, False, None, False,
-                         int(n))
-    cells = tuple(int(region.resolve_cell(s, "start")) for s in starts)
-    if len(budgets) == 1 and len(cells) > 1:
-        budgets = budgets * len(cells)
-    if len(budgets) != len(cells):
-        raise PlanningError(f"budget has {len(budgets)} entries for {len(cells)} starts; give "
-                            "one budget or one per start")
-    budgets_f = tuple(_check_budget(b) for b in budgets)
-    closed = bool(kw["closed"])
-    end = kw["end"]
-    if end is not None:
-        if closed:
-            raise PlanningError("closed=True with end= is contradictory: a closed tour ends "
-                                "at its start")
-        end = int(region.resolve_cell(end, "end"))
-    trav = kw["traversable"]
-    if isinstance(trav, str):
-        if trav.lower() == "none":
-            trav = None
-        elif trav != "valid":
-            raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
-                                f"mask, got {trav!r}")
-    models = getattr(plan, "_path_models", None) if plan is not None else None
-    if models is not None and (len(models) != len(cells) or any(
-            int(m.start) != c for m, c in zip(models, cells, strict=True))):
-        models = None
-    return _PathSpec("path", cells, budgets_f, metric, speed, stop_cost, trav, closed, end,
-                     bool(kw["sense_along"]), None, tuple(models) if models else None)
-
-
-@dataclass(frozen=True)
-class _Family:
-    """Every plan's cells: the initial set ``init`` or at most ``n_max`` of ``cand``.
-
-    ``dist`` (L,) and ``travel``: the start's distance limits (no more than
-    ``floor((travel - r) / d_min) + 1`` cells at distance ``>= r``); None: no limits.
-    ``cover_budget``: grid length of the path the midpoint cover may assume (None: no cover).
-    """
-
-    cand: np.ndarray
-    n_max: int
-    init: np.ndarray
-    dist: np.ndarray | None
-    d_min: float
-    travel: float
-    cover_budget: float | None
-    paper: bool
-    budget_text: str
-    ways: int = 1  # 2: a closed tour comes back, so the start's limits count both ways
-    limits: tuple[np.ndarray, np.ndarray] | None = None  # precomputed limits on ``dist``
-
-
-def _family(spec: _PathSpec, region: Any, k: int) -> _Family:
-    """The candidates and count limits of ``spec`` (proofs: docs/certificate.md §10)."""
-    L = region.n_cells
-    if spec.kind == "static":
-        return _Family(np.arange(L, dtype=np.int64), min(spec.n_sensors, L),
-                       np.zeros(0, np.int64), None, math.inf, math.inf, None, False,
-                       f"{spec.n_sensors} sensors")
-    if spec.paper:
-        return _paper_family(spec, region, k)
-    parts = [_robot_family(spec, region, k, r) for r in range(len(spec.starts))]
-    if len(parts) == 1:
-        return parts[0]
-    # a fleet: each robot's cells are its initial set or a feasible route's; the union of
-    # the robots' sets lies in the union of their candidates and holds at most the sum
-    cand = np.unique(np.concatenate([np.union1d(p.cand, p.init) for p in parts]))
-    n_max = min(cand.size, sum(max(p.n_max, p.init.size) for p in parts))
-    text = "fleet budgets " + ", ".join(f"{b:g}" for b in spec.budgets)
-    dist, limits = _fleet_limits(parts, n_max)
-    return _Family(cand, n_max, np.zeros(0, np.int64), dist, math.inf, math.inf, None, False,
-                   text, 1, limits)
-
-
-def _fleet_limits(parts: list[_Family], n_max: int
-                  ) -> tuple[np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
-    """A fleet's distance limits on ``D(x) = min_r d_r(x)`` (distance to the nearest start).
-
-    A cell with ``D(x) >= rho`` is at least ``rho`` from its own robot's start, so robot r
-    holds at most ``max(#{init_r : D >= rho}, floor((T_r - w_r rho) / d_r) + 1)`` of them
-    (its initial set, or a route: Lemma 1, ``w_r = 2`` for a closed tour, none when
-    ``w_r rho > T_r``); the fleet holds at most the sum. ``(None, None)`` when a robot has no
-    distance limits (sensing along straight legs).
-    """
-    if any(p.dist is None or not (math.isfinite(p.d_min) and p.d_min > 0) for p in parts):
-        return None, None
-    D = np.min(np.stack([p.dist for p in parts]), axis=0)
-    thr = []
-    for p in parts:
-        lim = _start_limit(p.travel, p.d_min, max(p.n_max, 2), p.ways)
-        if lim is not None:
-            thr.append(lim[0])
-    if not thr:
-        return D, None
-    thr = np.unique(np.concatenate(thr))
-    caps = np.zeros(thr.size)
-    for p in parts:
-        route = np.where(p.ways * thr <= p.travel,
-                         np.floor((p.travel - p.ways * thr) / p.d_min + 1e-9) + 1, 0.0)
-        init = (D[p.init][:, None] >= thr[None, :]).sum(axis=0) if p.init.size else 0
-        caps += np.maximum(route, init)
-    keep = caps < n_max  # a cap at the count limit adds nothing
-    if not keep.any():
-        return D, None
-    return D, (thr[keep], caps[keep])
-
-
-def _paper_family(spec: _PathSpec, region: Any, k: int) -> _Family:
-    """The paper's path (grid or km, straight lines, open, no stop cost): as issue #5."""
-
-    start, budget, metric = spec.starts[0], spec.budgets[0], spec.metric
-    L = region.n_cells
-    dist = np.asarray(region.distance(start, np.arange(L), metric=metric), dtype=np.float64)
-    Bp = budget + _DIST_EPS * max(1.0, budget)  # every path cost the planners accept is <= Bp
-    cand = np.flatnonzero(dist <= Bp)
-    d_min = 1.0 if metric == "grid" else _min_spacing_km(region, cand)
-    n_max = min(cand.size, math.floor(Bp / d_min) + 1) if d_min > 0 else cand.size
-    init = _paper_initial_cells(region, start, budget, k)
-    return _Family(cand, int(n_max), init, dist, d_min, Bp, Bp if metric == "grid" else None,
-                   True, f"budget={budget:g}")
-
-
-def _paper_initial_cells(region: Any, start: int, budget: float, k: int) -> np.ndarray:
-    """The greedy's forced initial set on the paper's path: start + k-1 nearest (grid)."""
-    return np.asarray(make_path_model(region, start, budget).initial_cells(k), np.int64)
-
-
-def _robot_family(spec: _PathSpec, region: Any, k: int, r: int) -> _Family:
-    """One robot of any path model: candidates by travel distance, count by spacing and stop
-    cost, the start's limits in the model's travel distance (docs/certificate.md §10)."""
-    start, budget = spec.starts[r], spec.budgets[r]
-    if spec.models is not None:  # the plan's own model (keeps a traversable mask)
-        pm = spec.models[r]
-    else:
-        pm = make_path_model(region, start, budget, metric=spec.metric, speed=spec.speed,
-                             stop_cost=spec.stop_cost, traversable=spec.traversable,
-                             closed=spec.closed, end=spec.end)
-    if spec.sense_along and pm.traversable == "none":
-        return _straight_sensing_family(spec, pm, region, k)
-    c = spec.stop_cost
-    Bp = budget + _DIST_EPS * max(1.0, budget)
-    d_s = np.asarray(pm.distances(start), dtype=np.float64)
-    if spec.closed:
-        d_back = d_s
-    elif spec.end is not None:
-        d_back = np.asarray(pm.distances(spec.end), dtype=np.float64)
-    else:
-        d_back = np.zeros_like(d_s)
-    fixed = 1 + int(spec.end is not None and spec.end != start)  # stops every route has
-    with np.errstate(invalid="ignore"):
-        through = d_s + d_back + c * fixed  # the cheapest route observing x on its way
-        stop = through + c  # ... and stopping at x
-    reach = stop if not spec.sense_along else through
-    cand = np.flatnonzero(np.isfinite(reach) & (reach <= Bp))
-    cand = np.union1d(cand, [start] + ([spec.end] if spec.end is not None else []))
-    d_min = _spacing(region, cand, spec)
-    travel = max(Bp - c * fixed, 0.0)  # no route travels farther
-    if d_min <= 0 or not math.isfinite(d_min):
-        n_max = cand.size
-    elif spec.sense_along:  # stops pay c, pass-through cells only their spacing
-        n_max = math.floor(travel / d_min) + 1
-    else:  # n stops: n c + (n - 1) d_min <= budget
-        n_max = math.floor((Bp + d_min) / (c + d_min))
-    n_max = int(max(1, min(cand.size, n_max)))
-    init = np.asarray(pm.initial_cells(k), dtype=np.int64)
-    # the straight chart path through the observed cells is no longer than the travel in
-    # grid units (a travel graph's steps are the Euclidean grid lengths of 8-neighbour moves)
-    # (km: PathModel.grid_budget_bound's curvature argument). Not on a grid that wraps: the
-    # cover's squares live on the unwrapped chart.
-    cover_budget = None
-    if not getattr(pm, "_wrap", True):
-        cover_budget = travel if spec.metric == "grid" else float(pm.grid_budget_bound()) * (
-            1 + 1e-9)
-        if not math.isfinite(cover_budget):
-            cover_budget = None
-    return _Family(cand, n_max, init, np.where(np.isfinite(d_s), d_s, np.inf), d_min, travel,
-                   cover_budget, False, f"budget={budget:g} ({pm.unit})",
-                   2 if spec.closed else 1)
-
-
-def _straight_sensing_family(spec: _PathSpec, pm: Any, region: Any, k: int) -> _Family:
-    """Sensing along straight legs (``sense_along`` without a travel graph).
-
-    The observed cells are those whose unit square a leg's chart segment crosses
-    (:func:`~lrm_cvx.planning.plan.line_cells`): a segment from ``(r0, c0)`` to ``(r1, c1)``
-    crosses at most ``|r1 - r0| + |c1 - c0| + 1 <= sqrt 2 l + 1`` squares, consecutive legs
-    share their stop, so a route whose stops' chart polyline has length ``<= G``
-    (:meth:`PathModel.grid_budget_bound`; the travel itself on the grid) observes at most
-    ``floor(sqrt 2 G) + 1`` cells, each within ``sqrt 2 / 2`` of a point of the polyline:
-    ``chart(start, x) + chart(x, back) <= G + sqrt 2``. No distance limits. On a grid whose
-    longitudes wrap the chart argument does not apply: every cell, no count limit.
-    """
-    L = region.n_cells
-    start = pm.start
-    init = np.asarray(pm.initial_cells(k), dtype=np.int64)
-    text = f"budget={pm.budget:g} ({pm.unit})"
-    G = float(pm.grid_budget_bound()) * (1 + 1e-9) + 1e-9
-    if getattr(pm, "_wrap", True) or not math.isfinite(G):
-        return _Family(np.arange(L, dtype=np.int64), L, init, None, math.inf, math.inf,
-                       None, False, text)
-    everything = np.arange(L)
-    cs = np.asarray(pm.chart_distance(start, everything), dtype=np.float64)
-    if spec.closed:
-        cb = cs
-    elif spec.end is not None:
-        cb = np.asarray(pm.chart_distance(spec.end, everything), dtype=np.float64)
-    else:
-        cb = np.zeros(L)
-    cand = np.flatnonzero(cs + cb <= G + math.sqrt(2.0) * (1 + 1e-9))
-    cand = np.union1d(cand, [start] + ([spec.end] if spec.end is not None else []))
-    n_max = int(max(1, min(cand.size, math.floor(math.sqrt(2.0) * G) + 1)))
-    return _Family(cand, n_max, init, None, math.inf, math.inf, None, False, text)
-
-
-def _spacing(region: Any, cand: np.ndarray, spec: _PathSpec) -> float:
-    """Smallest travel distance between two distinct candidates, in the budget's unit."""
-    if spec.metric == "grid":
-        return 1.0
-    d = _min_spacing_km(region, cand)
-    return d / spec.speed if spec.speed is not None else d
-
-
 def _path_aware(Y: np.ndarray, region: Any, start: int, budget: float, ridge: float,
                 metric: str, opts: Any) -> float | None:
     """The path-aware relaxation's dual bound, or None (with a warning) when it fails."""
@@ -781,10 +421,10 @@ def _refined(plan: Any, Y: np.ndarray, region: Any, refine: Any, metric: str,
         return float(done["information_before"]), float(information), int(done["moves"]), cells
     if refine is False or refine is None or not hasattr(plan, "cost_function"):
         return None, None, None, cells
-    from .refine import refine as _refine
+    from .refiners import REFINERS  # the search registers itself: no import of the planner
 
     opts = dict(refine) if isinstance(refine, dict) else {}
-    better = _refine(plan, Y, region, **opts)
+    better = REFINERS.get("local")(plan, dict(opts, Y=Y, region=region), {})
     moves = int(better.refinement.get("moves", 0)) if better is not plan else 0
     return (float(information), max(float(better.information), float(information)), moves,
             np.asarray(better.cells, dtype=np.int64))
@@ -806,47 +446,13 @@ def _plan_criterion(plan: Any) -> str | None:
 
 
 # ----------------------------------------------------------------------------- path limits
-_NUDGE = 1e-6  # radii sit this far (in d_min) inside their cap's interval, away from rounding
-
-
-def _cap_ladder(lo: int, hi: int, count: int = 10) -> np.ndarray:
-    """About ``2 count`` integer caps in ``[lo, hi)``: geometric (dense near ``lo``) + linear."""
-    if hi <= lo:
-        return np.zeros(0, np.int64)
-    geo = np.geomspace(lo, max(hi - 1, lo), count)
-    lin = np.linspace(lo, max(hi - 1, lo), count)
-    return np.unique(np.round(np.concatenate([geo, lin])).astype(np.int64))
-
-
-def _start_limit(Bp: float, d_min: float, n_max: int, ways: int = 1
-                 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """Distance limits from the start: ``(thresholds, caps)``, ascending thresholds.
-
-    A path of length ``<= Bp`` from the start holds at most ``floor((Bp - r) / d_min) + 1`` cells
-    at distance ``>= r`` from the start. For a cap ``c`` the largest such set has ``r`` just
-    above ``Bp - c d_min``; the cap is recomputed from ``r`` (not assumed), and the threshold is
-    nudged up so that float distances cannot put a cell into a set it does not belong to.
-    ``ways=2``: a closed tour, which also travels ``>= r`` back from the last such cell, holds
-    at most ``floor((Bp - 2 r) / d_min) + 1`` (docs/certificate.md §10).
-    """
-    thr, caps = [], []
-    for c in _cap_ladder(1, n_max)[::-1]:
-        r = (Bp - (c - _NUDGE) * d_min) / ways
-        if r <= 0:
-            continue
-        cap = math.floor((Bp - ways * r) / d_min) + 1
-        thr.append(r * (1 + 1e-12) + 1e-12)
-        caps.append(cap)
-    if not thr:
-        return None
-    return np.asarray(thr), np.asarray(caps, dtype=np.float64)
 
 
 def _square_limit(Bp: float, n_max: int) -> tuple[np.ndarray, np.ndarray]:
     """Distance limits from the midpoint's square: at most ``floor(Bp - 2 s) + 2`` cells at
     distance ``>= s > 0`` from it (grid units, ``d_min = 1``); ascending thresholds."""
     thr, caps = [], []
-    for c in _cap_ladder(2, n_max)[::-1]:
+    for c in cap_ladder(2, n_max)[::-1]:
         s = (Bp - c + 1 + 2 * _NUDGE) / 2
         if s <= 0:
             continue
@@ -1011,18 +617,3 @@ def _online_bound(
     gains = np.log1p(_leverages(np.ascontiguousarray(Y[:, others]), _inv_lower(L)))
     top, _ = _top_sum(gains, float(n_max))
     return f_S + top
-
-
-def _min_spacing_km(region: Any, cand: np.ndarray) -> float:
-    """Smallest great-circle distance (km) between two distinct candidate cells (KD-tree)."""
-    if cand.size < 2:
-        return math.inf
-    from scipy.spatial import cKDTree
-
-    lat = np.radians(region.cell_lat[cand])
-    lon = np.radians(region.cell_lon[cand])
-    xyz = np.column_stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
-    _, nn = cKDTree(xyz).query(xyz, k=2)
-    d = np.asarray(region.distance(cand, cand[nn[:, 1]], metric="km"), dtype=np.float64)
-    # chord and great-circle distances are monotone in each other; shave rounding off
-    return float(d.min()) * (1 - 1e-9)

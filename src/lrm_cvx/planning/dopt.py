@@ -57,6 +57,8 @@ _CLARABEL_OPTS = (
 _SCS_OPTS = {"eps_abs": 1e-7, "eps_rel": 1e-7, "max_iters": 20000}
 _FW_LIMITED = 4  # Frank-Wolfe steps when the relaxation has count limits (one LP each)
 _DIST_EPS = 1e-9  # slack on budget comparisons: the bound must cover float-rounded path costs
+DIST_EPS = _DIST_EPS
+"""Slack on budget comparisons (public name for the plan families of ``families.py``)."""
 
 
 # ----------------------------------------------------------------------------- results

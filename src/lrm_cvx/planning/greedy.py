@@ -8,16 +8,23 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._validation import as_factor_matrix, check_positive
+from .._validation import as_factor_matrix
 from ..errors import PlanningError
 from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
-from .paths import make_path_model
-from .plan import Plan, check_region, path_dict
+from . import request as _request
+from .paths import path_model
+from .plan import Plan, check_region
+from .refiners import REFINERS
+from .request import Fleet, PathOptions, PlanPath, pop_options
 from .routecost import COST_REGISTRY
+from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
 
-__all__ = ["initial_cells", "plan_greedy", "place_sensors", "check_budget", "budget_pool",
-           "resolve_starts", "resolve_budgets", "resolve_prior"]
+__all__ = ["initial_cells", "plan_greedy", "check_budget", "budget_pool", "resolve_prior",
+           "PRIOR_TERMS", "STATIC_OPTIONS"]
+
+STATIC_OPTIONS = ("n_sensors", "training", "exchange")
+"""The keywords of ``plan_greedy(static=True)`` only."""
 
 _TOL = 1e-9  # budget tolerance (grid units)
 _MIN_DC = 1e-12  # floor of the cost increase in the ratio (NN tours can get shorter)
@@ -50,8 +57,7 @@ def initial_cells(region: Region, start: int, k: int) -> np.ndarray:
 
 def check_budget(budget: Any) -> float:
     """The paper's ``budget`` (grid units) as a float >= 0; a string or a bool is refused."""
-    return check_positive(budget, "budget (grid units)", error=PlanningError,
-                          numbers_only=True)
+    return Fleet.check_budget(budget)
 
 
 def budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
@@ -62,56 +68,6 @@ def budget_pool(region: Region, start: int, budget: float) -> np.ndarray:
     d = g - g[start]
     d2 = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]).astype(np.float64)
     return np.flatnonzero(d2 <= (budget + _POOL_SLACK) ** 2).astype(np.int64)
-
-
-def _prior_terms(prior: Any) -> dict[str, Any]:
-    """The planner's keyword terms of a latent belief (``LatentPosterior.information()``)."""
-    info = getattr(prior, "information", None)
-    if not callable(info):
-        raise PlanningError("prior must be a LatentPosterior (e.g. model.latent_prior("
-                            f"'empirical')), got {type(prior).__name__}")
-    return info()
-
-
-def resolve_starts(region: Region, start: Any) -> tuple[list[int], bool]:
-    """``(cells, fleet)``: one start (a cell index or a ``(lat, lon)`` tuple) or a fleet (a
-    list, or a 1-D integer / ``(n, 2)`` array, of those)."""
-    if start is None:
-        raise PlanningError("start is required: a cell index, a (lat, lon) tuple, or a list "
-                            "of those (one per robot)")
-    if isinstance(start, np.ndarray):
-        if start.ndim == 1 and np.issubdtype(start.dtype, np.integer):
-            start = start.tolist()
-        elif start.ndim == 2 and start.shape[1] == 2:
-            start = [tuple(row) for row in start.tolist()]
-    if isinstance(start, list):
-        flat = all(isinstance(v, (int, float, np.integer, np.floating)) and
-                   not isinstance(v, (bool, np.bool_)) for v in start)
-        if len(start) == 2 and flat and not all(isinstance(v, (int, np.integer))
-                                                for v in start):
-            return [region.resolve_cell(tuple(start), "start")], False  # [lat, lon], as before
-        if not start:
-            raise PlanningError("start must not be an empty list (one start per robot)")
-        cells = [region.resolve_cell(tuple(v) if isinstance(v, list) else v, f"start[{i}]")
-                 for i, v in enumerate(start)]
-        return cells, True
-    return [region.resolve_cell(start, "start")], False
-
-
-def resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
-    """``budget`` (a number, or for a fleet a list / array of ``n``) as ``n`` floats >= 0."""
-    if isinstance(budget, (list, tuple, np.ndarray)) and not fleet:
-        raise PlanningError(f"budget must be a number for one robot, got {budget!r} (a list "
-                            "of budgets needs a list of starts, one per robot)")
-    if isinstance(budget, (list, tuple, np.ndarray)):
-        values = list(np.asarray(budget, dtype=object).ravel())
-        if len(values) != n:
-            raise PlanningError(f"budget has {len(values)} values but there are {n} starts: "
-                                "give one budget per robot, or one number for all")
-        return [check_budget(b) for b in values]
-    if budget is None:
-        raise PlanningError("budget is required (a number, or one per robot)")
-    return [check_budget(budget)] * n
 
 
 def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
@@ -134,37 +90,6 @@ def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
     return out
 
 
-def resolve_prior(prior: Any, terms_given: dict[str, Any]) -> dict[str, Any]:
-    """The criterion's keyword terms from ``prior`` (or the ones given directly)."""
-    if prior is None:
-        return terms_given
-    terms = _prior_terms(prior)
-    clash = sorted(key for key in terms if terms_given.get(key) is not None)
-    if clash:
-        raise PlanningError(f"prior= already gives {clash}; pass either prior or those")
-    return {key: terms.get(key) for key in terms_given}
-
-
-def _oracle_extra(criterion: str, region: Region, pool: np.ndarray, t: dict[str, Any],
-                  targets: Any) -> dict[str, Any]:
-    if criterion == "gp-variance":
-        return dict(region=region, spatial_cov=t["spatial_cov"], prior_cov=t["prior_cov"],
-                    pool=pool, targets=targets, target_weights=t["target_weights"])
-    extra: dict[str, Any] = {}
-    if t["prior_precision"] is not None:
-        extra["prior_precision"] = t["prior_precision"]
-    if t["noise_var"] is not None:
-        extra["noise_var"] = t["noise_var"]
-    if t["target_weights"] is not None and criterion == "a-optimal":
-        extra["target_weights"] = t["target_weights"]
-    return extra
-
-
-def _history(hist: dict[str, list[float]]) -> dict[str, np.ndarray]:
-    return {key: np.asarray(v, dtype=np.int64 if key in ("cell", "n_evaluated", "robot")
-                            else np.float64) for key, v in hist.items()}
-
-
 def plan_greedy(
     Y: Any,
     region: Region,
@@ -175,26 +100,12 @@ def plan_greedy(
     cost: str = "nearest-neighbor",
     ridge: float = 0.0,
     progress: bool = True,
-    prior_precision: Any = None,
-    noise_var: Any = None,
-    target_weights: Any = None,
-    prior_cov: Any = None,
-    spatial_cov: Any = None,
-    targets: Any = None,
     initial: str = "nearest",
     prior: Any = None,
     refine: bool | dict[str, Any] = False,
-    metric: str = "grid",
-    speed: float | None = None,
-    stop_cost: float = 0.0,
-    traversable: Any = None,
-    closed: bool = False,
-    end: Any = None,
-    sense_along: bool = False,
-    path: str = "route",
-    n_sensors: int | None = None,
-    training: Any = None,
-    exchange: bool = False,
+    path: PathOptions | str | None = None,
+    static: bool = False,
+    **options: Any,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
 
@@ -232,13 +143,14 @@ def plan_greedy(
         (cheapest insertion route, cheaper and usually shorter).
     ridge : ``>= 0``, added to the information matrix (``ridge * I``).
     progress : show a tqdm progress bar.
-    prior_precision, noise_var, target_weights : the fold-in's posterior (issue #8,
+    prior_precision, noise_var, target_weights : (``**options``) the fold-in's posterior (issue #8,
         docs/reconstruction.md): ``M = prior_precision + sum_P y_p y_p^T / noise_var_p``
         replaces ``ridge I + sum_P y_p y_p^T`` in ``"fisher"`` and ``"a-optimal"``, and the
         A-optimal target is ``sum_i target_weights_i y_i y_i^T``. ``GLRM.planner_kwargs()``
         returns them for a fitted model. Default None: the paper.
-    prior_cov, spatial_cov, targets : for ``criterion="gp-variance"`` (the A-optimal criterion
-        of the low-rank trend + GP residual model; :class:`~lrm_cvx.information.GPVarianceOracle`).
+    prior_cov, spatial_cov, targets : (``**options``) for ``criterion="gp-variance"`` (the
+        A-optimal criterion of the low-rank trend + GP residual model;
+        :class:`~lrm_cvx.information.GPVarianceOracle`).
     initial : ``"nearest"`` (the paper: the start and its ``k - 1`` nearest cells are forced) or
         ``"start"`` (only the start cell, and the ``end`` cell when given: with a prior the
         information matrix is nonsingular from the start, so the budget is not spent on
@@ -250,75 +162,67 @@ def plan_greedy(
     refine : run :func:`lrm_cvx.planning.refine.refine` on the greedy plan (a local search
         of insertions and swaps that raises the information within the budget; Fisher and the
         paper's path model only); a dict is passed to it as keyword arguments.
-    metric, speed, stop_cost, traversable, closed, end : the path model (docs/planning.md,
-        "Path models"): ``"grid"`` or ``"km"`` (great circle); ``speed`` km/h makes the unit
-        hours; ``stop_cost`` is charged per sampling stop (start included); ``traversable``
-        ``None`` (straight lines), ``"valid"`` or a boolean ``(lat, lon)`` DataArray (travel
-        over the 8-connected grid of enterable cells, routes include the cells passed);
+    path : a :class:`~lrm_cvx.planning.request.PathOptions` (default: the paper's), or its
+        keywords below in ``**options`` (they update ``path``).
+    metric, speed, stop_cost, traversable, closed, end : (``**options``) the path model
+        (docs/planning.md, "Path models"): ``"grid"`` or ``"km"`` (great circle); ``speed``
+        km/h makes the unit hours; ``stop_cost`` is charged per sampling stop (start
+        included); ``traversable`` ``None`` (straight lines), ``"valid"`` or a boolean
+        ``(lat, lon)`` DataArray (travel over the 8-connected grid of enterable cells, routes
+        include the cells passed);
         ``closed=True`` returns to the start; ``end`` (a cell or ``(lat, lon)``) is where every
         route must finish.
-    sense_along : every cell a route passes through is observed: after each pick the route's
-        new pass-through cells join the information (cells a re-ordered route no longer passes
-        leave it). Candidates are still scored by **their own** gain per unit cost (not by the
-        pass-through cells their detour would add); cells already observed are not candidates.
+    sense_along : (``**options``) every cell a route passes through is observed: after each
+        pick the route's new pass-through cells join the information (cells a re-ordered route
+        no longer passes leave it). Candidates are still scored by **their own** gain per unit
+        cost (not by the pass-through cells their detour would add); cells already observed
+        are not candidates.
         Without a travel graph a straight leg passes the cells its segment crosses (between
         grid positions; masked positions are skipped). ``plan.cells`` holds every observed
         cell, ``plan.stops`` the sampling stops.
-    path : ``"route"`` (travel, the above) or ``"static"``: fixed sensors, no travel (see
-        :func:`place_sensors`; ``start`` must then be None and ``n_sensors`` (or ``budget``)
-        is the number of sensors).
-    n_sensors : the number of sensors of ``path="static"``.
-    training, exchange : ``path="static"`` only (:func:`place_sensors`): the training snapshots
-        of ``criterion="risk"`` and the exchange search.
+    static : fixed sensors, no travel (see :func:`~lrm_cvx.planning.static.place_sensors`;
+        ``start`` must then be None and ``n_sensors`` (or ``budget``) is the number of
+        sensors). ``path="static"`` is the old spelling (DeprecationWarning).
+    n_sensors, training, exchange : (``**options``) ``static=True`` only: the number of
+        sensors, the training snapshots of ``criterion="risk"`` and the exchange search.
 
     If the initial cells alone already exceed a robot's budget, the plan is still returned
     (the paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
     budget, start, criterion, cost or path option, or a singular initial set with ``ridge=0``.
     """
     region = check_region(region)
-    if path not in ("route", "static"):
-        raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
-    if path == "static":
-        if start is not None:
-            raise PlanningError("path='static' places fixed sensors and has no start: pass "
-                                "start=None")
-        if n_sensors is None:
-            n_sensors = budget
-        elif budget is not None and float(budget) != float(n_sensors):
-            raise PlanningError(f"path='static': give n_sensors ({n_sensors}) or budget "
-                                f"({budget}), not two different numbers")
-        if (metric, speed, stop_cost, closed, end, sense_along) != ("grid", None, 0.0, False,
-                                                                     None, False):
-            raise PlanningError("path='static' has no travel: metric, speed, stop_cost, closed, "
-                                "end and sense_along do not apply")
-        if refine is not False and refine is not None:
-            raise PlanningError("refine supports only the paper's path model, not "
-                                "path='static'")
-        return place_sensors(Y, region, n_sensors, criterion=criterion, ridge=ridge,
-                             progress=progress, prior_precision=prior_precision,
-                             noise_var=noise_var, target_weights=target_weights,
-                             prior_cov=prior_cov, spatial_cov=spatial_cov, targets=targets,
-                             prior=prior, traversable=traversable, training=training,
-                             exchange=exchange)
-    if n_sensors is not None:
+    terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
+    static_opts = pop_options(options, STATIC_OPTIONS)
+    if isinstance(path, str):
+        if path not in ("route", "static"):
+            raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
+        if path == "static":
+            warnings.warn("plan_greedy(path='static') is deprecated: pass static=True (or use "
+                          "lrm_cvx.planning.static.place_sensors)", DeprecationWarning,
+                          stacklevel=2)
+            static = True
+        path = None
+    request = PathOptions.from_kwargs(path, where="plan_greedy", **options)
+    if static:
+        return _static(Y, region, start, budget, request, options, static_opts, refine,
+                       dict(criterion=criterion, ridge=ridge, progress=progress, prior=prior,
+                            **terms_given))
+    if "n_sensors" in static_opts:
         raise PlanningError("n_sensors applies to path='static' only")
-    if training is not None or exchange is not False:
+    if static_opts:
         raise PlanningError("training and exchange apply to path='static' only")
 
     Yk = as_factor_matrix(Y, region)
     k, L = Yk.shape
-    starts, fleet = resolve_starts(region, start)
-    budgets = resolve_budgets(budget, len(starts), fleet)
+    fleet = Fleet.resolve(region, start, budget, request.unit)
+    starts, budgets = list(fleet.starts), list(fleet.budgets)
     criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")  # aliases accepted
     cost = COST_REGISTRY.canonical(cost, "cost")
     if initial not in ("nearest", "start"):
         raise PlanningError(f"initial must be 'nearest' or 'start', got {initial!r}")
-    if not isinstance(sense_along, (bool, np.bool_)):
-        raise PlanningError(f"sense_along must be True or False, got {sense_along!r}")
-    end_cell = None if end is None else region.resolve_cell(end, "end")
-    models = [make_path_model(region, s, b, metric=metric, speed=speed, stop_cost=stop_cost,
-                              traversable=traversable, closed=closed, end=end_cell, cost=cost)
-              for s, b in zip(starts, budgets, strict=True)]
+    request = request.resolved(region)
+    models = [path_model(region, s, b, request, cost) for s, b in zip(starts, budgets,
+                                                                       strict=True)]
     if initial == "nearest" and k > region.n_cells:
         raise PlanningError(f"the region has {region.n_cells} cells, fewer than the rank k = {k}")
     P0s = _robot_initial(models, k, initial)
@@ -326,10 +230,10 @@ def plan_greedy(
     cands = [np.asarray(m.candidates(), dtype=np.int64) for m in models]
     union_pool = cands[0] if len(cands) == 1 else np.unique(np.concatenate(cands))
     idx = [np.searchsorted(union_pool, c) for c in cands]
-    terms = resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
-                                       target_weights=target_weights, prior_cov=prior_cov,
-                                       spatial_cov=spatial_cov))
+    targets = terms_given.pop("targets")
+    terms = resolve_prior(prior, terms_given)
     posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
+    sense_along = request.sense_along
     # (robot, stop) pairs: a cell is a stop of one robot, except starts shared by two robots
     stops = [int(c) for P in P0s for c in P]
     stop_robot = [r for r, P in enumerate(P0s) for _ in P]
@@ -343,14 +247,14 @@ def plan_greedy(
         init = list(dict.fromkeys(init + sense.observed().tolist()))
         if criterion == "gp-variance":  # pass-through cells must be cells of the GP pool
             gp_pool = np.union1d(union_pool, sense.reach())
-    extra = _oracle_extra(criterion, region, gp_pool, terms, targets)
+    extra = oracle_terms(criterion, region, gp_pool, terms, targets)
     oracle = make_oracle(criterion, Yk, ridge, init, **extra)
     for r, cst in enumerate(costers):  # cells forced for other robots are taken
         if len(costers) > 1:
             for c in set(stops):
                 _take(cst, cands[r], c)
         if cst.cost > budgets[r] + tols[r]:
-            who = f"robot {r}'s " if fleet else ""
+            who = f"robot {r}'s " if fleet.is_fleet else ""
             warnings.warn(
                 f"{who}{P0s[r].size} initial cells (start and its nearest, needed for a "
                 f"rank-{k} model) already cost {cst.cost:.4g} > budget {budgets[r]:.4g}",
@@ -360,7 +264,7 @@ def plan_greedy(
     hist: dict[str, list[float]] = {
         "cell": [], "gain": [], "cost_increase": [], "ratio": [], "cost": [], "n_evaluated": []
     }
-    if fleet:
+    if fleet.is_fleet:
         hist["robot"] = []
     bar = tqdm(desc="greedy plan", unit="pick", disable=not progress, leave=False)
     try:
@@ -409,7 +313,7 @@ def plan_greedy(
                         oracle.add(c)
             stops.append(cell)
             stop_robot.append(r)
-            if fleet:
+            if fleet.is_fleet:
                 hist["robot"].append(r)
             hist["cost"].append(cst.cost)
             bar.update(1)
@@ -418,9 +322,35 @@ def plan_greedy(
         bar.close()
     return _route_plan(
         Yk, region, models, costers, stops, stop_robot, sense, hist, criterion=criterion,
-        ridge=float(ridge), cost=cost, posterior=posterior, budgets=budgets, refine=refine,
-        terms=terms, sense_along=bool(sense_along),
+        ridge=float(ridge), cost=cost, posterior=posterior, fleet=fleet, refine=refine,
+        terms=terms, request=request,
     )
+
+
+def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOptions,
+            given: dict[str, Any], static_opts: dict[str, Any], refine: Any,
+            common: dict[str, Any]) -> Plan:
+    """``plan_greedy(static=True)``: :func:`~lrm_cvx.planning.static.place_sensors` of the
+    request (``given``: the path keywords as passed; only ``traversable`` applies)."""
+    if start is not None:
+        raise PlanningError("path='static' places fixed sensors and has no start: pass "
+                        "start=None")
+    n_sensors = static_opts.pop("n_sensors", None)
+    if n_sensors is None:
+        n_sensors = budget
+    elif budget is not None and float(budget) != float(n_sensors):
+        raise PlanningError(f"path='static': give n_sensors ({n_sensors}) or budget "
+                            f"({budget}), not two different numbers")
+    if set(request.changed()) - {"traversable"}:
+        raise PlanningError("path='static' has no travel: metric, speed, stop_cost, closed, "
+                            "end and sense_along do not apply")
+    if refine is not False and refine is not None:
+        raise PlanningError("refine supports only the paper's path model, not "
+                            "path='static'")
+    from .static import place_sensors
+
+    return place_sensors(Y, region, n_sensors, traversable=given.get("traversable"),
+                         **static_opts, **common)
 
 
 def _take(coster: Any, pool: np.ndarray, cell: int) -> None:
@@ -464,9 +394,11 @@ class _Sensing:
 
 
 def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, criterion,
-                ridge, cost, posterior, budgets, refine, terms, sense_along) -> Plan:
+                ridge, cost, posterior, fleet, refine, terms, request) -> Plan:
     """The :class:`Plan` of the greedy's final routes (and its refinement)."""
     from .plan import sensed_route
+
+    sense_along, budgets = request.sense_along, list(fleet.budgets)
 
     routes, cums, ways, robot = [], [], [], []
     for r, (m, cst) in enumerate(zip(models, costers, strict=True)):
@@ -479,12 +411,7 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
     cells = list(dict.fromkeys(list(stops) + (np.concatenate(routes).tolist() if sense_along
                                               else [])))
     info = fisher_information(Yk, cells, ridge)
-    m0 = models[0]
-    path = path_dict(
-        [m.start for m in models], budgets, metric=m0.metric, speed=m0.speed,
-        stop_cost=float(m0.stop_cost), traversable=m0.traversable, closed=bool(m0.closed),
-        end=None if m0.end is None else int(m0.end), unit=m0.unit, sense_along=sense_along,
-    )
+    path = PlanPath.describe(request, fleet, traversable=models[0].traversable)
     robot_costs = np.array([c.cost for c in costers], dtype=np.float64)
     n = len(models)
     plan = Plan.build(
@@ -498,7 +425,7 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
         start=models[0].start,
         ridge=ridge,
         method="greedy",
-        history=_history(hist),
+        history=history_arrays(hist),
         cost_function=cost,
         Y=Yk,
         posterior=posterior,
@@ -511,173 +438,31 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
         robot_costs=robot_costs,
         path_models=models,
     )
-    if refine is not False and refine is not None:
-        from .refine import refine as _refine
-
-        opts = dict(refine) if isinstance(refine, dict) else {}
-        if plan.posterior:
-            opts.setdefault("prior_precision", terms["prior_precision"])
-            opts.setdefault("noise_var", terms["noise_var"])
-        plan = _refine(plan, **opts)
+    if refine is not False and refine is not None:  # refine.py registers it
+        plan = REFINERS.get("local")(plan, refine, terms)
     return plan
 
 
-# --------------------------------------------------------------------------- static placement
-def _qr_start(Yk: np.ndarray, allowed: np.ndarray, k: int) -> np.ndarray:
-    """The ``k`` cells of a column-pivoted QR of ``Y[:, allowed]`` (QR-DEIM / PySensors' QR
-    placement): a well-conditioned set of ``k`` cells, so the information is nonsingular."""
-    from scipy.linalg import qr
-
-    _, _, piv = qr(Yk[:, allowed], mode="economic", pivoting=True)
-    return allowed[piv[:k]].astype(np.int64)
+def _resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
+    return [check_budget(b) for b in _request.resolve_budgets(budget, n, fleet)]
 
 
-def place_sensors(
-    Y: Any,
-    region: Region,
-    n_sensors: int,
-    *,
-    criterion: str = "fisher",
-    ridge: float = 0.0,
-    prior: Any = None,
-    progress: bool = False,
-    prior_precision: Any = None,
-    noise_var: Any = None,
-    target_weights: Any = None,
-    prior_cov: Any = None,
-    spatial_cov: Any = None,
-    targets: Any = None,
-    traversable: Any = None,
-    training: Any = None,
-    exchange: bool = False,
-    sweeps: int = 5,
-) -> Plan:
-    """Static placement: ``n_sensors`` fixed sensors (moorings, stations), no travel.
-
-    The greedy of :func:`plan_greedy` with every sensor costing 1: candidates are all valid
-    cells (or the cells of a boolean ``(lat, lon)`` DataArray ``traversable``: where a sensor
-    may stand), and each step adds the cell of largest gain (ties to the lowest cell) until
-    ``n_sensors`` are placed (or no cell gains anything). The criteria, ``prior`` and posterior
-    terms are those of :func:`plan_greedy`.
-
-    Initial cells: none when the information is nonsingular from the start (``ridge > 0``, a
-    prior precision, or ``"gp-variance"``); else (Fisher with ``ridge=0`` and no prior) the
-    first ``k`` pivots of a column-pivoted QR of ``Y`` (the QR placement of PySensors), and
-    ``n_sensors`` must be ``>= k``. Returns a :class:`Plan` with ``path["kind"] == "static"``,
-    ``route`` = the sensors in selection order (no travel), ``route_cost`` = the number of
-    sensors placed so far, ``cost`` = the number of sensors, ``start = -1``.
-
-    ``criterion="risk"`` (:mod:`lrm_cvx.planning.static`): the greedy on the fold-in's own
-    squared reconstruction error over the ``training`` snapshots (a ``(time, lat, lon)``
-    DataArray on the region's grid); ``prior`` is the fold-in's belief
-    (``model.latent_prior("empirical", spatial=True)``) or the fitted GLRM. It places exactly
-    ``n_sensors``. ``exchange=True`` (``"risk"`` or ``"gp-variance"``) then swaps sensors while
-    a swap lowers the objective (at most ``sweeps`` sweeps; never worse). Both hold a dense
-    ``L x L`` covariance: at most ``static.RISK_MAX_CELLS`` cells.
-    """
-    region = check_region(region)
-    Yk = as_factor_matrix(Y, region)
-    k, L = Yk.shape
-    if isinstance(n_sensors, (bool, np.bool_)) or n_sensors is None:
-        raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
-    try:
-        n = int(n_sensors)
-        ok = n == float(n_sensors) and n >= 1
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
-    risk = isinstance(criterion, str) and criterion == "risk"
-    if not risk:
-        criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")
-    if traversable is None or (isinstance(traversable, str) and traversable == "valid"):
-        allowed = np.arange(L, dtype=np.int64)
-    else:
-        mask = _site_mask(region, traversable)
-        gi = region.grid_index
-        allowed = np.flatnonzero(mask[gi[:, 0], gi[:, 1]]).astype(np.int64)
-        if allowed.size == 0:
-            raise PlanningError("traversable allows no valid cell for a sensor")
-    if n > allowed.size:
-        raise PlanningError(f"n_sensors = {n} but only {allowed.size} cells can hold a sensor")
-    if risk or exchange is not False or training is not None:  # planning/static.py
-        from .static import place_static
-
-        return place_static(Yk, region, n, allowed, criterion=criterion, prior=prior,
-                            training=training, exchange=exchange, sweeps=sweeps, other=dict(
-                                ridge=ridge, progress=progress, prior_precision=prior_precision,
-                                noise_var=noise_var, target_weights=target_weights,
-                                prior_cov=prior_cov, spatial_cov=spatial_cov, targets=targets,
-                                traversable=traversable))
-    terms = resolve_prior(prior, dict(prior_precision=prior_precision, noise_var=noise_var,
-                                       target_weights=target_weights, prior_cov=prior_cov,
-                                       spatial_cov=spatial_cov))
-    posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
-    extra = _oracle_extra(criterion, region, allowed, terms, targets)
-    P0 = np.empty(0, dtype=np.int64)
-    try:
-        oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
-    except PlanningError as exc:
-        if criterion != "fisher" or "singular" not in str(exc):
-            raise
-        if n < k:
-            raise PlanningError(
-                f"n_sensors = {n} < rank k = {k}: with ridge=0 and no prior the information "
-                f"of fewer than {k} sensors is singular; pass ridge > 0 or a prior") from None
-        P0 = _qr_start(Yk, allowed, k)
-        oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
-    cells = [int(c) for c in P0]
-    active = np.ones(allowed.size, dtype=bool)
-    active[np.searchsorted(allowed, P0)] = False
-    hist: dict[str, list[float]] = {
-        "cell": [], "gain": [], "cost_increase": [], "ratio": [], "cost": [], "n_evaluated": []
-    }
-    bar = tqdm(desc="sensor placement", unit="sensor", disable=not progress, leave=False)
-    try:
-        while len(cells) < n:
-            gains = np.where(active, oracle.gains(allowed), -np.inf)
-            b = int(np.argmax(gains))
-            if not gains[b] > 0:
-                break
-            cell = int(allowed[b])
-            active[b] = False
-            oracle.add(cell)
-            cells.append(cell)
-            for key, v in (("cell", cell), ("gain", gains[b]), ("cost_increase", 1.0),
-                           ("ratio", gains[b]), ("cost", float(len(cells))),
-                           ("n_evaluated", int(active.sum()) + 1)):
-                hist[key].append(v)
-            bar.update(1)
-    finally:
-        bar.close()
-    route_cost = np.arange(1, len(cells) + 1, dtype=np.float64)
-    return Plan.build(
-        region=region, cells=cells, route=cells, cost=float(len(cells)),
-        information=fisher_information(Yk, cells, ridge), criterion=criterion,
-        budget=float(n), start=-1, ridge=float(ridge), method="greedy",
-        history=_history(hist), cost_function="sensors", Y=Yk, posterior=posterior,
-        route_cost=route_cost,
-        path=path_dict([], [float(n)], kind="static", unit="sensors",
-                       traversable="none" if allowed.size == L else "mask"),
-    )
+_MOVED = {"resolve_starts": (lambda: _request.resolve_starts, "Fleet.resolve"),
+          "resolve_budgets": (lambda: _resolve_budgets, "Fleet.resolve")}
 
 
-def _site_mask(region: Region, traversable: Any) -> np.ndarray:
-    """``traversable`` as a ``(ny, nx)`` bool array on the region's grid (a DataArray must
-    have the region's lat/lon), else a PlanningError naming it."""
-    arr = np.asarray(getattr(traversable, "values", traversable))
-    bad = arr.shape != tuple(region.shape) or arr.dtype != bool
-    if not bad and hasattr(traversable, "dims"):
-        from ..region import spatial_dims
+def __getattr__(name: str) -> Any:
+    # moved names (issue #27): the old locations warn for one release
+    if name in _MOVED:
+        get, new = _MOVED[name]
+        warnings.warn(f"lrm_cvx.planning.greedy.{name} is deprecated: use lrm_cvx.planning."
+                      f"request.{new}", DeprecationWarning, stacklevel=2)
+        return get()
+    if name == "place_sensors":
+        warnings.warn("lrm_cvx.planning.greedy.place_sensors moved to "
+                      "lrm_cvx.planning.static.place_sensors (or lrm_cvx.planning."
+                      "place_sensors)", DeprecationWarning, stacklevel=2)
+        from .static import place_sensors
 
-        try:
-            la, lo = spatial_dims(traversable)
-            bad = not (np.allclose(traversable[la].values, region.lat.values)
-                       and np.allclose(traversable[lo].values, region.lon.values))
-        except Exception:
-            bad = True
-    if bad:
-        raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
-                            f"DataArray on the region's grid {tuple(region.shape)}, got "
-                            f"{type(traversable).__name__} of shape {arr.shape}")
-    return arr
+        return place_sensors
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -45,9 +45,9 @@ from typing import Any
 import numba
 import numpy as np
 
-from .._validation import check_positive
 from ..errors import PlanningError
 from ..region import EARTH_RADIUS_KM, Region
+from .request import METRICS, PATH_FIELDS, Fleet, PathOptions, check_amount, check_metric
 from .routecost import (
     COST_REGISTRY,
     InsertionCost,
@@ -61,6 +61,7 @@ __all__ = [
     "PathModel",
     "IncrementalCost",
     "make_path_model",
+    "path_model",
     "travel_distance",
     "startable_cells",
     "TravelGeometry",
@@ -70,8 +71,6 @@ __all__ = [
     "grid_wraps",
 ]
 
-METRICS = ("grid", "km")
-"""Travel metrics: Euclidean grid units (the paper) and great-circle km."""
 
 _QUANTUM = 2.0 ** -20  # graph edge lengths are multiples of this (budget unit): exact sums
 _TOL = 1e-9  # budget tolerance (as the greedy's)
@@ -108,35 +107,6 @@ def _dist_pairs(code, ar, ac, br, bc, latr, lonr, coslat, speed):  # pragma: no 
                 d = d / speed
             out[i] = d
     return out
-
-
-def check_metric(metric: Any, speed: Any) -> tuple[str, float | None, str]:
-    """``(metric, speed, unit)`` after validation: metric lower-cased (one of :data:`METRICS`),
-    speed a float km/h > 0 or None (only with ``"km"``), unit ``"grid units"``, ``"km"`` or
-    ``"h"`` (the budget's); PlanningError naming the argument otherwise."""
-    if not isinstance(metric, str) or metric.lower() not in METRICS:
-        raise PlanningError(f"metric must be one of {list(METRICS)}, got {metric!r}")
-    metric = metric.lower()
-    if speed is None:
-        return metric, None, "grid units" if metric == "grid" else "km"
-    if metric != "km":
-        raise PlanningError(
-            f"speed (km/h) needs metric='km' (a budget in hours), got metric={metric!r}")
-    if isinstance(speed, (str, bytes, bool, np.bool_)):
-        raise PlanningError(f"speed must be a number of km/h > 0, got {speed!r}")
-    try:
-        v = float(speed)
-    except (TypeError, ValueError):
-        raise PlanningError(f"speed must be a number of km/h > 0, got {speed!r}") from None
-    if not np.isfinite(v) or v <= 0:
-        raise PlanningError(f"speed must be a finite number of km/h > 0, got {speed!r}")
-    return metric, v, "h"
-
-
-def check_amount(value: Any, name: str, unit: str) -> float:
-    """A budget or stop cost ``value`` in ``unit`` as a finite float >= 0 (PlanningError naming
-    ``name (unit)``; a string or a bool is refused, not converted)."""
-    return check_positive(value, f"{name} ({unit})", error=PlanningError, numbers_only=True)
 
 
 class TravelGeometry:
@@ -776,47 +746,47 @@ def make_path_model(
     start: Any,
     budget: float,
     *,
-    metric: str = "grid",
-    speed: float | None = None,
-    stop_cost: float = 0.0,
-    traversable: Any = None,
-    closed: bool = False,
-    end: Any = None,
+    path: PathOptions | None = None,
     cost: str = "nearest-neighbor",
+    **options: Any,
 ) -> PathModel:
     """Build the path model of one robot (see :class:`PathModel`); validates every argument.
 
-    ``start`` / ``end``: a cell index or ``(lat, lon)``. ``budget`` (>= 0) and ``stop_cost``
-    (>= 0, charged per sampling stop, start and end included) are in the unit of ``metric``
-    (``"grid"`` units, ``"km"``, or hours with ``speed`` km/h). ``traversable``: None (straight
-    lines), ``"valid"`` or a boolean ``(lat, lon)`` DataArray / array (True = may enter).
-    ``closed``: return to the start. ``cost``: ``"nearest-neighbor"`` or ``"insertion"``.
+    ``start``: a cell index or ``(lat, lon)``. ``budget`` (>= 0) is in the unit of the path
+    options. ``path`` (a :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords
+    ``metric``, ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``end`` (as before):
+    ``stop_cost`` (>= 0) is charged per sampling stop, start and end included; ``end`` is a cell
+    index or ``(lat, lon)``. ``cost``: ``"nearest-neighbor"`` or ``"insertion"``.
     """
     if not isinstance(region, Region):
         raise PlanningError(f"region must be a Region, got {type(region).__name__}")
-    metric, speed, unit = check_metric(metric, speed)
-    budget = check_amount(budget, "budget", unit)
-    stop_cost = check_amount(stop_cost, "stop_cost", unit)
-    if not isinstance(closed, (bool, np.bool_)):
-        raise PlanningError(f"closed must be True or False, got {closed!r}")
-    closed = bool(closed)
-    if closed and end is not None:
-        raise PlanningError("closed=True and end= exclude each other: a closed tour ends at "
-                            "its start")
+    request = PathOptions.from_kwargs(path, where="make_path_model", allowed=PATH_FIELDS[:-1],
+                                      **options)
+    return path_model(region, start, Fleet.check_budget(budget, request.unit), request, cost)
+
+
+def path_model(region: Region, start: Any, budget: float, request: PathOptions,
+               cost: str = "nearest-neighbor") -> PathModel:
+    """:func:`make_path_model` of a request already read (``budget`` checked by
+    :class:`~lrm_cvx.planning.request.Fleet`; ``request.sense_along`` is the planner's
+    business, not the path model's)."""
+    unit = request.unit
+    budget = float(budget)
     cost = COST_REGISTRY.canonical(cost, "cost")
     start_cell = region.resolve_cell(start, "start")
-    end_cell = None if end is None else region.resolve_cell(end, "end")
+    end_cell = None if request.end is None else region.resolve_cell(request.end, "end")
     if end_cell is not None and end_cell == start_cell:
         raise PlanningError("end must differ from start (use closed=True for a tour back to "
                             "the start)")
-    kind, enter = traversable_mask(region, traversable)
+    kind, enter = traversable_mask(region, request.traversable)
     if not enter[start_cell]:
         raise PlanningError(f"start cell {start_cell} may not be entered (traversable mask)")
     if end_cell is not None and not enter[end_cell]:
         raise PlanningError(f"end cell {end_cell} may not be entered (traversable mask)")
+    metric, speed, closed = request.metric, request.speed, request.closed
     geo = TravelGeometry(region, metric, speed)
     model = PathModel(region=region, start=start_cell, budget=budget, unit=unit, metric=metric,
-                      speed=speed, stop_cost=stop_cost, closed=closed, end=end_cell,
+                      speed=speed, stop_cost=request.stop_cost, closed=closed, end=end_cell,
                       traversable=kind, cost=cost, _enter=enter, _geo=geo,
                       _wrap=grid_wraps(region))
     if kind == "none":

@@ -10,24 +10,12 @@ from typing import Any
 import numpy as np
 
 from .._validation import atomic_output
+from ..errors import PlanningError
+from ..region import check_region  # noqa: F401  (its old home; planners import it here)
+from .refiners import REFINERS  # noqa: F401  (re-exported: its first home)
+from .request import PAPER_PATH, PlanPath
 
-__all__ = ["Plan"]
-
-
-def check_region(region: Any, name: str = "region") -> Any:
-    """``region`` if it is a :class:`~lrm_cvx.region.Region`, else a :class:`PlanningError`
-    naming it (a model fitted on a plain array has no region and cannot plan)."""
-    from ..region import Region
-
-    if isinstance(region, Region):
-        return region
-    from ..errors import PlanningError
-
-    raise PlanningError(
-        f"{name} must be a lrm_cvx.Region (the grid of the model's cells), got "
-        f"{type(region).__name__}: a model fitted on a plain array has no region; fit it on a "
-        "(time, lat, lon) DataArray or pass region=Region.from_dataarray(data)"
-    )
+__all__ = ["Plan", "PAPER_PATH"]
 
 
 def path_cumulative(grid_index: np.ndarray) -> np.ndarray:
@@ -41,33 +29,20 @@ def path_cumulative(grid_index: np.ndarray) -> np.ndarray:
     return np.cumsum(np.concatenate([[0.0], steps]))
 
 
-PAPER_PATH: dict[str, Any] = {
-    "kind": "path", "metric": "grid", "speed": None, "stop_cost": 0.0, "traversable": "none",
-    "closed": False, "end": None, "unit": "grid units", "sense_along": False,
-}
-"""The path model of the paper (and of plans built without one): an open straight-line path in
-grid units, one robot, sensing only at its stops. :func:`path_dict` adds starts and budgets."""
 
 
-def path_dict(starts: Any, budgets: Any, **options: Any) -> dict[str, Any]:
-    """A plan's ``path`` description: :data:`PAPER_PATH` updated by ``options`` plus
-    ``starts`` / ``budgets`` (lists, one per robot) and ``n_robots``."""
-    out = dict(PAPER_PATH)
-    unknown = sorted(set(options) - set(out))
-    if unknown:
-        raise ValueError(f"unknown path options {unknown}")
-    out.update(options)
-    out["starts"] = [int(s) for s in np.atleast_1d(np.asarray(starts, dtype=np.int64))]
-    out["budgets"] = [float(b) for b in np.atleast_1d(np.asarray(budgets, dtype=np.float64))]
-    out["n_robots"] = max(len(out["starts"]), 1) if out["kind"] != "static" else 1
-    return out
+def path_dict(starts: Any, budgets: Any, **options: Any) -> PlanPath:
+    """A plan's ``path`` record (:class:`~lrm_cvx.planning.request.PlanPath`, a read-only
+    mapping): :data:`PAPER_PATH` updated by ``options`` plus ``starts`` / ``budgets`` (lists,
+    one per robot) and ``n_robots``."""
+    return PlanPath(options, starts=starts, budgets=budgets)
 
 
-def is_paper_path(path: dict[str, Any]) -> bool:
-    """True when ``path`` is the paper's model: one robot, open straight-line path in grid
-    units, no stop cost, sensing only at the stops (what :func:`refine` supports)."""
-    return all(path.get(key) == value for key, value in PAPER_PATH.items()) and \
-        path.get("n_robots", 1) == 1
+def is_paper_path(path: Any) -> bool:
+    """True when ``path`` (a plan's path record or its mapping) is the paper's model: one
+    robot, open straight-line path in grid units, no stop cost, sensing only at the stops
+    (what :func:`refine` supports)."""
+    return PlanPath.of(path).is_paper
 
 
 def _robot_last(route_robot: np.ndarray, n_robots: int) -> np.ndarray:
@@ -164,10 +139,12 @@ class Plan:
     refinement : empty, or what :func:`~lrm_cvx.planning.refine.refine` gained:
         ``information_before`` / ``information_after`` (nats), ``moves`` accepted, ``inserted``,
         ``swapped``, ``rounds``, ``seconds`` (history keys ``refine_*`` list the moves).
-    path : the path model (issue #15): ``kind`` (``"path"`` or ``"static"``), ``metric``,
-        ``speed``, ``stop_cost``, ``traversable`` (``"none"``, ``"valid"``, ``"mask"``),
-        ``closed``, ``end``, ``unit`` (of ``cost`` / ``budget``), ``sense_along``, ``starts`` and
-        ``budgets`` (one per robot) and ``n_robots``. Default: :data:`PAPER_PATH`.
+    path : the path request (:class:`~lrm_cvx.planning.request.PlanPath`: ``options``, a
+        ``PathOptions``, and ``fleet``), a read-only mapping of ``kind`` (``"path"`` or
+        ``"static"``), ``metric``, ``speed``, ``stop_cost``, ``traversable`` (``"none"``,
+        ``"valid"``, ``"mask"``), ``closed``, ``end``, ``unit`` (of ``cost`` / ``budget``),
+        ``sense_along``, ``starts`` and ``budgets`` (one per robot) and ``n_robots``. Default:
+        :data:`PAPER_PATH`.
     route_robot, waypoint : ``(r,)`` per route entry: the robot travelling it, and whether it
         is a sampling stop (False for a pass-through cell of a travel graph or of
         ``sense_along``). A closed tour's route ends with its start again.
@@ -196,7 +173,7 @@ class Plan:
     route_cost: np.ndarray = field(default_factory=lambda: np.empty(0))
     posterior: bool = False
     refinement: dict[str, Any] = field(default_factory=dict, compare=False)
-    path: dict[str, Any] = field(default_factory=dict)
+    path: PlanPath | Any = field(default_factory=dict)
     route_robot: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
     waypoint: np.ndarray = field(default_factory=lambda: np.empty(0, bool))
     stops: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
@@ -208,8 +185,8 @@ class Plan:
 
     def __post_init__(self) -> None:
         # plans built the old way (baselines, by hand): the paper's path model, one robot
-        if not self.path:
-            self.path = path_dict([self.start], [self.budget])
+        self.path = (PlanPath.of(self.path) if self.path
+                     else PlanPath(starts=[self.start], budgets=[self.budget]))
         r = np.asarray(self.route).size
         if np.asarray(self.route_robot).size != r:
             self.route_robot = np.zeros(r, dtype=np.int64)
@@ -260,7 +237,7 @@ class Plan:
         Y: Any = None,
         route_cost: Any = None,
         posterior: bool = False,
-        path: dict[str, Any] | None = None,
+        path: PlanPath | Any = None,
         route_robot: Any = None,
         waypoint: Any = None,
         stops: Any = None,
@@ -331,7 +308,7 @@ class Plan:
             cost_function=cost_function,
             route_cost=route_cost,
             posterior=bool(posterior),
-            path=dict(path) if path else path_dict([start], [budget]),
+            path=PlanPath.of(path) if path else PlanPath(starts=[start], budgets=[budget]),
             route_robot=rr,
             waypoint=(np.ones(route.size, bool) if waypoint is None
                       else np.asarray(waypoint, dtype=bool)),
@@ -352,7 +329,6 @@ class Plan:
         (``Y``: default the first plan's model; ``nan`` without one; ``ridge``: default the
         first plan's). Every plan must be on the same region and path model (``metric``,
         ``traversable``, ...), one robot each."""
-        from ..errors import PlanningError
         from ..information import fisher_information
 
         plans = list(plans)
@@ -384,7 +360,8 @@ class Plan:
             info = float("nan")
         starts = [p.start for p in plans]
         budgets = [p.budget for p in plans]
-        path = path_dict(starts, budgets, **base)
+        path = PlanPath(base, starts=starts, budgets=budgets,
+                        options=PlanPath.of(plans[0].path).options)
         methods = list(dict.fromkeys(p.method for p in plans))
         return cls.build(
             region=region, cells=cells, route=np.concatenate([p.route for p in plans]),
@@ -420,7 +397,8 @@ class Plan:
                                                          else [])))
             info = (fisher_information(self._Y, cells, self.ridge) if self._Y is not None
                     else float("nan"))
-            path = dict(self.path, starts=[starts[r]], budgets=[budgets[r]], n_robots=1)
+            path = PlanPath(self.path, starts=[starts[r]], budgets=[budgets[r]],
+                            options=PlanPath.of(self.path).options)
             hist = {}
             if "robot" in self.history:
                 pick = self.history["robot"] == r

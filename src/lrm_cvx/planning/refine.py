@@ -31,6 +31,7 @@ from .._validation import as_factor_matrix
 from ..errors import PlanningError
 from ..information import fisher_set_value
 from .plan import Plan, check_region, is_paper_path
+from .refiners import REFINERS
 from .routecost import (
     NearestNeighborCost,
     insertion_costs,
@@ -128,9 +129,8 @@ def refine(
     restarts: int = 1,
     shapes: int = 2000,
     climbs: int = 8,
-    prior_precision: Any = None,
-    noise_var: Any = None,
     seed: int | None = 0,
+    **posterior: Any,
 ) -> Plan:
     """Local search on ``plan`` (insert / swap stops, route repair) that raises its Fisher
     information and keeps its exact path cost within ``plan.budget``.
@@ -170,6 +170,8 @@ def refine(
     climbs : how many of the best shapes are hill-climbed.
     seed : seeds the kicks and the shapes (``numpy.random.default_rng``); the result is
         deterministic given it (and a ``time_limit`` that is not reached).
+    prior_precision, noise_var : (``**posterior``) the fold-in's posterior terms of a
+        posterior-Fisher plan (as :func:`~lrm_cvx.planning.plan_greedy` takes them).
 
     Returns a new :class:`Plan` (``method`` unchanged) whose ``information`` is ``>=`` the
     input's and ``cost <= budget + 1e-9`` (or the input itself when no move helped), with
@@ -190,6 +192,10 @@ def refine(
         raise PlanningError(
             f"refine supports Fisher plans (criterion 'fisher'), got criterion="
             f"{plan.criterion!r}")
+    bad = set(posterior) - {"prior_precision", "noise_var"}
+    if bad:
+        raise TypeError(f"refine() got an unexpected keyword argument {sorted(bad)[0]!r}")
+    prior_precision, noise_var = posterior.get("prior_precision"), posterior.get("noise_var")
     if plan.posterior and prior_precision is None and noise_var is None:
         raise PlanningError("this plan's Fisher criterion is on the fold-in's posterior: "
                             "pass its prior_precision / noise_var to refine it")
@@ -560,3 +566,19 @@ def _fill(g, rest, r, ys, limit, nn, crit, Sx):
         rr = repair_route(g, r)
         c = route_length(g, rr)
     return new_cells, rr, c
+
+
+def refine_plan(plan: Plan, options: bool | dict[str, Any], terms: dict[str, Any]) -> Plan:
+    """:func:`refine` of ``plan`` with ``options`` (True or a dict of its keyword arguments),
+    a posterior plan's ``prior_precision`` / ``noise_var`` taken from ``terms`` (the greedy's
+    resolved prior terms) unless given: ``plan_greedy(refine=...)`` and
+    :class:`~lrm_cvx.planning.planners.Refined`."""
+    opts = dict(options) if isinstance(options, dict) else {}
+    if plan.posterior:
+        opts.setdefault("prior_precision", terms.get("prior_precision"))
+        opts.setdefault("noise_var", terms.get("noise_var"))
+    return refine(plan, **opts)
+
+
+REFINERS.register("local", refine_plan, description="insert / swap / refill / kick / shape local "
+                  "search on the paper's path model (refine)")

@@ -509,8 +509,8 @@ def walk_relaxation_bound(
     ``rounds`` cvxpy solves over the walks generated so far. Raises :class:`PlanningError`
     for a budget that no nonsingular design fits.
     """
-    from .certificate import _start_limit
     from .dopt import _Polytope, _relaxation
+    from .families import start_limit
 
     t0 = time.perf_counter()
     Y = as_factor_matrix(Y, region)
@@ -528,7 +528,7 @@ def walk_relaxation_bound(
     n_max = int(min(cells.size, steps + 1))
     N = cells.size
     levels, caps = [], []
-    lim = _start_limit(Bp, 1.0, n_max) if limits else None
+    lim = start_limit(Bp, 1.0, n_max) if limits else None
     if lim is not None:
         levels.append(np.searchsorted(lim[0], dist[cells], side="right"))
         caps.append(lim[1])

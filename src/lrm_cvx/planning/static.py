@@ -1,8 +1,6 @@
-"""Static sensor placement on the fold-in's own error: the ``"risk"`` criterion and the exchange
-search (issue #15, docs/planning.md "Static placement").
-
-:func:`~lrm_cvx.planning.place_sensors` delegates here for ``criterion="risk"`` and for
-``exchange=True``.
+"""Static sensor placement (no travel): :func:`place_sensors`, its greedy on the information
+criteria, and on the fold-in's own error the ``"risk"`` criterion and the exchange search
+(issue #15, docs/planning.md "Static placement").
 
 **Risk.** The recommended fold-in (``complete(prior=..., spatial=...)``) predicts a snapshot
 from sensors ``S`` by Gaussian conditioning: with ``C0`` the prior covariance of the latent
@@ -42,15 +40,18 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
+from tqdm.auto import tqdm
 
 from .._validation import as_factor_matrix
 from ..errors import DataError, ModelError, PlanningError, RegionError
-from ..information import CRITERION_REGISTRY, fisher_information
+from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
-from .plan import Plan, check_region, path_dict
+from .plan import Plan, check_region
+from .request import PlanPath
+from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
 
-__all__ = ["RISK_MAX_CELLS", "STATIC_CRITERIA", "place_static", "risk_objective",
-           "training_residuals"]
+__all__ = ["RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors", "place_static",
+           "risk_objective", "training_residuals"]
 
 RISK_MAX_CELLS: int = 20_000
 """Largest region (cells) of the dense risk / exchange state (``8 L^2`` bytes: 3.2 GB)."""
@@ -408,8 +409,6 @@ def place_static(
             raise PlanningError("exchange=True with gp-variance sums the variance over every "
                                 "cell: targets= does not apply")
         _check_size(L, "exchange=True")
-        from .greedy import place_sensors, resolve_prior
-
         base = place_sensors(Yk, region, n, criterion=crit, prior=prior, exchange=False, **other)
         terms = resolve_prior(prior, {k: other.get(k) for k in (
             "prior_precision", "noise_var", "target_weights", "prior_cov", "spatial_cov")})
@@ -440,9 +439,163 @@ def place_static(
         method="greedy+exchange"
         if exchange else "greedy", history=hist_out, cost_function="sensors", Y=Yk,
         posterior=posterior, route_cost=np.arange(1, len(cells) + 1, dtype=np.float64),
-        path=path_dict([], [float(n)], kind="static", unit="sensors",
-                       traversable="none" if allowed.size == L else "mask"),
+        path=PlanPath(kind="static", unit="sensors", budgets=[float(n)],
+                      traversable="none" if allowed.size == L else "mask"),
     )
     plan.refinement.update(info)
     plan.refinement["objective"] = state.value
     return plan
+
+
+def _qr_start(Yk: np.ndarray, allowed: np.ndarray, k: int) -> np.ndarray:
+    """The ``k`` cells of a column-pivoted QR of ``Y[:, allowed]`` (QR-DEIM / PySensors' QR
+    placement): a well-conditioned set of ``k`` cells, so the information is nonsingular."""
+    from scipy.linalg import qr
+
+    _, _, piv = qr(Yk[:, allowed], mode="economic", pivoting=True)
+    return allowed[piv[:k]].astype(np.int64)
+
+
+def place_sensors(
+    Y: Any,
+    region: Region,
+    n_sensors: int,
+    *,
+    criterion: str = "fisher",
+    ridge: float = 0.0,
+    prior: Any = None,
+    progress: bool = False,
+    traversable: Any = None,
+    training: Any = None,
+    exchange: bool = False,
+    sweeps: int = 5,
+    **terms: Any,
+) -> Plan:
+    """Static placement: ``n_sensors`` fixed sensors (moorings, stations), no travel.
+
+    The greedy of :func:`~lrm_cvx.planning.plan_greedy` with every sensor costing 1: candidates
+    are all valid cells (or the cells of a boolean ``(lat, lon)`` DataArray ``traversable``:
+    where a sensor may stand), and each step adds the cell of largest gain (ties to the lowest
+    cell) until ``n_sensors`` are placed (or no cell gains anything). The criteria, ``prior``
+    and posterior terms are those of :func:`plan_greedy`.
+
+    Initial cells: none when the information is nonsingular from the start (``ridge > 0``, a
+    prior precision, or ``"gp-variance"``); else (Fisher with ``ridge=0`` and no prior) the
+    first ``k`` pivots of a column-pivoted QR of ``Y`` (the QR placement of PySensors), and
+    ``n_sensors`` must be ``>= k``. Returns a :class:`Plan` with ``path["kind"] == "static"``,
+    ``route`` = the sensors in selection order (no travel), ``route_cost`` = the number of
+    sensors placed so far, ``cost`` = the number of sensors, ``start = -1``.
+
+    ``criterion="risk"``: the greedy on the fold-in's own
+    squared reconstruction error over the ``training`` snapshots (a ``(time, lat, lon)``
+    DataArray on the region's grid); ``prior`` is the fold-in's belief
+    (``model.latent_prior("empirical", spatial=True)``) or the fitted GLRM. It places exactly
+    ``n_sensors``. ``exchange=True`` (``"risk"`` or ``"gp-variance"``) then swaps sensors while
+    a swap lowers the objective (at most ``sweeps`` sweeps; never worse). Both hold a dense
+    ``L x L`` covariance: at most ``static.RISK_MAX_CELLS`` cells.
+    """
+    region = check_region(region)
+    bad = set(terms) - set(PRIOR_TERMS)
+    if bad:
+        raise TypeError(f"place_sensors() got an unexpected keyword argument {sorted(bad)[0]!r}")
+    terms = {key: terms.get(key) for key in PRIOR_TERMS}
+    Yk = as_factor_matrix(Y, region)
+    k, L = Yk.shape
+    if isinstance(n_sensors, (bool, np.bool_)) or n_sensors is None:
+        raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
+    try:
+        n = int(n_sensors)
+        ok = n == float(n_sensors) and n >= 1
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
+    risk = isinstance(criterion, str) and criterion == "risk"
+    if not risk:
+        criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")
+    if traversable is None or (isinstance(traversable, str) and traversable == "valid"):
+        allowed = np.arange(L, dtype=np.int64)
+    else:
+        mask = _site_mask(region, traversable)
+        gi = region.grid_index
+        allowed = np.flatnonzero(mask[gi[:, 0], gi[:, 1]]).astype(np.int64)
+        if allowed.size == 0:
+            raise PlanningError("traversable allows no valid cell for a sensor")
+    if n > allowed.size:
+        raise PlanningError(f"n_sensors = {n} but only {allowed.size} cells can hold a sensor")
+    if risk or exchange is not False or training is not None:
+        return place_static(Yk, region, n, allowed, criterion=criterion, prior=prior,
+                            training=training, exchange=exchange, sweeps=sweeps, other=dict(
+                                ridge=ridge, progress=progress, traversable=traversable,
+                                **terms))
+    targets = terms.pop("targets")
+    terms = resolve_prior(prior, terms)
+    posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
+    extra = oracle_terms(criterion, region, allowed, terms, targets)
+    P0 = np.empty(0, dtype=np.int64)
+    try:
+        oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
+    except PlanningError as exc:
+        if criterion != "fisher" or "singular" not in str(exc):
+            raise
+        if n < k:
+            raise PlanningError(
+                f"n_sensors = {n} < rank k = {k}: with ridge=0 and no prior the information "
+                f"of fewer than {k} sensors is singular; pass ridge > 0 or a prior") from None
+        P0 = _qr_start(Yk, allowed, k)
+        oracle = make_oracle(criterion, Yk, ridge, P0, **extra)
+    cells = [int(c) for c in P0]
+    active = np.ones(allowed.size, dtype=bool)
+    active[np.searchsorted(allowed, P0)] = False
+    hist: dict[str, list[float]] = {
+        "cell": [], "gain": [], "cost_increase": [], "ratio": [], "cost": [], "n_evaluated": []
+    }
+    bar = tqdm(desc="sensor placement", unit="sensor", disable=not progress, leave=False)
+    try:
+        while len(cells) < n:
+            gains = np.where(active, oracle.gains(allowed), -np.inf)
+            b = int(np.argmax(gains))
+            if not gains[b] > 0:
+                break
+            cell = int(allowed[b])
+            active[b] = False
+            oracle.add(cell)
+            cells.append(cell)
+            for key, v in (("cell", cell), ("gain", gains[b]), ("cost_increase", 1.0),
+                           ("ratio", gains[b]), ("cost", float(len(cells))),
+                           ("n_evaluated", int(active.sum()) + 1)):
+                hist[key].append(v)
+            bar.update(1)
+    finally:
+        bar.close()
+    route_cost = np.arange(1, len(cells) + 1, dtype=np.float64)
+    return Plan.build(
+        region=region, cells=cells, route=cells, cost=float(len(cells)),
+        information=fisher_information(Yk, cells, ridge), criterion=criterion,
+        budget=float(n), start=-1, ridge=float(ridge), method="greedy",
+        history=history_arrays(hist), cost_function="sensors", Y=Yk, posterior=posterior,
+        route_cost=route_cost,
+        path=PlanPath(kind="static", unit="sensors", budgets=[float(n)],
+                      traversable="none" if allowed.size == L else "mask"),
+    )
+
+
+def _site_mask(region: Region, traversable: Any) -> np.ndarray:
+    """``traversable`` as a ``(ny, nx)`` bool array on the region's grid (a DataArray must
+    have the region's lat/lon), else a PlanningError naming it."""
+    arr = np.asarray(getattr(traversable, "values", traversable))
+    bad = arr.shape != tuple(region.shape) or arr.dtype != bool
+    if not bad and hasattr(traversable, "dims"):
+        from ..region import spatial_dims
+
+        try:
+            la, lo = spatial_dims(traversable)
+            bad = not (np.allclose(traversable[la].values, region.lat.values)
+                       and np.allclose(traversable[lo].values, region.lon.values))
+        except Exception:
+            bad = True
+    if bad:
+        raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
+                            f"DataArray on the region's grid {tuple(region.shape)}, got "
+                            f"{type(traversable).__name__} of shape {arr.shape}")
+    return arr
