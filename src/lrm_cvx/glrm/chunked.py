@@ -48,6 +48,7 @@ from .dynamics import error_rows
 from .fit import (
     SMALL_SVD,
     SSE_RTOL,
+    FitOptions,
     FitResult,
     direct_sse,
     finish_convergence,
@@ -337,22 +338,14 @@ def fit_chunked(
     *,
     mask: Any = None,
     region: Region | None = None,
-    max_iter: int = 100,
-    tol: float = 1e-4,
-    init: str = "svd",
-    solver: str = "auto",
-    rng: np.random.Generator | None = None,
-    progress: bool = False,
     keep_dask: bool = False,
-    chunk_mb: float = 256.0,
-    scratch_dir: str | None = None,
-    block_mb: float = 256.0,
+    staging_options: dict | None = None,
     timings: dict | None = None,
-    offset: bool = False,
     scale: bool = False,
     residual_moments: bool = False,
     residual_rows: int | None = None,
     extras: dict | None = None,
+    **options: Any,
 ) -> tuple[FitResult, Region | None, Any, str]:
     """Fit a GLRM to (dask-backed) ``data`` chunk by chunk; return ``(result, region, times,
     time_dim)``.
@@ -376,8 +369,20 @@ def fit_chunked(
     time's observed mask, ``(L,)``) for :func:`~.predictive.set_predictive`, and
     ``"error_masks"`` (the masks of the :func:`~.dynamics.error_rows` snapshots, bit-packed,
     ``error_masks[t]`` a row) for the dynamics' errors-in-variables correction.
+
+    ``options``: the :class:`~.fit.FitOptions` as keywords (``max_iter``, ``tol``, ``init``,
+    ``solver``, ``rng``, ``progress``, ``offset``; not ``max_inner``) and the staging's
+    ``chunk_mb``, ``scratch_dir``, ``block_mb`` (or all three in ``staging_options``).
     """
-    rng = np.random.default_rng() if rng is None else rng
+    stage_kw = {"chunk_mb": 256.0, "scratch_dir": None, "block_mb": 256.0}
+    stage_kw.update(staging_options or {})
+    for key in ("chunk_mb", "scratch_dir", "block_mb"):
+        if key in options:
+            stage_kw[key] = options.pop(key)
+    o = FitOptions.from_kwargs("fit_chunked", options, exclude=("max_inner",))
+    max_iter, tol, init, solver, progress, offset = (o.max_iter, o.tol, o.init, o.solver,
+                                                     o.progress, o.offset)
+    rng = np.random.default_rng() if o.rng is None else o.rng
     if solver not in ("auto", "fast", "cvxpy"):
         raise ModelError(f"solver must be 'auto', 'fast' or 'cvxpy', got {solver!r}")
     if solver == "cvxpy" or not is_fast_capable(loss, reg_x, reg_y):
@@ -392,9 +397,8 @@ def fit_chunked(
     if isinstance(rank, bool) or not isinstance(rank, (int, np.integer)):
         raise ModelError(f"rank must be an integer, got {rank!r}")
     clock = _Clock(timings)
-    store, region, times, tdim = staging.stage(data, mask=mask, region=region, chunk_mb=chunk_mb,
-                                       scratch_dir=scratch_dir, block_mb=block_mb,
-                                       timings=timings)
+    store, region, times, tdim = staging.stage(data, mask=mask, region=region, timings=timings,
+                                               **stage_kw)
     clock.mark("stage")
     try:
         res = _fit_store(store, int(rank), loss, reg_x, reg_y, max_iter, tol, init, rng,

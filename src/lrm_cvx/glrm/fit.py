@@ -30,7 +30,8 @@ Block solvers, chosen by capability (never by name):
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import Any
 
 import cvxpy as cp
 import numba
@@ -47,6 +48,7 @@ from .regularizers import Regularizer
 __all__ = [
     "FitResult",
     "fit_glrm",
+    "FitOptions",
     "objective",
     "y_block",
     "x_block",
@@ -637,6 +639,38 @@ def _orth_rows(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # --------------------------------------------------------------------------- the loop
+@dataclass(frozen=True)
+class FitOptions:
+    """How the alternating minimisation runs (:func:`fit_glrm`, and ``fit_chunked`` but for
+    ``max_inner``): ``max_iter`` rounds at most, stop when the relative decrease of the
+    objective falls below ``tol``, ``init`` ``"svd"`` | ``"random"``, ``solver`` ``"auto"`` |
+    ``"fast"`` | ``"cvxpy"``, ``rng`` (a numpy Generator; None: fresh entropy), ``progress``
+    (a tqdm bar), ``max_inner`` majorise-minimise steps per block and round, ``offset`` (``D``
+    is already centred by a fitted per-cell mean: counted in ``noise_std``'s degrees of
+    freedom)."""
+
+    max_iter: int = 100
+    tol: float = 1e-4
+    init: str = "svd"
+    solver: str = "auto"
+    rng: Any = None
+    progress: bool = False
+    max_inner: int = 1
+    offset: bool = False
+
+    @classmethod
+    def from_kwargs(cls, function: str, options: dict[str, Any],
+                    exclude: tuple[str, ...] = ()) -> FitOptions:
+        """The options from keyword arguments; a TypeError names any other keyword, as a
+        signature would."""
+        known = {f.name for f in fields(cls)} - set(exclude)
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise TypeError(f"{function}() got unexpected keyword argument(s) {unknown}; "
+                            f"the fit options are {sorted(known)}")
+        return cls(**options)
+
+
 def fit_glrm(
     D: np.ndarray,
     M: np.ndarray,
@@ -645,18 +679,14 @@ def fit_glrm(
     reg_x: Regularizer,
     reg_y: Regularizer,
     *,
-    max_iter: int = 100,
-    tol: float = 1e-4,
-    init: str = "svd",
-    solver: str = "auto",
-    rng: np.random.Generator | None = None,
-    progress: bool = False,
-    max_inner: int = 1,
     stats: tuple[np.ndarray, np.ndarray] | None = None,
     overwrite_data: bool = False,
-    offset: bool = False,
+    **options: Any,
 ) -> FitResult:
     """Fit ``X (k, T)``, ``Y (k, L)`` to ``D`` on the entries where ``M`` is True.
+
+    ``options``: the :class:`FitOptions` as keywords (``max_iter``, ``tol``, ``init``,
+    ``solver``, ``rng``, ``progress``, ``max_inner``, ``offset``).
 
     ``D`` is read through its zero-filled form (:func:`~.quadratic.prepare`): a ``D`` that
     holds values (NaN) at unobserved entries is copied once, or zero-filled in place when
@@ -670,7 +700,10 @@ def fit_glrm(
     rounds (ConvergenceWarning when ``tol > 0``). Cells never observed get ``reg_y``'s
     minimiser (zero) and are listed in ``unobserved_cells``.
     """
-    rng = np.random.default_rng() if rng is None else rng
+    o = FitOptions.from_kwargs("fit_glrm", options)
+    max_iter, tol, init, solver, progress, max_inner, offset = (
+        o.max_iter, o.tol, o.init, o.solver, o.progress, o.max_inner, o.offset)
+    rng = np.random.default_rng() if o.rng is None else o.rng
     if solver not in ("auto", "fast", "cvxpy"):
         raise ModelError(f"solver must be 'auto', 'fast' or 'cvxpy', got {solver!r}")
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:

@@ -66,6 +66,14 @@ def _grid(n: int, lo: float, hi: float, descending: bool) -> np.ndarray:
     return centres[::-1].copy() if descending else centres
 
 
+FIELD_OPTIONS: dict[str, Any] = {
+    "lat_range": (-35.0, 37.5), "lon_range": (-18.0, 52.0), "start_date": "2013-01-01",
+    "dtype": np.float32, "name": "ndvi", "time_factors": None, "clip": True,
+    "mode_amplitudes": None,
+}
+"""The less common options of :func:`synthetic_field` and their defaults."""
+
+
 def synthetic_field(
     n_times: int,
     shape: tuple[int, int],
@@ -74,16 +82,9 @@ def synthetic_field(
     missing: float = 0.5,
     noise: float = 0.05,
     land_fraction: float = 0.7,
-    lat_range: tuple[float, float] = (-35.0, 37.5),
-    lon_range: tuple[float, float] = (-18.0, 52.0),
-    start_date: Any = "2013-01-01",
     seed: Any = 0,
-    dtype: Any = np.float32,
-    name: str = "ndvi",
     return_truth: bool = False,
-    time_factors: Any = None,
-    clip: bool = True,
-    mode_amplitudes: Any = None,
+    **options: Any,
 ) -> xr.DataArray | tuple[xr.DataArray, dict[str, Any]]:
     """A planted rank-``rank`` NDVI-like field ``(time, lat, lon)`` with land mask and cloud gaps.
 
@@ -109,7 +110,19 @@ def synthetic_field(
 
     With ``return_truth`` also returns ``{"X": (rank, T) float64, "Y": (rank, ny, nx) float32,
     "land_mask": (ny, nx) bool, "noise": noise}``; ``X.T @ Y`` is the noise-free field.
+
+    ``options`` (keywords, defaults in :data:`FIELD_OPTIONS`): ``lat_range`` / ``lon_range``
+    (degrees), ``start_date``, ``dtype`` (a float dtype), ``name`` (of the DataArray),
+    ``time_factors``, ``clip``, ``mode_amplitudes`` as above.
     """
+    unknown = sorted(set(options) - set(FIELD_OPTIONS))
+    if unknown:
+        raise TypeError(f"synthetic_field() got unexpected keyword argument(s) {unknown}; "
+                        f"its options are {sorted(FIELD_OPTIONS)}")
+    opts = {**FIELD_OPTIONS, **options}
+    lat_range, lon_range, start_date = opts["lat_range"], opts["lon_range"], opts["start_date"]
+    dtype, name, time_factors = opts["dtype"], opts["name"], opts["time_factors"]
+    clip, mode_amplitudes = opts["clip"], opts["mode_amplitudes"]
     n_times = _check_int(n_times, "n_times", 1)
     try:
         ny, nx = (int(s) for s in shape)
