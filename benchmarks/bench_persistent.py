@@ -48,6 +48,7 @@ from lrm_cvx.evaluation import evaluate, summary
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibration import calibrate, select_dynamics
 from lrm_cvx.io.samples import synthetic_dynamic_field
+from lrm_cvx.monitor import MonitorState
 
 warnings.filterwarnings("ignore")
 
@@ -368,7 +369,7 @@ def _paper_day(model, region, shape, truth, times, check_exact: bool = False) ->
     with PeakRSS() as pk:
         t_day = time.perf_counter()
         t0 = time.perf_counter()
-        state = model.monitor()
+        state = MonitorState.from_model(model)
         state.forecast()  # the forecast maps (timed; the plan uses the same prior)
         stages["forecast (maps)"] = time.perf_counter() - t0
         t0 = time.perf_counter()

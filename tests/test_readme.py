@@ -30,7 +30,7 @@ def test_persistent_monitoring_block_runs(tmp_path, monkeypatch):
 
     monkeypatch.chdir(tmp_path)
     namespace: dict = {}
-    exec(compile(_block("model.monitor()"), str(README), "exec"), namespace)  # noqa: S102
+    exec(compile(_block("MonitorState.from_model(model)"), str(README), "exec"), namespace)  # noqa: S102
     state = namespace["state"]
     assert state.time == namespace["test"].time.values[-1]
     back = MonitorState.load(tmp_path / "state.nc", namespace["model"])
