@@ -422,3 +422,16 @@ def test_cli_exits_2_cleanly_after_a_server_without_range(no_range_file, tmp_pat
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and "does not support HTTP Range requests" in lines[0]
     assert not (tmp_path / "m.nc").exists()
+
+
+def test_cli_exits_2_when_the_connection_drops_inside_h5py(http, global_files, tmp_path):
+    # the metadata and the range probe arrive, then h5py's next read is cut: HDF5 keeps the
+    # file-object driver's property list, whose release at exit crashed the process (139)
+    path = global_files["tiled"]
+    http.drop_after, http.drop_from = 100, 2
+    proc = subprocess.run([sys.executable, "-m", "lrm_cvx.cli", "-q", "fit", url_of(http, path),
+                           "-o", str(tmp_path / "m.nc")], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "dropped" in lines[0], proc.stderr

@@ -256,18 +256,80 @@ def _with_retries(func: Callable[[], T], url: str, retries: int | None = None,
         try:
             return func()
         except DataError:
+            _release_failed_reads()
             raise
         except Exception as exc:
             transient, reason = _classify(exc)
-            if transient and attempt < retries:
-                time.sleep(backoff * 2**attempt)
-                continue
-            tries = f" after {attempt + 1} attempts" if attempt else ""
-            if url.startswith("s3://") and "status 403" in reason:
-                tries += (" (S3 reads are anonymous unless credentials are in the environment "
-                          "or storage_options)")
-            raise DataError(f"cannot read {url}: {reason}{tries}") from None
+        # outside the except block: the failure's traceback (its frames hold the half-opened
+        # h5py file and the remote file object under it) is gone, and nothing chains to it
+        _release_failed_reads()
+        if transient and attempt < retries:
+            time.sleep(backoff * 2**attempt)
+            continue
+        tries = f" after {attempt + 1} attempts" if attempt else ""
+        if url.startswith("s3://") and "status 403" in reason:
+            tries += (" (S3 reads are anonymous unless credentials are in the environment "
+                      "or storage_options)")
+        raise DataError(f"cannot read {url}: {reason}{tries}")
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _release_failed_reads() -> None:
+    """Free, now, what a read that failed inside h5py left behind.
+
+    When a read fails inside ``H5Fopen`` (a connection dropped mid-file, a server without
+    ranges), HDF5 2.0 keeps one reference to the file-access property list whose driver is
+    h5py's Python file-object driver. HDF5 frees it only at process exit, from a C ``atexit``
+    handler that runs after Python has shut down; the driver's free callback then takes the
+    GIL of a finalized interpreter and the process dies with SIGSEGV (exit 139) after the right
+    error was printed (gdb: ``H5_term_library -> H5FD_fileobj_fapl_free ->
+    PyGILState_Ensure``). So after a failure the file-object property lists nothing in Python
+    holds any more are released here, while the interpreter is alive."""
+    import gc
+
+    gc.collect()  # the failed h5py objects: their own references go first
+    lib = _hdf5_library()
+    if lib is None:
+        return
+    import ctypes
+
+    import h5py.h5fd
+    import h5py.h5i
+
+    found: list[int] = []
+    callback = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_int64, ctypes.c_void_p)(
+        lambda hid, _: found.append(hid) or 0)
+    lib.H5Iiterate(h5py.h5i.GENPROP_LST, callback, None)
+    fileobj = int(h5py.h5fd.fileobj_driver)
+    for hid in found:
+        if lib.H5Pget_driver(hid) == fileobj:
+            while lib.H5Iget_ref(hid) > 0 and lib.H5Idec_ref(hid) >= 0:
+                pass
+
+
+def _hdf5_library() -> Any:
+    """The HDF5 library h5py loaded (ctypes), with the few signatures used here; None when it
+    cannot be found (then nothing is released: the error is still raised)."""
+    import ctypes
+
+    import h5py  # noqa: F401  (loads the library)
+
+    try:
+        with open("/proc/self/maps", encoding="utf-8") as maps:
+            paths = {line.split()[-1] for line in maps if "libhdf5" in line}
+    except OSError:  # pragma: no cover - not Linux
+        return None
+    paths = [p for p in paths if os.path.basename(p).startswith("libhdf5")
+             and "_hl" not in os.path.basename(p)]
+    if not paths:  # pragma: no cover
+        return None
+    lib = ctypes.CDLL(sorted(paths)[0])
+    cb = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_int64, ctypes.c_void_p)
+    lib.H5Iiterate.argtypes = [ctypes.c_int, cb, ctypes.c_void_p]
+    for name in ("H5Pget_driver", "H5Iget_ref", "H5Idec_ref"):
+        getattr(lib, name).argtypes = [ctypes.c_int64]
+    lib.H5Pget_driver.restype = ctypes.c_int64
+    return lib
 
 
 class _RecordingFile:
