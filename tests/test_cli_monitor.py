@@ -215,3 +215,41 @@ def test_fit_hold_out_bad_input(tmp_path, capsys, argv, needle):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err, err
     assert not (tmp_path / "m.nc").exists()
+
+
+# ------------------------------------------- issue 25, item 1: one daily loop, every path model
+def test_monitor_plan_takes_every_path_option_and_fleets(tmp_path, capsys):
+    from lrm_cvx import load_sample
+    from lrm_cvx.monitor import MonitorState
+    from lrm_cvx.planning import plan_greedy
+    from lrm_cvx.replanning import route_feasible
+
+    sst = load_sample("sst")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(5, offset=True, spatial="exponential", temporal="ar1", random_state=0,
+                     progress=False).fit(sst.isel(time=slice(None, -3)))
+    model.save(tmp_path / "m.nc")
+    state = tmp_path / "s.nc"
+    assert _run("monitor", "init", tmp_path / "m.nc", "--state", state) == 0
+    out = tmp_path / "fleet.csv"
+    assert _run("monitor", "plan", state, "--start", "10,200", "--start", "-20,240",
+                "--budget", 6000, "--metric", "km", "--traversable", "valid", "--closed",
+                "-o", out) == 0
+    assert "2 robots" in capsys.readouterr().out
+    # the same plan as the Python loop with the same path model
+    s = MonitorState.load(state)
+    expected = plan_greedy(model.Y_, model.region_, [(10.0, 200.0), (-20.0, 240.0)], 6000.0,
+                           criterion="gp-variance", initial="start", progress=False,
+                           metric="km", traversable="valid", closed=True,
+                           **s.planner_kwargs())
+    table = pd.read_csv(out)
+    np.testing.assert_array_equal(table["cell"], expected.route)
+    assert route_feasible(expected, model.region_) == []
+    # hours, stop costs, a fixed end, sensing along: accepted, and a bad flag is one line
+    assert _run("monitor", "plan", state, "--start", "10,200", "--budget", 100, "--metric",
+                "km", "--speed", 20, "--stop-cost", 1, "--end", "20,220", "--sense-along",
+                "-o", tmp_path / "h.geojson") == 0
+    assert _run("monitor", "plan", state, "--start", "10,200", "--start", "-20,240",
+                "--budget", 1, "--budget", 2, "--budget", 3, "-o", tmp_path / "x.csv") == 2
+    assert "once per --start" in capsys.readouterr().err

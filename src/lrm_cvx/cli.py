@@ -27,15 +27,19 @@ from .cli_common import (
     add_common,
     add_mission_options,
     add_output,
+    add_path_options,
     check_lat,
     check_plan_output,
     describe_plan,
     finite_number,
     guard_paths,
     load_model,
+    mask_files,
     parse_floats,
-    parse_start,
+    path_options,
     read_observations_csv,
+    read_traversable,
+    starts_budgets,
     write_plan,
 )
 from .errors import LrmError
@@ -53,56 +57,6 @@ EVALUATION_FILES = ("results.nc", "summary.csv", "metrics.png", "metrics.pdf",
 
 
 # ---------------------------------------------------------------------------- arguments
-def _starts_budgets(args: argparse.Namespace) -> tuple[object, object]:
-    """``--start`` once (one robot) or several times (a fleet), ``--budget`` once (every robot)
-    or once per start: the ``start`` / ``budget`` of ``plan_greedy``."""
-    starts = args.start if isinstance(args.start, list) else [args.start]
-    budgets = args.budget if isinstance(args.budget, list) else [args.budget]
-    if len(budgets) not in (1, len(starts)):
-        raise UsageError(f"--budget must be given once (every robot) or once per --start "
-                         f"({len(starts)} starts), got {len(budgets)} budgets")
-    points = [parse_start(s) for s in starts]
-    if len(points) == 1:
-        return points[0], budgets[0]
-    return points, (budgets[0] if len(budgets) == 1 else budgets)
-
-
-def _traversable(text: str | None):
-    """``--traversable``: None, ``"valid"``, or a NetCDF file holding one boolean (or 0/1)
-    ``(lat, lon)`` variable (True = the robot may enter), read as a DataArray."""
-    if text is None or text.strip().lower() == "valid":
-        return None if text is None else "valid"
-    from ._validation import read_netcdf
-
-    ds = read_netcdf(text, "--traversable mask file", "a (lat, lon) boolean mask")
-    names = [v for v in ds.data_vars if ds[v].ndim == 2]
-    if len(names) != 1:
-        raise UsageError(f"--traversable {text} must hold exactly one 2-D (lat, lon) variable "
-                         f"(True = may enter), found {list(ds.data_vars)}")
-    mask = ds[names[0]]
-    if mask.dtype != bool:
-        values = np.asarray(mask.values)
-        if not np.issubdtype(values.dtype, np.number) or not np.isin(values, (0, 1)).all():
-            raise UsageError(f"--traversable {text}: variable {names[0]!r} must be boolean or "
-                             f"0/1 (True = may enter), got dtype {values.dtype}")
-        mask = mask.astype(bool)
-    return mask
-
-
-def _path_options(args: argparse.Namespace, *, fleet_end: bool = True):
-    """The path request of ``plan`` / ``bound`` / ``evaluate``: one
-    :class:`~lrm_cvx.planning.request.PathOptions` read from the flags (the paper's when none
-    is given)."""
-    from .planning.request import PathOptions
-
-    end = getattr(args, "end", None) if fleet_end else None
-    return PathOptions(
-        metric=args.metric, speed=args.speed, stop_cost=args.stop_cost or 0.0,
-        traversable=None if args.traversable is None else _traversable(args.traversable),
-        closed=bool(args.closed), end=None if end is None else parse_start(end, "--end"),
-        sense_along=bool(getattr(args, "sense_along", False)))
-
-
 def _bbox(text: str | None) -> tuple[float, float, float, float] | None:
     if text is None:
         return None
@@ -278,8 +232,8 @@ def _plan_from_args(args: argparse.Namespace):
     from .planning import plan_greedy
 
     model = load_model(args.model)
-    start, budget = _starts_budgets(args)
-    path = _path_options(args)
+    start, budget = starts_budgets(args)
+    path = path_options(args)
     from .information import CRITERIA
 
     criterion = _canonical(CRITERIA, _pick(args.criterion, args.recommended, "criterion",
@@ -306,7 +260,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     out = None
     if args.output:
         check_plan_output(args.output)
-        (out,) = guard_paths([args.output], [args.model, *_mask_file(args)], args)
+        (out,) = guard_paths([args.output], [args.model, *mask_files(args)], args)
     _, plan = _plan_from_args(args)
     print(describe_plan(plan))
     if out is not None:
@@ -322,7 +276,7 @@ def cmd_place(args: argparse.Namespace) -> int:
     out = None
     if args.output:
         check_plan_output(args.output, SENSOR_SUFFIXES)
-        ins = [args.model, *_mask_file(args), *(_input_files(args.data) if args.data else [])]
+        ins = [args.model, *mask_files(args), *(_input_files(args.data) if args.data else [])]
         (out,) = guard_paths([args.output], ins, args)
     criterion = args.criterion or ("risk" if args.data else "gp-variance")
     if criterion != "risk":
@@ -341,7 +295,7 @@ def cmd_place(args: argparse.Namespace) -> int:
         _need_spatial(model, args.model, "--criterion gp-variance")
     kw: dict = {"training": _load(args)} if criterion == "risk" else {}
     if args.traversable is not None:
-        kw["traversable"] = _traversable(args.traversable)
+        kw["traversable"] = read_traversable(args.traversable)
     prior = model.latent_prior("empirical", spatial=getattr(model, "spatial_cov_", None)
                                is not None and criterion in ("gp-variance", "risk"))
     plan = place_sensors(model.Y_, model.region_, args.sensors, criterion=criterion,
@@ -362,12 +316,6 @@ def cmd_place(args: argparse.Namespace) -> int:
     if out is not None:
         write_plan(plan, out)
     return 0
-
-
-def _mask_file(args: argparse.Namespace) -> list[str]:
-    """The ``--traversable`` mask file, an input (never overwritten), or nothing."""
-    t = getattr(args, "traversable", None)
-    return [] if t is None or t.strip().lower() == "valid" else [t]
 
 
 def cmd_bound(args: argparse.Namespace) -> int:
@@ -487,9 +435,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     out_dir = Path(args.out)
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"--out {out_dir} is an existing file; give a folder")
-    inputs = _input_files(args.data) + [Path(p) for p in _mask_file(args)]
+    inputs = _input_files(args.data) + [Path(p) for p in mask_files(args)]
     guard_paths([out_dir / name for name in EVALUATION_FILES], inputs, args)
-    path = _path_options(args, fleet_end=False)
+    path = path_options(args, fleet_end=False)
     budgets = parse_floats(args.budgets, None, "--budgets")
     if min(budgets) < 0:
         raise UsageError(f"--budgets must be numbers >= 0, got {args.budgets!r}")
@@ -611,39 +559,9 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--initial", default=None,
                    help="forced initial cells: nearest (the start and its k-1 nearest cells, "
                    "the paper; default) or start (the start alone; with --recommended)")
-    _add_path_options(p)
-    p.add_argument("--end", default=None,
-                   help="LAT,LON where every route must finish (a sampling stop; not with "
-                   "--closed)")
-    p.add_argument("--sense-along", action="store_true",
-                   help="observe every cell the route passes, not only its stops")
+    add_path_options(p, route=True)
     _add_recommended(p, "criterion gp-variance, prior empirical, initial start (needs a "
                         "model fitted with --spatial or --recommended)")
-
-
-def _metric_choices() -> tuple[str, ...]:
-    try:
-        from .planning.paths import METRICS
-    except ImportError:  # pragma: no cover - the path model defines them
-        return ("grid", "km")
-    return tuple(METRICS)
-
-
-def _add_path_options(p: argparse.ArgumentParser) -> None:
-    """The path model (docs/planning.md): budget unit, travel graph, closed tours."""
-    p.add_argument("--metric", default="grid", choices=_metric_choices(),
-                   help="budget unit: grid (grid cells, the paper; default) or km (great-circle "
-                   "km between cell centres)")
-    p.add_argument("--speed", type=finite_number, default=None,
-                   help="speed in km/h (with --metric km): the budget is then in hours")
-    p.add_argument("--stop-cost", type=finite_number, default=0.0,
-                   help="cost of each sampling stop in the budget's unit (time on station; "
-                   "default 0)")
-    p.add_argument("--traversable", default=None, metavar="valid|PATH.nc",
-                   help="travel only through enterable cells: valid (the model's cells) or a "
-                   "NetCDF file with one boolean (lat, lon) variable (True = may enter)")
-    p.add_argument("--closed", action="store_true",
-                   help="closed tours: every route returns to its start")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -758,7 +676,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fold-spatial", action="store_true",
                    help="predict with the kriged GP residual (needs --spatial)")
     _add_model_options(p)
-    _add_path_options(p)
+    add_path_options(p)
     p.add_argument("--robots", type=_int_at_least(1), default=1,
                    help="robots per start (a fleet of distinct random start cells; the budget "
                    "is per robot; default 1)")

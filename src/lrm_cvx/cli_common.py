@@ -22,7 +22,9 @@ from .errors import LrmError
 __all__ = ["UsageError", "parse_floats", "check_lat", "parse_start", "finite_number",
            "add_common", "add_output", "check_writable", "guard_paths", "load_model",
            "read_observations_csv", "describe_plan", "write_plan", "PLAN_SUFFIXES",
-           "SENSOR_SUFFIXES", "check_plan_output", "add_mission_options"]
+           "SENSOR_SUFFIXES", "check_plan_output", "add_mission_options", "starts_budgets",
+           "read_traversable", "path_options", "metric_choices", "add_path_options",
+           "mask_files"]
 
 
 class UsageError(LrmError, ValueError):
@@ -240,3 +242,92 @@ def write_plan(plan: Any, out: Path, args: argparse.Namespace | None = None) -> 
             print(f"mission altitude {DEFAULT_ALTITUDE:g} m above home (the default; set "
                   "--altitude)")
     print(f"{'sensors' if plan.path.get('kind') == 'static' else 'route'} written to {out}")
+
+
+# ----------------------------------------------------------------------- the path request
+def starts_budgets(args: argparse.Namespace) -> tuple[object, object]:
+    """``--start`` once (one robot) or several times (a fleet), ``--budget`` once (every robot)
+    or once per start: the ``start`` / ``budget`` of ``plan_greedy``."""
+    starts = args.start if isinstance(args.start, list) else [args.start]
+    budgets = args.budget if isinstance(args.budget, list) else [args.budget]
+    if len(budgets) not in (1, len(starts)):
+        raise UsageError(f"--budget must be given once (every robot) or once per --start "
+                         f"({len(starts)} starts), got {len(budgets)} budgets")
+    points = [parse_start(s) for s in starts]
+    if len(points) == 1:
+        return points[0], budgets[0]
+    return points, (budgets[0] if len(budgets) == 1 else budgets)
+
+
+def read_traversable(text: str | None):
+    """``--traversable``: None, ``"valid"``, or a NetCDF file holding one boolean (or 0/1)
+    ``(lat, lon)`` variable (True = the robot may enter), read as a DataArray."""
+    if text is None or text.strip().lower() == "valid":
+        return None if text is None else "valid"
+    from ._validation import read_netcdf
+
+    ds = read_netcdf(text, "--traversable mask file", "a (lat, lon) boolean mask")
+    names = [v for v in ds.data_vars if ds[v].ndim == 2]
+    if len(names) != 1:
+        raise UsageError(f"--traversable {text} must hold exactly one 2-D (lat, lon) variable "
+                         f"(True = may enter), found {list(ds.data_vars)}")
+    mask = ds[names[0]]
+    if mask.dtype != bool:
+        values = np.asarray(mask.values)
+        if not np.issubdtype(values.dtype, np.number) or not np.isin(values, (0, 1)).all():
+            raise UsageError(f"--traversable {text}: variable {names[0]!r} must be boolean or "
+                             f"0/1 (True = may enter), got dtype {values.dtype}")
+        mask = mask.astype(bool)
+    return mask
+
+
+def path_options(args: argparse.Namespace, *, fleet_end: bool = True):
+    """The path request of ``plan`` / ``bound`` / ``evaluate``: one
+    :class:`~lrm_cvx.planning.request.PathOptions` read from the flags (the paper's when none
+    is given)."""
+    from .planning.request import PathOptions
+
+    end = getattr(args, "end", None) if fleet_end else None
+    return PathOptions(
+        metric=args.metric, speed=args.speed, stop_cost=args.stop_cost or 0.0,
+        traversable=None if args.traversable is None else read_traversable(args.traversable),
+        closed=bool(args.closed), end=None if end is None else parse_start(end, "--end"),
+        sense_along=bool(getattr(args, "sense_along", False)))
+
+
+def metric_choices() -> tuple[str, ...]:
+    try:
+        from .planning.paths import METRICS
+    except ImportError:  # pragma: no cover - the path model defines them
+        return ("grid", "km")
+    return tuple(METRICS)
+
+
+def add_path_options(p: argparse.ArgumentParser, *, route: bool = False) -> None:
+    """The path model (docs/planning.md): budget unit, travel graph, closed tours; with
+    ``route`` also ``--end`` and ``--sense-along`` (plan, bound, monitor plan)."""
+    p.add_argument("--metric", default="grid", choices=metric_choices(),
+                   help="budget unit: grid (grid cells, the paper; default) or km (great-circle "
+                   "km between cell centres)")
+    p.add_argument("--speed", type=finite_number, default=None,
+                   help="speed in km/h (with --metric km): the budget is then in hours")
+    p.add_argument("--stop-cost", type=finite_number, default=0.0,
+                   help="cost of each sampling stop in the budget's unit (time on station; "
+                   "default 0)")
+    p.add_argument("--traversable", default=None, metavar="valid|PATH.nc",
+                   help="travel only through enterable cells: valid (the model's cells) or a "
+                   "NetCDF file with one boolean (lat, lon) variable (True = may enter)")
+    p.add_argument("--closed", action="store_true",
+                   help="closed tours: every route returns to its start")
+    if route:  # plan and monitor plan (not evaluate: a fleet's starts vary there)
+        p.add_argument("--end", default=None,
+                       help="LAT,LON where every route must finish (a sampling stop; not with "
+                       "--closed)")
+        p.add_argument("--sense-along", action="store_true",
+                       help="observe every cell the route passes, not only its stops")
+
+
+def mask_files(args: argparse.Namespace) -> list[str]:
+    """The ``--traversable`` mask file, an input (never overwritten), or nothing."""
+    t = getattr(args, "traversable", None)
+    return [] if t is None or t.strip().lower() == "valid" else [t]

@@ -27,13 +27,16 @@ from .cli_common import (
     add_common,
     add_mission_options,
     add_output,
+    add_path_options,
     check_plan_output,
     describe_plan,
     finite_number,
     guard_paths,
     load_model,
-    parse_start,
+    mask_files,
+    path_options,
     read_observations_csv,
+    starts_budgets,
     write_plan,
 )
 
@@ -112,7 +115,9 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
     from .planning import plan_greedy
 
     check_plan_output(args.output)
-    guard_paths([args.output], [args.state], args)  # before the (slower) state read
+    start, budget = starts_budgets(args)  # the request first: a bad flag costs no state read
+    path = path_options(args)
+    guard_paths([args.output], [args.state, *mask_files(args)], args)
     state = _load_state(args.state)
     out = _guard_state_outputs(args.output, state, args)
     model = state.model
@@ -120,9 +125,9 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
     if criterion is None:
         criterion = "gp-variance" if state.posterior.obs_model.is_spatial else "fisher"
     kw = state.planner_kwargs(criterion=criterion, time=args.time)
-    plan = plan_greedy(model.Y, model.region_, parse_start(args.start), args.budget,
-                       criterion=criterion, cost=args.cost, ridge=args.ridge,
-                       progress=not args.quiet, initial="start", **kw)
+    plan = plan_greedy(model.Y, model.region_, start, budget, criterion=criterion,
+                       cost=args.cost, ridge=args.ridge, progress=not args.quiet,
+                       initial=args.initial, path=path, **kw)
     t = state._default_time(args.time)
     print(f"plan for {_label(t)}: {describe_plan(plan)}")
     write_plan(plan, out, args)
@@ -250,9 +255,15 @@ def add_monitor_parser(sub: Any) -> None:
 
     q = msub.add_parser("plan", help="plan the next route with the state's forecast as prior")
     q.add_argument("state", help="state file written by 'lrm-cvx monitor init'")
-    q.add_argument("--start", required=True,
-                   help="start location LAT,LON or LAT LON in degrees")
-    q.add_argument("--budget", required=True, type=finite_number, help="path budget in grid cells")
+    q.add_argument("--start", required=True, action="append",
+                   help="start location LAT,LON or LAT LON in degrees; repeat it for a fleet, "
+                   "one --start per robot")
+    q.add_argument("--budget", required=True, type=finite_number, action="append",
+                   help="path budget in the metric's unit (grid cells; km with --metric km; "
+                   "hours with --speed), once for every robot or once per --start")
+    q.add_argument("--initial", default="start", choices=("start", "nearest"),
+                   help="forced initial cells: start (the start alone; default) or nearest "
+                   "(the start and its k-1 nearest cells, the paper)")
     q.add_argument("--criterion", choices=CRITERIA, default=None,
                    help="planning criterion (default gp-variance with a spatial model, else "
                    "fisher)")
@@ -263,6 +274,7 @@ def add_monitor_parser(sub: Any) -> None:
     q.add_argument("--time", default=None,
                    help="plan for this time (default: the next step, or the state's time if "
                    "not observed yet)")
+    add_path_options(q, route=True)
     q.add_argument("-o", "--output", required=True, help="plan.csv, plan.geojson, or a "
                    "mission: .plan (QGroundControl), .waypoints (MAVLink), .gpx, .kml")
     add_mission_options(q)
