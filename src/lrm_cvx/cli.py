@@ -28,6 +28,7 @@ from .cli_common import (
     add_mission_options,
     add_output,
     add_path_options,
+    add_starts_budgets,
     check_lat,
     check_plan_output,
     describe_plan,
@@ -541,12 +542,7 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
     from .planning.routecost import COSTS
 
     p.add_argument("model", help="model file written by 'lrm-cvx fit'")
-    p.add_argument("--start", required=True, action="append",
-                   help="start location LAT,LON or LAT LON in degrees (e.g. --start -10 150); "
-                   "repeat it for a fleet, one --start per robot")
-    p.add_argument("--budget", required=True, type=finite_number, action="append",
-                   help="path budget in the metric's unit (grid cells; km with --metric km; "
-                   "hours with --speed), once for every robot or once per --start")
+    add_starts_budgets(p)
     p.add_argument("--criterion", choices=CRITERIA, default=None,
                    help="planning criterion (default fisher; gp-variance with --recommended)")
     p.add_argument("--cost", default=_first(COSTS), choices=COSTS,

@@ -24,7 +24,7 @@ __all__ = ["UsageError", "parse_floats", "check_lat", "parse_start", "finite_num
            "read_observations_csv", "describe_plan", "write_plan", "PLAN_SUFFIXES",
            "SENSOR_SUFFIXES", "check_plan_output", "add_mission_options", "starts_budgets",
            "read_traversable", "path_options", "metric_choices", "add_path_options",
-           "mask_files"]
+           "mask_files", "add_starts_budgets"]
 
 
 class UsageError(LrmError, ValueError):
@@ -301,6 +301,17 @@ def metric_choices() -> tuple[str, ...]:
     except ImportError:  # pragma: no cover - the path model defines them
         return ("grid", "km")
     return tuple(METRICS)
+
+
+def add_starts_budgets(p: argparse.ArgumentParser) -> None:
+    """``--start`` (repeated for a fleet) and ``--budget`` (once, or once per start): the
+    robots of ``plan``, ``bound`` and ``monitor plan`` (read with :func:`starts_budgets`)."""
+    p.add_argument("--start", required=True, action="append",
+                   help="start location LAT,LON or LAT LON in degrees (e.g. --start -10 150); "
+                   "repeat it for a fleet, one --start per robot")
+    p.add_argument("--budget", required=True, type=finite_number, action="append",
+                   help="path budget in the metric's unit (grid cells; km with --metric km; "
+                   "hours with --speed), once for every robot or once per --start")
 
 
 def add_path_options(p: argparse.ArgumentParser, *, route: bool = False) -> None:

@@ -28,6 +28,7 @@ from .cli_common import (
     add_mission_options,
     add_output,
     add_path_options,
+    add_starts_budgets,
     check_plan_output,
     describe_plan,
     finite_number,
@@ -255,12 +256,7 @@ def add_monitor_parser(sub: Any) -> None:
 
     q = msub.add_parser("plan", help="plan the next route with the state's forecast as prior")
     q.add_argument("state", help="state file written by 'lrm-cvx monitor init'")
-    q.add_argument("--start", required=True, action="append",
-                   help="start location LAT,LON or LAT LON in degrees; repeat it for a fleet, "
-                   "one --start per robot")
-    q.add_argument("--budget", required=True, type=finite_number, action="append",
-                   help="path budget in the metric's unit (grid cells; km with --metric km; "
-                   "hours with --speed), once for every robot or once per --start")
+    add_starts_budgets(q)
     q.add_argument("--initial", default="start", choices=("start", "nearest"),
                    help="forced initial cells: start (the start alone; default) or nearest "
                    "(the start and its k-1 nearest cells, the paper)")
