@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 
 from .errors import PlanningError
+from .information import fisher_information
+from .planning import Plan, plan_greedy
 
 __all__ = ["replan", "route_feasible"]
 
@@ -72,17 +74,12 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
     ``ridge`` likewise. Raises PlanningError when a robot has spent its budget (or cannot get
     back to its end with what is left): nothing is changed then.
     """
-    from .information import fisher_information
-    from .planning import Plan, plan_greedy
-
     done_r = _done_per_robot(plan, done)
     opts = _path_options(plan)
     region = state.model.region_
     if region is None:
         raise PlanningError("replanning needs a model fitted on gridded data")
-    Y = np.asarray(state.model.Y_.values, dtype=np.float64).reshape(state.model.rank, -1)
-    if Y.shape[1] != region.n_cells:
-        Y = region.stack(state.model.Y_).astype(np.float64)
+    Y = state.model.Y  # (k, L) float64
     path = plan.path
     starts = [int(s) for s in (path.get("starts") or [plan.start])]
     budgets = [float(b) for b in (path.get("budgets") or [plan.budget])]
@@ -133,11 +130,12 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
                           initial="start", progress=progress, **opts, **ends, **kw)
         new_plans.append(new)
         taken += [int(c) for c in new.stops if int(c) != here]
-    return _stitch(plan, pieces, new_plans, Y, region, criterion, ridge, Plan,
-                   fisher_information)
+    return _stitch(plan, pieces, new_plans, Y, region, criterion, ridge)
 
 
-def _stitch(plan, pieces, new_plans, Y, region, criterion, ridge, Plan, fisher_information):
+def _stitch(plan: Any, pieces: list, new_plans: list, Y: np.ndarray, region: Any,
+            criterion: str, ridge: float) -> Any:
+    """One plan: each robot's flown entries, then its new route after the current cell."""
     route, route_cost, robot, waypoint, stops, stop_robot, costs = [], [], [], [], [], [], []
     empty = np.empty(0, np.int64)
     for r, ((flown, _, spent, *_), new) in enumerate(zip(pieces, new_plans, strict=True)):

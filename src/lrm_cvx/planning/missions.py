@@ -84,12 +84,10 @@ def route_points(plan: Any, robot: int = 0) -> dict[str, np.ndarray]:
     if sel.size:
         keep = np.r_[True, plan.route[sel][1:] != plan.route[sel][:-1]]
         sel = sel[keep]
-    stops = set(plan.stops[plan.stop_robot == int(robot)].tolist())
+    stops = plan.stops[plan.stop_robot == int(robot)]
     cells = plan.route[sel]
     return {"lat": np.asarray(plan.lat[sel], dtype=np.float64), "lon": wrap_lon(plan.lon[sel]),
-            "cell": cells, "stop": np.array([bool(plan.waypoint[i]) and int(c) in stops
-                                             for i, c in zip(sel, cells, strict=True)],
-                                            dtype=bool)}
+            "cell": cells, "stop": plan.waypoint[sel] & np.isin(cells, stops)}
 
 
 def _num(v: float) -> float | None:
