@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lrm_cvx.campaign import simulate_campaign
-from lrm_cvx.errors import DataError, ModelError, RegionError
+from lrm_cvx.errors import DataError, ModelError, PlanningError, RegionError
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.io.samples import synthetic_dynamic_field
 
@@ -110,7 +110,7 @@ def test_bad_input(model, field):
         simulate_campaign(model, field.isel(time=slice(30, 33)), 0, 3)
     with pytest.raises(DataError, match="not sorted"):
         simulate_campaign(model, field.isel(time=[42, 41, 43]), 0, 3)
-    with pytest.raises(DataError, match="budget"):
+    with pytest.raises(PlanningError, match="budget"):
         simulate_campaign(model, test, 0, -1)
     with pytest.raises(RegionError):
         simulate_campaign(model, test.isel(lat=slice(0, 5)), 0, 3)

@@ -120,7 +120,8 @@ def test_random_baseline_fleets_follow_the_start_generator(model):
     (dict(traversable=[[True]]), PlanningError, "traversable"),
     (dict(n_robots=0), PlanningError, "n_robots"),
     (dict(n_robots=1.5), PlanningError, "n_robots"),
-    (dict(closed=True, temporal="ar1"), PlanningError, "temporal"),
+    (dict(end=3), PlanningError, "temporal"),
+    (dict(sense_along=True), PlanningError, "temporal"),
 ])
 def test_bad_options_fail_before_the_fit(kw, error, match, monkeypatch):
     def no_fit(*args, **kwargs):  # the errors come before any work

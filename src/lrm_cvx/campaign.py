@@ -1,27 +1,37 @@
-"""Campaigns: plan, observe, assimilate and score day after day (issue 13, step 4).
+"""Campaigns: plan, observe, assimilate and score day after day (issue 13, step 4; issue #25).
 
 :func:`simulate_campaign` replays a field campaign on held-out snapshots: for each snapshot in
 time order the filter (:class:`~lrm_cvx.monitor.MonitorState`) forecasts, the planner plans
 with the forecast as its prior, the true snapshot is observed at the plan's cells, the
 observations are assimilated and the map is predicted and scored. ``temporal=None`` runs the
-memoryless model (every day's prior is the empirical prior) through the same loop, so the two
-compare on the same footing.
+memoryless model through the same loop (every day's prior is the empirical prior), so the two
+compare on the same footing. Every method plans under the same path request
+(:class:`~lrm_cvx.planning.request.PathOptions`: km or grid units, stop cost, no-go cells,
+closed tours, a fixed end, sensing along) and fleet (:class:`~lrm_cvx.planning.request.Fleet`);
+``replan_every=k`` replans en route (:func:`~lrm_cvx.replanning.replan`) every ``k`` route
+entries.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import xarray as xr
 
-from ._validation import as_generator, check_positive
-from .errors import DataError, ModelError
+from ._validation import as_generator
+from .errors import DataError, ModelError, PlanningError
 from .glrm.dynamics import check_times, temporal_value
 from .glrm.dynamics import estimate as estimate_dynamics
 from .monitor import MonitorState
+from .planning.planners import GreedyPlanner, Planner, Refined, check_method, planner_for
+from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
 
-__all__ = ["simulate_campaign"]
+__all__ = ["simulate_campaign", "method_request", "path_attrs", "CAMPAIGN_OPTIONS"]
+
+CAMPAIGN_OPTIONS = ("cost", "ridge", "criterion")
+"""The planner options of :func:`simulate_campaign` (besides the path options)."""
 
 _Z68 = 0.9944578832097535  # central 68 % interval of a standard normal
 _Z95 = 1.959963984540054  # central 95 %
@@ -45,69 +55,184 @@ def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
     return estimate_dynamics(temporal, model.X, times), False
 
 
-def _plan_day(state: MonitorState, method: str, start: int, budget: float,
-              rng: np.random.Generator, options: dict) -> Any:
-    """One day's plan by the method's planner (:data:`~lrm_cvx.planning.planners.
-    METHOD_REGISTRY`): a planner on the model's belief (the ``greedy:<criterion>`` methods)
-    plans on the state's forecast, with the other ``options`` of ``plan_greedy``; the paper's
-    greedy and the baselines on the paper's path model."""
-    from .planning import plan_greedy
-    from .planning.planners import planner_for
-    from .planning.request import Fleet
+def _is_greedy(planner: Planner) -> bool:
+    return isinstance(planner, (GreedyPlanner, Refined))
 
+
+def method_request(method: str, planner: Planner, path: PathOptions) -> PathOptions:
+    """The path request ``planner`` (of ``method``) runs under when every method shares
+    ``path``: ``path`` itself for a greedy planner; for a baseline (a transect, the random
+    walk) ``path`` without ``sense_along``, which changes nothing for them (their routes step
+    between 8-neighbours, so every cell they pass is a route cell and observed already).
+    A baseline cannot finish at a fixed ``end``: PlanningError naming the method."""
+    if _is_greedy(planner):
+        return path
+    if path.end is not None:
+        raise PlanningError(f"method {method!r} cannot finish at a fixed end (end=): only the "
+                            "greedy methods take end; use closed=True or drop the method")
+    return replace(path, sense_along=False) if path.sense_along else path
+
+
+def path_attrs(path: PathOptions, n_robots: int = 1) -> dict[str, Any]:
+    """The path request as netCDF-safe attrs (the keys of ``evaluate``'s attrs, which
+    :func:`~lrm_cvx.evaluation.path_label` reads, plus ``end`` (-1: none) and
+    ``sense_along``)."""
+    return {
+        "metric": path.metric,
+        "speed": float(np.nan if path.speed is None else path.speed),
+        "stop_cost": float(path.stop_cost),
+        "traversable": path.traversable_kind,
+        "closed": int(bool(path.closed)),
+        "end": -1 if path.end is None else int(path.end),
+        "sense_along": int(bool(path.sense_along)),
+        "n_robots": int(n_robots),
+        "budget_unit": path.unit,
+    }
+
+
+def _plan_day(state: MonitorState, planner: Planner, fleet: Fleet, path: PathOptions,
+              rng: np.random.Generator, ridge: float) -> Any:
+    """One day's plan by ``planner`` for ``fleet`` under ``path``: a planner on the model's
+    belief (the ``greedy:<criterion>`` methods) plans on the state's forecast; the paper's
+    greedy and the baselines ignore it."""
     model = state.model
-    Y, region = model.Y, model.region_
-    cost = options.get("cost", "nearest-neighbor")
-    ridge = float(options.get("ridge", 0.0))
-    planner = planner_for(method, criterion=options.get("criterion", "fisher"), cost=cost)
-    if getattr(planner, "model_prior", False):
-        kw = state.planner_kwargs(criterion=planner.criterion)
-        extra = {k: v for k, v in options.items() if k not in ("cost", "ridge", "criterion")}
-        return plan_greedy(Y, region, start, budget, criterion=planner.criterion, cost=cost,
-                           ridge=ridge, progress=False, initial=planner.initial, **kw, **extra)
-    return planner.plan(Y, region, Fleet.resolve(region, start, budget), rng=rng, ridge=ridge)
+    terms = (state.planner_kwargs(criterion=planner.criterion)
+             if getattr(planner, "model_prior", False) else None)
+    return planner.plan(model.Y, model.region_, fleet, path, rng=rng, ridge=ridge, terms=terms)
+
+
+def _observed_entries(plan: Any, sel: np.ndarray) -> np.ndarray:
+    """The cells observed at route entries ``sel``: every entry with ``sense_along``, else the
+    sampling stops."""
+    cells = np.asarray(plan.route, dtype=np.int64)[sel]
+    if plan.path.get("sense_along"):
+        return cells
+    return cells[np.asarray(plan.waypoint, dtype=bool)[sel]]
+
+
+def _fly_replanning(state: MonitorState, plan: Any, t: Any, truth: np.ndarray, every: int,
+                    criterion: str) -> tuple[Any, np.ndarray, int]:
+    """Fly ``plan`` on day ``t``: after every ``every`` route entries of each robot, assimilate
+    what was observed and replan the rest (:func:`~lrm_cvx.replanning.replan`: budget left,
+    same end, same path model). Returns ``(flown plan, cells observed, replans)``; each cell
+    is assimilated once."""
+    from .replanning import replan
+
+    n = plan.n_robots
+    seen = np.empty(0, dtype=np.int64)
+
+    def sizes(p: Any) -> list[int]:
+        return np.bincount(p.route_robot, minlength=n).tolist()
+
+    def fresh(p: Any, lo: list[int], hi: list[int]) -> np.ndarray:
+        """The cells observed at each robot's route entries ``lo[r]:hi[r]`` not seen yet."""
+        nonlocal seen
+        sel = np.concatenate([np.flatnonzero(p.route_robot == r)[lo[r]:hi[r]]
+                              for r in range(n)])
+        cells = np.unique(_observed_entries(p, sel))
+        cells = cells[~np.isin(cells, seen)]
+        seen = np.union1d(seen, cells)
+        return cells
+
+    def fold(cells: np.ndarray) -> None:
+        state.assimilate((cells, truth[cells]), t,
+                         force=bool(state.observed and state._dt(t) == 0))
+
+    size, done, sent, n_replans = sizes(plan), [1] * n, [0] * n, 0
+    while any(d < s for d, s in zip(done, size, strict=True)):
+        done = [min(d + every, s) for d, s in zip(done, size, strict=True)]
+        cells = fresh(plan, sent, done)
+        sent = list(done)
+        if done == size:  # the whole route is flown: nothing left to replan
+            fold(cells)
+            break
+        plan = replan(state, plan, done, (cells, truth[cells]) if cells.size else None,
+                      time=t, criterion=criterion)
+        n_replans += 1
+        size = sizes(plan)
+    if state._dt(t) != 0:  # nothing assimilated today yet (a route of its start alone)
+        fold(fresh(plan, [0] * n, size))
+    return plan, seen, n_replans
+
+
+def _check_every(replan_every: Any, replan: bool, planner: Planner, method: str) -> int:
+    """``replan_every`` as an int >= 1, or 0 for None (PlanningError naming it)."""
+    if replan_every is None:
+        return 0
+    if isinstance(replan_every, (bool, np.bool_)) or not isinstance(
+            replan_every, (int, np.integer)) or replan_every < 1:
+        raise PlanningError(f"replan_every must be None or an integer >= 1 (route entries "
+                            f"between replans), got {replan_every!r}")
+    if not getattr(planner, "model_prior", False):
+        raise PlanningError(f"replan_every needs a greedy method on the filter's belief "
+                            f"(greedy:<criterion>), got method {method!r}")
+    if not replan:
+        raise PlanningError("replan_every replans every day's route en route: it needs "
+                            "replan=True")
+    return int(replan_every)
 
 
 def simulate_campaign(
     model: Any,
     test_data: xr.DataArray,
     start: Any,
-    budget: float,
+    budget: Any,
     *,
     method: str = "greedy:gp-variance",
     temporal: str | None = "ar1",
     replan: bool = True,
     seed: Any = 0,
     spatial: bool | None = None,
-    **planner_options: Any,
+    path: PathOptions | None = None,
+    replan_every: int | None = None,
+    **options: Any,
 ) -> xr.Dataset:
     """Replay a campaign over the snapshots of ``test_data`` ``(time, lat, lon)``.
 
     ``model``: a fitted GLRM with a region (``test_data`` on its grid, its times after the
-    model's last fitted time, sorted and unique). ``start``: a cell index or ``(lat, lon)``.
-    ``method``: any method of :data:`~lrm_cvx.planning.planners.METHOD_REGISTRY`
-    (``"greedy:fisher"``, ``"greedy:a-optimal"``, ``"greedy:gp-variance"`` plan with the
-    filter's forecast as prior; ``"greedy"``, the transects and ``"random"`` ignore it).
+    model's last fitted time, sorted and unique). ``start``: a cell index or ``(lat, lon)``, or
+    a list of those (a fleet, one per robot); ``budget``: a number (every robot) or one per
+    robot, in the path model's unit. ``method``: any method of
+    :data:`~lrm_cvx.planning.planners.METHOD_REGISTRY` (``"greedy:fisher"``,
+    ``"greedy:a-optimal"``, ``"greedy:gp-variance"`` plan with the filter's forecast as prior;
+    ``"greedy"``, the transects and ``"random"`` ignore it).
     ``temporal``: None (memoryless), ``"ar1"`` or ``"seasonal"`` (the model's ``dynamics_`` when
     of that kind, else estimated from ``X_``), or a :class:`~lrm_cvx.glrm.dynamics.Dynamics`
     (e.g. the true dynamics of a planted field, in the model's latent coordinates).
     ``replan=False`` plans once, on the first day, and flies that route every day.
-    ``planner_options``: ``cost``, ``ridge``, ``criterion`` (for ``"greedy"``) and other
-    :func:`~lrm_cvx.planning.plan_greedy` options. ``spatial``: use the model's spatial residual
-    (None: when it has one).
+    ``options``: ``cost``, ``ridge``, ``criterion`` (for ``"greedy"``) and the path options
+    of :func:`~lrm_cvx.planning.plan_greedy` (``metric``, ``speed``, ``stop_cost``,
+    ``traversable``, ``closed``, ``end``, ``sense_along``; or ``path``, a
+    :class:`~lrm_cvx.planning.request.PathOptions`), which **every** method follows (the
+    baselines cannot take ``end``; ``sense_along`` changes nothing for them, see
+    :func:`method_request`). With ``sense_along`` every cell passed is observed.
+    ``replan_every``: replan en route after every ``k`` route entries of each robot
+    (:func:`~lrm_cvx.replanning.replan`: what was observed so far is assimilated, the rest is
+    planned with the budget left, the same end and path model); greedy methods on the filter's
+    belief only. ``spatial``: use the model's spatial residual (None: when it has one).
 
     Each day: forecast, plan, observe the true snapshot at the plan's cells (cells it lacks
     give no observation), assimilate, predict. Returns a Dataset over ``time`` with ``mse``
     (over the snapshot's observed cells, like ``evaluate``), ``mse_heldout``, ``coverage68``,
     ``coverage95`` (fraction of the observed cells *not sampled* inside the central 68 % / 95 %
     predictive interval, ``mean +- z * predictive_std``), ``n_obs``, ``information`` (the
-    plan's criterion value), ``logdet_cov`` (log det of the latent posterior covariance),
-    ``route_cost`` and ``routes`` ``(time, stop)`` (the plan's route, padded with -1).
+    morning plan's criterion value), ``logdet_cov`` (log det of the latent posterior
+    covariance), ``route_cost`` and ``routes`` ``(time, stop)`` (the route flown, padded with
+    -1); for a fleet also ``route_robot`` ``(time, stop)`` and ``robot_cost`` ``(time,
+    robot)``, with ``replan_every`` ``n_replans``. The attrs record the method, the budget(s),
+    start(s) and the path model (:func:`path_attrs`).
     """
-    from .planning.planners import check_method
-
+    bad = set(options) - set(CAMPAIGN_OPTIONS) - set(PATH_FIELDS)
+    if bad:
+        raise TypeError(f"simulate_campaign() got an unexpected keyword argument "
+                        f"{sorted(bad)[0]!r}")
+    request = PathOptions.from_kwargs(path, where="simulate_campaign",
+                                      **pop_options(options, PATH_FIELDS))
     method = check_method(method)
-    budget = check_positive(budget, "budget")
+    planner = planner_for(method, criterion=options.get("criterion", "fisher"),
+                          cost=options.get("cost", "nearest-neighbor"))
+    ridge = float(options.get("ridge", 0.0))
+    every = _check_every(replan_every, replan, planner, method)
     rng = as_generator(seed)
     dynamics, memoryless = _dynamics_for(model, temporal)
     model._check_fitted()
@@ -121,7 +246,8 @@ def simulate_campaign(
         raise DataError(f"test_data has no coordinate on its {tdim!r} dim")
     check_times(test_data[tdim], f"test_data[{tdim!r}]")
     V = region.stack(test_data).astype(np.float64)  # (T, L), checks the grid
-    start_cell = region.resolve_cell(start, "start")
+    request = method_request(method, planner, request.resolved(region))
+    fleet = Fleet.resolve(region, start, budget, request.unit)
     state = MonitorState.from_model(model, dynamics=dynamics, memoryless=memoryless,
                                     spatial=spatial)
     times = test_data[tdim].values
@@ -132,7 +258,9 @@ def simulate_campaign(
         "mse", "mse_heldout", "coverage68", "coverage95", "information", "logdet_cov",
         "route_cost")}
     n_obs = np.zeros(T, dtype=np.int64)
-    routes: list[np.ndarray] = []
+    n_replans = np.zeros(T, dtype=np.int64)
+    robot_cost = np.full((T, fleet.n_robots), np.nan)
+    routes: list[tuple[np.ndarray, np.ndarray]] = []
     plan = None
     for i in range(T):  # days, in time order
         t = state._coerce(times[i])
@@ -140,10 +268,17 @@ def simulate_campaign(
             state_for_plan = state
             if state.observed:  # plan against the forecast for day t
                 state_for_plan = _positioned(state, t)
-            plan = _plan_day(state_for_plan, method, start_cell, budget, rng, planner_options)
-        cells = np.unique(np.asarray(plan.cells, dtype=np.int64))
-        vals = V[i, cells]
-        state.assimilate((cells, vals), t)
+            plan = _plan_day(state_for_plan, planner, fleet, request, rng, ridge)
+        information = float(getattr(plan, "information", np.nan))
+        if every:
+            flown, cells, n_replans[i] = _fly_replanning(state, plan, t, V[i], every,
+                                                         planner.criterion)
+            vals = V[i, cells]
+        else:
+            flown = plan
+            cells = np.unique(np.asarray(plan.cells, dtype=np.int64))
+            vals = V[i, cells]
+            state.assimilate((cells, vals), t)
         post = state.posterior
         n_obs[i] = int(np.count_nonzero(np.isfinite(vals)))
         truth = V[i]
@@ -159,25 +294,53 @@ def simulate_campaign(
             z = np.abs(mean[held] - truth[held]) / np.maximum(pstd[held], 1e-300)
             out["coverage68"][i] = float(np.mean(z <= _Z68))
             out["coverage95"][i] = float(np.mean(z <= _Z95))
-        out["information"][i] = float(getattr(plan, "information", np.nan))
-        out["route_cost"][i] = float(getattr(plan, "cost", np.nan))
+        out["information"][i] = information
+        out["route_cost"][i] = float(getattr(flown, "cost", np.nan))
+        robot_cost[i] = np.asarray(flown.robot_costs, dtype=np.float64)
         if post.is_proper:
             out["logdet_cov"][i] = float(np.linalg.slogdet(post.cov)[1])
-        routes.append(np.asarray(plan.route, dtype=np.int64))
-    width = max((r.size for r in routes), default=0)
-    R = np.full((T, width), -1, dtype=np.int64)
-    for i, r in enumerate(routes):
-        R[i, : r.size] = r
-    coords = {"time": times}
-    ds = xr.Dataset({name: ("time", v) for name, v in out.items()}, coords=coords)
+        routes.append((np.asarray(flown.route, dtype=np.int64),
+                       np.asarray(flown.route_robot, dtype=np.int64)))
+    return _dataset(out, n_obs, n_replans, robot_cost, routes, times, fleet, request, every,
+                    dict(method=method, temporal=temporal, replan=replan, seed=seed,
+                         memoryless=memoryless, dynamics=dynamics))
+
+
+def _padded(rows: list[np.ndarray]) -> np.ndarray:
+    """``(T, width)`` int64 of the rows, padded with -1."""
+    width = max((r.size for r in rows), default=0)
+    out = np.full((len(rows), width), -1, dtype=np.int64)
+    for i, r in enumerate(rows):
+        out[i, : r.size] = r
+    return out
+
+
+def _dataset(out: dict, n_obs: np.ndarray, n_replans: np.ndarray, robot_cost: np.ndarray,
+             routes: list, times: np.ndarray, fleet: Fleet, path: PathOptions, every: int,
+             run: dict) -> xr.Dataset:
+    """The campaign's Dataset over ``time`` (:func:`simulate_campaign`)."""
+    ds = xr.Dataset({name: ("time", v) for name, v in out.items()}, coords={"time": times})
     ds["n_obs"] = ("time", n_obs)
-    ds["routes"] = (("time", "stop"), R)
+    ds["routes"] = (("time", "stop"), _padded([r for r, _ in routes]))
     ds["routes"].attrs["long_name"] = "route cell indices, padded with -1"
     ds["coverage68"].attrs["long_name"] = "fraction of held-out observed cells in mean +- 1 std"
     ds["coverage95"].attrs["long_name"] = "fraction of held-out observed cells in mean +- 1.96 std"
-    ds.attrs.update(method=method, temporal=str(temporal), replan=int(bool(replan)),
-                    budget=budget, start=int(start_cell), seed=str(seed),
-                    dynamics="memoryless" if memoryless else dynamics.kind)
+    ds["route_cost"].attrs["units"] = path.unit
+    if fleet.is_fleet:
+        ds["route_robot"] = (("time", "stop"), _padded([r for _, r in routes]),
+                             {"long_name": "robot of each route entry (-1: padding)"})
+        ds["robot_cost"] = (("time", "robot"), robot_cost,
+                            {"long_name": "each robot's route cost", "units": path.unit})
+    if every:
+        ds["n_replans"] = ("time", n_replans)
+    temporal, dynamics = run["temporal"], run["dynamics"]
+    one = not fleet.is_fleet
+    ds.attrs.update(method=run["method"], temporal=str(temporal), replan=int(bool(run["replan"])),
+                    budget=float(fleet.budgets[0]) if one else list(fleet.budgets),
+                    start=int(fleet.starts[0]) if one else list(fleet.starts),
+                    seed=str(run["seed"]),
+                    dynamics="memoryless" if run["memoryless"] else dynamics.kind,
+                    replan_every=int(every), **path_attrs(path, fleet.n_robots))
     if not isinstance(temporal, (str, type(None))):
         ds.attrs["temporal"] = "given"
     return ds

@@ -39,7 +39,7 @@ from .planning.planners import (
     check_method,
     planner_for,
 )
-from .planning.request import Fleet, PathOptions, pop_options
+from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
 from .region import Region
 from .scoring import (
     SnapshotStatistics,
@@ -62,6 +62,8 @@ class _CampaignPlan:
     cost: float
     n: int
     route: np.ndarray
+    robot_costs: np.ndarray
+    route_robot: np.ndarray
 
     @property
     def cells(self) -> range:
@@ -74,25 +76,31 @@ def _check_temporal(temporal: Any) -> str | None:
     return temporal_value(temporal)
 
 
-def _campaign_errors(model: Any, test: xr.DataArray, start: int, budget: float, method: str,
+def _campaign_errors(model: Any, test: xr.DataArray, start: Any, budget: float, method: str,
                      temporal: str | None, seed: int, spatial: Any, min_observations: int,
-                     options: dict) -> tuple:
-    """One campaign over the test snapshots (:func:`lrm_cvx.campaign.simulate_campaign`):
-    ``(mse (n_test,), n_obs, coverage (n_test, 2), first day's information, cost, cells,
-    route)``; ``mse`` NaN where a day has fewer than ``min_observations`` observations."""
+                     options: dict, path: PathOptions | None = None) -> tuple:
+    """One campaign over the test snapshots (:func:`lrm_cvx.campaign.simulate_campaign`) from
+    ``start`` (a cell, or a list of cells: a fleet, ``budget`` each) under ``path``:
+    ``(mse (n_test,), n_obs, coverage (n_test, 2), the first day's plan as a _CampaignPlan)``;
+    ``mse`` NaN where a day has fewer than ``min_observations`` observations."""
     from .campaign import simulate_campaign
 
     ds = simulate_campaign(model, test, start, budget, method=method, temporal=temporal,
-                           seed=seed, spatial=spatial, **options)
+                           seed=seed, spatial=spatial, path=path, **options)
     n = ds["n_obs"].values
     ok = n >= max(min_observations, 1)
     mse = np.where(ok, ds["mse"].values, np.nan)
     cov = np.stack([ds["coverage68"].values, ds["coverage95"].values], axis=-1)
     cov[~ok] = np.nan
     route = ds["routes"].values[0]
-    route = route[route >= 0]
-    return (mse, n, cov, float(ds["information"].values[0]), float(ds["route_cost"].values[0]),
-            int(np.unique(route).size), route)
+    keep = route >= 0
+    robots = (ds["route_robot"].values[0][keep] if "route_robot" in ds
+              else np.zeros(int(keep.sum()), np.int64))
+    costs = (ds["robot_cost"].values[0] if "robot_cost" in ds
+             else ds["route_cost"].values[:1])
+    first = _CampaignPlan(float(ds["information"].values[0]), float(ds["route_cost"].values[0]),
+                          int(np.unique(route[keep]).size), route[keep], costs, robots)
+    return mse, n, cov, first
 
 
 def plan_method(method: str, Y: np.ndarray, region: Region, start: Any, budget: float,
@@ -171,8 +179,9 @@ _EVALUATE_OPTIONS = ("random_trials", "min_observations", "fold_ridge", "certify
                      "progress", "model_params", "fold_in")
 """The keywords of :func:`evaluate` it takes through ``**options`` (besides the path options)."""
 
-_EVALUATE_PATH = ("metric", "speed", "stop_cost", "traversable", "closed")
-"""The path options ``evaluate`` passes to every method (no ``end``, no ``sense_along``)."""
+_EVALUATE_PATH = PATH_FIELDS
+"""The path options ``evaluate`` passes to every method (``end`` and ``sense_along``: with
+``temporal`` campaigns only)."""
 
 
 @dataclass(frozen=True)
@@ -249,10 +258,14 @@ class EvaluationProtocol:
         self.path = PathOptions.from_kwargs(self.path, where="evaluate",
                                             allowed=_EVALUATE_PATH)
         self.n_robots = _int_arg(self.n_robots, "n_robots", 1, PlanningError)
-        if self.temporal is not None and (not self.path.is_paper or self.n_robots > 1):
-            raise PlanningError("temporal campaigns support only the paper's path model: drop "
-                                "metric, speed, stop_cost, traversable, closed and n_robots, or "
-                                "temporal")
+        if self.temporal is None and (self.path.end is not None or self.path.sense_along):
+            raise PlanningError("end and sense_along apply to temporal campaigns only (pass "
+                                "temporal='ar1' or 'seasonal', or drop them)")
+        if self.temporal is not None:  # a method that cannot follow the path fails here
+            from .campaign import method_request
+
+            for m in self.methods:
+                method_request(m, planner_for(m), self.path)
         self.model_params = dict(self.model_params or {})
         self.fold_in = dict(self.fold_in or {})
         bad = set(self.fold_in) - {"prior", "spatial", "ridge"}
@@ -365,7 +378,9 @@ class EvaluationProtocol:
             for m, method in enumerate(self.methods):
                 for trial in range(n_trials if method == "random" else 1):
                     if self.temporal is not None:
-                        out.append((m, b, s, trial, *self._campaign(fit, int(start), budget,
+                        robots = ([int(c) for c in fleet] if self.n_robots > 1
+                                  else int(start))
+                        out.append((m, b, s, trial, *self._campaign(fit, robots, budget,
                                                                      method, start_rng)))
                         continue
                     robots = Fleet(tuple(int(c) for c in fleet), (budget,) * fleet.size,
@@ -385,18 +400,19 @@ class EvaluationProtocol:
                 if certify and method == "greedy" else np.nan)  # bound only
         return e, n, cert, c, None, None
 
-    def _campaign(self, fit: _Fitted, start: int, budget: float, method: str,
+    def _campaign(self, fit: _Fitted, start: Any, budget: float, method: str,
                   start_rng: np.random.Generator) -> tuple:
         """``(plan, mse, n_obs, nan, coverage, mse_memoryless, coverage_memoryless)`` of one
-        campaign and its memoryless twin (the same seed)."""
+        campaign from ``start`` (a cell, or a fleet's cells) under the protocol's path request
+        and its memoryless twin (the same seed)."""
         cseed = int(start_rng.integers(2**31))
         spatial = self.fold_in.get("spatial") if "spatial" in self.fold_in else None
         options = {"cost": self.cost, "ridge": self.ridge, "criterion": self.criterion}
         runs = [_campaign_errors(fit.model, fit.test, start, budget, method, tm, cseed,
-                                 spatial, self.min_observations, options)
+                                 spatial, self.min_observations, options, self.path)
                 for tm in (self.temporal, None)]
-        (e, n, c, inf, cst, ncell, route), ml = runs
-        return _CampaignPlan(inf, cst, ncell, route), e, n, np.nan, c, ml[0], ml[2]
+        (e, n, c, first), ml = runs
+        return first, e, n, np.nan, c, ml[0], ml[2]
 
     def _dataset(self, fit: _Fitted, starts: np.ndarray, fleets: np.ndarray,
                  res: _Results) -> xr.Dataset:
@@ -498,6 +514,8 @@ class EvaluationProtocol:
             "closed": int(bool(path.closed)),
             "n_robots": int(self.n_robots),
             "budget_unit": path.unit,
+            **({"end": -1 if path.end is None else int(path.resolved(fit.region).end),
+                "sense_along": int(bool(path.sense_along))} if self.temporal else {}),
         }
 
 
@@ -647,21 +665,25 @@ def evaluate(
     coverage are the campaign's, and the same campaigns run memoryless through the same loop
     give ``mse_memoryless``, ``coverage68_memoryless``, ``coverage95_memoryless``.
     ``information``, ``cost``, ``n_cells`` and ``greedy_route`` are those of the first day's
-    plan; ``bound`` is not computed (NaN).
+    plan; ``bound`` is not computed (NaN). Campaigns take the whole path model below and
+    fleets (issue #25): every method of a campaign plans every day under the same path request
+    and fleet.
 
     Path model (issue #15, docs/evaluation.md; defaults are the paper's): ``path`` (a
     :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords ``metric``
     (``"grid"`` or ``"km"``), ``speed`` (km/h: budgets in hours), ``stop_cost`` (budget unit
     per sampling stop), ``traversable`` (``None``, ``"valid"`` or a boolean ``(lat, lon)``
-    DataArray) and ``closed`` are passed to every method, the greedy and the baselines alike.
+    DataArray), ``closed`` and, with ``temporal`` campaigns, ``end`` (greedy methods only)
+    and ``sense_along`` (every cell passed is observed; a baseline's route already passes only
+    its own cells) are passed to every method, the greedy and the baselines alike.
     ``n_robots > 1``: every start is a fleet of ``n_robots`` distinct start cells (drawn with
     the seed; ``start_cell`` is the first robot's, ``fleet_start_cell`` ``(start, robot)`` all
     of them), each robot with the whole ``budget``; ``cost`` is the fleet's total and
     ``robot_cost`` ``(method, budget, start, trial, robot)`` each robot's. With a travel graph
     the starts are enterable cells with an enterable neighbour. Bad options raise
-    PlanningError before the fit; ``temporal`` campaigns support only the paper's model. The
-    options are recorded in the attrs (``metric``, ``speed``, ``stop_cost``, ``traversable``,
-    ``closed``, ``n_robots``, ``budget_unit``).
+    PlanningError before the fit. The options are recorded in the attrs (``metric``,
+    ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``n_robots``, ``budget_unit``; with
+    ``temporal`` also ``end``, -1 for none, and ``sense_along``).
 
     ``coverage68`` / ``coverage95`` ``(method, budget, start, trial, test_time)``: fraction of
     the held-out observed cells (at most 4096 per snapshot, a fixed subset, minus the sampled
