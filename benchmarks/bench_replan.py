@@ -1,15 +1,16 @@
 """Replanning en route vs planning once a day (issue #25, item 2), on the bundled ``sst``.
 
-Two closed gliders over the ocean (km budgets, ocean cells only, back home), the filter
-(``temporal="ar1"``, recommended setting), the last ``--days`` snapshots as the campaign. Each day:
+Two closed gliders over the ocean (km budgets, ocean cells only, back home, measuring every cell
+they pass), the filter (``temporal="ar1"``, recommended setting), the last ``--days`` snapshots
+as the campaign, run by :func:`~lrm_cvx.campaign.simulate_campaign`. Each day:
 
 * **once**: plan in the morning with the forecast as prior, fly it, assimilate every sample;
 * **replan**: the same morning plan, but after every ``--every`` route entries the robots send
-  what they measured, the state assimilates it and :meth:`MonitorState.replan` plans the rest
-  (budget left, back home, same no-go cells).
+  what they measured, the state assimilates it and :func:`~lrm_cvx.replanning.replan` plans the
+  rest (budget left, back home, same no-go cells): ``simulate_campaign(replan_every=...)``.
 
-Printed per day and on average: the map's MSE after the day's samples (K^2), samples taken,
-replans and their mean time, and every route's brute-force feasibility check.
+Printed per day and on average: the map's MSE after the day's samples (K^2), cells observed,
+replans, the wall time of a day, and every flown route's brute-force feasibility check.
 
     python benchmarks/bench_replan.py [--days 8] [--every 4] [--budget 6000]
 """
@@ -21,49 +22,10 @@ import time
 import warnings
 
 import numpy as np
+from bench_glider_campaign import PATH, STARTS, infeasible
 
-from lrm_cvx import GLRM, load_sample, plan_greedy
-from lrm_cvx.monitor import MonitorState
-from lrm_cvx.replanning import route_feasible
-
-STARTS = [(10.0, 200.0), (-20.0, 240.0)]
-PATH = {"metric": "km", "traversable": "valid", "closed": True}
-
-
-def _mse(state, truth):
-    mean = state.model.region_.stack(state.predict()["mean"])
-    ok = np.isfinite(truth)
-    return float(np.mean((mean[ok] - truth[ok]) ** 2))
-
-
-def run_day(state, model, day, budget, every, replan):
-    region = model.region_
-    t = day.time.values
-    truth = region.stack(day)
-    prior = state.planner_kwargs(time=t)
-    plan = plan_greedy(model.Y_, region, STARTS, budget, criterion="gp-variance",
-                       initial="start", progress=False, **prior, **PATH)
-    assert route_feasible(plan, region) == []
-    sizes = [int(np.count_nonzero(plan.route_robot == r)) for r in range(plan.n_robots)]
-    done = [1] * plan.n_robots
-    sent = [0] * plan.n_robots  # route entries already assimilated
-    n_replans, seconds = 0, 0.0
-    while replan and any(d < s for d, s in zip(done, sizes, strict=True)):
-        done = [min(d + every, s) for d, s in zip(done, sizes, strict=True)]
-        new = [plan.route[plan.route_robot == r][sent[r]:done[r]] for r in range(plan.n_robots)]
-        cells = np.concatenate(new)
-        sent = list(done)
-        tic = time.perf_counter()
-        plan = state.replan(plan, done, (cells, truth[cells]), time=t, criterion="gp-variance")
-        seconds += time.perf_counter() - tic
-        n_replans += 1
-        assert route_feasible(plan, region) == [], "a replanned route broke the path model"
-        sizes = [int(np.count_nonzero(plan.route_robot == r)) for r in range(plan.n_robots)]
-    rest = np.concatenate([plan.route[plan.route_robot == r][sent[r]:]
-                           for r in range(plan.n_robots)]) if replan else plan.route
-    if rest.size:
-        state.assimilate((rest, truth[rest]), t, force=state.observed and state._dt(t) == 0)
-    return _mse(state, truth), len(plan.stops), n_replans, seconds
+from lrm_cvx import GLRM, load_sample
+from lrm_cvx.campaign import simulate_campaign
 
 
 def main() -> None:
@@ -78,24 +40,31 @@ def main() -> None:
         warnings.simplefilter("ignore")
         model = GLRM(5, offset=True, spatial="exponential", temporal="ar1", random_state=0,
                      progress=False).fit(train)
-    states = {"once": MonitorState.from_model(model), "replan": MonitorState.from_model(model)}
-    rows = []
+    budgets = [args.budget] * len(STARTS)
+    runs, seconds = {}, {}
+    for name, every in (("once", None), ("replan", args.every)):
+        tic = time.perf_counter()
+        runs[name] = simulate_campaign(model, test, STARTS, budgets,
+                                       method="greedy:gp-variance", temporal="ar1",
+                                       replan_every=every, **PATH)
+        seconds[name] = (time.perf_counter() - tic) / args.days
+    once, again = runs["once"], runs["replan"]
     for i in range(args.days):
-        day = test.isel(time=i)
-        row = {}
-        for name, state in states.items():
-            row[name] = run_day(state, model, day, args.budget, args.every,
-                                replan=name == "replan")
-        rows.append(row)
-        print(f"day {str(day.time.values)[:10]}: once MSE {row['once'][0]:.4f} "
-              f"({row['once'][1]} stops) | replan MSE {row['replan'][0]:.4f} "
-              f"({row['replan'][1]} stops, {row['replan'][2]} replans, "
-              f"{row['replan'][3] / max(row['replan'][2], 1):.2f} s each)")
-    once = np.mean([r["once"][0] for r in rows])
-    again = np.mean([r["replan"][0] for r in rows])
-    print(f"mean MSE over {args.days} days: once {once:.4f}, replan {again:.4f} "
-          f"({100 * (once - again) / once:+.1f}% error cut by replanning); every route "
-          "passed the brute-force feasibility check")
+        print(f"day {str(test.time.values[i])[:10]}: once MSE {once['mse'].values[i]:.4f} "
+              f"({int(once['n_obs'].values[i])} cells) | replan MSE "
+              f"{again['mse'].values[i]:.4f} ({int(again['n_obs'].values[i])} cells, "
+              f"{int(again['n_replans'].values[i])} replans)")
+    a, b = float(once["mse"].mean()), float(again["mse"].mean())
+    better = int(np.sum(again["mse"].values < once["mse"].values))
+    worse = int(np.sum(again["mse"].values > once["mse"].values))
+    problems = infeasible(once, model.region_, budgets) + infeasible(again, model.region_,
+                                                                     budgets)
+    print(f"mean MSE over {args.days} days: once {a:.4f}, replan {b:.4f} "
+          f"({100 * (a - b) / a:+.1f}% error cut by replanning; better on {better} days, worse "
+          f"on {worse}); {float(again['n_replans'].mean()):.1f} replans a day; a day takes "
+          f"{seconds['once']:.2f} s once, {seconds['replan']:.2f} s replanning; "
+          + ("every route passed the brute-force feasibility check" if not problems
+             else f"INFEASIBLE: {problems[:3]}"))
 
 
 if __name__ == "__main__":
