@@ -216,3 +216,23 @@ def test_bad_requests_fail_in_one_line(model, test_days):
     with pytest.raises(PlanningError, match="temporal campaigns only"):
         evaluate(data, model=model, n_test=N_DAYS, sense_along=True, budgets=(9,),
                  progress=False)
+
+
+def test_fixed_end_fleet_and_attrs_round_trip_through_netcdf(sst, model, test_days, tmp_path):
+    end = (-12.5, 200.0)
+    ds = simulate_campaign(model, test_days, STARTS, [9000.0, 9000.0], method="greedy:fisher",
+                           metric="km", traversable="valid", end=end, temporal=None)
+    cell = model.region_.resolve_cell(end)
+    for day in range(N_DAYS):
+        assert all(r[-1] == cell for r in _robot_routes(ds, day))  # every robot ends there
+    assert ds.attrs["end"] == cell and ds.attrs["closed"] == 0
+    ds.to_netcdf(tmp_path / "campaign.nc")
+    back = xr.load_dataset(tmp_path / "campaign.nc")
+    assert list(back.attrs["start"]) == [model.region_.resolve_cell(s) for s in STARTS]
+    np.testing.assert_array_equal(back["route_robot"].values, ds["route_robot"].values)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = evaluate(sst, model=model, n_test=N_DAYS, budgets=(9000.0,), n_starts=1,
+                       certify=False, progress=False, min_observations=1, temporal="ar1",
+                       methods=("greedy:fisher",), metric="km", traversable="valid", end=end)
+    assert res.attrs["end"] == cell and np.isfinite(res["mse"]).all()
