@@ -119,3 +119,37 @@ def test_a_finished_route_is_kept_and_a_spent_budget_is_an_error(setup):
     for bad in (0, whole + 1, 1.5, [1, 1]):
         with pytest.raises(PlanningError, match="done"):
             state.replan(plan, bad)
+
+
+@pytest.mark.parametrize("budget, path", [
+    (5000.0, dict(metric="km", traversable="valid", end=(30.0, 220.0))),
+    (9000.0, dict(metric="km", traversable="mask", end=(42.5, 232.5))),
+    (14.0, dict(metric="grid", traversable="valid", end=(20.0, 220.0), stop_cost=0.5)),
+])
+def test_a_route_to_an_end_plans_on_the_ellipse_as_on_the_disk(setup, monkeypatch, budget,
+                                                                 path):
+    # the travel graph of a route to an end holds only the ellipse d(start, x) + d(x, end)
+    # <= travel (what makes a replan fast); plans and distances are those of the disk graph
+    from lrm_cvx.planning import paths
+
+    model, test = setup
+    region = model.region_
+    path = dict(path)
+    if path["traversable"] == "mask":
+        path["traversable"] = _no_go(model)
+    prior = MonitorState.from_model(model).planner_kwargs(time=test.time.values[0])
+    out = {}
+    for ellipse in (True, False):
+        monkeypatch.setattr(paths, "ELLIPSE_GRAPH", ellipse)
+        pm = paths.make_path_model(region, (20.0, 200.0), budget, **path)
+        plan = plan_greedy(model.Y_, region, pm.start, budget, criterion="gp-variance",
+                           initial="start", progress=False, **prior, **path)
+        out[ellipse] = (pm, plan)
+    (small, a), (disk, b) = out[True], out[False]
+    assert a == b and route_feasible(a, region) == [] and len(a.stops) > 2
+    assert small._graph.cells.size < disk._graph.cells.size
+    inside = small._graph.cells
+    d_small = small.distances(small.start, inside)
+    d_disk = disk.distances(disk.start, inside)
+    fits = d_disk + disk.distances(disk.end, inside) <= disk.travel_budget
+    np.testing.assert_array_equal(d_small[fits], d_disk[fits])
