@@ -131,12 +131,12 @@ def _km_per_grid_unit(region, start: int) -> float:
     return float(np.mean(out))
 
 
-def _after_route(state, plan, t, truth):
+def _after_route(state, plan, done, t, truth):
     """Predicted quality of the day if ``plan`` is flown to its end from ``state`` (the samples
-    so far already in): the total latent variance over all cells ``trace(S Y Y^T)`` (fit units)
-    and the posterior log det ``-log det S`` of the day's snapshot."""
+    of its first ``done`` entries already in): the total latent variance over all cells
+    ``trace(S Y Y^T)`` (fit units) and the posterior log det ``-log det S`` of the day."""
     post = state._post_at(t)[0]
-    cells = np.asarray(plan.route[plan.waypoint], dtype=np.int64)
+    cells = np.asarray(plan.route[done:][plan.waypoint[done:]], dtype=np.int64)
     post = post.update(cells, np.where(np.isfinite(truth[cells]), truth[cells], 0.0))
     S = post.cov
     Y = state.model.Y
@@ -186,9 +186,10 @@ def paper_scale(cache: str | None, small: bool, criterion: str, profile: bool) -
         if profile and ellipse:
             prof.disable()
             pstats.Stats(prof).sort_stats("tottime").print_stats(15)
-        rows[name] = (sec, new, route_feasible(new, region), _after_route(st, new, t_day, truth))
+        rows[name] = (sec, new, route_feasible(new, region),
+                      _after_route(st, new, done, t_day, truth))
     paths.ELLIPSE_GRAPH = True
-    stale = _after_route(st, plan, t_day, truth)  # the day's plan flown unchanged
+    stale = _after_route(st, plan, done, t_day, truth)  # the day's plan flown unchanged
     print(f"{'':28s} {'seconds':>8s} {'stops':>6s} {'cost km':>8s} {'feasible':>8s} "
           f"{'total variance':>14s} {'log det':>9s}")
     for name, (sec, new, bad, (var, ld)) in rows.items():
