@@ -153,3 +153,37 @@ def test_a_route_to_an_end_plans_on_the_ellipse_as_on_the_disk(setup, monkeypatc
     d_disk = disk.distances(disk.start, inside)
     fits = d_disk + disk.distances(disk.end, inside) <= disk.travel_budget
     np.testing.assert_array_equal(d_small[fits], d_disk[fits])
+
+
+@pytest.mark.parametrize("case", list(CASES) + ["sense-along"])
+def test_a_plan_stored_in_the_state_file_reads_back_equal_and_replans_the_same(setup, case,
+                                                                                tmp_path):
+    model, test = setup
+    spec = dict(CASES.get(case, dict(starts=(10.0, 200.0), budget=3000.0,
+                                     path=dict(metric="km", sense_along=True, closed=True))))
+    path = dict(spec["path"])
+    if path.get("traversable") == "mask":
+        path["traversable"] = _no_go(model)
+    day = test.isel(time=0)
+    state, plan = _state_and_plan(model, day, spec["starts"], spec["budget"], **path)
+    state.current_plan, state.current_plan_time = plan, day.time.values
+    model.save(tmp_path / "m.nc")
+    state.model_path = str(tmp_path / "m.nc")
+    state.save(tmp_path / "s.nc")
+    back = MonitorState.load(tmp_path / "s.nc")
+    stored = back.current_plan
+    assert stored == plan and back.current_plan_time == day.time.values
+    assert dict(stored.path) == dict(plan.path) and stored.history.keys() == plan.history.keys()
+    if plan.traversable_mask is None:
+        assert stored.traversable_mask is None
+    else:
+        np.testing.assert_array_equal(stored.traversable_mask, plan.traversable_mask)
+    sizes = [int(np.count_nonzero(plan.route_robot == r)) for r in range(plan.n_robots)]
+    done = [max(1, s // 2) for s in sizes]
+    done = done[0] if plan.n_robots == 1 else done
+    truth = model.region_.stack(day)
+    seen = _flown(plan, done)
+    a = state.replan(plan, done, (seen, truth[seen]), time=day.time.values)
+    b = back.replan(None, done, (seen, truth[seen]))  # the stored plan, at its own time
+    assert a == b and route_feasible(b, model.region_) == []
+    assert back.current_plan is b and back.current_plan_time == day.time.values

@@ -231,7 +231,7 @@ def plan_variables(plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
         v = np.asarray(getattr(plan, name))
         out[f"plan_{name}"] = ((_PLAN_DIMS[name],), v.astype(np.int8) if v.dtype == bool else v)
     for key, v in plan.history.items():
-        out[f"plan_history_{key}"] = ((f"plan_history_{key}",), np.asarray(v))
+        out[f"plan_history_{key}"] = ((f"plan_pick_{key}",), np.asarray(v))
     path = dict(plan.path.items())
     mask = plan.traversable_mask
     if mask is not None:
