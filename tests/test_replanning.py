@@ -187,3 +187,11 @@ def test_a_plan_stored_in_the_state_file_reads_back_equal_and_replans_the_same(s
     b = back.replan(None, done, (seen, truth[seen]))  # the stored plan, at its own time
     assert a == b and route_feasible(b, model.region_) == []
     assert back.current_plan is b and back.current_plan_time == day.time.values
+
+
+def test_replanning_the_stored_plan_needs_one(setup):
+    from lrm_cvx.errors import ModelError
+
+    model, _ = setup
+    with pytest.raises(ModelError, match="holds no plan"):
+        MonitorState.from_model(model).replan(None, 1)

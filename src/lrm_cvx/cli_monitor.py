@@ -67,8 +67,9 @@ def _save_state(state: Any, path: str | Path) -> None:
 
 
 def _state_lock(path: str | Path):
-    """The state file's lock: ``init`` and ``assimilate`` read, change and write the state
-    under it, so two commands on one state run one after the other and no update is lost."""
+    """The state file's lock: ``init``, ``plan``, ``replan`` and ``assimilate`` read, change
+    and write the state under it, so two commands on one state run one after the other and no
+    update is lost."""
     from ._validation import file_lock
 
     return file_lock(path, timeout=LOCK_TIMEOUT, what="state file")
