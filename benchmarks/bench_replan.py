@@ -201,6 +201,28 @@ def paper_scale(cache: str | None, small: bool, criterion: str, profile: bool) -
     print(f"replan at paper scale: {sec:.2f} s (target <= 3 s: "
           f"{'met' if sec <= 3 else 'MISSED'}); the same route as the disk-graph replan: "
           f"{bool(np.array_equal(new.route, old.route))}")
+    # no target: a fleet of two gliders (the second 75 grid units south-west), no-go band
+    gi = region.grid_index
+    off = 75
+    second = int(np.argmin(((gi - (gi[start] - off)) ** 2).sum(1)))
+    band = np.ones(region.shape, dtype=bool)
+    row = (gi[start, 0] + gi[second, 0]) // 2
+    band[row - 2:row + 3, : gi[start, 1] - 20] = False  # a wall between them, open to the east
+    fleet = dict(PATH, traversable=band)
+    st = MonitorState.from_model(model)
+    tic = time.perf_counter()
+    two = plan_greedy(model.Y, region, [start, second], km, criterion=criterion,
+                      initial="start", progress=False,
+                      **st.planner_kwargs(criterion, time=t_day), **fleet)
+    t_two = time.perf_counter() - tic
+    done2 = [int(np.count_nonzero(two.route_robot == r)) // 2 for r in range(2)]
+    seen = np.concatenate([two.route[two.route_robot == r][:k] for r, k in enumerate(done2)])
+    tic = time.perf_counter()
+    new2 = st.replan(two, done2, (seen, truth[seen]), time=t_day, criterion=criterion)
+    t_re2 = time.perf_counter() - tic
+    ok = route_feasible(new2, region) == [] and route_feasible(two, region) == []
+    print(f"fleet of 2 (no-go wall, closed): the day's plan {t_two:.2f} s, replan after "
+          f"{done2} entries {t_re2:.2f} s (no target), routes feasible: {ok}")
 
 
 def main() -> None:
