@@ -119,3 +119,79 @@ def test_a_finished_route_is_kept_and_a_spent_budget_is_an_error(setup):
     for bad in (0, whole + 1, 1.5, [1, 1]):
         with pytest.raises(PlanningError, match="done"):
             state.replan(plan, bad)
+
+
+@pytest.mark.parametrize("budget, path", [
+    (5000.0, dict(metric="km", traversable="valid", end=(30.0, 220.0))),
+    (9000.0, dict(metric="km", traversable="mask", end=(42.5, 232.5))),
+    (14.0, dict(metric="grid", traversable="valid", end=(20.0, 220.0), stop_cost=0.5)),
+])
+def test_a_route_to_an_end_plans_on_the_ellipse_as_on_the_disk(setup, monkeypatch, budget,
+                                                                 path):
+    # the travel graph of a route to an end holds only the ellipse d(start, x) + d(x, end)
+    # <= travel (what makes a replan fast); plans and distances are those of the disk graph
+    from lrm_cvx.planning import paths
+
+    model, test = setup
+    region = model.region_
+    path = dict(path)
+    if path["traversable"] == "mask":
+        path["traversable"] = _no_go(model)
+    prior = MonitorState.from_model(model).planner_kwargs(time=test.time.values[0])
+    out = {}
+    for ellipse in (True, False):
+        monkeypatch.setattr(paths, "ELLIPSE_GRAPH", ellipse)
+        pm = paths.make_path_model(region, (20.0, 200.0), budget, **path)
+        plan = plan_greedy(model.Y_, region, pm.start, budget, criterion="gp-variance",
+                           initial="start", progress=False, **prior, **path)
+        out[ellipse] = (pm, plan)
+    (small, a), (disk, b) = out[True], out[False]
+    assert a == b and route_feasible(a, region) == [] and len(a.stops) > 2
+    assert small._graph.cells.size < disk._graph.cells.size
+    inside = small._graph.cells
+    d_small = small.distances(small.start, inside)
+    d_disk = disk.distances(disk.start, inside)
+    fits = d_disk + disk.distances(disk.end, inside) <= disk.travel_budget
+    np.testing.assert_array_equal(d_small[fits], d_disk[fits])
+
+
+@pytest.mark.parametrize("case", list(CASES) + ["sense-along"])
+def test_a_plan_stored_in_the_state_file_reads_back_equal_and_replans_the_same(setup, case,
+                                                                                tmp_path):
+    model, test = setup
+    spec = dict(CASES.get(case, dict(starts=(10.0, 200.0), budget=3000.0,
+                                     path=dict(metric="km", sense_along=True, closed=True))))
+    path = dict(spec["path"])
+    if path.get("traversable") == "mask":
+        path["traversable"] = _no_go(model)
+    day = test.isel(time=0)
+    state, plan = _state_and_plan(model, day, spec["starts"], spec["budget"], **path)
+    state.current_plan, state.current_plan_time = plan, day.time.values
+    model.save(tmp_path / "m.nc")
+    state.model_path = str(tmp_path / "m.nc")
+    state.save(tmp_path / "s.nc")
+    back = MonitorState.load(tmp_path / "s.nc")
+    stored = back.current_plan
+    assert stored == plan and back.current_plan_time == day.time.values
+    assert dict(stored.path) == dict(plan.path) and stored.history.keys() == plan.history.keys()
+    if plan.traversable_mask is None:
+        assert stored.traversable_mask is None
+    else:
+        np.testing.assert_array_equal(stored.traversable_mask, plan.traversable_mask)
+    sizes = [int(np.count_nonzero(plan.route_robot == r)) for r in range(plan.n_robots)]
+    done = [max(1, s // 2) for s in sizes]
+    done = done[0] if plan.n_robots == 1 else done
+    truth = model.region_.stack(day)
+    seen = _flown(plan, done)
+    a = state.replan(plan, done, (seen, truth[seen]), time=day.time.values)
+    b = back.replan(None, done, (seen, truth[seen]))  # the stored plan, at its own time
+    assert a == b and route_feasible(b, model.region_) == []
+    assert back.current_plan is b and back.current_plan_time == day.time.values
+
+
+def test_replanning_the_stored_plan_needs_one(setup):
+    from lrm_cvx.errors import ModelError
+
+    model, _ = setup
+    with pytest.raises(ModelError, match="holds no plan"):
+        MonitorState.from_model(model).replan(None, 1)

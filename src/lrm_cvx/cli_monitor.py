@@ -4,6 +4,7 @@
 
     lrm-cvx monitor init MODEL.nc --state STATE.nc [--time T]
     lrm-cvx monitor plan STATE.nc --start LAT LON --budget B [--criterion ...] -o plan.csv
+    lrm-cvx monitor replan STATE.nc --done K [K ...] [--observations OBS] [-o plan.csv]
     lrm-cvx monitor assimilate STATE.nc OBS.csv|OBS.nc --time T [--force]
     lrm-cvx monitor map STATE.nc -o map.nc|map.png [--forecast]
 
@@ -66,8 +67,9 @@ def _save_state(state: Any, path: str | Path) -> None:
 
 
 def _state_lock(path: str | Path):
-    """The state file's lock: ``init`` and ``assimilate`` read, change and write the state
-    under it, so two commands on one state run one after the other and no update is lost."""
+    """The state file's lock: ``init``, ``plan``, ``replan`` and ``assimilate`` read, change
+    and write the state under it, so two commands on one state run one after the other and no
+    update is lost."""
     from ._validation import file_lock
 
     return file_lock(path, timeout=LOCK_TIMEOUT, what="state file")
@@ -113,14 +115,27 @@ def _init_locked(args: argparse.Namespace, out: Path) -> int:
 
 
 def cmd_monitor_plan(args: argparse.Namespace) -> int:
-    from .planning import plan_greedy
-
     check_plan_output(args.output)
     start, budget = starts_budgets(args)  # the request first: a bad flag costs no state read
     path = path_options(args)
     guard_paths([args.output], [args.state, *mask_files(args)], args)
-    state = _load_state(args.state)
-    out = _guard_state_outputs(args.output, state, args)
+    with _state_lock(args.state):  # the plan is stored in the state: read, plan, write back
+        state = _load_state(args.state)
+        out = _guard_state_outputs(args.output, state, args)
+        plan, t = _plan_day(state, args, start, budget, path)
+        print(f"plan for {_label(t)}: {describe_plan(plan)}")
+        write_plan(plan, out, args)
+        state.current_plan, state.current_plan_time = plan, t
+        _save_state(state, args.state)
+    print(f"plan stored in {args.state} (lrm-cvx monitor replan replans it en route)")
+    return 0
+
+
+def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
+              path: Any) -> tuple[Any, Any]:
+    """``(plan, time)``: the greedy plan of ``monitor plan`` with the forecast as prior."""
+    from .planning import plan_greedy
+
     model = state.model
     criterion = args.criterion
     if criterion is None:
@@ -129,9 +144,41 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
     plan = plan_greedy(model.Y, model.region_, start, budget, criterion=criterion,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
                        initial=args.initial, path=path, **kw)
-    t = state._default_time(args.time)
-    print(f"plan for {_label(t)}: {describe_plan(plan)}")
-    write_plan(plan, out, args)
+    return plan, state._default_time(args.time)
+
+
+def cmd_monitor_replan(args: argparse.Namespace) -> int:
+    if args.output is not None:
+        check_plan_output(args.output)
+        guard_paths([args.output], [args.state] + ([args.observations] if args.observations
+                                                   else []), args)
+    with _state_lock(args.state):  # read, assimilate, replan and write back as one step
+        state = _load_state(args.state)
+        plan, t = state.current_plan, state.current_plan_time
+        if plan is None:
+            raise _usage(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
+                         "first")
+        out = None if args.output is None else _guard_state_outputs(args.output, state, args)
+        if args.time is not None and state._dt(state._coerce(args.time, "--time")) != \
+                state._dt(t):
+            raise _usage(f"--time {args.time} is not the time of the stored plan "
+                         f"({_label(t)}): observations for a different day cannot replan it")
+        if state._dt(t) < 0:
+            raise _usage(f"the stored plan is for {_label(t)} but the state has moved on to "
+                         f"{_label(state.time)}: plan the new day with 'lrm-cvx monitor plan'")
+        done = args.done[0] if len(args.done) == 1 else list(args.done)
+        obs = None
+        if args.observations is not None:
+            obs = _read_observations(args.observations, state.model.region_, args.var)
+        before = state.n_assimilated
+        new = state.replan(None, done, obs, criterion=args.criterion, progress=not args.quiet)
+        if obs is not None:
+            print(f"assimilated {state.n_assimilated - before} observation(s) at {_label(t)}")
+        print(f"replan for {_label(t)}: {describe_plan(new)}")
+        if out is not None:
+            write_plan(new, out, args)
+        _save_state(state, args.state)
+    print(f"plan stored in {args.state}")
     return 0
 
 
@@ -233,12 +280,12 @@ def _label(t: Any) -> str:
 
 # ----------------------------------------------------------------------------- parser
 def add_monitor_parser(sub: Any) -> None:
-    """Add ``monitor init|plan|assimilate|map`` to ``lrm-cvx``'s subcommands."""
+    """Add ``monitor init|plan|replan|assimilate|map`` to ``lrm-cvx``'s subcommands."""
     from .information import CRITERIA
     from .planning.routecost import COSTS
 
     p = sub.add_parser("monitor", help="the field loop: a filter state carried from day to day "
-                       "(init, plan, assimilate, map)")
+                       "(init, plan, replan, assimilate, map)")
     msub = p.add_subparsers(dest="monitor_command", required=True, metavar="STEP")
 
     q = msub.add_parser("init", help="start a monitor state after the model's last snapshot")
@@ -276,6 +323,27 @@ def add_monitor_parser(sub: Any) -> None:
     add_mission_options(q)
     add_output(q)
     q.set_defaults(func=cmd_monitor_plan)
+
+    q = msub.add_parser("replan", help="replan the rest of the stored plan en route: fold in "
+                        "the samples taken so far, keep the flown part")
+    q.add_argument("state", help="state file holding a plan ('lrm-cvx monitor plan'; replaced "
+                   "atomically)")
+    q.add_argument("--done", required=True, type=int, nargs="+", action="extend",
+                   metavar="K", help="route entries each robot has flown (its start counts: "
+                   "the first K rows of its route in the plan); one K per robot of a fleet")
+    q.add_argument("--observations", default=None, help="the samples taken so far: CSV with "
+                   "value and cell or lat, lon columns, or a NetCDF (lat, lon) map with NaN "
+                   "where not observed (as 'monitor assimilate')")
+    q.add_argument("--time", default=None, help="time of the observations (default, and the "
+                   "only one accepted: the stored plan's)")
+    q.add_argument("--var", default=None, help="variable of a NetCDF observations file")
+    q.add_argument("--criterion", choices=CRITERIA, default=None,
+                   help="planning criterion (default: the stored plan's)")
+    q.add_argument("-o", "--output", default=None, help="write the new plan: plan.csv, "
+                   "plan.geojson, or a mission (.plan, .waypoints, .gpx, .kml)")
+    add_mission_options(q)
+    add_output(q)
+    q.set_defaults(func=cmd_monitor_replan)
 
     q = msub.add_parser("assimilate", help="fold a day's observations into the state")
     q.add_argument("state", help="state file (replaced atomically)")

@@ -56,7 +56,15 @@ class MonitorState(LatentFilter):
     ``time`` has been observed (the last fitted snapshot counts as observed; a state positioned
     at a later time by ``from_model(model, time=T)`` has not, so observations at ``T`` are
     accepted). Mutating methods return ``self``.
+
+    ``current_plan`` is the day's route plan (a :class:`~lrm_cvx.planning.Plan`, or None) and
+    ``current_plan_time`` the time it was planned for: what ``lrm-cvx monitor plan`` stored
+    and ``monitor replan`` replans; :meth:`save` writes them into the state file (``plan_*``
+    variables) and :meth:`load` reads them back equal.
     """
+
+    current_plan: Any = None
+    current_plan_time: Any = None
 
     # ------------------------------------------------------------------ maps
     def _dataset(self, mean: np.ndarray, std: np.ndarray, pstd: np.ndarray, t: Any,
@@ -106,11 +114,26 @@ class MonitorState(LatentFilter):
         """Replan the rest of ``plan`` en route: fold in ``observations`` (today's measurements
         so far) at ``time``, keep each robot's first ``done`` route entries, and plan the rest
         from where it is with the budget left and the same end (home for a closed tour), under
-        the same path model. See :func:`lrm_cvx.replanning.replan`."""
+        the same path model. See :func:`lrm_cvx.replanning.replan`.
+
+        ``plan=None`` replans ``current_plan`` (ModelError when there is none), and ``time``
+        then defaults to ``current_plan_time``. The new plan becomes ``current_plan``, planned
+        for ``time`` (default as :meth:`forecast`)."""
         from .replanning import replan
 
-        return replan(self, plan, done, observations, time=time, criterion=criterion,
-                      progress=progress)
+        if plan is None:
+            if self.current_plan is None:
+                raise ModelError("the state holds no plan to replan: plan the day first "
+                                 "(lrm-cvx monitor plan)")
+            plan = self.current_plan
+        if time is None and plan is self.current_plan:
+            time = self.current_plan_time
+        new = replan(self, plan, done, observations, time=time, criterion=criterion,
+                     progress=progress)
+        self.current_plan = new
+        self.current_plan_time = self.time if observations is not None else \
+            self._default_time(time)
+        return new
 
     def explore(self, plan: Any = None, *, forecast: bool = False, time: Any = None,
                 tiles: str | None = "OpenStreetMap") -> Any:
@@ -182,6 +205,13 @@ class MonitorState(LatentFilter):
             "model_path": str(getattr(self, "model_path", "") or ""),
             **dyn_attrs,
         }
+        if self.current_plan is not None:  # the day's route plan (lrm-cvx monitor replan)
+            from .replanning import plan_variables
+
+            variables, attrs = plan_variables(self.current_plan)
+            for name, value in variables.items():
+                ds[name] = value
+            ds.attrs.update(attrs, plan_time=time_to_str(self.current_plan_time))
         return ds
 
     def save(self, path: str | os.PathLike) -> None:
@@ -244,6 +274,17 @@ class MonitorState(LatentFilter):
                     n_assimilated=int(ds.attrs["n_assimilated"]),
                     n_dropped=int(ds.attrs["n_dropped"]))
         state.model_path = mpath
+        if "plan_route" in ds:
+            from .replanning import plan_from_variables
+
+            try:
+                state.current_plan = plan_from_variables(ds, model.region_, model.Y)
+                pt = coerce_time(ds.attrs["plan_time"], kind,
+                                 str(ds.attrs.get("calendar")) or None)
+            except (KeyError, ValueError) as exc:
+                raise DataError(f"state file {spath!r} holds an incomplete or corrupt plan: "
+                                f"{exc}") from None
+            state.current_plan_time = float(pt) if kind == "numeric" else pt
         return state
 
     def __repr__(self) -> str:

@@ -23,7 +23,7 @@ from .errors import PlanningError
 from .information import fisher_information
 from .planning import Plan, plan_greedy
 
-__all__ = ["replan", "route_feasible"]
+__all__ = ["replan", "route_feasible", "plan_variables", "plan_from_variables"]
 
 _TOL = 1e-9
 
@@ -161,7 +161,7 @@ def _stitch(plan: Any, pieces: list, new_plans: list, Y: np.ndarray, region: Any
         information=fisher_information(Y, cells, ridge), criterion=criterion,
         budget=plan.budget, start=plan.start, ridge=ridge, method=f"{plan.method}+replan",
         cost_function=plan.cost_function, Y=Y, route_cost=np.concatenate(route_cost),
-        posterior=True, path=dict(plan.path.items()), route_robot=np.concatenate(robot),
+        posterior=True, path=plan.path, route_robot=np.concatenate(robot),
         waypoint=np.concatenate(waypoint), stops=stops, stop_robot=stop_robot,
         robot_costs=costs, path_models=plan._path_models)  # the same path model
 
@@ -211,3 +211,83 @@ def route_feasible(plan: Any, region: Any, *, tol: float = 1e-6) -> list[str]:
         if path.get("end") is not None and cells.size and cells[-1] != int(path["end"]):
             problems.append(f"robot {r}: does not end at the fixed end")
     return problems
+
+
+# ----------------------------------------------------------------------------- the stored plan
+_PLAN_ARRAYS = ("cells", "route", "route_cost", "route_robot", "waypoint", "stops",
+                "stop_robot", "robot_costs")
+_PLAN_DIMS = {"cells": "plan_cell", "route": "plan_entry", "route_cost": "plan_entry",
+              "route_robot": "plan_entry", "waypoint": "plan_entry", "stops": "plan_stop",
+              "stop_robot": "plan_stop", "robot_costs": "plan_robot"}
+
+
+def plan_variables(plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(variables, attributes)`` holding ``plan`` in a NetCDF file (``plan_`` prefixed, own
+    dimensions): its arrays and history, its path model (the traversable mask as a
+    ``(plan_lat, plan_lon)`` int8 grid) and scalars. :func:`plan_from_variables` reads it back
+    equal (``==``). Booleans are stored as int8, ``None`` as an absent attribute or ``-1``."""
+    out: dict[str, Any] = {}
+    for name in _PLAN_ARRAYS:
+        v = np.asarray(getattr(plan, name))
+        out[f"plan_{name}"] = ((_PLAN_DIMS[name],), v.astype(np.int8) if v.dtype == bool else v)
+    for key, v in plan.history.items():
+        out[f"plan_history_{key}"] = ((f"plan_pick_{key}",), np.asarray(v))
+    path = dict(plan.path.items())
+    mask = plan.traversable_mask
+    if mask is not None:
+        out["plan_traversable"] = (("plan_lat", "plan_lon"), np.asarray(mask).astype(np.int8))
+    out["plan_starts"] = (("plan_robot",), np.asarray(path["starts"], dtype=np.int64))
+    out["plan_budgets"] = (("plan_robot",), np.asarray(path["budgets"], dtype=np.float64))
+    attrs: dict[str, Any] = {
+        "plan_cost": float(plan.cost), "plan_information": float(plan.information),
+        "plan_criterion": plan.criterion or "", "plan_budget": float(plan.budget),
+        "plan_start": int(plan.start), "plan_ridge": float(plan.ridge),
+        "plan_method": plan.method, "plan_cost_function": plan.cost_function,
+        "plan_posterior": int(plan.posterior), "plan_kind": path["kind"],
+        "plan_metric": path["metric"], "plan_stop_cost": float(path["stop_cost"] or 0.0),
+        "plan_traversable_kind": str(path["traversable"]), "plan_closed": int(path["closed"]),
+        "plan_end": -1 if path["end"] is None else int(path["end"]), "plan_unit": path["unit"],
+        "plan_sense_along": int(path["sense_along"]),
+    }
+    if path.get("speed") is not None:
+        attrs["plan_speed"] = float(path["speed"])
+    return out, attrs
+
+
+def plan_from_variables(ds: Any, region: Any, Y: Any) -> Any:
+    """The :class:`~lrm_cvx.planning.Plan` that :func:`plan_variables` wrote into ``ds`` (a
+    Dataset), on ``region`` with the factor matrix ``Y``; None when ``ds`` holds no plan."""
+    from .planning.request import PathOptions, PlanPath
+
+    if "plan_route" not in ds:
+        return None
+    a = ds.attrs
+    arr = {name: np.asarray(ds[f"plan_{name}"].values) for name in _PLAN_ARRAYS}
+    history = {str(n)[len("plan_history_"):]: np.asarray(ds[n].values) for n in ds.data_vars
+               if str(n).startswith("plan_history_")}
+    kind = str(a["plan_traversable_kind"])
+    end = int(a["plan_end"])
+    speed = float(a["plan_speed"]) if "plan_speed" in a else None
+    desc = {"kind": str(a["plan_kind"]), "metric": str(a["plan_metric"]), "speed": speed,
+            "stop_cost": float(a["plan_stop_cost"]), "traversable": kind,
+            "closed": bool(int(a["plan_closed"])), "end": None if end < 0 else end,
+            "unit": str(a["plan_unit"]), "sense_along": bool(int(a["plan_sense_along"])),
+            "starts": ds["plan_starts"].values.tolist(),
+            "budgets": ds["plan_budgets"].values.tolist()}
+    options = None
+    if desc["kind"] != "static":
+        trav: Any = None if kind == "none" else "valid"
+        if kind == "mask":
+            trav = np.asarray(ds["plan_traversable"].values).astype(bool)
+        options = PathOptions(metric=desc["metric"], speed=speed, stop_cost=desc["stop_cost"],
+                              traversable=trav, closed=desc["closed"], end=desc["end"],
+                              sense_along=desc["sense_along"])
+    return Plan.build(
+        region=region, cells=arr["cells"], route=arr["route"], cost=float(a["plan_cost"]),
+        information=float(a["plan_information"]), criterion=str(a["plan_criterion"]) or None,
+        budget=float(a["plan_budget"]), start=int(a["plan_start"]),
+        ridge=float(a["plan_ridge"]), method=str(a["plan_method"]), history=history,
+        cost_function=str(a["plan_cost_function"]), Y=Y, route_cost=arr["route_cost"],
+        posterior=bool(int(a["plan_posterior"])), path=PlanPath(desc, options=options),
+        route_robot=arr["route_robot"], waypoint=arr["waypoint"].astype(bool),
+        stops=arr["stops"], stop_robot=arr["stop_robot"], robot_costs=arr["robot_costs"])

@@ -28,9 +28,10 @@ path length is an exact float sum: shortest-path distances are exactly symmetric
 independent of the summation order, and never shorter than the true path.
 
 Travel graph scope: the graph holds the enterable cells within straight-line reach of the start
-(the travel budget; half of it for a closed tour), and Dijkstra stops at that reach (no leg of a
+(the travel budget; half of it for a closed tour; for a route to an ``end``, the ellipse
+``d(start, x) + d(x, end) <= travel``), and Dijkstra stops at that reach (no leg of a
 feasible closed tour is longer than half the budget: the rest of the tour is a way back). Every
-point of a feasible route lies in that disk, so a route's cost is its true shortest-path cost
+point of a feasible route lies in that region, so a route's cost is its true shortest-path cost
 whenever it is within the budget; distances beyond the reach are ``inf`` (such routes are
 infeasible either way).
 """
@@ -71,6 +72,11 @@ __all__ = [
     "grid_wraps",
 ]
 
+
+ELLIPSE_GRAPH = True
+"""Routes to an ``end``: the travel graph holds only the cells ``x`` with ``d(start, x) +
+d(x, end) <= travel budget`` (straight-line lower bounds), not the disk of radius travel around
+the start. False restores the disk (benchmarks compare the two)."""
 
 _QUANTUM = 2.0 ** -20  # graph edge lengths are multiples of this (budget unit): exact sums
 _TOL = 1e-9  # budget tolerance (as the greedy's)
@@ -203,14 +209,19 @@ class _Graph:
     to :data:`_QUANTUM`. Dijkstra rows (distance, predecessor) are cached per source cell.
     """
 
-    def __init__(self, model: PathModel, radius: float, limit: float) -> None:
+    def __init__(self, model: PathModel, radius: float, limit: float,
+                 ellipse: float | None = None) -> None:
         from scipy.sparse import csr_matrix
 
         region = model.region
         self.radius = float(radius)
         self.limit = float(limit)
-        near = model._enter & (model._lower_bound_from_start(self.radius)
-                               <= self.radius + model.tol)
+        lb = model._lower_bound_from_start(self.radius)
+        near = model._enter & (lb <= self.radius + model.tol)
+        if ellipse is not None:  # a route to an end: only where start -> x -> end fits
+            reach = float(ellipse) * (1 + 1e-9) + model.tol
+            near &= lb + model._lower_bound_from(model.end, reach) <= reach
+            near[model.end] = True
         near[model.start] = True
         self.cells = np.flatnonzero(near).astype(np.int64)
         ny, nx = region.shape
@@ -491,8 +502,12 @@ class PathModel:
         (grid units wrap on a full-circle grid, matching the graph's wrapped edges); only
         cells whose latitude (row) alone keeps them within ``radius`` are computed, the
         others are ``inf`` (great-circle distance >= R |dlat|)."""
+        return self._lower_bound_from(self.start, radius)
+
+    def _lower_bound_from(self, cell: int, radius: float = np.inf) -> np.ndarray:
+        """:meth:`_lower_bound_from_start` from ``cell`` instead of the start."""
         gi = self.region.grid_index
-        r0 = gi[self.start, 0]
+        r0 = gi[cell, 0]
         if self.metric == "grid":
             band = np.abs(np.arange(self.region.shape[0]) - r0) <= radius
         else:
@@ -505,12 +520,12 @@ class PathModel:
         cells = np.arange(lo, hi)
         if self.metric == "grid":
             dr = (gi[cells, 0] - r0).astype(np.float64)
-            dc = np.abs(gi[cells, 1] - gi[self.start, 1]).astype(np.float64)
+            dc = np.abs(gi[cells, 1] - gi[cell, 1]).astype(np.float64)
             if self._wrap:
                 dc = np.minimum(dc, self.region.shape[1] - dc)
             out[cells] = np.sqrt(dr * dr + dc * dc)
         else:
-            out[cells] = self._geo.row(self.start, cells)
+            out[cells] = self._geo.row(cell, cells)
         return out
 
     # ---------------------------------------------------------------- distances
@@ -796,9 +811,16 @@ def path_model(region: Region, start: Any, budget: float, request: PathOptions,
     # every point of a feasible route is within `radius` of the start, every leg <= `limit`
     # (a closed tour's leg is at most half of it: the rest of the tour is a way back)
     radius = limit = travel / 2 if closed else travel
+    ellipse = None
     if end_cell is not None:
-        radius = limit = max(radius, float(model._lower_bound_from_start()[end_cell]))
-    model._graph = _Graph(model, radius, limit + model.tol)
+        to_end = float(model._lower_bound_from_start()[end_cell])
+        radius = limit = max(radius, to_end)
+        # every point x of a route start -> ... -> end within the travel budget has
+        # d(start, x) + d(x, end) <= travel (straight-line lower bounds): the graph holds that
+        # ellipse only (a disk of radius travel around the start has ~4x its cells; a replan en
+        # route is such a route, issue #25). An end beyond the budget keeps the disk.
+        ellipse = travel if to_end <= travel and ELLIPSE_GRAPH else None
+    model._graph = _Graph(model, radius, limit + model.tol, ellipse)
     return model
 
 

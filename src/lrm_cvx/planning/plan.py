@@ -203,8 +203,14 @@ class Plan:
     def traversable_mask(self) -> np.ndarray | None:
         """``(ny, nx)`` bool: where the robots may travel (``path["traversable"] == "mask"``,
         from the plan's path models; masked grid positions False), else None."""
-        if self.path.get("traversable") != "mask" or not self._path_models:
+        if self.path.get("traversable") != "mask":
             return None
+        if not self._path_models:  # a plan read back from a file: its request's mask
+            opts = self.path.options
+            trav = None if opts is None else opts.traversable
+            if trav is None or isinstance(trav, str):
+                return None
+            return np.asarray(getattr(trav, "values", trav), dtype=bool).copy()
         region = self._region
         enter = np.asarray(self._path_models[0].enterable(), dtype=bool)
         out = np.zeros(region.shape, dtype=bool)
