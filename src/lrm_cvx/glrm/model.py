@@ -21,7 +21,6 @@ from ..errors import DataError, ModelError, NotFittedError
 from ..region import Region
 from . import kernels as K
 from .dynamics import TEMPORAL, Dynamics, error_rows, temporal_value
-from .selection import check_auto_data, selection_from_dataset, selection_vars
 from .dynamics import estimate as estimate_dynamics
 from .fit import DataStats, FitResult, check_data, fit_glrm
 from .losses import get_loss
@@ -29,6 +28,7 @@ from .modelfile import MODEL_FORMAT, MODEL_FORMAT_VERSION, read_model_file
 from .posterior import LatentPosterior, fold_in_snapshots, model_prior
 from .predictive import PREDICTIVE_ATTRS, fit_predictive
 from .regularizers import get_regularizer
+from .selection import check_auto_data, selection_from_dataset, selection_vars
 
 __all__ = ["GLRM"]
 

@@ -42,7 +42,8 @@ from .._validation import as_generator
 from ..errors import ModelError
 
 __all__ = ["select_temporal", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES", "MIN_AUTO_SNAPSHOTS",
-           "apply_selection", "check_auto_data", "format_selection", "selection_vars", "selection_from_dataset"]
+           "apply_selection", "check_auto_data", "format_selection", "selection_vars",
+           "selection_from_dataset"]
 
 AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
 """Blends towards the memoryless prior tried for every temporal kind."""
@@ -218,7 +219,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
                 dyns.append(blend_dynamics(base, a, S))
         E = _window_errors(sub, dyns, V[lo:end], all_times[lo:end], region, sizes, designs,
                            rng, spatial)
-        errs.append(dict(zip(labels, E)))
+        errs.append(dict(zip(labels, E, strict=True)))
     labels = [lab for lab in errs[0] if all(lab in e and meta[lab][0] not in skipped
                                             for e in errs)]
     E = np.stack([np.concatenate([e[lab] for e in errs], axis=-1) for lab in labels])
