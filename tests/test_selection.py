@@ -178,3 +178,28 @@ def test_auto_bad_input(persistent_field):
         model.fit_dynamics("auto")
     with pytest.raises(ModelError, match="alphas"):
         select_temporal(model, persistent_field, alphas=(1.5,))
+
+
+def test_shared_kriging_equals_each_posteriors_own_map():
+    """The candidates' maps from one kriging call equal each posterior's own prediction."""
+    from lrm_cvx.glrm.calibration import _memoryless_cov, blend_dynamics
+    from lrm_cvx.glrm.filter import LatentFilter
+    from lrm_cvx.glrm.selection import _map_means
+
+    da = synthetic_dynamic_field(30, (9, 10), 3, seed=5, freq="D", missing=0.1, noise=0.1)
+    model = _fit(da, temporal="ar1", offset=True, spatial="exponential")
+    S = _memoryless_cov(model, model.dynamics_)
+    dyns = [None] + [blend_dynamics(model.dynamics_, a, S) for a in (0.5, 1.0)]
+    states = [LatentFilter.from_model(model, dynamics=d, memoryless=d is None) for d in dyns]
+    V = model.region_.stack(da)
+    cells = np.flatnonzero(np.isfinite(V[-1]))[::4]
+    t = da.time.values[-1] + np.timedelta64(1, "D")
+    for s in states:
+        s.assimilate((cells, V[-1, cells] + 0.3), time=t)
+    assert states[0].posterior.obs_model.is_spatial
+    targets = np.flatnonzero(np.isfinite(V[-1]))[1::3]
+    got = _map_means([s.posterior for s in states], states[0].posterior.obs_model, targets)
+    for row, s in zip(got, states, strict=True):
+        np.testing.assert_allclose(row, s.posterior.predict(cells=targets)[0], rtol=1e-9,
+                                   atol=1e-12)
+    assert not np.allclose(got[0], got[2])  # the candidates' maps differ

@@ -38,10 +38,12 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from .._blas import single_threaded_blas
 from .._validation import as_generator
 from ..errors import ModelError
 
 __all__ = ["select_temporal", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES", "MIN_AUTO_SNAPSHOTS",
+           "MAX_SCORED",
            "apply_selection", "check_auto_data", "format_selection", "selection_vars",
            "selection_from_dataset"]
 
@@ -53,6 +55,9 @@ AUTO_SIZES = (5, 15, 50)
 """Samples per validation day."""
 MIN_AUTO_SNAPSHOTS = 8
 """Fewest training snapshots ``temporal="auto"`` validates on (3 to refit, 2 windows)."""
+MAX_SCORED = 256
+"""Cells a validation day's map is scored on (a random subset of the unsampled observed cells:
+the kriged maps cost ``O(cells)`` each)."""
 _MIN_REGULAR = 0.8  # share of the steps that must be one median step
 _PREFIX = "selection_"
 
@@ -106,46 +111,75 @@ def _kind_dynamics(kind: str, sub: Any, times: Any) -> Any:
 
 def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarray,
                    region: Any, sizes: Sequence[int], designs: Sequence[str],
-                   rng: np.random.Generator, spatial: bool) -> np.ndarray:
+                   rng: np.random.Generator, spatial: bool | None) -> np.ndarray:
     """Day MSE ``(n_candidates, n_sizes, n_days)`` (designs averaged) of the filter with each
-    of ``dynamics`` (None: memoryless) through the snapshots ``V (n_days, L)`` at ``times``."""
+    of ``dynamics`` (None: memoryless) through the snapshots ``V (n_days, L)`` at ``times``.
+
+    The candidates share each day's sample cells, so the kriged residual maps of all of them
+    come from one kriging call (its weights depend on the cells only)."""
     from .calibration import sample_sets
     from .filter import LatentFilter
 
     n = V.shape[0]
-    sets = {(size, d): [sample_sets(region, np.isfinite(V[i]), size, d, rng) for i in range(n)]
-            for size in sizes for d in designs}
+    keys = [(size, d) for size in sizes for d in designs]
+    sets = {key: [sample_sets(region, np.isfinite(V[i]), key[0], key[1], rng)
+                  for i in range(n)] for key in keys}
     held = {}
-    for key, cell_sets in sets.items():
-        for i, cells in enumerate(cell_sets):
+    for key in keys:
+        for i, cells in enumerate(sets[key]):
             h = np.isfinite(V[i])
             h[cells] = False
-            held[key, i] = np.flatnonzero(h)
+            h = np.flatnonzero(h)
+            if h.size > MAX_SCORED:  # an unbiased sample of the map's error, shared by all
+                h = np.sort(rng.choice(h, MAX_SCORED, replace=False))
+            held[key, i] = h
     err = np.zeros((len(dynamics), len(sizes), n))
-    for c, dyn in enumerate(dynamics):
-        for (size, d), cell_sets in sets.items():
-            state = LatentFilter.from_model(sub, dynamics=dyn, memoryless=dyn is None,
-                                            spatial=spatial)
-            for i, t in enumerate(times):
-                cells = cell_sets[i]
+    for key in keys:
+        states = [LatentFilter.from_model(sub, dynamics=dyn, memoryless=dyn is None,
+                                          spatial=spatial) for dyn in dynamics]
+        obs = states[0].posterior.obs_model
+        for i, t in enumerate(times):
+            cells, h = sets[key][i], held[key, i]
+            if h.size == 0:
+                err[:, sizes.index(key[0]), i] = np.nan
+                continue
+            for state in states:
                 state.assimilate((cells, V[i, cells]), time=t)
-                h = held[(size, d), i]
-                post = state.posterior
-                if spatial:
-                    mean, _ = post.predict(cells=h)
-                else:  # the trend's mean only (the variance is not scored)
-                    obs = post.obs_model
-                    mean = obs.to_data_units(obs.Y[:, h].T @ post.mean, None, h)[0]
-                err[c, sizes.index(size), i] += (float(np.mean((mean - V[i, h]) ** 2))
-                                                 if h.size else np.nan)
+            means = _map_means([s.posterior for s in states], obs, h)  # (n_cand, |h|)
+            err[:, sizes.index(key[0]), i] += np.mean((means - V[i, h]) ** 2, axis=1)
     return err / len(designs)
+
+
+def _map_means(posts: list[Any], obs: Any, cells: np.ndarray) -> np.ndarray:
+    """Posterior mean maps ``(len(posts), len(cells))`` in data units of beliefs that share
+    their observations: the trend ``Y^T m`` plus, with a spatial residual, the residuals at the
+    observations kriged with one set of weights (universal kriging given each GLS mean)."""
+    M = np.stack([p.mean for p in posts], axis=1)  # (k, n_cand)
+    mu = obs.Y[:, cells].T @ M  # (|cells|, n_cand)
+    if obs.is_spatial:
+        from .. import spatial as sp
+        from .posterior import _average_repeats
+
+        p0 = posts[0]
+        uc, zc = _average_repeats(p0.cells, obs.to_fit_units(p0.cells, p0.values))
+        if uc.size:
+            cov = obs.spatial_cov
+            res = zc[:, None] - obs.Y[:, uc].T @ M  # (n_obs, n_cand)
+            meth = "direct" if uc.size <= sp.MAX_DIRECT else "neighbors"
+            r_mu, _ = sp.krige_core(cov, sp.cell_xyz(obs.region, cov.metric, uc), res,
+                                    sp.cell_xyz(obs.region, cov.metric, cells), method=meth,
+                                    neighbors=32, cutoff=1e-6, want_var=False)
+            mu = mu + r_mu.T
+    out = obs.to_data_units(mu.T, None, cells)[0]
+    return np.asarray(out)
 
 
 def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "seasonal"),
                     alphas: Sequence[float] = AUTO_ALPHAS, n_val: int | None = None,
                     n_folds: int = 2, sizes: Sequence[int] = AUTO_SIZES,
                     designs: Sequence[str] = AUTO_DESIGNS, confidence: float = 1.645,
-                    tolerance: float = 0.01, spatial: bool = False, seed: Any = 0) -> xr.Dataset:
+                    tolerance: float = 0.01, spatial: bool | None = None, seed: Any = 0
+                    ) -> xr.Dataset:
     """Choose the temporal model of ``model`` by rolling-origin validation on ``data``.
 
     ``model``: a GLRM fitted on ``data`` ``(time, lat, lon)``, its training snapshots (only
@@ -153,8 +187,10 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``alphas``; a kind the record cannot carry (a season on yearly data, or fewer than two years
     before the first window) is skipped and named in ``attrs["skipped"]``. ``n_val``: days per
     window (default a fifth of the record, between 3 and 24). ``spatial``: krige the residual in
-    the validation maps (off by default: the kriging correction is shared by the candidates and
-    costs ``O(L n)`` a day). See the module docstring for the rule.
+    the validation maps (None: when the model has a spatial residual, as campaigns do; the
+    kriged residual and the forecast interact, so the choice is scored on the maps users get).
+    Each day's map is scored on at most :data:`MAX_SCORED` random unsampled cells.
+    See the module docstring for the rule.
 
     Returns a Dataset over ``candidate`` (coordinates ``kind``, ``alpha``) and ``size``: ``mse``
     (mean validation-day MSE), ``ratio`` (to memoryless), ``ucb`` (the bound of the rule),
@@ -217,8 +253,9 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
                 labels.append(_candidate_label(kind, a))
                 meta[labels[-1]] = (kind, a)
                 dyns.append(blend_dynamics(base, a, S))
-        E = _window_errors(sub, dyns, V[lo:end], all_times[lo:end], region, sizes, designs,
-                           rng, spatial)
+        with single_threaded_blas():  # k x k and n x n algebra: threads only add waiting
+            E = _window_errors(sub, dyns, V[lo:end], all_times[lo:end], region, sizes,
+                               designs, rng, spatial)
         errs.append(dict(zip(labels, E, strict=True)))
     labels = [lab for lab in errs[0] if all(lab in e and meta[lab][0] not in skipped
                                             for e in errs)]
