@@ -182,13 +182,13 @@ def test_auto_bad_input(persistent_field):
 
 def test_shared_kriging_equals_each_posteriors_own_map():
     """The candidates' maps from one kriging call equal each posterior's own prediction."""
-    from lrm_cvx.glrm.calibration import _memoryless_cov, blend_dynamics
+    from lrm_cvx.glrm.calibration import blend_dynamics, memoryless_cov
     from lrm_cvx.glrm.filter import LatentFilter
     from lrm_cvx.glrm.selection import _map_means
 
     da = synthetic_dynamic_field(30, (9, 10), 3, seed=5, freq="D", missing=0.1, noise=0.1)
     model = _fit(da, temporal="ar1", offset=True, spatial="exponential")
-    S = _memoryless_cov(model, model.dynamics_)
+    S = memoryless_cov(model, model.dynamics_)
     dyns = [None] + [blend_dynamics(model.dynamics_, a, S) for a in (0.5, 1.0)]
     states = [LatentFilter.from_model(model, dynamics=d, memoryless=d is None) for d in dyns]
     V = model.region_.stack(da)

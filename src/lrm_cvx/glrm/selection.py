@@ -158,10 +158,10 @@ def _map_means(posts: list[Any], obs: Any, cells: np.ndarray) -> np.ndarray:
     mu = obs.Y[:, cells].T @ M  # (|cells|, n_cand)
     if obs.is_spatial:
         from .. import spatial as sp
-        from .posterior import _average_repeats
+        from .posterior import average_repeats
 
         p0 = posts[0]
-        uc, zc = _average_repeats(p0.cells, obs.to_fit_units(p0.cells, p0.values))
+        uc, zc = average_repeats(p0.cells, obs.to_fit_units(p0.cells, p0.values))
         if uc.size:
             cov = obs.spatial_cov
             res = zc[:, None] - obs.Y[:, uc].T @ M  # (n_obs, n_cand)
@@ -197,10 +197,10 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``admissible``; attributes ``choice`` (a candidate label, ``"none"`` for memoryless),
     ``choice_kind``, ``choice_alpha``, ``n_days``, ``designs``, ``skipped``.
     """
-    from .calibration import _check_data, _clone
+    from .calibration import clone_model, training_values
     from .dynamics import TEMPORAL, check_times
 
-    region, V = _check_data(model, data)
+    region, V = training_values(model, data)
     T = V.shape[0]
     if T < MIN_AUTO_SNAPSHOTS:
         raise ModelError(f"temporal='auto' needs at least {MIN_AUTO_SNAPSHOTS} training "
@@ -225,7 +225,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
         raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
     n_folds = max(1, min(int(n_folds), (T - 3) // n_val))
     rng = as_generator(seed)
-    from .calibration import _memoryless_cov, blend_dynamics
+    from .calibration import blend_dynamics, memoryless_cov
 
     all_times = data[tdim].values
     errs: list[dict[str, np.ndarray]] = []  # per window, in time order: label -> (size, day)
@@ -236,7 +236,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
         lo = end - n_val
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sub = _clone(model, temporal="ar1").fit(data.isel({tdim: slice(None, lo)}),
+            sub = clone_model(model, temporal="ar1").fit(data.isel({tdim: slice(None, lo)}),
                                                      region=region)
         sub.calibration_ = None
         sub_times = all_times[:lo]
@@ -246,7 +246,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
             if base is None:
                 skipped.add(kind)
                 continue
-            S = _memoryless_cov(sub, base)
+            S = memoryless_cov(sub, base)
             for a in alphas:
                 if kind == "ar1" and a == 0.0:
                     continue  # the memoryless model itself
@@ -304,7 +304,7 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
 def apply_selection(model: Any, selection: xr.Dataset) -> None:
     """Set ``model.dynamics_`` to the chosen candidate, estimated on all of ``model``'s
     snapshots (blended by the chosen ``alpha``; None for memoryless), and ``selection_``."""
-    from .calibration import _memoryless_cov, blend_dynamics
+    from .calibration import blend_dynamics, memoryless_cov
 
     kind = selection.attrs["choice_kind"]
     model.selection_ = selection
@@ -318,11 +318,16 @@ def apply_selection(model: Any, selection: xr.Dataset) -> None:
         raise ModelError(f"temporal='auto' chose {kind!r} but it cannot be estimated on all "
                          f"snapshots")
     model.dynamics_ = blend_dynamics(base, float(selection.attrs["choice_alpha"]),
-                                     _memoryless_cov(model, base))
+                                     memoryless_cov(model, base))
 
 
-def format_selection(selection: xr.Dataset) -> str:
-    """The validation table as text (the CLI and the demo print it)."""
+def format_selection(selection: xr.Dataset, short: bool = False) -> str:
+    """The validation table as text (the CLI prints it); ``short``: one line (the demo's)."""
+    if short:
+        choice = selection.attrs["choice"]
+        worst = float(selection["ratio"].sel(candidate=choice).max())
+        return (f"temporal='auto' chose {choice!r} (MSE x{worst:.2f} of memoryless over "
+                f"{selection.attrs['n_days']} validation days)")
     sizes = [int(s) for s in selection["size"].values]
     head = f"{'candidate':<14}" + "".join(f"{'MSE@' + str(s):>12}" for s in sizes)
     lines = [f"temporal='auto' chose {selection.attrs['choice']!r} (rolling origin, "
