@@ -4,8 +4,8 @@ Fit ``GLRM(offset=True, spatial="exponential")``, plan with the gp-variance crit
 start cell alone (``method`` is its name in ``evaluate``), predict with the empirical prior and
 the kriged GP residual (``fold_spatial``); a model for monitoring chooses its temporal model on
 the training snapshots (``temporal="auto"``, glrm/selection.py). ``lrm-cvx ... --recommended``
-switches it on; ``lrm_cvx.demo`` runs it beside the paper's setting. Plain data, so it sits at the base of the
-layers.
+switches it on; ``lrm_cvx.demo`` runs it beside the paper's setting. Plain data, so it sits at
+the base of the layers.
 """
 
 from __future__ import annotations
