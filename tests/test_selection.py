@@ -26,7 +26,7 @@ def seasonal_field():
     """Monthly, a strong season and weak persistence: the seasonal climatology wins."""
     return synthetic_dynamic_field(72, (8, 9), 3, seed=1, seasonal_period=12,
                                    seasonal_amplitude=1.0, A=0.2 * np.eye(3),
-                                   Q=0.02 * np.eye(3), freq="MS", missing=0.1)
+                                   Q=0.02 * np.eye(3), freq="MS", missing=0.1, noise=0.1)
 
 
 @pytest.fixture(scope="module")
@@ -50,9 +50,12 @@ def test_auto_picks_the_season_of_a_seasonal_record(seasonal_field):
     assert sel.attrs["choice_kind"] == "seasonal"
     assert model.dynamics_.kind == "seasonal"
     assert np.isclose(model.dynamics_.blend, sel.attrs["choice_alpha"])
-    # the chosen candidate cuts the validation error well below memoryless
+    # the chosen candidate cuts the validation error below memoryless (noise 0.1: a floor of
+    # 0.01 in every MSE) and beats every AR(1) candidate
     chosen = sel.sel(candidate=sel.attrs["choice"])
-    assert float(chosen["ratio"].max()) < 0.8
+    assert float(chosen["ratio"].max()) < 0.95
+    ar1 = sel["ratio"].where(sel["kind"] == "ar1", drop=True)
+    assert float(chosen["ratio"].max()) < float(ar1.max("size").min())
 
 
 def test_auto_picks_ar1_on_a_persistent_record_and_skips_a_season_it_cannot_carry(

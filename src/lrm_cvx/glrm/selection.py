@@ -9,9 +9,10 @@ campaign would meet them:
   training snapshot. For each window the model is refitted on the snapshots *before* it (two
   windows: the time of two more fits), and every candidate's dynamics are estimated from that
   refit only. No candidate ever sees the snapshots it is scored on.
-* **Campaign-like designs.** Each validation day is sampled as campaigns sample: a spatially
-  clustered route, a straight transect and scattered cells (:func:`~.calibration.sample_sets`),
-  at several sizes; the same cells for every candidate (paired comparison).
+* **Campaign-like designs.** Each validation day is sampled as campaigns sample, the design
+  cycling from day to day: a spatially clustered route, a straight transect, scattered cells
+  (:func:`~.calibration.sample_sets`), one campaign per sample size; the same cells for every
+  candidate (paired comparison).
 * **The campaign's metric.** The filter runs through the window with each candidate: forecast,
   assimilate the day's samples, predict the whole map; the score is the day's MSE over the
   observed cells not sampled.
@@ -112,42 +113,35 @@ def _kind_dynamics(kind: str, sub: Any, times: Any) -> Any:
 def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarray,
                    region: Any, sizes: Sequence[int], designs: Sequence[str],
                    rng: np.random.Generator, spatial: bool | None) -> np.ndarray:
-    """Day MSE ``(n_candidates, n_sizes, n_days)`` (designs averaged) of the filter with each
-    of ``dynamics`` (None: memoryless) through the snapshots ``V (n_days, L)`` at ``times``.
+    """Day MSE ``(n_candidates, n_sizes, n_days)`` of the filter with each of ``dynamics``
+    (None: memoryless) through the snapshots ``V (n_days, L)`` at ``times``.
 
-    The candidates share each day's sample cells, so the kriged residual maps of all of them
-    come from one kriging call (its weights depend on the cells only)."""
+    One campaign per size; day ``i`` is sampled by design ``designs[i % len(designs)]`` (a
+    campaign's routes change from day to day). The candidates share each day's sample cells,
+    so the kriged residual maps of all of them come from one kriging call (its weights depend
+    on the cells only)."""
     from .calibration import sample_sets
     from .filter import LatentFilter
 
     n = V.shape[0]
-    keys = [(size, d) for size in sizes for d in designs]
-    sets = {key: [sample_sets(region, np.isfinite(V[i]), key[0], key[1], rng)
-                  for i in range(n)] for key in keys}
-    held = {}
-    for key in keys:
-        for i, cells in enumerate(sets[key]):
+    err = np.full((len(dynamics), len(sizes), n), np.nan)
+    for s_i, size in enumerate(sizes):
+        states = [LatentFilter.from_model(sub, dynamics=dyn, memoryless=dyn is None,
+                                          spatial=spatial) for dyn in dynamics]
+        obs = states[0].posterior.obs_model
+        for i, t in enumerate(times):
+            cells = sample_sets(region, np.isfinite(V[i]), size, designs[i % len(designs)], rng)
             h = np.isfinite(V[i])
             h[cells] = False
             h = np.flatnonzero(h)
             if h.size > MAX_SCORED:  # an unbiased sample of the map's error, shared by all
                 h = np.sort(rng.choice(h, MAX_SCORED, replace=False))
-            held[key, i] = h
-    err = np.zeros((len(dynamics), len(sizes), n))
-    for key in keys:
-        states = [LatentFilter.from_model(sub, dynamics=dyn, memoryless=dyn is None,
-                                          spatial=spatial) for dyn in dynamics]
-        obs = states[0].posterior.obs_model
-        for i, t in enumerate(times):
-            cells, h = sets[key][i], held[key, i]
-            if h.size == 0:
-                err[:, sizes.index(key[0]), i] = np.nan
-                continue
             for state in states:
                 state.assimilate((cells, V[i, cells]), time=t)
-            means = _map_means([s.posterior for s in states], obs, h)  # (n_cand, |h|)
-            err[:, sizes.index(key[0]), i] += np.mean((means - V[i, h]) ** 2, axis=1)
-    return err / len(designs)
+            if h.size:
+                means = _map_means([st.posterior for st in states], obs, h)  # (n_cand, |h|)
+                err[:, s_i, i] = np.mean((means - V[i, h]) ** 2, axis=1)
+    return err
 
 
 def _map_means(posts: list[Any], obs: Any, cells: np.ndarray) -> np.ndarray:
