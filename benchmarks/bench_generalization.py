@@ -15,7 +15,9 @@ spatial="exponential"``, empirical prior with kriging for every method's map,
 For each set one ``evaluate(..., temporal="ar1")`` runs a campaign over the 8 test snapshots per
 start, budget and method, through the AR(1) filter and memoryless through the same loop (so
 memoryless and ``ar1`` see the same starts and the same data); for monthly sets a second
-``evaluate(..., temporal="seasonal")`` (month-of-year means plus AR(1) anomalies). Each model is
+``evaluate(..., temporal="seasonal")`` (month-of-year means plus AR(1) anomalies), and for every
+set ``temporal="auto"`` (the choice validated on the training snapshots, glrm/selection.py; the
+choice is printed). Each model is
 fitted on the training snapshots with its ``temporal=`` (the fit's own validated blend towards
 memoryless; ``select_dynamics`` and ``calibrate`` are *not* applied: this is what a new user gets
 from the documented recommended setting). Printed per set and budget:
@@ -66,13 +68,16 @@ def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
     d = {**DATASETS, **SHORT_DATASETS}[name]
     data = d.loader()
     train = data.isel(time=slice(None, -N_TEST))
-    modes = ["ar1"] + (["seasonal"] if d.seasonal else [])
+    modes = ["ar1"] + (["seasonal"] if d.seasonal else []) + ["auto"]
     frames, times = [], {}
     for temporal in modes:
         t0 = time.perf_counter()
         model = GLRM(rank=RANK, offset=True, spatial="exponential", temporal=temporal,
                      random_state=0, progress=False).fit(train)
         t1 = time.perf_counter()
+        if temporal == "auto":
+            print(f"[{name}] temporal='auto' chose {model.selection_.attrs['choice']!r}",
+                  flush=True)
         res = evaluate(data, model=model, n_test=N_TEST, budgets=budgets, n_starts=n_starts,
                        methods=(RECOMMENDED,) + BASELINES, random_trials=random_trials,
                        min_observations=1, certify=False, progress=False, temporal=temporal,
@@ -105,13 +110,13 @@ def report(name: str, tidy: pd.DataFrame) -> pd.DataFrame:
             g = float(t.loc[RECOMMENDED, "mse_mean"])
             base = t.loc[list(BASELINES), "mse_mean"].astype(float)
             best = base.idxmin()
-            tag = {"none": "mem", "ar1": "ar1", "seasonal": "seas"}[temporal]
+            tag = {"none": "mem", "ar1": "ar1", "seasonal": "seas", "auto": "auto"}[temporal]
             row[f"greedy_{tag}"] = g
             row[f"best_base_{tag}"] = f"{float(base[best]):.4g} ({best.replace('transect-', 't-')})"
             row[f"vs_best_{tag}"] = f"{100 * (g / float(base[best]) - 1):+.0f}%"
             row[f"cov68/95_{tag}"] = (f"{float(t.loc[RECOMMENDED, 'coverage68_mean']):.2f}/"
                                       f"{float(t.loc[RECOMMENDED, 'coverage95_mean']):.2f}")
-        for tag in ("ar1", "seas"):
+        for tag in ("ar1", "seas", "auto"):
             if f"greedy_{tag}" in row:
                 change = row[f"greedy_{tag}"] / row["greedy_mem"] - 1
                 row[f"{tag}_vs_mem"] = f"{100 * change:+.0f}%"

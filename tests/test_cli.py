@@ -180,6 +180,19 @@ def test_fit_recommended_is_the_documented_setting(sst_model):
     model = GLRM.load(sst_model)
     assert model.offset is True and model.spatial == cli.RECOMMENDED["spatial"] == "exponential"
     assert model.spatial_cov_ is not None and model.offset_ is not None
+    assert model.temporal == cli.RECOMMENDED["temporal"] == "auto"
+    assert model.selection_.attrs["choice"] in model.selection_["candidate"].values
+
+
+def test_fit_prints_the_temporal_choice(tmp_path, capsys):
+    path = tmp_path / "model.nc"
+    assert main(["fit", "sample:sst", "--rank", "3", "--temporal", "auto", "--quiet", "-o",
+                 str(path)]) == 0
+    out = capsys.readouterr().out
+    model = GLRM.load(path)
+    assert f"temporal='auto' chose {model.selection_.attrs['choice']!r}" in out
+    for candidate in model.selection_["candidate"].values:
+        assert f"\n{candidate} " in out  # one row per candidate
 
 
 @pytest.mark.parametrize("flags, python", [

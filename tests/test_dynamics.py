@@ -147,8 +147,11 @@ def test_seasonal_refuses_numbers_short_records_and_odd_steps():
     X = np.random.default_rng(0).standard_normal((2, 30))
     with pytest.raises(ModelError, match="datetime"):
         estimate_seasonal(X, np.arange(30))
-    with pytest.raises(ModelError, match="twice"):
+    with pytest.raises(ModelError, match="two years"):
         estimate_seasonal(X[:, :14], pd.date_range("2000-01-01", periods=14, freq="MS").values)
+    # 6-hourly for a week sees each day of year 4 times, but in one year: no season
+    with pytest.raises(ModelError, match="two years"):
+        estimate_seasonal(X[:, :28], pd.date_range("2000-01-01", periods=28, freq="6h").values)
     with pytest.raises(ModelError, match="monthly or daily"):
         estimate_seasonal(X, pd.date_range("2000-01-01", periods=30, freq="7D").values)
 

@@ -47,6 +47,13 @@ def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
     temporal = temporal_value(temporal)
     if temporal is None:
         return None, True
+    if temporal == "auto":  # the model's own validated choice (glrm/selection.py)
+        if getattr(model, "selection_", None) is None:
+            raise ModelError("temporal='auto' campaigns need a model fitted with "
+                             "GLRM(temporal='auto') (its choice is validated on the training "
+                             "snapshots)")
+        dyn = model.dynamics_
+        return dyn, dyn is None
     dyn = getattr(model, "dynamics_", None)
     if dyn is not None and dyn.kind == temporal:
         return dyn, False

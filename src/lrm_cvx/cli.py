@@ -178,7 +178,7 @@ def _model_params(args: argparse.Namespace) -> dict:
             "spatial": _pick(args.spatial, args.recommended, "spatial", None),
             "scale": bool(args.scale),
             "noise": args.noise,
-            "temporal": _prior(args.temporal)}
+            "temporal": _prior(_pick(args.temporal, args.recommended, "temporal", None))}
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -196,6 +196,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print(f"fitted rank-{args.rank} GLRM{' (' + ', '.join(extras) + ')' if extras else ''} on "
           f"{data.sizes['time']} snapshots x {model.region_.n_cells} cells in {model.n_iter_} "
           f"iterations (noise std {model.noise_std_:.4g}); saved {out}")
+    if getattr(model, "selection_", None) is not None:
+        from .glrm.selection import format_selection
+
+        print(format_selection(model.selection_))
     return 0
 
 
@@ -455,6 +459,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     else:
         methods = METHODS
     params = _model_params(args)
+    if args.temporal is None:  # evaluate's protocol is memoryless: no dynamics to choose
+        params["temporal"] = None
     fold_in = {"prior": _prior(_pick(args.prior, args.recommended, "prior", None)),
                "spatial": bool(args.fold_spatial or args.recommended)}
     fold_in = {k: v for k, v in fold_in.items() if v}
@@ -521,9 +527,10 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
                    help="noise model (default: %(default)s)")
     p.add_argument("--spatial", choices=MODELS, default=None, metavar="KERNEL",
                    help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)})")
-    p.add_argument("--temporal", choices=[t or "none" for t in TEMPORAL], default="none",
-                   help="latent dynamics for persistent monitoring (docs/monitoring.md; "
-                   "default: %(default)s)")
+    p.add_argument("--temporal", choices=[t or "none" for t in TEMPORAL], default=None,
+                   help="latent dynamics for persistent monitoring (docs/monitoring.md): auto "
+                   "chooses none, ar1 or seasonal on the training snapshots by rolling-origin "
+                   "validation and prints its table (default: none; auto with --recommended)")
 
 
 def _first(names):

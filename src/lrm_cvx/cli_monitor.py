@@ -102,7 +102,8 @@ def _init_locked(args: argparse.Namespace, out: Path) -> int:
 
         X = model.X_
         dynamics = estimate(args.temporal, model.X, X[X.dims[1]])
-    elif not args.memoryless and getattr(model, "dynamics_", None) is None:
+    elif (not args.memoryless and getattr(model, "dynamics_", None) is None
+          and getattr(model, "selection_", None) is None):  # auto may choose memoryless
         raise _usage(f"model {args.model} has no dynamics: pass --temporal ar1 (or seasonal) "
                      "to estimate them from the model, or --memoryless")
     state = MonitorState.from_model(model, time=args.time, dynamics=dynamics,

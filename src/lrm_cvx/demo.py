@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from ._blas import single_threaded_blas
+from .glrm.selection import format_selection
 from .recommended import RECOMMENDED as SETTING  # the setting; RECOMMENDED here is its label
 
 __all__ = ["run_demo", "DemoResult", "DEMO_SETTINGS", "RECOMMENDED", "PAPER", "format_summary"]
@@ -137,7 +138,7 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
     say(f"sample {cfg['sample']!r}: {dict(data.sizes)} {data.attrs.get('long_name', '')} "
         f"({units}); training on {train.sizes['time']}, testing on the last {n_test} snapshots")
     rec = GLRM(rank, offset=SETTING["offset"], spatial=SETTING["spatial"], random_state=seed,
-               progress=False).fit(train)
+               temporal=SETTING["temporal"], progress=False).fit(train)
     t = lap("fit recommended", t)
     paper = GLRM(rank, random_state=seed, progress=False).fit(train)
     t = lap("fit paper", t)
@@ -168,7 +169,8 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
         "  start cell, fold-in prior='empirical', spatial=True (docs/reconstruction.md);",
         "  paper = GLRM(5), greedy Fisher, least-squares fold-in; baselines: recommended fold-in",
         f"budget in grid cells; {cfg['n_starts']} start cells, {cfg['random_trials']} random "
-        f"walks each, {n_test} held-out snapshots"]
+        f"walks each, {n_test} held-out snapshots",
+        "monitoring: " + format_selection(rec.selection_, short=True)]
     text = format_summary(table, units=units, notes=notes,
                           title=f"lrm-cvx demo: {data.attrs.get('long_name', data.name)}")
 

@@ -300,8 +300,11 @@ class EvaluationProtocol:
         if model is not None:
             _check_given_model(model, test)
         if model is None:
+            params = dict(self.model_params)
+            if self.temporal == "auto":  # the choice is validated on the training snapshots
+                params.setdefault("temporal", "auto")
             model = GLRM(rank=self.rank, random_state=self.seed, progress=self.progress,
-                         **self.model_params).fit(train)
+                         **params).fit(train)
         region = model.region_
         if region is None:
             raise ModelError("model must have been fitted on a DataArray (it has no region)")

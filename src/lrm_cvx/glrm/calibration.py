@@ -53,7 +53,8 @@ from .calibrated import (  # noqa: F401  (re-exported: the old import location)
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
            "blend_dynamics", "select_dynamics", "unblended_dynamics",
            "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95",
-           "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "RESIDUAL_SCALES"]
+           "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "RESIDUAL_SCALES", "clone_model",
+           "training_values", "memoryless_cov"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
 Z95 = 1.959963984540054   # two-sided 95%
@@ -106,14 +107,13 @@ def sample_sets(region: Any, observed: np.ndarray, size: int, kind: str,
 
 
 # ----------------------------------------------------------------------------- estimation
-def _clone(model: Any, **override: Any):
-    from .model import GLRM
-
+def clone_model(model: Any, **override: Any):
+    """An unfitted copy of ``model`` (its class and parameters, ``override`` applied)."""
     params = {**model.get_params(), "progress": False, **override}
-    return GLRM(**params)
+    return type(model)(**params)
 
 
-def _check_data(model: Any, data: Any):
+def training_values(model: Any, data: Any):
     import xarray as xr
 
     if not isinstance(data, xr.DataArray) or data.ndim != 3:
@@ -163,7 +163,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     """
     from .posterior import model_prior
 
-    region, V = _check_data(model, data)
+    region, V = training_values(model, data)
     T = V.shape[0]
     if not 2 <= int(n_blocks) <= T // 2:
         raise ModelError(f"n_blocks must be in [2, {T // 2}] for {T} snapshots, got {n_blocks}")
@@ -188,14 +188,14 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
             else:
                 train_idx = np.setdiff1d(np.arange(T), block)
             has_t = "temporal" in model.get_params()
-            sub = _clone(model, **({"temporal": temporal} if has_t else {}))
+            sub = clone_model(model, **({"temporal": temporal} if has_t else {}))
             sub.fit(data.isel(time=train_idx), region=region)
             sub.calibration_ = None
             if temporal is not None:
                 alpha = getattr(model, "dynamics_alpha_", None)  # select_dynamics' choice
                 if alpha is not None:  # replaces the refit's own blend (one rule, as the model)
                     base = unblended_dynamics(sub)
-                    sub.dynamics_ = blend_dynamics(base, alpha, _memoryless_cov(sub, base))
+                    sub.dynamics_ = blend_dynamics(base, alpha, memoryless_cov(sub, base))
                 out.extend(_filter_residuals(sub, data.isel(time=block), V[block], sizes, kinds,
                                              spatial, rng))
                 continue
@@ -482,7 +482,7 @@ def unblended_dynamics(model: Any) -> Any:
                     error_cov=getattr(dyn, "error_cov", None))
 
 
-def _memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
+def memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
     from .posterior import empirical_moments
 
     if dynamics.kind == "ar1":
@@ -531,7 +531,7 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     if dyn is None:
         raise ModelError("select_dynamics needs a model fitted with temporal='ar1' or "
                          "'seasonal' (it has no dynamics_)")
-    region, V = _check_data(model, data)
+    region, V = training_values(model, data)
     T = V.shape[0]
     n_val = max(3, T // 5) if n_val is None else int(n_val)
     if not 2 <= n_val <= T - 3:
@@ -557,10 +557,10 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
         lo = end - n_val
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sub = _clone(model).fit(data.isel(time=slice(None, lo)), region=region)
+            sub = clone_model(model).fit(data.isel(time=slice(None, lo)), region=region)
         sub.calibration_ = None
         sub_dyn = unblended_dynamics(sub)
-        S = _memoryless_cov(sub, sub_dyn)
+        S = memoryless_cov(sub, sub_dyn)
         Vv = V[lo:end]
         times = data["time"].values[lo:end]
         sets = {(size, kind): [sample_sets(region, np.isfinite(Vv[i]), size, kind, rng)
@@ -596,6 +596,6 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     table.attrs["n_days"] = int(n_days)
     if apply:
         base_dyn = unblended_dynamics(model)
-        model.dynamics_ = blend_dynamics(base_dyn, alpha, _memoryless_cov(model, base_dyn))
+        model.dynamics_ = blend_dynamics(base_dyn, alpha, memoryless_cov(model, base_dyn))
         model.dynamics_alpha_ = alpha  # read by calibrate's forward-chaining refits
     return alpha, table

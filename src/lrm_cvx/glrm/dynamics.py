@@ -106,12 +106,30 @@ def seasons(times: Any, season: str) -> np.ndarray:
     import xarray as xr
 
     values = np.asarray(getattr(times, "values", times))
+    if season not in ("month", "dayofyear"):
+        raise ModelError(f"unknown season {season!r}")
+    if np.issubdtype(values.dtype, np.datetime64):  # numpy, no pandas round trip (the filter
+        if season == "month":                        # asks once a step)
+            return values.astype("datetime64[M]").astype(np.int64) % 12
+        day = values.astype("datetime64[D]")
+        return (day - day.astype("datetime64[Y]")).astype(np.int64)
     da = xr.DataArray(values, dims=("t",))
     if season == "month":
         return da.dt.month.values.astype(np.int64) - 1
     if season == "dayofyear":
         return da.dt.dayofyear.values.astype(np.int64) - 1
     raise ModelError(f"unknown season {season!r}")
+
+
+def _years_per_season(times: Any, s: np.ndarray, n_seasons: int) -> np.ndarray:
+    """Distinct years in which each season present in ``s`` is seen (a 6-hourly record of a
+    few weeks sees each day of year 4 times, but in one year: no season to learn)."""
+    import xarray as xr
+
+    values = np.asarray(getattr(times, "values", times))
+    years = xr.DataArray(values, dims=("t",)).dt.year.values.astype(np.int64)
+    pairs = np.unique(s.astype(np.int64) * 100_000 + (years - years.min()))
+    return np.bincount(pairs // 100_000, minlength=n_seasons)[np.unique(s)]
 
 
 # ----------------------------------------------------------------------------- the model
@@ -520,9 +538,9 @@ def estimate_seasonal(X: Any, times: Any, shrinkage: float = 1e-3,
     s = seasons(times, season)
     k = X.shape[0]
     counts = np.bincount(s, minlength=n_seasons)
-    if np.median(counts[counts > 0]) < 2:
-        raise ModelError("temporal='seasonal' needs the seasons seen at least twice (two years "
-                         "of data); use temporal='ar1'")
+    if np.median(_years_per_season(times, s, n_seasons)) < 2:
+        raise ModelError("temporal='seasonal' needs the seasons seen in at least two years "
+                         "(two years of data); use temporal='ar1'")
     sums = np.zeros((n_seasons, k))
     np.add.at(sums, s, X.T)
     means = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None],
@@ -541,6 +559,8 @@ TEMPORAL.register("ar1", estimate_ar1, description="AR(1) on the latent vector a
                   "mean, the blend towards the memoryless prior validated")
 TEMPORAL.register("seasonal", estimate_seasonal, description="AR(1) around per-season means "
                   "(month or day of year; needs two years of dated snapshots)")
+TEMPORAL.register("auto", "auto", description="chosen on the training snapshots by rolling-"
+                  "origin validation among none, ar1 and seasonal and their blends")
 
 
 def temporal_value(temporal: Any, argument: str = "temporal") -> str | None:
@@ -565,6 +585,9 @@ def estimate(temporal: str, X: Any, times: Any, shrinkage: float = 1e-3,
     if kind is None:
         raise ModelError(f"temporal must be 'ar1' or 'seasonal' to estimate dynamics, got "
                          f"{temporal!r}")
+    if kind == "auto":
+        raise ModelError("temporal='auto' is chosen by GLRM.fit from the training snapshots "
+                         "(glrm/selection.py); estimate needs 'ar1' or 'seasonal'")
     return TEMPORAL.get(kind)(X, times, shrinkage, initial_cov, validation, error_cov)
 
 

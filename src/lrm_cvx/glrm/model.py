@@ -28,6 +28,7 @@ from .modelfile import MODEL_FORMAT, MODEL_FORMAT_VERSION, read_model_file
 from .posterior import LatentPosterior, fold_in_snapshots, model_prior
 from .predictive import PREDICTIVE_ATTRS, fit_predictive
 from .regularizers import get_regularizer
+from .selection import check_auto_data, selection_from_dataset, selection_vars
 
 __all__ = ["GLRM"]
 
@@ -69,6 +70,8 @@ class GLRM:
         fit, estimate linear-Gaussian dynamics of the latent columns of ``X_`` (``dynamics_``,
         :mod:`~lrm_cvx.glrm.dynamics`, docs/monitoring.md) for :meth:`monitor`. Needs a sorted,
         unique time coordinate and at least 3 snapshots (numpy input: one step per row).
+        ``"auto"``: chosen by rolling-origin validation on the training snapshots
+        (:mod:`~lrm_cvx.glrm.selection`; the table is ``selection_``, saved with the model).
 
     Learned attributes: ``X_`` ``(component, time)``, ``Y_`` ``(component, cell)`` (DataArrays
     when fitted on xarray data, else ndarrays), ``region_``, ``objective_``, ``n_iter_``,
@@ -194,6 +197,7 @@ class GLRM:
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
         self._fit_dynamics(M[-1], mask=M)
         del D, M
+        self._select_temporal(data)
         _warn_if_static(self._Xv)
         return self
 
@@ -216,7 +220,15 @@ class GLRM:
         set_predictive(self, region, extras["offset"], extras["scale"], extras.get("moments"),
                        extras.get("sample"))
         self._fit_dynamics(extras["last_mask"], mask=extras.get("error_masks"))
+        self._select_temporal(data)
         return self
+
+    def _select_temporal(self, data: Any) -> None:
+        """With ``temporal="auto"``: choose ``dynamics_`` on ``data`` (glrm/selection.py)."""
+        if temporal_value(self.temporal) == "auto":
+            from .selection import apply_selection, select_temporal
+
+            apply_selection(self, select_temporal(self, data, seed=self.random_state))
 
     def _prepare(self, data, mask, region):
         """``(D, M, region, times, owned)`` from any supported input (no copy of clean arrays);
@@ -290,6 +302,7 @@ class GLRM:
         self.n_observed_ = int(res.n_observed)
         self.solver_ = res.solver
         self.calibration_ = None  # a new fit invalidates a calibration (glrm/calibration.py)
+        self.selection_ = None  # temporal="auto"'s validation (glrm/selection.py)
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -487,14 +500,15 @@ class GLRM:
             picks = error_rows(X.shape[1])
             covs = [c for c in (self._foldin_cov(mask[t]) for t in picks) if c is not None]
             error_cov = np.mean(covs, axis=0) if covs else None
-        self.dynamics_ = estimate_dynamics(self.temporal, X, times, initial_cov=init_cov,
+        kind = "ar1" if temporal_value(self.temporal) == "auto" else self.temporal
+        self.dynamics_ = estimate_dynamics(kind, X, times, initial_cov=init_cov,
                                            error_cov=error_cov)
 
     def fit_dynamics(self, temporal: str = "ar1", **options: Any) -> GLRM:
         """Estimate ``dynamics_`` on an already fitted model (sets ``temporal``); ``options``
         go to :func:`~lrm_cvx.glrm.dynamics.estimate_ar1` (``shrinkage``). Returns ``self``."""
         self._check_fitted()
-        if TEMPORAL.resolve(temporal) in (None, "none"):
+        if TEMPORAL.resolve(temporal) in (None, "none", "auto"):
             raise ModelError(f"temporal must be 'ar1' or 'seasonal', got {temporal!r}")
         self.temporal = temporal
         X = self._Xv
@@ -759,6 +773,9 @@ class GLRM:
             attrs.update(dyn_attrs)
         if getattr(self, "calibration_", None) is not None:
             attrs.update(self.calibration_.to_attrs())
+        if getattr(self, "selection_", None) is not None:
+            sel = selection_vars(self.selection_)
+            ds, attrs = xr.merge([ds, sel], combine_attrs="override"), {**attrs, **sel.attrs}
         if warn_custom:
             attrs["note"] = ("custom callable regularisers cannot be saved; their repr is stored "
                              f"in params ({', '.join(warn_custom)})")
@@ -812,6 +829,7 @@ class GLRM:
         from .calibrated import Calibration
 
         model.calibration_ = Calibration.from_attrs(ds.attrs)
+        model.selection_ = selection_from_dataset(ds)
         return model
 
 
@@ -851,6 +869,8 @@ def _check_temporal(temporal: Any, data: Any) -> None:
     if temporal_value(temporal) is None:
         return
     n_times = np.shape(data)[0] if np.ndim(data) >= 2 else 0
+    if temporal_value(temporal) == "auto":
+        check_auto_data(data)
     if n_times < 3:
         raise ModelError(f"temporal={temporal!r} needs at least 3 snapshots to fit, got "
                          f"{n_times}")

@@ -42,7 +42,8 @@ from scipy.spatial.distance import cdist
 from .._validation import check_positive
 from ..errors import DataError, ModelError
 
-__all__ = ["ObservationModel", "LatentPosterior", "PRIOR_KINDS", "check_cells", "empirical_moments"]
+__all__ = ["ObservationModel", "LatentPosterior", "PRIOR_KINDS", "check_cells", "empirical_moments",
+           "average_repeats"]
 
 PRIOR_KINDS = ("empirical", "flat", "ridge", "custom")
 _NOISE_FLOOR = 1e-30  # a fitted noise of exactly 0 (rank = T): a tiny stand-in, not a division by 0
@@ -702,13 +703,16 @@ def _innovation(P0: np.ndarray, h0: np.ndarray, G: np.ndarray, b: np.ndarray, zz
     return max(q, 0.0), int(n - (k - int(ok.sum())))
 
 
-def _average_repeats(cells: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def average_repeats(cells: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distinct cells and the mean of their values (for the spatial residual)."""
     uc, inv, cnt = np.unique(cells, return_inverse=True, return_counts=True)
     if uc.size == cells.size:
         order = np.argsort(cells, kind="stable")
         return cells[order], z[order]
     return uc, np.bincount(inv, weights=z, minlength=uc.size) / cnt
+
+
+_average_repeats = average_repeats
 
 
 # ============================================================================ model-level helpers

@@ -1,0 +1,364 @@
+"""A temporal model that validates itself: ``GLRM(temporal="auto")`` (issue #24, item 1).
+
+Which temporal model maps a record best is an empirical question (monthly sea-surface
+temperature gains 40 % from a seasonal model and loses 8 % with a plain AR(1); yearly records have
+no season), so :func:`select_temporal` answers it on the user's own training snapshots, the way a
+campaign would meet them:
+
+* **Rolling origin.** ``n_folds`` forward-chaining windows of ``n_val`` snapshots end at the last
+  training snapshot. For each window the model is refitted on the snapshots *before* it (two
+  windows: the time of two more fits), and every candidate's dynamics are estimated from that
+  refit only. No candidate ever sees the snapshots it is scored on.
+* **Campaign-like designs.** Each validation day is sampled as campaigns sample, the design
+  cycling from day to day: a spatially clustered route, a straight transect, scattered cells
+  (:func:`~.calibration.sample_sets`), one campaign per sample size; the same cells for every
+  candidate (paired comparison).
+* **The campaign's metric.** The filter runs through the window with each candidate: forecast,
+  assimilate the day's samples, predict the whole map; the score is the day's MSE over the
+  observed cells not sampled.
+* **Candidates** (cadence-aware): memoryless (every day's prior the empirical prior), AR(1) and
+  the seasonal model (monthly or daily dates seen over two years; yearly data has no season), each
+  blended towards the memoryless prior by ``alpha`` (:func:`~.calibration.blend_dynamics`):
+  ``seasonal`` with ``alpha = 0`` is the seasonal climatology with the anomalies' covariance,
+  with ``alpha = 1`` the climatology plus AR(1) anomalies.
+* **Rule, with a guard on harm.** A candidate is admissible when the upper confidence bound of
+  its day-by-day MSE change against memoryless (one-sided, ``confidence`` standard errors) is at
+  most ``tolerance`` at every size; memoryless always is. The admissible candidate with the
+  lowest worst MSE ratio (over sizes) wins.
+
+The result is an ``xarray.Dataset`` (``model.selection_``, saved with the model): the validation
+table per candidate and size and the choice in its attributes.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from .._blas import single_threaded_blas
+from .._validation import as_generator
+from ..errors import ModelError
+
+__all__ = ["select_temporal", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES", "MIN_AUTO_SNAPSHOTS",
+           "MAX_SCORED",
+           "apply_selection", "check_auto_data", "format_selection", "selection_vars",
+           "selection_from_dataset"]
+
+AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
+"""Blends towards the memoryless prior tried for every temporal kind."""
+AUTO_DESIGNS = ("route", "line", "scattered")
+"""Sample designs of the validation days: a route, a transect, scattered cells."""
+AUTO_SIZES = (5, 15, 50)
+"""Samples per validation day."""
+MIN_AUTO_SNAPSHOTS = 8
+"""Fewest training snapshots ``temporal="auto"`` validates on (3 to refit, 2 windows)."""
+MAX_SCORED = 256
+"""Cells a validation day's map is scored on (a random subset of the unsampled observed cells:
+the kriged maps cost ``O(cells)`` each)."""
+_MIN_REGULAR = 0.8  # share of the steps that must be one median step
+_PREFIX = "selection_"
+
+
+def _candidate_label(kind: str, alpha: float) -> str:
+    return "none" if kind == "none" else f"{kind}:{alpha:g}"
+
+
+def check_auto_data(data: Any) -> None:
+    """The early check of ``GLRM(temporal="auto").fit(data)``: a ``(time, lat, lon)``
+    DataArray with at least :data:`MIN_AUTO_SNAPSHOTS` snapshots (DataError / ModelError)."""
+    from ..errors import DataError
+
+    if not isinstance(data, xr.DataArray) or data.ndim != 3:
+        raise DataError("temporal='auto' needs (time, lat, lon) DataArray data (its sample "
+                        "designs are routes and transects on the grid)")
+    if data.shape[0] < MIN_AUTO_SNAPSHOTS:
+        raise ModelError(f"temporal='auto' needs at least {MIN_AUTO_SNAPSHOTS} snapshots to "
+                         f"validate a choice, got {data.shape[0]}; pass temporal=None or 'ar1'")
+
+
+def _check_regular(times: Any, name: str) -> None:
+    """ModelError unless most steps of ``times`` are one median step (dynamics need a step)."""
+    from .dynamics import time_numbers
+
+    t = time_numbers(times, name)[0]
+    d = np.diff(t)
+    step = float(np.median(d))
+    regular = np.isclose(d / step, 1.0, rtol=0.15)  # months of 28-31 days are one step
+    if np.mean(regular) < _MIN_REGULAR:
+        raise ModelError(
+            f"temporal='auto' needs regularly spaced snapshots: only {int(regular.sum())} of "
+            f"{d.size} steps of {name} are the median step ({step:g}); use temporal=None, or "
+            f"resample the record to a regular step")
+
+
+def _kind_dynamics(kind: str, sub: Any, times: Any) -> Any:
+    """The unblended dynamics of ``kind`` of the refitted ``sub`` (fitted with ``"ar1"``: its
+    initial and error covariances do not depend on the kind), or None when the record cannot
+    carry that kind (e.g. a season on yearly data)."""
+    from .dynamics import estimate
+
+    base = sub.dynamics_
+    try:
+        return estimate(kind, sub._Xv, times, shrinkage=base.shrinkage,
+                        initial_cov=base.initial_cov, validation=None,
+                        error_cov=getattr(base, "error_cov", None))
+    except ModelError:
+        return None
+
+
+def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarray,
+                   region: Any, sizes: Sequence[int], designs: Sequence[str],
+                   rng: np.random.Generator, spatial: bool | None) -> np.ndarray:
+    """Day MSE ``(n_candidates, n_sizes, n_days)`` of the filter with each of ``dynamics``
+    (None: memoryless) through the snapshots ``V (n_days, L)`` at ``times``.
+
+    One campaign per size; day ``i`` is sampled by design ``designs[i % len(designs)]`` (a
+    campaign's routes change from day to day). The candidates share each day's sample cells,
+    so the kriged residual maps of all of them come from one kriging call (its weights depend
+    on the cells only)."""
+    from .calibration import sample_sets
+    from .filter import LatentFilter
+
+    n = V.shape[0]
+    err = np.full((len(dynamics), len(sizes), n), np.nan)
+    for s_i, size in enumerate(sizes):
+        states = [LatentFilter.from_model(sub, dynamics=dyn, memoryless=dyn is None,
+                                          spatial=spatial) for dyn in dynamics]
+        obs = states[0].posterior.obs_model
+        for i, t in enumerate(times):
+            cells = sample_sets(region, np.isfinite(V[i]), size, designs[i % len(designs)], rng)
+            h = np.isfinite(V[i])
+            h[cells] = False
+            h = np.flatnonzero(h)
+            if h.size > MAX_SCORED:  # an unbiased sample of the map's error, shared by all
+                h = np.sort(rng.choice(h, MAX_SCORED, replace=False))
+            for state in states:
+                state.assimilate((cells, V[i, cells]), time=t)
+            if h.size:
+                means = _map_means([st.posterior for st in states], obs, h)  # (n_cand, |h|)
+                err[:, s_i, i] = np.mean((means - V[i, h]) ** 2, axis=1)
+    return err
+
+
+def _map_means(posts: list[Any], obs: Any, cells: np.ndarray) -> np.ndarray:
+    """Posterior mean maps ``(len(posts), len(cells))`` in data units of beliefs that share
+    their observations: the trend ``Y^T m`` plus, with a spatial residual, the residuals at the
+    observations kriged with one set of weights (universal kriging given each GLS mean)."""
+    M = np.stack([p.mean for p in posts], axis=1)  # (k, n_cand)
+    mu = obs.Y[:, cells].T @ M  # (|cells|, n_cand)
+    if obs.is_spatial:
+        from .. import spatial as sp
+        from .posterior import average_repeats
+
+        p0 = posts[0]
+        uc, zc = average_repeats(p0.cells, obs.to_fit_units(p0.cells, p0.values))
+        if uc.size:
+            cov = obs.spatial_cov
+            res = zc[:, None] - obs.Y[:, uc].T @ M  # (n_obs, n_cand)
+            meth = "direct" if uc.size <= sp.MAX_DIRECT else "neighbors"
+            r_mu, _ = sp.krige_core(cov, sp.cell_xyz(obs.region, cov.metric, uc), res,
+                                    sp.cell_xyz(obs.region, cov.metric, cells), method=meth,
+                                    neighbors=32, cutoff=1e-6, want_var=False)
+            mu = mu + r_mu.T
+    out = obs.to_data_units(mu.T, None, cells)[0]
+    return np.asarray(out)
+
+
+def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "seasonal"),
+                    alphas: Sequence[float] = AUTO_ALPHAS, n_val: int | None = None,
+                    n_folds: int = 2, sizes: Sequence[int] = AUTO_SIZES,
+                    designs: Sequence[str] = AUTO_DESIGNS, confidence: float = 1.645,
+                    tolerance: float = 0.01, spatial: bool | None = None, seed: Any = 0
+                    ) -> xr.Dataset:
+    """Choose the temporal model of ``model`` by rolling-origin validation on ``data``.
+
+    ``model``: a GLRM fitted on ``data`` ``(time, lat, lon)``, its training snapshots (only
+    they are read). ``kinds``: the temporal kinds tried beside memoryless, each with the blends
+    ``alphas``; a kind the record cannot carry (a season on yearly data, or fewer than two years
+    before the first window) is skipped and named in ``attrs["skipped"]``. ``n_val``: days per
+    window (default a fifth of the record, between 3 and 24). ``spatial``: krige the residual in
+    the validation maps (None: when the model has a spatial residual, as campaigns do; the
+    kriged residual and the forecast interact, so the choice is scored on the maps users get).
+    Each day's map is scored on at most :data:`MAX_SCORED` random unsampled cells.
+    See the module docstring for the rule.
+
+    Returns a Dataset over ``candidate`` (coordinates ``kind``, ``alpha``) and ``size``: ``mse``
+    (mean validation-day MSE), ``ratio`` (to memoryless), ``ucb`` (the bound of the rule),
+    ``admissible``; attributes ``choice`` (a candidate label, ``"none"`` for memoryless),
+    ``choice_kind``, ``choice_alpha``, ``n_days``, ``designs``, ``skipped``.
+    """
+    from .calibration import clone_model, training_values
+    from .dynamics import TEMPORAL, check_times
+
+    region, V = training_values(model, data)
+    T = V.shape[0]
+    if T < MIN_AUTO_SNAPSHOTS:
+        raise ModelError(f"temporal='auto' needs at least {MIN_AUTO_SNAPSHOTS} training "
+                         f"snapshots to validate a choice, got {T}; pass temporal=None or "
+                         f"'ar1'")
+    tdim = data.dims[0]
+    if tdim not in data.coords:
+        raise ModelError(f"temporal='auto' needs a time coordinate on the data's {tdim!r} dim")
+    check_times(data[tdim], f"data[{tdim!r}]")
+    _check_regular(data[tdim], f"data[{tdim!r}]")
+    kinds = [TEMPORAL.canonical(k, "kinds") for k in kinds]
+    if any(k in ("none", "auto") for k in kinds):
+        raise ModelError(f"kinds must name temporal models ('ar1', 'seasonal'), got {kinds}")
+    alphas = sorted({float(a) for a in alphas})
+    if not alphas or min(alphas) < 0 or max(alphas) > 1:
+        raise ModelError(f"alphas must be blends in [0, 1], got {alphas}")
+    # a sample set must leave most of the map to score: sizes up to half the observed cells
+    n_obs = float(np.median(np.isfinite(V).sum(axis=1)))
+    sizes = [int(s) for s in sizes if int(s) <= n_obs / 2] or [max(1, int(n_obs / 4))]
+    n_val = min(24, max(3, T // 5)) if n_val is None else int(n_val)
+    if not 2 <= n_val <= T - 3:
+        raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
+    n_folds = max(1, min(int(n_folds), (T - 3) // n_val))
+    rng = as_generator(seed)
+    from .calibration import blend_dynamics, memoryless_cov
+
+    all_times = data[tdim].values
+    errs: list[dict[str, np.ndarray]] = []  # per window, in time order: label -> (size, day)
+    meta: dict[str, tuple[str, float]] = {"none": ("none", 0.0)}
+    skipped: set[str] = set()
+    for f in reversed(range(n_folds)):  # earliest window first: it has the shortest history
+        end = T - f * n_val
+        lo = end - n_val
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sub = clone_model(model, temporal="ar1").fit(data.isel({tdim: slice(None, lo)}),
+                                                     region=region)
+        sub.calibration_ = None
+        sub_times = all_times[:lo]
+        labels, dyns = ["none"], [None]
+        for kind in kinds:
+            base = None if kind in skipped else _kind_dynamics(kind, sub, sub_times)
+            if base is None:
+                skipped.add(kind)
+                continue
+            S = memoryless_cov(sub, base)
+            for a in alphas:
+                if kind == "ar1" and a == 0.0:
+                    continue  # the memoryless model itself
+                labels.append(_candidate_label(kind, a))
+                meta[labels[-1]] = (kind, a)
+                dyns.append(blend_dynamics(base, a, S))
+        with single_threaded_blas():  # k x k and n x n algebra: threads only add waiting
+            E = _window_errors(sub, dyns, V[lo:end], all_times[lo:end], region, sizes,
+                               designs, rng, spatial)
+        errs.append(dict(zip(labels, E, strict=True)))
+    labels = [lab for lab in errs[0] if all(lab in e and meta[lab][0] not in skipped
+                                            for e in errs)]
+    E = np.stack([np.concatenate([e[lab] for e in errs], axis=-1) for lab in labels])
+    return _rule(E, labels, meta, sizes, designs, confidence, tolerance, skipped)
+
+
+def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
+          designs: Sequence[str], confidence: float, tolerance: float,
+          skipped: set[str]) -> xr.Dataset:
+    """The validation table and the choice of :func:`select_temporal` from the day errors
+    ``E (n_candidates, n_sizes, n_days)`` (candidate 0 is memoryless)."""
+    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)  # a day no map was scored: left out
+    n_days = int(np.isfinite(E[0]).all(axis=0).sum())
+    if n_days < 2:
+        raise ModelError("temporal='auto' scored fewer than 2 validation days (is the data "
+                         "mostly missing?)")
+    base = np.nanmean(E[0], axis=-1)
+    D = E - E[0]
+    n = np.isfinite(E[0]).sum(axis=-1)  # (size,)
+    se = np.nanstd(D, axis=-1, ddof=1) / np.sqrt(n)
+    ucb = (np.nanmean(D, axis=-1) + float(confidence) * se) / base
+    ratio = np.nanmean(E, axis=-1) / base
+    admissible = ucb.max(axis=1) <= float(tolerance)
+    admissible[0] = True
+    best = int(np.argmin(np.where(admissible, ratio.max(axis=1), np.inf)))
+    kind, alpha = meta[labels[best]]
+    ds = xr.Dataset(
+        {"mse": (("candidate", "size"), np.nanmean(E, axis=-1)),
+         "ratio": (("candidate", "size"), ratio),
+         "ucb": (("candidate", "size"), ucb),
+         "admissible": (("candidate",), admissible)},
+        coords={"candidate": labels, "size": sizes,
+                "kind": ("candidate", [meta[lab][0] for lab in labels]),
+                "alpha": ("candidate", [meta[lab][1] for lab in labels])})
+    ds["mse"].attrs["long_name"] = "mean validation-day MSE of the map (held-out cells)"
+    ds["ratio"].attrs["long_name"] = "MSE ratio to the memoryless model"
+    ds["ucb"].attrs["long_name"] = "upper confidence bound of the relative MSE change"
+    ds.attrs.update(choice=labels[best], choice_kind=kind, choice_alpha=float(alpha),
+                    n_days=int(n_days), designs=",".join(designs),
+                    skipped=",".join(sorted(skipped)), confidence=float(confidence),
+                    tolerance=float(tolerance))
+    return ds
+
+
+def apply_selection(model: Any, selection: xr.Dataset) -> None:
+    """Set ``model.dynamics_`` to the chosen candidate, estimated on all of ``model``'s
+    snapshots (blended by the chosen ``alpha``; None for memoryless), and ``selection_``."""
+    from .calibration import blend_dynamics, memoryless_cov
+
+    kind = selection.attrs["choice_kind"]
+    model.selection_ = selection
+    if kind == "none":
+        model.dynamics_ = None
+        return
+    xa = model.X_
+    times = xa[xa.dims[1]] if hasattr(xa, "dims") else np.arange(model._Xv.shape[1])
+    base = _kind_dynamics(kind, model, times)
+    if base is None:  # the full record carries what its first window carried
+        raise ModelError(f"temporal='auto' chose {kind!r} but it cannot be estimated on all "
+                         f"snapshots")
+    model.dynamics_ = blend_dynamics(base, float(selection.attrs["choice_alpha"]),
+                                     memoryless_cov(model, base))
+
+
+def format_selection(selection: xr.Dataset, short: bool = False) -> str:
+    """The validation table as text (the CLI prints it); ``short``: one line (the demo's)."""
+    if short:
+        choice = selection.attrs["choice"]
+        worst = float(selection["ratio"].sel(candidate=choice).max())
+        return (f"temporal='auto' chose {choice!r} (MSE x{worst:.2f} of memoryless over "
+                f"{selection.attrs['n_days']} validation days)")
+    sizes = [int(s) for s in selection["size"].values]
+    head = f"{'candidate':<14}" + "".join(f"{'MSE@' + str(s):>12}" for s in sizes)
+    lines = [f"temporal='auto' chose {selection.attrs['choice']!r} (rolling origin, "
+             f"{selection.attrs['n_days']} validation days, designs "
+             f"{selection.attrs['designs']})", head + f"{'worst ratio':>13}  admissible"]
+    for i, lab in enumerate(selection["candidate"].values):
+        mse = selection["mse"].values[i]
+        worst = float(selection["ratio"].values[i].max())
+        ok = "yes" if bool(selection["admissible"].values[i]) else "no"
+        mark = " *" if lab == selection.attrs["choice"] else ""
+        lines.append(f"{lab:<14}" + "".join(f"{v:12.4g}" for v in mse)
+                     + f"{worst:13.3f}  {ok}{mark}")
+    if selection.attrs.get("skipped"):
+        lines.append(f"skipped (the record cannot carry them): {selection.attrs['skipped']}")
+    return "\n".join(lines)
+
+
+def selection_vars(selection: xr.Dataset) -> xr.Dataset:
+    """``selection`` renamed for a model file (variables, dims and attributes prefixed)."""
+    names = {v: _PREFIX + v for v in [*selection.data_vars, *selection.coords]}
+    out = selection.rename(names)
+    out.attrs = {_PREFIX + k: v for k, v in selection.attrs.items()}
+    return out
+
+
+def selection_from_dataset(ds: xr.Dataset) -> xr.Dataset | None:
+    """The selection stored in a model file by :func:`selection_vars` (None if none)."""
+    if _PREFIX + "mse" not in ds:
+        return None
+    names = [n for n in [*ds.data_vars, *ds.coords] if str(n).startswith(_PREFIX)]
+    sel = ds[names].rename({n: str(n)[len(_PREFIX):] for n in names})
+    sel = sel.drop_vars([v for v in sel.variables if v not in (
+        "mse", "ratio", "ucb", "admissible", "candidate", "size", "kind", "alpha")])
+    sel["admissible"] = sel["admissible"].astype(bool)
+    sel.attrs = {k[len(_PREFIX):]: v for k, v in ds.attrs.items() if k.startswith(_PREFIX)}
+    for key in ("n_days",):
+        sel.attrs[key] = int(sel.attrs[key])
+    for key in ("choice_alpha", "confidence", "tolerance"):
+        sel.attrs[key] = float(sel.attrs[key])
+    return sel.load()

@@ -1,0 +1,208 @@
+"""temporal="auto": a temporal model chosen by rolling-origin validation (glrm/selection.py)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+import xarray as xr
+
+from lrm_cvx import GLRM
+from lrm_cvx.errors import DataError, ModelError
+from lrm_cvx.glrm.selection import _rule, format_selection, select_temporal
+from lrm_cvx.io.samples import synthetic_dynamic_field
+
+
+def _fit(data, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return GLRM(rank=kw.pop("rank", 3), random_state=0, progress=False, **kw).fit(data)
+
+
+@pytest.fixture(scope="module")
+def seasonal_field():
+    """Monthly, a strong season and weak persistence: the seasonal climatology wins."""
+    return synthetic_dynamic_field(72, (8, 9), 3, seed=1, seasonal_period=12,
+                                   seasonal_amplitude=1.0, A=0.2 * np.eye(3),
+                                   Q=0.02 * np.eye(3), freq="MS", missing=0.1, noise=0.1)
+
+
+@pytest.fixture(scope="module")
+def persistent_field():
+    """Daily, no season, strong persistence (eigenvalues of A 0.95): AR(1) wins."""
+    return synthetic_dynamic_field(100, (8, 9), 3, seed=2, A=0.95 * np.eye(3),
+                                   Q=0.1 * (1 - 0.95 ** 2) * np.eye(3), freq="D", missing=0.1,
+                                   noise=0.1)
+
+
+@pytest.fixture(scope="module")
+def white_field():
+    """Independent snapshots (A = 0): nothing to carry forward."""
+    return synthetic_dynamic_field(60, (8, 9), 3, seed=3, A=np.zeros((3, 3)),
+                                   Q=0.1 * np.eye(3), freq="D", missing=0.1)
+
+
+def test_auto_picks_the_season_of_a_seasonal_record(seasonal_field):
+    model = _fit(seasonal_field, temporal="auto")
+    sel = model.selection_
+    assert sel.attrs["choice_kind"] == "seasonal"
+    assert model.dynamics_.kind == "seasonal"
+    assert np.isclose(model.dynamics_.blend, sel.attrs["choice_alpha"])
+    # the chosen candidate cuts the validation error below memoryless (noise 0.1: a floor of
+    # 0.01 in every MSE) and beats every AR(1) candidate
+    chosen = sel.sel(candidate=sel.attrs["choice"])
+    assert float(chosen["ratio"].max()) < 0.95
+    ar1 = sel["ratio"].where(sel["kind"] == "ar1", drop=True)
+    assert float(chosen["ratio"].max()) < float(ar1.max("size").min())
+
+
+def test_auto_picks_ar1_on_a_persistent_record_and_skips_a_season_it_cannot_carry(
+        persistent_field):
+    model = _fit(persistent_field, temporal="auto")
+    sel = model.selection_
+    assert sel.attrs["choice_kind"] == "ar1"
+    assert sel.attrs["choice_alpha"] >= 0.5
+    assert "seasonal" in sel.attrs["skipped"]  # 100 days: no day of year seen twice
+    assert set(sel["kind"].values) == {"none", "ar1"}
+
+
+def test_auto_on_independent_snapshots_never_chooses_a_harmful_model(white_field):
+    sel = _fit(white_field, temporal="auto").selection_
+    chosen = sel.sel(candidate=sel.attrs["choice"])
+    assert bool(chosen["admissible"])
+    assert float(chosen["ucb"].max()) <= sel.attrs["tolerance"] + 1e-12
+    assert float(chosen["ratio"].max()) <= 1.0 + 1e-12
+
+
+def test_the_rule_against_a_naive_reading():
+    rng = np.random.default_rng(0)
+    n_days = 30
+    base = 1.0 + 0.1 * rng.random((2, n_days))
+    E = np.stack([base,
+                  base * 0.9,                                       # 10 % better, steady
+                  base * (0.8 + 0.6 * (rng.random((2, n_days)) > 0.5)),  # noisy, often worse
+                  base * 0.95])
+    labels = ["none", "a:1", "b:1", "c:1"]
+    meta = {lab: (lab.split(":")[0], 1.0) for lab in labels}
+    sel = _rule(E, labels, meta, [5, 15], ("route",), 1.645, 0.01, set())
+    for c in range(4):  # naive, candidate by candidate and size by size
+        for s in range(2):
+            d = E[c, s] - E[0, s]
+            ucb = (d.mean() + 1.645 * d.std(ddof=1) / np.sqrt(n_days)) / E[0, s].mean()
+            assert np.isclose(sel["ucb"].values[c, s], ucb)
+            assert np.isclose(sel["ratio"].values[c, s], E[c, s].mean() / E[0, s].mean())
+    assert sel.attrs["choice"] == "a:1"
+    assert not bool(sel["admissible"].sel(candidate="b:1"))
+
+
+def test_selection_never_reads_the_test_block(seasonal_field):
+    """evaluate fits on all but the last n_test snapshots: poisoning them changes nothing."""
+    from lrm_cvx.evaluation import EvaluationProtocol
+
+    n_test = 6
+    poisoned = seasonal_field.copy()
+    poisoned[-n_test:] = 1e6 * np.sign(np.random.default_rng(0).standard_normal(
+        poisoned[-n_test:].shape))
+    fits = []
+    for data in (seasonal_field, poisoned):
+        proto = EvaluationProtocol(data, rank=3, n_test=n_test, budgets=(5,), n_starts=1,
+                                   methods=("greedy",), temporal="auto", progress=False)
+        fits.append(proto._fit().model.selection_)
+    xr.testing.assert_identical(fits[0], fits[1])
+
+
+def test_selection_is_deterministic_and_saved(seasonal_field, tmp_path):
+    a = _fit(seasonal_field, temporal="auto")
+    b = _fit(seasonal_field, temporal="auto")
+    xr.testing.assert_identical(a.selection_, b.selection_)
+    a.save(tmp_path / "m.nc")
+    loaded = GLRM.load(tmp_path / "m.nc")
+    xr.testing.assert_identical(loaded.selection_, a.selection_)
+    assert loaded.dynamics_.kind == a.dynamics_.kind
+    np.testing.assert_array_equal(loaded.dynamics_.A, a.dynamics_.A)
+    assert "chose" in format_selection(loaded.selection_)
+    assert getattr(_fit(seasonal_field), "selection_", None) is None
+
+
+def test_memoryless_choice_leaves_no_dynamics(white_field):
+    model = _fit(white_field, temporal="auto")
+    forced = select_temporal(model, white_field, kinds=("ar1",), tolerance=-1.0)
+    assert forced.attrs["choice"] == "none"  # nothing is admissible but memoryless
+    from lrm_cvx.glrm.selection import apply_selection
+
+    apply_selection(model, forced)
+    assert model.dynamics_ is None
+    from lrm_cvx.monitor import MonitorState
+
+    assert MonitorState.from_model(model).memoryless
+
+
+def test_auto_on_a_360_day_calendar():
+    da = synthetic_dynamic_field(48, (6, 7), 2, seed=4, seasonal_period=12,
+                                 seasonal_amplitude=1.0, A=0.2 * np.eye(2),
+                                 Q=0.02 * np.eye(2), freq="MS", missing=0.1)
+    times = xr.date_range("2090-01-16", periods=48, freq="MS", calendar="360_day",
+                          use_cftime=True)
+    model = _fit(da.assign_coords(time=times), rank=2, temporal="auto")
+    sel = model.selection_
+    assert not sel.attrs["skipped"]  # 360-day months are months: the season is learnt
+    assert "seasonal:1" in sel["candidate"].values
+    assert bool(sel["admissible"].sel(candidate=sel.attrs["choice"]))
+
+
+def test_campaigns_use_the_models_choice(persistent_field):
+    from lrm_cvx import simulate_campaign
+
+    train, test = persistent_field.isel(time=slice(None, -3)), persistent_field.isel(
+        time=slice(-3, None))
+    model = _fit(train, temporal="auto")
+    cell = int(np.flatnonzero(np.isfinite(model.region_.stack(test)[0]))[0])
+    auto = simulate_campaign(model, test, cell, 4.0, method="greedy", temporal="auto")
+    given = simulate_campaign(model, test, cell, 4.0, method="greedy",
+                              temporal=model.dynamics_)
+    np.testing.assert_array_equal(auto["mse"].values, given["mse"].values)
+    with pytest.raises(ModelError, match="GLRM\\(temporal='auto'\\)"):
+        simulate_campaign(_fit(train), test, cell, 4.0, method="greedy", temporal="auto")
+
+
+def test_auto_bad_input(persistent_field):
+    with pytest.raises(ModelError, match="at least 8 snapshots"):
+        _fit(persistent_field.isel(time=slice(0, 2)), temporal="auto")
+    with pytest.raises(DataError, match="DataArray"):
+        _fit(np.asarray(persistent_field.values).reshape(100, -1), temporal="auto")
+    irregular = persistent_field.assign_coords(time=pd.Timestamp("2000-01-01") + pd.to_timedelta(
+        np.cumsum(np.r_[0, np.random.default_rng(0).integers(1, 9, 99)]), "D"))
+    with pytest.raises(ModelError, match="regularly spaced"):
+        _fit(irregular, temporal="auto")
+    model = _fit(persistent_field, temporal="ar1")
+    with pytest.raises(ModelError, match="'ar1' or 'seasonal'"):
+        model.fit_dynamics("auto")
+    with pytest.raises(ModelError, match="alphas"):
+        select_temporal(model, persistent_field, alphas=(1.5,))
+
+
+def test_shared_kriging_equals_each_posteriors_own_map():
+    """The candidates' maps from one kriging call equal each posterior's own prediction."""
+    from lrm_cvx.glrm.calibration import blend_dynamics, memoryless_cov
+    from lrm_cvx.glrm.filter import LatentFilter
+    from lrm_cvx.glrm.selection import _map_means
+
+    da = synthetic_dynamic_field(30, (9, 10), 3, seed=5, freq="D", missing=0.1, noise=0.1)
+    model = _fit(da, temporal="ar1", offset=True, spatial="exponential")
+    S = memoryless_cov(model, model.dynamics_)
+    dyns = [None] + [blend_dynamics(model.dynamics_, a, S) for a in (0.5, 1.0)]
+    states = [LatentFilter.from_model(model, dynamics=d, memoryless=d is None) for d in dyns]
+    V = model.region_.stack(da)
+    cells = np.flatnonzero(np.isfinite(V[-1]))[::4]
+    t = da.time.values[-1] + np.timedelta64(1, "D")
+    for s in states:
+        s.assimilate((cells, V[-1, cells] + 0.3), time=t)
+    assert states[0].posterior.obs_model.is_spatial
+    targets = np.flatnonzero(np.isfinite(V[-1]))[1::3]
+    got = _map_means([s.posterior for s in states], states[0].posterior.obs_model, targets)
+    for row, s in zip(got, states, strict=True):
+        np.testing.assert_allclose(row, s.posterior.predict(cells=targets)[0], rtol=1e-9,
+                                   atol=1e-12)
+    assert not np.allclose(got[0], got[2])  # the candidates' maps differ
