@@ -40,6 +40,9 @@ from bench_glider_campaign import PATH, STARTS, infeasible
 
 from lrm_cvx import GLRM, load_sample
 from lrm_cvx.campaign import simulate_campaign
+from lrm_cvx.monitor import MonitorState
+from lrm_cvx.planning import plan_greedy
+from lrm_cvx.replanning import route_feasible
 
 
 def _paper_model(cache: str | None, small: bool):
