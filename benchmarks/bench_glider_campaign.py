@@ -12,6 +12,8 @@ plans every day under that same path model and fleet:
   snapshots); **filter + replan**: the same, replanning en route every ``--every`` route
   entries (``replan_every``);
 * **memoryless**: the same greedy, every day's prior the empirical prior (``temporal=None``);
+* **filter (auto)**: the same greedy on the filter of ``temporal="auto"`` (the recommended
+  setting: the temporal model chosen by rolling-origin validation on the training winters);
 * **baselines**: the four transects and the random walk (``--walks`` seeds), predicted by the same
   filter; the best of them by mean MSE over every deployment is "best baseline".
 
@@ -96,6 +98,9 @@ def main() -> None:
         warnings.simplefilter("ignore")
         model = GLRM(5, offset=True, spatial="exponential", temporal="ar1", random_state=0,
                      progress=False).fit(train)
+        auto = GLRM(5, offset=True, spatial="exponential", temporal="auto", random_state=0,
+                    progress=False).fit(train)  # the recommended setting: validated choice
+    auto_name = f"filter (auto: {auto.selection_.attrs['choice']})"
     region = model.region_
     pairs = [STARTS]
     if args.pairs > 1:  # more deployments: seeded pairs of ocean cells a glider can leave
@@ -107,12 +112,12 @@ def main() -> None:
     rep = f"filter + replan every {args.every}"
     mse, n_obs, seconds, problems, used = {}, {}, {}, [], 0.0
 
-    def run(name, starts, **kw):
+    def run(name, starts, fitted=model, **kw):
         nonlocal used
         tic = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ds = simulate_campaign(model, test, starts, budgets, **{**common, **kw})
+            ds = simulate_campaign(fitted, test, starts, budgets, **{**common, **kw})
         seconds.setdefault(name, []).append((time.perf_counter() - tic) / days)
         mse.setdefault(name, []).append(ds["mse"].values)
         n_obs.setdefault(name, []).append(float(ds["n_obs"].mean()))
@@ -123,6 +128,7 @@ def main() -> None:
         run("filter", starts, temporal="ar1")
         run(rep, starts, temporal="ar1", replan_every=args.every)
         run("memoryless", starts, temporal=None)
+        run(auto_name, starts, fitted=auto, temporal="auto")
         if p == 0:
             try:
                 run("filter (seasonal)", starts, temporal="seasonal")
