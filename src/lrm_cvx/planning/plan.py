@@ -213,6 +213,22 @@ class Plan:
         return out
 
     @property
+    def sensor(self) -> Any:
+        """What each stop observed (:class:`~lrm_cvx.planning.sensors.Sensor`; point by
+        default)."""
+        return PlanPath.of(self.path).sensor
+
+    def observation_rows(self) -> Any:
+        """The sensor's observations as averaging rows over the region's cells, ``(n, L)``
+        scipy.sparse CSR, each row summing to 1 (one-hot for a point sensor: one per cell of
+        ``cells``; a footprint per cell of ``cells``; a towed sensor one per stop). The truth
+        a plan observes is ``rows @ truth`` (:func:`lrm_cvx.planning.sensors.observe` handles
+        cells without a value)."""
+        from .sensors import observation_rows
+
+        return observation_rows(self)
+
+    @property
     def n_robots(self) -> int:
         """Number of robots (1 for a single route and for static placement)."""
         return int(self.path.get("n_robots", 1))
