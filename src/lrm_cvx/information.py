@@ -321,7 +321,6 @@ def make_row_oracle(criterion: str, Y: Any, ridge: float = 0.0, cells: Any = Non
         if kwargs.pop("gp_method", "auto") not in ("auto", "dense"):
             raise PlanningError("a sensor footprint needs the dense gp-variance oracle "
                                 "(gp_method='auto' or 'dense')")
-        kwargs.pop("pool", None)
         return RowGPVarianceOracle(Y, cells, pool=pool, rows=rows, extra_rows=extra_rows,
                                    **kwargs)
     allowed = {"prior_precision", "noise_var", "target_weights"}

@@ -37,10 +37,12 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse as sps
 from scipy.spatial.distance import cdist
 
 from .._validation import check_positive
 from ..errors import DataError, ModelError
+from .averaged import check_rows, row_kriging, row_terms
 
 __all__ = ["ObservationModel", "LatentPosterior", "PRIOR_KINDS", "check_cells", "empirical_moments"]
 
@@ -264,6 +266,22 @@ class ObservationModel:
         then be distinct)."""
         return self._terms(cells, z)[:2]
 
+    def fit_rows(self, rows: sps.csr_matrix, values: np.ndarray
+                 ) -> tuple[sps.csr_matrix, np.ndarray]:
+        """Averaged observations in fit units: ``values = rows @ data`` (data units) is
+        ``rows @ offset + B @ f`` with ``B = rows diag(scale)``; returns ``(B, z)``."""
+        z = np.asarray(values, dtype=np.float64)
+        if self.offset is not None:
+            z = z - rows @ self.offset
+        B = rows if self.scale is None else sps.csr_matrix(rows @ sps.diags(self.scale))
+        return B, z
+
+    def row_terms(self, B: sps.csr_matrix, z: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(Yr W Yr^T, Yr W z, z^T W z)`` of averaged observations ``z = B f + e`` (fit units;
+        :func:`~lrm_cvx.glrm.averaged.row_terms`)."""
+        return row_terms(self.Y, B, z, self.noise_var, self.spatial_cov, self.region)
+
     def _terms(self, cells: np.ndarray, z: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, float]:
         """:meth:`observation_terms` and ``z^T W z``."""
@@ -309,6 +327,8 @@ class LatentPosterior:
     day_n: float = 0.0  # its degrees of freedom
     scale_q: float = 0.0  # evidence about the scale carried from earlier snapshots (discounted)
     scale_n: float = 0.0
+    rows: Any = None  # averaged observations of this snapshot (CSR (m, L), data-unit weights)
+    row_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -451,7 +471,13 @@ class LatentPosterior:
         all_cells = np.concatenate([self.cells, cells])
         all_values = np.concatenate([self.values, v])
         adaptive = obs.adaptive_dof is not None
-        if obs.is_spatial:  # correlated residuals: re-solve the GLS over all of today's cells
+        has_rows = self.rows is not None and self.rows.shape[0] > 0
+        if obs.is_spatial and has_rows:  # the GLS over today's cells and averaged rows
+            B, z = self._fit_rows_all(all_cells, all_values)
+            G, b, zz = obs.row_terms(B, z)
+            P, h = self.base_precision + G, self.base_shift + b
+            n_all = B.shape[0]
+        elif obs.is_spatial:  # correlated residuals: re-solve the GLS over all of today's cells
             uc, zc = _average_repeats(all_cells, obs.to_fit_units(all_cells, all_values))
             G, b, zz = obs._terms(uc, zc)
             P, h = self.base_precision + G, self.base_shift + b
@@ -461,7 +487,10 @@ class LatentPosterior:
             P, h = self.precision + G, self.shift + b
             if adaptive:  # the innovation is over all of today's cells, from the day's prior
                 G, b, zz = obs._terms(all_cells, obs.to_fit_units(all_cells, all_values))
-            n_all = all_cells.size
+                if has_rows:
+                    G2, b2, zz2 = obs.row_terms(*obs.fit_rows(self.rows, self.row_values))
+                    G, b, zz = G + G2, b + b2, zz + zz2
+            n_all = all_cells.size + (self.rows.shape[0] if has_rows else 0)
         dq, dn = 0.0, 0.0
         if adaptive:
             q, n_eff = _innovation(self.base_precision, self.base_shift, G, b, zz, n_all)
@@ -469,7 +498,80 @@ class LatentPosterior:
                 dq, dn = q, float(n_eff)
         return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
                                all_cells, all_values, self.n_dropped + dropped, dq, dn,
-                               self.scale_q, self.scale_n)
+                               self.scale_q, self.scale_n, self.rows, self.row_values)
+
+    def _fit_rows_all(self, cells: np.ndarray, values: np.ndarray,
+                      rows: Any = None, row_values: Any = None
+                      ) -> tuple[sps.csr_matrix, np.ndarray]:
+        """Every observation of the snapshot as fit-unit rows ``(B, z)``: the point cells
+        (repeats averaged, one-hot rows) then the averaged rows (``rows``, default the
+        belief's)."""
+        obs = self.obs_model
+        rows = self.rows if rows is None else rows
+        row_values = self.row_values if row_values is None else row_values
+        uc, zc = _average_repeats(cells, obs.to_fit_units(cells, values))
+        one = sps.csr_matrix((np.ones(uc.size), (np.arange(uc.size), uc)),
+                             shape=(uc.size, obs.n_cells))
+        if rows is None or rows.shape[0] == 0:
+            return one, zc
+        B, z = obs.fit_rows(rows, row_values)
+        return sps.vstack([one, B]).tocsr(), np.concatenate([zc, z])
+
+    def update_rows(self, rows: Any, values: Any) -> LatentPosterior:
+        """Assimilate averaged observations: ``values[i]`` (data units) is the weighted average
+        ``rows[i] @ d`` of the snapshot's values ``d`` (``rows``: ``(m, L)`` weights, sparse or
+        dense, e.g. a sensor footprint's, :mod:`lrm_cvx.planning.sensors`); a new belief.
+
+        Each is one observation of the row ``Y B_i`` (``B = rows diag(scale)``) with noise
+        variance ``sum_j B_ij^2 noise_var_j`` (independent cell errors; observations are
+        independent of each other), or with the spatial residual the GLS over all of the
+        snapshot's observations with covariance ``B K B^T + nugget diag(sum_j B_ij^2)``
+        (:meth:`ObservationModel.row_terms`). NaN values are dropped (``n_dropped``). A
+        one-hot row is a point observation (:meth:`update`)."""
+        obs = self.obs_model
+        A = check_rows(rows, obs.n_cells)
+        v = np.atleast_1d(np.asarray(values, dtype=np.float64))
+        if v.shape != (A.shape[0],):
+            raise DataError(f"values has shape {v.shape}, rows has {A.shape[0]} rows")
+        if np.isinf(v).any():
+            raise DataError("values must be finite (NaN marks a missing value)")
+        keep = ~np.isnan(v)
+        dropped = int(v.size - keep.sum())
+        A, v = A[np.flatnonzero(keep)], v[keep]
+        if A.shape[0] == 0:
+            if dropped == 0:
+                return self
+            same = replace(self, n_dropped=self.n_dropped + dropped)
+            same.__dict__.update({key: self.__dict__[key] for key in ("cov", "mean")
+                                  if key in self.__dict__})
+            return same
+        had = self.rows is not None and self.rows.shape[0] > 0
+        all_rows = sps.vstack([self.rows, A]).tocsr() if had else A
+        all_rv = np.concatenate([self.row_values, v]) if had else v
+        adaptive = obs.adaptive_dof is not None
+        if obs.is_spatial:
+            G, b, zz = obs.row_terms(*self._fit_rows_all(self.cells, self.values, all_rows,
+                                                         all_rv))
+            P, h = self.base_precision + G, self.base_shift + b
+        else:
+            G, b, zz = obs.row_terms(*obs.fit_rows(A, v))
+            P, h = self.precision + G, self.shift + b
+            if adaptive:
+                G, b, zz = obs.row_terms(*obs.fit_rows(all_rows, all_rv))
+                if self.cells.size:
+                    G2, b2, zz2 = obs._terms(self.cells,
+                                             obs.to_fit_units(self.cells, self.values))
+                    G, b, zz = G + G2, b + b2, zz + zz2
+        n_all = (np.unique(self.cells).size if obs.is_spatial else self.cells.size) \
+            + all_rows.shape[0]
+        dq, dn = 0.0, 0.0
+        if adaptive:
+            q, n_eff = _innovation(self.base_precision, self.base_shift, G, b, zz, n_all)
+            if n_eff > 0 and np.isfinite(q):
+                dq, dn = q, float(n_eff)
+        return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
+                               self.cells, self.values, self.n_dropped + dropped, dq, dn,
+                               self.scale_q, self.scale_n, all_rows, all_rv)
 
     @property
     def variance_scale(self) -> float:
@@ -559,6 +661,9 @@ class LatentPosterior:
 
         cov = obs.spatial_cov
         region = obs.region
+        if self.rows is not None and self.rows.shape[0] > 0:
+            B, z = self._fit_rows_all(self.cells, self.values)
+            return row_kriging(obs.Y, B, z, self.mean, self.cov, cov, region, cells)
         uc, zc = _average_repeats(self.cells, obs.to_fit_units(self.cells, self.values))
         Ys = obs.Y[:, uc]
         res = zc - Ys.T @ m

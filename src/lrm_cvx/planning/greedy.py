@@ -446,9 +446,10 @@ class _SensorRows:
     def oracle(self, cells: Any, costers: list[Any]) -> Any:
         """The oracle with ``cells`` (pool cells) observed, or the legs of the routes."""
         legs = self.leg_rows(costers) if self.legs else None
+        extra = {k: v for k, v in self.extra.items() if k != "pool"}  # the GP pool: ours
         return make_row_oracle(self.criterion, self.Yk, self.ridge,
                                [] if self.legs else cells, pool=self.pool, rows=self.rows,
-                               extra_rows=legs, **self.extra)
+                               extra_rows=legs, **extra)
 
 
 def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, criterion,

@@ -1,0 +1,424 @@
+"""Sensors that see more than a point (issue #25 item 6), against brute force.
+
+Footprint rows against a cell-by-cell loop over the region, averaged rows against the dense
+mean of the covered cells' factors, the greedy's gains against log det / trace / GP variance
+recomputed from scratch on the averaged rows, the fold-in against the Gaussian conditional
+written out in full, and the point sensor against today's results bit for bit.
+"""
+
+import math
+
+import numpy as np
+import pytest
+import scipy.sparse as sps
+import xarray as xr
+
+from lrm_cvx.errors import DataError, PlanningError
+from lrm_cvx.glrm.foldin import fold_in, fold_in_rows
+from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel
+from lrm_cvx.information import make_row_oracle, row_factors, row_information
+from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning.request import PathOptions
+from lrm_cvx.planning.sensors import (
+    Sensor,
+    footprint_matrix,
+    leg_matrix,
+    observe,
+    observed_cells,
+)
+from lrm_cvx.region import EARTH_RADIUS_KM, Region
+from lrm_cvx.spatial import ResidualCovariance
+
+R = EARTH_RADIUS_KM
+
+
+@pytest.fixture(scope="module")
+def region():
+    # ~9 km x 8.5 km cells with land (invalid cells) inside the grid
+    lat, lon = np.linspace(40.0, 40.8, 10), np.linspace(10.0, 11.1, 12)
+    values = np.ones((1, 10, 12))
+    values[0, 3:6, 4:7] = np.nan  # an island
+    values[0, 0, :3] = np.nan
+    da = xr.DataArray(values, dims=("time", "lat", "lon"),
+                      coords={"time": [0], "lat": lat, "lon": lon})
+    return Region.from_dataarray(da)
+
+
+@pytest.fixture(scope="module")
+def Y(region):
+    return np.random.default_rng(7).normal(size=(3, region.n_cells))
+
+
+# --------------------------------------------------------------------------- references
+def naive_footprint(region, sensor, c):
+    """Weights of the footprint centred on cell ``c``, one cell at a time."""
+    lat, lon = np.asarray(region.cell_lat), np.asarray(region.cell_lon)
+    half = sensor.width_km / 2
+    w = np.zeros(region.n_cells)
+    for j in range(region.n_cells):
+        if sensor.kind == "disc":
+            p1, p2 = math.radians(lat[c]), math.radians(lat[j])
+            h = (math.sin((p2 - p1) / 2) ** 2 + math.cos(p1) * math.cos(p2)
+                 * math.sin(math.radians(lon[j] - lon[c]) / 2) ** 2)
+            inside = 2 * R * math.asin(math.sqrt(h)) <= half + 1e-9
+        else:
+            dy = R * math.radians(lat[j] - lat[c])
+            dx = R * math.cos(math.radians(lat[c])) * math.radians(lon[j] - lon[c])
+            inside = abs(dx) <= half + 1e-9 and abs(dy) <= half + 1e-9
+        w[j] = 1.0 if inside or j == c else 0.0
+    return w / w.sum()
+
+
+def naive_legs(route, waypoint, robot, L):
+    """One row per stop: the distinct cells from the previous stop of the robot to it."""
+    rows, prev, current = [], None, []
+    for i, (c, w, r) in enumerate(zip(route, waypoint, robot, strict=True)):
+        if i == 0 or robot[i - 1] != r:
+            prev, current = None, []
+        current.append(int(c))
+        if w:
+            cells = set(current) | ({prev} if prev is not None else set())
+            row = np.zeros(L)
+            row[sorted(cells)] = 1.0 / len(cells)
+            rows.append(row)
+            prev, current = int(c), []
+    return np.array(rows)
+
+
+def fisher_rows(Y, rows, ridge, noise=None):
+    """log det(ridge I + sum_r (Y a_r)(Y a_r)^T / sum a_r^2 sigma^2), from scratch."""
+    nv = np.ones(Y.shape[1]) if noise is None else noise
+    M = ridge * np.eye(Y.shape[0])
+    for a in rows:
+        y = Y @ a
+        M += np.outer(y, y) / float((a * a) @ nv)
+    return np.linalg.slogdet(M)[1]
+
+
+def aopt_rows(Y, rows, ridge):
+    M = ridge * np.eye(Y.shape[0])
+    for a in rows:
+        y = Y @ a
+        M += np.outer(y, y) / float(a @ a)
+    return float(np.trace(np.linalg.solve(M, Y @ Y.T)))
+
+
+def residual_matrix(region, cov):
+    lat, lon = np.radians(region.cell_lat), np.radians(region.cell_lon)
+    h = (np.sin((lat[:, None] - lat[None]) / 2) ** 2 + np.cos(lat[:, None]) * np.cos(lat[None])
+         * np.sin((lon[:, None] - lon[None]) / 2) ** 2)
+    d = 2 * R * np.arcsin(np.sqrt(np.clip(h, 0, 1)))
+    return cov.covariance(d, nugget=False)
+
+
+def gp_rows_value(Y, S0, Kr, nugget, rows):
+    """Total posterior variance of f = Y^T x + r given z = A f + e (Var e = nugget sum a^2)."""
+    Kf = Y.T @ S0 @ Y + Kr
+    if len(rows) == 0:
+        return float(np.trace(Kf))
+    A = np.array(rows)
+    Kz = A @ Kf @ A.T + np.diag(nugget * (A * A).sum(1))
+    Kfz = Kf @ A.T
+    return float(np.trace(Kf) - np.trace(Kfz @ np.linalg.solve(Kz, Kfz.T)))
+
+
+# --------------------------------------------------------------------------- the sensor
+def test_sensor_parse_and_width():
+    assert Sensor.of(None).is_point and Sensor.of("point") == Sensor()
+    s = Sensor.of("disc:5km")
+    assert (s.kind, s.width_km) == ("disc", 5.0)
+    assert Sensor.of("Circle:2").kind == "disc"  # aliases, any case
+    grow = Sensor.parse("square:1km,altitude=0.5km,fov=60")
+    assert grow.width_km == pytest.approx(1.0 + 2 * 0.5 * math.tan(math.radians(30)))
+    assert Sensor.of("towed").is_leg
+    assert PathOptions(sensor="disc:5km").sensor == Sensor("disc", 5.0)
+    assert PathOptions(sensor="point") == PathOptions()
+
+
+@pytest.mark.parametrize("bad, match", [
+    ("disc:-1km", "size_km"), ("blob:3", "sensor must be one of"), ("disc", "width > 0"),
+    ("point:3", "has no footprint"), ("square:2,alt=1", "needs fov_deg"),
+    ("square:2,alt=1,fov=190", "fov_deg must be in"), ("disc:abc", "not a number"),
+    ("disc:2,colour=red", "unknown option"),
+])
+def test_sensor_bad_input(bad, match):
+    with pytest.raises(PlanningError, match=match):
+        Sensor.of(bad)
+
+
+def test_sensor_with_sense_along_or_refine_refused(region, Y):
+    with pytest.raises(PlanningError, match="sense_along"):
+        PathOptions(sensor="leg-average", sense_along=True)
+    with pytest.raises(PlanningError, match="refine supports the point sensor"):
+        plan_greedy(Y, region, 0, 20.0, sensor="disc:10km", refine=True, progress=False)
+
+
+# --------------------------------------------------------------------------- footprint rows
+@pytest.mark.parametrize("spec", ["disc:9km", "disc:30km", "square:9km", "square:25km",
+                                  "square:0.01km", "disc:5,altitude=1,fov=90"])
+def test_footprint_matrix_equals_cell_by_cell_loop(region, spec):
+    sensor = Sensor.of(spec)
+    cells = np.arange(region.n_cells)
+    A = footprint_matrix(region, sensor, cells)
+    want = np.array([naive_footprint(region, sensor, c) for c in cells])
+    np.testing.assert_allclose(A.toarray(), want, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(A.sum(axis=1)).ravel(), 1.0)
+
+
+def test_averaged_row_is_the_mean_of_the_covered_factors(region, Y):
+    sensor = Sensor.of("disc:25km")
+    cells = np.array([0, 5, region.n_cells - 1])
+    Yr, vr = row_factors(Y, footprint_matrix(region, sensor, cells))
+    for i, c in enumerate(cells):
+        covered = np.flatnonzero(naive_footprint(region, sensor, c))
+        np.testing.assert_allclose(Yr[:, i], Y[:, covered].mean(axis=1), rtol=1e-13)
+        assert vr[i] == pytest.approx(1.0 / covered.size)  # sum a^2 of equal weights
+
+
+def test_point_footprint_rows_are_one_hot(region):
+    A = footprint_matrix(region, "point", [3, 1, 3])
+    assert A.toarray().tolist() == np.eye(region.n_cells)[[3, 1, 3]].tolist()
+    B = footprint_matrix(region, "point", lat=[float(region.cell_lat[4])],
+                         lon=[float(region.cell_lon[4])])
+    assert B.indices.tolist() == [4]
+
+
+def test_footprint_at_a_point_covering_no_cell_is_an_error(region):
+    far = dict(lat=[-60.0], lon=[100.0])
+    with pytest.raises(PlanningError, match="covers no valid cell"):
+        footprint_matrix(region, "disc:5km", **far)
+    island = dict(lat=[40.4], lon=[10.5])  # over the masked cells
+    with pytest.raises(PlanningError, match="covers no valid cell"):
+        footprint_matrix(region, "square:5km", **island)
+    A = footprint_matrix(region, "disc:60km", **island)
+    lat, lon = np.radians(region.cell_lat), np.radians(region.cell_lon)
+    h = (np.sin((lat - math.radians(40.4)) / 2) ** 2 + np.cos(lat) * math.cos(math.radians(40.4))
+         * np.sin((lon - math.radians(10.5)) / 2) ** 2)
+    inside = 2 * R * np.arcsin(np.sqrt(h)) <= 30.0
+    assert A.indices.tolist() == np.flatnonzero(inside).tolist() and inside.sum() > 1
+
+
+def test_leg_matrix_equals_a_walk_along_the_route():
+    route = np.array([4, 7, 8, 2, 2, 9, 1, 5, 6, 5])
+    way = np.array([1, 0, 0, 1, 1, 1, 1, 0, 1, 1], bool)
+    robot = np.array([0, 0, 0, 0, 0, 0, 1, 1, 1, 1])
+    A = leg_matrix(route, way, robot, 12)
+    np.testing.assert_allclose(A.toarray(), naive_legs(route, way, robot, 12))
+    assert A.shape[0] == way.sum()
+
+
+def test_observe_reweights_over_the_cells_with_a_value():
+    rows = sps.csr_matrix(np.array([[0.5, 0.5, 0, 0], [0, 0.25, 0.75, 0], [0, 0, 0, 1.0]]))
+    truth = np.array([1.0, np.nan, 3.0, np.nan])
+    used, values = observe(truth, rows)
+    assert values[0] == 1.0 and values[1] == 3.0 and np.isnan(values[2])
+    np.testing.assert_allclose(used.toarray()[:2], [[1, 0, 0, 0], [0, 0, 1, 0]])
+    full, v = observe(np.arange(4.0), rows)
+    np.testing.assert_allclose(v, rows @ np.arange(4.0))
+    assert observed_cells(rows).tolist() == [0, 1, 2, 3]
+
+
+# --------------------------------------------------------------------------- oracles
+@pytest.mark.parametrize("criterion", ["fisher", "a-optimal"])
+def test_row_oracle_gains_equal_brute_force(region, Y, criterion):
+    sensor = Sensor.of("square:25km")
+    pool = np.arange(region.n_cells)
+    A = footprint_matrix(region, sensor, pool)
+    dense = A.toarray()
+    ridge = 0.1
+    init = [0, 7, 20]
+    legs = dense[[3, 4]] * 0.5 + dense[[5, 6]] * 0.5  # two extra observations, any weights
+    o = make_row_oracle(criterion, Y, ridge, init, pool=pool, rows=A,
+                        extra_rows=sps.csr_matrix(legs))
+    base = [dense[c] for c in init] + list(legs)
+    f = fisher_rows if criterion == "fisher" else aopt_rows
+    want = np.array([f(Y, base + [dense[x]], ridge) - f(Y, base, ridge) for x in pool])
+    want = want if criterion == "fisher" else -want
+    np.testing.assert_allclose(o.gains(pool), want, rtol=1e-9, atol=1e-12)
+    o.add(11)
+    want2 = f(Y, base + [dense[11], dense[12]], ridge) - f(Y, base + [dense[11]], ridge)
+    assert o.gains([12])[0] == pytest.approx(abs(want2), rel=1e-9)
+    assert o.value == pytest.approx(f(Y, base + [dense[11]], ridge), rel=1e-10)
+
+
+def test_row_gp_oracle_equals_brute_force_gp(region, Y):
+    cov = ResidualCovariance("exponential", sill=0.6, range=15.0, nugget=0.1, metric="km")
+    S0 = np.diag([1.0, 0.5, 0.3])
+    A = footprint_matrix(region, "disc:20km", np.arange(region.n_cells))
+    dense = A.toarray()
+    Kr = residual_matrix(region, cov)
+    pool = np.arange(region.n_cells)
+    o = make_row_oracle("gp-variance", Y, 0.0, [2], pool=pool, rows=A, region=region,
+                        spatial_cov=cov, prior_cov=S0)
+    base = [dense[2]]
+    v0 = gp_rows_value(Y, S0, Kr, 0.1, base)
+    assert o.value == pytest.approx(v0, rel=1e-9)
+    want = np.array([v0 - gp_rows_value(Y, S0, Kr, 0.1, base + [dense[x]]) for x in pool])
+    np.testing.assert_allclose(o.gains(pool), want, rtol=1e-7, atol=1e-10)
+    o.add(30)
+    assert o.value == pytest.approx(gp_rows_value(Y, S0, Kr, 0.1, base + [dense[30]]),
+                                    rel=1e-9)
+
+
+# --------------------------------------------------------------------------- the greedy
+@pytest.mark.parametrize("criterion, ridge", [("fisher", 0.0), ("a-optimal", 1e-2)])
+@pytest.mark.parametrize("spec", ["disc:25km", "square:20km"])
+def test_greedy_gains_with_a_footprint_equal_brute_force(region, Y, criterion, ridge, spec):
+    plan = plan_greedy(Y, region, 10, 14.0, criterion=criterion, ridge=ridge, sensor=spec,
+                       progress=False)
+    sensor = Sensor.of(spec)
+    rows = [naive_footprint(region, sensor, c) for c in plan.stops]
+    n0 = plan.stops.size - plan.history["cell"].size
+    assert plan.history["cell"].size >= 2
+    f = fisher_rows if criterion == "fisher" else aopt_rows
+    for t, gain in enumerate(plan.history["gain"]):
+        before, after = f(Y, rows[:n0 + t], ridge), f(Y, rows[:n0 + t + 1], ridge)
+        assert gain == pytest.approx(abs(after - before), rel=1e-8)
+    np.testing.assert_allclose(plan.observation_rows().toarray(), np.array(rows), atol=1e-15)
+    assert plan.information == pytest.approx(fisher_rows(Y, rows, ridge), rel=1e-10)
+    assert plan.sensor == sensor
+
+
+def test_greedy_gp_variance_with_a_footprint_equals_brute_force(region, Y):
+    cov = ResidualCovariance("exponential", sill=0.6, range=15.0, nugget=0.1, metric="km")
+    S0 = np.diag([1.0, 0.5, 0.3])
+    plan = plan_greedy(Y, region, 10, 10.0, criterion="gp-variance", sensor="disc:20km",
+                       spatial_cov=cov, prior_cov=S0, initial="start", progress=False)
+    Kr = residual_matrix(region, cov)
+    rows = [naive_footprint(region, Sensor.of("disc:20km"), c) for c in plan.stops]
+    n0 = plan.stops.size - plan.history["cell"].size
+    for t, gain in enumerate(plan.history["gain"]):
+        want = (gp_rows_value(Y, S0, Kr, 0.1, rows[:n0 + t])
+                - gp_rows_value(Y, S0, Kr, 0.1, rows[:n0 + t + 1]))
+        assert gain == pytest.approx(want, rel=1e-7)
+
+
+def test_greedy_leg_average_records_the_legs(region, Y):
+    plan = plan_greedy(Y, region, 10, 12.0, ridge=1e-3, sensor="leg-average", progress=False)
+    rows = naive_legs(plan.route, plan.waypoint, plan.route_robot, region.n_cells)
+    assert rows.shape[0] == plan.stops.size  # one observation per stop
+    np.testing.assert_allclose(plan.observation_rows().toarray(), rows)
+    assert plan.information == pytest.approx(fisher_rows(Y, rows, 1e-3), rel=1e-10)
+    assert (~plan.waypoint).any()  # the cells the legs pass are on the route
+    closed = plan_greedy(Y, region, [10, 60], [10.0, 8.0], ridge=1e-3, sensor="leg",
+                         closed=True, progress=False)
+    rows = naive_legs(closed.route, closed.waypoint, closed.route_robot, region.n_cells)
+    np.testing.assert_allclose(closed.observation_rows().toarray(), rows)
+
+
+@pytest.mark.parametrize("kw", [{}, {"criterion": "a-optimal", "ridge": 1e-2},
+                                {"sense_along": True}, {"metric": "km", "closed": True}])
+def test_point_sensor_is_todays_plan_bit_for_bit(region, Y, kw):
+    budget = 60.0 if kw.get("metric") == "km" else 12.0
+    a = plan_greedy(Y, region, 10, budget, progress=False, **kw)
+    for sensor in ("point", Sensor(), None):
+        b = plan_greedy(Y, region, 10, budget, progress=False, sensor=sensor, **kw)
+        assert np.array_equal(a.cells, b.cells) and np.array_equal(a.route, b.route)
+        assert a.information == b.information
+        for key in a.history:
+            assert np.array_equal(a.history[key], b.history[key])
+    rows = a.observation_rows()
+    assert np.array_equal(rows.indices, a.cells) and np.all(rows.data == 1.0)
+
+
+def test_a_tiny_footprint_plans_as_the_point_sensor(region, Y):
+    a = plan_greedy(Y, region, 10, 12.0, progress=False)
+    b = plan_greedy(Y, region, 10, 12.0, sensor="square:0.01km", progress=False)
+    assert np.array_equal(a.stops, b.stops)
+    assert b.information == pytest.approx(a.information, rel=1e-12)
+
+
+def test_footprint_plans_refuse_the_certificate(region, Y):
+    plan = plan_greedy(Y, region, 10, 8.0, sensor="disc:20km", progress=False)
+    with pytest.raises(PlanningError, match="point sensors only"):
+        plan.certify()
+
+
+# --------------------------------------------------------------------------- fold-in
+def _obs(region, Y, spatial):
+    rng = np.random.default_rng(5)
+    L = region.n_cells
+    cov = (ResidualCovariance("exponential", sill=0.5, range=12.0, nugget=0.05, metric="km")
+           if spatial else None)
+    return ObservationModel(Y, offset=rng.normal(size=L), scale=rng.uniform(0.5, 2, L),
+                            noise_var=rng.uniform(0.1, 1.0, L), spatial_cov=cov,
+                            region=region if spatial else None)
+
+
+def _rows(region, n=5, seed=2):
+    A = footprint_matrix(region, "disc:20km", np.random.default_rng(seed).choice(
+        region.n_cells, n, replace=False)).toarray()
+    A[0, A[0] > 0] *= np.linspace(0.5, 1.5, int((A[0] > 0).sum()))  # one weighted row
+    return A / A.sum(axis=1, keepdims=True)
+
+
+def test_update_rows_equals_the_bayesian_update_of_the_averaged_rows(region, Y):
+    obs = _obs(region, Y, spatial=False)
+    A, v = _rows(region), np.array([0.3, -1.0, 2.0, 0.5, 1.1])
+    m0, S0 = np.array([0.2, -0.1, 0.4]), np.diag([2.0, 1.0, 0.5])
+    post = LatentPosterior.from_moments(obs, m0, S0).update_rows(sps.csr_matrix(A), v)
+    B = A * obs.scale
+    z = v - A @ obs.offset
+    Yr, Rn = Y @ B.T, np.diag((B * B) @ obs.noise_var)
+    P = np.linalg.inv(S0) + Yr @ np.linalg.solve(Rn, Yr.T)
+    h = np.linalg.solve(S0, m0) + Yr @ np.linalg.solve(Rn, z)
+    np.testing.assert_allclose(post.cov, np.linalg.inv(P), rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(post.mean, np.linalg.solve(P, h), rtol=1e-10, atol=1e-14)
+    # in two steps, and with a NaN value dropped
+    two = (LatentPosterior.from_moments(obs, m0, S0).update_rows(A[:2], v[:2])
+           .update_rows(np.vstack([A[2:], A[:1]]), np.r_[v[2:], np.nan]))
+    np.testing.assert_allclose(two.mean, post.mean, rtol=1e-10)
+    assert two.n_dropped == 1 and two.rows.shape[0] == 5
+
+
+def test_one_hot_rows_are_point_observations(region, Y):
+    cells, v = np.array([1, 8, 20, 33]), np.array([0.5, -0.2, 1.0, 0.7])
+    x1, c1 = fold_in(Y, cells, v, ridge=0.1)
+    x2, c2 = fold_in_rows(Y, np.eye(region.n_cells)[cells], v, ridge=0.1)
+    np.testing.assert_allclose(x1, x2, rtol=1e-12)
+    np.testing.assert_allclose(c1, c2, rtol=1e-12)
+
+
+def test_spatial_update_rows_equals_the_gaussian_conditional(region, Y):
+    obs = _obs(region, Y, spatial=True)
+    cov = obs.spatial_cov
+    A, v = _rows(region, 4), np.array([0.3, -1.0, 2.0, 0.5])
+    cells, cv = np.array([3, 40]), np.array([1.5, -0.5])  # point observations too
+    m0, S0 = np.array([0.2, -0.1, 0.4]), np.diag([2.0, 1.0, 0.5])
+    post = (LatentPosterior.from_moments(obs, m0, S0).update(cells, cv)
+            .update_rows(sps.csr_matrix(A), v))
+    # the joint Gaussian of (x, f, z), written out (fit units)
+    L = region.n_cells
+    Bfull = np.vstack([np.eye(L)[cells], A * obs.scale])
+    z = np.r_[(cv - obs.offset[cells]) / obs.scale[cells], v - A @ obs.offset]
+    Kr = residual_matrix(region, cov)
+    Kf = Y.T @ S0 @ Y + Kr
+    Kz = Bfull @ Kf @ Bfull.T + np.diag(cov.nugget * (Bfull * Bfull).sum(1))
+    Kxz = S0 @ Y @ Bfull.T
+    gain = np.linalg.solve(Kz, z - Bfull @ Y.T @ m0)
+    np.testing.assert_allclose(post.mean, m0 + Kxz @ gain, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(post.cov, S0 - Kxz @ np.linalg.solve(Kz, Kxz.T), rtol=1e-8,
+                               atol=1e-10)
+    Kfz = Kf @ Bfull.T
+    mean_f = Y.T @ m0 + Kfz @ gain
+    var_f = np.diag(Kf) - np.einsum("ij,ji->i", Kfz, np.linalg.solve(Kz, Kfz.T))
+    mean, std = post.predict(spatial=True)
+    np.testing.assert_allclose(mean, obs.offset + obs.scale * mean_f, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(std, obs.scale * np.sqrt(np.maximum(var_f, 0)), rtol=1e-6,
+                               atol=1e-8)
+    # the same observations the other way round: points after the rows
+    other = (LatentPosterior.from_moments(obs, m0, S0).update_rows(A, v).update(cells, cv))
+    np.testing.assert_allclose(other.mean, post.mean, rtol=1e-9, atol=1e-12)
+
+
+def test_update_rows_bad_input(region, Y):
+    post = LatentPosterior.from_moments(_obs(region, Y, False), np.zeros(3), np.eye(3))
+    L = region.n_cells
+    with pytest.raises(DataError, match="columns"):
+        post.update_rows(np.ones((1, L + 1)), [1.0])
+    with pytest.raises(DataError, match="without any weight"):
+        post.update_rows(np.zeros((1, L)), [1.0])
+    with pytest.raises(DataError, match="values has shape"):
+        post.update_rows(np.ones((2, L)) / L, [1.0])
+    with pytest.raises(DataError, match="finite"):
+        post.update_rows(np.ones((1, L)) / L, [np.inf])
