@@ -422,3 +422,15 @@ def test_update_rows_bad_input(region, Y):
         post.update_rows(np.ones((2, L)) / L, [1.0])
     with pytest.raises(DataError, match="finite"):
         post.update_rows(np.ones((1, L)) / L, [np.inf])
+
+
+def test_row_information_of_one_hot_rows_is_fisher_information(region, Y):
+    from lrm_cvx.information import fisher_information
+
+    cells = [0, 4, 9, 30]
+    rows = np.eye(region.n_cells)[cells]
+    assert row_information(Y, rows, 0.1) == pytest.approx(fisher_information(Y, cells, 0.1),
+                                                          rel=1e-13)
+    A = footprint_matrix(region, "disc:25km", cells)
+    assert row_information(Y, A, 0.1) == pytest.approx(fisher_rows(Y, A.toarray(), 0.1),
+                                                       rel=1e-12)

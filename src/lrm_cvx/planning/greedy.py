@@ -11,8 +11,13 @@ from tqdm.auto import tqdm
 
 from .._validation import as_factor_matrix
 from ..errors import PlanningError
-from ..information import (CRITERION_REGISTRY, fisher_information, make_oracle, make_row_oracle,
-                           row_information)
+from ..information import (
+    CRITERION_REGISTRY,
+    fisher_information,
+    make_oracle,
+    make_row_oracle,
+    row_information,
+)
 from ..region import Region
 from . import request as _request
 from .paths import path_model

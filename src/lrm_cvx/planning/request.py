@@ -125,7 +125,8 @@ class PathOptions:
         if sensor.is_leg and self.sense_along:
             raise PlanningError("sensor='leg-average' already observes along the route: "
                                 "sense_along=True does not combine with it")
-        for name, value in (("sensor", sensor), ("metric", metric), ("speed", speed), ("stop_cost", stop_cost),
+        for name, value in (("sensor", sensor), ("metric", metric), ("speed", speed),
+                            ("stop_cost", stop_cost),
                             ("traversable", trav), ("closed", bool(self.closed)),
                             ("sense_along", bool(self.sense_along))):
             object.__setattr__(self, name, value)
