@@ -434,3 +434,45 @@ def test_row_information_of_one_hot_rows_is_fisher_information(region, Y):
     A = footprint_matrix(region, "disc:25km", cells)
     assert row_information(Y, A, 0.1) == pytest.approx(fisher_rows(Y, A.toarray(), 0.1),
                                                        rel=1e-12)
+
+
+def test_a_campaign_day_with_a_footprint():
+    """The campaign's observation step: one averaged truth value per stop, assimilated by the
+    filter as the posterior's update_rows of the day's belief."""
+    from lrm_cvx.glrm import GLRM
+    from lrm_cvx.io.samples import synthetic_field
+    from lrm_cvx.monitor import MonitorState
+    from lrm_cvx.planning.sensors import plan_observations
+
+    da = synthetic_field(12, (10, 12), 2, seed=1, lat_range=(40.0, 40.8),
+                         lon_range=(10.0, 11.1))
+    model = GLRM(rank=2, random_state=0).fit(da.isel(time=slice(0, 10)))
+    state = MonitorState.from_model(model)
+    sensor = Sensor.of("disc:25km")
+    plan = plan_greedy(model.Y_, model.region_, 5, 10.0, sensor=sensor, ridge=1e-6,
+                       progress=False)
+    truth = model.region_.stack(da.isel(time=10)).astype(np.float64)
+    truth[plan.stops[0]] = np.nan  # a cloud over the first stop
+    rows, values = plan_observations(plan, truth)
+    for i, c in enumerate(plan.cells):
+        covered = np.flatnonzero(naive_footprint(model.region_, sensor, c))
+        seen = covered[np.isfinite(truth[covered])]
+        assert values[i] == pytest.approx(truth[seen].mean(), rel=1e-12)
+    t = state._coerce(da.time.values[10])
+    day = state._propagated(t) if state._dt(t) != 0 else state.posterior
+    want = day.update_rows(rows, values)
+    state.assimilate_rows(rows, values, t)
+    assert state.n_assimilated == len(values) and state.time == t
+    np.testing.assert_allclose(state.posterior.mean, want.mean, rtol=1e-12)
+    np.testing.assert_allclose(state.posterior.cov, want.cov, rtol=1e-12)
+    # the update is the Bayesian update of the averaged rows from the day's belief
+    obs = day.obs_model
+    A = rows.toarray() * (1.0 if obs.scale is None else obs.scale)
+    z = values - (0.0 if obs.offset is None else rows @ obs.offset)
+    Yr = obs.Y @ A.T
+    nv = np.broadcast_to(np.asarray(obs.noise_var, float), (obs.n_cells,))
+    W = np.diag(1.0 / ((A * A) @ nv))
+    P = day.precision + Yr @ W @ Yr.T
+    np.testing.assert_allclose(state.posterior.cov, np.linalg.inv(P), rtol=1e-9)
+    np.testing.assert_allclose(state.posterior.mean,
+                               np.linalg.solve(P, day.shift + Yr @ W @ z), rtol=1e-9)

@@ -40,7 +40,7 @@ from ..region import EARTH_RADIUS_KM, Region
 from ..registry import Registry
 
 __all__ = ["Sensor", "SENSOR_REGISTRY", "SENSOR_KINDS", "POINT", "footprint_matrix",
-           "leg_matrix", "observation_rows", "observe", "observed_cells"]
+           "leg_matrix", "observation_rows", "observe", "observed_cells", "plan_observations"]
 
 SENSOR_REGISTRY = Registry("sensor", PlanningError)
 """Sensor kinds (entries: whether the kind has a footprint size)."""
@@ -330,3 +330,12 @@ def observed_cells(rows: Any) -> np.ndarray:
     """The distinct cells the rows touch (sorted int64): what the sensor saw."""
     A = sps.csr_matrix(rows)
     return np.unique(A.indices[A.data != 0]).astype(np.int64)
+
+
+def plan_observations(plan: Any, truth: Any) -> tuple[sps.csr_matrix, np.ndarray]:
+    """What ``plan``'s sensor reads of the snapshot ``truth`` (``(L,)``, the region's cells,
+    NaN where not observable): ``(rows, values)``, one averaged value per observation
+    (:func:`observation_rows` re-weighted by :func:`observe`). A campaign assimilates them
+    with ``state.assimilate_rows(rows, values, time)``; ``observed_cells(rows)`` are the cells
+    seen."""
+    return observe(truth, observation_rows(plan))
