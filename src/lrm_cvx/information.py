@@ -79,6 +79,7 @@ __all__ = [
     "RowOracle",
     "RowGPVarianceOracle",
     "make_row_oracle",
+    "row_cov",
     "row_information",
     "row_factors",
 ]
