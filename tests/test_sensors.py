@@ -476,3 +476,23 @@ def test_a_campaign_day_with_a_footprint():
     np.testing.assert_allclose(state.posterior.cov, np.linalg.inv(P), rtol=1e-9)
     np.testing.assert_allclose(state.posterior.mean,
                                np.linalg.solve(P, day.shift + Yr @ W @ z), rtol=1e-9)
+
+
+def test_refine_and_static_placement_refuse_a_footprint(region, Y):
+    from lrm_cvx.planning import refine
+
+    plan = plan_greedy(Y, region, 10, 8.0, sensor="disc:20km", progress=False)
+    assert not plan.path.is_paper
+    with pytest.raises(PlanningError):
+        refine(plan)
+    with pytest.raises(PlanningError, match="static placement supports the point sensor"):
+        plan_greedy(Y, region, None, 5, static=True, sensor="disc:20km", progress=False)
+
+
+def test_footprints_along_the_route(region, Y):
+    plan = plan_greedy(Y, region, 10, 14.0, sensor="square:20km", sense_along=True,
+                       ridge=1e-3, initial="start", end=region.n_cells - 1, progress=False)
+    rows = np.array([naive_footprint(region, Sensor.of("square:20km"), c) for c in plan.cells])
+    assert plan.cells.size > plan.stops.size  # the cells passed are footprints too
+    np.testing.assert_allclose(plan.observation_rows().toarray(), rows, atol=1e-15)
+    assert plan.information == pytest.approx(fisher_rows(Y, rows, 1e-3), rel=1e-10)

@@ -371,6 +371,9 @@ def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOption
     elif budget is not None and float(budget) != float(n_sensors):
         raise PlanningError(f"path='static': give n_sensors ({n_sensors}) or budget "
                             f"({budget}), not two different numbers")
+    if not request.sensor.is_point:
+        raise PlanningError("static placement supports the point sensor only, not "
+                            f"sensor={request.sensor.describe()!r}")
     if set(request.changed()) - {"traversable"}:
         raise PlanningError("path='static' has no travel: metric, speed, stop_cost, closed, "
                             "end and sense_along do not apply")

@@ -397,9 +397,9 @@ class PlanPath(Mapping):
     @property
     def is_paper(self) -> bool:
         """The paper's model: one robot, open straight-line path in grid units, no stop cost,
-        sensing only at the stops (what :func:`~lrm_cvx.planning.refine.refine` supports)."""
+        point sensing only at the stops (what :func:`~lrm_cvx.planning.refine.refine` supports)."""
         return all(self._items.get(key) == value for key, value in PAPER_PATH.items()) and \
-            self._items.get("n_robots", 1) == 1
+            self._items.get("n_robots", 1) == 1 and self.sensor.is_point
 
     # ------------------------------------------------------------------ read-only mapping
     def __getitem__(self, key: str) -> Any:
