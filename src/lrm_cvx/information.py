@@ -324,7 +324,7 @@ def make_row_oracle(criterion: str, Y: Any, ridge: float = 0.0, cells: Any = Non
                                 "(gp_method='auto' or 'dense')")
         return RowGPVarianceOracle(Y, cells, pool=pool, rows=rows, extra_rows=extra_rows,
                                    **kwargs)
-    allowed = {"prior_precision", "noise_var", "target_weights"}
+    allowed = {"prior_precision", "noise_var", "target_weights", "pool_factors"}
     return RowOracle(criterion, Y, ridge, cells, pool=pool, rows=rows, extra_rows=extra_rows,
                      **{k: v for k, v in kwargs.items() if k in allowed})
 

@@ -292,12 +292,14 @@ class RowOracle:
     cells already observed. The criterion is the one of :class:`FisherOracle` /
     :class:`AOptimalOracle` on the rows ``Y a`` with noise ``sum a^2 sigma^2``
     (:func:`row_factors`); the A-optimal target stays the cells' ``W = sum_i c_i y_i y_i^T``.
+    ``pool_factors``: :func:`row_factors` of ``rows`` when already computed (a rebuild).
     ``gains``, ``add``, ``value`` and ``cells`` as the point oracles (cells are pool cells).
     """
 
     def __init__(self, criterion: str, Y: Any, ridge: float = 0.0, cells: Any = None, *,
                  pool: Any, rows: Any, extra_rows: Any = None, prior_precision: Any = None,
-                 noise_var: Any = None, target_weights: Any = None) -> None:
+                 noise_var: Any = None, target_weights: Any = None,
+                 pool_factors: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         Yk = as_factor_matrix(Y)
         L = Yk.shape[1]
         self.pool = cells_array(pool, L)
@@ -307,7 +309,9 @@ class RowOracle:
         if A.shape != (self.pool.size, L):
             raise PlanningError(f"rows must be ({self.pool.size}, {L}): one per pool cell")
         extra = sps.csr_matrix((0, L)) if extra_rows is None else sps.csr_matrix(extra_rows)
-        Yr, vr = row_factors(Yk, sps.vstack([A, extra]).tocsr(), noise_var)
+        Yp, vp = row_factors(Yk, A, noise_var) if pool_factors is None else pool_factors
+        Ye, ve = row_factors(Yk, extra, noise_var)
+        Yr, vr = np.hstack([Yp, Ye]), np.concatenate([vp, ve])
         self.cells: list[int] = [int(c) for c in cells_array(cells, L)]
         init = np.concatenate([self._pos(self.cells), self.pool.size
                                + np.arange(extra.shape[0])]).astype(np.int64)

@@ -16,6 +16,7 @@ from ..information import (
     fisher_information,
     make_oracle,
     make_row_oracle,
+    row_factors,
     row_information,
 )
 from ..region import Region
@@ -441,6 +442,7 @@ class _SensorRows:
         n, L = pool.size, region.n_cells
         self.rows = (footprint_matrix(region, sensor, pool) if sensor.has_footprint else
                      sps.csr_matrix((np.ones(n), (np.arange(n), pool)), shape=(n, L)))
+        self._factors: tuple[np.ndarray, np.ndarray] | None = None
 
     def leg_rows(self, costers: list[Any]) -> sps.csr_matrix:
         """The legs of the robots' current routes (one averaged row per stop)."""
@@ -455,6 +457,10 @@ class _SensorRows:
         """The oracle with ``cells`` (pool cells) observed, or the legs of the routes."""
         legs = self.leg_rows(costers) if self.legs else None
         extra = {k: v for k, v in self.extra.items() if k != "pool"}  # the GP pool: ours
+        if self.criterion != "gp-variance":  # the pool's rows are computed once
+            if self._factors is None:
+                self._factors = row_factors(self.Yk, self.rows, extra.get("noise_var"))
+            extra["pool_factors"] = self._factors
         return make_row_oracle(self.criterion, self.Yk, self.ridge,
                                [] if self.legs else cells, pool=self.pool, rows=self.rows,
                                extra_rows=legs, **extra)
