@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import scipy.sparse as sps
 import xarray as xr
 
@@ -496,3 +498,50 @@ def test_footprints_along_the_route(region, Y):
     assert plan.cells.size > plan.stops.size  # the cells passed are footprints too
     np.testing.assert_allclose(plan.observation_rows().toarray(), rows, atol=1e-15)
     assert plan.information == pytest.approx(fisher_rows(Y, rows, 1e-3), rel=1e-10)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 9), st.booleans()), min_size=1, max_size=25),
+       st.integers(0, 3))
+def test_leg_matrix_random_routes(entries, n_robots):
+    """Random routes of 1-4 robots (each starting at a stop, cells may repeat)."""
+    route, way, robot = [], [], []
+    chunks = np.array_split(np.arange(len(entries)), n_robots + 1)
+    for r, idx in enumerate(chunks):
+        for j, i in enumerate(idx):
+            cell, stop = entries[i]
+            route.append(cell)
+            way.append(stop or j == 0)
+            robot.append(r)
+    keep = [i for i in range(len(route)) if len(chunks[robot[i]]) > 0]
+    route, way, robot = (np.array([v[i] for i in keep]) for v in (route, way, robot))
+    A = leg_matrix(route, way, robot, 10)
+    np.testing.assert_allclose(A.toarray(), naive_legs(route, way, robot, 10).reshape(-1, 10))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.sampled_from(["square", "disc"]), st.floats(0.5, 60.0), st.floats(40.0, 40.8),
+       st.floats(10.0, 11.1))
+def test_footprint_at_any_point_equals_the_loop(kind, width, lat, lon):
+    lat_g, lon_g = np.linspace(40.0, 40.8, 10), np.linspace(10.0, 11.1, 12)
+    values = np.ones((1, 10, 12))
+    values[0, 3:6, 4:7] = np.nan
+    region = Region.from_dataarray(xr.DataArray(values, dims=("time", "lat", "lon"), coords={
+        "time": [0], "lat": lat_g, "lon": lon_g}))
+    sensor = Sensor(kind, width)
+    cl, co = np.asarray(region.cell_lat), np.asarray(region.cell_lon)
+    half = width / 2
+    if kind == "disc":
+        h = (np.sin(np.radians(cl - lat) / 2) ** 2 + np.cos(np.radians(cl)) * math.cos(
+            math.radians(lat)) * np.sin(np.radians(co - lon) / 2) ** 2)
+        inside = 2 * R * np.arcsin(np.sqrt(h)) <= half + 1e-9
+    else:
+        inside = ((np.abs(R * np.radians(cl - lat)) <= half + 1e-9)
+                  & (np.abs(R * math.cos(math.radians(lat)) * np.radians(co - lon))
+                     <= half + 1e-9))
+    if not inside.any():
+        with pytest.raises(PlanningError, match="covers no valid cell"):
+            footprint_matrix(region, sensor, lat=[lat], lon=[lon])
+        return
+    A = footprint_matrix(region, sensor, lat=[lat], lon=[lon])
+    np.testing.assert_allclose(A.toarray()[0], inside / inside.sum(), atol=1e-15)

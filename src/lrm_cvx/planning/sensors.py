@@ -278,12 +278,17 @@ def leg_matrix(route: Any, waypoint: Any, route_robot: Any, n_cells: int) -> sps
         raise PlanningError("every robot's route must start at a sampling stop")
     count = np.cumsum(way)  # stops at or before each entry
     leg = np.where(way, count - 1, count)  # a pass-through cell: the leg of the next stop
-    last = np.r_[rob[1:] != rob[:-1], True]
-    starts_next = way & ~last  # a stop also starts the next leg of its robot
+    r = route.size
+    nxt = np.minimum.accumulate(np.where(way, np.arange(r), r)[::-1])[::-1]  # next stop
+    own = (nxt < r) & (rob[np.minimum(nxt, r - 1)] == rob)  # ... of the same robot
+    after = np.r_[nxt[1:], r]  # the next stop strictly after each entry
+    starts_next = way & (after < r) & (rob[np.minimum(after, r - 1)] == rob)  # a stop also
+    # starts the next leg of its robot
     rows = np.concatenate([leg, count[starts_next]])
     cols = np.concatenate([route, route[starts_next]])
     n = int(count[-1])
-    ok = rows < n  # pass-through cells after a robot's last stop belong to no leg
+    ok = np.concatenate([own, np.ones(int(starts_next.sum()), bool)])  # cells after a
+    # robot's last stop belong to no leg
     A = sps.csr_matrix((np.ones(int(ok.sum())), (rows[ok], cols[ok])), shape=(n, n_cells))
     A.data[:] = 1.0
     cnt = np.diff(A.indptr)
