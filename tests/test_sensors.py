@@ -10,10 +10,10 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 import scipy.sparse as sps
 import xarray as xr
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lrm_cvx.errors import DataError, PlanningError
 from lrm_cvx.glrm.foldin import fold_in, fold_in_rows
