@@ -545,3 +545,25 @@ def test_footprint_at_any_point_equals_the_loop(kind, width, lat, lon):
         return
     A = footprint_matrix(region, sensor, lat=[lat], lon=[lon])
     np.testing.assert_allclose(A.toarray()[0], inside / inside.sum(), atol=1e-15)
+
+
+@pytest.mark.parametrize("spatial", [False, True])
+def test_one_hot_rows_equal_point_updates_with_adaptive_scale(region, Y, spatial):
+    """The fold-in of one-hot rows is the point fold-in: belief, adaptive variance scale
+    (the innovation statistic) and the kriged map."""
+    from dataclasses import replace
+
+    obs = replace(_obs(region, Y, spatial), adaptive_dof=4.0)
+    m0, S0 = np.array([0.2, -0.1, 0.4]), np.diag([2.0, 1.0, 0.5])
+    prior = LatentPosterior.from_moments(obs, m0, S0)
+    cells, v = np.array([2, 17, 40, 61, 80]), np.array([0.5, -1.2, 0.3, 2.0, -0.4])
+    a = prior.update(cells, v)
+    b = prior.update_rows(np.eye(region.n_cells)[cells], v)
+    np.testing.assert_allclose(b.mean, a.mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(b.cov, a.cov, rtol=1e-9, atol=1e-12)
+    assert b.variance_scale == pytest.approx(a.variance_scale, rel=1e-9)
+    assert b.day_n == a.day_n
+    ma, sa = a.predict()
+    mb, sb = b.predict()
+    np.testing.assert_allclose(mb, ma, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(sb, sa, rtol=1e-6, atol=1e-9)
