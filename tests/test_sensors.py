@@ -265,8 +265,10 @@ def test_row_gp_oracle_equals_brute_force_gp(region, Y):
 # --------------------------------------------------------------------------- the greedy
 @pytest.mark.parametrize("criterion, ridge", [("fisher", 0.0), ("a-optimal", 1e-2)])
 @pytest.mark.parametrize("spec", ["disc:25km", "square:20km"])
-def test_greedy_gains_with_a_footprint_equal_brute_force(region, Y, criterion, ridge, spec):
-    plan = plan_greedy(Y, region, 10, 14.0, criterion=criterion, ridge=ridge, sensor=spec,
+@pytest.mark.parametrize("start, budget", [(10, 14.0), ([10, 80], [8.0, 6.0])])
+def test_greedy_gains_with_a_footprint_equal_brute_force(region, Y, criterion, ridge, spec,
+                                                         start, budget):
+    plan = plan_greedy(Y, region, start, budget, criterion=criterion, ridge=ridge, sensor=spec,
                        progress=False)
     sensor = Sensor.of(spec)
     rows = [naive_footprint(region, sensor, c) for c in plan.stops]
