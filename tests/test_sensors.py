@@ -458,6 +458,10 @@ def test_a_campaign_day_with_a_footprint():
     truth = model.region_.stack(da.isel(time=10)).astype(np.float64)
     truth[plan.stops[0]] = np.nan  # a cloud over the first stop
     rows, values = plan_observations(plan, truth)
+    snapshot = da.isel(time=10).where(~np.isnan(model.region_.unstack(truth)))
+    rows2, values2 = plan.observe(snapshot)  # the (lat, lon) snapshot, xarray in
+    np.testing.assert_allclose(values2, values, rtol=1e-6)  # float32 on the grid
+    assert (rows2 != rows).nnz == 0
     for i, c in enumerate(plan.cells):
         covered = np.flatnonzero(naive_footprint(model.region_, sensor, c))
         seen = covered[np.isfinite(truth[covered])]

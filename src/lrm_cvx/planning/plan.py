@@ -228,6 +228,17 @@ class Plan:
 
         return observation_rows(self)
 
+    def observe(self, truth: Any) -> tuple[Any, np.ndarray]:
+        """What the plan's sensor reads of a snapshot: ``(rows, values)``, one averaged value
+        per observation (:meth:`observation_rows`, re-weighted over the cells with a value; a
+        footprint without any reads NaN). ``truth``: the region's ``(L,)`` values or a
+        ``(lat, lon)`` DataArray on its grid."""
+        from .sensors import plan_observations
+
+        if hasattr(truth, "dims"):
+            truth = self._region.stack(truth)
+        return plan_observations(self, np.asarray(truth, dtype=np.float64))
+
     @property
     def n_robots(self) -> int:
         """Number of robots (1 for a single route and for static placement)."""
