@@ -573,3 +573,16 @@ def test_one_hot_rows_equal_point_updates_with_adaptive_scale(region, Y, spatial
     mb, sb = b.predict()
     np.testing.assert_allclose(mb, ma, rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(sb, sa, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("criterion", ["fisher", "a-optimal"])
+def test_row_oracle_set_extra_equals_a_new_oracle(region, Y, criterion):
+    A = footprint_matrix(region, "disc:20km", np.arange(region.n_cells))
+    legs1 = sps.csr_matrix(A.toarray()[[1, 2, 3]])
+    legs2 = sps.csr_matrix(A.toarray()[[4, 9, 30, 31]] * 0.5 + A.toarray()[[5, 6, 7, 8]] * 0.5)
+    kw = dict(pool=np.arange(region.n_cells), rows=A, noise_var=np.linspace(0.5, 2, 108))
+    o = make_row_oracle(criterion, Y, 0.1, [12], extra_rows=legs1, **kw)
+    o.set_extra(legs2)
+    new = make_row_oracle(criterion, Y, 0.1, [12], extra_rows=legs2, **kw)
+    np.testing.assert_allclose(o.gains(), new.gains(), rtol=1e-10)
+    assert o.value == pytest.approx(new.value, rel=1e-12)

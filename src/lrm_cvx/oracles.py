@@ -315,6 +315,7 @@ class RowOracle:
         self.cells: list[int] = [int(c) for c in cells_array(cells, L)]
         init = np.concatenate([self._pos(self.cells), self.pool.size
                                + np.arange(extra.shape[0])]).astype(np.int64)
+        self._Yk, self._noise, self._n_pool = Yk, noise_var, self.pool.size
         self.criterion = criterion
         if criterion == "fisher":
             self.base: _Oracle = FisherOracle(Yr, ridge, init, prior_precision=prior_precision,
@@ -328,6 +329,24 @@ class RowOracle:
                                        prior_precision=prior_precision, noise_var=vr)
         else:
             raise PlanningError(f"RowOracle takes 'fisher' or 'a-optimal', got {criterion!r}")
+
+    def set_extra(self, extra_rows: Any) -> None:
+        """Replace the observations already made (``extra_rows``, e.g. a towed sensor's legs
+        after its route changed) and keep the observed pool cells: ``M`` and ``S = M^-1``
+        recomputed in ``O((m + |cells|) k^2 + k^3)``, the pool's columns reused."""
+        b = self.base
+        Ye, ve = row_factors(self._Yk, sps.csr_matrix(extra_rows), self._noise)
+        Yw = np.hstack([b.Yw[:, self._pos(self.cells)], Ye / np.sqrt(ve)])
+        M = (b.ridge * np.eye(b.k) if b.P0 is None else b.P0) + Yw @ Yw.T
+        sign, logdet = np.linalg.slogdet(M)
+        if sign <= 0 or np.linalg.cond(M) > 1e13:
+            raise PlanningError(
+                f"the information matrix of the {Yw.shape[1]} observations is singular (rank "
+                f"{np.linalg.matrix_rank(M)} < k = {b.k}); pass a small ridge (e.g. "
+                "ridge=1e-6)")
+        S = np.linalg.inv(M)
+        b.S, b._logdet = 0.5 * (S + S.T), float(logdet)
+        b._after_add()
 
     def _pos(self, cells: Any) -> np.ndarray:
         idx = np.asarray(cells, dtype=np.int64).ravel()

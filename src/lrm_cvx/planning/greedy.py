@@ -443,6 +443,7 @@ class _SensorRows:
         self.rows = (footprint_matrix(region, sensor, pool) if sensor.has_footprint else
                      sps.csr_matrix((np.ones(n), (np.arange(n), pool)), shape=(n, L)))
         self._factors: tuple[np.ndarray, np.ndarray] | None = None
+        self._oracle: Any = None  # a towed sensor's Fisher / A-optimal oracle
 
     def leg_rows(self, costers: list[Any]) -> sps.csr_matrix:
         """The legs of the robots' current routes (one averaged row per stop)."""
@@ -454,16 +455,23 @@ class _SensorRows:
                           np.concatenate([p[2] for p in parts]), robot, self.region.n_cells)
 
     def oracle(self, cells: Any, costers: list[Any]) -> Any:
-        """The oracle with ``cells`` (pool cells) observed, or the legs of the routes."""
+        """The oracle with ``cells`` (pool cells) observed, or the legs of the routes (an
+        existing Fisher / A-optimal oracle is updated in place: its pool columns are kept)."""
         legs = self.leg_rows(costers) if self.legs else None
+        if self.legs and self._oracle is not None:
+            self._oracle.set_extra(legs)
+            return self._oracle
         extra = {k: v for k, v in self.extra.items() if k != "pool"}  # the GP pool: ours
         if self.criterion != "gp-variance":  # the pool's rows are computed once
             if self._factors is None:
                 self._factors = row_factors(self.Yk, self.rows, extra.get("noise_var"))
             extra["pool_factors"] = self._factors
-        return make_row_oracle(self.criterion, self.Yk, self.ridge,
-                               [] if self.legs else cells, pool=self.pool, rows=self.rows,
-                               extra_rows=legs, **extra)
+        oracle = make_row_oracle(self.criterion, self.Yk, self.ridge,
+                                 [] if self.legs else cells, pool=self.pool, rows=self.rows,
+                                 extra_rows=legs, **extra)
+        if self.legs and hasattr(oracle, "set_extra"):
+            self._oracle = oracle
+        return oracle
 
 
 def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, criterion,
