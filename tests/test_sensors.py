@@ -87,21 +87,27 @@ def naive_legs(route, waypoint, robot, L):
     return np.array(rows)
 
 
-def fisher_rows(Y, rows, ridge, noise=None):
-    """log det(ridge I + sum_r (Y a_r)(Y a_r)^T / sum a_r^2 sigma^2), from scratch."""
+def var_of(a, nv, shared):
+    """Noise variance of the average a^T e: independent or equal (shared) cell errors."""
+    nv = np.broadcast_to(nv, a.shape)
+    return float(np.abs(a) @ np.sqrt(nv)) ** 2 if shared else float((a * a) @ nv)
+
+
+def fisher_rows(Y, rows, ridge, noise=None, shared=False):
+    """log det(ridge I + sum_r (Y a_r)(Y a_r)^T / var(a_r^T e)), from scratch."""
     nv = np.ones(Y.shape[1]) if noise is None else noise
     M = ridge * np.eye(Y.shape[0])
     for a in rows:
         y = Y @ a
-        M += np.outer(y, y) / float((a * a) @ nv)
+        M += np.outer(y, y) / var_of(a, nv, shared)
     return np.linalg.slogdet(M)[1]
 
 
-def aopt_rows(Y, rows, ridge):
+def aopt_rows(Y, rows, ridge, shared=False):
     M = ridge * np.eye(Y.shape[0])
     for a in rows:
         y = Y @ a
-        M += np.outer(y, y) / float(a @ a)
+        M += np.outer(y, y) / var_of(a, np.ones(Y.shape[1]), shared)
     return float(np.trace(np.linalg.solve(M, Y @ Y.T)))
 
 
@@ -113,13 +119,14 @@ def residual_matrix(region, cov):
     return cov.covariance(d, nugget=False)
 
 
-def gp_rows_value(Y, S0, Kr, nugget, rows):
-    """Total posterior variance of f = Y^T x + r given z = A f + e (Var e = nugget sum a^2)."""
+def gp_rows_value(Y, S0, Kr, nugget, rows, shared=False):
+    """Total posterior variance of f = Y^T x + r given z = A f + e (Var e = nugget sum a^2,
+    or nugget (sum |a|)^2 with shared errors)."""
     Kf = Y.T @ S0 @ Y + Kr
     if len(rows) == 0:
         return float(np.trace(Kf))
     A = np.array(rows)
-    Kz = A @ Kf @ A.T + np.diag(nugget * (A * A).sum(1))
+    Kz = A @ Kf @ A.T + np.diag(nugget * (np.abs(A).sum(1) ** 2 if shared else (A * A).sum(1)))
     Kfz = Kf @ A.T
     return float(np.trace(Kf) - np.trace(Kfz @ np.linalg.solve(Kz, Kfz.T)))
 
@@ -133,6 +140,8 @@ def test_sensor_parse_and_width():
     grow = Sensor.parse("square:1km,altitude=0.5km,fov=60")
     assert grow.width_km == pytest.approx(1.0 + 2 * 0.5 * math.tan(math.radians(30)))
     assert Sensor.of("towed").is_leg
+    assert Sensor.of("disc:5km,errors=shared").errors == "shared"
+    assert Sensor.of("disc:5km,errors=shared").describe() == "disc 5 km, shared errors"
     assert PathOptions(sensor="disc:5km").sensor == Sensor("disc", 5.0)
     assert PathOptions(sensor="point") == PathOptions()
 
@@ -141,7 +150,8 @@ def test_sensor_parse_and_width():
     ("disc:-1km", "size_km"), ("blob:3", "sensor must be one of"), ("disc", "width > 0"),
     ("point:3", "has no footprint"), ("square:2,alt=1", "needs fov_deg"),
     ("square:2,alt=1,fov=190", "fov_deg must be in"), ("disc:abc", "not a number"),
-    ("disc:2,colour=red", "unknown option"),
+    ("disc:2,colour=red", "unknown option"), ("disc:2,errors=some", "errors must be one of"),
+    ("point,errors=shared", "not a point"),
 ])
 def test_sensor_bad_input(bad, match):
     with pytest.raises(PlanningError, match=match):
@@ -243,7 +253,8 @@ def test_row_oracle_gains_equal_brute_force(region, Y, criterion):
     assert o.value == pytest.approx(f(Y, base + [dense[11]], ridge), rel=1e-10)
 
 
-def test_row_gp_oracle_equals_brute_force_gp(region, Y):
+@pytest.mark.parametrize("errors", ["independent", "shared"])
+def test_row_gp_oracle_equals_brute_force_gp(region, Y, errors):
     cov = ResidualCovariance("exponential", sill=0.6, range=15.0, nugget=0.1, metric="km")
     S0 = np.diag([1.0, 0.5, 0.3])
     A = footprint_matrix(region, "disc:20km", np.arange(region.n_cells))
@@ -251,20 +262,20 @@ def test_row_gp_oracle_equals_brute_force_gp(region, Y):
     Kr = residual_matrix(region, cov)
     pool = np.arange(region.n_cells)
     o = make_row_oracle("gp-variance", Y, 0.0, [2], pool=pool, rows=A, region=region,
-                        spatial_cov=cov, prior_cov=S0)
-    base = [dense[2]]
-    v0 = gp_rows_value(Y, S0, Kr, 0.1, base)
+                        spatial_cov=cov, prior_cov=S0, errors=errors)
+    base, sh = [dense[2]], errors == "shared"
+    v0 = gp_rows_value(Y, S0, Kr, 0.1, base, sh)
     assert o.value == pytest.approx(v0, rel=1e-9)
-    want = np.array([v0 - gp_rows_value(Y, S0, Kr, 0.1, base + [dense[x]]) for x in pool])
+    want = np.array([v0 - gp_rows_value(Y, S0, Kr, 0.1, base + [dense[x]], sh) for x in pool])
     np.testing.assert_allclose(o.gains(pool), want, rtol=1e-7, atol=1e-10)
     o.add(30)
-    assert o.value == pytest.approx(gp_rows_value(Y, S0, Kr, 0.1, base + [dense[30]]),
+    assert o.value == pytest.approx(gp_rows_value(Y, S0, Kr, 0.1, base + [dense[30]], sh),
                                     rel=1e-9)
 
 
 # --------------------------------------------------------------------------- the greedy
 @pytest.mark.parametrize("criterion, ridge", [("fisher", 0.0), ("a-optimal", 1e-2)])
-@pytest.mark.parametrize("spec", ["disc:25km", "square:20km"])
+@pytest.mark.parametrize("spec", ["disc:25km", "square:20km", "disc:25km,errors=shared"])
 @pytest.mark.parametrize("start, budget", [(10, 14.0), ([10, 80], [8.0, 6.0])])
 def test_greedy_gains_with_a_footprint_equal_brute_force(region, Y, criterion, ridge, spec,
                                                          start, budget):
@@ -274,12 +285,18 @@ def test_greedy_gains_with_a_footprint_equal_brute_force(region, Y, criterion, r
     rows = [naive_footprint(region, sensor, c) for c in plan.stops]
     n0 = plan.stops.size - plan.history["cell"].size
     assert plan.history["cell"].size >= 2
-    f = fisher_rows if criterion == "fisher" else aopt_rows
+    shared = sensor.errors == "shared"
+
+    def f(Y, rows, ridge):
+        return (fisher_rows(Y, rows, ridge, shared=shared) if criterion == "fisher"
+                else aopt_rows(Y, rows, ridge, shared))
+
     for t, gain in enumerate(plan.history["gain"]):
         before, after = f(Y, rows[:n0 + t], ridge), f(Y, rows[:n0 + t + 1], ridge)
         assert gain == pytest.approx(abs(after - before), rel=1e-8)
     np.testing.assert_allclose(plan.observation_rows().toarray(), np.array(rows), atol=1e-15)
-    assert plan.information == pytest.approx(fisher_rows(Y, rows, ridge), rel=1e-10)
+    assert plan.information == pytest.approx(fisher_rows(Y, rows, ridge, shared=shared),
+                                             rel=1e-10)
     assert plan.sensor == sensor
 
 
@@ -356,21 +373,23 @@ def _rows(region, n=5, seed=2):
     return A / A.sum(axis=1, keepdims=True)
 
 
-def test_update_rows_equals_the_bayesian_update_of_the_averaged_rows(region, Y):
+@pytest.mark.parametrize("errors", ["independent", "shared"])
+def test_update_rows_equals_the_bayesian_update_of_the_averaged_rows(region, Y, errors):
     obs = _obs(region, Y, spatial=False)
     A, v = _rows(region), np.array([0.3, -1.0, 2.0, 0.5, 1.1])
     m0, S0 = np.array([0.2, -0.1, 0.4]), np.diag([2.0, 1.0, 0.5])
-    post = LatentPosterior.from_moments(obs, m0, S0).update_rows(sps.csr_matrix(A), v)
+    post = LatentPosterior.from_moments(obs, m0, S0).update_rows(sps.csr_matrix(A), v, errors)
     B = A * obs.scale
     z = v - A @ obs.offset
-    Yr, Rn = Y @ B.T, np.diag((B * B) @ obs.noise_var)
+    Yr = Y @ B.T
+    Rn = np.diag([var_of(b, obs.noise_var, errors == "shared") for b in B])
     P = np.linalg.inv(S0) + Yr @ np.linalg.solve(Rn, Yr.T)
     h = np.linalg.solve(S0, m0) + Yr @ np.linalg.solve(Rn, z)
     np.testing.assert_allclose(post.cov, np.linalg.inv(P), rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(post.mean, np.linalg.solve(P, h), rtol=1e-10, atol=1e-14)
     # in two steps, and with a NaN value dropped
-    two = (LatentPosterior.from_moments(obs, m0, S0).update_rows(A[:2], v[:2])
-           .update_rows(np.vstack([A[2:], A[:1]]), np.r_[v[2:], np.nan]))
+    two = (LatentPosterior.from_moments(obs, m0, S0).update_rows(A[:2], v[:2], errors)
+           .update_rows(np.vstack([A[2:], A[:1]]), np.r_[v[2:], np.nan], errors))
     np.testing.assert_allclose(two.mean, post.mean, rtol=1e-10)
     assert two.n_dropped == 1 and two.rows.shape[0] == 5
 
@@ -383,21 +402,23 @@ def test_one_hot_rows_are_point_observations(region, Y):
     np.testing.assert_allclose(c1, c2, rtol=1e-12)
 
 
-def test_spatial_update_rows_equals_the_gaussian_conditional(region, Y):
+@pytest.mark.parametrize("errors", ["independent", "shared"])
+def test_spatial_update_rows_equals_the_gaussian_conditional(region, Y, errors):
     obs = _obs(region, Y, spatial=True)
     cov = obs.spatial_cov
     A, v = _rows(region, 4), np.array([0.3, -1.0, 2.0, 0.5])
     cells, cv = np.array([3, 40]), np.array([1.5, -0.5])  # point observations too
     m0, S0 = np.array([0.2, -0.1, 0.4]), np.diag([2.0, 1.0, 0.5])
     post = (LatentPosterior.from_moments(obs, m0, S0).update(cells, cv)
-            .update_rows(sps.csr_matrix(A), v))
+            .update_rows(sps.csr_matrix(A), v, errors))
     # the joint Gaussian of (x, f, z), written out (fit units)
     L = region.n_cells
     Bfull = np.vstack([np.eye(L)[cells], A * obs.scale])
     z = np.r_[(cv - obs.offset[cells]) / obs.scale[cells], v - A @ obs.offset]
     Kr = residual_matrix(region, cov)
     Kf = Y.T @ S0 @ Y + Kr
-    Kz = Bfull @ Kf @ Bfull.T + np.diag(cov.nugget * (Bfull * Bfull).sum(1))
+    Kz = Bfull @ Kf @ Bfull.T + np.diag([var_of(b, cov.nugget, errors == "shared")
+                                         for b in Bfull])
     Kxz = S0 @ Y @ Bfull.T
     gain = np.linalg.solve(Kz, z - Bfull @ Y.T @ m0)
     np.testing.assert_allclose(post.mean, m0 + Kxz @ gain, rtol=1e-8, atol=1e-10)
@@ -411,7 +432,8 @@ def test_spatial_update_rows_equals_the_gaussian_conditional(region, Y):
     np.testing.assert_allclose(std, obs.scale * np.sqrt(np.maximum(var_f, 0)), rtol=1e-6,
                                atol=1e-8)
     # the same observations the other way round: points after the rows
-    other = (LatentPosterior.from_moments(obs, m0, S0).update_rows(A, v).update(cells, cv))
+    other = (LatentPosterior.from_moments(obs, m0, S0).update_rows(A, v, errors)
+             .update(cells, cv))
     np.testing.assert_allclose(other.mean, post.mean, rtol=1e-9, atol=1e-12)
 
 

@@ -234,7 +234,8 @@ class RowGPVarianceOracle(GPVarianceOracle):
     """``"gp-variance"`` when a candidate's observation is an averaged row (a footprint).
 
     Candidate ``pool[i]`` observes ``z_i = rows[i] @ f + e_i``, ``Var(e_i) = nugget
-    sum_j rows[i, j]^2`` (independent cell errors); ``extra_rows`` are observations already
+    sum_j rows[i, j]^2`` (``errors="independent"``; ``"shared"``: ``nugget (sum_j rows[i,
+    j])^2``); ``extra_rows`` are observations already
     made (a towed sensor's legs), ``cells`` pool cells already observed. ``C`` holds the
     posterior covariances of the targets' values and of the pool's noise-free observations
     with the pool's observations (``(|targets| + |pool|, |pool|)``, dense), prior ``B1 K B2^T``
@@ -244,7 +245,7 @@ class RowGPVarianceOracle(GPVarianceOracle):
     def __init__(self, Y: Any, cells: Any = None, *, region: Any = None, spatial_cov: Any = None,
                  prior_cov: Any = None, pool: Any = None, rows: Any = None,
                  extra_rows: Any = None, targets: Any = None, target_weights: Any = None,
-                 max_entries: float = 1e8, **_: Any) -> None:
+                 errors: str = "independent", max_entries: float = 1e8, **_: Any) -> None:
         self.Y = as_factor_matrix(Y)
         S0 = check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
         L = self.Y.shape[1]
@@ -266,7 +267,7 @@ class RowGPVarianceOracle(GPVarianceOracle):
         self._tw = c[T]
         self._pool_in_rows = T.size + np.arange(self.pool.size)
         nug = gp_noise(spatial_cov)
-        self.noise = nug * np.asarray(A.multiply(A).sum(axis=1)).ravel()
+        self.noise = row_factors(self.Y, A, nug, errors)[1]
         R = sps.vstack([sps.csr_matrix((np.ones(T.size), (np.arange(T.size), T)),
                                        shape=(T.size, L)), A]).tocsr()
         C = row_cov(self.Y, S0, region, spatial_cov, R, A)
@@ -279,7 +280,7 @@ class RowGPVarianceOracle(GPVarianceOracle):
         B0 = sps.vstack(parts).tocsr() if parts else None
         if B0 is not None and B0.shape[0]:
             K00 = row_cov(self.Y, S0, region, spatial_cov, B0, B0)
-            K00[np.diag_indices_from(K00)] += nug * np.asarray(B0.multiply(B0).sum(1)).ravel()
+            K00[np.diag_indices_from(K00)] += row_factors(self.Y, B0, nug, errors)[1]
             from scipy.linalg import solve_triangular
 
             Lc = np.linalg.cholesky(0.5 * (K00 + K00.T))
@@ -324,7 +325,7 @@ def make_row_oracle(criterion: str, Y: Any, ridge: float = 0.0, cells: Any = Non
                                 "(gp_method='auto' or 'dense')")
         return RowGPVarianceOracle(Y, cells, pool=pool, rows=rows, extra_rows=extra_rows,
                                    **kwargs)
-    allowed = {"prior_precision", "noise_var", "target_weights", "pool_factors"}
+    allowed = {"prior_precision", "noise_var", "target_weights", "pool_factors", "errors"}
     return RowOracle(criterion, Y, ridge, cells, pool=pool, rows=rows, extra_rows=extra_rows,
                      **{k: v for k, v in kwargs.items() if k in allowed})
 

@@ -14,7 +14,8 @@ import numpy as np
 import scipy.sparse as sps
 
 from ._validation import as_factor_matrix, check_positive
-from .errors import PlanningError
+from .errors import DataError, PlanningError
+from .glrm.averaged import row_noise
 
 __all__ = ["fisher_information", "a_optimal_value", "FisherOracle", "AOptimalOracle",
            "cells_array", "row_factors", "row_information", "RowOracle"]
@@ -257,11 +258,13 @@ class AOptimalOracle(_Oracle):
 
 
 # --------------------------------------------------------------------------- averaged rows
-def row_factors(Y: Any, rows: Any, noise_var: Any = None) -> tuple[np.ndarray, np.ndarray]:
+def row_factors(Y: Any, rows: Any, noise_var: Any = None, errors: str = "independent"
+                ) -> tuple[np.ndarray, np.ndarray]:
     """``(Yr (k, m), vr (m,))`` of averaged observations: ``rows`` ``(m, L)`` (sparse or dense)
-    weights ``a`` over cells; observation ``a^T d`` has the row ``Yr = Y a`` and, with
-    independent cell errors of variance ``noise_var`` (scalar or ``(L,)``; default 1), the
-    noise variance ``vr = sum_j a_j^2 noise_var_j``."""
+    weights ``a`` over cells; observation ``a^T d`` has the row ``Yr = Y a`` and, from cell
+    errors of variance ``noise_var`` (scalar or ``(L,)``; default 1), the noise variance
+    ``vr = sum_j a_j^2 noise_var_j`` (``errors="independent"``) or ``(sum_j |a_j| sigma_j)^2``
+    (``"shared"``; :func:`lrm_cvx.glrm.averaged.row_noise`)."""
     Y = as_factor_matrix(Y)
     L = Y.shape[1]
     A = sps.csr_matrix(rows, dtype=np.float64)
@@ -269,16 +272,20 @@ def row_factors(Y: Any, rows: Any, noise_var: Any = None) -> tuple[np.ndarray, n
         raise PlanningError(f"rows must have {L} columns (one per cell), got {A.shape[1]}")
     nv = np.broadcast_to(np.asarray(1.0 if noise_var is None else noise_var, np.float64), (L,))
     Yr = np.ascontiguousarray(np.asarray(A @ Y.T).T)
-    vr = np.asarray(A.multiply(A) @ nv, dtype=np.float64).ravel()
+    try:
+        vr = row_noise(A, nv, errors)
+    except DataError as err:  # the planner's error is PlanningError
+        raise PlanningError(str(err)) from None
     return Yr, vr
 
 
-def row_information(Y: Any, rows: Any, ridge: float = 0.0, noise_var: Any = None) -> float:
+def row_information(Y: Any, rows: Any, ridge: float = 0.0, noise_var: Any = None,
+                    errors: str = "independent") -> float:
     """``log det(ridge I + sum_r Yr_r Yr_r^T / vr_r)`` of averaged observations (see
     :func:`row_factors`); for one-hot rows it is :func:`fisher_information`. ``-inf`` when
     singular."""
     ridge = check_positive(ridge, "ridge", error=PlanningError)
-    Yr, vr = row_factors(Y, rows, noise_var)
+    Yr, vr = row_factors(Y, rows, noise_var, errors)
     Yw = Yr / np.sqrt(np.maximum(vr, 1e-300))
     sign, logdet = np.linalg.slogdet(ridge * np.eye(Yr.shape[0]) + Yw @ Yw.T)
     return float(logdet) if sign > 0 else -np.inf
@@ -298,7 +305,7 @@ class RowOracle:
 
     def __init__(self, criterion: str, Y: Any, ridge: float = 0.0, cells: Any = None, *,
                  pool: Any, rows: Any, extra_rows: Any = None, prior_precision: Any = None,
-                 noise_var: Any = None, target_weights: Any = None,
+                 noise_var: Any = None, target_weights: Any = None, errors: str = "independent",
                  pool_factors: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         Yk = as_factor_matrix(Y)
         L = Yk.shape[1]
@@ -309,13 +316,13 @@ class RowOracle:
         if A.shape != (self.pool.size, L):
             raise PlanningError(f"rows must be ({self.pool.size}, {L}): one per pool cell")
         extra = sps.csr_matrix((0, L)) if extra_rows is None else sps.csr_matrix(extra_rows)
-        Yp, vp = row_factors(Yk, A, noise_var) if pool_factors is None else pool_factors
-        Ye, ve = row_factors(Yk, extra, noise_var)
+        Yp, vp = row_factors(Yk, A, noise_var, errors) if pool_factors is None else pool_factors
+        Ye, ve = row_factors(Yk, extra, noise_var, errors)
         Yr, vr = np.hstack([Yp, Ye]), np.concatenate([vp, ve])
         self.cells: list[int] = [int(c) for c in cells_array(cells, L)]
         init = np.concatenate([self._pos(self.cells), self.pool.size
                                + np.arange(extra.shape[0])]).astype(np.int64)
-        self._Yk, self._noise, self._n_pool = Yk, noise_var, self.pool.size
+        self._Yk, self._noise, self._errors = Yk, noise_var, errors
         self.criterion = criterion
         if criterion == "fisher":
             self.base: _Oracle = FisherOracle(Yr, ridge, init, prior_precision=prior_precision,
@@ -335,7 +342,7 @@ class RowOracle:
         after its route changed) and keep the observed pool cells: ``M`` and ``S = M^-1``
         recomputed in ``O((m + |cells|) k^2 + k^3)``, the pool's columns reused."""
         b = self.base
-        Ye, ve = row_factors(self._Yk, sps.csr_matrix(extra_rows), self._noise)
+        Ye, ve = row_factors(self._Yk, sps.csr_matrix(extra_rows), self._noise, self._errors)
         Yw = np.hstack([b.Yw[:, self._pos(self.cells)], Ye / np.sqrt(ve)])
         M = (b.ridge * np.eye(b.k) if b.P0 is None else b.P0) + Yw @ Yw.T
         sign, logdet = np.linalg.slogdet(M)

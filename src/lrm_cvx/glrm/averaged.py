@@ -1,9 +1,11 @@
 """The algebra of averaged observations (sensor footprints, towed sensors; issue #25 item 6).
 
 An averaged observation is ``z = B f + e`` over the snapshot's latent field ``f = Y^T x + r``
-(fit units, ``B (m, L)`` sparse weights): one row ``Y B_i`` per observation, independent cell
-errors giving ``Var(e_i) = sum_j B_ij^2 noise_var_j``, and with the GP residual ``r`` the
-observations' covariance ``B K B^T + nugget diag(sum_j B_ij^2)``. Plain arrays in, arrays out:
+(fit units, ``B (m, L)`` sparse weights): one row ``Y B_i`` per observation with the noise of
+:func:`row_noise` (``errors="independent"``: ``sum_j B_ij^2 noise_var_j``; ``"shared"``: the
+cells' errors equal within one observation, ``(sum_j |B_ij| sigma_j)^2``), and with the GP
+residual ``r`` the observations' covariance ``B K B^T + diag(that noise with the nugget)``;
+observations are independent of each other. Plain arrays in, arrays out:
 :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (``update_rows``, ``predict``) calls these.
 """
 
@@ -18,14 +20,22 @@ from scipy.spatial.distance import cdist
 
 from ..errors import DataError
 
-__all__ = ["check_rows", "row_terms", "row_kriging"]
+__all__ = ["check_rows", "fit_rows", "row_noise", "row_terms", "row_kriging", "ERRORS"]
+
+ERRORS = ("independent", "shared")
+"""How the cell errors inside one averaged observation relate: independent (the model's
+assumption: averaging ``n`` cells divides the noise variance by ``n``) or shared (equal within
+the observation: the average keeps the cells' noise; a conservative bound when the residuals
+are spatially correlated and no GP residual is fitted)."""
 
 _NOISE_FLOOR = 1e-30
 
 
-def check_rows(rows: Any, L: int, name: str = "rows") -> sps.csr_matrix:
+def check_rows(rows: Any, L: int, values: Any = None, name: str = "rows"
+               ) -> sps.csr_matrix | tuple[sps.csr_matrix, np.ndarray]:
     """``rows`` (averaging weights, sparse or dense ``(m, L)``) as a float64 CSR matrix with
-    finite entries and no empty row (DataError naming ``name`` otherwise)."""
+    finite entries and no empty row (DataError naming ``name`` otherwise); with ``values``,
+    ``(rows, values)``, the values an ``(m,)`` float64 array, finite or NaN."""
     try:
         A = sps.csr_matrix(rows, dtype=np.float64)
     except (TypeError, ValueError) as err:
@@ -37,12 +47,45 @@ def check_rows(rows: Any, L: int, name: str = "rows") -> sps.csr_matrix:
     A.eliminate_zeros()
     if A.shape[0] and np.any(np.diff(A.indptr) == 0):
         raise DataError(f"{name} has a row without any weight (an observation of no cell)")
-    return A
+    if values is None:
+        return A
+    v = np.atleast_1d(np.asarray(values, dtype=np.float64))
+    if v.shape != (A.shape[0],):
+        raise DataError(f"values has shape {v.shape}, {name} has {A.shape[0]} rows")
+    if np.isinf(v).any():
+        raise DataError("values must be finite (NaN marks a missing value)")
+    return A, v
 
 
-def _observation_cov(B: sps.spmatrix, spatial_cov: Any, region: Any
+def row_noise(B: Any, noise_var: Any, errors: str = "independent") -> np.ndarray:
+    """``(m,)`` noise variance of each averaged observation ``B_i f + e_i`` from the cells'
+    noise variances ``noise_var`` (scalar or ``(L,)``): ``sum_j B_ij^2 noise_var_j``
+    (``errors="independent"``) or ``(sum_j |B_ij| sqrt(noise_var_j))^2`` (``"shared"``)."""
+    if errors not in ERRORS:
+        raise DataError(f"errors must be one of {list(ERRORS)}, got {errors!r}")
+    B = sps.csr_matrix(B)
+    nv = np.broadcast_to(np.asarray(noise_var, np.float64), (B.shape[1],))
+    if errors == "independent":
+        return np.asarray(B.multiply(B) @ nv, dtype=np.float64).ravel()
+    return np.asarray(abs(B) @ np.sqrt(nv), dtype=np.float64).ravel() ** 2
+
+
+def fit_rows(rows: sps.csr_matrix, values: Any, offset: Any, scale: Any, noise_var: Any,
+             errors: str = "independent") -> tuple[sps.csr_matrix, np.ndarray, np.ndarray]:
+    """Averaged observations in fit units: ``values = rows @ data`` (data units) is
+    ``rows @ offset + B f + e`` with ``B = rows diag(scale)`` (offset / scale None: 0 / 1);
+    returns ``(B, z, noise)``, ``noise`` the variances of ``e`` (:func:`row_noise` of the
+    cells' ``noise_var``)."""
+    z = np.asarray(values, dtype=np.float64)
+    if offset is not None:
+        z = z - rows @ offset
+    B = rows if scale is None else sps.csr_matrix(rows @ sps.diags(scale))
+    return B, z, row_noise(B, noise_var, errors)
+
+
+def _observation_cov(B: sps.spmatrix, noise: np.ndarray, spatial_cov: Any, region: Any
                      ) -> tuple[np.ndarray, sps.csr_matrix, np.ndarray]:
-    """``(C, B_U, U)``: the observations' covariance ``B K B^T + nugget diag(sum B^2)`` (dense
+    """``(C, B_U, U)``: the observations' covariance ``B K B^T + diag(noise)`` (dense
     ``(m, m)``), ``B`` on the cells it touches ``U`` and those cells."""
     from .. import spatial as sp
 
@@ -53,37 +96,37 @@ def _observation_cov(B: sps.spmatrix, spatial_cov: Any, region: Any
     xyz = sp.cell_xyz(region, cov.metric, U)
     K = cov.covariance(sp.arc_distance(cdist(xyz, xyz), cov.metric), nugget=False)
     C = np.asarray((BU @ (BU @ K).T).T)
-    C[np.diag_indices_from(C)] += float(cov.nugget) * np.asarray(
-        BU.multiply(BU).sum(axis=1)).ravel()
+    C[np.diag_indices_from(C)] += noise
     return 0.5 * (C + C.T), BU, U
 
 
-def row_terms(Y: np.ndarray, B: Any, z: np.ndarray, noise_var: Any, spatial_cov: Any = None,
+def row_terms(Y: np.ndarray, B: Any, z: np.ndarray, noise: np.ndarray, spatial_cov: Any = None,
               region: Any = None) -> tuple[np.ndarray, np.ndarray, float]:
     """``(Yr W Yr^T, Yr W z, z^T W z)`` of averaged observations ``z = B f + e`` (fit units,
-    ``Yr = Y B^T``): ``W = diag(1 / sum_j B_ij^2 noise_var_j)`` (independent cell errors), or
-    with the spatial residual ``W = (B K B^T + nugget diag(sum_j B_ij^2))^-1`` (GLS)."""
+    ``Yr = Y B^T``, ``noise`` the ``(m,)`` variances of ``e``, :func:`row_noise`):
+    ``W = diag(1 / noise)``, or with the spatial residual ``W = (B K B^T + diag(noise))^-1``
+    (GLS; ``noise`` then from the nugget)."""
     B = sps.csr_matrix(B)
     Yr = np.asarray(B @ Y.T).T
     if spatial_cov is None:
-        nv = np.broadcast_to(np.asarray(noise_var, np.float64), (Y.shape[1],))
-        w = 1.0 / np.maximum(np.asarray(B.multiply(B) @ nv).ravel(), _NOISE_FLOOR)
+        w = 1.0 / np.maximum(np.asarray(noise, np.float64), _NOISE_FLOOR)
         Yw = Yr * w
         return Yw @ Yr.T, Yw @ z, float(z @ (w * z))
     from .. import spatial as sp
 
-    C, _, _ = _observation_cov(B, spatial_cov, region)
+    C, _, _ = _observation_cov(B, noise, spatial_cov, region)
     Lc = sp.jittered_cholesky(C, spatial_cov.total_variance, "observation")
     Ws = scipy.linalg.solve_triangular(Lc, Yr.T, lower=True)
     zs = scipy.linalg.solve_triangular(Lc, z, lower=True)
     return Ws.T @ Ws, Ws.T @ zs, float(zs @ zs)
 
 
-def row_kriging(Y: np.ndarray, B: Any, z: np.ndarray, m: np.ndarray, S: np.ndarray,
-                spatial_cov: Any, region: Any, cells: Any = None, chunk: int = 16384
-                ) -> tuple[np.ndarray, np.ndarray]:
+def row_kriging(Y: np.ndarray, B: Any, z: np.ndarray, noise: np.ndarray, m: np.ndarray,
+                S: np.ndarray, spatial_cov: Any, region: Any, cells: Any = None,
+                chunk: int = 16384) -> tuple[np.ndarray, np.ndarray]:
     """``(mean, var)`` of the noise-free value ``f`` at ``cells`` (default all; fit units)
-    given averaged observations ``z = B f + e`` and the latent posterior ``N(m, S)`` (their
+    given averaged observations ``z = B f + e`` (``Var(e) = diag(noise)``) and the latent
+    posterior ``N(m, S)`` (their
     GLS): universal kriging with the Bayesian trend, ``mean = y_t^T m + k_t^T C^-1 (z - Yr^T
     m)``, ``var = sill - k_t^T C^-1 k_t + u_t^T S u_t``, ``u_t = y_t - Yr C^-1 k_t``,
     ``k_t = B k(U, t)``; dense over the covered cells ``U``, targets in chunks."""
@@ -92,7 +135,7 @@ def row_kriging(Y: np.ndarray, B: Any, z: np.ndarray, m: np.ndarray, S: np.ndarr
     cov = spatial_cov
     B = sps.csr_matrix(B)
     Yr = np.asarray(B @ Y.T).T
-    C, BU, U = _observation_cov(B, cov, region)
+    C, BU, U = _observation_cov(B, noise, cov, region)
     Lc = sp.jittered_cholesky(C, cov.total_variance, "observation")
     alpha = scipy.linalg.cho_solve((Lc, True), z - Yr.T @ m)
     xyzU = sp.cell_xyz(region, cov.metric, U)

@@ -438,7 +438,8 @@ class _SensorRows:
                  criterion: str, Yk: np.ndarray, ridge: float, extra: dict[str, Any]) -> None:
         self.legs = sensor.is_leg
         self.region, self.models, self.pool = region, models, pool
-        self.criterion, self.Yk, self.ridge, self.extra = criterion, Yk, ridge, extra
+        self.criterion, self.Yk, self.ridge = criterion, Yk, ridge
+        self.extra = dict(extra, errors=sensor.errors)
         n, L = pool.size, region.n_cells
         self.rows = (footprint_matrix(region, sensor, pool) if sensor.has_footprint else
                      sps.csr_matrix((np.ones(n), (np.arange(n), pool)), shape=(n, L)))
@@ -464,7 +465,8 @@ class _SensorRows:
         extra = {k: v for k, v in self.extra.items() if k != "pool"}  # the GP pool: ours
         if self.criterion != "gp-variance":  # the pool's rows are computed once
             if self._factors is None:
-                self._factors = row_factors(self.Yk, self.rows, extra.get("noise_var"))
+                self._factors = row_factors(self.Yk, self.rows, extra.get("noise_var"),
+                                            extra["errors"])
             extra["pool_factors"] = self._factors
         oracle = make_row_oracle(self.criterion, self.Yk, self.ridge,
                                  [] if self.legs else cells, pool=self.pool, rows=self.rows,
@@ -498,7 +500,7 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
         rows = (leg_matrix(np.concatenate(routes), np.concatenate(ways),
                            np.concatenate(robot), region.n_cells) if sensor.is_leg
                 else footprint_matrix(region, sensor, cells))
-        info = row_information(Yk, rows, ridge)
+        info = row_information(Yk, rows, ridge, errors=sensor.errors)
     path = PlanPath.describe(request, fleet, traversable=models[0].traversable)
     robot_costs = np.array([c.cost for c in costers], dtype=np.float64)
     n = len(models)

@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from .._validation import check_positive
 from ..errors import PlanningError
+from ..glrm.averaged import ERRORS
 from ..region import EARTH_RADIUS_KM, Region
 from ..registry import Registry
 
@@ -65,7 +66,11 @@ class Sensor:
     ``kind``: ``"point"``, ``"square"``, ``"disc"`` or ``"leg-average"`` (aliases accepted);
     ``size_km`` (>= 0): the footprint's width at altitude 0 (square side, disc diameter);
     ``altitude_km`` (>= 0) and ``fov_deg`` (full field of view, in (0, 180)): the width grows
-    by ``2 altitude_km tan(fov_deg / 2)``. A square or disc needs a width > 0.
+    by ``2 altitude_km tan(fov_deg / 2)``. A square or disc needs a width > 0. ``errors``: how
+    the cell errors inside one observation relate, ``"independent"`` (the model's assumption:
+    an ``n``-cell average has ``1 / n`` of the noise variance) or ``"shared"`` (the average
+    keeps the cells' noise: a conservative rule when the model's residuals are spatially
+    correlated and no GP residual was fitted); not for a point.
 
     >>> Sensor("disc", size_km=5).width_km
     5.0
@@ -77,6 +82,7 @@ class Sensor:
     size_km: float = 0.0
     altitude_km: float = 0.0
     fov_deg: float | None = None
+    errors: str = "independent"
 
     def __post_init__(self) -> None:
         kind = SENSOR_REGISTRY.canonical(self.kind, "sensor")
@@ -93,6 +99,10 @@ class Sensor:
         if alt > 0 and fov is None:
             raise PlanningError("altitude_km needs fov_deg (the field of view that makes the "
                                 "footprint grow with altitude)")
+        if self.errors not in ERRORS:
+            raise PlanningError(f"errors must be one of {list(ERRORS)}, got {self.errors!r}")
+        if kind == "point" and self.errors != "independent":
+            raise PlanningError("errors applies to footprints and leg-average, not a point")
         sized = SENSOR_REGISTRY.get(kind)
         if not sized and (size > 0 or alt > 0 or fov is not None):
             raise PlanningError(f"sensor {kind!r} has no footprint: size_km, altitude_km and "
@@ -128,9 +138,8 @@ class Sensor:
 
     def describe(self) -> str:
         """``"point"``, ``"disc 5 km"``, ``"leg-average"``..."""
-        if self.has_footprint:
-            return f"{self.kind} {self.width_km:g} km"
-        return self.kind
+        text = f"{self.kind} {self.width_km:g} km" if self.has_footprint else self.kind
+        return text + (", shared errors" if self.errors == "shared" else "")
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -154,7 +163,8 @@ class Sensor:
     @classmethod
     def parse(cls, text: str) -> Sensor:
         """``"point"``, ``"leg-average"``, ``"disc:5km"``, ``"square:2"`` (km), optionally
-        ``",altitude=0.1km,fov=60"`` (altitude in km, full field of view in degrees)."""
+        ``",altitude=0.1km,fov=60"`` (altitude in km, full field of view in degrees) and
+        ``",errors=shared"``."""
         parts = [p.strip() for p in str(text).split(",")]
         head = parts[0].split(":", 1)
         fields: dict[str, Any] = {"kind": head[0].strip()}
@@ -167,9 +177,11 @@ class Sensor:
                 fields["altitude_km"] = _number(val, "km", text)
             elif key in ("fov", "fov_deg"):
                 fields["fov_deg"] = _number(val, "deg", text)
+            elif key == "errors":
+                fields["errors"] = val.strip().lower()
             else:
                 raise PlanningError(f"sensor {text!r}: unknown option {key!r} (use "
-                                    "KIND[:SIZEkm][,altitude=KM,fov=DEG])")
+                                    "KIND[:SIZEkm][,altitude=KM,fov=DEG][,errors=shared])")
         return cls(**fields)
 
 
@@ -341,6 +353,6 @@ def plan_observations(plan: Any, truth: Any) -> tuple[sps.csr_matrix, np.ndarray
     """What ``plan``'s sensor reads of the snapshot ``truth`` (``(L,)``, the region's cells,
     NaN where not observable): ``(rows, values)``, one averaged value per observation
     (:func:`observation_rows` re-weighted by :func:`observe`). A campaign assimilates them
-    with ``state.assimilate_rows(rows, values, time)``; ``observed_cells(rows)`` are the cells
-    seen."""
+    with ``state.assimilate_rows(rows, values, time, errors=plan.sensor.errors)``;
+    ``observed_cells(rows)`` are the cells seen."""
     return observe(truth, observation_rows(plan))
