@@ -56,16 +56,18 @@ def quality() -> None:
         prior = model.latent_prior("empirical", spatial=spatial is not None)
         print(f"SST, {'GP residual' if spatial else 'independent cell errors'}:")
         for budget in (8.0, 15.0, 30.0):
-            for sensor in ("point", "disc:1200km", "square:1200km", "leg-average"):
+            for sensor in ("point", "disc:1200km", "square:1200km", "leg-average",
+                           "disc:1200km,errors=shared", "square:1200km,errors=shared",
+                           "leg-average,errors=shared"):
                 plan = plan_greedy(model.Y_, model.region_, (10, 210), budget, sensor=sensor,
                                    prior=prior, initial="start", progress=False)
                 err = []
                 for t in range(V.shape[0]):
                     rows, vals = plan.observe(V[t])
-                    mean = prior.update_rows(rows, vals).predict()[0]
+                    mean = prior.update_rows(rows, vals, plan.sensor.errors).predict()[0]
                     ok = np.isfinite(V[t])
                     err.append(float(np.mean((mean[ok] - V[t][ok]) ** 2)))
-                print(f"  budget {budget:4.0f} {plan.sensor.describe():>15s}: "
+                print(f"  budget {budget:4.0f} {plan.sensor.describe():>29s}: "
                       f"{plan.stops.size:3d} stops, {rows.nnz:4d} cells seen, "
                       f"mse {np.mean(err):.4f}")
 

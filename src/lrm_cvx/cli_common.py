@@ -340,11 +340,13 @@ def add_path_options(p: argparse.ArgumentParser, *, route: bool = False) -> None
                        "--closed)")
         p.add_argument("--sense-along", action="store_true",
                        help="observe every cell the route passes, not only its stops")
-        p.add_argument("--sensor", default=None, metavar="KIND[:SIZEkm][,altitude=KM,fov=DEG]",
+        p.add_argument("--sensor", default=None,
+                       metavar="KIND[:SIZEkm][,altitude=KM,fov=DEG][,errors=shared]",
                        help="what a stop observes: point (default), square:SIZEkm or "
                        "disc:SIZEkm (the mean of the cells in a footprint SIZE km wide, "
                        "growing by 2 altitude tan(fov/2)), or leg-average (a towed sensor: "
-                       "the mean of the cells of each leg)")
+                       "the mean of the cells of each leg); errors=shared: the average keeps "
+                       "the cells' noise (a model fitted without --spatial)")
 
 
 def mask_files(args: argparse.Namespace) -> list[str]:
