@@ -14,6 +14,7 @@ import scipy.sparse as sps
 import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from references import naive_tour
 
 from lrm_cvx.errors import DataError, PlanningError
 from lrm_cvx.glrm.foldin import fold_in, fold_in_rows
@@ -608,3 +609,43 @@ def test_row_oracle_set_extra_equals_a_new_oracle(region, Y, criterion):
     new = make_row_oracle(criterion, Y, 0.1, [12], extra_rows=legs2, **kw)
     np.testing.assert_allclose(o.gains(), new.gains(), rtol=1e-10)
     assert o.value == pytest.approx(new.value, rel=1e-12)
+
+
+@pytest.mark.parametrize("spec, criterion, ridge", [("disc:25km", "fisher", 0.0),
+                                                     ("square:20km", "a-optimal", 1e-2),
+                                                     ("disc:25km,errors=shared", "fisher",
+                                                      1e-3)])
+def test_greedy_with_a_footprint_equals_a_naive_greedy(region, Y, spec, criterion, ridge):
+    """The paper's greedy literally, on the averaged rows: every nearest-neighbour tour and
+    every criterion value recomputed from scratch for every candidate."""
+    sensor = Sensor.of(spec)
+    g, L, k = region.grid_index, region.n_cells, Y.shape[0]
+    row = {c: naive_footprint(region, sensor, c) for c in range(L)}
+    shared = sensor.errors == "shared"
+
+    def value(P):
+        rows = [row[c] for c in P]
+        return (fisher_rows(Y, rows, ridge, shared=shared) if criterion == "fisher"
+                else -aopt_rows(Y, rows, ridge, shared))
+
+    start, budget = 10, 12.0
+    d2 = ((g - g[start]) ** 2).sum(1)
+    P = [int(c) for c in np.lexsort((np.arange(L), d2))[:k]]
+    while True:
+        v0, c0 = value(P), naive_tour(g, P)[0]
+        best = None
+        for x in range(L):
+            if x in P:
+                continue
+            c1 = naive_tour(g, P + [x])[0]
+            if c1 > budget + 1e-9:
+                continue
+            ratio = (value(P + [x]) - v0) / max(c1 - c0, 1e-12)
+            if best is None or ratio > best[0] + 1e-12:
+                best = (ratio, x)
+        if best is None or not best[0] > 0:
+            break
+        P.append(best[1])
+    plan = plan_greedy(Y, region, start, budget, criterion=criterion, ridge=ridge,
+                       sensor=sensor, progress=False)
+    assert plan.stops.tolist() == P
