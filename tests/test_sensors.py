@@ -299,6 +299,7 @@ def test_greedy_gains_with_a_footprint_equal_brute_force(region, Y, criterion, r
     assert plan.information == pytest.approx(fisher_rows(Y, rows, ridge, shared=shared),
                                              rel=1e-10)
     assert plan.sensor == sensor
+    assert plan.to_geojson()["properties"]["sensor"] == sensor.describe()
 
 
 def test_greedy_gp_variance_with_a_footprint_equals_brute_force(region, Y):
@@ -341,6 +342,7 @@ def test_point_sensor_is_todays_plan_bit_for_bit(region, Y, kw):
             assert np.array_equal(a.history[key], b.history[key])
     rows = a.observation_rows()
     assert np.array_equal(rows.indices, a.cells) and np.all(rows.data == 1.0)
+    assert "sensor" not in a.to_geojson()["properties"]  # exports unchanged
 
 
 def test_a_tiny_footprint_plans_as_the_point_sensor(region, Y):

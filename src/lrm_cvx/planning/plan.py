@@ -560,12 +560,15 @@ class Plan:
         ``"route"``, ``robot``, ``cost``, ``budget``. Point properties: ``cell``, ``robot``,
         ``order`` (first visit on its robot's route), ``selection`` (index in ``stops``),
         ``start`` (a sensor: ``kind`` ``"sensor"``, ``sensor``, ``cell``, ``gain``). The
-        collection's properties carry method, cost, budget, information and the path model.
-        Written atomically when ``path``.
+        collection's properties carry method, cost, budget, information and the path model
+        (and ``sensor``, e.g. ``"disc 5 km"``, when it is not a point). Written atomically when
+        ``path``.
         """
         from .missions import plan_geojson
 
         doc = plan_geojson(self)
+        if not self.sensor.is_point:
+            doc.setdefault("properties", {})["sensor"] = self.sensor.describe()
         if path is not None:
             with atomic_output(path) as tmp:
                 tmp.write_text(json.dumps(doc))
