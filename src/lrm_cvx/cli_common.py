@@ -175,6 +175,7 @@ def describe_plan(plan: Any) -> str:
     if plan.criterion != "fisher":
         value += f", planned by the {plan.criterion} criterion"
     path = getattr(plan, "path", None) or {}
+    sensor = getattr(plan, "sensor", None)
     unit = path.get("unit", "grid units")
     budgets = path.get("budgets") or [plan.budget]
     costs = np.atleast_1d(getattr(plan, "robot_costs", [plan.cost]))
@@ -194,7 +195,9 @@ def describe_plan(plan: Any) -> str:
               f"traversable {path['traversable']}" if path.get("traversable", "none") != "none"
               else "",
               f"ends at cell {path['end']}" if path.get("end") is not None else "",
-              "sensing along the route" if path.get("sense_along") else ""]
+              "sensing along the route" if path.get("sense_along") else "",
+              f"sensor {sensor.describe()}" if sensor is not None and not sensor.is_point
+              else ""]
     extras = [e for e in extras if e]
     return f"{len(plan.cells)} cells, {text}, {value}" + (f" ({', '.join(extras)})" if extras
                                                          else "")
@@ -292,7 +295,8 @@ def path_options(args: argparse.Namespace, *, fleet_end: bool = True):
         metric=args.metric, speed=args.speed, stop_cost=args.stop_cost or 0.0,
         traversable=None if args.traversable is None else read_traversable(args.traversable),
         closed=bool(args.closed), end=None if end is None else parse_start(end, "--end"),
-        sense_along=bool(getattr(args, "sense_along", False)))
+        sense_along=bool(getattr(args, "sense_along", False)),
+        sensor=getattr(args, "sensor", None))
 
 
 def metric_choices() -> tuple[str, ...]:
@@ -336,6 +340,13 @@ def add_path_options(p: argparse.ArgumentParser, *, route: bool = False) -> None
                        "--closed)")
         p.add_argument("--sense-along", action="store_true",
                        help="observe every cell the route passes, not only its stops")
+        p.add_argument("--sensor", default=None,
+                       metavar="KIND[:SIZEkm][,altitude=KM,fov=DEG][,errors=shared]",
+                       help="what a stop observes: point (default), square:SIZEkm or "
+                       "disc:SIZEkm (the mean of the cells in a footprint SIZE km wide, "
+                       "growing by 2 altitude tan(fov/2)), or leg-average (a towed sensor: "
+                       "the mean of the cells of each leg); errors=shared: the average keeps "
+                       "the cells' noise (a model fitted without --spatial)")
 
 
 def mask_files(args: argparse.Namespace) -> list[str]:

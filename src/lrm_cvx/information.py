@@ -32,15 +32,19 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+import scipy.sparse as sps
 
 from ._validation import as_factor_matrix
 from .errors import PlanningError
 from .oracles import (  # noqa: F401  (the Fisher and A-optimal oracles: re-exported)
     AOptimalOracle,
     FisherOracle,
+    RowOracle,
     a_optimal_value,
     cells_array,
     fisher_information,
+    row_factors,
+    row_information,
 )
 from .registry import Registry
 from .spatial.kriging import (  # noqa: F401  (GridConv and the GP helpers: the old location)
@@ -72,6 +76,12 @@ __all__ = [
     "gp_latent_cov",
     "check_gp_inputs",
     "GridConv",
+    "RowOracle",
+    "RowGPVarianceOracle",
+    "make_row_oracle",
+    "row_cov",
+    "row_information",
+    "row_factors",
 ]
 
 Criterion = Literal["fisher", "a-optimal", "gp-variance"]
@@ -203,6 +213,121 @@ class GPVarianceOracle:
     def value(self) -> float:
         """Total posterior variance over the targets for the current set."""
         return self._value
+
+
+# --------------------------------------------------------------------------- averaged rows
+def row_cov(Y: np.ndarray, S0: np.ndarray, region: Any, spatial_cov: Any, B1: Any, B2: Any
+            ) -> np.ndarray:
+    """``B1 K B2^T`` (dense ``(m1, m2)``): the prior covariance of the noise-free averaged
+    observations ``B1 f`` and ``B2 f`` of the latent field (``K`` of :func:`gp_latent_cov`,
+    computed on the cells the rows touch only)."""
+    B1, B2 = sps.csc_matrix(B1), sps.csc_matrix(B2)
+    U1 = np.flatnonzero(np.diff(B1.indptr))
+    U2 = np.flatnonzero(np.diff(B2.indptr))
+    if U1.size == 0 or U2.size == 0:
+        return np.zeros((B1.shape[0], B2.shape[0]))
+    K = gp_latent_cov(Y, S0, region, spatial_cov, U1, U2)
+    return np.asarray((B2[:, U2] @ (B1[:, U1] @ K).T).T)
+
+
+class RowGPVarianceOracle(GPVarianceOracle):
+    """``"gp-variance"`` when a candidate's observation is an averaged row (a footprint).
+
+    Candidate ``pool[i]`` observes ``z_i = rows[i] @ f + e_i``, ``Var(e_i) = nugget
+    sum_j rows[i, j]^2`` (``errors="independent"``; ``"shared"``: ``nugget (sum_j rows[i,
+    j])^2``); ``extra_rows`` are observations already
+    made (a towed sensor's legs), ``cells`` pool cells already observed. ``C`` holds the
+    posterior covariances of the targets' values and of the pool's noise-free observations
+    with the pool's observations (``(|targets| + |pool|, |pool|)``, dense), prior ``B1 K B2^T``
+    (:func:`row_cov`); gains ``sum_t c_t C(t, x)^2 / (C(x, x) + Var(e_x))`` and rank-one updates
+    as :class:`GPVarianceOracle`, whose values it equals for one-hot rows."""
+
+    def __init__(self, Y: Any, cells: Any = None, *, region: Any = None, spatial_cov: Any = None,
+                 prior_cov: Any = None, pool: Any = None, rows: Any = None,
+                 extra_rows: Any = None, targets: Any = None, target_weights: Any = None,
+                 errors: str = "independent", max_entries: float = 1e8, **_: Any) -> None:
+        self.Y = as_factor_matrix(Y)
+        S0 = check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
+        L = self.Y.shape[1]
+        self.pool = cells_array(pool, L)
+        if self.pool.size and np.any(np.diff(self.pool) <= 0):
+            raise PlanningError("pool must be sorted distinct cells")
+        A = sps.csr_matrix(rows, dtype=np.float64)
+        if A.shape != (self.pool.size, L):
+            raise PlanningError(f"rows must be ({self.pool.size}, {L}): one per pool cell")
+        T = np.arange(L) if targets is None else np.unique(cells_array(targets, L))
+        n_rows = T.size + self.pool.size
+        if n_rows * self.pool.size > max_entries:
+            raise PlanningError(
+                f"the gp-variance criterion would hold {n_rows} x {self.pool.size} posterior "
+                f"covariances (> {max_entries:.0e}): pass targets= (a subsample of cells) or "
+                "use criterion='a-optimal'")
+        c = np.ones(L) if target_weights is None else np.asarray(target_weights, float)
+        self._tpos = np.arange(T.size)
+        self._tw = c[T]
+        self._pool_in_rows = T.size + np.arange(self.pool.size)
+        nug = gp_noise(spatial_cov)
+        self.noise = row_factors(self.Y, A, nug, errors)[1]
+        R = sps.vstack([sps.csr_matrix((np.ones(T.size), (np.arange(T.size), T)),
+                                       shape=(T.size, L)), A]).tocsr()
+        C = row_cov(self.Y, S0, region, spatial_cov, R, A)
+        prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
+        self._value = float(self._tw @ prior_var)
+        self.cells: list[int] = [int(v) for v in cells_array(cells, L)]
+        parts = [A[self._pos(self.cells)]] if self.cells else []
+        if extra_rows is not None:
+            parts.append(sps.csr_matrix(extra_rows, dtype=np.float64))
+        B0 = sps.vstack(parts).tocsr() if parts else None
+        if B0 is not None and B0.shape[0]:
+            K00 = row_cov(self.Y, S0, region, spatial_cov, B0, B0)
+            K00[np.diag_indices_from(K00)] += row_factors(self.Y, B0, nug, errors)[1]
+            from scipy.linalg import solve_triangular
+
+            Lc = np.linalg.cholesky(0.5 * (K00 + K00.T))
+            W = solve_triangular(Lc, row_cov(self.Y, S0, region, spatial_cov, B0, R),
+                                 lower=True)
+            C -= W.T @ W[:, self._pool_in_rows]
+            self._value -= float(self._tw @ np.einsum("pi,pi->i", W[:, self._tpos],
+                                                      W[:, self._tpos]))
+        self.C = C
+
+    def gains(self, candidates: Any = None) -> np.ndarray:
+        """Total-variance decrease of each candidate (``(n,)``, default: the whole pool)."""
+        pos = self._pos(candidates)
+        Ct = self.C[self._tpos][:, pos]
+        num = self._tw @ (Ct * Ct)
+        den = self.C[self._pool_in_rows[pos], pos] + self.noise[pos]
+        return num / np.maximum(den, 1e-300)
+
+    def add(self, cell: int) -> None:
+        """Condition on the observation of ``cell``'s row (a pool cell): rank-one update."""
+        j = int(self._pos([int(cell)])[0])
+        col = self.C[:, j].copy()
+        den = col[self._pool_in_rows[j]] + self.noise[j]
+        self._value -= float(self._tw @ (col[self._tpos] ** 2)) / den
+        self.C -= np.outer(col, col[self._pool_in_rows] / den)
+        self.cells.append(int(cell))
+
+
+def make_row_oracle(criterion: str, Y: Any, ridge: float = 0.0, cells: Any = None, *,
+                    pool: Any, rows: Any, extra_rows: Any = None, **kwargs: Any
+                    ) -> RowOracle | RowGPVarianceOracle:
+    """The gain oracle of ``criterion`` when each candidate ``pool[i]`` observes the averaged
+    row ``rows[i]`` (``(|pool|, L)``, a sensor's footprints; see
+    :mod:`lrm_cvx.planning.sensors`), with observations ``extra_rows`` (``(m, L)``) and pool
+    ``cells`` already made. ``kwargs``: the criterion's terms as for :func:`make_oracle`
+    (``prior_precision``, ``noise_var``, ``target_weights``; for ``"gp-variance"``
+    ``region``, ``spatial_cov``, ``prior_cov``, ``targets``: the dense oracle)."""
+    criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")
+    if criterion == "gp-variance":
+        if kwargs.pop("gp_method", "auto") not in ("auto", "dense"):
+            raise PlanningError("a sensor footprint needs the dense gp-variance oracle "
+                                "(gp_method='auto' or 'dense')")
+        return RowGPVarianceOracle(Y, cells, pool=pool, rows=rows, extra_rows=extra_rows,
+                                   **kwargs)
+    allowed = {"prior_precision", "noise_var", "target_weights", "pool_factors", "errors"}
+    return RowOracle(criterion, Y, ridge, cells, pool=pool, rows=rows, extra_rows=extra_rows,
+                     **{k: v for k, v in kwargs.items() if k in allowed})
 
 
 # --------------------------------------------------------------------------- GP variance, scalable

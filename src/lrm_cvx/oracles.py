@@ -11,12 +11,14 @@ from typing import Any
 
 import numba
 import numpy as np
+import scipy.sparse as sps
 
 from ._validation import as_factor_matrix, check_positive
-from .errors import PlanningError
+from .errors import DataError, PlanningError
+from .glrm.averaged import row_noise
 
 __all__ = ["fisher_information", "a_optimal_value", "FisherOracle", "AOptimalOracle",
-           "cells_array"]
+           "cells_array", "row_factors", "row_information", "RowOracle"]
 
 
 def _gram(Y: np.ndarray, cells: np.ndarray, ridge: float) -> np.ndarray:
@@ -253,3 +255,131 @@ class AOptimalOracle(_Oracle):
     def value(self) -> float:
         """The criterion's value for the current set: total variance ``trace(S W)``."""
         return float(np.sum(self.S * self.W))
+
+
+# --------------------------------------------------------------------------- averaged rows
+def row_factors(Y: Any, rows: Any, noise_var: Any = None, errors: str = "independent"
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """``(Yr (k, m), vr (m,))`` of averaged observations: ``rows`` ``(m, L)`` (sparse or dense)
+    weights ``a`` over cells; observation ``a^T d`` has the row ``Yr = Y a`` and, from cell
+    errors of variance ``noise_var`` (scalar or ``(L,)``; default 1), the noise variance
+    ``vr = sum_j a_j^2 noise_var_j`` (``errors="independent"``) or ``(sum_j |a_j| sigma_j)^2``
+    (``"shared"``; :func:`lrm_cvx.glrm.averaged.row_noise`)."""
+    Y = as_factor_matrix(Y)
+    L = Y.shape[1]
+    A = sps.csr_matrix(rows, dtype=np.float64)
+    if A.shape[1] != L:
+        raise PlanningError(f"rows must have {L} columns (one per cell), got {A.shape[1]}")
+    nv = np.broadcast_to(np.asarray(1.0 if noise_var is None else noise_var, np.float64), (L,))
+    Yr = np.ascontiguousarray(np.asarray(A @ Y.T).T)
+    try:
+        vr = row_noise(A, nv, errors)
+    except DataError as err:  # the planner's error is PlanningError
+        raise PlanningError(str(err)) from None
+    return Yr, vr
+
+
+def row_information(Y: Any, rows: Any, ridge: float = 0.0, noise_var: Any = None,
+                    errors: str = "independent") -> float:
+    """``log det(ridge I + sum_r Yr_r Yr_r^T / vr_r)`` of averaged observations (see
+    :func:`row_factors`); for one-hot rows it is :func:`fisher_information`. ``-inf`` when
+    singular."""
+    ridge = check_positive(ridge, "ridge", error=PlanningError)
+    Yr, vr = row_factors(Y, rows, noise_var, errors)
+    Yw = Yr / np.sqrt(np.maximum(vr, 1e-300))
+    sign, logdet = np.linalg.slogdet(ridge * np.eye(Yr.shape[0]) + Yw @ Yw.T)
+    return float(logdet) if sign > 0 else -np.inf
+
+
+class RowOracle:
+    """Fisher / A-optimal gains when a candidate's observation is an averaged row.
+
+    Candidate cell ``pool[i]`` observes ``rows[i] @ d`` (a footprint's weights); ``extra_rows``
+    (``(m, L)``) are observations already made (a towed sensor's legs); ``cells`` are pool
+    cells already observed. The criterion is the one of :class:`FisherOracle` /
+    :class:`AOptimalOracle` on the rows ``Y a`` with noise ``sum a^2 sigma^2``
+    (:func:`row_factors`); the A-optimal target stays the cells' ``W = sum_i c_i y_i y_i^T``.
+    ``pool_factors``: :func:`row_factors` of ``rows`` when already computed (a rebuild).
+    ``gains``, ``add``, ``value`` and ``cells`` as the point oracles (cells are pool cells).
+    """
+
+    def __init__(self, criterion: str, Y: Any, ridge: float = 0.0, cells: Any = None, *,
+                 pool: Any, rows: Any, extra_rows: Any = None, prior_precision: Any = None,
+                 noise_var: Any = None, target_weights: Any = None, errors: str = "independent",
+                 pool_factors: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        Yk = as_factor_matrix(Y)
+        L = Yk.shape[1]
+        self.pool = cells_array(pool, L)
+        if self.pool.size and np.any(np.diff(self.pool) <= 0):
+            raise PlanningError("pool must be sorted distinct cells")
+        A = sps.csr_matrix(rows, dtype=np.float64)
+        if A.shape != (self.pool.size, L):
+            raise PlanningError(f"rows must be ({self.pool.size}, {L}): one per pool cell")
+        extra = sps.csr_matrix((0, L)) if extra_rows is None else sps.csr_matrix(extra_rows)
+        Yp, vp = row_factors(Yk, A, noise_var, errors) if pool_factors is None else pool_factors
+        Ye, ve = row_factors(Yk, extra, noise_var, errors)
+        Yr, vr = np.hstack([Yp, Ye]), np.concatenate([vp, ve])
+        self.cells: list[int] = [int(c) for c in cells_array(cells, L)]
+        init = np.concatenate([self._pos(self.cells), self.pool.size
+                               + np.arange(extra.shape[0])]).astype(np.int64)
+        self._Yk, self._noise, self._errors = Yk, noise_var, errors
+        self.criterion = criterion
+        if criterion == "fisher":
+            self.base: _Oracle = FisherOracle(Yr, ridge, init, prior_precision=prior_precision,
+                                              noise_var=vr)
+        elif criterion == "a-optimal":
+            c = (np.ones(L) if target_weights is None
+                 else np.asarray(target_weights, dtype=np.float64))
+            if c.shape != (L,) or np.any(c < 0):
+                raise PlanningError(f"target_weights must be ({L},) and >= 0")
+            self.base = AOptimalOracle(Yr, ridge, init, (Yk * c) @ Yk.T,
+                                       prior_precision=prior_precision, noise_var=vr)
+        else:
+            raise PlanningError(f"RowOracle takes 'fisher' or 'a-optimal', got {criterion!r}")
+
+    def set_extra(self, extra_rows: Any) -> None:
+        """Replace the observations already made (``extra_rows``, e.g. a towed sensor's legs
+        after its route changed) and keep the observed pool cells: ``M`` and ``S = M^-1``
+        recomputed in ``O((m + |cells|) k^2 + k^3)``, the pool's columns reused."""
+        b = self.base
+        Ye, ve = row_factors(self._Yk, sps.csr_matrix(extra_rows), self._noise, self._errors)
+        Yw = np.hstack([b.Yw[:, self._pos(self.cells)], Ye / np.sqrt(ve)])
+        M = (b.ridge * np.eye(b.k) if b.P0 is None else b.P0) + Yw @ Yw.T
+        sign, logdet = np.linalg.slogdet(M)
+        if sign <= 0 or np.linalg.cond(M) > 1e13:
+            raise PlanningError(
+                f"the information matrix of the {Yw.shape[1]} observations is singular (rank "
+                f"{np.linalg.matrix_rank(M)} < k = {b.k}); pass a small ridge (e.g. "
+                "ridge=1e-6)")
+        S = np.linalg.inv(M)
+        b.S, b._logdet = 0.5 * (S + S.T), float(logdet)
+        b._after_add()
+
+    def _pos(self, cells: Any) -> np.ndarray:
+        idx = np.asarray(cells, dtype=np.int64).ravel()
+        pos = np.minimum(np.searchsorted(self.pool, idx), max(self.pool.size - 1, 0))
+        if idx.size and (self.pool.size == 0 or not np.array_equal(self.pool[pos], idx)):
+            raise PlanningError("candidates must be cells of the oracle's pool")
+        return pos.astype(np.int64)
+
+    @property
+    def k(self) -> int:
+        return self.base.k
+
+    def gains(self, candidates: Any = None) -> np.ndarray:
+        """Gain of each candidate (pool cells; default the whole pool), ``(n,)`` float64."""
+        pos = np.arange(self.pool.size) if candidates is None else self._pos(candidates)
+        return self.base.gains(pos)
+
+    def add(self, cell: int) -> None:
+        """Observe ``cell``'s row (a pool cell): rank-one update."""
+        self.base.add(int(self._pos([int(cell)])[0]))
+        self.cells.append(int(cell))
+
+    @property
+    def value(self) -> float:
+        return self.base.value
+
+    @property
+    def fisher(self) -> float:
+        return self.base.fisher

@@ -17,6 +17,7 @@ def registries() -> dict[str, Registry]:
     from lrm_cvx.glrm.losses import LOSS_REGISTRY
     from lrm_cvx.glrm.regularizers import REGULARIZER_REGISTRY
     from lrm_cvx.information import CRITERION_REGISTRY
+    from lrm_cvx.planning.sensors import SENSOR_REGISTRY
     from lrm_cvx.spatial import KERNEL_REGISTRY
 
     return {
@@ -28,4 +29,5 @@ def registries() -> dict[str, Registry]:
         "kernel": KERNEL_REGISTRY,
         "method": METHOD_REGISTRY,
         "temporal": TEMPORAL,
+        "sensor": SENSOR_REGISTRY,
     }

@@ -25,8 +25,9 @@ DOCS = Path(__file__).resolve().parents[2] / "docs"
 #: Python keyword -> CLI flag, for the path options
 FLAGS = {"metric": "--metric", "speed": "--speed", "stop_cost": "--stop-cost",
          "traversable": "--traversable", "closed": "--closed", "end": "--end",
-         "sense_along": "--sense-along", "n_robots": "--robots"}
-PLAN_OPTIONS = ("metric", "speed", "stop_cost", "traversable", "closed", "end", "sense_along")
+         "sense_along": "--sense-along", "n_robots": "--robots", "sensor": "--sensor"}
+PLAN_OPTIONS = ("metric", "speed", "stop_cost", "traversable", "closed", "end", "sense_along",
+                "sensor")
 EVALUATE_OPTIONS = ("metric", "speed", "stop_cost", "traversable", "closed", "n_robots")
 BASELINE_OPTIONS = ("metric", "speed", "stop_cost", "traversable", "closed")
 

@@ -355,6 +355,26 @@ class LatentFilter:
         return self
 
 
+    def assimilate_rows(self, rows: Any, values: Any, time: Any, *, force: bool = False,
+                        errors: str = "independent") -> Self:
+        """:meth:`assimilate` of averaged observations (a sensor footprint, a towed sensor's
+        legs): ``values[i]`` (data units) is ``rows[i] @`` the snapshot (``rows`` ``(m, L)``
+        weights; ``errors``: a sensor's, see
+        :meth:`~lrm_cvx.glrm.posterior.LatentPosterior.update_rows`). Returns ``self``."""
+        t = self._coerce(time)
+        self._check_order(t, force)
+        v = np.atleast_1d(np.asarray(values, dtype=np.float64))
+        prior = self._propagated(t) if (self._dt(t) != 0) else self.posterior
+        post = prior.update_rows(rows, v, errors)
+        dropped = int(np.count_nonzero(np.isnan(v)))
+        self.posterior = post
+        self.time = t
+        self.observed = True
+        self.n_assimilated += int(v.size - dropped)
+        self.n_dropped += dropped
+        return self
+
+
 def _time_array(values: list) -> np.ndarray:
     if any(isinstance(v, np.datetime64) for v in values):
         return np.asarray(values, dtype="datetime64[ns]")

@@ -29,7 +29,7 @@ from ..spatial.covariance import ResidualCovariance, cell_xyz
 from ..spatial.kriging import MAX_DIRECT, check_cov, krige_core, prepare_kriging
 from .posterior import LatentPosterior, ObservationModel
 
-__all__ = ["fold_in", "fold_in_many", "gls_fold_in", "residual_correction"]
+__all__ = ["fold_in", "fold_in_rows", "fold_in_many", "gls_fold_in", "residual_correction"]
 
 
 def _belief(Y: Any, ridge: float, noise_std: float | None) -> LatentPosterior:
@@ -56,6 +56,19 @@ def fold_in(
     ``Y_S`` raises ModelError unless ``ridge > 0``.
     """
     post = _belief(Y, ridge, noise_std).update(cells, values)
+    return post.mean, post.cov
+
+
+def fold_in_rows(Y: np.ndarray, rows: Any, values: Any, ridge: float = 0.0,
+                 noise_std: float | None = None, errors: str = "independent"
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fold_in` of averaged observations: ``values[i]`` is ``rows[i] @ d`` (``rows``
+    ``(m, L)`` weights, e.g. a sensor footprint's). Weighted least squares on the rows
+    ``Y a_i`` with weights ``1 / sum_j a_ij^2`` (independent cell errors averaged):
+    ``x = (sum_i w_i Y a_i a_i^T Y^T + ridge I)^-1 sum_i w_i Y a_i v_i``,
+    ``cov = sigma^2 (...)^-1``; one-hot rows give :func:`fold_in` exactly. ``errors="shared"``:
+    weights ``1 / (sum_j |a_ij|)^2`` (equal cell errors within an observation)."""
+    post = _belief(Y, ridge, noise_std).update_rows(rows, values, errors)
     return post.mean, post.cov
 
 

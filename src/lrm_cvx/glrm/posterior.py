@@ -37,10 +37,12 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse as sps
 from scipy.spatial.distance import cdist
 
 from .._validation import check_positive
 from ..errors import DataError, ModelError
+from .averaged import check_rows, fit_rows, row_kriging, row_terms
 
 __all__ = ["ObservationModel", "LatentPosterior", "PRIOR_KINDS", "check_cells", "empirical_moments",
            "average_repeats"]
@@ -265,6 +267,19 @@ class ObservationModel:
         then be distinct)."""
         return self._terms(cells, z)[:2]
 
+    def fit_rows(self, rows: sps.csr_matrix, values: np.ndarray, errors: str = "independent"
+                 ) -> tuple[sps.csr_matrix, np.ndarray, np.ndarray]:
+        """Averaged observations in fit units ``(B, z, noise)``
+        (:func:`~lrm_cvx.glrm.averaged.fit_rows`; the nugget with the spatial residual)."""
+        nv = self.spatial_cov.nugget if self.is_spatial else self.noise_var
+        return fit_rows(rows, values, self.offset, self.scale, nv, errors)
+
+    def row_terms(self, B: sps.csr_matrix, z: np.ndarray, noise: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(Yr W Yr^T, Yr W z, z^T W z)`` of averaged observations ``z = B f + e`` (fit units;
+        :func:`~lrm_cvx.glrm.averaged.row_terms`)."""
+        return row_terms(self.Y, B, z, noise, self.spatial_cov, self.region)
+
     def _terms(self, cells: np.ndarray, z: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, float]:
         """:meth:`observation_terms` and ``z^T W z``."""
@@ -310,6 +325,9 @@ class LatentPosterior:
     day_n: float = 0.0  # its degrees of freedom
     scale_q: float = 0.0  # evidence about the scale carried from earlier snapshots (discounted)
     scale_n: float = 0.0
+    rows: Any = None  # averaged observations of this snapshot (CSR (m, L), data-unit weights)
+    row_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    row_noise: np.ndarray = field(default_factory=lambda: np.zeros(0))  # fit units, per row
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -443,16 +461,16 @@ class LatentPosterior:
         dropped = int(v.size - keep.sum())
         cells, v = cells[keep], v[keep]
         if cells.size == 0:
-            if dropped == 0:
-                return self
-            same = replace(self, n_dropped=self.n_dropped + dropped)
-            same.__dict__.update({key: self.__dict__[key] for key in ("cov", "mean")
-                                  if key in self.__dict__})  # the same belief, bit for bit
-            return same
+            return self._only_dropped(dropped)
         all_cells = np.concatenate([self.cells, cells])
         all_values = np.concatenate([self.values, v])
         adaptive = obs.adaptive_dof is not None
-        if obs.is_spatial:  # correlated residuals: re-solve the GLS over all of today's cells
+        has_rows = self.rows is not None and self.rows.shape[0] > 0
+        if obs.is_spatial and has_rows:  # the GLS over today's cells and averaged rows
+            G, b, zz = obs.row_terms(*self._fit_rows_all(all_cells, all_values))
+            P, h = self.base_precision + G, self.base_shift + b
+            n_all = np.unique(all_cells).size + self.rows.shape[0]
+        elif obs.is_spatial:  # correlated residuals: re-solve the GLS over all of today's cells
             uc, zc = _average_repeats(all_cells, obs.to_fit_units(all_cells, all_values))
             G, b, zz = obs._terms(uc, zc)
             P, h = self.base_precision + G, self.base_shift + b
@@ -462,7 +480,10 @@ class LatentPosterior:
             P, h = self.precision + G, self.shift + b
             if adaptive:  # the innovation is over all of today's cells, from the day's prior
                 G, b, zz = obs._terms(all_cells, obs.to_fit_units(all_cells, all_values))
-            n_all = all_cells.size
+                if has_rows:
+                    G2, b2, zz2 = obs.row_terms(*self._fit_rows_only())
+                    G, b, zz = G + G2, b + b2, zz + zz2
+            n_all = all_cells.size + (self.rows.shape[0] if has_rows else 0)
         dq, dn = 0.0, 0.0
         if adaptive:
             q, n_eff = _innovation(self.base_precision, self.base_shift, G, b, zz, n_all)
@@ -470,7 +491,86 @@ class LatentPosterior:
                 dq, dn = q, float(n_eff)
         return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
                                all_cells, all_values, self.n_dropped + dropped, dq, dn,
-                               self.scale_q, self.scale_n)
+                               self.scale_q, self.scale_n, self.rows, self.row_values,
+                               self.row_noise)
+
+    def _only_dropped(self, dropped: int) -> LatentPosterior:
+        """This belief, bit for bit, with ``dropped`` more NaN values counted."""
+        if dropped == 0:
+            return self
+        same = replace(self, n_dropped=self.n_dropped + dropped)
+        same.__dict__.update({k: self.__dict__[k] for k in ("cov", "mean") if k in self.__dict__})
+        return same
+
+    def _fit_rows_only(self, rows: Any = None, values: Any = None, noise: Any = None
+                       ) -> tuple[sps.csr_matrix, np.ndarray, np.ndarray]:
+        """The averaged rows (default the belief's) in fit units ``(B, z, noise)``."""
+        B, z, _ = self.obs_model.fit_rows(self.rows if rows is None else rows,
+                                          self.row_values if values is None else values)
+        return B, z, self.row_noise if noise is None else noise
+
+    def _fit_rows_all(self, cells: np.ndarray, values: np.ndarray, rows: Any = None,
+                      row_values: Any = None, noise: Any = None
+                      ) -> tuple[sps.csr_matrix, np.ndarray, np.ndarray]:
+        """Every observation of the snapshot in fit units ``(B, z, noise)``: the point cells
+        (repeats averaged) as one-hot rows, then the averaged rows (default the belief's)."""
+        obs = self.obs_model
+        uc, zc = _average_repeats(cells, obs.to_fit_units(cells, values))
+        one = sps.csr_matrix((np.ones(uc.size), (np.arange(uc.size), uc)),
+                             shape=(uc.size, obs.n_cells))
+        rows = self.rows if rows is None else rows
+        if rows is None or rows.shape[0] == 0:
+            return one, zc, obs.noise_at(uc)
+        B, z, nz = self._fit_rows_only(rows, row_values, noise)
+        return sps.vstack([one, B]).tocsr(), np.r_[zc, z], np.r_[obs.noise_at(uc), nz]
+
+    def update_rows(self, rows: Any, values: Any, errors: str = "independent"
+                    ) -> LatentPosterior:
+        """Assimilate averaged observations, a new belief: ``values[i]`` (data units) is the
+        weighted average ``rows[i] @ d`` of the snapshot (``rows``: ``(m, L)`` weights, sparse
+        or dense, e.g. a sensor's, :mod:`lrm_cvx.planning.sensors`). Each is one observation of
+        the row ``Y B_i`` (``B = rows diag(scale)``) with noise variance ``sum_j B_ij^2
+        noise_var_j`` (``errors="independent"``) or ``(sum_j |B_ij| sigma_j)^2`` (``"shared"``:
+        equal cell errors within an observation); observations are independent. With the
+        spatial residual: the GLS over all of the snapshot's observations, covariance
+        ``B K B^T + diag(noise)`` (noise from the nugget). NaN values are dropped
+        (``n_dropped``). A one-hot row is a point observation (:meth:`update`)."""
+        obs = self.obs_model
+        A, v = check_rows(rows, obs.n_cells, values)
+        keep = ~np.isnan(v)
+        dropped = int(v.size - keep.sum())
+        A, v = A[np.flatnonzero(keep)], v[keep]
+        if A.shape[0] == 0:
+            return self._only_dropped(dropped)
+        B, z, noise = obs.fit_rows(A, v, errors)
+        had = self.rows is not None and self.rows.shape[0] > 0
+        all_rows = sps.vstack([self.rows, A]).tocsr() if had else A
+        all_rv = np.concatenate([self.row_values, v]) if had else v
+        all_noise = np.concatenate([self.row_noise, noise]) if had else noise
+        adaptive = obs.adaptive_dof is not None
+        if obs.is_spatial:
+            G, b, zz = obs.row_terms(*self._fit_rows_all(self.cells, self.values, all_rows,
+                                                         all_rv, all_noise))
+            P, h = self.base_precision + G, self.base_shift + b
+        else:
+            G, b, zz = obs.row_terms(B, z, noise)
+            P, h = self.precision + G, self.shift + b
+            if adaptive:
+                G, b, zz = obs.row_terms(*self._fit_rows_only(all_rows, all_rv, all_noise))
+                if self.cells.size:
+                    G2, b2, zz2 = obs._terms(self.cells,
+                                             obs.to_fit_units(self.cells, self.values))
+                    G, b, zz = G + G2, b + b2, zz + zz2
+        n_all = (np.unique(self.cells).size if obs.is_spatial else self.cells.size) \
+            + all_rows.shape[0]
+        dq, dn = 0.0, 0.0
+        if adaptive:
+            q, n_eff = _innovation(self.base_precision, self.base_shift, G, b, zz, n_all)
+            if n_eff > 0 and np.isfinite(q):
+                dq, dn = q, float(n_eff)
+        return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
+                               self.cells, self.values, self.n_dropped + dropped, dq, dn,
+                               self.scale_q, self.scale_n, all_rows, all_rv, all_noise)
 
     @property
     def variance_scale(self) -> float:
@@ -560,6 +660,9 @@ class LatentPosterior:
 
         cov = obs.spatial_cov
         region = obs.region
+        if self.rows is not None and self.rows.shape[0] > 0:
+            B, z, noise = self._fit_rows_all(self.cells, self.values)
+            return row_kriging(obs.Y, B, z, noise, self.mean, self.cov, cov, region, cells)
         uc, zc = _average_repeats(self.cells, obs.to_fit_units(self.cells, self.values))
         Ys = obs.Y[:, uc]
         res = zc - Ys.T @ m

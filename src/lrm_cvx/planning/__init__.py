@@ -18,6 +18,7 @@ from .planners import (
 )
 from .refine import refine
 from .request import Fleet, PathOptions, PlanPath
+from .sensors import Sensor, plan_observations
 from .static import place_sensors
 
 __all__ = [
@@ -33,6 +34,8 @@ __all__ = [
     "PathOptions",
     "Fleet",
     "PlanPath",
+    "Sensor",
+    "plan_observations",
     "Planner",
     "GreedyPlanner",
     "StaticPlacement",

@@ -305,6 +305,10 @@ def plan_bound(
             raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
         path = None
     request = PathOptions.from_kwargs(path, where="plan_bound", **options)
+    plan_sensor = getattr(getattr(plan, "path", None), "sensor", None)
+    if not request.sensor.is_point or (plan_sensor is not None and not plan_sensor.is_point):
+        raise PlanningError("plan_bound certifies point sensors only (the bound is on point "
+                            "rows); a footprint or leg-average plan has no certificate yet")
     spec = path_spec(region, plan, start, budget, request, kind, n_sensors)
     fam = family(spec, region, k)
     cand, n_max, init = fam.cand, fam.n_max, fam.init

@@ -6,11 +6,19 @@ import warnings
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sps
 from tqdm.auto import tqdm
 
 from .._validation import as_factor_matrix
 from ..errors import PlanningError
-from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
+from ..information import (
+    CRITERION_REGISTRY,
+    fisher_information,
+    make_oracle,
+    make_row_oracle,
+    row_factors,
+    row_information,
+)
 from ..region import Region
 from . import request as _request
 from .paths import path_model
@@ -18,6 +26,7 @@ from .plan import Plan, check_region
 from .refiners import REFINERS
 from .request import Fleet, PathOptions, PlanPath, pop_options
 from .routecost import COST_REGISTRY
+from .sensors import footprint_matrix, leg_matrix
 from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
 
 __all__ = ["initial_cells", "plan_greedy", "check_budget", "budget_pool", "resolve_prior",
@@ -180,6 +189,14 @@ def plan_greedy(
         Without a travel graph a straight leg passes the cells its segment crosses (between
         grid positions; masked positions are skipped). ``plan.cells`` holds every observed
         cell, ``plan.stops`` the sampling stops.
+    sensor : (``**options``) what each stop observes (docs/planning.md, "Sensors"): ``"point"``
+        (default, the paper's), a footprint (``"disc:5km"``, ``"square:2km"`` or a
+        :class:`~lrm_cvx.planning.sensors.Sensor`, optionally growing with altitude): one
+        averaged row ``Y a`` per stop with noise ``sum a^2 sigma^2``, exact gains for every
+        criterion; or ``"leg-average"`` (a towed sensor: one row per stop, the mean of the
+        cells of the leg arriving there; candidates scored by their own cell, the oracle
+        rebuilt from the legs after each pick). ``plan.information`` is then the log det of
+        the averaged rows; ``plan.observation_rows()`` gives them. Not with ``refine``.
     static : fixed sensors, no travel (see :func:`~lrm_cvx.planning.static.place_sensors`;
         ``start`` must then be None and ``n_sensors`` (or ``budget``) is the number of
         sensors). ``path="static"`` is the old spelling (DeprecationWarning).
@@ -247,8 +264,19 @@ def plan_greedy(
         init = list(dict.fromkeys(init + sense.observed().tolist()))
         if criterion == "gp-variance":  # pass-through cells must be cells of the GP pool
             gp_pool = np.union1d(union_pool, sense.reach())
+    sensor = request.sensor
+    if not sensor.is_point:  # every cell the oracle may observe has its row
+        if refine is not False and refine is not None:
+            raise PlanningError("refine supports the point sensor only, not "
+                                f"sensor={sensor.describe()!r}")
+        gp_pool = np.union1d(union_pool, np.asarray(init, dtype=np.int64))
+        if sense is not None:
+            gp_pool = np.union1d(gp_pool, sense.reach())
     extra = oracle_terms(criterion, region, gp_pool, terms, targets)
-    oracle = make_oracle(criterion, Yk, ridge, init, **extra)
+    feed = None if sensor.is_point else _SensorRows(sensor, region, models, gp_pool, criterion,
+                                                   Yk, ridge, extra)
+    oracle = (make_oracle(criterion, Yk, ridge, init, **extra) if feed is None
+              else feed.oracle(init, costers))
     for r, cst in enumerate(costers):  # cells forced for other robots are taken
         if len(costers) > 1:
             for c in set(stops):
@@ -302,12 +330,15 @@ def plan_greedy(
             for j, other in enumerate(costers):
                 if j != r:
                     _take(other, cands[j], cell)
-            if sense is None:
+            if feed is not None and feed.legs:  # a towed sensor: the legs changed
+                oracle = feed.oracle([], costers)
+            elif sense is None:
                 oracle.add(cell)
             else:
                 added, removed = sense.update(r, cst.route)
                 if removed.size:  # a re-ordered route no longer passes some cells
-                    oracle = make_oracle(criterion, Yk, ridge, sense.observed(), **extra)
+                    oracle = (make_oracle(criterion, Yk, ridge, sense.observed(), **extra)
+                              if feed is None else feed.oracle(sense.observed(), costers))
                 else:
                     for c in added.tolist():
                         oracle.add(c)
@@ -341,6 +372,9 @@ def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOption
     elif budget is not None and float(budget) != float(n_sensors):
         raise PlanningError(f"path='static': give n_sensors ({n_sensors}) or budget "
                             f"({budget}), not two different numbers")
+    if not request.sensor.is_point:
+        raise PlanningError("static placement supports the point sensor only, not "
+                            f"sensor={request.sensor.describe()!r}")
     if set(request.changed()) - {"traversable"}:
         raise PlanningError("path='static' has no travel: metric, speed, stop_cost, closed, "
                             "end and sense_along do not apply")
@@ -393,16 +427,66 @@ class _Sensing:
         return np.unique(np.concatenate(out)).astype(np.int64)
 
 
+class _SensorRows:
+    """The greedy's oracle under a sensor that is not a point (docs/planning.md, "Sensors"):
+    each candidate of ``pool`` observes its footprint's averaged row; a towed sensor
+    (``legs``) observes the legs of the current routes and candidates are scored by their own
+    cell (a candidate's leg depends on where the route takes it), the oracle rebuilt from the
+    routes' legs after each pick."""
+
+    def __init__(self, sensor: Any, region: Region, models: list[Any], pool: np.ndarray,
+                 criterion: str, Yk: np.ndarray, ridge: float, extra: dict[str, Any]) -> None:
+        self.legs = sensor.is_leg
+        self.region, self.models, self.pool = region, models, pool
+        self.criterion, self.Yk, self.ridge = criterion, Yk, ridge
+        self.extra = dict(extra, errors=sensor.errors)
+        n, L = pool.size, region.n_cells
+        self.rows = (footprint_matrix(region, sensor, pool) if sensor.has_footprint else
+                     sps.csr_matrix((np.ones(n), (np.arange(n), pool)), shape=(n, L)))
+        self._factors: tuple[np.ndarray, np.ndarray] | None = None
+        self._oracle: Any = None  # a towed sensor's Fisher / A-optimal oracle
+
+    def leg_rows(self, costers: list[Any]) -> sps.csr_matrix:
+        """The legs of the robots' current routes (one averaged row per stop)."""
+        from .plan import sensed_route
+
+        parts = [sensed_route(m, c.route) for m, c in zip(self.models, costers, strict=True)]
+        robot = np.concatenate([np.full(p[0].size, r) for r, p in enumerate(parts)])
+        return leg_matrix(np.concatenate([p[0] for p in parts]),
+                          np.concatenate([p[2] for p in parts]), robot, self.region.n_cells)
+
+    def oracle(self, cells: Any, costers: list[Any]) -> Any:
+        """The oracle with ``cells`` (pool cells) observed, or the legs of the routes (an
+        existing Fisher / A-optimal oracle is updated in place: its pool columns are kept)."""
+        legs = self.leg_rows(costers) if self.legs else None
+        if self.legs and self._oracle is not None:
+            self._oracle.set_extra(legs)
+            return self._oracle
+        extra = {k: v for k, v in self.extra.items() if k != "pool"}  # the GP pool: ours
+        if self.criterion != "gp-variance":  # the pool's rows are computed once
+            if self._factors is None:
+                self._factors = row_factors(self.Yk, self.rows, extra.get("noise_var"),
+                                            extra["errors"])
+            extra["pool_factors"] = self._factors
+        oracle = make_row_oracle(self.criterion, self.Yk, self.ridge,
+                                 [] if self.legs else cells, pool=self.pool, rows=self.rows,
+                                 extra_rows=legs, **extra)
+        if self.legs and hasattr(oracle, "set_extra"):
+            self._oracle = oracle
+        return oracle
+
+
 def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, criterion,
                 ridge, cost, posterior, fleet, refine, terms, request) -> Plan:
     """The :class:`Plan` of the greedy's final routes (and its refinement)."""
     from .plan import sensed_route
 
     sense_along, budgets = request.sense_along, list(fleet.budgets)
+    sensor = request.sensor
 
     routes, cums, ways, robot = [], [], [], []
     for r, (m, cst) in enumerate(zip(models, costers, strict=True)):
-        cells, cum, way = (sensed_route(m, cst.route) if sense_along
+        cells, cum, way = (sensed_route(m, cst.route) if sense_along or sensor.is_leg
                            else m.expand(cst.route))
         routes.append(np.asarray(cells, np.int64))
         cums.append(np.asarray(cum, np.float64))
@@ -410,7 +494,13 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
         robot.append(np.full(len(cells), r, np.int64))
     cells = list(dict.fromkeys(list(stops) + (np.concatenate(routes).tolist() if sense_along
                                               else [])))
-    info = fisher_information(Yk, cells, ridge)
+    if sensor.is_point:
+        info = fisher_information(Yk, cells, ridge)
+    else:  # the averaged rows the sensor observed
+        rows = (leg_matrix(np.concatenate(routes), np.concatenate(ways),
+                           np.concatenate(robot), region.n_cells) if sensor.is_leg
+                else footprint_matrix(region, sensor, cells))
+        info = row_information(Yk, rows, ridge, errors=sensor.errors)
     path = PlanPath.describe(request, fleet, traversable=models[0].traversable)
     robot_costs = np.array([c.cost for c in costers], dtype=np.float64)
     n = len(models)

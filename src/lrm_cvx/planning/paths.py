@@ -775,7 +775,7 @@ def make_path_model(
     """
     if not isinstance(region, Region):
         raise PlanningError(f"region must be a Region, got {type(region).__name__}")
-    request = PathOptions.from_kwargs(path, where="make_path_model", allowed=PATH_FIELDS[:-1],
+    request = PathOptions.from_kwargs(path, where="make_path_model", allowed=PATH_FIELDS[:-2],
                                       **options)
     return path_model(region, start, Fleet.check_budget(budget, request.unit), request, cost)
 

@@ -219,6 +219,33 @@ class Plan:
         return out
 
     @property
+    def sensor(self) -> Any:
+        """What each stop observed (:class:`~lrm_cvx.planning.sensors.Sensor`; point by
+        default)."""
+        return PlanPath.of(self.path).sensor
+
+    def observation_rows(self) -> Any:
+        """The sensor's observations as averaging rows over the region's cells, ``(n, L)``
+        scipy.sparse CSR, each row summing to 1 (one-hot for a point sensor: one per cell of
+        ``cells``; a footprint per cell of ``cells``; a towed sensor one per stop). The truth
+        a plan observes is ``rows @ truth`` (:func:`lrm_cvx.planning.sensors.observe` handles
+        cells without a value)."""
+        from .sensors import observation_rows
+
+        return observation_rows(self)
+
+    def observe(self, truth: Any) -> tuple[Any, np.ndarray]:
+        """What the plan's sensor reads of a snapshot: ``(rows, values)``, one averaged value
+        per observation (:meth:`observation_rows`, re-weighted over the cells with a value; a
+        footprint without any reads NaN). ``truth``: the region's ``(L,)`` values or a
+        ``(lat, lon)`` DataArray on its grid."""
+        from .sensors import plan_observations
+
+        if hasattr(truth, "dims"):
+            truth = self._region.stack(truth)
+        return plan_observations(self, np.asarray(truth, dtype=np.float64))
+
+    @property
     def n_robots(self) -> int:
         """Number of robots (1 for a single route and for static placement)."""
         return int(self.path.get("n_robots", 1))
@@ -539,12 +566,15 @@ class Plan:
         ``"route"``, ``robot``, ``cost``, ``budget``. Point properties: ``cell``, ``robot``,
         ``order`` (first visit on its robot's route), ``selection`` (index in ``stops``),
         ``start`` (a sensor: ``kind`` ``"sensor"``, ``sensor``, ``cell``, ``gain``). The
-        collection's properties carry method, cost, budget, information and the path model.
-        Written atomically when ``path``.
+        collection's properties carry method, cost, budget, information and the path model
+        (and ``sensor``, e.g. ``"disc 5 km"``, when it is not a point). Written atomically when
+        ``path``.
         """
         from .missions import plan_geojson
 
         doc = plan_geojson(self)
+        if not self.sensor.is_point:
+            doc.setdefault("properties", {})["sensor"] = self.sensor.describe()
         if path is not None:
             with atomic_output(path) as tmp:
                 tmp.write_text(json.dumps(doc))

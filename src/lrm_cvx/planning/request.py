@@ -22,6 +22,7 @@ import numpy as np
 
 from .._validation import check_positive
 from ..errors import PlanningError
+from .sensors import POINT, Sensor
 
 __all__ = ["PathOptions", "Fleet", "PlanPath", "PATH_FIELDS", "METRICS", "check_metric",
            "check_amount", "pop_options", "resolve_starts", "resolve_budgets"]
@@ -29,7 +30,8 @@ __all__ = ["PathOptions", "Fleet", "PlanPath", "PATH_FIELDS", "METRICS", "check_
 METRICS = ("grid", "km")
 """Travel metrics: Euclidean grid units (the paper) and great-circle km."""
 
-PATH_FIELDS = ("metric", "speed", "stop_cost", "traversable", "closed", "end", "sense_along")
+PATH_FIELDS = ("metric", "speed", "stop_cost", "traversable", "closed", "end", "sense_along",
+               "sensor")
 """The keyword names of a path request (the fields of :class:`PathOptions`)."""
 
 
@@ -82,7 +84,10 @@ class PathOptions:
     unit) per sampling stop, start included; ``traversable``: None (straight lines), ``"valid"``
     or a boolean ``(lat, lon)`` mask (travel over the 8-connected enterable cells); ``closed``:
     return to the start; ``end``: a cell or ``(lat, lon)`` where every route finishes;
-    ``sense_along``: every cell a route passes is observed. The defaults are the paper's.
+    ``sense_along``: every cell a route passes is observed; ``sensor``: what a stop observes
+    (:class:`~lrm_cvx.planning.sensors.Sensor`, or a string such as ``"disc:5km"``: point,
+    square / disc footprints, leg averages; docs/planning.md, "Sensors"). The defaults are the
+    paper's.
 
     >>> PathOptions(metric="km", speed=2.0).unit
     'h'
@@ -95,6 +100,7 @@ class PathOptions:
     closed: bool = False
     end: Any = None
     sense_along: bool = False
+    sensor: Any = POINT
 
     def __post_init__(self) -> None:
         metric, speed, unit = check_metric(self.metric, self.speed)
@@ -115,7 +121,12 @@ class PathOptions:
         elif trav is not None and not hasattr(trav, "shape"):
             raise PlanningError(f"traversable must be None, 'valid' or a boolean (lat, lon) "
                                 f"mask, got {type(trav).__name__}")
-        for name, value in (("metric", metric), ("speed", speed), ("stop_cost", stop_cost),
+        sensor = Sensor.of(self.sensor)
+        if sensor.is_leg and self.sense_along:
+            raise PlanningError("sensor='leg-average' already observes along the route: "
+                                "sense_along=True does not combine with it")
+        for name, value in (("sensor", sensor), ("metric", metric), ("speed", speed),
+                            ("stop_cost", stop_cost),
                             ("traversable", trav), ("closed", bool(self.closed)),
                             ("sense_along", bool(self.sense_along))):
             object.__setattr__(self, name, value)
@@ -378,11 +389,17 @@ class PlanPath(Mapping):
                            sense_along=bool(d["sense_along"]))
 
     @property
+    def sensor(self) -> Sensor:
+        """What each stop observed (:class:`~lrm_cvx.planning.sensors.Sensor`; point when
+        the plan's options were not kept)."""
+        return self._options.sensor if self._options is not None else POINT
+
+    @property
     def is_paper(self) -> bool:
         """The paper's model: one robot, open straight-line path in grid units, no stop cost,
-        sensing only at the stops (what :func:`~lrm_cvx.planning.refine.refine` supports)."""
+        point sensing only at the stops (what :func:`~lrm_cvx.planning.refine.refine` supports)."""
         return all(self._items.get(key) == value for key, value in PAPER_PATH.items()) and \
-            self._items.get("n_robots", 1) == 1
+            self._items.get("n_robots", 1) == 1 and self.sensor.is_point
 
     # ------------------------------------------------------------------ read-only mapping
     def __getitem__(self, key: str) -> Any:

@@ -1,0 +1,115 @@
+"""Benchmark of sensors that see more than a point (issue #25 item 6, docs/planning.md "Sensors").
+
+At the paper's scale (1500 x 1400 grid, ~2.0M valid cells, rank 5): the footprint rows of every
+cell a budget-200 plan may visit (one KD-tree query), the greedy with the point sensor against
+a disc footprint and a towed sensor, and the fold-in of the plan's averaged observations.
+Prints seconds, stops, rows and information; peak RSS at the end.
+
+``--quality``: what the sensors buy on the bundled SST record (5 degree cells, fitted on the
+first 40 monthly snapshots, rank 5, the empirical prior): one plan per sensor from (10, 210),
+then each of the last 10 snapshots is observed through it (``plan.observe``) and folded in;
+the mean squared error of the map over the observed cells, with the plain model (independent
+cell errors) and with the GP residual (``spatial="exponential"``: the averages' covariance
+``a^T K b``).
+
+    flock /tmp/bench.lock python benchmarks/bench_sensors.py [--small] [--quality]
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+import warnings
+
+import numpy as np
+
+from lrm_cvx import Region
+from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel
+from lrm_cvx.io.samples import synthetic_field
+from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning.greedy import budget_pool
+from lrm_cvx.planning.sensors import footprint_matrix, plan_observations
+
+RIDGE = 1e-6
+
+
+def _problem(shape: tuple[int, int], rank: int) -> tuple[np.ndarray, Region, int, object]:
+    da, truth = synthetic_field(1, shape, rank, seed=0, return_truth=True, missing=0.0,
+                                land_fraction=0.95)
+    region = Region.from_dataarray(da, mask=truth["land_mask"])
+    Y = region.stack(truth["Y"]).astype(np.float64)
+    gi = region.grid_index
+    start = int(np.argmin(((gi - np.array(shape) // 2) ** 2).sum(1)))
+    return Y, region, start, region.stack(da.isel(time=0)).astype(np.float64)
+
+
+def quality() -> None:
+    """Reconstruction error on the bundled SST record: point, disc, square and towed sensors."""
+    from lrm_cvx import GLRM, load_sample
+
+    sst = load_sample("sst")
+    train, test = sst.isel(time=slice(0, 40)), sst.isel(time=slice(40, 50))
+    for spatial in (None, "exponential"):
+        model = GLRM(rank=5, random_state=0, progress=False, spatial=spatial).fit(train)
+        V = model.region_.stack(test).astype(np.float64)
+        prior = model.latent_prior("empirical", spatial=spatial is not None)
+        print(f"SST, {'GP residual' if spatial else 'independent cell errors'}:")
+        for budget in (8.0, 15.0, 30.0):
+            for sensor in ("point", "disc:1200km", "square:1200km", "leg-average",
+                           "disc:1200km,errors=shared", "square:1200km,errors=shared",
+                           "leg-average,errors=shared"):
+                plan = plan_greedy(model.Y_, model.region_, (10, 210), budget, sensor=sensor,
+                                   prior=prior, initial="start", progress=False)
+                err = []
+                for t in range(V.shape[0]):
+                    rows, vals = plan.observe(V[t])
+                    mean = prior.update_rows(rows, vals, plan.sensor.errors).predict()[0]
+                    ok = np.isfinite(V[t])
+                    err.append(float(np.mean((mean[ok] - V[t][ok]) ** 2)))
+                print(f"  budget {budget:4.0f} {plan.sensor.describe():>29s}: "
+                      f"{plan.stops.size:3d} stops, {rows.nnz:4d} cells seen, "
+                      f"mse {np.mean(err):.4f}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--small", action="store_true", help="a 300 x 280 grid")
+    ap.add_argument("--quality", action="store_true",
+                    help="only the reconstruction error on the bundled SST record")
+    args = ap.parse_args()
+    if args.quality:
+        quality()
+        return
+    shape = (300, 280) if args.small else (1500, 1400)
+    Y, region, start, truth = _problem(shape, 5)
+    dlat = abs(float(region.lat[1] - region.lat[0])) * 111.195
+    width = 3.0 * dlat  # a disc about three cells wide
+    print(f"grid {shape}, {region.n_cells} valid cells, rank {Y.shape[0]}, cell ~{dlat:.2f} km, "
+          f"disc {width:.2f} km wide")
+    pool = budget_pool(region, start, 200.0)
+    t = time.perf_counter()
+    A = footprint_matrix(region, f"disc:{width}km", pool)
+    print(f"footprint rows of the {pool.size} cells within budget 200: "
+          f"{time.perf_counter() - t:.2f} s, {A.nnz / pool.size:.1f} cells per footprint")
+    for budget in (50.0, 200.0):
+        for sensor in ("point", f"disc:{width}km", "leg-average"):
+            t = time.perf_counter()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                plan = plan_greedy(Y, region, start, budget, ridge=RIDGE, sensor=sensor,
+                                   progress=False)
+            sec = time.perf_counter() - t
+            print(f"budget {budget:5.0f}  {plan.sensor.describe():>14s}: {sec:6.2f} s, "
+                  f"{plan.stops.size:4d} stops, information {plan.information:9.3f}")
+    t = time.perf_counter()
+    rows, values = plan_observations(plan, truth)
+    post = LatentPosterior.prior(ObservationModel(Y, noise_var=0.01), "ridge", RIDGE)
+    post = post.update_rows(rows, values)
+    print(f"fold-in of the last plan's {rows.shape[0]} averaged observations: "
+          f"{time.perf_counter() - t:.2f} s (mean finite: {bool(np.isfinite(post.mean).all())})")
+    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
+
+
+if __name__ == "__main__":
+    main()
