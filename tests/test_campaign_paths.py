@@ -236,3 +236,43 @@ def test_fixed_end_fleet_and_attrs_round_trip_through_netcdf(sst, model, test_da
                        certify=False, progress=False, min_observations=1, temporal="ar1",
                        methods=("greedy:fisher",), metric="km", traversable="valid", end=end)
     assert res.attrs["end"] == cell and np.isfinite(res["mse"]).all()
+
+
+@pytest.mark.parametrize("method", ["greedy:gp-variance", "transect-up"])
+def test_a_footprint_campaign_observes_one_average_per_stop(model, test_days, method):
+    """With a disc sensor, day 1 folds in the truth averaged over each stop's footprint: the
+    campaign's first map equals the memoryless state updated by hand with those averages."""
+    from lrm_cvx.planning.planners import planner_for
+    from lrm_cvx.planning.request import Fleet
+    from lrm_cvx.planning.sensors import plan_observations
+
+    ds = simulate_campaign(model, test_days.isel(time=[0]), (0.0, 200.0), 10.0, method=method,
+                           temporal=None, sensor="disc:1500km")
+    assert ds.attrs["sensor"] == "disc 1500 km"
+    region = model.region_
+    state = MonitorState.from_model(model, memoryless=True)
+    path = PathOptions(sensor="disc:1500km")
+    planner = planner_for(method)
+    terms = (state.planner_kwargs(criterion=planner.criterion)
+             if getattr(planner, "model_prior", False) else None)
+    plan = planner.plan(model.Y, region, Fleet.resolve(region, (0.0, 200.0), 10.0), path,
+                        rng=np.random.default_rng(0), ridge=0.0, terms=terms)
+    np.testing.assert_array_equal(ds["routes"].values[0, : len(plan.route)], plan.route)
+    truth = region.stack(test_days.isel(time=0)).astype(np.float64)
+    rows, vals = plan_observations(plan, truth)
+    assert rows.shape[0] == len(plan.cells) and (rows.getnnz(axis=1) > 1).any()
+    # one average per stop, by hand: the mean of the truth over the covered cells
+    dense = rows.toarray()
+    for r, v in zip(dense, vals, strict=True):
+        covered = (r > 0) & np.isfinite(truth)
+        assert np.isclose(v, np.average(truth[covered], weights=r[covered]))
+    state.assimilate_rows(rows, vals, test_days.time.values[0], errors="independent")
+    mean = state.posterior.predict_all()[0]
+    observed = np.isfinite(truth)
+    assert np.isclose(ds["mse"].values[0], np.mean((mean - truth)[observed] ** 2))
+
+
+def test_replanning_en_route_refuses_a_footprint_sensor(model, test_days):
+    with pytest.raises(PlanningError, match="footprint or towed sensor"):
+        simulate_campaign(model, test_days, (0.0, 200.0), 10.0, replan_every=2,
+                          sensor="disc:1500km")

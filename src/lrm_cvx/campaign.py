@@ -27,6 +27,7 @@ from .glrm.dynamics import estimate as estimate_dynamics
 from .monitor import MonitorState
 from .planning.planners import GreedyPlanner, Planner, Refined, check_method, planner_for
 from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
+from .planning.sensors import observed_cells, plan_observations
 
 __all__ = ["simulate_campaign", "method_request", "path_attrs", "CAMPAIGN_OPTIONS"]
 
@@ -94,6 +95,7 @@ def path_attrs(path: PathOptions, n_robots: int = 1) -> dict[str, Any]:
         "sense_along": int(bool(path.sense_along)),
         "n_robots": int(n_robots),
         "budget_unit": path.unit,
+        "sensor": path.sensor.describe(),
     }
 
 
@@ -254,6 +256,9 @@ def simulate_campaign(
     check_times(test_data[tdim], f"test_data[{tdim!r}]")
     V = region.stack(test_data).astype(np.float64)  # (T, L), checks the grid
     request = method_request(method, planner, request.resolved(region))
+    if every and not request.sensor.is_point:
+        raise PlanningError("replan_every replans from point samples: it does not take a "
+                            f"footprint or towed sensor yet (sensor: {request.sensor.describe()})")
     fleet = Fleet.resolve(region, start, budget, request.unit)
     state = MonitorState.from_model(model, dynamics=dynamics, memoryless=memoryless,
                                     spatial=spatial)
@@ -281,11 +286,16 @@ def simulate_campaign(
             flown, cells, n_replans[i] = _fly_replanning(state, plan, t, V[i], every,
                                                          planner.criterion)
             vals = V[i, cells]
-        else:
+        elif plan.sensor.is_point:
             flown = plan
             cells = np.unique(np.asarray(plan.cells, dtype=np.int64))
             vals = V[i, cells]
             state.assimilate((cells, vals), t)
+        else:  # a footprint / towed sensor: one averaged value per observation (#25 item 6)
+            flown = plan
+            rows, vals = plan_observations(plan, V[i])
+            state.assimilate_rows(rows, vals, t, errors=plan.sensor.errors)
+            cells = observed_cells(rows)
         post = state.posterior
         n_obs[i] = int(np.count_nonzero(np.isfinite(vals)))
         truth = V[i]

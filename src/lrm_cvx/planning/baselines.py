@@ -111,8 +111,9 @@ class _Geometry:
         return travel + stops + (step + new_stop) <= budget + _TOL
 
 
-BASELINE_FIELDS = ("metric", "speed", "stop_cost", "traversable", "closed")
-"""The path options the baselines follow (no ``end``, no ``sense_along``)."""
+BASELINE_FIELDS = ("metric", "speed", "stop_cost", "traversable", "closed", "sensor")
+"""The path options the baselines follow (no ``end``, no ``sense_along``); a ``sensor`` only
+changes what each stop observes (``plan.observation_rows()``), not the route."""
 
 
 def _path_setup(region: Region, start: int, budget: float, request: PathOptions
