@@ -28,7 +28,7 @@ import numpy as np
 from .errors import DataError
 
 __all__ = ["COAST_CHOICES", "COAST_ENV", "check_coast", "coastline_file", "coastline_xy",
-           "draw_coast"]
+           "draw_coast", "lines_in_extent"]
 
 COAST_CHOICES = ("auto", "cartopy", "outline", None)
 """``coast=``: ``"auto"`` real coastlines when a shapefile is found offline, else the outline;
@@ -129,9 +129,19 @@ def coastline_xy(path: str | Path, extent: tuple[float, float, float, float]
     (degrees, ``west < east`` in the grid's own longitude convention, e.g. 100..300), lines
     separated by NaN, longitudes moved into the extent's window (every copy 360 degrees apart
     that meets it) and each line cut to the vertices inside plus one either side."""
-    west, east, south, north = map(float, extent)
     path = Path(path)
-    pts, starts = _read_band(str(path), path.stat().st_mtime, south, north)
+    pts, starts = _read_band(str(path), path.stat().st_mtime, float(extent[2]),
+                             float(extent[3]))
+    return lines_in_extent(pts, starts, extent)
+
+
+def lines_in_extent(points: np.ndarray, starts: np.ndarray,
+                    extent: tuple[float, float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`coastline_xy` on lines in memory: ``points`` ``(n, 2)`` lon/lat in degrees (any
+    longitude convention), ``starts`` the index of each line's first point (sorted, first 0)."""
+    west, east, south, north = map(float, extent)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    starts = np.asarray(starts, dtype=np.int64)
     if not len(pts):
         return np.empty(0), np.empty(0)
     lon, lat = pts[:, 0], pts[:, 1]
