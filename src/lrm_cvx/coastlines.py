@@ -214,12 +214,16 @@ def draw_coast(ax: Any, lat: Any, lon: Any, coast: Any = "auto", *,
                    else "no coastline shapefile found offline")
             raise DataError(f"coast='cartopy': {why}; {_HOW}")
         if path is not None:
+            from matplotlib import patheffects
             from matplotlib.lines import Line2D
 
             x, y = coastline_xy(path, (west, east, south, north))
-            # add_artist: the axes' data limits stay the grid's
+            # add_artist: the axes' data limits stay the grid's; a pale halo keeps the line
+            # visible on dark colours too
+            halo = patheffects.withStroke(linewidth=linewidth + 1.2, foreground="white",
+                                          alpha=0.6)
             ax.add_artist(Line2D(x, y, color=color, linewidth=linewidth, zorder=2.5,
-                                 label="_coastlines"))
+                                 label="_coastlines", path_effects=[halo]))
             return "coastlines"
     if valid is None:
         return None
