@@ -26,9 +26,10 @@ SRC = Path(lrm_cvx.__file__).parent
 # covers its submodules). An import may go sideways (same layer) or down, never up.
 LAYERS: tuple[tuple[str, ...], ...] = (
     # base: errors, shared checks, BLAS threads, the Registry class, the recommended setting
-    # and the interactive (folium) map builder, which takes plain arrays
+    # and the map helpers, which take plain arrays: the interactive (folium) map builder, the
+    # coastlines of the static maps (plots and Plan.plot draw them)
     ("lrm_cvx.errors", "lrm_cvx._validation", "lrm_cvx._blas", "lrm_cvx.registry",
-     "lrm_cvx.recommended", "lrm_cvx.interactive"),
+     "lrm_cvx.recommended", "lrm_cvx.interactive", "lrm_cvx.coastlines"),
     # grid geometry (the readers crop and order by it, so it sits below io)
     ("lrm_cvx.region",),
     # loaders and writers; the bundled samples (io.generic's `sample:NAME`)

@@ -259,9 +259,11 @@ def cmd_monitor_map(args: argparse.Namespace) -> int:
                                  squeeze=False)
         axes = axes.ravel()
         units = str(ds["mean"].attrs.get("units", "")).strip()
-        plot_map(ds["mean"], ax=axes[0], label=f"{what} mean")
+        coast = None if args.coast == "none" else args.coast
+        plot_map(ds["mean"], ax=axes[0], label=f"{what} mean", coast=coast)
         axes[0].set_title(f"{what} mean, {_label(ds['time'].values)}", fontsize=9)
-        plot_map(ds["predictive_std"], ax=axes[1], cmap="magma", label="predictive std")
+        plot_map(ds["predictive_std"], ax=axes[1], cmap="magma", label="predictive std",
+                 coast=coast)
         axes[1].set_title(f"predictive std{f' ({units})' if units else ''}, "
                           f"{_label(ds['time'].values)}", fontsize=9)
         save_figure(fig, out, formats=(suffix[1:],))
@@ -363,6 +365,10 @@ def add_monitor_parser(sub: Any) -> None:
                    help="the forecast for --time (default the next step) instead of the "
                    "posterior")
     q.add_argument("--time", default=None, help="time of the forecast")
+    q.add_argument("--coast", choices=["auto", "cartopy", "outline", "none"], default="auto",
+                   help="coast on a .png/.pdf map: auto = real coastlines where cartopy's "
+                   "Natural Earth shapefile (or $LRM_CVX_COASTLINES) is at hand offline, else "
+                   "the outline of the cells with values (default auto)")
     add_output(q)
     q.set_defaults(func=cmd_monitor_map)
     for action in msub.choices.values():

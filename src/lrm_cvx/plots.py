@@ -15,6 +15,7 @@ import numpy as np
 import xarray as xr
 
 from ._validation import atomic_output
+from .coastlines import check_coast, draw_coast
 from .errors import DataError
 
 __all__ = ["plot_metrics", "plot_temporal_metrics", "plot_predictions", "plot_map",
@@ -215,10 +216,12 @@ def _readable_ticks(ax: Any) -> None:
 
 def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
              route: xr.Dataset | None = None, label: str | None = None,
-             coast: bool = True, **kwargs: Any):
+             coast: str | bool | None = "auto", **kwargs: Any):
     """One ``(lat, lon)`` map with labelled axes (degrees north / east, ticks spaced so their
-    labels never overlap), masked (NaN) cells shaded grey and outlined (``coast``: the coast
-    as the data know it), a colour bar labelled ``label (units)`` unless
+    labels never overlap), masked (NaN) cells shaded grey, the coast (``coast``: ``"auto"``
+    real coastlines where cartopy's shapefile or ``$LRM_CVX_COASTLINES`` is at hand, else the
+    outline of the cells with values; ``"cartopy"``, ``"outline"`` or None, see
+    :func:`lrm_cvx.coastlines.draw_coast`), a colour bar labelled ``label (units)`` unless
     ``add_colorbar=False``, and
     optionally a route (a Dataset with ``lat`` and ``lon`` per stop, start starred) drawn over
     it; returns the axes."""
@@ -227,6 +230,7 @@ def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
     if not isinstance(field, xr.DataArray) or field.ndim != 2:
         raise DataError(f"field must be a (lat, lon) DataArray, got "
                         f"{getattr(field, 'dims', type(field).__name__)}")
+    coast = check_coast(coast)
     if ax is None:
         _, ax = plt.subplots(figsize=(3.5, 3.0), constrained_layout=True)
     lat_dim, lon_dim = field.dims
@@ -235,13 +239,8 @@ def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
         kwargs.setdefault("cbar_kwargs", {"label": _with_units(name, _units(field))})
     field.plot.pcolormesh(ax=ax, cmap=cmap, add_labels=False, rasterized=True, **kwargs)
     ax.set_facecolor(_LAND)
-    valid = np.isfinite(field.values)
-    if coast and valid.any() and not valid.all() and min(valid.shape) > 1:
-        # the coast as the data know it: the outline of the cells with values (cartopy's
-        # coastlines would download Natural Earth files at first use, which a field laptop
-        # or this package's CI cannot)
-        ax.contour(field[lon_dim].values, field[lat_dim].values, valid.astype(float),
-                   levels=[0.5], colors="0.25", linewidths=0.6)
+    draw_coast(ax, field[lat_dim].values, field[lon_dim].values, coast,
+               valid=np.isfinite(field.values))
     if route is not None:
         ax.plot(route["lon"], route["lat"], "-", color="white", lw=1.6)
         ax.plot(route["lon"], route["lat"], "-o", color="#D55E00", lw=0.8, ms=1.8)
@@ -257,7 +256,8 @@ def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
 
 
 def plot_prediction_panels(truth: xr.DataArray, rows: Sequence[Mapping[str, Any]], *,
-                           cmap: str = "RdBu_r", std_cmap: str = "magma_r"):
+                           cmap: str = "RdBu_r", std_cmap: str = "magma_r",
+                           coast: str | bool | None = "auto"):
     """Truth, prediction and standard deviation side by side, one row per setting.
 
     ``truth`` is the ``(lat, lon)`` snapshot (its ``units`` attr labels the colour bars);
@@ -265,7 +265,7 @@ def plot_prediction_panels(truth: xr.DataArray, rows: Sequence[Mapping[str, Any]
     DataArrays on the same grid) and optionally ``route`` (a Dataset with ``lat``/``lon``
     per stop), drawn over every panel of the row. Truth and predictions share one colour
     scale (symmetric about 0 when the data straddle it), the stds another; land / missing
-    cells are grey. Returns the figure.
+    cells are grey; ``coast`` as in :func:`plot_map`. Returns the figure.
     """
     import matplotlib.pyplot as plt
 
@@ -287,11 +287,11 @@ def plot_prediction_panels(truth: xr.DataArray, rows: Sequence[Mapping[str, Any]
         for i, row in enumerate(rows):
             route = row.get("route")
             plot_map(truth, ax=axes[i, 0], cmap=cmap, vmin=lo, vmax=hi, route=route,
-                     add_colorbar=False)
+                     add_colorbar=False, coast=coast)
             plot_map(row["prediction"], ax=axes[i, 1], cmap=cmap, vmin=lo, vmax=hi,
-                     route=route, add_colorbar=False)
+                     route=route, add_colorbar=False, coast=coast)
             plot_map(row["std"], ax=axes[i, 2], cmap=std_cmap, vmin=0, vmax=smax, route=route,
-                     add_colorbar=False)
+                     add_colorbar=False, coast=coast)
             axes[i, 0].set_title("truth (held-out snapshot)")
             axes[i, 1].set_title(f"prediction\n{row['label']}")
             axes[i, 2].set_title("standard deviation")
@@ -343,7 +343,8 @@ def plot_demo_metrics(table: Any, *, units: str = "", ax: Any = None):
 
 def plot_predictions(model: Any, snapshot: xr.DataArray, routes: Mapping[float, Sequence[int]],
                      *, ridge: float = 0.0, cmap: str = "viridis", error_cmap: str = "gray_r",
-                     robots: Mapping[float, Sequence[int]] | None = None):
+                     robots: Mapping[float, Sequence[int]] | None = None,
+                     coast: str | bool | None = "auto"):
     """The qualitative figure: for each budget, the error heat map and the predicted map.
 
     ``snapshot`` is one test snapshot ``(lat, lon)`` on the model's grid; ``routes`` maps a
@@ -351,7 +352,7 @@ def plot_predictions(model: Any, snapshot: xr.DataArray, routes: Mapping[float, 
     route's cells (cells it lacks are skipped); the error map is ``|prediction - snapshot|``
     on the snapshot's observed cells, darker = larger, as in the paper. ``robots`` (a fleet)
     maps a budget to the robot of each route entry (same length, -1 = padding): each robot's
-    route is drawn as its own line.
+    route is drawn as its own line. ``coast`` as in :func:`plot_map`.
     """
     import matplotlib.pyplot as plt
 
@@ -377,9 +378,9 @@ def plot_predictions(model: Any, snapshot: xr.DataArray, routes: Mapping[float, 
             cells = np.asarray(cells, dtype=np.int64)
             cells = cells[cells >= 0]
             plot_map(errors[budget], ax=axes[row, 0], cmap=error_cmap, vmin=0, vmax=emax,
-                     route=route, add_colorbar=False)
+                     route=route, add_colorbar=False, coast=coast)
             plot_map(preds[budget], ax=axes[row, 1], cmap=cmap, vmin=lo, vmax=hi, route=route,
-                     add_colorbar=False)
+                     add_colorbar=False, coast=coast)
             axes[row, 0].set_title(f"|error|, budget {budget:g} ({len(cells)} cells)")
             axes[row, 1].set_title(f"prediction, budget {budget:g}")
         units = snapshot.attrs.get("units", "")

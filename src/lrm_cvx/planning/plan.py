@@ -614,13 +614,22 @@ class Plan:
         return explore_map(region.lat.values, region.lon.values, fields, routes=routes,
                            stops=stops, tiles=tiles)
 
-    def plot(self, ax: Any = None, background: Any = None, **background_kw: Any) -> Any:
+    def plot(self, ax: Any = None, background: Any = None, *, coast: Any = "auto",
+             **background_kw: Any) -> Any:
         """Draw the plan on a map: optional ``background`` (a ``(lat, lon)`` DataArray or array
-        on the region's grid), the route line, the cells and the start (star). Returns ``ax``."""
+        on the region's grid), the coast (``coast``: ``"auto"`` real coastlines where a
+        shapefile is at hand offline, else the outline of the region's cells; ``"cartopy"``,
+        ``"outline"`` or None, see :func:`lrm_cvx.coastlines.draw_coast`), the route line,
+        the cells and the start (star). Returns ``ax``."""
         import matplotlib.pyplot as plt
 
+        from ..coastlines import check_coast, draw_coast
+
+        coast = check_coast(coast)
         if ax is None:
             _, ax = plt.subplots()
+        grid = None if self._region is None else (
+            self._region.lat.values, self._region.lon.values, self._region.mask)
         if background is not None:
             values = np.asarray(getattr(background, "values", background), dtype=float)
             if self._region is not None and values.ndim == 1:
@@ -635,6 +644,10 @@ class Plan:
             kw = {"shading": "nearest", "cmap": "viridis"} | background_kw
             mesh = ax.pcolormesh(lon, lat, values, **kw)
             ax.figure.colorbar(mesh, ax=ax, shrink=0.8)
+            if grid is None:
+                grid = (lat, lon, np.isfinite(values))
+        if grid is not None:
+            draw_coast(ax, grid[0], grid[1], coast, valid=grid[2])
         colours = ["crimson", "royalblue", "darkorange", "seagreen", "purple", "saddlebrown"]
         for r in range(self.n_robots):
             sel = np.flatnonzero(self.route_robot == r)
