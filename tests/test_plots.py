@@ -179,3 +179,22 @@ def test_plan_and_state_explore_layers(tmp_path):
     n_seen = int(np.isfinite(snap[plan.stops]).sum())  # NaN values are not assimilated
     assert html.count("L.circleMarker") == n_seen == state.posterior.cells.size
     assert "L.control.layers" in html
+
+
+def test_a_nearly_constant_map_has_a_plain_colour_bar():
+    """A colour bar of a nearly constant field (a predictive std right after monitor init)
+    reads plain numbers, not an offset label such as '1e-9+2.698e-1'."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from lrm_cvx.plots import plot_map
+
+    values = 0.2698 + 1e-9 * np.random.default_rng(0).random((5, 6))
+    field = xr.DataArray(values, dims=("lat", "lon"), name="std",
+                         coords={"lat": np.arange(5.0), "lon": np.arange(6.0)})
+    ax = plot_map(field, coast=None)
+    ax.figure.canvas.draw()
+    cbar_ax = ax.figure.axes[-1]
+    assert cbar_ax is not ax
+    assert cbar_ax.yaxis.get_offset_text().get_text() == ""
+    assert cbar_ax.xaxis.get_offset_text().get_text() == ""

@@ -237,7 +237,11 @@ def plot_map(field: xr.DataArray, *, ax: Any = None, cmap: str = "viridis",
     if kwargs.get("add_colorbar", True):
         name = label or str(field.attrs.get("long_name", field.name or "value"))
         kwargs.setdefault("cbar_kwargs", {"label": _with_units(name, _units(field))})
-    field.plot.pcolormesh(ax=ax, cmap=cmap, add_labels=False, rasterized=True, **kwargs)
+    mesh = field.plot.pcolormesh(ax=ax, cmap=cmap, add_labels=False, rasterized=True, **kwargs)
+    cbar = getattr(mesh, "colorbar", None)
+    if cbar is not None:  # a nearly constant field: plain numbers, not "1e-9 + 2.698e-1"
+        cbar.formatter.set_useOffset(False)
+        cbar.update_ticks()
     ax.set_facecolor(_LAND)
     draw_coast(ax, field[lat_dim].values, field[lon_dim].values, coast,
                valid=np.isfinite(field.values))
