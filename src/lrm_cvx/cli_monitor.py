@@ -216,16 +216,46 @@ def _read_observations(path: str, region: Any, var: str | None) -> Any:
 def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
     with _state_lock(args.state):  # read, update and write back with no other writer between
         state = _load_state(args.state)
+        sensor = _assimilate_sensor(args, state)
         obs = _read_observations(args.observations, state.model.region_, args.var)
         before = state.n_dropped
-        state.assimilate(obs, args.time, force=args.force)
+        if sensor.is_point:
+            state.assimilate(obs, args.time, force=args.force)
+        else:  # each value is the footprint's average around its cell (issue #25 item 6)
+            from .planning.sensors import footprint_matrix
+
+            if not isinstance(obs, tuple):
+                raise _usage("--sensor with a footprint reads a CSV of footprint centres "
+                             "(value and cell or lat, lon), not a NetCDF map")
+            cells, values = obs
+            rows = footprint_matrix(state.model.region_, sensor, cells)
+            state.assimilate_rows(rows, values, args.time, force=args.force,
+                                  errors=sensor.errors)
         _save_state(state, args.state)
-    n_today = int(state.posterior.cells.size)
+    p = state.posterior
+    n_today = int(p.cells.size) + (0 if p.rows is None else int(p.rows.shape[0]))
     dropped = state.n_dropped - before
     note = f"; {dropped} NaN value(s) ignored" if dropped else ""
-    print(f"assimilated {n_today} observation(s) at {_label(state.time)}{note}; state "
+    what = "" if sensor.is_point else f" ({sensor.describe()} footprint averages)"
+    print(f"assimilated {n_today} observation(s){what} at {_label(state.time)}{note}; state "
           f"{args.state} updated")
     return 0
+
+
+def _assimilate_sensor(args: argparse.Namespace, state: Any) -> Any:
+    """The sensor whose readings ``monitor assimilate`` folds in: ``--sensor``, else the
+    stored plan's (the day's route was planned for it), else a point."""
+    from .planning.sensors import POINT, Sensor
+
+    if args.sensor is not None:
+        sensor = Sensor.of(args.sensor)
+    else:
+        plan = getattr(state, "current_plan", None)
+        sensor = plan.sensor if plan is not None else POINT
+    if sensor.is_leg:
+        raise _usage("monitor assimilate takes point or footprint readings; for a towed "
+                     "(leg-average) sensor give each leg's cells as points")
+    return sensor
 
 
 def cmd_monitor_map(args: argparse.Namespace) -> int:
@@ -356,6 +386,10 @@ def add_monitor_parser(sub: Any) -> None:
     q.add_argument("--force", action="store_true",
                    help="accept a time earlier than or equal to the state's")
     q.add_argument("--var", default=None, help="variable of a NetCDF observations file")
+    q.add_argument("--sensor", default=None, metavar="SPEC",
+                   help="each value is the average over this footprint around its cell "
+                   "(e.g. disc:5km, square:1km; 'point' for point readings; default: the "
+                   "sensor of the plan stored by monitor plan, else point)")
     q.set_defaults(func=cmd_monitor_assimilate)
 
     q = msub.add_parser("map", help="write the posterior (or forecast) mean and std maps")

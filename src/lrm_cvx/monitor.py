@@ -190,6 +190,13 @@ class MonitorState(LatentFilter):
             "cells": (("observation",), np.asarray(p.cells, dtype=np.int64)),
             "values": (("observation",), np.asarray(p.values, dtype=np.float64)),
         })
+        if p.rows is not None and p.rows.shape[0] > 0:  # today's averaged observations
+            coo = p.rows.tocoo()
+            ds["row_index"] = (("row_entry",), coo.row.astype(np.int64))
+            ds["row_cell"] = (("row_entry",), coo.col.astype(np.int64))
+            ds["row_weight"] = (("row_entry",), coo.data.astype(np.float64))
+            ds["row_values"] = (("averaged",), np.asarray(p.row_values, dtype=np.float64))
+            ds["row_noise"] = (("averaged",), np.asarray(p.row_noise, dtype=np.float64))
         dyn_vars, dyn_attrs = self.dynamics.to_dataset_vars()
         for name, value in dyn_vars.items():
             ds[name] = value
@@ -259,7 +266,8 @@ class MonitorState(LatentFilter):
                                    ds["base_precision"].values, ds["base_shift"].values,
                                    ds["cells"].values.astype(np.int64),
                                    ds["values"].values.astype(np.float64),
-                                   int(ds.attrs.get("posterior_n_dropped", 0)), *ev)
+                                   int(ds.attrs.get("posterior_n_dropped", 0)), *ev,
+                                   *_saved_rows(ds, obs.n_cells))
             kind = str(ds.attrs["time_kind"])
             t = coerce_time(ds.attrs["time"], kind, str(ds.attrs.get("calendar")) or None)
             if kind == "numeric":
@@ -291,3 +299,17 @@ class MonitorState(LatentFilter):
         return (f"MonitorState(time={time_label(self.time)}, observed={self.observed}, "
                 f"dynamics={'memoryless' if self.memoryless else self.dynamics.kind}, "
                 f"n_obs_today={self.posterior.cells.size}, n_assimilated={self.n_assimilated})")
+
+
+def _saved_rows(ds: xr.Dataset, n_cells: int) -> tuple:
+    """``(rows, row_values, row_noise)`` of the averaged observations a state file holds (the
+    posterior's defaults when none)."""
+    if "row_values" not in ds:
+        return None, np.zeros(0), np.zeros(0)
+    import scipy.sparse as sps
+
+    values = ds["row_values"].values.astype(np.float64)
+    rows = sps.csr_matrix((ds["row_weight"].values, (ds["row_index"].values,
+                                                     ds["row_cell"].values)),
+                          shape=(values.size, n_cells))
+    return rows, values, ds["row_noise"].values.astype(np.float64)

@@ -248,6 +248,7 @@ def plan_variables(plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
         "plan_traversable_kind": str(path["traversable"]), "plan_closed": int(path["closed"]),
         "plan_end": -1 if path["end"] is None else int(path["end"]), "plan_unit": path["unit"],
         "plan_sense_along": int(path["sense_along"]),
+        "plan_sensor": plan.sensor.spec(),
     }
     if path.get("speed") is not None:
         attrs["plan_speed"] = float(path["speed"])
@@ -281,7 +282,8 @@ def plan_from_variables(ds: Any, region: Any, Y: Any) -> Any:
             trav = np.asarray(ds["plan_traversable"].values).astype(bool)
         options = PathOptions(metric=desc["metric"], speed=speed, stop_cost=desc["stop_cost"],
                               traversable=trav, closed=desc["closed"], end=desc["end"],
-                              sense_along=desc["sense_along"])
+                              sense_along=desc["sense_along"],
+                              sensor=str(a.get("plan_sensor", "point")))
     return Plan.build(
         region=region, cells=arr["cells"], route=arr["route"], cost=float(a["plan_cost"]),
         information=float(a["plan_information"]), criterion=str(a["plan_criterion"]) or None,

@@ -141,6 +141,15 @@ class Sensor:
         text = f"{self.kind} {self.width_km:g} km" if self.has_footprint else self.kind
         return text + (", shared errors" if self.errors == "shared" else "")
 
+    def spec(self) -> str:
+        """The text :meth:`parse` reads back into this sensor (files, the CLI)."""
+        text = self.kind
+        if self.has_footprint:
+            text += f":{self.size_km!r}km"
+            if self.fov_deg is not None:
+                text += f",altitude={self.altitude_km!r}km,fov={self.fov_deg!r}"
+        return text + (",errors=shared" if self.errors == "shared" else "")
+
     # ------------------------------------------------------------------ construction
     @classmethod
     def of(cls, value: Any) -> Sensor:
