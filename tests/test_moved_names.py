@@ -85,7 +85,7 @@ def test_one_temporal_registry():
     from lrm_cvx.cli import build_parser
     from lrm_cvx.glrm.dynamics import TEMPORAL, temporal_value
 
-    assert TEMPORAL.choices() == ("none", "ar1", "seasonal")
+    assert TEMPORAL.choices() == ("none", "ar1", "seasonal", "auto")
     assert temporal_value(None) is None and temporal_value("none") is None
     assert temporal_value("AR1") == "ar1"
     with pytest.raises(ModelError, match="temporal must be one of"):

@@ -236,8 +236,8 @@ def test_evaluation_protocol_run_is_evaluate():
         b = evaluate(da, stop_cost=0.5, **kw)
     xr.testing.assert_identical(a, b)
     assert a.attrs["stop_cost"] == 0.5
-    with pytest.raises(TypeError, match="'sense_along'"):
-        evaluate(da, sense_along=True, **kw)
+    with pytest.raises(PlanningError, match="temporal campaigns only"):
+        evaluate(da, sense_along=True, **kw)  # sensing along needs a campaign (issue #25)
     with pytest.raises(PlanningError, match="n_robots"):
         EvaluationProtocol(da, n_robots=0, **kw)  # checked when built, before any fit
 
