@@ -182,6 +182,10 @@ class MonitorState(LatentFilter):
             "model_path": str(getattr(self, "model_path", "") or ""),
             **dyn_attrs,
         }
+        if self.aci is not None:  # the online conformal state (adaptive_conformal)
+            a = self.aci
+            ds.attrs.update(aci_levels=np.asarray(a.levels), aci_gamma=a.gamma,
+                            aci_alpha=a.alpha, aci_days=a.n_days, aci_miss=a.miss_sum)
         return ds
 
     def save(self, path: str | os.PathLike) -> None:
@@ -244,6 +248,11 @@ class MonitorState(LatentFilter):
                     n_assimilated=int(ds.attrs["n_assimilated"]),
                     n_dropped=int(ds.attrs["n_dropped"]))
         state.model_path = mpath
+        if "aci_levels" in ds.attrs:
+            state.adaptive_conformal(ds.attrs["aci_levels"], float(ds.attrs["aci_gamma"]))
+            state.aci.alpha = np.atleast_1d(np.asarray(ds.attrs["aci_alpha"], np.float64))
+            state.aci.n_days = int(ds.attrs["aci_days"])
+            state.aci.miss_sum = np.atleast_1d(np.asarray(ds.attrs["aci_miss"], np.float64))
         return state
 
     def __repr__(self) -> str:
