@@ -209,6 +209,8 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="write the summary tables as CSV here")
     ap.add_argument("--coverage", action="store_true",
                     help="the rolling-origin coverage check instead (module docstring)")
+    ap.add_argument("--folds", default="interleaved", choices=("interleaved", "forward"),
+                    help="the coverage check's calibration folds (calibrate(folds=))")
     ap.add_argument("--origins", type=int, default=None,
                     help="test blocks of the coverage check (default 3; --quick 2)")
     args = ap.parse_args()
@@ -228,12 +230,13 @@ def main() -> None:
         starts = args.starts or 2
         print(f"rolling origin: {origins} blocks of {N_TEST} snapshots, rank {RANK}, greedy "
               f"{RECOMMENDED} budget 15, {starts} starts, memoryless; calibrated on the "
-              "snapshots before each block only", flush=True)
+              f"snapshots before each block only ({args.folds} folds)", flush=True)
         t_all = time.perf_counter()
         for name in names:
             t0 = time.perf_counter()
             table = rolling_coverage({**DATASETS, **SHORT_DATASETS}[name].loader(),
-                                     n_origins=origins, n_starts=starts)
+                                     n_origins=origins, n_starts=starts,
+                                     calibrate_kw={**CALIBRATE_KW, "folds": args.folds})
             if args.out:
                 os.makedirs(args.out, exist_ok=True)
                 table.to_csv(os.path.join(args.out, f"{name}_coverage.csv"), index=False)

@@ -192,6 +192,40 @@ def test_posterior_interval_uses_the_thresholds(heavy_model):
         calibrate(model, train, method="conformal", levels=(0.68, 1.0), **_KW)
     with pytest.raises(ModelError, match="method"):
         calibrate(model, train, method="isotonic", **_KW)
+    with pytest.raises(ModelError, match="folds"):
+        calibrate(model, train, method="conformal", folds="random", **_KW)
+
+
+def test_forward_folds_calibrate_on_the_future(heavy_model):
+    """folds="forward": each block of the second half is folded in by a model refitted on the
+    snapshots before it only; the thresholds still come out finite and ordered."""
+    data, train, model, cal = heavy_model
+    from lrm_cvx.glrm import calibration as C
+
+    seen = []
+    real = C._clone
+
+    def spy(m, **kw):
+        sub = real(m, **kw)
+        fit = sub.fit
+
+        def recording_fit(d, **k):
+            seen.append(d.sizes["time"])
+            return fit(d, **k)
+
+        sub.fit = recording_fit
+        return sub
+
+    C._clone = spy
+    try:
+        fwd = calibrate(model, train, method="conformal", folds="forward", **_KW)
+    finally:
+        C._clone = real
+        model.calibration_ = cal  # the fixture's
+    T = train.sizes["time"]
+    starts = [b[0] for b in np.array_split(np.arange(T), 8)[4:]]
+    assert seen == starts  # refitted on the snapshots before each block, nothing after
+    assert 0 < fwd.quantiles[0] < fwd.quantiles[1] < np.inf
 
 
 def test_conformal_calibration_is_saved_with_the_model(heavy_model, tmp_path):

@@ -148,7 +148,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                  prior: str = "empirical", spatial: bool | None = None,
                  temporal: str | None = None, seed: Any = 0, twin: bool = False,
                  innovations: bool = False, residual_scales: Sequence[float] | None = None,
-                 max_cells: int | None = None) -> Any:
+                 max_cells: int | None = None, folds: str = "interleaved") -> Any:
     """Standardized cross-validated fold-in residuals (see the module docstring).
 
     ``data`` ``(time, lat, lon)``: the snapshots ``model`` was fitted on (its region is used).
@@ -165,7 +165,11 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     (memoryless, innovations) a dict ``{rho: records}``: the same fold-ins (same cells) with
     the refitted model's residual and noise variances multiplied by ``rho``. ``max_cells``
     (memoryless): score at most that many of each fold-in's held-out cells (a seeded random
-    subset; None: all), which bounds the kriging cost on large grids.
+    subset; None: all), which bounds the kriging cost on large grids. ``folds``
+    (memoryless): ``"interleaved"`` (every ``n_blocks``-th snapshot, refitted on all the
+    others) or ``"forward"`` (the contiguous blocks of the record's second half, each refitted
+    on the snapshots before it: the fold-in of a *future* snapshot, as a test block after the
+    training is; less training data per refit, so wider on stationary records).
     """
     from .posterior import model_prior
 
@@ -181,7 +185,10 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
         raise ModelError(f"sizes must be positive integers, got {sizes}")
     spatial = _use_spatial(model, spatial)
     rng = as_generator(seed)
-    if temporal is not None:  # contiguous blocks, forward chaining from half the record on
+    if folds not in ("interleaved", "forward"):
+        raise ModelError(f"folds must be 'interleaved' or 'forward', got {folds!r}")
+    forward = temporal is not None or folds == "forward"
+    if forward:  # contiguous blocks, forward chaining from half the record on
         blocks = np.array_split(np.arange(T), int(n_blocks))[int(n_blocks) // 2:]
     else:  # interleaved folds: every n_blocks-th snapshot
         blocks = [np.arange(b, T, int(n_blocks)) for b in range(int(n_blocks))]
@@ -189,7 +196,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for block in blocks:
-            if temporal is not None:
+            if forward:
                 train_idx = np.arange(block[0])
             else:
                 train_idx = np.setdiff1d(np.arange(T), block)
@@ -412,7 +419,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
               temporal: str | None | bool = None, adaptive: bool = True,
               residual: bool = True, method: str = "gaussian",
               levels: Sequence[float] = (0.68, 0.95), max_cells: int | None = None,
-              seed: Any = 0) -> Calibration:
+              folds: str = "interleaved", seed: Any = 0) -> Calibration:
     """Estimate the model's variance scale from cross-validated fold-in residuals on its
     training snapshots ``data`` and store it as ``model.calibration_`` (returned).
 
@@ -430,8 +437,9 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
     heavier-tailed than a normal (it targets their geometric mean); the per-level thresholds
     do, with coverage ``>= level`` for scores exchangeable with the test's. ``levels``: each
     in (0, 1). Intervals: ``LatentPosterior.interval(level)`` /
-    ``interval_coverage``; ``predictive_std`` itself keeps the Gaussian scale. ``max_cells``:
-    see :func:`cv_residuals` (None: every held-out cell).
+    ``interval_coverage``; ``predictive_std`` itself keeps the Gaussian scale. ``max_cells``,
+    ``folds``: see :func:`cv_residuals` (``folds="forward"`` for records that drift, whose
+    future the interleaved folds under-state).
 
     ``adaptive`` (default): also estimate a per-snapshot scale (:func:`fit_adaptive_scale`,
     ``Calibration.dof``; None when the fixed scale fits the held-out residuals best): each
@@ -461,7 +469,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
     rhos = RESIDUAL_SCALES if residual else (1.0,)
     conformal_fit = method == "conformal"
     by_rho = cv_residuals(model, data, seed=seed, innovations=True, residual_scales=rhos,
-                          max_cells=max_cells, **kw)
+                          max_cells=max_cells, folds=folds, **kw)
     best = None
     for rho, records in by_rho.items():
         zr = np.concatenate([r[0] for r in records])
