@@ -419,7 +419,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
               temporal: str | None | bool = None, adaptive: bool = True,
               residual: bool = True, method: str = "gaussian",
               levels: Sequence[float] = (0.68, 0.95), max_cells: int | None = None,
-              folds: str = "interleaved", seed: Any = 0) -> Calibration:
+              folds: str | None = None, seed: Any = 0) -> Calibration:
     """Estimate the model's variance scale from cross-validated fold-in residuals on its
     training snapshots ``data`` and store it as ``model.calibration_`` (returned).
 
@@ -438,8 +438,12 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
     do, with coverage ``>= level`` for scores exchangeable with the test's. ``levels``: each
     in (0, 1). Intervals: ``LatentPosterior.interval(level)`` /
     ``interval_coverage``; ``predictive_std`` itself keeps the Gaussian scale. ``max_cells``,
-    ``folds``: see :func:`cv_residuals` (``folds="forward"`` for records that drift, whose
-    future the interleaved folds under-state).
+    ``folds``: see :func:`cv_residuals`; ``folds=None`` is ``"forward"`` for the conformal
+    method (the fold-in of a snapshot *after* its refit's training, as a test block after the
+    training is: on the two 6-hourly storm records of ``bench_generalization.py`` the
+    interleaved folds under-stated the next block's error and covered 0.78 / 0.83 at 95 %,
+    forward-chained 0.97 / 0.96) and ``"interleaved"`` for the Gaussian one (as measured in
+    docs/monitoring.md).
 
     ``adaptive`` (default): also estimate a per-snapshot scale (:func:`fit_adaptive_scale`,
     ``Calibration.dof``; None when the fixed scale fits the held-out residuals best): each
@@ -462,6 +466,8 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
     """
     if method not in ("gaussian", "conformal"):
         raise ModelError(f"method must be 'gaussian' or 'conformal', got {method!r}")
+    if folds is None:
+        folds = "forward" if method == "conformal" else "interleaved"
     levels = tuple(check_level(lv, "levels") for lv in np.atleast_1d(levels))
     if method == "conformal" and not levels:
         raise ModelError("levels must hold at least one level in (0, 1)")
