@@ -35,6 +35,22 @@ cores (estimate from the quick run's CPU time; ``--jobs 2`` runs evaluate's star
 
 MSE is in the data's units squared. A final line per set gives the wall time. ``--out DIR`` also
 writes every ``summary`` table as CSV.
+
+``--coverage`` (issue #24, item 3) runs instead the rolling-origin coverage check: for each of
+``--origins`` consecutive test blocks of 8 snapshots at the end of the record, the model is
+fitted on the snapshots before the block and calibrated on them only
+(``calibrate(model, train, method="conformal", **CALIBRATE_KW)``: cross-validated,
+design-matched fold-ins),
+then ``evaluate`` runs the greedy's memoryless campaign (budget 15, 2 starts) through the
+block. Printed per set: the mean 68 % / 95 % coverage over the blocks and the lowest block's
+95 % coverage, for the uncalibrated intervals (``raw``), the Gaussian variance scale from the
+same folds (``gaussian``) and the per-level conformal thresholds (``conformal``); the targets
+are 0.63-0.73 / 0.93-0.97 / >= 0.90. Cost: 229-465 s for the six sets (3 blocks; the
+calibration is ~90 % of it), ``--quick`` 2 blocks.
+
+``--aci``: the monitor loop (``temporal="ar1"`` filter, conformal calibration) through the last
+24 snapshots, with the offline thresholds and with online ACI (``gamma`` 0.02, 0.05)
+(:func:`aci_coverage`).
 """
 
 from __future__ import annotations
@@ -124,6 +140,117 @@ def report(name: str, tidy: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def origin_split(data, origin: int, block: int = N_TEST):
+    """``(train, through)``: the snapshots before ``origin`` (what the fit and the calibration
+    see) and those up to the end of the test block ``[origin, origin + block)``."""
+    return data.isel(time=slice(None, origin)), data.isel(time=slice(None, origin + block))
+
+
+def calibrated_variants(model, train, levels=(0.68, 0.95), seed: int = 0, **kw) -> dict:
+    """``{"raw": None, "gaussian": ..., "conformal": ...}``: the calibrations compared, from one
+    ``calibrate(method="conformal")`` on ``train`` only (the Gaussian one is the same without
+    its conformal thresholds)."""
+    from dataclasses import replace
+
+    from lrm_cvx.glrm.calibration import calibrate
+
+    cal = calibrate(model, train, method="conformal", levels=levels, seed=seed, **kw)
+    gauss = replace(cal, method="gaussian", levels=(), quantiles=(), score_table=())
+    return {"raw": None, "gaussian": gauss, "conformal": cal}
+
+
+CALIBRATE_KW = {"n_blocks": 8, "max_snapshots": 2, "max_cells": 300}
+"""The calibration's cost settings in the coverage check (conformal's default forward folds:
+the 4 blocks of the record's second half, 2 held-out snapshots each, at most 300 scored cells
+per fold-in; ``--folds interleaved``: 4 interleaved folds)."""
+
+
+def rolling_coverage(data, n_origins: int = 3, block: int = N_TEST, budget: int = 15,
+                     n_starts: int = 2, seed: int = 0, calibrate_kw: dict | None = None
+                     ) -> pd.DataFrame:
+    """Coverage of the greedy's intervals on ``n_origins`` rolling test blocks (module
+    docstring): one row per block and calibration variant, with ``cov68``, ``cov95`` (mean
+    over the block's campaigns and snapshots) and the calibration's cost in seconds."""
+    from lrm_cvx import GLRM, evaluate
+    from lrm_cvx.evaluation import summary
+
+    T = data.sizes["time"]
+    rows = []
+    for b in range(n_origins):
+        origin = T - (n_origins - b) * block
+        train, through = origin_split(data, origin, block)
+        model = GLRM(rank=RANK, offset=True, spatial="exponential", random_state=0,
+                     progress=False).fit(train)
+        t0 = time.perf_counter()
+        kw = CALIBRATE_KW if calibrate_kw is None else calibrate_kw
+        variants = calibrated_variants(model, train, seed=seed, **kw)
+        cost = time.perf_counter() - t0
+        for name, cal in variants.items():
+            model.calibration_ = cal
+            res = evaluate(through, model=model, n_test=block, budgets=(budget,),
+                           n_starts=n_starts, methods=(RECOMMENDED,), min_observations=1,
+                           certify=False, progress=False, seed=seed,
+                           fold_in={"prior": "empirical", "spatial": True})
+            row = summary(res).iloc[0]
+            rows.append({"block": b, "origin": origin, "variant": name,
+                         "cov68": float(row["coverage68_mean"]),
+                         "cov95": float(row["coverage95_mean"]),
+                         "mse": float(row["mse_mean"]), "calibrate_s": cost})
+    return pd.DataFrame(rows)
+
+
+def aci_coverage(data, n_days: int = 3 * N_TEST, size: int = 15,
+                 gammas: tuple = (None, 0.02, 0.05), seed: int = 0) -> pd.DataFrame:
+    """The monitor loop with and without online ACI: the ``temporal="ar1"`` model fitted and
+    conformally calibrated on all but the last ``n_days`` snapshots, then ``MonitorState``
+    through them, one route-like set of ``size`` cells a day (the same cells for every
+    ``gamma``); coverage of the posterior's intervals at the day's other observed cells. One
+    row per ``gamma`` (None: the offline thresholds, no ACI): mean 68 / 95 % coverage and the
+    lowest 8-day block's 95 %."""
+    import numpy as np
+
+    from lrm_cvx import GLRM
+    from lrm_cvx.glrm.calibrated import interval_coverage
+    from lrm_cvx.glrm.calibration import calibrate, sample_sets
+    from lrm_cvx.monitor import MonitorState
+
+    train, test = data.isel(time=slice(None, -n_days)), data.isel(time=slice(-n_days, None))
+    model = GLRM(rank=RANK, offset=True, spatial="exponential", temporal="ar1", random_state=0,
+                 progress=False).fit(train)
+    calibrate(model, train, method="conformal", seed=seed, **CALIBRATE_KW)
+    V = model.region_.stack(test).astype(float)
+    rng = np.random.default_rng(seed)
+    days = [sample_sets(model.region_, np.isfinite(V[i]), size, "route", rng)
+            for i in range(n_days)]
+    rows = []
+    for gamma in gammas:
+        state = MonitorState.from_model(model)
+        if gamma:
+            state.adaptive_conformal(gamma=gamma)
+        cov = []
+        for i, t in enumerate(test["time"].values):  # a loop over days
+            cells = days[i]
+            state.assimilate((cells, V[i, cells]), time=t)
+            held = np.setdiff1d(np.flatnonzero(np.isfinite(V[i])), cells)
+            mean, _, pstd = state.posterior.predict_all(cells=held)
+            cov.append(interval_coverage(V[i, held], mean, pstd,
+                                         multipliers=state.interval_multipliers()))
+        c = np.array(cov)
+        blocks = c[: n_days // N_TEST * N_TEST, 1].reshape(-1, N_TEST).mean(axis=1)
+        rows.append({"gamma": "none" if gamma is None else gamma, "cov68": c[:, 0].mean(),
+                     "cov95": c[:, 1].mean(), "cov95_min_block": blocks.min()})
+    return pd.DataFrame(rows)
+
+
+def coverage_report(name: str, table: pd.DataFrame) -> pd.DataFrame:
+    """Per variant: mean 68 % / 95 % coverage over the blocks and the lowest block's 95 %."""
+    out = table.groupby("variant", sort=False).agg(
+        cov68_mean=("cov68", "mean"), cov95_mean=("cov95", "mean"),
+        cov95_min_block=("cov95", "min"), mse=("mse", "mean"))
+    out.insert(0, "set", name)
+    return out.reset_index()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true",
@@ -135,6 +262,14 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=None, help="random walks per start")
     ap.add_argument("--jobs", type=int, default=1, help="evaluate's n_jobs")
     ap.add_argument("--out", default=None, help="write the summary tables as CSV here")
+    ap.add_argument("--coverage", action="store_true",
+                    help="the rolling-origin coverage check instead (module docstring)")
+    ap.add_argument("--aci", action="store_true",
+                    help="the monitor loop with / without online ACI (aci_coverage)")
+    ap.add_argument("--folds", default="forward", choices=("interleaved", "forward"),
+                    help="the coverage check's calibration folds (calibrate(folds=))")
+    ap.add_argument("--origins", type=int, default=None,
+                    help="test blocks of the coverage check (default 3; --quick 2)")
     args = ap.parse_args()
 
     budgets = (15,) if args.quick else (15, 30, 60)
@@ -146,6 +281,41 @@ def main() -> None:
     if missing:
         print(f"not installed: {missing}; install with: {' ; '.join(install_commands())}")
         names = [n for n in names if n not in missing]
+
+    if args.aci:
+        print(f"monitor loop (ar1 filter, conformal calibration) through the last {3 * N_TEST} "
+              "snapshots, a 15-cell route a day; coverage at the other cells", flush=True)
+        for name in names:
+            t0 = time.perf_counter()
+            table = aci_coverage({**DATASETS, **SHORT_DATASETS}[name].loader())
+            table.insert(0, "set", name)
+            print(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+            print(f"[{name}] {time.perf_counter() - t0:.0f} s\n", flush=True)
+        return
+    if args.coverage:
+        origins = args.origins or (2 if args.quick else 3)
+        starts = args.starts or 2
+        print(f"rolling origin: {origins} blocks of {N_TEST} snapshots, rank {RANK}, greedy "
+              f"{RECOMMENDED} budget 15, {starts} starts, memoryless; calibrated on the "
+              f"snapshots before each block only ({args.folds} folds)", flush=True)
+        t_all = time.perf_counter()
+        for name in names:
+            t0 = time.perf_counter()
+            kw = {**CALIBRATE_KW, "folds": args.folds}
+            if args.folds == "interleaved":
+                kw["n_blocks"] = 4
+            table = rolling_coverage({**DATASETS, **SHORT_DATASETS}[name].loader(),
+                                     n_origins=origins, n_starts=starts, calibrate_kw=kw)
+            if args.out:
+                os.makedirs(args.out, exist_ok=True)
+                table.to_csv(os.path.join(args.out, f"{name}_coverage.csv"), index=False)
+            with pd.option_context("display.width", 250, "display.max_columns", 30):
+                print(coverage_report(name, table).to_string(
+                    index=False, float_format=lambda v: f"{v:.3f}"))
+            print(f"[{name}] {time.perf_counter() - t0:.0f} s (calibrate "
+                  f"{table.groupby('block')['calibrate_s'].first().sum():.0f} s)\n", flush=True)
+        print(f"total {time.perf_counter() - t_all:.0f} s")
+        return
 
     print(f"rank {RANK}, last {N_TEST} snapshots held out, budgets {budgets}, {n_starts} starts, "
           f"{trials} random walks per start; greedy = {RECOMMENDED}, offset + exponential "

@@ -219,6 +219,10 @@ class MonitorState(LatentFilter):
             for name, value in variables.items():
                 ds[name] = value
             ds.attrs.update(attrs, plan_time=time_to_str(self.current_plan_time))
+        if self.aci is not None:  # the online conformal state (adaptive_conformal)
+            a = self.aci
+            ds.attrs.update(aci_levels=np.asarray(a.levels), aci_gamma=a.gamma,
+                            aci_alpha=a.alpha, aci_days=a.n_days, aci_miss=a.miss_sum)
         return ds
 
     def save(self, path: str | os.PathLike) -> None:
@@ -293,6 +297,11 @@ class MonitorState(LatentFilter):
                 raise DataError(f"state file {spath!r} holds an incomplete or corrupt plan: "
                                 f"{exc}") from None
             state.current_plan_time = float(pt) if kind == "numeric" else pt
+        if "aci_levels" in ds.attrs:
+            state.adaptive_conformal(ds.attrs["aci_levels"], float(ds.attrs["aci_gamma"]))
+            state.aci.alpha = np.atleast_1d(np.asarray(ds.attrs["aci_alpha"], np.float64))
+            state.aci.n_days = int(ds.attrs["aci_days"])
+            state.aci.miss_sum = np.atleast_1d(np.asarray(ds.attrs["aci_miss"], np.float64))
         return state
 
     def __repr__(self) -> str:

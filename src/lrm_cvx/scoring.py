@@ -155,7 +155,8 @@ def coverage_subset(values: np.ndarray, seed: int = 0) -> list[np.ndarray]:
 def model_coverage(prior: LatentPosterior, values: np.ndarray, subsets: list[np.ndarray],
                     cells: np.ndarray, min_observations: int) -> np.ndarray:
     """Coverage of the central 68 % / 95 % predictive intervals (``mean +- z *
-    predictive_std``, calibrated when the model is: glrm/calibration.py) over each test
+    predictive_std``, calibrated when the model is: glrm/calibration.py; ``z`` a conformal
+    calibration's per-level threshold when it has one) over each test
     snapshot's held-out observed cells (its ``subsets`` entry minus the sampled ``cells``).
     Returns ``(n_test, 2)``, NaN where the snapshot has too few observations."""
     from .glrm.calibration import interval_coverage
@@ -171,5 +172,6 @@ def model_coverage(prior: LatentPosterior, values: np.ndarray, subsets: list[np.
         if not post.is_proper or held.size == 0:
             continue
         mean, _ = post.predict(cells=held)
-        out[t] = interval_coverage(values[t, held], mean, post.predictive_std(cells=held))
+        out[t] = interval_coverage(values[t, held], mean, post.predictive_std(cells=held),
+                                   multipliers=post.interval_multipliers())
     return out

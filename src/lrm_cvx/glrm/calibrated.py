@@ -18,9 +18,54 @@ import numpy as np
 from ..errors import ModelError
 
 __all__ = ["Calibration", "variance_scale", "noise_variance", "predictive_std",
-           "interval_coverage"]
+           "interval_coverage", "conformal_quantile", "check_level", "gaussian_multiplier",
+           "AdaptiveConformal", "SCORE_GRID"]
 
 _PREFIX = "calibration_"
+_TUPLES = ("levels", "quantiles", "score_table")
+METHODS = ("gaussian", "conformal")
+SCORE_GRID = tuple(np.round(np.r_[np.arange(0.01, 0.99, 0.01), np.arange(0.99, 0.9991, 0.001)],
+                            6).tolist())
+"""Probabilities at which a conformal calibration stores the score quantiles (for other levels
+and for adaptive conformal inference)."""
+
+
+def check_level(level: Any, name: str = "level") -> float:
+    """``level`` as a float in the open interval (0, 1), else a one-line ModelError naming
+    ``name``."""
+    try:
+        lv = float(level)
+    except (TypeError, ValueError):
+        raise ModelError(f"{name} must be a number in (0, 1), got {level!r}") from None
+    if not 0.0 < lv < 1.0:
+        raise ModelError(f"{name} must be in (0, 1), got {level!r}")
+    return lv
+
+
+def gaussian_multiplier(level: Any) -> Any:
+    """``z`` with ``P(|N(0, 1)| <= z) = level`` (scalar or array; 0 at level 0, inf at 1)."""
+    from scipy.stats import norm
+
+    return norm.ppf(0.5 + 0.5 * np.asarray(level, dtype=np.float64))
+
+
+def conformal_quantile(scores: Any, level: Any) -> Any:
+    """Split-conformal threshold of the non-conformity ``scores`` (``(..., n)``, the last axis
+    the calibration set; NaN ignored): the ``k``-th smallest, ``k = ceil((n + 1) level)``, i.e.
+    the empirical quantile at ``ceil((n + 1) level) / n``; ``inf`` when ``k > n``. For scores
+    exchangeable with a new one, ``P(new <= threshold) >= level``, and ``< level + 1 / (n + 1)``
+    when there are no ties (Vovk et al. 2005; Lei et al. 2018). ``level`` in (0, 1), a scalar
+    or ``(m,)`` (then a trailing axis of length m). Vectorised over the leading axes."""
+    checked = [check_level(v) for v in np.atleast_1d(np.asarray(level, dtype=object))]
+    lv = np.asarray(checked[0] if np.ndim(level) == 0 else checked, dtype=np.float64)
+    S = np.sort(np.asarray(scores, dtype=np.float64), axis=-1)  # NaN last
+    n = np.sum(np.isfinite(S) | np.isinf(S), axis=-1)  # non-NaN count per row
+    k = np.ceil((n[..., None] + 1) * np.atleast_1d(lv)) - 1  # 0-based index
+    ok = k < n[..., None]
+    idx = np.where(ok, k, 0).astype(np.int64)
+    q = np.take_along_axis(S, idx, axis=-1) if S.ndim else S
+    q = np.where(ok, q, np.inf)
+    return q[..., 0] if lv.ndim == 0 else q
 
 
 @dataclass(frozen=True)
@@ -53,8 +98,20 @@ class Calibration:
     discount: float = 0.0
     residual_scale: float = 1.0
     dof_loglik_gain: float = 0.0
+    method: str = "gaussian"
+    levels: tuple = ()
+    quantiles: tuple = ()
+    score_table: tuple = ()
 
     def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ModelError(f"Calibration.method must be one of {METHODS}, got {self.method!r}")
+        for name in _TUPLES:
+            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+        if len(self.levels) != len(self.quantiles):
+            raise ModelError("Calibration.levels and quantiles must have the same length")
+        for lv in self.levels:
+            check_level(lv, "levels")
         for name in ("scale", "temporal_scale", "dof", "residual_scale"):
             v = getattr(self, name)
             if v is None:
@@ -69,10 +126,42 @@ class Calibration:
             return self.temporal_scale
         return self.scale
 
+    @property
+    def is_conformal(self) -> bool:
+        """True for a conformal calibration (per-level interval multipliers)."""
+        return self.method == "conformal" and bool(self.levels or self.score_table)
+
+    def score_quantile(self, level: float) -> float:
+        """The conformal threshold of the calibrated scores at ``level`` (in (0, 1)): exact at
+        the calibrated ``levels``, else interpolated in the stored ``score_table``
+        (:data:`SCORE_GRID`; clamped to its ends; inf beyond ``1 - 1 / (n + 1)``). A Gaussian
+        calibration: the normal quantile."""
+        lv = check_level(level)
+        for known, q in zip(self.levels, self.quantiles, strict=True):
+            if abs(known - lv) < 1e-12:
+                return q
+        if not self.score_table:
+            return float(gaussian_multiplier(lv))
+        if self.n_residuals and lv > 1.0 - 1.0 / (self.n_residuals + 1):
+            return float("inf")
+        return float(np.interp(lv, SCORE_GRID, self.score_table))
+
+    def multiplier(self, level: float) -> float:
+        """Half-width of the central ``level`` interval in units of the calibrated predictive
+        std: the conformal threshold for a conformal calibration, else the normal quantile."""
+        if self.is_conformal:
+            return self.score_quantile(level)
+        return float(gaussian_multiplier(check_level(level)))
+
     def to_attrs(self) -> dict[str, Any]:
-        """Flat NetCDF attributes ``calibration_*`` (None stored as NaN)."""
+        """Flat NetCDF attributes ``calibration_*`` (None stored as NaN; the tuples as 1-D
+        arrays, left out when empty)."""
         out = {}
         for key, value in asdict(self).items():
+            if key in _TUPLES:
+                if value:
+                    out[_PREFIX + key] = np.asarray(value, dtype=np.float64)
+                continue
             out[_PREFIX + key] = float("nan") if value is None else value
         return out
 
@@ -89,8 +178,10 @@ class Calibration:
                     v = None if not np.isfinite(float(v)) else float(v)
                 elif key in ("n_residuals", "n_blocks"):
                     v = int(v)
-                elif key == "sizes":
+                elif key in ("sizes", "method"):
                     v = str(v)
+                elif key in _TUPLES:
+                    v = tuple(np.atleast_1d(np.asarray(v, dtype=np.float64)).tolist())
                 else:
                     v = float(v)
                 kw[key] = v
@@ -134,14 +225,20 @@ def predictive_std(model: Any, std: Any, spatial: bool = False,
 
 
 def interval_coverage(values: Any, mean: Any, std: Any,
-                      levels: Sequence[float] = (0.68, 0.95)) -> np.ndarray:
+                      levels: Sequence[float] = (0.68, 0.95),
+                      multipliers: Sequence[float] | None = None) -> np.ndarray:
     """Fraction of the finite ``values`` inside ``mean +- z_level * std`` per level.
 
-    ``values``, ``mean``, ``std`` broadcast together; NaN values are left out. Returns
+    ``values``, ``mean``, ``std`` broadcast together; NaN values are left out. ``multipliers``
+    (one per level; default the normal quantiles ``z_level``) are the half-widths in units of
+    ``std``: a conformal calibration's (``LatentPosterior.interval_multipliers``). Returns
     ``(len(levels),)`` (NaN when no value is finite).
     """
-    from scipy.stats import norm
-
+    if multipliers is None:
+        multipliers = [float(gaussian_multiplier(check_level(lv, "levels"))) for lv in levels]
+    elif len(multipliers) != len(levels):
+        raise ModelError(f"multipliers must have one entry per level ({len(levels)}), got "
+                         f"{len(multipliers)}")
     v = np.asarray(values, dtype=np.float64)
     m = np.asarray(mean, dtype=np.float64)
     sd = np.asarray(std, dtype=np.float64)
@@ -150,4 +247,86 @@ def interval_coverage(values: Any, mean: Any, std: Any,
     if z.size == 0:
         return np.full(len(levels), np.nan)
     z = np.where(np.isnan(z), np.inf, z)
-    return np.array([float(np.mean(z <= norm.ppf(0.5 + lv / 2))) for lv in levels])
+    return np.array([float(np.mean(z <= float(m))) for m in multipliers])
+
+
+# ----------------------------------------------------------------------------- online (ACI)
+class AdaptiveConformal:
+    """Adaptive conformal inference (Gibbs & Candes 2021) for a stream of days.
+
+    For each nominal ``level`` the miscoverage target is ``a = 1 - level`` and the working
+    level ``alpha_t`` starts at ``a``; the interval of day ``t`` is ``mean +- m(alpha_t) *
+    predictive_std`` with ``m(alpha) = calibration.score_quantile(1 - alpha)`` (the offline
+    conformal scores; the normal quantile without a conformal calibration), ``inf`` for
+    ``alpha_t <= 0`` and ``0`` for ``alpha_t >= 1``. After the day's samples are scored (their
+    standardized forecast residuals ``|y - mean| / predictive_std``, *before* they are
+    assimilated), ``alpha_{t+1} = alpha_t + gamma (a - err_t)`` with ``err_t`` the fraction of
+    the day's samples outside the interval (the batch form of the update). Whatever the data,
+    the long-run miscoverage satisfies ``|mean(err) - a| <= (max(alpha_1, 1 - alpha_1) +
+    gamma) / (gamma T)`` (their Proposition 4.1)."""
+
+    def __init__(self, levels: Sequence[float] = (0.68, 0.95), gamma: float = 0.01,
+                 calibration: Calibration | None = None, alpha: Sequence[float] | None = None,
+                 n_days: int = 0, miss_sum: Sequence[float] | None = None) -> None:
+        self.levels = tuple(check_level(lv, "levels") for lv in levels)
+        if not self.levels:
+            raise ModelError("levels must hold at least one level in (0, 1)")
+        g = float(gamma)
+        if not (np.isfinite(g) and 0.0 < g <= 1.0):
+            raise ModelError(f"gamma must be in (0, 1], got {gamma!r}")
+        self.gamma = g
+        self.calibration = calibration
+        self.target = np.array([1.0 - lv for lv in self.levels])
+        self.alpha = self.target.copy() if alpha is None else np.asarray(alpha, np.float64)
+        if self.alpha.shape != self.target.shape or not np.all(np.isfinite(self.alpha)):
+            raise ModelError(f"alpha must be {len(self.levels)} finite numbers, got {alpha!r}")
+        self.n_days = int(n_days)
+        self.miss_sum = (np.zeros(len(self.levels)) if miss_sum is None
+                         else np.asarray(miss_sum, dtype=np.float64))
+
+    def multipliers(self) -> np.ndarray:
+        """The current half-widths ``m(alpha_t)`` per level (units of the predictive std)."""
+        out = np.empty(len(self.levels))
+        for i, a in enumerate(self.alpha):
+            if a <= 0:
+                out[i] = np.inf
+            elif a >= 1:
+                out[i] = 0.0
+            elif self.calibration is not None:
+                out[i] = self.calibration.multiplier(1.0 - a)
+            else:
+                out[i] = float(gaussian_multiplier(1.0 - a))
+        return out
+
+    def multiplier(self, level: float) -> float:
+        """The current half-width of ``level`` (one of ``levels``)."""
+        lv = check_level(level)
+        for i, known in enumerate(self.levels):
+            if abs(known - lv) < 1e-12:
+                return float(self.multipliers()[i])
+        raise ModelError(f"level {level!r} is not tracked (levels {self.levels})")
+
+    def update(self, scores: Any) -> np.ndarray:
+        """Score one day: ``scores`` the standardized absolute residuals of its samples (NaN
+        ignored). Updates ``alpha`` and returns the day's miss fraction per level (NaN, and no
+        update, when no score is finite)."""
+        z = np.asarray(scores, dtype=np.float64).ravel()
+        z = z[~np.isnan(z)]
+        if z.size == 0:
+            return np.full(len(self.levels), np.nan)
+        err = np.mean(z[None, :] > self.multipliers()[:, None], axis=1)
+        self.alpha = self.alpha + self.gamma * (self.target - err)
+        self.n_days += 1
+        self.miss_sum = self.miss_sum + err
+        return err
+
+    @property
+    def coverage(self) -> np.ndarray:
+        """Mean daily coverage so far per level (NaN before the first day)."""
+        if self.n_days == 0:
+            return np.full(len(self.levels), np.nan)
+        return 1.0 - self.miss_sum / self.n_days
+
+    def __repr__(self) -> str:
+        al = ", ".join(f"{lv:g}: {a:.4f}" for lv, a in zip(self.levels, self.alpha, strict=True))
+        return f"AdaptiveConformal(gamma={self.gamma:g}, alpha={{{al}}}, days={self.n_days})"

@@ -22,7 +22,7 @@ import pandas as pd
 import xarray as xr
 
 from ..errors import DataError, ModelError, RegionError
-from .calibrated import variance_scale
+from .calibrated import AdaptiveConformal, variance_scale
 from .dynamics import Dynamics, time_numbers
 from .posterior import LatentPosterior, ObservationModel, check_cells, empirical_moments
 
@@ -150,6 +150,7 @@ class LatentFilter:
         self.memoryless = bool(memoryless)
         self.n_assimilated = int(n_assimilated)
         self.n_dropped = int(n_dropped)
+        self.aci: AdaptiveConformal | None = None  # online interval calibration (opt-in)
         _, self._time_kind, self._calendar = time_numbers(_model_times(model)[:1], "time")
         self.fingerprint = model_fingerprint(model)
 
@@ -265,6 +266,42 @@ class LatentFilter:
         return self.posterior.propagate(A, Q, c, steps=n)
 
 
+    # ------------------------------------------------------------------ online conformal
+    def adaptive_conformal(self, levels: Any = (0.68, 0.95), gamma: float = 0.01) -> Self:
+        """Switch on adaptive conformal inference (Gibbs & Candes 2021,
+        :class:`~lrm_cvx.glrm.calibrated.AdaptiveConformal`): from now on each
+        :meth:`assimilate` first scores the forecast's standardized residuals at the day's
+        sampled cells (before they are assimilated) and moves each level's working
+        miscoverage by ``gamma`` towards the target, so the intervals' long-run coverage holds
+        even when the record drifts away from the calibration. The multipliers start from the
+        model's conformal calibration (``calibrate(..., method="conformal")``), else the normal
+        quantiles. Returns ``self``."""
+        self.aci = AdaptiveConformal(np.atleast_1d(levels), gamma,
+                                     getattr(self.model, "calibration_", None))
+        return self
+
+    def interval_multipliers(self, levels: Any = (0.68, 0.95)) -> np.ndarray:
+        """Half-widths (units of the predictive std) of the central ``levels`` intervals: the
+        online ACI's current ones for the levels it tracks, else the posterior's
+        (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.interval_multipliers`)."""
+        lv = np.atleast_1d(levels)
+        out = self.posterior.interval_multipliers(lv)
+        if self.aci is not None:
+            for i, v in enumerate(lv):
+                hit = [j for j, a in enumerate(self.aci.levels) if abs(a - float(v)) < 1e-12]
+                if hit:
+                    out[i] = self.aci.multipliers()[hit[0]]
+        return out
+
+    def _score_forecast(self, prior: LatentPosterior, cells: np.ndarray,
+                        values: np.ndarray) -> None:
+        """ACI: score the day's samples under the forecast ``prior``, then update."""
+        keep = ~np.isnan(values)
+        if self.aci is None or not keep.any() or not prior.is_proper:
+            return
+        mean, _, pstd = prior.predict_all(cells=cells[keep])
+        self.aci.update(np.abs(values[keep] - mean) / pstd)
+
     # ------------------------------------------------------------------ assimilation
     def observation_cells(self, observations: Any) -> tuple[np.ndarray, np.ndarray]:
         """``(cells int64, values float64)`` from ``(cells, values)``, a ``(lat, lon)``
@@ -345,6 +382,7 @@ class LatentFilter:
         self._check_order(t, force)
         cells, values = self.observation_cells(observations)
         prior = self._propagated(t) if (self._dt(t) != 0) else self.posterior
+        self._score_forecast(prior, cells, values)  # ACI (when on): before assimilating
         post = prior.update(cells, values)
         dropped = int(np.count_nonzero(np.isnan(values)))
         self.posterior = post

@@ -133,6 +133,7 @@ class ObservationModel:
     variance_scale: float = 1.0  # calibration (glrm/calibration.py): multiplies output variances
     adaptive_dof: float | None = None  # calibration: prior dof of the per-snapshot scale
     scale_discount: float = 0.0  # calibration: weight per step of earlier snapshots' evidence
+    calibration: Any = None  # the model's Calibration (conformal interval multipliers), or None
 
     def __post_init__(self) -> None:
         Y = np.asarray(self.Y)
@@ -208,7 +209,8 @@ class ObservationModel:
                    ref_var=cov.total_variance if spatial else max(sigma2, _NOISE_FLOOR),
                    variance_scale=_variance_scale(model),
                    adaptive_dof=_adaptive_dof(model),
-                   scale_discount=_scale_discount(model))
+                   scale_discount=_scale_discount(model),
+                   calibration=getattr(model, "calibration_", None))
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -722,6 +724,40 @@ class LatentPosterior:
         if obs.scale is not None:
             pstd *= obs.scale[idx]
         return mean, std, pstd
+
+    def interval_multipliers(self, levels: Any = (0.68, 0.95)) -> np.ndarray:
+        """Half-widths of the central ``levels`` intervals in units of :meth:`predictive_std`:
+        the conformal thresholds of the model's calibration (``calibrate(...,
+        method="conformal")``), else the normal quantiles. A level outside (0, 1) is a
+        ModelError naming it."""
+        from .calibrated import check_level, gaussian_multiplier
+
+        cal = self.obs_model.calibration
+        lv = [check_level(v, "level") for v in np.atleast_1d(levels)]
+        if cal is not None and getattr(cal, "is_conformal", False):
+            return np.array([cal.multiplier(v) for v in lv])
+        return np.asarray(gaussian_multiplier(lv), dtype=np.float64)
+
+    def interval(self, level: float = 0.95, spatial: bool | None = None, cells: Any = None,
+                 multiplier: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(lower, upper)``: the central ``level`` predictive interval of a new measurement at
+        every cell (or ``cells``), data units: ``mean +- m * predictive_std`` with ``m`` from
+        :meth:`interval_multipliers` (or the given ``multiplier``, e.g. an online
+        :class:`~lrm_cvx.glrm.calibrated.AdaptiveConformal`'s)."""
+        m = float(self.interval_multipliers(level)[0]) if multiplier is None else float(multiplier)
+        mean, _, pstd = self.predict_all(spatial, cells)
+        half = m * pstd if np.isfinite(m) else np.full_like(pstd, np.inf)
+        return mean - half, mean + half
+
+    def interval_coverage(self, values: Any, cells: Any = None,
+                          levels: Any = (0.68, 0.95)) -> np.ndarray:
+        """Fraction of ``values`` (data units at ``cells``, default every cell; NaN left out)
+        inside this belief's :meth:`interval` per level, ``(len(levels),)``."""
+        from .calibrated import interval_coverage
+
+        mean, _, pstd = self.predict_all(None, cells)
+        return interval_coverage(values, mean, pstd, tuple(np.atleast_1d(levels)),
+                                 multipliers=self.interval_multipliers(levels))
 
     # ------------------------------------------------------------------ planner and filter
     def information(self) -> dict[str, Any]:

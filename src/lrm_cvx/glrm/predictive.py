@@ -9,7 +9,10 @@ All opt-in; the paper's model is the default and untouched:
   shrunk towards the global one (:func:`shrink_noise`, ``NOISE_PRIOR_DF``
   pseudo-observations), inflated by the same degrees-of-freedom factor as ``noise_std_``.
 * ``spatial``: a stationary covariance of the training residuals (``spatial_cov_``), for the
-  low-rank trend + GP residual prediction (universal kriging with a Bayesian trend prior).
+  low-rank trend + GP residual prediction (universal kriging with a Bayesian trend prior). Its
+  nugget (the noise of a new measurement) is bounded below by the fit's sub-cell variation
+  (``min_nugget="cell"`` of :func:`~lrm_cvx.spatial.fit_residual_covariance`), so it never
+  collapses to 0 on smooth fields.
 * ``prior="empirical"`` at fold-in: ``x ~ N(mean(X), cov(X))`` over the training times.
 
 The fold-in itself (every option above) is :mod:`.posterior`; this module fits the options and
@@ -106,7 +109,7 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
         from ..spatial import fit_residual_covariance
 
         model.spatial_cov_ = fit_residual_covariance(sample, region, model=model.spatial,
-                                                     random_state=0)
+                                                     random_state=0, min_nugget="cell")
 
 
 # ---------------------------------------------------------------------------- predictive model

@@ -9,7 +9,7 @@ them).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any, Literal
 
@@ -23,7 +23,7 @@ from ..registry import Registry
 
 __all__ = ["MODELS", "KERNEL_REGISTRY", "ResidualCovariance", "EmpiricalVariogram",
            "correlation", "empirical_variogram", "fit_residual_covariance", "cell_xyz",
-           "arc_distance", "chord_distance"]
+           "arc_distance", "chord_distance", "cell_size", "cell_semivariance"]
 
 Model = Literal["exponential", "matern32", "matern52", "gaussian"]
 Metric = Literal["grid", "km"]
@@ -147,6 +147,11 @@ class ResidualCovariance:
         d = np.asarray(d, dtype=np.float64)
         return self.nugget * (d > 0) + self.sill * (1.0 - self.correlation(d))
 
+    def cell_semivariance(self, size: tuple[float, float] = (1.0, 1.0)) -> float:
+        """Mean semivariance between two points of one ``size = (dy, dx)`` cell (metric units):
+        the variance of a point value about its cell's mean (:func:`cell_semivariance`)."""
+        return cell_semivariance(self, size)
+
     def cutoff_distance(self, rel: float = 1e-6) -> float:
         """Distance (metric units) beyond which the spatial covariance is below ``rel * sill``."""
         rel = check_positive(rel, "rel", strict=True, error=ModelError)
@@ -260,6 +265,41 @@ def _default_max_distance(region: Region, metric: str) -> float:
     )
     diag = float(arc_distance(np.linalg.norm(xyz[0] - xyz[1]), "km"))
     return max(diag / 2.0, _min_step(region, "km"))
+
+
+_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(24)
+
+
+def cell_size(region: Region, metric: str) -> tuple[float, float]:
+    """``(dy, dx)`` of a typical cell in ``metric`` units: ``(1, 1)`` in grid units; in km the
+    median latitude / longitude spacing at the median cell latitude."""
+    if _check_metric(metric) == "grid":
+        return 1.0, 1.0
+    lat = np.radians(np.asarray(region.lat.values, dtype=np.float64))
+    lon = np.radians(np.asarray(region.lon.values, dtype=np.float64))
+    dlat = float(np.median(np.abs(np.diff(lat)))) if lat.size > 1 else 0.0
+    dlon = float(np.median(np.abs(np.diff(lon)))) if lon.size > 1 else 0.0
+    dy = EARTH_RADIUS_KM * dlat
+    dx = EARTH_RADIUS_KM * dlon * float(np.cos(np.radians(np.median(region.cell_lat))))
+    step = _min_step(region, metric)
+    return (dy if dy > 0 else step), (dx if dx > 0 else step)
+
+
+def cell_semivariance(cov: ResidualCovariance, size: tuple[float, float] = (1.0, 1.0)) -> float:
+    """``gamma_bar(v, v) = E gamma(|u - w|)`` for ``u``, ``w`` uniform in one ``(dy, dx)`` cell
+    (the spatial part only; metric units): the variance of a point value about the mean of its
+    cell under ``cov`` continued below the grid step (the change of support of geostatistics,
+    Journel & Huijbregts 1978). Each coordinate difference has the triangular density
+    ``2 (a - s) / a^2`` on ``[0, a]``; 24 x 24 Gauss-Legendre nodes (relative error < 1e-3 for
+    the exponential's kink at 0)."""
+    dy, dx = (float(v) for v in size)
+    sy = 0.5 * dy * (_GL_NODES + 1.0)
+    sx = 0.5 * dx * (_GL_NODES + 1.0)
+    wy = _GL_WEIGHTS * 0.5 * dy * 2.0 * (dy - sy) / dy ** 2
+    wx = _GL_WEIGHTS * 0.5 * dx * 2.0 * (dx - sx) / dx ** 2
+    d = np.hypot(sy[:, None], sx[None, :])
+    g = cov.sill * (1.0 - cov.correlation(d))
+    return float(wy @ g @ wx)
 
 
 # ---------------------------------------------------------------------------- variogram fit
@@ -423,6 +463,7 @@ def fit_residual_covariance(
     spacing: Literal["log", "linear"] = "log",
     standardize: bool = False,
     random_state: Any = 0,
+    min_nugget: float | Literal["cell"] | None = None,
 ) -> ResidualCovariance:
     """Fit ``sill``, ``range`` and ``nugget`` of ``model`` to the residuals' empirical variogram.
 
@@ -431,6 +472,18 @@ def fit_residual_covariance(
     ``scipy.optimize.least_squares`` with bin weights proportional to the pair counts, from three
     starting ranges (the best fit wins). The range is bounded to ``[1e-3, 10] * max_distance``:
     a range much beyond the largest lag is not identifiable. Deterministic given ``random_state``.
+
+    ``min_nugget``: a lower bound of the nugget (data units squared; None: 0). ``"cell"`` (what
+    ``GLRM(spatial=...)`` uses) bounds it by the fitted covariance's own sub-cell semivariance
+    (:func:`cell_semivariance` of a typical cell, :func:`cell_size`), refitted to a fixed point:
+    a grid's variogram has no lag below one cell, so on smooth fields the fitted nugget
+    collapses to 0 (the bundled sst: 4e-32 against a sill of 0.07) and the GP interpolates the
+    samples exactly, with a zero predictive std at every sampled cell. A new measurement is a
+    point value, which differs from its cell's modelled value by at least that sub-cell
+    variation; the bound is > 0 whenever the sill is, is scale-free, and needs no other
+    estimate (the GLRM's noise is the residual's *total* variance, sill plus nugget, so it cannot
+    split them; cross-validated kriging and the variogram's intercept see no lag below a cell
+    either and collapse with the fit).
     """
     model = KERNEL_REGISTRY.canonical(model, "model")
     vg = empirical_variogram(
@@ -454,20 +507,46 @@ def fit_residual_covariance(
         sill, rng_, nug = p
         return w * (nug + sill * (1.0 - correlation(model, h / rng_)) - g)
 
-    nug0 = min(0.5 * g[0], 0.5 * g.max())
-    sill0 = max(g.max() - nug0, 1e-3)
-    lower = [0.0, 1e-3, 0.0]
     upper = [10.0 * g.max() + 1.0, 10.0, 2.0 * g.max() + 1.0]
-    best = None
-    for r0 in (0.05, 0.2, 1.0):
-        sol = least_squares(resid, x0=[sill0, r0, nug0], bounds=(lower, upper), method="trf",
-                            x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=2000)
-        if best is None or sol.cost < best.cost - 1e-15:
-            best = sol
-    sill, rng_, nug = best.x
-    if sill + nug <= 0:
-        raise SolverError("the variogram fit (scipy least_squares) returned a zero covariance")
-    return ResidualCovariance(
-        model=model, sill=float(sill * g_scale), range=float(rng_ * vg.max_distance),
-        nugget=float(nug * g_scale), metric=vg.metric, variogram=vg,
-    )
+
+    def fit(floor: float) -> np.ndarray:
+        nug0 = max(min(0.5 * g[0], 0.5 * g.max()), floor)
+        sill0 = max(g.max() - nug0, 1e-3)
+        lower = [0.0, 1e-3, floor]
+        best = None
+        for r0 in (0.05, 0.2, 1.0):
+            sol = least_squares(resid, x0=[sill0, r0, nug0], bounds=(lower, upper),
+                                method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                                max_nfev=2000)
+            if best is None or sol.cost < best.cost - 1e-15:
+                best = sol
+        return best.x
+
+    def build(p: np.ndarray) -> ResidualCovariance:
+        sill, rng_, nug = p
+        if sill + nug <= 0:
+            raise SolverError("the variogram fit (scipy least_squares) returned a zero "
+                              "covariance")
+        return ResidualCovariance(
+            model=model, sill=float(sill * g_scale), range=float(rng_ * vg.max_distance),
+            nugget=float(nug * g_scale), metric=vg.metric, variogram=vg)
+
+    if isinstance(min_nugget, str):
+        if min_nugget != "cell":
+            raise ModelError(f"min_nugget must be a number >= 0, 'cell' or None, got "
+                             f"{min_nugget!r}")
+        size = cell_size(region, vg.metric)
+        floor = 0.0
+        for _ in range(20):  # fixed point: the bound is the sub-cell variation of the fit
+            out = build(fit(floor / g_scale))
+            need = out.cell_semivariance(size)
+            if out.nugget > need * (1 + 1e-6) and floor == 0.0:
+                return out  # the unconstrained fit already holds the bound
+            if abs(need - floor) <= 1e-3 * need:
+                break
+            floor = 0.5 * (floor + need) if floor > 0 else need  # damped
+        return out if out.nugget >= need else replace(out, nugget=need)
+    floor = 0.0 if min_nugget is None else check_positive(min_nugget, "min_nugget",
+                                                          error=ModelError)
+    out = build(fit(floor / g_scale))
+    return out if out.nugget >= floor else replace(out, nugget=floor)

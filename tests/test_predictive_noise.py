@@ -1,0 +1,133 @@
+"""The noise of a new measurement in a spatial model (issue #24, item 3a): the nugget's floor
+(the fit's sub-cell variation), and the fitted model's posterior mean and predictive std
+against a dense brute-force GP (trend prior + kernel + nugget) on tiny inputs."""
+
+import warnings
+
+import numpy as np
+import pytest
+import xarray as xr
+from scipy.spatial.distance import cdist
+
+from lrm_cvx import GLRM
+from lrm_cvx.errors import ModelError
+from lrm_cvx.glrm.posterior import LatentPosterior, empirical_moments
+from lrm_cvx.glrm.predictive import residual_sample
+from lrm_cvx.spatial import ResidualCovariance, fit_residual_covariance
+from lrm_cvx.spatial.covariance import cell_semivariance, cell_size
+
+
+def smooth_field(T=30, ny=10, nx=12, seed=0):
+    """A rank-2 trend plus a smooth (Gaussian-kernel, no nugget) residual: the exponential
+    variogram's fitted nugget collapses to 0 on it."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:ny, 0:nx].astype(float)
+    pats = np.stack([np.sin(xx / 3.0) + 0.1 * yy, np.cos(yy / 2.5) * 0.5 + xx / nx])
+    g = np.column_stack([yy.ravel(), xx.ravel()])
+    K = 0.3 * np.exp(-(cdist(g, g) / 3.0) ** 2) + 1e-8 * np.eye(g.shape[0])
+    res = (np.linalg.cholesky(K) @ rng.standard_normal((g.shape[0], T))).T
+    X = rng.normal(size=(T, 2)) * [2.0, 1.0]
+    vals = 10.0 + X @ pats.reshape(2, -1) + res
+    return xr.DataArray(vals.reshape(T, ny, nx).astype(np.float64), dims=("time", "lat", "lon"),
+                        coords={"time": np.arange(T), "lat": 30.0 + np.arange(ny),
+                                "lon": 200.0 + np.arange(nx)})
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    data = smooth_field()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=2, offset=True, spatial="exponential", random_state=0,
+                     progress=False).fit(data)
+    return data, model
+
+
+def test_cell_semivariance_equals_monte_carlo():
+    rng = np.random.default_rng(1)
+    for model, size in (("exponential", (1.0, 1.0)), ("matern32", (2.0, 0.5)),
+                        ("gaussian", (1.0, 3.0))):
+        cov = ResidualCovariance(model, sill=2.0, range=1.7, nugget=0.0)
+        u = rng.random((400_000, 2)) * size
+        w = rng.random((400_000, 2)) * size
+        mc = np.mean(cov.semivariogram(np.linalg.norm(u - w, axis=1)))
+        assert cell_semivariance(cov, size) == pytest.approx(mc, rel=5e-3)
+        assert cov.cell_semivariance(size) == cell_semivariance(cov, size)
+
+
+def test_the_nugget_no_longer_collapses(fitted):
+    data, model = fitted
+    region = model.region_
+    V = region.stack(data).astype(np.float64)
+    Z = (V - model.offset_) / 1.0
+    R = residual_sample(Z, np.isfinite(Z), model._Xv, model._Yv)
+    free = fit_residual_covariance(R, region, model="exponential", random_state=0)
+    assert free.nugget < 1e-3 * free.sill  # the diagnosis: an exact interpolator
+    cov = model.spatial_cov_
+    floor = cov.cell_semivariance(cell_size(region, cov.metric))
+    assert floor > 0.1 * float(cov.semivariogram(1.0))  # a sizeable part of the lag-1 variance
+    assert cov.nugget >= floor * (1 - 1e-9)
+    # the model's covariance is this function's fit with min_nugget="cell"
+    again = fit_residual_covariance(R, region, model="exponential", random_state=0,
+                                    min_nugget="cell")
+    for name in ("sill", "range", "nugget"):
+        assert getattr(again, name) == pytest.approx(getattr(cov, name), rel=1e-6)
+    # a numeric floor is honoured; a bad one is a one-line error naming the argument
+    assert fit_residual_covariance(R, region, min_nugget=0.05).nugget >= 0.05
+    for bad in ("point", -1.0, np.nan):
+        with pytest.raises(ModelError, match="min_nugget"):
+            fit_residual_covariance(R, region, min_nugget=bad)
+
+
+def test_cell_size_in_km_follows_the_grid():
+    data = smooth_field(T=3, ny=4, nx=5)
+    data = data.assign_coords(lat=60.0 + 2.0 * np.arange(4), lon=10.0 + 2.0 * np.arange(5))
+    from lrm_cvx import Region
+
+    region = Region.from_dataarray(data.isel(time=0))
+    dy, dx = cell_size(region, "km")
+    assert dy == pytest.approx(6371.0088 * np.radians(2.0), rel=1e-3)
+    assert dx == pytest.approx(dy * np.cos(np.radians(region.cell_lat.mean())), rel=2e-2)
+    assert cell_size(region, "grid") == (1.0, 1.0)
+
+
+def brute_force(model, cells, values):
+    """Dense GP: value = offset + y^T x + r + e, x ~ N(mean(X), cov(X)), r ~ GP(sill, range),
+    e ~ N(0, nugget); the conditional of the noise-free value at every cell given the samples,
+    and the std of a new measurement."""
+    cov = model.spatial_cov_
+    Y = model._Yv
+    m0, S0 = empirical_moments(model._Xv)
+    g = model.region_.grid_index.astype(float)
+    K = Y.T @ S0 @ Y + cov.sill * cov.correlation(cdist(g, g))
+    mu = Y.T @ m0
+    A = K[np.ix_(cells, cells)] + cov.nugget * np.eye(cells.size)
+    z = values - model.offset_[cells]
+    mean = model.offset_ + mu + K[:, cells] @ np.linalg.solve(A, z - mu[cells])
+    var = np.diag(K - K[:, cells] @ np.linalg.solve(A, K[cells, :]))
+    return mean, np.sqrt(var), np.sqrt(var + cov.nugget)
+
+
+@pytest.mark.parametrize("n", [3, 9])
+def test_fitted_spatial_model_equals_the_brute_force_gp(fitted, n):
+    data, model = fitted
+    rng = np.random.default_rng(n)
+    V = model.region_.stack(data.isel(time=-1)).astype(np.float64)
+    cells = np.sort(rng.choice(model.n_cells_, n, replace=False))
+    post = LatentPosterior.prior(model, "empirical").update(cells, V[cells])
+    mean, std, pstd = post.predict_all()
+    b_mean, b_std, b_pstd = brute_force(model, cells, V[cells])
+    np.testing.assert_allclose(mean, b_mean, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(std, b_std, rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(pstd, b_pstd, rtol=1e-7)
+    np.testing.assert_allclose(post.predictive_std(), b_pstd, rtol=1e-7)
+    # at the sampled cells: not an exact interpolator, and a new measurement's std is
+    # sqrt(std^2 + noise) > 0
+    nug = model.spatial_cov_.nugget
+    assert np.all(std[cells] > 0.05 * np.sqrt(nug))
+    np.testing.assert_allclose(pstd[cells], np.sqrt(std[cells] ** 2 + nug), rtol=1e-10)
+    assert np.all(pstd[cells] >= np.sqrt(nug))
+    # the model-level helper agrees (data units, uncalibrated)
+    from lrm_cvx.glrm.calibrated import predictive_std
+
+    np.testing.assert_allclose(predictive_std(model, std, spatial=True), pstd, rtol=1e-10)
