@@ -50,7 +50,7 @@ from .plan import Plan, check_region
 from .request import PlanPath
 from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
 
-__all__ = ["RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors", "place_static",
+__all__ = ["EXCHANGE_AUTO_MAX", "RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors", "place_static",
            "risk_objective", "training_residuals"]
 
 RISK_MAX_CELLS: int = 20_000
@@ -61,6 +61,9 @@ STATIC_CRITERIA: tuple[str, ...] = ("risk",)
 (static placement only: they need training snapshots)."""
 
 EXCHANGE_SWEEPS: int = 5
+EXCHANGE_AUTO_MAX: int = 20_000
+"""The recommended default runs the exchange after the greedy up to this many candidate cells
+(above, the greedy alone: the exchange costs ~``3 x sweeps`` greedies)."""
 _REL_TOL = 1e-9  # a swap must lower the objective by more than this fraction
 _BLOCK = 1024  # rows per block of the L x L updates (bounds the temporaries)
 
@@ -417,6 +420,9 @@ def place_static(
             max_candidates, (int, np.integer)) or max_candidates < n:
         raise PlanningError(f"max_candidates must be an integer >= n_sensors = {n}, got "
                             f"{max_candidates!r}")
+    auto = isinstance(exchange, str) and exchange == "auto"
+    if auto:  # the recommended default: the exchange where the candidate count allows
+        exchange = allowed.size <= EXCHANGE_AUTO_MAX
     if not isinstance(exchange, (bool, np.bool_)):
         raise PlanningError(f"exchange must be True or False, got {exchange!r}")
     if isinstance(criterion, str) and criterion == "risk":
@@ -466,6 +472,9 @@ def place_static(
         info = (_exchange(state, allowed, sweeps) if isinstance(state, _State)
                 else sr.exchange(state, sweeps, _REL_TOL))
     info["form"] = "dense" if isinstance(state, _State) else "factored"
+    if auto and not exchange:
+        info["exchange_skipped"] = (f"{allowed.size} candidate cells > EXCHANGE_AUTO_MAX = "
+                                    f"{EXCHANGE_AUTO_MAX}: greedy only (pass exchange=True)")
     if not isinstance(state, _State):
         info["n_candidates"] = int(state.pool.size)
     cells = list(state.cells)
@@ -545,7 +554,7 @@ def _recommended(from_model: bool, prior: Any, training: Any, paper: bool, crite
         if prior is None:
             raise PlanningError("training= (the recommended criterion 'risk') needs the "
                                 "fold-in's belief: pass a fitted GLRM first, or prior=")
-        return "risk", True if exchange is None else bool(exchange)
+        return "risk", "auto" if exchange is None else bool(exchange)
     if from_model and getattr(_model_of(prior), "spatial_cov_", None) is not None:
         return "gp-variance", bool(exchange) if exchange is not None else False
     return "fisher", bool(exchange) if exchange is not None else False

@@ -15,7 +15,7 @@ at the **candidate** cells ``X`` (``p`` of them):
   M2[S, S] h)``; removing a sensor (exchange) the exact un-conditioning
   ``C + v v^T / M_jj`` (``v = G m``, ``m = A^-1 e_j``) with ``(C W v)[X] = M2[X, S] m -
   G A^-1 M2[S, S] m``. ``O((n + T) p)`` per step.
-* The sums over **all** cells are FFT convolutions on the grid (``scipy.signal.oaconvolve``; the
+* The sums over **all** cells are FFT convolutions on the grid (``scipy.fft``, linear; the
   kernel cut where it is below ``1e-16`` of the sill, i.e. exact in float64):
   ``U = Y W K`` (``k`` convolutions), ``s(x) = sum_i w_i k(i, x)^2`` (one), ``R W K``
   (``T``, the risk only), once; and per new sensor ``x`` the column
@@ -65,8 +65,6 @@ class FactoredState:
 
     def __init__(self, Y: np.ndarray, S0: np.ndarray, cov: Any, noise: np.ndarray,
                  w: np.ndarray, R: np.ndarray | None, pool: np.ndarray, region: Any) -> None:
-        from scipy.signal import oaconvolve
-
         self.Y, self.S0 = Y, 0.5 * (S0 + S0.T)
         self.k, self.L = Y.shape
         self.pool = np.asarray(pool, dtype=np.int64)
@@ -82,23 +80,32 @@ class FactoredState:
         self.SY = self.S0 @ self.YX  # S0 y_x (k, p)
         Wk = (Y * w) @ Y.T
         self.cov = cov if cov is not None and float(cov.sill) > 0 else None
-        self._conv = oaconvolve
         if self.cov is not None:
+            import scipy.fft as sfft
+
             r = _radius(self.cov, _CUT_SUM, self.shape)
             ktab = _kernel_table(self.cov, r)
+            ny, nx = self.shape
+            shp = (sfft.next_fast_len(ny + 2 * r, real=True),
+                   sfft.next_fast_len(nx + 2 * r, real=True))
+            KF = sfft.rfft2(ktab, s=shp)
             grid = np.zeros(self.shape)
 
-            def full_sum(vals: np.ndarray, tab: np.ndarray = ktab) -> np.ndarray:
+            def full_sum(vals: np.ndarray, F: np.ndarray = KF) -> np.ndarray:
+                """``sum_i vals_i k(i, x)`` at the candidates (linear convolution, exact)."""
                 grid[gi[:, 0], gi[:, 1]] = vals
-                out = oaconvolve(grid, tab, mode="same")
-                return out[self.gX[:, 0], self.gX[:, 1]]
+                out = sfft.irfft2(sfft.rfft2(grid, s=shp, workers=-1) * F, s=shp, workers=-1)
+                return out[r + self.gX[:, 0], r + self.gX[:, 1]]
 
             self.U = np.stack([full_sum(w * Y[a]) for a in range(self.k)])  # (k, p)
-            s = full_sum(w, ktab ** 2)
+            s = full_sum(w, sfft.rfft2(ktab ** 2, s=shp))
             self.sill = float(self.cov.sill)
             rp = _radius(self.cov, _CUT_PICK, self.shape)
             self._rp = rp
             self._ktab_p = _kernel_table(self.cov, rp)
+            m = 4 * rp + 1
+            self._pshape = (sfft.next_fast_len(m, real=True),) * 2
+            self._pF = sfft.rfft2(self._ktab_p, s=self._pshape)
             self._wpad = np.pad(self._wgrid(region, w), 2 * rp)
             self._pospad = np.pad(self.posgrid, 2 * rp, constant_values=-1)
         else:
@@ -126,8 +133,8 @@ class FactoredState:
             self.value = float(w @ (np.einsum("al,ab,bl->l", Y, self.S0, Y) + self.sill))
         self.cells: list[int] = []
         self._spos: list[int] = []
-        self._G = np.zeros((p, 0))
-        self._M = np.zeros((p, 0))
+        self._Gt = np.zeros((0, p))  # C0[S, X] (rows: sensors in state order; capacity grows)
+        self._Mt = np.zeros((0, p))  # M2[S, X]
         self.Ainv = np.zeros((0, 0))
         self.A2 = np.zeros((0, 0))
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -141,6 +148,15 @@ class FactoredState:
         return g
 
     # ------------------------------------------------------------------ prior columns
+    def reserve(self, n: int) -> None:
+        """Room for ``n`` sensors in the factors (no regrowth while adding them)."""
+        m = len(self._spos)
+        if n > self._Gt.shape[0]:
+            for name in ("_Gt", "_Mt"):
+                new = np.zeros((n, self.pool.size))
+                new[:m] = getattr(self, name)[:m]
+                setattr(self, name, new)
+
     def _columns(self, j: int) -> tuple[np.ndarray, np.ndarray]:
         """``(C0[X, x], M2[X, x])`` of the candidate at position ``j`` (cached)."""
         hit = self._cache.get(j)
@@ -156,7 +172,10 @@ class FactoredState:
             rp = self._rp
             r0, c0i = int(gx[0]) + 2 * rp, int(gx[1]) + 2 * rp  # x in the padded grids
             win = self._wpad[r0 - rp:r0 + rp + 1, c0i - rp:c0i + rp + 1] * self._ktab_p
-            g = self._conv(win, self._ktab_p, mode="full")  # offsets -2rp..2rp around x
+            import scipy.fft as sfft
+
+            m = 4 * rp + 1  # the full convolution: offsets -2rp..2rp around x
+            g = sfft.irfft2(sfft.rfft2(win, s=self._pshape) * self._pF, s=self._pshape)[:m, :m]
             pos = self._pospad[r0 - 2 * rp:r0 + 2 * rp + 1, c0i - 2 * rp:c0i + 2 * rp + 1]
             ok = pos >= 0
             m2[pos[ok]] += g[ok]
@@ -190,11 +209,12 @@ class FactoredState:
         """Condition on a sensor at candidate position ``j``."""
         c0, m2 = self._columns(j)
         n = len(self._spos)
-        gS = self._G[j]
+        Gt, Mt = self._Gt[:n], self._Mt[:n]
+        gS = Gt[:, j]
         h = self.Ainv @ gS
-        a = c0 - self._G @ h
+        a = c0 - Gt.T @ h
         dd = float(a[j] + self.noise[j])
-        q = m2 - self._M @ h - self._G @ (self.Ainv @ (self._M[j] - self.A2 @ h))
+        q = m2 - Mt.T @ h - Gt.T @ (self.Ainv @ (Mt[:, j] - self.A2 @ h))
         aw = float(self.cc[j])
         b = None if self.Z is None else self.Z[:, j].copy()
         zwa = None if self.Z is None else self.P[:, j].copy()
@@ -211,19 +231,23 @@ class FactoredState:
         A2[:n, n] = A2[n, :n] = m2S
         A2[n, n] = m2[j]
         self.A2 = A2
-        self._G = np.column_stack([self._G, c0])
-        self._M = np.column_stack([self._M, m2])
+        if n == self._Gt.shape[0]:
+            self.reserve(max(8, 2 * n))
+        self._Gt[n] = c0
+        self._Mt[n] = m2
         self._spos.append(int(j))
         self.cells.append(int(self.pool[j]))
 
     def remove(self, j: int) -> None:
         """Forget the sensor at candidate position ``j`` (exact un-conditioning)."""
         jj = self._spos.index(int(j))
+        n = len(self._spos)
+        Gt, Mt = self._Gt[:n], self._Mt[:n]
         m = self.Ainv[:, jj].copy()
         Mjj = float(m[jj])
-        v = self._G @ m
+        v = Gt.T @ m
         A2m = self.A2 @ m
-        q = self._M @ m - self._G @ (self.Ainv @ A2m)
+        q = Mt.T @ m - Gt.T @ (self.Ainv @ A2m)
         aw = float(m @ A2m)
         if self.Z is not None:
             S = np.asarray(self._spos)
@@ -233,13 +257,18 @@ class FactoredState:
         else:
             b = zwa = None
         self._rank_one(1.0 / Mjj, v, q, aw, b, zwa)
-        keep = np.arange(len(self._spos)) != jj
-        self.Ainv = self.Ainv[np.ix_(keep, keep)] - np.outer(m[keep], m[keep]) / Mjj
-        self.A2 = self.A2[np.ix_(keep, keep)]
-        self._G = self._G[:, keep]
-        self._M = self._M[:, keep]
-        self._spos.pop(jj)
-        self.cells.pop(jj)
+        # the last sensor takes slot jj (O(p), no shift of the factors)
+        perm = np.arange(n - 1)
+        if jj < n - 1:
+            perm[jj] = n - 1
+            self._Gt[jj] = self._Gt[n - 1]
+            self._Mt[jj] = self._Mt[n - 1]
+            self._spos[jj] = self._spos[n - 1]
+            self.cells[jj] = self.cells[n - 1]
+        self.Ainv = self.Ainv[np.ix_(perm, perm)] - np.outer(m[perm], m[perm]) / Mjj
+        self.A2 = self.A2[np.ix_(perm, perm)]
+        self._spos.pop()
+        self.cells.pop()
 
     def rebuild(self, positions: list[int]) -> None:
         """The state of the sensors at ``positions`` from the prior (no drift)."""
@@ -250,8 +279,6 @@ class FactoredState:
             self.P = self.RWC0.copy()
         self.value = self._value0
         self.cells, self._spos = [], []
-        p = self.pool.size
-        self._G, self._M = np.zeros((p, 0)), np.zeros((p, 0))
         self.Ainv, self.A2 = np.zeros((0, 0)), np.zeros((0, 0))
         for j in positions:
             self.add(int(j))
@@ -259,6 +286,7 @@ class FactoredState:
 
 def greedy(state: FactoredState, n: int, hist: dict[str, list]) -> None:
     """Add the candidate of largest gain (ties: the lowest cell) until ``n`` sensors."""
+    state.reserve(n)
     active = np.ones(state.pool.size, dtype=bool)
     active[state._spos] = False
     while len(state.cells) < n:
