@@ -9,13 +9,12 @@ import warnings
 import numpy as np
 import pytest
 import xarray as xr
+from test_static import _J, _setup
 
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.planning import place_sensors
 from lrm_cvx.planning import static_risk as sr
-
-from test_static import _J, _setup
 
 
 @pytest.mark.parametrize("spatial", [True, False])
@@ -155,3 +154,38 @@ def test_bad_input_is_a_one_line_error(fitted):
             place_sensors(bare, 3)
         except exc as e:
             assert "\n" not in str(e)
+
+
+# ----------------------------------------------------------------------- the CLI
+def test_cli_place_default_is_the_recommended_and_paper_the_fisher(tmp_path, capsys):
+    import pandas as pd
+
+    from lrm_cvx.cli import main
+
+    rng = np.random.default_rng(5)
+    T, ny, nx, k = 12, 6, 7, 2
+    X, Y = rng.normal(size=(k, T)), rng.normal(size=(k, ny * nx))
+    v = (X.T @ Y + 0.3 * rng.normal(size=(T, ny * nx))).reshape(T, ny, nx)
+    da = xr.DataArray(v, dims=("time", "lat", "lon"), name="temp",
+                      coords={"time": np.arange(T), "lat": 40 + np.arange(ny) * 0.5,
+                              "lon": -70 + np.arange(nx) * 0.5})
+    data, model_path = tmp_path / "field.nc", tmp_path / "model.nc"
+    da.to_netcdf(data)
+    assert main(["-q", "fit", str(data), "--rank", "2", "--recommended", "-o",
+                 str(model_path)]) == 0
+    model = GLRM.load(model_path)
+    out = tmp_path / "sensors.csv"
+    assert main(["-q", "place", str(model_path), str(data), "--sensors", "4", "-o",
+                 str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "risk greedy" in text and "exchange:" in text
+    ref = place_sensors(model, 4, training=xr.open_dataarray(data))
+    assert ref.method == "greedy+exchange"
+    assert pd.read_csv(out)["cell"].tolist() == ref.cells.tolist()
+    out2 = tmp_path / "paper.csv"
+    assert main(["-q", "place", str(model_path), "--paper", "--sensors", "4", "-o",
+                 str(out2)]) == 0
+    assert pd.read_csv(out2)["cell"].tolist() == \
+        place_sensors(model.Y_, model.region_, 4).cells.tolist()
+    assert main(["-q", "place", str(model_path), str(data), "--paper", "--sensors", "4"]) == 2
+    assert "--paper" in capsys.readouterr().err

@@ -50,8 +50,8 @@ from .plan import Plan, check_region
 from .request import PlanPath
 from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
 
-__all__ = ["EXCHANGE_AUTO_MAX", "RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors", "place_static",
-           "risk_objective", "training_residuals"]
+__all__ = ["EXCHANGE_AUTO_MAX", "RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors",
+           "place_static", "risk_objective", "training_residuals"]
 
 RISK_MAX_CELLS: int = 20_000
 """Largest region (cells) of the dense risk / exchange state (``8 L^2`` bytes: 3.2 GB)."""
