@@ -189,3 +189,15 @@ def test_cli_place_default_is_the_recommended_and_paper_the_fisher(tmp_path, cap
         place_sensors(model.Y_, model.region_, 4).cells.tolist()
     assert main(["-q", "place", str(model_path), str(data), "--paper", "--sensors", "4"]) == 2
     assert "--paper" in capsys.readouterr().err
+
+
+def test_default_skips_the_exchange_with_as_many_sensors_as_training_snapshots(fitted):
+    model, train = fitted
+    T = train.sizes["time"]
+    plan = place_sensors(model, T, training=train)
+    assert plan.method == "greedy" and "training snapshots" in plan.refinement[
+        "exchange_skipped"]
+    assert plan.cells.tolist() == place_sensors(model, T, training=train,
+                                                exchange=False).cells.tolist()
+    assert place_sensors(model, T - 1, training=train).method == "greedy+exchange"
+    assert place_sensors(model, T, training=train, exchange=True).method == "greedy+exchange"

@@ -423,6 +423,8 @@ def place_static(
     auto = isinstance(exchange, str) and exchange == "auto"
     if auto:  # the recommended default: the exchange where the candidate count allows
         exchange = allowed.size <= EXCHANGE_AUTO_MAX
+        skipped = (f"{allowed.size} candidate cells > EXCHANGE_AUTO_MAX = "
+                   f"{EXCHANGE_AUTO_MAX}: greedy only (pass exchange=True)")
     if not isinstance(exchange, (bool, np.bool_)):
         raise PlanningError(f"exchange must be True or False, got {exchange!r}")
     if isinstance(criterion, str) and criterion == "risk":
@@ -434,6 +436,12 @@ def place_static(
                                 f"{given} do not apply")
         gp, obs = _fold_in_from_prior(prior, Yk, region)
         R = training_residuals(training, region, obs, gp.mean)
+        if auto and exchange and n >= R.shape[0]:
+            # as many sensors as training snapshots: the training error is an optimistic
+            # estimate, and searching it harder than the greedy over-fits it
+            exchange = False
+            skipped = (f"n_sensors = {n} >= {R.shape[0]} training snapshots: greedy only "
+                       "(pass exchange=True)")
         state = _state(gp, R, [], allowed, method, int(max_candidates), "criterion='risk'")
         hist: dict[str, list] = {k: [] for k in ("cell", "gain", "cost_increase", "ratio",
                                                  "cost", "n_evaluated", "objective")}
@@ -473,8 +481,7 @@ def place_static(
                 else sr.exchange(state, sweeps, _REL_TOL))
     info["form"] = "dense" if isinstance(state, _State) else "factored"
     if auto and not exchange:
-        info["exchange_skipped"] = (f"{allowed.size} candidate cells > EXCHANGE_AUTO_MAX = "
-                                    f"{EXCHANGE_AUTO_MAX}: greedy only (pass exchange=True)")
+        info["exchange_skipped"] = skipped
     if not isinstance(state, _State):
         info["n_candidates"] = int(state.pool.size)
     cells = list(state.cells)
