@@ -25,12 +25,19 @@ changes nothing (a local optimum: no single swap improves) or ``sweeps`` is reac
 objective never increases. The state is rebuilt from scratch at the start of every sweep
 (no drift). Available for ``"risk"`` and ``"gp-variance"`` (total posterior variance).
 
-**Memory and cost.** Dense: the ``L x L`` posterior covariance (``8 L^2`` bytes: 16 MB at
-1,421 cells, 3.2 GB at 20,000) plus ``O(T L)``; it is built in row blocks, so the peak is one
-``L x L`` matrix plus blocks. Set-up ``O(L^2 (T + k))``, each pick ``O(L^2 + T L)``, each
-exchange sweep ``n`` removals and re-additions (``O(n L^2)``) plus a rebuild ``O(L^2 (n + T))``.
-Regions above :data:`RISK_MAX_CELLS` cells raise :class:`PlanningError` (use
-``criterion="gp-variance"``, whose structured oracle scales to millions of cells).
+**Memory and cost.** The state above is the dense reference (``method="dense"``): the
+``L x L`` posterior covariance (``8 L^2`` bytes: 16 MB at 1,421 cells, 3.2 GB at 20,000) plus
+``O(T L)``, built in row blocks; set-up ``O(L^2 (T + k))``, each pick ``O(L^2 + T L)``, each
+exchange sweep ``O(n L^2)`` plus a rebuild. Regions above :data:`RISK_MAX_CELLS` cells raise
+:class:`PlanningError`. The default (``method="auto"``) runs the same greedy and exchange in the
+scalable form of :mod:`lrm_cvx.planning.static_risk` (no ``L x L`` matrix, ``O((n + T) p)`` per
+step for ``p`` candidate cells, FFT sums of the stationary residual; the same picks), unless the
+residual's metric is km.
+
+**Default.** ``place_sensors(model, n, training=...)`` with no other option is the recommended
+placement (``"risk"`` + the exchange, skipped above :data:`EXCHANGE_AUTO_MAX` candidate cells or
+when ``n`` is at least the number of training snapshots); ``paper=True`` the paper's Fisher
+greedy; ``place_sensors(Y, region, n)`` keeps the Fisher default (no prior to take a risk from).
 """
 
 from __future__ import annotations
