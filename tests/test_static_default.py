@@ -147,6 +147,10 @@ def test_bad_input_is_a_one_line_error(fitted):
         place_sensors(model, 3, criterion="risk", paper=True)
     with pytest.raises(PlanningError, match="method"):
         place_sensors(model, 3, training=train, method="fast")
+    with pytest.raises(PlanningError, match="max_candidates"):
+        place_sensors(model, 5, training=train, max_candidates=5)  # a 4-cell lattice
+    with pytest.raises(PlanningError, match="max_candidates"):
+        place_sensors(model, 5, training=train, max_candidates=3)
     with pytest.raises(PlanningError, match="n_sensors is missing"):
         place_sensors(model.Y_, model.region_)
     for exc in (PlanningError,):

@@ -370,7 +370,7 @@ def risk_objective(prior: Any, training: Any, cells: Any, region: Region | None 
 
 
 def _state(gp: _FoldIn, R: np.ndarray | None, cells: list[int], allowed: np.ndarray,
-           method: str, max_candidates: int, what: str) -> Any:
+           method: str, max_candidates: int, what: str, n: int) -> Any:
     """The dense ``_State`` or the scalable ``FactoredState`` (``method``: "auto" picks the
     scalable one unless the residual's metric is "km", which it cannot take)."""
     from . import static_risk as sr
@@ -383,6 +383,9 @@ def _state(gp: _FoldIn, R: np.ndarray | None, cells: list[int], allowed: np.ndar
         _check_size(gp.L, what)
         return _State(gp, R, cells)
     pool = sr.candidate_pool(gp.region, allowed, max_candidates)
+    if pool.size < n:
+        raise PlanningError(f"max_candidates = {max_candidates} thins the {allowed.size} "
+                            f"allowed cells to {pool.size} < n_sensors = {n}: raise it")
     if cells:
         pool = np.union1d(pool, np.asarray(cells, dtype=np.int64))
     state = sr.FactoredState(gp.Y, gp.S0, gp.spatial_cov, gp.noise, gp.w, R, pool, gp.region)
@@ -449,7 +452,8 @@ def place_static(
             exchange = False
             skipped = (f"n_sensors = {n} >= {R.shape[0]} training snapshots: greedy only "
                        "(pass exchange=True)")
-        state = _state(gp, R, [], allowed, method, int(max_candidates), "criterion='risk'")
+        state = _state(gp, R, [], allowed, method, int(max_candidates), "criterion='risk'",
+                       n)
         hist: dict[str, list] = {k: [] for k in ("cell", "gain", "cost_increase", "ratio",
                                                  "cost", "n_evaluated", "objective")}
         if isinstance(state, _State):
@@ -478,7 +482,7 @@ def place_static(
                      np.full(L, gp_noise(terms["spatial_cov"])),
                      np.ones(L) if tw is None else np.asarray(tw, np.float64), None)
         state = _state(gp, None, [int(c) for c in base.cells], allowed, method,
-                       int(max_candidates), "exchange=True")
+                       int(max_candidates), "exchange=True", n)
         hist = {k: list(v) for k, v in base.history.items()}
         hist["objective"] = []  # the gp greedy's own value per pick is not recorded
         posterior = bool(base.posterior)

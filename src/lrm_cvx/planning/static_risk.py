@@ -167,10 +167,12 @@ class FactoredState:
         m2 = self.YX.T @ (self.SWS @ self.YX[:, j] + self.S0 @ self.U[:, j]) + self.U.T @ sy
         if self.cov is not None:
             gx = self.gX[j]
-            d = np.sqrt(((self.gX - gx) ** 2).sum(axis=1).astype(np.float64))
-            c0 += self.cov.covariance(d, nugget=False)
             rp = self._rp
             r0, c0i = int(gx[0]) + 2 * rp, int(gx[1]) + 2 * rp  # x in the padded grids
+            # the kernel column k(X, x): cells beyond the window have k < 1e-12 sill
+            pos = self._pospad[r0 - rp:r0 + rp + 1, c0i - rp:c0i + rp + 1]
+            ok = pos >= 0
+            c0[pos[ok]] += self._ktab_p[ok]
             win = self._wpad[r0 - rp:r0 + rp + 1, c0i - rp:c0i + rp + 1] * self._ktab_p
             import scipy.fft as sfft
 
@@ -198,9 +200,10 @@ class FactoredState:
         self.cc += 2.0 * alpha * a * q + alpha ** 2 * aw * a * a
         self.cd += alpha * a * a
         if self.Z is not None:
-            self.P += alpha * (np.outer(zwa, a) + np.outer(b, q)) \
-                + alpha ** 2 * aw * np.outer(b, a)
-            self.Z += alpha * np.outer(b, a)
+            # P += alpha (zwa a^T + b q^T) + alpha^2 aw b a^T and Z += alpha b a^T, in place
+            U = np.column_stack([alpha * zwa + alpha ** 2 * aw * b, alpha * b])
+            _add_product(self.P, U, np.vstack([a, q]))
+            _add_product(self.Z, (alpha * b)[:, None], a[None, :])
             self.value += 2.0 * alpha * float(b @ zwa) + alpha ** 2 * aw * float(b @ b)
         else:
             self.value += alpha * aw
@@ -282,6 +285,16 @@ class FactoredState:
         self.Ainv, self.A2 = np.zeros((0, 0)), np.zeros((0, 0))
         for j in positions:
             self.add(int(j))
+
+
+def _add_product(C: np.ndarray, U: np.ndarray, V: np.ndarray) -> None:
+    """``C += U @ V`` in place (``C (T, p)`` C-contiguous; BLAS dgemm on ``C^T``, no ``T x p``
+    temporary)."""
+    from scipy.linalg.blas import dgemm
+
+    out = dgemm(1.0, V.T, U.T, beta=1.0, c=C.T, overwrite_c=1)
+    if not np.shares_memory(out, C):  # not updated in place (never for C-contiguous C)
+        C[...] = out.T
 
 
 def greedy(state: FactoredState, n: int, hist: dict[str, list]) -> None:
