@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-MAX_CANDIDATES: int = 250_000
+MAX_CANDIDATES: int = 200_000
 """Candidate cells of the scalable form; larger allowed sets are thinned to a sub-lattice."""
 
 _CUT_SUM = 1e-16  # kernel cut of the once-only full-grid sums (relative to the sill)
