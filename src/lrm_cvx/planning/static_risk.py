@@ -20,7 +20,9 @@ at the **candidate** cells ``X`` (``p`` of them):
   ``U = Y W K`` (``k`` convolutions), ``s(x) = sum_i w_i k(i, x)^2`` (one), ``R W K``
   (``T``, the risk only), once; and per new sensor ``x`` the column
   ``(K W K)[X, x] = sum_i w_i k(., i) k(i, x)`` by one FFT over a window of radius ``2c``
-  around ``x`` (``c`` where the kernel falls below ``1e-12`` of the sill). Columns are cached.
+  around ``x`` (``c`` where the kernel falls below ``1e-12`` of the sill; the kernel column
+  ``k(X, x)`` is taken from the same window). Columns are cached. The rank-2 updates of ``Z``
+  and ``P`` are in-place BLAS calls (memory-bound: they set the pace at paper scale).
 
 So the picks equal the dense reference's (tests compare them on tiny grids, where the windows
 cover the grid); memory is ``O((n + T) p + (T + k) L)``. Candidate cells default to every allowed
