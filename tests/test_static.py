@@ -185,11 +185,13 @@ def test_bad_inputs_name_the_argument(monkeypatch):
         _place(region, Y, prior, train, 3, ridge=1.0)
     with pytest.raises(PlanningError, match="path='static' only"):
         plan_greedy(Y, region, 0, 5.0, training=train, progress=False)
-    monkeypatch.setattr(st, "RISK_MAX_CELLS", L - 1)
+    monkeypatch.setattr(st, "RISK_MAX_CELLS", L - 1)  # the cap of the dense reference only
     with pytest.raises(PlanningError, match="RISK_MAX_CELLS"):
-        _place(region, Y, prior, train, 3)
+        _place(region, Y, prior, train, 3, method="dense")
     with pytest.raises(PlanningError, match="RISK_MAX_CELLS"):
-        place_sensors(Y, region, 3, criterion="gp-variance", prior=prior, exchange=True)
+        place_sensors(Y, region, 3, criterion="gp-variance", prior=prior, exchange=True,
+                      method="dense")
+    assert len(_place(region, Y, prior, train, 3).cells) == 3  # the scalable form: no cap
 
 
 # --------------------------------------------------------------------------- the CLI

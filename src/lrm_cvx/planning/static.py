@@ -25,12 +25,19 @@ changes nothing (a local optimum: no single swap improves) or ``sweeps`` is reac
 objective never increases. The state is rebuilt from scratch at the start of every sweep
 (no drift). Available for ``"risk"`` and ``"gp-variance"`` (total posterior variance).
 
-**Memory and cost.** Dense: the ``L x L`` posterior covariance (``8 L^2`` bytes: 16 MB at
-1,421 cells, 3.2 GB at 20,000) plus ``O(T L)``; it is built in row blocks, so the peak is one
-``L x L`` matrix plus blocks. Set-up ``O(L^2 (T + k))``, each pick ``O(L^2 + T L)``, each
-exchange sweep ``n`` removals and re-additions (``O(n L^2)``) plus a rebuild ``O(L^2 (n + T))``.
-Regions above :data:`RISK_MAX_CELLS` cells raise :class:`PlanningError` (use
-``criterion="gp-variance"``, whose structured oracle scales to millions of cells).
+**Memory and cost.** The state above is the dense reference (``method="dense"``): the
+``L x L`` posterior covariance (``8 L^2`` bytes: 16 MB at 1,421 cells, 3.2 GB at 20,000) plus
+``O(T L)``, built in row blocks; set-up ``O(L^2 (T + k))``, each pick ``O(L^2 + T L)``, each
+exchange sweep ``O(n L^2)`` plus a rebuild. Regions above :data:`RISK_MAX_CELLS` cells raise
+:class:`PlanningError`. The default (``method="auto"``) runs the same greedy and exchange in the
+scalable form of :mod:`lrm_cvx.planning.static_risk` (no ``L x L`` matrix, ``O((n + T) p)`` per
+step for ``p`` candidate cells, FFT sums of the stationary residual; the same picks), unless the
+residual's metric is km.
+
+**Default.** ``place_sensors(model, n, training=...)`` with no other option is the recommended
+placement (``"risk"`` + the exchange, skipped above :data:`EXCHANGE_AUTO_MAX` candidate cells or
+when ``n`` is at least the number of training snapshots); ``paper=True`` the paper's Fisher
+greedy; ``place_sensors(Y, region, n)`` keeps the Fisher default (no prior to take a risk from).
 """
 
 from __future__ import annotations
@@ -50,8 +57,8 @@ from .plan import Plan, check_region
 from .request import PlanPath
 from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
 
-__all__ = ["RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors", "place_static",
-           "risk_objective", "training_residuals"]
+__all__ = ["EXCHANGE_AUTO_MAX", "RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors",
+           "place_static", "risk_objective", "training_residuals"]
 
 RISK_MAX_CELLS: int = 20_000
 """Largest region (cells) of the dense risk / exchange state (``8 L^2`` bytes: 3.2 GB)."""
@@ -61,6 +68,9 @@ STATIC_CRITERIA: tuple[str, ...] = ("risk",)
 (static placement only: they need training snapshots)."""
 
 EXCHANGE_SWEEPS: int = 5
+EXCHANGE_AUTO_MAX: int = 20_000
+"""The recommended default runs the exchange after the greedy up to this many candidate cells
+(above, the greedy alone: the exchange costs ~``3 x sweeps`` greedies)."""
 _REL_TOL = 1e-9  # a swap must lower the objective by more than this fraction
 _BLOCK = 1024  # rows per block of the L x L updates (bounds the temporaries)
 
@@ -359,6 +369,31 @@ def risk_objective(prior: Any, training: Any, cells: Any, region: Region | None 
     return float(gp.w @ np.einsum("ti,ti->i", Z, Z))
 
 
+def _state(gp: _FoldIn, R: np.ndarray | None, cells: list[int], allowed: np.ndarray,
+           method: str, max_candidates: int, what: str, n: int) -> Any:
+    """The dense ``_State`` or the scalable ``FactoredState`` (``method``: "auto" picks the
+    scalable one unless the residual's metric is "km", which it cannot take)."""
+    from . import static_risk as sr
+
+    km = gp.spatial_cov is not None and getattr(gp.spatial_cov, "metric", "grid") != "grid"
+    if method == "factored" and km:
+        raise PlanningError("method='factored' needs the residual's metric 'grid' (FFT sums); "
+                            "use method='dense' for metric='km'")
+    if method == "dense" or km:
+        _check_size(gp.L, what)
+        return _State(gp, R, cells)
+    pool = sr.candidate_pool(gp.region, allowed, max_candidates)
+    if pool.size < n:
+        raise PlanningError(f"max_candidates = {max_candidates} thins the {allowed.size} "
+                            f"allowed cells to {pool.size} < n_sensors = {n}: raise it")
+    if cells:
+        pool = np.union1d(pool, np.asarray(cells, dtype=np.int64))
+    state = sr.FactoredState(gp.Y, gp.S0, gp.spatial_cov, gp.noise, gp.w, R, pool, gp.region)
+    for c in cells:
+        state.add(int(np.searchsorted(pool, c)))
+    return state
+
+
 def place_static(
     Y: Any,
     region: Region,
@@ -370,17 +405,36 @@ def place_static(
     training: Any = None,
     exchange: bool = False,
     sweeps: int = EXCHANGE_SWEEPS,
+    method: str = "auto",
+    max_candidates: int | None = None,
     other: dict[str, Any] | None = None,
 ) -> Plan:
     """``criterion="risk"`` (greedy on the training error, then optionally the exchange), or
     the exchange after the registry criterion's greedy (``"gp-variance"`` only). Called by
     :func:`~lrm_cvx.planning.place_sensors` with ``n`` and ``allowed`` (the candidate cells)
-    validated; ``other`` holds its remaining keyword arguments (passed on for gp-variance)."""
+    validated; ``other`` holds its remaining keyword arguments (passed on for gp-variance).
+    ``method``: ``"auto"`` (the scalable form of ``planning/static_risk.py`` unless the
+    residual's metric is km), ``"factored"`` or ``"dense"`` (the ``L x L`` reference)."""
+    from . import static_risk as sr
+
     region = check_region(region)
     Yk = as_factor_matrix(Y, region)
     L = Yk.shape[1]
     other = dict(other or {})
     sweeps = _check_sweeps(sweeps)
+    if method not in ("auto", "factored", "dense"):
+        raise PlanningError(f"method must be 'auto', 'factored' or 'dense', got {method!r}")
+    if max_candidates is None:
+        max_candidates = sr.MAX_CANDIDATES
+    if isinstance(max_candidates, (bool, np.bool_)) or not isinstance(
+            max_candidates, (int, np.integer)) or max_candidates < n:
+        raise PlanningError(f"max_candidates must be an integer >= n_sensors = {n}, got "
+                            f"{max_candidates!r}")
+    auto = isinstance(exchange, str) and exchange == "auto"
+    if auto:  # the recommended default: the exchange where the candidate count allows
+        exchange = allowed.size <= EXCHANGE_AUTO_MAX
+        skipped = (f"{allowed.size} candidate cells > EXCHANGE_AUTO_MAX = "
+                   f"{EXCHANGE_AUTO_MAX}: greedy only (pass exchange=True)")
     if not isinstance(exchange, (bool, np.bool_)):
         raise PlanningError(f"exchange must be True or False, got {exchange!r}")
     if isinstance(criterion, str) and criterion == "risk":
@@ -390,13 +444,22 @@ def place_static(
         if given:
             raise PlanningError(f"criterion='risk' takes its terms from prior= and training=; "
                                 f"{given} do not apply")
-        _check_size(L, "criterion='risk'")
         gp, obs = _fold_in_from_prior(prior, Yk, region)
         R = training_residuals(training, region, obs, gp.mean)
-        state = _State(gp, R, [])
+        if auto and exchange and n >= R.shape[0]:
+            # as many sensors as training snapshots: the training error is an optimistic
+            # estimate, and searching it harder than the greedy over-fits it
+            exchange = False
+            skipped = (f"n_sensors = {n} >= {R.shape[0]} training snapshots: greedy only "
+                       "(pass exchange=True)")
+        state = _state(gp, R, [], allowed, method, int(max_candidates), "criterion='risk'",
+                       n)
         hist: dict[str, list] = {k: [] for k in ("cell", "gain", "cost_increase", "ratio",
                                                  "cost", "n_evaluated", "objective")}
-        _greedy(state, n, allowed, hist)
+        if isinstance(state, _State):
+            _greedy(state, n, allowed, hist)
+        else:
+            sr.greedy(state, n, hist)
         crit, posterior = "risk", True
     else:
         if training is not None:
@@ -408,7 +471,6 @@ def place_static(
         if other.get("targets") is not None:
             raise PlanningError("exchange=True with gp-variance sums the variance over every "
                                 "cell: targets= does not apply")
-        _check_size(L, "exchange=True")
         base = place_sensors(Yk, region, n, criterion=crit, prior=prior, exchange=False, **other)
         terms = resolve_prior(prior, {k: other.get(k) for k in (
             "prior_precision", "noise_var", "target_weights", "prior_cov", "spatial_cov")})
@@ -419,13 +481,20 @@ def place_static(
         gp = _FoldIn(Yk, S0, region, terms["spatial_cov"],
                      np.full(L, gp_noise(terms["spatial_cov"])),
                      np.ones(L) if tw is None else np.asarray(tw, np.float64), None)
-        state = _State(gp, None, [int(c) for c in base.cells])
+        state = _state(gp, None, [int(c) for c in base.cells], allowed, method,
+                       int(max_candidates), "exchange=True", n)
         hist = {k: list(v) for k, v in base.history.items()}
         hist["objective"] = []  # the gp greedy's own value per pick is not recorded
         posterior = bool(base.posterior)
     info: dict[str, Any] = {}
     if exchange and state.cells:
-        info = _exchange(state, allowed, sweeps)
+        info = (_exchange(state, allowed, sweeps) if isinstance(state, _State)
+                else sr.exchange(state, sweeps, _REL_TOL))
+    info["form"] = "dense" if isinstance(state, _State) else "factored"
+    if auto and not exchange:
+        info["exchange_skipped"] = skipped
+    if not isinstance(state, _State):
+        info["n_candidates"] = int(state.pool.size)
     cells = list(state.cells)
     hist_out = {key: np.asarray(v, dtype=np.int64 if key in ("cell", "n_evaluated",
                                                             "exchange_out", "exchange_in")
@@ -456,22 +525,96 @@ def _qr_start(Yk: np.ndarray, allowed: np.ndarray, k: int) -> np.ndarray:
     return allowed[piv[:k]].astype(np.int64)
 
 
+def _is_model(obj: Any) -> bool:
+    return hasattr(obj, "latent_prior") and hasattr(obj, "Y_")
+
+
+def _resolve_call(Y: Any, region: Any, n_sensors: Any, prior: Any) -> tuple[Any, Any, Any,
+                                                                             Any, bool]:
+    """``(Y, region, n, prior, from_model)`` of the two call forms ``(model, n)`` /
+    ``(model, region, n)`` and ``(Y, region, n)``."""
+    if not _is_model(Y):
+        if n_sensors is None:
+            raise PlanningError("place_sensors(Y, region, n_sensors): n_sensors is missing "
+                                "(or pass a fitted GLRM: place_sensors(model, n))")
+        return Y, region, n_sensors, prior, False
+    model = Y
+    if n_sensors is None and not isinstance(region, Region):
+        region, n_sensors = None, region
+    if n_sensors is None:
+        raise PlanningError("place_sensors(model, n_sensors): n_sensors is missing")
+    if getattr(model, "Y_", None) is None:
+        raise PlanningError("place_sensors(model, ...): the model is not fitted")
+    if region is None:
+        region = getattr(model, "region_", None)
+        if region is None:
+            raise PlanningError("place_sensors(model, ...): the model has no region (fitted on "
+                                "an array): pass region= or fit it on a (time, lat, lon) "
+                                "DataArray")
+    return model.Y_, region, n_sensors, model if prior is None else prior, True
+
+
+def _recommended(from_model: bool, prior: Any, training: Any, paper: bool, criterion: Any,
+                 exchange: Any) -> tuple[str, bool]:
+    """``(criterion, exchange)`` of the call: the given ones, the paper's (``paper=True``:
+    Fisher, no exchange) or the recommended default (docs/planning.md "Static placement")."""
+    if paper:
+        if criterion not in (None, "fisher") or exchange:
+            raise PlanningError("paper=True is the paper's Fisher greedy: criterion and "
+                                "exchange do not apply")
+        if training is not None:
+            raise PlanningError("paper=True is the paper's Fisher greedy: training= does not "
+                                "apply")
+        return "fisher", False
+    if criterion is not None:
+        return criterion, bool(exchange) if exchange is not None else False
+    if training is not None:  # the fold-in's own training error, then the exchange
+        if prior is None:
+            raise PlanningError("training= (the recommended criterion 'risk') needs the "
+                                "fold-in's belief: pass a fitted GLRM first, or prior=")
+        return "risk", "auto" if exchange is None else bool(exchange)
+    if from_model and getattr(_model_of(prior), "spatial_cov_", None) is not None:
+        return "gp-variance", bool(exchange) if exchange is not None else False
+    return "fisher", bool(exchange) if exchange is not None else False
+
+
+def _model_of(prior: Any) -> Any:
+    return prior if _is_model(prior) else None
+
+
 def place_sensors(
     Y: Any,
-    region: Region,
-    n_sensors: int,
+    region: Any = None,
+    n_sensors: Any = None,
     *,
-    criterion: str = "fisher",
+    criterion: str | None = None,
     ridge: float = 0.0,
     prior: Any = None,
     progress: bool = False,
     traversable: Any = None,
     training: Any = None,
-    exchange: bool = False,
+    exchange: bool | None = None,
     sweeps: int = 5,
+    paper: bool = False,
+    method: str = "auto",
+    max_candidates: int | None = None,
     **terms: Any,
 ) -> Plan:
     """Static placement: ``n_sensors`` fixed sensors (moorings, stations), no travel.
+
+    Two call forms:
+
+    * ``place_sensors(model, n, training=snapshots)`` with a fitted GLRM (its ``Y_``,
+      ``region_`` and empirical prior with the spatial residual). **The default is the
+      recommended placement**: with ``training`` (the training snapshots, a ``(time, lat,
+      lon)`` DataArray on the model's grid) ``criterion="risk"`` + ``exchange=True``; without,
+      ``"gp-variance"`` for a model with a spatial residual, else ``"fisher"``.
+    * ``place_sensors(Y, region, n)`` with a factor matrix: no prior, so the default stays the
+      paper's ``"fisher"`` (the risk and gp-variance need the fold-in's prior covariance and
+      residual, which only a fitted model or ``prior=`` gives); with ``prior=`` and
+      ``training=`` it is the recommended ``"risk"`` + exchange.
+
+    ``paper=True`` (or ``criterion="fisher"``) is the paper's Fisher greedy, unchanged.
 
     The greedy of :func:`~lrm_cvx.planning.plan_greedy` with every sensor costing 1: candidates
     are all valid cells (or the cells of a boolean ``(lat, lon)`` DataArray ``traversable``:
@@ -486,14 +629,22 @@ def place_sensors(
     ``route`` = the sensors in selection order (no travel), ``route_cost`` = the number of
     sensors placed so far, ``cost`` = the number of sensors, ``start = -1``.
 
-    ``criterion="risk"``: the greedy on the fold-in's own
-    squared reconstruction error over the ``training`` snapshots (a ``(time, lat, lon)``
-    DataArray on the region's grid); ``prior`` is the fold-in's belief
+    ``criterion="risk"``: the greedy on the fold-in's own squared reconstruction error over
+    the ``training`` snapshots; ``prior`` is the fold-in's belief
     (``model.latent_prior("empirical", spatial=True)``) or the fitted GLRM. It places exactly
     ``n_sensors``. ``exchange=True`` (``"risk"`` or ``"gp-variance"``) then swaps sensors while
-    a swap lowers the objective (at most ``sweeps`` sweeps; never worse). Both hold a dense
-    ``L x L`` covariance: at most ``static.RISK_MAX_CELLS`` cells.
+    a swap lowers the objective (at most ``sweeps`` sweeps; never worse). ``method="auto"``
+    runs both in the scalable form (``planning/static_risk.py``: no ``L x L`` matrix, exact,
+    candidates thinned to a sub-lattice above ``max_candidates`` cells) unless the residual's
+    metric is km; ``"dense"`` is the ``L x L`` reference (at most ``RISK_MAX_CELLS`` cells).
     """
+    Y, region, n_sensors, prior, from_model = _resolve_call(Y, region, n_sensors, prior)
+    criterion, exchange = _recommended(from_model, prior, training, paper, criterion, exchange)
+    if from_model and _is_model(prior) and criterion not in ("risk", "fisher"):
+        prior = prior.latent_prior("empirical",
+                                   spatial=getattr(prior, "spatial_cov_", None) is not None)
+    elif from_model and _is_model(prior) and criterion == "fisher":
+        prior = None  # the paper's Fisher greedy: no prior
     region = check_region(region)
     bad = set(terms) - set(PRIOR_TERMS)
     if bad:
@@ -525,7 +676,8 @@ def place_sensors(
         raise PlanningError(f"n_sensors = {n} but only {allowed.size} cells can hold a sensor")
     if risk or exchange is not False or training is not None:
         return place_static(Yk, region, n, allowed, criterion=criterion, prior=prior,
-                            training=training, exchange=exchange, sweeps=sweeps, other=dict(
+                            training=training, exchange=exchange, sweeps=sweeps,
+                            method=method, max_candidates=max_candidates, other=dict(
                                 ridge=ridge, progress=progress, traversable=traversable,
                                 **terms))
     targets = terms.pop("targets")
