@@ -251,6 +251,35 @@ def coverage_report(name: str, table: pd.DataFrame) -> pd.DataFrame:
     return out.reset_index()
 
 
+def forecast_vs_posterior(data, n_starts: int = 3, budget: float = 15.0) -> pd.DataFrame:
+    """Per temporal mode (memoryless, the model's ``temporal="auto"`` choice): the campaign's
+    mean map MSE of the morning forecast and of the posterior after the day's samples over the
+    last ``N_TEST`` snapshots, ``n_starts`` starts, greedy gp-variance (issue #24 item 3: a
+    posterior never worse than its forecast on average)."""
+    import numpy as np
+
+    from lrm_cvx import GLRM
+    from lrm_cvx.campaign import simulate_campaign
+
+    train, test = data.isel(time=slice(None, -N_TEST)), data.isel(time=slice(-N_TEST, None))
+    model = GLRM(rank=RANK, offset=True, spatial="exponential", temporal="auto",
+                 random_state=0, progress=False).fit(train)
+    valid = np.flatnonzero(np.isfinite(model.region_.stack(test.isel(time=0))))
+    starts = np.random.default_rng(0).choice(valid, size=n_starts, replace=False)
+    rows = []
+    for temporal in (None, "auto"):
+        runs = [simulate_campaign(model, test, int(s), budget, temporal=temporal)
+                for s in starts]
+        fc = np.mean([r["mse_forecast"].values for r in runs])
+        post = np.mean([r["mse"].values for r in runs])
+        worse = np.mean([r["mse"].values > r["mse_forecast"].values for r in runs])
+        rows.append({"temporal": "none" if temporal is None else
+                     f"auto ({model.selection_.attrs['choice']})", "forecast": fc,
+                     "posterior": post, "change": f"{100 * (post / fc - 1):+.1f}%",
+                     "days_worse": f"{worse:.2f}"})
+    return pd.DataFrame(rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true",
@@ -270,6 +299,8 @@ def main() -> None:
                     help="the coverage check's calibration folds (calibrate(folds=))")
     ap.add_argument("--origins", type=int, default=None,
                     help="test blocks of the coverage check (default 3; --quick 2)")
+    ap.add_argument("--forecast", action="store_true",
+                    help="posterior vs forecast map MSE of the campaigns (forecast_vs_posterior)")
     args = ap.parse_args()
 
     budgets = (15,) if args.quick else (15, 30, 60)
@@ -282,6 +313,17 @@ def main() -> None:
         print(f"not installed: {missing}; install with: {' ; '.join(install_commands())}")
         names = [n for n in names if n not in missing]
 
+    if args.forecast:
+        print(f"campaigns over the last {N_TEST} snapshots, greedy {RECOMMENDED} budget 15, "
+              "3 starts: map MSE of the morning forecast vs the posterior after the samples",
+              flush=True)
+        for name in names:
+            t0 = time.perf_counter()
+            table = forecast_vs_posterior({**DATASETS, **SHORT_DATASETS}[name].loader())
+            table.insert(0, "set", name)
+            print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+            print(f"[{name}] {time.perf_counter() - t0:.0f} s\n", flush=True)
+        return
     if args.aci:
         print(f"monitor loop (ar1 filter, conformal calibration) through the last {3 * N_TEST} "
               "snapshots, a 15-cell route a day; coverage at the other cells", flush=True)

@@ -276,3 +276,16 @@ def test_replanning_en_route_refuses_a_footprint_sensor(model, test_days):
     with pytest.raises(PlanningError, match="footprint or towed sensor"):
         simulate_campaign(model, test_days, (0.0, 200.0), 10.0, replan_every=2,
                           sensor="disc:1500km")
+
+
+def test_the_forecast_error_is_the_morning_map_before_the_samples(model, test_days):
+    """``mse_forecast`` of day 1 is the error of the filter's forecast from the last fitted
+    snapshot, computed by hand (the posterior's ``mse`` folds the day's samples in)."""
+    ds = simulate_campaign(model, test_days, (0.0, 200.0), 10.0, temporal="ar1")
+    state = MonitorState.from_model(model)
+    t = state._coerce(test_days.time.values[0])
+    mean = state._propagated(t).predict()[0]
+    truth = model.region_.stack(test_days.isel(time=0)).astype(np.float64)
+    ok = np.isfinite(truth)
+    assert np.isclose(ds["mse_forecast"].values[0], np.mean((mean - truth)[ok] ** 2))
+    assert np.all(np.isfinite(ds["mse_forecast"].values))

@@ -222,7 +222,9 @@ def simulate_campaign(
 
     Each day: forecast, plan, observe the true snapshot at the plan's cells (cells it lacks
     give no observation), assimilate, predict. Returns a Dataset over ``time`` with ``mse``
-    (over the snapshot's observed cells, like ``evaluate``), ``mse_heldout``, ``coverage68``,
+    (over the snapshot's observed cells, like ``evaluate``), ``mse_heldout``, ``mse_forecast``
+    (the morning forecast's map before the day's samples, same cells: a posterior should not be
+    worse than it on average), ``coverage68``,
     ``coverage95`` (fraction of the observed cells *not sampled* inside the central 68 % / 95 %
     predictive interval, ``mean +- z * predictive_std``), ``n_obs``, ``information`` (the
     morning plan's criterion value), ``logdet_cov`` (log det of the latent posterior
@@ -267,8 +269,8 @@ def simulate_campaign(
 
     T = V.shape[0]
     out = {name: np.full(T, np.nan) for name in (
-        "mse", "mse_heldout", "coverage68", "coverage95", "information", "logdet_cov",
-        "route_cost")}
+        "mse", "mse_heldout", "mse_forecast", "coverage68", "coverage95", "information",
+        "logdet_cov", "route_cost")}
     n_obs = np.zeros(T, dtype=np.int64)
     n_replans = np.zeros(T, dtype=np.int64)
     robot_cost = np.full((T, fleet.n_robots), np.nan)
@@ -282,6 +284,7 @@ def simulate_campaign(
                 state_for_plan = _positioned(state, t)
             plan = _plan_day(state_for_plan, planner, fleet, request, rng, ridge)
         information = float(getattr(plan, "information", np.nan))
+        forecast = (state._propagated(t) if state.observed else state.posterior).predict()[0]
         if every:
             flown, cells, n_replans[i] = _fly_replanning(state, plan, t, V[i], every,
                                                          planner.criterion)
@@ -304,6 +307,7 @@ def simulate_campaign(
         err = (mean - truth) ** 2
         if observed.any():
             out["mse"][i] = float(np.mean(err[observed]))
+            out["mse_forecast"][i] = float(np.mean((forecast - truth)[observed] ** 2))
         held = observed.copy()
         held[cells] = False
         if held.any():
@@ -340,6 +344,7 @@ def _dataset(out: dict, n_obs: np.ndarray, n_replans: np.ndarray, robot_cost: np
     ds["n_obs"] = ("time", n_obs)
     ds["routes"] = (("time", "stop"), _padded([r for r, _ in routes]))
     ds["routes"].attrs["long_name"] = "route cell indices, padded with -1"
+    ds["mse_forecast"].attrs["long_name"] = "MSE of the forecast map, before the day's samples"
     ds["coverage68"].attrs["long_name"] = "fraction of held-out observed cells in mean +- 1 std"
     ds["coverage95"].attrs["long_name"] = "fraction of held-out observed cells in mean +- 1.96 std"
     ds["route_cost"].attrs["units"] = path.unit
