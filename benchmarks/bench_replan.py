@@ -37,6 +37,7 @@ import warnings
 
 import numpy as np
 from bench_glider_campaign import PATH, STARTS, infeasible
+from bench_planner import _km_per_grid_unit  # one grid step in km at the start
 
 from lrm_cvx import GLRM, load_sample
 from lrm_cvx.campaign import simulate_campaign
@@ -81,19 +82,6 @@ def _paper_model(cache: str | None, small: bool):
     if cache:
         model.save(cache)
     return model, truth
-
-
-def _km_per_grid_unit(region, start: int) -> float:
-    from lrm_cvx.planning.paths import travel_distance
-
-    g = region.grid_index[start]
-    out = []
-    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        r, c = g[0] + dr, g[1] + dc
-        if 0 <= r < region.shape[0] and 0 <= c < region.shape[1] and region.cell_grid[r, c] >= 0:
-            out.append(float(travel_distance(region, start, int(region.cell_grid[r, c]),
-                                             metric="km")))
-    return float(np.mean(out))
 
 
 def _after_route(state, plan, done, t, truth):

@@ -42,6 +42,7 @@ from .oracles import (  # noqa: F401  (the Fisher and A-optimal oracles: re-expo
     RowOracle,
     a_optimal_value,
     cells_array,
+    check_pool_rows,
     fisher_information,
     row_factors,
     row_information,
@@ -249,12 +250,7 @@ class RowGPVarianceOracle(GPVarianceOracle):
         self.Y = as_factor_matrix(Y)
         S0 = check_gp_inputs(self.Y, region, spatial_cov, prior_cov)
         L = self.Y.shape[1]
-        self.pool = cells_array(pool, L)
-        if self.pool.size and np.any(np.diff(self.pool) <= 0):
-            raise PlanningError("pool must be sorted distinct cells")
-        A = sps.csr_matrix(rows, dtype=np.float64)
-        if A.shape != (self.pool.size, L):
-            raise PlanningError(f"rows must be ({self.pool.size}, {L}): one per pool cell")
+        self.pool, A = check_pool_rows(pool, rows, L)
         T = np.arange(L) if targets is None else np.unique(cells_array(targets, L))
         n_rows = T.size + self.pool.size
         if n_rows * self.pool.size > max_entries:

@@ -18,7 +18,7 @@ from .errors import DataError, PlanningError
 from .glrm.averaged import row_noise
 
 __all__ = ["fisher_information", "a_optimal_value", "FisherOracle", "AOptimalOracle",
-           "cells_array", "row_factors", "row_information", "RowOracle"]
+           "cells_array", "row_factors", "row_information", "RowOracle", "check_pool_rows"]
 
 
 def _gram(Y: np.ndarray, cells: np.ndarray, ridge: float) -> np.ndarray:
@@ -291,6 +291,18 @@ def row_information(Y: Any, rows: Any, ridge: float = 0.0, noise_var: Any = None
     return float(logdet) if sign > 0 else -np.inf
 
 
+def check_pool_rows(pool: Any, rows: Any, L: int) -> tuple[np.ndarray, sps.csr_matrix]:
+    """``(pool, rows)`` of a row oracle: the candidate cells (sorted, distinct) and their
+    averaging rows as CSR ``(len(pool), L)``, one per pool cell (PlanningError otherwise)."""
+    pool = cells_array(pool, L)
+    if pool.size and np.any(np.diff(pool) <= 0):
+        raise PlanningError("pool must be sorted distinct cells")
+    A = sps.csr_matrix(rows, dtype=np.float64)
+    if A.shape != (pool.size, L):
+        raise PlanningError(f"rows must be ({pool.size}, {L}): one per pool cell")
+    return pool, A
+
+
 class RowOracle:
     """Fisher / A-optimal gains when a candidate's observation is an averaged row.
 
@@ -309,12 +321,7 @@ class RowOracle:
                  pool_factors: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         Yk = as_factor_matrix(Y)
         L = Yk.shape[1]
-        self.pool = cells_array(pool, L)
-        if self.pool.size and np.any(np.diff(self.pool) <= 0):
-            raise PlanningError("pool must be sorted distinct cells")
-        A = sps.csr_matrix(rows, dtype=np.float64)
-        if A.shape != (self.pool.size, L):
-            raise PlanningError(f"rows must be ({self.pool.size}, {L}): one per pool cell")
+        self.pool, A = check_pool_rows(pool, rows, L)
         extra = sps.csr_matrix((0, L)) if extra_rows is None else sps.csr_matrix(extra_rows)
         Yp, vp = row_factors(Yk, A, noise_var, errors) if pool_factors is None else pool_factors
         Ye, ve = row_factors(Yk, extra, noise_var, errors)

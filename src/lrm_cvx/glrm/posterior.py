@@ -292,15 +292,18 @@ class LatentPosterior:
                     G2, b2, zz2 = obs.row_terms(*self._fit_rows_only())
                     G, b, zz = G + G2, b + b2, zz + zz2
             n_all = all_cells.size + (self.rows.shape[0] if has_rows else 0)
-        dq, dn = 0.0, 0.0
-        if adaptive:
-            q, n_eff = _innovation(self.base_precision, self.base_shift, G, b, zz, n_all)
-            if n_eff > 0 and np.isfinite(q):
-                dq, dn = q, float(n_eff)
+        dq, dn = self._day_evidence(G, b, zz, n_all) if adaptive else (0.0, 0.0)
         return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
                                all_cells, all_values, self.n_dropped + dropped, dq, dn,
                                self.scale_q, self.scale_n, self.rows, self.row_values,
                                self.row_noise)
+
+    def _day_evidence(self, G: np.ndarray, b: np.ndarray, zz: float, n_all: int
+                      ) -> tuple[float, float]:
+        """``(day_q, day_n)``: the innovation statistic of the day's observations against the
+        belief before them (the adaptive scale's evidence; ``(0, 0)`` when it has none)."""
+        q, n_eff = _innovation(self.base_precision, self.base_shift, G, b, zz, n_all)
+        return (q, float(n_eff)) if n_eff > 0 and np.isfinite(q) else (0.0, 0.0)
 
     def _only_dropped(self, dropped: int) -> LatentPosterior:
         """This belief, bit for bit, with ``dropped`` more NaN values counted."""
@@ -371,11 +374,7 @@ class LatentPosterior:
                     G, b, zz = G + G2, b + b2, zz + zz2
         n_all = (np.unique(self.cells).size if obs.is_spatial else self.cells.size) \
             + all_rows.shape[0]
-        dq, dn = 0.0, 0.0
-        if adaptive:
-            q, n_eff = _innovation(self.base_precision, self.base_shift, G, b, zz, n_all)
-            if n_eff > 0 and np.isfinite(q):
-                dq, dn = q, float(n_eff)
+        dq, dn = self._day_evidence(G, b, zz, n_all) if adaptive else (0.0, 0.0)
         return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
                                self.cells, self.values, self.n_dropped + dropped, dq, dn,
                                self.scale_q, self.scale_n, all_rows, all_rv, all_noise)

@@ -319,15 +319,9 @@ def _exchange(state: _State, allowed: np.ndarray, sweeps: int) -> dict[str, Any]
         if not changed:
             done = True
             break
-    state.rebuild(state.cells)
-    after = state.value
-    if after > before:  # every swap lowered it by > tol: only rounding; keep the start then
-        state.rebuild(start)
-        after = before
-        moves = {key: [] for key in moves}
-    return dict(method="exchange", objective_before=before, objective_after=after,
-                swaps=len(moves["exchange_out"]), sweeps=n_sweeps, converged=done,
-                seconds=time.perf_counter() - t0, moves=moves)
+    from .static_risk import finish_exchange
+
+    return finish_exchange(state, state.cells, start, before, moves, n_sweeps, done, t0)
 
 
 def _check_size(L: int, what: str) -> None:

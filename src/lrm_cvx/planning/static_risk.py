@@ -351,7 +351,14 @@ def exchange(state: FactoredState, sweeps: int, rel_tol: float) -> dict[str, Any
         if not changed:
             done = True
             break
-    state.rebuild(order)
+    return finish_exchange(state, order, start, before, moves, n_sweeps, done, t0)
+
+
+def finish_exchange(state: Any, final: Any, start: Any, before: float, moves: dict[str, list],
+                    n_sweeps: int, done: bool, t0: float) -> dict[str, Any]:
+    """The exchange's report (both forms, dense and scalable): ``state`` rebuilt on the
+    ``final`` sensors, or back on ``start`` when rounding made the swaps worse (never worse)."""
+    state.rebuild(final)
     after = state.value
     if after > before:  # every swap lowered it by > tol: only rounding; keep the start then
         state.rebuild(start)
