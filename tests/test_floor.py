@@ -10,7 +10,7 @@ import warnings
 import cvxpy as cp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from test_bound import _grid_Y, grid_distances, logdet, make_region, path_feasible_sets
 
@@ -36,13 +36,15 @@ def cvxpy_mixture(Ms: np.ndarray, ridge: float) -> float:
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 10_000), m=st.integers(1, 12), k=st.integers(2, 4),
        rank=st.integers(1, 4), ridge=st.sampled_from([0.0, 0.05]))
+@example(seed=10, m=8, k=2, rank=2, ridge=0.0)  # 5000 steps leave a gap of 1.27e-4 here
 def test_route_mixture_matches_cvxpy(seed, m, k, rank, ridge):
     """Random rank-deficient PSD matrices (as a short route's are): the multiplicative solver's
     value equals an independent cvxpy solve, never exceeds it, and its gap bounds the
     distance to it."""
     rng = np.random.default_rng(seed)
     Ms = np.stack([(A := rng.normal(size=(k, rank))) @ A.T for _ in range(m)])
-    lam, value, gap = route_mixture(Ms, ridge=ridge)
+    # enough steps for the multiplicative updates' slow tail on rank-deficient moments
+    lam, value, gap = route_mixture(Ms, ridge=ridge, max_iter=50_000)
     if ridge == 0 and np.linalg.matrix_rank(Ms.sum(0)) < k:  # every mixture is singular
         assert value == -math.inf
         return
