@@ -363,3 +363,26 @@ def test_adaptive_scale_is_carried_by_the_monitor_state_and_saved(tmp_path):
     np.testing.assert_allclose(back.predict()["predictive_std"].values,
                                state.predict()["predictive_std"].values, rtol=1e-9,
                                equal_nan=True)
+
+
+def test_fit_calibration_parameter_equals_calibrating_after_the_fit(tmp_path):
+    """``GLRM(calibration="conformal")`` is ``calibrate(model, train, method="conformal")`` run
+    at the end of the fit: same calibration (its refits do not calibrate themselves), saved
+    and loaded with the parameter; a bad value is one error before any fitting."""
+    data = _planted(T=16, ny=8, nx=10)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        auto = GLRM(rank=3, progress=False, random_state=0, offset=True,
+                    calibration="conformal").fit(data)
+        plain = GLRM(rank=3, progress=False, random_state=0, offset=True).fit(data)
+        ref = calibrate(plain, data, method="conformal", seed=0)
+    assert auto.calibration_ is not None
+    np.testing.assert_equal(auto.calibration_.to_attrs(), ref.to_attrs())
+    np.testing.assert_array_equal(auto._Yv, plain._Yv)
+    path = tmp_path / "m.nc"
+    auto.save(path)
+    loaded = GLRM.load(path)
+    assert loaded.calibration == "conformal"
+    np.testing.assert_equal(loaded.calibration_.to_attrs(), ref.to_attrs())
+    with pytest.raises(ModelError, match="calibration must be one of"):
+        GLRM(rank=3, progress=False, calibration="isotonic").fit(data)

@@ -111,8 +111,12 @@ def sample_sets(region: Any, observed: np.ndarray, size: int, kind: str,
 
 # ----------------------------------------------------------------------------- estimation
 def clone_model(model: Any, **override: Any):
-    """An unfitted copy of ``model`` (its class and parameters, ``override`` applied)."""
-    params = {**model.get_params(), "progress": False, **override}
+    """An unfitted copy of ``model`` (its class and parameters, ``override`` applied; a
+    refit never calibrates itself: ``calibration`` None unless overridden)."""
+    params = model.get_params()
+    if "calibration" in params:
+        params["calibration"] = None
+    params = {**params, "progress": False, **override}
     return type(model)(**params)
 
 

@@ -24,7 +24,13 @@ from .dynamics import TEMPORAL, Dynamics, error_rows, temporal_value
 from .dynamics import estimate as estimate_dynamics
 from .fit import DataStats, FitResult, check_data, fit_glrm
 from .losses import get_loss
-from .modelfile import MODEL_FORMAT, MODEL_FORMAT_VERSION, read_model_file
+from .modelfile import (
+    MODEL_FORMAT,
+    MODEL_FORMAT_VERSION,
+    params_from_json,
+    params_to_json,
+    read_model_file,
+)
 from .posterior import LatentPosterior, fold_in_snapshots, model_prior
 from .predictive import PREDICTIVE_ATTRS, fit_predictive
 from .regularizers import get_regularizer
@@ -72,6 +78,10 @@ class GLRM:
         unique time coordinate and at least 3 snapshots (numpy input: one step per row).
         ``"auto"``: chosen by rolling-origin validation on the training snapshots
         (:mod:`~lrm_cvx.glrm.selection`; the table is ``selection_``, saved with the model).
+    calibration : None (default) or ``"gaussian"`` / ``"conformal"``: after the fit, calibrate the
+        variances on cross-validated fold-ins of the training snapshots
+        (:func:`~lrm_cvx.glrm.calibration.calibrate`, ``calibration_``; the residual and noise
+        variances are re-estimated too, so planning and prediction use them).
 
     Learned attributes: ``X_`` ``(component, time)``, ``Y_`` ``(component, cell)`` (DataArrays
     when fitted on xarray data, else ndarrays), ``region_``, ``objective_``, ``n_iter_``,
@@ -103,6 +113,7 @@ class GLRM:
         keep_dask: bool = False,
         dask_options: dict | None = None,
         temporal: str | None = None,
+        calibration: str | None = None,
     ) -> None:
         self.rank = rank
         self.loss = loss
@@ -121,6 +132,7 @@ class GLRM:
         self.keep_dask = keep_dask
         self.dask_options = dask_options
         self.temporal = temporal
+        self.calibration = calibration
 
     # ------------------------------------------------------------------ sklearn protocol
     @classmethod
@@ -197,7 +209,7 @@ class GLRM:
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
         self._fit_dynamics(M[-1], mask=M)
         del D, M
-        self._select_temporal(data)
+        self._validate_choices(data)
         _warn_if_static(self._Xv)
         return self
 
@@ -220,15 +232,20 @@ class GLRM:
         set_predictive(self, region, extras["offset"], extras["scale"], extras.get("moments"),
                        extras.get("sample"))
         self._fit_dynamics(extras["last_mask"], mask=extras.get("error_masks"))
-        self._select_temporal(data)
+        self._validate_choices(data)
         return self
 
-    def _select_temporal(self, data: Any) -> None:
-        """With ``temporal="auto"``: choose ``dynamics_`` on ``data`` (glrm/selection.py)."""
+    def _validate_choices(self, data: Any) -> None:
+        """The choices validated on the training ``data``: ``temporal="auto"``'s ``dynamics_``
+        (glrm/selection.py), then ``calibration``'s ``calibration_`` (glrm/calibration.py)."""
         if temporal_value(self.temporal) == "auto":
             from .selection import apply_selection, select_temporal
 
             apply_selection(self, select_temporal(self, data, seed=self.random_state))
+        if self.calibration is not None:
+            from .calibration import calibrate
+
+            calibrate(self, data, method=self.calibration, seed=self.random_state)
 
     def _prepare(self, data, mask, region):
         """``(D, M, region, times, owned)`` from any supported input (no copy of clean arrays);
@@ -705,7 +722,8 @@ class GLRM:
         np.copyto(train, 0, where=~mask)  # ours: zero-filled once, so no fit copies it
         out = {}
         for r in ranks:
-            model = GLRM(**{**self.get_params(), "rank": int(r), "progress": False})
+            model = GLRM(**{**self.get_params(), "rank": int(r), "progress": False,
+                             "calibration": None})
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 model.fit(train, mask=mask)
@@ -741,23 +759,10 @@ class GLRM:
             },
             coords={"component": np.arange(k), tdim: tvals, "cell": np.arange(Y.shape[1])},
         )
-        params = {}
-        warn_custom = []
-        for key, value in self.get_params().items():
-            if key in ("loss", "reg_x", "reg_y"):
-                obj = get_loss(value) if key == "loss" else get_regularizer(value)
-                if getattr(obj, "serializable", True):
-                    params[key] = obj.spec()
-                else:
-                    params[key] = {"name": "custom", "repr": repr(obj)}
-                    warn_custom.append(key)
-            elif key == "random_state":
-                params[key] = value if isinstance(value, (int, type(None))) else repr(value)
-            else:
-                params[key] = value
+        params, warn_custom = params_to_json(self.get_params())
         attrs = {
             "format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION,
-            "params": json.dumps(params, default=str),
+            "params": params,
             "noise_std": self.noise_std_, "n_iter": self.n_iter_,
             "converged": int(self.converged_), "n_observed": self.n_observed_,
             "solver": self.solver_, "time_dim": str(tdim),
@@ -797,14 +802,7 @@ class GLRM:
         (``format_version`` above this version's).
         """
         ds, params = read_model_file(path)
-        for key in ("loss", "reg_x", "reg_y"):
-            spec = params.get(key)
-            if isinstance(spec, dict) and spec.get("name") == "custom":
-                warnings.warn(f"{key} was a custom callable ({spec.get('repr')}) and cannot be "
-                              "restored; it is set to None", UserWarning, stacklevel=2)
-                params[key] = None
-            elif isinstance(spec, dict):
-                params[key] = (get_loss(spec) if key == "loss" else get_regularizer(spec))
+        params = params_from_json(params)
         names = cls._param_names()
         model = cls(**{k: v for k, v in params.items() if k in names})
         tdim = ds.attrs.get("time_dim", "time")

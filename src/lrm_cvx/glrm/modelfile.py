@@ -18,12 +18,52 @@ from .._validation import read_netcdf
 from ..errors import DataError
 
 __all__ = ["MODEL_FORMAT", "MODEL_FORMAT_VERSION", "MODEL_VARS", "MODEL_ATTRS",
-           "read_model_file"]
+           "read_model_file", "params_to_json", "params_from_json"]
 
 MODEL_FORMAT = "lrm-cvx GLRM"
 MODEL_FORMAT_VERSION = 1
 MODEL_VARS = ("X", "Y", "objective", "unobserved_cells")
 MODEL_ATTRS = ("params", "noise_std", "n_iter", "converged", "n_observed")
+
+
+def params_to_json(params: dict) -> tuple[str, list[str]]:
+    """``(json text, names)`` of a model's ``get_params()``: losses and regularisers as their
+    specs; ``names`` the custom callables that cannot be saved (their repr is stored)."""
+    from .losses import get_loss
+    from .regularizers import get_regularizer
+
+    out, custom = {}, []
+    for key, value in params.items():
+        if key in ("loss", "reg_x", "reg_y"):
+            obj = get_loss(value) if key == "loss" else get_regularizer(value)
+            if getattr(obj, "serializable", True):
+                out[key] = obj.spec()
+            else:
+                out[key] = {"name": "custom", "repr": repr(obj)}
+                custom.append(key)
+        elif key == "random_state":
+            out[key] = value if isinstance(value, (int, type(None))) else repr(value)
+        else:
+            out[key] = value
+    return json.dumps(out, default=str), custom
+
+
+def params_from_json(params: dict) -> dict:
+    """The parameters of :func:`params_to_json` read back (``read_model_file``'s ``params``):
+    loss and regulariser specs rebuilt; a custom callable becomes None with a warning."""
+    from .losses import get_loss
+    from .regularizers import get_regularizer
+
+    params = dict(params)
+    for key in ("loss", "reg_x", "reg_y"):
+        spec = params.get(key)
+        if isinstance(spec, dict) and spec.get("name") == "custom":
+            warnings.warn(f"{key} was a custom callable ({spec.get('repr')}) and cannot be "
+                          "restored; it is set to None", UserWarning, stacklevel=3)
+            params[key] = None
+        elif isinstance(spec, dict):
+            params[key] = (get_loss(spec) if key == "loss" else get_regularizer(spec))
+    return params
 
 
 def read_model_file(path: str | os.PathLike) -> tuple[xr.Dataset, dict]:

@@ -31,6 +31,7 @@ __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS
            "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
            "check_options", "moments_to_transform", "set_predictive", "sample_rows"]
 
+CALIBRATIONS = (None, "gaussian", "conformal")  # GLRM(calibration=): calibrate after the fit
 NOISE_PRIOR_DF = 10.0  # pseudo-observations of the global variance in each per-cell estimate
 NOISE_MODELS = ("global", "per-cell")
 PRIORS = (None, "empirical")
@@ -44,6 +45,9 @@ def _check_params(model: Any) -> None:
             raise ModelError(f"{name} must be True or False, got {getattr(model, name)!r}")
     if model.noise not in NOISE_MODELS:
         raise ModelError(f"noise must be one of {NOISE_MODELS}, got {model.noise!r}")
+    if getattr(model, "calibration", None) not in CALIBRATIONS:
+        raise ModelError(f"calibration must be one of {CALIBRATIONS}, got "
+                         f"{model.calibration!r}")
     if model.spatial is not None and model.spatial not in MODELS:
         raise ModelError(f"spatial must be None or one of {MODELS}, got {model.spatial!r}")
 
