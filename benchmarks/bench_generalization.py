@@ -8,30 +8,25 @@ project has never seen.
 
 The data sets are those of ``benchmarks/generalization_data.py`` (data shipped inside PyPI and
 Debian packages; that module's docstring has the install commands). Per set, the issue's
-protocol: rank 5, the last 8 snapshots held out, the recommended setting (``offset=True,
-spatial="exponential"``, empirical prior with kriging for every method's map,
-``greedy:gp-variance``), against the four transects and the random walk from the same starts.
+protocol: rank 5, the last 8 snapshots held out, the recommended setting
+(``lrm_cvx.recommended.RECOMMENDED``'s model keys, :func:`recommended_params`: offset,
+exponential spatial residual, ``temporal="auto"``, ``calibration="conformal"``; empirical prior
+with kriging for every method's map, ``greedy:gp-variance``), against the four transects and
+the random walk from the same starts.
 
-For each set one ``evaluate(..., temporal="ar1")`` runs a campaign over the 8 test snapshots per
-start, budget and method, through the AR(1) filter and memoryless through the same loop (so
-memoryless and ``ar1`` see the same starts and the same data); for monthly sets a second
-``evaluate(..., temporal="seasonal")`` (month-of-year means plus AR(1) anomalies), and for every
-set ``temporal="auto"`` (the choice validated on the training snapshots, glrm/selection.py; the
-choice is printed). Each model is
-fitted on the training snapshots with its ``temporal=`` (the fit's own validated blend towards
-memoryless; ``select_dynamics`` and ``calibrate`` are *not* applied: this is what a new user gets
-from the documented recommended setting). Printed per set and budget:
+For each set one ``evaluate(..., temporal="auto")`` runs a campaign over the 8 test snapshots
+per start, budget and method, through the filter the model chose on its training snapshots
+(glrm/selection.py; the choice is printed) and memoryless through the same loop (the same
+starts and data). ``--modes ar1,seasonal,auto`` also runs the fixed kinds (the seasonal one on
+monthly sets only), each fitted with its ``temporal=``. Printed per set and budget:
 
-* test MSE of the greedy: memoryless, ``ar1``, ``seasonal``;
+* test MSE of the greedy: memoryless and per temporal mode;
 * per temporal mode the best baseline (lowest MSE among the transects and the random walk) and
   the greedy's relative difference to it (negative: the greedy wins);
 * coverage of the 68 % / 95 % predictive intervals at the held-out (unsampled) observed cells
   of the greedy's maps, per temporal mode;
-* ``ar1_vs_mem`` / ``seas_vs_mem``: the greedy's MSE change from memoryless (negative: better).
-
-Cost: ``--quick`` 43-104 s wall (30-46 s CPU) for the six sets on the shared 2-core machine; full
-run does about 12x the campaigns (3 budgets, 10 starts, 5 random walks), ~10-15 min on 2 idle
-cores (estimate from the quick run's CPU time; ``--jobs 2`` runs evaluate's starts in parallel).
+* ``auto_vs_mem`` (and ``ar1_vs_mem`` / ``seas_vs_mem``): the greedy's MSE change from
+  memoryless (negative: better).
 
 MSE is in the data's units squared. A final line per set gives the wall time. ``--out DIR`` also
 writes every ``summary`` table as CSV.
@@ -74,22 +69,37 @@ BASELINES = ("transect-up", "transect-down", "transect-left", "transect-right", 
 RANK, N_TEST = 5, 8
 
 
+def recommended_params(**override) -> dict:
+    """The recommended GLRM parameters (``lrm_cvx.recommended.RECOMMENDED``'s model keys: offset,
+    spatial residual, ``temporal="auto"``, calibration) at rank :data:`RANK`, ``override``
+    applied."""
+    from lrm_cvx import GLRM
+    from lrm_cvx.recommended import RECOMMENDED
+
+    names = GLRM()._param_names()
+    params = {k: v for k, v in RECOMMENDED.items() if k in names}
+    return {**params, "rank": RANK, "random_state": 0, "progress": False, **override}
+
+
 def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
-            out: str | None = None, n_jobs: int = 1) -> tuple[pd.DataFrame, dict]:
+            out: str | None = None, n_jobs: int = 1,
+            modes: tuple = ("auto",)) -> tuple[pd.DataFrame, dict]:
     """Fit and evaluate one data set; returns the tidy table (one row per temporal mode, budget,
-    method) and timings."""
+    method) and timings. ``modes``: the temporal models run (``"auto"``: the recommended
+    setting; ``"ar1"`` / ``"seasonal"``: the fixed kinds, for the record). The memoryless rows
+    come from the first mode's campaigns (memoryless through the same loop: the same starts
+    and data)."""
     from lrm_cvx import GLRM, evaluate
     from lrm_cvx.evaluation import summary
 
     d = {**DATASETS, **SHORT_DATASETS}[name]
     data = d.loader()
     train = data.isel(time=slice(None, -N_TEST))
-    modes = ["ar1"] + (["seasonal"] if d.seasonal else []) + ["auto"]
+    modes = [m for m in modes if m != "seasonal" or d.seasonal]
     frames, times = [], {}
     for temporal in modes:
         t0 = time.perf_counter()
-        model = GLRM(rank=RANK, offset=True, spatial="exponential", temporal=temporal,
-                     random_state=0, progress=False).fit(train)
+        model = GLRM(**recommended_params(temporal=temporal)).fit(train)
         t1 = time.perf_counter()
         if temporal == "auto":
             print(f"[{name}] temporal='auto' chose {model.selection_.attrs['choice']!r}",
@@ -104,8 +114,7 @@ def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
         if out:
             os.makedirs(out, exist_ok=True)
             table.to_csv(os.path.join(out, f"{name}_{temporal}.csv"), index=False)
-        # memoryless rows: the same campaigns, memoryless through the same loop (from the ar1 run)
-        if temporal == "ar1":
+        if not frames:  # memoryless rows: the same campaigns, memoryless through the same loop
             mem = table.copy()
             mem["temporal"] = "none"
             mem["mse_mean"] = mem["mse_memoryless_mean"]
@@ -262,8 +271,7 @@ def forecast_vs_posterior(data, n_starts: int = 3, budget: float = 15.0) -> pd.D
     from lrm_cvx.campaign import simulate_campaign
 
     train, test = data.isel(time=slice(None, -N_TEST)), data.isel(time=slice(-N_TEST, None))
-    model = GLRM(rank=RANK, offset=True, spatial="exponential", temporal="auto",
-                 random_state=0, progress=False).fit(train)
+    model = GLRM(**recommended_params()).fit(train)
     valid = np.flatnonzero(np.isfinite(model.region_.stack(test.isel(time=0))))
     starts = np.random.default_rng(0).choice(valid, size=n_starts, replace=False)
     rows = []
@@ -299,6 +307,9 @@ def main() -> None:
                     help="the coverage check's calibration folds (calibrate(folds=))")
     ap.add_argument("--origins", type=int, default=None,
                     help="test blocks of the coverage check (default 3; --quick 2)")
+    ap.add_argument("--modes", default="auto",
+                    help="temporal models run, comma-separated (default auto, the recommended "
+                         "setting; ar1,seasonal,auto adds the fixed kinds)")
     ap.add_argument("--forecast", action="store_true",
                     help="posterior vs forecast map MSE of the campaigns (forecast_vs_posterior)")
     args = ap.parse_args()
@@ -366,7 +377,8 @@ def main() -> None:
     tables = []
     for name in names:
         t0 = time.perf_counter()
-        tidy, times = run_set(name, budgets, n_starts, trials, args.out, args.jobs)
+        tidy, times = run_set(name, budgets, n_starts, trials, args.out, args.jobs,
+                              modes=tuple(m.strip() for m in args.modes.split(",")))
         table = report(name, tidy)
         tables.append(table)
         with pd.option_context("display.width", 250, "display.max_columns", 30):
