@@ -121,7 +121,7 @@ def test_a_glrm_key_added_to_recommended_reaches_the_fit(files, tmp_path, monkey
 @pytest.mark.parametrize("kind, why", [
     ("five", "at least 8 snapshots"),
     ("irregular", "regularly spaced"),
-    ("no-time", "no time coordinate"),
+    ("no-time", "time coordinate"),
 ])
 def test_fit_falls_back_to_no_dynamics_with_one_note(files, tmp_path, capsys, kind, why):
     da = _field()
@@ -143,6 +143,28 @@ def test_fit_falls_back_to_no_dynamics_with_one_note(files, tmp_path, capsys, ki
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("lrm-cvx fit: error:") and "auto" in err[0]
     assert not (tmp_path / "x.nc").exists()
+
+
+@pytest.mark.parametrize("kind", ["good", "five", "irregular", "no-time", "unsorted"])
+def test_auto_unavailable_agrees_with_the_fit(kind):
+    """The pre-check fit's fallback relies on says no exactly when GLRM(temporal="auto")
+    fails on the data."""
+    from lrm_cvx.errors import LrmError
+    from lrm_cvx.glrm.selection import auto_unavailable
+
+    da = _field()
+    data = {"good": da, "five": da.isel(time=slice(0, 5)),
+            "irregular": da.isel(time=[0, 1, 2, 4, 7, 11, 12, 13, 15]),
+            "no-time": da.drop_vars("time"), "unsorted": da.isel(time=np.r_[1, 0, 2:16])}[kind]
+    why = auto_unavailable(data)
+    model = GLRM(rank=2, temporal="auto", random_state=0, progress=False)
+    if why is None:
+        assert model.fit(data).selection_ is not None
+    else:
+        assert "temporal='auto'" in why or "time" in why
+        with pytest.raises(LrmError):
+            model.fit(data)
+    assert (why is None) == (kind == "good")
 
 
 def test_fit_notes_the_fallback_after_hold_out(files, tmp_path, capsys):

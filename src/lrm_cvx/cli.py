@@ -213,24 +213,6 @@ def _model_params(args: argparse.Namespace) -> dict:
     return params
 
 
-def _auto_unavailable(data) -> str | None:
-    """Why ``temporal="auto"`` cannot run on ``data`` (the checks of glrm/selection.py, before
-    any fit: too few snapshots, no or unsorted time coordinate, irregular steps), or None."""
-    from .glrm.dynamics import check_times
-    from .glrm.selection import _check_regular, check_auto_data
-
-    try:
-        check_auto_data(data)
-        tdim = data.dims[0]
-        if tdim not in data.coords:
-            return f"the data have no time coordinate on {tdim!r}"
-        check_times(data[tdim], f"the {tdim} coordinate")
-        _check_regular(data[tdim], f"the {tdim} coordinate")
-    except LrmError as exc:
-        return str(exc).split(";")[0]
-    return None
-
-
 def cmd_fit(args: argparse.Namespace) -> int:
     from .glrm import GLRM
 
@@ -238,8 +220,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
     (out,) = guard_paths([args.output], _input_files(args.data), args)
     data = _hold_out(_load(args), args)
     if params["temporal"] == "auto" and args.temporal is None:  # the recommended default
-        why = _auto_unavailable(data)
+        from .glrm.selection import auto_unavailable
+
+        why = auto_unavailable(data)
         if why is not None:
+            why = why.split(";")[0]  # the reason, not the library's advice
             note(f"the recommended temporal='auto' cannot run on these data ({why}); fitting "
                  "without dynamics (--temporal ar1|seasonal asks for them)")
             params["temporal"] = None
