@@ -400,8 +400,8 @@ def test_help_exits_0(run):
     (["plan", "missing.nc", "--start", "-25,-70", "--budget", "4"], "plan", "does not exist"),
     (["plan", "{plain}", "--start", "-25,-70", "--budget", "4", "--criterion", "gp-variance"],
      "plan", "spatial covariance"),
-    (["plan", "{plain}", "--start", "-25,-70", "--budget", "4", "--recommended"], "plan",
-     "spatial covariance"),
+    (["plan", "{plain}", "--start", "-25,-70", "--budget", "4", "--paper", "--criterion",
+      "gp-variance"], "plan", "spatial covariance"),
     (["predict", "{plain}", "--observations", "{obs}", "--spatial", "-o", "p.nc"], "predict",
      "spatial covariance"),
     (["plan", "{model}", "--start", "-25,-70", "--budget", "4", "--initial", "far"], "plan",
@@ -413,9 +413,9 @@ def test_help_exits_0(run):
     (["fit", "{a}", "--var", "temp", "-o", "x.nc"], "fit", "no variable 'temp'"),
     (["fit", "{m}", "-o", "x.nc"], "fit", "cannot"),
     (["evaluate", "{a}", "--out", "x", "--methods", "greedy,zigzag"], "evaluate", "zigzag"),
-    (["evaluate", "{a}", "--out", "x", "--methods", "greedy:gp-variance"], "evaluate",
-     "--spatial"),
-    (["evaluate", "{a}", "--out", "x", "--fold-spatial"], "evaluate", "--spatial"),
+    (["evaluate", "{a}", "--out", "x", "--paper", "--methods", "greedy:gp-variance"],
+     "evaluate", "--spatial"),
+    (["evaluate", "{a}", "--out", "x", "--paper", "--fold-spatial"], "evaluate", "--spatial"),
     (["evaluate", "{a}", "--out", "x", "--budgets", "5,x"], "evaluate", "--budgets"),
     (["evaluate", "{a}", "--out", "x", "--budgets", "-5"], "evaluate", "--budgets"),
     (["evaluate", "{a}", "--out", "x", "--n-test", "7"], "evaluate", "--n-test"),
@@ -427,8 +427,8 @@ def test_help_exits_0(run):
      "predict", "ridge"),
     (["fit", "{a}", "--tol", "-1", "-o", "x.nc"], "fit", "tol"),
     (["fit", "{a}", "--rank", "100", "-o", "x.nc"], "fit", "rank"),
-    (["plan", "{plain}", "--start", "-25,-70", "--budget", "4", "--criterion", "a-optimal"],
-     "plan", "ridge > 0"),
+    (["plan", "{plain}", "--start", "-25,-70", "--budget", "4", "--paper", "--criterion",
+      "a-optimal"], "plan", "ridge > 0"),
 ])
 def test_library_errors_are_one_line(run, argv, cmd, needle, files):
     code, _, err = run(argv)
@@ -456,7 +456,7 @@ def test_bad_observation_files(run, tmp_path, inputs_unchanged, content, needle,
     obs = tmp_path / "obs.csv"
     obs.write_text(content)
     inputs_unchanged.watch(obs)
-    code, _, err = run(["predict", "{model}", "--observations", str(obs), "-o",
+    code, _, err = run(["predict", "{model}", "--observations", str(obs), "--paper", "-o",
                         str(tmp_path / "p.nc")])
     assert code == 2
     one_line_error(err, "predict", needle)
@@ -685,7 +685,7 @@ def test_unusual_data_files(run, tmp_path, inputs_unchanged, kind, code, needle)
         data.to_netcdf(path)
     inputs_unchanged.watch(path)
     out = tmp_path / "model.nc"
-    got, _, err = run(["fit", str(path), "--rank", "2", "-o", str(out)])
+    got, _, err = run(["fit", str(path), "--rank", "2", "--paper", "-o", str(out)])
     assert got == code, err
     if code:
         one_line_error(err, "fit", needle)
@@ -707,7 +707,8 @@ def test_one_cell_bbox_is_a_clear_error(run, tmp_path):
 
 
 def test_budget_zero_reports_the_forced_cells_honestly(run):
-    code, out, err = run(["plan", "{plain}", "--start", "-24", "-70", "--budget", "0"])
+    code, out, err = run(["plan", "{plain}", "--start", "-24", "-70", "--budget", "0",
+                          "--paper"])
     assert code == 0, err
     assert "> (forced initial cells) budget 0" in out and "<=" not in out
     assert err.startswith("lrm-cvx plan: warning: ") and "initial cells" in err

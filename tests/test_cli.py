@@ -39,7 +39,7 @@ def data_file(tmp_path_factory):
 @pytest.fixture(scope="module")
 def model_file(data_file):
     out = data_file.parent / "model.nc"
-    assert main(["-q", "fit", str(data_file), "--rank", "3", "-o", str(out)]) == 0
+    assert main(["-q", "fit", str(data_file), "--rank", "3", "--paper", "-o", str(out)]) == 0
     return out
 
 
@@ -51,19 +51,20 @@ def test_fit_writes_a_loadable_model(model_file):
 def test_plan_csv_and_geojson(model_file, tmp_path, capsys):
     csv = tmp_path / "route.csv"
     assert main(["-q", "plan", str(model_file), "--start", "41,-68", "--budget", "8",
-                 "-o", str(csv)]) == 0
+                 "--paper", "-o", str(csv)]) == 0
     route = pd.read_csv(csv)
     assert {"lat", "lon", "cell"} <= set(route.columns)
     assert route.iloc[0][["lat", "lon"]].tolist() == [41.0, -68.0]
     gj = tmp_path / "route.geojson"
     assert main(["-q", "plan", str(model_file), "--start", "41,-68", "--budget", "8",
-                 "--cost", "insertion", "-o", str(gj)]) == 0
+                 "--cost", "insertion", "--paper", "-o", str(gj)]) == 0
     doc = json.loads(gj.read_text())
     assert doc["type"] == "FeatureCollection"
 
 
 def test_bound_reports_gap(model_file, capsys):
-    assert main(["-q", "bound", str(model_file), "--start", "41,-68", "--budget", "8"]) == 0
+    assert main(["-q", "bound", str(model_file), "--start", "41,-68", "--budget", "8",
+                 "--paper"]) == 0
     out = capsys.readouterr().out
     assert "upper bound" in out and "gap" in out
 
@@ -77,7 +78,7 @@ def test_predict_from_csv(model_file, data_file, tmp_path):
     obs.to_csv(obs_path, index=False)
     out = tmp_path / "map.nc"
     assert main(["-q", "predict", str(model_file), "--observations", str(obs_path),
-                 "-o", str(out)]) == 0
+                 "--paper", "-o", str(out)]) == 0
     pred = xr.load_dataset(out)
     assert {"prediction", "std"} <= set(pred.data_vars)
     ref = GLRM.load(model_file)
@@ -200,10 +201,19 @@ def test_fit_prints_the_temporal_choice(tmp_path, capsys):
                              spatial=True)),
     (["--criterion", "a-optimal", "--prior", "empirical", "--initial", "start"],
      dict(criterion="a-optimal", initial="start", prior="empirical", spatial=False)),
-    (["--criterion", "a-optimal", "--ridge", "0.5", "--cost", "insertion"],
-     dict(criterion="a-optimal", ridge=0.5, cost="insertion")),
-    (["--criterion", "aopt", "--ridge", "0.5"], dict(criterion="a-optimal", ridge=0.5)),
-    ([], dict()),
+    # the paper's setting; its options given explicitly to plan_greedy
+    (["--paper"], dict(criterion="fisher", initial="nearest")),
+    (["--paper", "--criterion", "a-optimal", "--ridge", "0.5", "--cost", "insertion"],
+     dict(criterion="a-optimal", initial="nearest", ridge=0.5, cost="insertion")),
+    (["--paper", "--criterion", "aopt", "--ridge", "0.5"],
+     dict(criterion="a-optimal", initial="nearest", ridge=0.5)),
+    # no flag: the recommended setting; an explicit option beats either setting
+    ([], dict(criterion="gp-variance", initial="start", prior="empirical", spatial=True)),
+    (["--criterion", "fisher"], dict(criterion="fisher", initial="start", prior="empirical")),
+    (["--paper", "--criterion", "gp-variance", "--initial", "start"],
+     dict(criterion="gp-variance", initial="start", prior="empirical", spatial=True)),
+    (["--recommended", "--initial", "nearest", "--prior", "none", "--criterion", "a-optimal",
+      "--ridge", "0.5"], dict(criterion="a-optimal", initial="nearest", ridge=0.5)),
 ])
 def test_plan_flags_match_plan_greedy(sst_model, tmp_path, flags, python):
     route = tmp_path / "route.csv"
@@ -234,7 +244,7 @@ def test_bound_tight_is_at_most_fast(sst_model, capsys):
     bounds = {}
     for level in ("fast", "tight"):
         assert main(["-q", "bound", str(sst_model), "--start", "10,-150", "--budget", "8",
-                     "--certify", level]) == 0
+                     "--paper", "--certify", level]) == 0
         line = next(x for x in capsys.readouterr().out.splitlines() if "upper bound" in x)
         bounds[level] = float(line.split(":")[-1].split()[0])
     assert bounds["tight"] <= bounds["fast"] + 1e-9
@@ -274,7 +284,7 @@ def test_evaluate_recommended_matches_python(tmp_path, capsys):
 
 def test_evaluate_methods_cost_ridge_certify(tmp_path):
     out = tmp_path / "ev"
-    assert main(["-q", "evaluate", "sample:sst", *TINY, "--methods",
+    assert main(["-q", "evaluate", "sample:sst", *TINY, "--paper", "--methods",
                  "greedy,greedy:fisher,greedy:aopt,random", "--cost", "insertion",
                  "--ridge", "0.1", "--fold-ridge", "0.01", "--prior", "empirical", "--offset",
                  "--certify", "fast", "--out", str(out)]) == 0
@@ -286,7 +296,8 @@ def test_evaluate_methods_cost_ridge_certify(tmp_path):
     assert "'offset': True" in got.attrs["model_params"]
     assert np.isfinite(got["bound"]).all()
     # --no-certify is kept as an alias of --certify off
-    assert main(["-q", "evaluate", "sample:sst", *TINY, "--methods", "greedy", "--no-certify",
+    assert main(["-q", "evaluate", "sample:sst", *TINY, "--paper", "--methods", "greedy",
+                 "--no-certify",
                  "--out", str(out), "--overwrite"]) == 0
     assert np.isnan(xr.load_dataset(out / "results.nc")["bound"]).all()
 
@@ -313,7 +324,7 @@ def test_docs_name_every_command_and_flag():
 def test_fit_temporal_stores_the_same_dynamics_as_python(data_file, tmp_path):
     """`fit --temporal ar1` saves the dynamics GLRM(temporal="ar1") estimates in Python."""
     out = tmp_path / "dyn.nc"
-    assert main(["-q", "fit", str(data_file), "--rank", "3", "--temporal", "ar1",
+    assert main(["-q", "fit", str(data_file), "--rank", "3", "--temporal", "ar1", "--paper",
                  "-o", str(out)]) == 0
     saved = GLRM.load(out)
     da = xr.open_dataarray(data_file)
@@ -322,5 +333,5 @@ def test_fit_temporal_stores_the_same_dynamics_as_python(data_file, tmp_path):
     np.testing.assert_allclose(saved.dynamics_.A, ref.dynamics_.A, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(saved.dynamics_.Q, ref.dynamics_.Q, rtol=1e-6, atol=1e-12)
     plain = tmp_path / "plain.nc"
-    assert main(["-q", "fit", str(data_file), "--rank", "3", "-o", str(plain)]) == 0
+    assert main(["-q", "fit", str(data_file), "--rank", "3", "--paper", "-o", str(plain)]) == 0
     assert GLRM.load(plain).dynamics_ is None

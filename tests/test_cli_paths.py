@@ -21,13 +21,13 @@ PY_STARTS = [(10, 210), (-5, 240)]
 @pytest.fixture(scope="module")
 def sst_model(tmp_path_factory):
     path = tmp_path_factory.mktemp("sst_paths") / "model.nc"
-    assert main(["-q", "fit", "sample:sst", "--rank", "3", "-o", str(path)]) == 0
+    assert main(["-q", "fit", "sample:sst", "--rank", "3", "--paper", "-o", str(path)]) == 0
     return path
 
 
 def _plan(model_file, argv, tmp_path, name="route.csv"):
     out = tmp_path / name
-    assert main(["-q", "plan", str(model_file), *argv, "-o", str(out)]) == 0
+    assert main(["-q", "plan", str(model_file), *argv, "--paper", "-o", str(out)]) == 0
     return out
 
 
@@ -129,7 +129,8 @@ def test_bad_path_options_exit_2_with_one_line(sst_model, argv, message, capsys)
 
 def test_bound_takes_the_path_options(sst_model, capsys):
     assert main(["-q", "bound", str(sst_model), *STARTS[0], "--budget", "6000", "--metric",
-                 "km", "--traversable", "valid", "--closed", "--certify", "fast"]) == 0
+                 "km", "--traversable", "valid", "--closed", "--certify", "fast",
+                 "--paper"]) == 0
     out = capsys.readouterr().out
     assert "upper bound" in out and "km" in out
 
@@ -140,8 +141,8 @@ TINY = ["--rank", "3", "--n-test", "2", "--starts", "2", "--random-trials", "2",
 
 def test_evaluate_path_options_match_python(tmp_path, capsys):
     out = tmp_path / "ev"
-    assert main(["-q", "evaluate", "sample:sst", *TINY, "--metric", "km", "--traversable",
-                 "valid", "--closed", "--robots", "2", "--stop-cost", "10",
+    assert main(["-q", "evaluate", "sample:sst", *TINY, "--paper", "--metric", "km",
+                 "--traversable", "valid", "--closed", "--robots", "2", "--stop-cost", "10",
                  "--methods", "greedy,transect-up,random", "--out", str(out)]) == 0
     got = xr.load_dataset(out / "results.nc")
     ref = evaluate(load_sample("sst"), rank=3, n_test=2, n_starts=2, random_trials=2,

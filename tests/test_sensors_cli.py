@@ -12,7 +12,7 @@ from lrm_cvx.planning import plan_greedy
 @pytest.fixture(scope="module")
 def sst_model(tmp_path_factory):
     path = tmp_path_factory.mktemp("sst_sensor") / "model.nc"
-    assert main(["-q", "fit", "sample:sst", "--rank", "3", "-o", str(path)]) == 0
+    assert main(["-q", "fit", "sample:sst", "--rank", "3", "--paper", "-o", str(path)]) == 0
     return path
 
 
@@ -21,7 +21,7 @@ def sst_model(tmp_path_factory):
 def test_plan_with_a_sensor_matches_plan_greedy(sst_model, tmp_path, capsys, flag, sensor):
     out = tmp_path / "route.csv"
     argv = ["plan", str(sst_model), "--start", "10", "-150", "--budget", "12", "--ridge",
-            "1e-6", "--sensor", flag, "-o", str(out)]
+            "1e-6", "--sensor", flag, "--paper", "-o", str(out)]
     assert main(argv) == 0
     line = capsys.readouterr().out.splitlines()[0]
     model = GLRM.load(sst_model)

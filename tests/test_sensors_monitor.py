@@ -23,7 +23,7 @@ def loop(tmp_path_factory):
     """A spatial model on all but the last sst winter, a state, and a footprint plan."""
     d = tmp_path_factory.mktemp("footprint_loop")
     model, state = d / "model.nc", d / "state.nc"
-    assert main(["-q", "fit", "sample:sst", "--rank", "3", "--spatial", "exponential",
+    assert main(["-q", "fit", "sample:sst", "--rank", "3", "--paper", "--spatial", "exponential",
                  "--hold-out", "1", "-o", str(model)]) == 0
     assert main(["-q", "monitor", "init", str(model), "--state", str(state),
                  "--memoryless"]) == 0

@@ -1,5 +1,9 @@
 """The ``lrm-cvx`` command: thin wrappers over the public functions.
 
+Defaults (issue #24): the recommended setting (:data:`RECOMMENDED`) wherever ``--paper`` is not
+given; ``--paper`` reproduces the paper, an explicit option always wins, and a recommended
+default the input cannot take falls back with one printed ``note:`` line.
+
 Contract (docs/cli.md): every failure prints one line ``lrm-cvx <cmd>: error: ...`` on stderr
 and exits with status 2 (``--debug`` also prints the traceback); no command ever writes onto
 one of its inputs (globs and folders expanded, compared as resolved files); every output is
@@ -10,6 +14,7 @@ together), and an existing output is replaced only with ``--overwrite``.
 from __future__ import annotations
 
 import argparse
+import inspect
 import re
 import sys
 import traceback
@@ -28,6 +33,7 @@ from .cli_common import (
     add_mission_options,
     add_output,
     add_path_options,
+    add_setting,
     add_starts_budgets,
     check_lat,
     check_plan_output,
@@ -36,6 +42,8 @@ from .cli_common import (
     guard_paths,
     load_model,
     mask_files,
+    note,
+    paper_setting,
     parse_floats,
     path_options,
     read_observations_csv,
@@ -44,7 +52,7 @@ from .cli_common import (
     write_plan,
 )
 from .errors import LrmError
-from .recommended import RECOMMENDED  # switched on by --recommended (one dict with the demo)
+from .recommended import RECOMMENDED  # the default unless --paper (one dict with the demo)
 
 __all__ = ["main", "build_parser", "RECOMMENDED"]
 
@@ -151,7 +159,8 @@ def _load(args: argparse.Namespace):
 def _need_spatial(model, path: str, why: str) -> None:
     if getattr(model, "spatial_cov_", None) is None:
         raise UsageError(f"{why} needs a model fitted with a spatial covariance; {path} has none "
-                         "(refit with 'lrm-cvx fit --spatial exponential' or '--recommended')")
+                         "(refit with 'lrm-cvx fit' without --paper, or with --spatial "
+                         "exponential)")
 
 
 def _canonical(choices, name: str) -> str:
@@ -162,10 +171,12 @@ def _canonical(choices, name: str) -> str:
     return found if isinstance(found, str) else name
 
 
-def _pick(explicit, recommended: bool, key: str, default):
+def _pick(explicit, paper: bool, key: str, paper_default):
+    """``explicit`` when given, else the paper's default with ``--paper``, else the
+    recommended ``RECOMMENDED[key]``."""
     if explicit is not None:
         return explicit
-    return RECOMMENDED[key] if recommended else default
+    return paper_default if paper else RECOMMENDED[key]
 
 
 def _prior(text: str | None):
@@ -173,22 +184,52 @@ def _prior(text: str | None):
 
 
 # ---------------------------------------------------------------------------- commands
+#: GLRM parameters a command sets from options of its own (not the model options).
+_COMMAND_PARAMS = frozenset({"rank", "loss", "max_iter", "tol", "random_state", "progress"})
+
+
+def _glrm_params() -> set[str]:
+    """The GLRM parameters the model options (or ``RECOMMENDED``) set."""
+    from .glrm import GLRM
+
+    return set(inspect.signature(GLRM).parameters) - _COMMAND_PARAMS
+
+
 def _model_params(args: argparse.Namespace) -> dict:
-    return {"offset": bool(args.offset or args.recommended),
-            "spatial": _pick(args.spatial, args.recommended, "spatial", None),
-            "scale": bool(args.scale),
-            "noise": args.noise,
-            "temporal": _prior(_pick(args.temporal, args.recommended, "temporal", None))}
+    """The GLRM parameters of ``fit`` / ``evaluate``: the explicit model options over the
+    paper's defaults (``--paper``) or over the recommended ones (every GLRM parameter in
+    ``RECOMMENDED``, so a key the recommended setting gains reaches the fit)."""
+    from .glrm.predictive import NOISE_MODELS
+
+    params: dict = {"offset": False, "spatial": None, "scale": False,
+                    "noise": _first(NOISE_MODELS), "temporal": None}  # the paper's
+    if not paper_setting(args):
+        own = _glrm_params()
+        params.update({k: v for k, v in RECOMMENDED.items() if k in own})
+    explicit = {"offset": True if args.offset else None, "scale": True if args.scale else None,
+                "noise": args.noise, "spatial": args.spatial, "temporal": args.temporal}
+    params.update({k: v for k, v in explicit.items() if v is not None})
+    params["temporal"] = _prior(params["temporal"])  # --temporal none: no dynamics
+    return params
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from .glrm import GLRM
 
+    params = _model_params(args)
     (out,) = guard_paths([args.output], _input_files(args.data), args)
     data = _hold_out(_load(args), args)
+    if params["temporal"] == "auto" and args.temporal is None:  # the recommended default
+        from .glrm.selection import auto_unavailable
+
+        why = auto_unavailable(data)
+        if why is not None:
+            why = why.split(";")[0]  # the reason, not the library's advice
+            note(f"the recommended temporal='auto' cannot run on these data ({why}); fitting "
+                 "without dynamics (--temporal ar1|seasonal asks for them)")
+            params["temporal"] = None
     model = GLRM(rank=args.rank, loss=args.loss, max_iter=args.max_iter, tol=args.tol,
-                 random_state=args.seed, progress=not args.quiet,
-                 **_model_params(args)).fit(data)
+                 random_state=args.seed, progress=not args.quiet, **params).fit(data)
     model.save(out)
     extras = [name for name in ("offset", "scale") if getattr(model, name)]
     if model.spatial:
@@ -241,10 +282,16 @@ def _plan_from_args(args: argparse.Namespace):
     path = path_options(args)
     from .information import CRITERIA
 
-    criterion = _canonical(CRITERIA, _pick(args.criterion, args.recommended, "criterion",
-                                           "fisher"))
-    prior = _prior(_pick(args.prior, args.recommended, "prior", None))
-    initial = _pick(args.initial, args.recommended, "initial", "nearest")
+    paper = paper_setting(args)
+    criterion = _canonical(CRITERIA, _pick(args.criterion, paper, "criterion", "fisher"))
+    if (args.criterion is None and criterion == "gp-variance"
+            and getattr(model, "spatial_cov_", None) is None):
+        note(f"model {args.model} has no spatial residual (fitted with --paper or without "
+             "--spatial), so the recommended gp-variance criterion cannot run; planning with "
+             "fisher (--criterion chooses)")
+        criterion = "fisher"
+    prior = _prior(_pick(args.prior, paper, "prior", None))
+    initial = _pick(args.initial, paper, "initial", "nearest")
     kw: dict = {}
     if criterion == "gp-variance":
         _need_spatial(model, args.model, "--criterion gp-variance")
@@ -354,11 +401,17 @@ def cmd_bound(args: argparse.Namespace) -> int:
 
 def cmd_predict(args: argparse.Namespace) -> int:
     (out,) = guard_paths([args.output], [args.model, args.observations], args)
+    paper = paper_setting(args)
     model = load_model(args.model)
-    prior = _prior(_pick(args.prior, args.recommended, "prior", None))
-    spatial = bool(args.spatial or args.recommended)
-    if spatial:
-        _need_spatial(model, args.model, "--spatial" if args.spatial else "--recommended")
+    prior = _prior(_pick(args.prior, paper, "prior", None))
+    spatial = bool(args.spatial or (not paper and RECOMMENDED["fold_spatial"]))
+    if args.spatial:
+        _need_spatial(model, args.model, "--spatial")
+    elif spatial and getattr(model, "spatial_cov_", None) is None:
+        note(f"model {args.model} has no spatial residual (fitted with --paper or without "
+             "--spatial), so the recommended kriged residual is left out; predicting with "
+             f"the {prior or 'plain'} fold-in alone")
+        spatial = False
     cells, values = read_observations_csv(args.observations, model.region_)
     result = model.complete((cells, values), ridge=args.ridge, prior=prior, spatial=spatial)
     with atomic_outputs([out], overwrite=True) as (tmp,):
@@ -413,7 +466,7 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
                        min_observations=min_observations, criterion=criterion, cost=cost,
                        ridge=ridge, fold_ridge=fold_ridge, certify=certify, seed=seed,
                        n_jobs=n_jobs, progress=progress, model=model,
-                       model_params=model_params or None, fold_in=fold_in or None,
+                       model_params=model_params, fold_in=fold_in,
                        n_robots=n_robots, path=path)
     table = summary(results)
     figures = {"metrics": plot_metrics(results)}
@@ -450,6 +503,7 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import GREEDY_VARIANTS, METHODS
 
+    paper = paper_setting(args)
     out_dir = Path(args.out)
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"--out {out_dir} is an existing file; give a folder")
@@ -467,22 +521,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             raise UsageError(f"--methods: unknown method {bad[0] if bad else args.methods!r}; "
                              f"choose from {', '.join(known)}")
         methods = tuple(_canonical(known, m) for m in methods)
-    elif args.recommended:
-        methods = (RECOMMENDED["method"], *METHODS)
-    else:
+    elif paper:
         methods = METHODS
+    else:  # the recommended greedy first, before the paper's methods
+        methods = (RECOMMENDED["method"], *METHODS)
     params = _model_params(args)
     if args.temporal is None:  # evaluate's protocol is memoryless: no dynamics to choose
         params["temporal"] = None
-    fold_in = {"prior": _prior(_pick(args.prior, args.recommended, "prior", None)),
-               "spatial": bool(args.fold_spatial or args.recommended)}
+    fold_in = {"prior": _prior(_pick(args.prior, paper, "prior", None)),
+               "spatial": bool(args.fold_spatial or (not paper and RECOMMENDED["fold_spatial"]))}
     fold_in = {k: v for k, v in fold_in.items() if v}
     if not params["spatial"]:
         if "greedy:gp-variance" in methods:
-            raise UsageError("--methods greedy:gp-variance needs --spatial KERNEL (or "
-                             "--recommended)")
+            raise UsageError("--methods greedy:gp-variance needs --spatial KERNEL (or the "
+                             "recommended default: drop --paper)")
         if fold_in.get("spatial"):
-            raise UsageError("--fold-spatial needs --spatial KERNEL (or --recommended)")
+            raise UsageError("--fold-spatial needs --spatial KERNEL (or the recommended "
+                             "default: drop --paper)")
     data = _load(args)
     _run_evaluation(data, out_dir, rank=args.rank, n_test=args.n_test, budgets=budgets,
                     n_starts=args.starts, random_trials=args.random_trials,
@@ -515,10 +570,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
-def _add_recommended(p: argparse.ArgumentParser, what: str) -> None:
-    p.add_argument("--recommended", action="store_true",
-                   help=f"the recommended setting of docs/reconstruction.md: {what}; explicit "
-                   "options still win")
 
 
 def _add_data(p: argparse.ArgumentParser) -> None:
@@ -529,21 +580,46 @@ def _add_data(p: argparse.ArgumentParser) -> None:
                    "west; W > E crosses the antimeridian; required for images)")
 
 
-def _add_model_options(p: argparse.ArgumentParser) -> None:
+def _add_model_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
     from .glrm.dynamics import TEMPORAL
     from .glrm.predictive import NOISE_MODELS
     from .spatial import MODELS
 
-    p.add_argument("--offset", action="store_true", help="fit a per-cell mean (offset)")
-    p.add_argument("--scale", action="store_true", help="fit a per-cell scale")
-    p.add_argument("--noise", choices=NOISE_MODELS, default=_first(NOISE_MODELS),
-                   help="noise model (default: %(default)s)")
+    def default(key: str, paper: str, recommended: str | None = None) -> str:
+        rec = recommended or str(RECOMMENDED.get(key, paper))
+        return f"default: {rec}; {paper} with --paper" if rec != paper else f"default: {paper}"
+
+    p.add_argument("--offset", action="store_true",
+                   help="fit a per-cell mean (offset) (default: on; off with --paper)"
+                   if RECOMMENDED.get("offset") else "fit a per-cell mean (offset)")
+    p.add_argument("--scale", action="store_true",
+                   help="fit a per-cell scale (default: on; off with --paper)"
+                   if RECOMMENDED.get("scale") else "fit a per-cell scale")
+    p.add_argument("--noise", choices=NOISE_MODELS, default=None,
+                   help=f"noise model ({default('noise', _first(NOISE_MODELS))})")
     p.add_argument("--spatial", choices=MODELS, default=None, metavar="KERNEL",
-                   help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)})")
+                   help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)}; "
+                   f"{default('spatial', 'none')})")
     p.add_argument("--temporal", choices=[t or "none" for t in TEMPORAL], default=None,
                    help="latent dynamics for persistent monitoring (docs/monitoring.md): auto "
                    "chooses none, ar1 or seasonal on the training snapshots by rolling-origin "
-                   "validation and prints its table (default: none; auto with --recommended)")
+                   "validation and prints its table (" + (
+                       f"{default('temporal', 'none')}; where auto cannot run on the data, "
+                       "e.g. fewer than 8 regularly spaced snapshots, a note says so and none "
+                       "is fitted)" if fit else "default: none, the protocol is memoryless, "
+                       "with or without --paper)"))
+
+
+def _recommended_fit(fit: bool = True) -> str:
+    """The GLRM parameters of ``RECOMMENDED`` as flags, for the help texts (``evaluate``
+    fits no dynamics unless ``--temporal`` is given)."""
+    flags = []
+    own = _glrm_params() - ({"temporal"} if not fit else set())
+    for key, value in RECOMMENDED.items():
+        if key in own and value not in (None, False):
+            flag = f"--{key.replace('_', '-')}"
+            flags.append(flag if value is True else f"{flag} {value}")
+    return " ".join(flags)
 
 
 def _first(names):
@@ -564,20 +640,24 @@ def _add_plan(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", help="model file written by 'lrm-cvx fit'")
     add_starts_budgets(p)
     p.add_argument("--criterion", choices=CRITERIA, default=None,
-                   help="planning criterion (default fisher; gp-variance with --recommended)")
+                   help=f"planning criterion (default: {RECOMMENDED['criterion']}, or fisher "
+                   "with a note when the model has no spatial residual; fisher with --paper)")
     p.add_argument("--cost", default=_first(COSTS), choices=COSTS,
                    help="path cost (default: %(default)s)")
     p.add_argument("--ridge", type=finite_number, default=0.0,
                    help="ridge added to the information")
     p.add_argument("--prior", choices=_prior_choices(), default=None,
-                   help="plan with the fold-in's posterior under this prior (default none; "
-                   "empirical with --recommended or gp-variance)")
+                   help="plan with the fold-in's posterior under this prior (default: "
+                   f"{RECOMMENDED['prior']}; none with --paper; gp-variance always uses "
+                   "empirical)")
     p.add_argument("--initial", default=None,
                    help="forced initial cells: nearest (the start and its k-1 nearest cells, "
-                   "the paper; default) or start (the start alone; with --recommended)")
+                   "the paper) or start (the start alone) (default: "
+                   f"{RECOMMENDED['initial']}; nearest with --paper)")
     add_path_options(p, route=True)
-    _add_recommended(p, "criterion gp-variance, prior empirical, initial start (needs a "
-                        "model fitted with --spatial or --recommended)")
+    add_setting(p, f"--criterion {RECOMMENDED['criterion']} --prior {RECOMMENDED['prior']} "
+                f"--initial {RECOMMENDED['initial']}",
+                "--criterion fisher --prior none --initial nearest")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -589,7 +669,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="lrm-cvx",
         description="Persistent environmental monitoring with low-rank models: fit a GLRM, plan "
-        "a sampling route, certify it, predict the map, evaluate like the paper.")
+        "a sampling route, certify it, predict the map, evaluate like the paper. Every default "
+        "is the recommended setting (docs/reconstruction.md); --paper reproduces the paper's "
+        "setting, and an explicit option always wins.")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--debug", action="store_true",
                         help="print the traceback of an error (for bug reports)")
@@ -603,7 +685,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tol", type=finite_number, default=1e-4)
     p.add_argument("--seed", type=_int_at_least(0), default=0)
     _add_model_options(p)
-    _add_recommended(p, "--offset --spatial exponential")
+    add_setting(p, _recommended_fit(), "no offset, no spatial residual, no dynamics")
     p.add_argument("--hold-out", type=_int_at_least(0), default=None, metavar="N",
                    help="leave the last N snapshots out of the fit (to test or monitor on)")
     p.add_argument("--until", default=None, metavar="DATE",
@@ -663,10 +745,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ridge", type=finite_number, default=0.0)
     p.add_argument("--prior", choices=_prior_choices(), default=None,
                    help="fold-in prior; empirical: the training latent vectors' mean and "
-                   "covariance (default none)")
+                   f"covariance (default: {RECOMMENDED['prior']}; none with --paper)")
     p.add_argument("--spatial", action="store_true",
-                   help="add the kriged GP residual (model fitted with a spatial covariance)")
-    _add_recommended(p, "--prior empirical --spatial")
+                   help="add the kriged GP residual (model fitted with a spatial covariance; "
+                   "default: on when the model has one, else off with a note; off with "
+                   "--paper)")
+    add_setting(p, f"--prior {RECOMMENDED['prior']} --spatial",
+                "--prior none, no kriged residual")
     p.add_argument("-o", "--output", required=True, help="output NetCDF map")
     add_output(p)
     p.set_defaults(func=cmd_predict)
@@ -681,20 +766,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--random-trials", type=_int_at_least(1), default=70)
     p.add_argument("--min-observations", type=_int_at_least(0), default=10)
     p.add_argument("--methods", default=None,
-                   help="comma-separated methods (default: the paper's "
-                   f"{','.join(METHODS)}); also {', '.join(GREEDY_VARIANTS)}")
+                   help=f"comma-separated methods (default: {RECOMMENDED['method']} and the "
+                   f"paper's {','.join(METHODS)}; the paper's alone with --paper); also "
+                   f"{', '.join(GREEDY_VARIANTS)}")
     p.add_argument("--criterion", default=_first(CRITERIA), choices=CRITERIA,
-                   help="criterion of the 'greedy' method (default: %(default)s)")
+                   help="criterion of the paper's 'greedy' method (default: %(default)s, with "
+                   "or without --paper; the recommended greedy is the method "
+                   f"{RECOMMENDED['method']})")
     p.add_argument("--cost", default=_first(COSTS), choices=COSTS,
                    help="path cost of the greedy (default: %(default)s)")
     p.add_argument("--ridge", type=finite_number, default=0.0,
                    help="the planners' information ridge")
     p.add_argument("--fold-ridge", type=finite_number, default=0.0, help="the fold-in's ridge")
     p.add_argument("--prior", choices=_prior_choices(), default=None,
-                   help="fold-in prior of every prediction (default none)")
+                   help="fold-in prior of every prediction (default: "
+                   f"{RECOMMENDED['prior']}; none with --paper)")
     p.add_argument("--fold-spatial", action="store_true",
-                   help="predict with the kriged GP residual (needs --spatial)")
-    _add_model_options(p)
+                   help="predict with the kriged GP residual (needs --spatial; default: "
+                   f"{'on' if RECOMMENDED['fold_spatial'] else 'off'}; off with --paper)")
+    _add_model_options(p, fit=False)
     add_path_options(p)
     p.add_argument("--robots", type=_int_at_least(1), default=1,
                    help="robots per start (a fleet of distinct random start cells; the budget "
@@ -705,8 +795,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="certified bounds of the greedy plans (default: %(default)s)")
     p.add_argument("--no-certify", dest="certify", action="store_const", const="off",
                    help="same as --certify off")
-    _add_recommended(p, "--offset --spatial exponential --prior empirical --fold-spatial and "
-                        "method greedy:gp-variance first")
+    add_setting(p, f"{_recommended_fit(fit=False)}, --prior {RECOMMENDED['prior']} --fold-spatial "
+                f"and the method {RECOMMENDED['method']} first",
+                "the paper's methods, model and fold-in")
     add_output(p)
     p.set_defaults(func=cmd_evaluate)
 
@@ -757,6 +848,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with warnings.catch_warnings():
         warnings.showwarning = show
         try:
+            paper_setting(args)  # --paper --recommended: one line before any work
             return int(args.func(args) or 0)
         except KeyboardInterrupt:
             print(f"{prefix}: interrupted", file=sys.stderr)

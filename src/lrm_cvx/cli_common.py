@@ -24,7 +24,7 @@ __all__ = ["UsageError", "parse_floats", "check_lat", "parse_start", "finite_num
            "read_observations_csv", "describe_plan", "write_plan", "PLAN_SUFFIXES",
            "SENSOR_SUFFIXES", "check_plan_output", "add_mission_options", "starts_budgets",
            "read_traversable", "path_options", "metric_choices", "add_path_options",
-           "mask_files", "add_starts_budgets"]
+           "mask_files", "add_starts_budgets", "add_setting", "paper_setting", "note"]
 
 
 class UsageError(LrmError, ValueError):
@@ -77,6 +77,33 @@ def add_common(p: argparse.ArgumentParser) -> None:
                    help="no progress bars")
     p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                    help="print the traceback of an error")
+
+
+def add_setting(p: argparse.ArgumentParser, recommended: str, paper: str) -> None:
+    """``--paper`` and ``--recommended`` (issue #24): the recommended setting is the default,
+    ``--paper`` reproduces the paper; ``--recommended`` is kept so old scripts still run.
+    ``recommended`` / ``paper``: what each means for this command (read with
+    :func:`paper_setting`)."""
+    p.add_argument("--paper", action="store_true",
+                   help=f"the paper's setting: {paper}; explicit options still win")
+    p.add_argument("--recommended", action="store_true",
+                   help="the recommended setting of docs/reconstruction.md, now the default "
+                   f"(accepted for old scripts): {recommended}; explicit options still win")
+
+
+def paper_setting(args: argparse.Namespace) -> bool:
+    """True with ``--paper``, False otherwise (the recommended default); UsageError when
+    ``--paper`` and ``--recommended`` are both given."""
+    paper = bool(getattr(args, "paper", False))
+    if paper and getattr(args, "recommended", False):
+        raise UsageError("--paper and --recommended exclude each other (the recommended "
+                         "setting is the default; --paper reproduces the paper)")
+    return paper
+
+
+def note(text: str) -> None:
+    """One printed line ``note: ...``: a default changed because this input cannot take it."""
+    print(f"note: {text}")
 
 
 def add_output(p: argparse.ArgumentParser) -> None:

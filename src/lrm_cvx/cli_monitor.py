@@ -3,7 +3,7 @@
 ::
 
     lrm-cvx monitor init MODEL.nc --state STATE.nc [--time T]
-    lrm-cvx monitor plan STATE.nc --start LAT LON --budget B [--criterion ...] -o plan.csv
+    lrm-cvx monitor plan STATE.nc --start LAT LON --budget B [--criterion ...] [--paper] -o plan.csv
     lrm-cvx monitor replan STATE.nc --done K [K ...] [--observations OBS] [-o plan.csv]
     lrm-cvx monitor assimilate STATE.nc OBS.csv|OBS.nc --time T [--force]
     lrm-cvx monitor map STATE.nc -o map.nc|map.png [--forecast]
@@ -29,6 +29,7 @@ from .cli_common import (
     add_mission_options,
     add_output,
     add_path_options,
+    add_setting,
     add_starts_budgets,
     check_plan_output,
     describe_plan,
@@ -36,6 +37,8 @@ from .cli_common import (
     guard_paths,
     load_model,
     mask_files,
+    note,
+    paper_setting,
     path_options,
     read_observations_csv,
     starts_budgets,
@@ -134,17 +137,26 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
 
 def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
               path: Any) -> tuple[Any, Any]:
-    """``(plan, time)``: the greedy plan of ``monitor plan`` with the forecast as prior."""
+    """``(plan, time)``: the greedy plan of ``monitor plan`` with the forecast as prior; the
+    recommended criterion and initial cells unless ``--paper`` or given explicitly."""
     from .planning import plan_greedy
+    from .recommended import RECOMMENDED
 
     model = state.model
+    paper = paper_setting(args)
     criterion = args.criterion
     if criterion is None:
-        criterion = "gp-variance" if state.posterior.obs_model.is_spatial else "fisher"
+        criterion = "fisher" if paper else RECOMMENDED["criterion"]
+        if criterion == "gp-variance" and not state.posterior.obs_model.is_spatial:
+            note(f"state {args.state}: its model has no spatial residual (fitted with --paper "
+                 "or without --spatial), so the recommended gp-variance criterion cannot run; "
+                 "planning with fisher (--criterion chooses)")
+            criterion = "fisher"
+    initial = args.initial or ("nearest" if paper else RECOMMENDED["initial"])
     kw = state.planner_kwargs(criterion=criterion, time=args.time)
     plan = plan_greedy(model.Y, model.region_, start, budget, criterion=criterion,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
-                       initial=args.initial, path=path, **kw)
+                       initial=initial, path=path, **kw)
     return plan, state._default_time(args.time)
 
 
@@ -316,6 +328,7 @@ def add_monitor_parser(sub: Any) -> None:
     """Add ``monitor init|plan|replan|assimilate|map`` to ``lrm-cvx``'s subcommands."""
     from .information import CRITERIA
     from .planning.routecost import COSTS
+    from .recommended import RECOMMENDED
 
     p = sub.add_parser("monitor", help="the field loop: a filter state carried from day to day "
                        "(init, plan, replan, assimilate, map)")
@@ -337,12 +350,13 @@ def add_monitor_parser(sub: Any) -> None:
     q = msub.add_parser("plan", help="plan the next route with the state's forecast as prior")
     q.add_argument("state", help="state file written by 'lrm-cvx monitor init'")
     add_starts_budgets(q)
-    q.add_argument("--initial", default="start", choices=("start", "nearest"),
-                   help="forced initial cells: start (the start alone; default) or nearest "
-                   "(the start and its k-1 nearest cells, the paper)")
+    q.add_argument("--initial", default=None, choices=("start", "nearest"),
+                   help="forced initial cells: start (the start alone) or nearest (the start "
+                   "and its k-1 nearest cells, the paper) (default: "
+                   f"{RECOMMENDED['initial']}; nearest with --paper)")
     q.add_argument("--criterion", choices=CRITERIA, default=None,
-                   help="planning criterion (default gp-variance with a spatial model, else "
-                   "fisher)")
+                   help=f"planning criterion (default: {RECOMMENDED['criterion']}, or fisher "
+                   "with a note when the model has no spatial residual; fisher with --paper)")
     q.add_argument("--cost", default=COSTS[0], choices=COSTS,
                    help="path cost (default: %(default)s)")
     q.add_argument("--ridge", type=finite_number, default=0.0,
@@ -353,6 +367,9 @@ def add_monitor_parser(sub: Any) -> None:
     add_path_options(q, route=True)
     q.add_argument("-o", "--output", required=True, help="plan.csv, plan.geojson, or a "
                    "mission: .plan (QGroundControl), .waypoints (MAVLink), .gpx, .kml")
+    add_setting(q, f"--criterion {RECOMMENDED['criterion']} --initial "
+                f"{RECOMMENDED['initial']} (the forecast is always the prior)",
+                "--criterion fisher --initial nearest (the forecast is still the prior)")
     add_mission_options(q)
     add_output(q)
     q.set_defaults(func=cmd_monitor_plan)

@@ -45,7 +45,8 @@ from ..errors import ModelError
 
 __all__ = ["select_temporal", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES", "MIN_AUTO_SNAPSHOTS",
            "MAX_SCORED",
-           "apply_selection", "check_auto_data", "format_selection", "selection_vars",
+           "apply_selection", "auto_unavailable", "check_auto_data", "format_selection",
+           "selection_vars",
            "selection_from_dataset"]
 
 AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
@@ -78,6 +79,26 @@ def check_auto_data(data: Any) -> None:
     if data.shape[0] < MIN_AUTO_SNAPSHOTS:
         raise ModelError(f"temporal='auto' needs at least {MIN_AUTO_SNAPSHOTS} snapshots to "
                          f"validate a choice, got {data.shape[0]}; pass temporal=None or 'ar1'")
+
+
+def auto_unavailable(data: Any) -> str | None:
+    """Why ``temporal="auto"`` cannot run on ``data``, found before any fit (too few snapshots,
+    no, unsorted or irregular time coordinate: the checks of :func:`select_temporal`), or None.
+    ``lrm-cvx fit`` falls back to no dynamics on it when auto is only its default."""
+    from ..errors import LrmError
+    from .dynamics import check_times
+
+    try:
+        check_auto_data(data)
+        tdim = data.dims[0]
+        if tdim not in data.coords:
+            raise ModelError(f"temporal='auto' needs a time coordinate on the data's {tdim!r} "
+                             "dim")
+        check_times(data[tdim], f"data[{tdim!r}]")
+        _check_regular(data[tdim], f"data[{tdim!r}]")
+    except LrmError as exc:
+        return str(exc)
+    return None
 
 
 def _check_regular(times: Any, name: str) -> None:
