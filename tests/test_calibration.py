@@ -386,3 +386,16 @@ def test_fit_calibration_parameter_equals_calibrating_after_the_fit(tmp_path):
     np.testing.assert_equal(loaded.calibration_.to_attrs(), ref.to_attrs())
     with pytest.raises(ModelError, match="calibration must be one of"):
         GLRM(rank=3, progress=False, calibration="isotonic").fit(data)
+    with pytest.raises(ModelError, match="unknown calibrate.*'resid'"):
+        GLRM(rank=3, progress=False, calibration={"method": "conformal", "resid": 1}).fit(data)
+    # a dict of calibrate() keywords: the intervals' calibration without touching the maps
+    kw = {"method": "conformal", "residual": False, "adaptive": False}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        keyed = GLRM(rank=3, progress=False, random_state=0, offset=True,
+                     calibration=kw).fit(data)
+        ref2 = calibrate(plain, data, seed=0, **kw)
+    np.testing.assert_equal(keyed.calibration_.to_attrs(), ref2.to_attrs())
+    assert keyed.calibration_.residual_scale == 1.0
+    keyed.save(tmp_path / "k.nc")
+    assert GLRM.load(tmp_path / "k.nc").calibration == kw

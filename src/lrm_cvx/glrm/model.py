@@ -78,10 +78,9 @@ class GLRM:
         unique time coordinate and at least 3 snapshots (numpy input: one step per row).
         ``"auto"``: chosen by rolling-origin validation on the training snapshots
         (:mod:`~lrm_cvx.glrm.selection`; the table is ``selection_``, saved with the model).
-    calibration : None (default) or ``"gaussian"`` / ``"conformal"``: after the fit, calibrate the
-        variances on cross-validated fold-ins of the training snapshots
-        (:func:`~lrm_cvx.glrm.calibration.calibrate`, ``calibration_``; the residual and noise
-        variances are re-estimated too, so planning and prediction use them).
+    calibration : None (default), ``"gaussian"`` / ``"conformal"`` or a dict of
+        :func:`~lrm_cvx.glrm.calibration.calibrate` keywords: after the fit, calibrate the
+        variances on cross-validated fold-ins of the training snapshots (``calibration_``).
 
     Learned attributes: ``X_`` ``(component, time)``, ``Y_`` ``(component, cell)`` (DataArrays
     when fitted on xarray data, else ndarrays), ``region_``, ``objective_``, ``n_iter_``,
@@ -245,7 +244,9 @@ class GLRM:
         if self.calibration is not None:
             from .calibration import calibrate
 
-            calibrate(self, data, method=self.calibration, seed=self.random_state)
+            kw = ({"method": self.calibration} if isinstance(self.calibration, str)
+                  else dict(self.calibration))
+            calibrate(self, data, **{"seed": self.random_state, **kw})
 
     def _prepare(self, data, mask, region):
         """``(D, M, region, times, owned)`` from any supported input (no copy of clean arrays);

@@ -45,11 +45,27 @@ def _check_params(model: Any) -> None:
             raise ModelError(f"{name} must be True or False, got {getattr(model, name)!r}")
     if model.noise not in NOISE_MODELS:
         raise ModelError(f"noise must be one of {NOISE_MODELS}, got {model.noise!r}")
-    if getattr(model, "calibration", None) not in CALIBRATIONS:
-        raise ModelError(f"calibration must be one of {CALIBRATIONS}, got "
-                         f"{model.calibration!r}")
+    _check_calibration(getattr(model, "calibration", None))
     if model.spatial is not None and model.spatial not in MODELS:
         raise ModelError(f"spatial must be None or one of {MODELS}, got {model.spatial!r}")
+
+
+def _check_calibration(value: Any) -> None:
+    """``GLRM(calibration=)``: None, a method name or a dict of ``calibrate`` keywords."""
+    import inspect
+
+    from .calibration import calibrate
+
+    if isinstance(value, dict):
+        names = set(inspect.signature(calibrate).parameters) - {"model", "data"}
+        bad = sorted(set(value) - names)
+        if bad:
+            raise ModelError(f"calibration: unknown calibrate() keyword(s) {bad}; choose from "
+                             f"{sorted(names)}")
+        value = value.get("method", "gaussian")
+    if value not in CALIBRATIONS:
+        raise ModelError(f"calibration must be one of {CALIBRATIONS} or a dict of calibrate() "
+                         f"keywords, got {value!r}")
 
 
 def check_options(model: Any, has_region: bool) -> None:
