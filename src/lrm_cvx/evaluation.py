@@ -691,10 +691,12 @@ def evaluate(
     no ``temporal``: the protocol is memoryless unless ``temporal=`` is given), ``methods`` its
     method (today ``"greedy:gp-variance"``) followed by the paper's ``METHODS`` (the paper's
     greedy, the transects, the random walk), ``fold_in`` its prediction (today ``{"prior":
-    "empirical", "spatial": True}``: the empirical prior and the kriged residual). A given ``model`` without a spatial residual keeps the empirical prior;
-    the default method becomes ``"greedy:fisher"`` and the fold-in drops the kriged residual,
-    with one UserWarning. ``paper=True`` is the paper's setting, unchanged: ``GLRM(rank)``,
-    ``methods=METHODS``, the least-squares fold-in (``model_params={}``, ``fold_in={}``).
+    "empirical", "spatial": True}``: the empirical prior and the kriged residual). A model
+    without a spatial residual (a given ``model``, or ``model_params`` without ``spatial``)
+    keeps the empirical prior; the default method becomes ``"greedy:fisher"`` and the default
+    fold-in drops the kriged residual, with one UserWarning. ``paper=True`` is the paper's
+    setting, unchanged: ``GLRM(rank)``, ``methods=METHODS``, the least-squares fold-in
+    (``model_params={}``, ``fold_in={}``).
     An explicit argument wins over both (a given ``model_params`` / ``fold_in`` / ``methods``
     replaces that default as a whole); ``paper`` must be True or False (ModelError).
 
