@@ -373,9 +373,9 @@ class EvaluationProtocol:
             changed.append("fold-in without the kriged residual")
         if changed:
             warnings.warn("the model has no spatial residual, so the recommended setting falls "
-                          "back: " + ", ".join(changed) + " (fit GLRM(spatial='exponential') "
-                          "for the whole recommended setting, or pass paper=True)",
-                          UserWarning, stacklevel=5)
+                          "back: " + ", ".join(changed) + " (fit GLRM(spatial="
+                          f"{RECOMMENDED['spatial']!r}) for the whole recommended setting, or "
+                          "pass paper=True)", UserWarning, stacklevel=5)
 
     def _starts(self, region: Region) -> tuple[np.ndarray, np.ndarray]:
         """``(starts (n_starts,), fleets (n_starts, n_robots))``: seeded distinct cells a robot
