@@ -150,6 +150,8 @@ def test_paper_must_be_a_bool(data, spatial_model, test_data, bad):
         plan_greedy(spatial_model, 5, 6.0, paper=bad, progress=False)
     with pytest.raises(PlanningError, match="paper must be True or False"):
         simulate_campaign(spatial_model, test_data, 5, 6.0, paper=bad)
+    with pytest.raises(PlanningError, match="paper must be True or False"):
+        place_sensors(spatial_model, 4, paper=bad)
 
 
 # ------------------------------------------------------------------------------ plan_greedy
