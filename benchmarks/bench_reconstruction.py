@@ -88,7 +88,7 @@ def run_routes(name: str, da: xr.DataArray, budgets, n_starts, trials) -> None:
     common = dict(budgets=budgets, n_starts=n_starts, random_trials=trials, min_observations=5,
                   certify=False, progress=False, seed=0, ridge=1e-6)
     t = time.perf_counter()
-    paper = evaluate(da, methods=METHODS, **common)
+    paper = evaluate(da, methods=METHODS, paper=True, **common)
     t1 = time.perf_counter() - t
     t = time.perf_counter()
     pred = evaluate(da, methods=METHODS + NEW,

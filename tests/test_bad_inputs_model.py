@@ -378,7 +378,7 @@ def test_load_round_trip_reads_only(saved, inputs_unchanged):
 
 # --------------------------------------------------------------------------- evaluate (#2, #6)
 EV = dict(rank=2, n_test=3, budgets=(3.0,), n_starts=2, methods=("greedy", "random"),
-          random_trials=2, min_observations=1, progress=False, certify=False)
+          random_trials=2, min_observations=1, progress=False, certify=False, paper=True)
 
 
 def test_evaluate_sorts_unsorted_times(field):

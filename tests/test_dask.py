@@ -338,10 +338,10 @@ def test_dask_fitted_model_downstream(field):
     assert list(p1.cells) == list(p2.cells)
     e1 = evaluate(field, model=ref, n_test=4, budgets=(10,), n_starts=2, random_trials=2,
                   methods=("greedy", "random"), certify=False, progress=False,
-                  min_observations=1)
+                  min_observations=1, paper=True)
     e2 = evaluate(field, model=out, n_test=4, budgets=(10,), n_starts=2, random_trials=2,
                   methods=("greedy", "random"), certify=False, progress=False,
-                  min_observations=1)
+                  min_observations=1, paper=True)
     for var in e1.data_vars:  # fold-ins from ~10 cells amplify the 1e-8 factor differences
         if np.issubdtype(e1[var].dtype, np.number):
             np.testing.assert_allclose(e2[var].values, e1[var].values, rtol=2e-3, atol=1e-8,

@@ -26,7 +26,7 @@ def planted(seed=0, T=20, ny=8, nx=10, k=3):
 
 
 COMMON = dict(rank=3, n_test=3, n_starts=3, random_trials=2, min_observations=2, seed=4,
-              certify=False, progress=False, methods=METHODS)
+              certify=False, progress=False, methods=METHODS, paper=True)  # the paper's fold-in
 
 
 @pytest.fixture(scope="module")

@@ -31,7 +31,8 @@ def model(data):
 
 
 KW = dict(n_test=N_TEST, budgets=(8, 16), n_starts=3, random_trials=2, certify=False,
-          progress=False, min_observations=3, methods=("greedy", "transect-up", "random"))
+          progress=False, min_observations=3, methods=("greedy", "transect-up", "random"),
+          paper=True)  # the paper's fold-in unless a test gives fold_in
 
 
 def test_temporal_none_is_the_default_protocol(data, model):

@@ -334,7 +334,8 @@ def test_complete_mse_is_in_data_units(kw):
     n_test = 4
     m = fit_model(da.isel(time=slice(None, -n_test)), **kw)
     ds = evaluate(da, model=m, n_test=n_test, budgets=(4.0,), n_starts=1, random_trials=1,
-                  methods=("greedy",), certify=False, progress=False, min_observations=2)
+                  methods=("greedy",), certify=False, progress=False, min_observations=2,
+                  paper=True)  # the paper's fold-in, with the model's offset/scale/noise
     Y = m._Yv
     off = np.zeros(m.n_cells_) if m.offset_ is None else m.offset_
     sc = np.ones(m.n_cells_) if m.scale_ is None else m.scale_

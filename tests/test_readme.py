@@ -70,3 +70,25 @@ def test_own_record_block_runs(tmp_path, monkeypatch):
     da, model = namespace["da"], namespace["model"]
     assert da.dims == ("time", "lat", "lon")
     assert model.X_.sizes[model.X_.dims[1]] == da.sizes["time"] - 8
+
+
+def test_defaults_block_runs(tmp_path, monkeypatch, capsys):
+    """The README's 'Defaults' block: plan_greedy on a model is the recommended planner (the
+    same plan as spelled out), paper=True the paper's on the bare factor matrix."""
+    import numpy as np
+
+    from lrm_cvx import plan_greedy
+    from lrm_cvx.recommended import RECOMMENDED
+
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(_block("paper=True"), str(README), "exec"), namespace)  # noqa: S102
+    model, plan, paper = namespace["model"], namespace["plan"], namespace["paper"]
+    want = plan_greedy(model.Y_, model.region_, (10.0, 200.0), 20, progress=False,
+                       criterion=RECOMMENDED["criterion"], initial=RECOMMENDED["initial"],
+                       prior=model.latent_prior(RECOMMENDED["prior"], spatial=True))
+    np.testing.assert_array_equal(plan.route, want.route)
+    bare = plan_greedy(model.Y_, model.region_, (10.0, 200.0), 20, progress=False)
+    np.testing.assert_array_equal(paper.route, bare.route)
+    assert plan.criterion == "gp-variance" and paper.criterion == "fisher"
+    assert "gp-variance" in capsys.readouterr().out

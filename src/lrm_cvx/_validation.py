@@ -17,8 +17,8 @@ import xarray as xr
 from .errors import DataError, ModelError
 
 __all__ = ["as_generator", "as_factor_matrix", "atomic_output", "atomic_outputs",
-           "check_positive", "check_target", "check_time_labels", "file_lock", "guard_outputs",
-           "read_netcdf", "remove_stale_temps", "same_file"]
+           "check_flag", "check_positive", "check_target", "check_time_labels", "file_lock",
+           "guard_outputs", "read_netcdf", "remove_stale_temps", "same_file"]
 
 
 def as_generator(random_state: Any) -> np.random.Generator:
@@ -81,6 +81,14 @@ def check_positive(
     if not np.isfinite(v) or v < 0 or (strict and v == 0):
         raise error(f"{name} must be {'> 0' if strict else '>= 0'} and finite, got {value!r}")
     return v
+
+
+def check_flag(value: Any, name: str, *, error: type[Exception] = DataError) -> bool:
+    """``value`` as a bool when it is one (``True``/``False``, numpy's too), else ``error``
+    naming it: ``paper="yes"`` or ``paper=1`` is a caller's mistake, not a switch."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise error(f"{name} must be True or False, got {value!r}")
+    return bool(value)
 
 
 def check_time_labels(times: Any, source: str = "data") -> None:

@@ -39,17 +39,19 @@ class LrmAccessor:
         return GLRM(rank=rank, **kwargs).fit(self._da)
 
     def plan(self, model: Any, start: Any, budget: float, **kwargs: Any):
-        """Greedy plan on ``model``'s factors (see :func:`lrm_cvx.planning.plan_greedy`)."""
+        """Greedy plan on ``model`` (see :func:`lrm_cvx.planning.plan_greedy`): the
+        recommended planner unless ``paper=True`` or explicit options say otherwise."""
         from .planning import plan_greedy
 
-        return plan_greedy(model.Y_, model.region_, start, budget, **kwargs)
+        return plan_greedy(model, model.region_, start, budget, **kwargs)
 
     def complete(self, model: Any, ridge: float = 0.0, **kwargs: Any) -> xr.Dataset:
         """Predict the full map(s) from this partially observed snapshot (NaN = unobserved)."""
         return model.complete(self._da, ridge=ridge, **kwargs)
 
     def evaluate(self, **kwargs: Any) -> xr.Dataset:
-        """The paper's protocol on this data (see :func:`lrm_cvx.evaluation.evaluate`)."""
+        """The evaluation protocol on this data (see :func:`lrm_cvx.evaluation.evaluate`:
+        the recommended setting, ``paper=True`` the paper's)."""
         from .evaluation import evaluate
 
         return evaluate(self._da, **kwargs)

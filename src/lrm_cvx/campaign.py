@@ -20,12 +20,19 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from ._validation import as_generator
+from ._validation import as_generator, check_flag
 from .errors import DataError, ModelError, PlanningError
 from .glrm.dynamics import check_times, temporal_value
 from .glrm.dynamics import estimate as estimate_dynamics
 from .monitor import MonitorState
-from .planning.planners import GreedyPlanner, Planner, Refined, check_method, planner_for
+from .planning.planners import (
+    GreedyPlanner,
+    Planner,
+    Refined,
+    check_method,
+    planner_for,
+    recommended_method,
+)
 from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
 from .planning.sensors import observed_cells, plan_observations
 
@@ -187,13 +194,14 @@ def simulate_campaign(
     start: Any,
     budget: Any,
     *,
-    method: str = "greedy:gp-variance",
+    method: str | None = None,
     temporal: str | None = "ar1",
     replan: bool = True,
     seed: Any = 0,
     spatial: bool | None = None,
     path: PathOptions | None = None,
     replan_every: int | None = None,
+    paper: bool = False,
     **options: Any,
 ) -> xr.Dataset:
     """Replay a campaign over the snapshots of ``test_data`` ``(time, lat, lon)``.
@@ -204,7 +212,11 @@ def simulate_campaign(
     robot, in the path model's unit. ``method``: any method of
     :data:`~lrm_cvx.planning.planners.METHOD_REGISTRY` (``"greedy:fisher"``,
     ``"greedy:a-optimal"``, ``"greedy:gp-variance"`` plan with the filter's forecast as prior;
-    ``"greedy"``, the transects and ``"random"`` ignore it).
+    ``"greedy"``, the transects and ``"random"`` ignore it). Default None: the recommended
+    method (``RECOMMENDED["method"]``, today ``"greedy:gp-variance"``), ``"greedy:fisher"``
+    (the forecast as prior, Fisher criterion) for a model without a spatial residual;
+    ``paper=True``: the paper's ``"greedy"`` (the filter still assimilates and predicts; an
+    explicit ``method`` wins). ``paper`` must be True or False.
     ``temporal``: None (memoryless), ``"ar1"`` or ``"seasonal"`` (the model's ``dynamics_`` when
     of that kind, else estimated from ``X_``), or a :class:`~lrm_cvx.glrm.dynamics.Dynamics`
     (e.g. the true dynamics of a planted field, in the model's latent coordinates).
@@ -239,6 +251,10 @@ def simulate_campaign(
                         f"{sorted(bad)[0]!r}")
     request = PathOptions.from_kwargs(path, where="simulate_campaign",
                                       **pop_options(options, PATH_FIELDS))
+    paper = check_flag(paper, "paper", error=PlanningError)
+    if method is None:
+        residual = getattr(model, "spatial_cov_", None) is not None and spatial is not False
+        method = "greedy" if paper else recommended_method(residual)
     method = check_method(method)
     planner = planner_for(method, criterion=options.get("criterion", "fisher"),
                           cost=options.get("cost", "nearest-neighbor"))

@@ -151,7 +151,8 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
                        fold_in={"prior": SETTING["prior"], "spatial": SETTING["fold_spatial"]},
                        certify=False, **common)
     t = lap("evaluate recommended", t)
-    res_paper = evaluate(data, model=paper, methods=("greedy",), certify="fast", **common)
+    res_paper = evaluate(data, model=paper, methods=("greedy",), certify="fast", paper=True,
+                         **common)
     t = lap("evaluate paper (+ certify)", t)
     say(f"evaluated {len(cfg['budgets'])} budgets x {cfg['n_starts']} starts x {n_test} test "
         f"snapshots ({timings['evaluate recommended'] + timings[list(timings)[-1]]:.1f} s)")

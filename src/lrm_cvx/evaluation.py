@@ -29,7 +29,7 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from ._blas import single_threaded_blas
-from ._validation import as_factor_matrix, as_generator, atomic_output, check_positive
+from ._validation import as_factor_matrix, as_generator, atomic_output, check_flag, check_positive
 from .errors import DataError, ModelError, PlanningError
 from .glrm.posterior import LatentPosterior
 from .planning.planners import (
@@ -37,9 +37,12 @@ from .planning.planners import (
     METHOD_REGISTRY,
     METHODS,
     check_method,
+    needs_spatial,
     planner_for,
+    recommended_method,
 )
 from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
+from .recommended import RECOMMENDED
 from .region import Region
 from .scoring import (
     SnapshotStatistics,
@@ -156,6 +159,22 @@ def _time_ordered(data: xr.DataArray) -> xr.DataArray:
     return data
 
 
+def _recommended_params() -> dict[str, Any]:
+    """The GLRM parameters of the recommended setting (the keys of ``RECOMMENDED`` that are
+    GLRM parameters), without ``temporal``: the protocol folds every test snapshot in on its
+    own, so the fit has no dynamics to choose unless ``temporal=`` asks for them."""
+    from .glrm import GLRM
+
+    names = set(GLRM().get_params()) - {"temporal", "rank", "random_state", "progress"}
+    return {key: value for key, value in RECOMMENDED.items() if key in names}
+
+
+def _recommended_methods() -> tuple[str, ...]:
+    """The default ``methods``: the recommended method, then the paper's (``METHODS``)."""
+    first = recommended_method(spatial=True)
+    return (first, *(m for m in METHODS if m != first))
+
+
 def _check_given_model(model: Any, test: xr.DataArray) -> None:
     """A fitted GLRM with a region (ModelError otherwise); UserWarning when it was fitted on
     any of the test times (its errors would be scored on training data)."""
@@ -175,8 +194,8 @@ def _check_given_model(model: Any, test: xr.DataArray) -> None:
                           UserWarning, stacklevel=3)
 
 
-_EVALUATE_OPTIONS = ("random_trials", "min_observations", "fold_ridge", "certify", "n_jobs",
-                     "progress", "model_params", "fold_in")
+_EVALUATE_OPTIONS = ("random_trials", "min_observations", "ridge", "fold_ridge", "certify",
+                     "n_jobs", "progress", "model_params", "fold_in")
 """The keywords of :func:`evaluate` it takes through ``**options`` (besides the path options)."""
 
 _EVALUATE_PATH = PATH_FIELDS
@@ -205,9 +224,10 @@ class EvaluationProtocol:
     (``rank``, ``model_params``, or a fitted ``model``), the requests (``budgets``, ``n_starts``
     start cells, ``n_robots`` per start, the path request ``path``), the ``methods`` (names of
     :data:`~lrm_cvx.planning.planners.METHOD_REGISTRY`), the prediction (``fold_in``,
-    ``fold_ridge``) and ``temporal`` campaigns; validated when built, :meth:`run` returns the
-    Dataset of :func:`evaluate` (which is ``EvaluationProtocol(data, ...).run()``; every
-    argument is documented there).
+    ``fold_ridge``) and ``temporal`` campaigns; ``methods``, ``model_params`` and ``fold_in``
+    left None are the recommended setting's (``paper=True``: the paper's); validated when
+    built, :meth:`run` returns the Dataset of :func:`evaluate` (which is
+    ``EvaluationProtocol(data, ...).run()``; every argument is documented there).
 
     >>> EvaluationProtocol(da, budgets=(5, 25), methods=("greedy", "random")).run()
     """
@@ -217,7 +237,7 @@ class EvaluationProtocol:
     n_test: int = 8
     budgets: Sequence[float] = (5, 25, 50, 100, 200)
     n_starts: int = 10
-    methods: Sequence[str] = METHODS
+    methods: Sequence[str] | None = None
     random_trials: int = 70
     min_observations: int = 10
     criterion: str = "fisher"
@@ -234,6 +254,7 @@ class EvaluationProtocol:
     temporal: str | None = None
     path: PathOptions | None = None
     n_robots: int = 1
+    paper: bool = False
 
     def __post_init__(self) -> None:
         self._check()
@@ -245,6 +266,17 @@ class EvaluationProtocol:
         if not isinstance(self.data, xr.DataArray) or self.data.ndim != 3:
             raise DataError("data must be a (time, lat, lon) DataArray")
         self.data = _time_ordered(self.data)
+        self.paper = check_flag(self.paper, "paper", error=ModelError)
+        # the defaults left to the protocol (None): the paper's with paper=True, else the
+        # recommended setting; _fit adapts the recommended ones to a model without a residual
+        self._defaults = {"methods": self.methods is None, "fold_in": self.fold_in is None}
+        if self.methods is None:
+            self.methods = METHODS if self.paper else _recommended_methods()
+        if self.model_params is None and self.model is None and not self.paper:
+            self.model_params = _recommended_params()
+        if self.fold_in is None and not self.paper:
+            self.fold_in = {"prior": RECOMMENDED["prior"],
+                            "spatial": bool(RECOMMENDED["fold_spatial"])}
         self.methods = _check_methods(self.methods)
         self.n_test = _int_arg(self.n_test, "n_test", 1, DataError)
         self.n_starts = _int_arg(self.n_starts, "n_starts", 1)
@@ -308,6 +340,7 @@ class EvaluationProtocol:
         region = model.region_
         if region is None:
             raise ModelError("model must have been fitted on a DataArray (it has no region)")
+        self._without_residual(model)
         Y = as_factor_matrix(model.Y_, region)
         test_values = region.stack(test)
         # one observation model for every error: the model's offset / scale / noise (data units)
@@ -321,6 +354,28 @@ class EvaluationProtocol:
                                          spatial=bool(fold_in.get("spatial", False)))
                       if use_model else paper_prior)
         return _Fitted(model, region, Y, train, test, stats, use_model, paper_prior, fold_prior)
+
+    def _without_residual(self, model: Any) -> None:
+        """The recommended defaults for a model without a spatial residual: a default method
+        on the residual (``greedy:gp-variance``) becomes ``greedy:fisher`` (the empirical prior,
+        Fisher criterion), the default fold-in drops the kriged residual; one UserWarning says
+        so. Explicit ``methods`` / ``fold_in`` and ``paper=True`` are left alone."""
+        if self.paper or getattr(model, "spatial_cov_", None) is not None:
+            return
+        changed = []
+        if self._defaults["methods"] and any(needs_spatial(m) for m in self.methods):
+            fallback = recommended_method(spatial=False)
+            methods = [fallback if needs_spatial(m) else m for m in self.methods]
+            self.methods = tuple(dict.fromkeys(methods))
+            changed.append(f"method {RECOMMENDED['method']!r} -> {fallback!r}")
+        if self._defaults["fold_in"] and self.fold_in.get("spatial"):
+            self.fold_in = {**self.fold_in, "spatial": False}
+            changed.append("fold-in without the kriged residual")
+        if changed:
+            warnings.warn("the model has no spatial residual, so the recommended setting falls "
+                          "back: " + ", ".join(changed) + " (fit GLRM(spatial="
+                          f"{RECOMMENDED['spatial']!r}) for the whole recommended setting, or "
+                          "pass paper=True)", UserWarning, stacklevel=5)
 
     def _starts(self, region: Region) -> tuple[np.ndarray, np.ndarray]:
         """``(starts (n_starts,), fleets (n_starts, n_robots))``: seeded distinct cells a robot
@@ -617,18 +672,33 @@ def evaluate(
     n_test: int = 8,
     budgets: Sequence[float] = (5, 25, 50, 100, 200),
     n_starts: int = 10,
-    methods: Sequence[str] = METHODS,
+    methods: Sequence[str] | None = None,
     criterion: str = "fisher",
     cost: str = "nearest-neighbor",
-    ridge: float = 0.0,
     model: Any = None,
     seed: int = 0,
     temporal: str | None = None,
     n_robots: int = 1,
     path: PathOptions | None = None,
+    paper: bool = False,
     **options: Any,
 ) -> xr.Dataset:
     """Run the paper's evaluation protocol on ``data`` ``(time, lat, lon)``.
+
+    **Defaults** (issue #24): the recommended setting of docs/reconstruction.md
+    (:data:`lrm_cvx.recommended.RECOMMENDED`, read at run time) wherever an argument is left
+    out: ``model_params`` its GLRM parameters (today ``offset=True, spatial="exponential"``;
+    no ``temporal``: the protocol is memoryless unless ``temporal=`` is given), ``methods`` its
+    method (today ``"greedy:gp-variance"``) followed by the paper's ``METHODS`` (the paper's
+    greedy, the transects, the random walk), ``fold_in`` its prediction (today ``{"prior":
+    "empirical", "spatial": True}``: the empirical prior and the kriged residual). A model
+    without a spatial residual (a given ``model``, or ``model_params`` without ``spatial``)
+    keeps the empirical prior; the default method becomes ``"greedy:fisher"`` and the default
+    fold-in drops the kriged residual, with one UserWarning. ``paper=True`` is the paper's
+    setting, unchanged: ``GLRM(rank)``, ``methods=METHODS``, the least-squares fold-in
+    (``model_params={}``, ``fold_in={}``).
+    An explicit argument wins over both (a given ``model_params`` / ``fold_in`` / ``methods``
+    replaces that default as a whole); ``paper`` must be True or False (ModelError).
 
     Parameters follow the paper: a rank-``rank`` GLRM fitted on all snapshots but the last
     ``n_test`` (or the given fitted ``model``, whose region must match ``data``), ``n_starts``
@@ -646,7 +716,7 @@ def evaluate(
     ``"random"`` is among ``methods``) must be integers >= 1, ``methods`` non-empty without
     repeats, ``budgets`` finite, >= 0 and distinct (ModelError / DataError otherwise).
 
-    Reconstruction options (issue #8, docs/reconstruction.md; defaults are the paper's):
+    Reconstruction options (issue #8, docs/reconstruction.md; defaults above):
     ``methods`` may add ``"greedy:fisher"``, ``"greedy:a-optimal"``, ``"greedy:gp-variance"``:
     the greedy with a criterion on the model's posterior (``GLRM.planner_kwargs`` with the
     empirical prior; ``gp-variance`` also with the GP residual, needs ``spatial`` in
@@ -705,9 +775,9 @@ def evaluate(
                                       **pop_options(options, _EVALUATE_PATH))
     return EvaluationProtocol(data, rank=rank, n_test=n_test, budgets=budgets,
                               n_starts=n_starts, methods=methods, criterion=criterion,
-                              cost=cost, ridge=ridge, model=model, seed=seed,
+                              cost=cost, model=model, seed=seed,
                               temporal=temporal, n_robots=n_robots, path=request,
-                              **options).run()
+                              paper=paper, **options).run()
 
 
 def summary(results: xr.Dataset) -> pd.DataFrame:

@@ -38,6 +38,7 @@ from .glrm.filter import (  # noqa: F401  (re-exported: the old import location)
     time_to_str,
 )
 from .glrm.posterior import LatentPosterior, ObservationModel
+from .recommended import RECOMMENDED
 
 __all__ = ["MonitorState", "model_fingerprint", "memoryless_dynamics", "time_label"]
 
@@ -166,12 +167,18 @@ class MonitorState(LatentFilter):
         state's time (a Dataset on ``(lat, lon)``, scalar ``time`` coordinate)."""
         return self._dataset(*self.posterior.predict_all(), self.time, "posterior")
 
-    def planner_kwargs(self, criterion: str = "gp-variance", time: Any = None) -> dict:
+    def planner_kwargs(self, criterion: str | None = None, time: Any = None) -> dict:
         """Keyword arguments of :func:`~lrm_cvx.planning.plan_greedy` with the prior of the
         next plan: the forecast for ``time`` (default as :meth:`forecast`). ``criterion``
-        ``"fisher"``/``"a-optimal"`` drop the spatial terms ``"gp-variance"`` needs."""
+        ``"fisher"``/``"a-optimal"`` drop the spatial terms ``"gp-variance"`` needs; None (the
+        default) is the recommended criterion (``RECOMMENDED["criterion"]``) when the state
+        has the spatial residual it needs, else ``"fisher"``."""
         post, _ = self._post_at(self._default_time(time))
         kw = post.information()
+        if criterion is None:
+            criterion = RECOMMENDED["criterion"]
+            if criterion == "gp-variance" and "spatial_cov" not in kw:
+                criterion = "fisher"
         if criterion != "gp-variance":
             kw = {k: v for k, v in kw.items() if k not in ("prior_cov", "spatial_cov")}
         elif "spatial_cov" not in kw:

@@ -1,4 +1,11 @@
-"""The paper's generalized cost-benefit greedy planner (Zhang and Vorobeychik)."""
+"""The paper's generalized cost-benefit greedy planner (Zhang and Vorobeychik).
+
+``plan_greedy(Y, region, start, budget)`` on a bare factor matrix is the paper's planner (Fisher
+criterion, the start and its ``k - 1`` nearest cells forced, no prior: ``Y`` carries no belief);
+``plan_greedy(model, start, budget)`` on a fitted GLRM is the recommended planner (issue #24:
+the criterion, prior and initial cells of :data:`lrm_cvx.recommended.RECOMMENDED`), and
+``paper=True`` the paper's again.
+"""
 
 from __future__ import annotations
 
@@ -9,8 +16,8 @@ import numpy as np
 import scipy.sparse as sps
 from tqdm.auto import tqdm
 
-from .._validation import as_factor_matrix
-from ..errors import PlanningError
+from .._validation import as_factor_matrix, check_flag
+from ..errors import ModelError, PlanningError
 from ..information import (
     CRITERION_REGISTRY,
     fisher_information,
@@ -19,6 +26,7 @@ from ..information import (
     row_factors,
     row_information,
 )
+from ..recommended import RECOMMENDED
 from ..region import Region
 from . import request as _request
 from .paths import path_model
@@ -99,24 +107,87 @@ def _robot_initial(models: list[Any], k: int, initial: str) -> list[np.ndarray]:
     return out
 
 
+def _is_fitted_model(obj: Any) -> bool:
+    """A fitted GLRM, by duck typing (planning does not import the model class)."""
+    return hasattr(obj, "Y_") and hasattr(obj, "region_")
+
+
+def _model_call(model: Any, region: Any, start: Any, budget: Any) -> tuple[Any, Any, Any]:
+    """``(region, start, budget)`` of ``plan_greedy(model, start, budget)`` and
+    ``plan_greedy(model, region, start, budget)``: the region defaults to ``model.region_``."""
+    if region is not None and not isinstance(region, Region):  # (model, start[, budget])
+        if start is None:
+            start = region
+        elif budget is None:
+            start, budget = region, start
+        else:
+            raise PlanningError("plan_greedy(model, start, budget): give the region as a "
+                                f"Region or leave it out, got {type(region).__name__}")
+        region = None
+    if region is None:
+        region = getattr(model, "region_", None)
+        if region is None:
+            raise PlanningError("plan_greedy(model, ...): the model has no region (fitted on an "
+                                "array): pass region= or fit it on a (time, lat, lon) DataArray")
+    return region, start, budget
+
+
+def _model_defaults(model: Any, criterion: str | None, initial: str | None, prior: Any,
+                    terms_given: dict[str, Any], paper: bool) -> tuple[str, str, Any]:
+    """``(criterion, initial, prior)`` of a plan on a fitted ``model``: the given ones, else the
+    paper's (``paper=True``: Fisher, nearest cells, no prior) or the recommended setting's
+    (its criterion, initial cells and prior; a model without a spatial residual plans with
+    Fisher on that prior, since the gp-variance criterion needs the residual)."""
+    if paper:
+        return criterion or "fisher", initial or "nearest", prior
+    spatial = getattr(model, "spatial_cov_", None) is not None
+    if criterion is None:
+        criterion = RECOMMENDED["criterion"]
+        if CRITERION_REGISTRY.canonical(criterion, "criterion") == "gp-variance" and not spatial:
+            criterion = "fisher"
+    initial = initial or RECOMMENDED["initial"]
+    given = any(v is not None for key, v in terms_given.items() if key != "targets")
+    if prior is None and not given:
+        gp = CRITERION_REGISTRY.canonical(criterion, "criterion") == "gp-variance"
+        try:
+            prior = model.latent_prior(RECOMMENDED["prior"], spatial=spatial and gp)
+        except ModelError as exc:
+            raise PlanningError(f"plan_greedy(model, ...): {exc}") from None
+    return criterion, initial, prior
+
+
 def plan_greedy(
     Y: Any,
-    region: Region,
+    region: Region | None = None,
     start: Any = None,
     budget: Any = None,
     *,
-    criterion: str = "fisher",
+    criterion: str | None = None,
     cost: str = "nearest-neighbor",
     ridge: float = 0.0,
     progress: bool = True,
-    initial: str = "nearest",
+    initial: str | None = None,
     prior: Any = None,
     refine: bool | dict[str, Any] = False,
     path: PathOptions | str | None = None,
     static: bool = False,
+    paper: bool = False,
     **options: Any,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
+
+    Two call forms (issue #24):
+
+    * ``plan_greedy(Y, region, start, budget)`` with a factor matrix: ``Y`` carries no belief,
+      so the defaults are the paper's (``criterion="fisher"``, ``initial="nearest"``, no prior).
+    * ``plan_greedy(model, start, budget)`` (or ``(model, region, start, budget)``) with a
+      fitted GLRM: **the default is the recommended planner** of
+      :data:`lrm_cvx.recommended.RECOMMENDED` (today the ``"gp-variance"`` criterion on the
+      model's empirical prior with the GP residual, from the start cell alone,
+      ``initial="start"``); a model without a spatial residual plans with ``"fisher"`` on its
+      empirical prior. ``paper=True`` is the paper's planner on ``model.Y_``, unchanged.
+      ``region`` defaults to ``model.region_``; an explicit ``criterion``, ``initial``,
+      ``prior`` (or prior terms) wins over both defaults. ``paper`` must be True or False.
 
     1. ``P`` = the start cell and its ``k - 1`` nearest cells (the path model's
        ``initial_cells``; :func:`initial_cells` for the paper's).
@@ -139,15 +210,17 @@ def plan_greedy(
     Parameters
     ----------
     Y : ``(k, L)`` factor matrix (array, or a model's ``Y_`` DataArray ``(component, cell)``
-        or ``(component, lat, lon)``).
-    region : the :class:`~lrm_cvx.region.Region` of ``Y``'s cells.
+        or ``(component, lat, lon)``), or a fitted GLRM (the recommended defaults above).
+    region : the :class:`~lrm_cvx.region.Region` of ``Y``'s cells (a model's ``region_`` when
+        left out with a model).
     start : a cell index or a ``(lat, lon)`` tuple (one robot), or a **list** of those, one per
         robot (a fleet; also a 1-D integer array of cells or an ``(n, 2)`` array of lat/lon). A
         list of two non-integer numbers is read as one ``[lat, lon]`` (as before).
     budget : the path budget, ``>= 0``, in the path model's unit (grid units; km with
         ``metric="km"``; hours with ``speed``): a number (every robot) or a list, one per robot.
     criterion : ``"fisher"`` (log det gain, the paper) or ``"a-optimal"`` (decrease of the
-        total prediction variance; needs ``ridge > 0``), or ``"gp-variance"``.
+        total prediction variance; needs ``ridge > 0``), or ``"gp-variance"``. Default None:
+        ``"fisher"`` for ``Y``, the recommended criterion for a model.
     cost : ``"nearest-neighbor"`` (the paper's ``C``, computed exactly) or ``"insertion"``
         (cheapest insertion route, cheaper and usually shorter).
     ridge : ``>= 0``, added to the information matrix (``ridge * I``).
@@ -163,7 +236,8 @@ def plan_greedy(
     initial : ``"nearest"`` (the paper: the start and its ``k - 1`` nearest cells are forced) or
         ``"start"`` (only the start cell, and the ``end`` cell when given: with a prior the
         information matrix is nonsingular from the start, so the budget is not spent on
-        ``k - 1`` forced cells).
+        ``k - 1`` forced cells). Default None: ``"nearest"`` for ``Y``, the recommended
+        ``"start"`` for a model.
     prior : a :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (``GLRM.latent_prior(...)``, a
         monitoring filter's forecast): its ``information()`` fills ``prior_precision``,
         ``noise_var``, ``target_weights`` and, when it has the spatial residual, ``prior_cov``
@@ -207,8 +281,22 @@ def plan_greedy(
     (the paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
     budget, start, criterion, cost or path option, or a singular initial set with ``ridge=0``.
     """
-    region = check_region(region)
+    paper = check_flag(paper, "paper", error=PlanningError)
     terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
+    model = None
+    if _is_fitted_model(Y):
+        model = Y
+        region, start, budget = _model_call(model, region, start, budget)
+        Y = model.Y_
+        if not static:
+            criterion, initial, prior = _model_defaults(model, criterion, initial, prior,
+                                                        terms_given, paper)
+    elif hasattr(Y, "latent_prior") and hasattr(Y, "fit"):
+        raise PlanningError("plan_greedy(model, ...): the model is not fitted")
+    elif region is None:
+        raise PlanningError("plan_greedy(Y, region, start, budget): region is missing (or pass "
+                            "a fitted GLRM: plan_greedy(model, start, budget))")
+    region = check_region(region)
     static_opts = pop_options(options, STATIC_OPTIONS)
     if isinstance(path, str):
         if path not in ("route", "static"):
@@ -220,10 +308,15 @@ def plan_greedy(
             static = True
         path = None
     request = PathOptions.from_kwargs(path, where="plan_greedy", **options)
-    if static:
-        return _static(Y, region, start, budget, request, options, static_opts, refine,
-                       dict(criterion=criterion, ridge=ridge, progress=progress, prior=prior,
-                            **terms_given))
+    if static:  # a model: place_sensors' own defaults (recommended, or paper=True)
+        extra = {"paper": paper} if model is not None else {}
+        return _static(Y if model is None else model, region, start, budget, request, options,
+                       static_opts, refine, dict(criterion=criterion if model is not None
+                                                 else criterion or "fisher", ridge=ridge,
+                                                 progress=progress, prior=prior, **extra,
+                                                 **terms_given))
+    criterion = criterion or "fisher"  # Y alone: the paper's defaults
+    initial = initial or "nearest"
     if "n_sensors" in static_opts:
         raise PlanningError("n_sensors applies to path='static' only")
     if static_opts:

@@ -18,6 +18,7 @@ from typing import Any
 
 from ..errors import ModelError
 from ..information import CRITERION_REGISTRY
+from ..recommended import RECOMMENDED
 from ..registry import Choices, Registry
 from .baselines import DIRECTIONS, random_walk, transect
 from .greedy import plan_greedy
@@ -28,7 +29,8 @@ from .static import place_sensors
 from .terms import PRIOR_TERMS, resolve_prior
 
 __all__ = ["Planner", "GreedyPlanner", "StaticPlacement", "Transect", "RandomWalk", "Refined",
-           "METHOD_REGISTRY", "METHODS", "GREEDY_VARIANTS", "check_method", "planner_for"]
+           "METHOD_REGISTRY", "METHODS", "GREEDY_VARIANTS", "check_method", "planner_for",
+           "needs_spatial", "recommended_method", "SPATIAL_FALLBACK"]
 
 
 class Planner:
@@ -184,3 +186,23 @@ def planner_for(method: str, *, criterion: str = "fisher", cost: str = "nearest-
     """The planner of ``method`` (a name or alias) with the caller's ``criterion`` / ``cost``
     filled in where the method leaves them open (:meth:`Planner.configure`)."""
     return METHOD_REGISTRY.get(method, "method").configure(criterion=criterion, cost=cost)
+
+
+SPATIAL_FALLBACK = "greedy:fisher"
+"""The stand-in of a method on the GP residual for a model without one: the greedy on the
+model's empirical prior (a filter's forecast in a campaign) with the Fisher criterion."""
+
+
+def needs_spatial(method: str) -> bool:
+    """Whether ``method`` plans on the model's GP residual (a ``gp-variance`` greedy)."""
+    planner = planner_for(method)
+    planner = getattr(planner, "planner", planner)  # a Refined planner's greedy
+    return bool(getattr(planner, "model_prior", False)) and planner.criterion == "gp-variance"
+
+
+def recommended_method(spatial: bool) -> str:
+    """The recommended setting's method (``RECOMMENDED["method"]``, read now) for a model with
+    (``spatial=True``) or without a GP residual: without, a method on the residual becomes
+    :data:`SPATIAL_FALLBACK`."""
+    method = check_method(RECOMMENDED["method"])
+    return SPATIAL_FALLBACK if not spatial and needs_spatial(method) else method

@@ -49,7 +49,7 @@ import numpy as np
 import scipy.linalg
 from tqdm.auto import tqdm
 
-from .._validation import as_factor_matrix
+from .._validation import as_factor_matrix, check_flag
 from ..errors import DataError, ModelError, PlanningError, RegionError
 from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
 from ..region import Region
@@ -632,6 +632,7 @@ def place_sensors(
     candidates thinned to a sub-lattice above ``max_candidates`` cells) unless the residual's
     metric is km; ``"dense"`` is the ``L x L`` reference (at most ``RISK_MAX_CELLS`` cells).
     """
+    paper = check_flag(paper, "paper", error=PlanningError)
     Y, region, n_sensors, prior, from_model = _resolve_call(Y, region, n_sensors, prior)
     criterion, exchange = _recommended(from_model, prior, training, paper, criterion, exchange)
     if from_model and _is_model(prior) and criterion not in ("risk", "fisher"):
