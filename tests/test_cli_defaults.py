@@ -302,7 +302,7 @@ def test_evaluate_default_is_recommended_and_paper_is_the_paper(files, tmp_path)
                    model_params={**params, "noise": "global"},
                    fold_in={"prior": RECOMMENDED["prior"], "spatial": True}, **kw)
     paper = evaluate(da, methods=METHODS, criterion="fisher", model_params={"noise": "global"},
-                     **kw)
+                     paper=True, **kw)
     for name, ref in (("default", rec), ("recommended", rec), ("paper", paper)):
         assert list(got[name]["method"].values) == list(ref["method"].values), name
         np.testing.assert_allclose(got[name]["mse"], ref["mse"], rtol=1e-6, equal_nan=True,
