@@ -3,8 +3,9 @@
 Fit ``GLRM(offset=True, spatial="exponential")``, plan with the gp-variance criterion from the
 start cell alone (``method`` is its name in ``evaluate``), predict with the empirical prior and
 the kriged GP residual (``fold_spatial``); a model for monitoring chooses its temporal model on
-the training snapshots (``temporal="auto"``, glrm/selection.py). ``lrm-cvx ... --recommended``
-switches it on; ``lrm_cvx.demo`` runs it beside the paper's setting. Plain data, so it sits at
+the training snapshots (``temporal="auto"``, glrm/selection.py). It is the default of the
+CLI and of the library wherever a call has a fitted model to take it from (``--paper`` /
+``paper=True`` give the paper's setting); ``lrm_cvx.demo`` runs it beside the paper's. Plain data, so it sits at
 the base of the layers.
 """
 
