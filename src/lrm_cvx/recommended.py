@@ -5,8 +5,8 @@ start cell alone (``method`` is its name in ``evaluate``), predict with the empi
 the kriged GP residual (``fold_spatial``); a model for monitoring chooses its temporal model on
 the training snapshots (``temporal="auto"``, glrm/selection.py). It is the default of the
 CLI and of the library wherever a call has a fitted model to take it from (``--paper`` /
-``paper=True`` give the paper's setting); ``lrm_cvx.demo`` runs it beside the paper's. Plain data, so it sits at
-the base of the layers.
+``paper=True`` give the paper's setting); ``lrm_cvx.demo`` runs it beside the paper's. Plain
+data, so it sits at the base of the layers.
 """
 
 from __future__ import annotations
