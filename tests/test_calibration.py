@@ -399,3 +399,18 @@ def test_fit_calibration_parameter_equals_calibrating_after_the_fit(tmp_path):
     assert keyed.calibration_.residual_scale == 1.0
     keyed.save(tmp_path / "k.nc")
     assert GLRM.load(tmp_path / "k.nc").calibration == kw
+
+
+def test_default_folds_shrink_on_a_short_record():
+    """``n_blocks=None``: 8 folds, half the snapshots on a short record (a 10-snapshot record
+    calibrates with 5 folds instead of failing); an explicit count out of range still fails."""
+    data = _planted(T=10, ny=8, nx=10)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=3, progress=False, random_state=0).fit(data)
+        cal = calibrate(model, data, sizes=(5,), max_snapshots=1)
+        ref = calibrate(model, data, n_blocks=5, sizes=(5,), max_snapshots=1)
+    assert cal.to_attrs()["calibration_n_blocks"] == 5
+    np.testing.assert_equal(cal.to_attrs(), ref.to_attrs())
+    with pytest.raises(ModelError, match="n_blocks must be in"):
+        calibrate(model, data, n_blocks=8)

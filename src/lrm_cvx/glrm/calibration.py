@@ -417,7 +417,8 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
     return out
 
 
-def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] = (5, 15, 50),
+def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
+              sizes: Sequence[int] = (5, 15, 50),
               kinds: Sequence[str] = ALL_KINDS, max_snapshots: int = 3,
               temporal: str | None | bool = None, adaptive: bool = True,
               residual: bool = True, method: str = "gaussian",
@@ -465,7 +466,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
     separate forward-chaining estimate (``temporal="auto"``: when the model has dynamics;
     ``"ar1"``/``"seasonal"``: always) trains on less data and was too noisy to be better.
     Costs ``n_blocks`` refits plus ``n_blocks * max_snapshots * len(sizes) * len(kinds)``
-    fold-ins.
+    fold-ins. ``n_blocks`` (None): 8, fewer on a short record (half its snapshots, at least 2).
     """
     if method not in ("gaussian", "conformal"):
         raise ModelError(f"method must be 'gaussian' or 'conformal', got {method!r}")
@@ -474,6 +475,8 @@ def calibrate(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] 
     levels = tuple(check_level(lv, "levels") for lv in np.atleast_1d(levels))
     if method == "conformal" and not levels:
         raise ModelError("levels must hold at least one level in (0, 1)")
+    if n_blocks is None:  # 8 folds, fewer on a short record (each fold keeps 2 snapshots)
+        n_blocks = max(2, min(8, training_values(model, data)[1].shape[0] // 2))
     kw = dict(n_blocks=n_blocks, sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
     rhos = RESIDUAL_SCALES if residual else (1.0,)
     conformal_fit = method == "conformal"
