@@ -83,6 +83,9 @@ def test_fit_default_is_the_recommended_fit(files):
             assert getattr(model.spatial_cov_, key) == pytest.approx(
                 getattr(ref.spatial_cov_, key), rel=1e-6)
         assert model.selection_.attrs["choice"] == ref.selection_.attrs["choice"]
+        # the recommended fit calibrates its intervals, as GLRM(calibration=...) does
+        assert model.calibration == RECOMMENDED["calibration"]
+        np.testing.assert_equal(model.calibration_.to_attrs(), ref.calibration_.to_attrs())
     assert xr.load_dataset(root / "default.nc").equals(xr.load_dataset(root / "recommended.nc"))
 
 
@@ -134,9 +137,13 @@ def test_fit_falls_back_to_no_dynamics_with_one_note(files, tmp_path, capsys, ki
     assert _run("fit", path, "--rank", 2, "-o", tmp_path / "m.nc") == 0
     out = capsys.readouterr().out
     notes = _notes(out)
-    assert len(notes) == 1 and "temporal='auto'" in notes[0] and why in notes[0], out
+    auto = [n for n in notes if "temporal='auto'" in n]
+    assert len(auto) == 1 and why in auto[0], out
+    # the only other note a fallback may add: a record too short for the calibration's refits
+    assert all("calibration" in n for n in notes if n not in auto), out
     model = GLRM.load(tmp_path / "m.nc")
     assert model.temporal is None and model.dynamics_ is None and model.selection_ is None
+    assert (model.calibration_ is None) == (len(notes) == 2)
     assert model.offset and model.spatial == RECOMMENDED["spatial"]  # the rest stays
     # asked for explicitly, auto keeps its one-line error
     assert _run("fit", path, "--rank", 2, "--temporal", "auto", "-o", tmp_path / "x.nc") == 2
@@ -172,8 +179,22 @@ def test_fit_notes_the_fallback_after_hold_out(files, tmp_path, capsys):
     capsys.readouterr()
     assert _run("fit", root / "field.nc", "--rank", 2, "--hold-out", 10, "-o",
                 tmp_path / "m.nc") == 0
-    assert len(_notes(capsys.readouterr().out)) == 1
+    notes = _notes(capsys.readouterr().out)
+    assert len([n for n in notes if "temporal='auto'" in n]) == 1
     assert GLRM.load(tmp_path / "m.nc").selection_ is None
+
+
+def test_fit_notes_a_record_too_short_to_calibrate(files, tmp_path, capsys):
+    """On 6 snapshots the recommended calibration's refits cannot run: one note, the model is
+    saved uncalibrated (its calibration parameter None)."""
+    root, _ = files
+    capsys.readouterr()
+    assert _run("fit", root / "field.nc", "--rank", 2, "--hold-out", 10, "-o",
+                tmp_path / "s.nc") == 0
+    notes = [n for n in _notes(capsys.readouterr().out) if "calibration" in n]
+    assert len(notes) == 1 and "uncalibrated" in notes[0]
+    short = GLRM.load(tmp_path / "s.nc")
+    assert short.calibration_ is None and short.calibration is None
 
 
 # -------------------------------------------------------------------- one-line refusal

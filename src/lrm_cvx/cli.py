@@ -214,7 +214,6 @@ def _model_params(args: argparse.Namespace) -> dict:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .glrm import GLRM
 
     params = _model_params(args)
     (out,) = guard_paths([args.output], _input_files(args.data), args)
@@ -228,8 +227,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             note(f"the recommended temporal='auto' cannot run on these data ({why}); fitting "
                  "without dynamics (--temporal ar1|seasonal asks for them)")
             params["temporal"] = None
-    model = GLRM(rank=args.rank, loss=args.loss, max_iter=args.max_iter, tol=args.tol,
-                 random_state=args.seed, progress=not args.quiet, **params).fit(data)
+    model = _fit_model(data, params, rank=args.rank, loss=args.loss, max_iter=args.max_iter,
+                       tol=args.tol, random_state=args.seed, progress=not args.quiet)
     model.save(out)
     extras = [name for name in ("offset", "scale") if getattr(model, name)]
     if model.spatial:
@@ -242,6 +241,27 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
         print(format_selection(model.selection_))
     return 0
+
+
+def _fit_model(data, params: dict, **kw):
+    """``GLRM(**kw, **params).fit(data)``; the recommended ``calibration`` (the only way the CLI
+    asks for one) runs after the fit and, on a record too short for its refits, is left out with
+    one note instead of failing the fit."""
+    from .glrm import GLRM
+    from .glrm.calibration import calibrate
+
+    params = dict(params)
+    cal = params.pop("calibration", None)
+    model = GLRM(**kw, **params).fit(data)
+    if cal is not None:
+        try:
+            calibrate(model, data, **{"seed": model.random_state, **cal})
+        except LrmError as err:  # e.g. too few snapshots for the calibration's refits
+            note(f"the recommended conformal calibration cannot run on these data "
+                 f"({str(err).split(';')[0]}); the intervals are uncalibrated")
+        else:
+            model.calibration = cal
+    return model
 
 
 def _hold_out(data, args: argparse.Namespace):
@@ -445,7 +465,6 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     import matplotlib.pyplot as plt
 
     from .evaluation import METHODS, evaluate, summary
-    from .glrm import GLRM
     from .plots import plot_metrics, plot_predictions
 
     out_dir = Path(out_dir)
@@ -459,8 +478,8 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     methods = tuple(methods or tuple(METHODS))
     model_params = {k: v for k, v in (model_params or {}).items() if v not in (None, False)}
     fold_in = dict(fold_in or {})
-    model = GLRM(rank=rank, random_state=seed, progress=progress, **model_params).fit(
-        data.isel(time=slice(0, n_time - n_test)))
+    model = _fit_model(data.isel(time=slice(0, n_time - n_test)), model_params, rank=rank,
+                       random_state=seed, progress=progress)
     results = evaluate(data, rank=rank, n_test=n_test, budgets=budgets, n_starts=n_starts,
                        methods=methods, random_trials=random_trials,
                        min_observations=min_observations, criterion=criterion, cost=cost,

@@ -3,7 +3,8 @@
 Fit ``GLRM(offset=True, spatial="exponential")``, plan with the gp-variance criterion from the
 start cell alone (``method`` is its name in ``evaluate``), predict with the empirical prior and
 the kriged GP residual (``fold_spatial``); a model for monitoring chooses its temporal model on
-the training snapshots (``temporal="auto"``, glrm/selection.py). It is the default of the
+the training snapshots (``temporal="auto"``, glrm/selection.py) and calibrates its intervals
+conformally on them (``calibration``, glrm/calibration.py). It is the default of the
 CLI and of the library wherever a call has a fitted model to take it from (``--paper`` /
 ``paper=True`` give the paper's setting); ``lrm_cvx.demo`` runs it beside the paper's. Plain
 data, so it sits at the base of the layers.
@@ -19,4 +20,9 @@ RECOMMENDED: dict[str, Any] = {
     "offset": True, "spatial": "exponential", "criterion": "gp-variance",
     "method": "greedy:gp-variance", "initial": "start", "prior": "empirical",
     "fold_spatial": True, "temporal": "auto",
+    # conformal intervals from forward folds of the training snapshots; the maps and plans are
+    # those of the uncalibrated model (no residual re-weighting: it helped the storms' maps and
+    # hurt sea ice's, docs/benchmarks.md)
+    "calibration": {"method": "conformal", "residual": False, "adaptive": False,
+                    "max_snapshots": 2, "max_cells": 300},
 }
