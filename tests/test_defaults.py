@@ -279,3 +279,17 @@ def test_monitor_planner_kwargs_default(spatial_model, plain_model):
     assert got.keys() == want.keys() and "spatial_cov" not in got
     with pytest.raises(ModelError, match="gp-variance"):
         p.planner_kwargs(criterion="gp-variance")  # explicit: still refused without residual
+
+
+def test_evaluate_default_calibrates_and_warns_on_a_record_too_short(data):
+    """evaluate's own recommended fit calibrates its intervals as ``GLRM(calibration=...)``
+    does; on a record too short for the calibration's refits (6 training snapshots) it warns
+    once and scores the uncalibrated intervals, equal to an uncalibrated recommended run."""
+    short = data.isel(time=slice(0, 6 + N_TEST))
+    params = {k: v for k, v in recommended_params().items() if k != "calibration"}
+    with pytest.warns(UserWarning, match="calibration cannot run") as caught:
+        got = evaluate(short, **EV)
+    assert sum("calibration cannot run" in str(w.message) for w in caught) == 1
+    ref = quiet(evaluate, short, model_params=params, **EV)
+    np.testing.assert_array_equal(got["mse"].values, ref["mse"].values)
+    np.testing.assert_array_equal(got["coverage95"].values, ref["coverage95"].values)

@@ -248,19 +248,15 @@ def _fit_model(data, params: dict, **kw):
     asks for one) runs after the fit and, on a record too short for its refits, is left out with
     one note instead of failing the fit."""
     from .glrm import GLRM
-    from .glrm.calibration import calibrate
+    from .glrm.calibration import try_calibrate
 
     params = dict(params)
     cal = params.pop("calibration", None)
     model = GLRM(**kw, **params).fit(data)
-    if cal is not None:
-        try:
-            calibrate(model, data, **{"seed": model.random_state, **cal})
-        except LrmError as err:  # e.g. too few snapshots for the calibration's refits
-            note(f"the recommended conformal calibration cannot run on these data "
-                 f"({str(err).split(';')[0]}); the intervals are uncalibrated")
-        else:
-            model.calibration = cal
+    why = None if cal is None else try_calibrate(model, data, cal)
+    if why is not None:
+        note(f"the recommended conformal calibration cannot run on these data ({why}); the "
+             "intervals are uncalibrated")
     return model
 
 

@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 from ._blas import single_threaded_blas
 from ._validation import as_factor_matrix, as_generator, atomic_output, check_flag, check_positive
 from .errors import DataError, ModelError, PlanningError
+from .glrm.calibration import try_calibrate
 from .glrm.posterior import LatentPosterior
 from .planning.planners import (
     GREEDY_VARIANTS,
@@ -272,6 +273,7 @@ class EvaluationProtocol:
         self._defaults = {"methods": self.methods is None, "fold_in": self.fold_in is None}
         if self.methods is None:
             self.methods = METHODS if self.paper else _recommended_methods()
+        self._defaults["model_params"] = self.model_params is None and self.model is None
         if self.model_params is None and self.model is None and not self.paper:
             self.model_params = _recommended_params()
         if self.fold_in is None and not self.paper:
@@ -335,8 +337,15 @@ class EvaluationProtocol:
             params = dict(self.model_params)
             if self.temporal == "auto":  # the choice is validated on the training snapshots
                 params.setdefault("temporal", "auto")
+            # the recommended calibration, a default: a record too short for it warns
+            cal = params.pop("calibration", None) if self._defaults["model_params"] else None
             model = GLRM(rank=self.rank, random_state=self.seed, progress=self.progress,
                          **params).fit(train)
+            why = None if cal is None else try_calibrate(model, train, cal)
+            if why is not None:
+                warnings.warn(f"the recommended conformal calibration cannot run on these "
+                              f"data ({why}); the intervals are uncalibrated", UserWarning,
+                              stacklevel=4)
         region = model.region_
         if region is None:
             raise ModelError("model must have been fitted on a DataArray (it has no region)")

@@ -57,7 +57,8 @@ __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_co
            "blend_dynamics", "select_dynamics", "unblended_dynamics",
            "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95",
            "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "RESIDUAL_SCALES", "clone_model",
-           "training_values", "memoryless_cov", "conformal_quantile", "conformal_scores"]
+           "training_values", "memoryless_cov", "conformal_quantile", "conformal_scores",
+           "try_calibrate"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
 Z95 = 1.959963984540054   # two-sided 95%
@@ -415,6 +416,23 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
             pair.append((Vb[i, held] - mean) / pstd)
         out.append(tuple(pair))
     return out
+
+
+def try_calibrate(model: Any, data: Any, calibration: Any) -> str | None:
+    """Run ``GLRM(calibration=...)``'s calibration on a fitted ``model`` (``calibration``: a
+    method name or a dict of :func:`calibrate` keywords) and set ``model.calibration``; None on
+    success, else the reason it cannot run on ``data`` (e.g. a record too short for its refits;
+    the model is left uncalibrated). For a default the user did not ask for, which falls back
+    with a note instead of failing."""
+    from ..errors import LrmError
+
+    kw = {"method": calibration} if isinstance(calibration, str) else dict(calibration)
+    try:
+        calibrate(model, data, **{"seed": model.random_state, **kw})
+    except LrmError as err:
+        return str(err).split(";")[0]
+    model.calibration = calibration
+    return None
 
 
 def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
