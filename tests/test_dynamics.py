@@ -475,3 +475,29 @@ def test_rts_smoother_equals_the_dense_joint_posterior():
     for t in range(T):
         s = slice(t * k, (t + 1) * k)
         np.testing.assert_allclose(Ps[t], cov[s, s], rtol=1e-8, atol=1e-10)
+
+
+def test_foldin_covs_match_the_per_snapshot_inverse():
+    """``foldin_covs`` (one blocked product for every snapshot) against the per-snapshot
+    ``inv(Y_O W Y_O^T)``; None for a snapshot with fewer than k cells or a singular Gram."""
+    from lrm_cvx.glrm.dynamics import foldin_covs
+
+    rng = np.random.default_rng(3)
+    k, L = 3, 70_000  # more than one block of cells
+    Y = rng.normal(size=(k, L))
+    w = rng.uniform(0.5, 2.0, size=L)
+    masks = [rng.random(L) < p for p in (0.9, 0.3, 0.001)]
+    masks.append(np.zeros(L, bool))
+    masks[-1][:2] = True  # 2 cells for k = 3: undetermined
+    Yc = Y.copy()
+    Yc[:, 100:] = 0.0
+    Yc[2, :] = 0.0  # a zero row: singular Gram whatever the cells
+    got = foldin_covs(Y, w, masks)
+    for m, c in zip(masks, got, strict=True):
+        obs = np.flatnonzero(m)
+        if obs.size < k:
+            assert c is None
+            continue
+        ref = np.linalg.inv((Y[:, obs] * w[obs]) @ Y[:, obs].T)
+        np.testing.assert_allclose(c, ref, rtol=1e-9)
+    assert foldin_covs(Yc, 1.0, [np.ones(L, bool)]) == [None]

@@ -342,3 +342,28 @@ def test_cftime_calendar_end_to_end(tmp_path):
     assert back.time == times[37] and back.forecast()["time"].values == times[38]
     with pytest.raises(DataError, match="forward only"):
         back.forecast("2003-01-01")
+
+
+def test_model_fingerprint_is_remembered_until_a_refit(field):
+    """The remembered fingerprint equals a fresh hash, and a refit (new factor arrays) is
+    hashed again: a state started from the old factors cannot pass for the new ones."""
+    import hashlib
+
+    from lrm_cvx.monitor import model_fingerprint
+
+    def fresh(m):
+        h = hashlib.sha256()
+        for arr in (m.X, m.Y, m.offset_, m.scale_):
+            if arr is not None:
+                a = np.ascontiguousarray(np.asarray(arr, dtype=np.float64))
+                h.update(str(a.shape).encode())
+                h.update(a.tobytes())
+        return h.hexdigest()[:16]
+
+    m = _fit(field.isel(time=slice(0, 20)), offset=True)
+    first = model_fingerprint(m)
+    assert first == fresh(m) == model_fingerprint(m)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m.fit(field.isel(time=slice(10, 30)))
+    assert model_fingerprint(m) == fresh(m) != first

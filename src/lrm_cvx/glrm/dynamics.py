@@ -28,7 +28,7 @@ from ..registry import Registry
 
 __all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "temporal_value",
            "time_numbers", "rts_smooth", "check_times", "seasons", "error_rows",
-           "blend_moments"]
+           "blend_moments", "foldin_covs"]
 
 TEMPORAL = Registry("temporal", ModelError)
 """The temporal models (``GLRM(temporal=...)``, ``evaluate``, campaigns, the CLI's
@@ -46,6 +46,36 @@ def error_rows(n_times: int) -> np.ndarray:
     """The (at most :data:`ERROR_ROWS`) evenly spaced snapshots whose fold-in covariances
     estimate the columns' error covariance ``S_e`` (same rows in memory and on dask)."""
     return np.unique(np.linspace(0, n_times - 1, min(n_times, ERROR_ROWS)).round().astype(int))
+
+
+def foldin_covs(Y: np.ndarray, weights: Any, masks: Any) -> list[np.ndarray | None]:
+    """``(Y_O W Y_O^T)^-1`` ``(k, k)`` per snapshot of the cells ``O`` of each row of ``masks``
+    (bool ``(L,)`` rows, e.g. ``mask[t]`` for the :func:`error_rows`), ``W = diag(weights)``
+    (inverse noise variances, ``(L,)`` or a scalar); None where the cells do not determine the
+    latent vector (fewer than ``k`` or a condition number >= 1e12). One matrix product over
+    blocks of cells for all snapshots (no per-snapshot fancy indexing of ``Y``)."""
+    masks = list(masks)
+    k, L = Y.shape
+    iu = np.triu_indices(k)
+    w = np.broadcast_to(np.asarray(weights, dtype=np.float64), (L,))
+    G = np.zeros((len(masks), iu[0].size))
+    counts = np.zeros(len(masks), dtype=np.int64)
+    for lo in range(0, L, 1 << 16):
+        sl = slice(lo, min(L, lo + (1 << 16)))
+        M = np.stack([np.asarray(m[sl], dtype=bool) for m in masks]).astype(np.float64)
+        G += M @ (Y[iu[0], sl] * Y[iu[1], sl] * w[sl]).T
+        counts += (M > 0).sum(axis=1)
+    out: list[np.ndarray | None] = []
+    for g, n in zip(G, counts, strict=True):
+        Gm = np.zeros((k, k))
+        Gm[iu] = g
+        Gm = Gm + np.triu(Gm, 1).T
+        if n < k or np.linalg.cond(Gm) >= 1e12:
+            out.append(None)
+            continue
+        C = np.linalg.inv(Gm)
+        out.append(0.5 * (C + C.T))
+    return out
 
 
 # ----------------------------------------------------------------------------- times

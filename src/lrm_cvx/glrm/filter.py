@@ -14,6 +14,7 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import re
+import weakref
 from dataclasses import replace
 from typing import Any, Self
 
@@ -31,17 +32,35 @@ __all__ = ["LatentFilter", "model_fingerprint", "memoryless_dynamics", "time_lab
 
 
 # ----------------------------------------------------------------------------- helpers
+_FINGERPRINTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def model_fingerprint(model: Any) -> str:
     """SHA-256 (hex, 16 chars) of the model's factors ``X_``, ``Y_`` (float64) and its
-    offset/scale: a state is only valid with the model it was started from."""
+    offset/scale: a state is only valid with the model it was started from. Remembered per
+    model while its arrays are the same objects (a refit makes new ones): hashing ``X``, ``Y``
+    is O(L) and a validation builds many states from one model."""
+    arrays = (model.X, model.Y, getattr(model, "offset_", None), getattr(model, "scale_", None))
+    try:
+        refs, fp = _FINGERPRINTS[model]
+        if all((r is None and a is None) or (r is not None and r() is a)
+               for r, a in zip(refs, arrays, strict=True)):
+            return fp
+    except (KeyError, TypeError):
+        pass
     h = hashlib.sha256()
-    for arr in (model.X, model.Y, getattr(model, "offset_", None),
-                getattr(model, "scale_", None)):
+    for arr in arrays:
         if arr is not None:
             a = np.ascontiguousarray(np.asarray(arr, dtype=np.float64))
             h.update(str(a.shape).encode())
             h.update(a.tobytes())
-    return h.hexdigest()[:16]
+    fp = h.hexdigest()[:16]
+    try:
+        _FINGERPRINTS[model] = (tuple(None if a is None else weakref.ref(a) for a in arrays),
+                                fp)
+    except TypeError:  # an object that cannot be weakly referenced: not remembered
+        pass
+    return fp
 
 
 def _model_times(model: Any) -> np.ndarray:

@@ -20,7 +20,7 @@ from .._validation import as_generator, atomic_output, check_positive
 from ..errors import DataError, ModelError, NotFittedError
 from ..region import Region
 from . import kernels as K
-from .dynamics import TEMPORAL, Dynamics, error_rows, temporal_value
+from .dynamics import TEMPORAL, Dynamics, error_rows, foldin_covs, temporal_value
 from .dynamics import estimate as estimate_dynamics
 from .fit import DataStats, FitResult, check_data, fit_glrm
 from .losses import get_loss
@@ -483,18 +483,12 @@ class GLRM:
         return model_prior(self, prior, ridge=ridge, spatial=spatial)
 
     # ------------------------------------------------------------------ temporal dynamics
-    def _foldin_cov(self, observed: Any) -> np.ndarray | None:
-        """``sigma^2 (Y_O W Y_O^T)^-1`` ``(k, k)`` of one snapshot's training cells ``observed``
-        (bool ``(n,)``), or None when they do not determine ``x``."""
-        obs = np.flatnonzero(np.asarray(observed))
-        Ys = self._Yv[:, obs]
+    def _foldin_covs(self, masks: Any) -> list[np.ndarray | None]:
+        """``sigma^2 (Y_O W Y_O^T)^-1`` ``(k, k)`` per snapshot's training cells (rows of
+        ``masks``), None where they do not determine ``x`` (:func:`.dynamics.foldin_covs`)."""
         nv = getattr(self, "noise_var_", None)
-        w = 1.0 / (nv[obs] if nv is not None else max(self.noise_std_, 1e-300) ** 2)
-        G = (Ys * w) @ Ys.T
-        if obs.size < Ys.shape[0] or np.linalg.cond(G) >= 1e12:
-            return None
-        C = np.linalg.inv(G)
-        return 0.5 * (C + C.T)
+        w = 1.0 / (nv if nv is not None else max(self.noise_std_, 1e-300) ** 2)
+        return foldin_covs(self._Yv, w, masks)
 
     def _fit_dynamics(self, last_mask: Any = None, mask: Any = None) -> None:
         """Set ``dynamics_`` from ``X_`` and its time coordinate (None when ``temporal`` is).
@@ -512,11 +506,11 @@ class GLRM:
         times = (self.X_[self.X_.dims[1]] if isinstance(self.X_, xr.DataArray)
                  else np.arange(X.shape[1]))
         # the last snapshot's fold-in covariance from its training cells
-        init_cov = None if last_mask is None else self._foldin_cov(last_mask)
+        init_cov = None if last_mask is None else self._foldin_covs([last_mask])[0]
         error_cov = None
         if mask is not None:  # (T, n) array, or rows by time index (the dask fit's)
-            picks = error_rows(X.shape[1])
-            covs = [c for c in (self._foldin_cov(mask[t]) for t in picks) if c is not None]
+            covs = [c for c in self._foldin_covs(mask[t] for t in error_rows(X.shape[1]))
+                    if c is not None]
             error_cov = np.mean(covs, axis=0) if covs else None
         kind = "ar1" if temporal_value(self.temporal) == "auto" else self.temporal
         self.dynamics_ = estimate_dynamics(kind, X, times, initial_cov=init_cov,
