@@ -62,7 +62,7 @@ ERRORS = {
                                           "outside"),
     "start (nan, lon)": (lambda: greedy(start=(math.nan, 1.0)), RegionError, "lat"),
     "criterion unknown": (lambda: greedy(criterion="d-opt"), PlanningError, "criterion"),
-    "criterion None": (lambda: greedy(criterion=None), PlanningError, "criterion"),
+    "criterion not a name": (lambda: greedy(criterion=42), PlanningError, "criterion"),
     "cost unknown": (lambda: greedy(cost="tsp"), PlanningError, "cost"),
     "initial unknown": (lambda: greedy(initial="random"), PlanningError, "initial"),
     "ridge negative": (lambda: greedy(ridge=-1.0), PlanningError, "ridge"),
