@@ -21,7 +21,10 @@ So :func:`select_criterion` answers it on the user's own training snapshots, as
   ``latent_prior("empirical", spatial=True)``, kriging on) from the sensors' values, over
   every cell with a value of the held-out snapshots (mean over cells, then over snapshots and
   windows; data units^2): the predictor ``bench_placement.py`` scores with.
-* **Rule**: the lowest score wins; ties go to ``"risk"``. The criterion is then run on the
+* **Rule, with a guard.** ``"risk"`` (the recommended criterion) stays unless another
+  candidate is surely better: the one-sided upper confidence bound (:data:`AUTO_CONFIDENCE`
+  standard errors) of its per-snapshot MSE change against risk, paired over the held-out
+  snapshots, is below 0; among those, the lowest score wins. The criterion is then run on the
   full model and training.
 
 Above :data:`AUTO_MAX_CELLS` candidate cells (the region where the recommended exchange is
@@ -30,7 +33,8 @@ is ``"risk"`` (``selection.attrs["skipped"]`` says why). The cost is the time of
 three placements per window (two windows: under 10 s for 60 sensors on ~6k cells).
 
 The result is an ``xarray.Dataset`` (``plan.refinement["selection"]``): ``mse`` per candidate
-and window, ``score`` per candidate, the choice and the set-up in its attributes.
+and window, ``mse_snapshot`` per held-out snapshot, ``score`` (mean) and ``ucb`` (the guard's
+bound) per candidate, the choice and the set-up in its attributes.
 """
 
 from __future__ import annotations
@@ -44,9 +48,9 @@ import xarray as xr
 
 from ..errors import PlanningError
 
-__all__ = ["AUTO_CANDIDATES", "AUTO_MAX_BLOCK", "AUTO_MAX_CELLS", "AUTO_MIN_BLOCK",
-           "AUTO_MIN_FIT", "AUTO_WINDOWS", "format_placement_selection", "select_criterion",
-           "validation_windows"]
+__all__ = ["AUTO_CANDIDATES", "AUTO_CONFIDENCE", "AUTO_MAX_BLOCK", "AUTO_MAX_CELLS",
+           "AUTO_MIN_BLOCK", "AUTO_MIN_FIT", "AUTO_WINDOWS", "format_placement_selection",
+           "select_criterion", "validation_windows"]
 
 AUTO_CANDIDATES: dict[str, tuple[str, Any]] = {
     "risk+exchange": ("risk", "auto"),
@@ -63,6 +67,10 @@ AUTO_MIN_FIT: int = 3
 """Fewest snapshots the model is refitted on before a block."""
 AUTO_WINDOWS: int = 2
 """Forward windows when the training has room for them (else one)."""
+AUTO_CONFIDENCE: float = 1.645
+"""Standard errors of the guard: a candidate replaces ``"risk"`` only when the one-sided upper
+bound of its MSE change against risk (paired over the held-out snapshots) is below 0 (the
+constant of ``select_temporal``'s guard)."""
 AUTO_MAX_CELLS: int = 20_000
 """Above this many candidate cells the default is ``"risk"`` without validation (the refits and
 kriged scores grow with the cells; the recommended exchange stops here too)."""
@@ -95,9 +103,9 @@ def _refit(model: Any, V: np.ndarray, region: Any) -> Any:
         return type(model)(**params).fit(xr.DataArray(V, dims=("time", "cell")), region=region)
 
 
-def _mse(prior: Any, values: np.ndarray, cells: np.ndarray) -> float:
-    """Mean over snapshots of the MSE over the cells with a value of the recommended fold-in
-    from the sensors' values (bench_placement.py's score)."""
+def _mse(prior: Any, values: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """``(t,)`` per snapshot the MSE over the cells with a value of the recommended fold-in
+    from the sensors' values (their mean is bench_placement.py's score)."""
     from ..glrm.posterior import fold_in_snapshots
 
     V = np.full(values.shape, np.nan)
@@ -105,7 +113,7 @@ def _mse(prior: Any, values: np.ndarray, cells: np.ndarray) -> float:
     pred, *_ = fold_in_snapshots(prior, V)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        return float(np.nanmean(np.nanmean((pred - values) ** 2, axis=1)))
+        return np.nanmean((pred - values) ** 2, axis=1)
 
 
 def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
@@ -127,6 +135,9 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
         skipped = "the model has no spatial residual: risk (the only candidate)"
     windows = [] if skipped else validation_windows(V.shape[0])
     mse = np.full((len(labels), len(windows)), np.nan)
+    held_t = np.concatenate([np.arange(a, b) for a, b in windows]) if windows \
+        else np.zeros(0, np.int64)
+    per = np.full((len(labels), held_t.size), np.nan)
     for w, (a, b) in enumerate(windows):
         fit = _refit(model, V[:a], region)
         prior = fit.latent_prior("empirical", spatial=spatial)
@@ -134,24 +145,49 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
         for c, lab in enumerate(labels):
             crit, exchange = AUTO_CANDIDATES[lab]
             cells = place(prior, V[:a], crit, exchange)
-            mse[c, w] = _mse(prior, held, np.asarray(cells, dtype=np.int64))
+            e = _mse(prior, held, np.asarray(cells, dtype=np.int64))
+            per[c, (held_t >= a) & (held_t < b)] = e
+            mse[c, w] = float(np.nanmean(e))
     score = mse.mean(axis=1) if windows else np.full(len(labels), np.nan)
-    best = 0
-    for c in range(1, len(labels)):  # strictly lower only: ties to the first (risk)
-        if score[c] < score[best]:
+    ucb = _upper_bounds(per)
+    best = 0  # risk, unless a candidate is surely better (its upper bound below 0)
+    for c in range(1, len(labels)):
+        if ucb[c] < 0 and score[c] < score[best]:
             best = c
     ds = xr.Dataset(
-        {"mse": (("candidate", "window"), mse), "score": (("candidate",), score)},
-        coords={"candidate": labels, "window": np.arange(len(windows)),
+        {"mse": (("candidate", "window"), mse), "score": (("candidate",), score),
+         "ucb": (("candidate",), ucb),
+         "mse_snapshot": (("candidate", "held"), per)},
+        coords={"candidate": labels, "window": np.arange(len(windows)), "held": held_t,
                 "window_start": (("window",), np.array([a for a, _ in windows], np.int64)),
                 "window_stop": (("window",), np.array([b for _, b in windows], np.int64))})
     ds.attrs.update(choice=labels[best], criterion=AUTO_CANDIDATES[labels[best]][0],
                     exchange=str(AUTO_CANDIDATES[labels[best]][1]), n_sensors=int(n),
                     n_training=int(V.shape[0]), skipped=skipped,
                     seconds=time.perf_counter() - t0,
-                    rule="rolling origin on the training snapshots; lowest mean MSE of the "
-                         "recommended fold-in on the held-out blocks, ties to risk")
+                    confidence=AUTO_CONFIDENCE,
+                    rule="rolling origin on the training snapshots; risk unless a candidate's "
+                         "upper confidence bound of its MSE change against risk is below 0; "
+                         "then the lowest mean MSE of the recommended fold-in")
     return ds
+
+
+def _upper_bounds(per: np.ndarray) -> np.ndarray:
+    """``(candidates,)`` one-sided upper confidence bound (:data:`AUTO_CONFIDENCE` standard
+    errors of the paired per-snapshot differences) of each candidate's relative MSE change
+    against the first (risk); 0 for the first, +inf with fewer than two snapshots."""
+    out = np.zeros(per.shape[0])
+    if per.shape[1] < 2:
+        out[1:] = np.inf
+        return out
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        D = per[1:] - per[0]
+        n = np.sum(np.isfinite(D), axis=1)
+        se = np.nanstd(D, axis=1, ddof=1) / np.sqrt(np.maximum(n, 1))
+        ub = (np.nanmean(D, axis=1) + AUTO_CONFIDENCE * se) / np.nanmean(per[0])
+    out[1:] = np.where((n >= 2) & np.isfinite(ub), ub, np.inf)
+    return out
 
 
 def format_placement_selection(ds: xr.Dataset) -> str:
@@ -164,5 +200,7 @@ def format_placement_selection(ds: xr.Dataset) -> str:
              "validation MSE of the fold-in)"]
     for lab in ds["candidate"].values:
         mark = "  <- chosen" if lab == ds.attrs["choice"] else ""
-        lines.append(f"  {lab:22s} {float(ds['score'].sel(candidate=lab)):.6g}{mark}")
+        ub = float(ds["ucb"].sel(candidate=lab)) if "ucb" in ds else 0.0
+        vs = "" if lab == ds["candidate"].values[0] else f"  (upper bound vs risk {ub:+.1%})"
+        lines.append(f"  {lab:22s} {float(ds['score'].sel(candidate=lab)):.6g}{vs}{mark}")
     return "\n".join(lines)
