@@ -92,17 +92,22 @@ def fitted():
     return model, da
 
 
-def test_default_with_a_model_and_training_is_risk_with_exchange(fitted):
+def test_default_with_a_model_and_training_is_the_validated_choice(fitted):
     model, train = fitted
-    plan = place_sensors(model, 5, training=train)
-    assert plan.criterion == "risk" and plan.method == "greedy+exchange"
-    ref = place_sensors(model.Y_, model.region_, 5, criterion="risk", training=train,
-                        prior=model.latent_prior("empirical", spatial=True), exchange=True,
-                        method="dense")
-    assert plan.cells.tolist() == ref.cells.tolist()
+    plan = place_sensors(model, 5, training=train)  # criterion="auto" (test_static_auto.py)
+    assert plan.refinement["selection"].attrs["choice"] in ("risk+exchange",
+                                                            "gp-variance+exchange",
+                                                            "gp-variance")
     # the (model, region, n) form is the same call
     assert place_sensors(model, model.region_, 5, training=train).cells.tolist() \
         == plan.cells.tolist()
+    # an explicit exchange keeps the risk: risk + exchange, the dense reference's sensors
+    forced = place_sensors(model, 5, training=train, exchange=True)
+    assert forced.criterion == "risk" and forced.method == "greedy+exchange"
+    ref = place_sensors(model.Y_, model.region_, 5, criterion="risk", training=train,
+                        prior=model.latent_prior("empirical", spatial=True), exchange=True,
+                        method="dense")
+    assert forced.cells.tolist() == ref.cells.tolist()
     # without training: gp-variance (the model has a spatial residual)
     assert place_sensors(model, 5).criterion == "gp-variance"
 
@@ -182,8 +187,9 @@ def test_cli_place_default_is_the_recommended_and_paper_the_fisher(tmp_path, cap
     assert main(["-q", "place", str(model_path), str(data), "--sensors", "4", "-o",
                  str(out)]) == 0
     text = capsys.readouterr().out
-    assert "risk greedy" in text and "exchange:" in text
     ref = place_sensors(model, 4, training=xr.open_dataarray(data))
+    assert f"criterion auto: {ref.refinement['selection'].attrs['choice']}" in text
+    assert f"{ref.criterion} greedy" in text and "exchange:" in text
     assert ref.method == "greedy+exchange"
     assert pd.read_csv(out)["cell"].tolist() == ref.cells.tolist()
     out2 = tmp_path / "paper.csv"
@@ -198,12 +204,14 @@ def test_cli_place_default_is_the_recommended_and_paper_the_fisher(tmp_path, cap
 def test_default_skips_the_exchange_with_as_many_sensors_as_training_snapshots(fitted):
     model, train = fitted
     T = train.sizes["time"]
-    plan = place_sensors(model, T, training=train)
+    Y, region = model.Y_, model.region_  # the (Y, region, n) form's default: risk
+    plan = place_sensors(Y, region, T, prior=model, training=train)
     assert plan.method == "greedy" and "training snapshots" in plan.refinement[
         "exchange_skipped"]
     assert plan.cells.tolist() == place_sensors(model, T, training=train,
                                                 exchange=False).cells.tolist()
-    assert place_sensors(model, T - 1, training=train).method == "greedy+exchange"
+    assert place_sensors(Y, region, T - 1, prior=model, training=train).method \
+        == "greedy+exchange"
     assert place_sensors(model, T, training=train, exchange=True).method == "greedy+exchange"
 
 

@@ -373,7 +373,8 @@ def cmd_place(args: argparse.Namespace) -> int:
     if args.paper:  # the paper's Fisher greedy (no prior)
         plan = place_sensors(model, args.sensors, paper=True, progress=not args.quiet, **kw)
     elif args.criterion is None and criterion == "risk":
-        # the recommended default: risk + the exchange where the region allows
+        # the recommended default: the criterion validated on DATA (risk + the exchange with
+        # --exchange)
         plan = place_sensors(model, args.sensors, exchange=True if args.exchange else None,
                              sweeps=args.sweeps, progress=not args.quiet, **kw)
     else:
@@ -383,6 +384,11 @@ def cmd_place(args: argparse.Namespace) -> int:
                              prior=prior, exchange=args.exchange, sweeps=args.sweeps,
                              progress=not args.quiet, **kw)
     ref = plan.refinement
+    if "selection" in ref:  # the default: the criterion chosen on the training snapshots
+        from .planning.static_auto import format_placement_selection
+
+        print(format_placement_selection(ref["selection"]))
+        criterion = plan.criterion or criterion
     text = f"{len(plan.cells)} sensors placed by the {criterion} greedy"
     if "objective" in ref:
         what = ("training squared error" if criterion == "risk"

@@ -34,10 +34,15 @@ scalable form of :mod:`lrm_cvx.planning.static_risk` (no ``L x L`` matrix, ``O((
 step for ``p`` candidate cells, FFT sums of the stationary residual; the same picks), unless the
 residual's metric is km.
 
-**Default.** ``place_sensors(model, n, training=...)`` with no other option is the recommended
-placement (``"risk"`` + the exchange, skipped above :data:`EXCHANGE_AUTO_MAX` candidate cells or
-when ``n`` is at least the number of training snapshots); ``paper=True`` the paper's Fisher
-greedy; ``place_sensors(Y, region, n)`` keeps the Fisher default (no prior to take a risk from).
+**Default.** ``place_sensors(model, n, training=...)`` with no other option is
+``criterion="auto"`` (:mod:`~lrm_cvx.planning.static_auto`): ``"risk"`` + the exchange,
+``"gp-variance"`` + the exchange or the ``"gp-variance"`` greedy, whichever validates best on
+the training snapshots (rolling origin; ``"risk"`` without validation above
+``AUTO_MAX_CELLS`` candidate cells). ``"risk"``'s recommended exchange is skipped above
+:data:`EXCHANGE_AUTO_MAX` candidate cells or when ``n`` is at least the number of training
+snapshots; an explicit ``exchange=`` without a criterion keeps ``"risk"``. ``paper=True`` is the
+paper's Fisher greedy; ``place_sensors(Y, region, n)`` keeps the Fisher default (no prior to
+take a risk from), and with ``prior=`` and ``training=`` it is ``"risk"`` + the exchange.
 """
 
 from __future__ import annotations
@@ -58,12 +63,12 @@ from .request import PlanPath
 from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
 
 __all__ = ["EXCHANGE_AUTO_MAX", "RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors",
-           "place_static", "risk_objective", "training_residuals"]
+           "place_static", "risk_objective", "stack_training", "training_residuals"]
 
 RISK_MAX_CELLS: int = 20_000
 """Largest region (cells) of the dense risk / exchange state (``8 L^2`` bytes: 3.2 GB)."""
 
-STATIC_CRITERIA: tuple[str, ...] = ("risk",)
+STATIC_CRITERIA: tuple[str, ...] = ("risk", "auto")
 """Criteria of :func:`~lrm_cvx.planning.place_sensors` beyond the planning criteria registry
 (static placement only: they need training snapshots)."""
 
@@ -150,6 +155,14 @@ def training_residuals(training: Any, region: Region, obs: Any, mean: np.ndarray
     """``(T, L)`` training snapshots in fit units minus the fold-in's prior mean (0 where a
     value is missing). ``training``: a ``(time, lat, lon)`` DataArray on the region's grid, a
     ``(time, cell)`` DataArray, or a ``(T, L)`` / ``(T, ny, nx)`` array."""
+    V = stack_training(training, region)
+    Z = obs.to_fit_units(np.arange(region.n_cells), V) - mean[None, :]
+    return np.where(np.isfinite(Z), Z, 0.0)
+
+
+def stack_training(training: Any, region: Region) -> np.ndarray:
+    """``(T, L)`` float64 training snapshots in data units on the region's cells (NaN missing),
+    from the forms :func:`training_residuals` takes; PlanningError naming ``training``."""
     if training is None:
         raise PlanningError("criterion='risk' needs training=: the training snapshots, a "
                             "(time, lat, lon) DataArray on the region's grid")
@@ -177,8 +190,7 @@ def training_residuals(training: Any, region: Region, obs: Any, mean: np.ndarray
         raise PlanningError("training values must be finite (NaN marks a missing value)")
     if not np.isfinite(V).any():
         raise PlanningError("training has no finite value")
-    Z = obs.to_fit_units(np.arange(region.n_cells), V) - mean[None, :]
-    return np.where(np.isfinite(Z), Z, 0.0)
+    return V
 
 
 # --------------------------------------------------------------------------- the dense state
@@ -465,7 +477,6 @@ def place_static(
         if other.get("targets") is not None:
             raise PlanningError("exchange=True with gp-variance sums the variance over every "
                                 "cell: targets= does not apply")
-        base = place_sensors(Yk, region, n, criterion=crit, prior=prior, exchange=False, **other)
         terms = resolve_prior(prior, {k: other.get(k) for k in (
             "prior_precision", "noise_var", "target_weights", "prior_cov", "spatial_cov")})
         from ..information import check_gp_inputs, gp_noise
@@ -475,11 +486,22 @@ def place_static(
         gp = _FoldIn(Yk, S0, region, terms["spatial_cov"],
                      np.full(L, gp_noise(terms["spatial_cov"])),
                      np.ones(L) if tw is None else np.asarray(tw, np.float64), None)
-        state = _state(gp, None, [int(c) for c in base.cells], allowed, method,
-                       int(max_candidates), "exchange=True", n)
-        hist = {k: list(v) for k, v in base.history.items()}
-        hist["objective"] = []  # the gp greedy's own value per pick is not recorded
-        posterior = bool(base.posterior)
+        if method == "dense" or getattr(terms["spatial_cov"], "metric", "grid") != "grid":
+            # the registry's greedy, then the dense state for the exchange
+            base = place_sensors(Yk, region, n, criterion=crit, prior=prior, exchange=False,
+                                 **other)
+            state = _state(gp, None, [int(c) for c in base.cells], allowed, method,
+                           int(max_candidates), "exchange=True", n)
+            hist = {k: list(v) for k, v in base.history.items()}
+            hist["objective"] = []  # the gp greedy's own value per pick is not recorded
+            posterior = bool(base.posterior)
+        else:  # the same greedy (same gains) on the scalable state: no registry oracle
+            state = _state(gp, None, [], allowed, method, int(max_candidates),
+                           "criterion='gp-variance'", n)
+            hist = {k: [] for k in ("cell", "gain", "cost_increase", "ratio", "cost",
+                                    "n_evaluated", "objective")}
+            sr.greedy(state, n, hist)
+            posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
     info: dict[str, Any] = {}
     if exchange and state.cells:
         info = (_exchange(state, allowed, sweeps) if isinstance(state, _State)
@@ -560,12 +582,25 @@ def _recommended(from_model: bool, prior: Any, training: Any, paper: bool, crite
             raise PlanningError("paper=True is the paper's Fisher greedy: training= does not "
                                 "apply")
         return "fisher", False
+    if isinstance(criterion, str) and criterion == "auto":
+        if exchange is not None:
+            raise PlanningError("criterion='auto' chooses the exchange too: leave exchange "
+                                "unset, or pass criterion='risk' / 'gp-variance'")
+        if training is None:
+            raise PlanningError("criterion='auto' validates on training=: pass the training "
+                                "snapshots (a (time, lat, lon) DataArray on the model's grid)")
+        if prior is None:
+            raise PlanningError("criterion='auto' refits the model: pass a fitted GLRM "
+                                "(place_sensors(model, n, training=...))")
+        return "auto", None
     if criterion is not None:
         return criterion, bool(exchange) if exchange is not None else False
     if training is not None:  # the fold-in's own training error, then the exchange
         if prior is None:
             raise PlanningError("training= (the recommended criterion 'risk') needs the "
                                 "fold-in's belief: pass a fitted GLRM first, or prior=")
+        if from_model and exchange is None:  # the criterion validated on the training
+            return "auto", None
         return "risk", "auto" if exchange is None else bool(exchange)
     if from_model and getattr(_model_of(prior), "spatial_cov_", None) is not None:
         return "gp-variance", bool(exchange) if exchange is not None else False
@@ -601,8 +636,11 @@ def place_sensors(
     * ``place_sensors(model, n, training=snapshots)`` with a fitted GLRM (its ``Y_``,
       ``region_`` and empirical prior with the spatial residual). **The default is the
       recommended placement**: with ``training`` (the training snapshots, a ``(time, lat,
-      lon)`` DataArray on the model's grid) ``criterion="risk"`` + ``exchange=True``; without,
-      ``"gp-variance"`` for a model with a spatial residual, else ``"fisher"``.
+      lon)`` DataArray on the model's grid) ``criterion="auto"``: ``"risk"`` + exchange,
+      ``"gp-variance"`` + exchange or ``"gp-variance"``, chosen by rolling-origin validation
+      on ``training`` (planning/static_auto.py; the table is ``plan.refinement["selection"]``);
+      with ``exchange=`` given, ``"risk"``; without ``training``, ``"gp-variance"`` for a model
+      with a spatial residual, else ``"fisher"``.
     * ``place_sensors(Y, region, n)`` with a factor matrix: no prior, so the default stays the
       paper's ``"fisher"`` (the risk and gp-variance need the fold-in's prior covariance and
       residual, which only a fitted model or ``prior=`` gives); with ``prior=`` and
@@ -635,7 +673,8 @@ def place_sensors(
     paper = check_flag(paper, "paper", error=PlanningError)
     Y, region, n_sensors, prior, from_model = _resolve_call(Y, region, n_sensors, prior)
     criterion, exchange = _recommended(from_model, prior, training, paper, criterion, exchange)
-    if from_model and _is_model(prior) and criterion not in ("risk", "fisher"):
+    auto = isinstance(criterion, str) and criterion == "auto"
+    if from_model and _is_model(prior) and criterion not in ("risk", "fisher", "auto"):
         prior = prior.latent_prior("empirical",
                                    spatial=getattr(prior, "spatial_cov_", None) is not None)
     elif from_model and _is_model(prior) and criterion == "fisher":
@@ -657,7 +696,7 @@ def place_sensors(
     if not ok:
         raise PlanningError(f"n_sensors must be an integer >= 1, got {n_sensors!r}")
     risk = isinstance(criterion, str) and criterion == "risk"
-    if not risk:
+    if not risk and not auto:
         criterion = CRITERION_REGISTRY.canonical(criterion, "criterion")
     if traversable is None or (isinstance(traversable, str) and traversable == "valid"):
         allowed = np.arange(L, dtype=np.int64)
@@ -669,6 +708,10 @@ def place_sensors(
             raise PlanningError("traversable allows no valid cell for a sensor")
     if n > allowed.size:
         raise PlanningError(f"n_sensors = {n} but only {allowed.size} cells can hold a sensor")
+    if auto:
+        return _place_auto(Yk, region, n, allowed, prior, training, dict(
+            sweeps=sweeps, method=method, max_candidates=max_candidates, other=dict(
+                ridge=ridge, progress=progress, traversable=traversable, **terms)))
     if risk or exchange is not False or training is not None:
         return place_static(Yk, region, n, allowed, criterion=criterion, prior=prior,
                             training=training, exchange=exchange, sweeps=sweeps,
@@ -725,6 +768,47 @@ def place_sensors(
         path=PlanPath(kind="static", unit="sensors", budgets=[float(n)],
                       traversable="none" if allowed.size == L else "mask"),
     )
+
+
+def _place_auto(Yk: np.ndarray, region: Region, n: int, allowed: np.ndarray, prior: Any,
+                training: Any, options: dict[str, Any]) -> Plan:
+    """``criterion="auto"``: the criterion chosen on the training snapshots
+    (:mod:`~lrm_cvx.planning.static_auto`), run on the full model and training; the validation
+    table is ``plan.refinement["selection"]``."""
+    from .static_auto import AUTO_CANDIDATES, AUTO_MAX_CELLS, select_criterion
+
+    other = options["other"]
+    given = sorted(key for key, v in other.items()
+                   if v is not None and not (key == "ridge" and float(v) == 0.0)
+                   and key not in ("progress", "traversable"))
+    if given:
+        raise PlanningError(f"criterion='auto' takes its terms from the model and training=; "
+                            f"{given} do not apply")
+    V = stack_training(training, region)
+    model = _model_of(prior)
+    if model is None and allowed.size <= AUTO_MAX_CELLS:
+        raise PlanningError("criterion='auto' refits the model on the earlier training "
+                            "snapshots: pass the fitted GLRM (place_sensors(model, n, "
+                            "training=...) or prior=model), not a LatentPosterior")
+
+    def place(p: Any, Vtr: np.ndarray, crit: str, exchange: Any) -> np.ndarray:
+        return place_static(np.asarray(p.obs_model.Y, np.float64), region, n, allowed,
+                            criterion=crit, prior=p, exchange=exchange,
+                            training=Vtr if crit == "risk" else None,
+                            sweeps=options["sweeps"], method=options["method"],
+                            max_candidates=options["max_candidates"],
+                            other={**other, "progress": False}).cells
+
+    ds = select_criterion(model, region, n, V, place, int(allowed.size))
+    crit, exchange = AUTO_CANDIDATES[ds.attrs["choice"]]
+    if crit != "risk" and _is_model(prior):
+        prior = prior.latent_prior("empirical", spatial=True)
+    plan = place_static(Yk, region, n, allowed, criterion=crit, prior=prior,
+                        training=training if crit == "risk" else None, exchange=exchange,
+                        sweeps=options["sweeps"], method=options["method"],
+                        max_candidates=options["max_candidates"], other=other)
+    plan.refinement["selection"] = ds
+    return plan
 
 
 def _site_mask(region: Region, traversable: Any) -> np.ndarray:

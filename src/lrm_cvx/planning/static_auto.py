@@ -1,0 +1,206 @@
+"""A static placement criterion that validates itself: ``place_sensors(model, n,
+training=snapshots)`` / ``criterion="auto"`` (issue #24, item 4).
+
+Which criterion places sensors best for the recommended fold-in is an empirical question: the
+fold-in's training risk + exchange beats PySensors' QR on most records, but on a 6-hourly
+storm over land the total posterior variance (``"gp-variance"``) does and the risk does not.
+So :func:`select_criterion` answers it on the user's own training snapshots, as
+``GLRM(temporal="auto")`` does for the temporal model (``glrm/selection.py``):
+
+* **Rolling origin.** The last ``h`` training snapshots are held out (a fifth of them, between
+  :data:`AUTO_MIN_BLOCK` and :data:`AUTO_MAX_BLOCK`); with room for it (at least
+  :data:`AUTO_MIN_FIT` snapshots before both) a second window of ``h`` snapshots just before
+  it too. For each window the model is refitted on the snapshots *before* it (same class and
+  parameters, ``type(model)(**get_params())``, memoryless, uncalibrated, on the model's
+  region), and every candidate places ``n`` sensors from that refit and those snapshots only.
+  No candidate ever sees the snapshots it is scored on, nor anything after the training.
+* **Candidates** (:data:`AUTO_CANDIDATES`): ``"risk"`` with the recommended exchange rule,
+  ``"gp-variance"`` + exchange and the ``"gp-variance"`` greedy (the last two need the
+  model's spatial residual).
+* **Score**: the MSE of the recommended fold-in (``fold_in_snapshots`` of the refit's
+  ``latent_prior("empirical", spatial=True)``, kriging on) from the sensors' values, over
+  every cell with a value of the held-out snapshots (mean over cells, then over snapshots and
+  windows; data units^2): the predictor ``bench_placement.py`` scores with.
+* **Rule, with a guard.** ``"risk"`` (the recommended criterion) stays unless another
+  candidate is surely better: the one-sided upper confidence bound (:data:`AUTO_CONFIDENCE`
+  standard errors) of its per-snapshot MSE change against risk, paired over the held-out
+  snapshots, is below 0; among those, the lowest score wins. The criterion is then run on the
+  full model and training.
+
+Above :data:`AUTO_MAX_CELLS` candidate cells (the region where the recommended exchange is
+skipped too), or with one candidate only (no spatial residual), no validation runs: the choice
+is ``"risk"`` (``selection.attrs["skipped"]`` says why). The cost is the time of one refit and
+three placements per window (two windows: under 10 s for 60 sensors on ~6k cells).
+
+The result is an ``xarray.Dataset`` (``plan.refinement["selection"]``): ``mse`` per candidate
+and window, ``mse_snapshot`` per held-out snapshot, ``score`` (mean) and ``ucb`` (the guard's
+bound) per candidate, the choice and the set-up in its attributes.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from ..errors import PlanningError
+
+__all__ = ["AUTO_CANDIDATES", "AUTO_CONFIDENCE", "AUTO_MAX_BLOCK", "AUTO_MAX_CELLS",
+           "AUTO_MIN_BLOCK", "AUTO_MIN_FIT", "AUTO_WINDOWS", "format_placement_selection",
+           "select_criterion", "validation_windows"]
+
+AUTO_CANDIDATES: dict[str, tuple[str, Any]] = {
+    "risk+exchange": ("risk", "auto"),
+    "gp-variance+exchange": ("gp-variance", True),
+    "gp-variance": ("gp-variance", False),
+}
+"""Label -> ``(criterion, exchange)``; ``"auto"`` is the recommended exchange rule (skipped
+when ``n`` is at least the number of training snapshots). The first one wins ties."""
+AUTO_MIN_BLOCK: int = 3
+"""Fewest snapshots in a held-out block."""
+AUTO_MAX_BLOCK: int = 24
+"""Most snapshots in a held-out block (a fifth of the training otherwise)."""
+AUTO_MIN_FIT: int = 3
+"""Fewest snapshots the model is refitted on before a block."""
+AUTO_WINDOWS: int = 2
+"""Forward windows when the training has room for them (else one)."""
+AUTO_CONFIDENCE: float = 1.645
+"""Standard errors of the guard: a candidate replaces ``"risk"`` only when the one-sided upper
+bound of its MSE change against risk (paired over the held-out snapshots) is below 0 (the
+constant of ``select_temporal``'s guard)."""
+AUTO_MAX_CELLS: int = 20_000
+"""Above this many candidate cells the default is ``"risk"`` without validation (the refits and
+kriged scores grow with the cells; the recommended exchange stops here too)."""
+
+
+def validation_windows(n_snapshots: int) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]`` held-out blocks of the training snapshots (oldest first), each
+    with at least :data:`AUTO_MIN_FIT` snapshots before it; PlanningError when there is no
+    room for one."""
+    T = int(n_snapshots)
+    h = int(min(AUTO_MAX_BLOCK, max(AUTO_MIN_BLOCK, round(T / 5))))
+    if T < h + AUTO_MIN_FIT:
+        raise PlanningError(f"criterion='auto' validates on the training snapshots: training "
+                            f"has {T}, it needs at least {AUTO_MIN_BLOCK + AUTO_MIN_FIT} "
+                            f"({AUTO_MIN_FIT} to refit, {AUTO_MIN_BLOCK} held out); pass "
+                            "more training snapshots or criterion='risk'")
+    k = max(1, min(AUTO_WINDOWS, (T - AUTO_MIN_FIT) // h))
+    return [(T - (j + 1) * h, T - j * h) for j in reversed(range(k))]
+
+
+def _refit(model: Any, V: np.ndarray, region: Any) -> Any:
+    """The model's class and parameters, memoryless and uncalibrated, refitted on ``V (t, L)``
+    on ``region`` (duck typing: any estimator with ``get_params`` and ``fit(data, region=)``)."""
+    params = dict(model.get_params())
+    for key, value in (("progress", False), ("temporal", None), ("calibration", None)):
+        if key in params:
+            params[key] = value
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return type(model)(**params).fit(xr.DataArray(V, dims=("time", "cell")), region=region)
+
+
+def _mse(prior: Any, values: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """``(t,)`` per snapshot the MSE over the cells with a value of the recommended fold-in
+    from the sensors' values (their mean is bench_placement.py's score)."""
+    from ..glrm.posterior import fold_in_snapshots
+
+    V = np.full(values.shape, np.nan)
+    V[:, cells] = values[:, cells]
+    pred, *_ = fold_in_snapshots(prior, V)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean((pred - values) ** 2, axis=1)
+
+
+def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
+                     n_allowed: int) -> xr.Dataset:
+    """The validation of ``criterion="auto"`` (module docstring): ``V (T, L)`` the training
+    snapshots in data units on ``region`` (NaN missing), ``place(prior, training, criterion,
+    exchange) -> cells`` one placement of ``n`` sensors (the caller's options bound in),
+    ``n_allowed`` the candidate cells. Returns the table; ``attrs["choice"]`` is the label
+    of :data:`AUTO_CANDIDATES` that won."""
+    t0 = time.perf_counter()
+    spatial = getattr(model, "spatial_cov_", None) is not None
+    labels = [lab for lab, (crit, _) in AUTO_CANDIDATES.items()
+              if crit == "risk" or spatial]
+    skipped = ""
+    if n_allowed > AUTO_MAX_CELLS:
+        skipped = (f"{n_allowed} candidate cells > AUTO_MAX_CELLS = {AUTO_MAX_CELLS}: risk "
+                   "without validation")
+    elif len(labels) == 1:
+        skipped = "the model has no spatial residual: risk (the only candidate)"
+    windows = [] if skipped else validation_windows(V.shape[0])
+    mse = np.full((len(labels), len(windows)), np.nan)
+    held_t = np.concatenate([np.arange(a, b) for a, b in windows]) if windows \
+        else np.zeros(0, np.int64)
+    per = np.full((len(labels), held_t.size), np.nan)
+    for w, (a, b) in enumerate(windows):
+        fit = _refit(model, V[:a], region)
+        prior = fit.latent_prior("empirical", spatial=spatial)
+        held = V[a:b]
+        for c, lab in enumerate(labels):
+            crit, exchange = AUTO_CANDIDATES[lab]
+            cells = place(prior, V[:a], crit, exchange)
+            e = _mse(prior, held, np.asarray(cells, dtype=np.int64))
+            per[c, (held_t >= a) & (held_t < b)] = e
+            mse[c, w] = float(np.nanmean(e))
+    score = mse.mean(axis=1) if windows else np.full(len(labels), np.nan)
+    ucb = _upper_bounds(per)
+    best = 0  # risk, unless a candidate is surely better (its upper bound below 0)
+    for c in range(1, len(labels)):
+        if ucb[c] < 0 and score[c] < score[best]:
+            best = c
+    ds = xr.Dataset(
+        {"mse": (("candidate", "window"), mse), "score": (("candidate",), score),
+         "ucb": (("candidate",), ucb),
+         "mse_snapshot": (("candidate", "held"), per)},
+        coords={"candidate": labels, "window": np.arange(len(windows)), "held": held_t,
+                "window_start": (("window",), np.array([a for a, _ in windows], np.int64)),
+                "window_stop": (("window",), np.array([b for _, b in windows], np.int64))})
+    ds.attrs.update(choice=labels[best], criterion=AUTO_CANDIDATES[labels[best]][0],
+                    exchange=str(AUTO_CANDIDATES[labels[best]][1]), n_sensors=int(n),
+                    n_training=int(V.shape[0]), skipped=skipped,
+                    seconds=time.perf_counter() - t0,
+                    confidence=AUTO_CONFIDENCE,
+                    rule="rolling origin on the training snapshots; risk unless a candidate's "
+                         "upper confidence bound of its MSE change against risk is below 0; "
+                         "then the lowest mean MSE of the recommended fold-in")
+    return ds
+
+
+def _upper_bounds(per: np.ndarray) -> np.ndarray:
+    """``(candidates,)`` one-sided upper confidence bound (:data:`AUTO_CONFIDENCE` standard
+    errors of the paired per-snapshot differences) of each candidate's relative MSE change
+    against the first (risk); 0 for the first, +inf with fewer than two snapshots."""
+    out = np.zeros(per.shape[0])
+    if per.shape[1] < 2:
+        out[1:] = np.inf
+        return out
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        D = per[1:] - per[0]
+        n = np.sum(np.isfinite(D), axis=1)
+        se = np.nanstd(D, axis=1, ddof=1) / np.sqrt(np.maximum(n, 1))
+        ub = (np.nanmean(D, axis=1) + AUTO_CONFIDENCE * se) / np.nanmean(per[0])
+    out[1:] = np.where((n >= 2) & np.isfinite(ub), ub, np.inf)
+    return out
+
+
+def format_placement_selection(ds: xr.Dataset) -> str:
+    """The validation table as text (the CLI prints it)."""
+    if ds.attrs.get("skipped"):
+        return f"criterion auto: {ds.attrs['choice']} ({ds.attrs['skipped']})"
+    blocks = ", ".join(f"{int(a)}-{int(b) - 1}" for a, b in
+                       zip(ds["window_start"].values, ds["window_stop"].values, strict=True))
+    lines = [f"criterion auto: {ds.attrs['choice']} (held-out training snapshots {blocks}; "
+             "validation MSE of the fold-in)"]
+    for lab in ds["candidate"].values:
+        mark = "  <- chosen" if lab == ds.attrs["choice"] else ""
+        ub = float(ds["ucb"].sel(candidate=lab)) if "ucb" in ds else 0.0
+        vs = "" if lab == ds["candidate"].values[0] else f"  (upper bound vs risk {ub:+.1%})"
+        lines.append(f"  {lab:22s} {float(ds['score'].sel(candidate=lab)):.6g}{vs}{mark}")
+    return "\n".join(lines)

@@ -1,0 +1,196 @@
+"""``place_sensors(model, n, training=...)``: the criterion chosen on the training snapshots
+(``criterion="auto"``, planning/static_auto.py), checked against a naive recomputation through
+the public API (refit, place with each candidate, score the fold-in by hand, argmin)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from lrm_cvx.errors import PlanningError
+from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm.posterior import fold_in_snapshots
+from lrm_cvx.planning import place_sensors
+from lrm_cvx.planning import static_auto as sa
+
+HOT = (1, 2)  # the cell of a planted independent, strong signal
+
+
+def _field(seed: int, hot: float = 0.0, T: int = 14, ny: int = 6, nx: int = 7):
+    """A rank-2 field plus white noise on a 6 x 7 grid; ``hot`` adds an independent signal of
+    that std at the cell :data:`HOT` (which no low-rank or smooth model explains)."""
+    rng = np.random.default_rng(seed)
+    lat, lon = np.arange(ny) * 1.0, np.arange(nx) * 1.0
+    base = rng.normal(size=(2, ny, nx))
+    f = (rng.normal(size=(T, 2, 1, 1)) * base[None]).sum(1) + 0.3 * rng.normal(size=(T, ny, nx))
+    if hot:
+        f[:, HOT[0], HOT[1]] += hot * rng.normal(size=T)
+    da = xr.DataArray(f, dims=("time", "lat", "lon"),
+                      coords=dict(time=np.arange(T), lat=lat, lon=lon))
+    return _fit(da), da
+
+
+def _fit(da):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return GLRM(2, random_state=0, progress=False, offset=True,
+                    spatial="exponential").fit(da)
+
+
+def _naive(model, train, n):
+    """The rule of the module docstring from scratch: blocks of round(T / 5) (>= 3), two of
+    them; refit on the snapshots before each; place with each candidate; score by hand;
+    ``(windows, per-snapshot MSE per candidate, choice)``."""
+    T = train.sizes["time"]
+    h = max(3, round(T / 5))
+    windows = [(T - 2 * h, T - h), (T - h, T)]
+    per = {"risk+exchange": [], "gp-variance+exchange": [], "gp-variance": []}
+    for a, b in windows:
+        early = train.isel(time=slice(None, a))
+        fit = _fit(early)
+        values = fit.region_.stack(train.isel(time=slice(a, b))).astype(np.float64)
+        cells = {"risk+exchange": place_sensors(fit, n, training=early, criterion="risk",
+                                                exchange=n < a).cells,
+                 "gp-variance+exchange": place_sensors(fit, n, criterion="gp-variance",
+                                                       exchange=True).cells,
+                 "gp-variance": place_sensors(fit, n, criterion="gp-variance").cells}
+        for lab, S in cells.items():
+            V = np.full(values.shape, np.nan)
+            V[:, S] = values[:, S]
+            pred, *_ = fold_in_snapshots(fit.latent_prior("empirical", spatial=True), V)
+            per[lab].extend(np.mean((pred - values) ** 2, axis=1))
+    per = {lab: np.array(v) for lab, v in per.items()}
+    risk = per["risk+exchange"]
+    choice, best = "risk+exchange", risk.mean()
+    for lab in ("gp-variance+exchange", "gp-variance"):
+        d = per[lab] - risk
+        ucb = (d.mean() + sa.AUTO_CONFIDENCE * d.std(ddof=1) / np.sqrt(d.size)) / risk.mean()
+        if ucb < 0 and per[lab].mean() < best:
+            choice, best = lab, per[lab].mean()
+    return windows, per, choice
+
+
+@pytest.mark.parametrize("seed, hot, confidence", [
+    (0, 0.0, 1.645), (0, 3.0, 1.645), (4, 3.0, 1.645),
+    (0, 0.0, 0.0), (3, 0.0, 0.0),  # no guard: gp-variance + exchange wins these
+])
+def test_the_choice_is_the_naive_rule_and_the_plan_its_criterion(seed, hot, confidence,
+                                                                  monkeypatch):
+    monkeypatch.setattr(sa, "AUTO_CONFIDENCE", confidence)
+    model, train = _field(seed, hot)
+    n = 4
+    plan = place_sensors(model, n, training=train)
+    sel = plan.refinement["selection"]
+    windows, per, choice = _naive(model, train, n)
+    assert list(zip(sel["window_start"].values, sel["window_stop"].values,
+                    strict=True)) == windows
+    for lab, e in per.items():
+        np.testing.assert_allclose(sel["mse_snapshot"].sel(candidate=lab).values, e,
+                                   rtol=1e-8)
+        assert float(sel["score"].sel(candidate=lab)) == pytest.approx(e.mean(), rel=1e-8)
+    assert sel.attrs["choice"] == choice and sel.attrs["skipped"] == ""
+    if confidence == 0.0:
+        assert choice == "gp-variance+exchange"
+    # the plan is the chosen criterion's on the full model and training
+    crit, exchange = sa.AUTO_CANDIDATES[choice]
+    if crit == "risk":
+        ref = place_sensors(model, n, training=train, criterion="risk", exchange=True)
+    else:
+        ref = place_sensors(model, n, criterion="gp-variance", exchange=exchange)
+    assert plan.criterion == crit and plan.cells.tolist() == ref.cells.tolist()
+    # criterion="auto" is the default
+    assert place_sensors(model, n, training=train, criterion="auto").cells.tolist() \
+        == plan.cells.tolist()
+
+
+def test_the_guard_keeps_risk_unless_a_candidate_is_surely_better():
+    """Rigged placements through the real validation (refits and fold-in scores): the
+    gp-variance candidates get four well-spread cells, risk one of them only (surely worse)
+    -> the four win; every candidate the same cells -> risk."""
+    model, train = _field(0, T=30)
+    region = model.region_
+    V = region.stack(train).astype(np.float64)
+    gi = region.grid_index
+    spread = np.array([int(np.flatnonzero((gi == c).all(axis=1))[0])
+                       for c in ((1, 1), (1, 5), (4, 1), (4, 5))])
+    rigged = sa.select_criterion(model, region, 4, V,
+                                 lambda p, Vtr, crit, ex: spread[:1] if crit == "risk" else spread,
+                                 region.n_cells)
+    assert rigged.attrs["choice"] == "gp-variance+exchange"  # first of the equal two
+    assert (rigged["ucb"].values[1:] < 0).all()
+    same = sa.select_criterion(model, region, 4, V, lambda *a: spread, region.n_cells)
+    assert same.attrs["choice"] == "risk+exchange"
+    # the planted hot cell: risk validates best, and surely
+    model, train = _field(4, 3.0)
+    sel = place_sensors(model, 4, training=train).refinement["selection"]
+    assert sel.attrs["choice"] == "risk+exchange" and (sel["ucb"].values[1:] > 0).all()
+
+
+def test_a_block_is_never_scored_by_what_saw_it():
+    """Poisoning the last block changes its own scores only: the first window's placements,
+    refit and scores never read it (no look-ahead)."""
+    model, train = _field(0)
+    sel = place_sensors(model, 4, training=train).refinement["selection"]
+    a = int(sel["window_start"].values[1])
+    bad = train.copy()
+    bad[a:] = 1e3 * np.random.default_rng(9).normal(size=bad[a:].shape)
+    sel2 = place_sensors(model, 4, training=bad).refinement["selection"]
+    np.testing.assert_array_equal(sel2["mse"].isel(window=0).values,
+                                  sel["mse"].isel(window=0).values)
+    assert not np.allclose(sel2["mse"].isel(window=1).values, sel["mse"].isel(window=1).values)
+
+
+def test_deterministic_and_the_windows_rule():
+    model, train = _field(3)
+    p1, p2 = (place_sensors(model, 4, training=train) for _ in range(2))
+    assert p1.cells.tolist() == p2.cells.tolist()
+    np.testing.assert_array_equal(p1.refinement["selection"]["mse"].values,
+                                  p2.refinement["selection"]["mse"].values)
+    assert sa.validation_windows(6) == [(3, 6)]  # room for one block of 3 only
+    assert sa.validation_windows(14) == [(8, 11), (11, 14)]
+    assert sa.validation_windows(100) == [(60, 80), (80, 100)]
+    assert sa.validation_windows(500) == [(452, 476), (476, 500)]  # blocks capped at 24
+
+
+def test_skipped_above_the_cell_limit_and_without_a_spatial_residual(monkeypatch):
+    model, train = _field(0)
+    monkeypatch.setattr(sa, "AUTO_MAX_CELLS", 10)
+    plan = place_sensors(model, 4, training=train)
+    sel = plan.refinement["selection"]
+    assert sel.attrs["choice"] == "risk+exchange" and "AUTO_MAX_CELLS" in sel.attrs["skipped"]
+    ref = place_sensors(model.Y_, model.region_, 4, prior=model, training=train)  # risk
+    assert plan.criterion == "risk" and plan.cells.tolist() == ref.cells.tolist()
+    # above the limit no refit is needed: a LatentPosterior prior is enough
+    prior = model.latent_prior("empirical", spatial=True)
+    assert place_sensors(model.Y_, model.region_, 4, prior=prior, training=train,
+                         criterion="auto").cells.tolist() == ref.cells.tolist()
+    monkeypatch.undo()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        flat = GLRM(2, random_state=0, progress=False, offset=True).fit(train)
+    sel = place_sensors(flat, 4, training=train).refinement["selection"]
+    assert sel.attrs["choice"] == "risk+exchange" and "spatial" in sel.attrs["skipped"]
+
+
+def test_bad_input_is_a_one_line_error_naming_training():
+    model, train = _field(0)
+    cases = [
+        (dict(criterion="auto"), "training"),
+        (dict(criterion="auto", training=train.isel(time=slice(0, 5))), "training has 5"),
+        (dict(training=train.isel(time=slice(0, 5))), "training has 5"),
+        (dict(criterion="auto", training=train, exchange=True), "exchange"),
+        (dict(criterion="auto", training=train, paper=True), "paper=True"),
+        (dict(criterion="auto", training=train, ridge=0.1), "ridge"),
+    ]
+    for kw, match in cases:
+        with pytest.raises(PlanningError, match=match) as err:
+            place_sensors(model, 4, **kw)
+        assert "\n" not in str(err.value)
+    prior = model.latent_prior("empirical", spatial=True)
+    with pytest.raises(PlanningError, match="fitted GLRM"):
+        place_sensors(model.Y_, model.region_, 4, prior=prior, training=train, criterion="auto")
+    with pytest.raises(PlanningError, match="fitted GLRM"):
+        place_sensors(model.Y_, model.region_, 4, training=train, criterion="auto")
