@@ -221,3 +221,29 @@ def test_structured_gp_lag_table_matches_the_exact_convolution():
     c = info.StructuredGPVarianceOracle(Y, [int(edge[0])], boundary_tol=1e-3,
                                         **dict(kw, pool=edge))
     assert c._k2 is None and c.boundary_bound > 1e-3
+
+
+def test_structured_oracle_with_a_kernel_far_longer_than_the_grid_skips_the_lag_table():
+    """A degenerate fitted residual (range 10,000 cells on a 30 x 40 grid, tiny sill) would need
+    a kernel lattice of ~4e10 entries for the lag table: the oracle keeps the exact per-pick
+    convolutions instead (``_k2`` None) and its gains equal the dense oracle's."""
+    import lrm_cvx.information as info
+    from lrm_cvx import Region
+    from lrm_cvx.spatial import ResidualCovariance
+
+    rng = np.random.default_rng(1)
+    ny, nx = 30, 40
+    da = xr.DataArray(np.zeros((ny, nx)), dims=("lat", "lon"),
+                      coords=dict(lat=np.arange(ny) * 1.0, lon=np.arange(nx) * 1.0))
+    region = Region.from_dataarray(da)
+    Y = rng.normal(size=(2, region.n_cells))
+    cov = ResidualCovariance("exponential", sill=1e-3, range=1e4, nugget=1e-4)
+    kw = dict(region=region, spatial_cov=cov, prior_cov=np.diag([1.0, 0.5]))
+    s = info.StructuredGPVarianceOracle(Y, [0], boundary_tol=1e-3, **kw)
+    d = info.GPVarianceOracle(Y, [0], **kw)
+    assert s._k2 is None and s.boundary_bound == np.inf
+    for c in (123, 611, 1100):
+        s.add(c)
+        d.add(c)
+    gs, gd = s.gains(), d.gains()
+    np.testing.assert_allclose(gs, gd, rtol=1e-6, atol=1e-9 * np.max(np.abs(gd)))

@@ -488,6 +488,12 @@ class StructuredGPVarianceOracle:
         ext = (hi - lo).astype(np.int64)
         reach = int(np.ceil(cov.cutoff_distance(1e-9) / 2.0)) + 1  # k(i) k(i - d) tail
         R = ext + reach  # lattice half-widths covering the lags and the tail
+        if float(2 * R[0] + 1) * float(2 * R[1] + 1) > LAG_TABLE_MAX_ENTRIES:
+            # a kernel far longer than the pool (e.g. a degenerate fitted range of thousands of
+            # cells): the lattice would not fit in memory, and most of K2(0) would come from
+            # outside the region, which the boundary test rejects anyway: exact convolutions
+            self.boundary_bound = float("inf")
+            return None
         ar = np.arange(-R[0], R[0] + 1, dtype=np.float64)
         ac = np.arange(-R[1], R[1] + 1, dtype=np.float64)
         kgrid = cov.covariance(np.sqrt(ar[:, None] ** 2 + ac[None, :] ** 2), nugget=False)
@@ -614,6 +620,10 @@ GP_BOUNDARY_TOL: float = 1e-3
 """The structured oracle of :func:`make_oracle` takes ``g(p, x)`` from the kernel's lattice
 autocorrelation (no per-pick FFT) when the targets' complement changes no ``g`` by more than
 this fraction of the largest (``StructuredGPVarianceOracle._lag_table``)."""
+
+LAG_TABLE_MAX_ENTRIES: float = 2.0 ** 26
+"""Largest kernel lattice (entries, ~0.5 GB of float64) the structured oracle's lag table builds;
+a longer kernel keeps the exact per-pick convolutions (``_lag_table``)."""
 
 GP_RESIDUAL_TOL: float = 1e-6
 """``make_oracle("gp-variance")`` (``gp_method="auto"``, structured size, grid metric) plans with
