@@ -77,11 +77,9 @@ def recommended_params(**override) -> dict:
     spatial residual, ``temporal="auto"``, calibration) at rank :data:`RANK`, ``override``
     applied."""
     from lrm_cvx import GLRM
-    from lrm_cvx.recommended import RECOMMENDED
 
-    names = GLRM()._param_names()
-    params = {k: v for k, v in RECOMMENDED.items() if k in names}
-    return {**params, "rank": RANK, "random_state": 0, "progress": False, **override}
+    return {**GLRM.recommended_params(), "rank": RANK, "random_state": 0, "progress": False,
+            **override}
 
 
 def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
@@ -291,6 +289,16 @@ def forecast_vs_posterior(data, n_starts: int = 3, budget: float = 15.0) -> pd.D
     return pd.DataFrame(rows)
 
 
+def _per_set(names: list, table_of, fmt: str) -> None:
+    """Print ``table_of(data)`` (a DataFrame) for each set of ``names``, with its wall time."""
+    for name in names:
+        t0 = time.perf_counter()
+        table = table_of({**DATASETS, **SHORT_DATASETS}[name].loader())
+        table.insert(0, "set", name)
+        print(table.to_string(index=False, float_format=fmt.format))
+        print(f"[{name}] {time.perf_counter() - t0:.0f} s\n", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true",
@@ -331,22 +339,12 @@ def main() -> None:
         print(f"campaigns over the last {N_TEST} snapshots, greedy {RECOMMENDED} budget 15, "
               "3 starts: map MSE of the morning forecast vs the posterior after the samples",
               flush=True)
-        for name in names:
-            t0 = time.perf_counter()
-            table = forecast_vs_posterior({**DATASETS, **SHORT_DATASETS}[name].loader())
-            table.insert(0, "set", name)
-            print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-            print(f"[{name}] {time.perf_counter() - t0:.0f} s\n", flush=True)
+        _per_set(names, forecast_vs_posterior, "{:.4g}")
         return
     if args.aci:
         print(f"monitor loop (ar1 filter, conformal calibration) through the last {3 * N_TEST} "
               "snapshots, a 15-cell route a day; coverage at the other cells", flush=True)
-        for name in names:
-            t0 = time.perf_counter()
-            table = aci_coverage({**DATASETS, **SHORT_DATASETS}[name].loader())
-            table.insert(0, "set", name)
-            print(table.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
-            print(f"[{name}] {time.perf_counter() - t0:.0f} s\n", flush=True)
+        _per_set(names, aci_coverage, "{:.3f}")
         return
     if args.coverage:
         origins = args.origins or (2 if args.quick else 3)

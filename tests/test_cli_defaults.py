@@ -119,6 +119,7 @@ def test_a_glrm_key_added_to_recommended_reaches_the_fit(files, tmp_path, monkey
     assert _run("fit", root / "field.nc", "--rank", 2, "--paper", "-o", tmp_path / "p.nc") == 0
     assert GLRM.load(tmp_path / "p.nc").scale is False
     assert "--scale" in cli._recommended_fit()
+    assert "--calibration" not in cli._recommended_fit()  # no such option: said in words
 
 
 @pytest.mark.parametrize("kind, why", [

@@ -14,7 +14,6 @@ together), and an existing output is replaced only with ``--overwrite``.
 from __future__ import annotations
 
 import argparse
-import inspect
 import re
 import sys
 import traceback
@@ -184,15 +183,15 @@ def _prior(text: str | None):
 
 
 # ---------------------------------------------------------------------------- commands
-#: GLRM parameters a command sets from options of its own (not the model options).
-_COMMAND_PARAMS = frozenset({"rank", "loss", "max_iter", "tol", "random_state", "progress"})
+_MODEL_FLAGS = ("offset", "scale", "noise", "spatial", "temporal")
+"""The GLRM parameters the CLI has an option for (``--offset`` ...)."""
 
 
-def _glrm_params() -> set[str]:
-    """The GLRM parameters the model options (or ``RECOMMENDED``) set."""
+def _recommended_glrm() -> dict:
+    """``GLRM.recommended_params()``: the GLRM parameters of ``RECOMMENDED``."""
     from .glrm import GLRM
 
-    return set(inspect.signature(GLRM).parameters) - _COMMAND_PARAMS
+    return GLRM.recommended_params()
 
 
 def _model_params(args: argparse.Namespace) -> dict:
@@ -204,8 +203,7 @@ def _model_params(args: argparse.Namespace) -> dict:
     params: dict = {"offset": False, "spatial": None, "scale": False,
                     "noise": _first(NOISE_MODELS), "temporal": None}  # the paper's
     if not paper_setting(args):
-        own = _glrm_params()
-        params.update({k: v for k, v in RECOMMENDED.items() if k in own})
+        params.update(_recommended_glrm())
     explicit = {"offset": True if args.offset else None, "scale": True if args.scale else None,
                 "noise": args.noise, "spatial": args.spatial, "temporal": args.temporal}
     params.update({k: v for k, v in explicit.items() if v is not None})
@@ -248,13 +246,10 @@ def _fit_model(data, params: dict, **kw):
     asks for one) runs after the fit and, on a record too short for its refits, is left out with
     one note instead of failing the fit."""
     from .glrm import GLRM
-    from .glrm.calibration import try_calibrate
+    from .glrm.calibration import fit_then_try_calibrate
 
-    params = dict(params)
-    cal = params.pop("calibration", None)
-    model = GLRM(**kw, **params).fit(data)
-    why = None if cal is None else try_calibrate(model, data, cal)
-    if why is not None:
+    model = GLRM(**kw, **params)
+    if (why := fit_then_try_calibrate(model, data)) is not None:
         note(f"the recommended conformal calibration cannot run on these data ({why}); the "
              "intervals are uncalibrated")
     return model
@@ -635,11 +630,13 @@ def _recommended_fit(fit: bool = True) -> str:
     """The GLRM parameters of ``RECOMMENDED`` as flags, for the help texts (``evaluate``
     fits no dynamics unless ``--temporal`` is given)."""
     flags = []
-    own = _glrm_params() - ({"temporal"} if not fit else set())
-    for key, value in RECOMMENDED.items():
-        if key in own and value not in (None, False):
+    params = _recommended_glrm()
+    for key, value in params.items():
+        if key in _MODEL_FLAGS and (fit or key != "temporal") and value not in (None, False):
             flag = f"--{key.replace('_', '-')}"
             flags.append(flag if value is True else f"{flag} {value}")
+    if params.get("calibration") is not None:  # no flag: the recommended fit's own step
+        flags.append("and the conformal interval calibration")
     return " ".join(flags)
 
 

@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 from ._blas import single_threaded_blas
 from ._validation import as_factor_matrix, as_generator, atomic_output, check_flag, check_positive
 from .errors import DataError, ModelError, PlanningError
-from .glrm.calibration import try_calibrate
+from .glrm.calibration import fit_then_try_calibrate
 from .glrm.posterior import LatentPosterior
 from .planning.planners import (
     GREEDY_VARIANTS,
@@ -166,8 +166,7 @@ def _recommended_params() -> dict[str, Any]:
     own, so the fit has no dynamics to choose unless ``temporal=`` asks for them."""
     from .glrm import GLRM
 
-    names = set(GLRM().get_params()) - {"temporal", "rank", "random_state", "progress"}
-    return {key: value for key, value in RECOMMENDED.items() if key in names}
+    return {k: v for k, v in GLRM.recommended_params().items() if k != "temporal"}
 
 
 def _recommended_methods() -> tuple[str, ...]:
@@ -337,12 +336,12 @@ class EvaluationProtocol:
             params = dict(self.model_params)
             if self.temporal == "auto":  # the choice is validated on the training snapshots
                 params.setdefault("temporal", "auto")
-            # the recommended calibration, a default: a record too short for it warns
-            cal = params.pop("calibration", None) if self._defaults["model_params"] else None
             model = GLRM(rank=self.rank, random_state=self.seed, progress=self.progress,
-                         **params).fit(train)
-            why = None if cal is None else try_calibrate(model, train, cal)
-            if why is not None:
+                         **params)
+            if not self._defaults["model_params"]:  # an asked-for calibration fails loudly
+                model.fit(train)
+            elif (why := fit_then_try_calibrate(model, train)) is not None:
+                # the recommended calibration, a default: a record too short for it warns
                 warnings.warn(f"the recommended conformal calibration cannot run on these "
                               f"data ({why}); the intervals are uncalibrated", UserWarning,
                               stacklevel=4)

@@ -58,7 +58,7 @@ __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_co
            "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95",
            "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "RESIDUAL_SCALES", "clone_model",
            "training_values", "memoryless_cov", "conformal_quantile", "conformal_scores",
-           "try_calibrate"]
+           "calibrate_with", "fit_then_try_calibrate"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
 Z95 = 1.959963984540054   # two-sided 95%
@@ -418,20 +418,30 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
     return out
 
 
-def try_calibrate(model: Any, data: Any, calibration: Any) -> str | None:
-    """Run ``GLRM(calibration=...)``'s calibration on a fitted ``model`` (``calibration``: a
-    method name or a dict of :func:`calibrate` keywords) and set ``model.calibration``; None on
-    success, else the reason it cannot run on ``data`` (e.g. a record too short for its refits;
-    the model is left uncalibrated). For a default the user did not ask for, which falls back
-    with a note instead of failing."""
+def calibrate_with(model: Any, data: Any, calibration: Any) -> Calibration:
+    """:func:`calibrate` as ``GLRM(calibration=...)`` asks (``calibration``: a method name or a
+    dict of its keywords; the seed is the model's ``random_state``)."""
+    kw = {"method": calibration} if isinstance(calibration, str) else dict(calibration)
+    return calibrate(model, data, **{"seed": model.random_state, **kw})
+
+
+def fit_then_try_calibrate(model: Any, data: Any) -> str | None:
+    """Fit the unfitted ``model`` on ``data``, then run its ``calibration`` where it can: None
+    on success (or without one), else the reason it cannot run on ``data`` (e.g. a record too
+    short for its refits; the model is kept, uncalibrated, its ``calibration`` None). For a
+    calibration that is a default the user did not ask for: the caller notes the reason
+    instead of failing."""
     from ..errors import LrmError
 
-    kw = {"method": calibration} if isinstance(calibration, str) else dict(calibration)
+    cal = model.calibration
+    model.set_params(calibration=None).fit(data)
+    if cal is None:
+        return None
     try:
-        calibrate(model, data, **{"seed": model.random_state, **kw})
+        calibrate_with(model, data, cal)
     except LrmError as err:
         return str(err).split(";")[0]
-    model.calibration = calibration
+    model.calibration = cal
     return None
 
 

@@ -62,9 +62,9 @@ def foldin_covs(Y: np.ndarray, weights: Any, masks: Any) -> list[np.ndarray | No
     counts = np.zeros(len(masks), dtype=np.int64)
     for lo in range(0, L, 1 << 16):
         sl = slice(lo, min(L, lo + (1 << 16)))
-        M = np.stack([np.asarray(m[sl], dtype=bool) for m in masks]).astype(np.float64)
-        G += M @ (Y[iu[0], sl] * Y[iu[1], sl] * w[sl]).T
-        counts += (M > 0).sum(axis=1)
+        B = np.stack([np.asarray(m[sl], dtype=bool) for m in masks])
+        G += B.astype(np.float64) @ (Y[iu[0], sl] * Y[iu[1], sl] * w[sl]).T
+        counts += B.sum(axis=1)
     out: list[np.ndarray | None] = []
     for g, n in zip(G, counts, strict=True):
         Gm = np.zeros((k, k))

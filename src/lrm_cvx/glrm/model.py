@@ -18,6 +18,7 @@ import xarray as xr
 
 from .._validation import as_generator, atomic_output, check_positive
 from ..errors import DataError, ModelError, NotFittedError
+from ..recommended import RECOMMENDED
 from ..region import Region
 from . import kernels as K
 from .dynamics import TEMPORAL, Dynamics, error_rows, foldin_covs, temporal_value
@@ -139,6 +140,13 @@ class GLRM:
         sig = inspect.signature(cls.__init__)
         return [p for p in sig.parameters if p != "self"]
 
+    @classmethod
+    def recommended_params(cls) -> dict[str, Any]:
+        """The constructor parameters the recommended setting sets (``RECOMMENDED``'s keys that
+        are parameters of this class; docs/reconstruction.md)."""
+        names = cls._param_names()
+        return {k: v for k, v in RECOMMENDED.items() if k in names}
+
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """The constructor parameters, as stored."""
         return {p: getattr(self, p) for p in self._param_names()}
@@ -242,11 +250,9 @@ class GLRM:
 
             apply_selection(self, select_temporal(self, data, seed=self.random_state))
         if self.calibration is not None:
-            from .calibration import calibrate
+            from .calibration import calibrate_with
 
-            kw = ({"method": self.calibration} if isinstance(self.calibration, str)
-                  else dict(self.calibration))
-            calibrate(self, data, **{"seed": self.random_state, **kw})
+            calibrate_with(self, data, self.calibration)
 
     def _prepare(self, data, mask, region):
         """``(D, M, region, times, owned)`` from any supported input (no copy of clean arrays);
@@ -707,6 +713,8 @@ class GLRM:
                     seed: Any = 0) -> pd.Series:
         """Held-out RMSE for each rank: fit a copy of this model on a training split of the
         observed entries and score it on the rest. Returns a Series indexed by rank."""
+        from .calibration import clone_model  # a refit that never calibrates itself
+
         ranks = _check_ranks(ranks)
         if isinstance(data, xr.DataArray) and data.ndim == 3:
             region = Region.from_dataarray(data)
@@ -717,8 +725,7 @@ class GLRM:
         np.copyto(train, 0, where=~mask)  # ours: zero-filled once, so no fit copies it
         out = {}
         for r in ranks:
-            model = GLRM(**{**self.get_params(), "rank": int(r), "progress": False,
-                             "calibration": None})
+            model = clone_model(self, rank=int(r))
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 model.fit(train, mask=mask)
