@@ -175,12 +175,30 @@ the 4 blocks of the record's second half, 2 held-out snapshots each, at most 300
 per fold-in; ``--folds interleaved``: 4 interleaved folds)."""
 
 
+def filter_variants(model, train, seed: int = 0, **kw) -> dict:
+    """``{"raw": None, "shared": ..., "filter": ...}`` for a model with dynamics: one
+    ``calibrate(method="conformal", temporal="auto")`` on ``train`` only, its intervals under
+    the filter with the memoryless thresholds (``shared``: the default calibration) or the
+    filter's own (``filter``: ``temporal_scale`` and ``temporal_quantiles``)."""
+    from dataclasses import replace
+
+    from lrm_cvx.glrm.calibration import calibrate
+
+    cal = calibrate(model, train, method="conformal", temporal="auto", seed=seed, **kw)
+    shared = replace(cal, temporal_scale=None, temporal_quantiles=(), temporal_score_table=(),
+                     temporal_n_residuals=0)  # the default calibrate(method="conformal")
+    return {"raw": None, "shared": shared, "filter": cal}
+
+
 def rolling_coverage(data, n_origins: int = 3, block: int = N_TEST, budget: int = 15,
-                     n_starts: int = 2, seed: int = 0, calibrate_kw: dict | None = None
-                     ) -> pd.DataFrame:
+                     n_starts: int = 2, seed: int = 0, calibrate_kw: dict | None = None,
+                     temporal: str | None = None) -> pd.DataFrame:
     """Coverage of the greedy's intervals on ``n_origins`` rolling test blocks (module
     docstring): one row per block and calibration variant, with ``cov68``, ``cov95`` (mean
-    over the block's campaigns and snapshots) and the calibration's cost in seconds."""
+    over the block's campaigns and snapshots) and the calibration's cost in seconds.
+    ``temporal="auto"``: the recommended model (its ``temporal="auto"`` choice made on the
+    snapshots before the block) and its filter's campaigns, the variants of
+    :func:`filter_variants`."""
     from lrm_cvx import GLRM, evaluate
     from lrm_cvx.evaluation import summary
 
@@ -189,17 +207,21 @@ def rolling_coverage(data, n_origins: int = 3, block: int = N_TEST, budget: int 
     for b in range(n_origins):
         origin = T - (n_origins - b) * block
         train, through = origin_split(data, origin, block)
-        model = GLRM(rank=RANK, offset=True, spatial="exponential", random_state=0,
-                     progress=False).fit(train)
+        if temporal is None:
+            model = GLRM(rank=RANK, offset=True, spatial="exponential", random_state=0,
+                         progress=False).fit(train)
+        else:
+            model = GLRM(**recommended_params(temporal=temporal, calibration=None)).fit(train)
         t0 = time.perf_counter()
         kw = CALIBRATE_KW if calibrate_kw is None else calibrate_kw
-        variants = calibrated_variants(model, train, seed=seed, **kw)
+        variants = (calibrated_variants if temporal is None else filter_variants)(
+            model, train, seed=seed, **kw)
         cost = time.perf_counter() - t0
         for name, cal in variants.items():
             model.calibration_ = cal
             res = evaluate(through, model=model, n_test=block, budgets=(budget,),
                            n_starts=n_starts, methods=(RECOMMENDED,), min_observations=1,
-                           certify=False, progress=False, seed=seed,
+                           certify=False, progress=False, seed=seed, temporal=temporal,
                            fold_in={"prior": "empirical", "spatial": True})
             row = summary(res).iloc[0]
             rows.append({"block": b, "origin": origin, "variant": name,
@@ -316,6 +338,8 @@ def main() -> None:
                     help="the monitor loop with / without online ACI (aci_coverage)")
     ap.add_argument("--folds", default="forward", choices=("interleaved", "forward"),
                     help="the coverage check's calibration folds (calibrate(folds=))")
+    ap.add_argument("--temporal", default=None, choices=("auto",),
+                    help="the coverage check under the recommended filter (temporal='auto')")
     ap.add_argument("--origins", type=int, default=None,
                     help="test blocks of the coverage check (default 3; --quick 2)")
     ap.add_argument("--modes", default="auto",
@@ -350,7 +374,8 @@ def main() -> None:
         origins = args.origins or (2 if args.quick else 3)
         starts = args.starts or 2
         print(f"rolling origin: {origins} blocks of {N_TEST} snapshots, rank {RANK}, greedy "
-              f"{RECOMMENDED} budget 15, {starts} starts, memoryless; calibrated on the "
+              f"{RECOMMENDED} budget 15, {starts} starts, {args.temporal or 'memoryless'}; "
+              "calibrated on the "
               f"snapshots before each block only ({args.folds} folds)", flush=True)
         t_all = time.perf_counter()
         for name in names:
@@ -359,7 +384,8 @@ def main() -> None:
             if args.folds == "interleaved":
                 kw["n_blocks"] = 4
             table = rolling_coverage({**DATASETS, **SHORT_DATASETS}[name].loader(),
-                                     n_origins=origins, n_starts=starts, calibrate_kw=kw)
+                                     n_origins=origins, n_starts=starts, calibrate_kw=kw,
+                                     temporal=args.temporal)
             if args.out:
                 os.makedirs(args.out, exist_ok=True)
                 table.to_csv(os.path.join(args.out, f"{name}_coverage.csv"), index=False)

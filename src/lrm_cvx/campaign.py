@@ -41,8 +41,6 @@ __all__ = ["simulate_campaign", "method_request", "path_attrs", "CAMPAIGN_OPTION
 CAMPAIGN_OPTIONS = ("cost", "ridge", "criterion")
 """The planner options of :func:`simulate_campaign` (besides the path options)."""
 
-_Z68 = 0.9944578832097535  # central 68 % interval of a standard normal
-_Z95 = 1.959963984540054  # central 95 %
 
 
 def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
@@ -238,7 +236,8 @@ def simulate_campaign(
     (the morning forecast's map before the day's samples, same cells: a posterior should not be
     worse than it on average), ``coverage68``,
     ``coverage95`` (fraction of the observed cells *not sampled* inside the central 68 % / 95 %
-    predictive interval, ``mean +- z * predictive_std``), ``n_obs``, ``information`` (the
+    predictive interval, ``mean +- z * predictive_std``, ``z`` the state's
+    ``interval_multipliers``: the calibration's conformal thresholds, else the normal quantiles), ``n_obs``, ``information`` (the
     morning plan's criterion value), ``logdet_cov`` (log det of the latent posterior
     covariance), ``route_cost`` and ``routes`` ``(time, stop)`` (the route flown, padded with
     -1); for a fleet also ``route_robot`` ``(time, stop)`` and ``robot_cost`` ``(time,
@@ -329,8 +328,9 @@ def simulate_campaign(
         if held.any():
             out["mse_heldout"][i] = float(np.mean(err[held]))
             z = np.abs(mean[held] - truth[held]) / np.maximum(pstd[held], 1e-300)
-            out["coverage68"][i] = float(np.mean(z <= _Z68))
-            out["coverage95"][i] = float(np.mean(z <= _Z95))
+            m68, m95 = state.interval_multipliers((0.68, 0.95))  # conformal / ACI half-widths
+            out["coverage68"][i] = float(np.mean(z <= m68))
+            out["coverage95"][i] = float(np.mean(z <= m95))
         out["information"][i] = information
         out["route_cost"][i] = float(getattr(flown, "cost", np.nan))
         robot_cost[i] = np.asarray(flown.robot_costs, dtype=np.float64)
@@ -361,8 +361,8 @@ def _dataset(out: dict, n_obs: np.ndarray, n_replans: np.ndarray, robot_cost: np
     ds["routes"] = (("time", "stop"), _padded([r for r, _ in routes]))
     ds["routes"].attrs["long_name"] = "route cell indices, padded with -1"
     ds["mse_forecast"].attrs["long_name"] = "MSE of the forecast map, before the day's samples"
-    ds["coverage68"].attrs["long_name"] = "fraction of held-out observed cells in mean +- 1 std"
-    ds["coverage95"].attrs["long_name"] = "fraction of held-out observed cells in mean +- 1.96 std"
+    ds["coverage68"].attrs["long_name"] = "fraction of held-out observed cells in the central 68 % predictive interval"
+    ds["coverage95"].attrs["long_name"] = "fraction of held-out observed cells in the central 95 % predictive interval"
     ds["route_cost"].attrs["units"] = path.unit
     if fleet.is_fleet:
         ds["route_robot"] = (("time", "stop"), _padded([r for _, r in routes]),

@@ -10,7 +10,7 @@ filter above them.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -22,7 +22,7 @@ __all__ = ["Calibration", "variance_scale", "noise_variance", "predictive_std",
            "AdaptiveConformal", "SCORE_GRID"]
 
 _PREFIX = "calibration_"
-_TUPLES = ("levels", "quantiles", "score_table")
+_TUPLES = ("levels", "quantiles", "score_table", "temporal_quantiles", "temporal_score_table")
 METHODS = ("gaussian", "conformal")
 SCORE_GRID = tuple(np.round(np.r_[np.arange(0.01, 0.99, 0.01), np.arange(0.99, 0.9991, 0.001)],
                             6).tolist())
@@ -82,7 +82,11 @@ class Calibration:
     ``MonitorState``). ``dof_loglik_gain``: the cross-validated Gaussian log-likelihood per
     residual gained over the fixed scale. ``n_residuals``
     and ``coverage68_raw`` / ``coverage95_raw`` (the cross-validated coverage before scaling)
-    document the estimate; ``n_blocks`` and ``sizes`` how it was made.
+    document the estimate; ``n_blocks`` and ``sizes`` how it was made. A conformal calibration
+    holds ``levels``, their thresholds ``quantiles`` and the ``score_table``; for a model with
+    dynamics also the filter's own (``temporal_quantiles``, ``temporal_score_table``, from
+    ``temporal_n_residuals`` forward-chained filter residuals: the filter's maps are tighter or
+    looser than a memoryless fold-in's), which :meth:`for_filter` puts in their place.
     """
 
     scale: float = 1.0
@@ -102,6 +106,9 @@ class Calibration:
     levels: tuple = ()
     quantiles: tuple = ()
     score_table: tuple = ()
+    temporal_quantiles: tuple = ()
+    temporal_score_table: tuple = ()
+    temporal_n_residuals: int = 0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -110,6 +117,8 @@ class Calibration:
             object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
         if len(self.levels) != len(self.quantiles):
             raise ModelError("Calibration.levels and quantiles must have the same length")
+        if self.temporal_quantiles and len(self.temporal_quantiles) != len(self.levels):
+            raise ModelError("Calibration.temporal_quantiles must have one entry per level")
         for lv in self.levels:
             check_level(lv, "levels")
         for name in ("scale", "temporal_scale", "dof", "residual_scale"):
@@ -119,6 +128,16 @@ class Calibration:
             if not (np.isfinite(v) and v > 0):
                 raise ModelError(f"Calibration.{name} must be a finite number > 0, got {v!r}")
             object.__setattr__(self, name, float(v))
+
+    def for_filter(self) -> Calibration:
+        """The calibration the filter's intervals use: the filter's conformal thresholds in
+        place of the memoryless ones when they were estimated, else ``self``."""
+        if not self.temporal_quantiles:
+            return self
+        return replace(self, quantiles=self.temporal_quantiles,
+                       score_table=self.temporal_score_table or self.score_table,
+                       n_residuals=self.temporal_n_residuals or self.n_residuals,
+                       temporal_quantiles=(), temporal_score_table=())
 
     def variance_scale(self, temporal: bool = False) -> float:
         """The scale for the memoryless fold-in or (``temporal=True``) the filter."""
@@ -176,7 +195,7 @@ class Calibration:
                 v = attrs[_PREFIX + key]
                 if key in ("temporal_scale", "dof"):
                     v = None if not np.isfinite(float(v)) else float(v)
-                elif key in ("n_residuals", "n_blocks"):
+                elif key in ("n_residuals", "n_blocks", "temporal_n_residuals"):
                     v = int(v)
                 elif key in ("sizes", "method"):
                     v = str(v)

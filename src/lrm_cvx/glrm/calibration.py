@@ -205,16 +205,19 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
             else:
                 train_idx = np.setdiff1d(np.arange(T), block)
             has_t = "temporal" in model.get_params()
-            sub = clone_model(model, **({"temporal": temporal} if has_t else {}))
+            # the filter's refits are fitted with AR(1) (no nested selection), then given the
+            # model's kind and blend (refit_dynamics)
+            sub = clone_model(model, **({"temporal": "ar1" if temporal is not None else None}
+                                        if has_t else {}))
             sub.fit(data.isel(time=train_idx), region=region)
             sub.calibration_ = None
             if temporal is not None:
-                alpha = getattr(model, "dynamics_alpha_", None)  # select_dynamics' choice
-                if alpha is not None:  # replaces the refit's own blend (one rule, as the model)
-                    base = unblended_dynamics(sub)
-                    sub.dynamics_ = blend_dynamics(base, alpha, memoryless_cov(sub, base))
+                sub.dynamics_ = refit_dynamics(model, sub, temporal,
+                                               data["time"].values[train_idx])
+                if sub.dynamics_ is None:  # this block's history cannot carry the kind
+                    continue
                 out.extend(_filter_residuals(sub, data.isel(time=block), V[block], sizes, kinds,
-                                             spatial, rng))
+                                             spatial, rng, max_cells))
                 continue
             pick = block[np.unique(np.linspace(0, block.size - 1,
                                                min(block.size, max_snapshots)).round()
@@ -391,14 +394,36 @@ def conformal_scores(records: Sequence[tuple], scale: float, dof: float | None,
     return np.abs(np.concatenate(z)) / np.sqrt(si)
 
 
+def refit_dynamics(model: Any, sub: Any, kind: str, times: Any) -> Any:
+    """Dynamics of ``kind`` for ``sub`` (a refit of ``model`` on its first snapshots, fitted
+    with ``temporal="ar1"``; ``times`` its time coordinate) made as ``model``'s own were: blended
+    by the ``temporal="auto"`` choice's ``alpha`` or ``select_dynamics``'
+    (``dynamics_alpha_``). None when ``sub``'s history cannot carry the kind (a season on
+    less than two years)."""
+    from .selection import kind_dynamics
+
+    base = kind_dynamics(kind, sub, times)
+    if base is None:
+        return None
+    sel = getattr(model, "selection_", None)
+    if sel is not None and sel.attrs.get("choice_kind") == kind:
+        alpha = float(sel.attrs["choice_alpha"])
+    else:
+        alpha = getattr(model, "dynamics_alpha_", None)
+    return base if alpha is None else blend_dynamics(base, alpha, memoryless_cov(sub, base))
+
+
 def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int],
-                      kinds: Sequence[str], spatial: bool, rng: np.random.Generator):
+                      kinds: Sequence[str], spatial: bool, rng: np.random.Generator,
+                      max_cells: int | None = None):
     """Standardized residuals of the filter run through one block in time order, and of the
-    memoryless model through the same loop on the same cells: ``[(z_filter, z_memoryless)]``."""
+    memoryless model through the same loop on the same cells: ``[(z_filter, z_memoryless)]``
+    (at most ``max_cells`` random held-out cells per day)."""
     region = sub.region_
     from .filter import LatentFilter
 
-    states = (LatentFilter.from_model(sub), LatentFilter.from_model(sub, memoryless=True))
+    states = (LatentFilter.from_model(sub, spatial=spatial),
+              LatentFilter.from_model(sub, memoryless=True, spatial=spatial))
     times = block_data["time"].values
     combos = [(s, k) for s in sizes for k in kinds]
     out = []
@@ -408,12 +433,14 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
         cells = sample_sets(region, observed, size, kind, rng)
         held = np.isfinite(Vb[i])
         held[cells] = False
+        hidx = np.flatnonzero(held)
+        if max_cells is not None and hidx.size > int(max_cells):
+            hidx = np.sort(rng.choice(hidx, int(max_cells), replace=False))
         pair = []
         for state in states:
             state.assimilate((cells, Vb[i, cells]), time=t)
-            mean, _ = state.posterior.predict(cells=np.flatnonzero(held))
-            pstd = state.posterior.predictive_std(cells=np.flatnonzero(held))
-            pair.append((Vb[i, held] - mean) / pstd)
+            mean, _, pstd = state.posterior.predict_all(cells=hidx)
+            pair.append((Vb[i, hidx] - mean) / pstd)
         out.append(tuple(pair))
     return out
 
@@ -493,8 +520,15 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     campaigns (docs/monitoring.md) that calibrates it as well as the memoryless fold-in, while a
     separate forward-chaining estimate (``temporal="auto"``: when the model has dynamics;
     ``"ar1"``/``"seasonal"``: always) trains on less data and was too noisy to be better.
-    Costs ``n_blocks`` refits plus ``n_blocks * max_snapshots * len(sizes) * len(kinds)``
-    fold-ins. ``n_blocks`` (None): 8, fewer on a short record (half its snapshots, at least 2).
+    With ``temporal`` a conformal calibration also gives the filter its own thresholds
+    (``Calibration.temporal_quantiles``, used by the filter's intervals through
+    ``Calibration.for_filter``): the memoryless thresholds times the filter's score quantile
+    relative to the memoryless model's on the same forward-chained days and cells (each refit
+    given the model's temporal kind and blend, :func:`refit_dynamics`). Not the default:
+    rolling origin on the six records of ``bench_generalization.py`` (``--coverage
+    --temporal auto``, docs/benchmarks.md) the shared thresholds covered closer to the targets
+    (the refits' short histories understate the filter's gain on the storms). Costs ``n_blocks`` refits plus ``n_blocks * max_snapshots * len(sizes) * len(kinds)``
+    fold-ins (and ``n_blocks // 2`` refits more with ``temporal``). ``n_blocks`` (None): 8, fewer on a short record (half its snapshots, at least 2).
     """
     if method not in ("gaussian", "conformal"):
         raise ModelError(f"method must be 'gaussian' or 'conformal', got {method!r}")
@@ -538,19 +572,34 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     elif temporal is False:
         temporal = None
     t_scale, t_raw = None, np.full(2, np.nan)
+    t_conformal: dict[str, Any] = {}
     if temporal is not None:
         # forward chaining trains on less data than the final model: take from it only the
         # filter's scale *relative* to the memoryless model's on the same days and cells
-        zt, zm = cv_residuals(model, data, seed=seed, temporal=temporal, twin=True, **kw)
+        zt, zm = cv_residuals(model, data, seed=seed, temporal=temporal, twin=True,
+                              max_cells=max_cells, **kw)
         t_scale = scale * fit_scale(zt) / fit_scale(zm)
         t_raw = interval_coverage(zt, 0.0, 1.0)
+        if method == "conformal":  # and its thresholds relative to the memoryless ones, in
+            # units of the filter's calibrated std (sqrt(t_scale) instead of sqrt(scale))
+            at, am = np.abs(zt[np.isfinite(zt)]), np.abs(zm[np.isfinite(zm)])
+            unit = np.sqrt(scale / t_scale)
+
+            def ratio(p: Any) -> np.ndarray:
+                return unit * np.quantile(at, p) / np.quantile(am, p)
+
+            t_conformal = dict(
+                temporal_quantiles=tuple(np.asarray(conformal["quantiles"]) * ratio(levels)),
+                temporal_score_table=tuple(np.asarray(conformal["score_table"])
+                                           * ratio(SCORE_GRID)),
+                temporal_n_residuals=int(at.size))
     cal = Calibration(scale=scale, temporal_scale=t_scale, n_residuals=int(z.size),
                       coverage68_raw=float(raw[0]), coverage95_raw=float(raw[1]),
                       temporal_coverage68_raw=float(t_raw[0]),
                       temporal_coverage95_raw=float(t_raw[1]), n_blocks=int(n_blocks),
                       sizes=",".join(str(int(s)) for s in sizes), dof=dof,
                       discount=float(discount), dof_loglik_gain=float(gain),
-                      residual_scale=float(rho), **conformal)
+                      residual_scale=float(rho), **conformal, **t_conformal)
     model.calibration_ = cal
     return cal
 

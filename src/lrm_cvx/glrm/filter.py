@@ -199,8 +199,10 @@ class LatentFilter:
         if dynamics.rank != k:
             raise ModelError(f"dynamics have rank {dynamics.rank}, the model {k}")
         obs = ObservationModel.from_model(model, spatial=spatial)
-        if not memoryless:  # the filter's own calibrated variance scale (glrm/calibration.py)
-            obs = replace(obs, variance_scale=variance_scale(model, temporal=True))
+        if not memoryless:  # the filter's own calibrated variance scale and conformal
+            cal = obs.calibration  # thresholds (glrm/calibration.py)
+            obs = replace(obs, variance_scale=variance_scale(model, temporal=True),
+                          calibration=None if cal is None else cal.for_filter())
         P0 = dynamics.initial_cov
         jitter = 1e-9 * max(float(np.trace(dynamics.Q)), 1e-300) / k
         post = LatentPosterior.from_moments(obs, dynamics.initial_mean, P0 + jitter * np.eye(k))
@@ -294,9 +296,10 @@ class LatentFilter:
         miscoverage by ``gamma`` towards the target, so the intervals' long-run coverage holds
         even when the record drifts away from the calibration. The multipliers start from the
         model's conformal calibration (``calibrate(..., method="conformal")``), else the normal
-        quantiles. Returns ``self``."""
+        quantiles (the filter's own thresholds, ``Calibration.for_filter``, unless memoryless).
+        Returns ``self``."""
         self.aci = AdaptiveConformal(np.atleast_1d(levels), gamma,
-                                     getattr(self.model, "calibration_", None))
+                                     self.posterior.obs_model.calibration)
         return self
 
     def interval_multipliers(self, levels: Any = (0.68, 0.95)) -> np.ndarray:

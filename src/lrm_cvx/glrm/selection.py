@@ -43,7 +43,7 @@ from .._blas import single_threaded_blas
 from .._validation import as_generator
 from ..errors import ModelError
 
-__all__ = ["select_temporal", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES", "MIN_AUTO_SNAPSHOTS",
+__all__ = ["select_temporal", "kind_dynamics", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES", "MIN_AUTO_SNAPSHOTS",
            "MAX_SCORED",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection",
            "selection_vars",
@@ -116,7 +116,7 @@ def _check_regular(times: Any, name: str) -> None:
             f"resample the record to a regular step")
 
 
-def _kind_dynamics(kind: str, sub: Any, times: Any) -> Any:
+def kind_dynamics(kind: str, sub: Any, times: Any) -> Any:
     """The unblended dynamics of ``kind`` of the refitted ``sub`` (fitted with ``"ar1"``: its
     initial and error covariances do not depend on the kind), or None when the record cannot
     carry that kind (e.g. a season on yearly data)."""
@@ -257,7 +257,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
         sub_times = all_times[:lo]
         labels, dyns = ["none"], [None]
         for kind in kinds:
-            base = None if kind in skipped else _kind_dynamics(kind, sub, sub_times)
+            base = None if kind in skipped else kind_dynamics(kind, sub, sub_times)
             if base is None:
                 skipped.add(kind)
                 continue
@@ -328,7 +328,7 @@ def apply_selection(model: Any, selection: xr.Dataset) -> None:
         return
     xa = model.X_
     times = xa[xa.dims[1]] if hasattr(xa, "dims") else np.arange(model._Xv.shape[1])
-    base = _kind_dynamics(kind, model, times)
+    base = kind_dynamics(kind, model, times)
     if base is None:  # the full record carries what its first window carried
         raise ModelError(f"temporal='auto' chose {kind!r} but it cannot be estimated on all "
                          f"snapshots")
