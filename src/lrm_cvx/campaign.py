@@ -234,11 +234,11 @@ def simulate_campaign(
     give no observation), assimilate, predict. Returns a Dataset over ``time`` with ``mse``
     (over the snapshot's observed cells, like ``evaluate``), ``mse_heldout``, ``mse_forecast``
     (the morning forecast's map before the day's samples, same cells: a posterior should not be
-    worse than it on average), ``coverage68``,
-    ``coverage95`` (fraction of the observed cells *not sampled* inside the central 68 % / 95 %
-    predictive interval, ``mean +- z * predictive_std``, ``z`` the state's
-    ``interval_multipliers``: the calibration's conformal thresholds, else the normal quantiles), ``n_obs``, ``information`` (the
-    morning plan's criterion value), ``logdet_cov`` (log det of the latent posterior
+    worse than it on average), ``coverage68``, ``coverage95`` (fraction of the observed cells
+    *not sampled* inside the central 68 % / 95 % predictive interval, ``mean +- z *
+    predictive_std``, ``z`` the state's ``interval_multipliers``: the calibration's conformal
+    thresholds, else the normal quantiles), ``n_obs``, ``information`` (the morning plan's
+    criterion value), ``logdet_cov`` (log det of the latent posterior
     covariance), ``route_cost`` and ``routes`` ``(time, stop)`` (the route flown, padded with
     -1); for a fleet also ``route_robot`` ``(time, stop)`` and ``robot_cost`` ``(time,
     robot)``, with ``replan_every`` ``n_replans``. The attrs record the method, the budget(s),
@@ -361,8 +361,9 @@ def _dataset(out: dict, n_obs: np.ndarray, n_replans: np.ndarray, robot_cost: np
     ds["routes"] = (("time", "stop"), _padded([r for r, _ in routes]))
     ds["routes"].attrs["long_name"] = "route cell indices, padded with -1"
     ds["mse_forecast"].attrs["long_name"] = "MSE of the forecast map, before the day's samples"
-    ds["coverage68"].attrs["long_name"] = "fraction of held-out observed cells in the central 68 % predictive interval"
-    ds["coverage95"].attrs["long_name"] = "fraction of held-out observed cells in the central 95 % predictive interval"
+    for level in ("68", "95"):
+        ds[f"coverage{level}"].attrs["long_name"] = (
+            f"fraction of held-out observed cells in the central {level} % predictive interval")
     ds["route_cost"].attrs["units"] = path.unit
     if fleet.is_fleet:
         ds["route_robot"] = (("time", "stop"), _padded([r for _, r in routes]),

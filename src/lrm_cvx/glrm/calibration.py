@@ -527,8 +527,10 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     given the model's temporal kind and blend, :func:`refit_dynamics`). Not the default:
     rolling origin on the six records of ``bench_generalization.py`` (``--coverage
     --temporal auto``, docs/benchmarks.md) the shared thresholds covered closer to the targets
-    (the refits' short histories understate the filter's gain on the storms). Costs ``n_blocks`` refits plus ``n_blocks * max_snapshots * len(sizes) * len(kinds)``
-    fold-ins (and ``n_blocks // 2`` refits more with ``temporal``). ``n_blocks`` (None): 8, fewer on a short record (half its snapshots, at least 2).
+    (the refits' short histories understate the filter's gain on the storms).
+    Costs ``n_blocks`` refits plus ``n_blocks * max_snapshots * len(sizes) * len(kinds)``
+    fold-ins (and ``n_blocks // 2`` refits more with ``temporal``). ``n_blocks`` (None): 8,
+    fewer on a short record (half its snapshots, at least 2).
     """
     if method not in ("gaussian", "conformal"):
         raise ModelError(f"method must be 'gaussian' or 'conformal', got {method!r}")

@@ -43,8 +43,8 @@ from .._blas import single_threaded_blas
 from .._validation import as_generator
 from ..errors import ModelError
 
-__all__ = ["select_temporal", "kind_dynamics", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES", "MIN_AUTO_SNAPSHOTS",
-           "MAX_SCORED",
+__all__ = ["select_temporal", "kind_dynamics", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
+           "MIN_AUTO_SNAPSHOTS", "MAX_SCORED",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection",
            "selection_vars",
            "selection_from_dataset"]
