@@ -83,13 +83,13 @@ def recommended_params(**override) -> dict:
 
 
 def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
-            out: str | None = None, n_jobs: int = 1,
-            modes: tuple = ("auto",)) -> tuple[pd.DataFrame, dict]:
+            out: str | None = None, n_jobs: int = 1, modes: tuple = ("auto",),
+            **params) -> tuple[pd.DataFrame, dict]:
     """Fit and evaluate one data set; returns the tidy table (one row per temporal mode, budget,
     method) and timings. ``modes``: the temporal models run (``"auto"``: the recommended
     setting; ``"ar1"`` / ``"seasonal"``: the fixed kinds, for the record). The memoryless rows
     come from the first mode's campaigns (memoryless through the same loop: the same starts
-    and data)."""
+    and data). ``params``: GLRM parameters over the recommended ones (e.g. ``spatial``)."""
     from lrm_cvx import GLRM, evaluate
     from lrm_cvx.evaluation import summary
 
@@ -100,11 +100,14 @@ def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
     frames, times = [], {}
     for temporal in modes:
         t0 = time.perf_counter()
-        model = GLRM(**recommended_params(temporal=temporal)).fit(train)
+        model = GLRM(**recommended_params(temporal=temporal, **params)).fit(train)
         t1 = time.perf_counter()
         if temporal == "auto":
             print(f"[{name}] temporal='auto' chose {model.selection_.attrs['choice']!r}",
                   flush=True)
+        if getattr(model, "kernel_selection_", None) is not None:
+            print(f"[{name}] spatial='auto' chose "
+                  f"{model.kernel_selection_.attrs['choice']!r}", flush=True)
         res = evaluate(data, model=model, n_test=N_TEST, budgets=budgets, n_starts=n_starts,
                        methods=(RECOMMENDED,) + BASELINES, random_trials=random_trials,
                        min_observations=1, certify=False, progress=False, temporal=temporal,
@@ -345,6 +348,8 @@ def main() -> None:
     ap.add_argument("--modes", default="auto",
                     help="temporal models run, comma-separated (default auto, the recommended "
                          "setting; ar1,seasonal,auto adds the fixed kinds)")
+    ap.add_argument("--spatial", default=None,
+                    help="the GLRM's spatial= instead of the recommended one (e.g. auto)")
     ap.add_argument("--forecast", action="store_true",
                     help="posterior vs forecast map MSE of the campaigns (forecast_vs_posterior)")
     args = ap.parse_args()
@@ -405,7 +410,8 @@ def main() -> None:
     for name in names:
         t0 = time.perf_counter()
         tidy, times = run_set(name, budgets, n_starts, trials, args.out, args.jobs,
-                              modes=tuple(m.strip() for m in args.modes.split(",")))
+                              modes=tuple(m.strip() for m in args.modes.split(",")),
+                              **({"spatial": args.spatial} if args.spatial else {}))
         table = report(name, tidy)
         tables.append(table)
         with pd.option_context("display.width", 250, "display.max_columns", 30):

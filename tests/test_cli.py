@@ -171,16 +171,18 @@ def test_choices_come_from_the_library_constants():
     assert tuple(_choices("plan", "criterion")) == tuple(CRITERIA)
     assert tuple(_choices("evaluate", "criterion")) == tuple(CRITERIA)
     assert tuple(_choices("plan", "cost")) == tuple(COSTS)
-    assert tuple(_choices("fit", "spatial")) == tuple(MODELS)
-    assert tuple(_choices("evaluate", "spatial")) == tuple(MODELS)
+    assert tuple(_choices("fit", "spatial")) == (*MODELS, "auto")
+    assert tuple(_choices("evaluate", "spatial")) == (*MODELS, "auto")
     assert sorted(_choices("fit", "loss")) == sorted(LOSSES)
     assert [None if c == "none" else c for c in _choices("predict", "prior")] == list(PRIORS)
 
 
 def test_fit_recommended_is_the_documented_setting(sst_model):
     model = GLRM.load(sst_model)
-    assert model.offset is True and model.spatial == cli.RECOMMENDED["spatial"] == "exponential"
+    assert model.offset is True and model.spatial == cli.RECOMMENDED["spatial"] == "auto"
     assert model.spatial_cov_ is not None and model.offset_ is not None
+    table = model.kernel_selection_  # the family validated on the residuals, saved
+    assert model.spatial_cov_.model == table.attrs["choice"] in table["kernel"].values
     assert model.temporal == cli.RECOMMENDED["temporal"] == "auto"
     assert model.selection_.attrs["choice"] in model.selection_["candidate"].values
 
@@ -194,6 +196,7 @@ def test_fit_prints_the_temporal_choice(tmp_path, capsys):
     assert f"temporal='auto' chose {model.selection_.attrs['choice']!r}" in out
     for candidate in model.selection_["candidate"].values:
         assert f"\n{candidate} " in out  # one row per candidate
+    assert f"spatial='auto' chose {model.kernel_selection_.attrs['choice']!r}" in out
 
 
 @pytest.mark.parametrize("flags, python", [

@@ -238,6 +238,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
         from .glrm.selection import format_selection
 
         print(format_selection(model.selection_))
+    if getattr(model, "kernel_selection_", None) is not None:
+        from .glrm.kernel_selection import format_kernel_selection
+
+        print(format_kernel_selection(model.kernel_selection_))
     return 0
 
 
@@ -613,8 +617,9 @@ def _add_model_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
                    if RECOMMENDED.get("scale") else "fit a per-cell scale")
     p.add_argument("--noise", choices=NOISE_MODELS, default=None,
                    help=f"noise model ({default('noise', _first(NOISE_MODELS))})")
-    p.add_argument("--spatial", choices=MODELS, default=None, metavar="KERNEL",
-                   help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)}; "
+    p.add_argument("--spatial", choices=(*MODELS, "auto"), default=None, metavar="KERNEL",
+                   help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)}, or "
+                   "auto: the family validated on the training residuals; "
                    f"{default('spatial', 'none')})")
     p.add_argument("--temporal", choices=[t or "none" for t in TEMPORAL], default=None,
                    help="latent dynamics for persistent monitoring (docs/monitoring.md): auto "

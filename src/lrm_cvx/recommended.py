@@ -1,6 +1,8 @@
 """The recommended setting of docs/reconstruction.md: one dict that the CLI and the demo read.
 
-Fit ``GLRM(offset=True, spatial="exponential")``, plan with the gp-variance criterion from the
+Fit ``GLRM(offset=True, spatial="auto")`` (the residual's covariance family validated on the
+training residuals: the exponential unless a smoother one is better by 2 %,
+glrm/kernel_selection.py), plan with the gp-variance criterion from the
 start cell alone (``method`` is its name in ``evaluate``), predict with the empirical prior and
 the kriged GP residual (``fold_spatial``); a model for monitoring chooses its temporal model on
 the training snapshots (``temporal="auto"``, glrm/selection.py) and calibrates its intervals
@@ -17,7 +19,7 @@ from typing import Any
 __all__ = ["RECOMMENDED"]
 
 RECOMMENDED: dict[str, Any] = {
-    "offset": True, "spatial": "exponential", "criterion": "gp-variance",
+    "offset": True, "spatial": "auto", "criterion": "gp-variance",
     "method": "greedy:gp-variance", "initial": "start", "prior": "empirical",
     "fold_spatial": True, "temporal": "auto",
     # conformal intervals from forward folds of the training snapshots; the maps and plans are

@@ -400,7 +400,7 @@ def refit_dynamics(model: Any, sub: Any, kind: str, times: Any) -> Any:
     by the ``temporal="auto"`` choice's ``alpha`` or ``select_dynamics``'
     (``dynamics_alpha_``). None when ``sub``'s history cannot carry the kind (a season on
     less than two years)."""
-    from .selection import kind_dynamics
+    from .dynamics import kind_dynamics
 
     base = kind_dynamics(kind, sub, times)
     if base is None:

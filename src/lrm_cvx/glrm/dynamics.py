@@ -28,7 +28,7 @@ from ..registry import Registry
 
 __all__ = ["Dynamics", "estimate_ar1", "estimate_seasonal", "TEMPORAL", "temporal_value",
            "time_numbers", "rts_smooth", "check_times", "seasons", "error_rows",
-           "blend_moments", "foldin_covs"]
+           "blend_moments", "foldin_covs", "kind_dynamics"]
 
 TEMPORAL = Registry("temporal", ModelError)
 """The temporal models (``GLRM(temporal=...)``, ``evaluate``, campaigns, the CLI's
@@ -619,6 +619,21 @@ def estimate(temporal: str, X: Any, times: Any, shrinkage: float = 1e-3,
         raise ModelError("temporal='auto' is chosen by GLRM.fit from the training snapshots "
                          "(glrm/selection.py); estimate needs 'ar1' or 'seasonal'")
     return TEMPORAL.get(kind)(X, times, shrinkage, initial_cov, validation, error_cov)
+
+
+def kind_dynamics(kind: str, model: Any, times: Any) -> Dynamics | None:
+    """The unblended dynamics of ``kind`` for a fitted ``model`` with AR(1) ``dynamics_``
+    (their shrinkage, initial and error covariances do not depend on the kind; ``times`` its
+    time coordinate), or None when the record cannot carry that kind (a season on yearly data
+    or on less than two years): how ``temporal="auto"`` and the calibration's refits get each
+    candidate's dynamics."""
+    base = model.dynamics_
+    try:
+        return estimate(kind, model._Xv, times, shrinkage=base.shrinkage,
+                        initial_cov=base.initial_cov, validation=None,
+                        error_cov=getattr(base, "error_cov", None))
+    except ModelError:
+        return None
 
 
 def rts_smooth(G: Any, b: Any, A: Any, Q: Any, mean: Any = None, P0: Any = None

@@ -31,11 +31,13 @@ from .modelfile import (
     params_from_json,
     params_to_json,
     read_model_file,
+    restore_validation_tables,
+    validation_tables,
 )
 from .posterior import LatentPosterior, fold_in_snapshots, model_prior
 from .predictive import PREDICTIVE_ATTRS, fit_predictive
 from .regularizers import get_regularizer
-from .selection import check_auto_data, selection_from_dataset, selection_vars
+from .selection import check_auto_data
 
 __all__ = ["GLRM"]
 
@@ -70,9 +72,10 @@ class GLRM:
     noise : ``"global"`` (the paper: one ``noise_std_``) or ``"per-cell"`` (``noise_var_``,
         per-cell training residual variance shrunk towards the global one; weights the fold-in
         and the planner's information).
-    spatial : None or a covariance model name (``"exponential"``, ``"matern32"``, ...): fit a
-        stationary covariance of the training residuals (``spatial_cov_``) for the low-rank
-        trend + GP residual prediction, ``complete(..., spatial=True)``.
+    spatial : None, a covariance model name (``"exponential"``, ``"matern32"``, ...) or
+        ``"auto"`` (the family validated on the training residuals, ``kernel_selection_``,
+        :mod:`~lrm_cvx.glrm.kernel_selection`): fit a stationary covariance of the training
+        residuals (``spatial_cov_``) for the trend + GP residual prediction.
     temporal : None (default: snapshots independent), ``"ar1"`` or ``"seasonal"``: after the
         fit, estimate linear-Gaussian dynamics of the latent columns of ``X_`` (``dynamics_``,
         :mod:`~lrm_cvx.glrm.dynamics`, docs/monitoring.md) for :meth:`monitor`. Needs a sorted,
@@ -539,10 +542,7 @@ class GLRM:
         """A :class:`~lrm_cvx.monitor.MonitorState` positioned after the last fitted snapshot
         (or at ``time``), filtering with ``dynamics_``; a model without dynamics gives the
         memoryless filter (every day's prior is the empirical prior). ``options``:
-        ``dynamics``, ``spatial``, ``memoryless`` of ``MonitorState.from_model``.
-        See docs/monitoring.md.
-
-        Deprecated: use ``lrm_cvx.monitor.MonitorState.from_model(model, ...)`` (the model
+        ``dynamics``, ``spatial``, ``memoryless`` of ``MonitorState.from_model``. Deprecated: use ``lrm_cvx.monitor.MonitorState.from_model(model, ...)`` (the model
         layer does not import the monitoring layer above it); removed in the next release."""
         from ..monitor import MonitorState  # the deprecated shim's upward import
 
@@ -780,9 +780,9 @@ class GLRM:
             attrs.update(dyn_attrs)
         if getattr(self, "calibration_", None) is not None:
             attrs.update(self.calibration_.to_attrs())
-        if getattr(self, "selection_", None) is not None:
-            sel = selection_vars(self.selection_)
-            ds, attrs = xr.merge([ds, sel], combine_attrs="override"), {**attrs, **sel.attrs}
+        for table in validation_tables(self):  # temporal= / spatial="auto"'s choices
+            ds = xr.merge([ds, table], combine_attrs="override")
+            attrs.update(table.attrs)
         if warn_custom:
             attrs["note"] = ("custom callable regularisers cannot be saved; their repr is stored "
                              f"in params ({', '.join(warn_custom)})")
@@ -829,7 +829,7 @@ class GLRM:
         from .calibrated import Calibration
 
         model.calibration_ = Calibration.from_attrs(ds.attrs)
-        model.selection_ = selection_from_dataset(ds)
+        restore_validation_tables(model, ds)
         return model
 
 

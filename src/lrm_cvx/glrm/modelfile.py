@@ -18,12 +18,37 @@ from .._validation import read_netcdf
 from ..errors import DataError
 
 __all__ = ["MODEL_FORMAT", "MODEL_FORMAT_VERSION", "MODEL_VARS", "MODEL_ATTRS",
-           "read_model_file", "params_to_json", "params_from_json"]
+           "read_model_file", "params_to_json", "params_from_json", "validation_tables",
+           "restore_validation_tables"]
 
 MODEL_FORMAT = "lrm-cvx GLRM"
 MODEL_FORMAT_VERSION = 1
 MODEL_VARS = ("X", "Y", "objective", "unobserved_cells")
 MODEL_ATTRS = ("params", "noise_std", "n_iter", "converged", "n_observed")
+
+
+def validation_tables(model: object) -> list[xr.Dataset]:
+    """The validated choices' tables of a fitted model, renamed for its file: ``selection_``
+    (``temporal="auto"``) and ``kernel_selection_`` (``spatial="auto"``)."""
+    from .kernel_selection import kernel_selection_vars
+    from .selection import selection_vars
+
+    out = []
+    for attr, to_vars in (("selection_", selection_vars),
+                          ("kernel_selection_", kernel_selection_vars)):
+        table = getattr(model, attr, None)
+        if table is not None:
+            out.append(to_vars(table))
+    return out
+
+
+def restore_validation_tables(model: object, ds: xr.Dataset) -> None:
+    """Set ``selection_`` and ``kernel_selection_`` from a model file (None when absent)."""
+    from .kernel_selection import kernel_selection_from_dataset
+    from .selection import selection_from_dataset
+
+    model.selection_ = selection_from_dataset(ds)
+    model.kernel_selection_ = kernel_selection_from_dataset(ds)
 
 
 def params_to_json(params: dict) -> tuple[str, list[str]]:

@@ -46,8 +46,9 @@ def _check_params(model: Any) -> None:
     if model.noise not in NOISE_MODELS:
         raise ModelError(f"noise must be one of {NOISE_MODELS}, got {model.noise!r}")
     _check_calibration(getattr(model, "calibration", None))
-    if model.spatial is not None and model.spatial not in MODELS:
-        raise ModelError(f"spatial must be None or one of {MODELS}, got {model.spatial!r}")
+    if model.spatial is not None and model.spatial not in (*MODELS, "auto"):
+        raise ModelError(f"spatial must be None, 'auto' or one of {MODELS}, got "
+                         f"{model.spatial!r}")
 
 
 def _check_calibration(value: Any) -> None:
@@ -118,14 +119,19 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
     computes the same statistics chunk by chunk."""
     model.offset_, model.scale_ = offset, scale
     model.noise_var_ = None
-    model.spatial_cov_ = None
+    model.spatial_cov_ = model.kernel_selection_ = None
     if model.noise == "per-cell":
         sse, cnt = moments
         total = float(sse.sum())
         inflate = model.noise_std_ ** 2 * max(int(cnt.sum()), 1) / total if total > 0 else 1.0
         model.noise_var_ = shrink_noise(sse * inflate, cnt, model.noise_std_ ** 2,
                                         NOISE_PRIOR_DF)
-    if model.spatial is not None:
+    if model.spatial == "auto":  # the kernel validated on the residuals (kernel_selection.py)
+        from .kernel_selection import select_kernel
+
+        model.spatial_cov_, model.kernel_selection_ = select_kernel(
+            sample, region, seed=model.random_state)
+    elif model.spatial is not None:
         from ..spatial import fit_residual_covariance
 
         model.spatial_cov_ = fit_residual_covariance(sample, region, model=model.spatial,

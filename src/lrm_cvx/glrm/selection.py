@@ -42,8 +42,9 @@ import xarray as xr
 from .._blas import single_threaded_blas
 from .._validation import as_generator
 from ..errors import ModelError
+from .dynamics import kind_dynamics
 
-__all__ = ["select_temporal", "kind_dynamics", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
+__all__ = ["select_temporal", "paired_choice", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
            "MIN_AUTO_SNAPSHOTS", "MAX_SCORED",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection",
            "selection_vars",
@@ -114,21 +115,6 @@ def _check_regular(times: Any, name: str) -> None:
             f"temporal='auto' needs regularly spaced snapshots: only {int(regular.sum())} of "
             f"{d.size} steps of {name} are the median step ({step:g}); use temporal=None, or "
             f"resample the record to a regular step")
-
-
-def kind_dynamics(kind: str, sub: Any, times: Any) -> Any:
-    """The unblended dynamics of ``kind`` of the refitted ``sub`` (fitted with ``"ar1"``: its
-    initial and error covariances do not depend on the kind), or None when the record cannot
-    carry that kind (e.g. a season on yearly data)."""
-    from .dynamics import estimate
-
-    base = sub.dynamics_
-    try:
-        return estimate(kind, sub._Xv, times, shrinkage=base.shrinkage,
-                        initial_cov=base.initial_cov, validation=None,
-                        error_cov=getattr(base, "error_cov", None))
-    except ModelError:
-        return None
 
 
 def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarray,
@@ -278,16 +264,21 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     return _rule(E, labels, meta, sizes, designs, confidence, tolerance, skipped)
 
 
-def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
-          designs: Sequence[str], confidence: float, tolerance: float,
-          skipped: set[str]) -> xr.Dataset:
-    """The validation table and the choice of :func:`select_temporal` from the day errors
-    ``E (n_candidates, n_sizes, n_days)`` (candidate 0 is memoryless)."""
-    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)  # a day no map was scored: left out
-    n_days = int(np.isfinite(E[0]).all(axis=0).sum())
-    if n_days < 2:
-        raise ModelError("temporal='auto' scored fewer than 2 validation days (is the data "
-                         "mostly missing?)")
+def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
+                  what: str = "the selection") -> tuple:
+    """The rule of the validated choices (``temporal="auto"``, ``spatial="auto"``) on paired
+    errors ``E (n_candidates, n_sizes, n_cases)`` (candidate 0 the reference; a case NaN for
+    any candidate is left out): per candidate and size the mean error ``ratio`` to the
+    reference and ``ucb``, the one-sided upper confidence bound (``confidence`` standard errors
+    of the paired differences) of the relative change; a candidate is ``admissible`` when its
+    ``ucb`` is at most ``tolerance`` at every size (the reference always is); ``best`` is the
+    admissible one with the lowest worst ratio. Returns ``(ratio, ucb, admissible, best,
+    n_cases)``; ModelError when fewer than 2 cases were scored."""
+    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)
+    n_cases = int(np.isfinite(E[0]).all(axis=0).sum())
+    if n_cases < 2:
+        raise ModelError(f"{what} scored fewer than 2 validation cases (is the data mostly "
+                         "missing?)")
     base = np.nanmean(E[0], axis=-1)
     D = E - E[0]
     n = np.isfinite(E[0]).sum(axis=-1)  # (size,)
@@ -297,6 +288,17 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
     admissible = ucb.max(axis=1) <= float(tolerance)
     admissible[0] = True
     best = int(np.argmin(np.where(admissible, ratio.max(axis=1), np.inf)))
+    return ratio, ucb, admissible, best, n_cases
+
+
+def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
+          designs: Sequence[str], confidence: float, tolerance: float,
+          skipped: set[str]) -> xr.Dataset:
+    """The validation table and the choice of :func:`select_temporal` from the day errors
+    ``E (n_candidates, n_sizes, n_days)`` (candidate 0 is memoryless)."""
+    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)  # a day no map was scored: left out
+    ratio, ucb, admissible, best, n_days = paired_choice(E, confidence, tolerance,
+                                                         "temporal='auto'")
     kind, alpha = meta[labels[best]]
     ds = xr.Dataset(
         {"mse": (("candidate", "size"), np.nanmean(E, axis=-1)),

@@ -1,0 +1,172 @@
+"""A spatial residual kernel that validates itself: ``GLRM(spatial="auto")`` (issue #24, item 1).
+
+Which covariance family interpolates a record's residual best (the rough exponential, the
+smoother Matern 3/2 and 5/2, the very smooth Gaussian) is an empirical question, answered here
+on the training residuals the fit already holds (``residual_sample``: up to 20 evenly spaced
+snapshots of data minus the low-rank reconstruction), the way campaigns use the kernel:
+
+* every family is fitted to the same residuals' variogram (:func:`~lrm_cvx.spatial.
+  fit_residual_covariance`, the nugget bounded below by the sub-cell variation, as for a fixed
+  kernel);
+* each residual snapshot is sampled as campaigns sample (a clustered route, a straight transect
+  and scattered cells: :func:`~lrm_cvx.glrm.calibration.sample_sets`), once per design and size
+  of :data:`~lrm_cvx.glrm.selection.AUTO_SIZES`, the same cells for every family (paired);
+* the score is the MSE of the kriged residual at (at most :data:`~lrm_cvx.glrm.selection.
+  MAX_SCORED` random) held-out observed cells: the part of the map the kernel decides;
+* rule (the one of ``temporal="auto"``, :func:`~lrm_cvx.glrm.selection.paired_choice`): a
+  family is admissible when the upper confidence bound of its MSE change against the
+  exponential (the recommended default) is at most ``-MIN_GAIN`` (2 %) at every size; the
+  admissible family with the lowest worst ratio wins.
+
+The residuals are those of the fit itself, so no refit is needed (a few kriging calls: cheap
+beside the fit); the factors saw these snapshots, but every family is scored on the same
+residuals, whose spatial structure is what the kernel models. The result is an
+``xarray.Dataset`` (``model.kernel_selection_``, saved with the model).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from .._validation import as_generator
+from ..errors import DataError
+
+__all__ = ["select_kernel", "AUTO_KERNELS", "DEFAULT_KERNEL", "MIN_GAIN", "format_kernel_selection",
+           "kernel_selection_vars", "kernel_selection_from_dataset"]
+
+AUTO_KERNELS = ("exponential", "matern32", "matern52", "gaussian")
+"""The covariance families ``spatial="auto"`` compares."""
+DEFAULT_KERNEL = "exponential"
+"""The reference family (the recommended one): another must beat it with confidence."""
+MIN_GAIN = 0.02
+"""The relative gain (kriged residual MSE, upper confidence bound, at every size) another family
+must show over the exponential to replace it: a switch changes the planner's routes too, and
+on the monthly SST record a 1 % validated gain of Matern 3/2 came with a 9 % loss at budget 15
+in the campaigns (docs/spatial.md)."""
+_PREFIX = "kernel_selection_"
+
+
+def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence[int],
+                    designs: Sequence[str], rng: np.random.Generator,
+                    max_scored: int) -> np.ndarray:
+    """MSE ``(n_kernels, n_sizes, n_rows * n_designs)`` of the simple-kriged residual at
+    held-out cells of each row of ``R (n_rows, L)`` (NaN: unobserved), from one sample set
+    per row, size and design (case ``i * n_designs + j``: row ``i``, ``designs[j]``), the same
+    cells for every covariance of ``covs``."""
+    from .. import spatial as sp
+    from .calibration import sample_sets
+
+    nd = len(designs)
+    err = np.full((len(covs), len(sizes), R.shape[0] * nd), np.nan)
+    metric = covs[0].metric
+    for i, r in enumerate(R):  # a loop over the (at most 20) residual snapshots
+        ok = np.isfinite(r)
+        for s_i, size in enumerate(sizes):
+            for j, design in enumerate(designs):
+                cells = sample_sets(region, ok, size, design, rng)
+                held = ok.copy()
+                held[cells] = False
+                h = np.flatnonzero(held)
+                if h.size > max_scored:
+                    h = np.sort(rng.choice(h, max_scored, replace=False))
+                if cells.size == 0 or h.size == 0:
+                    continue
+                obs_xyz = sp.cell_xyz(region, metric, cells)
+                tgt_xyz = sp.cell_xyz(region, metric, h)
+                z = r[cells].astype(np.float64)[:, None]
+                meth = "direct" if cells.size <= sp.MAX_DIRECT else "neighbors"
+                for c_i, cov in enumerate(covs):
+                    mu, _ = sp.krige_core(cov, obs_xyz, z, tgt_xyz, method=meth, neighbors=32,
+                                          cutoff=1e-6, want_var=False)
+                    err[c_i, s_i, i * nd + j] = float(np.mean((mu[0] - r[h]) ** 2))
+    return err
+
+
+def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KERNELS,
+                  sizes: Sequence[int] | None = None, designs: Sequence[str] | None = None,
+                  confidence: float = 1.645, tolerance: float = -MIN_GAIN,
+                  seed: Any = 0) -> tuple[Any, xr.Dataset]:
+    """Fit each of ``kernels`` to the residual ``sample`` ``(n_rows, L)`` (data minus the
+    low-rank reconstruction, fit units, NaN unobserved; ``region`` its grid) and choose one by
+    design-matched kriging cross-validation (module docstring). Returns ``(covariance,
+    table)``: the chosen :class:`~lrm_cvx.spatial.ResidualCovariance` and a Dataset over
+    ``kernel`` and ``size`` with ``mse``, ``ratio`` (to :data:`DEFAULT_KERNEL`), ``ucb``,
+    ``admissible``, the fitted ``sill``, ``range``, ``nugget`` per kernel; attributes
+    ``choice``, ``n_rows`` (residual snapshots), ``n_cases`` (sample sets per size),
+    ``designs``. ``tolerance`` (default ``-MIN_GAIN``): another family must be better by
+    :data:`MIN_GAIN` with confidence, not only as good."""
+    from ..spatial import fit_residual_covariance
+    from .selection import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
+
+    kernels = list(dict.fromkeys([DEFAULT_KERNEL, *kernels]))  # the reference first
+    R = np.asarray(sample, dtype=np.float64)
+    if R.ndim != 2 or not np.isfinite(R).any():
+        raise DataError("spatial='auto' needs finite training residuals to compare kernels")
+    designs = list(AUTO_DESIGNS if designs is None else designs)
+    n_obs = float(np.median(np.isfinite(R).sum(axis=1)))
+    sizes = [int(s) for s in (AUTO_SIZES if sizes is None else sizes) if int(s) <= n_obs / 2]
+    sizes = sizes or [max(1, int(n_obs / 4))]
+    covs = [fit_residual_covariance(R, region, model=k, random_state=0, min_nugget="cell")
+            for k in kernels]
+    E = _kriging_errors(covs, R, region, sizes, designs, as_generator(seed), MAX_SCORED)
+    ratio, ucb, admissible, best, n_rows = paired_choice(E, confidence, tolerance,
+                                                         "spatial='auto'")
+    ds = xr.Dataset(
+        {"mse": (("kernel", "size"), np.nanmean(E, axis=-1)),
+         "ratio": (("kernel", "size"), ratio),
+         "ucb": (("kernel", "size"), ucb),
+         "admissible": (("kernel",), admissible),
+         "sill": (("kernel",), [c.sill for c in covs]),
+         "range": (("kernel",), [c.range for c in covs]),
+         "nugget": (("kernel",), [c.nugget for c in covs])},
+        coords={"kernel": kernels, "size": sizes})
+    ds["mse"].attrs["long_name"] = "mean MSE of the kriged residual at held-out cells"
+    ds["ratio"].attrs["long_name"] = f"MSE ratio to the {DEFAULT_KERNEL} kernel"
+    ds["ucb"].attrs["long_name"] = "upper confidence bound of the relative MSE change"
+    ds.attrs.update(choice=kernels[best], n_rows=R.shape[0], n_cases=int(n_rows),
+                    designs=",".join(designs),
+                    confidence=float(confidence), tolerance=float(tolerance))
+    return covs[best], ds
+
+
+def format_kernel_selection(table: xr.Dataset) -> str:
+    """The kernel validation table as text (the CLI prints it)."""
+    sizes = [int(s) for s in table["size"].values]
+    lines = [f"spatial='auto' chose {table.attrs['choice']!r} (kriged residual MSE on "
+             f"{table.attrs['n_rows']} training snapshots, designs {table.attrs['designs']})",
+             f"{'kernel':<13}" + "".join(f"{'MSE@' + str(s):>12}" for s in sizes)
+             + f"{'range':>10}{'worst ratio':>13}  admissible"]
+    for i, k in enumerate(table["kernel"].values):
+        mark = " *" if k == table.attrs["choice"] else ""
+        ok = "yes" if bool(table["admissible"].values[i]) else "no"
+        lines.append(f"{k:<13}" + "".join(f"{v:12.4g}" for v in table["mse"].values[i])
+                     + f"{float(table['range'].values[i]):10.3g}"
+                     + f"{float(table['ratio'].values[i].max()):13.3f}  {ok}{mark}")
+    return "\n".join(lines)
+
+
+def kernel_selection_vars(table: xr.Dataset) -> xr.Dataset:
+    """``table`` renamed for a model file (variables, dims and attributes prefixed)."""
+    names = {v: _PREFIX + v for v in [*table.data_vars, *table.coords]}
+    out = table.rename(names)
+    out.attrs = {_PREFIX + k: v for k, v in table.attrs.items()}
+    return out
+
+
+def kernel_selection_from_dataset(ds: xr.Dataset) -> xr.Dataset | None:
+    """The table stored in a model file by :func:`kernel_selection_vars` (None if none)."""
+    if _PREFIX + "mse" not in ds:
+        return None
+    names = [n for n in [*ds.data_vars, *ds.coords] if str(n).startswith(_PREFIX)]
+    out = ds[names].rename({n: str(n)[len(_PREFIX):] for n in names})
+    out["admissible"] = out["admissible"].astype(bool)
+    out.attrs = {k[len(_PREFIX):]: v for k, v in ds.attrs.items() if k.startswith(_PREFIX)}
+    for key in ("n_rows", "n_cases"):
+        out.attrs[key] = int(out.attrs[key])
+    for key in ("confidence", "tolerance"):
+        out.attrs[key] = float(out.attrs[key])
+    return out.load()
