@@ -539,11 +539,10 @@ class GLRM:
         return self
 
     def monitor(self, time: Any = None, **options: Any) -> Any:
-        """A :class:`~lrm_cvx.monitor.MonitorState` positioned after the last fitted snapshot
-        (or at ``time``), filtering with ``dynamics_``; a model without dynamics gives the
-        memoryless filter (every day's prior is the empirical prior). ``options``:
-        ``dynamics``, ``spatial``, ``memoryless`` of ``MonitorState.from_model``. Deprecated: use ``lrm_cvx.monitor.MonitorState.from_model(model, ...)`` (the model
-        layer does not import the monitoring layer above it); removed in the next release."""
+        """Deprecated (removed in the next release): ``lrm_cvx.monitor.MonitorState.from_model(
+        model, time, **options)``, a state after the last fitted snapshot (or at ``time``)
+        filtering with ``dynamics_`` (memoryless without); the model layer does not import the
+        monitoring layer above it."""
         from ..monitor import MonitorState  # the deprecated shim's upward import
 
         warnings.warn("GLRM.monitor() is deprecated: use "
