@@ -6,7 +6,7 @@
     python benchmarks/bench_placement.py --paper-only    # the 2.1M-cell figure only
 
 **Accuracy.** On the six real records of ``benchmarks/generalization_data.py`` (none bundled),
-the protocol of ``bench_generalization.py``: ``GLRM(5, offset=True, spatial="exponential")``
+the protocol of ``bench_generalization.py``: ``GLRM(5, offset=True, spatial="auto")``
 fitted on all but the last 8 snapshots; every placement is scored by the same predictor, the
 recommended fold-in (``complete(prior="empirical", spatial=True)``: ``fold_in_snapshots`` of
 ``model.latent_prior("empirical", spatial=True)``) from the sensors' values, as the test MSE
