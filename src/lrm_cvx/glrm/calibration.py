@@ -204,7 +204,8 @@ def clone_model(model: Any, **override: Any):
     return type(model)(**params)
 
 
-def training_values(model: Any, data: Any):
+def training_values(model: Any, data: Any, dtype: Any = np.float64):
+    """``(region, V)``: the model's region and ``data`` stacked to ``V (T, L)`` of ``dtype``."""
     import xarray as xr
 
     if not isinstance(data, xr.DataArray) or data.ndim != 3:
@@ -212,7 +213,7 @@ def training_values(model: Any, data: Any):
     region = getattr(model, "region_", None)
     if region is None:
         raise ModelError("calibration needs a model fitted on a DataArray (with a region)")
-    return region, region.stack(data).astype(np.float64)
+    return region, region.stack(data).astype(dtype, copy=False)
 
 
 def _use_spatial(model: Any, spatial: bool | None) -> bool:
