@@ -127,12 +127,14 @@ def _route(region: Any, observed: np.ndarray, n_obs: int, centre: int, size: int
         cells = win[rr, cc]
         keep = observed[cells]
         cells, rr, cc = cells[keep], rr[keep] + (r_lo - r0), cc[keep] + (c_lo - c0)
-        if cells.size >= size:
+        whole = win.shape == (ny, nx)
+        if cells.size >= size or whole:
+            m = min(size, cells.size)
             d = rr * rr + cc * cc
-            dk = int(np.partition(d, size - 1)[size - 1])
+            dk = int(np.partition(d, m - 1)[m - 1])
             # a cell outside the window is at least (R + 1)^2 away: the nearest are inside
-            if dk < (R + 1) ** 2 or win.shape == (ny, nx):
-                return _nearest(cells, d, size, rng)
+            if dk < (R + 1) ** 2 or whole:
+                return _nearest(cells, d, m, rng)
             R = int(np.ceil(np.sqrt(dk)))  # the next window holds every cell within dk
         else:
             R *= 2
