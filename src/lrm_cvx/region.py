@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Literal
 
 import numpy as np
@@ -174,6 +175,13 @@ class Region:
         grid = np.full(self.shape[0] * self.shape[1], -1, dtype=np.int64)
         grid[self._flat] = np.arange(self.n_cells)
         return grid.reshape(self.shape)
+
+    @cached_property
+    def cell_lookup(self) -> np.ndarray:
+        """:attr:`cell_grid` built once and read-only (for repeated neighbourhood look-ups)."""
+        grid = self.cell_grid
+        grid.setflags(write=False)
+        return grid
 
     def __repr__(self) -> str:
         ny, nx = self.shape

@@ -201,7 +201,10 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     from .calibration import clone_model, training_values
     from .dynamics import TEMPORAL, check_times
 
-    region, V = training_values(model, data)
+    # one stacking pass, float32 as region.stack gives it (the scoring promotes the values
+    # exactly; the refits read it as a (time, cell) DataArray, not gathered again)
+    region, V = training_values(model, data, dtype=np.float32)
+    V.setflags(write=False)  # a refit must not zero-fill it in place
     T = V.shape[0]
     if T < MIN_AUTO_SNAPSHOTS:
         raise ModelError(f"temporal='auto' needs at least {MIN_AUTO_SNAPSHOTS} training "
@@ -237,8 +240,8 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
         lo = end - n_val
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sub = clone_model(model, temporal="ar1").fit(data.isel({tdim: slice(None, lo)}),
-                                                     region=region)
+            before = xr.DataArray(V[:lo], dims=(tdim, "cell"), coords={tdim: all_times[:lo]})
+            sub = clone_model(model, temporal="ar1").fit(before, region=region)
         sub.calibration_ = None
         sub_times = all_times[:lo]
         labels, dyns = ["none"], [None]
