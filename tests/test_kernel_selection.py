@@ -124,3 +124,12 @@ def test_auto_is_saved_and_loaded(tmp_path):
 def test_bad_spatial_names_auto_in_the_error():
     with pytest.raises(ModelError, match="'auto'"):
         _fit(_field("exponential", 3.0, T=6, n=6), "spline")
+
+
+def test_refits_keep_the_chosen_family():
+    from lrm_cvx.glrm.calibration import clone_model
+
+    model = _fit(_field("gaussian", 4.0, T=20, n=12), "auto")
+    refit = clone_model(model)
+    assert refit.spatial == model.kernel_selection_.attrs["choice"] != "auto"
+    assert clone_model(GLRM(2, spatial="auto")).spatial == "auto"  # unfitted: still auto

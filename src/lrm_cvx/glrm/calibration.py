@@ -198,10 +198,15 @@ def _nearest(cells: np.ndarray, d: np.ndarray, size: int,
 # ----------------------------------------------------------------------------- estimation
 def clone_model(model: Any, **override: Any):
     """An unfitted copy of ``model`` (its class and parameters, ``override`` applied; a
-    refit never calibrates itself: ``calibration`` None unless overridden)."""
+    refit never calibrates itself: ``calibration`` None unless overridden, and a fitted
+    ``spatial="auto"`` model's refits keep the family it chose, ``kernel_selection_``: the
+    kernel is shared by every candidate a refit compares, and choosing it again per refit
+    would cost four variogram fits each)."""
     params = model.get_params()
     if "calibration" in params:
         params["calibration"] = None
+    if params.get("spatial") == "auto" and getattr(model, "spatial_cov_", None) is not None:
+        params["spatial"] = model.spatial_cov_.model
     params = {**params, "progress": False, **override}
     return type(model)(**params)
 
