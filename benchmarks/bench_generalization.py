@@ -10,7 +10,8 @@ The data sets are those of ``benchmarks/generalization_data.py`` (data shipped i
 Debian packages; that module's docstring has the install commands). Per set, the issue's
 protocol: rank 5, the last 8 snapshots held out, the recommended setting
 (``lrm_cvx.recommended.RECOMMENDED``'s model keys, :func:`recommended_params`: offset,
-exponential spatial residual, ``temporal="auto"``, ``calibration="conformal"``; empirical prior
+``spatial="auto"`` (the residual's family validated on the training residuals),
+``temporal="auto"``, ``calibration="conformal"``; empirical prior
 with kriging for every method's map, ``greedy:gp-variance``), against the four transects and
 the random walk from the same starts.
 
@@ -199,9 +200,10 @@ def rolling_coverage(data, n_origins: int = 3, block: int = N_TEST, budget: int 
     """Coverage of the greedy's intervals on ``n_origins`` rolling test blocks (module
     docstring): one row per block and calibration variant, with ``cov68``, ``cov95`` (mean
     over the block's campaigns and snapshots) and the calibration's cost in seconds.
-    ``temporal="auto"``: the recommended model (its ``temporal="auto"`` choice made on the
-    snapshots before the block) and its filter's campaigns, the variants of
-    :func:`filter_variants`."""
+    ``temporal="auto"``: the recommended model (its ``temporal="auto"`` and ``spatial``
+    choices made on the snapshots before the block), the recommended calibration's keywords
+    (``RECOMMENDED["calibration"]``, ``calibrate_kw`` ignored) and its filter's campaigns, the
+    variants of :func:`filter_variants`."""
     from lrm_cvx import GLRM, evaluate
     from lrm_cvx.evaluation import summary
 
@@ -216,9 +218,14 @@ def rolling_coverage(data, n_origins: int = 3, block: int = N_TEST, budget: int 
         else:
             model = GLRM(**recommended_params(temporal=temporal, calibration=None)).fit(train)
         t0 = time.perf_counter()
-        kw = CALIBRATE_KW if calibrate_kw is None else calibrate_kw
-        variants = (calibrated_variants if temporal is None else filter_variants)(
-            model, train, seed=seed, **kw)
+        if temporal is None:
+            kw = CALIBRATE_KW if calibrate_kw is None else calibrate_kw
+            variants = calibrated_variants(model, train, seed=seed, **kw)
+        else:  # the recommended calibration's own keywords (intervals only)
+            from lrm_cvx.recommended import RECOMMENDED as SETTING
+
+            kw = {k: v for k, v in SETTING["calibration"].items() if k != "method"}
+            variants = filter_variants(model, train, seed=seed, **kw)
         cost = time.perf_counter() - t0
         for name, cal in variants.items():
             model.calibration_ = cal
@@ -403,8 +410,8 @@ def main() -> None:
         return
 
     print(f"rank {RANK}, last {N_TEST} snapshots held out, budgets {budgets}, {n_starts} starts, "
-          f"{trials} random walks per start; greedy = {RECOMMENDED}, offset + exponential "
-          "spatial residual, empirical prior with kriging", flush=True)
+          f"{trials} random walks per start; greedy = {RECOMMENDED}, the recommended GLRM "
+          f"({recommended_params()}), empirical prior with kriging", flush=True)
     t_all = time.perf_counter()
     tables = []
     for name in names:

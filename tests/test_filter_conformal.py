@@ -149,3 +149,26 @@ def test_campaign_coverage_uses_the_calibrated_interval(persistent, temporal):
         np.testing.assert_allclose(runs["none"]["coverage68"].values, cov, rtol=1e-9)
     finally:
         model.calibration_ = saved
+
+
+def test_auto_falls_back_when_no_block_can_carry_the_kind(persistent, monkeypatch):
+    """temporal='auto' keeps the memoryless calibration when the forward-chained filter
+    residuals cannot be made; a kind asked for by name says why."""
+    import lrm_cvx.glrm.calibration as C
+    from lrm_cvx.errors import ModelError
+
+    _, train, model = persistent
+    real = C.cv_residuals
+
+    def no_filter(*a, **kw):
+        if kw.get("temporal") is not None:
+            raise ModelError("calibration produced no held-out residuals")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(C, "cv_residuals", no_filter)
+    kw = dict(method="conformal", adaptive=False, residual=False, max_snapshots=1,
+              max_cells=30)
+    cal = calibrate(model, train, temporal="auto", **kw)
+    assert cal.temporal_quantiles == () and cal.temporal_scale is None
+    with pytest.raises(ModelError, match="no held-out"):
+        calibrate(model, train, temporal="ar1", **kw)

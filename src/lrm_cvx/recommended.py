@@ -22,9 +22,11 @@ RECOMMENDED: dict[str, Any] = {
     "offset": True, "spatial": "auto", "criterion": "gp-variance",
     "method": "greedy:gp-variance", "initial": "start", "prior": "empirical",
     "fold_spatial": True, "temporal": "auto",
-    # conformal intervals from forward folds of the training snapshots; the maps and plans are
-    # those of the uncalibrated model (no residual re-weighting: it helped the storms' maps and
-    # hurt sea ice's, docs/benchmarks.md)
+    # conformal intervals from forward folds of the training snapshots, the filter's own
+    # thresholds for a model with dynamics (temporal="auto": closer to the coverage targets
+    # under the filter, rolling origin, docs/benchmarks.md); the maps and plans are those of
+    # the uncalibrated model (no residual re-weighting: it helped the storms' maps and hurt
+    # sea ice's)
     "calibration": {"method": "conformal", "residual": False, "adaptive": False,
-                    "max_snapshots": 2, "max_cells": 300},
+                    "max_snapshots": 2, "max_cells": 300, "temporal": "auto"},
 }
