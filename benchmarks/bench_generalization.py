@@ -29,8 +29,9 @@ monthly sets only), each fitted with its ``temporal=``. Printed per set and budg
 * ``auto_vs_mem`` (and ``ar1_vs_mem`` / ``seas_vs_mem``): the greedy's MSE change from
   memoryless (negative: better).
 
-Cost: the full run 1239 s for the six sets on the shared 2-core machine with the test suite
-beside it (navy 737 s; 2026-11-26); ``--modes ar1,seasonal,auto`` about three times that.
+Cost: the full run 1102 s for the six sets on the shared 2-core machine with the test suite
+beside it (navy 651 s; 2026-11-26, session 11); ``--modes ar1,seasonal,auto`` about three
+times that.
 
 MSE is in the data's units squared. A final line per set gives the wall time. ``--out DIR`` also
 writes every ``summary`` table as CSV.

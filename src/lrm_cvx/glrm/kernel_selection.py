@@ -35,8 +35,8 @@ import xarray as xr
 from .._validation import as_generator
 from ..errors import DataError
 
-__all__ = ["select_kernel", "AUTO_KERNELS", "DEFAULT_KERNEL", "MIN_GAIN", "format_kernel_selection",
-           "kernel_selection_vars", "kernel_selection_from_dataset"]
+__all__ = ["select_kernel", "AUTO_KERNELS", "DEFAULT_KERNEL", "MIN_GAIN",
+           "format_kernel_selection"]
 
 AUTO_KERNELS = ("exponential", "matern32", "matern52", "gaussian")
 """The covariance families ``spatial="auto"`` compares."""
@@ -47,7 +47,6 @@ MIN_GAIN = 0.02
 must show over the exponential to replace it: a switch changes the planner's routes too, and
 on the monthly SST record a 1 % validated gain of Matern 3/2 came with a 9 % loss at budget 15
 in the campaigns (docs/spatial.md)."""
-_PREFIX = "kernel_selection_"
 
 
 def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence[int],
@@ -147,26 +146,3 @@ def format_kernel_selection(table: xr.Dataset) -> str:
                      + f"{float(table['range'].values[i]):10.3g}"
                      + f"{float(table['ratio'].values[i].max()):13.3f}  {ok}{mark}")
     return "\n".join(lines)
-
-
-def kernel_selection_vars(table: xr.Dataset) -> xr.Dataset:
-    """``table`` renamed for a model file (variables, dims and attributes prefixed)."""
-    names = {v: _PREFIX + v for v in [*table.data_vars, *table.coords]}
-    out = table.rename(names)
-    out.attrs = {_PREFIX + k: v for k, v in table.attrs.items()}
-    return out
-
-
-def kernel_selection_from_dataset(ds: xr.Dataset) -> xr.Dataset | None:
-    """The table stored in a model file by :func:`kernel_selection_vars` (None if none)."""
-    if _PREFIX + "mse" not in ds:
-        return None
-    names = [n for n in [*ds.data_vars, *ds.coords] if str(n).startswith(_PREFIX)]
-    out = ds[names].rename({n: str(n)[len(_PREFIX):] for n in names})
-    out["admissible"] = out["admissible"].astype(bool)
-    out.attrs = {k[len(_PREFIX):]: v for k, v in ds.attrs.items() if k.startswith(_PREFIX)}
-    for key in ("n_rows", "n_cases"):
-        out.attrs[key] = int(out.attrs[key])
-    for key in ("confidence", "tolerance"):
-        out.attrs[key] = float(out.attrs[key])
-    return out.load()

@@ -27,28 +27,50 @@ MODEL_VARS = ("X", "Y", "objective", "unobserved_cells")
 MODEL_ATTRS = ("params", "noise_std", "n_iter", "converged", "n_observed")
 
 
-def validation_tables(model: object) -> list[xr.Dataset]:
-    """The validated choices' tables of a fitted model, renamed for its file: ``selection_``
-    (``temporal="auto"``) and ``kernel_selection_`` (``spatial="auto"``)."""
-    from .kernel_selection import kernel_selection_vars
-    from .selection import selection_vars
+_TABLES = (  # (attribute, file prefix, its variables and coords, int attrs, float attrs)
+    ("selection_", "selection_",
+     ("mse", "ratio", "ucb", "admissible", "candidate", "size", "kind", "alpha"),
+     ("n_days",), ("choice_alpha", "confidence", "tolerance")),
+    ("kernel_selection_", "kernel_selection_",
+     ("mse", "ratio", "ucb", "admissible", "sill", "range", "nugget", "kernel", "size"),
+     ("n_rows", "n_cases"), ("confidence", "tolerance")),
+)
+"""The validated choices' tables a model file carries: ``temporal="auto"``'s ``selection_``
+(glrm/selection.py) and ``spatial="auto"``'s ``kernel_selection_``
+(glrm/kernel_selection.py)."""
 
+
+def validation_tables(model: object) -> list[xr.Dataset]:
+    """The validated choices' tables of a fitted model, renamed for its file (variables, dims
+    and attributes prefixed, :data:`_TABLES`)."""
     out = []
-    for attr, to_vars in (("selection_", selection_vars),
-                          ("kernel_selection_", kernel_selection_vars)):
+    for attr, prefix, *_ in _TABLES:
         table = getattr(model, attr, None)
         if table is not None:
-            out.append(to_vars(table))
+            renamed = table.rename({v: prefix + str(v)
+                                    for v in [*table.data_vars, *table.coords]})
+            renamed.attrs = {prefix + k: v for k, v in table.attrs.items()}
+            out.append(renamed)
     return out
 
 
 def restore_validation_tables(model: object, ds: xr.Dataset) -> None:
-    """Set ``selection_`` and ``kernel_selection_`` from a model file (None when absent)."""
-    from .kernel_selection import kernel_selection_from_dataset
-    from .selection import selection_from_dataset
-
-    model.selection_ = selection_from_dataset(ds)
-    model.kernel_selection_ = kernel_selection_from_dataset(ds)
+    """Set each table of :data:`_TABLES` on ``model`` from its file ``ds`` (None when
+    absent), with its attributes' types restored."""
+    for attr, prefix, variables, ints, floats in _TABLES:
+        table = None
+        if prefix + "mse" in ds:
+            names = [prefix + v for v in variables if prefix + v in ds.variables]
+            table = ds[names].rename({prefix + v: v for v in variables
+                                      if prefix + v in ds.variables})
+            table = table.drop_vars([v for v in table.variables if v not in variables])
+            table["admissible"] = table["admissible"].astype(bool)
+            table.attrs = {k[len(prefix):]: v for k, v in ds.attrs.items()
+                           if k.startswith(prefix)}
+            table.attrs.update({k: int(table.attrs[k]) for k in ints})
+            table.attrs.update({k: float(table.attrs[k]) for k in floats})
+            table = table.load()
+        setattr(model, attr, table)
 
 
 def params_to_json(params: dict) -> tuple[str, list[str]]:

@@ -26,8 +26,9 @@ campaign would meet them:
   most ``tolerance`` at every size; memoryless always is. The admissible candidate with the
   lowest worst MSE ratio (over sizes) wins.
 
-The result is an ``xarray.Dataset`` (``model.selection_``, saved with the model): the validation
-table per candidate and size and the choice in its attributes.
+The result is an ``xarray.Dataset`` (``model.selection_``, saved with the model by
+``modelfile.validation_tables``): the validation table per candidate and size and the choice
+in its attributes.
 """
 
 from __future__ import annotations
@@ -46,9 +47,7 @@ from .dynamics import kind_dynamics
 
 __all__ = ["select_temporal", "paired_choice", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
            "MIN_AUTO_SNAPSHOTS", "MAX_SCORED",
-           "apply_selection", "auto_unavailable", "check_auto_data", "format_selection",
-           "selection_vars",
-           "selection_from_dataset"]
+           "apply_selection", "auto_unavailable", "check_auto_data", "format_selection"]
 
 AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
 """Blends towards the memoryless prior tried for every temporal kind."""
@@ -62,7 +61,6 @@ MAX_SCORED = 256
 """Cells a validation day's map is scored on (a random subset of the unsampled observed cells:
 the kriged maps cost ``O(cells)`` each)."""
 _MIN_REGULAR = 0.8  # share of the steps that must be one median step
-_PREFIX = "selection_"
 
 
 def _candidate_label(kind: str, alpha: float) -> str:
@@ -363,28 +361,3 @@ def format_selection(selection: xr.Dataset, short: bool = False) -> str:
     if selection.attrs.get("skipped"):
         lines.append(f"skipped (the record cannot carry them): {selection.attrs['skipped']}")
     return "\n".join(lines)
-
-
-def selection_vars(selection: xr.Dataset) -> xr.Dataset:
-    """``selection`` renamed for a model file (variables, dims and attributes prefixed)."""
-    names = {v: _PREFIX + v for v in [*selection.data_vars, *selection.coords]}
-    out = selection.rename(names)
-    out.attrs = {_PREFIX + k: v for k, v in selection.attrs.items()}
-    return out
-
-
-def selection_from_dataset(ds: xr.Dataset) -> xr.Dataset | None:
-    """The selection stored in a model file by :func:`selection_vars` (None if none)."""
-    if _PREFIX + "mse" not in ds:
-        return None
-    names = [n for n in [*ds.data_vars, *ds.coords] if str(n).startswith(_PREFIX)]
-    sel = ds[names].rename({n: str(n)[len(_PREFIX):] for n in names})
-    sel = sel.drop_vars([v for v in sel.variables if v not in (
-        "mse", "ratio", "ucb", "admissible", "candidate", "size", "kind", "alpha")])
-    sel["admissible"] = sel["admissible"].astype(bool)
-    sel.attrs = {k[len(_PREFIX):]: v for k, v in ds.attrs.items() if k.startswith(_PREFIX)}
-    for key in ("n_days",):
-        sel.attrs[key] = int(sel.attrs[key])
-    for key in ("choice_alpha", "confidence", "tolerance"):
-        sel.attrs[key] = float(sel.attrs[key])
-    return sel.load()
