@@ -99,11 +99,12 @@ def test_paired_rule_needs_confidence_not_only_a_lower_mean():
     E = np.stack([base,
                   base * 0.9,  # 10 % better on every case: admissible, chosen
                   base * (0.8 + 0.6 * rng.random((1, 200)))])  # better on average? noisy
-    ratio, ucb, admissible, best, n = paired_choice(E, 1.645, 0.0)
+    mse, ratio, ucb, admissible, best, n = paired_choice(E, 1.645, 0.0)
     assert n == 200 and best == 1 and admissible.tolist() == [True, True, False]
     np.testing.assert_allclose(ratio[1], 0.9)
+    np.testing.assert_allclose(mse, E.mean(axis=-1))
     # a candidate that is never better stays out even at tolerance 0
-    ratio, ucb, admissible, best, _ = paired_choice(E[[0, 0]] * [[[1.0]], [[1.01]]], 1.645, 0.0)
+    *_, admissible, best, _ = paired_choice(E[[0, 0]] * [[[1.0]], [[1.01]]], 1.645, 0.0)
     assert best == 0 and not admissible[1]
     with pytest.raises(ModelError, match="fewer than 2"):
         paired_choice(np.full((2, 1, 3), np.nan), 1.645, 0.0)

@@ -42,7 +42,6 @@ CAMPAIGN_OPTIONS = ("cost", "ridge", "criterion")
 """The planner options of :func:`simulate_campaign` (besides the path options)."""
 
 
-
 def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
     """``(dynamics, memoryless)``: the model's ``dynamics_`` when it is of kind ``temporal``,
     else estimated from ``X_`` (the model is not modified)."""

@@ -135,8 +135,8 @@ class Calibration:
         if not self.temporal_quantiles:
             return self
         return replace(self, quantiles=self.temporal_quantiles,
-                       score_table=self.temporal_score_table or self.score_table,
-                       n_residuals=self.temporal_n_residuals or self.n_residuals,
+                       score_table=self.temporal_score_table,
+                       n_residuals=self.temporal_n_residuals,
                        temporal_quantiles=(), temporal_score_table=())
 
     def variance_scale(self, temporal: bool = False) -> float:

@@ -77,11 +77,12 @@ def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence
                 obs_xyz = sp.cell_xyz(region, metric, cells)
                 tgt_xyz = sp.cell_xyz(region, metric, h)
                 z = r[cells].astype(np.float64)[:, None]
+                truth = r[h].astype(np.float64)
                 meth = "direct" if cells.size <= sp.MAX_DIRECT else "neighbors"
                 for c_i, cov in enumerate(covs):
                     mu, _ = sp.krige_core(cov, obs_xyz, z, tgt_xyz, method=meth, neighbors=32,
                                           cutoff=1e-6, want_var=False)
-                    err[c_i, s_i, i * nd + j] = float(np.mean((mu[0] - r[h]) ** 2))
+                    err[c_i, s_i, i * nd + j] = float(np.mean((mu[0] - truth) ** 2))
     return err
 
 
@@ -102,7 +103,7 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
     from .selection import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
 
     kernels = list(dict.fromkeys([DEFAULT_KERNEL, *kernels]))  # the reference first
-    R = np.asarray(sample, dtype=np.float64)
+    R = np.asarray(sample)  # float32 from the fit: no float64 copy of (rows, L)
     if R.ndim != 2 or not np.isfinite(R).any():
         raise DataError("spatial='auto' needs finite training residuals to compare kernels")
     designs = list(AUTO_DESIGNS if designs is None else designs)
@@ -112,10 +113,10 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
     covs = [fit_residual_covariance(R, region, model=k, random_state=0, min_nugget="cell")
             for k in kernels]
     E = _kriging_errors(covs, R, region, sizes, designs, as_generator(seed), MAX_SCORED)
-    ratio, ucb, admissible, best, n_rows = paired_choice(E, confidence, tolerance,
-                                                         "spatial='auto'")
+    mse, ratio, ucb, admissible, best, n_cases = paired_choice(E, confidence, tolerance,
+                                                               "spatial='auto'")
     ds = xr.Dataset(
-        {"mse": (("kernel", "size"), np.nanmean(E, axis=-1)),
+        {"mse": (("kernel", "size"), mse),
          "ratio": (("kernel", "size"), ratio),
          "ucb": (("kernel", "size"), ucb),
          "admissible": (("kernel",), admissible),
@@ -126,7 +127,7 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
     ds["mse"].attrs["long_name"] = "mean MSE of the kriged residual at held-out cells"
     ds["ratio"].attrs["long_name"] = f"MSE ratio to the {DEFAULT_KERNEL} kernel"
     ds["ucb"].attrs["long_name"] = "upper confidence bound of the relative MSE change"
-    ds.attrs.update(choice=kernels[best], n_rows=R.shape[0], n_cases=int(n_rows),
+    ds.attrs.update(choice=kernels[best], n_rows=R.shape[0], n_cases=int(n_cases),
                     designs=",".join(designs),
                     confidence=float(confidence), tolerance=float(tolerance))
     return covs[best], ds

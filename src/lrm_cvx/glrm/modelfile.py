@@ -60,9 +60,8 @@ def restore_validation_tables(model: object, ds: xr.Dataset) -> None:
     for attr, prefix, variables, ints, floats in _TABLES:
         table = None
         if prefix + "mse" in ds:
-            names = [prefix + v for v in variables if prefix + v in ds.variables]
-            table = ds[names].rename({prefix + v: v for v in variables
-                                      if prefix + v in ds.variables})
+            present = [v for v in variables if prefix + v in ds.variables]
+            table = ds[[prefix + v for v in present]].rename({prefix + v: v for v in present})
             table = table.drop_vars([v for v in table.variables if v not in variables])
             table["admissible"] = table["admissible"].astype(bool)
             table.attrs = {k[len(prefix):]: v for k, v in ds.attrs.items()

@@ -269,27 +269,29 @@ def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
                   what: str = "the selection") -> tuple:
     """The rule of the validated choices (``temporal="auto"``, ``spatial="auto"``) on paired
     errors ``E (n_candidates, n_sizes, n_cases)`` (candidate 0 the reference; a case NaN for
-    any candidate is left out): per candidate and size the mean error ``ratio`` to the
-    reference and ``ucb``, the one-sided upper confidence bound (``confidence`` standard errors
-    of the paired differences) of the relative change; a candidate is ``admissible`` when its
-    ``ucb`` is at most ``tolerance`` at every size (the reference always is); ``best`` is the
-    admissible one with the lowest worst ratio. Returns ``(ratio, ucb, admissible, best,
-    n_cases)``; ModelError when fewer than 2 cases were scored."""
+    any candidate is left out): per candidate and size the mean error ``mse`` over the kept
+    cases, its ``ratio`` to the reference's and ``ucb``, the one-sided upper confidence bound
+    (``confidence`` standard errors of the paired differences) of the relative change; a
+    candidate is ``admissible`` when its ``ucb`` is at most ``tolerance`` at every size (the
+    reference always is); ``best`` is the admissible one with the lowest worst ratio.
+    Returns ``(mse, ratio, ucb, admissible, best, n_cases)``; ModelError when fewer than 2
+    cases were scored."""
     E = np.where(np.isfinite(E).all(axis=0), E, np.nan)
     n_cases = int(np.isfinite(E[0]).all(axis=0).sum())
     if n_cases < 2:
         raise ModelError(f"{what} scored fewer than 2 validation cases (is the data mostly "
                          "missing?)")
-    base = np.nanmean(E[0], axis=-1)
+    mse = np.nanmean(E, axis=-1)
+    base = mse[0]
     D = E - E[0]
     n = np.isfinite(E[0]).sum(axis=-1)  # (size,)
     se = np.nanstd(D, axis=-1, ddof=1) / np.sqrt(n)
     ucb = (np.nanmean(D, axis=-1) + float(confidence) * se) / base
-    ratio = np.nanmean(E, axis=-1) / base
+    ratio = mse / base
     admissible = ucb.max(axis=1) <= float(tolerance)
     admissible[0] = True
     best = int(np.argmin(np.where(admissible, ratio.max(axis=1), np.inf)))
-    return ratio, ucb, admissible, best, n_cases
+    return mse, ratio, ucb, admissible, best, n_cases
 
 
 def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
@@ -297,12 +299,11 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
           skipped: set[str]) -> xr.Dataset:
     """The validation table and the choice of :func:`select_temporal` from the day errors
     ``E (n_candidates, n_sizes, n_days)`` (candidate 0 is memoryless)."""
-    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)  # a day no map was scored: left out
-    ratio, ucb, admissible, best, n_days = paired_choice(E, confidence, tolerance,
-                                                         "temporal='auto'")
+    mse, ratio, ucb, admissible, best, n_days = paired_choice(  # a day not scored: left out
+        E, confidence, tolerance, "temporal='auto'")
     kind, alpha = meta[labels[best]]
     ds = xr.Dataset(
-        {"mse": (("candidate", "size"), np.nanmean(E, axis=-1)),
+        {"mse": (("candidate", "size"), mse),
          "ratio": (("candidate", "size"), ratio),
          "ucb": (("candidate", "size"), ucb),
          "admissible": (("candidate",), admissible)},
