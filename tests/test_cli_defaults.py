@@ -122,6 +122,20 @@ def test_a_glrm_key_added_to_recommended_reaches_the_fit(files, tmp_path, monkey
     assert "--calibration" not in cli._recommended_fit()  # no such option: said in words
 
 
+def test_residual_scale_flag(files, tmp_path, capsys, monkeypatch):
+    root, _ = files
+    assert _run("fit", root / "field.nc", "--rank", 2, "--temporal", "none",
+                "--residual-scale", "-o", tmp_path / "r.nc") == 0
+    m = GLRM.load(tmp_path / "r.nc")
+    assert m.scale == "residual" and m.scale_ is not None and m.offset
+    assert "scale=residual" in capsys.readouterr().out
+    assert _run("fit", root / "field.nc", "--rank", 2, "--scale", "--residual-scale", "-o",
+                tmp_path / "x.nc") != 0
+    assert "exclude each other" in capsys.readouterr().err
+    monkeypatch.setitem(RECOMMENDED, "scale", "residual")
+    assert "--residual-scale" in cli._recommended_fit()
+
+
 @pytest.mark.parametrize("kind, why", [
     ("five", "at least 8 snapshots"),
     ("irregular", "regularly spaced"),

@@ -242,6 +242,7 @@ OPTIONS = [
     dict(offset=True, scale=True, noise="per-cell"),
     dict(offset=True, noise="per-cell", spatial="exponential", temporal="ar1"),
     dict(noise="per-cell", spatial="gaussian", reg_x="ridge", reg_y="ridge"),
+    dict(offset=True, scale="residual", spatial="exponential"),
 ]
 CHUNKINGS = [  # (input time chunks, fit options): one chunk, several, ragged
     ({"time": -1}, {"chunk_mb": 64}),

@@ -131,3 +131,91 @@ def test_fitted_spatial_model_equals_the_brute_force_gp(fitted, n):
     from lrm_cvx.glrm.calibrated import predictive_std
 
     np.testing.assert_allclose(predictive_std(model, std, spatial=True), pstd, rtol=1e-10)
+
+
+def _edgy_field():
+    data = smooth_field(seed=3)
+    noisy = data.copy(deep=True)
+    rng = np.random.default_rng(4)
+    noisy[:, :, :4] += rng.normal(0, 1.0, noisy[:, :, :4].shape)  # a noisier western edge
+    return noisy
+
+
+@pytest.mark.parametrize("noise", ["global", "per-cell"])
+def test_residual_scale_makes_the_spatial_residual_heteroscedastic(noise):
+    """``scale="residual"``: the same low-rank fit, then ``r_j + e_j = s_j (g_j + e'_j)``,
+    ``s`` the per-cell residual std relative to the global one; the fitted model's posterior
+    equals a dense GP with that covariance, and the covariance is fitted to the residuals over
+    ``s``."""
+    from lrm_cvx.glrm.predictive import NOISE_PRIOR_DF, residual_moments, shrink_noise
+
+    noisy = _edgy_field()
+    kw = dict(rank=2, offset=True, spatial="exponential", random_state=0, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        base = GLRM(**kw).fit(noisy)
+        model = GLRM(scale="residual", noise=noise, **kw).fit(noisy)
+    region = model.region_
+    Z = region.stack(noisy).astype(np.float64) - model.offset_
+    # the low-rank fit is unchanged: reconstruct() equals the plain model's
+    np.testing.assert_allclose(model.reconstruct().values, base.reconstruct().values,
+                               rtol=1e-9, atol=1e-9)
+    sse, cnt = residual_moments(Z, np.isfinite(Z), base._Xv, base._Yv)
+    sig2 = base.noise_std_ ** 2
+    s = np.sqrt(shrink_noise(sse * sig2 * cnt.sum() / sse.sum(), cnt, sig2, NOISE_PRIOR_DF)
+                / sig2)
+    np.testing.assert_allclose(model.scale_, s, rtol=1e-6)  # the fit's float32 residuals
+    np.testing.assert_allclose(model._Yv * model.scale_, base._Yv, rtol=1e-12, atol=1e-14)
+    west = region.grid_index[:, 1] < 4
+    assert s[west].mean() > 1.4 * s[~west].mean()
+    if noise == "per-cell":  # the per-cell noise in the new (standardised) fit units
+        np.testing.assert_allclose(model.noise_var_ * s ** 2,
+                                   shrink_noise(sse * sig2 * cnt.sum() / sse.sum(), cnt, sig2,
+                                                NOISE_PRIOR_DF), rtol=1e-6)
+    R = residual_sample(Z, np.isfinite(Z), base._Xv, base._Yv) / model.scale_
+    again = fit_residual_covariance(R.astype(np.float32), region, model="exponential",
+                                    random_state=0, min_nugget="cell")
+    for name in ("sill", "range", "nugget"):
+        assert getattr(again, name) == pytest.approx(getattr(model.spatial_cov_, name), rel=1e-6)
+
+    cov, Y, s = model.spatial_cov_, base._Yv, model.scale_  # the dense GP in data units
+    m0, S0 = empirical_moments(model._Xv)
+    g = region.grid_index.astype(float)
+    K = Y.T @ S0 @ Y + np.outer(s, s) * cov.sill * cov.correlation(cdist(g, g))
+    rng = np.random.default_rng(5)
+    cells = np.sort(rng.choice(model.n_cells_, 8, replace=False))
+    V = region.stack(noisy.isel(time=-1)).astype(np.float64)
+    mu = Y.T @ m0
+    A = K[np.ix_(cells, cells)] + np.diag(cov.nugget * s[cells] ** 2)
+    want = model.offset_ + mu + K[:, cells] @ np.linalg.solve(
+        A, V[cells] - model.offset_[cells] - mu[cells])
+    var = np.diag(K - K[:, cells] @ np.linalg.solve(A, K[cells, :]))
+    post = LatentPosterior.prior(model, "empirical").update(cells, V[cells])
+    mean, std, pstd = post.predict_all()
+    np.testing.assert_allclose(mean, want, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(std, np.sqrt(var), rtol=1e-7, atol=1e-10)
+    np.testing.assert_allclose(pstd, np.sqrt(var + cov.nugget * s ** 2), rtol=1e-7)
+    from lrm_cvx.glrm.calibrated import predictive_std
+
+    np.testing.assert_allclose(predictive_std(model, std, spatial=True), pstd, rtol=1e-10)
+
+
+def test_residual_scale_saves_refits_and_rejects_bad_values(tmp_path):
+    from lrm_cvx.glrm.calibration import clone_model
+
+    noisy = _edgy_field()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=2, offset=True, spatial="exponential", scale="residual",
+                     random_state=0, progress=False).fit(noisy)
+        path = tmp_path / "m.nc"
+        model.save(path)
+        back = GLRM.load(path)
+        np.testing.assert_array_equal(back.scale_, model.scale_)
+        np.testing.assert_array_equal(back._Yv, model._Yv)
+        assert back.scale == "residual"
+        again = clone_model(model).fit(noisy)
+    np.testing.assert_allclose(again.scale_, model.scale_, rtol=1e-9)
+    for bad in ("data", 2):
+        with pytest.raises(ModelError, match="scale must be True, False or 'residual'"):
+            GLRM(rank=2, scale=bad).fit(noisy)

@@ -204,11 +204,20 @@ def _model_params(args: argparse.Namespace) -> dict:
                     "noise": _first(NOISE_MODELS), "temporal": None}  # the paper's
     if not paper_setting(args):
         params.update(_recommended_glrm())
-    explicit = {"offset": True if args.offset else None, "scale": True if args.scale else None,
+    explicit = {"offset": True if args.offset else None,
+                "scale": _scale_option(args),
                 "noise": args.noise, "spatial": args.spatial, "temporal": args.temporal}
     params.update({k: v for k, v in explicit.items() if v is not None})
     params["temporal"] = _prior(params["temporal"])  # --temporal none: no dynamics
     return params
+
+
+def _scale_option(args: argparse.Namespace) -> Any:
+    """GLRM's ``scale`` from ``--scale`` (True) / ``--residual-scale`` (``"residual"``); None
+    when neither is given."""
+    if args.scale and args.residual_scale:
+        raise UsageError("--scale and --residual-scale exclude each other: choose one")
+    return True if args.scale else "residual" if args.residual_scale else None
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -228,7 +237,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     model = _fit_model(data, params, rank=args.rank, loss=args.loss, max_iter=args.max_iter,
                        tol=args.tol, random_state=args.seed, progress=not args.quiet)
     model.save(out)
-    extras = [name for name in ("offset", "scale") if getattr(model, name)]
+    extras = [name if getattr(model, name) is True else f"{name}={getattr(model, name)}"
+              for name in ("offset", "scale") if getattr(model, name)]
     if model.spatial:
         extras.append(f"spatial={model.spatial}")
     print(f"fitted rank-{args.rank} GLRM{' (' + ', '.join(extras) + ')' if extras else ''} on "
@@ -613,8 +623,10 @@ def _add_model_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
                    help="fit a per-cell mean (offset) (default: on; off with --paper)"
                    if RECOMMENDED.get("offset") else "fit a per-cell mean (offset)")
     p.add_argument("--scale", action="store_true",
-                   help="fit a per-cell scale (default: on; off with --paper)"
-                   if RECOMMENDED.get("scale") else "fit a per-cell scale")
+                   help="fit a per-cell scale of the data, before the fit")
+    p.add_argument("--residual-scale", action="store_true",
+                   help="a heteroscedastic residual: a per-cell scale of the training "
+                   "residuals, after the fit (scale='residual')")
     p.add_argument("--noise", choices=NOISE_MODELS, default=None,
                    help=f"noise model ({default('noise', _first(NOISE_MODELS))})")
     p.add_argument("--spatial", choices=(*MODELS, "auto"), default=None, metavar="KERNEL",
@@ -639,6 +651,9 @@ def _recommended_fit(fit: bool = True) -> str:
     for key, value in params.items():
         if key in _MODEL_FLAGS and (fit or key != "temporal") and value not in (None, False):
             flag = f"--{key.replace('_', '-')}"
+            if key == "scale" and value == "residual":
+                flags.append("--residual-scale")
+                continue
             flags.append(flag if value is True else f"{flag} {value}")
     if params.get("calibration") is not None:  # no flag: the recommended fit's own step
         flags.append("and the conformal interval calibration")

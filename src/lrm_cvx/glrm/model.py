@@ -69,6 +69,8 @@ class GLRM:
     offset, scale : fit a per-cell mean (``offset_``, unpenalised) and/or divide by a per-cell
         standard deviation (``scale_``) before the low-rank fit; fold-in, prediction and the
         planner terms undo them (docs/reconstruction.md). Default off (the paper).
+        ``scale="residual"``: a heteroscedastic residual instead, ``scale_`` each cell's
+        training residual std relative to the global one, set after the fit.
     noise : ``"global"`` (the paper: one ``noise_std_``) or ``"per-cell"`` (``noise_var_``,
         per-cell training residual variance shrunk towards the global one; weights the fold-in
         and the planner's information).
@@ -225,7 +227,7 @@ class GLRM:
 
     def _fit_dask(self, data, mask, region, rank, loss, reg_x, reg_y, rng) -> GLRM:
         from .chunked import fit_chunked
-        from .predictive import check_options, set_predictive
+        from .predictive import check_options, data_scale, set_predictive, wants_residual_moments
 
         # the same options as in memory, computed chunk by chunk (every statistic is per cell)
         check_options(self, region is not None or getattr(data, "ndim", 0) == 3)
@@ -234,8 +236,8 @@ class GLRM:
             data, rank, loss, reg_x, reg_y, mask=mask, region=region, max_iter=self.max_iter,
             tol=self.tol, init=self.init, solver=self.solver, rng=rng,
             progress=bool(self.progress), keep_dask=bool(self.keep_dask),
-            offset=bool(self.offset), scale=bool(self.scale),
-            residual_moments=self.noise == "per-cell",
+            offset=bool(self.offset), scale=data_scale(self),
+            residual_moments=wants_residual_moments(self),
             residual_rows=20 if self.spatial is not None else None, extras=extras,
             **(self.dask_options or {}))
         self._set_result(res, region, times, xarray=region is not None)

@@ -5,6 +5,13 @@ All opt-in; the paper's model is the default and untouched:
 * ``offset`` / ``scale``: the fit sees ``(D - offset_) / scale_`` per cell (``offset_`` = each
   cell's observed mean, ``scale_`` its observed std, or its RMS without ``offset``); predictions
   are mapped back, ``pred = scale_ * z + offset_``. The offset is known at fold-in.
+* ``scale="residual"``: a heteroscedastic residual (an ice edge or a coast varies more than the
+  open sea). The low-rank fit is unchanged; after it, ``scale_`` is each cell's training
+  residual std relative to the global one (:func:`residual_scale`: the per-cell variance shrunk
+  as below), ``Y_`` becomes ``Y_ / scale_`` and the spatial covariance is fitted to the
+  residuals over ``scale_``. So ``value = offset + scale_ (Y_^T x + r + e)`` with a stationary
+  ``r + e``, the same observation equation as ``scale=True`` (every fold-in, planner and
+  interval takes it as it is), and :meth:`reconstruct` is the unscaled fit's.
 * ``noise="per-cell"``: ``noise_var_`` (fit units), each cell's training residual variance
   shrunk towards the global one (:func:`shrink_noise`, ``NOISE_PRIOR_DF``
   pseudo-observations), inflated by the same degrees-of-freedom factor as ``noise_std_``.
@@ -24,25 +31,30 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import xarray as xr
 
 from ..errors import ModelError
 
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
            "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
-           "check_options", "moments_to_transform", "set_predictive", "sample_rows"]
+           "check_options", "moments_to_transform", "set_predictive", "sample_rows",
+           "residual_scale", "SCALES"]
 
 CALIBRATIONS = (None, "gaussian", "conformal")  # GLRM(calibration=): calibrate after the fit
 NOISE_PRIOR_DF = 10.0  # pseudo-observations of the global variance in each per-cell estimate
 NOISE_MODELS = ("global", "per-cell")
+SCALES = (False, True, "residual")  # GLRM(scale=): none, the data's std before the fit, the
+# residual's after it
 PRIORS = (None, "empirical")
 
 
 def _check_params(model: Any) -> None:
     from ..spatial import MODELS
 
-    for name in ("offset", "scale"):
-        if not isinstance(getattr(model, name), (bool, np.bool_)):
-            raise ModelError(f"{name} must be True or False, got {getattr(model, name)!r}")
+    if not isinstance(model.offset, (bool, np.bool_)):
+        raise ModelError(f"offset must be True or False, got {model.offset!r}")
+    if not (isinstance(model.scale, (bool, np.bool_)) or model.scale == "residual"):
+        raise ModelError(f"scale must be True, False or 'residual', got {model.scale!r}")
     if model.noise not in NOISE_MODELS:
         raise ModelError(f"noise must be one of {NOISE_MODELS}, got {model.noise!r}")
     _check_calibration(getattr(model, "calibration", None))
@@ -77,6 +89,18 @@ def check_options(model: Any, has_region: bool) -> None:
         raise ModelError("spatial= needs a model fitted on a DataArray (with a region)")
 
 
+def data_scale(model: Any) -> bool:
+    """``GLRM(scale=True)``: the data divided by their per-cell std before the fit (not
+    ``"residual"``, which scales after it)."""
+    return isinstance(model.scale, (bool, np.bool_)) and bool(model.scale)
+
+
+def wants_residual_moments(model: Any) -> bool:
+    """The per-cell residual statistics are needed (``noise="per-cell"`` or
+    ``scale="residual"``)."""
+    return model.noise == "per-cell" or model.scale == "residual"
+
+
 def moments_to_transform(offset: bool, scale: bool, mean: np.ndarray,
                          std: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
     """``(offset_, scale_)`` from the per-cell observed mean and std (:func:`column_moments`):
@@ -95,14 +119,14 @@ def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage:
     if stage == "before":
         check_options(model, region is not None)
         model._pending_offset = model._pending_scale = None
-        if not (model.offset or model.scale):
+        if not (model.offset or data_scale(model)):
             return None
         mean, std, _ = column_moments(D, M)
-        off, sc = moments_to_transform(model.offset, model.scale, mean, std)
+        off, sc = moments_to_transform(model.offset, data_scale(model), mean, std)
         model._pending_offset, model._pending_scale = off, sc
         return {"data": standardize(D, M, off, sc)}
     X, Y = model._Xv, model._Yv
-    moments = residual_moments(D, M, X, Y) if model.noise == "per-cell" else None
+    moments = residual_moments(D, M, X, Y) if wants_residual_moments(model) else None
     sample = residual_sample(D, M, X, Y) if model.spatial is not None else None
     set_predictive(model, region, getattr(model, "_pending_offset", None),
                    getattr(model, "_pending_scale", None), moments, sample)
@@ -120,12 +144,21 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
     model.offset_, model.scale_ = offset, scale
     model.noise_var_ = None
     model.spatial_cov_ = model.kernel_selection_ = None
-    if model.noise == "per-cell":
+    if moments is not None:
         sse, cnt = moments
         total = float(sse.sum())
         inflate = model.noise_std_ ** 2 * max(int(cnt.sum()), 1) / total if total > 0 else 1.0
-        model.noise_var_ = shrink_noise(sse * inflate, cnt, model.noise_std_ ** 2,
-                                        NOISE_PRIOR_DF)
+        cell_var = shrink_noise(sse * inflate, cnt, model.noise_std_ ** 2, NOISE_PRIOR_DF)
+        if model.noise == "per-cell":
+            model.noise_var_ = cell_var
+        if model.scale == "residual":
+            rs = residual_scale(cell_var, model.noise_std_ ** 2)
+            _divide_factor(model, rs)
+            model.scale_ = rs
+            if model.noise_var_ is not None:  # in the new fit units
+                model.noise_var_ = model.noise_var_ / rs ** 2
+            if sample is not None:
+                sample = (sample / rs).astype(sample.dtype)
     if model.spatial == "auto":  # the kernel validated on the residuals (kernel_selection.py)
         from .kernel_selection import select_kernel
 
@@ -182,6 +215,22 @@ def standardize(D: np.ndarray, M: np.ndarray, offset: np.ndarray | None,
             d = d / scale[sl]
         out[:, sl] = np.where(M[:, sl], d, 0.0)
     return out
+
+
+def residual_scale(cell_var: np.ndarray, global_var: float) -> np.ndarray:
+    """``GLRM(scale="residual")``'s ``scale_`` ``(L,)``: ``sqrt(cell_var / global_var)``, each
+    cell's (shrunk, :func:`shrink_noise`) training residual variance relative to the global one;
+    the shrinkage bounds it away from 0 on cells that never vary."""
+    return np.sqrt(np.asarray(cell_var, dtype=np.float64) / max(float(global_var), 1e-300))
+
+
+def _divide_factor(model: Any, rs: np.ndarray) -> None:
+    """``Y_ <- Y_ / rs`` column by column, keeping its type (numpy, DataArray, dask)."""
+    Y = model.Y_
+    if isinstance(Y, xr.DataArray):
+        model.Y_ = Y.copy(data=Y.data / rs)
+    else:
+        model.Y_ = Y / rs
 
 
 def residual_moments(D: np.ndarray, M: np.ndarray, X: np.ndarray,
