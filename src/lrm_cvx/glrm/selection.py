@@ -123,17 +123,20 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
 
     One campaign per size; day ``i`` is sampled by design ``designs[i % len(designs)]`` (a
     campaign's routes change from day to day). The candidates share each day's sample cells,
-    so the kriged residual maps of all of them come from one kriging call (its weights depend
-    on the cells only)."""
+    so their filters run as one batch (``filter.batch_step``: the algebra of
+    ``LatentFilter.assimilate``, the observations' GLS terms computed once) and the kriged
+    residual maps of all of them come from one kriging call (its weights depend on the cells
+    only)."""
     from .calibration import sample_sets
-    from .filter import LatentFilter
+    from .filter import batch_start, batch_step, batch_transitions
 
     n = V.shape[0]
     err = np.full((len(dynamics), len(sizes), n), np.nan)
+    first = batch_start(sub, dynamics, spatial=spatial)
+    steps = [batch_transitions(first.dynamics, t0, t1)  # the same for every size
+             for t0, t1 in zip([first.time, *times[:-1]], times, strict=True)]
     for s_i, size in enumerate(sizes):
-        states = [LatentFilter.from_model(sub, dynamics=dyn, memoryless=dyn is None,
-                                          spatial=spatial) for dyn in dynamics]
-        obs = states[0].posterior.obs_model
+        batch = first
         for i, t in enumerate(times):
             cells = sample_sets(region, np.isfinite(V[i]), size, designs[i % len(designs)], rng)
             h = np.isfinite(V[i])
@@ -141,35 +144,36 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
             h = np.flatnonzero(h)
             if h.size > MAX_SCORED:  # an unbiased sample of the map's error, shared by all
                 h = np.sort(rng.choice(h, MAX_SCORED, replace=False))
-            for state in states:
-                state.assimilate((cells, V[i, cells]), time=t)
+            batch = batch_step(batch, steps[i], cells, V[i, cells], t)
             if h.size:
-                means = _map_means([st.posterior for st in states], obs, h)  # (n_cand, |h|)
+                means = _map_means(batch.mean, batch.obs, cells, V[i, cells], h)
                 err[:, s_i, i] = np.mean((means - V[i, h]) ** 2, axis=1)
     return err
 
 
-def _map_means(posts: list[Any], obs: Any, cells: np.ndarray) -> np.ndarray:
-    """Posterior mean maps ``(len(posts), len(cells))`` in data units of beliefs that share
-    their observations: the trend ``Y^T m`` plus, with a spatial residual, the residuals at the
-    observations kriged with one set of weights (universal kriging given each GLS mean)."""
-    M = np.stack([p.mean for p in posts], axis=1)  # (k, n_cand)
-    mu = obs.Y[:, cells].T @ M  # (|cells|, n_cand)
+def _map_means(means: np.ndarray, obs: Any, cells: np.ndarray, values: np.ndarray,
+               targets: np.ndarray) -> np.ndarray:
+    """Posterior mean maps ``(n_cand, len(targets))`` in data units of the latent means
+    ``(n_cand, k)`` of beliefs that share their observations ``values`` at ``cells``: the trend
+    ``Y^T m`` plus, with a spatial residual, the residuals at the observations kriged with one
+    set of weights (universal kriging given each GLS mean)."""
+    M = means.T  # (k, n_cand)
+    mu = obs.Y[:, targets].T @ M  # (|targets|, n_cand)
     if obs.is_spatial:
         from .. import spatial as sp
         from .posterior import average_repeats
 
-        p0 = posts[0]
-        uc, zc = average_repeats(p0.cells, obs.to_fit_units(p0.cells, p0.values))
+        keep = ~np.isnan(values)
+        uc, zc = average_repeats(cells[keep], obs.to_fit_units(cells[keep], values[keep]))
         if uc.size:
             cov = obs.spatial_cov
             res = zc[:, None] - obs.Y[:, uc].T @ M  # (n_obs, n_cand)
             meth = "direct" if uc.size <= sp.MAX_DIRECT else "neighbors"
             r_mu, _ = sp.krige_core(cov, sp.cell_xyz(obs.region, cov.metric, uc), res,
-                                    sp.cell_xyz(obs.region, cov.metric, cells), method=meth,
+                                    sp.cell_xyz(obs.region, cov.metric, targets), method=meth,
                                     neighbors=32, cutoff=1e-6, want_var=False)
             mu = mu + r_mu.T
-    out = obs.to_data_units(mu.T, None, cells)[0]
+    out = obs.to_data_units(mu.T, None, targets)[0]
     return np.asarray(out)
 
 

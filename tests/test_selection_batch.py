@@ -1,0 +1,99 @@
+"""The batched filter of ``temporal="auto"``'s scoring (``filter.batch_*``, ``selection.
+_window_errors``) against the naive path: one :class:`LatentFilter` per candidate."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lrm_cvx import GLRM
+from lrm_cvx.glrm.calibration import blend_dynamics, memoryless_cov, sample_sets
+from lrm_cvx.glrm.dynamics import kind_dynamics
+from lrm_cvx.glrm.filter import LatentFilter, batch_start, batch_step, batch_transitions
+from lrm_cvx.glrm.selection import MAX_SCORED, _window_errors
+from lrm_cvx.io.samples import synthetic_dynamic_field
+
+
+def _naive_window_errors(sub, dynamics, V, times, region, sizes, designs, rng, spatial):
+    """The scoring as it was written first: a LatentFilter per candidate, its posterior's
+    own ``predict`` map (kriged residual included) at the scored cells."""
+    n = V.shape[0]
+    err = np.full((len(dynamics), len(sizes), n), np.nan)
+    for s_i, size in enumerate(sizes):
+        states = [LatentFilter.from_model(sub, dynamics=d, memoryless=d is None,
+                                          spatial=spatial) for d in dynamics]
+        for i, t in enumerate(times):
+            cells = sample_sets(region, np.isfinite(V[i]), size, designs[i % len(designs)], rng)
+            h = np.isfinite(V[i])
+            h[cells] = False
+            h = np.flatnonzero(h)
+            if h.size > MAX_SCORED:
+                h = np.sort(rng.choice(h, MAX_SCORED, replace=False))
+            for state in states:
+                state.assimilate((cells, V[i, cells]), time=t)
+            if h.size:
+                for c, state in enumerate(states):
+                    pred = state.posterior.predict_all(cells=h)[0]
+                    err[c, s_i, i] = np.mean((pred - V[i, h]) ** 2)
+    return err
+
+
+def _setup(seed: int, spatial: str | None, freq: str = "MS", T: int = 40):
+    data = synthetic_dynamic_field(T, (7, 8), 3, seed=seed, seasonal_period=12,
+                                   seasonal_amplitude=0.8, A=0.6 * np.eye(3),
+                                   Q=0.05 * np.eye(3), freq=freq, missing=0.15, noise=0.1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sub = GLRM(3, offset=spatial is not None, spatial=spatial, random_state=seed,
+                   progress=False, temporal="ar1").fit(data[:-8])
+    times = data["time"].values
+    dyns = [None]
+    for kind in ("ar1", "seasonal"):
+        base = kind_dynamics(kind, sub, times[:-8])
+        if base is None:
+            continue
+        S = memoryless_cov(sub, base)
+        dyns += [blend_dynamics(base, a, S) for a in (0.0, 0.5, 1.0)]
+    V = sub.region_.stack(data[-8:]).astype(np.float32)
+    return sub, dyns, V, times[-8:]
+
+
+@pytest.mark.parametrize("spatial", [None, "exponential"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_window_errors_equal_one_filter_per_candidate(seed, spatial):
+    sub, dyns, V, times = _setup(seed, spatial)
+    args = (sub, dyns, V, times, sub.region_, (2, 5, 12), ("route", "line", "scattered"))
+    fast = _window_errors(*args, np.random.default_rng(seed), None)
+    naive = _naive_window_errors(*args, np.random.default_rng(seed), None)
+    assert np.isfinite(naive).all()
+    np.testing.assert_allclose(fast, naive, rtol=1e-9, atol=0)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(0, 9), nan=st.booleans())
+def test_batch_step_equals_latent_filter(seed, n, nan):
+    """One day of every candidate, any cells (repeats, none, NaN values): the same beliefs."""
+    sub, dyns, V, times = _SETUP
+    rng = np.random.default_rng(seed)
+    batch = batch_start(sub, dyns)
+    states = [LatentFilter.from_model(sub, dynamics=d, memoryless=d is None) for d in dyns]
+    for day in range(2):
+        cells = rng.integers(0, sub.n_cells_, n)
+        vals = rng.normal(size=n) + 10.0
+        if nan and n:
+            vals[0] = np.nan
+        trans = batch_transitions(batch.dynamics, batch.time, times[day])
+        batch = batch_step(batch, trans, cells, vals, times[day])
+        for c, state in enumerate(states):
+            state.assimilate((cells, vals), time=times[day])
+            np.testing.assert_allclose(batch.mean[c], state.posterior.mean, rtol=1e-9,
+                                       atol=1e-12)
+            np.testing.assert_allclose(batch.cov[c], state.posterior.cov, rtol=1e-8,
+                                       atol=1e-14)
+
+
+_SETUP = _setup(5, "exponential")
