@@ -237,13 +237,20 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     errs: list[dict[str, np.ndarray]] = []  # per window, in time order: label -> (size, day)
     meta: dict[str, tuple[str, float]] = {"none": ("none", 0.0)}
     skipped: set[str] = set()
+    shared_cov = None  # the first refit's residual covariance, shared by the later refits
     for f in reversed(range(n_folds)):  # earliest window first: it has the shortest history
         end = T - f * n_val
         lo = end - n_val
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             before = xr.DataArray(V[:lo], dims=(tdim, "cell"), coords={tdim: all_times[:lo]})
-            sub = clone_model(model, temporal="ar1").fit(before, region=region)
+            sub = clone_model(model, temporal="ar1",
+                              **({} if shared_cov is None else {"spatial": None})
+                              ).fit(before, region=region)
+        if shared_cov is None:
+            shared_cov = getattr(sub, "spatial_cov_", None)
+        else:  # estimated on earlier snapshots only: a variogram fit less per later refit
+            sub.spatial, sub.spatial_cov_ = shared_cov.model, shared_cov
         sub.calibration_ = None
         sub_times = all_times[:lo]
         labels, dyns = ["none"], [None]
