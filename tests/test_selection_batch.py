@@ -97,3 +97,21 @@ def test_batch_step_equals_latent_filter(seed, n, nan):
 
 
 _SETUP = _setup(5, "exponential")
+
+
+@pytest.mark.parametrize("scale", [False, True])
+def test_residual_covariance_is_the_fits_own(scale):
+    """The refits' covariance (predictive.residual_covariance) with a fit's pairs is the one
+    GLRM(spatial=...).fit sets: the same residual rows, the same variogram fit."""
+    from lrm_cvx.glrm.predictive import residual_covariance
+
+    data = synthetic_dynamic_field(30, (9, 10), 3, seed=7, freq="D", missing=0.2, noise=0.1)
+    model = GLRM(3, offset=True, scale=scale, spatial="exponential", random_state=0,
+                 progress=False).fit(data)
+    V = model.region_.stack(data).astype(np.float32)
+    got = residual_covariance(model, V, "exponential")
+    want = model.spatial_cov_
+    for name in ("sill", "range", "nugget"):
+        assert np.isclose(getattr(got, name), getattr(want, name), rtol=1e-6)
+    fewer = residual_covariance(model, V, "exponential", max_pairs=2_000)
+    assert not np.isclose(fewer.range, want.range, rtol=1e-6)  # max_pairs is used

@@ -44,22 +44,18 @@ from .._blas import single_threaded_blas
 from .._validation import as_generator
 from ..errors import ModelError
 from .dynamics import kind_dynamics
+from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
 
 __all__ = ["select_temporal", "paired_choice", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
-           "MIN_AUTO_SNAPSHOTS", "MAX_SCORED",
+           "MIN_AUTO_SNAPSHOTS", "MAX_SCORED", "REFIT_PAIRS",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection"]
 
 AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
 """Blends towards the memoryless prior tried for every temporal kind."""
-AUTO_DESIGNS = ("route", "line", "scattered")
-"""Sample designs of the validation days: a route, a transect, scattered cells."""
-AUTO_SIZES = (5, 15, 50)
-"""Samples per validation day."""
 MIN_AUTO_SNAPSHOTS = 8
 """Fewest training snapshots ``temporal="auto"`` validates on (3 to refit, 2 windows)."""
-MAX_SCORED = 256
-"""Cells a validation day's map is scored on (a random subset of the unsampled observed cells:
-the kriged maps cost ``O(cells)`` each)."""
+REFIT_PAIRS = 50_000
+"""Pairs of the refits' residual variogram (a fit's: 200,000; the candidates share it)."""
 _MIN_REGULAR = 0.8  # share of the steps that must be one median step
 
 
@@ -202,6 +198,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     """
     from .calibration import clone_model, training_values
     from .dynamics import TEMPORAL, check_times
+    from .predictive import residual_covariance
 
     # one stacking pass, float32 as region.stack gives it (the scoring promotes the values
     # exactly; the refits read it as a (time, cell) DataArray, not gathered again)
@@ -237,6 +234,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     errs: list[dict[str, np.ndarray]] = []  # per window, in time order: label -> (size, day)
     meta: dict[str, tuple[str, float]] = {"none": ("none", 0.0)}
     skipped: set[str] = set()
+    family = getattr(clone_model(model), "spatial", None)  # a spatial="auto" model's choice
     shared_cov = None  # the first refit's residual covariance, shared by the later refits
     for f in reversed(range(n_folds)):  # earliest window first: it has the shortest history
         end = T - f * n_val
@@ -244,13 +242,12 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             before = xr.DataArray(V[:lo], dims=(tdim, "cell"), coords={tdim: all_times[:lo]})
-            sub = clone_model(model, temporal="ar1",
-                              **({} if shared_cov is None else {"spatial": None})
-                              ).fit(before, region=region)
-        if shared_cov is None:
-            shared_cov = getattr(sub, "spatial_cov_", None)
-        else:  # estimated on earlier snapshots only: a variogram fit less per later refit
-            sub.spatial, sub.spatial_cov_ = shared_cov.model, shared_cov
+            sub = clone_model(model, temporal="ar1", spatial=None).fit(before, region=region)
+            if family is not None:  # fitted once, on the earliest refit's snapshots only
+                if shared_cov is None:
+                    shared_cov = residual_covariance(sub, V[:lo], family,
+                                                     max_pairs=REFIT_PAIRS)
+                sub.spatial, sub.spatial_cov_ = family, shared_cov
         sub.calibration_ = None
         sub_times = all_times[:lo]
         labels, dyns = ["none"], [None]
@@ -274,35 +271,6 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
                                             for e in errs)]
     E = np.stack([np.concatenate([e[lab] for e in errs], axis=-1) for lab in labels])
     return _rule(E, labels, meta, sizes, designs, confidence, tolerance, skipped)
-
-
-def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
-                  what: str = "the selection") -> tuple:
-    """The rule of the validated choices (``temporal="auto"``, ``spatial="auto"``) on paired
-    errors ``E (n_candidates, n_sizes, n_cases)`` (candidate 0 the reference; a case NaN for
-    any candidate is left out): per candidate and size the mean error ``mse`` over the kept
-    cases, its ``ratio`` to the reference's and ``ucb``, the one-sided upper confidence bound
-    (``confidence`` standard errors of the paired differences) of the relative change; a
-    candidate is ``admissible`` when its ``ucb`` is at most ``tolerance`` at every size (the
-    reference always is); ``best`` is the admissible one with the lowest worst ratio.
-    Returns ``(mse, ratio, ucb, admissible, best, n_cases)``; ModelError when fewer than 2
-    cases were scored."""
-    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)
-    n_cases = int(np.isfinite(E[0]).all(axis=0).sum())
-    if n_cases < 2:
-        raise ModelError(f"{what} scored fewer than 2 validation cases (is the data mostly "
-                         "missing?)")
-    mse = np.nanmean(E, axis=-1)
-    base = mse[0]
-    D = E - E[0]
-    n = np.isfinite(E[0]).sum(axis=-1)  # (size,)
-    se = np.nanstd(D, axis=-1, ddof=1) / np.sqrt(n)
-    ucb = (np.nanmean(D, axis=-1) + float(confidence) * se) / base
-    ratio = mse / base
-    admissible = ucb.max(axis=1) <= float(tolerance)
-    admissible[0] = True
-    best = int(np.argmin(np.where(admissible, ratio.max(axis=1), np.inf)))
-    return mse, ratio, ucb, admissible, best, n_cases
 
 
 def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
