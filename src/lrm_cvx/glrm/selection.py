@@ -7,15 +7,18 @@ campaign would meet them:
 
 * **Rolling origin.** ``n_folds`` forward-chaining windows of ``n_val`` snapshots end at the last
   training snapshot. For each window the model is refitted on the snapshots *before* it (two
-  windows: the time of two more fits), and every candidate's dynamics are estimated from that
-  refit only. No candidate ever sees the snapshots it is scored on.
+  windows: at most the time of two more fits), and every candidate's dynamics are estimated from
+  that refit only. No candidate ever sees the snapshots it is scored on. With a spatial
+  residual the refits share one covariance, fitted on the first (earliest) refit's residuals
+  with :data:`REFIT_PAIRS` variogram pairs (a variogram fit costs the same at every grid size).
 * **Campaign-like designs.** Each validation day is sampled as campaigns sample, the design
   cycling from day to day: a spatially clustered route, a straight transect, scattered cells
   (:func:`~.calibration.sample_sets`), one campaign per sample size; the same cells for every
   candidate (paired comparison).
 * **The campaign's metric.** The filter runs through the window with each candidate: forecast,
   assimilate the day's samples, predict the whole map; the score is the day's MSE over the
-  observed cells not sampled.
+  observed cells not sampled. The candidates' filters run as one batch
+  (:func:`~.filter.batch_step`, the algebra of ``LatentFilter.assimilate``).
 * **Candidates** (cadence-aware): memoryless (every day's prior the empirical prior), AR(1) and
   the seasonal model (monthly or daily dates seen over two years; yearly data has no season), each
   blended towards the memoryless prior by ``alpha`` (:func:`~.calibration.blend_dynamics`):
