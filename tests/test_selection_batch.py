@@ -115,3 +115,35 @@ def test_residual_covariance_is_the_fits_own(scale):
         assert np.isclose(getattr(got, name), getattr(want, name), rtol=1e-6)
     fewer = residual_covariance(model, V, "exponential", max_pairs=2_000)
     assert not np.isclose(fewer.range, want.range, rtol=1e-6)  # max_pairs is used
+
+
+def test_first_window_never_sees_later_snapshots(monkeypatch):
+    """The shared residual covariance comes from the earliest refit: poisoning the last
+    window's snapshots leaves every score of the first window as it was."""
+    import lrm_cvx.glrm.selection as sel
+
+    data = synthetic_dynamic_field(40, (8, 9), 3, seed=3, seasonal_period=12,
+                                   seasonal_amplitude=0.8, A=0.6 * np.eye(3),
+                                   Q=0.05 * np.eye(3), freq="MS", missing=0.1, noise=0.1)
+    n_val = 8
+    poisoned = data.copy()
+    poisoned[-n_val:] = poisoned[-n_val:] + 50.0 * np.sign(
+        np.random.default_rng(1).standard_normal(poisoned[-n_val:].shape))
+    seen, covs = [], []
+    orig = sel._window_errors
+    monkeypatch.setattr(sel, "_window_errors",
+                        lambda sub, *a: seen.append((sub.spatial_cov_, orig(sub, *a)))
+                        or seen[-1][1])
+    for d in (data, poisoned):  # the model itself sees the poison (its covariance moves)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = GLRM(3, offset=True, spatial="exponential", random_state=0,
+                         progress=False).fit(d)
+            sel.select_temporal(model, d, n_val=n_val)
+        covs.append(model.spatial_cov_)
+    (cov_a, first_a), (cov_a2, _), (cov_b, first_b), (cov_b2, second_b) = seen
+    assert cov_a2 is cov_a and cov_b2 is cov_b  # one covariance for both refits
+    assert (cov_a.sill, cov_a.range, cov_a.nugget) == (cov_b.sill, cov_b.range, cov_b.nugget)
+    np.testing.assert_array_equal(first_a, first_b)
+    assert not np.allclose(seen[1][1], second_b)  # the poison does reach the last window
+    assert covs[0].sill != covs[1].sill
