@@ -7,6 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
+import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -147,3 +148,22 @@ def test_first_window_never_sees_later_snapshots(monkeypatch):
     np.testing.assert_array_equal(first_a, first_b)
     assert not np.allclose(seen[1][1], second_b)  # the poison does reach the last window
     assert covs[0].sill != covs[1].sill
+
+
+def test_fit_hands_its_stacked_snapshots_to_the_selection():
+    """GLRM(temporal="auto").fit passes its own stacking (no second one): the same table as
+    select_temporal stacking the data itself; a wrong shape is refused."""
+    from lrm_cvx.errors import DataError
+    from lrm_cvx.glrm.selection import select_temporal
+
+    data = synthetic_dynamic_field(40, (7, 8), 3, seed=2, seasonal_period=12,
+                                   seasonal_amplitude=0.8, A=0.6 * np.eye(3),
+                                   Q=0.05 * np.eye(3), freq="MS", missing=0.1, noise=0.1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(3, offset=True, spatial="exponential", temporal="auto", random_state=0,
+                     progress=False).fit(data)
+        again = select_temporal(model, data, seed=0)
+    xr.testing.assert_identical(model.selection_, again)
+    with pytest.raises(DataError, match="values must be"):
+        select_temporal(model, data, values=np.zeros((3, model.n_cells_)))

@@ -45,7 +45,7 @@ import xarray as xr
 
 from .._blas import single_threaded_blas
 from .._validation import as_generator
-from ..errors import ModelError
+from ..errors import DataError, ModelError
 from .dynamics import kind_dynamics
 from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
 
@@ -69,8 +69,6 @@ def _candidate_label(kind: str, alpha: float) -> str:
 def check_auto_data(data: Any) -> None:
     """The early check of ``GLRM(temporal="auto").fit(data)``: a ``(time, lat, lon)``
     DataArray with at least :data:`MIN_AUTO_SNAPSHOTS` snapshots (DataError / ModelError)."""
-    from ..errors import DataError
-
     if not isinstance(data, xr.DataArray) or data.ndim != 3:
         raise DataError("temporal='auto' needs (time, lat, lon) DataArray data (its sample "
                         "designs are routes and transects on the grid)")
@@ -180,8 +178,8 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
                     alphas: Sequence[float] = AUTO_ALPHAS, n_val: int | None = None,
                     n_folds: int = 2, sizes: Sequence[int] = AUTO_SIZES,
                     designs: Sequence[str] = AUTO_DESIGNS, confidence: float = 1.645,
-                    tolerance: float = 0.01, spatial: bool | None = None, seed: Any = 0
-                    ) -> xr.Dataset:
+                    tolerance: float = 0.01, spatial: bool | None = None, seed: Any = 0,
+                    values: np.ndarray | None = None) -> xr.Dataset:
     """Choose the temporal model of ``model`` by rolling-origin validation on ``data``.
 
     ``model``: a GLRM fitted on ``data`` ``(time, lat, lon)``, its training snapshots (only
@@ -192,7 +190,8 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     the validation maps (None: when the model has a spatial residual, as campaigns do; the
     kriged residual and the forecast interact, so the choice is scored on the maps users get).
     Each day's map is scored on at most :data:`MAX_SCORED` random unsampled cells.
-    See the module docstring for the rule.
+    ``values``: ``data`` already stacked by the model's region ``(T, L)`` (``GLRM.fit`` hands
+    over its own; None: stacked here). See the module docstring for the rule.
 
     Returns a Dataset over ``candidate`` (coordinates ``kind``, ``alpha``) and ``size``: ``mse``
     (mean validation-day MSE), ``ratio`` (to memoryless), ``ucb`` (the bound of the rule),
@@ -205,7 +204,13 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
 
     # one stacking pass, float32 as region.stack gives it (the scoring promotes the values
     # exactly; the refits read it as a (time, cell) DataArray, not gathered again)
-    region, V = training_values(model, data, dtype=np.float32)
+    if values is None:
+        region, V = training_values(model, data, dtype=np.float32)
+    else:
+        region, V = model.region_, np.asarray(values).astype(np.float32, copy=False)
+        if V.shape != (data.shape[0], model.n_cells_):
+            raise DataError(f"values must be data stacked to ({data.shape[0]}, "
+                            f"{model.n_cells_}), got shape {V.shape}")
     V.setflags(write=False)  # a refit must not zero-fill it in place
     T = V.shape[0]
     if T < MIN_AUTO_SNAPSHOTS:
