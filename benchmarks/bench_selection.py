@@ -16,8 +16,9 @@ windows, fewer than the full fit sees; one residual covariance, fitted on the fi
 residuals, serves both) and scores its candidates' campaigns at a fixed number of cells
 (``MAX_SCORED``) with one batch of filters for all candidates, so its scoring cost does not grow
 with the cell count while the refits do. Measured 2026-11-26 (2 cores, idle; docs/benchmarks.md):
-extra 1.66 / 1.53 / 1.64 fits at 5k / 50k / 200k cells (plain fits 0.20 / 0.48 / 1.05 s); before
-the batched filters and the shared covariance 4.55 / 2.15 / 2.31.
+extra 1.29 / 1.43 / 1.58 fits at 5k / 50k / 200k cells (plain fits 0.26 / 0.46 / 1.03 s; an
+earlier idle run 1.66 / 1.53 / 1.64); before the batched filters and the shared covariance
+4.55 / 2.15 / 2.31.
 """
 
 from __future__ import annotations
