@@ -12,11 +12,13 @@ of the same with ``temporal="auto"``, the extra time and the extra in units of t
 (each time the least of ``--repeat`` runs: the first run pays one-time costs and the machine is
 shared).
 The selection refits the model twice (on the snapshots before each of its two validation
-windows, fewer than the full fit sees) and scores its candidates' campaigns at a fixed number
-of cells (``MAX_SCORED``), so its scoring cost does not grow with the cell count while the refits
-do. Measured 2026-11-26 (2 cores, idle; docs/benchmarks.md): extra 4.55 / 2.50 / 2.27 fits at
-5k / 50k / 200k cells (plain fits 0.21 / 0.49 / 1.04 s): the refits' fixed costs (the spatial
-variogram fit) and the scoring (1,152 small filter steps) keep small grids above two fits.
+windows, fewer than the full fit sees; one residual covariance, fitted on the first refit's
+residuals, serves both) and scores its candidates' campaigns at a fixed number of cells
+(``MAX_SCORED``) with one batch of filters for all candidates, so its scoring cost does not grow
+with the cell count while the refits do. Measured 2026-11-26 (2 cores, idle; docs/benchmarks.md):
+extra 1.29 / 1.43 / 1.58 fits at 5k / 50k / 200k cells (plain fits 0.26 / 0.46 / 1.03 s; an
+earlier idle run 1.66 / 1.53 / 1.64); before the batched filters and the shared covariance
+4.55 / 2.15 / 2.31.
 """
 
 from __future__ import annotations

@@ -201,7 +201,8 @@ def test_shared_kriging_equals_each_posteriors_own_map():
         s.assimilate((cells, V[-1, cells] + 0.3), time=t)
     assert states[0].posterior.obs_model.is_spatial
     targets = np.flatnonzero(np.isfinite(V[-1]))[1::3]
-    got = _map_means([s.posterior for s in states], states[0].posterior.obs_model, targets)
+    got = _map_means(np.stack([s.posterior.mean for s in states]),
+                     states[0].posterior.obs_model, cells, V[-1, cells] + 0.3, targets)
     for row, s in zip(got, states, strict=True):
         np.testing.assert_allclose(row, s.posterior.predict(cells=targets)[0], rtol=1e-9,
                                    atol=1e-12)

@@ -16,7 +16,7 @@ import hashlib
 import re
 import weakref
 from dataclasses import replace
-from typing import Any, Self
+from typing import Any, NamedTuple, Self
 
 import numpy as np
 import pandas as pd
@@ -25,10 +25,20 @@ import xarray as xr
 from ..errors import DataError, ModelError, RegionError
 from .calibrated import AdaptiveConformal, variance_scale
 from .dynamics import Dynamics, time_numbers
-from .posterior import LatentPosterior, ObservationModel, check_cells, empirical_moments
+from .posterior import (
+    LatentPosterior,
+    ObservationModel,
+    check_cells,
+    empirical_moments,
+    inverse_stack,
+    point_terms,
+    propagate_moments,
+    symmetric_part,
+)
 
 __all__ = ["LatentFilter", "model_fingerprint", "memoryless_dynamics", "time_label",
-           "coerce_time", "time_to_str"]
+           "coerce_time", "time_to_str", "initial_cov", "FilterBatch", "batch_start",
+           "batch_transitions", "batch_step"]
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -82,6 +92,15 @@ def memoryless_dynamics(model: Any) -> Dynamics:
     k = X.shape[0]
     return Dynamics(kind="ar1", A=np.zeros((k, k)), Q=S0, mean=m0, initial_mean=X[:, -1].copy(),
                     initial_cov=S0, step=step, time_kind=kind, time=times[-1])
+
+
+def initial_cov(dynamics: Dynamics) -> np.ndarray:
+    """The covariance ``(k, k)`` of a filter's first belief (:meth:`LatentFilter.from_model`):
+    the dynamics' ``initial_cov`` plus a jitter of ``1e-9 tr(Q) / k`` (a singular initial
+    covariance, e.g. the last snapshot's fold-in from few cells, stays invertible)."""
+    k = dynamics.rank
+    jitter = 1e-9 * max(float(np.trace(dynamics.Q)), 1e-300) / k
+    return dynamics.initial_cov + jitter * np.eye(k)
 
 
 def coerce_time(value: Any, kind: str, calendar: str | None, name: str = "time") -> Any:
@@ -203,9 +222,7 @@ class LatentFilter:
             cal = obs.calibration  # thresholds (glrm/calibration.py)
             obs = replace(obs, variance_scale=variance_scale(model, temporal=True),
                           calibration=None if cal is None else cal.for_filter())
-        P0 = dynamics.initial_cov
-        jitter = 1e-9 * max(float(np.trace(dynamics.Q)), 1e-300) / k
-        post = LatentPosterior.from_moments(obs, dynamics.initial_mean, P0 + jitter * np.eye(k))
+        post = LatentPosterior.from_moments(obs, dynamics.initial_mean, initial_cov(dynamics))
         t_last = _model_times(model)[-1]
         state = cls(model, post, t_last, dynamics, observed=True, memoryless=memoryless)
         if time is not None:
@@ -433,6 +450,67 @@ class LatentFilter:
         self.n_assimilated += int(v.size - dropped)
         self.n_dropped += dropped
         return self
+
+
+# ----------------------------------------------------------------------------- many filters
+class FilterBatch(NamedTuple):
+    """The latent beliefs of filters of one model with different dynamics that assimilate the
+    same observations (the candidates of ``temporal="auto"``, glrm/selection.py): means ``(n,
+    k)``, covariances ``(n, k, k)`` (fit units), the resolved ``dynamics`` (memoryless ones
+    built), the shared observation model and the beliefs' ``time``."""
+
+    obs: ObservationModel
+    mean: np.ndarray
+    cov: np.ndarray
+    dynamics: list[Dynamics]
+    time: Any
+
+
+def batch_start(model: Any, dynamics: list[Dynamics | None], *,
+                spatial: bool | None = None) -> FilterBatch:
+    """The first beliefs of ``LatentFilter.from_model(model, dynamics=d, memoryless=d is None,
+    spatial=spatial)`` for each ``d`` of ``dynamics``, stacked. Only what the latent belief
+    depends on is kept: the filter's variance scale and interval thresholds change no mean or
+    latent covariance, so one observation model serves all."""
+    model._check_fitted()
+    dyns = [memoryless_dynamics(model) if d is None else d for d in dynamics]
+    k = model.Y.shape[0]
+    if any(d.rank != k for d in dyns):
+        raise ModelError(f"dynamics must have the model's rank {k}")
+    obs = ObservationModel.from_model(model, spatial=spatial)
+    mean = np.stack([d.initial_mean for d in dyns])
+    cov = symmetric_part(np.stack([initial_cov(d) for d in dyns]))
+    return FilterBatch(obs, mean, cov, dyns, _model_times(model)[-1])
+
+
+def batch_transitions(dynamics: list[Dynamics], t_from: Any, t_to: Any
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(A, Q, c)`` stacked ``(n, k, k), (n, k, k), (n, k)``: each filter's transition from
+    ``t_from`` to the later time ``t_to`` (as :meth:`LatentFilter.assimilate` moves it)."""
+    out = [d.transition(d.n_steps(t_from, t_to), t_from, t_to) for d in dynamics]
+    return tuple(np.stack(parts) for parts in zip(*out, strict=True))
+
+
+def batch_step(batch: FilterBatch, transition: tuple[np.ndarray, np.ndarray, np.ndarray],
+               cells: np.ndarray, values: np.ndarray, time: Any = None) -> FilterBatch:
+    """Every filter of ``batch`` moved by ``transition`` (:func:`batch_transitions`, to a
+    later snapshot) and updated with the point observations ``values`` (data units, NaN
+    ignored) at ``cells``: the algebra of ``LatentFilter.assimilate`` (propagate, then add the
+    observations' information), the observations' terms (the ``n x n`` GLS with the spatial
+    residual) computed once for all filters. ModelError when a belief is singular."""
+    mean, cov = propagate_moments(batch.mean, batch.cov, *transition)
+    keep = ~np.isnan(values)
+    cells, values = np.asarray(cells)[keep], np.asarray(values, dtype=np.float64)[keep]
+    if cells.size:
+        P0, ok = inverse_stack(cov)
+        if not ok.all():
+            raise ModelError("a forecast covariance is singular")
+        G, b, _, _ = point_terms(batch.obs, cells, values)
+        cov, ok = inverse_stack(symmetric_part(P0 + G))
+        if not ok.all():
+            raise ModelError("a filter's belief is singular after its observations")
+        mean = (cov @ ((P0 @ mean[..., None])[..., 0] + b)[..., None])[..., 0]
+    return batch._replace(mean=mean, cov=cov, time=time)
 
 
 def _time_array(values: list) -> np.ndarray:

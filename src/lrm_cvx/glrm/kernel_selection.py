@@ -100,7 +100,7 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
     ``designs``. ``tolerance`` (default ``-MIN_GAIN``): another family must be better by
     :data:`MIN_GAIN` with confidence, not only as good."""
     from ..spatial import fit_residual_covariance
-    from .selection import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
+    from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
 
     kernels = list(dict.fromkeys([DEFAULT_KERNEL, *kernels]))  # the reference first
     R = np.asarray(sample)  # float32 from the fit: no float64 copy of (rows, L)

@@ -205,7 +205,10 @@ class GLRM:
         stats = check_data(D, M, rank, offset=offset,
                            times=None if times is None else times.values)
         pre = fit_predictive(self, D, M, region, stage="before")  # offset / scale (opt-in)
+        stacked = None  # the snapshots as stacked, for temporal="auto" (no second stacking)
         if pre is not None:  # the init's mean fill needs the transformed data's sums
+            if temporal_value(self.temporal) == "auto" and D.ndim == 2 and region is not None:
+                stacked = D  # the fit reads the transformed copy: D stays as stacked
             D, owned = pre.pop("data"), True
             sc = getattr(self, "_pending_scale", None)
             colsum = (np.zeros_like(stats.colsum) if self.offset  # centred: sums are 0
@@ -221,7 +224,7 @@ class GLRM:
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
         self._fit_dynamics(M[-1], mask=M)
         del D, M
-        self._validate_choices(data)
+        self._validate_choices(data, stacked)
         _warn_if_static(self._Xv)
         return self
 
@@ -247,13 +250,15 @@ class GLRM:
         self._validate_choices(data)
         return self
 
-    def _validate_choices(self, data: Any) -> None:
+    def _validate_choices(self, data: Any, stacked: np.ndarray | None = None) -> None:
         """The choices validated on the training ``data``: ``temporal="auto"``'s ``dynamics_``
-        (glrm/selection.py), then ``calibration``'s ``calibration_`` (glrm/calibration.py)."""
+        (glrm/selection.py), then ``calibration``'s ``calibration_`` (glrm/calibration.py).
+        ``stacked``: ``data`` as the fit stacked it ``(T, L)``, when it still holds it."""
         if temporal_value(self.temporal) == "auto":
             from .selection import apply_selection, select_temporal
 
-            apply_selection(self, select_temporal(self, data, seed=self.random_state))
+            apply_selection(self, select_temporal(self, data, seed=self.random_state,
+                                                  values=stacked))
         if self.calibration is not None:
             from .calibration import calibrate_with
 

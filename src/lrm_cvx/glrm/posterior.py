@@ -45,7 +45,8 @@ from .averaged import check_rows, row_kriging
 from .observation import ObservationModel
 
 __all__ = ["ObservationModel", "LatentPosterior", "PRIOR_KINDS", "check_cells", "empirical_moments",
-           "average_repeats"]
+           "average_repeats", "inverse_stack", "propagate_moments", "point_terms",
+           "symmetric_part"]
 
 PRIOR_KINDS = ("empirical", "flat", "ridge", "custom")
 _SINGULAR = 1e-12  # smallest eigenvalue / largest below this: the belief is improper
@@ -78,16 +79,50 @@ def check_cells(cells: Any, L: int, name: str = "cells") -> np.ndarray:
     return c
 
 
-def _sym(A: np.ndarray) -> np.ndarray:
-    return 0.5 * (A + A.T)
+def symmetric_part(A: np.ndarray) -> np.ndarray:
+    """The symmetric part of a matrix or of each matrix of a stack ``(..., k, k)``."""
+    return 0.5 * (A + np.swapaxes(A, -1, -2))
+
+
+_sym = symmetric_part
+
+
+def inverse_stack(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric inverses of a precision/covariance matrix or of a stack of them ``(..., k,
+    k)`` and whether each is (numerically) nonsingular ``(...)`` (where not, its entry is
+    meaningless). One LAPACK eigendecomposition per matrix gives the condition check and the
+    inverse; :class:`LatentPosterior` and the batched filter (``filter.batch_step``) share it."""
+    ev, U = np.linalg.eigh(P)
+    ok = ev[..., 0] > _SINGULAR * np.maximum(ev[..., -1], 1e-300)  # also False for NaN
+    ev = np.where(ok[..., None], ev, 1.0)
+    return _sym((U / ev[..., None, :]) @ np.swapaxes(U, -1, -2)), ok
 
 
 def _inverse(P: np.ndarray) -> np.ndarray | None:
     """Symmetric inverse of a precision/covariance matrix, None when (numerically) singular."""
-    ev, U = np.linalg.eigh(P)  # one LAPACK call gives the condition check and the inverse
-    if not ev[0] > _SINGULAR * max(ev[-1], 1e-300):  # also False for NaN
-        return None
-    return _sym((U / ev) @ U.T)
+    inv, ok = inverse_stack(P)
+    return inv if ok else None
+
+
+def propagate_moments(mean: np.ndarray, cov: np.ndarray, A: np.ndarray, Q: np.ndarray,
+                      c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean ``A m + c`` and covariance ``sym(A S A^T + Q)`` after ``x' = A x + c + w``, ``w ~
+    N(0, Q)``, of one belief (``(k,)``, ``(k, k)``) or of a stack (``(n, k)``, ``(n, k, k)``)."""
+    m = (A @ mean[..., None])[..., 0] + c
+    return m, _sym(A @ cov @ np.swapaxes(A, -1, -2) + Q)
+
+
+def point_terms(obs: ObservationModel, cells: np.ndarray, values: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """``(G, b, z^T W z, n)``: the information terms of a snapshot's point observations
+    ``values`` (data units, finite) at ``cells`` (:meth:`ObservationModel.observation_terms`;
+    with the spatial residual a cell's repeats are averaged first, and ``n`` counts distinct
+    cells)."""
+    z = obs.to_fit_units(cells, values)
+    if obs.is_spatial:
+        cells, z = _average_repeats(cells, z)
+    G, b, zz = obs._terms(cells, z)
+    return G, b, zz, cells.size
 
 
 def empirical_moments(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -279,10 +314,8 @@ class LatentPosterior:
             P, h = self.base_precision + G, self.base_shift + b
             n_all = np.unique(all_cells).size + self.rows.shape[0]
         elif obs.is_spatial:  # correlated residuals: re-solve the GLS over all of today's cells
-            uc, zc = _average_repeats(all_cells, obs.to_fit_units(all_cells, all_values))
-            G, b, zz = obs._terms(uc, zc)
+            G, b, zz, n_all = point_terms(obs, all_cells, all_values)
             P, h = self.base_precision + G, self.base_shift + b
-            n_all = uc.size
         else:
             G, b = obs.observation_terms(cells, obs.to_fit_units(cells, v))
             P, h = self.precision + G, self.shift + b
@@ -602,8 +635,8 @@ class LatentPosterior:
         if not np.any(A):
             out = LatentPosterior.from_moments(self.obs_model, c, Q)
         else:
-            out = LatentPosterior.from_moments(self.obs_model, A @ self.mean + c,
-                                               A @ self.cov @ A.T + Q)
+            out = LatentPosterior.from_moments(self.obs_model,
+                                               *propagate_moments(self.mean, self.cov, A, Q, c))
         if self.obs_model.adaptive_dof is not None:
             q, n = self.carried_evidence(steps)
             carried = replace(out, scale_q=q, scale_n=n)

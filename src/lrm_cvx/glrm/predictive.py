@@ -38,7 +38,7 @@ from ..errors import ModelError
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
            "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
            "check_options", "moments_to_transform", "set_predictive", "sample_rows",
-           "residual_scale", "SCALES"]
+           "residual_scale", "SCALES", "residual_covariance"]
 
 CALIBRATIONS = (None, "gaussian", "conformal")  # GLRM(calibration=): calibrate after the fit
 NOISE_PRIOR_DF = 10.0  # pseudo-observations of the global variance in each per-cell estimate
@@ -271,6 +271,24 @@ def residual_sample(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray,
     R = (D[rows].astype(np.float64) - X[:, rows].T @ Y).astype(np.float32)
     R[~M[rows]] = np.nan
     return R
+
+
+def residual_covariance(model: Any, V: np.ndarray, family: str, *, max_pairs: int = 200_000
+                        ) -> Any:
+    """The spatial residual covariance (``family``) of a fitted ``model`` from its training
+    values ``V (T, L)`` (data units, NaN = missing): what the fit's ``spatial=family`` sets
+    (the variogram of the residuals of :func:`sample_rows`, ``min_nugget="cell"``), with at most
+    ``max_pairs`` pairs. Only those rows of ``V`` are read (``temporal="auto"``'s refit fits it
+    once, with fewer pairs, for all its refits)."""
+    from ..spatial import fit_residual_covariance
+
+    rows = sample_rows(V.shape[0])
+    D = V[rows]
+    M = ~np.isnan(D)
+    D = standardize(D, M, getattr(model, "offset_", None), getattr(model, "scale_", None))
+    R = residual_sample(D, M, model._Xv[:, rows], model._Yv, max_times=rows.size)
+    return fit_residual_covariance(R, model.region_, model=family, random_state=0,
+                                   min_nugget="cell", max_pairs=max_pairs)
 
 
 class _PredictiveIO:

@@ -7,15 +7,18 @@ campaign would meet them:
 
 * **Rolling origin.** ``n_folds`` forward-chaining windows of ``n_val`` snapshots end at the last
   training snapshot. For each window the model is refitted on the snapshots *before* it (two
-  windows: the time of two more fits), and every candidate's dynamics are estimated from that
-  refit only. No candidate ever sees the snapshots it is scored on.
+  windows: at most the time of two more fits), and every candidate's dynamics are estimated from
+  that refit only. No candidate ever sees the snapshots it is scored on. With a spatial
+  residual the refits share one covariance, fitted on the first (earliest) refit's residuals
+  with :data:`REFIT_PAIRS` variogram pairs (a variogram fit costs the same at every grid size).
 * **Campaign-like designs.** Each validation day is sampled as campaigns sample, the design
   cycling from day to day: a spatially clustered route, a straight transect, scattered cells
   (:func:`~.calibration.sample_sets`), one campaign per sample size; the same cells for every
   candidate (paired comparison).
 * **The campaign's metric.** The filter runs through the window with each candidate: forecast,
   assimilate the day's samples, predict the whole map; the score is the day's MSE over the
-  observed cells not sampled.
+  observed cells not sampled. The candidates' filters run as one batch
+  (:func:`~.filter.batch_step`, the algebra of ``LatentFilter.assimilate``).
 * **Candidates** (cadence-aware): memoryless (every day's prior the empirical prior), AR(1) and
   the seasonal model (monthly or daily dates seen over two years; yearly data has no season), each
   blended towards the memoryless prior by ``alpha`` (:func:`~.calibration.blend_dynamics`):
@@ -42,24 +45,20 @@ import xarray as xr
 
 from .._blas import single_threaded_blas
 from .._validation import as_generator
-from ..errors import ModelError
+from ..errors import DataError, ModelError
 from .dynamics import kind_dynamics
+from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
 
 __all__ = ["select_temporal", "paired_choice", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
-           "MIN_AUTO_SNAPSHOTS", "MAX_SCORED",
+           "MIN_AUTO_SNAPSHOTS", "MAX_SCORED", "REFIT_PAIRS",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection"]
 
 AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
 """Blends towards the memoryless prior tried for every temporal kind."""
-AUTO_DESIGNS = ("route", "line", "scattered")
-"""Sample designs of the validation days: a route, a transect, scattered cells."""
-AUTO_SIZES = (5, 15, 50)
-"""Samples per validation day."""
 MIN_AUTO_SNAPSHOTS = 8
 """Fewest training snapshots ``temporal="auto"`` validates on (3 to refit, 2 windows)."""
-MAX_SCORED = 256
-"""Cells a validation day's map is scored on (a random subset of the unsampled observed cells:
-the kriged maps cost ``O(cells)`` each)."""
+REFIT_PAIRS = 50_000
+"""Pairs of the refits' residual variogram (a fit's: 200,000; the candidates share it)."""
 _MIN_REGULAR = 0.8  # share of the steps that must be one median step
 
 
@@ -70,8 +69,6 @@ def _candidate_label(kind: str, alpha: float) -> str:
 def check_auto_data(data: Any) -> None:
     """The early check of ``GLRM(temporal="auto").fit(data)``: a ``(time, lat, lon)``
     DataArray with at least :data:`MIN_AUTO_SNAPSHOTS` snapshots (DataError / ModelError)."""
-    from ..errors import DataError
-
     if not isinstance(data, xr.DataArray) or data.ndim != 3:
         raise DataError("temporal='auto' needs (time, lat, lon) DataArray data (its sample "
                         "designs are routes and transects on the grid)")
@@ -123,17 +120,20 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
 
     One campaign per size; day ``i`` is sampled by design ``designs[i % len(designs)]`` (a
     campaign's routes change from day to day). The candidates share each day's sample cells,
-    so the kriged residual maps of all of them come from one kriging call (its weights depend
-    on the cells only)."""
+    so their filters run as one batch (``filter.batch_step``: the algebra of
+    ``LatentFilter.assimilate``, the observations' GLS terms computed once) and the kriged
+    residual maps of all of them come from one kriging call (its weights depend on the cells
+    only)."""
     from .calibration import sample_sets
-    from .filter import LatentFilter
+    from .filter import batch_start, batch_step, batch_transitions
 
     n = V.shape[0]
     err = np.full((len(dynamics), len(sizes), n), np.nan)
+    first = batch_start(sub, dynamics, spatial=spatial)
+    steps = [batch_transitions(first.dynamics, t0, t1)  # the same for every size
+             for t0, t1 in zip([first.time, *times[:-1]], times, strict=True)]
     for s_i, size in enumerate(sizes):
-        states = [LatentFilter.from_model(sub, dynamics=dyn, memoryless=dyn is None,
-                                          spatial=spatial) for dyn in dynamics]
-        obs = states[0].posterior.obs_model
+        batch = first
         for i, t in enumerate(times):
             cells = sample_sets(region, np.isfinite(V[i]), size, designs[i % len(designs)], rng)
             h = np.isfinite(V[i])
@@ -141,35 +141,36 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
             h = np.flatnonzero(h)
             if h.size > MAX_SCORED:  # an unbiased sample of the map's error, shared by all
                 h = np.sort(rng.choice(h, MAX_SCORED, replace=False))
-            for state in states:
-                state.assimilate((cells, V[i, cells]), time=t)
+            batch = batch_step(batch, steps[i], cells, V[i, cells], t)
             if h.size:
-                means = _map_means([st.posterior for st in states], obs, h)  # (n_cand, |h|)
+                means = _map_means(batch.mean, batch.obs, cells, V[i, cells], h)
                 err[:, s_i, i] = np.mean((means - V[i, h]) ** 2, axis=1)
     return err
 
 
-def _map_means(posts: list[Any], obs: Any, cells: np.ndarray) -> np.ndarray:
-    """Posterior mean maps ``(len(posts), len(cells))`` in data units of beliefs that share
-    their observations: the trend ``Y^T m`` plus, with a spatial residual, the residuals at the
-    observations kriged with one set of weights (universal kriging given each GLS mean)."""
-    M = np.stack([p.mean for p in posts], axis=1)  # (k, n_cand)
-    mu = obs.Y[:, cells].T @ M  # (|cells|, n_cand)
+def _map_means(means: np.ndarray, obs: Any, cells: np.ndarray, values: np.ndarray,
+               targets: np.ndarray) -> np.ndarray:
+    """Posterior mean maps ``(n_cand, len(targets))`` in data units of the latent means
+    ``(n_cand, k)`` of beliefs that share their observations ``values`` at ``cells``: the trend
+    ``Y^T m`` plus, with a spatial residual, the residuals at the observations kriged with one
+    set of weights (universal kriging given each GLS mean)."""
+    M = means.T  # (k, n_cand)
+    mu = obs.Y[:, targets].T @ M  # (|targets|, n_cand)
     if obs.is_spatial:
         from .. import spatial as sp
         from .posterior import average_repeats
 
-        p0 = posts[0]
-        uc, zc = average_repeats(p0.cells, obs.to_fit_units(p0.cells, p0.values))
+        keep = ~np.isnan(values)
+        uc, zc = average_repeats(cells[keep], obs.to_fit_units(cells[keep], values[keep]))
         if uc.size:
             cov = obs.spatial_cov
             res = zc[:, None] - obs.Y[:, uc].T @ M  # (n_obs, n_cand)
             meth = "direct" if uc.size <= sp.MAX_DIRECT else "neighbors"
             r_mu, _ = sp.krige_core(cov, sp.cell_xyz(obs.region, cov.metric, uc), res,
-                                    sp.cell_xyz(obs.region, cov.metric, cells), method=meth,
+                                    sp.cell_xyz(obs.region, cov.metric, targets), method=meth,
                                     neighbors=32, cutoff=1e-6, want_var=False)
             mu = mu + r_mu.T
-    out = obs.to_data_units(mu.T, None, cells)[0]
+    out = obs.to_data_units(mu.T, None, targets)[0]
     return np.asarray(out)
 
 
@@ -177,8 +178,8 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
                     alphas: Sequence[float] = AUTO_ALPHAS, n_val: int | None = None,
                     n_folds: int = 2, sizes: Sequence[int] = AUTO_SIZES,
                     designs: Sequence[str] = AUTO_DESIGNS, confidence: float = 1.645,
-                    tolerance: float = 0.01, spatial: bool | None = None, seed: Any = 0
-                    ) -> xr.Dataset:
+                    tolerance: float = 0.01, spatial: bool | None = None, seed: Any = 0,
+                    values: np.ndarray | None = None) -> xr.Dataset:
     """Choose the temporal model of ``model`` by rolling-origin validation on ``data``.
 
     ``model``: a GLRM fitted on ``data`` ``(time, lat, lon)``, its training snapshots (only
@@ -189,7 +190,8 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     the validation maps (None: when the model has a spatial residual, as campaigns do; the
     kriged residual and the forecast interact, so the choice is scored on the maps users get).
     Each day's map is scored on at most :data:`MAX_SCORED` random unsampled cells.
-    See the module docstring for the rule.
+    ``values``: ``data`` already stacked by the model's region ``(T, L)`` (``GLRM.fit`` hands
+    over its own; None: stacked here). See the module docstring for the rule.
 
     Returns a Dataset over ``candidate`` (coordinates ``kind``, ``alpha``) and ``size``: ``mse``
     (mean validation-day MSE), ``ratio`` (to memoryless), ``ucb`` (the bound of the rule),
@@ -198,10 +200,17 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     """
     from .calibration import clone_model, training_values
     from .dynamics import TEMPORAL, check_times
+    from .predictive import residual_covariance
 
     # one stacking pass, float32 as region.stack gives it (the scoring promotes the values
     # exactly; the refits read it as a (time, cell) DataArray, not gathered again)
-    region, V = training_values(model, data, dtype=np.float32)
+    if values is None:
+        region, V = training_values(model, data, dtype=np.float32)
+    else:
+        region, V = model.region_, np.asarray(values).astype(np.float32, copy=False)
+        if V.shape != (data.shape[0], model.n_cells_):
+            raise DataError(f"values must be data stacked to ({data.shape[0]}, "
+                            f"{model.n_cells_}), got shape {V.shape}")
     V.setflags(write=False)  # a refit must not zero-fill it in place
     T = V.shape[0]
     if T < MIN_AUTO_SNAPSHOTS:
@@ -233,13 +242,20 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     errs: list[dict[str, np.ndarray]] = []  # per window, in time order: label -> (size, day)
     meta: dict[str, tuple[str, float]] = {"none": ("none", 0.0)}
     skipped: set[str] = set()
+    family = getattr(clone_model(model), "spatial", None)  # a spatial="auto" model's choice
+    shared_cov = None  # the first refit's residual covariance, shared by the later refits
     for f in reversed(range(n_folds)):  # earliest window first: it has the shortest history
         end = T - f * n_val
         lo = end - n_val
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             before = xr.DataArray(V[:lo], dims=(tdim, "cell"), coords={tdim: all_times[:lo]})
-            sub = clone_model(model, temporal="ar1").fit(before, region=region)
+            sub = clone_model(model, temporal="ar1", spatial=None).fit(before, region=region)
+            if family is not None:  # fitted once, on the earliest refit's snapshots only
+                if shared_cov is None:
+                    shared_cov = residual_covariance(sub, V[:lo], family,
+                                                     max_pairs=REFIT_PAIRS)
+                sub.spatial, sub.spatial_cov_ = family, shared_cov
         sub.calibration_ = None
         sub_times = all_times[:lo]
         labels, dyns = ["none"], [None]
@@ -263,35 +279,6 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
                                             for e in errs)]
     E = np.stack([np.concatenate([e[lab] for e in errs], axis=-1) for lab in labels])
     return _rule(E, labels, meta, sizes, designs, confidence, tolerance, skipped)
-
-
-def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
-                  what: str = "the selection") -> tuple:
-    """The rule of the validated choices (``temporal="auto"``, ``spatial="auto"``) on paired
-    errors ``E (n_candidates, n_sizes, n_cases)`` (candidate 0 the reference; a case NaN for
-    any candidate is left out): per candidate and size the mean error ``mse`` over the kept
-    cases, its ``ratio`` to the reference's and ``ucb``, the one-sided upper confidence bound
-    (``confidence`` standard errors of the paired differences) of the relative change; a
-    candidate is ``admissible`` when its ``ucb`` is at most ``tolerance`` at every size (the
-    reference always is); ``best`` is the admissible one with the lowest worst ratio.
-    Returns ``(mse, ratio, ucb, admissible, best, n_cases)``; ModelError when fewer than 2
-    cases were scored."""
-    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)
-    n_cases = int(np.isfinite(E[0]).all(axis=0).sum())
-    if n_cases < 2:
-        raise ModelError(f"{what} scored fewer than 2 validation cases (is the data mostly "
-                         "missing?)")
-    mse = np.nanmean(E, axis=-1)
-    base = mse[0]
-    D = E - E[0]
-    n = np.isfinite(E[0]).sum(axis=-1)  # (size,)
-    se = np.nanstd(D, axis=-1, ddof=1) / np.sqrt(n)
-    ucb = (np.nanmean(D, axis=-1) + float(confidence) * se) / base
-    ratio = mse / base
-    admissible = ucb.max(axis=1) <= float(tolerance)
-    admissible[0] = True
-    best = int(np.argmin(np.where(admissible, ratio.max(axis=1), np.inf)))
-    return mse, ratio, ucb, admissible, best, n_cases
 
 
 def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],

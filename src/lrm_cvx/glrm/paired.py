@@ -1,0 +1,49 @@
+"""The paired rule of the validated choices (``GLRM(temporal="auto")``,
+``GLRM(spatial="auto")``) and the validation designs they share: candidates scored on the same
+sample sets, chosen with a guard on harm against a reference (:func:`paired_choice`). Its own
+module so both choices read it without importing each other."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ModelError
+
+__all__ = ["AUTO_DESIGNS", "AUTO_SIZES", "MAX_SCORED", "paired_choice"]
+
+AUTO_DESIGNS = ("route", "line", "scattered")
+"""Sample designs of the validation days: a route, a transect, scattered cells."""
+AUTO_SIZES = (5, 15, 50)
+"""Samples per validation day."""
+MAX_SCORED = 256
+"""Cells a validation day's map is scored on (a random subset of the unsampled observed cells:
+the kriged maps cost ``O(cells)`` each)."""
+
+
+def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
+                  what: str = "the selection") -> tuple:
+    """The rule of the validated choices (``temporal="auto"``, ``spatial="auto"``) on paired
+    errors ``E (n_candidates, n_sizes, n_cases)`` (candidate 0 the reference; a case NaN for
+    any candidate is left out): per candidate and size the mean error ``mse`` over the kept
+    cases, its ``ratio`` to the reference's and ``ucb``, the one-sided upper confidence bound
+    (``confidence`` standard errors of the paired differences) of the relative change; a
+    candidate is ``admissible`` when its ``ucb`` is at most ``tolerance`` at every size (the
+    reference always is); ``best`` is the admissible one with the lowest worst ratio.
+    Returns ``(mse, ratio, ucb, admissible, best, n_cases)``; ModelError when fewer than 2
+    cases were scored."""
+    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)
+    n_cases = int(np.isfinite(E[0]).all(axis=0).sum())
+    if n_cases < 2:
+        raise ModelError(f"{what} scored fewer than 2 validation cases (is the data mostly "
+                         "missing?)")
+    mse = np.nanmean(E, axis=-1)
+    base = mse[0]
+    D = E - E[0]
+    n = np.isfinite(E[0]).sum(axis=-1)  # (size,)
+    se = np.nanstd(D, axis=-1, ddof=1) / np.sqrt(n)
+    ucb = (np.nanmean(D, axis=-1) + float(confidence) * se) / base
+    ratio = mse / base
+    admissible = ucb.max(axis=1) <= float(tolerance)
+    admissible[0] = True
+    best = int(np.argmin(np.where(admissible, ratio.max(axis=1), np.inf)))
+    return mse, ratio, ucb, admissible, best, n_cases
