@@ -63,14 +63,10 @@ class GLRM:
     random_state : seed / Generator for the initialisation.
     progress : show a tqdm progress bar.
     keep_dask : for dask-backed data, keep ``Y_`` as a dask array of the persisted column chunks
-        instead of computing it into memory (docs/scaling.md).
-    dask_options : for dask-backed data, options of :func:`~.chunked.fit_chunked`
-        (``chunk_mb``, ``scratch_dir``, ``block_mb``).
+        (docs/scaling.md); ``dask_options``: :func:`~.chunked.fit_chunked`'s options.
     offset, scale : fit a per-cell mean (``offset_``, unpenalised) and/or divide by a per-cell
-        standard deviation (``scale_``) before the low-rank fit; fold-in, prediction and the
-        planner terms undo them (docs/reconstruction.md). Default off (the paper).
-        ``scale="residual"``: a heteroscedastic residual instead, ``scale_`` each cell's
-        training residual std relative to the global one, set after the fit.
+        std (``scale_``) before the low-rank fit (``scale="residual"``: the residual's relative
+        std, after it); prediction and planning undo them (docs/reconstruction.md).
     noise : ``"global"`` (the paper: one ``noise_std_``) or ``"per-cell"`` (``noise_var_``,
         per-cell training residual variance shrunk towards the global one; weights the fold-in
         and the planner's information).
@@ -93,10 +89,8 @@ class GLRM:
     ``converged_``, ``noise_std_``, ``unobserved_cells_``, ``n_times_``, ``n_cells_``,
     ``n_observed_``, ``solver_``.
 
-    ``noise_std_`` is the RMS training residual on the observed entries with a degrees-of-freedom
-    correction: ``sqrt(SSE / (n_obs - p))`` with ``p = k (T + L_obs) - k^2`` the number of free
-    parameters of a rank-k factorisation (``L_obs`` the observed cells); when ``n_obs <= p`` the
-    plain ``sqrt(SSE / n_obs)``.
+    ``noise_std_``: the RMS training residual, ``sqrt(SSE / (n_obs - p))`` with ``p = k (T +
+    L_obs) - k^2`` the free parameters of a rank-k factorisation (else ``sqrt(SSE / n_obs)``).
     """
 
     def __init__(
