@@ -84,9 +84,6 @@ def symmetric_part(A: np.ndarray) -> np.ndarray:
     return 0.5 * (A + np.swapaxes(A, -1, -2))
 
 
-_sym = symmetric_part
-
-
 def inverse_stack(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Symmetric inverses of a precision/covariance matrix or of a stack of them ``(..., k,
     k)`` and whether each is (numerically) nonsingular ``(...)`` (where not, its entry is
@@ -95,7 +92,7 @@ def inverse_stack(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ev, U = np.linalg.eigh(P)
     ok = ev[..., 0] > _SINGULAR * np.maximum(ev[..., -1], 1e-300)  # also False for NaN
     ev = np.where(ok[..., None], ev, 1.0)
-    return _sym((U / ev[..., None, :]) @ np.swapaxes(U, -1, -2)), ok
+    return symmetric_part((U / ev[..., None, :]) @ np.swapaxes(U, -1, -2)), ok
 
 
 def _inverse(P: np.ndarray) -> np.ndarray | None:
@@ -109,7 +106,7 @@ def propagate_moments(mean: np.ndarray, cov: np.ndarray, A: np.ndarray, Q: np.nd
     """Mean ``A m + c`` and covariance ``sym(A S A^T + Q)`` after ``x' = A x + c + w``, ``w ~
     N(0, Q)``, of one belief (``(k,)``, ``(k, k)``) or of a stack (``(n, k)``, ``(n, k, k)``)."""
     m = (A @ mean[..., None])[..., 0] + c
-    return m, _sym(A @ cov @ np.swapaxes(A, -1, -2) + Q)
+    return m, symmetric_part(A @ cov @ np.swapaxes(A, -1, -2) + Q)
 
 
 def point_terms(obs: ObservationModel, cells: np.ndarray, values: np.ndarray
@@ -187,14 +184,14 @@ class LatentPosterior:
             S = np.asarray(cov, dtype=np.float64)
             if S.shape != (k, k) or not np.all(np.isfinite(S)):
                 raise ModelError(f"cov must be a finite ({k}, {k}) matrix, got shape {S.shape}")
-            P = _inverse(_sym(S))
+            P = _inverse(symmetric_part(S))
             if P is None:
                 raise ModelError("cov must be symmetric positive definite")
         elif precision is not None:
             P = np.asarray(precision, dtype=np.float64)
             if P.shape != (k, k) or not np.all(np.isfinite(P)):
                 raise ModelError(f"precision must be a finite ({k}, {k}) matrix")
-            P = _sym(P)
+            P = symmetric_part(P)
             if np.linalg.eigvalsh(P)[0] < -1e-10 * max(np.abs(P).max(), 1e-300):
                 raise ModelError("precision must be positive semi-definite")
         else:
@@ -202,7 +199,7 @@ class LatentPosterior:
         h = P @ m
         post = cls(obs_model, P, h, P, h)
         if cov is not None:  # keep the given covariance exactly (no round trip)
-            post.__dict__["cov"] = _sym(np.asarray(cov, dtype=np.float64))
+            post.__dict__["cov"] = symmetric_part(np.asarray(cov, dtype=np.float64))
             post.__dict__["mean"] = m.copy()
         return post
 
@@ -326,7 +323,7 @@ class LatentPosterior:
                     G, b, zz = G + G2, b + b2, zz + zz2
             n_all = all_cells.size + (self.rows.shape[0] if has_rows else 0)
         dq, dn = self._day_evidence(G, b, zz, n_all) if adaptive else (0.0, 0.0)
-        return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
+        return LatentPosterior(obs, symmetric_part(P), h, self.base_precision, self.base_shift,
                                all_cells, all_values, self.n_dropped + dropped, dq, dn,
                                self.scale_q, self.scale_n, self.rows, self.row_values,
                                self.row_noise)
@@ -408,7 +405,7 @@ class LatentPosterior:
         n_all = (np.unique(self.cells).size if obs.is_spatial else self.cells.size) \
             + all_rows.shape[0]
         dq, dn = self._day_evidence(G, b, zz, n_all) if adaptive else (0.0, 0.0)
-        return LatentPosterior(obs, _sym(P), h, self.base_precision, self.base_shift,
+        return LatentPosterior(obs, symmetric_part(P), h, self.base_precision, self.base_shift,
                                self.cells, self.values, self.n_dropped + dropped, dq, dn,
                                self.scale_q, self.scale_n, all_rows, all_rv, all_noise)
 
@@ -665,12 +662,12 @@ def _innovation(P0: np.ndarray, h0: np.ndarray, G: np.ndarray, b: np.ndarray, zz
     ``q = (z - Y^T m)^T W (z - Y^T m) - r^T (P0 + G)^-1 r``, ``r = b - G m``, ``m`` the prior
     mean (0 along flat directions, which then cost one degree of freedom each)."""
     k = P0.shape[0]
-    ev, U = np.linalg.eigh(_sym(P0))
+    ev, U = np.linalg.eigh(symmetric_part(P0))
     top = max(float(ev[-1]), 0.0)
     ok = ev > _SINGULAR * top if top > 0 else np.zeros(k, dtype=bool)
     m = U[:, ok] @ ((U[:, ok].T @ h0) / ev[ok])
     r = b - G @ m
-    P = _sym(P0 + G)
+    P = symmetric_part(P0 + G)
     try:
         Lp = np.linalg.cholesky(P)
     except np.linalg.LinAlgError:

@@ -38,13 +38,11 @@ from ..errors import ModelError
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
            "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
            "check_options", "moments_to_transform", "set_predictive", "sample_rows",
-           "residual_scale", "SCALES", "residual_covariance"]
+           "residual_scale", "residual_covariance"]
 
 CALIBRATIONS = (None, "gaussian", "conformal")  # GLRM(calibration=): calibrate after the fit
 NOISE_PRIOR_DF = 10.0  # pseudo-observations of the global variance in each per-cell estimate
 NOISE_MODELS = ("global", "per-cell")
-SCALES = (False, True, "residual")  # GLRM(scale=): none, the data's std before the fit, the
-# residual's after it
 PRIORS = (None, "empirical")
 
 
