@@ -2,6 +2,7 @@
 (the fit's sub-cell variation), and the fitted model's posterior mean and predictive std
 against a dense brute-force GP (trend prior + kernel + nugget) on tiny inputs."""
 
+import copy
 import warnings
 
 import numpy as np
@@ -93,9 +94,13 @@ def test_cell_size_in_km_follows_the_grid():
 
 def brute_force(model, cells, values):
     """Dense GP: value = offset + y^T x + r + e, x ~ N(mean(X), cov(X)), r ~ GP(sill, range),
-    e ~ N(0, nugget); the conditional of the noise-free value at every cell given the samples,
-    and the std of a new measurement."""
+    e ~ N(0, nugget) (sill and nugget times the model's ``residual_inflation_``); the
+    conditional of the noise-free value at every cell given the samples, and the std of a
+    new measurement."""
     cov = model.spatial_cov_
+    r = getattr(model, "residual_inflation_", 1.0)
+    cov = ResidualCovariance(model=cov.model, sill=cov.sill * r, range=cov.range,
+                             nugget=cov.nugget * r, metric=cov.metric)
     Y = model._Yv
     m0, S0 = empirical_moments(model._Xv)
     g = model.region_.grid_index.astype(float)
@@ -108,9 +113,14 @@ def brute_force(model, cells, values):
     return mean, np.sqrt(var), np.sqrt(var + cov.nugget)
 
 
+@pytest.mark.parametrize("inflation", [1.0, 4.0])
 @pytest.mark.parametrize("n", [3, 9])
-def test_fitted_spatial_model_equals_the_brute_force_gp(fitted, n):
+def test_fitted_spatial_model_equals_the_brute_force_gp(fitted, n, inflation):
+    """Also with a validated residual inflation (temporal="auto"'s ``residual_inflation_``):
+    every variance of the residual and of a new measurement is that factor times."""
     data, model = fitted
+    model = copy.copy(model)
+    model.residual_inflation_ = inflation
     rng = np.random.default_rng(n)
     V = model.region_.stack(data.isel(time=-1)).astype(np.float64)
     cells = np.sort(rng.choice(model.n_cells_, n, replace=False))
@@ -123,7 +133,7 @@ def test_fitted_spatial_model_equals_the_brute_force_gp(fitted, n):
     np.testing.assert_allclose(post.predictive_std(), b_pstd, rtol=1e-7)
     # at the sampled cells: not an exact interpolator, and a new measurement's std is
     # sqrt(std^2 + noise) > 0
-    nug = model.spatial_cov_.nugget
+    nug = model.spatial_cov_.nugget * inflation
     assert np.all(std[cells] > 0.05 * np.sqrt(nug))
     np.testing.assert_allclose(pstd[cells], np.sqrt(std[cells] ** 2 + nug), rtol=1e-10)
     assert np.all(pstd[cells] >= np.sqrt(nug))

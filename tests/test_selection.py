@@ -85,7 +85,7 @@ def test_the_rule_against_a_naive_reading():
                   base * (0.8 + 0.6 * (rng.random((2, n_days)) > 0.5)),  # noisy, often worse
                   base * 0.95])
     labels = ["none", "a:1", "b:1", "c:1"]
-    meta = {lab: (lab.split(":")[0], 1.0) for lab in labels}
+    meta = {lab: (lab.split(":")[0], 1.0, 1.0) for lab in labels}
     sel = _rule(E, labels, meta, [5, 15], ("route",), 1.645, 0.01, set())
     for c in range(4):  # naive, candidate by candidate and size by size
         for s in range(2):
@@ -207,3 +207,59 @@ def test_shared_kriging_equals_each_posteriors_own_map():
         np.testing.assert_allclose(row, s.posterior.predict(cells=targets)[0], rtol=1e-9,
                                    atol=1e-12)
     assert not np.allclose(got[0], got[2])  # the candidates' maps differ
+
+
+def test_residual_inflation_is_a_candidate_applied_and_saved(persistent_field, tmp_path):
+    """Every temporal candidate is also scored with the residual and noise variances inflated
+    (AUTO_INFLATIONS); the choice's factor becomes ``residual_inflation_``, which every
+    observation model of the model carries, and the model file keeps it."""
+    from lrm_cvx.glrm.observation import ObservationModel
+    from lrm_cvx.glrm.selection import AUTO_INFLATIONS, apply_selection
+
+    model = _fit(persistent_field, temporal="auto")
+    sel = model.selection_
+    assert sorted(set(sel["inflation"].values)) == sorted(AUTO_INFLATIONS)
+    assert model.residual_inflation_ == sel.attrs["choice_inflation"]
+    n_models = int((sel["inflation"] == 1.0).sum())
+    assert sel.sizes["candidate"] == n_models * len(AUTO_INFLATIONS)
+    # force an inflated candidate: the observation model's noise is that factor times
+    forced = select_temporal(model, persistent_field, inflations=(8.0,), tolerance=np.inf)
+    forced = forced.copy()
+    forced.attrs.update(choice="ar1:1 x8", choice_kind="ar1", choice_alpha=1.0,
+                        choice_inflation=8.0)
+    apply_selection(model, forced)
+    assert model.residual_inflation_ == 8.0
+    obs = ObservationModel.from_model(model)
+    assert np.isclose(obs.noise_var, 8.0 * model.noise_std_ ** 2)
+    assert "x8" in format_selection(forced) and "N times the fitted" in format_selection(forced)
+    model.save(tmp_path / "m.nc")
+    loaded = GLRM.load(tmp_path / "m.nc")
+    assert loaded.residual_inflation_ == 8.0
+    assert loaded.selection_.attrs["choice_inflation"] == 8.0
+    assert GLRM(rank=3).fit(persistent_field.values.reshape(100, -1)[:, :20]
+                            ).residual_inflation_ == 1.0
+
+
+def test_inflation_is_rejected_where_the_basis_is_right():
+    """A rank-2 field with a smooth residual fitted at rank 2: inflating the residual only
+    blurs good latent updates, the validation sees it (every inflated candidate of the
+    memoryless model is worse) and keeps the fitted variances."""
+    from scipy.spatial.distance import cdist
+
+    rng = np.random.default_rng(0)
+    T, ny, nx = 62, 12, 14
+    yy, xx = np.mgrid[0:ny, 0:nx].astype(float)
+    pats = np.stack([np.sin(xx / 3.0) + 0.1 * yy, np.cos(yy / 2.5) * 0.5 + xx / nx])
+    g = np.column_stack([yy.ravel(), xx.ravel()])
+    K = np.exp(-(cdist(g, g) / 3.0) ** 2) + 1e-8 * np.eye(g.shape[0])
+    res = (np.linalg.cholesky(K) @ rng.standard_normal((g.shape[0], T))).T
+    X = rng.normal(size=(T, 2)) * [2.0, 1.0]
+    vals = 10.0 + X @ pats.reshape(2, -1) + res + 0.05 * rng.standard_normal(res.shape)
+    data = xr.DataArray(vals.reshape(T, ny, nx), dims=("time", "lat", "lon"),
+                        coords={"time": pd.date_range("2000-01-01", periods=T, freq="D"),
+                                "lat": 30.0 + np.arange(ny), "lon": 200.0 + np.arange(nx)})
+    model = _fit(data, rank=2, offset=True, spatial="exponential", temporal="auto")
+    sel = model.selection_
+    assert sel.attrs["choice_inflation"] == 1.0 and model.residual_inflation_ == 1.0
+    memoryless = sel["ratio"].where(sel["kind"] == "none", drop=True).max("size")
+    assert float(memoryless.sel(candidate="none x8")) > 1.1

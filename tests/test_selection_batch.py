@@ -3,6 +3,7 @@ _window_errors``) against the naive path: one :class:`LatentFilter` per candidat
 
 from __future__ import annotations
 
+import copy
 import warnings
 
 import numpy as np
@@ -12,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lrm_cvx import GLRM
+from lrm_cvx.errors import ModelError
 from lrm_cvx.glrm.calibration import blend_dynamics, memoryless_cov, sample_sets
 from lrm_cvx.glrm.dynamics import kind_dynamics
 from lrm_cvx.glrm.filter import LatentFilter, batch_start, batch_step, batch_transitions
@@ -19,14 +21,25 @@ from lrm_cvx.glrm.selection import MAX_SCORED, _window_errors
 from lrm_cvx.io.samples import synthetic_dynamic_field
 
 
-def _naive_window_errors(sub, dynamics, V, times, region, sizes, designs, rng, spatial):
-    """The scoring as it was written first: a LatentFilter per candidate, its posterior's
-    own ``predict`` map (kriged residual included) at the scored cells."""
+def _inflated(model, factor):
+    """A shallow copy of ``model`` whose residual and noise variances are ``factor`` times."""
+    out = copy.copy(model)
+    out.residual_inflation_ = float(factor)
+    return out
+
+
+def _naive_window_errors(sub, dynamics, V, times, region, sizes, designs, rng, spatial,
+                         inflation=None):
+    """The scoring as it was written first: a LatentFilter per candidate (of a model with
+    that candidate's ``residual_inflation_``), its posterior's own ``predict`` map (kriged
+    residual included) at the scored cells."""
     n = V.shape[0]
     err = np.full((len(dynamics), len(sizes), n), np.nan)
+    inflation = [1.0] * len(dynamics) if inflation is None else inflation
     for s_i, size in enumerate(sizes):
-        states = [LatentFilter.from_model(sub, dynamics=d, memoryless=d is None,
-                                          spatial=spatial) for d in dynamics]
+        states = [LatentFilter.from_model(_inflated(sub, r), dynamics=d, memoryless=d is None,
+                                          spatial=spatial)
+                  for d, r in zip(dynamics, inflation, strict=True)]
         for i, t in enumerate(times):
             cells = sample_sets(region, np.isfinite(V[i]), size, designs[i % len(designs)], rng)
             h = np.isfinite(V[i])
@@ -72,6 +85,29 @@ def test_window_errors_equal_one_filter_per_candidate(seed, spatial):
     naive = _naive_window_errors(*args, np.random.default_rng(seed), None)
     assert np.isfinite(naive).all()
     np.testing.assert_allclose(fast, naive, rtol=1e-9, atol=0)
+
+
+@pytest.mark.parametrize("spatial", [None, "exponential"])
+def test_inflated_candidates_equal_filters_of_inflated_models(spatial):
+    """A candidate scored with a residual inflation is the filter of the model whose
+    ``residual_inflation_`` is that factor (its latent update trusts the samples less; the
+    kriged residual keeps its weights): the same day errors as the naive path."""
+    sub, dyns, V, times = _setup(3, spatial)
+    dyns = dyns[:3] * 3
+    infl = [1.0] * 3 + [2.0] * 3 + [8.0] * 3
+    args = (sub, dyns, V, times, sub.region_, (2, 5, 12), ("route", "line", "scattered"))
+    fast = _window_errors(*args, np.random.default_rng(3), None, infl)
+    naive = _naive_window_errors(*args, np.random.default_rng(3), None, infl)
+    np.testing.assert_allclose(fast, naive, rtol=1e-9, atol=0)
+    assert not np.allclose(fast[:3], fast[6:])  # the inflation changes the maps
+
+
+def test_batch_inflation_is_checked():
+    sub, dyns, _, _ = _SETUP
+    with pytest.raises(ModelError, match="inflation must hold"):
+        batch_start(sub, dyns, inflation=[1.0])
+    with pytest.raises(ModelError, match="inflation must hold"):
+        batch_start(sub, dyns, inflation=[0.0] * len(dyns))
 
 
 @settings(max_examples=15, deadline=None)

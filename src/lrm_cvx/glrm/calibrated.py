@@ -217,7 +217,10 @@ def variance_scale(model: Any, temporal: bool = False) -> float:
 def noise_variance(model: Any, spatial: bool = False) -> Any:
     """Variance of a new measurement around the latent value, in data units: the spatial
     nugget with ``spatial=True``, else ``noise_var_`` (per cell) or ``noise_std_^2``, times
-    ``scale_^2`` when the model was fitted with ``scale``. A scalar or ``(L,)``."""
+    the validated residual factor (:func:`~.observation.residual_factor`) and ``scale_^2``
+    when the model was fitted with ``scale``. A scalar or ``(L,)``."""
+    from .observation import residual_factor
+
     if spatial:
         cov = getattr(model, "spatial_cov_", None)
         if cov is None:
@@ -226,6 +229,7 @@ def noise_variance(model: Any, spatial: bool = False) -> Any:
     else:
         nv = getattr(model, "noise_var_", None)
         nv = float(model.noise_std_) ** 2 if nv is None else np.asarray(nv, dtype=np.float64)
+    nv = nv * residual_factor(model)
     sc = getattr(model, "scale_", None)
     return nv if sc is None else nv * np.asarray(sc, dtype=np.float64) ** 2
 

@@ -301,7 +301,8 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
             sub = clone_model(model, **({"temporal": "ar1" if temporal is not None else None}
                                         if has_t else {}))
             sub.fit(data.isel(time=train_idx), region=region)
-            sub.calibration_ = None
+            sub.calibration_ = None  # the validated inflation is the model's, as the dynamics
+            sub.residual_inflation_ = float(getattr(model, "residual_inflation_", 1.0))
             if temporal is not None:
                 sub.dynamics_ = refit_dynamics(model, sub, temporal,
                                                data["time"].values[train_idx])

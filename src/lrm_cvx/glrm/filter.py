@@ -457,21 +457,26 @@ class FilterBatch(NamedTuple):
     """The latent beliefs of filters of one model with different dynamics that assimilate the
     same observations (the candidates of ``temporal="auto"``, glrm/selection.py): means ``(n,
     k)``, covariances ``(n, k, k)`` (fit units), the resolved ``dynamics`` (memoryless ones
-    built), the shared observation model and the beliefs' ``time``."""
+    built), the shared observation model, the beliefs' ``time`` and each filter's ``weight``
+    ``(n,)`` of the observations' information: ``1 / inflation``, a filter whose residual and
+    noise variances are ``inflation`` times the shared model's (``residual_inflation_``)."""
 
     obs: ObservationModel
     mean: np.ndarray
     cov: np.ndarray
     dynamics: list[Dynamics]
     time: Any
+    weight: np.ndarray
 
 
 def batch_start(model: Any, dynamics: list[Dynamics | None], *,
-                spatial: bool | None = None) -> FilterBatch:
+                spatial: bool | None = None, inflation: Any = None) -> FilterBatch:
     """The first beliefs of ``LatentFilter.from_model(model, dynamics=d, memoryless=d is None,
     spatial=spatial)`` for each ``d`` of ``dynamics``, stacked. Only what the latent belief
     depends on is kept: the filter's variance scale and interval thresholds change no mean or
-    latent covariance, so one observation model serves all."""
+    latent covariance, so one observation model serves all. ``inflation`` ``(n,)`` (default
+    1): each filter's residual and noise variances relative to ``model``'s (>= 1 trusts the
+    latent update less; it changes no kriging weight)."""
     model._check_fitted()
     dyns = [memoryless_dynamics(model) if d is None else d for d in dynamics]
     k = model.Y.shape[0]
@@ -480,7 +485,10 @@ def batch_start(model: Any, dynamics: list[Dynamics | None], *,
     obs = ObservationModel.from_model(model, spatial=spatial)
     mean = np.stack([d.initial_mean for d in dyns])
     cov = symmetric_part(np.stack([initial_cov(d) for d in dyns]))
-    return FilterBatch(obs, mean, cov, dyns, _model_times(model)[-1])
+    infl = np.ones(len(dyns)) if inflation is None else np.asarray(inflation, np.float64)
+    if infl.shape != (len(dyns),) or not np.all(np.isfinite(infl) & (infl > 0)):
+        raise ModelError(f"inflation must hold {len(dyns)} finite numbers > 0, got {inflation!r}")
+    return FilterBatch(obs, mean, cov, dyns, _model_times(model)[-1], 1.0 / infl)
 
 
 def batch_transitions(dynamics: list[Dynamics], t_from: Any, t_to: Any
@@ -506,10 +514,11 @@ def batch_step(batch: FilterBatch, transition: tuple[np.ndarray, np.ndarray, np.
         if not ok.all():
             raise ModelError("a forecast covariance is singular")
         G, b, _, _ = point_terms(batch.obs, cells, values)
-        cov, ok = inverse_stack(symmetric_part(P0 + G))
+        w = batch.weight
+        cov, ok = inverse_stack(symmetric_part(P0 + w[:, None, None] * G))
         if not ok.all():
             raise ModelError("a filter's belief is singular after its observations")
-        mean = (cov @ ((P0 @ mean[..., None])[..., 0] + b)[..., None])[..., 0]
+        mean = (cov @ ((P0 @ mean[..., None])[..., 0] + w[:, None] * b)[..., None])[..., 0]
     return batch._replace(mean=mean, cov=cov, time=time)
 
 

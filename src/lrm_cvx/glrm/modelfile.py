@@ -29,8 +29,8 @@ MODEL_ATTRS = ("params", "noise_std", "n_iter", "converged", "n_observed")
 
 _TABLES = (  # (attribute, file prefix, its variables and coords, int attrs, float attrs)
     ("selection_", "selection_",
-     ("mse", "ratio", "ucb", "admissible", "candidate", "size", "kind", "alpha"),
-     ("n_days",), ("choice_alpha", "confidence", "tolerance")),
+     ("mse", "ratio", "ucb", "admissible", "candidate", "size", "kind", "alpha", "inflation"),
+     ("n_days",), ("choice_alpha", "choice_inflation", "confidence", "tolerance")),
     ("kernel_selection_", "kernel_selection_",
      ("mse", "ratio", "ucb", "admissible", "sill", "range", "nugget", "kernel", "size"),
      ("n_rows", "n_cases"), ("confidence", "tolerance")),
@@ -67,7 +67,8 @@ def restore_validation_tables(model: object, ds: xr.Dataset) -> None:
             table.attrs = {k[len(prefix):]: v for k, v in ds.attrs.items()
                            if k.startswith(prefix)}
             table.attrs.update({k: int(table.attrs[k]) for k in ints})
-            table.attrs.update({k: float(table.attrs[k]) for k in floats})
+            table.attrs.update({k: float(table.attrs[k]) for k in floats  # older files
+                                if k in table.attrs})
             table = table.load()
         setattr(model, attr, table)
 

@@ -138,9 +138,11 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
     from statistics of the (transformed) training data: ``moments = (sse, count)`` of
     :func:`residual_moments` (for ``noise="per-cell"``) and ``sample`` of
     :func:`residual_sample` (for ``spatial``). Shared by the in-memory and the dask fit, which
-    computes the same statistics chunk by chunk."""
+    computes the same statistics chunk by chunk. ``residual_inflation_`` starts at 1 (the
+    variances as fitted; ``temporal="auto"`` validates a factor, glrm/selection.py)."""
     model.offset_, model.scale_ = offset, scale
     model.noise_var_ = None
+    model.residual_inflation_ = 1.0
     model.spatial_cov_ = model.kernel_selection_ = None
     if moments is not None:
         sse, cnt = moments
@@ -304,7 +306,8 @@ class _PredictiveIO:
 
     def attrs(self, model: Any) -> dict[str, Any]:
         cov = getattr(model, "spatial_cov_", None)
-        return {} if cov is None else cov.to_attrs()
+        out = {} if cov is None else cov.to_attrs()
+        return {**out, "residual_inflation": float(getattr(model, "residual_inflation_", 1.0))}
 
     def restore(self, model: Any, ds: Any) -> None:
         from ..spatial import ResidualCovariance
@@ -314,6 +317,7 @@ class _PredictiveIO:
             setattr(model, name + "_", ds[key].values.astype(np.float64) if key in ds else None)
         model.spatial_cov_ = (ResidualCovariance.from_attrs(ds.attrs)
                               if "spatial_model" in ds.attrs else None)
+        model.residual_inflation_ = float(ds.attrs.get("residual_inflation", 1.0))
 
 
 PREDICTIVE_ATTRS = _PredictiveIO()

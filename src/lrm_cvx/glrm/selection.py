@@ -23,7 +23,14 @@ campaign would meet them:
   the seasonal model (monthly or daily dates seen over two years; yearly data has no season), each
   blended towards the memoryless prior by ``alpha`` (:func:`~.calibration.blend_dynamics`):
   ``seasonal`` with ``alpha = 0`` is the seasonal climatology with the anomalies' covariance,
-  with ``alpha = 1`` the climatology plus AR(1) anomalies.
+  with ``alpha = 1`` the climatology plus AR(1) anomalies. Each is tried with the residual and
+  noise variances inflated by the factors :data:`AUTO_INFLATIONS` (``model.residual_inflation_``,
+  label ``"ar1:0.9 x4"``): the fitted variances come from the training residuals of a basis
+  fitted to those very snapshots, which under-state a new snapshot's, so the latent update
+  from a few clustered samples is over-confident and spreads a local anomaly over the whole
+  map. An inflation trusts the latent update less and leaves the local part to the kriged
+  residual (its kriging weights do not change); a day's maps under every candidate still come
+  from one batch of filters.
 * **Rule, with a guard on harm.** A candidate is admissible when the upper confidence bound of
   its day-by-day MSE change against memoryless (one-sided, ``confidence`` standard errors) is at
   most ``tolerance`` at every size; memoryless always is. The admissible candidate with the
@@ -50,11 +57,14 @@ from .dynamics import kind_dynamics
 from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
 
 __all__ = ["select_temporal", "paired_choice", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
+           "AUTO_INFLATIONS",
            "MIN_AUTO_SNAPSHOTS", "MAX_SCORED", "REFIT_PAIRS",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection"]
 
 AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
 """Blends towards the memoryless prior tried for every temporal kind."""
+AUTO_INFLATIONS = (1.0, 2.0, 4.0, 8.0)
+"""Factors of the residual and noise variances tried with every temporal candidate."""
 MIN_AUTO_SNAPSHOTS = 8
 """Fewest training snapshots ``temporal="auto"`` validates on (3 to refit, 2 windows)."""
 REFIT_PAIRS = 50_000
@@ -62,8 +72,9 @@ REFIT_PAIRS = 50_000
 _MIN_REGULAR = 0.8  # share of the steps that must be one median step
 
 
-def _candidate_label(kind: str, alpha: float) -> str:
-    return "none" if kind == "none" else f"{kind}:{alpha:g}"
+def _candidate_label(kind: str, alpha: float, inflation: float = 1.0) -> str:
+    base = "none" if kind == "none" else f"{kind}:{alpha:g}"
+    return base if inflation == 1.0 else f"{base} x{inflation:g}"
 
 
 def check_auto_data(data: Any) -> None:
@@ -114,9 +125,11 @@ def _check_regular(times: Any, name: str) -> None:
 
 def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarray,
                    region: Any, sizes: Sequence[int], designs: Sequence[str],
-                   rng: np.random.Generator, spatial: bool | None) -> np.ndarray:
+                   rng: np.random.Generator, spatial: bool | None,
+                   inflation: Any = None) -> np.ndarray:
     """Day MSE ``(n_candidates, n_sizes, n_days)`` of the filter with each of ``dynamics``
-    (None: memoryless) through the snapshots ``V (n_days, L)`` at ``times``.
+    (None: memoryless) and residual ``inflation`` (default 1) through the snapshots
+    ``V (n_days, L)`` at ``times``.
 
     One campaign per size; day ``i`` is sampled by design ``designs[i % len(designs)]`` (a
     campaign's routes change from day to day). The candidates share each day's sample cells,
@@ -129,7 +142,7 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
 
     n = V.shape[0]
     err = np.full((len(dynamics), len(sizes), n), np.nan)
-    first = batch_start(sub, dynamics, spatial=spatial)
+    first = batch_start(sub, dynamics, spatial=spatial, inflation=inflation)
     steps = [batch_transitions(first.dynamics, t0, t1)  # the same for every size
              for t0, t1 in zip([first.time, *times[:-1]], times, strict=True)]
     for s_i, size in enumerate(sizes):
@@ -175,7 +188,8 @@ def _map_means(means: np.ndarray, obs: Any, cells: np.ndarray, values: np.ndarra
 
 
 def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "seasonal"),
-                    alphas: Sequence[float] = AUTO_ALPHAS, n_val: int | None = None,
+                    alphas: Sequence[float] = AUTO_ALPHAS,
+                    inflations: Sequence[float] = AUTO_INFLATIONS, n_val: int | None = None,
                     n_folds: int = 2, sizes: Sequence[int] = AUTO_SIZES,
                     designs: Sequence[str] = AUTO_DESIGNS, confidence: float = 1.645,
                     tolerance: float = 0.01, spatial: bool | None = None, seed: Any = 0,
@@ -185,7 +199,9 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``model``: a GLRM fitted on ``data`` ``(time, lat, lon)``, its training snapshots (only
     they are read). ``kinds``: the temporal kinds tried beside memoryless, each with the blends
     ``alphas``; a kind the record cannot carry (a season on yearly data, or fewer than two years
-    before the first window) is skipped and named in ``attrs["skipped"]``. ``n_val``: days per
+    before the first window) is skipped and named in ``attrs["skipped"]``. ``inflations``:
+    factors (>= 1) of the residual and noise variances tried with every candidate (1, the
+    model as fitted, always). ``n_val``: days per
     window (default a fifth of the record, between 3 and 24). ``spatial``: krige the residual in
     the validation maps (None: when the model has a spatial residual, as campaigns do; the
     kriged residual and the forecast interact, so the choice is scored on the maps users get).
@@ -193,10 +209,11 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``values``: ``data`` already stacked by the model's region ``(T, L)`` (``GLRM.fit`` hands
     over its own; None: stacked here). See the module docstring for the rule.
 
-    Returns a Dataset over ``candidate`` (coordinates ``kind``, ``alpha``) and ``size``: ``mse``
-    (mean validation-day MSE), ``ratio`` (to memoryless), ``ucb`` (the bound of the rule),
-    ``admissible``; attributes ``choice`` (a candidate label, ``"none"`` for memoryless),
-    ``choice_kind``, ``choice_alpha``, ``n_days``, ``designs``, ``skipped``.
+    Returns a Dataset over ``candidate`` (coordinates ``kind``, ``alpha``, ``inflation``) and
+    ``size``: ``mse`` (mean validation-day MSE), ``ratio`` (to memoryless as fitted), ``ucb``
+    (the bound of the rule), ``admissible``; attributes ``choice`` (a candidate label,
+    ``"none"`` for memoryless), ``choice_kind``, ``choice_alpha``, ``choice_inflation``,
+    ``n_days``, ``designs``, ``skipped``.
     """
     from .calibration import clone_model, training_values
     from .dynamics import TEMPORAL, check_times
@@ -228,6 +245,9 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     alphas = sorted({float(a) for a in alphas})
     if not alphas or min(alphas) < 0 or max(alphas) > 1:
         raise ModelError(f"alphas must be blends in [0, 1], got {alphas}")
+    inflations = sorted({1.0, *(float(r) for r in inflations)})
+    if not all(np.isfinite(r) and r >= 1.0 for r in inflations):
+        raise ModelError(f"inflations must be finite factors >= 1, got {inflations}")
     # a sample set must leave most of the map to score: sizes up to half the observed cells
     n_obs = float(np.median(np.isfinite(V).sum(axis=1)))
     sizes = [int(s) for s in sizes if int(s) <= n_obs / 2] or [max(1, int(n_obs / 4))]
@@ -240,7 +260,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
 
     all_times = data[tdim].values
     errs: list[dict[str, np.ndarray]] = []  # per window, in time order: label -> (size, day)
-    meta: dict[str, tuple[str, float]] = {"none": ("none", 0.0)}
+    meta: dict[str, tuple[str, float, float]] = {}
     skipped: set[str] = set()
     family = getattr(clone_model(model), "spatial", None)  # a spatial="auto" model's choice
     shared_cov = None  # the first refit's residual covariance, shared by the later refits
@@ -258,22 +278,25 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
                 sub.spatial, sub.spatial_cov_ = family, shared_cov
         sub.calibration_ = None
         sub_times = all_times[:lo]
-        labels, dyns = ["none"], [None]
+        models: list[tuple[str, float, Any]] = [("none", 0.0, None)]
         for kind in kinds:
             base = None if kind in skipped else kind_dynamics(kind, sub, sub_times)
             if base is None:
                 skipped.add(kind)
                 continue
             S = memoryless_cov(sub, base)
-            for a in alphas:
-                if kind == "ar1" and a == 0.0:
-                    continue  # the memoryless model itself
-                labels.append(_candidate_label(kind, a))
-                meta[labels[-1]] = (kind, a)
-                dyns.append(blend_dynamics(base, a, S))
+            models += [(kind, a, blend_dynamics(base, a, S)) for a in alphas
+                       if not (kind == "ar1" and a == 0.0)]  # ar1:0 is memoryless itself
+        labels, dyns, infl = [], [], []
+        for r in inflations:  # the memoryless model as fitted first: the rule's reference
+            for kind, a, dyn in models:
+                labels.append(_candidate_label(kind, a, r))
+                meta[labels[-1]] = (kind, a, r)
+                dyns.append(dyn)
+                infl.append(r)
         with single_threaded_blas():  # k x k and n x n algebra: threads only add waiting
             E = _window_errors(sub, dyns, V[lo:end], all_times[lo:end], region, sizes,
-                               designs, rng, spatial)
+                               designs, rng, spatial, infl)
         errs.append(dict(zip(labels, E, strict=True)))
     labels = [lab for lab in errs[0] if all(lab in e and meta[lab][0] not in skipped
                                             for e in errs)]
@@ -288,7 +311,7 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
     ``E (n_candidates, n_sizes, n_days)`` (candidate 0 is memoryless)."""
     mse, ratio, ucb, admissible, best, n_days = paired_choice(  # a day not scored: left out
         E, confidence, tolerance, "temporal='auto'")
-    kind, alpha = meta[labels[best]]
+    kind, alpha, inflation = meta[labels[best]]
     ds = xr.Dataset(
         {"mse": (("candidate", "size"), mse),
          "ratio": (("candidate", "size"), ratio),
@@ -296,11 +319,13 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
          "admissible": (("candidate",), admissible)},
         coords={"candidate": labels, "size": sizes,
                 "kind": ("candidate", [meta[lab][0] for lab in labels]),
-                "alpha": ("candidate", [meta[lab][1] for lab in labels])})
+                "alpha": ("candidate", [meta[lab][1] for lab in labels]),
+                "inflation": ("candidate", [meta[lab][2] for lab in labels])})
     ds["mse"].attrs["long_name"] = "mean validation-day MSE of the map (held-out cells)"
     ds["ratio"].attrs["long_name"] = "MSE ratio to the memoryless model"
     ds["ucb"].attrs["long_name"] = "upper confidence bound of the relative MSE change"
     ds.attrs.update(choice=labels[best], choice_kind=kind, choice_alpha=float(alpha),
+                    choice_inflation=float(inflation),
                     n_days=int(n_days), designs=",".join(designs),
                     skipped=",".join(sorted(skipped)), confidence=float(confidence),
                     tolerance=float(tolerance))
@@ -309,11 +334,13 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
 
 def apply_selection(model: Any, selection: xr.Dataset) -> None:
     """Set ``model.dynamics_`` to the chosen candidate, estimated on all of ``model``'s
-    snapshots (blended by the chosen ``alpha``; None for memoryless), and ``selection_``."""
+    snapshots (blended by the chosen ``alpha``; None for memoryless), its
+    ``residual_inflation_`` and ``selection_``."""
     from .calibration import blend_dynamics, memoryless_cov
 
     kind = selection.attrs["choice_kind"]
     model.selection_ = selection
+    model.residual_inflation_ = float(selection.attrs.get("choice_inflation", 1.0))
     if kind == "none":
         model.dynamics_ = None
         return
@@ -335,7 +362,7 @@ def format_selection(selection: xr.Dataset, short: bool = False) -> str:
         return (f"temporal='auto' chose {choice!r} (MSE x{worst:.2f} of memoryless over "
                 f"{selection.attrs['n_days']} validation days)")
     sizes = [int(s) for s in selection["size"].values]
-    head = f"{'candidate':<14}" + "".join(f"{'MSE@' + str(s):>12}" for s in sizes)
+    head = f"{'candidate':<18}" + "".join(f"{'MSE@' + str(s):>12}" for s in sizes)
     lines = [f"temporal='auto' chose {selection.attrs['choice']!r} (rolling origin, "
              f"{selection.attrs['n_days']} validation days, designs "
              f"{selection.attrs['designs']})", head + f"{'worst ratio':>13}  admissible"]
@@ -344,8 +371,10 @@ def format_selection(selection: xr.Dataset, short: bool = False) -> str:
         worst = float(selection["ratio"].values[i].max())
         ok = "yes" if bool(selection["admissible"].values[i]) else "no"
         mark = " *" if lab == selection.attrs["choice"] else ""
-        lines.append(f"{lab:<14}" + "".join(f"{v:12.4g}" for v in mse)
+        lines.append(f"{lab:<18}" + "".join(f"{v:12.4g}" for v in mse)
                      + f"{worst:13.3f}  {ok}{mark}")
     if selection.attrs.get("skipped"):
         lines.append(f"skipped (the record cannot carry them): {selection.attrs['skipped']}")
+    if "inflation" in selection.coords and float(selection["inflation"].max()) > 1.0:
+        lines.append("'xN': residual and noise variances N times the fitted ones")
     return "\n".join(lines)
