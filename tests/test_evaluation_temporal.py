@@ -114,3 +114,21 @@ def test_temporal_campaigns_run_and_memoryless_loop_matches_the_protocol(data, m
 def test_unknown_temporal_is_refused(data, model):
     with pytest.raises(ModelError, match="temporal"):
         evaluate(data, model=model, temporal="daily", **KW)
+
+
+def test_the_memoryless_twin_is_the_model_as_fitted(data, model):
+    """A model whose residual inflation was validated with its temporal model (temporal=
+    "auto"): the campaigns' memoryless twin is the model as temporal=None fits it
+    (inflation 1), the reference the choice was validated against."""
+    import copy
+
+    kw = {**KW, "fold_in": {"prior": "empirical"}}
+    inflated = copy.copy(model)
+    inflated.residual_inflation_ = 4.0
+    base = evaluate(data, model=model, **kw)
+    base4 = evaluate(data, model=inflated, **kw)
+    res = evaluate(data, model=inflated, temporal="ar1", **kw)
+    sel = dict(method="transect-up", trial=0)
+    np.testing.assert_allclose(res.mse_memoryless.sel(sel).values, base.mse.sel(sel).values,
+                               rtol=1e-8)
+    assert not np.allclose(base4.mse.sel(sel).values, base.mse.sel(sel).values, rtol=1e-3)

@@ -33,6 +33,7 @@ from ._validation import as_factor_matrix, as_generator, atomic_output, check_fl
 from .errors import DataError, ModelError, PlanningError
 from .glrm.calibration import fit_then_try_calibrate
 from .glrm.posterior import LatentPosterior
+from .glrm.selection import memoryless_twin
 from .planning.planners import (
     GREEDY_VARIANTS,
     METHOD_REGISTRY,
@@ -217,6 +218,8 @@ class _Fitted:
     paper_prior: LatentPosterior
     fold_prior: LatentPosterior
 
+    twin: Any  # the campaigns' memoryless twin (glrm.selection.memoryless_twin)
+
 
 @dataclass(eq=False)
 class EvaluationProtocol:
@@ -361,7 +364,8 @@ class EvaluationProtocol:
                                          ridge=float(fold_in.get("ridge", self.fold_ridge)),
                                          spatial=bool(fold_in.get("spatial", False)))
                       if use_model else paper_prior)
-        return _Fitted(model, region, Y, train, test, stats, use_model, paper_prior, fold_prior)
+        return _Fitted(model, region, Y, train, test, stats, use_model, paper_prior, fold_prior,
+                       memoryless_twin(model))
 
     def _without_residual(self, model: Any) -> None:
         """The recommended defaults for a model without a spatial residual: a default method
@@ -474,9 +478,9 @@ class EvaluationProtocol:
         cseed = int(start_rng.integers(2**31))
         spatial = self.fold_in.get("spatial") if "spatial" in self.fold_in else None
         options = {"cost": self.cost, "ridge": self.ridge, "criterion": self.criterion}
-        runs = [_campaign_errors(fit.model, fit.test, start, budget, method, tm, cseed,
+        runs = [_campaign_errors(m, fit.test, start, budget, method, tm, cseed,
                                  spatial, self.min_observations, options, self.path)
-                for tm in (self.temporal, None)]
+                for m, tm in ((fit.model, self.temporal), (fit.twin, None))]
         (e, n, c, first), ml = runs
         return first, e, n, np.nan, c, ml[0], ml[2]
 
@@ -744,7 +748,9 @@ def evaluate(
     each day planned against the filter's forecast and assimilated by the filter (the model's
     ``dynamics_`` when of that kind, else estimated from ``X_``); ``mse``, ``n_obs`` and the
     coverage are the campaign's, and the same campaigns run memoryless through the same loop
-    give ``mse_memoryless``, ``coverage68_memoryless``, ``coverage95_memoryless``.
+    give ``mse_memoryless``, ``coverage68_memoryless``, ``coverage95_memoryless``: the model as
+    ``temporal=None`` fits it (a ``temporal="auto"`` model's validated residual inflation,
+    part of that choice, is set back to 1; its coverage keeps the model's calibration).
     ``information``, ``cost``, ``n_cells`` and ``greedy_route`` are those of the first day's
     plan; ``bound`` is not computed (NaN). Campaigns take the whole path model below and
     fleets (issue #25): every method of a campaign plans every day under the same path request

@@ -78,8 +78,9 @@ class GLRM:
         fit, estimate linear-Gaussian dynamics of the latent columns of ``X_`` (``dynamics_``,
         :mod:`~lrm_cvx.glrm.dynamics`, docs/monitoring.md) for :meth:`monitor`. Needs a sorted,
         unique time coordinate and at least 3 snapshots (numpy input: one step per row).
-        ``"auto"``: chosen by rolling-origin validation on the training snapshots
-        (:mod:`~lrm_cvx.glrm.selection`; the table is ``selection_``, saved with the model).
+        ``"auto"``: chosen by rolling-origin validation on the training snapshots, with a
+        factor of the residual variances (``residual_inflation_``; :mod:`~lrm_cvx.glrm.
+        selection`; the table is ``selection_``, saved with the model).
     calibration : None (default), ``"gaussian"`` / ``"conformal"`` or a dict of
         :func:`~lrm_cvx.glrm.calibration.calibrate` keywords: after the fit, calibrate the
         variances on cross-validated fold-ins of the training snapshots (``calibration_``).

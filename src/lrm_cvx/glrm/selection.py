@@ -43,6 +43,7 @@ in its attributes.
 
 from __future__ import annotations
 
+import copy
 import warnings
 from collections.abc import Sequence
 from typing import Any
@@ -57,7 +58,7 @@ from .dynamics import kind_dynamics
 from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
 
 __all__ = ["select_temporal", "paired_choice", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
-           "AUTO_INFLATIONS",
+           "AUTO_INFLATIONS", "memoryless_twin",
            "MIN_AUTO_SNAPSHOTS", "MAX_SCORED", "REFIT_PAIRS",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection"]
 
@@ -352,6 +353,17 @@ def apply_selection(model: Any, selection: xr.Dataset) -> None:
                          f"snapshots")
     model.dynamics_ = blend_dynamics(base, float(selection.attrs["choice_alpha"]),
                                      memoryless_cov(model, base))
+
+
+def memoryless_twin(model: Any) -> Any:
+    """``model`` as ``temporal=None`` fits it: a shallow copy whose ``residual_inflation_`` (a
+    part of ``temporal="auto"``'s choice) is 1; ``model`` itself when it already is. The
+    reference the choice is validated against, and ``evaluate``'s memoryless twin."""
+    if float(getattr(model, "residual_inflation_", 1.0)) == 1.0:
+        return model
+    twin = copy.copy(model)
+    twin.residual_inflation_ = 1.0
+    return twin
 
 
 def format_selection(selection: xr.Dataset, short: bool = False) -> str:
