@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["Calibration", "variance_scale", "noise_variance", "predictive_std",
+__all__ = ["Calibration", "variance_scale", "noise_variance", "residual_factor", "predictive_std",
            "interval_coverage", "conformal_quantile", "check_level", "gaussian_multiplier",
            "AdaptiveConformal", "SCORE_GRID"]
 
@@ -214,13 +214,20 @@ def variance_scale(model: Any, temporal: bool = False) -> float:
     return 1.0 if cal is None else cal.variance_scale(temporal)
 
 
+def residual_factor(model: Any) -> float:
+    """The factor of the model's fitted residual and noise variances in every fold-in, plan
+    and interval (1: as fitted): its validated ``residual_inflation_`` (``temporal="auto"``,
+    glrm/selection.py) times the calibration's ``residual_scale``."""
+    cal = getattr(model, "calibration_", None)
+    rho = 1.0 if cal is None else float(getattr(cal, "residual_scale", 1.0) or 1.0)
+    return rho * float(getattr(model, "residual_inflation_", 1.0) or 1.0)
+
+
 def noise_variance(model: Any, spatial: bool = False) -> Any:
     """Variance of a new measurement around the latent value, in data units: the spatial
     nugget with ``spatial=True``, else ``noise_var_`` (per cell) or ``noise_std_^2``, times
-    the validated residual factor (:func:`~.observation.residual_factor`) and ``scale_^2``
-    when the model was fitted with ``scale``. A scalar or ``(L,)``."""
-    from .observation import residual_factor
-
+    the validated residual factor (:func:`residual_factor`) and ``scale_^2`` when the model
+    was fitted with ``scale``. A scalar or ``(L,)``."""
     if spatial:
         cov = getattr(model, "spatial_cov_", None)
         if cov is None:

@@ -21,7 +21,7 @@ from scipy.spatial.distance import cdist
 from ..errors import DataError, ModelError
 from .averaged import fit_rows, row_terms
 
-__all__ = ["ObservationModel", "NOISE_FLOOR", "residual_factor"]
+__all__ = ["ObservationModel", "NOISE_FLOOR"]
 
 NOISE_FLOOR = 1e-30  # a fitted noise of exactly 0 (rank = T): a tiny stand-in, not a division by 0
 _NOISE_FLOOR = NOISE_FLOOR
@@ -113,6 +113,8 @@ class ObservationModel:
                              "(or another covariance model)")
         nv = getattr(model, "noise_var_", None)
         sigma2 = float(model.noise_std_) ** 2
+        from .calibrated import residual_factor
+
         rho = residual_factor(model)
         if rho != 1.0:  # validated (selection, calibration): the residual and noise variances
             sigma2 *= rho
@@ -225,15 +227,6 @@ def _adaptive_dof(model: Any) -> float | None:
     """The calibration's prior degrees of freedom of the per-snapshot scale (None: fixed)."""
     cal = getattr(model, "calibration_", None)
     return None if cal is None else getattr(cal, "dof", None)
-
-
-def residual_factor(model: Any) -> float:
-    """The factor of the model's fitted residual and noise variances in every fold-in, plan
-    and interval (1: as fitted): its validated ``residual_inflation_`` (``temporal="auto"``,
-    glrm/selection.py) times the calibration's ``residual_scale``."""
-    cal = getattr(model, "calibration_", None)
-    rho = 1.0 if cal is None else float(getattr(cal, "residual_scale", 1.0) or 1.0)
-    return rho * float(getattr(model, "residual_inflation_", 1.0) or 1.0)
 
 
 def _scale_discount(model: Any) -> float:
