@@ -132,3 +132,5 @@ def test_the_memoryless_twin_is_the_model_as_fitted(data, model):
     np.testing.assert_allclose(res.mse_memoryless.sel(sel).values, base.mse.sel(sel).values,
                                rtol=1e-8)
     assert not np.allclose(base4.mse.sel(sel).values, base.mse.sel(sel).values, rtol=1e-3)
+    assert np.isnan(res.coverage95_memoryless.values).all()  # calibrated for x4, not for x1
+    assert np.isfinite(res.coverage95.sel(sel).values).any()

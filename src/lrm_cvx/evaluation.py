@@ -482,7 +482,9 @@ class EvaluationProtocol:
                                  spatial, self.min_observations, options, self.path)
                 for m, tm in ((fit.model, self.temporal), (fit.twin, None))]
         (e, n, c, first), ml = runs
-        return first, e, n, np.nan, c, ml[0], ml[2]
+        # the twin's intervals: the model's calibration was made for its inflated variances
+        ml_cov = ml[2] if fit.twin is fit.model else np.full_like(ml[2], np.nan)
+        return first, e, n, np.nan, c, ml[0], ml_cov
 
     def _dataset(self, fit: _Fitted, starts: np.ndarray, fleets: np.ndarray,
                  res: _Results) -> xr.Dataset:
@@ -750,7 +752,8 @@ def evaluate(
     coverage are the campaign's, and the same campaigns run memoryless through the same loop
     give ``mse_memoryless``, ``coverage68_memoryless``, ``coverage95_memoryless``: the model as
     ``temporal=None`` fits it (a ``temporal="auto"`` model's validated residual inflation,
-    part of that choice, is set back to 1; its coverage keeps the model's calibration).
+    part of that choice, is set back to 1; its coverage is then NaN: the model's calibration
+    was made for the inflated variances).
     ``information``, ``cost``, ``n_cells`` and ``greedy_route`` are those of the first day's
     plan; ``bound`` is not computed (NaN). Campaigns take the whole path model below and
     fleets (issue #25): every method of a campaign plans every day under the same path request
