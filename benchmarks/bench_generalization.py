@@ -272,7 +272,8 @@ def rolling_coverage(data, n_origins: int = 3, block: int = N_TEST, budget: int 
         else:  # the recommended calibration's own keywords (intervals only)
             from lrm_cvx.recommended import RECOMMENDED as SETTING
 
-            kw = {k: v for k, v in SETTING["calibration"].items() if k != "method"}
+            kw = {k: v for k, v in SETTING["calibration"].items()
+                  if k not in ("method", "temporal")}  # filter_variants sets both
             variants = filter_variants(model, train, seed=seed, **kw)
         cost = time.perf_counter() - t0
         for name, cal in variants.items():
