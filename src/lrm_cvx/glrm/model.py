@@ -69,7 +69,7 @@ class GLRM:
         std, after it); prediction and planning undo them (docs/reconstruction.md).
     noise : ``"global"`` (the paper: one ``noise_std_``) or ``"per-cell"`` (``noise_var_``,
         per-cell training residual variance shrunk towards the global one; weights the fold-in
-        and the planner's information).
+        and the planner's information; with ``spatial`` only its non-kriging fold-ins).
     spatial : None, a covariance model name (``"exponential"``, ``"matern32"``, ...) or
         ``"auto"`` (the family validated on the training residuals, ``kernel_selection_``,
         :mod:`~lrm_cvx.glrm.kernel_selection`): fit a stationary covariance of the training
