@@ -153,6 +153,35 @@ def test_gp_residual_share_equals_the_dense_numerators(seed):
     assert got == pytest.approx(ref, rel=1e-9)
 
 
+@pytest.mark.parametrize("targets", ["all", "subset"])
+def test_gp_variance_gains_equal_value_differences_for_any_pool_targets_and_candidates(targets):
+    """The dense oracle's gains (whole pool, a shuffled subset of candidates; targets all cells
+    or a subset, so views and copies of its covariance both run) equal the decrease of the
+    brute-force total variance after each of a few picks."""
+    import lrm_cvx.information as info
+
+    rng, region, Y, S0, cov, c = _gp_setup(11, sill=0.5)
+    L = region.n_cells
+    T = None if targets == "all" else np.sort(rng.choice(L, L // 3, replace=False))
+    pool = np.sort(rng.choice(L, L // 2, replace=False))
+    o = info.GPVarianceOracle(Y, [int(pool[0])], region=region, spatial_cov=cov, prior_cov=S0,
+                              pool=pool, targets=T, target_weights=c)
+    picks = [int(pool[0])]
+    for add in (pool[5], pool[9]):
+        v0 = info.gp_variance_value(Y, region, cov, S0, picks, targets=T, target_weights=c)
+        assert o.value == pytest.approx(v0, rel=1e-9)
+        ref = np.array([v0 - info.gp_variance_value(Y, region, cov, S0, picks + [int(x)],
+                                                     targets=T, target_weights=c)
+                        if x not in picks else np.nan for x in pool])
+        g = o.gains()
+        ok = np.isfinite(ref)
+        np.testing.assert_allclose(g[ok], ref[ok], rtol=1e-7, atol=1e-10)
+        sub = rng.permutation(pool.size)[:7]
+        np.testing.assert_allclose(o.gains(pool[sub]), g[sub], rtol=1e-12, atol=1e-14)
+        o.add(int(add))
+        picks.append(int(add))
+
+
 def test_trend_oracle_is_the_gp_criterion_with_the_residual_as_noise(monkeypatch):
     import lrm_cvx.information as info
 

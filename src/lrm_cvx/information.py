@@ -33,6 +33,7 @@ from typing import Any, Literal
 
 import numpy as np
 import scipy.sparse as sps
+from scipy.linalg.blas import dger
 
 from ._validation import as_factor_matrix
 from .errors import PlanningError
@@ -196,18 +197,27 @@ class GPVarianceOracle:
     def gains(self, candidates: Any = None) -> np.ndarray:
         """Total-variance decrease of each candidate (``(n,)``, default: the whole pool)."""
         pos = self._pos(candidates)
-        Ct = self.C[self._tpos][:, pos]
-        num = self._tw @ (Ct * Ct)
-        den = self.C[self._pool_in_rows[pos], pos] + self.noise
+        # views where the candidates are the whole pool or the targets all rows: no copy of C
+        whole = pos.size == self.pool.size and np.array_equal(pos, np.arange(pos.size))
+        Ct = self.C if whole else self.C[:, pos]
+        if self._tpos.size != self.C.shape[0]:
+            Ct = Ct[self._tpos]
+        num = np.einsum("t,tp,tp->p", self._tw, Ct, Ct)
+        noise = self.noise if np.ndim(self.noise) == 0 else self.noise[pos]  # per row
+        den = self.C[self._pool_in_rows[pos], pos] + noise
         return num / np.maximum(den, 1e-300)
 
     def add(self, cell: int) -> None:
-        """Condition on an observation at ``cell`` (a pool cell): rank-one update."""
+        """Condition on an observation at ``cell`` (a pool cell; its row's, for the row
+        oracle): rank-one update."""
         j = int(self._pos([int(cell)])[0])
         col = self.C[:, j].copy()
-        den = col[self._pool_in_rows[j]] + self.noise
+        den = col[self._pool_in_rows[j]] + (self.noise if np.ndim(self.noise) == 0
+                                            else self.noise[j])
         self._value -= float(self._tw @ (col[self._tpos] ** 2)) / den
-        self.C -= np.outer(col, col[self._pool_in_rows] / den)
+        # C -= col col[pool]^T / den in place (BLAS rank-one update on the Fortran view: no
+        # (rows, pool) temporary); a copy only if C is not C-contiguous float64
+        self.C = dger(-1.0 / den, col[self._pool_in_rows], col, a=self.C.T, overwrite_a=1).T
         self.cells.append(int(cell))
 
     @property
@@ -286,23 +296,6 @@ class RowGPVarianceOracle(GPVarianceOracle):
             self._value -= float(self._tw @ np.einsum("pi,pi->i", W[:, self._tpos],
                                                       W[:, self._tpos]))
         self.C = C
-
-    def gains(self, candidates: Any = None) -> np.ndarray:
-        """Total-variance decrease of each candidate (``(n,)``, default: the whole pool)."""
-        pos = self._pos(candidates)
-        Ct = self.C[self._tpos][:, pos]
-        num = self._tw @ (Ct * Ct)
-        den = self.C[self._pool_in_rows[pos], pos] + self.noise[pos]
-        return num / np.maximum(den, 1e-300)
-
-    def add(self, cell: int) -> None:
-        """Condition on the observation of ``cell``'s row (a pool cell): rank-one update."""
-        j = int(self._pos([int(cell)])[0])
-        col = self.C[:, j].copy()
-        den = col[self._pool_in_rows[j]] + self.noise[j]
-        self._value -= float(self._tw @ (col[self._tpos] ** 2)) / den
-        self.C -= np.outer(col, col[self._pool_in_rows] / den)
-        self.cells.append(int(cell))
 
 
 def make_row_oracle(criterion: str, Y: Any, ridge: float = 0.0, cells: Any = None, *,
