@@ -32,8 +32,9 @@ monthly sets only), each fitted with its ``temporal=``. Printed per set and budg
 * ``vs_all_ub_auto``: the paired upper bound of the greedy's change against each baseline, the
   worst of the five (negative: it beats every baseline with 95 % confidence).
 
-Cost: the full run 1102 s for the six sets on the shared 2-core machine with the test suite
-beside it (navy 651 s; 2026-11-26, session 11); ``--modes ar1,seasonal,auto`` about three
+Cost: the full run 638 s for the six sets on the 2-core machine with the test suite beside it
+(navy 283 s; 2026-11-28, session 14, after the gp-variance oracle stopped copying its
+covariance; 2672 s before, with CI beside it); ``--modes ar1,seasonal,auto`` about three
 times that.
 
 MSE is in the data's units squared. A final line per set gives the wall time. ``--out DIR`` also
