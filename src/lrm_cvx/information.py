@@ -203,17 +203,20 @@ class GPVarianceOracle:
         if self._tpos.size != self.C.shape[0]:
             Ct = Ct[self._tpos]
         num = np.einsum("t,tp,tp->p", self._tw, Ct, Ct)
-        noise = self.noise if np.ndim(self.noise) == 0 else self.noise[pos]  # per row
-        den = self.C[self._pool_in_rows[pos], pos] + noise
+        den = self.C[self._pool_in_rows[pos], pos] + self._noise_at(pos)
         return num / np.maximum(den, 1e-300)
+
+    def _noise_at(self, pos: Any) -> Any:
+        """Noise variance of the candidates at pool positions ``pos`` (the nugget; per row for
+        :class:`RowGPVarianceOracle`)."""
+        return self.noise if np.ndim(self.noise) == 0 else self.noise[pos]
 
     def add(self, cell: int) -> None:
         """Condition on an observation at ``cell`` (a pool cell; its row's, for the row
         oracle): rank-one update."""
         j = int(self._pos([int(cell)])[0])
         col = self.C[:, j].copy()
-        den = col[self._pool_in_rows[j]] + (self.noise if np.ndim(self.noise) == 0
-                                            else self.noise[j])
+        den = col[self._pool_in_rows[j]] + self._noise_at(j)
         self._value -= float(self._tw @ (col[self._tpos] ** 2)) / den
         # C -= col col[pool]^T / den in place (BLAS rank-one update on the Fortran view: no
         # (rows, pool) temporary); a copy only if C is not C-contiguous float64
