@@ -294,6 +294,26 @@ def test_every_option_same_model_as_in_memory(field, options, chunking):
     _assert_model_equal(ref, out)
 
 
+def test_scale_floor_is_that_of_all_cells_not_of_a_chunk(field):
+    """``scale=True`` floors a nearly constant cell's std at SCALE_FLOOR x the median std of
+    *all* cells: the chunked fit finds it before standardizing, so every column chunk gets
+    the in-memory model's floor (a chunk's own median would give another)."""
+    data = field.copy()
+    data[:, :4, :10] = data[:, :4, :10] * 1e-3  # one corner of tiny but non-zero variance
+    data[:, 20:, 40:] = data[:, 20:, 40:] * 10.0  # another of large variance
+    kw = dict(rank=3, max_iter=6, tol=0, random_state=3, progress=False, offset=True,
+              scale=True)
+    ref = GLRM(**kw).fit(data)
+    sd = np.nanstd(ref.region_.stack(data).astype(float), axis=0)
+    from lrm_cvx.glrm.predictive import SCALE_FLOOR
+
+    np.testing.assert_allclose(ref.scale_, np.maximum(sd, SCALE_FLOOR * np.median(sd)),
+                               rtol=1e-6)
+    assert np.sum(ref.scale_ > sd * (1 + 1e-6)) >= 20  # the corner is floored
+    out = GLRM(**kw, dask_options=SMALL_CHUNKS).fit(data.chunk({"time": 5}))
+    _assert_model_equal(ref, out)
+
+
 def test_options_on_array_with_mask_and_randomized_init():
     """(T, L) dask array + mask, above SMALL_SVD (randomized init), offset + scale + per-cell
     noise, converging by tol: the same model."""

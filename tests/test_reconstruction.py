@@ -89,6 +89,47 @@ def test_offset_scale_are_observed_column_moments_and_fold_in_matches(data):
     np.testing.assert_allclose(cells_of(m, ds["std"]), std_ref, rtol=1e-6)
 
 
+def _nearly_constant(data, cells=((3, 4), (6, 7), (8, 2)), std=1e-6, seed=5):
+    """``data`` with ``cells`` (grid rows, cols) nearly constant: sea ice that never melted."""
+    out = data.copy()
+    rng = np.random.default_rng(seed)
+    for r, c in cells:
+        out[:, r, c] = 5.0 + std * rng.normal(size=data.shape[0])
+    return out
+
+
+def test_scale_floors_the_std_of_nearly_constant_cells(data, monkeypatch):
+    """``scale=True`` divides by the per-cell std, floored at SCALE_FLOOR x the median one;
+    a nearly constant training cell that then moves by a typical amount must not wreck the
+    map (without the floor its fit-unit value is ~1e6 and the fold-in is garbage)."""
+    from lrm_cvx.glrm import predictive
+
+    train = _nearly_constant(data.isel(time=slice(0, 25)))
+    D = fit(train, offset=True).region_.stack(train).astype(float)
+    std = np.nanstd(D, axis=0)
+    floor = predictive.SCALE_FLOOR * np.median(std)
+    low = std < floor
+    assert low.sum() == 3
+    test = cells_of(fit(train, offset=True), data.isel(time=27))  # the constant cells move
+
+    def map_error(model, cells):
+        got = cells_of(model, model.complete((cells, test[cells]))["prediction"])
+        return np.nanmean((got - test) ** 2)
+
+    rng = np.random.default_rng(2)
+    m = fit(train, offset=True, scale=True)
+    np.testing.assert_allclose(m.scale_, np.maximum(std, floor), rtol=1e-10)
+    others = np.flatnonzero(~low & np.isfinite(test))
+    cells = np.sort(np.concatenate([rng.choice(others, 20, replace=False),
+                                    np.flatnonzero(low)]))
+    without = map_error(m, np.setdiff1d(cells, np.flatnonzero(low)))
+    assert map_error(m, cells) < 3 * without  # the three samples cost little
+    monkeypatch.setattr(predictive, "SCALE_FLOOR", 0.0)  # the mutation: no floor
+    bare = fit(train, offset=True, scale=True)
+    assert bare.scale_.min() < 1e-5
+    assert map_error(bare, cells) > 100 * without
+
+
 def test_offset_only_prediction_adds_the_mean(data):
     m = fit(data, offset=True)
     assert m.scale_ is None

@@ -74,6 +74,7 @@ from .predictive import (
     moments_to_transform,
     residual_moments,
     residual_sample,
+    scale_floor,
     standardize,
 )
 from .regularizers import Regularizer, ZeroReg
@@ -99,7 +100,17 @@ def _codes_path(path: str) -> str:
     return path[:-4] + "_codes.npy"
 
 
-def _t_prepare(path: str, offset: bool, scale: bool) -> dict:
+def _t_scales(path: str, offset: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A staged chunk's unfloored ``scale=True`` scales and observation counts per cell (the
+    pass that finds the floor of all cells, :func:`~.predictive.scale_floor`, before
+    :func:`_t_prepare` standardizes)."""
+    D = np.load(path)
+    M = ~np.isnan(D)
+    mean, std, count = column_moments(D, M)
+    return moments_to_transform(offset, True, mean, std, floor=0.0)[1], count
+
+
+def _t_prepare(path: str, offset: bool, scale: bool, floor: float = 0.0) -> dict:
     """Turn one staged chunk (float32, NaN = missing) into what every later task reads, in one
     read and one write: the zero-filled (with ``offset``/``scale``: standardized) data in place
     and its packed mask beside it (:func:`~.quadratic.prepare`). Returns the chunk's
@@ -111,7 +122,7 @@ def _t_prepare(path: str, offset: bool, scale: bool) -> dict:
     out: dict = {"colsum": D.sum(axis=0, dtype=np.float64)}
     if offset or scale:
         mean, std, _ = column_moments(D, M)
-        off, sc = moments_to_transform(offset, scale, mean, std)
+        off, sc = moments_to_transform(offset, scale, mean, std, floor=floor)
         D = standardize(D, M, off, sc)
         out["offset"], out["scale"] = off, sc
         # the transformed data's sums as GLRM.fit takes them: 0 when centred, else sums / scale
@@ -445,7 +456,12 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     extras = {} if extras is None else extras
     if k < 1 or k > min(T, L):
         raise ModelError(f"rank must be in [1, min(T, L)] = [1, {min(T, L)}], got {k}")
-    stats = dask.compute(*[d(_t_prepare, pure=False)(f, offset, scale) for f in files])
+    floor = 0.0
+    if scale:  # the floor of every cell's scale, as the in-memory fit's (one more read)
+        parts = dask.compute(*[d(_t_scales, pure=False)(f, offset) for f in files])
+        floor = scale_floor(np.concatenate([p[0] for p in parts]),
+                            np.concatenate([p[1] for p in parts]))
+    stats = dask.compute(*[d(_t_prepare, pure=False)(f, offset, scale, floor) for f in files])
     rows_n = np.sum([s["rows"] for s in stats], axis=0)
     cols = np.concatenate([s["cols"] for s in stats])
     n_obs = int(rows_n.sum())

@@ -65,8 +65,9 @@ class GLRM:
     keep_dask : for dask-backed data, keep ``Y_`` as a dask array of the persisted column chunks
         (docs/scaling.md); ``dask_options``: :func:`~.chunked.fit_chunked`'s options.
     offset, scale : fit a per-cell mean (``offset_``, unpenalised) and/or divide by a per-cell
-        std (``scale_``) before the low-rank fit (``scale="residual"``: the residual's relative
-        std, after it); prediction and planning undo them (docs/reconstruction.md).
+        std (``scale_``, floored at ``predictive.SCALE_FLOOR`` times the median cell's) before
+        the low-rank fit (``scale="residual"``: the residual's relative std, after it);
+        prediction and planning undo them (docs/reconstruction.md).
     noise : ``"global"`` (the paper: one ``noise_std_``) or ``"per-cell"`` (``noise_var_``,
         per-cell training residual variance shrunk towards the global one; weights the fold-in
         and the planner's information; with ``spatial`` only its non-kriging fold-ins).

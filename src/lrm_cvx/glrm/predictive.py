@@ -38,11 +38,15 @@ from ..errors import ModelError
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
            "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
            "check_options", "moments_to_transform", "set_predictive", "sample_rows",
-           "residual_scale", "residual_covariance"]
+           "residual_scale", "residual_covariance", "SCALE_FLOOR", "scale_floor"]
 
 CALIBRATIONS = (None, "gaussian", "conformal")  # GLRM(calibration=): calibrate after the fit
 NOISE_PRIOR_DF = 10.0  # pseudo-observations of the global variance in each per-cell estimate
 NOISE_MODELS = ("global", "per-cell")
+SCALE_FLOOR = 0.1
+"""``GLRM(scale=True)`` floors a cell's std at this fraction of the median cell std: a cell
+(nearly) constant in training (sea ice that never melted: std 5e-7 of a 0-1 fraction) would
+turn a later change of 0.1 into 2e5 fit units, and one such sample wreck a whole map."""
 PRIORS = (None, "empirical")
 
 
@@ -99,13 +103,29 @@ def wants_residual_moments(model: Any) -> bool:
     return model.noise == "per-cell" or model.scale == "residual"
 
 
-def moments_to_transform(offset: bool, scale: bool, mean: np.ndarray,
-                         std: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """``(offset_, scale_)`` from the per-cell observed mean and std (:func:`column_moments`):
-    the mean when ``offset``; the std when ``scale`` (the RMS about zero without ``offset``)."""
+def scale_floor(std: np.ndarray, count: np.ndarray) -> float:
+    """The least per-cell scale of ``GLRM(scale=True)``: :data:`SCALE_FLOOR` times the median
+    of ``std`` (the unfloored scales) over the cells with observations (0 when none)."""
+    seen = np.asarray(std)[np.asarray(count) > 0]
+    return SCALE_FLOOR * float(np.median(seen)) if seen.size else 0.0
+
+
+def moments_to_transform(offset: bool, scale: bool, mean: np.ndarray, std: np.ndarray,
+                         count: np.ndarray | None = None, floor: float | None = None
+                         ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(offset_, scale_)`` from the per-cell observed mean, std and count
+    (:func:`column_moments`): the mean when ``offset``; the std when ``scale`` (the RMS about
+    zero without ``offset``), floored at ``floor`` (None: :func:`scale_floor` of these cells,
+    which needs ``count``; a chunked fit passes the floor of all its cells)."""
     if scale and not offset:  # RMS about zero
         rms = np.sqrt(std ** 2 + mean ** 2)
         std = np.where(rms > 0, rms, 1.0)
+    if scale:
+        if floor is None:
+            if count is None:
+                raise ValueError("moments_to_transform needs count or floor")
+            floor = scale_floor(std, count)
+        std = np.maximum(std, floor)
     return (mean if offset else None), (std if scale else None)
 
 
@@ -119,8 +139,8 @@ def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage:
         model._pending_offset = model._pending_scale = None
         if not (model.offset or data_scale(model)):
             return None
-        mean, std, _ = column_moments(D, M)
-        off, sc = moments_to_transform(model.offset, data_scale(model), mean, std)
+        mean, std, count = column_moments(D, M)
+        off, sc = moments_to_transform(model.offset, data_scale(model), mean, std, count)
         model._pending_offset, model._pending_scale = off, sc
         return {"data": standardize(D, M, off, sc)}
     X, Y = model._Xv, model._Yv
