@@ -168,6 +168,33 @@ def test_time_order_is_enforced(model, field):
         state.assimilate(([1], [0.3]), "not a date")
 
 
+def test_public_belief_api_of_replanning(model, field):
+    """``belief`` / ``plan_time`` / ``time_after`` / ``assimilate_today``: the public form of
+    what replanning and the CLI read (the forecast's belief, the day a plan is for, more of
+    today's observations added to the same snapshot)."""
+    state = model.monitor()
+    t29, t30, t31 = field.time.values[29:32]
+    assert state.plan_time() == t30 and state.plan_time(t31) == t31
+    assert state.time_after(t31) == 2 and state.time_after(t29) == 0
+    assert state.time_after(field.time.values[27]) == -2
+    with pytest.raises(DataError, match="--time"):
+        state.time_after("not a date", "--time")
+    prior = state.belief()  # tomorrow's forecast, the state unchanged
+    dyn = model.dynamics_
+    np.testing.assert_allclose(prior.mean, dyn.A @ dyn.initial_mean + dyn.mean
+                               - dyn.A @ dyn.mean, rtol=1e-9)
+    assert state.time == t29 and state.posterior.cells.size == 0
+    ref = model.monitor().assimilate(([0], [0.3]), t30).assimilate(([1], [0.2]), t30,
+                                                                    force=True)
+    state.assimilate_today(([0], [0.3]), t30)  # a new day: in time order
+    state.assimilate_today(([1], [0.2]), t30)  # more of it: added, not refused
+    assert state.posterior.cells.tolist() == [0, 1]
+    np.testing.assert_allclose(state.posterior.mean, ref.posterior.mean, rtol=1e-12)
+    np.testing.assert_allclose(state.belief(t30).mean, state.posterior.mean)  # today: posterior
+    with pytest.raises(DataError, match="earlier than"):
+        state.assimilate_today(([2], [0.1]), t29)
+
+
 def test_monitor_at_a_time_accepts_that_day(model, field):
     t = field.time.values[32]
     state = model.monitor(time=t)

@@ -157,7 +157,7 @@ def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
     plan = plan_greedy(model.Y, model.region_, start, budget, criterion=criterion,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
                        initial=initial, path=path, **kw)
-    return plan, state._default_time(args.time)
+    return plan, state.plan_time(args.time)
 
 
 def cmd_monitor_replan(args: argparse.Namespace) -> int:
@@ -172,11 +172,11 @@ def cmd_monitor_replan(args: argparse.Namespace) -> int:
             raise _usage(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
                          "first")
         out = None if args.output is None else _guard_state_outputs(args.output, state, args)
-        if args.time is not None and state._dt(state._coerce(args.time, "--time")) != \
-                state._dt(t):
+        if args.time is not None and state.time_after(args.time, "--time") != \
+                state.time_after(t):
             raise _usage(f"--time {args.time} is not the time of the stored plan "
                          f"({_label(t)}): observations for a different day cannot replan it")
-        if state._dt(t) < 0:
+        if state.time_after(t) < 0:
             raise _usage(f"the stored plan is for {_label(t)} but the state has moved on to "
                          f"{_label(state.time)}: plan the new day with 'lrm-cvx monitor plan'")
         done = args.done[0] if len(args.done) == 1 else list(args.done)

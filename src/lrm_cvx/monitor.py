@@ -97,9 +97,32 @@ class MonitorState(LatentFilter):
         when it has not been observed yet) as a Dataset with ``mean``, ``std`` (latent +
         spatial residual) and ``predictive_std`` (plus noise: a new measurement) maps and a
         scalar ``time`` coordinate. Does not change the state."""
-        t = self._default_time(time)
-        post, _ = self._post_at(t)
-        return self._dataset(*post.predict_all(), t, "forecast")
+        t = self.plan_time(time)
+        return self._dataset(*self.belief(t).predict_all(), t, "forecast")
+
+    def belief(self, time: Any = None) -> LatentPosterior:
+        """The latent belief about the snapshot at ``time`` (default as :meth:`forecast`): the
+        posterior when ``time`` is the state's own time, else the forecast carried there. What
+        a plan for that snapshot targets (:meth:`planner_kwargs`, replanning). Does not change
+        the state."""
+        return self._post_at(self.plan_time(time))[0]
+
+    def assimilate_today(self, observations: Any, time: Any) -> MonitorState:
+        """:meth:`assimilate` ``observations`` at ``time``, *added* to the snapshot when the
+        state has already observed ``time`` (more of today's measurements: a replan en route),
+        else as a new day (in time order). Returns ``self``."""
+        t = self._coerce(time)
+        return self.assimilate(observations, t, force=bool(self.observed and self._dt(t) == 0))
+
+    def time_after(self, time: Any, name: str = "time") -> float:
+        """How far ``time`` lies after the state's time, in the filter's time unit (negative:
+        before it; 0: the state's own snapshot). ``name`` labels a bad time's error."""
+        return self._dt(self._coerce(time, name))
+
+    def plan_time(self, time: Any = None) -> Any:
+        """The snapshot a plan for ``time`` is for: ``time`` (not before the state's), or by
+        default the next step, the state's own time while it is not observed yet."""
+        return self._default_time(time)
 
     def _default_time(self, time: Any) -> Any:
         if time is not None:
@@ -133,7 +156,7 @@ class MonitorState(LatentFilter):
                      progress=progress)
         self.current_plan = new
         self.current_plan_time = self.time if observations is not None else \
-            self._default_time(time)
+            self.plan_time(time)
         return new
 
     def explore(self, plan: Any = None, *, forecast: bool = False, time: Any = None,
@@ -173,8 +196,7 @@ class MonitorState(LatentFilter):
         ``"fisher"``/``"a-optimal"`` drop the spatial terms ``"gp-variance"`` needs; None (the
         default) is the recommended criterion (``RECOMMENDED["criterion"]``) when the state
         has the spatial residual it needs, else ``"fisher"``."""
-        post, _ = self._post_at(self._default_time(time))
-        kw = post.information()
+        kw = self.belief(time).information()
         if criterion is None:
             criterion = RECOMMENDED["criterion"]
             if criterion == "gp-variance" and "spatial_cov" not in kw:

@@ -106,10 +106,9 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
     if observations is not None:
         if time is None:
             raise PlanningError("time is required with observations (the day they belong to)")
-        t = state._coerce(time)
-        state.assimilate(observations, t, force=bool(state.observed and state._dt(t) == 0))
+        state.assimilate_today(observations, time)
         time = state.time
-    base = state._post_at(state._default_time(time))[0]
+    base = state.belief(time)
     new_plans, taken = [], []
     for _, here, _, left, goal, finished in pieces:
         if finished:
