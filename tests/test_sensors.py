@@ -352,9 +352,41 @@ def test_a_tiny_footprint_plans_as_the_point_sensor(region, Y):
     assert b.information == pytest.approx(a.information, rel=1e-12)
 
 
-def test_footprint_plans_refuse_the_certificate(region, Y):
-    plan = plan_greedy(Y, region, 10, 8.0, sensor="disc:20km", progress=False)
-    with pytest.raises(PlanningError, match="point sensors only"):
+@pytest.mark.parametrize("spec", ["disc:25km", "square:20km,errors=shared"])
+def test_footprint_certificate_is_the_relaxation_of_the_footprint_rows(region, Y, spec):
+    """A footprint plan's certificate: its information is the plan's (the rows of its stops),
+    the bound is at least it, and the count-only (static) bound is the D-optimal relaxation
+    of every cell's footprint row written out by hand, at least the best of every placement
+    (brute force over all triples)."""
+    from itertools import combinations
+
+    from lrm_cvx.planning import dopt_upper_bound, plan_bound
+
+    sensor = Sensor.of(spec)
+    shared = sensor.errors == "shared"
+    plan = plan_greedy(Y, region, 10, 8.0, sensor=spec, progress=False)
+    cert = plan.certify()
+    assert cert.information == pytest.approx(plan.information, rel=1e-10)
+    assert cert.bound >= cert.information - 1e-9 and 0 <= cert.gap < np.inf
+    rows = np.array([naive_footprint(region, sensor, c) for c in range(region.n_cells)])
+    U = np.column_stack([Y @ a / np.sqrt(var_of(a, np.ones(region.n_cells), shared))
+                         for a in rows])  # (k, L): each cell's whitened footprint row
+    ref = dopt_upper_bound(U, 3, ridge=1e-3, tol=1e-5).value
+    static = plan_bound(Y, region, None, None, path="static", n_sensors=3, sensor=spec,
+                        ridge=1e-3, tol=1e-5)
+    assert static.bound == pytest.approx(ref, abs=1e-4)
+    G = np.einsum("ai,bi->iab", U, U)
+    best = max(np.linalg.slogdet(1e-3 * np.eye(3) + G[list(t)].sum(0))[1]
+               for t in combinations(range(0, region.n_cells, 3), 3))
+    assert static.bound >= best - 1e-9
+    point = plan_bound(Y, region, None, None, path="static", n_sensors=3, ridge=1e-3,
+                       tol=1e-5)
+    assert abs(point.bound - static.bound) > 1e-3  # the footprints were used
+
+
+def test_leg_average_plans_refuse_the_certificate(region, Y):
+    plan = plan_greedy(Y, region, 10, 12.0, ridge=1e-3, sensor="leg-average", progress=False)
+    with pytest.raises(PlanningError, match="leg-average observation depends on the leg"):
         plan.certify()
 
 

@@ -45,6 +45,7 @@ from .families import (
     start_limit,
 )
 from .request import PathOptions
+from .sensors import footprint_factors
 
 __all__ = ["PlanCertificate", "plan_bound"]
 
@@ -266,6 +267,13 @@ def plan_bound(
     is the count-only relaxation over the union of its robots' candidates with their count
     limits summed (valid, looser than one robot's).
 
+    **Sensors** (docs/certificate.md §11): with a footprint sensor (``"square"`` /
+    ``"disc"``, the plan's or ``sensor=``) each stop observes its footprint's averaged row, a
+    function of the stop alone, so the same relaxation bounds it with every cell's whitened
+    footprint row (:func:`~lrm_cvx.planning.sensors.footprint_factors`) in place of its
+    column of ``Y``; ``information`` is then the plan's footprint Fisher information (noise 1
+    per cell, as the planner's). A leg-average sensor's rows depend on the legs: PlanningError.
+
     The bound is on the **Fisher** information (``criterion="fisher"``). For a plan chosen for
     another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or
     ``plan.posterior``) the certificate reports the plan's Fisher information but
@@ -306,10 +314,14 @@ def plan_bound(
         path = None
     request = PathOptions.from_kwargs(path, where="plan_bound", **options)
     plan_sensor = getattr(getattr(plan, "path", None), "sensor", None)
-    if not request.sensor.is_point or (plan_sensor is not None and not plan_sensor.is_point):
-        raise PlanningError("plan_bound certifies point sensors only (the bound is on point "
-                            "rows); a footprint or leg-average plan has no certificate yet")
+    sensor = plan_sensor if plan_sensor is not None else request.sensor
+    if sensor.is_leg:
+        raise PlanningError("plan_bound certifies point and footprint sensors: a leg-average "
+                            "observation depends on the leg, not on the stop alone, so the "
+                            "relaxation over cells does not bound it")
     spec = path_spec(region, plan, start, budget, request, kind, n_sensors)
+    if sensor.has_footprint:  # each cell's footprint row replaces its own (docs §11)
+        Y = footprint_factors(Y, region, sensor)
     fam = family(spec, region, k)
     cand, n_max, init = fam.cand, fam.n_max, fam.init
     # a fleet's certificate reports the total budget, as Plan.budget does
@@ -361,7 +373,8 @@ def plan_bound(
             bound = min(bound, max(init_info, online))
         plan_criterion = _plan_criterion(plan)
         greedy_info, refined_info, n_moves, rcells = _refined(
-            plan, Y, region, refine if fam.paper else False, metric, plan_criterion,
+            plan, Y, region, refine if fam.paper and sensor.is_point else False, metric,
+            plan_criterion,
             information)
         if refined_info is not None and refined_info > information:
             online_r = _online_bound(Y, rcells, cand, n_max, ridge, refined_info)

@@ -41,7 +41,8 @@ from ..region import EARTH_RADIUS_KM, Region
 from ..registry import Registry
 
 __all__ = ["Sensor", "SENSOR_REGISTRY", "SENSOR_KINDS", "POINT", "footprint_matrix",
-           "leg_matrix", "observation_rows", "observe", "observed_cells", "plan_observations"]
+           "footprint_factors", "leg_matrix", "observation_rows", "observe", "observed_cells",
+           "plan_observations"]
 
 SENSOR_REGISTRY = Registry("sensor", PlanningError)
 """Sensor kinds (entries: whether the kind has a footprint size)."""
@@ -278,6 +279,24 @@ def footprint_matrix(region: Region, sensor: Any, cells: Any = None, *, lat: Any
                             f"{plon[bad]:g}) covers no valid cell of the region")
     A.data /= np.repeat(count, count).astype(np.float64)
     return A
+
+
+def footprint_factors(Y: Any, region: Region, sensor: Any, noise_var: Any = None
+                      ) -> np.ndarray:
+    """Each cell's whitened footprint row ``(k, L)``: column ``c`` is ``Y a_c / sqrt(v_c)``,
+    ``a_c`` the footprint of ``sensor`` centred on cell ``c`` (:func:`footprint_matrix`) and
+    ``v_c`` its noise variance from cell errors ``noise_var`` (default 1) and the sensor's
+    ``errors`` (:func:`~lrm_cvx.oracles.row_factors`). A footprint plan's Fisher information
+    is ``log det(ridge I + sum_{stops} u u^T)`` of these columns: what the point certificate
+    bounds for ``Y``'s (planning/certificate.py)."""
+    from ..oracles import row_factors
+
+    sensor = Sensor.of(sensor)
+    if not sensor.has_footprint:
+        raise PlanningError(f"footprint_factors needs a square or disc sensor, got "
+                            f"{sensor.describe()!r}")
+    Yr, vr = row_factors(Y, footprint_matrix(region, sensor), noise_var, sensor.errors)
+    return Yr / np.sqrt(np.maximum(vr, 1e-300))
 
 
 def leg_matrix(route: Any, waypoint: Any, route_robot: Any, n_cells: int) -> sps.csr_matrix:
