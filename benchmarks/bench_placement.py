@@ -62,7 +62,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_static import fit, qr_cells, score  # noqa: E402
-from generalization_data import DATASETS, available, load  # noqa: E402
+from generalization_data import DATASETS, HOLDOUT_DATASETS, available, load  # noqa: E402
 
 from lrm_cvx.planning import place_sensors  # noqa: E402
 
@@ -229,6 +229,9 @@ def main(argv=None) -> int:
     ap.add_argument("--paper-only", action="store_true", help="the 2.1M-cell figure only")
     ap.add_argument("--speed-only", action="store_true", help="the speed figures only")
     ap.add_argument("--data", nargs="*", default=None)
+    ap.add_argument("--holdout", action="store_true",
+                    help="the accuracy table on the hold-out records only "
+                         "(generalization_data.HOLDOUT_DATASETS; no speed figures)")
     args = ap.parse_args(argv)
     if args.paper_only:
         paper_scale()
@@ -236,9 +239,13 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     print(f"load average at start {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     ok = available()
-    names = [n for n in (args.data or list(DATASETS)) if ok.get(n, False)]
+    names = [n for n in (args.data or list(HOLDOUT_DATASETS if args.holdout else DATASETS))
+             if ok.get(n, False)]
     if not args.speed_only:
         accuracy(names, (15,) if args.quick else (15, 30, 60))
+    if args.holdout:
+        print(f"total {time.perf_counter() - t0:.0f} s")
+        return 0
     speed_6k(args.dense)
     speed_planted(args.dense)
     if not args.quick:

