@@ -4,6 +4,7 @@
     python benchmarks/bench_placement.py --quick         # 15 sensors, no paper scale
     python benchmarks/bench_placement.py --dense         # also the dense L x L reference (6k)
     python benchmarks/bench_placement.py --paper-only    # the 2.1M-cell figure only
+    python benchmarks/bench_placement.py --holdout       # accuracy on the 3 hold-out records
 
 **Accuracy.** On the six real records of ``benchmarks/generalization_data.py`` (none bundled),
 the protocol of ``bench_generalization.py``: ``GLRM(5, offset=True, spatial="auto")``
