@@ -122,9 +122,6 @@ class MonitorState(LatentFilter):
     def plan_time(self, time: Any = None) -> Any:
         """The snapshot a plan for ``time`` is for: ``time`` (not before the state's), or by
         default the next step, the state's own time while it is not observed yet."""
-        return self._default_time(time)
-
-    def _default_time(self, time: Any) -> Any:
         if time is not None:
             t = self._coerce(time)
             if self._dt(t) < 0:

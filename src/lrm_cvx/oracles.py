@@ -18,7 +18,8 @@ from .errors import DataError, PlanningError
 from .glrm.averaged import row_noise
 
 __all__ = ["fisher_information", "a_optimal_value", "FisherOracle", "AOptimalOracle",
-           "cells_array", "row_factors", "row_information", "RowOracle", "check_pool_rows"]
+           "cells_array", "row_factors", "whitened_rows", "row_information", "RowOracle",
+           "check_pool_rows"]
 
 
 def _gram(Y: np.ndarray, cells: np.ndarray, ridge: float) -> np.ndarray:
@@ -279,15 +280,22 @@ def row_factors(Y: Any, rows: Any, noise_var: Any = None, errors: str = "indepen
     return Yr, vr
 
 
+def whitened_rows(Y: Any, rows: Any, noise_var: Any = None, errors: str = "independent"
+                  ) -> np.ndarray:
+    """``Yr / sqrt(vr)`` ``(k, m)`` of :func:`row_factors`: each averaged observation's row
+    scaled to unit noise, so its Fisher information is ``log det(ridge I + Yw Yw^T)``."""
+    Yr, vr = row_factors(Y, rows, noise_var, errors)
+    return Yr / np.sqrt(np.maximum(vr, 1e-300))
+
+
 def row_information(Y: Any, rows: Any, ridge: float = 0.0, noise_var: Any = None,
                     errors: str = "independent") -> float:
     """``log det(ridge I + sum_r Yr_r Yr_r^T / vr_r)`` of averaged observations (see
     :func:`row_factors`); for one-hot rows it is :func:`fisher_information`. ``-inf`` when
     singular."""
     ridge = check_positive(ridge, "ridge", error=PlanningError)
-    Yr, vr = row_factors(Y, rows, noise_var, errors)
-    Yw = Yr / np.sqrt(np.maximum(vr, 1e-300))
-    sign, logdet = np.linalg.slogdet(ridge * np.eye(Yr.shape[0]) + Yw @ Yw.T)
+    Yw = whitened_rows(Y, rows, noise_var, errors)
+    sign, logdet = np.linalg.slogdet(ridge * np.eye(Yw.shape[0]) + Yw @ Yw.T)
     return float(logdet) if sign > 0 else -np.inf
 
 

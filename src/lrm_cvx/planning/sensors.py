@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from .._validation import check_positive
 from ..errors import PlanningError
 from ..glrm.averaged import ERRORS
+from ..oracles import whitened_rows
 from ..region import EARTH_RADIUS_KM, Region
 from ..registry import Registry
 
@@ -286,17 +287,14 @@ def footprint_factors(Y: Any, region: Region, sensor: Any, noise_var: Any = None
     """Each cell's whitened footprint row ``(k, L)``: column ``c`` is ``Y a_c / sqrt(v_c)``,
     ``a_c`` the footprint of ``sensor`` centred on cell ``c`` (:func:`footprint_matrix`) and
     ``v_c`` its noise variance from cell errors ``noise_var`` (default 1) and the sensor's
-    ``errors`` (:func:`~lrm_cvx.oracles.row_factors`). A footprint plan's Fisher information
+    ``errors`` (:func:`~lrm_cvx.oracles.whitened_rows`). A footprint plan's Fisher information
     is ``log det(ridge I + sum_{stops} u u^T)`` of these columns: what the point certificate
     bounds for ``Y``'s (planning/certificate.py)."""
-    from ..oracles import row_factors
-
     sensor = Sensor.of(sensor)
     if not sensor.has_footprint:
         raise PlanningError(f"footprint_factors needs a square or disc sensor, got "
                             f"{sensor.describe()!r}")
-    Yr, vr = row_factors(Y, footprint_matrix(region, sensor), noise_var, sensor.errors)
-    return Yr / np.sqrt(np.maximum(vr, 1e-300))
+    return whitened_rows(Y, footprint_matrix(region, sensor), noise_var, sensor.errors)
 
 
 def leg_matrix(route: Any, waypoint: Any, route_robot: Any, n_cells: int) -> sps.csr_matrix:
