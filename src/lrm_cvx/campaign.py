@@ -148,8 +148,7 @@ def _fly_replanning(state: MonitorState, plan: Any, t: Any, truth: np.ndarray, e
         return cells
 
     def fold(cells: np.ndarray) -> None:
-        state.assimilate((cells, truth[cells]), t,
-                         force=bool(state.observed and state._dt(t) == 0))
+        state.assimilate_today((cells, truth[cells]), t)
 
     size, done, sent, n_replans = sizes(plan), [1] * n, [0] * n, 0
     while any(d < s for d, s in zip(done, size, strict=True)):
@@ -163,7 +162,7 @@ def _fly_replanning(state: MonitorState, plan: Any, t: Any, truth: np.ndarray, e
                       time=t, criterion=criterion)
         n_replans += 1
         size = sizes(plan)
-    if state._dt(t) != 0:  # nothing assimilated today yet (a route of its start alone)
+    if state.time_after(t) != 0:  # nothing assimilated today yet (a route of its start alone)
         fold(fresh(plan, [0] * n, size))
     return plan, seen, n_replans
 
@@ -276,10 +275,10 @@ def simulate_campaign(
         raise PlanningError("replan_every replans from point samples: it does not take a "
                             f"footprint or towed sensor yet (sensor: {request.sensor.describe()})")
     fleet = Fleet.resolve(region, start, budget, request.unit)
-    state = MonitorState.from_model(model, dynamics=dynamics, memoryless=memoryless,
-                                    spatial=spatial)
     times = test_data[tdim].values
-    state._check_order(state._coerce(times[0], f"test_data[{tdim!r}]"), force=False)
+    # the belief forecast to the first test snapshot (DataError if it is not after the fit's)
+    state = MonitorState.from_model(model, times[0], dynamics=dynamics,
+                                    memoryless=memoryless, spatial=spatial)
 
     T = V.shape[0]
     out = {name: np.full(T, np.nan) for name in (
@@ -291,14 +290,14 @@ def simulate_campaign(
     routes: list[tuple[np.ndarray, np.ndarray]] = []
     plan = None
     for i in range(T):  # days, in time order
-        t = state._coerce(times[i])
+        t = state.plan_time(times[i])  # coerced to the filter's time kind
         if replan or plan is None:
             state_for_plan = state
             if state.observed:  # plan against the forecast for day t
                 state_for_plan = _positioned(state, t)
             plan = _plan_day(state_for_plan, planner, fleet, request, rng, ridge)
         information = float(getattr(plan, "information", np.nan))
-        forecast = (state._propagated(t) if state.observed else state.posterior).predict()[0]
+        forecast = state.belief(t).predict()[0]
         if every:
             flown, cells, n_replans[i] = _fly_replanning(state, plan, t, V[i], every,
                                                          planner.criterion)
@@ -388,6 +387,6 @@ def _positioned(state: MonitorState, t: Any) -> MonitorState:
     """A shallow view of ``state`` holding the forecast for ``t`` (not yet observed)."""
     view = MonitorState.__new__(MonitorState)
     view.__dict__.update(state.__dict__)
-    view.posterior = state._propagated(t)
+    view.posterior = state.belief(t)
     view.time, view.observed = t, False
     return view
