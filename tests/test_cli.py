@@ -182,7 +182,9 @@ def test_fit_recommended_is_the_documented_setting(sst_model):
     assert model.offset is True and model.spatial == cli.RECOMMENDED["spatial"] == "auto"
     assert model.spatial_cov_ is not None and model.offset_ is not None
     table = model.kernel_selection_  # the family validated on the residuals, saved
-    assert model.spatial_cov_.model == table.attrs["choice"] in table["kernel"].values
+    choice = table.attrs["choice"]
+    assert choice in table["kernel"].values and choice.split()[0] == model.spatial_cov_.model
+    assert float(table["anisotropy"].sel(kernel=choice)) == model.spatial_cov_.anisotropy
     assert model.temporal == cli.RECOMMENDED["temporal"] == "auto"
     assert model.selection_.attrs["choice"] in model.selection_["candidate"].values
 
@@ -276,7 +278,7 @@ def test_evaluate_recommended_matches_python(tmp_path, capsys):
     ref = evaluate(load_sample("sst"), rank=3, n_test=2, n_starts=1, random_trials=1,
                    budgets=(5, 10), min_observations=1, certify=False, progress=False,
                    methods=("greedy:gp-variance", *METHODS),
-                   model_params={"offset": True, "spatial": "exponential", "noise": "global"},
+                   model_params={"offset": True, "spatial": "auto", "noise": "global"},
                    fold_in={"prior": "empirical", "spatial": True})
     np.testing.assert_allclose(got["mse"], ref["mse"], rtol=1e-6, equal_nan=True)
     np.testing.assert_array_equal(got["greedy_route"], ref["greedy_route"])

@@ -428,7 +428,8 @@ def test_greedy_posterior_criteria_equal_naive(seed):
 
 
 # --------------------------------------------------------------------------- scalable gp-variance
-def test_grid_convolution_equals_brute_force():
+@pytest.mark.parametrize("anisotropy", [1.0, 2.5])
+def test_grid_convolution_equals_brute_force(anisotropy):
     from lrm_cvx.information import GridConv
 
     rng = np.random.default_rng(0)
@@ -438,14 +439,14 @@ def test_grid_convolution_equals_brute_force():
         return np.exp(-np.asarray(d) / 1.7)
 
     f = rng.normal(size=(7, 9))
-    got = GridConv(win, out, h)(f)
+    got = GridConv(win, out, h, anisotropy)(f)
     ref = np.zeros((3, 4))
     for a in range(3):
         for b in range(4):
             for i in range(7):
                 for j in range(9):
                     ref[a, b] += f[i, j] * h(np.hypot(win[0] + i - out[0] - a,
-                                                      win[1] + j - out[1] - b))
+                                                      (win[1] + j - out[1] - b) / anisotropy))
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-13)
 
 

@@ -215,10 +215,13 @@ def test_default_skips_the_exchange_with_as_many_sensors_as_training_snapshots(f
     assert place_sensors(model, T, training=train, exchange=True).method == "greedy+exchange"
 
 
-@pytest.mark.parametrize("model_name", ["exponential", "matern32"])
-def test_factored_windows_smaller_than_the_grid_equal_the_dense_reference(model_name):
+@pytest.mark.parametrize("model_name, anisotropy", [("exponential", 1.0), ("matern32", 1.0),
+                                                    ("exponential", 2.0)])
+def test_factored_windows_smaller_than_the_grid_equal_the_dense_reference(model_name,
+                                                                         anisotropy):
     """A short range: the per-sensor FFT window and the kernel cut are smaller than the grid
-    (and sensors sit near its edges), so the window indexing is exercised."""
+    (and sensors sit near its edges), so the window indexing is exercised; with an anisotropy
+    the windows differ per axis."""
     from lrm_cvx import Region
     from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel
     from lrm_cvx.spatial import ResidualCovariance
@@ -230,13 +233,15 @@ def test_factored_windows_smaller_than_the_grid_equal_the_dense_reference(model_
     region = Region.from_dataarray(grid, mask=rng.random((ny, nx)) > 0.15)
     L = region.n_cells
     Y = rng.normal(size=(k, L)) * 0.3
-    cov = ResidualCovariance(model_name, sill=1.0, range=0.6, nugget=0.05)
+    cov = ResidualCovariance(model_name, sill=1.0, range=0.6 / anisotropy, nugget=0.05,
+                             anisotropy=anisotropy)
     obs = ObservationModel(Y=Y, offset=rng.normal(size=L), scale=rng.uniform(0.5, 2.0, L),
                            spatial_cov=cov, region=region)
     prior = LatentPosterior.from_moments(obs, rng.normal(size=k), np.eye(k))
     train = xr.DataArray(rng.normal(size=(T, ny, nx)), dims=("time", "lat", "lon"),
                          coords=dict(time=np.arange(T), lat=lat, lon=lon))
-    assert sr._radius(cov, 1e-12, region.shape) < max(ny, nx) - 10
+    rr, rc = sr._radius(cov, 1e-12, region.shape)
+    assert rr < ny - 5 and rc < nx - 5 and (rr < rc) == (anisotropy > 1)
     kw = dict(criterion="risk", prior=prior, training=train, exchange=True, sweeps=3)
     dense = place_sensors(Y, region, 6, method="dense", **kw)
     fact = place_sensors(Y, region, 6, method="factored", **kw)

@@ -206,7 +206,8 @@ def _model_params(args: argparse.Namespace) -> dict:
         params.update(_recommended_glrm())
     explicit = {"offset": True if args.offset else None,
                 "scale": _scale_option(args),
-                "noise": args.noise, "spatial": args.spatial, "temporal": args.temporal}
+                "noise": args.noise, "spatial": args.spatial, "temporal": args.temporal,
+                "anisotropy": getattr(args, "anisotropy", None)}
     params.update({k: v for k, v in explicit.items() if v is not None})
     params["temporal"] = _prior(params["temporal"])  # --temporal none: no dynamics
     return params
@@ -634,6 +635,9 @@ def _add_model_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
                    help=f"also fit a GP covariance of the residuals ({', '.join(MODELS)}, or "
                    "auto: the family validated on the training residuals; "
                    f"{default('spatial', 'none')})")
+    p.add_argument("--anisotropy", type=float, default=None, metavar="A",
+                   help="a fixed --spatial kernel's east-west over north-south range (grid "
+                   "cells; default 1: isotropic; --spatial auto validates its own)")
     p.add_argument("--temporal", choices=[t or "none" for t in TEMPORAL], default=None,
                    help="latent dynamics for persistent monitoring (docs/monitoring.md): auto "
                    "chooses none, ar1 or seasonal on the training snapshots by rolling-origin "

@@ -329,13 +329,13 @@ GP_STRUCTURED_MIN_ENTRIES: float = 2e7
 covariances (``|targets + pool| x |pool|``) and the covariance's metric is ``"grid"``."""
 
 
-def _rect(lo: np.ndarray, hi: np.ndarray, margin: float, shape: tuple[int, int]
-          ) -> tuple[int, int, int, int]:
-    """Grid rectangle ``(row0, col0, n_rows, n_cols)`` of ``[lo - margin, hi + margin]``,
-    clipped to the grid."""
-    m = int(np.ceil(margin)) if np.isfinite(margin) else max(shape)
-    r0, c0 = max(int(lo[0]) - m, 0), max(int(lo[1]) - m, 0)
-    r1, c1 = min(int(hi[0]) + m, shape[0] - 1), min(int(hi[1]) + m, shape[1] - 1)
+def _rect(lo: np.ndarray, hi: np.ndarray, margin: tuple[float, float],
+          shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Grid rectangle ``(row0, col0, n_rows, n_cols)`` of ``[lo - margin, hi + margin]``
+    (``margin`` per axis: a covariance's ``reach``), clipped to the grid."""
+    mr, mc = (int(np.ceil(v)) if np.isfinite(v) else max(shape) for v in margin)
+    r0, c0 = max(int(lo[0]) - mr, 0), max(int(lo[1]) - mc, 0)
+    r1, c1 = min(int(hi[0]) + mr, shape[0] - 1), min(int(hi[1]) + mc, shape[1] - 1)
     return r0, c0, r1 - r0 + 1, c1 - c0 + 1
 
 
@@ -415,23 +415,24 @@ class StructuredGPVarianceOracle:
         cgrid[gi[:, 0], gi[:, 1]] = cT
         # u(x) and s(x) = sum_i c_i k(i, x)^2 over (almost) the whole grid: terms left out
         # are below 1e-17 sill each
-        wb = _rect(lo, hi, spatial_cov.cutoff_distance(1e-17), shape)
+        aniso = spatial_cov.anisotropy
+        wb = _rect(lo, hi, spatial_cov.reach(1e-17), shape)
         sl = (slice(wb[0], wb[0] + wb[2]), slice(wb[1], wb[1] + wb[3]))
-        conv = GridConv(wb, out, kern)
+        conv = GridConv(wb, out, kern, aniso)
         uX = np.empty((k, X.size))
         buf = np.zeros(shape)
         for a in range(k):
             buf[gi[:, 0], gi[:, 1]] = cT * self.Y[a]
             uX[a] = conv(buf[sl])[self._oidx]
         del conv
-        sX = GridConv(wb, out, lambda d: kern(d) ** 2)(cgrid[sl])[self._oidx]
+        sX = GridConv(wb, out, lambda d: kern(d) ** 2, aniso)(cgrid[sl])[self._oidx]
         # g(p, x) = sum_i c_i k(p, i) k(i, x): with equal weights on the targets, the lattice
         # autocorrelation K2(x - p) of k minus the targets' complement (bounded below), a table
         # gather per pick; else one convolution per pick over the smaller window
         self._k2 = self._lag_table(cT, sX, spatial_cov, lo, hi, boundary_tol)
-        self._wg = _rect(lo, hi, spatial_cov.cutoff_distance(truncation), shape)
+        self._wg = _rect(lo, hi, spatial_cov.reach(truncation), shape)
         wg = self._wg
-        self._gconv = GridConv(wg, out, kern)
+        self._gconv = GridConv(wg, out, kern, aniso)
         self._cwin = cgrid[wg[0]:wg[0] + wg[2], wg[1]:wg[1] + wg[3]]
         self._wr = np.arange(wg[0], wg[0] + wg[2], dtype=np.float64)
         self._wc = np.arange(wg[1], wg[1] + wg[3], dtype=np.float64)
@@ -482,7 +483,7 @@ class StructuredGPVarianceOracle:
             return None
         c0 = float(w[0])
         ext = (hi - lo).astype(np.int64)
-        reach = int(np.ceil(cov.cutoff_distance(1e-9) / 2.0)) + 1  # k(i) k(i - d) tail
+        reach = np.array([int(np.ceil(v / 2.0)) + 1 for v in cov.reach(1e-9)])  # k(i) k(i - d)
         R = ext + reach  # lattice half-widths covering the lags and the tail
         if float(2 * R[0] + 1) * float(2 * R[1] + 1) > LAG_TABLE_MAX_ENTRIES:
             # a kernel far longer than the pool (e.g. a degenerate fitted range of thousands of
@@ -492,7 +493,7 @@ class StructuredGPVarianceOracle:
             return None
         ar = np.arange(-R[0], R[0] + 1, dtype=np.float64)
         ac = np.arange(-R[1], R[1] + 1, dtype=np.float64)
-        kgrid = cov.covariance(np.sqrt(ar[:, None] ** 2 + ac[None, :] ** 2), nugget=False)
+        kgrid = cov.lattice(ar[:, None], ac[None, :])
         import scipy.fft as sfft
 
         shp = (sfft.next_fast_len(kgrid.shape[0] + ext[0], real=True),
@@ -561,8 +562,7 @@ class StructuredGPVarianceOracle:
         self._value -= float(self._numerator(np.array([j]))[0]) / den
         ell = F[:, j].copy()
         ap = self._a[:, j].copy()
-        dist = np.sqrt((self._gX[:, 0] - gxp[0]) ** 2 + (self._gX[:, 1] - gxp[1]) ** 2)
-        kp = self.cov.covariance(dist, nugget=False)
+        kp = self.cov.lattice(self._gX[:, 0] - gxp[0], self._gX[:, 1] - gxp[1])
         fk = (kp - ell @ Fk) / d                                  # GP part of the new row
         phi = (ap @ self._YX) / d + fk                            # C_P(p, x) / d
         if self._k2 is not None:  # translation-invariant table (see _lag_table)
@@ -570,9 +570,7 @@ class StructuredGPVarianceOracle:
             g = c0 * tab[self._oidx[0] - self._oidx[0][j] + o0,
                          self._oidx[1] - self._oidx[1][j] + o1]
         else:
-            win = self.cov.covariance(np.sqrt((self._wr[:, None] - gxp[0]) ** 2
-                                              + (self._wc[None, :] - gxp[1]) ** 2),
-                                      nugget=False)
+            win = self.cov.lattice(self._wr[:, None] - gxp[0], self._wc[None, :] - gxp[1])
             g = self._gconv(win * self._cwin)[self._oidx]        # g(p, x)
         Rkp = Rk[:, j].copy()
         Ql = Qk @ ell
@@ -641,20 +639,20 @@ def _residual_terms(Yk: np.ndarray, region: Any, spatial_cov: Any, P: np.ndarray
     lo, hi = gP.min(axis=0), gP.max(axis=0)
     out = (int(lo[0]), int(lo[1]), int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
     oidx = (gP[:, 0] - out[0], gP[:, 1] - out[1])
-    wb = _rect(lo, hi, spatial_cov.cutoff_distance(1e-17), shape)
+    wb = _rect(lo, hi, spatial_cov.reach(1e-17), shape)
     sl = (slice(wb[0], wb[0] + wb[2]), slice(wb[1], wb[1] + wb[3]))
 
     def kern(d):
         return spatial_cov.covariance(d, nugget=False)
 
-    conv = GridConv(wb, out, kern)
+    conv = GridConv(wb, out, kern, spatial_cov.anisotropy)
     buf = np.zeros(shape)
     u = np.empty((k, P.size))
     for j in range(k):
         buf[gi[:, 0], gi[:, 1]] = cT * Yk[j]
         u[j] = conv(buf[sl])[oidx]
     buf[gi[:, 0], gi[:, 1]] = cT
-    sx = GridConv(wb, out, lambda d: kern(d) ** 2)(buf[sl])[oidx]
+    sx = GridConv(wb, out, lambda d: kern(d) ** 2, spatial_cov.anisotropy)(buf[sl])[oidx]
     return u, sx
 
 

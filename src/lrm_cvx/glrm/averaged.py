@@ -93,7 +93,7 @@ def _observation_cov(B: sps.spmatrix, noise: np.ndarray, spatial_cov: Any, regio
     Bc = sps.csc_matrix(B)
     U = np.flatnonzero(np.diff(Bc.indptr))
     BU = Bc[:, U].tocsr()
-    xyz = sp.cell_xyz(region, cov.metric, U)
+    xyz = cov.points(region, U)
     K = cov.covariance(sp.arc_distance(cdist(xyz, xyz), cov.metric), nugget=False)
     C = np.asarray((BU @ (BU @ K).T).T)
     C[np.diag_indices_from(C)] += noise
@@ -138,13 +138,13 @@ def row_kriging(Y: np.ndarray, B: Any, z: np.ndarray, noise: np.ndarray, m: np.n
     C, BU, U = _observation_cov(B, noise, cov, region)
     Lc = sp.jittered_cholesky(C, cov.total_variance, "observation")
     alpha = scipy.linalg.cho_solve((Lc, True), z - Yr.T @ m)
-    xyzU = sp.cell_xyz(region, cov.metric, U)
+    xyzU = cov.points(region, U)
     tg = np.arange(Y.shape[1]) if cells is None else np.asarray(cells, dtype=np.int64)
     mu = Y[:, tg].T @ m
     var = np.empty(tg.size)
     for s0 in range(0, tg.size, chunk):  # chunks of targets, never a loop over cells
         t = tg[s0:s0 + chunk]
-        d = sp.arc_distance(cdist(xyzU, sp.cell_xyz(region, cov.metric, t)), cov.metric)
+        d = sp.arc_distance(cdist(xyzU, cov.points(region, t)), cov.metric)
         kt = np.asarray(BU @ cov.covariance(d, nugget=False))  # (m, c)
         mu[s0:s0 + t.size] += kt.T @ alpha
         W = scipy.linalg.solve_triangular(Lc, kt, lower=True)

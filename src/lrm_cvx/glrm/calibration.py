@@ -199,7 +199,8 @@ def _nearest(cells: np.ndarray, d: np.ndarray, size: int,
 def clone_model(model: Any, **override: Any):
     """An unfitted copy of ``model`` (its class and parameters, ``override`` applied; a
     refit never calibrates itself: ``calibration`` None unless overridden, and a fitted
-    ``spatial="auto"`` model's refits keep the family it chose, ``kernel_selection_``: the
+    ``spatial="auto"`` model's refits keep the family and anisotropy it chose,
+    ``kernel_selection_``: the
     kernel is shared by every candidate a refit compares, and choosing it again per refit
     would cost four variogram fits each)."""
     params = model.get_params()
@@ -207,6 +208,7 @@ def clone_model(model: Any, **override: Any):
         params["calibration"] = None
     if params.get("spatial") == "auto" and getattr(model, "spatial_cov_", None) is not None:
         params["spatial"] = model.spatial_cov_.model
+        params["anisotropy"] = float(model.spatial_cov_.anisotropy)
     params = {**params, "progress": False, **override}
     return type(model)(**params)
 

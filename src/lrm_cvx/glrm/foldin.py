@@ -25,7 +25,7 @@ import numpy as np
 from .._validation import as_factor_matrix, check_positive
 from ..errors import DataError, ModelError
 from ..region import Region
-from ..spatial.covariance import ResidualCovariance, cell_xyz
+from ..spatial.covariance import ResidualCovariance
 from ..spatial.kriging import MAX_DIRECT, check_cov, krige_core, prepare_kriging
 from .posterior import LatentPosterior, ObservationModel
 
@@ -189,7 +189,7 @@ def residual_correction(
     meth = method if method != "auto" else ("direct" if n <= MAX_DIRECT else "neighbors")
     trend = fold_in == "gls"
     mu, var = krige_core(
-        cov, cell_xyz(region, cov.metric, cells), res[:, None], cell_xyz(region, cov.metric, tg),
+        cov, cov.points(region, cells), res[:, None], cov.points(region, tg),
         method=meth, neighbors=neighbors, cutoff=cutoff, want_var=return_std,
         Ys=Ys if trend else None, Yt=(lambda sel: Y[:, tg[sel]]) if trend else None, cov_x=cov_x,
     )

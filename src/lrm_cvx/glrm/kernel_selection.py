@@ -7,7 +7,10 @@ snapshots of data minus the low-rank reconstruction), the way campaigns use the 
 
 * every family is fitted to the same residuals' variogram (:func:`~lrm_cvx.spatial.
   fit_residual_covariance`, the nugget bounded below by the sub-cell variation, as for a fixed
-  kernel);
+  kernel), isotropic and, where the directional variograms differ by at least
+  :data:`MIN_ANISOTROPY`, also at their anisotropy (:func:`~lrm_cvx.spatial.
+  estimate_anisotropy`: zonal bands make the residuals of monthly winds and sea-surface
+  temperatures correlate 2-6 times further east-west than north-south);
 * each residual snapshot is sampled as campaigns sample (a clustered route, a straight transect
   and scattered cells: :func:`~lrm_cvx.glrm.calibration.sample_sets`), once per design and size
   of :data:`~lrm_cvx.glrm.selection.AUTO_SIZES`, the same cells for every family (paired);
@@ -35,7 +38,7 @@ import xarray as xr
 from .._validation import as_generator
 from ..errors import DataError
 
-__all__ = ["select_kernel", "AUTO_KERNELS", "DEFAULT_KERNEL", "MIN_GAIN",
+__all__ = ["select_kernel", "AUTO_KERNELS", "DEFAULT_KERNEL", "MIN_GAIN", "MIN_ANISOTROPY",
            "format_kernel_selection"]
 
 AUTO_KERNELS = ("exponential", "matern32", "matern52", "gaussian")
@@ -47,6 +50,9 @@ MIN_GAIN = 0.02
 must show over the exponential to replace it: a switch changes the planner's routes too, and
 on the monthly SST record a 1 % validated gain of Matern 3/2 came with a 9 % loss at budget 15
 in the campaigns (docs/spatial.md)."""
+MIN_ANISOTROPY = 1.25
+"""An anisotropic candidate is compared only when the estimated anisotropy (or its inverse) is
+at least this: closer to 1 it is the isotropic family again."""
 
 
 def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence[int],
@@ -61,7 +67,6 @@ def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence
 
     nd = len(designs)
     err = np.full((len(covs), len(sizes), R.shape[0] * nd), np.nan)
-    metric = covs[0].metric
     for i, r in enumerate(R):  # a loop over the (at most 20) residual snapshots
         ok = np.isfinite(r)
         for s_i, size in enumerate(sizes):
@@ -74,32 +79,47 @@ def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence
                     h = np.sort(rng.choice(h, max_scored, replace=False))
                 if cells.size == 0 or h.size == 0:
                     continue
-                obs_xyz = sp.cell_xyz(region, metric, cells)
-                tgt_xyz = sp.cell_xyz(region, metric, h)
                 z = r[cells].astype(np.float64)[:, None]
                 truth = r[h].astype(np.float64)
                 meth = "direct" if cells.size <= sp.MAX_DIRECT else "neighbors"
                 for c_i, cov in enumerate(covs):
-                    mu, _ = sp.krige_core(cov, obs_xyz, z, tgt_xyz, method=meth, neighbors=32,
+                    mu, _ = sp.krige_core(cov, cov.points(region, cells), z,
+                                          cov.points(region, h), method=meth, neighbors=32,
                                           cutoff=1e-6, want_var=False)
                     err[c_i, s_i, i * nd + j] = float(np.mean((mu[0] - truth) ** 2))
     return err
 
 
+def _not_worse(Ea: np.ndarray, Ei: np.ndarray, confidence: float) -> bool:
+    """Whether errors ``Ea (n_sizes, n_cases)`` are not worse than the paired ``Ei`` with
+    confidence at any size: the lower confidence bound of the mean change is <= 0."""
+    D = Ea - Ei
+    for d in D:
+        d = d[np.isfinite(d)]
+        if d.size >= 2 and d.mean() - confidence * d.std(ddof=1) / np.sqrt(d.size) > 0:
+            return False
+    return True
+
+
 def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KERNELS,
                   sizes: Sequence[int] | None = None, designs: Sequence[str] | None = None,
                   confidence: float = 1.645, tolerance: float = -MIN_GAIN,
-                  seed: Any = 0) -> tuple[Any, xr.Dataset]:
+                  anisotropic: bool = True, seed: Any = 0) -> tuple[Any, xr.Dataset]:
     """Fit each of ``kernels`` to the residual ``sample`` ``(n_rows, L)`` (data minus the
     low-rank reconstruction, fit units, NaN unobserved; ``region`` its grid) and choose one by
     design-matched kriging cross-validation (module docstring). Returns ``(covariance,
     table)``: the chosen :class:`~lrm_cvx.spatial.ResidualCovariance` and a Dataset over
     ``kernel`` and ``size`` with ``mse``, ``ratio`` (to :data:`DEFAULT_KERNEL`), ``ucb``,
-    ``admissible``, the fitted ``sill``, ``range``, ``nugget`` per kernel; attributes
+    ``admissible``, the fitted ``sill``, ``range``, ``nugget``, ``anisotropy`` per kernel
+    (an anisotropic fit is labelled ``"<family> x<anisotropy>"``; it replaces its family's
+    isotropic fit, ``competes``, unless it is worse with confidence at some size: the
+    anisotropy is a fitted parameter like the range; ``anisotropic=False`` compares the
+    isotropic families only); attributes
     ``choice``, ``n_rows`` (residual snapshots), ``n_cases`` (sample sets per size),
     ``designs``. ``tolerance`` (default ``-MIN_GAIN``): another family must be better by
     :data:`MIN_GAIN` with confidence, not only as good."""
     from ..spatial import fit_residual_covariance
+    from ..spatial.covariance import anisotropy_from_variograms, axis_variograms
     from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
 
     kernels = list(dict.fromkeys([DEFAULT_KERNEL, *kernels]))  # the reference first
@@ -112,22 +132,51 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
     sizes = sizes or [max(1, int(n_obs / 4))]
     covs = [fit_residual_covariance(R, region, model=k, random_state=0, min_nugget="cell")
             for k in kernels]
+    labels = list(kernels)
+    variants = {}  # family index -> index of its anisotropic fit
+    if anisotropic:
+        axes = axis_variograms(R, region)  # once for every family
+        for i, k in enumerate(kernels):
+            a = anisotropy_from_variograms(*axes, model=k)
+            if abs(np.log(a)) >= np.log(MIN_ANISOTROPY) - 1e-12:
+                covs.append(fit_residual_covariance(R, region, model=k, random_state=0,
+                                                    min_nugget="cell", anisotropy=a))
+                labels.append(f"{k} x{a:.3g}")
+                variants[i] = len(covs) - 1
     E = _kriging_errors(covs, R, region, sizes, designs, as_generator(seed), MAX_SCORED)
-    mse, ratio, ucb, admissible, best, n_cases = paired_choice(E, confidence, tolerance,
-                                                               "spatial='auto'")
+    mse, ratio, _, _, _, n_cases = paired_choice(E, confidence, tolerance, "spatial='auto'")
+    # the anisotropy is a fitted parameter of its family (as the range is): the family
+    # competes with it unless the validation finds it worse, with confidence, at some size
+    use = list(range(len(kernels)))
+    for i, j in variants.items():
+        if _not_worse(E[j], E[i], confidence):
+            use[i] = j
+    _, _, ucb_u, adm_u, best, _ = paired_choice(E[use], confidence, tolerance,
+                                                "spatial='auto'")
+    ucb = np.full_like(mse, np.nan)
+    ucb[use] = ucb_u
+    admissible = np.zeros(len(covs), dtype=bool)
+    admissible[use] = adm_u
+    competes = np.isin(np.arange(len(covs)), use)
+    best = use[best]
+    ratio = mse / mse[use[0]]  # to the reference family as it competes
     ds = xr.Dataset(
         {"mse": (("kernel", "size"), mse),
          "ratio": (("kernel", "size"), ratio),
          "ucb": (("kernel", "size"), ucb),
          "admissible": (("kernel",), admissible),
+         "competes": (("kernel",), competes),
          "sill": (("kernel",), [c.sill for c in covs]),
          "range": (("kernel",), [c.range for c in covs]),
-         "nugget": (("kernel",), [c.nugget for c in covs])},
-        coords={"kernel": kernels, "size": sizes})
+         "nugget": (("kernel",), [c.nugget for c in covs]),
+         "anisotropy": (("kernel",), [c.anisotropy for c in covs])},
+        coords={"kernel": labels, "size": sizes})
     ds["mse"].attrs["long_name"] = "mean MSE of the kriged residual at held-out cells"
-    ds["ratio"].attrs["long_name"] = f"MSE ratio to the {DEFAULT_KERNEL} kernel"
+    ds["ratio"].attrs["long_name"] = f"MSE ratio to the {DEFAULT_KERNEL} family (as it competes)"
+    ds["competes"].attrs["long_name"] = ("the variant of its family in the choice (the "
+                                         "anisotropic one unless validated worse)")
     ds["ucb"].attrs["long_name"] = "upper confidence bound of the relative MSE change"
-    ds.attrs.update(choice=kernels[best], n_rows=R.shape[0], n_cases=int(n_cases),
+    ds.attrs.update(choice=labels[best], n_rows=R.shape[0], n_cases=int(n_cases),
                     designs=",".join(designs),
                     confidence=float(confidence), tolerance=float(tolerance))
     return covs[best], ds
@@ -138,12 +187,14 @@ def format_kernel_selection(table: xr.Dataset) -> str:
     sizes = [int(s) for s in table["size"].values]
     lines = [f"spatial='auto' chose {table.attrs['choice']!r} (kriged residual MSE on "
              f"{table.attrs['n_rows']} training snapshots, designs {table.attrs['designs']})",
-             f"{'kernel':<13}" + "".join(f"{'MSE@' + str(s):>12}" for s in sizes)
+             f"{'kernel':<18}" + "".join(f"{'MSE@' + str(s):>12}" for s in sizes)
              + f"{'range':>10}{'worst ratio':>13}  admissible"]
     for i, k in enumerate(table["kernel"].values):
         mark = " *" if k == table.attrs["choice"] else ""
         ok = "yes" if bool(table["admissible"].values[i]) else "no"
-        lines.append(f"{k:<13}" + "".join(f"{v:12.4g}" for v in table["mse"].values[i])
+        if "competes" in table and not bool(table["competes"].values[i]):
+            ok = "-"  # its family competes with its other fit
+        lines.append(f"{k:<18}" + "".join(f"{v:12.4g}" for v in table["mse"].values[i])
                      + f"{float(table['range'].values[i]):10.3g}"
                      + f"{float(table['ratio'].values[i].max()):13.3f}  {ok}{mark}")
     return "\n".join(lines)

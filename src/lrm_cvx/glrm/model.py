@@ -75,6 +75,10 @@ class GLRM:
         ``"auto"`` (the family validated on the training residuals, ``kernel_selection_``,
         :mod:`~lrm_cvx.glrm.kernel_selection`): fit a stationary covariance of the training
         residuals (``spatial_cov_``) for the trend + GP residual prediction.
+    anisotropy : a fixed ``spatial`` family's east-west over north-south range (grid cells;
+        1: isotropic, the default). ``spatial="auto"`` validates its own: the isotropic
+        families against the same families at the directional-variogram estimate
+        (:func:`~lrm_cvx.spatial.estimate_anisotropy`), docs/spatial.md.
     temporal : None (default: snapshots independent), ``"ar1"`` or ``"seasonal"``: after the
         fit, estimate linear-Gaussian dynamics of the latent columns of ``X_`` (``dynamics_``,
         :mod:`~lrm_cvx.glrm.dynamics`, docs/monitoring.md) for :meth:`monitor`. Needs a sorted,
@@ -111,6 +115,7 @@ class GLRM:
         scale: bool = False,
         noise: str = "global",
         spatial: str | None = None,
+        anisotropy: float = 1.0,
         keep_dask: bool = False,
         dask_options: dict | None = None,
         temporal: str | None = None,
@@ -130,6 +135,7 @@ class GLRM:
         self.scale = scale
         self.noise = noise
         self.spatial = spatial
+        self.anisotropy = anisotropy
         self.keep_dask = keep_dask
         self.dask_options = dask_options
         self.temporal = temporal

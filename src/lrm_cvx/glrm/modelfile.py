@@ -32,7 +32,8 @@ _TABLES = (  # (attribute, file prefix, its variables and coords, int attrs, flo
      ("mse", "ratio", "ucb", "admissible", "candidate", "size", "kind", "alpha", "inflation"),
      ("n_days",), ("choice_alpha", "choice_inflation", "confidence", "tolerance")),
     ("kernel_selection_", "kernel_selection_",
-     ("mse", "ratio", "ucb", "admissible", "sill", "range", "nugget", "kernel", "size"),
+     ("mse", "ratio", "ucb", "admissible", "sill", "range", "nugget", "anisotropy", "competes",
+      "kernel", "size"),
      ("n_rows", "n_cases"), ("confidence", "tolerance")),
 )
 """The validated choices' tables a model file carries: ``temporal="auto"``'s ``selection_``
@@ -63,7 +64,9 @@ def restore_validation_tables(model: object, ds: xr.Dataset) -> None:
             present = [v for v in variables if prefix + v in ds.variables]
             table = ds[[prefix + v for v in present]].rename({prefix + v: v for v in present})
             table = table.drop_vars([v for v in table.variables if v not in variables])
-            table["admissible"] = table["admissible"].astype(bool)
+            for flag in ("admissible", "competes"):  # older files have no "competes"
+                if flag in table:
+                    table[flag] = table[flag].astype(bool)
             table.attrs = {k[len(prefix):]: v for k, v in ds.attrs.items()
                            if k.startswith(prefix)}
             table.attrs.update({k: int(table.attrs[k]) for k in ints})

@@ -213,7 +213,7 @@ class ObservationModel:
         from .. import spatial as sp
 
         cov = self.spatial_cov
-        xyz = sp.cell_xyz(self.region, cov.metric, cells)
+        xyz = cov.points(self.region, cells)
         C = cov.covariance(sp.arc_distance(cdist(xyz, xyz), cov.metric), nugget=False)
         C[np.diag_indices_from(C)] = cov.total_variance
         Lc = sp.jittered_cholesky(C, cov.total_variance, "observation")

@@ -511,8 +511,8 @@ class LatentPosterior:
         tg = np.arange(obs.n_cells) if cells is None else np.asarray(cells)
         meth = "direct" if uc.size <= sp.MAX_DIRECT else "neighbors"
         r_mu, var = sp.krige_core(
-            cov, sp.cell_xyz(region, cov.metric, uc), res[:, None],
-            sp.cell_xyz(region, cov.metric, tg), method=meth, neighbors=32, cutoff=1e-6,
+            cov, cov.points(region, uc), res[:, None],
+            cov.points(region, tg), method=meth, neighbors=32, cutoff=1e-6,
             want_var=True, Ys=Ys, Yt=lambda sel: obs.Y[:, tg[sel]], cov_x=S)
         return mu + r_mu[0], np.maximum(var, 0.0)
 

@@ -63,6 +63,15 @@ def _check_params(model: Any) -> None:
     if model.spatial is not None and model.spatial not in (*MODELS, "auto"):
         raise ModelError(f"spatial must be None, 'auto' or one of {MODELS}, got "
                          f"{model.spatial!r}")
+    a = getattr(model, "anisotropy", 1.0)
+    if isinstance(a, (bool, np.bool_)) or not isinstance(a, (int, float, np.integer,
+                                                                 np.floating)) \
+            or not (np.isfinite(a) and a > 0):
+        raise ModelError(f"anisotropy must be a finite number > 0 (the spatial residual's "
+                         f"east-west over north-south range), got {a!r}")
+    if a != 1 and model.spatial == "auto":
+        raise ModelError(f"anisotropy={a!r} applies to a fixed spatial family (spatial="
+                         "'exponential', ...); spatial='auto' estimates and validates its own")
 
 
 def _check_calibration(value: Any) -> None:
@@ -187,8 +196,9 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
     elif model.spatial is not None:
         from ..spatial import fit_residual_covariance
 
-        model.spatial_cov_ = fit_residual_covariance(sample, region, model=model.spatial,
-                                                     random_state=0, min_nugget="cell")
+        model.spatial_cov_ = fit_residual_covariance(
+            sample, region, model=model.spatial, random_state=0, min_nugget="cell",
+            anisotropy=float(getattr(model, "anisotropy", 1.0)))
 
 
 # ---------------------------------------------------------------------------- predictive model
@@ -308,7 +318,8 @@ def residual_covariance(model: Any, V: np.ndarray, family: str, *, max_pairs: in
     D = standardize(D, M, getattr(model, "offset_", None), getattr(model, "scale_", None))
     R = residual_sample(D, M, model._Xv[:, rows], model._Yv, max_times=rows.size)
     return fit_residual_covariance(R, model.region_, model=family, random_state=0,
-                                   min_nugget="cell", max_pairs=max_pairs)
+                                   min_nugget="cell", max_pairs=max_pairs,
+                                   anisotropy=float(getattr(model, "anisotropy", 1.0)))
 
 
 class _PredictiveIO:

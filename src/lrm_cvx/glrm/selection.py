@@ -180,8 +180,8 @@ def _map_means(means: np.ndarray, obs: Any, cells: np.ndarray, values: np.ndarra
             cov = obs.spatial_cov
             res = zc[:, None] - obs.Y[:, uc].T @ M  # (n_obs, n_cand)
             meth = "direct" if uc.size <= sp.MAX_DIRECT else "neighbors"
-            r_mu, _ = sp.krige_core(cov, sp.cell_xyz(obs.region, cov.metric, uc), res,
-                                    sp.cell_xyz(obs.region, cov.metric, targets), method=meth,
+            r_mu, _ = sp.krige_core(cov, cov.points(obs.region, uc), res,
+                                    cov.points(obs.region, targets), method=meth,
                                     neighbors=32, cutoff=1e-6, want_var=False)
             mu = mu + r_mu.T
     out = obs.to_data_units(mu.T, None, targets)[0]

@@ -45,17 +45,19 @@ _CUT_SUM = 1e-16  # kernel cut of the once-only full-grid sums (relative to the 
 _CUT_PICK = 1e-12  # kernel cut of the per-sensor window
 
 
-def _kernel_table(cov: Any, radius: int) -> np.ndarray:
-    """``k(|d|)`` on the lattice offsets ``-radius..radius`` (both axes), no nugget."""
-    o = np.arange(-radius, radius + 1, dtype=np.float64)
-    return cov.covariance(np.sqrt(o[:, None] ** 2 + o[None, :] ** 2), nugget=False)
+def _kernel_table(cov: Any, radius: tuple[int, int]) -> np.ndarray:
+    """The kernel (no nugget) on the lattice offsets ``-radius..radius`` (per axis)."""
+    o_r = np.arange(-radius[0], radius[0] + 1, dtype=np.float64)
+    o_c = np.arange(-radius[1], radius[1] + 1, dtype=np.float64)
+    return cov.lattice(o_r[:, None], o_c[None, :])
 
 
-def _radius(cov: Any, rel: float, shape: tuple[int, int]) -> int:
-    """Lattice radius beyond which ``k < rel * sill``, capped at the grid's extent."""
-    c = float(cov.cutoff_distance(rel))
+def _radius(cov: Any, rel: float, shape: tuple[int, int]) -> tuple[int, int]:
+    """Lattice radii ``(rows, columns)`` beyond which ``k < rel * sill``, capped at the grid's
+    extent."""
     cap = max(shape)
-    return int(min(np.ceil(c), cap)) if np.isfinite(c) else cap
+    return tuple(int(min(np.ceil(c), cap)) if np.isfinite(c) else cap
+                 for c in cov.reach(rel))
 
 
 class FactoredState:
@@ -88,8 +90,8 @@ class FactoredState:
             r = _radius(self.cov, _CUT_SUM, self.shape)
             ktab = _kernel_table(self.cov, r)
             ny, nx = self.shape
-            shp = (sfft.next_fast_len(ny + 2 * r, real=True),
-                   sfft.next_fast_len(nx + 2 * r, real=True))
+            shp = (sfft.next_fast_len(ny + 2 * r[0], real=True),
+                   sfft.next_fast_len(nx + 2 * r[1], real=True))
             KF = sfft.rfft2(ktab, s=shp)
             grid = np.zeros(self.shape)
 
@@ -97,7 +99,7 @@ class FactoredState:
                 """``sum_i vals_i k(i, x)`` at the candidates (linear convolution, exact)."""
                 grid[gi[:, 0], gi[:, 1]] = vals
                 out = sfft.irfft2(sfft.rfft2(grid, s=shp, workers=-1) * F, s=shp, workers=-1)
-                return out[r + self.gX[:, 0], r + self.gX[:, 1]]
+                return out[r[0] + self.gX[:, 0], r[1] + self.gX[:, 1]]
 
             self.U = np.stack([full_sum(w * Y[a]) for a in range(self.k)])  # (k, p)
             s = full_sum(w, sfft.rfft2(ktab ** 2, s=shp))
@@ -105,11 +107,11 @@ class FactoredState:
             rp = _radius(self.cov, _CUT_PICK, self.shape)
             self._rp = rp
             self._ktab_p = _kernel_table(self.cov, rp)
-            m = 4 * rp + 1
-            self._pshape = (sfft.next_fast_len(m, real=True),) * 2
+            self._pshape = tuple(sfft.next_fast_len(4 * v + 1, real=True) for v in rp)
             self._pF = sfft.rfft2(self._ktab_p, s=self._pshape)
-            self._wpad = np.pad(self._wgrid(region, w), 2 * rp)
-            self._pospad = np.pad(self.posgrid, 2 * rp, constant_values=-1)
+            pad = ((2 * rp[0],) * 2, (2 * rp[1],) * 2)
+            self._wpad = np.pad(self._wgrid(region, w), pad)
+            self._pospad = np.pad(self.posgrid, pad, constant_values=-1)
         else:
             self.U = np.zeros((self.k, p))
             s = np.zeros(p)
@@ -169,18 +171,19 @@ class FactoredState:
         m2 = self.YX.T @ (self.SWS @ self.YX[:, j] + self.S0 @ self.U[:, j]) + self.U.T @ sy
         if self.cov is not None:
             gx = self.gX[j]
-            rp = self._rp
-            r0, c0i = int(gx[0]) + 2 * rp, int(gx[1]) + 2 * rp  # x in the padded grids
+            pr, pc = self._rp
+            r0, c0i = int(gx[0]) + 2 * pr, int(gx[1]) + 2 * pc  # x in the padded grids
             # the kernel column k(X, x): cells beyond the window have k < 1e-12 sill
-            pos = self._pospad[r0 - rp:r0 + rp + 1, c0i - rp:c0i + rp + 1]
+            pos = self._pospad[r0 - pr:r0 + pr + 1, c0i - pc:c0i + pc + 1]
             ok = pos >= 0
             c0[pos[ok]] += self._ktab_p[ok]
-            win = self._wpad[r0 - rp:r0 + rp + 1, c0i - rp:c0i + rp + 1] * self._ktab_p
+            win = self._wpad[r0 - pr:r0 + pr + 1, c0i - pc:c0i + pc + 1] * self._ktab_p
             import scipy.fft as sfft
 
-            m = 4 * rp + 1  # the full convolution: offsets -2rp..2rp around x
-            g = sfft.irfft2(sfft.rfft2(win, s=self._pshape) * self._pF, s=self._pshape)[:m, :m]
-            pos = self._pospad[r0 - 2 * rp:r0 + 2 * rp + 1, c0i - 2 * rp:c0i + 2 * rp + 1]
+            # the full convolution: offsets -2rp..2rp around x (per axis)
+            g = sfft.irfft2(sfft.rfft2(win, s=self._pshape) * self._pF,
+                            s=self._pshape)[:4 * pr + 1, :4 * pc + 1]
+            pos = self._pospad[r0 - 2 * pr:r0 + 2 * pr + 1, c0i - 2 * pc:c0i + 2 * pc + 1]
             ok = pos >= 0
             m2[pos[ok]] += g[ok]
         self._cache[j] = (c0, m2)

@@ -48,6 +48,7 @@ from .covariance import (
     cell_xyz,
     correlation,
     empirical_variogram,
+    estimate_anisotropy,
     fit_residual_covariance,
 )
 from .covariance import cell_xyz as _coords  # noqa: F401  (old private names, kept for tests)
@@ -74,6 +75,7 @@ __all__ = [
     "EmpiricalVariogram",
     "correlation",
     "empirical_variogram",
+    "estimate_anisotropy",
     "fit_residual_covariance",
     "krige",
     "krige_many",

@@ -23,7 +23,9 @@ from ..registry import Registry
 
 __all__ = ["MODELS", "KERNEL_REGISTRY", "ResidualCovariance", "EmpiricalVariogram",
            "correlation", "empirical_variogram", "fit_residual_covariance", "cell_xyz",
-           "arc_distance", "chord_distance", "cell_size", "cell_semivariance"]
+           "arc_distance", "chord_distance", "cell_size", "cell_semivariance",
+           "axis_variograms", "estimate_anisotropy", "anisotropy_from_variograms",
+           "AXIS_LAGS", "MAX_ANISOTROPY"]
 
 Model = Literal["exponential", "matern32", "matern52", "gaussian"]
 Metric = Literal["grid", "km"]
@@ -93,7 +95,8 @@ class EmpiricalVariogram:
 
 @dataclass(frozen=True)
 class ResidualCovariance:
-    """A stationary isotropic covariance ``C(d) = sill rho(d / range) + nugget [d == 0]``.
+    """A stationary covariance ``C(d) = sill rho(d / range) + nugget [d == 0]``, isotropic or
+    geometrically anisotropic along the grid's axes.
 
     Parameters
     ----------
@@ -102,6 +105,11 @@ class ResidualCovariance:
     range : scale parameter ``> 0`` in ``metric`` units (grid cells or km).
     nugget : variance of the spatially unpredictable part (noise), ``>= 0``.
     metric : ``"grid"`` (grid units) or ``"km"`` (great-circle kilometres).
+    anisotropy : the range along the grid's columns (east-west) over the range along its rows
+        (north-south, ``range``); ``d = sqrt(dr^2 + (dc / anisotropy)^2)`` for grid offsets
+        ``(dr, dc)``. 1 (the default) is isotropic; another value needs ``metric="grid"``.
+        Zonal bands of the atmosphere and ocean make residuals correlate further east-west
+        than north-south (:func:`estimate_anisotropy`).
     variogram : the empirical variogram it was fitted to, if any (not compared, not stored).
     """
 
@@ -111,6 +119,7 @@ class ResidualCovariance:
     nugget: float = 0.0
     metric: str = "grid"
     variogram: EmpiricalVariogram | None = field(default=None, compare=False, repr=False)
+    anisotropy: float = 1.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "model", KERNEL_REGISTRY.canonical(self.model, "model"))
@@ -123,6 +132,31 @@ class ResidualCovariance:
         object.__setattr__(self, "nugget", check_positive(self.nugget, "nugget", error=ModelError))
         if self.sill + self.nugget <= 0:
             raise ModelError("sill + nugget must be > 0 (a covariance of zero variance)")
+        object.__setattr__(self, "anisotropy", _check_anisotropy(self.anisotropy, self.metric))
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def is_isotropic(self) -> bool:
+        """Whether the covariance is the same in every direction (``anisotropy == 1``)."""
+        return self.anisotropy == 1.0
+
+    def points(self, region: Region, cells: np.ndarray | None = None) -> np.ndarray:
+        """:func:`cell_xyz` of ``cells`` with the columns shrunk by ``anisotropy``: their
+        Euclidean distances are this covariance's distances (chords in km)."""
+        return cell_xyz(region, self.metric, cells, self.anisotropy)
+
+    def lattice(self, dr: Any, dc: Any) -> np.ndarray:
+        """The spatial part (no nugget) at grid offsets ``dr`` (rows) and ``dc`` (columns),
+        broadcast together (grid metric)."""
+        dr = np.asarray(dr, dtype=np.float64)
+        dc = np.asarray(dc, dtype=np.float64) / self.anisotropy
+        return self.covariance(np.sqrt(dr * dr + dc * dc), nugget=False)
+
+    def reach(self, rel: float) -> tuple[float, float]:
+        """Grid half-widths ``(rows, columns)`` beyond which the spatial part is below
+        ``rel * sill`` (:meth:`cutoff_distance` along each axis, grid metric)."""
+        c = self.cutoff_distance(rel)
+        return c, c * self.anisotropy
 
     # ------------------------------------------------------------------ evaluation
     @property
@@ -153,7 +187,8 @@ class ResidualCovariance:
         return cell_semivariance(self, size)
 
     def cutoff_distance(self, rel: float = 1e-6) -> float:
-        """Distance (metric units) beyond which the spatial covariance is below ``rel * sill``."""
+        """Distance (metric units) beyond which the spatial covariance is below ``rel * sill``
+        (north-south; :meth:`reach` gives both axes of an anisotropic covariance)."""
         rel = check_positive(rel, "rel", strict=True, error=ModelError)
         if rel >= 1:
             return 0.0
@@ -173,6 +208,7 @@ class ResidualCovariance:
             f"{_ATTR_PREFIX}range": float(self.range),
             f"{_ATTR_PREFIX}nugget": float(self.nugget),
             f"{_ATTR_PREFIX}metric": self.metric,
+            f"{_ATTR_PREFIX}anisotropy": float(self.anisotropy),
         }
 
     @classmethod
@@ -189,13 +225,16 @@ class ResidualCovariance:
             range=float(np.asarray(get["range"]).item()),
             nugget=float(np.asarray(get["nugget"]).item()),
             metric=str(get["metric"]),
+            # files written before the anisotropy (isotropic) have no such attribute
+            anisotropy=float(np.asarray(attrs.get(f"{_ATTR_PREFIX}anisotropy", 1.0)).item()),
         )
 
     def __repr__(self) -> str:
         unit = "cells" if self.metric == "grid" else "km"
+        aniso = "" if self.is_isotropic else f", anisotropy={self.anisotropy:.3g}"
         return (
             f"ResidualCovariance({self.model}, sill={self.sill:.4g}, range={self.range:.4g} "
-            f"{unit}, nugget={self.nugget:.4g})"
+            f"{unit}, nugget={self.nugget:.4g}{aniso})"
         )
 
 
@@ -206,15 +245,32 @@ def _check_metric(metric: str) -> str:
     return metric
 
 
-def cell_xyz(region: Region, metric: str, cells: np.ndarray | None = None) -> np.ndarray:
+def _check_anisotropy(value: Any, metric: str) -> float:
+    number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_))
+    a = float(value) if number else np.nan
+    if not (np.isfinite(a) and a > 0):
+        raise ModelError(f"anisotropy must be a finite number > 0 (the east-west over the "
+                         f"north-south range), got {value!r}")
+    if a != 1.0 and metric != "grid":
+        raise ModelError(f"anisotropy {a:g} needs metric='grid' (an anisotropic great-circle "
+                         "covariance is not supported)")
+    return a
+
+
+def cell_xyz(region: Region, metric: str, cells: np.ndarray | None = None,
+             anisotropy: float = 1.0) -> np.ndarray:
     """Point coordinates whose Euclidean distances map monotonically onto ``metric`` distances.
 
-    ``grid``: ``(n, 2)`` (row, col). ``km``: ``(n, 3)`` points on a sphere of the Earth's radius
-    (Euclidean = chord length; see :func:`arc_distance`).
+    ``grid``: ``(n, 2)`` (row, col / anisotropy). ``km``: ``(n, 3)`` points on a sphere of the
+    Earth's radius (Euclidean = chord length; see :func:`arc_distance`).
     """
     gi = region.grid_index if cells is None else region.grid_index[cells]
     if metric == "grid":
-        return gi.astype(np.float64)
+        xy = gi.astype(np.float64)
+        if anisotropy != 1.0:
+            xy[:, 1] /= anisotropy
+        return xy
     lat = np.radians(region.lat.values[gi[:, 0]])
     lon = np.radians(region.lon.values[gi[:, 1]])
     cl = np.cos(lat)
@@ -297,7 +353,7 @@ def cell_semivariance(cov: ResidualCovariance, size: tuple[float, float] = (1.0,
     sx = 0.5 * dx * (_GL_NODES + 1.0)
     wy = _GL_WEIGHTS * 0.5 * dy * 2.0 * (dy - sy) / dy ** 2
     wx = _GL_WEIGHTS * 0.5 * dx * 2.0 * (dx - sx) / dx ** 2
-    d = np.hypot(sy[:, None], sx[None, :])
+    d = np.hypot(sy[:, None], sx[None, :] / cov.anisotropy)
     g = cov.sill * (1.0 - cov.correlation(d))
     return float(wy @ g @ wx)
 
@@ -321,6 +377,7 @@ def _as_residuals(residuals: Any, region: Region) -> np.ndarray:
 def _sample_pairs(
     r: np.ndarray, region: Region, metric: str, max_distance: float, max_pairs: int,
     spacing: str, rng: np.random.Generator, scale: np.ndarray | None,
+    anisotropy: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Random ``(time, cell, cell)`` pairs within ``max_distance``: distances and half squared
     differences. Anchors are uniform over cells and times, offsets have a uniform (or
@@ -350,7 +407,7 @@ def _sample_pairs(
             rad = rng.uniform(lo, radius, size=b)
         ang = rng.uniform(0.0, 2.0 * np.pi, size=b)
         rows = gi[i, 0] + np.rint(rad * np.sin(ang)).astype(np.int64)
-        cols = gi[i, 1] + np.rint(rad * np.cos(ang)).astype(np.int64)
+        cols = gi[i, 1] + np.rint(rad * np.cos(ang) * anisotropy).astype(np.int64)
         ok = (rows >= 0) & (rows < ny) & (cols >= 0) & (cols < nx)
         t, i, rows, cols = t[ok], i[ok], rows[ok], cols[ok]
         j = grid[rows, cols]
@@ -362,7 +419,7 @@ def _sample_pairs(
         t, i, j, a, c = t[ok], i[ok], j[ok], a[ok], c[ok]
         if metric == "grid":
             dg = gi[i] - gi[j]
-            d = np.hypot(dg[:, 0], dg[:, 1]).astype(np.float64)
+            d = np.hypot(dg[:, 0], dg[:, 1] / anisotropy).astype(np.float64)
         else:
             chord = np.linalg.norm(cell_xyz(region, metric, i) - cell_xyz(region, metric, j),
                                    axis=1)
@@ -392,14 +449,17 @@ def empirical_variogram(
     spacing: Literal["log", "linear"] = "log",
     standardize: bool = False,
     random_state: Any = 0,
+    anisotropy: float = 1.0,
 ) -> EmpiricalVariogram:
     """Binned Matheron semivariogram ``gamma(h) = mean of (r_t(i) - r_t(j))^2 / 2`` of ``(T, L)``
     residuals (NaN = missing) from at most ``max_pairs`` random same-time pairs within
     ``max_distance`` (default: half the region's diagonal). ``spacing="log"`` uses geometric bins
     from one grid step (short lags carry the range information); ``standardize`` divides each time
     by its standard deviation, then rescales gamma by the mean per-time variance. Empty bins are
-    dropped. Deterministic given ``random_state``."""
+    dropped. ``anisotropy`` (grid metric): distances ``sqrt(dr^2 + (dc / anisotropy)^2)``, the
+    column offsets drawn that much longer. Deterministic given ``random_state``."""
     metric = _check_metric(metric)
+    anisotropy = _check_anisotropy(anisotropy, metric)
     r = _as_residuals(residuals, region)
     max_pairs = int(max_pairs)
     n_bins = int(n_bins)
@@ -423,7 +483,8 @@ def empirical_variogram(
             raise DataError("residuals have no time with a finite, non-constant row")
         scale = np.where(good, 1.0 / np.where(good, sd, 1.0), np.nan)
         var_scale = float(np.mean(sd[good] ** 2))
-    d, half = _sample_pairs(r, region, metric, max_distance, max_pairs, spacing, rng, scale)
+    d, half = _sample_pairs(r, region, metric, max_distance, max_pairs, spacing, rng, scale,
+                            anisotropy)
     ok = np.isfinite(half)
     d, half = d[ok], half[ok]
     if d.size == 0:
@@ -451,6 +512,129 @@ def empirical_variogram(
     )
 
 
+def _fit_curve(model: str, h: np.ndarray, g: np.ndarray, w: np.ndarray,
+               floor: float = 0.0) -> np.ndarray:
+    """``(sill, range, nugget)`` of ``model``'s semivariogram fitted by weighted least squares
+    (weights ``w``) to the semivariances ``g`` at lags ``h`` (both scaled to about 1), from
+    three starting ranges, the nugget bounded below by ``floor``."""
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        sill, rng_, nug = p
+        return w * (nug + sill * (1.0 - correlation(model, h / rng_)) - g)
+
+    upper = [10.0 * g.max() + 1.0, 10.0, 2.0 * g.max() + 1.0]
+    nug0 = max(min(0.5 * g[0], 0.5 * g.max()), floor)
+    sill0 = max(g.max() - nug0, 1e-3)
+    lower = [0.0, 1e-3, floor]
+    best = None
+    for r0 in (0.05, 0.2, 1.0):
+        sol = least_squares(resid, x0=[sill0, r0, nug0], bounds=(lower, upper),
+                            method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                            max_nfev=2000)
+        if best is None or sol.cost < best.cost - 1e-15:
+            best = sol
+    return best.x
+
+
+AXIS_LAGS = (1, 2, 3, 4, 6, 8, 11, 16, 23, 32)
+"""Grid lags of the directional variograms :func:`estimate_anisotropy` fits."""
+MAX_ANISOTROPY = 8.0
+"""The estimated anisotropy is clipped to ``[1 / MAX_ANISOTROPY, MAX_ANISOTROPY]``."""
+MIN_SPATIAL_SHARE = 0.05
+"""Below this share of the total variance correlated one cell away (on both axes) the
+anisotropy is 1: a nearly pure nugget has no ranges to compare."""
+_AXIS_ENTRIES = 20_000_000  # residual entries read per lag and axis (rows are subsampled)
+
+
+def axis_variograms(residuals: Any, region: Region,
+                    lags: Any = AXIS_LAGS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Directional semivariograms of ``(T, L)`` residuals along the grid's rows (north-south)
+    and columns (east-west): ``(lags (K,), gamma (2, K), counts (2, K))`` over every pair of
+    finite cells ``lag`` cells apart on one axis (the lags that fit the grid; evenly spaced
+    rows are used when ``T * L`` is large)."""
+    r = _as_residuals(residuals, region)
+    ny, nx = region.shape
+    lags = np.array([int(v) for v in lags if 0 < int(v) < max(ny, nx)], dtype=np.int64)
+    n_rows = max(1, min(r.shape[0], _AXIS_ENTRIES // max(region.n_cells, 1)))
+    rows = np.unique(np.linspace(0, r.shape[0] - 1, n_rows).round().astype(np.int64))
+    gi = region.grid_index
+    grid = np.full((ny, nx), np.nan)
+    sums = np.zeros((2, lags.size))
+    counts = np.zeros((2, lags.size))
+    for t in rows:  # at most 20 residual snapshots in a fit's sample
+        grid[gi[:, 0], gi[:, 1]] = r[t]
+        for j, lag in enumerate(lags):
+            for axis in (0, 1):
+                if lag >= grid.shape[axis]:
+                    continue
+                d = grid[lag:] - grid[:-lag] if axis == 0 else grid[:, lag:] - grid[:, :-lag]
+                ok = np.isfinite(d)
+                sums[axis, j] += 0.5 * float(np.sum(d[ok] ** 2))
+                counts[axis, j] += int(ok.sum())
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gamma = sums / counts
+    return lags, gamma, counts
+
+
+def estimate_anisotropy(residuals: Any, region: Region, *, model: Model = "exponential",
+                        lags: Any = AXIS_LAGS) -> float:
+    """The east-west over the north-south range of ``model`` fitted jointly to the residuals'
+    two directional variograms (:func:`axis_variograms`; one sill and one nugget, a range per
+    axis; grid units), clipped to ``[1 / MAX_ANISOTROPY, MAX_ANISOTROPY]``; 1 when an axis has
+    fewer than 3 lags with pairs, less than ``MIN_SPATIAL_SHARE`` of the variance is
+    correlated one cell away, or a practical range is outside one cell to the axis's largest
+    lag (the lags cannot measure it). The ratio of directional ranges is the classical estimate
+    of a geometric anisotropy along known axes (Isaaks & Srivastava 1989, ch. 7); here the
+    axes are the grid's, and sharing the sill and nugget keeps the two ranges comparable."""
+    return anisotropy_from_variograms(*axis_variograms(residuals, region, lags), model=model)
+
+
+def anisotropy_from_variograms(lag: np.ndarray, gamma: np.ndarray, counts: np.ndarray, *,
+                               model: Model = "exponential") -> float:
+    """:func:`estimate_anisotropy` from the directional variograms of :func:`axis_variograms`
+    (computed once for every family ``spatial="auto"`` fits)."""
+    model = KERNEL_REGISTRY.canonical(model, "model")
+    ok = (counts > 0) & np.isfinite(gamma)
+    if (ok.sum(axis=1) < 3).any():
+        return 1.0
+    g_scale = float(np.average(gamma[ok], weights=counts[ok]))
+    if not g_scale > 0:
+        return 1.0
+    top = float(lag.max())
+    h = [lag[ok[a]] / top for a in (0, 1)]
+    g = [gamma[a][ok[a]] / g_scale for a in (0, 1)]
+    w = [np.sqrt(counts[a][ok[a]] / counts[ok].sum()) for a in (0, 1)]
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        sill, nug, r0, r1 = p
+        return np.concatenate([w[a] * (nug + sill * (1.0 - correlation(model, h[a] / r)) - g[a])
+                               for a, r in ((0, r0), (1, r1))])
+
+    gmax = max(float(g[0].max()), float(g[1].max()))
+    nug0 = 0.5 * min(float(g[0][0]), float(g[1][0]), gmax)
+    lower = [0.0, 0.0, 1e-3, 1e-3]
+    upper = [10.0 * gmax + 1.0, 2.0 * gmax + 1.0, 10.0, 10.0]
+    best = None
+    for r0 in (0.05, 0.2, 1.0):
+        sol = least_squares(resid, x0=[max(gmax - nug0, 1e-3), nug0, r0, r0],
+                            bounds=(lower, upper), method="trf", x_scale="jac", xtol=1e-12,
+                            ftol=1e-12, gtol=1e-12, max_nfev=2000)
+        if best is None or sol.cost < best.cost - 1e-15:
+            best = sol
+    sill, nug = best.x[0], best.x[1]
+    # comparable ranges only: the correlated share one cell away is at least
+    # MIN_SPATIAL_SHARE of the variance, and each axis's practical range (correlation 0.05)
+    # lies between one cell and its largest lag (beyond, the lags seen cannot measure it)
+    near = [sill * float(correlation(model, 1.0 / (r * top))) for r in best.x[2:]]
+    reach = [r * top * _scaled_cutoff(model, 0.05) for r in best.x[2:]]
+    tops = [float(lag[ok[a]].max()) for a in (0, 1)]
+    if not (max(near) > MIN_SPATIAL_SHARE * (sill + nug)
+            and all(1.0 <= e <= t for e, t in zip(reach, tops, strict=True))):
+        return 1.0
+    a = best.x[3] / best.x[2]
+    return float(np.clip(a, 1.0 / MAX_ANISOTROPY, MAX_ANISOTROPY))
+
+
 def fit_residual_covariance(
     residuals: Any,
     region: Region,
@@ -464,6 +648,7 @@ def fit_residual_covariance(
     standardize: bool = False,
     random_state: Any = 0,
     min_nugget: float | Literal["cell"] | None = None,
+    anisotropy: float = 1.0,
 ) -> ResidualCovariance:
     """Fit ``sill``, ``range`` and ``nugget`` of ``model`` to the residuals' empirical variogram.
 
@@ -472,6 +657,8 @@ def fit_residual_covariance(
     ``scipy.optimize.least_squares`` with bin weights proportional to the pair counts, from three
     starting ranges (the best fit wins). The range is bounded to ``[1e-3, 10] * max_distance``:
     a range much beyond the largest lag is not identifiable. Deterministic given ``random_state``.
+    ``anisotropy`` (grid metric): the fitted covariance's, fixed (distances as
+    :class:`ResidualCovariance` measures them; ``range`` is then the north-south range).
 
     ``min_nugget``: a lower bound of the nugget (data units squared; None: 0). ``"cell"`` (what
     ``GLRM(spatial=...)`` uses) bounds it by the fitted covariance's own sub-cell semivariance
@@ -489,7 +676,7 @@ def fit_residual_covariance(
     vg = empirical_variogram(
         residuals, region, metric=metric, max_pairs=max_pairs, n_bins=n_bins,
         max_distance=max_distance, spacing=spacing, standardize=standardize,
-        random_state=random_state,
+        random_state=random_state, anisotropy=anisotropy,
     )
     if vg.distance.size < 3:
         raise DataError(
@@ -503,24 +690,8 @@ def fit_residual_covariance(
     g = vg.gamma / g_scale
     w = np.sqrt(vg.counts / vg.counts.sum())
 
-    def resid(p: np.ndarray) -> np.ndarray:
-        sill, rng_, nug = p
-        return w * (nug + sill * (1.0 - correlation(model, h / rng_)) - g)
-
-    upper = [10.0 * g.max() + 1.0, 10.0, 2.0 * g.max() + 1.0]
-
     def fit(floor: float) -> np.ndarray:
-        nug0 = max(min(0.5 * g[0], 0.5 * g.max()), floor)
-        sill0 = max(g.max() - nug0, 1e-3)
-        lower = [0.0, 1e-3, floor]
-        best = None
-        for r0 in (0.05, 0.2, 1.0):
-            sol = least_squares(resid, x0=[sill0, r0, nug0], bounds=(lower, upper),
-                                method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
-                                max_nfev=2000)
-            if best is None or sol.cost < best.cost - 1e-15:
-                best = sol
-        return best.x
+        return _fit_curve(model, h, g, w, floor)
 
     def build(p: np.ndarray) -> ResidualCovariance:
         sill, rng_, nug = p
@@ -529,7 +700,8 @@ def fit_residual_covariance(
                               "covariance")
         return ResidualCovariance(
             model=model, sill=float(sill * g_scale), range=float(rng_ * vg.max_distance),
-            nugget=float(nug * g_scale), metric=vg.metric, variogram=vg)
+            nugget=float(nug * g_scale), metric=vg.metric, variogram=vg,
+            anisotropy=anisotropy)
 
     if isinstance(min_nugget, str):
         if min_nugget != "cell":

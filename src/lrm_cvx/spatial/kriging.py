@@ -21,7 +21,7 @@ from scipy.spatial.distance import cdist
 from .._validation import check_positive
 from ..errors import DataError, ModelError, PlanningError, SolverError
 from ..region import EARTH_RADIUS_KM, Region
-from .covariance import MODELS, ResidualCovariance, arc_distance, cell_xyz, chord_distance
+from .covariance import MODELS, ResidualCovariance, arc_distance, chord_distance
 
 __all__ = ["krige", "krige_many", "krige_grid_fft", "krige_core", "check_cov",
            "jittered_cholesky", "prepare_kriging", "GridConv", "gp_noise", "gp_latent_cov",
@@ -230,7 +230,7 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     gi = region.grid_index
     shape = region.shape
     go = gi[obs_cells]
-    xo = go.astype(np.float64)
+    xo = cov.points(region, obs_cells)
     R = cov.covariance(cdist(xo, xo), nugget=False) / cov.sill
     np.fill_diagonal(R, 1.0)
     mu, U = np.linalg.eigh(0.5 * (R + R.T))
@@ -245,7 +245,7 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     def kern(d):
         return cov.covariance(d, nugget=False)
 
-    conv = GridConv(window, out, kern)
+    conv = GridConv(window, out, kern, cov.anisotropy)
     img = np.zeros(window[2:])
     rows, cols = gi[:, 0], gi[:, 1]
 
@@ -255,7 +255,7 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
         return c(img)[rows, cols]
 
     mean = apply(conv, alpha)
-    kk = apply(GridConv(window, out, lambda d: kern(d) ** 2), np.ones(z.size))
+    kk = apply(GridConv(window, out, lambda d: kern(d) ** 2, cov.anisotropy), np.ones(z.size))
     kmax = float(np.max(kk)) if kk.size else 0.0
     # leading eigenvectors: those whose weight differs from 1/nugget by more than the
     # tolerance allows (the error is <= (lambda_cut - nugget) / nugget^2 * max_t ||k_t||^2)
@@ -437,8 +437,8 @@ def krige_many(
     obs = np.isfinite(V)
     patterns, inv = np.unique(obs, axis=0, return_inverse=True)
     inv = inv.ravel()
-    tgt_xyz = cell_xyz(region, cov.metric, tg)
-    all_xyz = cell_xyz(region, cov.metric, cells)
+    tgt_xyz = cov.points(region, tg)
+    all_xyz = cov.points(region, cells)
     mean = np.zeros((V.shape[0], tg.size))
     var = np.empty((V.shape[0], tg.size)) if return_std else None
     for p, pat in enumerate(patterns):
@@ -487,12 +487,13 @@ class GridConv:
     """``out[x] = sum_{i in window} f[i] h(|i - x|)`` for ``x`` in an output rectangle, by FFT.
 
     ``window`` and ``out`` are grid rectangles ``(row0, col0, n_rows, n_cols)`` (grid units);
-    ``h`` a function of the Euclidean grid distance. Linear (not circular) convolution: the FFT
+    ``h`` a function of the grid distance ``sqrt(dr^2 + (dc / anisotropy)^2)`` (a covariance's,
+    :class:`~lrm_cvx.spatial.ResidualCovariance`). Linear (not circular) convolution: the FFT
     size is ``window + out - 1`` per axis, so the result is exact up to float rounding.
     """
 
     def __init__(self, window: tuple[int, int, int, int], out: tuple[int, int, int, int],
-                 h: Any) -> None:
+                 h: Any, anisotropy: float = 1.0) -> None:
         import scipy.fft as sfft
 
         r0, c0, a, b = window
@@ -501,7 +502,7 @@ class GridConv:
         self.s = (sfft.next_fast_len(a + oa - 1, real=True),
                   sfft.next_fast_len(b + ob - 1, real=True))
         dr = np.arange(o_r - r0 - a + 1, o_r + oa - r0, dtype=np.float64)
-        dc = np.arange(o_c - c0 - b + 1, o_c + ob - c0, dtype=np.float64)
+        dc = np.arange(o_c - c0 - b + 1, o_c + ob - c0, dtype=np.float64) / anisotropy
         tab = h(np.sqrt(dr[:, None] ** 2 + dc[None, :] ** 2))
         self.H = sfft.rfft2(tab, s=self.s)
 
@@ -523,8 +524,8 @@ def gp_latent_cov(Y: np.ndarray, S0: np.ndarray, region: Any, spatial_cov: Any,
                    rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """``K(rows, cols) = y_i^T S0 y_j + sill rho(d_ij)``: prior covariance of the latent field
     (low-rank trend with prior ``N(., S0)`` plus the GP residual without its nugget)."""
-    a = cell_xyz(region, spatial_cov.metric, rows)
-    b = cell_xyz(region, spatial_cov.metric, cols)
+    a = spatial_cov.points(region, rows)
+    b = spatial_cov.points(region, cols)
     K = spatial_cov.covariance(arc_distance(cdist(a, b), spatial_cov.metric), nugget=False)
     K += Y[:, rows].T @ S0 @ Y[:, cols]
     return K
