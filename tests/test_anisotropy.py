@@ -222,3 +222,33 @@ def test_cli_fits_a_fixed_anisotropy(tmp_path, capsys):
     assert main(["-q", "fit", "sample:sst", "--rank", "3", "--spatial", "auto",
                  "--anisotropy", "2.5", "-o", str(tmp_path / "n.nc")]) != 0
     assert "fixed spatial family" in capsys.readouterr().err
+
+
+def test_an_anisotropic_fit_validated_worse_does_not_compete(monkeypatch):
+    """The rule: the anisotropic fit replaces its family's isotropic one unless its paired
+    errors are worse with confidence at some size; then the isotropic fit competes."""
+    import lrm_cvx.glrm.kernel_selection as ks
+
+    assert ks._not_worse(np.full((2, 30), 1.0), np.full((2, 30), 1.0), 1.645)
+    rng = np.random.default_rng(0)
+    base = rng.uniform(1, 2, (2, 30))
+    assert ks._not_worse(base + rng.normal(0, 0.01, (2, 30)), base, 1.645)  # noise: kept
+    worse = base.copy()
+    worse[1] += 0.05  # worse at the second size only
+    assert not ks._not_worse(worse, base, 1.645)
+    region, R = _planted_field(3.0, n=20, seed=1)
+    real = ks._kriging_errors
+
+    def penalised(covs, *args, **kw):  # every anisotropic fit made 10 % worse
+        E = real(covs, *args, **kw)
+        for i, c in enumerate(covs):
+            if not c.is_isotropic:
+                E[i] *= 1.1
+        return E
+
+    monkeypatch.setattr(ks, "_kriging_errors", penalised)
+    cov, table = ks.select_kernel(R, region, seed=0)
+    assert cov.is_isotropic
+    aniso = table["anisotropy"].values != 1.0
+    assert aniso.any() and not table["competes"].values[aniso].any()
+    assert table["competes"].values[~aniso].all()

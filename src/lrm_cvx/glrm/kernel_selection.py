@@ -109,8 +109,9 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
     low-rank reconstruction, fit units, NaN unobserved; ``region`` its grid) and choose one by
     design-matched kriging cross-validation (module docstring). Returns ``(covariance,
     table)``: the chosen :class:`~lrm_cvx.spatial.ResidualCovariance` and a Dataset over
-    ``kernel`` and ``size`` with ``mse``, ``ratio`` (to :data:`DEFAULT_KERNEL`), ``ucb``,
-    ``admissible``, the fitted ``sill``, ``range``, ``nugget``, ``anisotropy`` per kernel
+    ``kernel`` and ``size`` with ``mse``, ``ratio`` (to :data:`DEFAULT_KERNEL`'s fit that
+    competes), ``ucb`` and ``admissible`` (of the fits that compete), the fitted ``sill``,
+    ``range``, ``nugget``, ``anisotropy`` per kernel
     (an anisotropic fit is labelled ``"<family> x<anisotropy>"``; it replaces its family's
     isotropic fit, ``competes``, unless it is worse with confidence at some size: the
     anisotropy is a fitted parameter like the range; ``anisotropic=False`` compares the
@@ -144,7 +145,7 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
                 labels.append(f"{k} x{a:.3g}")
                 variants[i] = len(covs) - 1
     E = _kriging_errors(covs, R, region, sizes, designs, as_generator(seed), MAX_SCORED)
-    mse, ratio, _, _, _, n_cases = paired_choice(E, confidence, tolerance, "spatial='auto'")
+    mse, _, _, _, _, n_cases = paired_choice(E, confidence, tolerance, "spatial='auto'")
     # the anisotropy is a fitted parameter of its family (as the range is): the family
     # competes with it unless the validation finds it worse, with confidence, at some size
     use = list(range(len(kernels)))
