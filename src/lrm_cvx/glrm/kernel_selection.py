@@ -198,4 +198,7 @@ def format_kernel_selection(table: xr.Dataset) -> str:
         lines.append(f"{k:<18}" + "".join(f"{v:12.4g}" for v in table["mse"].values[i])
                      + f"{float(table['range'].values[i]):10.3g}"
                      + f"{float(table['ratio'].values[i].max()):13.3f}  {ok}{mark}")
+    if "anisotropy" in table and np.any(table["anisotropy"].values != 1.0):
+        lines.append("'xA': the east-west range A times the north-south one ('range'); '-': "
+                     "the family competes with its other fit")
     return "\n".join(lines)
