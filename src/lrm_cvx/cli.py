@@ -207,7 +207,7 @@ def _model_params(args: argparse.Namespace) -> dict:
     explicit = {"offset": True if args.offset else None,
                 "scale": _scale_option(args),
                 "noise": args.noise, "spatial": args.spatial, "temporal": args.temporal,
-                "anisotropy": getattr(args, "anisotropy", None)}
+                "anisotropy": args.anisotropy}
     params.update({k: v for k, v in explicit.items() if v is not None})
     params["temporal"] = _prior(params["temporal"])  # --temporal none: no dynamics
     return params

@@ -92,13 +92,12 @@ def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence
 
 def _not_worse(Ea: np.ndarray, Ei: np.ndarray, confidence: float) -> bool:
     """Whether errors ``Ea (n_sizes, n_cases)`` are not worse than the paired ``Ei`` with
-    confidence at any size: the lower confidence bound of the mean change is <= 0."""
-    D = Ea - Ei
-    for d in D:
-        d = d[np.isfinite(d)]
-        if d.size >= 2 and d.mean() - confidence * d.std(ddof=1) / np.sqrt(d.size) > 0:
-            return False
-    return True
+    confidence at any size: the lower confidence bound of the mean change ``Ea - Ei`` is
+    <= 0, i.e. the upper bound of ``Ei``'s change against ``Ea`` (``paired_choice``) is >= 0."""
+    from .paired import paired_choice
+
+    ucb = paired_choice(np.stack([Ea, Ei]), confidence, 0.0, "spatial='auto'")[2][1]
+    return bool(np.all(ucb >= 0))
 
 
 def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KERNELS,

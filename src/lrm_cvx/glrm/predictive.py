@@ -52,6 +52,7 @@ PRIORS = (None, "empirical")
 
 def _check_params(model: Any) -> None:
     from ..spatial import MODELS
+    from ..spatial.covariance import check_anisotropy
 
     if not isinstance(model.offset, (bool, np.bool_)):
         raise ModelError(f"offset must be True or False, got {model.offset!r}")
@@ -63,12 +64,7 @@ def _check_params(model: Any) -> None:
     if model.spatial is not None and model.spatial not in (*MODELS, "auto"):
         raise ModelError(f"spatial must be None, 'auto' or one of {MODELS}, got "
                          f"{model.spatial!r}")
-    a = getattr(model, "anisotropy", 1.0)
-    if isinstance(a, (bool, np.bool_)) or not isinstance(a, (int, float, np.integer,
-                                                                 np.floating)) \
-            or not (np.isfinite(a) and a > 0):
-        raise ModelError(f"anisotropy must be a finite number > 0 (the spatial residual's "
-                         f"east-west over north-south range), got {a!r}")
+    a = check_anisotropy(getattr(model, "anisotropy", 1.0))  # the residual's grid metric
     if a != 1 and model.spatial == "auto":
         raise ModelError(f"anisotropy={a!r} applies to a fixed spatial family (spatial="
                          "'exponential', ...); spatial='auto' estimates and validates its own")

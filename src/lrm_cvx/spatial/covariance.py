@@ -25,6 +25,7 @@ __all__ = ["MODELS", "KERNEL_REGISTRY", "ResidualCovariance", "EmpiricalVariogra
            "correlation", "empirical_variogram", "fit_residual_covariance", "cell_xyz",
            "arc_distance", "chord_distance", "cell_size", "cell_semivariance",
            "axis_variograms", "estimate_anisotropy", "anisotropy_from_variograms",
+           "check_anisotropy",
            "AXIS_LAGS", "MAX_ANISOTROPY"]
 
 Model = Literal["exponential", "matern32", "matern52", "gaussian"]
@@ -132,7 +133,7 @@ class ResidualCovariance:
         object.__setattr__(self, "nugget", check_positive(self.nugget, "nugget", error=ModelError))
         if self.sill + self.nugget <= 0:
             raise ModelError("sill + nugget must be > 0 (a covariance of zero variance)")
-        object.__setattr__(self, "anisotropy", _check_anisotropy(self.anisotropy, self.metric))
+        object.__setattr__(self, "anisotropy", check_anisotropy(self.anisotropy, self.metric))
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -245,7 +246,8 @@ def _check_metric(metric: str) -> str:
     return metric
 
 
-def _check_anisotropy(value: Any, metric: str) -> float:
+def check_anisotropy(value: Any, metric: str = "grid") -> float:
+    """``value`` as a finite anisotropy > 0 for ``metric`` (ModelError naming it otherwise)."""
     number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
         value, (bool, np.bool_))
     a = float(value) if number else np.nan
@@ -459,7 +461,7 @@ def empirical_variogram(
     dropped. ``anisotropy`` (grid metric): distances ``sqrt(dr^2 + (dc / anisotropy)^2)``, the
     column offsets drawn that much longer. Deterministic given ``random_state``."""
     metric = _check_metric(metric)
-    anisotropy = _check_anisotropy(anisotropy, metric)
+    anisotropy = check_anisotropy(anisotropy, metric)
     r = _as_residuals(residuals, region)
     max_pairs = int(max_pairs)
     n_bins = int(n_bins)
@@ -525,12 +527,20 @@ def _fit_curve(model: str, h: np.ndarray, g: np.ndarray, w: np.ndarray,
     upper = [10.0 * g.max() + 1.0, 10.0, 2.0 * g.max() + 1.0]
     nug0 = max(min(0.5 * g[0], 0.5 * g.max()), floor)
     sill0 = max(g.max() - nug0, 1e-3)
-    lower = [0.0, 1e-3, floor]
+    return _best_fit(resid, [[sill0, r0, nug0] for r0 in _START_RANGES],
+                     [0.0, 1e-3, floor], upper)
+
+
+_START_RANGES = (0.05, 0.2, 1.0)  # starting ranges of the variogram fits (x the largest lag)
+
+
+def _best_fit(resid: Any, starts: list, lower: list, upper: list) -> np.ndarray:
+    """The parameters of the lowest-cost ``scipy.optimize.least_squares`` fit of ``resid``
+    within the bounds over the starting points ``starts`` (the first wins ties)."""
     best = None
-    for r0 in (0.05, 0.2, 1.0):
-        sol = least_squares(resid, x0=[sill0, r0, nug0], bounds=(lower, upper),
-                            method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
-                            max_nfev=2000)
+    for x0 in starts:
+        sol = least_squares(resid, x0=x0, bounds=(lower, upper), method="trf", x_scale="jac",
+                            xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=2000)
         if best is None or sol.cost < best.cost - 1e-15:
             best = sol
     return best.x
@@ -612,26 +622,19 @@ def anisotropy_from_variograms(lag: np.ndarray, gamma: np.ndarray, counts: np.nd
 
     gmax = max(float(g[0].max()), float(g[1].max()))
     nug0 = 0.5 * min(float(g[0][0]), float(g[1][0]), gmax)
-    lower = [0.0, 0.0, 1e-3, 1e-3]
-    upper = [10.0 * gmax + 1.0, 2.0 * gmax + 1.0, 10.0, 10.0]
-    best = None
-    for r0 in (0.05, 0.2, 1.0):
-        sol = least_squares(resid, x0=[max(gmax - nug0, 1e-3), nug0, r0, r0],
-                            bounds=(lower, upper), method="trf", x_scale="jac", xtol=1e-12,
-                            ftol=1e-12, gtol=1e-12, max_nfev=2000)
-        if best is None or sol.cost < best.cost - 1e-15:
-            best = sol
-    sill, nug = best.x[0], best.x[1]
+    x = _best_fit(resid, [[max(gmax - nug0, 1e-3), nug0, r0, r0] for r0 in _START_RANGES],
+                  [0.0, 0.0, 1e-3, 1e-3], [10.0 * gmax + 1.0, 2.0 * gmax + 1.0, 10.0, 10.0])
+    sill, nug, ranges = x[0], x[1], x[2:]
     # comparable ranges only: the correlated share one cell away is at least
     # MIN_SPATIAL_SHARE of the variance, and each axis's practical range (correlation 0.05)
     # lies between one cell and its largest lag (beyond, the lags seen cannot measure it)
-    near = [sill * float(correlation(model, 1.0 / (r * top))) for r in best.x[2:]]
-    reach = [r * top * _scaled_cutoff(model, 0.05) for r in best.x[2:]]
+    near = [sill * float(correlation(model, 1.0 / (r * top))) for r in ranges]
+    reach = [r * top * _scaled_cutoff(model, 0.05) for r in ranges]
     tops = [float(lag[ok[a]].max()) for a in (0, 1)]
     if not (max(near) > MIN_SPATIAL_SHARE * (sill + nug)
             and all(1.0 <= e <= t for e, t in zip(reach, tops, strict=True))):
         return 1.0
-    a = best.x[3] / best.x[2]
+    a = ranges[1] / ranges[0]
     return float(np.clip(a, 1.0 / MAX_ANISOTROPY, MAX_ANISOTROPY))
 
 
