@@ -103,13 +103,14 @@ def path_attrs(path: PathOptions, n_robots: int = 1) -> dict[str, Any]:
     }
 
 
-def _plan_day(state: MonitorState, planner: Planner, fleet: Fleet, path: PathOptions,
+def _plan_day(state: MonitorState, t: Any, planner: Planner, fleet: Fleet, path: PathOptions,
               rng: np.random.Generator, ridge: float) -> Any:
-    """One day's plan by ``planner`` for ``fleet`` under ``path``: a planner on the model's
-    belief (the ``greedy:<criterion>`` methods) plans on the state's forecast; the paper's
-    greedy and the baselines ignore it."""
+    """Day ``t``'s plan by ``planner`` for ``fleet`` under ``path``: a planner on the model's
+    belief (the ``greedy:<criterion>`` methods) plans on the state's belief about ``t`` (the
+    forecast once the state has observed an earlier day); the paper's greedy and the baselines
+    ignore it."""
     model = state.model
-    terms = (state.planner_kwargs(criterion=planner.criterion)
+    terms = (state.planner_kwargs(criterion=planner.criterion, time=t)
              if getattr(planner, "model_prior", False) else None)
     return planner.plan(model.Y, model.region_, fleet, path, rng=rng, ridge=ridge, terms=terms)
 
@@ -292,10 +293,7 @@ def simulate_campaign(
     for i in range(T):  # days, in time order
         t = state.plan_time(times[i])  # coerced to the filter's time kind
         if replan or plan is None:
-            state_for_plan = state
-            if state.observed:  # plan against the forecast for day t
-                state_for_plan = _positioned(state, t)
-            plan = _plan_day(state_for_plan, planner, fleet, request, rng, ridge)
+            plan = _plan_day(state, t, planner, fleet, request, rng, ridge)
         information = float(getattr(plan, "information", np.nan))
         forecast = state.belief(t).predict()[0]
         if every:
@@ -382,11 +380,3 @@ def _dataset(out: dict, n_obs: np.ndarray, n_replans: np.ndarray, robot_cost: np
         ds.attrs["temporal"] = "given"
     return ds
 
-
-def _positioned(state: MonitorState, t: Any) -> MonitorState:
-    """A shallow view of ``state`` holding the forecast for ``t`` (not yet observed)."""
-    view = MonitorState.__new__(MonitorState)
-    view.__dict__.update(state.__dict__)
-    view.posterior = state.belief(t)
-    view.time, view.observed = t, False
-    return view
