@@ -9,10 +9,11 @@ project has never seen.
 
 The data sets are those of ``benchmarks/generalization_data.py`` (data shipped inside PyPI and
 Debian packages; that module's docstring has the install commands). Per set, the issue's
-protocol: rank 5, the last 8 snapshots held out, the recommended setting
+protocol: the last 8 snapshots held out, the recommended setting
 (``lrm_cvx.recommended.RECOMMENDED``'s model keys, :func:`recommended_params`: offset,
 ``spatial="auto"`` (the residual's family validated on the training residuals),
-``temporal="auto"``, ``calibration="conformal"``; empirical prior
+``temporal="auto"``, ``calibration="conformal"``, rank 5 (``--rank auto``: the rank validated
+with the temporal model, ``GLRM(rank="auto")``); empirical prior
 with kriging for every method's map, ``greedy:gp-variance``), against the four transects and
 the random walk from the same starts.
 
@@ -84,16 +85,25 @@ warnings.filterwarnings("ignore")
 RECOMMENDED = "greedy:gp-variance"
 BASELINES = ("transect-up", "transect-down", "transect-left", "transect-right", "random")
 RANK, N_TEST = 5, 8
+RANK_OVERRIDE = None
+"""``--rank``: the recommended model's rank instead of the protocol's :data:`RANK` (an integer,
+or ``"auto"``: ``GLRM(rank="auto")``, validated with the temporal model). :data:`RANK` stays
+the rank of the fixed-kind checks (the memoryless coverage variant, ``--aci``, ``--modes
+ar1``)."""
 
 
 def recommended_params(**override) -> dict:
     """The recommended GLRM parameters (``lrm_cvx.recommended.RECOMMENDED``'s model keys: offset,
-    spatial residual, ``temporal="auto"``, calibration) at rank :data:`RANK`, ``override``
-    applied."""
+    spatial residual, ``temporal="auto"``, calibration) at rank :data:`RANK` (or
+    :data:`RANK_OVERRIDE`), ``override`` applied; a fixed temporal kind (``--modes ar1``) is
+    fitted at :data:`RANK` (``rank="auto"`` validates with ``temporal="auto"`` or none)."""
     from lrm_cvx import GLRM
 
-    return {**GLRM.recommended_params(), "rank": RANK, "random_state": 0, "progress": False,
-            **override}
+    params = {**GLRM.recommended_params(), "rank": RANK if RANK_OVERRIDE is None
+              else RANK_OVERRIDE, "random_state": 0, "progress": False, **override}
+    if params.get("rank") == "auto" and params.get("temporal") not in (None, "auto"):
+        params["rank"] = RANK
+    return params
 
 
 def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
@@ -394,6 +404,7 @@ def _per_set(names: list, table_of, fmt: str) -> None:
 
 
 def main() -> None:
+    global RANK_OVERRIDE
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true",
                     help="budget 15 only, 3 starts, 3 random walks per start")
@@ -422,9 +433,14 @@ def main() -> None:
                          "setting; ar1,seasonal,auto adds the fixed kinds)")
     ap.add_argument("--spatial", default=None,
                     help="the GLRM's spatial= instead of the recommended one (e.g. auto)")
+    ap.add_argument("--rank", default=None,
+                    help="the recommended GLRM's rank instead of its own (auto): an integer "
+                         f"({RANK}: the issue's protocol) or auto")
     ap.add_argument("--forecast", action="store_true",
                     help="posterior vs forecast map MSE of the campaigns (forecast_vs_posterior)")
     args = ap.parse_args()
+    if args.rank is not None:
+        RANK_OVERRIDE = args.rank if args.rank == "auto" else int(args.rank)
 
     budgets = (15,) if args.quick else (15, 30, 60)
     n_starts = args.starts or (3 if args.quick else 10)
@@ -450,7 +466,8 @@ def main() -> None:
     if args.coverage:
         origins = args.origins or (2 if args.quick else 3)
         starts = args.starts or 2
-        print(f"rolling origin: {origins} blocks of {N_TEST} snapshots, rank {RANK}, greedy "
+        rank = recommended_params()["rank"] if args.temporal else RANK
+        print(f"rolling origin: {origins} blocks of {N_TEST} snapshots, rank {rank}, greedy "
               f"{RECOMMENDED} budget 15, {starts} starts, {args.temporal or 'memoryless'}; "
               "calibrated on the "
               f"snapshots before each block only ({args.folds} folds)", flush=True)
@@ -474,7 +491,8 @@ def main() -> None:
         print(f"total {time.perf_counter() - t_all:.0f} s")
         return
 
-    print(f"rank {RANK}, last {N_TEST} snapshots held out, budgets {budgets}, {n_starts} starts, "
+    print(f"rank {recommended_params()['rank']}, last {N_TEST} snapshots held out, budgets "
+          f"{budgets}, {n_starts} starts, "
           f"{trials} random walks per start; greedy = {RECOMMENDED}, the recommended GLRM "
           f"({recommended_params()}), empirical prior with kriging", flush=True)
     t_all = time.perf_counter()

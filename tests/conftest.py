@@ -5,6 +5,9 @@ of a command with ``inputs_unchanged.watch(path, ...)`` before running it; at te
 ``inputs_unchanged.check()``) the test fails if any watched file changed (SHA-256 of its bytes),
 disappeared, or if a file appeared in or vanished from a watched folder. Use it in every
 bad-input test: ``tests/test_bad_inputs*.py``.
+
+``refits`` (the validated choices never read ahead): every model the validation refits through
+``calibration.clone_model`` records ``(its overrides, the snapshots it was fitted on)``.
 """
 
 from __future__ import annotations
@@ -70,6 +73,31 @@ def inputs_unchanged():
     guard = InputGuard()
     yield guard
     guard.check()
+
+
+@pytest.fixture
+def refits(monkeypatch):
+    """A list of ``(overrides, n_times)``, one per fit of a model made by
+    ``lrm_cvx.glrm.calibration.clone_model`` during the test (the calibration's and the
+    temporal / rank validation's refits)."""
+    from lrm_cvx.glrm import calibration
+
+    seen: list[tuple[dict, int]] = []
+    real = calibration.clone_model
+
+    def spy(model, **override):
+        sub = real(model, **override)
+        fit = sub.fit
+
+        def recording_fit(data, **kw):
+            seen.append((override, int(data.sizes[data.dims[0]])))
+            return fit(data, **kw)
+
+        sub.fit = recording_fit
+        return sub
+
+    monkeypatch.setattr(calibration, "clone_model", spy)
+    return seen
 
 
 # ------------------------------------------------------------------------------ slow tests

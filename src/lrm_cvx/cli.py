@@ -91,6 +91,17 @@ def _int_at_least(low: int):
     return convert
 
 
+def _rank(text: str) -> int | str:
+    """``--rank``: an integer >= 1 or ``auto`` (chosen on the training snapshots)."""
+    if text == "auto":
+        return text
+    try:
+        return _int_at_least(1)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1 or 'auto', got {text!r}") \
+            from None
+
+
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _NUM_LIST = re.compile(rf"^,?{_NUM}(?:,{_NUM})*,?$")
 _COORDINATE_FLAGS = {"--start": 2, "--end": 2, "--bbox": 4}
@@ -242,7 +253,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
               for name in ("offset", "scale") if getattr(model, name)]
     if model.spatial:
         extras.append(f"spatial={model.spatial}")
-    print(f"fitted rank-{args.rank} GLRM{' (' + ', '.join(extras) + ')' if extras else ''} on "
+    print(f"fitted rank-{model.rank_} GLRM{' (' + ', '.join(extras) + ')' if extras else ''} on "
           f"{data.sizes['time']} snapshots x {model.region_.n_cells} cells in {model.n_iter_} "
           f"iterations (noise std {model.noise_std_:.4g}); saved {out}")
     if getattr(model, "selection_", None) is not None:
@@ -722,7 +733,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("fit", help="fit a GLRM to gridded snapshots")
     _add_data(p)
-    p.add_argument("--rank", type=_int_at_least(1), default=5)
+    p.add_argument("--rank", type=_rank, default=5,
+                   help="components (default 5), or auto: chosen with the temporal model "
+                        "(--temporal auto or none) by rolling-origin validation on the "
+                        "training snapshots")
     p.add_argument("--loss", default="quadratic", choices=LOSSES)
     p.add_argument("--max-iter", type=_int_at_least(1), default=100)
     p.add_argument("--tol", type=finite_number, default=1e-4)
@@ -802,7 +816,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="run the paper's evaluation protocol")
     _add_data(p)
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--rank", type=_int_at_least(1), default=5)
+    p.add_argument("--rank", type=_rank, default=5,
+                   help="the protocol's rank (default 5, the paper's), or auto (with "
+                        "--temporal auto or none)")
     p.add_argument("--n-test", type=_int_at_least(1), default=8)
     p.add_argument("--budgets", default="5,25,50,100,200")
     p.add_argument("--starts", type=_int_at_least(1), default=10)

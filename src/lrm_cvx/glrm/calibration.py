@@ -202,10 +202,13 @@ def clone_model(model: Any, **override: Any):
     ``spatial="auto"`` model's refits keep the family and anisotropy it chose,
     ``kernel_selection_``: the
     kernel is shared by every candidate a refit compares, and choosing it again per refit
-    would cost four variogram fits each)."""
+    would cost four variogram fits each); a fitted ``rank="auto"`` model's refits keep its
+    ``rank_``."""
     params = model.get_params()
     if "calibration" in params:
         params["calibration"] = None
+    if params.get("rank") == "auto" and getattr(model, "rank_", None) is not None:
+        params["rank"] = int(model.rank_)
     if params.get("spatial") == "auto" and getattr(model, "spatial_cov_", None) is not None:
         params["spatial"] = model.spatial_cov_.model
         params["anisotropy"] = float(model.spatial_cov_.anisotropy)

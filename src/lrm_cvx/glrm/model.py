@@ -47,7 +47,12 @@ class GLRM:
 
     Parameters
     ----------
-    rank : k, the number of components.
+    rank : k, the number of components, or ``"auto"``: chosen among
+        :data:`~lrm_cvx.glrm.selection.AUTO_RANKS` by the rolling-origin validation of
+        ``temporal="auto"`` (jointly with the temporal model; memoryless candidates only with
+        ``temporal=None``), against rank :data:`~lrm_cvx.glrm.selection.REFERENCE_RANK`:
+        a higher rank gives the forecast more modes to carry, a lower one fewer to estimate
+        from a few samples. ``rank_`` is the rank fitted, the table is ``selection_``.
     loss : ``"quadratic"`` (the paper), ``"huber"``, ``"absolute"``/``"l1"``, ``"quantile"``, or
         a :class:`~lrm_cvx.glrm.losses.Loss` instance (``Huber(delta=1.0)``, ``Quantile(0.9)``).
     reg_x, reg_y : regulariser of each column of ``X`` (times) / ``Y`` (cells): ``None``,
@@ -92,7 +97,7 @@ class GLRM:
 
     Learned attributes: ``X_`` ``(component, time)``, ``Y_`` ``(component, cell)`` (DataArrays
     when fitted on xarray data, else ndarrays), ``region_``, ``objective_``, ``n_iter_``,
-    ``converged_``, ``noise_std_``, ``unobserved_cells_``, ``n_times_``, ``n_cells_``,
+    ``converged_``, ``noise_std_``, ``unobserved_cells_``, ``rank_``, ``n_times_``, ``n_cells_``,
     ``n_observed_``, ``solver_``.
 
     ``noise_std_``: the RMS training residual, ``sqrt(SSE / (n_obs - p))`` with ``p = k (T +
@@ -194,8 +199,10 @@ class GLRM:
         is used without a copy, otherwise a zero-filled copy is made (the caller's array is
         never modified). Returns ``self``.
         """
-        rank = self.rank
+        rank, rank_selection = self.rank, None
         _check_temporal(self.temporal, data)
+        if isinstance(rank, str):  # "auto": validated before the fit (glrm/selection.py)
+            rank, rank_selection = self._choose_rank(data, mask, region)
         loss = get_loss(self.loss)
         reg_x = get_regularizer(self.reg_x)
         reg_y = get_regularizer(self.reg_y)
@@ -226,7 +233,7 @@ class GLRM:
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
         self._fit_dynamics(M[-1], mask=M)
         del D, M
-        self._validate_choices(data, stacked)
+        self._validate_choices(data, stacked, rank_selection)
         _warn_if_static(self._Xv)
         return self
 
@@ -252,12 +259,43 @@ class GLRM:
         self._validate_choices(data)
         return self
 
-    def _validate_choices(self, data: Any, stacked: np.ndarray | None = None) -> None:
+    def _choose_rank(self, data: Any, mask: Any, region: Any) -> tuple[int, Any]:
+        """``rank="auto"``: ``(rank, selection)`` from :func:`~.selection.select_temporal`
+        with ``ranks`` on a reference fit (rank :data:`~.selection.REFERENCE_RANK`, no
+        dynamics or calibration: its region, kernel and refits), before the real fit."""
+        from .calibration import clone_model
+        from .selection import AUTO_INFLATIONS, AUTO_RANKS, REFERENCE_RANK, select_temporal
+
+        if self.rank != "auto":
+            raise ModelError(f"rank must be an integer or 'auto', got {self.rank!r}")
+        temporal = temporal_value(self.temporal)
+        if temporal not in (None, "auto"):
+            raise ModelError(f"rank='auto' is validated with temporal='auto' or None, got "
+                             f"temporal={self.temporal!r}")
+        if mask is not None or _is_dask(data):
+            raise ModelError("rank='auto' refits in memory on a (time, lat, lon) DataArray: "
+                             "pass an integer rank for masked arrays or dask data")
+        check_auto_data(data)
+        ref_rank = int(min(REFERENCE_RANK, max(1, data.shape[0] // 4)))
+        ref = clone_model(self, rank=ref_rank, temporal=None).fit(data, region=region)
+        auto = temporal == "auto"
+        selection = select_temporal(
+            ref, data, ranks=AUTO_RANKS, kinds=("ar1", "seasonal") if auto else (),
+            inflations=AUTO_INFLATIONS if auto else (1.0,), seed=self.random_state)
+        return int(selection.attrs["choice_rank"]), selection
+
+    def _validate_choices(self, data: Any, stacked: np.ndarray | None = None,
+                          selection: Any = None) -> None:
         """The choices validated on the training ``data``: ``temporal="auto"``'s ``dynamics_``
-        (glrm/selection.py), then ``calibration``'s ``calibration_`` (glrm/calibration.py).
-        ``stacked``: ``data`` as the fit stacked it ``(T, L)``, when it still holds it."""
-        if temporal_value(self.temporal) == "auto":
-            from .selection import apply_selection, select_temporal
+        (glrm/selection.py; ``selection``: the one ``rank="auto"`` made already), then
+        ``calibration``'s ``calibration_`` (glrm/calibration.py). ``stacked``: ``data`` as the
+        fit stacked it ``(T, L)``, when it still holds it."""
+        from .selection import apply_selection
+
+        if selection is not None:
+            apply_selection(self, selection)
+        elif temporal_value(self.temporal) == "auto":
+            from .selection import select_temporal
 
             apply_selection(self, select_temporal(self, data, seed=self.random_state,
                                                   values=stacked))
@@ -319,6 +357,7 @@ class GLRM:
         comp = np.arange(k)
         self.region_ = region
         self.n_times_, self.n_cells_ = res.X.shape[1], res.Y.shape[1]
+        self.rank_ = int(k)
         self.n_features_in_ = self.n_cells_
         if xarray:
             tdim = getattr(self, "_time_dim", "time")

@@ -29,7 +29,8 @@ MODEL_ATTRS = ("params", "noise_std", "n_iter", "converged", "n_observed")
 
 _TABLES = (  # (attribute, file prefix, its variables and coords, int attrs, float attrs)
     ("selection_", "selection_",
-     ("mse", "ratio", "ucb", "admissible", "candidate", "size", "kind", "alpha", "inflation"),
+     ("mse", "ratio", "ucb", "admissible", "candidate", "size", "kind", "alpha", "inflation",
+      "rank"),  # rank: GLRM(rank="auto")'s tables only
      ("n_days",), ("choice_alpha", "choice_inflation", "confidence", "tolerance")),
     ("kernel_selection_", "kernel_selection_",
      ("mse", "ratio", "ucb", "admissible", "sill", "range", "nugget", "anisotropy", "competes",
@@ -70,6 +71,8 @@ def restore_validation_tables(model: object, ds: xr.Dataset) -> None:
             table.attrs = {k[len(prefix):]: v for k, v in ds.attrs.items()
                            if k.startswith(prefix)}
             table.attrs.update({k: int(table.attrs[k]) for k in ints})
+            if "choice_rank" in table.attrs:
+                table.attrs["choice_rank"] = int(table.attrs["choice_rank"])
             table.attrs.update({k: float(table.attrs[k]) for k in floats  # older files
                                 if k in table.attrs})
             table = table.load()

@@ -58,7 +58,7 @@ from .dynamics import kind_dynamics
 from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
 
 __all__ = ["select_temporal", "paired_choice", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
-           "AUTO_INFLATIONS", "memoryless_twin",
+           "AUTO_INFLATIONS", "AUTO_RANKS", "REFERENCE_RANK", "memoryless_twin",
            "MIN_AUTO_SNAPSHOTS", "MAX_SCORED", "REFIT_PAIRS",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection"]
 
@@ -66,6 +66,11 @@ AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
 """Blends towards the memoryless prior tried for every temporal kind."""
 AUTO_INFLATIONS = (1.0, 2.0, 4.0, 8.0)
 """Factors of the residual and noise variances tried with every temporal candidate."""
+AUTO_RANKS = (3, 5, 8, 12)
+"""Ranks ``GLRM(rank="auto")`` validates (jointly with the temporal candidates)."""
+REFERENCE_RANK = 5
+"""The rank the rule's reference (memoryless) candidate has under ``rank="auto"``: the
+default rank, which another must beat with confidence."""
 MIN_AUTO_SNAPSHOTS = 8
 """Fewest training snapshots ``temporal="auto"`` validates on (3 to refit, 2 windows)."""
 REFIT_PAIRS = 50_000
@@ -73,9 +78,11 @@ REFIT_PAIRS = 50_000
 _MIN_REGULAR = 0.8  # share of the steps that must be one median step
 
 
-def _candidate_label(kind: str, alpha: float, inflation: float = 1.0) -> str:
+def _candidate_label(kind: str, alpha: float, inflation: float = 1.0,
+                     rank: int | None = None) -> str:
     base = "none" if kind == "none" else f"{kind}:{alpha:g}"
-    return base if inflation == 1.0 else f"{base} x{inflation:g}"
+    base = base if inflation == 1.0 else f"{base} x{inflation:g}"
+    return base if rank is None else f"rank {rank} {base}"
 
 
 def check_auto_data(data: Any) -> None:
@@ -194,7 +201,8 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
                     n_folds: int = 2, sizes: Sequence[int] = AUTO_SIZES,
                     designs: Sequence[str] = AUTO_DESIGNS, confidence: float = 1.645,
                     tolerance: float = 0.01, spatial: bool | None = None, seed: Any = 0,
-                    values: np.ndarray | None = None) -> xr.Dataset:
+                    values: np.ndarray | None = None,
+                    ranks: Sequence[int] | None = None) -> xr.Dataset:
     """Choose the temporal model of ``model`` by rolling-origin validation on ``data``.
 
     ``model``: a GLRM fitted on ``data`` ``(time, lat, lon)``, its training snapshots (only
@@ -210,15 +218,22 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``values``: ``data`` already stacked by the model's region ``(T, L)`` (``GLRM.fit`` hands
     over its own; None: stacked here). See the module docstring for the rule.
 
+    ``ranks`` (``GLRM(rank="auto")``): also choose the rank among these. Every window is
+    refitted at each rank and every candidate tried at each (labels ``"rank 8 seasonal:1
+    x2"``), all on the same sample cells; the reference is memoryless at
+    :data:`REFERENCE_RANK` (or the middle rank offered). A rank the earliest window's
+    history cannot carry (more than half its snapshots) is skipped. ``kinds=()`` validates the
+    rank alone (memoryless candidates).
+
     Returns a Dataset over ``candidate`` (coordinates ``kind``, ``alpha``, ``inflation``) and
     ``size``: ``mse`` (mean validation-day MSE), ``ratio`` (to memoryless as fitted), ``ucb``
     (the bound of the rule), ``admissible``; attributes ``choice`` (a candidate label,
     ``"none"`` for memoryless), ``choice_kind``, ``choice_alpha``, ``choice_inflation``,
-    ``n_days``, ``designs``, ``skipped``.
+    ``n_days``, ``designs``, ``skipped`` (and with ``ranks`` a ``rank`` coordinate and
+    ``choice_rank``).
     """
     from .calibration import clone_model, training_values
     from .dynamics import TEMPORAL, check_times
-    from .predictive import residual_covariance
 
     # one stacking pass, float32 as region.stack gives it (the scoring promotes the values
     # exactly; the refits read it as a (time, cell) DataArray, not gathered again)
@@ -257,62 +272,116 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
         raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
     n_folds = max(1, min(int(n_folds), (T - 3) // n_val))
     rng = as_generator(seed)
-    from .calibration import blend_dynamics, memoryless_cov
 
+    first_lo = T - n_folds * n_val  # the earliest window's history
+    rank_list, skipped_ranks = _check_ranks(ranks, first_lo, int(model.n_cells_))
+    ranked = rank_list != [None]  # then every rank's candidates meet the same days' cells
     all_times = data[tdim].values
     errs: list[dict[str, np.ndarray]] = []  # per window, in time order: label -> (size, day)
-    meta: dict[str, tuple[str, float, float]] = {}
-    skipped: set[str] = set()
+    meta: dict[str, tuple[str, float, float, int | None]] = {}
+    skipped: set[str] = set(skipped_ranks)
     family = getattr(clone_model(model), "spatial", None)  # a spatial="auto" model's choice
     shared_cov = None  # the first refit's residual covariance, shared by the later refits
     for f in reversed(range(n_folds)):  # earliest window first: it has the shortest history
         end = T - f * n_val
         lo = end - n_val
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            before = xr.DataArray(V[:lo], dims=(tdim, "cell"), coords={tdim: all_times[:lo]})
-            sub = clone_model(model, temporal="ar1", spatial=None).fit(before, region=region)
-            if family is not None:  # fitted once, on the earliest refit's snapshots only
-                if shared_cov is None:
-                    shared_cov = residual_covariance(sub, V[:lo], family,
-                                                     max_pairs=REFIT_PAIRS)
-                sub.spatial, sub.spatial_cov_ = family, shared_cov
-        sub.calibration_ = None
-        sub_times = all_times[:lo]
-        models: list[tuple[str, float, Any]] = [("none", 0.0, None)]
-        for kind in kinds:
-            base = None if kind in skipped else kind_dynamics(kind, sub, sub_times)
-            if base is None:
-                skipped.add(kind)
-                continue
-            S = memoryless_cov(sub, base)
-            models += [(kind, a, blend_dynamics(base, a, S)) for a in alphas
-                       if not (kind == "ar1" and a == 0.0)]  # ar1:0 is memoryless itself
-        labels, dyns, infl = [], [], []
-        for r in inflations:  # the memoryless model as fitted first: the rule's reference
-            for kind, a, dyn in models:
-                labels.append(_candidate_label(kind, a, r))
-                meta[labels[-1]] = (kind, a, r)
-                dyns.append(dyn)
-                infl.append(r)
-        with single_threaded_blas():  # k x k and n x n algebra: threads only add waiting
-            E = _window_errors(sub, dyns, V[lo:end], all_times[lo:end], region, sizes,
-                               designs, rng, spatial, infl)
-        errs.append(dict(zip(labels, E, strict=True)))
+        window_seed = int(rng.integers(2**62)) if ranked else 0
+        window: dict[str, np.ndarray] = {}
+        for rank in rank_list:
+            sub, shared_cov = _refit_before(model, V, lo, all_times, tdim, region, rank,
+                                            family, shared_cov)
+            models = _candidate_models(sub, kinds, alphas, all_times[:lo], skipped)
+            labels, dyns, infl = [], [], []
+            for r in inflations:  # the memoryless model as fitted first: the rule's reference
+                for kind, a, dyn in models:
+                    labels.append(_candidate_label(kind, a, r, rank))
+                    meta[labels[-1]] = (kind, a, r, rank)
+                    dyns.append(dyn)
+                    infl.append(r)
+            with single_threaded_blas():  # k x k and n x n algebra: threads only add waiting
+                E = _window_errors(sub, dyns, V[lo:end], all_times[lo:end], region, sizes,
+                                   designs, np.random.default_rng(window_seed) if ranked
+                                   else rng, spatial, infl)
+            window.update(zip(labels, E, strict=True))
+        errs.append(window)
     labels = [lab for lab in errs[0] if all(lab in e and meta[lab][0] not in skipped
                                             for e in errs)]
     E = np.stack([np.concatenate([e[lab] for e in errs], axis=-1) for lab in labels])
-    return _rule(E, labels, meta, sizes, designs, confidence, tolerance, skipped)
+    return _rule(E, labels, meta, sizes, designs, confidence, tolerance, skipped, ranked)
+
+
+def _refit_before(model: Any, V: np.ndarray, lo: int, times: np.ndarray, tdim: str,
+                  region: Any, rank: int | None, family: str | None, shared_cov: Any
+                  ) -> tuple[Any, Any]:
+    """``(sub, shared_cov)``: ``model`` refitted (AR(1), no spatial fit, ``rank`` when given)
+    on the snapshots ``V[:lo]`` before a window, given the residual covariance shared by every
+    refit (fitted here on the first refit's residuals when there is none yet)."""
+    from .calibration import clone_model
+    from .predictive import residual_covariance
+
+    over = {} if rank is None else {"rank": int(rank)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        before = xr.DataArray(V[:lo], dims=(tdim, "cell"), coords={tdim: times[:lo]})
+        sub = clone_model(model, temporal="ar1", spatial=None, **over).fit(before,
+                                                                           region=region)
+        if family is not None:  # fitted once, on the earliest refit's snapshots only
+            if shared_cov is None:
+                shared_cov = residual_covariance(sub, V[:lo], family, max_pairs=REFIT_PAIRS)
+            sub.spatial, sub.spatial_cov_ = family, shared_cov
+    sub.calibration_ = None
+    return sub, shared_cov
+
+
+def _candidate_models(sub: Any, kinds: Sequence[str], alphas: Sequence[float],
+                      times: np.ndarray, skipped: set[str]) -> list[tuple[str, float, Any]]:
+    """``[(kind, alpha, dynamics)]`` of a refit ``sub`` (its snapshots at ``times``):
+    memoryless first, then each kind of ``kinds`` blended by each of ``alphas``; a kind the
+    history cannot carry is added to ``skipped`` (and not tried again)."""
+    from .calibration import blend_dynamics, memoryless_cov
+
+    models: list[tuple[str, float, Any]] = [("none", 0.0, None)]
+    for kind in kinds:
+        base = None if kind in skipped else kind_dynamics(kind, sub, times)
+        if base is None:
+            skipped.add(kind)
+            continue
+        S = memoryless_cov(sub, base)
+        models += [(kind, a, blend_dynamics(base, a, S)) for a in alphas
+                   if not (kind == "ar1" and a == 0.0)]  # ar1:0 is memoryless itself
+    return models
+
+
+def _check_ranks(ranks: Sequence[int] | None, history: int, n_cells: int
+                 ) -> tuple[list[int | None], list[str]]:
+    """The ranks :func:`select_temporal` refits at, reference first (``[None]``: the model's
+    own), and the labels of those skipped (more than half the earliest window's ``history``
+    snapshots, or not below the cell count)."""
+    if ranks is None:
+        return [None], []
+    try:
+        asked = sorted({int(r) for r in ranks})
+    except (TypeError, ValueError):
+        raise ModelError(f"ranks must be positive integers, got {ranks!r}") from None
+    if not asked or asked[0] < 1 or any(isinstance(r, bool) for r in ranks):
+        raise ModelError(f"ranks must be positive integers, got {ranks!r}")
+    ok = [r for r in asked if 2 * r <= history and r < n_cells]
+    if not ok:
+        raise ModelError(f"rank='auto': none of the ranks {asked} can be refitted on the "
+                         f"earliest validation window's {history} snapshots (at most half of "
+                         "them); pass an integer rank")
+    ref = REFERENCE_RANK if REFERENCE_RANK in ok else ok[(len(ok) - 1) // 2]
+    return [ref] + [r for r in ok if r != ref], [f"rank {r}" for r in asked if r not in ok]
 
 
 def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
           designs: Sequence[str], confidence: float, tolerance: float,
-          skipped: set[str]) -> xr.Dataset:
+          skipped: set[str], ranked: bool = False) -> xr.Dataset:
     """The validation table and the choice of :func:`select_temporal` from the day errors
     ``E (n_candidates, n_sizes, n_days)`` (candidate 0 is memoryless)."""
     mse, ratio, ucb, admissible, best, n_days = paired_choice(  # a day not scored: left out
         E, confidence, tolerance, "temporal='auto'")
-    kind, alpha, inflation = meta[labels[best]]
+    kind, alpha, inflation, *rank = meta[labels[best]]  # (..., rank) with ranks
     ds = xr.Dataset(
         {"mse": (("candidate", "size"), mse),
          "ratio": (("candidate", "size"), ratio),
@@ -330,6 +399,9 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
                     n_days=int(n_days), designs=",".join(designs),
                     skipped=",".join(sorted(skipped)), confidence=float(confidence),
                     tolerance=float(tolerance))
+    if ranked:
+        ds = ds.assign_coords(rank=("candidate", [int(meta[lab][3]) for lab in labels]))
+        ds.attrs["choice_rank"] = int(rank[0])
     return ds
 
 

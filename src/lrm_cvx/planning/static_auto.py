@@ -98,6 +98,8 @@ def _refit(model: Any, V: np.ndarray, region: Any) -> Any:
     for key, value in (("progress", False), ("temporal", None), ("calibration", None)):
         if key in params:
             params[key] = value
+    if params.get("rank") == "auto":  # the rank the model chose (GLRM(rank="auto"))
+        params["rank"] = int(model.rank_)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return type(model)(**params).fit(xr.DataArray(V, dims=("time", "cell")), region=region)
