@@ -105,6 +105,22 @@ def test_rank_auto_is_saved_cloned_and_printed(rank2_field, tmp_path):
     assert clone_model(back).rank == model.rank_  # refits (calibration, placement) keep it
     text = format_selection(back.selection_)
     assert f"rank {model.rank_} none" in text and "chose" in text
+    assert f"{back.selection_.attrs['choice']} " in text and text.count(" *") == 1
+
+
+def test_the_printed_table_keeps_the_reference_the_choice_and_each_ranks_best(rank8_field):
+    sel = _auto(rank8_field.isel(time=slice(0, 80)), temporal="auto").selection_
+    lines = format_selection(sel).splitlines()
+    rows = [ln.split("  ")[0].strip() for ln in lines[2:] if ln.startswith("rank ")]
+    worst = sel["ratio"].max("size")
+    best = {int(r): str(worst.where(sel["rank"] == r, drop=True).idxmin().item())
+            for r in np.unique(sel["rank"].values)}
+    assert rows[0] == f"rank {REFERENCE_RANK} none"
+    assert set(rows) == {rows[0], sel.attrs["choice"], *best.values()}
+    assert sel.sizes["candidate"] > len(rows)
+    assert any("all in model.selection_" in ln for ln in lines)
+    chosen = [ln for ln in lines if ln.endswith(" *")]
+    assert len(chosen) == 1 and chosen[0].startswith(sel.attrs["choice"] + " ")
 
 
 def test_rank_auto_bad_input(rank2_field):

@@ -438,6 +438,21 @@ def memoryless_twin(model: Any) -> Any:
     return twin
 
 
+def _rows_shown(selection: xr.Dataset) -> list[int]:
+    """Rows of the printed table: every candidate, or with ranks (``rank="auto"``: up to a
+    hundred) the reference, the choice and each rank's best (lowest worst ratio), in table
+    order."""
+    if "rank" not in selection.coords:
+        return list(range(selection.sizes["candidate"]))
+    worst = selection["ratio"].max("size").values
+    ranks = selection["rank"].values
+    keep = {0, list(selection["candidate"].values).index(selection.attrs["choice"])}
+    for r in np.unique(ranks):
+        idx = np.flatnonzero(ranks == r)
+        keep.add(int(idx[np.argmin(worst[idx])]))
+    return sorted(keep)
+
+
 def format_selection(selection: xr.Dataset, short: bool = False) -> str:
     """The validation table as text (the CLI prints it); ``short``: one line (the demo's)."""
     if short:
@@ -446,17 +461,23 @@ def format_selection(selection: xr.Dataset, short: bool = False) -> str:
         return (f"temporal='auto' chose {choice!r} (MSE x{worst:.2f} of memoryless over "
                 f"{selection.attrs['n_days']} validation days)")
     sizes = [int(s) for s in selection["size"].values]
-    head = f"{'candidate':<18}" + "".join(f"{'MSE@' + str(s):>12}" for s in sizes)
+    labels = [str(lab) for lab in selection["candidate"].values]
+    rows = _rows_shown(selection)
+    width = max(18, 2 + max(len(labels[i]) for i in rows))
+    head = f"{'candidate':<{width}}" + "".join(f"{'MSE@' + str(s):>12}" for s in sizes)
     lines = [f"temporal='auto' chose {selection.attrs['choice']!r} (rolling origin, "
              f"{selection.attrs['n_days']} validation days, designs "
              f"{selection.attrs['designs']})", head + f"{'worst ratio':>13}  admissible"]
-    for i, lab in enumerate(selection["candidate"].values):
+    for i in rows:
         mse = selection["mse"].values[i]
         worst = float(selection["ratio"].values[i].max())
         ok = "yes" if bool(selection["admissible"].values[i]) else "no"
-        mark = " *" if lab == selection.attrs["choice"] else ""
-        lines.append(f"{lab:<18}" + "".join(f"{v:12.4g}" for v in mse)
+        mark = " *" if labels[i] == selection.attrs["choice"] else ""
+        lines.append(f"{labels[i]:<{width}}" + "".join(f"{v:12.4g}" for v in mse)
                      + f"{worst:13.3f}  {ok}{mark}")
+    if len(rows) < len(labels):
+        lines.append(f"(the reference and each rank's best of {len(labels)} candidates; all "
+                     "in model.selection_)")
     if selection.attrs.get("skipped"):
         lines.append(f"skipped (the record cannot carry them): {selection.attrs['skipped']}")
     if "inflation" in selection.coords and float(selection["inflation"].max()) > 1.0:
