@@ -83,6 +83,24 @@ def check_positive(
     return v
 
 
+def check_ranks(ranks: Any) -> list[int]:
+    """``ranks`` as a non-empty list of distinct integers >= 1 (ModelError naming ``ranks``
+    otherwise)."""
+    vals = np.atleast_1d(np.asarray(ranks, dtype=object)).ravel()
+    ok = vals.size > 0
+    for r in vals:  # a handful of ranks
+        if (isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer, float))
+                or not float(r).is_integer() or r < 1):
+            ok = False
+    if not ok:
+        raise ModelError(f"ranks must be a non-empty sequence of positive integers (>= 1), "
+                         f"got {ranks!r}")
+    out = [int(r) for r in vals]
+    if len(set(out)) != len(out):
+        raise ModelError(f"ranks must not repeat, got {out}")
+    return out
+
+
 def check_flag(value: Any, name: str, *, error: type[Exception] = DataError) -> bool:
     """``value`` as a bool when it is one (``True``/``False``, numpy's too), else ``error``
     naming it: ``paper="yes"`` or ``paper=1`` is a caller's mistake, not a switch."""

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from .._validation import as_generator, atomic_output, check_positive
+from .._validation import as_generator, atomic_output, check_positive, check_ranks
 from ..errors import DataError, ModelError, NotFittedError
 from ..recommended import RECOMMENDED
 from ..region import Region
@@ -762,7 +762,7 @@ class GLRM:
         observed entries and score it on the rest. Returns a Series indexed by rank."""
         from .calibration import clone_model  # a refit that never calibrates itself
 
-        ranks = _check_ranks(ranks)
+        ranks = check_ranks(ranks)
         if isinstance(data, xr.DataArray) and data.ndim == 3:
             region = Region.from_dataarray(data)
             data = xr.DataArray(region.stack(data), dims=(data.dims[0], "cell"))
@@ -878,22 +878,6 @@ class GLRM:
         model.calibration_ = Calibration.from_attrs(ds.attrs)
         restore_validation_tables(model, ds)
         return model
-
-
-def _check_ranks(ranks: Any) -> list[int]:
-    """``ranks`` as a non-empty list of distinct integers >= 1 (ModelError otherwise)."""
-    vals = np.atleast_1d(np.asarray(ranks, dtype=object)).ravel()
-    ok = vals.size > 0
-    for r in vals:  # a handful of ranks
-        if (isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer, float))
-                or not float(r).is_integer() or r < 1):
-            ok = False
-    if not ok:
-        raise ModelError(f"ranks must be a non-empty sequence of integers >= 1, got {ranks!r}")
-    out = [int(r) for r in vals]
-    if len(set(out)) != len(out):
-        raise ModelError(f"ranks must not repeat, got {out}")
-    return out
 
 
 def _is_dask(obj: Any) -> bool:

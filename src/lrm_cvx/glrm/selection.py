@@ -52,7 +52,7 @@ import numpy as np
 import xarray as xr
 
 from .._blas import single_threaded_blas
-from .._validation import as_generator
+from .._validation import as_generator, check_ranks
 from ..errors import DataError, ModelError
 from .dynamics import kind_dynamics
 from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
@@ -359,12 +359,7 @@ def _check_ranks(ranks: Sequence[int] | None, history: int, n_cells: int
     snapshots, or not below the cell count)."""
     if ranks is None:
         return [None], []
-    try:
-        asked = sorted({int(r) for r in ranks})
-    except (TypeError, ValueError):
-        raise ModelError(f"ranks must be positive integers, got {ranks!r}") from None
-    if not asked or asked[0] < 1 or any(isinstance(r, bool) for r in ranks):
-        raise ModelError(f"ranks must be positive integers, got {ranks!r}")
+    asked = sorted(check_ranks(ranks))
     ok = [r for r in asked if 2 * r <= history and r < n_cells]
     if not ok:
         raise ModelError(f"rank='auto': none of the ranks {asked} can be refitted on the "
@@ -476,8 +471,8 @@ def format_selection(selection: xr.Dataset, short: bool = False) -> str:
         lines.append(f"{labels[i]:<{width}}" + "".join(f"{v:12.4g}" for v in mse)
                      + f"{worst:13.3f}  {ok}{mark}")
     if len(rows) < len(labels):
-        lines.append(f"(the reference and each rank's best of {len(labels)} candidates; all "
-                     "in model.selection_)")
+        lines.append(f"(the reference, the choice and each rank's best of {len(labels)} "
+                     "candidates; all in model.selection_)")
     if selection.attrs.get("skipped"):
         lines.append(f"skipped (the record cannot carry them): {selection.attrs['skipped']}")
     if "inflation" in selection.coords and float(selection["inflation"].max()) > 1.0:
