@@ -11,6 +11,7 @@ from scipy.stats import norm
 
 from lrm_cvx.errors import ModelError
 from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.glrm.calibration import (
     Calibration,
     calibrate,
@@ -322,7 +323,8 @@ def test_residual_scale_multiplies_the_residual_and_noise_variances():
     assert obs.spatial_cov.nugget == pytest.approx(2 * base.spatial_cov.nugget)
     assert obs.spatial_cov.range == base.spatial_cov.range
     plain = ObservationModel.from_model(model, spatial=False)
-    assert plain.noise_var == pytest.approx(2 * float(model.noise_std_) ** 2)
+    assert plain.noise_var == pytest.approx(2 * float(model.noise_std_) ** 2
+                                            * prediction_factor(model))  # a new snapshot's
     back = Calibration.from_attrs(model.calibration_.to_attrs())
     assert back.residual_scale == 2.0
 

@@ -11,6 +11,7 @@ import pytest
 from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.errors import DataError, ModelError, PlanningError, RegionError
 from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.io.samples import synthetic_dynamic_field
 
 
@@ -49,7 +50,7 @@ def test_memoryless_campaign_is_the_empirical_fold_in(model, field):
                                    rtol=1e-4)
         held = seen.copy()
         held[cells] = False
-        pstd = np.sqrt(std ** 2 + model.noise_std_ ** 2)
+        pstd = np.sqrt(std ** 2 + model.noise_std_ ** 2 * prediction_factor(model))
         z = np.abs(pred - V[i])[held] / pstd[held]
         np.testing.assert_allclose(ds["coverage95"].values[i], np.mean(z <= 1.959964),
                                    atol=1e-9)

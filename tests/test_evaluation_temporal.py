@@ -10,6 +10,7 @@ import pytest
 from lrm_cvx.errors import ModelError
 from lrm_cvx.evaluation import evaluate, summary
 from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.glrm.calibration import Z68, Z95
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.planning import transect
@@ -64,8 +65,9 @@ def test_memoryless_errors_and_coverage_against_a_direct_fold_in(data, model):
                 mse = np.mean((pred[obs] - V[t, obs]) ** 2)
                 assert res.mse.values[m, b, s, 0, t] == pytest.approx(mse, rel=1e-8)
                 # coverage: sigma^2 (Y_S Y_S^T)^-1 plus the noise of a new measurement
-                cov_x = model.noise_std_ ** 2 * np.linalg.inv(Y[:, c] @ Y[:, c].T)
-                sd = np.sqrt(np.einsum("ai,ab,bi->i", Y, cov_x, Y) + model.noise_std_ ** 2)
+                s2 = model.noise_std_ ** 2 * prediction_factor(model)  # a new snapshot's
+                cov_x = s2 * np.linalg.inv(Y[:, c] @ Y[:, c].T)
+                sd = np.sqrt(np.einsum("ai,ab,bi->i", Y, cov_x, Y) + s2)
                 held = obs.copy()
                 held[c] = False
                 z = np.abs(V[t, held] - pred[held]) / sd[held]

@@ -10,6 +10,7 @@ import xarray as xr
 
 from lrm_cvx.errors import ConvergenceWarning, DataError, ModelError, NotFittedError
 from lrm_cvx.glrm import GLRM, L1, Huber, Ridge, fold_in, fold_in_many
+from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.region import Region
 
 
@@ -128,7 +129,9 @@ def test_complete_outputs_and_std_shrinks():
     # matches the fold-in on the same cells
     vals = m.region_.stack(snap)
     obs = np.flatnonzero(np.isfinite(vals))
-    x, cov = fold_in(m.Y_.values, obs, vals[obs], noise_std=m.noise_std_)
+    # the noise of a new snapshot: noise_std_^2 n / (n - k) (calibrated.prediction_factor)
+    x, cov = fold_in(m.Y_.values, obs, vals[obs],
+                     noise_std=m.noise_std_ * np.sqrt(prediction_factor(m)))
     np.testing.assert_allclose(ds["x"].values, x)
     np.testing.assert_allclose(m.region_.stack(ds["prediction"]), (m.Y_.values.T @ x), rtol=1e-6)
     y = m.Y_.values

@@ -4,6 +4,7 @@ memoryless fold-in; observations in every form; save/load; bad input."""
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -12,6 +13,7 @@ import xarray as xr
 
 from lrm_cvx.errors import DataError, ModelError, RegionError
 from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.glrm.dynamics import Dynamics
 from lrm_cvx.glrm.posterior import empirical_moments
 from lrm_cvx.io.samples import synthetic_dynamic_field
@@ -57,7 +59,7 @@ def test_filter_matches_a_naive_kalman_filter(model, field):
     dyn = model.dynamics_
     state = model.monitor()
     Y = model._Yv
-    off, sc, nv = model.offset_, model.scale_, model.noise_var_
+    off, sc, nv = model.offset_, model.scale_, model.noise_var_ * prediction_factor(model)
     m = dyn.initial_mean.copy()
     P = dyn.initial_cov + 1e-9 * np.trace(dyn.Q) / 3 * np.eye(3)
     days = [30, 31, 33, 34]  # a missed day: two steps
@@ -249,7 +251,7 @@ def test_planner_kwargs_have_the_forecast_prior(model, plain):
     kw = state.planner_kwargs(criterion="fisher")
     P1 = np.linalg.inv(state._propagated(state.next_time()).cov)
     np.testing.assert_allclose(kw["prior_precision"], P1, rtol=1e-6)
-    np.testing.assert_allclose(kw["noise_var"], model.noise_var_)
+    np.testing.assert_allclose(kw["noise_var"], model.noise_var_ * prediction_factor(model))
     np.testing.assert_allclose(kw["target_weights"], model.scale_ ** 2)
     assert "spatial_cov" not in kw
     with pytest.raises(ModelError, match="gp-variance"):
@@ -266,7 +268,9 @@ def test_planner_kwargs_gp_variance(field):
     model = _fit(field.isel(time=slice(0, 30)), temporal="ar1", spatial="exponential")
     state = model.monitor()
     kw = state.planner_kwargs()
-    assert kw["spatial_cov"] is model.spatial_cov_
+    f = prediction_factor(model)  # a new snapshot's residual (calibrated.prediction_factor)
+    assert kw["spatial_cov"] == replace(model.spatial_cov_, sill=model.spatial_cov_.sill * f,
+                                        nugget=model.spatial_cov_.nugget * f)
     np.testing.assert_allclose(kw["prior_cov"], state._propagated(state.next_time()).cov)
     from lrm_cvx.planning import plan_greedy
 

@@ -212,7 +212,8 @@ def test_empirical_prior_and_information_from_a_model():
     np.testing.assert_array_equal(p.cov, S0)
     info = p.information()
     np.testing.assert_allclose(info["prior_precision"], np.linalg.inv(S0), rtol=1e-8, atol=1e-12)
-    np.testing.assert_array_equal(info["noise_var"], m.noise_var_)
+    # a new snapshot's noise: n / (n - k) times the fitted one (20 snapshots, rank 3 + offset)
+    np.testing.assert_allclose(info["noise_var"], m.noise_var_ * 20 / 16, rtol=1e-12)
     np.testing.assert_allclose(info["target_weights"], m.scale_ ** 2)
     assert "spatial_cov" not in info
     assert LatentPosterior.prior(m, "flat").information()["prior_precision"] is None

@@ -68,9 +68,10 @@ def test_the_nugget_no_longer_collapses(fitted):
     floor = cov.cell_semivariance(cell_size(region, cov.metric))
     assert floor > 0.1 * float(cov.semivariogram(1.0))  # a sizeable part of the lag-1 variance
     assert cov.nugget >= floor * (1 - 1e-9)
-    # the model's covariance is this function's fit with min_nugget="cell"
-    again = fit_residual_covariance(R, region, model="exponential", random_state=0,
-                                    min_nugget="cell")
+    # the model's covariance is this function's fit with min_nugget="cell" to the residuals
+    # times sqrt(n / (n - k)): 30 snapshots, k = rank 2 + the offset (calibrated.residual_dof)
+    again = fit_residual_covariance(R * np.sqrt(30 / 27), region, model="exponential",
+                                    random_state=0, min_nugget="cell")
     for name in ("sill", "range", "nugget"):
         assert getattr(again, name) == pytest.approx(getattr(cov, name), rel=1e-6)
     # a numeric floor is honoured; a bad one is a one-line error naming the argument
@@ -94,11 +95,11 @@ def test_cell_size_in_km_follows_the_grid():
 
 def brute_force(model, cells, values):
     """Dense GP: value = offset + y^T x + r + e, x ~ N(mean(X), cov(X)), r ~ GP(sill, range),
-    e ~ N(0, nugget) (sill and nugget times the model's ``residual_inflation_``); the
-    conditional of the noise-free value at every cell given the samples, and the std of a
-    new measurement."""
+    e ~ N(0, nugget) (sill and nugget times the model's ``residual_inflation_`` and a new
+    snapshot's ``n / (n - k)``: rank 2 + offset, 30 snapshots); the conditional of the
+    noise-free value at every cell given the samples, and the std of a new measurement."""
     cov = model.spatial_cov_
-    r = getattr(model, "residual_inflation_", 1.0)
+    r = getattr(model, "residual_inflation_", 1.0) * (30 / 27)
     cov = ResidualCovariance(model=cov.model, sill=cov.sill * r, range=cov.range,
                              nugget=cov.nugget * r, metric=cov.metric)
     Y = model._Yv
@@ -133,7 +134,7 @@ def test_fitted_spatial_model_equals_the_brute_force_gp(fitted, n, inflation):
     np.testing.assert_allclose(post.predictive_std(), b_pstd, rtol=1e-7)
     # at the sampled cells: not an exact interpolator, and a new measurement's std is
     # sqrt(std^2 + noise) > 0
-    nug = model.spatial_cov_.nugget * inflation
+    nug = model.spatial_cov_.nugget * inflation * (30 / 27)
     assert np.all(std[cells] > 0.05 * np.sqrt(nug))
     np.testing.assert_allclose(pstd[cells], np.sqrt(std[cells] ** 2 + nug), rtol=1e-10)
     assert np.all(pstd[cells] >= np.sqrt(nug))
@@ -183,12 +184,15 @@ def test_residual_scale_makes_the_spatial_residual_heteroscedastic(noise):
                                    shrink_noise(sse * sig2 * cnt.sum() / sse.sum(), cnt, sig2,
                                                 NOISE_PRIOR_DF), rtol=1e-6)
     R = residual_sample(Z, np.isfinite(Z), base._Xv, base._Yv) / model.scale_
+    R = R * np.sqrt(30 / 27)  # calibrated.residual_dof: 30 snapshots, rank 2 + offset
     again = fit_residual_covariance(R.astype(np.float32), region, model="exponential",
                                     random_state=0, min_nugget="cell")
     for name in ("sill", "range", "nugget"):
         assert getattr(again, name) == pytest.approx(getattr(model.spatial_cov_, name), rel=1e-6)
 
     cov, Y, s = model.spatial_cov_, base._Yv, model.scale_  # the dense GP in data units
+    cov = ResidualCovariance(model=cov.model, sill=cov.sill * 30 / 27, range=cov.range,
+                             nugget=cov.nugget * 30 / 27)  # a new snapshot's: n / (n - k)
     m0, S0 = empirical_moments(model._Xv)
     g = region.grid_index.astype(float)
     K = Y.T @ S0 @ Y + np.outer(s, s) * cov.sill * cov.correlation(cdist(g, g))
@@ -229,3 +233,42 @@ def test_residual_scale_saves_refits_and_rejects_bad_values(tmp_path):
     for bad in ("data", 2):
         with pytest.raises(ModelError, match="scale must be True, False or 'residual'"):
             GLRM(rank=2, scale=bad).fit(noisy)
+
+
+def test_a_new_snapshot_errs_as_much_as_the_model_says():
+    """A planted rank-10 field plus unit white noise, 25 training snapshots: a cell's 11
+    parameters (factors and offset) absorb 11/25 of its training residuals' variance and err
+    at a new time. ``spatial_cov_`` estimates the noise itself (residual_dof; the training
+    residuals' variogram gives 14/25 of it), and a new snapshot's residual (its latent row
+    fitted on every cell) has ``n / (n - k)`` times that variance (prediction_factor), which is
+    what the fold-in, the plans and the intervals use (residual_factor, noise_variance)."""
+    from lrm_cvx.glrm.calibrated import (
+        noise_variance,
+        prediction_factor,
+        residual_dof,
+        residual_factor,
+    )
+
+    rng = np.random.default_rng(0)
+    ny, nx, k, T, new = 30, 40, 10, 25, 40
+    L = ny * nx
+    Y, X = rng.normal(size=(k, L)), rng.normal(size=(k, T + new))
+    D = X.T @ Y + rng.normal(size=L) + rng.normal(size=(T + new, L))
+    data = xr.DataArray(D.reshape(-1, ny, nx), dims=("time", "lat", "lon"),
+                        coords={"time": np.arange(T + new), "lat": np.arange(ny) * 1.0,
+                                "lon": np.arange(nx) * 1.0})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=k, offset=True, spatial="exponential", random_state=0,
+                     progress=False).fit(data.isel(time=slice(0, T)))
+    assert residual_dof(model) == pytest.approx(25 / 14)
+    assert prediction_factor(model) == pytest.approx(25 / 14)
+    assert model.spatial_cov_.total_variance == pytest.approx(1.0, rel=0.12)
+    Z = D[T:] - model.offset_
+    latent = np.linalg.lstsq(model._Yv.T, Z.T, rcond=None)[0]
+    oos = float(np.var(Z - (model._Yv.T @ latent).T))
+    said = model.spatial_cov_.total_variance * residual_factor(model)
+    assert oos == pytest.approx(said, rel=0.12)
+    assert oos > 1.3 * model.spatial_cov_.total_variance  # what the factor is for
+    assert noise_variance(model) == pytest.approx(model.noise_std_ ** 2 * 25 / 14)
+    assert model.noise_std_ ** 2 == pytest.approx(1.0, rel=0.05)  # (its own dof correction)

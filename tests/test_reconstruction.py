@@ -12,6 +12,7 @@ from lrm_cvx import Region
 from lrm_cvx.errors import ModelError, PlanningError
 from lrm_cvx.evaluation import evaluate
 from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel, empirical_moments
 from lrm_cvx.glrm.predictive import NOISE_PRIOR_DF, shrink_noise
 from lrm_cvx.information import (
@@ -84,7 +85,8 @@ def test_offset_scale_are_observed_column_moments_and_fold_in_matches(data):
     ref = m.scale_ * (Y.T @ x) + m.offset_
     got = cells_of(m, ds["prediction"])
     np.testing.assert_allclose(got, ref, rtol=1e-8, atol=1e-8)
-    cov = m.noise_std_ ** 2 * np.linalg.inv(Y[:, cells] @ Y[:, cells].T)
+    s2 = m.noise_std_ ** 2 * prediction_factor(m)  # a new snapshot's noise
+    cov = s2 * np.linalg.inv(Y[:, cells] @ Y[:, cells].T)
     std_ref = m.scale_ * np.sqrt(np.einsum("ai,ab,bi->i", Y, cov, Y))
     np.testing.assert_allclose(cells_of(m, ds["std"]), std_ref, rtol=1e-6)
 
@@ -190,7 +192,8 @@ def test_empirical_prior_fold_in_equals_gaussian_posterior(data):
     cells, vals = cells[:2], vals[:2]
     Y = m._Yv
     ds = m.complete((cells, vals), prior="empirical")
-    mean, std = gaussian_conditional(Y.T @ m0, Y.T @ S0 @ Y, cells, vals, m.noise_std_ ** 2)
+    mean, std = gaussian_conditional(Y.T @ m0, Y.T @ S0 @ Y, cells, vals,
+                                     m.noise_std_ ** 2 * prediction_factor(m))  # a new snapshot's
     np.testing.assert_allclose(cells_of(m, ds["prediction"]), mean, rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(cells_of(m, ds["std"]), std, rtol=1e-6, atol=1e-9)
     with pytest.raises(ModelError):  # without a prior two cells cannot fix a rank-3 x
@@ -219,6 +222,9 @@ def test_spatial_complete_equals_gp_conditional(data):
     m = fit(data, offset=True, spatial="exponential")
     cov = m.spatial_cov_
     assert isinstance(cov, ResidualCovariance) and cov.range > 0
+    f = prediction_factor(m)  # a new snapshot's residual
+    cov = ResidualCovariance(cov.model, sill=cov.sill * f, range=cov.range,
+                             nugget=cov.nugget * f)
     cells, vals = snapshot_obs(m, n=12)
     Y = m._Yv
     m0, S0 = empirical_moments(m._Xv)

@@ -11,6 +11,7 @@ import xarray as xr
 
 from lrm_cvx import GLRM
 from lrm_cvx.errors import DataError, ModelError
+from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.glrm.selection import _rule, format_selection, select_temporal
 from lrm_cvx.io.samples import synthetic_dynamic_field
 
@@ -230,7 +231,7 @@ def test_residual_inflation_is_a_candidate_applied_and_saved(persistent_field, t
     apply_selection(model, forced)
     assert model.residual_inflation_ == 8.0
     obs = ObservationModel.from_model(model)
-    assert np.isclose(obs.noise_var, 8.0 * model.noise_std_ ** 2)
+    assert np.isclose(obs.noise_var, 8.0 * model.noise_std_ ** 2 * prediction_factor(model))
     assert "x8" in format_selection(forced) and "N times the fitted" in format_selection(forced)
     model.save(tmp_path / "m.nc")
     loaded = GLRM.load(tmp_path / "m.nc")

@@ -621,7 +621,11 @@ class GLRM:
 
     def _completion_dataset(self, pred, std, x, n_obs, ridge, single, lead) -> xr.Dataset:
         comp = np.arange(x.shape[-1])
-        attrs = {"ridge": ridge, "noise_std": self.noise_std_,
+        from .calibrated import residual_factor
+
+        # the noise of a new snapshot's measurement (noise_std_ times its factors), fit units
+        attrs = {"ridge": ridge, "noise_std": float(self.noise_std_
+                                                    * np.sqrt(residual_factor(self))),
                  "std_kind": "standard error of the predicted mean (excludes noise_std)"}
         if single:
             lead_dims: tuple = ()

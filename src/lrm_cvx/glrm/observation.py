@@ -116,7 +116,7 @@ class ObservationModel:
         from .calibrated import residual_factor
 
         rho = residual_factor(model)
-        if rho != 1.0:  # validated (selection, calibration): the residual and noise variances
+        if rho != 1.0:  # a new snapshot's, validated (selection, calibration): the variances
             sigma2 *= rho
             nv = None if nv is None else np.asarray(nv, dtype=np.float64) * rho
             if cov is not None:

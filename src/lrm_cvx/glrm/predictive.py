@@ -15,12 +15,21 @@ All opt-in; the paper's model is the default and untouched:
 * ``noise="per-cell"``: ``noise_var_`` (fit units), each cell's training residual variance
   shrunk towards the global one (:func:`shrink_noise`, ``NOISE_PRIOR_DF``
   pseudo-observations), inflated by the same degrees-of-freedom factor as ``noise_std_``.
-* ``spatial``: a stationary covariance of the training residuals (``spatial_cov_``), for the
-  low-rank trend + GP residual prediction (universal kriging with a Bayesian trend prior). Its
-  nugget (the noise of a new measurement) is bounded below by the fit's sub-cell variation
+* ``spatial``: a stationary covariance of the residuals (``spatial_cov_``), for the low-rank
+  trend + GP residual prediction (universal kriging with a Bayesian trend prior), fitted to the
+  training residuals scaled by the degrees-of-freedom factor of ``noise_std_``
+  (:func:`~lrm_cvx.glrm.calibrated.residual_dof`): it estimates the residual's covariance,
+  not the smaller one of residuals the fit has already absorbed part of. Its nugget (the
+  noise of a new measurement) is bounded below by the fit's sub-cell variation
   (``min_nugget="cell"`` of :func:`~lrm_cvx.spatial.fit_residual_covariance`), so it never
   collapses to 0 on smooth fields.
 * ``prior="empirical"`` at fold-in: ``x ~ N(mean(X), cov(X))`` over the training times.
+
+At a new snapshot the residual and noise variances are those above times
+:func:`~lrm_cvx.glrm.calibrated.prediction_factor`, ``n / (n - k)``: each cell's ``k`` fitted
+parameters (its factors and offset, from its ``n`` training snapshots) err, and that error adds
+to the new residual, as in a least-squares prediction interval (applied with the validated
+factors, :func:`~lrm_cvx.glrm.calibrated.residual_factor`).
 
 The fold-in itself (every option above) is :mod:`.posterior`; this module fits the options and
 saves them with the model.
@@ -34,6 +43,7 @@ import numpy as np
 import xarray as xr
 
 from ..errors import ModelError
+from .calibrated import residual_dof
 
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
            "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
@@ -169,6 +179,8 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
     model.noise_var_ = None
     model.residual_inflation_ = 1.0
     model.spatial_cov_ = model.kernel_selection_ = None
+    if sample is not None:  # the residuals' variance, not the fit's leftovers (residual_dof)
+        sample = (sample * np.sqrt(residual_dof(model))).astype(sample.dtype)
     if moments is not None:
         sse, cnt = moments
         total = float(sse.sum())
@@ -313,6 +325,7 @@ def residual_covariance(model: Any, V: np.ndarray, family: str, *, max_pairs: in
     M = ~np.isnan(D)
     D = standardize(D, M, getattr(model, "offset_", None), getattr(model, "scale_", None))
     R = residual_sample(D, M, model._Xv[:, rows], model._Yv, max_times=rows.size)
+    R *= np.float32(np.sqrt(residual_dof(model)))
     return fit_residual_covariance(R, model.region_, model=family, random_state=0,
                                    min_nugget="cell", max_pairs=max_pairs,
                                    anisotropy=float(getattr(model, "anisotropy", 1.0)))
