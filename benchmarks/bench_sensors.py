@@ -5,6 +5,9 @@ cell a budget-200 plan may visit (one KD-tree query), the greedy with the point 
 a disc footprint and a towed sensor, and the fold-in of the plan's averaged observations.
 Prints seconds, stops, rows and information; peak RSS at the end.
 
+``--certificate``: the certificate of a disc plan (budget 200) at that scale: seconds, the
+candidates whose footprint rows it builds, and the peak RSS before and after it.
+
 ``--quality``: what the sensors buy on the bundled SST record (5 degree cells, fitted on the
 first 40 monthly snapshots, rank 5, the empirical prior): one plan per sensor from (10, 210),
 then each of the last 10 snapshots is observed through it (``plan.observe``) and folded in;
@@ -12,7 +15,7 @@ the mean squared error of the map over the observed cells, with the plain model 
 cell errors) and with the GP residual (``spatial="exponential"``: the averages' covariance
 ``a^T K b``).
 
-    flock /tmp/bench.lock python benchmarks/bench_sensors.py [--small] [--quality]
+    flock /tmp/bench.lock python benchmarks/bench_sensors.py [--small] [--quality] [--certificate]
 """
 
 from __future__ import annotations
@@ -72,11 +75,34 @@ def quality() -> None:
                       f"mse {np.mean(err):.4f}")
 
 
+def _peak_gib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def certificate(Y: np.ndarray, region: Region, start: int, width: float) -> None:
+    """The footprint plan's certificate (docs/certificate.md §11): time, candidates, memory."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plan = plan_greedy(Y, region, start, 200.0, ridge=RIDGE, sensor=f"disc:{width}km",
+                           progress=False)
+    before = _peak_gib()
+    t = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cert = plan.certify()
+    print(f"certificate of the disc plan (budget 200, {plan.stops.size} stops): "
+          f"{time.perf_counter() - t:.1f} s, {cert.n_candidates} candidates, bound "
+          f"{cert.bound:.3f}, information {cert.information:.3f}; peak RSS {before:.2f} GiB "
+          f"before it, {_peak_gib():.2f} GiB after")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--small", action="store_true", help="a 300 x 280 grid")
     ap.add_argument("--quality", action="store_true",
                     help="only the reconstruction error on the bundled SST record")
+    ap.add_argument("--certificate", action="store_true",
+                    help="only the certificate of a disc plan at budget 200")
     args = ap.parse_args()
     if args.quality:
         quality()
@@ -87,6 +113,9 @@ def main() -> None:
     width = 3.0 * dlat  # a disc about three cells wide
     print(f"grid {shape}, {region.n_cells} valid cells, rank {Y.shape[0]}, cell ~{dlat:.2f} km, "
           f"disc {width:.2f} km wide")
+    if args.certificate:
+        certificate(Y, region, start, width)
+        return
     pool = budget_pool(region, start, 200.0)
     t = time.perf_counter()
     A = footprint_matrix(region, f"disc:{width}km", pool)
@@ -108,7 +137,7 @@ def main() -> None:
     post = post.update_rows(rows, values)
     print(f"fold-in of the last plan's {rows.shape[0]} averaged observations: "
           f"{time.perf_counter() - t:.2f} s (mean finite: {bool(np.isfinite(post.mean).all())})")
-    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
+    print(f"peak RSS {_peak_gib():.2f} GiB")
 
 
 if __name__ == "__main__":

@@ -683,3 +683,35 @@ def test_greedy_with_a_footprint_equals_a_naive_greedy(region, Y, spec, criterio
     plan = plan_greedy(Y, region, start, budget, criterion=criterion, ridge=ridge,
                        sensor=sensor, progress=False)
     assert plan.stops.tolist() == P
+
+
+def test_a_route_certificate_builds_the_footprint_rows_of_its_candidates_only(region, Y,
+                                                                              monkeypatch):
+    """A route's certificate builds the footprint rows of the cells a route within the budget
+    may visit, not of the whole region, and bounds as the point certificate of every cell's
+    footprint row written out by hand."""
+    import lrm_cvx.planning.sensors as sensors_module
+    from lrm_cvx.planning import plan_bound
+
+    spec = "disc:25km"
+    sensor = Sensor.of(spec)
+    rows = np.array([naive_footprint(region, sensor, c) for c in range(region.n_cells)])
+    U = np.column_stack([Y @ a / np.sqrt(var_of(a, np.ones(region.n_cells), False))
+                         for a in rows])
+    asked = []
+    real = sensors_module.footprint_matrix
+
+    def spy(region_, sensor_, cells=None, **kw):
+        asked.append(region_.n_cells if cells is None else np.size(cells))
+        return real(region_, sensor_, cells, **kw)
+
+    monkeypatch.setattr(sensors_module, "footprint_matrix", spy)
+    plan = plan_greedy(Y, region, 10, 4.0, sensor=spec, ridge=1e-3, progress=False)
+    asked.clear()
+    cert = plan.certify(tol=1e-5)
+    ref = plan_bound(U, region, 10, 4.0, ridge=1e-3, tol=1e-5)  # a point sensor on U
+    assert cert.bound == pytest.approx(ref.bound, abs=1e-4)
+    assert cert.n_candidates == ref.n_candidates < region.n_cells
+    assert asked and max(asked) < region.n_cells  # only the cells a plan may read
+    assert max(asked) >= cert.n_candidates
+    assert cert.information == pytest.approx(plan.information, rel=1e-10)

@@ -320,9 +320,9 @@ def plan_bound(
                             "observation depends on the leg, not on the stop alone, so the "
                             "relaxation over cells does not bound it")
     spec = path_spec(region, plan, start, budget, request, kind, n_sensors)
-    if sensor.has_footprint:  # each cell's footprint row replaces its own (docs §11)
-        Y = footprint_factors(Y, region, sensor)
     fam = family(spec, region, k)
+    if sensor.has_footprint:  # each cell's footprint row replaces its own (docs §11)
+        Y = _footprint_columns(Y, region, sensor, fam, plan, path_aware)
     cand, n_max, init = fam.cand, fam.n_max, fam.init
     # a fleet's certificate reports the total budget, as Plan.budget does
     budget0 = float(sum(spec.budgets)) if spec.budgets else float(spec.n_sensors)
@@ -394,6 +394,25 @@ def plan_bound(
         greedy_information=greedy_info, refined_information=refined_info,
         refine_moves=n_moves, path_bound=path_value, path=spec.summary(),
     )
+
+
+def _footprint_columns(Y: np.ndarray, region: Any, sensor: Any, fam: Any, plan: Any,
+                       path_aware: Any) -> np.ndarray:
+    """``Y`` with the whitened footprint row (:func:`~lrm_cvx.planning.sensors.
+    footprint_factors`) in place of the column of every cell the certificate reads: the
+    family's candidates and initial cells and the plan's stops (every cell for a path-aware
+    bound, which walks the grid). The other columns are zero and never read, so the
+    footprint matrix grows with the cells a plan may visit, not with the region."""
+    if path_aware:
+        return footprint_factors(Y, region, sensor)
+    parts = [fam.cand, fam.init]
+    if plan is not None:
+        parts.append(np.asarray(plan.cells, dtype=np.int64))
+    cells = np.unique(np.concatenate(parts).astype(np.int64))
+    U = np.zeros_like(Y, dtype=np.float64)
+    if cells.size:
+        U[:, cells] = footprint_factors(Y, region, sensor, cells=cells)
+    return U
 
 
 def _path_aware(Y: np.ndarray, region: Any, start: int, budget: float, ridge: float,

@@ -282,19 +282,22 @@ def footprint_matrix(region: Region, sensor: Any, cells: Any = None, *, lat: Any
     return A
 
 
-def footprint_factors(Y: Any, region: Region, sensor: Any, noise_var: Any = None
-                      ) -> np.ndarray:
-    """Each cell's whitened footprint row ``(k, L)``: column ``c`` is ``Y a_c / sqrt(v_c)``,
-    ``a_c`` the footprint of ``sensor`` centred on cell ``c`` (:func:`footprint_matrix`) and
-    ``v_c`` its noise variance from cell errors ``noise_var`` (default 1) and the sensor's
-    ``errors`` (:func:`~lrm_cvx.oracles.whitened_rows`). A footprint plan's Fisher information
-    is ``log det(ridge I + sum_{stops} u u^T)`` of these columns: what the point certificate
-    bounds for ``Y``'s (planning/certificate.py)."""
+def footprint_factors(Y: Any, region: Region, sensor: Any, noise_var: Any = None,
+                      cells: Any = None) -> np.ndarray:
+    """The whitened footprint rows ``(k, n)`` of ``cells`` (default every cell, ``n = L``):
+    column ``i`` is ``Y a_c / sqrt(v_c)`` for ``c = cells[i]``, ``a_c`` the footprint of
+    ``sensor`` centred on cell ``c`` (:func:`footprint_matrix`) and ``v_c`` its noise variance
+    from cell errors ``noise_var`` (default 1) and the sensor's ``errors``
+    (:func:`~lrm_cvx.oracles.whitened_rows`). A footprint plan's Fisher information is ``log
+    det(ridge I + sum_{stops} u u^T)`` of these columns: what the point certificate bounds for
+    ``Y``'s (planning/certificate.py, which asks only for the cells a plan may visit: the
+    footprint matrix holds ``n x footprint`` entries: 18 million for every cell of the
+    paper's 2M-cell grid under a disc three cells wide, 1.1 million for a budget of 200)."""
     sensor = Sensor.of(sensor)
     if not sensor.has_footprint:
         raise PlanningError(f"footprint_factors needs a square or disc sensor, got "
                             f"{sensor.describe()!r}")
-    return whitened_rows(Y, footprint_matrix(region, sensor), noise_var, sensor.errors)
+    return whitened_rows(Y, footprint_matrix(region, sensor, cells), noise_var, sensor.errors)
 
 
 def leg_matrix(route: Any, waypoint: Any, route_robot: Any, n_cells: int) -> sps.csr_matrix:
