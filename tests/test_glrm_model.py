@@ -129,9 +129,14 @@ def test_complete_outputs_and_std_shrinks():
     # matches the fold-in on the same cells
     vals = m.region_.stack(snap)
     obs = np.flatnonzero(np.isfinite(vals))
-    # the noise of a new snapshot: noise_std_^2 n / (n - k) (calibrated.prediction_factor)
-    x, cov = fold_in(m.Y_.values, obs, vals[obs],
-                     noise_std=m.noise_std_ * np.sqrt(prediction_factor(m)))
+    # the noise of a new snapshot: noise_std_^2 n / (n - k) (calibrated.prediction_factor),
+    # n the observed values per observed cell (30 % missing), k the rank (no offset)
+    D = field().values
+    n = np.isfinite(D).sum() / np.isfinite(D).any(axis=0).sum()
+    assert prediction_factor(m) == pytest.approx(n / (n - 2), rel=1e-12)
+    s_new = m.noise_std_ * np.sqrt(n / (n - 2))
+    assert ds.attrs["noise_std"] == pytest.approx(s_new, rel=1e-12)  # what docs/model.md adds
+    x, cov = fold_in(m.Y_.values, obs, vals[obs], noise_std=s_new)
     np.testing.assert_allclose(ds["x"].values, x)
     np.testing.assert_allclose(m.region_.stack(ds["prediction"]), (m.Y_.values.T @ x), rtol=1e-6)
     y = m.Y_.values

@@ -179,8 +179,8 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
     model.noise_var_ = None
     model.residual_inflation_ = 1.0
     model.spatial_cov_ = model.kernel_selection_ = None
-    if sample is not None:  # the residuals' variance, not the fit's leftovers (residual_dof)
-        sample = (sample * np.sqrt(residual_dof(model))).astype(sample.dtype)
+    if sample is not None:
+        sample = _dof_corrected(sample, model)
     if moments is not None:
         sse, cnt = moments
         total = float(sse.sum())
@@ -311,6 +311,12 @@ def residual_sample(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray,
     return R
 
 
+def _dof_corrected(sample: np.ndarray, model: Any) -> np.ndarray:
+    """Training residuals times ``sqrt(residual_dof(model))``, in their dtype: the residuals'
+    variance, not the fit's leftovers, for the variogram of ``spatial_cov_``."""
+    return (sample * np.sqrt(residual_dof(model))).astype(sample.dtype)
+
+
 def residual_covariance(model: Any, V: np.ndarray, family: str, *, max_pairs: int = 200_000
                         ) -> Any:
     """The spatial residual covariance (``family``) of a fitted ``model`` from its training
@@ -324,8 +330,8 @@ def residual_covariance(model: Any, V: np.ndarray, family: str, *, max_pairs: in
     D = V[rows]
     M = ~np.isnan(D)
     D = standardize(D, M, getattr(model, "offset_", None), getattr(model, "scale_", None))
-    R = residual_sample(D, M, model._Xv[:, rows], model._Yv, max_times=rows.size)
-    R *= np.float32(np.sqrt(residual_dof(model)))
+    R = _dof_corrected(residual_sample(D, M, model._Xv[:, rows], model._Yv,
+                                       max_times=rows.size), model)
     return fit_residual_covariance(R, model.region_, model=family, random_state=0,
                                    min_nugget="cell", max_pairs=max_pairs,
                                    anisotropy=float(getattr(model, "anisotropy", 1.0)))
