@@ -5,6 +5,8 @@
     python benchmarks/bench_placement.py --dense         # also the dense L x L reference (6k)
     python benchmarks/bench_placement.py --paper-only    # the 2.1M-cell figure only
     python benchmarks/bench_placement.py --holdout       # accuracy on the 3 hold-out records
+    python benchmarks/bench_placement.py --seeds --data storm_t_land_6hourly storm_slp_6hourly
+                                                         # how often auto picks the test's best
 
 **Accuracy.** On the six real records of ``benchmarks/generalization_data.py`` (none bundled),
 the protocol of ``bench_generalization.py``: ``GLRM(5, offset=True, spatial="auto")``
@@ -124,6 +126,43 @@ def accuracy(names: list[str], ns: tuple[int, ...]) -> list[tuple]:
     return rows
 
 
+def seed_picks(names: list[str], seeds=(0, 1, 2), ns=(15, 30, 60)) -> int:
+    """How often ``criterion="auto"``'s validation picks the candidate with the lowest test
+    MSE (each candidate placed on the full model and training, as ``auto`` would), over the
+    model refitted with ``random_state`` in ``seeds`` (the refits inside the validation use
+    it too); prints one line per case and the count."""
+    from lrm_cvx.glrm import GLRM
+    from lrm_cvx.planning.static_auto import AUTO_CANDIDATES
+    from lrm_cvx.recommended import RECOMMENDED
+
+    hits = total = 0
+    for name in names:
+        da = load(name)
+        train, test = da.isel(time=slice(None, -HOLDOUT)), da.isel(time=slice(-HOLDOUT, None))
+        for seed in seeds:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                model = GLRM(5, random_state=seed, progress=False, offset=True,
+                             spatial=RECOMMENDED["spatial"]).fit(train)
+            values = model.region_.stack(test).astype(np.float64)
+            for n in ns:
+                choice = place_sensors(model, n, training=train).refinement[
+                    "selection"].attrs["choice"]
+                e = {}
+                for lab, (crit, exchange) in AUTO_CANDIDATES.items():
+                    plan = (place_sensors(model.Y_, model.region_, n, prior=model,
+                                          training=train) if crit == "risk" else
+                            place_sensors(model, n, criterion=crit, exchange=exchange))
+                    e[lab] = score(model, values, plan.cells)
+                best = min(e, key=e.get)
+                hits, total = hits + (choice == best), total + 1
+                print(f"{name:26s} seed {seed} n {n:3d}: choice {choice:20s} test's best "
+                      f"{best:20s} " + " ".join(f"{k} {v:.4g}" for k, v in e.items()),
+                      flush=True)
+    print(f"the validation picked the test's best candidate {hits} of {total} times")
+    return hits
+
+
 def speed_6k(dense: bool) -> None:
     from lrm_cvx.glrm import GLRM
     from lrm_cvx.io.samples import synthetic_field
@@ -233,6 +272,9 @@ def main(argv=None) -> int:
     ap.add_argument("--holdout", action="store_true",
                     help="the accuracy table on the hold-out records only "
                          "(generalization_data.HOLDOUT_DATASETS; no speed figures)")
+    ap.add_argument("--seeds", action="store_true",
+                    help="how often the validation picks the test's best candidate over "
+                         "random_state 0/1/2 (the storms by default; no other figures)")
     args = ap.parse_args(argv)
     if args.paper_only:
         paper_scale()
@@ -242,6 +284,11 @@ def main(argv=None) -> int:
     ok = available()
     names = [n for n in (args.data or list(HOLDOUT_DATASETS if args.holdout else DATASETS))
              if ok.get(n, False)]
+    if args.seeds:
+        seed_picks([n for n in (args.data or ["storm_t_land_6hourly", "storm_slp_6hourly"])
+                    if ok.get(n, False)])
+        print(f"total {time.perf_counter() - t0:.0f} s")
+        return 0
     if not args.speed_only:
         accuracy(names, (15,) if args.quick else (15, 30, 60))
     if args.holdout:

@@ -41,13 +41,16 @@ def _fit(da):
 
 
 def _naive(model, train, n):
-    """The rule of the module docstring from scratch: blocks of round(T / 5) (>= 3), two of
-    them; refit on the snapshots before each; place with each candidate; score by hand;
+    """The rule of the module docstring from scratch: blocks of round(T / 10) (>= 3), as many
+    as fit up to four with >= 3 snapshots before the first; refit on the snapshots before each;
+    place with each candidate; score by hand; the guard on the per-window changes;
     ``(windows, per-snapshot MSE per candidate, choice)``."""
     T = train.sizes["time"]
-    h = max(3, round(T / 5))
-    windows = [(T - 2 * h, T - h), (T - h, T)]
+    h = max(3, round(T / 10))
+    W = min(4, (T - 5) // h)  # rank 2 + offset: refits on >= 5 snapshots
+    windows = [(T - j * h, T - (j - 1) * h) for j in range(W, 0, -1)]
     per = {"risk+exchange": [], "gp-variance+exchange": [], "gp-variance": []}
+    window_mse = {lab: [] for lab in per}
     for a, b in windows:
         early = train.isel(time=slice(None, a))
         fit = _fit(early)
@@ -61,15 +64,18 @@ def _naive(model, train, n):
             V = np.full(values.shape, np.nan)
             V[:, S] = values[:, S]
             pred, *_ = fold_in_snapshots(fit.latent_prior("empirical", spatial=True), V)
-            per[lab].extend(np.mean((pred - values) ** 2, axis=1))
+            e = np.mean((pred - values) ** 2, axis=1)
+            per[lab].extend(e)
+            window_mse[lab].append(e.mean())
     per = {lab: np.array(v) for lab, v in per.items()}
-    risk = per["risk+exchange"]
+    window_mse = {lab: np.array(v) for lab, v in window_mse.items()}
+    risk = window_mse["risk+exchange"]
     choice, best = "risk+exchange", risk.mean()
     for lab in ("gp-variance+exchange", "gp-variance"):
-        d = per[lab] - risk
+        d = window_mse[lab] - risk  # one placement draw per window: the window is the unit
         ucb = (d.mean() + sa.AUTO_CONFIDENCE * d.std(ddof=1) / np.sqrt(d.size)) / risk.mean()
-        if ucb < 0 and per[lab].mean() < best:
-            choice, best = lab, per[lab].mean()
+        if ucb < 0 and window_mse[lab].mean() < best:
+            choice, best = lab, window_mse[lab].mean()
     return windows, per, choice
 
 
@@ -85,12 +91,14 @@ def test_the_choice_is_the_naive_rule_and_the_plan_its_criterion(seed, hot, conf
     plan = place_sensors(model, n, training=train)
     sel = plan.refinement["selection"]
     windows, per, choice = _naive(model, train, n)
+    held = np.concatenate([np.arange(a, b) for a, b in windows])
     assert list(zip(sel["window_start"].values, sel["window_stop"].values,
                     strict=True)) == windows
     for lab, e in per.items():
         np.testing.assert_allclose(sel["mse_snapshot"].sel(candidate=lab).values, e,
                                    rtol=1e-8)
-        assert float(sel["score"].sel(candidate=lab)) == pytest.approx(e.mean(), rel=1e-8)
+        assert float(sel["score"].sel(candidate=lab)) == pytest.approx(
+            np.mean([e[(held >= a) & (held < b)].mean() for a, b in windows]), rel=1e-8)
     assert sel.attrs["choice"] == choice and sel.attrs["skipped"] == ""
     if confidence == 0.0:
         assert choice == "gp-variance+exchange"
@@ -106,27 +114,52 @@ def test_the_choice_is_the_naive_rule_and_the_plan_its_criterion(seed, hot, conf
         == plan.cells.tolist()
 
 
-def test_the_guard_keeps_risk_unless_a_candidate_is_surely_better():
-    """Rigged placements through the real validation (refits and fold-in scores): the
-    gp-variance candidates get four well-spread cells, risk one of them only (surely worse)
-    -> the four win; every candidate the same cells -> risk."""
-    model, train = _field(0, T=30)
+def _rigged(model, train):
+    """The real validation (refits and fold-in scores) with rigged placements: the gp-variance
+    candidates get four well-spread cells, risk one of them only; ``(table, cells, V)``."""
     region = model.region_
     V = region.stack(train).astype(np.float64)
     gi = region.grid_index
     spread = np.array([int(np.flatnonzero((gi == c).all(axis=1))[0])
                        for c in ((1, 1), (1, 5), (4, 1), (4, 5))])
-    rigged = sa.select_criterion(model, region, 4, V,
-                                 lambda p, Vtr, crit, ex: spread[:1] if crit == "risk" else spread,
-                                 region.n_cells)
+    table = sa.select_criterion(model, region, 4, V,
+                                lambda p, Vtr, crit, ex: spread[:1] if crit == "risk" else spread,
+                                region.n_cells)
+    return table, spread, V
+
+
+def test_the_guard_keeps_risk_unless_a_candidate_is_surely_better():
+    """Rigged placements through the real validation (refits and fold-in scores): the
+    gp-variance candidates get four well-spread cells, risk one of them only (surely worse)
+    -> the four win; every candidate the same cells -> risk."""
+    model, train = _field(0, T=30)
+    rigged, spread, V = _rigged(model, train)
     assert rigged.attrs["choice"] == "gp-variance+exchange"  # first of the equal two
     assert (rigged["ucb"].values[1:] < 0).all()
+    region = model.region_
     same = sa.select_criterion(model, region, 4, V, lambda *a: spread, region.n_cells)
     assert same.attrs["choice"] == "risk+exchange"
     # the planted hot cell: risk validates best, and surely
     model, train = _field(4, 3.0)
     sel = place_sensors(model, 4, training=train).refinement["selection"]
     assert sel.attrs["choice"] == "risk+exchange" and (sel["ucb"].values[1:] > 0).all()
+
+
+def test_the_guard_counts_windows_not_snapshots():
+    """The bound by hand on ``mse (candidates, windows)``: the paired change per window, its
+    spread over the windows; a candidate that wins one window by far and loses the other is
+    not surely better however many snapshots each window holds; one window never switches."""
+    mse = np.array([[10.0, 10.0, 10.0], [6.0, 11.0, 7.0], [9.0, 9.5, 9.2]])
+    d1, d2 = np.array([-4.0, 1.0, -3.0]), np.array([-1.0, -0.5, -0.8])
+    ref = [(d.mean() + sa.AUTO_CONFIDENCE * d.std(ddof=1) / np.sqrt(3)) / 10.0 for d in (d1, d2)]
+    np.testing.assert_allclose(sa._upper_bounds(mse), [0.0, *ref], rtol=1e-12)
+    assert ref[0] > 0 > ref[1]  # the erratic candidate keeps risk, the steady one does not
+    assert sa._upper_bounds(mse[:, :1]).tolist() == [0.0, np.inf, np.inf]
+    # through the real validation: 8 snapshots leave room for one window (rank 2 + offset refits
+    # on >= 5), so rigged placements that beat risk by far still do not switch
+    one, *_ = _rigged(*_field(0, T=8))
+    assert one.sizes["window"] == 1 and one.attrs["choice"] == "risk+exchange"
+    assert float(one["score"][1]) < float(one["score"][0])
 
 
 def test_a_block_is_never_scored_by_what_saw_it():
@@ -150,9 +183,14 @@ def test_deterministic_and_the_windows_rule():
     np.testing.assert_array_equal(p1.refinement["selection"]["mse"].values,
                                   p2.refinement["selection"]["mse"].values)
     assert sa.validation_windows(6) == [(3, 6)]  # room for one block of 3 only
-    assert sa.validation_windows(14) == [(8, 11), (11, 14)]
-    assert sa.validation_windows(100) == [(60, 80), (80, 100)]
-    assert sa.validation_windows(500) == [(452, 476), (476, 500)]  # blocks capped at 24
+    assert sa.validation_windows(14, min_fit=5) == [(5, 8), (8, 11), (11, 14)]
+    assert sa.validation_windows(14, min_fit=9) == [(11, 14)]
+    with pytest.raises(PlanningError, match="training has 7, it needs at least 8"):
+        sa.validation_windows(7, min_fit=5)
+    assert sa.validation_windows(14) == [(5, 8), (8, 11), (11, 14)]
+    assert sa.validation_windows(55) == [(31, 37), (37, 43), (43, 49), (49, 55)]
+    assert sa.validation_windows(100) == [(60, 70), (70, 80), (80, 90), (90, 100)]
+    assert sa.validation_windows(500) == [(452, 464), (464, 476), (476, 488), (488, 500)]
 
 
 def test_skipped_above_the_cell_limit_and_without_a_spatial_residual(monkeypatch):

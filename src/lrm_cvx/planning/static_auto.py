@@ -7,13 +7,13 @@ storm over land the total posterior variance (``"gp-variance"``) does and the ri
 So :func:`select_criterion` answers it on the user's own training snapshots, as
 ``GLRM(temporal="auto")`` does for the temporal model (``glrm/selection.py``):
 
-* **Rolling origin.** The last ``h`` training snapshots are held out (a fifth of them, between
-  :data:`AUTO_MIN_BLOCK` and :data:`AUTO_MAX_BLOCK`); with room for it (at least
-  :data:`AUTO_MIN_FIT` snapshots before both) a second window of ``h`` snapshots just before
-  it too. For each window the model is refitted on the snapshots *before* it (same class and
-  parameters, ``type(model)(**get_params())``, memoryless, uncalibrated, on the model's
-  region), and every candidate places ``n`` sensors from that refit and those snapshots only.
-  No candidate ever sees the snapshots it is scored on, nor anything after the training.
+* **Rolling origin.** Up to :data:`AUTO_WINDOWS` forward windows of ``h`` snapshots each (a
+  tenth of the training, between :data:`AUTO_MIN_BLOCK` and :data:`AUTO_MAX_BLOCK`), the last
+  ones of the training, each with at least :data:`AUTO_MIN_FIT` snapshots before it. For each
+  window the model is refitted on the snapshots *before* it (same class and parameters,
+  ``type(model)(**get_params())``, memoryless, uncalibrated, on the model's region), and every
+  candidate places ``n`` sensors from that refit and those snapshots only. No candidate ever
+  sees the snapshots it is scored on, nor anything after the training.
 * **Candidates** (:data:`AUTO_CANDIDATES`): ``"risk"`` with the recommended exchange rule,
   ``"gp-variance"`` + exchange and the ``"gp-variance"`` greedy (the last two need the
   model's spatial residual).
@@ -23,14 +23,19 @@ So :func:`select_criterion` answers it on the user's own training snapshots, as
   windows; data units^2): the predictor ``bench_placement.py`` scores with.
 * **Rule, with a guard.** ``"risk"`` (the recommended criterion) stays unless another
   candidate is surely better: the one-sided upper confidence bound (:data:`AUTO_CONFIDENCE`
-  standard errors) of its per-snapshot MSE change against risk, paired over the held-out
-  snapshots, is below 0; among those, the lowest score wins. The criterion is then run on the
-  full model and training.
+  standard errors) of its MSE change against risk is below 0; among those, the lowest score
+  wins. The criterion is then run on the full model and training. **The unit of the guard is
+  the window**, not the snapshot: a placement is fixed within a window, so the snapshots of one
+  window share one draw of each candidate's placement, and their spread says nothing about how
+  much the placement itself varies with the training. The change is paired per window (the
+  window's mean MSE minus risk's), and its standard error is the spread of those changes over
+  the windows (session 19; with snapshots as the unit, two windows picked the test's best
+  candidate 8 times in 18 on the storms). With one window there is no such spread: risk stays.
 
 Above :data:`AUTO_MAX_CELLS` candidate cells (the region where the recommended exchange is
 skipped too), or with one candidate only (no spatial residual), no validation runs: the choice
 is ``"risk"`` (``selection.attrs["skipped"]`` says why). The cost is the time of one refit and
-three placements per window (two windows: under 10 s for 60 sensors on ~6k cells).
+three placements per window (four windows: under 10 s for 60 sensors on ~6k cells).
 
 The result is an ``xarray.Dataset`` (``plan.refinement["selection"]``): ``mse`` per candidate
 and window, ``mse_snapshot`` per held-out snapshot, ``score`` (mean) and ``ucb`` (the guard's
@@ -61,33 +66,33 @@ AUTO_CANDIDATES: dict[str, tuple[str, Any]] = {
 when ``n`` is at least the number of training snapshots). The first one wins ties."""
 AUTO_MIN_BLOCK: int = 3
 """Fewest snapshots in a held-out block."""
-AUTO_MAX_BLOCK: int = 24
-"""Most snapshots in a held-out block (a fifth of the training otherwise)."""
+AUTO_MAX_BLOCK: int = 12
+"""Most snapshots in a held-out block (a tenth of the training otherwise)."""
 AUTO_MIN_FIT: int = 3
 """Fewest snapshots the model is refitted on before a block."""
-AUTO_WINDOWS: int = 2
-"""Forward windows when the training has room for them (else one)."""
+AUTO_WINDOWS: int = 4
+"""Forward windows when the training has room for them (else as many as it has room for)."""
 AUTO_CONFIDENCE: float = 1.645
 """Standard errors of the guard: a candidate replaces ``"risk"`` only when the one-sided upper
-bound of its MSE change against risk (paired over the held-out snapshots) is below 0 (the
-constant of ``select_temporal``'s guard)."""
+bound of its MSE change against risk (paired per window, its spread over the windows) is below
+0 (the constant of ``select_temporal``'s guard)."""
 AUTO_MAX_CELLS: int = 20_000
 """Above this many candidate cells the default is ``"risk"`` without validation (the refits and
 kriged scores grow with the cells; the recommended exchange stops here too)."""
 
 
-def validation_windows(n_snapshots: int) -> list[tuple[int, int]]:
+def validation_windows(n_snapshots: int, min_fit: int = AUTO_MIN_FIT) -> list[tuple[int, int]]:
     """``[(start, stop), ...]`` held-out blocks of the training snapshots (oldest first), each
-    with at least :data:`AUTO_MIN_FIT` snapshots before it; PlanningError when there is no
-    room for one."""
-    T = int(n_snapshots)
-    h = int(min(AUTO_MAX_BLOCK, max(AUTO_MIN_BLOCK, round(T / 5))))
-    if T < h + AUTO_MIN_FIT:
+    with at least ``min_fit`` (>= :data:`AUTO_MIN_FIT`) snapshots before it to refit on;
+    PlanningError when there is no room for one."""
+    T, min_fit = int(n_snapshots), max(AUTO_MIN_FIT, int(min_fit))
+    h = int(min(AUTO_MAX_BLOCK, max(AUTO_MIN_BLOCK, round(T / 10))))
+    if T < h + min_fit:
         raise PlanningError(f"criterion='auto' validates on the training snapshots: training "
-                            f"has {T}, it needs at least {AUTO_MIN_BLOCK + AUTO_MIN_FIT} "
-                            f"({AUTO_MIN_FIT} to refit, {AUTO_MIN_BLOCK} held out); pass "
+                            f"has {T}, it needs at least {AUTO_MIN_BLOCK + min_fit} "
+                            f"({min_fit} to refit the model, {AUTO_MIN_BLOCK} held out); pass "
                             "more training snapshots or criterion='risk'")
-    k = max(1, min(AUTO_WINDOWS, (T - AUTO_MIN_FIT) // h))
+    k = max(1, min(AUTO_WINDOWS, (T - min_fit) // h))
     return [(T - (j + 1) * h, T - j * h) for j in reversed(range(k))]
 
 
@@ -135,7 +140,9 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
                    "without validation")
     elif len(labels) == 1:
         skipped = "the model has no spatial residual: risk (the only candidate)"
-    windows = [] if skipped else validation_windows(V.shape[0])
+    # a refit needs residual degrees of freedom: more snapshots than its rank + offset
+    free = int(getattr(model, "rank_", 0) or 0) + int(bool(getattr(model, "offset", False)))
+    windows = [] if skipped else validation_windows(V.shape[0], min_fit=free + 2)
     mse = np.full((len(labels), len(windows)), np.nan)
     held_t = np.concatenate([np.arange(a, b) for a, b in windows]) if windows \
         else np.zeros(0, np.int64)
@@ -151,7 +158,7 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
             per[c, (held_t >= a) & (held_t < b)] = e
             mse[c, w] = float(np.nanmean(e))
     score = mse.mean(axis=1) if windows else np.full(len(labels), np.nan)
-    ucb = _upper_bounds(per)
+    ucb = _upper_bounds(mse)
     best = 0  # risk, unless a candidate is surely better (its upper bound below 0)
     for c in range(1, len(labels)):
         if ucb[c] < 0 and score[c] < score[best]:
@@ -169,25 +176,24 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
                     seconds=time.perf_counter() - t0,
                     confidence=AUTO_CONFIDENCE,
                     rule="rolling origin on the training snapshots; risk unless a candidate's "
-                         "upper confidence bound of its MSE change against risk is below 0; "
+                         "upper confidence bound of its MSE change against risk (paired per "
+                         "window, spread over the windows) is below 0; "
                          "then the lowest mean MSE of the recommended fold-in")
     return ds
 
 
-def _upper_bounds(per: np.ndarray) -> np.ndarray:
-    """``(candidates,)`` one-sided upper confidence bound (:data:`AUTO_CONFIDENCE` standard
-    errors of the paired per-snapshot differences) of each candidate's relative MSE change
-    against the first (risk); 0 for the first, +inf with fewer than two snapshots."""
-    out = np.zeros(per.shape[0])
-    if per.shape[1] < 2:
-        out[1:] = np.inf
-        return out
+def _upper_bounds(mse: np.ndarray) -> np.ndarray:
+    """``(candidates,)`` one-sided upper confidence bound of each candidate's relative MSE
+    change against the first (risk), from ``mse (candidates, windows)``: the change is paired
+    per window, its standard error the spread over the windows (:data:`AUTO_CONFIDENCE` of
+    them); 0 for the first, +inf with fewer than two windows."""
+    out = np.zeros(mse.shape[0])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        D = per[1:] - per[0]
+        D = mse[1:] - mse[0]
         n = np.sum(np.isfinite(D), axis=1)
         se = np.nanstd(D, axis=1, ddof=1) / np.sqrt(np.maximum(n, 1))
-        ub = (np.nanmean(D, axis=1) + AUTO_CONFIDENCE * se) / np.nanmean(per[0])
+        ub = (np.nanmean(D, axis=1) + AUTO_CONFIDENCE * se) / np.nanmean(mse[0])
     out[1:] = np.where((n >= 2) & np.isfinite(ub), ub, np.inf)
     return out
 
