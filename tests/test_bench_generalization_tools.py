@@ -1,0 +1,61 @@
+"""Tools of the generalization benchmark (benchmarks/): the yearly records' calendar-year
+means and the residual-growth diagnostic, against a by-hand reference and a planted field."""
+
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import bench_generalization as bg  # noqa: E402
+import generalization_data as gd  # noqa: E402
+
+
+def test_yearly_means_keep_complete_years_only():
+    times = pd.date_range("2000-03-01", periods=34, freq="MS")  # Mar 2000 .. Dec 2002
+    rng = np.random.default_rng(0)
+    vals = rng.normal(size=(34, 2, 3))
+    vals[20, 0, 0] = np.nan  # a missing month: the year's mean of the others
+    da = xr.DataArray(vals, dims=("time", "lat", "lon"),
+                      coords=dict(time=times, lat=[0.0, 1.0], lon=[0.0, 1.0, 2.0]))
+    out = gd._yearly_means(da)
+    assert out["time"].dt.year.values.tolist() == [2001, 2002]  # 2000 has 10 months only
+    assert (out["time"].dt.month.values == 7).all() and (out["time"].dt.day.values == 1).all()
+    for j, year in enumerate((2001, 2002)):
+        idx = np.flatnonzero(times.year == year)
+        np.testing.assert_allclose(out.values[j], np.nanmean(vals[idx], axis=0), rtol=1e-12)
+
+
+def test_residual_growth_is_near_one_on_a_stationary_planted_field():
+    """Rank 5 plus white noise, stationary: a new snapshot's residual is what the model
+    predicts (ratio near 1 at every training length); a field whose later snapshots carry
+    a pattern the early ones lack has a ratio far above 1 at the end."""
+    rng = np.random.default_rng(3)
+    T, ny, nx = 36, 14, 16
+    basis = rng.normal(size=(5, ny * nx))
+    noise = 0.5
+    F = rng.normal(size=(T, 5)) @ basis + noise * rng.normal(size=(T, ny * nx))
+    da = xr.DataArray(F.reshape(T, ny, nx), dims=("time", "lat", "lon"),
+                      coords=dict(time=pd.date_range("2000-01-01", periods=T, freq="YS"),
+                                  lat=np.arange(ny) * 1.0, lon=np.arange(nx) * 1.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        table = bg.residual_growth(da)
+    assert table["n"].tolist() == list(range(9, 33, 4))
+    # on 9 snapshots (k = 6) n / (n - k) over-states it (0.66): with every cell observed the
+    # new latent row absorbs part of the loadings' error
+    long = table["n"] >= 13
+    np.testing.assert_allclose(table.loc[long, "oos_over_predicted"], 1.0, atol=0.3)
+    # the noise variance, measured out of sample, is what the model predicts
+    np.testing.assert_allclose(table.loc[long, "out_of_sample"],
+                               noise**2 * table.loc[long, "factor"], rtol=0.3)
+    shifted = da.copy()
+    shifted[-8:] += 3 * noise * rng.normal(size=(ny, nx))  # a new pattern in the last 8
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        grown = bg.residual_growth(shifted)
+    assert grown["oos_over_predicted"].iloc[-1] > 3 * table["oos_over_predicted"].iloc[-1]
