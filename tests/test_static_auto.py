@@ -162,6 +162,19 @@ def test_the_guard_counts_windows_not_snapshots():
     assert float(one["score"][1]) < float(one["score"][0])
 
 
+def test_the_printed_table_has_each_candidate_per_block():
+    model, train = _field(0)
+    sel = place_sensors(model, 4, training=train).refinement["selection"]
+    lines = sa.format_placement_selection(sel).splitlines()
+    assert lines[0].startswith(f"criterion auto: {sel.attrs['choice']} ")
+    assert len(lines) == 1 + sel.sizes["candidate"]
+    for line, lab in zip(lines[1:], sel["candidate"].values, strict=True):
+        per = line[line.index("[") + 1:line.index("]")].split()
+        np.testing.assert_allclose([float(v) for v in per],
+                                   sel["mse"].sel(candidate=lab).values, rtol=1e-3)
+        assert line.split()[0] == lab and ("<- chosen" in line) == (lab == sel.attrs["choice"])
+
+
 def test_a_block_is_never_scored_by_what_saw_it():
     """Poisoning the last block changes its own scores only: the first window's placements,
     refit and scores never read it (no look-ahead)."""

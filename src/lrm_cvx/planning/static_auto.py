@@ -199,16 +199,19 @@ def _upper_bounds(mse: np.ndarray) -> np.ndarray:
 
 
 def format_placement_selection(ds: xr.Dataset) -> str:
-    """The validation table as text (the CLI prints it)."""
+    """The validation table as text (the CLI prints it): per candidate its mean validation MSE,
+    its MSE in each held-out block (the guard's unit) and its upper bound against risk."""
     if ds.attrs.get("skipped"):
         return f"criterion auto: {ds.attrs['choice']} ({ds.attrs['skipped']})"
     blocks = ", ".join(f"{int(a)}-{int(b) - 1}" for a, b in
                        zip(ds["window_start"].values, ds["window_stop"].values, strict=True))
     lines = [f"criterion auto: {ds.attrs['choice']} (held-out training snapshots {blocks}; "
-             "validation MSE of the fold-in)"]
+             "validation MSE of the fold-in: mean [per block])"]
     for lab in ds["candidate"].values:
         mark = "  <- chosen" if lab == ds.attrs["choice"] else ""
         ub = float(ds["ucb"].sel(candidate=lab)) if "ucb" in ds else 0.0
         vs = "" if lab == ds["candidate"].values[0] else f"  (upper bound vs risk {ub:+.1%})"
-        lines.append(f"  {lab:22s} {float(ds['score'].sel(candidate=lab)):.6g}{vs}{mark}")
+        per = " ".join(f"{v:.4g}" for v in np.atleast_1d(ds["mse"].sel(candidate=lab).values))
+        lines.append(f"  {lab:22s} {float(ds['score'].sel(candidate=lab)):.6g} [{per}]"
+                     f"{vs}{mark}")
     return "\n".join(lines)
