@@ -443,9 +443,9 @@ def residual_growth(data, step: int = 4) -> pd.DataFrame:
             V = model.region_.stack(data.isel(time=part)).astype(np.float64)
             pred, *_ = fold_in_snapshots(prior, V)
             errors.append(float(np.nanmean((pred - V) ** 2)))
-        cov = model.spatial_cov_
-        predicted = (cov.sill + cov.nugget) * residual_factor(model)
-        rows.append({"n": n, "factor": residual_factor(model), "in_sample": errors[0],
+        cov, factor = model.spatial_cov_, residual_factor(model)
+        predicted = (cov.sill + cov.nugget) * factor
+        rows.append({"n": n, "factor": factor, "in_sample": errors[0],
                      "predicted": predicted, "out_of_sample": errors[1],
                      "oos_over_predicted": errors[1] / predicted})
     return pd.DataFrame(rows)
@@ -506,6 +506,8 @@ def main() -> None:
     args = ap.parse_args()
     if args.rank is not None:
         RANK_OVERRIDE = args.rank if args.rank == "auto" else int(args.rank)
+    if args.last is not None and args.last < 2:
+        ap.error(f"--last must be at least 2 snapshots, got {args.last}")
     LAST, TRAINING_ONLY = args.last, args.training_only
 
     budgets = (15,) if args.quick else (15, 30, 60)

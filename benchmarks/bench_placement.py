@@ -131,19 +131,14 @@ def seed_picks(names: list[str], seeds=(0, 1, 2), ns=(15, 30, 60)) -> int:
     MSE (each candidate placed on the full model and training, as ``auto`` would), over the
     model refitted with ``random_state`` in ``seeds`` (the refits inside the validation use
     it too); prints one line per case and the count."""
-    from lrm_cvx.glrm import GLRM
     from lrm_cvx.planning.static_auto import AUTO_CANDIDATES
-    from lrm_cvx.recommended import RECOMMENDED
 
     hits = total = 0
     for name in names:
         da = load(name)
         train, test = da.isel(time=slice(None, -HOLDOUT)), da.isel(time=slice(-HOLDOUT, None))
         for seed in seeds:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                model = GLRM(5, random_state=seed, progress=False, offset=True,
-                             spatial=RECOMMENDED["spatial"]).fit(train)
+            model = fit(train, random_state=seed)
             values = model.region_.stack(test).astype(np.float64)
             for n in ns:
                 choice = place_sensors(model, n, training=train).refinement[

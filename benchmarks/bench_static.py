@@ -54,15 +54,15 @@ SWEEPS = 5
 
 
 # ----------------------------------------------------------------------------- scoring
-def fit(train) -> GLRM:
+def fit(train, random_state: int = 0) -> GLRM:
     """lrm-cvx's recommended predictive model on the training snapshots (offset and the
     recommended spatial residual, ``RECOMMENDED["spatial"]``: today the family validated on the
-    training residuals)."""
+    training residuals), rank 5, fitted with ``random_state``."""
     from lrm_cvx.recommended import RECOMMENDED
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return GLRM(5, random_state=0, progress=False, offset=True,
+        return GLRM(5, random_state=random_state, progress=False, offset=True,
                     spatial=RECOMMENDED["spatial"]).fit(train)
 
 

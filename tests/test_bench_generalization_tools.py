@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 import xarray as xr
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -59,3 +60,22 @@ def test_residual_growth_is_near_one_on_a_stationary_planted_field():
         warnings.simplefilter("ignore")
         grown = bg.residual_growth(shifted)
     assert grown["oos_over_predicted"].iloc[-1] > 3 * table["oos_over_predicted"].iloc[-1]
+
+
+def test_load_record_drops_the_test_block_then_keeps_the_last(monkeypatch):
+    times = pd.date_range("2000-01-01", periods=30, freq="MS")
+    da = xr.DataArray(np.arange(30.0)[:, None, None] * np.ones((1, 2, 2)),
+                      dims=("time", "lat", "lon"), coords=dict(time=times, lat=[0.0, 1.0],
+                                                               lon=[0.0, 1.0]))
+    fake = gd.Dataset(lambda: da, "test", "monthly", "none", "none")
+    monkeypatch.setitem(bg.ALL_DATASETS, "fake", fake)
+    assert bg.load_record("fake").sizes["time"] == 30
+    monkeypatch.setattr(bg, "TRAINING_ONLY", True)
+    assert bg.load_record("fake")[:, 0, 0].values.tolist() == list(range(30 - bg.N_TEST))
+    monkeypatch.setattr(bg, "LAST", 5)
+    assert bg.load_record("fake")[:, 0, 0].values.tolist() == list(range(17, 22))
+    monkeypatch.setattr(bg, "TRAINING_ONLY", False)
+    assert bg.load_record("fake")[:, 0, 0].values.tolist() == list(range(25, 30))
+    monkeypatch.setattr(sys, "argv", ["bench_generalization.py", "--last", "0"])
+    with pytest.raises(SystemExit):
+        bg.main()

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import ModelError
 
 __all__ = ["Calibration", "variance_scale", "noise_variance", "residual_factor", "residual_dof",
-           "prediction_factor", "predictive_std",
+           "prediction_factor", "predictive_std", "parameters_per_cell",
            "interval_coverage", "conformal_quantile", "check_level", "gaussian_multiplier",
            "AdaptiveConformal", "SCORE_GRID"]
 
@@ -215,7 +215,7 @@ def variance_scale(model: Any, temporal: bool = False) -> float:
     return 1.0 if cal is None else cal.variance_scale(temporal)
 
 
-def _parameters_per_cell(model: Any) -> tuple[float, int] | None:
+def parameters_per_cell(model: Any) -> tuple[float, int] | None:
     """``(n, k)`` of a fitted model: ``n`` the mean number of observed training snapshots per
     observed cell, ``k`` the parameters fitted per cell (the rank, plus 1 with an offset);
     None when the model does not say (a stand-in without ``n_observed_``)."""
@@ -229,11 +229,11 @@ def _parameters_per_cell(model: Any) -> tuple[float, int] | None:
 
 
 def residual_dof(model: Any) -> float:
-    """``n / (n - k)`` (:func:`_parameters_per_cell`): a cell's training residuals, orthogonal
+    """``n / (n - k)`` (:func:`parameters_per_cell`): a cell's training residuals, orthogonal
     to its ``k`` fitted parameters, hold ``(n - k) / n`` of the residual's variance, so the
     spatial covariance is fitted to them times ``sqrt(n / (n - k))`` (the correction of
     ``noise_std_``). 1 for a model that does not say."""
-    nk = _parameters_per_cell(model)
+    nk = parameters_per_cell(model)
     if nk is None:
         return 1.0
     n, k = nk

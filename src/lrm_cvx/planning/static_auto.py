@@ -140,8 +140,11 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
                    "without validation")
     elif len(labels) == 1:
         skipped = "the model has no spatial residual: risk (the only candidate)"
-    # a refit needs residual degrees of freedom: more snapshots than its rank + offset
-    free = int(getattr(model, "rank_", 0) or 0) + int(bool(getattr(model, "offset", False)))
+    from ..glrm.calibrated import parameters_per_cell
+
+    # a refit needs residual degrees of freedom: more snapshots than its k parameters per cell
+    nk = parameters_per_cell(model)
+    free = 0 if nk is None else nk[1]
     windows = [] if skipped else validation_windows(V.shape[0], min_fit=free + 2)
     mse = np.full((len(labels), len(windows)), np.nan)
     held_t = np.concatenate([np.arange(a, b) for a, b in windows]) if windows \
