@@ -345,7 +345,8 @@ def aci_coverage(data, n_days: int = 3 * N_TEST, size: int = 15,
 
     from lrm_cvx import GLRM
     from lrm_cvx.glrm.calibrated import interval_coverage
-    from lrm_cvx.glrm.calibration import calibrate, sample_sets
+    from lrm_cvx.glrm.calibration import calibrate
+    from lrm_cvx.glrm.designs import sample_sets
     from lrm_cvx.monitor import MonitorState
 
     train, test = data.isel(time=slice(None, -n_days)), data.isel(time=slice(-n_days, None))

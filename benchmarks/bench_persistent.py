@@ -46,7 +46,8 @@ import lrm_cvx
 from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.evaluation import evaluate, summary
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.calibration import calibrate, select_dynamics
+from lrm_cvx.glrm.blending import select_dynamics
+from lrm_cvx.glrm.calibration import calibrate
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
 
@@ -116,7 +117,7 @@ def a_recovery(n_times: int, seeds: tuple = (0, 1, 2)) -> None:
     corrected, no blend), the same without the correction, the model's ``dynamics_`` (with the
     fit's validated blend, a shrinkage for prediction), and least squares on the *true* latent
     series (the finite-sample floor of any estimate from ``n_times`` snapshots)."""
-    from lrm_cvx.glrm.calibration import unblended_dynamics
+    from lrm_cvx.glrm.blending import unblended_dynamics
     from lrm_cvx.glrm.dynamics import estimate_ar1
 
     for seed in seeds:

@@ -78,12 +78,12 @@ def inputs_unchanged():
 @pytest.fixture
 def refits(monkeypatch):
     """A list of ``(overrides, n_times)``, one per fit of a model made by
-    ``lrm_cvx.glrm.calibration.clone_model`` during the test (the calibration's and the
-    temporal / rank validation's refits)."""
-    from lrm_cvx.glrm import calibration
+    ``lrm_cvx.glrm.refits.clone_model`` during the test (the calibration's, the dynamics
+    blend's and the temporal / rank validation's refits; patched where each module reads it)."""
+    from lrm_cvx.glrm import blending, calibration, refits
 
     seen: list[tuple[dict, int]] = []
-    real = calibration.clone_model
+    real = refits.clone_model
 
     def spy(model, **override):
         sub = real(model, **override)
@@ -96,7 +96,8 @@ def refits(monkeypatch):
         sub.fit = recording_fit
         return sub
 
-    monkeypatch.setattr(calibration, "clone_model", spy)
+    for module in (refits, calibration, blending):
+        monkeypatch.setattr(module, "clone_model", spy)
     return seen
 
 

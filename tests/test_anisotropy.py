@@ -137,8 +137,8 @@ def test_estimate_recovers_a_planted_anisotropy(a):
 
 
 def test_spatial_auto_chooses_the_anisotropy_and_refits_keep_it():
-    from lrm_cvx.glrm.calibration import clone_model
     from lrm_cvx.glrm.kernel_selection import select_kernel
+    from lrm_cvx.glrm.refits import clone_model
 
     region, R = _planted_field(3.0, n=20, seed=1)
     cov, table = select_kernel(R, region, seed=0)

@@ -18,8 +18,8 @@ from lrm_cvx.glrm.calibration import (
     fit_scale,
     interval_coverage,
     predictive_std,
-    sample_sets,
 )
+from lrm_cvx.glrm.designs import sample_sets
 
 
 def _planted(T=60, ny=16, nx=20, k=3, noise=0.3, seed=0):
@@ -185,7 +185,7 @@ def test_calibration_scales_complete_std_and_survives_save_load(tmp_path):
 
 
 def test_blend_dynamics_endpoints_and_select_dynamics():
-    from lrm_cvx.glrm.calibration import blend_dynamics, select_dynamics
+    from lrm_cvx.glrm.blending import blend_dynamics, select_dynamics
     from lrm_cvx.glrm.posterior import empirical_moments
     from lrm_cvx.io.samples import synthetic_dynamic_field
     from lrm_cvx.monitor import MonitorState
@@ -205,7 +205,7 @@ def test_blend_dynamics_endpoints_and_select_dynamics():
     np.testing.assert_allclose(a["std"].values, b["std"].values, rtol=1e-6, equal_nan=True)
     with pytest.raises(ModelError, match="alpha"):
         blend_dynamics(dyn, 1.5, S)
-    from lrm_cvx.glrm.calibration import unblended_dynamics
+    from lrm_cvx.glrm.blending import unblended_dynamics
     from lrm_cvx.glrm.dynamics import estimate_ar1
 
     base = unblended_dynamics(model)  # the plain fit, without the fit's own blend
@@ -287,7 +287,7 @@ def test_calibration_attrs_keep_the_adaptive_scale():
 
 
 def test_select_dynamics_keeps_memoryless_without_significant_gain():
-    from lrm_cvx.glrm.calibration import select_dynamics
+    from lrm_cvx.glrm.blending import select_dynamics
     from lrm_cvx.io.samples import synthetic_dynamic_field
 
     data = synthetic_dynamic_field(40, (8, 10), rank=2, missing=0.1, noise=0.05, seed=3)
@@ -416,3 +416,16 @@ def test_default_folds_shrink_on_a_short_record():
     np.testing.assert_equal(cal.to_attrs(), ref.to_attrs())
     with pytest.raises(ModelError, match="n_blocks must be in"):
         calibrate(model, data, n_blocks=8)
+
+
+def test_moved_names_still_import_from_calibration():
+    """The sample designs, refits and dynamics blends moved to their own modules; the old
+    import location keeps serving the same objects."""
+    from lrm_cvx.glrm import blending, calibration, designs, refits
+
+    for mod, names in ((designs, ("sample_sets", "SET_KINDS", "ALL_KINDS")),
+                       (refits, ("clone_model", "training_values")),
+                       (blending, ("blend_dynamics", "unblended_dynamics", "memoryless_cov",
+                                   "select_dynamics"))):
+        for name in names:
+            assert getattr(calibration, name) is getattr(mod, name), name

@@ -417,7 +417,7 @@ def test_error_correction_removes_the_attenuation_of_noisy_columns():
 def test_fitted_model_recovers_planted_dynamics_in_the_planted_basis(seed):
     """A from a fitted model's X_ (not the true latent series), mapped to the planted latent
     coordinates (the fitted basis is a linear transform of the planted one)."""
-    from lrm_cvx.glrm.calibration import unblended_dynamics
+    from lrm_cvx.glrm.blending import unblended_dynamics
 
     da, truth = synthetic_dynamic_field(800, (12, 16), 3, missing=0.3, noise=0.02, seed=seed,
                                         return_truth=True)

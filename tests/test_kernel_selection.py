@@ -62,7 +62,7 @@ def test_auto_picks_the_family_of_the_residual(truth, expect):
 
 def test_kriging_errors_match_a_naive_simple_kriging():
     """The scored MSE is simple kriging of the held-out residuals, solved here densely."""
-    from lrm_cvx.glrm.calibration import sample_sets
+    from lrm_cvx.glrm.designs import sample_sets
     from lrm_cvx.region import Region
 
     data = _field("matern32", 3.0, T=4, n=12, seed=1)
@@ -128,7 +128,7 @@ def test_bad_spatial_names_auto_in_the_error():
 
 
 def test_refits_keep_the_chosen_family():
-    from lrm_cvx.glrm.calibration import clone_model
+    from lrm_cvx.glrm.refits import clone_model
 
     model = _fit(_field("gaussian", 4.0, T=20, n=12), "auto")
     refit = clone_model(model)

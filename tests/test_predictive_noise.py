@@ -215,7 +215,7 @@ def test_residual_scale_makes_the_spatial_residual_heteroscedastic(noise):
 
 
 def test_residual_scale_saves_refits_and_rejects_bad_values(tmp_path):
-    from lrm_cvx.glrm.calibration import clone_model
+    from lrm_cvx.glrm.refits import clone_model
 
     noisy = _edgy_field()
     with warnings.catch_warnings():

@@ -12,7 +12,7 @@ import xarray as xr
 from lrm_cvx import GLRM
 from lrm_cvx.cli import main
 from lrm_cvx.errors import DataError, ModelError
-from lrm_cvx.glrm.calibration import clone_model
+from lrm_cvx.glrm.refits import clone_model
 from lrm_cvx.glrm.selection import REFERENCE_RANK, format_selection, select_temporal
 from lrm_cvx.io.samples import synthetic_dynamic_field
 

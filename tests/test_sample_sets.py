@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.stats import chi2_contingency
 
 from lrm_cvx.errors import DataError, ModelError
-from lrm_cvx.glrm.calibration import _line, _route, sample_sets
+from lrm_cvx.glrm.designs import _line, _route, sample_sets
 from lrm_cvx.region import Region
 
 

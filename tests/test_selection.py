@@ -186,7 +186,7 @@ def test_auto_bad_input(persistent_field):
 
 def test_shared_kriging_equals_each_posteriors_own_map():
     """The candidates' maps from one kriging call equal each posterior's own prediction."""
-    from lrm_cvx.glrm.calibration import blend_dynamics, memoryless_cov
+    from lrm_cvx.glrm.blending import blend_dynamics, memoryless_cov
     from lrm_cvx.glrm.filter import LatentFilter
     from lrm_cvx.glrm.selection import _map_means
 

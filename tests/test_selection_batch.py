@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 
 from lrm_cvx import GLRM
 from lrm_cvx.errors import ModelError
-from lrm_cvx.glrm.calibration import blend_dynamics, memoryless_cov, sample_sets
+from lrm_cvx.glrm.blending import blend_dynamics, memoryless_cov
+from lrm_cvx.glrm.designs import sample_sets
 from lrm_cvx.glrm.dynamics import kind_dynamics
 from lrm_cvx.glrm.filter import LatentFilter, batch_start, batch_step, batch_transitions
 from lrm_cvx.glrm.selection import MAX_SCORED, _window_errors

@@ -159,7 +159,7 @@ def model_coverage(prior: LatentPosterior, values: np.ndarray, subsets: list[np.
     calibration's per-level threshold when it has one) over each test
     snapshot's held-out observed cells (its ``subsets`` entry minus the sampled ``cells``).
     Returns ``(n_test, 2)``, NaN where the snapshot has too few observations."""
-    from .glrm.calibration import interval_coverage
+    from .glrm.calibrated import interval_coverage
 
     cells = check_cells(cells, values.shape[1])
     vals = values[:, cells].astype(np.float64)

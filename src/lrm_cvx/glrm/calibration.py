@@ -41,7 +41,13 @@ from typing import Any
 import numpy as np
 
 from .._validation import as_generator
-from ..errors import DataError, ModelError
+from ..errors import ModelError
+from .blending import (  # noqa: F401  (re-exported: the old import location)
+    blend_dynamics,
+    memoryless_cov,
+    select_dynamics,
+    unblended_dynamics,
+)
 from .calibrated import (  # noqa: F401  (re-exported: the old import location)
     SCORE_GRID,
     Calibration,
@@ -52,6 +58,8 @@ from .calibrated import (  # noqa: F401  (re-exported: the old import location)
     predictive_std,
     variance_scale,
 )
+from .designs import ALL_KINDS, SET_KINDS, sample_sets  # noqa: F401  (re-exported, as below)
+from .refits import clone_model, training_values
 
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
            "blend_dynamics", "select_dynamics", "unblended_dynamics",
@@ -62,8 +70,6 @@ __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_co
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
 Z95 = 1.959963984540054   # two-sided 95%
-SET_KINDS = ("route", "scattered")
-ALL_KINDS = ("route", "scattered", "line")  # line: a transect-like straight run of cells
 
 
 def fit_scale(z: Any) -> float:
@@ -80,154 +86,7 @@ def fit_scale(z: Any) -> float:
     return s
 
 
-# ----------------------------------------------------------------------------- sample sets
-def sample_sets(region: Any, observed: np.ndarray, size: int, kind: str,
-                rng: np.random.Generator) -> np.ndarray:
-    """Cells of one sample set among the ``observed`` cells (bool ``(L,)``): ``"scattered"``
-    (uniformly at random), ``"route"`` (the ``size`` observed cells nearest, on the grid, to
-    a random observed cell: a spatially clustered set like a short route) or ``"line"`` (the
-    observed cells of the grid row or column (random) through a random observed cell, the
-    ``size`` nearest to it: a straight transect). Ties in grid distance are broken at random.
-
-    Sorted cell indices, at most ``size`` (all observed cells when fewer). The work is
-    ``O(size)`` beside one count of ``observed`` (a route searches a growing grid window around
-    its centre, a line reads one grid row or column): the model selection draws hundreds."""
-    if kind not in ALL_KINDS:
-        raise ModelError(f"kind must be one of {ALL_KINDS}, got {kind!r}")
-    observed = np.asarray(observed, dtype=bool)
-    if observed.shape != (region.n_cells,):
-        raise DataError(f"observed must be a bool array of the region's {region.n_cells} "
-                        f"cells, got shape {observed.shape}")
-    n_obs = int(np.count_nonzero(observed))
-    size = int(min(size, n_obs))
-    if size <= 0:
-        return np.zeros(0, dtype=np.int64)
-    if kind == "scattered":
-        return _scattered(observed, n_obs, size, rng)
-    centre = _random_observed(observed, n_obs, rng)
-    if kind == "line":
-        return _line(region, observed, centre, int(rng.integers(2)), size, rng)
-    return _route(region, observed, n_obs, centre, size, rng)
-
-
-def _route(region: Any, observed: np.ndarray, n_obs: int, centre: int, size: int,
-           rng: np.random.Generator) -> np.ndarray:
-    """The ``size`` (<= ``n_obs``, the count of ``observed``) observed cells nearest to cell
-    ``centre`` in squared grid distance, found in a square grid window around it that grows
-    until no cell outside can be nearer than the ``size``-th inside."""
-    lookup = region.cell_lookup  # (ny, nx) cell index or -1
-    ny, nx = lookup.shape
-    r0, c0 = (int(v) for v in region.grid_index[centre])
-    # radius of a window holding about 2 size observed cells at the mean density
-    R = max(1, int(np.ceil(0.7 * np.sqrt(size * ny * nx / n_obs))))
-    while True:
-        r_lo, c_lo = max(0, r0 - R), max(0, c0 - R)
-        win = lookup[r_lo:r0 + R + 1, c_lo:c0 + R + 1]
-        rr, cc = np.nonzero(win >= 0)
-        cells = win[rr, cc]
-        keep = observed[cells]
-        cells, rr, cc = cells[keep], rr[keep] + (r_lo - r0), cc[keep] + (c_lo - c0)
-        whole = win.shape == (ny, nx)
-        if cells.size >= size or whole:
-            m = min(size, cells.size)
-            d = rr * rr + cc * cc
-            dk = int(np.partition(d, m - 1)[m - 1])
-            # a cell outside the window is at least (R + 1)^2 away: the nearest are inside
-            if dk < (R + 1) ** 2 or whole:
-                return _nearest(cells, d, m, rng)
-            R = int(np.ceil(np.sqrt(dk)))  # the next window holds every cell within dk
-        else:
-            R *= 2
-
-
-def _line(region: Any, observed: np.ndarray, centre: int, axis: int, size: int,
-          rng: np.random.Generator) -> np.ndarray:
-    """The observed cells of the grid row (``axis`` 0) or column (1) through cell ``centre``,
-    the ``size`` nearest to it (``O(grid side)``)."""
-    lookup = region.cell_lookup
-    r0, c0 = (int(v) for v in region.grid_index[centre])
-    run = lookup[r0, :] if axis == 0 else lookup[:, c0]
-    pos = np.flatnonzero(run >= 0)
-    pos = pos[observed[run[pos]]]
-    d = np.abs(pos - (c0 if axis == 0 else r0))
-    return _nearest(run[pos], d, min(size, pos.size), rng)
-
-
-def _random_observed(observed: np.ndarray, n_obs: int, rng: np.random.Generator) -> int:
-    """A uniformly random observed cell: the first observed one of uniform draws over all
-    cells (``O(L / n_obs)`` expected), or from the list of observed cells when they are few."""
-    L = observed.size
-    if 16 * n_obs >= L:
-        while True:
-            draw = rng.integers(L, size=32)
-            hit = draw[observed[draw]]
-            if hit.size:
-                return int(hit[0])
-    return int(np.flatnonzero(observed)[rng.integers(n_obs)])
-
-
-def _scattered(observed: np.ndarray, n_obs: int, size: int,
-               rng: np.random.Generator) -> np.ndarray:
-    """``size`` distinct observed cells uniformly at random (sorted): the first distinct
-    observed cells of uniform draws over all cells (sampling without replacement), or a choice
-    from the list of observed cells when they are few or ``size`` is most of them."""
-    L = observed.size
-    if not (16 * n_obs >= L and 4 * size <= n_obs):
-        return np.sort(rng.choice(np.flatnonzero(observed), size=size, replace=False))
-    chosen = np.zeros(0, dtype=np.int64)
-    while chosen.size < size:
-        draw = rng.integers(L, size=int(2 * (size - chosen.size) * L / n_obs) + 8)
-        both = np.concatenate([chosen, draw[observed[draw]]])
-        chosen = both[np.sort(np.unique(both, return_index=True)[1])]  # first occurrences
-    return np.sort(chosen[:size])
-
-
-def _nearest(cells: np.ndarray, d: np.ndarray, size: int,
-             rng: np.random.Generator) -> np.ndarray:
-    """The ``size`` of ``cells`` with the smallest ``d`` (sorted), the cells tied at the
-    ``size``-th distance chosen uniformly at random."""
-    if size <= 0:
-        return np.zeros(0, dtype=np.int64)
-    dk = np.partition(d, size - 1)[size - 1]
-    inner = cells[d < dk]
-    ties = cells[d == dk]
-    ties = rng.choice(ties, size - inner.size, replace=False)
-    return np.sort(np.concatenate([inner, ties])).astype(np.int64, copy=False)
-
-
 # ----------------------------------------------------------------------------- estimation
-def clone_model(model: Any, **override: Any):
-    """An unfitted copy of ``model`` (its class and parameters, ``override`` applied; a
-    refit never calibrates itself: ``calibration`` None unless overridden, and a fitted
-    ``spatial="auto"`` model's refits keep the family and anisotropy it chose,
-    ``kernel_selection_``: the
-    kernel is shared by every candidate a refit compares, and choosing it again per refit
-    would cost four variogram fits each); a fitted ``rank="auto"`` model's refits keep its
-    ``rank_``."""
-    params = model.get_params()
-    if "calibration" in params:
-        params["calibration"] = None
-    if params.get("rank") == "auto" and getattr(model, "rank_", None) is not None:
-        params["rank"] = int(model.rank_)
-    if params.get("spatial") == "auto" and getattr(model, "spatial_cov_", None) is not None:
-        params["spatial"] = model.spatial_cov_.model
-        params["anisotropy"] = float(model.spatial_cov_.anisotropy)
-    params = {**params, "progress": False, **override}
-    return type(model)(**params)
-
-
-def training_values(model: Any, data: Any, dtype: Any = np.float64):
-    """``(region, V)``: the model's region and ``data`` stacked to ``V (T, L)`` of ``dtype``."""
-    import xarray as xr
-
-    if not isinstance(data, xr.DataArray) or data.ndim != 3:
-        raise DataError("data must be a (time, lat, lon) DataArray (the training snapshots)")
-    region = getattr(model, "region_", None)
-    if region is None:
-        raise ModelError("calibration needs a model fitted on a DataArray (with a region)")
-    return region, region.stack(data).astype(dtype, copy=False)
-
-
 def _use_spatial(model: Any, spatial: bool | None) -> bool:
     if spatial is None:
         return getattr(model, "spatial_cov_", None) is not None
@@ -711,157 +570,3 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
                       residual_scale=float(rho), **conformal, **t_conformal)
     model.calibration_ = cal
     return cal
-
-
-# ----------------------------------------------------------------------------- dynamics
-def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
-    """Dynamics shrunk towards the memoryless model with the blend of
-    :mod:`~lrm_cvx.glrm.dynamics` (``A_a = alpha A``, ``Q_a = (1 - alpha^2) S + alpha^2 Q``,
-    ``S`` the memoryless prior covariance). ``alpha = 1`` keeps the estimate, ``alpha = 0`` is
-    the memoryless model exactly (every forecast is the prior ``N(mean, S)``; for ``"ar1"``
-    with ``S = cov(X_)`` that is the empirical prior). Blends compose: ``blend`` records the
-    product with the fit's own validated blend."""
-    from dataclasses import replace
-
-    from .dynamics import blend_moments
-
-    a = float(alpha)
-    if not 0.0 <= a <= 1.0:
-        raise ModelError(f"alpha must be in [0, 1], got {alpha!r}")
-    A, Q = blend_moments(dynamics.A, dynamics.Q, np.asarray(stationary_cov, dtype=np.float64), a)
-    return replace(dynamics, A=A, Q=0.5 * (Q + Q.T),
-                   blend=float(getattr(dynamics, "blend", 1.0)) * a)
-
-
-def unblended_dynamics(model: Any) -> Any:
-    """The model's dynamics re-estimated from ``X_`` without the fit's validated blend
-    (``validation=None``; same kind, shrinkage, error correction and initial belief): the
-    starting point of :func:`select_dynamics`."""
-    from .dynamics import estimate
-
-    dyn = model.dynamics_
-    X = model._Xv
-    xa = model.X_
-    times = xa[xa.dims[1]] if hasattr(xa, "dims") else np.arange(X.shape[1])
-    return estimate(dyn.kind, X, times, shrinkage=dyn.shrinkage,
-                    initial_cov=dyn.initial_cov, validation=None,
-                    error_cov=getattr(dyn, "error_cov", None))
-
-
-def memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
-    from .posterior import empirical_moments
-
-    if dynamics.kind == "ar1":
-        return empirical_moments(model._Xv)[1]
-    return dynamics.stationary_cov()
-
-
-def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.25, 0.5, 0.75,
-                                                                          0.9, 1.0),
-                    n_val: int | None = None, n_folds: int = 2, confidence: float = 1.645,
-                    tolerance: float = 0.01,
-                    sizes: Sequence[int] = (5, 15, 50),
-                    kinds: Sequence[str] = SET_KINDS, apply: bool = True,
-                    seed: Any = 0) -> tuple[float, Any]:
-    """Choose how far to trust the model's dynamics on validation snapshots.
-
-    ``n_folds`` forward-chaining validation windows of ``n_val`` snapshots each (default a
-    fifth of ``data``, at least 3; the last window ends at the last training snapshot, the
-    others precede it): for each window a copy of the model is refitted (with its
-    ``temporal``) on the snapshots before it, its dynamics re-estimated *without* the fit's
-    own blend (:func:`unblended_dynamics`), and for each ``alpha`` the filter with
-    :func:`blend_dynamics` runs through the window, one campaign per sample-set size and kind
-    (the same random cells for every ``alpha``). The candidates are ``alphas``, 0
-    (memoryless) and the blend the fit chose itself (``dynamics_.blend``).
-
-    **Rule (validated, with a guard on harm).** For each ``alpha`` and size the per-day
-    differences ``d_t = mse_alpha(t) - mse_0(t)`` (validation days of every window, averaged
-    over the set kinds) give the relative change ``mean(d) / mean(mse_0)`` and its upper
-    confidence bound ``+ confidence * se(d) / mean(mse_0)`` (one-sided; 1.645: 95 %). A blend
-    is *admissible* when that bound is at most ``tolerance`` at every size (it is then, with
-    95 % confidence, at most ``tolerance`` worse than memoryless anywhere); ``alpha = 0`` (the
-    memoryless model, bound 0) always is. Among the admissible blends the one with the lowest
-    worst validation MSE ratio over the sizes is chosen. Data whose persistence is weak, or
-    does not carry over between periods, keep (nearly) the memoryless model.
-    ``confidence=0, tolerance=inf`` is the plain worst-ratio rule.
-
-    With ``apply`` the model's ``dynamics_`` becomes the *unblended* estimate blended by
-    ``alpha`` (so ``dynamics_.blend == alpha``: this rule replaces the fit's, the two never
-    compose). Returns ``(alpha, table)``: a DataFrame of validation MSE (summed over windows,
-    days and kinds) per alpha and size, with ``table.attrs["ucb"]`` the bounds
-    ``(alpha, size)`` and ``table.attrs["n_days"]``.
-    """
-    import pandas as pd
-
-    dyn = getattr(model, "dynamics_", None)
-    if dyn is None:
-        raise ModelError("select_dynamics needs a model fitted with temporal='ar1' or "
-                         "'seasonal' (it has no dynamics_)")
-    region, V = training_values(model, data)
-    T = V.shape[0]
-    n_val = max(3, T // 5) if n_val is None else int(n_val)
-    if not 2 <= n_val <= T - 3:
-        raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
-    n_folds = int(n_folds)
-    if n_folds < 1:
-        raise ModelError(f"n_folds must be >= 1, got {n_folds}")
-    n_folds = max(1, min(n_folds, (T - 3) // n_val))  # each refit keeps >= 3 snapshots
-    confidence = float(confidence)
-    if not (np.isfinite(confidence) and confidence >= 0):
-        raise ModelError(f"confidence must be a finite number >= 0, got {confidence!r}")
-    tolerance = float(tolerance)
-    if not tolerance >= 0:
-        raise ModelError(f"tolerance must be a number >= 0, got {tolerance!r}")
-    alphas = sorted({0.0, round(float(dyn.blend), 12), *(float(a) for a in alphas)})
-    sizes = [int(s) for s in sizes]
-    rng = as_generator(seed)
-    from .filter import LatentFilter
-
-    day_err: list[np.ndarray] = []  # per window: (n_alpha, n_size, n_val), kinds averaged
-    for f in range(n_folds):
-        end = T - f * n_val
-        lo = end - n_val
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            sub = clone_model(model).fit(data.isel(time=slice(None, lo)), region=region)
-        sub.calibration_ = None
-        sub_dyn = unblended_dynamics(sub)
-        S = memoryless_cov(sub, sub_dyn)
-        Vv = V[lo:end]
-        times = data["time"].values[lo:end]
-        sets = {(size, kind): [sample_sets(region, np.isfinite(Vv[i]), size, kind, rng)
-                               for i in range(n_val)] for size in sizes for kind in kinds}
-        err = np.zeros((len(alphas), len(sizes), n_val))
-        for a_i, alpha in enumerate(alphas):
-            d = blend_dynamics(sub_dyn, alpha, S)
-            for (size, _kind), cell_sets in sets.items():
-                state = LatentFilter.from_model(sub, dynamics=d)
-                for i, t in enumerate(times):
-                    cells = cell_sets[i]
-                    state.assimilate((cells, Vv[i, cells]), time=t)
-                    held = np.isfinite(Vv[i])
-                    held[cells] = False
-                    mean, _ = state.posterior.predict(cells=np.flatnonzero(held))
-                    err[a_i, sizes.index(size), i] += float(np.mean((mean - Vv[i, held]) ** 2))
-        day_err.append(err / len(kinds))
-    E = np.concatenate(day_err[::-1], axis=2)  # (alpha, size, days), in time order
-    base = E[0].mean(axis=-1)  # memoryless mean MSE per size
-    D = E - E[0]
-    n_days = E.shape[2]
-    se = D.std(axis=-1, ddof=1) / np.sqrt(n_days) if n_days > 1 else np.zeros(D.shape[:2])
-    ucb = (D.mean(axis=-1) + confidence * se) / base
-    ratio = E.mean(axis=-1) / base
-    admissible = ucb.max(axis=1) <= tolerance
-    admissible[0] = True  # memoryless
-    worst = np.where(admissible, ratio.max(axis=1), np.inf)
-    best = int(np.argmin(worst))
-    alpha = alphas[best]
-    table = pd.DataFrame(E.sum(axis=-1), index=pd.Index(alphas, name="alpha"),
-                         columns=pd.Index(sizes, name="size"))
-    table.attrs["ucb"] = pd.DataFrame(ucb, index=table.index, columns=table.columns)
-    table.attrs["n_days"] = int(n_days)
-    if apply:
-        base_dyn = unblended_dynamics(model)
-        model.dynamics_ = blend_dynamics(base_dyn, alpha, memoryless_cov(model, base_dyn))
-        model.dynamics_alpha_ = alpha  # read by calibrate's forward-chaining refits
-    return alpha, table

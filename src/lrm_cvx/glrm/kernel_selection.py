@@ -63,7 +63,7 @@ def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence
     per row, size and design (case ``i * n_designs + j``: row ``i``, ``designs[j]``), the same
     cells for every covariance of ``covs``."""
     from .. import spatial as sp
-    from .calibration import sample_sets
+    from .designs import sample_sets
 
     nd = len(designs)
     err = np.full((len(covs), len(sizes), R.shape[0] * nd), np.nan)

@@ -263,7 +263,7 @@ class GLRM:
         """``rank="auto"``: ``(rank, selection)`` from :func:`~.selection.select_temporal`
         with ``ranks`` on a reference fit (rank :data:`~.selection.REFERENCE_RANK`, no
         dynamics or calibration: its region, kernel and refits), before the real fit."""
-        from .calibration import clone_model
+        from .refits import clone_model
         from .selection import AUTO_INFLATIONS, AUTO_RANKS, REFERENCE_RANK, select_temporal
 
         if self.rank != "auto":
@@ -764,7 +764,7 @@ class GLRM:
                     seed: Any = 0) -> pd.Series:
         """Held-out RMSE for each rank: fit a copy of this model on a training split of the
         observed entries and score it on the rest. Returns a Series indexed by rank."""
-        from .calibration import clone_model  # a refit that never calibrates itself
+        from .refits import clone_model  # a refit that never calibrates itself
 
         ranks = check_ranks(ranks)
         if isinstance(data, xr.DataArray) and data.ndim == 3:

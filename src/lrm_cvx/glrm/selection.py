@@ -145,7 +145,7 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
     ``LatentFilter.assimilate``, the observations' GLS terms computed once) and the kriged
     residual maps of all of them come from one kriging call (its weights depend on the cells
     only)."""
-    from .calibration import sample_sets
+    from .designs import sample_sets
     from .filter import batch_start, batch_step, batch_transitions
 
     n = V.shape[0]
@@ -232,8 +232,8 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``n_days``, ``designs``, ``skipped`` (and with ``ranks`` a ``rank`` coordinate and
     ``choice_rank``).
     """
-    from .calibration import clone_model, training_values
     from .dynamics import TEMPORAL, check_times
+    from .refits import clone_model, training_values
 
     # one stacking pass, float32 as region.stack gives it (the scoring promotes the values
     # exactly; the refits read it as a (time, cell) DataArray, not gathered again)
@@ -316,8 +316,8 @@ def _refit_before(model: Any, V: np.ndarray, lo: int, times: np.ndarray, tdim: s
     """``(sub, shared_cov)``: ``model`` refitted (AR(1), no spatial fit, ``rank`` when given)
     on the snapshots ``V[:lo]`` before a window, given the residual covariance shared by every
     refit (fitted here on the first refit's residuals when there is none yet)."""
-    from .calibration import clone_model
     from .predictive import residual_covariance
+    from .refits import clone_model
 
     over = {} if rank is None else {"rank": int(rank)}
     with warnings.catch_warnings():
@@ -338,7 +338,7 @@ def _candidate_models(sub: Any, kinds: Sequence[str], alphas: Sequence[float],
     """``[(kind, alpha, dynamics)]`` of a refit ``sub`` (its snapshots at ``times``):
     memoryless first, then each kind of ``kinds`` blended by each of ``alphas``; a kind the
     history cannot carry is added to ``skipped`` (and not tried again)."""
-    from .calibration import blend_dynamics, memoryless_cov
+    from .blending import blend_dynamics, memoryless_cov
 
     models: list[tuple[str, float, Any]] = [("none", 0.0, None)]
     for kind in kinds:
@@ -404,7 +404,7 @@ def apply_selection(model: Any, selection: xr.Dataset) -> None:
     """Set ``model.dynamics_`` to the chosen candidate, estimated on all of ``model``'s
     snapshots (blended by the chosen ``alpha``; None for memoryless), its
     ``residual_inflation_`` and ``selection_``."""
-    from .calibration import blend_dynamics, memoryless_cov
+    from .blending import blend_dynamics, memoryless_cov
 
     kind = selection.attrs["choice_kind"]
     model.selection_ = selection
