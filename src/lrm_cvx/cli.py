@@ -62,6 +62,8 @@ CERTIFY_LEVELS = ("fast", "tight", "off")
 
 EVALUATION_FILES = ("results.nc", "summary.csv", "metrics.png", "metrics.pdf",
                     "predictions.png", "predictions.pdf")
+BACKTEST_FILES = ("summary_by_origin.csv",)
+"""What ``evaluate --origins N`` (N > 1) writes besides :data:`EVALUATION_FILES`."""
 
 
 # ---------------------------------------------------------------------------- arguments
@@ -480,11 +482,13 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
                     cost: str = "nearest-neighbor", ridge: float = 0.0, fold_ridge: float = 0.0,
                     model_params: dict | None = None, fold_in: dict | None = None,
                     n_jobs: int = 1, inputs: Sequence[str | Path] = (),
-                    overwrite: bool = True, n_robots: int = 1, path: Any = None) -> list[Path]:
+                    overwrite: bool = True, n_robots: int = 1, path: Any = None,
+                    origins: int = 1) -> list[Path]:
     """Fit, evaluate, summarise and draw everything in memory, then write every output in one
     all-or-nothing step (:func:`~lrm_cvx._validation.atomic_outputs`); returns the paths.
     ``path``: the path request of :func:`~lrm_cvx.evaluation.evaluate` (a
-    :class:`~lrm_cvx.planning.request.PathOptions`), ``n_robots`` per start."""
+    :class:`~lrm_cvx.planning.request.PathOptions`), ``n_robots`` per start; ``origins`` > 1:
+    the rolling-origin backtest (the figure of routes shows the last block)."""
     import matplotlib.pyplot as plt
 
     from .evaluation import METHODS, evaluate, summary
@@ -498,6 +502,9 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     if not 0 < n_test < n_time:
         raise UsageError(f"--n-test must be in [1, {n_time - 1}] (the data have {n_time} "
                          f"snapshots), got {n_test}")
+    if (origins + 1) * n_test > n_time:
+        raise UsageError(f"--origins {origins} blocks of --n-test {n_test} need at least "
+                         f"{(origins + 1) * n_test} snapshots, the data have {n_time}")
     methods = tuple(methods or tuple(METHODS))
     model_params = {k: v for k, v in (model_params or {}).items() if v not in (None, False)}
     fold_in = dict(fold_in or {})
@@ -509,29 +516,35 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
                        ridge=ridge, fold_ridge=fold_ridge, certify=certify, seed=seed,
                        n_jobs=n_jobs, progress=progress, model=model,
                        model_params=model_params, fold_in=fold_in,
-                       n_robots=n_robots, path=path)
+                       n_robots=n_robots, path=path, origins=origins)
     table = summary(results)
+    last = results.isel(origin=-1) if "origin" in results.dims else results
     figures = {"metrics": plot_metrics(results)}
     if "greedy" in methods:
         # qualitative figure: the first start cell, three budgets, the first test snapshot
         bvals = results["budget"].values
         chosen = [bvals[i] for i in sorted({0, len(bvals) // 2, len(bvals) - 1})]
-        routes = {float(b): results["greedy_route"].sel(budget=b).isel(start=0).values
+        routes = {float(b): last["greedy_route"].sel(budget=b).isel(start=0).values
                   for b in chosen}
         robots = None
-        if "greedy_route_robot" in results:
-            robots = {float(b): results["greedy_route_robot"].sel(budget=b).isel(start=0).values
+        if "greedy_route_robot" in last:
+            robots = {float(b): last["greedy_route_robot"].sel(budget=b).isel(start=0).values
                       for b in chosen}
         figures["predictions"] = plot_predictions(model, data.isel(time=n_time - n_test), routes,
                                                   robots=robots)
-    targets = [out_dir / "results.nc", out_dir / "summary.csv"]
+    tables = {"summary": table}
+    if "origin" in results.dims:
+        tables["summary_by_origin"] = summary(results, by_origin=True)
+    targets = [out_dir / "results.nc", *(out_dir / f"{name}.csv" for name in tables)]
+    n_data = len(targets)
     targets += [out_dir / f"{name}.{fmt}" for name in figures for fmt in ("png", "pdf")]
     guard_outputs(targets, inputs, overwrite=overwrite)
     try:
         with atomic_outputs(targets, overwrite=overwrite) as tmps:
             results.to_netcdf(tmps[0], engine="netcdf4")
-            table.to_csv(tmps[1], index=False)
-            for tmp, target in zip(tmps[2:], targets[2:], strict=True):
+            for tmp, frame in zip(tmps[1:n_data], tables.values(), strict=True):
+                frame.to_csv(tmp, index=False)
+            for tmp, target in zip(tmps[n_data:], targets[n_data:], strict=True):
                 figures[target.stem].savefig(tmp, format=target.suffix[1:], bbox_inches="tight")
     finally:
         for fig in figures.values():
@@ -550,7 +563,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise UsageError(f"--out {out_dir} is an existing file; give a folder")
     inputs = _input_files(args.data) + [Path(p) for p in mask_files(args)]
-    guard_paths([out_dir / name for name in EVALUATION_FILES], inputs, args)
+    names = EVALUATION_FILES + (BACKTEST_FILES if args.origins > 1 else ())
+    guard_paths([out_dir / name for name in names], inputs, args)
     path = path_options(args, fleet_end=False)
     budgets = parse_floats(args.budgets, None, "--budgets")
     if min(budgets) < 0:
@@ -588,7 +602,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                     progress=not args.quiet, methods=methods, cost=args.cost, ridge=args.ridge,
                     fold_ridge=args.fold_ridge, model_params=params, fold_in=fold_in,
                     n_jobs=args.jobs, inputs=inputs, overwrite=args.overwrite,
-                    n_robots=args.robots, path=path)
+                    n_robots=args.robots, path=path, origins=args.origins)
     return 0
 
 
@@ -820,6 +834,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the protocol's rank (default 5, the paper's), or auto (with "
                         "--temporal auto or none)")
     p.add_argument("--n-test", type=_int_at_least(1), default=8)
+    p.add_argument("--origins", type=_int_at_least(1), default=1,
+                   help="a rolling-origin backtest: the protocol on the last ORIGINS blocks of "
+                        "--n-test snapshots, each block's model fitted (and calibrated) on the "
+                        "snapshots before it; summary.csv pools the blocks, "
+                        "summary_by_origin.csv has a row per block (default 1: the last block)")
     p.add_argument("--budgets", default="5,25,50,100,200")
     p.add_argument("--starts", type=_int_at_least(1), default=10)
     p.add_argument("--random-trials", type=_int_at_least(1), default=70)

@@ -695,6 +695,7 @@ def evaluate(
     n_robots: int = 1,
     path: PathOptions | None = None,
     paper: bool = False,
+    origins: int = 1,
     **options: Any,
 ) -> xr.Dataset:
     """Run the paper's evaluation protocol on ``data`` ``(time, lat, lon)``.
@@ -784,21 +785,95 @@ def evaluate(
     trial)``, ``mse`` and ``n_obs`` ``(method, budget, start, trial, test_time)``, ``bound``
     ``(budget, start)``, ``complete_mse`` ``(test_time)``, the start cells, and the greedy
     routes (``greedy_route``, padded with -1) for the qualitative figures.
+
+    **Rolling origin** (``origins`` > 1, default 1): a backtest of the whole protocol on
+    ``origins`` consecutive test blocks of ``n_test`` snapshots that end at the last snapshot.
+    Block ``b``'s model, with every choice it validates (``temporal="auto"``, ``spatial="auto"``,
+    ``rank="auto"``) and its calibration, is fitted on the snapshots before the block only, so
+    no choice and no interval ever sees the snapshots it is scored on. A given ``model`` lends
+    its parameters only: each block fits a fresh copy (its class and ``get_params()``; the
+    choices it made on its own training are made again). The blocks' Datasets are stacked on
+    a new ``origin`` dimension, with coordinates ``origin_time`` (the block's first test time)
+    and ``n_train``; ``test_time`` is the union of the blocks' times, NaN where a block has
+    none. :func:`summary` pools every block (the rolling-origin mean), ``summary(results,
+    by_origin=True)`` gives one row per block. ``origins`` must be an integer >= 1 leaving at
+    least ``n_test`` training snapshots before the first block (DataError naming it).
     """
     bad = set(options) - set(_EVALUATE_OPTIONS) - set(_EVALUATE_PATH)
     if bad:
         raise TypeError(f"evaluate() got an unexpected keyword argument {sorted(bad)[0]!r}")
     request = PathOptions.from_kwargs(path, where="evaluate", allowed=_EVALUATE_PATH,
                                       **pop_options(options, _EVALUATE_PATH))
-    return EvaluationProtocol(data, rank=rank, n_test=n_test, budgets=budgets,
-                              n_starts=n_starts, methods=methods, criterion=criterion,
-                              cost=cost, model=model, seed=seed,
-                              temporal=temporal, n_robots=n_robots, path=request,
-                              paper=paper, **options).run()
+    kw = dict(rank=rank, n_test=n_test, budgets=budgets, n_starts=n_starts, methods=methods,
+              criterion=criterion, cost=cost, seed=seed, temporal=temporal,
+              n_robots=n_robots, path=request, paper=paper, **options)
+    n_origins = _int_arg(origins, "origins", 1, DataError)
+    protocol = EvaluationProtocol(data, model=model, **kw)  # every argument checked first
+    if n_origins == 1:
+        return protocol.run()
+    return _rolling_origin(protocol.data, n_origins, protocol.n_test, model, kw)
 
 
-def summary(results: xr.Dataset) -> pd.DataFrame:
+def _padded(parts: list[xr.Dataset]) -> list[xr.Dataset]:
+    """``parts`` with every dimension that has no coordinate (a route's ``step``, a fleet's
+    ``robot``) padded at its end to the longest part's size: -1 in integer variables (the
+    routes' padding), NaN in floats, False in booleans."""
+    dims = {d for p in parts for d in p.dims if d not in p.coords}
+    longest = {d: max(p.sizes.get(d, 0) for p in parts) for d in dims}
+    out = []
+    for p in parts:
+        for d, n in longest.items():
+            short = n - p.sizes.get(d, n)
+            if short <= 0:
+                continue
+            fixed = {}
+            for name, v in p.data_vars.items():
+                if d not in v.dims:
+                    continue
+                fill = (-1 if np.issubdtype(v.dtype, np.integer) else
+                        False if v.dtype == bool else np.nan)
+                fixed[name] = v.pad({d: (0, short)}, constant_values=fill).astype(v.dtype)
+            p = p.drop_vars(list(fixed)).assign(fixed)  # not aligned with the short ones
+        out.append(p)
+    return out
+
+
+def _rolling_origin(data: xr.DataArray, n_origins: int, n_test: int, model: Any,
+                    kw: dict) -> xr.Dataset:
+    """:func:`evaluate` with ``origins=n_origins``: the protocol on each of the last
+    ``n_origins`` blocks of ``n_test`` snapshots of the time-sorted ``data``, every block's
+    model fitted on the snapshots before it, stacked on an ``origin`` dimension."""
+    T = data.sizes["time"]
+    if (n_origins + 1) * n_test > T:
+        raise DataError(f"origins={n_origins} test blocks of n_test={n_test} snapshots need "
+                        f"at least {(n_origins + 1) * n_test} snapshots (n_test of them to "
+                        f"fit the first block's model on), the data have {T}")
+    parts, n_train = [], []
+    for b in range(n_origins):
+        end = T - (n_origins - 1 - b) * n_test
+        part = data.isel(time=slice(None, end))
+        fitted = None
+        if model is not None:  # its parameters, refitted on the snapshots before the block
+            params = {**model.get_params(), "progress": bool(kw.get("progress", True))}
+            fitted = type(model)(**params).fit(part.isel(time=slice(None, end - n_test)))
+        parts.append(EvaluationProtocol(part, model=fitted, **kw).run())
+        n_train.append(end - n_test)
+    out = xr.concat(_padded(parts), dim="origin", join="outer", combine_attrs="drop_conflicts")
+    first = [r["test_time"].values[0] for r in parts]
+    out = out.assign_coords(origin=np.arange(n_origins), origin_time=("origin", first),
+                            n_train=("origin", np.asarray(n_train, dtype=np.int64)))
+    out["origin_time"].attrs["long_name"] = "first test time of the block"
+    out["n_train"].attrs["long_name"] = "training snapshots of the block's model"
+    out.attrs.update(origins=int(n_origins), n_test=int(n_test))
+    return out
+
+
+def summary(results: xr.Dataset, by_origin: bool = False) -> pd.DataFrame:
     """Mean and standard error of information and MSE per method and budget.
+
+    A rolling-origin result (``evaluate(origins=...)``) is pooled over its blocks; with
+    ``by_origin`` there is one row per block, method and budget instead (columns ``origin``,
+    ``origin_time``, ``n_train`` first). ``by_origin`` on a result of one block is that block.
 
     Information averages the usable plans; MSE averages every (plan, test snapshot) pair with
     enough observations. Standard error = std / sqrt(count). ``coverage68_mean`` /
@@ -808,6 +883,17 @@ def summary(results: xr.Dataset) -> pd.DataFrame:
     where both are defined (positive: the filter lowers the error). ``path`` describes the path
     model (:func:`path_label`: ``"grid"`` for the paper's).
     """
+    by_origin = check_flag(by_origin, "by_origin", error=ModelError)
+    if by_origin and "origin" in results.dims:
+        tables = []
+        for i in range(results.sizes["origin"]):
+            block = results.isel(origin=i)
+            table = summary(block)
+            table.insert(0, "n_train", int(block["n_train"]))
+            table.insert(0, "origin_time", block["origin_time"].values)
+            table.insert(0, "origin", int(block["origin"]))
+            tables.append(table)
+        return pd.concat(tables, ignore_index=True)
     rows = []
     for method in results["method"].values:
         for budget in results["budget"].values:
@@ -888,8 +974,13 @@ def save_results(results: xr.Dataset, out_dir: Any) -> dict[str, Any]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"results": out / "results.nc", "summary": out / "summary.csv"}
+    if "origin" in results.dims:  # a rolling-origin backtest: also one row per block
+        paths["summary_by_origin"] = out / "summary_by_origin.csv"
     with atomic_output(paths["results"]) as tmp:
         results.to_netcdf(tmp, engine="netcdf4")
     with atomic_output(paths["summary"]) as tmp:
         summary(results).to_csv(tmp, index=False)
+    if "summary_by_origin" in paths:
+        with atomic_output(paths["summary_by_origin"]) as tmp:
+            summary(results, by_origin=True).to_csv(tmp, index=False)
     return paths

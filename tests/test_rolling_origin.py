@@ -1,0 +1,148 @@
+"""``evaluate(origins=...)``: the rolling-origin backtest of the protocol."""
+
+import numpy as np
+import pytest
+import xarray as xr
+from test_evaluation import planted
+
+from lrm_cvx import cli
+from lrm_cvx.cli import main
+from lrm_cvx.errors import DataError, ModelError
+from lrm_cvx.evaluation import evaluate, save_results, summary
+from lrm_cvx.glrm import GLRM
+
+PAPER = dict(rank=3, n_test=4, budgets=(3, 8), n_starts=2, random_trials=2, min_observations=4,
+             seed=1, progress=False, paper=True)
+
+
+@pytest.fixture(scope="module")
+def rolled():
+    return evaluate(planted(), origins=3, **PAPER)
+
+
+def test_each_block_is_the_protocol_run_on_the_snapshots_up_to_it(rolled):
+    """Block b equals evaluate() on the data cut after block b: same model, starts, plans,
+    errors; the blocks tile the last 12 snapshots."""
+    da = planted()
+    T = da.sizes["time"]
+    assert rolled.sizes["origin"] == 3 and rolled.attrs["origins"] == 3
+    assert list(rolled["test_time"].values) == list(da["time"].values[T - 12:])
+    for b in range(3):
+        end = T - (2 - b) * 4
+        alone = evaluate(da.isel(time=slice(None, end)), **PAPER)
+        block = rolled.isel(origin=b).sel(test_time=alone["test_time"])
+        for name in ("mse", "n_obs", "complete_mse", "coverage95"):
+            np.testing.assert_array_equal(block[name].values, alone[name].values)
+        np.testing.assert_array_equal(block["information"].values, alone["information"].values)
+        assert int(block["n_train"]) == end - 4
+        assert block["origin_time"].values == alone["test_time"].values[0]
+        # the other blocks' times are empty in this block
+        other = rolled.isel(origin=b).drop_sel(test_time=alone["test_time"].values)
+        assert bool(np.isnan(other["mse"]).all())
+
+
+def test_summary_pools_the_blocks_and_splits_them_on_request(rolled):
+    pooled = summary(rolled).set_index(["method", "budget"])
+    err = rolled.sel({"method": "random", "budget": 8.0})["mse"].values
+    err = err[np.isfinite(err)]
+    assert pooled.loc[("random", 8.0), "mse_mean"] == pytest.approx(err.mean())
+    assert pooled.loc[("random", 8.0), "n_predictions"] == err.size
+    per = summary(rolled, by_origin=True)
+    assert list(per.columns[:3]) == ["origin", "origin_time", "n_train"]
+    assert len(per) == 3 * len(pooled)
+    for b in range(3):
+        row = per[(per["origin"] == b) & (per["method"] == "random") & (per["budget"] == 8.0)]
+        e = rolled.isel(origin=b).sel({"method": "random", "budget": 8.0})["mse"].values
+        assert float(row["mse_mean"].iloc[0]) == pytest.approx(np.nanmean(e))
+    with pytest.raises(ModelError, match="by_origin"):
+        summary(rolled, by_origin="yes")
+
+
+def test_save_results_writes_a_row_per_block(rolled, tmp_path):
+    paths = save_results(rolled, tmp_path)
+    back = xr.load_dataset(paths["results"])
+    assert back.sizes["origin"] == 3 and list(back["n_train"].values) == [12, 16, 20]
+    text = paths["summary_by_origin"].read_text()
+    assert text.startswith("origin,origin_time,n_train,method,budget")
+
+
+def test_no_block_sees_its_own_or_later_snapshots():
+    """Poison the last block (and its model's every choice and calibration would move): the
+    earlier blocks, recommended setting (spatial="auto", conformal calibration), are unchanged."""
+    da = planted()
+    kw = dict(rank=3, n_test=4, budgets=(5,), n_starts=2, random_trials=1, min_observations=4,
+              seed=0, progress=False, methods=("greedy:gp-variance", "random"))
+    clean = evaluate(da, origins=2, **kw)
+    poisoned = da.copy()
+    poisoned[-4:] = 50.0 + 10.0 * np.random.default_rng(0).normal(size=poisoned[-4:].shape)
+    bad = evaluate(poisoned, origins=2, **kw)
+    first = clean.isel(origin=0).dropna("test_time", how="all", subset=["complete_mse"])
+    again = bad.isel(origin=0).sel(test_time=first["test_time"])
+    for name in ("mse", "coverage68", "coverage95", "information"):
+        np.testing.assert_array_equal(first[name].values, again[name].values)
+    assert not np.allclose(clean.isel(origin=1)["mse"].values, bad.isel(origin=1)["mse"].values,
+                           equal_nan=True)
+
+
+def test_a_given_model_lends_its_parameters_only():
+    """A model fitted on every snapshot (the test blocks too) is refitted per block: the
+    result equals the one from the same parameters without a model."""
+    da = planted()
+    leaky = GLRM(rank=3, random_state=1, progress=False).fit(da)
+    given = evaluate(da, model=leaky, origins=2, **{k: v for k, v in PAPER.items()
+                                                    if k != "rank"})
+    fresh = evaluate(da, origins=2, **PAPER)
+    xr.testing.assert_equal(given["mse"], fresh["mse"])
+
+
+@pytest.mark.parametrize(("origins", "match"), [(0, "origins"), (2.5, "origins"),
+                                                (6, "origins=6")])
+def test_bad_origins_name_the_argument(origins, match):
+    with pytest.raises(DataError, match=match):
+        evaluate(planted(), origins=origins, **PAPER)
+
+
+def test_cli_backtest_writes_both_summaries(tmp_path, capsys):
+    from test_cli import TINY
+
+    out = tmp_path / "ev"
+    assert main(["-q", "evaluate", "sample:sst", *TINY, "--paper", "--methods", "greedy,random",
+                 "--certify", "off", "--origins", "2", "--out", str(out)]) == 0
+    got = xr.load_dataset(out / "results.nc")
+    assert got.sizes["origin"] == 2
+    assert (out / "summary_by_origin.csv").read_text().startswith("origin,")
+    assert sorted(p.name for p in out.iterdir()) == sorted(cli.EVALUATION_FILES
+                                                           + cli.BACKTEST_FILES)
+    assert (out / "predictions.png").exists()
+    capsys.readouterr()
+    for bad, says in (("0", "--origins: must be an integer >= 1"),
+                      ("1000", "--origins 1000 blocks of --n-test 2 need")):
+        assert main(["-q", "evaluate", "sample:sst", *TINY, "--paper", "--origins", bad,
+                     "--out", str(tmp_path / "x")]) != 0
+        assert says in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_blocks_with_routes_of_other_lengths_stack():
+    """A block whose longest greedy route is shorter (its ``step`` dim) is padded like a
+    route: -1 in integer variables, NaN in floats, False in booleans."""
+    from lrm_cvx.evaluation import _padded
+
+    def block(n_steps, t0):
+        return xr.Dataset(
+            {"greedy_route": (("budget", "step"), np.arange(2 * n_steps).reshape(2, n_steps)),
+             "step_cost": (("budget", "step"), np.ones((2, n_steps))),
+             "visited": (("budget", "step"), np.ones((2, n_steps), bool)),
+             "mse": (("budget", "test_time"), np.ones((2, 2)))},
+            coords={"budget": [5.0, 10.0], "test_time": [t0, t0 + 1]})
+
+    a, b = _padded([block(3, 0), block(5, 2)])
+    out = xr.concat([a, b], dim="origin", join="outer")
+    assert out.sizes["step"] == 5
+    np.testing.assert_array_equal(out["greedy_route"].isel(origin=0).values,
+                                  [[0, 1, 2, -1, -1], [3, 4, 5, -1, -1]])
+    assert out["greedy_route"].dtype.kind == "i" and out["visited"].dtype == bool
+    assert np.isnan(out["step_cost"].isel(origin=0, step=[3, 4])).all()
+    assert not out["visited"].isel(origin=0, step=[3, 4]).any()
+    np.testing.assert_array_equal(out["greedy_route"].isel(origin=1).values,
+                                  block(5, 2)["greedy_route"].values)
