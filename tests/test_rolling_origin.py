@@ -146,3 +146,25 @@ def test_blocks_with_routes_of_other_lengths_stack():
     assert not out["visited"].isel(origin=0, step=[3, 4]).any()
     np.testing.assert_array_equal(out["greedy_route"].isel(origin=1).values,
                                   block(5, 2)["greedy_route"].values)
+
+
+def test_backtest_figure_draws_each_blocks_summary(rolled):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from lrm_cvx.plots import COVERAGE_BANDS, plot_backtest
+
+    fig = plot_backtest(rolled, budget=8.0)
+    per = summary(rolled, by_origin=True)
+    per = per[(per["budget"] == 8.0) & (per["method"] == "random")].sort_values("origin")
+    for ax, col in zip(fig.axes, ("mse_mean", "coverage68_mean", "coverage95_mean"),
+                       strict=True):
+        line = next(ln for ln in ax.get_lines() if ln.get_label() == "random walk"
+                    or ln.get_label() == "random")
+        np.testing.assert_allclose(line.get_ydata(), per[col].to_numpy())
+    band = fig.axes[2].patches[0]  # the shaded band, in data units along y
+    assert (band.get_y(), band.get_y() + band.get_height()) == pytest.approx(COVERAGE_BANDS[95])
+    with pytest.raises(DataError, match="budget"):
+        plot_backtest(rolled, budget=4.0)
+    with pytest.raises(DataError, match="origins"):
+        plot_backtest(rolled.isel(origin=0))

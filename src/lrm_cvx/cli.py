@@ -62,7 +62,7 @@ CERTIFY_LEVELS = ("fast", "tight", "off")
 
 EVALUATION_FILES = ("results.nc", "summary.csv", "metrics.png", "metrics.pdf",
                     "predictions.png", "predictions.pdf")
-BACKTEST_FILES = ("summary_by_origin.csv",)
+BACKTEST_FILES = ("summary_by_origin.csv", "backtest.png", "backtest.pdf")
 """What ``evaluate --origins N`` (N > 1) writes besides :data:`EVALUATION_FILES`."""
 
 
@@ -492,7 +492,7 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     import matplotlib.pyplot as plt
 
     from .evaluation import METHODS, evaluate, summary
-    from .plots import plot_metrics, plot_predictions
+    from .plots import plot_backtest, plot_metrics, plot_predictions
 
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -520,6 +520,8 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     table = summary(results)
     last = results.isel(origin=-1) if "origin" in results.dims else results
     figures = {"metrics": plot_metrics(results)}
+    if "origin" in results.dims:
+        figures["backtest"] = plot_backtest(results)
     if "greedy" in methods:
         # qualitative figure: the first start cell, three budgets, the first test snapshot
         bvals = results["budget"].values

@@ -19,7 +19,7 @@ from .coastlines import check_coast, draw_coast
 from .errors import DataError
 
 __all__ = ["plot_metrics", "plot_temporal_metrics", "plot_predictions", "plot_map",
-           "plot_prediction_panels",
+           "plot_prediction_panels", "plot_backtest", "COVERAGE_BANDS",
            "plot_demo_metrics", "save_figure", "METHOD_STYLE"]
 
 # Okabe-Ito colours, one marker each: distinguishable in colour and in grey-scale print.
@@ -86,6 +86,69 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
         axes[0].set_title("(a) information, higher is better")
         axes[1].set_title("(b) reconstruction error, lower is better")
         axes[1].legend(frameon=False, ncol=1, loc="upper right")
+        if title:
+            fig.suptitle(title)
+    return fig
+
+
+COVERAGE_BANDS = {68: (0.63, 0.73), 95: (0.93, 0.97)}
+"""The coverage a calibrated interval should show per nominal level, as a block's mean (issue
+#24's targets): the bands :func:`plot_backtest` shades."""
+
+
+def plot_backtest(results: xr.Dataset, *, budget: float | None = None,
+                  axes: Sequence[Any] | None = None, title: str | None = None):
+    """A rolling-origin backtest (``evaluate(origins=N)``) block by block: (a) the
+    reconstruction MSE, (b) and (c) the mean coverage of the 68 % and 95 % intervals, one line
+    per method, with the coverage bands of :data:`COVERAGE_BANDS` shaded and the nominal level
+    dashed. ``budget``: the budget shown (default the middle one of ``results``; a budget not
+    in ``results`` is a DataError). Returns the figure."""
+    import matplotlib.pyplot as plt
+
+    from .evaluation import summary
+
+    if "origin" not in results.dims:
+        raise DataError("plot_backtest needs a rolling-origin result: evaluate(..., origins=N) "
+                        "with N > 1")
+    budgets = [float(b) for b in results["budget"].values]
+    budget = budgets[len(budgets) // 2] if budget is None else float(budget)
+    if budget not in budgets:
+        raise DataError(f"budget must be one of the results' budgets {budgets}, got {budget:g}")
+    df = summary(results, by_origin=True)
+    df = df[df["budget"] == budget]
+    labels = [str(np.datetime_as_string(t, unit="D")) if np.issubdtype(np.asarray(t).dtype,
+                                                                          np.datetime64)
+              else str(t) for t in results["origin_time"].values]
+    with plt.rc_context(_PRINT_RC):
+        if axes is None:
+            fig, axes = plt.subplots(1, 3, figsize=(7.2, 2.9), layout="constrained")
+        else:
+            fig = axes[0].figure
+        x = np.arange(len(labels))
+        for i, (method, rows) in enumerate(df.groupby("method", sort=False)):
+            st = _style(method, i)
+            rows = rows.sort_values("origin")
+            for ax, col in zip(axes, ("mse_mean", "coverage68_mean", "coverage95_mean"),
+                               strict=True):
+                ax.plot(rows["origin"].to_numpy(), rows[col].to_numpy(), marker=st["marker"],
+                        color=st["color"], label=st["label"])
+        for ax, level in zip(axes[1:], (68, 95), strict=True):
+            lo, hi = COVERAGE_BANDS[level]
+            ax.axhspan(lo, hi, color="0.85", lw=0, zorder=0)
+            ax.axhline(level / 100, color="0.4", ls="--", lw=1)
+            ax.set_ylabel(f"{level} % interval coverage")
+        units = results["mse"].attrs.get("units")
+        axes[0].set_ylabel(f"reconstruction MSE ({units})" if units else "reconstruction MSE")
+        for ax in axes:
+            ax.set_xticks(x, labels, rotation=30, ha="right")
+            ax.set_xlabel("test block (first time)")
+            ax.grid(alpha=0.3, lw=0.5)
+        axes[0].set_title(f"(a) error, budget {budget:g}")
+        axes[1].set_title("(b) 68 % intervals")
+        axes[2].set_title("(c) 95 % intervals")
+        handles, names = axes[0].get_legend_handles_labels()
+        fig.legend(handles, names, frameon=False, loc="outside lower center",
+                   ncol=min(4, len(names)))
         if title:
             fig.suptitle(title)
     return fig
