@@ -168,3 +168,18 @@ def test_backtest_figure_draws_each_blocks_summary(rolled):
         plot_backtest(rolled, budget=4.0)
     with pytest.raises(DataError, match="origins"):
         plot_backtest(rolled.isel(origin=0))
+
+
+def test_campaigns_roll_too():
+    """Filter campaigns (``temporal=``) through the rolling origin: each block's campaign is
+    the one evaluate() runs on the snapshots up to it, memoryless twin included."""
+    da = planted()
+    kw = dict(rank=3, n_test=4, budgets=(5,), n_starts=1, min_observations=4, seed=0,
+              progress=False, methods=("greedy:fisher",), temporal="ar1",
+              model_params={"offset": True}, fold_in={"prior": "empirical"}, certify=False)
+    rolled = evaluate(da, origins=2, **kw)
+    alone = evaluate(da.isel(time=slice(None, -4)), **kw)
+    block = rolled.isel(origin=0).sel(test_time=alone["test_time"])
+    for name in ("mse", "mse_memoryless"):
+        np.testing.assert_array_equal(block[name].values, alone[name].values)
+    assert summary(rolled, by_origin=True)["temporal_cut"].notna().all()
