@@ -1,5 +1,7 @@
 """``evaluate(origins=...)``: the rolling-origin backtest of the protocol."""
 
+import warnings
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -152,7 +154,8 @@ def test_backtest_figure_draws_each_blocks_summary(rolled):
     import matplotlib
 
     matplotlib.use("Agg")
-    from lrm_cvx.plots import COVERAGE_BANDS, plot_backtest
+    from lrm_cvx.evaluation import COVERAGE_BANDS
+    from lrm_cvx.plots import plot_backtest
 
     fig = plot_backtest(rolled, budget=8.0)
     per = summary(rolled, by_origin=True)
@@ -183,3 +186,27 @@ def test_campaigns_roll_too():
     for name in ("mse", "mse_memoryless"):
         np.testing.assert_array_equal(block[name].values, alone[name].values)
     assert summary(rolled, by_origin=True)["temporal_cut"].notna().all()
+
+
+def test_coverage_check_against_the_blocks_by_hand(rolled):
+    from lrm_cvx.evaluation import LOWEST_BLOCK_95, coverage_check
+
+    check = coverage_check(rolled).set_index(["method", "budget"])
+    for (method, budget), row in check.iterrows():
+        sel = rolled.sel({"method": method, "budget": budget})
+        with warnings.catch_warnings():  # a block with no valid prediction: NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            c68 = np.array([np.nanmean(sel["coverage68"].isel(origin=b).values)
+                            for b in range(3)])
+            c95 = np.array([np.nanmean(sel["coverage95"].isel(origin=b).values)
+                            for b in range(3)])
+        assert row["blocks"] == 3
+        assert row["cov68"] == pytest.approx(np.nanmean(c68))  # over the blocks with some
+        assert row["cov95"] == pytest.approx(np.nanmean(c95))
+        assert row["cov95_lowest_block"] == pytest.approx(np.nanmin(c95))
+        assert row["holds"] == bool(np.isfinite(c95).all()
+                                    and 0.63 <= np.mean(c68) <= 0.73
+                                    and 0.93 <= np.mean(c95) <= 0.97
+                                    and c95.min() >= LOWEST_BLOCK_95)
+    with pytest.raises(DataError, match="origins"):
+        coverage_check(rolled.isel(origin=0))

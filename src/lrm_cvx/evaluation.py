@@ -56,6 +56,7 @@ from .scoring import (
 )
 
 __all__ = ["evaluate", "EvaluationProtocol", "summary", "save_results", "METHODS",
+           "coverage_check", "COVERAGE_BANDS", "LOWEST_BLOCK_95",
            "GREEDY_VARIANTS", "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse", "path_label",
            "check_method", "plan_method"]
 
@@ -918,6 +919,37 @@ def summary(results: xr.Dataset, by_origin: bool = False) -> pd.DataFrame:
     df["path"] = path_label(results.attrs)
     df["complete_mse"] = float(results["complete_mse"].mean())
     return df
+
+
+COVERAGE_BANDS = {68: (0.63, 0.73), 95: (0.93, 0.97)}
+"""Where the mean coverage of calibrated 68 % / 95 % intervals should fall over a rolling-origin
+backtest (issue #24's targets): :func:`coverage_check`, ``plots.plot_backtest``."""
+LOWEST_BLOCK_95 = 0.90
+"""The lowest 95 % coverage one block of a backtest may show (issue #24's target)."""
+
+
+def coverage_check(results: xr.Dataset) -> pd.DataFrame:
+    """Whether the intervals of a rolling-origin backtest (``evaluate(origins=N)``) hold, per
+    method and budget: ``cov68`` / ``cov95`` the mean over the blocks of each block's mean
+    coverage, ``cov95_lowest_block``, ``mse`` the mean of the blocks' mean MSE, and ``holds``:
+    both means inside :data:`COVERAGE_BANDS` and no block's 95 % below
+    :data:`LOWEST_BLOCK_95`. A block without coverage (an uncalibrated memoryless twin) leaves
+    ``holds`` False. DataError for a result of one block."""
+    if "origin" not in results.dims:
+        raise DataError("coverage_check needs a rolling-origin result: evaluate(..., "
+                        "origins=N) with N > 1")
+    per = summary(results, by_origin=True)
+    out = per.groupby(["method", "budget"], sort=False).agg(
+        blocks=("origin", "nunique"), cov68=("coverage68_mean", "mean"),
+        cov95=("coverage95_mean", "mean"), cov95_lowest_block=("coverage95_mean", "min"),
+        mse=("mse_mean", "mean")).reset_index()
+    (lo68, hi68), (lo95, hi95) = COVERAGE_BANDS[68], COVERAGE_BANDS[95]
+    complete = per.groupby(["method", "budget"], sort=False)["coverage95_mean"].apply(
+        lambda c: bool(c.notna().all())).to_numpy()
+    out["holds"] = (complete & out["cov68"].between(lo68, hi68).to_numpy()
+                    & out["cov95"].between(lo95, hi95).to_numpy()
+                    & (out["cov95_lowest_block"] >= LOWEST_BLOCK_95).to_numpy())
+    return out
 
 
 def path_label(attrs: dict[str, Any]) -> str:

@@ -19,7 +19,7 @@ from .coastlines import check_coast, draw_coast
 from .errors import DataError
 
 __all__ = ["plot_metrics", "plot_temporal_metrics", "plot_predictions", "plot_map",
-           "plot_prediction_panels", "plot_backtest", "COVERAGE_BANDS",
+           "plot_prediction_panels", "plot_backtest",
            "plot_demo_metrics", "save_figure", "METHOD_STYLE"]
 
 # Okabe-Ito colours, one marker each: distinguishable in colour and in grey-scale print.
@@ -91,21 +91,16 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
     return fig
 
 
-COVERAGE_BANDS = {68: (0.63, 0.73), 95: (0.93, 0.97)}
-"""The coverage a calibrated interval should show per nominal level, as a block's mean (issue
-#24's targets): the bands :func:`plot_backtest` shades."""
-
-
 def plot_backtest(results: xr.Dataset, *, budget: float | None = None,
                   axes: Sequence[Any] | None = None, title: str | None = None):
     """A rolling-origin backtest (``evaluate(origins=N)``) block by block: (a) the
     reconstruction MSE, (b) and (c) the mean coverage of the 68 % and 95 % intervals, one line
-    per method, with the coverage bands of :data:`COVERAGE_BANDS` shaded and the nominal level
-    dashed. ``budget``: the budget shown (default the middle one of ``results``; a budget not
-    in ``results`` is a DataError). Returns the figure."""
+    per method, with the bands of :data:`~lrm_cvx.evaluation.COVERAGE_BANDS` shaded and the
+    nominal level dashed. ``budget``: the budget shown (default the middle one of ``results``;
+    a budget not in ``results`` is a DataError). Returns the figure."""
     import matplotlib.pyplot as plt
 
-    from .evaluation import summary
+    from .evaluation import COVERAGE_BANDS, summary
 
     if "origin" not in results.dims:
         raise DataError("plot_backtest needs a rolling-origin result: evaluate(..., origins=N) "
