@@ -28,8 +28,13 @@ def cvxpy_mixture(Ms: np.ndarray, ridge: float) -> float:
     lam = cp.Variable(Ms.shape[0], nonneg=True)
     M = sum(lam[j] * Ms[j] for j in range(Ms.shape[0])) + ridge * np.eye(Ms.shape[1])
     prob = cp.Problem(cp.Maximize(cp.log_det(M)), [cp.sum(lam) == 1])
-    prob.solve(solver="CLARABEL")
-    assert prob.status == "optimal"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "Solution may be inaccurate"
+        prob.solve(solver="CLARABEL")
+    # Clarabel may stop short of its own tolerance on a mixture at the boundary of singular
+    # moments (hypothesis found seed=5074, m=2, k=4, rank=2: "optimal_inaccurate", 3e-11 off);
+    # its value is still checked against the solver's to 1e-5 by the caller
+    assert prob.status in ("optimal", "optimal_inaccurate"), prob.status
     return float(prob.value)
 
 
@@ -37,6 +42,7 @@ def cvxpy_mixture(Ms: np.ndarray, ridge: float) -> float:
 @given(seed=st.integers(0, 10_000), m=st.integers(1, 12), k=st.integers(2, 4),
        rank=st.integers(1, 4), ridge=st.sampled_from([0.0, 0.05]))
 @example(seed=10, m=8, k=2, rank=2, ridge=0.0)  # 5000 steps leave a gap of 1.27e-4 here
+@example(seed=5074, m=2, k=4, rank=2, ridge=0.0)  # Clarabel: "optimal_inaccurate"
 def test_route_mixture_matches_cvxpy(seed, m, k, rank, ridge):
     """Random rank-deficient PSD matrices (as a short route's are): the multiplicative solver's
     value equals an independent cvxpy solve, never exceeds it, and its gap bounds the
