@@ -1,4 +1,4 @@
-"""``evaluate(origins=...)``: the rolling-origin backtest of the protocol."""
+"""``backtest``: the rolling-origin backtest of the evaluation protocol."""
 
 import warnings
 
@@ -10,7 +10,7 @@ from test_evaluation import planted
 from lrm_cvx import cli
 from lrm_cvx.cli import main
 from lrm_cvx.errors import DataError, ModelError
-from lrm_cvx.evaluation import evaluate, save_results, summary
+from lrm_cvx.evaluation import backtest, evaluate, save_results, summary
 from lrm_cvx.glrm import GLRM
 
 PAPER = dict(rank=3, n_test=4, budgets=(3, 8), n_starts=2, random_trials=2, min_observations=4,
@@ -19,7 +19,7 @@ PAPER = dict(rank=3, n_test=4, budgets=(3, 8), n_starts=2, random_trials=2, min_
 
 @pytest.fixture(scope="module")
 def rolled():
-    return evaluate(planted(), origins=3, **PAPER)
+    return backtest(planted(), 3, **PAPER)
 
 
 def test_each_block_is_the_protocol_run_on_the_snapshots_up_to_it(rolled):
@@ -74,10 +74,10 @@ def test_no_block_sees_its_own_or_later_snapshots():
     da = planted()
     kw = dict(rank=3, n_test=4, budgets=(5,), n_starts=2, random_trials=1, min_observations=4,
               seed=0, progress=False, methods=("greedy:gp-variance", "random"))
-    clean = evaluate(da, origins=2, **kw)
+    clean = backtest(da, 2, **kw)
     poisoned = da.copy()
     poisoned[-4:] = 50.0 + 10.0 * np.random.default_rng(0).normal(size=poisoned[-4:].shape)
-    bad = evaluate(poisoned, origins=2, **kw)
+    bad = backtest(poisoned, 2, **kw)
     first = clean.isel(origin=0).dropna("test_time", how="all", subset=["complete_mse"])
     again = bad.isel(origin=0).sel(test_time=first["test_time"])
     for name in ("mse", "coverage68", "coverage95", "information"):
@@ -91,9 +91,8 @@ def test_a_given_model_lends_its_parameters_only():
     result equals the one from the same parameters without a model."""
     da = planted()
     leaky = GLRM(rank=3, random_state=1, progress=False).fit(da)
-    given = evaluate(da, model=leaky, origins=2, **{k: v for k, v in PAPER.items()
-                                                    if k != "rank"})
-    fresh = evaluate(da, origins=2, **PAPER)
+    given = backtest(da, 2, model=leaky, **{k: v for k, v in PAPER.items() if k != "rank"})
+    fresh = backtest(da, 2, **PAPER)
     xr.testing.assert_equal(given["mse"], fresh["mse"])
 
 
@@ -101,7 +100,7 @@ def test_a_given_model_lends_its_parameters_only():
                                                 (6, "origins=6")])
 def test_bad_origins_name_the_argument(origins, match):
     with pytest.raises(DataError, match=match):
-        evaluate(planted(), origins=origins, **PAPER)
+        backtest(planted(), origins, **PAPER)
 
 
 def test_cli_backtest_writes_both_summaries(tmp_path, capsys):
@@ -180,7 +179,7 @@ def test_campaigns_roll_too():
     kw = dict(rank=3, n_test=4, budgets=(5,), n_starts=1, min_observations=4, seed=0,
               progress=False, methods=("greedy:fisher",), temporal="ar1",
               model_params={"offset": True}, fold_in={"prior": "empirical"}, certify=False)
-    rolled = evaluate(da, origins=2, **kw)
+    rolled = backtest(da, 2, **kw)
     alone = evaluate(da.isel(time=slice(None, -4)), **kw)
     block = rolled.isel(origin=0).sel(test_time=alone["test_time"])
     for name in ("mse", "mse_memoryless"):
@@ -210,3 +209,10 @@ def test_coverage_check_against_the_blocks_by_hand(rolled):
                                     and c95.min() >= LOWEST_BLOCK_95)
     with pytest.raises(DataError, match="origins"):
         coverage_check(rolled.isel(origin=0))
+
+
+def test_backtest_checks_evaluates_keywords_before_any_fit():
+    with pytest.raises(TypeError, match="n_tests"):
+        backtest(planted(), 2, n_tests=4)
+    with pytest.raises(DataError, match="n_test"):
+        backtest(planted(), 2, n_test=0)

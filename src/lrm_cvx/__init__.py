@@ -40,13 +40,14 @@ _LAZY = {
     "plan_bound": "lrm_cvx.planning.certificate",
     "dopt_upper_bound": "lrm_cvx.planning.dopt",
     "evaluate": "lrm_cvx.evaluation",
+    "backtest": "lrm_cvx.evaluation",
     "summary": "lrm_cvx.evaluation",
     "EvaluationProtocol": "lrm_cvx.evaluation",
     "MonitorState": "lrm_cvx.monitor",
     "simulate_campaign": "lrm_cvx.campaign",
     "Dynamics": "lrm_cvx.glrm.dynamics",
     "calibrate": "lrm_cvx.glrm.calibration",
-    "select_dynamics": "lrm_cvx.glrm.calibration",
+    "select_dynamics": "lrm_cvx.glrm.blending",
     "synthetic_dynamic_field": "lrm_cvx.io.samples",
 }
 

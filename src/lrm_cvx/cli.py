@@ -491,7 +491,7 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     the rolling-origin backtest (the figure of routes shows the last block)."""
     import matplotlib.pyplot as plt
 
-    from .evaluation import METHODS, coverage_check, evaluate, summary
+    from .evaluation import METHODS, backtest, coverage_check, evaluate, summary
     from .plots import plot_backtest, plot_metrics, plot_predictions
 
     out_dir = Path(out_dir)
@@ -510,13 +510,12 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     fold_in = dict(fold_in or {})
     model = _fit_model(data.isel(time=slice(0, n_time - n_test)), model_params, rank=rank,
                        random_state=seed, progress=progress)
-    results = evaluate(data, rank=rank, n_test=n_test, budgets=budgets, n_starts=n_starts,
-                       methods=methods, random_trials=random_trials,
-                       min_observations=min_observations, criterion=criterion, cost=cost,
-                       ridge=ridge, fold_ridge=fold_ridge, certify=certify, seed=seed,
-                       n_jobs=n_jobs, progress=progress, model=model,
-                       model_params=model_params, fold_in=fold_in,
-                       n_robots=n_robots, path=path, origins=origins)
+    kw = dict(rank=rank, n_test=n_test, budgets=budgets, n_starts=n_starts, methods=methods,
+              random_trials=random_trials, min_observations=min_observations,
+              criterion=criterion, cost=cost, ridge=ridge, fold_ridge=fold_ridge,
+              certify=certify, seed=seed, n_jobs=n_jobs, progress=progress, model=model,
+              model_params=model_params, fold_in=fold_in, n_robots=n_robots, path=path)
+    results = backtest(data, origins, **kw) if origins > 1 else evaluate(data, **kw)
     table = summary(results)
     last = results.isel(origin=-1) if "origin" in results.dims else results
     figures = {"metrics": plot_metrics(results)}

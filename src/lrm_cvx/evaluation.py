@@ -55,7 +55,7 @@ from .scoring import (
     model_mse,
 )
 
-__all__ = ["evaluate", "EvaluationProtocol", "summary", "save_results", "METHODS",
+__all__ = ["evaluate", "backtest", "EvaluationProtocol", "summary", "save_results", "METHODS",
            "coverage_check", "COVERAGE_BANDS", "LOWEST_BLOCK_95",
            "GREEDY_VARIANTS", "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse", "path_label",
            "check_method", "plan_method"]
@@ -696,7 +696,6 @@ def evaluate(
     n_robots: int = 1,
     path: PathOptions | None = None,
     paper: bool = False,
-    origins: int = 1,
     **options: Any,
 ) -> xr.Dataset:
     """Run the paper's evaluation protocol on ``data`` ``(time, lat, lon)``.
@@ -787,31 +786,55 @@ def evaluate(
     ``(budget, start)``, ``complete_mse`` ``(test_time)``, the start cells, and the greedy
     routes (``greedy_route``, padded with -1) for the qualitative figures.
 
-    **Rolling origin** (``origins`` > 1, default 1): a backtest of the whole protocol on
-    ``origins`` consecutive test blocks of ``n_test`` snapshots that end at the last snapshot.
-    Block ``b``'s model, with every choice it validates (``temporal="auto"``, ``spatial="auto"``,
-    ``rank="auto"``) and its calibration, is fitted on the snapshots before the block only, so
-    no choice and no interval ever sees the snapshots it is scored on. A given ``model`` lends
-    its parameters only: each block fits a fresh copy (its class and ``get_params()``; the
-    choices it made on its own training are made again). The blocks' Datasets are stacked on
-    a new ``origin`` dimension, with coordinates ``origin_time`` (the block's first test time)
-    and ``n_train``; ``test_time`` is the union of the blocks' times, NaN where a block has
-    none. :func:`summary` pools every block (the rolling-origin mean), ``summary(results,
-    by_origin=True)`` gives one row per block. ``origins`` must be an integer >= 1 leaving at
-    least ``n_test`` training snapshots before the first block (DataError naming it).
+    A rolling-origin backtest of the protocol (its test block repeated back in time, each
+    block's model fitted on the snapshots before it) is :func:`backtest`.
     """
     bad = set(options) - set(_EVALUATE_OPTIONS) - set(_EVALUATE_PATH)
     if bad:
         raise TypeError(f"evaluate() got an unexpected keyword argument {sorted(bad)[0]!r}")
     request = PathOptions.from_kwargs(path, where="evaluate", allowed=_EVALUATE_PATH,
                                       **pop_options(options, _EVALUATE_PATH))
-    kw = dict(rank=rank, n_test=n_test, budgets=budgets, n_starts=n_starts, methods=methods,
-              criterion=criterion, cost=cost, seed=seed, temporal=temporal,
-              n_robots=n_robots, path=request, paper=paper, **options)
+    return EvaluationProtocol(data, rank=rank, n_test=n_test, budgets=budgets,
+                              n_starts=n_starts, methods=methods, criterion=criterion,
+                              cost=cost, model=model, seed=seed,
+                              temporal=temporal, n_robots=n_robots, path=request,
+                              paper=paper, **options).run()
+
+
+def backtest(data: xr.DataArray, origins: int = 3, *, model: Any = None,
+             **kwargs: Any) -> xr.Dataset:
+    """The rolling-origin backtest of :func:`evaluate`: its protocol on each of the last
+    ``origins`` blocks of ``n_test`` snapshots of ``data`` (time-sorted), as if each were the
+    test.
+
+    Block ``b``'s model, with every choice it validates (``temporal="auto"``,
+    ``spatial="auto"``, ``rank="auto"``) and its calibration, is fitted on the snapshots
+    before the block only, so no choice and no interval ever sees the snapshots it is scored
+    on. A given ``model`` lends its parameters only: each block fits a fresh copy (its class
+    and ``get_params()``; the choices it made on its own training are made again). ``kwargs``
+    are :func:`evaluate`'s (``n_test``, ``budgets``, ``methods``, ``temporal``, path options,
+    ...), checked before any fit.
+
+    Returns the blocks' Datasets stacked on a new ``origin`` dimension, with coordinates
+    ``origin_time`` (the block's first test time) and ``n_train``; ``test_time`` is the union
+    of the blocks' times, NaN where a block has none, so a pooled mean counts every (plan,
+    snapshot) once. :func:`summary` pools the blocks, ``summary(results, by_origin=True)``
+    gives one row per block, :func:`coverage_check` says whether the intervals hold.
+    ``origins`` must be an integer >= 1 that leaves at least ``n_test`` snapshots before the
+    first block (DataError naming it).
+    """
+    from dataclasses import fields
+
     n_origins = _int_arg(origins, "origins", 1, DataError)
+    request = PathOptions.from_kwargs(kwargs.pop("path", None), where="backtest",
+                                      allowed=_EVALUATE_PATH,
+                                      **pop_options(kwargs, _EVALUATE_PATH))
+    known = {f.name for f in fields(EvaluationProtocol)} - {"data", "model", "path"}
+    bad = set(kwargs) - known
+    if bad:
+        raise TypeError(f"backtest() got an unexpected keyword argument {sorted(bad)[0]!r}")
+    kw = {**kwargs, "path": request}
     protocol = EvaluationProtocol(data, model=model, **kw)  # every argument checked first
-    if n_origins == 1:
-        return protocol.run()
     return _rolling_origin(protocol.data, n_origins, protocol.n_test, model, kw)
 
 
@@ -841,7 +864,7 @@ def _padded(parts: list[xr.Dataset]) -> list[xr.Dataset]:
 
 def _rolling_origin(data: xr.DataArray, n_origins: int, n_test: int, model: Any,
                     kw: dict) -> xr.Dataset:
-    """:func:`evaluate` with ``origins=n_origins``: the protocol on each of the last
+    """:func:`backtest`: the protocol on each of the last
     ``n_origins`` blocks of ``n_test`` snapshots of the time-sorted ``data``, every block's
     model fitted on the snapshots before it, stacked on an ``origin`` dimension."""
     T = data.sizes["time"]
@@ -872,7 +895,7 @@ def _rolling_origin(data: xr.DataArray, n_origins: int, n_test: int, model: Any,
 def summary(results: xr.Dataset, by_origin: bool = False) -> pd.DataFrame:
     """Mean and standard error of information and MSE per method and budget.
 
-    A rolling-origin result (``evaluate(origins=...)``) is pooled over its blocks; with
+    A rolling-origin result (:func:`backtest`) is pooled over its blocks; with
     ``by_origin`` there is one row per block, method and budget instead (columns ``origin``,
     ``origin_time``, ``n_train`` first). ``by_origin`` on a result of one block is that block.
 
@@ -929,15 +952,15 @@ LOWEST_BLOCK_95 = 0.90
 
 
 def coverage_check(results: xr.Dataset) -> pd.DataFrame:
-    """Whether the intervals of a rolling-origin backtest (``evaluate(origins=N)``) hold, per
+    """Whether the intervals of a rolling-origin backtest (:func:`backtest`) hold, per
     method and budget: ``cov68`` / ``cov95`` the mean over the blocks of each block's mean
     coverage, ``cov95_lowest_block``, ``mse`` the mean of the blocks' mean MSE, and ``holds``:
     both means inside :data:`COVERAGE_BANDS` and no block's 95 % below
     :data:`LOWEST_BLOCK_95`. A block without coverage (an uncalibrated memoryless twin) leaves
     ``holds`` False. DataError for a result of one block."""
     if "origin" not in results.dims:
-        raise DataError("coverage_check needs a rolling-origin result: evaluate(..., "
-                        "origins=N) with N > 1")
+        raise DataError("coverage_check needs a rolling-origin result: backtest(data, "
+                        "origins=N)")
     per = summary(results, by_origin=True)
     out = per.groupby(["method", "budget"], sort=False).agg(
         blocks=("origin", "nunique"), cov68=("coverage68_mean", "mean"),

@@ -93,7 +93,7 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
 
 def plot_backtest(results: xr.Dataset, *, budget: float | None = None,
                   axes: Sequence[Any] | None = None, title: str | None = None):
-    """A rolling-origin backtest (``evaluate(origins=N)``) block by block: (a) the
+    """A rolling-origin backtest (``evaluation.backtest``) block by block: (a) the
     reconstruction MSE, (b) and (c) the mean coverage of the 68 % and 95 % intervals, one line
     per method, with the bands of :data:`~lrm_cvx.evaluation.COVERAGE_BANDS` shaded and the
     nominal level dashed. ``budget``: the budget shown (default the middle one of ``results``;
@@ -103,7 +103,7 @@ def plot_backtest(results: xr.Dataset, *, budget: float | None = None,
     from .evaluation import COVERAGE_BANDS, summary
 
     if "origin" not in results.dims:
-        raise DataError("plot_backtest needs a rolling-origin result: evaluate(..., origins=N) "
+        raise DataError("plot_backtest needs a rolling-origin result: backtest(data, origins=N) "
                         "with N > 1")
     budgets = [float(b) for b in results["budget"].values]
     budget = budgets[len(budgets) // 2] if budget is None else float(budget)
