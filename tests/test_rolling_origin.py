@@ -216,3 +216,24 @@ def test_backtest_checks_evaluates_keywords_before_any_fit():
         backtest(planted(), 2, n_tests=4)
     with pytest.raises(DataError, match="n_test"):
         backtest(planted(), 2, n_test=0)
+
+
+def test_a_360_day_calendar_backtests_and_saves(tmp_path):
+    """Climate-model records keep their calendar: the blocks' first times are cftime dates,
+    saved and loaded back, and the figure labels them."""
+    import cftime
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from lrm_cvx.plots import plot_backtest
+
+    da = planted()
+    da = da.assign_coords(time=[cftime.Datetime360Day(1900 + i, 7, 1)
+                                for i in range(da.sizes["time"])])
+    res = backtest(da, 2, **{**PAPER, "budgets": (3,), "n_starts": 1})
+    want = [cftime.Datetime360Day(1916, 7, 1), cftime.Datetime360Day(1920, 7, 1)]
+    assert list(res["origin_time"].values) == want
+    back = xr.load_dataset(save_results(res, tmp_path)["results"])
+    assert list(back["origin_time"].values) == want
+    labels = [t.get_text() for t in plot_backtest(res).axes[0].get_xticklabels()]
+    assert labels[0].startswith("1916-07-01")
