@@ -491,7 +491,15 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     the rolling-origin backtest (the figure of routes shows the last block)."""
     import matplotlib.pyplot as plt
 
-    from .evaluation import METHODS, backtest, coverage_check, evaluate, summary
+    from .evaluation import (
+        COVERAGE_BANDS,
+        LOWEST_BLOCK_95,
+        METHODS,
+        backtest,
+        coverage_check,
+        evaluate,
+        summary,
+    )
     from .plots import plot_backtest, plot_metrics, plot_predictions
 
     out_dir = Path(out_dir)
@@ -554,8 +562,10 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
         print(table.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
         if "origin" in results.dims:  # do the intervals hold block by block?
             check = coverage_check(results)
+            (lo68, hi68), (lo95, hi95) = COVERAGE_BANDS[68], COVERAGE_BANDS[95]
             print(f"\ncoverage over {results.sizes['origin']} blocks (holds: mean 68 % in "
-                  f"0.63-0.73, mean 95 % in 0.93-0.97, no block's 95 % below 0.90):")
+                  f"{lo68:g}-{hi68:g}, mean 95 % in {lo95:g}-{hi95:g}, no block's 95 % below "
+                  f"{LOWEST_BLOCK_95:g}):")
             print(check.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     print("wrote " + ", ".join(str(p) for p in targets))
     return targets
