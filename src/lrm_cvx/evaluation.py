@@ -959,8 +959,8 @@ def coverage_check(results: xr.Dataset) -> pd.DataFrame:
     :data:`LOWEST_BLOCK_95`. A block without coverage (an uncalibrated memoryless twin) leaves
     ``holds`` False. DataError for a result of one block."""
     if "origin" not in results.dims:
-        raise DataError("coverage_check needs a rolling-origin result: backtest(data, "
-                        "origins=N)")
+        raise DataError("coverage_check needs a rolling-origin result (backtest(data, "
+                        "origins): a Dataset with an 'origin' dim)")
     per = summary(results, by_origin=True)
     out = per.groupby(["method", "budget"], sort=False).agg(
         blocks=("origin", "nunique"), cov68=("coverage68_mean", "mean"),

@@ -103,17 +103,17 @@ def plot_backtest(results: xr.Dataset, *, budget: float | None = None,
     from .evaluation import COVERAGE_BANDS, summary
 
     if "origin" not in results.dims:
-        raise DataError("plot_backtest needs a rolling-origin result: backtest(data, origins=N) "
-                        "with N > 1")
+        raise DataError("plot_backtest needs a rolling-origin result (backtest(data, origins): "
+                        "a Dataset with an 'origin' dim)")
     budgets = [float(b) for b in results["budget"].values]
     budget = budgets[len(budgets) // 2] if budget is None else float(budget)
     if budget not in budgets:
         raise DataError(f"budget must be one of the results' budgets {budgets}, got {budget:g}")
     df = summary(results, by_origin=True)
     df = df[df["budget"] == budget]
-    labels = [str(np.datetime_as_string(t, unit="D")) if np.issubdtype(np.asarray(t).dtype,
-                                                                          np.datetime64)
-              else str(t) for t in results["origin_time"].values]
+    times = results["origin_time"].values  # datetime64, or cftime objects (other calendars)
+    labels = (list(np.datetime_as_string(times, unit="D")) if times.dtype.kind == "M"
+              else [str(t) for t in times])
     with plt.rc_context(_PRINT_RC):
         if axes is None:
             fig, axes = plt.subplots(1, 3, figsize=(7.2, 2.9), layout="constrained")

@@ -18,6 +18,7 @@ from .refits import clone_model, training_values
 
 __all__ = ["blend_dynamics", "unblended_dynamics", "memoryless_cov", "select_dynamics"]
 
+
 def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
     """Dynamics shrunk towards the memoryless model with the blend of
     :mod:`~lrm_cvx.glrm.dynamics` (``A_a = alpha A``, ``Q_a = (1 - alpha^2) S + alpha^2 Q``,
@@ -53,6 +54,8 @@ def unblended_dynamics(model: Any) -> Any:
 
 
 def memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
+    """``(k, k)`` the latent covariance of the memoryless model that ``dynamics`` blend
+    towards: the empirical covariance of ``X_`` for ``"ar1"``, else the stationary one."""
     from .posterior import empirical_moments
 
     if dynamics.kind == "ar1":

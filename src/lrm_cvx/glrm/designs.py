@@ -1,6 +1,6 @@
 """Campaign-like sample designs on a region's observed cells: the sample sets every validated
-choice draws (the calibration's fold-ins, ``temporal="auto"``, ``spatial="auto"``, the
-placement's windows). A route (spatially clustered), a straight transect (``"line"``) or
+choice draws (the calibration's fold-ins, ``temporal="auto"``, ``spatial="auto"``,
+``select_dynamics``). A route (spatially clustered), a straight transect (``"line"``) or
 scattered cells, in ``O(size)`` work each."""
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ __all__ = ["sample_sets", "SET_KINDS", "ALL_KINDS"]
 
 SET_KINDS = ("route", "scattered")
 ALL_KINDS = ("route", "scattered", "line")  # line: a transect-like straight run of cells
+
 
 def sample_sets(region: Any, observed: np.ndarray, size: int, kind: str,
                 rng: np.random.Generator) -> np.ndarray:

@@ -12,6 +12,7 @@ from ..errors import DataError, ModelError
 
 __all__ = ["clone_model", "training_values"]
 
+
 def clone_model(model: Any, **override: Any):
     """An unfitted copy of ``model`` (its class and parameters, ``override`` applied; a
     refit never calibrates itself: ``calibration`` None unless overridden, and a fitted
@@ -40,5 +41,6 @@ def training_values(model: Any, data: Any, dtype: Any = np.float64):
         raise DataError("data must be a (time, lat, lon) DataArray (the training snapshots)")
     region = getattr(model, "region_", None)
     if region is None:
-        raise ModelError("calibration needs a model fitted on a DataArray (with a region)")
+        raise ModelError("a validation refit needs a model fitted on a DataArray (with a "
+                         "region)")
     return region, region.stack(data).astype(dtype, copy=False)
