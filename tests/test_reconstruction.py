@@ -13,6 +13,7 @@ from lrm_cvx.errors import ModelError, PlanningError
 from lrm_cvx.evaluation import evaluate
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import prediction_factor
+from lrm_cvx.glrm.offset import OFFSET_PRIOR_OBS
 from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel, empirical_moments
 from lrm_cvx.glrm.predictive import NOISE_PRIOR_DF, shrink_noise
 from lrm_cvx.information import (
@@ -67,11 +68,17 @@ def snapshot_obs(model, seed=1, n=25):
 
 
 # --------------------------------------------------------------------------- offset / scale
-def test_offset_scale_are_observed_column_moments_and_fold_in_matches(data):
+def test_offset_is_joint_scale_is_observed_std_and_fold_in_matches(data):
     m = fit(data, offset=True, scale=True)
     D = m.region_.stack(data).astype(float)
-    np.testing.assert_allclose(m.offset_, np.nanmean(D, axis=0), rtol=1e-10)
     np.testing.assert_allclose(m.scale_, np.nanstd(D, axis=0), rtol=1e-10)
+    # the offset is fitted with the factors (glrm/offset.py): the observed mean plus a
+    # correction o that satisfies its normal equation, sum of observed residuals = n0 o
+    o = (m.offset_ - np.nanmean(D, axis=0)) / m.scale_
+    R0 = (D - m.offset_) / m.scale_ - m._Xv.T @ m._Yv
+    assert m.converged_  # the fit stopped after a Y step: its normal equations hold (float32 data)
+    np.testing.assert_allclose(np.nansum(R0, axis=0), OFFSET_PRIOR_OBS * o, atol=1e-5)  # f32
+    assert np.abs(o).max() > 1e-4  # missing entries: the observed mean is not the optimum
     # the low-rank part was fitted to the standardised data
     Z = (D - m.offset_) / m.scale_
     R = (D - m.offset_ - m.scale_ * (m._Xv.T @ m._Yv)) / m.scale_

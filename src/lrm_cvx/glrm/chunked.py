@@ -43,6 +43,7 @@ from ..errors import DataError, ModelError
 from ..io import staging
 from ..io.staging import is_dask_backed
 from ..region import Region
+from . import offset as O
 from . import quadratic as Q
 from .dynamics import error_rows
 from .fit import (
@@ -197,14 +198,21 @@ def _t_load_y0(path, unobserved, minimizer):
     return Y
 
 
-def _t_round(path, ssq, X, Yc, loss, reg_y, step, lams):
+def _t_offset_row(Yc):
+    """A chunk's ``[Y_c; 0]``: the joint offset's row (:mod:`.offset`), starting at centring."""
+    return np.vstack([Yc, np.zeros((1, Yc.shape[1]))])
+
+
+def _t_round(path, ssq, X, Yc, loss, reg_y, step, lams, joint=False):
     """Y step of one chunk, then its X-step statistics at the new ``Y`` (one read of the chunk;
-    the quadratic + ridge path makes exactly two passes over it, as in memory)."""
+    the quadratic + ridge path makes exactly two passes over it, as in memory). ``joint``:
+    ``X`` and ``Yc`` carry the joint offset's row (:mod:`.offset`) and its own ridge."""
     md = _md(path, ssq)
     with _LOCK:
         if lams is not None:  # quadratic + ridge: the fused kernels on the packed mask
-            ry = reg_y.value(Yc)
-            Yn, before, _ = quadratic_y_step(md, X, Yc, lams[0], None)
+            ry = reg_y.value(Yc[:-1]) + O.penalty(Yc[-1]) if joint else reg_y.value(Yc)
+            lam = O.row_ridges(lams[0], X.shape[0] - 1) if joint else lams[0]
+            Yn, before, _ = quadratic_y_step(md, X, Yc, lam, None)
             G, h, c = Q.x_stats(md, Yn)
             return Yn, (before + ry, G, h, gram_values(G, h, c, X))
         D, M = md.D, md.mask()
@@ -219,10 +227,10 @@ def _t_fpass(path, ssq, X, Yc, loss, step):
         return x_pass(md.D, md.mask(), X, Yc, loss, step=step)[2]
 
 
-def _t_final(path, ssq, X, Yc, loss, reg_y, unobserved, minimizer, need_loss):
+def _t_final(path, ssq, X, Yc, loss, reg_y, unobserved, minimizer, need_loss, joint=False):
     """Final objective terms of one chunk: ``(Y_c, (loss, sse, reg_y))`` with unobserved cells
     set to the minimiser; the data are read only when ``need_loss`` (a non-quadratic fit)."""
-    ry = reg_y.value(Yc)
+    ry = reg_y.value(Yc[:-1]) + O.penalty(Yc[-1]) if joint else reg_y.value(Yc)
     f = sse = 0.0
     if need_loss:
         md = _md(path, ssq)
@@ -509,6 +517,13 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     lam_y, lam_x = quadratic_ridge(loss, reg_y), quadratic_ridge(loss, reg_x)
     quad = lam_y is not None and lam_x is not None  # as fit_glrm: the fused quadratic path
     lams = (lam_y, lam_x) if quad else None
+    joint = quad and offset  # as fit_glrm: the offset fitted with the factors (.offset)
+    if joint:
+        Ys = list(dask.persist(*[d(_t_offset_row, pure=False)(y) for y in Ys]))
+        minimizer = np.append(minimizer, 0.0)
+
+    def factors(X):  # the factors the chunks see: with the offset's row when joint
+        return O.augmented(X) if joint else X
     f_loss = None  # quadratic path: the loss at the current (X, Y) from the round's Gram
     history: list[float] = []
     converged = False
@@ -516,7 +531,8 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     bar = progress_bar(progress, max_iter, "GLRM (dask)")
     try:
         for it in range(max_iter):
-            outs = [d(_t_round, nout=2, pure=False)(f, q, X, y, loss, reg_y, it, lams)
+            Xr = factors(X)
+            outs = [d(_t_round, nout=2, pure=False)(f, q, Xr, y, loss, reg_y, it, lams, joint)
                     for f, q, y in zip(files, ssqs, Ys, strict=True)]
             *Ys, tot = dask.persist(*[o[0] for o in outs], _tree_sum([o[1] for o in outs]))
             fy, G, h, f = dask.compute(tot)[0]
@@ -526,9 +542,12 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
             if it >= 1 and relative_decrease(history) < tol:
                 converged = True
                 break
-            Xn = np.array(solve_block(G, h, reg_x, X), dtype=np.float64)
+            if joint:  # the offset's row of X stays fixed
+                Xn = O.fixed_row_solve(G, h, lam_x)
+            else:
+                Xn = np.array(solve_block(G, h, reg_x, X), dtype=np.float64)
             if quad:  # loss at (X_new, Y_new) from the same statistics, no pass
-                f_loss = float(gram_values(G, h, np.sum(ssqs, axis=0), Xn).sum())
+                f_loss = float(gram_values(G, h, np.sum(ssqs, axis=0), factors(Xn)).sum())
             elif not (loss.is_quadratic or loss.majorizer_exact):
                 f2 = dask.compute(_tree_sum([d(_t_fpass, pure=False)(p, q, Xn, y, loss, it + 1)
                                              for p, q, y in zip(files, ssqs, Ys,
@@ -545,7 +564,8 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
         if bar is not None:
             bar.close()
     need = f_loss is None
-    outs = [d(_t_final, nout=2, pure=False)(f, q, X, y, loss, reg_y, u, minimizer, need)
+    Xr = factors(X)
+    outs = [d(_t_final, nout=2, pure=False)(f, q, Xr, y, loss, reg_y, u, minimizer, need, joint)
             for f, q, y, u in zip(files, ssqs, Ys, unobs_local, strict=True)]
     *Ys, tot = dask.persist(*[o[0] for o in outs], _tree_sum([o[1] for o in outs]))
     fsum, sse, ry = dask.compute(tot)[0]
@@ -554,7 +574,7 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     history.append(float(fsum) + reg_x.value(X) + ry)
     direct = sse <= SSE_RTOL * ssq  # the Gram identity cancelled: sum the residuals directly
     if moments or rows is not None or direct:
-        res = dask.compute(*[d(_t_residuals, pure=False)(f, q, X, y, moments, rows, direct)
+        res = dask.compute(*[d(_t_residuals, pure=False)(f, q, Xr, y, moments, rows, direct)
                              for f, q, y in zip(files, ssqs, Ys, strict=True)])
         if moments:
             extras["moments"] = tuple(np.concatenate([r["moments"][i] for r in res])
@@ -567,15 +587,23 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
                 history[-1] = sse + reg_x.value(X) + ry
     converged = finish_convergence(history, converged, max_iter, tol, stacklevel=6)
     widths = np.diff(bounds)
+    k1 = k + 1 if joint else k
     if keep_dask:
-        Y = da.concatenate([da.from_delayed(y, shape=(k, int(w)), dtype=np.float64)
+        Y = da.concatenate([da.from_delayed(y, shape=(k1, int(w)), dtype=np.float64)
                             for y, w in zip(Ys, widths, strict=True)], axis=1)
     else:
         Y = np.concatenate(dask.compute(*Ys), axis=1)
+    off = None
+    if joint:  # the offset's correction, added to the staged observed mean (in data units)
+        off = np.asarray(Y[k], dtype=np.float64)
+        Y = Y[:k] if keep_dask else np.ascontiguousarray(Y[:k])
+        sc = extras.get("scale")
+        extras["offset"] = extras["offset"] + (off if sc is None else off * sc)
     clock.mark("final")
     return FitResult(
         X=np.ascontiguousarray(X), Y=Y, objective=history, n_iter=n_iter,
         converged=converged, unobserved_cells=unobserved.astype(np.int64), n_observed=n_obs,
         sse=float(sse), noise_std=noise_std(sse, n_obs, k, T, L_obs,
                                             extra=L_obs if offset else 0), solver="fast",
+        offset=off,
     )

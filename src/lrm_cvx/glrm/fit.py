@@ -41,6 +41,7 @@ from scipy.linalg import solve_triangular
 from .._validation import check_time_labels
 from ..errors import ConvergenceWarning, DataError, ModelError, SolverError
 from . import kernels as K
+from . import offset as O
 from . import quadratic as Q
 from .losses import Loss
 from .regularizers import Regularizer
@@ -90,6 +91,7 @@ class FitResult:
     sse: float = 0.0  # sum of squared residuals on observed entries
     noise_std: float = 0.0
     solver: str = "fast"
+    offset: np.ndarray | None = None  # (L,) the joint offset's correction to the centring
 
 
 # --------------------------------------------------------------------------- data checks
@@ -350,6 +352,15 @@ def _quad_x(md, X, Y, lam):
     K.chol_solve(G, h, lam, pa, pb, out)
     Xn = np.ascontiguousarray(out.T)
     return Xn, float(gram_values(G, h, c, X).sum()), float(gram_values(G, h, c, Xn).sum())
+
+
+def _quad_x_offset(md, X, Ya, lam):
+    """:func:`_quad_x` of the joint offset (:mod:`.offset`): the first ``k`` rows of
+    ``[X; 1]`` given ``Ya = [Y; o]``; the losses include the offset."""
+    G, h, cc = Q.x_stats(md, Ya)
+    Xn = O.fixed_row_solve(G, h, lam)
+    return (Xn, float(gram_values(G, h, cc, O.augmented(X)).sum()),
+            float(gram_values(G, h, cc, O.augmented(Xn)).sum()))
 
 
 _quad_y = quadratic_y_step  # its name before issue #27 (benchmarks/bench_glrm.py)
@@ -710,8 +721,10 @@ def fit_glrm(
     ``D`` is read through its zero-filled form (:func:`~.quadratic.prepare`): a ``D`` that
     holds values (NaN) at unobserved entries is copied once, or zero-filled in place when
     ``overwrite_data`` is True. ``stats`` is :func:`check_data`'s result when already known.
-    ``offset``: ``D`` is already centred by a fitted per-cell mean (counted in the degrees of
-    freedom of ``noise_std``).
+    ``offset``: ``D`` is already centred by each cell's observed mean (counted in the degrees of
+    freedom of ``noise_std``); on the quadratic path the fit then refines the offset jointly
+    with the factors (:mod:`.offset`), and ``FitResult.offset`` is the correction ``(L,)`` to
+    add to the observed mean (in ``D``'s units; None on the other paths: centring only).
 
     Each iteration is a Y step then an X step. The objective recorded for iteration ``i`` is
     evaluated at the factors after ``i`` rounds (``objective[0]`` at the initialisation);
@@ -754,6 +767,12 @@ def fit_glrm(
     quad = fast and lam_y is not None and lam_x is not None
     f_loss = None  # quadratic path: loss at the current (X, Y) from the last step's Gram
 
+    joint = quad and offset  # the offset as a factor with a fixed row of X (.offset)
+    if joint:
+        ridges = O.row_ridges(lam_y, rank)
+        Ya = np.zeros((rank + 1, L))  # [Y; o], Y a view of its first k rows
+        Ya[:rank] = Y
+        Y = Ya[:rank]
     cache: dict = {}
     history: list[float] = []
     converged = False
@@ -761,7 +780,11 @@ def fit_glrm(
     bar = progress_bar(progress, max_iter, "GLRM")
     try:
         for it in range(max_iter):
-            if quad:
+            if joint:
+                ry = reg_y.value(Y) + O.penalty(Ya[rank])  # at the factors before the step
+                _, lb, f_loss = quadratic_y_step(md, O.augmented(X), Ya, ridges, Ya)
+                fy = lb + ry
+            elif quad:
                 ry = reg_y.value(Y)
                 Y, lb, f_loss = quadratic_y_step(md, X, Y, lam_y, Y)
                 fy = lb + ry
@@ -774,7 +797,9 @@ def fit_glrm(
             if it >= 1 and relative_decrease(history) < tol:
                 converged = True
                 break
-            if quad:
+            if joint:
+                X, _, f_loss = _quad_x_offset(md, X, Ya, lam_x)
+            elif quad:
                 X, _, f_loss = _quad_x(md, X, Y, lam_x)
             elif fast:
                 X, _ = x_block(D, M, X, Y, loss, reg_x, max_inner=max_inner,
@@ -790,12 +815,19 @@ def fit_glrm(
             bar.close()
     if f_loss is None:
         f_loss = _loss_sum(D, M, X, Y, loss)
-    history.append(f_loss + reg_x.value(X) + reg_y.value(Y))
+    history.append(f_loss + reg_x.value(X) + reg_y.value(Y)
+                   + (O.penalty(Ya[rank]) if joint else 0.0))
     converged = finish_convergence(history, converged, max_iter, tol, stacklevel=4)
     Y[:, unobserved] = reg_y.minimizer(rank)[:, None]  # (unobserved columns add no loss)
-    sse = max(f_loss, 0.0) if is_plain_quadratic(loss) else quadratic_loss(md, X, Y)
+    off = None
+    if joint:
+        Ya[rank, unobserved] = 0.0
+        off = Ya[rank].copy()
+        Y = np.ascontiguousarray(Ya[:rank])
+    Xs, Ys = (O.augmented(X), Ya) if joint else (X, Y)  # the residuals' factors
+    sse = max(f_loss, 0.0) if is_plain_quadratic(loss) else quadratic_loss(md, Xs, Ys)
     if sse <= SSE_RTOL * ssq:  # the Gram identity cancelled: sum the residuals directly
-        sse = direct_sse(D, M, X, Y)
+        sse = direct_sse(D, M, Xs, Ys)
         if is_plain_quadratic(loss):
             history[-1] = sse + reg_x.value(X) + reg_y.value(Y)
     return FitResult(
@@ -803,7 +835,7 @@ def fit_glrm(
         unobserved_cells=unobserved.astype(np.int64), n_observed=n_obs, sse=sse,
         noise_std=noise_std(sse, n_obs, rank, T, L - unobserved.size,
                             extra=(L - unobserved.size) if offset else 0),
-        solver="fast" if fast else "cvxpy",
+        solver="fast" if fast else "cvxpy", offset=off,
     )
 
 

@@ -217,14 +217,23 @@ def row_pass(D, M, X, Y, code, p0, p1, pa, pb, nchunk, G, h, f):  # pragma: no c
                     h[c, t, a] += acc
 
 
+def ridge_vector(lam, k: int) -> np.ndarray:
+    """The ridge of each of ``k`` rows, ``(k,)`` float64: a number for every row, or one per row
+    (the joint offset's row has its own, :mod:`.offset`)."""
+    lam = np.asarray(lam, dtype=np.float64)
+    return np.full(k, float(lam)) if lam.ndim == 0 else np.ascontiguousarray(lam)
+
+
 def chol_solve(G, h, lam, pa, pb, out):
-    """Solve ``(G_j + lam I) y_j = h_j`` for every block entry into ``out (n, k)``; returns
-    the ``(n,)`` int8 flags (0 Cholesky, 1 pseudo-inverse, 2 empty). Small batches take
-    :func:`chol_solve_numpy`, large ones the compiled :func:`chol_solve_compiled`."""
+    """Solve ``(G_j + diag(lam)) y_j = h_j`` for every block entry into ``out (n, k)``
+    (``lam`` a number or ``(k,)``: :func:`ridge_vector`); returns the ``(n,)`` int8 flags (0
+    Cholesky, 1 pseudo-inverse, 2 empty). Small batches take :func:`chol_solve_numpy`, large
+    ones the compiled :func:`chol_solve_compiled`."""
     n, k = h.shape
+    lam = ridge_vector(lam, k)
     if is_small(n * k * k):
         return chol_solve_numpy(G, h, lam, pa, pb, out)
-    return chol_solve_compiled(G, h, lam, pa, pb, out)
+    return _chol_solve_compiled(G, h, lam, pa, pb, out)
 
 
 def chol_solve_numpy(G, h, lam, pa, pb, out):
@@ -236,7 +245,7 @@ def chol_solve_numpy(G, h, lam, pa, pb, out):
     A[:, pa, pb] = G
     A[:, pb, pa] = G
     idx = np.arange(k)
-    A[:, idx, idx] += lam
+    A[:, idx, idx] += ridge_vector(lam, k)
     scale = np.maximum(A[:, idx, idx].max(axis=1, initial=0.0), 0.0)
     flags = np.where(scale == 0.0, 2, 0).astype(np.int8)
     Lc = np.zeros((n, k, k))
@@ -268,11 +277,16 @@ def chol_solve_numpy(G, h, lam, pa, pb, out):
     return flags
 
 
-@numba.njit(parallel=True, cache=True)
-def chol_solve_compiled(G, h, lam, pa, pb, out):  # pragma: no cover - numba
-    """Solve ``(G_j + lam I) y_j = h_j`` for every block entry; ``out (n, k)``.
+def chol_solve_compiled(G, h, lam, pa, pb, out):
+    """:func:`_chol_solve_compiled` with ``lam`` a number or ``(k,)`` (:func:`ridge_vector`)."""
+    return _chol_solve_compiled(G, h, ridge_vector(lam, h.shape[1]), pa, pb, out)
 
-    ``G (n, npair)`` packed. A per-entry k x k Cholesky; when it breaks down (fewer
+
+@numba.njit(parallel=True, cache=True)
+def _chol_solve_compiled(G, h, lam, pa, pb, out):  # pragma: no cover - numba
+    """Solve ``(G_j + diag(lam)) y_j = h_j`` for every block entry; ``out (n, k)``.
+
+    ``G (n, npair)`` packed, ``lam (k,)``. A per-entry k x k Cholesky; when it breaks down (fewer
     observations than k and no ridge) the minimum-norm solution via ``pinv``; an all-zero
     system (never observed, no ridge) gives ``y = 0``. Returns ``(n,)`` int8 flags:
     0 Cholesky, 1 pseudo-inverse, 2 empty. Work buffers are per thread chunk, not per entry.
@@ -357,7 +371,8 @@ def data_stats_compiled(D, M, check):  # pragma: no cover - numba
 
 @numba.njit(inline="always", cache=True)
 def spd_solve(A, hv, lam, Lc, z, y):  # pragma: no cover - numba
-    """Solve ``(A + lam I) y = hv`` for one ``k x k`` system in place (``A`` is modified).
+    """Solve ``(A + diag(lam)) y = hv`` for one ``k x k`` system in place (``A`` is modified;
+    ``lam (k,)`` the ridge of each row).
 
     Cholesky; when it breaks down (singular without ridge) the minimum-norm ``pinv``
     solution; an all-zero system gives ``y = 0``. Returns 0 (Cholesky), 1 (pinv), 2 (empty).
@@ -365,7 +380,7 @@ def spd_solve(A, hv, lam, Lc, z, y):  # pragma: no cover - numba
     k = hv.shape[0]
     scale = 0.0
     for a in range(k):
-        A[a, a] += lam
+        A[a, a] += lam[a]
         scale = max(scale, A[a, a])
     if scale == 0.0:
         for a in range(k):

@@ -35,7 +35,7 @@ from .modelfile import (
     validation_tables,
 )
 from .posterior import LatentPosterior, fold_in_snapshots, model_prior
-from .predictive import PREDICTIVE_ATTRS, fit_predictive
+from .predictive import PREDICTIVE_ATTRS, add_joint_offset, fit_predictive
 from .regularizers import get_regularizer
 from .selection import check_auto_data
 
@@ -69,9 +69,11 @@ class GLRM:
     progress : show a tqdm progress bar.
     keep_dask : for dask-backed data, keep ``Y_`` as a dask array of the persisted column chunks
         (docs/scaling.md); ``dask_options``: :func:`~.chunked.fit_chunked`'s options.
-    offset, scale : fit a per-cell mean (``offset_``, unpenalised) and/or divide by a per-cell
-        std (``scale_``, floored at ``predictive.SCALE_FLOOR`` times the median cell's) before
-        the low-rank fit (``scale="residual"``: the residual's relative std, after it);
+    offset, scale : fit a per-cell mean (``offset_``: with the quadratic loss jointly with the
+        factors, the observed mean plus a correction worth one pseudo-observation, glrm/offset.py;
+        else the observed mean) and/or divide by a per-cell std (``scale_``, the observed std,
+        floored at ``predictive.SCALE_FLOOR`` times the median cell's) before the low-rank fit
+        (``scale="residual"``: the residual's relative std, after it);
         prediction and planning undo them (docs/reconstruction.md).
     noise : ``"global"`` (the paper: one ``noise_std_``) or ``"per-cell"`` (``noise_var_``,
         per-cell training residual variance shrunk towards the global one; weights the fold-in
@@ -229,6 +231,7 @@ class GLRM:
             stats=stats, overwrite_data=owned,  # our own copy: zero-filled in place
             offset=offset,
         )
+        add_joint_offset(self, res.offset, D, M)  # the offset refined with the factors
         self._set_result(res, region, times, xarray=region is not None)
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
         self._fit_dynamics(M[-1], mask=M)

@@ -166,6 +166,24 @@ def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage:
     return None
 
 
+def add_joint_offset(model: Any, correction: np.ndarray | None, D: np.ndarray | None = None,
+                     M: np.ndarray | None = None) -> None:
+    """The fit's joint offset (:mod:`.offset`): ``correction (L,)`` (fit units, None: centring
+    only) is added to the pending ``offset_`` (times the pending ``scale_``) and, when given,
+    taken off the fit-units data ``D`` on its observed entries ``M`` (in place, in blocks of
+    cells), so the residual statistics after the fit are those of the joint model."""
+    if correction is None:
+        return
+    sc = getattr(model, "_pending_scale", None)
+    model._pending_offset = model._pending_offset + (correction if sc is None
+                                                     else correction * sc)
+    if D is None:
+        return
+    for lo in range(0, D.shape[1], _BLOCK):
+        sl = slice(lo, min(D.shape[1], lo + _BLOCK))
+        D[:, sl] -= np.where(M[:, sl], correction[sl], 0.0).astype(D.dtype)
+
+
 def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
                    scale: np.ndarray | None, moments: tuple[np.ndarray, np.ndarray] | None,
                    sample: np.ndarray | None) -> None:

@@ -21,13 +21,13 @@ sums up to rounding.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
 from numba import prange
 
-from .kernels import chol_solve_numpy, is_small, quad_value, spd_solve
+from .kernels import chol_solve_numpy, is_small, quad_value, ridge_vector, spd_solve
 
 _FM = {"contract", "reassoc", "arcp", "nsz"}
 GROUP = 8  # times per mask byte
@@ -328,7 +328,7 @@ def _y_step(D, codes, Xt, TAB, lam, pa, pb, Y, out, nchunk):  # pragma: no cover
                 fb += quad_value(A, hv, 0.0, y)
                 npinv += spd_solve(A, hv, lam, Lc, z, y) == 1
                 for a in range(k):
-                    A[a, a] -= lam
+                    A[a, a] -= lam[a]
                 fa += quad_value(A, hv, 0.0, y)
                 for a in range(k):
                     out[a, j] = y[a]
@@ -441,28 +441,30 @@ def _pairs(k: int) -> tuple[np.ndarray, np.ndarray]:
     return pa.astype(np.int64), pb.astype(np.int64)
 
 
-def y_step(md: MaskedData, X: np.ndarray, Y: np.ndarray, lam: float,
+def y_step(md: MaskedData, X: np.ndarray, Y: np.ndarray, lam: Any,
            out: np.ndarray) -> tuple[float, float, int]:
     """Exact quadratic + ridge Y step into ``out (k, L)`` float64 (may be ``Y``).
 
-    ``out[:, j] = argmin_y ||P_j(X^T y - d_j)||^2 + lam ||y||^2``. Returns the loss over
+    ``out[:, j] = argmin_y ||P_j(X^T y - d_j)||^2 + sum_a lam_a y_a^2`` (``lam`` a number or one
+    per row). Returns the loss over
     observed entries at ``Y`` and at ``out`` (no ridge term) and the number of cells solved by
     the pseudo-inverse (fewer observations than the rank, no ridge).
     """
     k, T = X.shape
     pa, pb = _pairs(k)
     X = np.ascontiguousarray(X, dtype=np.float64)
+    lam = ridge_vector(lam, k)
     if is_small(md.D.size):
         return _y_step_numpy(md, X, Y, lam, out, pa, pb)
     TAB = subset_tables(pair_products(X, pa, pb, pad_width(pa.size)), md.codes.shape[0])
     PASSES.add(md.D)
-    before, after, npinv = _y_step(md.D, md.codes, np.ascontiguousarray(X.T), TAB, float(lam),
+    before, after, npinv = _y_step(md.D, md.codes, np.ascontiguousarray(X.T), TAB, lam,
                                    pa, pb, Y, out, _nchunk())
     ssq = float(md.ssq_rows.sum())
     return before + ssq, after + ssq, npinv
 
 
-def _y_step_numpy(md: MaskedData, X: np.ndarray, Y: np.ndarray, lam: float, out: np.ndarray,
+def _y_step_numpy(md: MaskedData, X: np.ndarray, Y: np.ndarray, lam: np.ndarray, out: np.ndarray,
                   pa: np.ndarray, pb: np.ndarray) -> tuple[float, float, int]:
     """:func:`y_step` for small data with numpy (same Grams, same per-cell solves)."""
     PASSES.add(md.D)
@@ -481,7 +483,7 @@ def _y_step_numpy(md: MaskedData, X: np.ndarray, Y: np.ndarray, lam: float, out:
 
     before = q(Yc)
     sol = np.empty((G.shape[0], k))
-    flags = chol_solve_numpy(np.ascontiguousarray(G), h, float(lam), pa, pb, sol)
+    flags = chol_solve_numpy(np.ascontiguousarray(G), h, lam, pa, pb, sol)
     out[...] = sol.T
     ssq = float(md.ssq_rows.sum())
     return before + ssq, q(out) + ssq, int(np.count_nonzero(flags == 1))
