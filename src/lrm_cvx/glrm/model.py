@@ -231,7 +231,7 @@ class GLRM:
             stats=stats, overwrite_data=owned,  # our own copy: zero-filled in place
             offset=offset,
         )
-        add_joint_offset(self, res.offset, D, M)  # the offset refined with the factors
+        add_joint_offset(self, res.offset)  # the offset refined with the factors
         self._set_result(res, region, times, xarray=region is not None)
         fit_predictive(self, D, M, region, stage="after", pre=pre)  # noise / spatial (opt-in)
         self._fit_dynamics(M[-1], mask=M)

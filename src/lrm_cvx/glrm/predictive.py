@@ -44,6 +44,7 @@ import xarray as xr
 
 from ..errors import ModelError
 from .calibrated import residual_dof
+from .offset import augmented
 
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
            "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
@@ -151,7 +152,7 @@ def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage:
     ``spatial_cov_`` from the residuals of the (transformed) training data."""
     if stage == "before":
         check_options(model, region is not None)
-        model._pending_offset = model._pending_scale = None
+        model._pending_offset = model._pending_scale = model._pending_correction = None
         if not (model.offset or data_scale(model)):
             return None
         mean, std, count = column_moments(D, M)
@@ -159,6 +160,9 @@ def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage:
         model._pending_offset, model._pending_scale = off, sc
         return {"data": standardize(D, M, off, sc)}
     X, Y = model._Xv, model._Yv
+    correction = getattr(model, "_pending_correction", None)
+    if correction is not None:  # the joint offset: the residuals of [X; 1]^T [Y; o]
+        X, Y = augmented(X), np.vstack([Y, correction])
     moments = residual_moments(D, M, X, Y) if wants_residual_moments(model) else None
     sample = residual_sample(D, M, X, Y) if model.spatial is not None else None
     set_predictive(model, region, getattr(model, "_pending_offset", None),
@@ -166,22 +170,16 @@ def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage:
     return None
 
 
-def add_joint_offset(model: Any, correction: np.ndarray | None, D: np.ndarray | None = None,
-                     M: np.ndarray | None = None) -> None:
-    """The fit's joint offset (:mod:`.offset`): ``correction (L,)`` (fit units, None: centring
-    only) is added to the pending ``offset_`` (times the pending ``scale_``) and, when given,
-    taken off the fit-units data ``D`` on its observed entries ``M`` (in place, in blocks of
-    cells), so the residual statistics after the fit are those of the joint model."""
+def add_joint_offset(model: Any, correction: np.ndarray | None) -> None:
+    """The fit's joint offset (:mod:`.offset`): ``correction (L,)`` (fit units; None: centring
+    only) is added to the pending ``offset_`` (times the pending ``scale_``) and kept for the
+    residual statistics after the fit (:func:`fit_predictive`, those of the joint model)."""
+    model._pending_correction = correction
     if correction is None:
         return
     sc = getattr(model, "_pending_scale", None)
     model._pending_offset = model._pending_offset + (correction if sc is None
                                                      else correction * sc)
-    if D is None:
-        return
-    for lo in range(0, D.shape[1], _BLOCK):
-        sl = slice(lo, min(D.shape[1], lo + _BLOCK))
-        D[:, sl] -= np.where(M[:, sl], correction[sl], 0.0).astype(D.dtype)
 
 
 def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
