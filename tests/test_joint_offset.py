@@ -44,6 +44,14 @@ def clouded(T=60, L=300, k=2, seed=0, noise=0.2):
     return truth, data
 
 
+def clouded_grid(seed: int, T: int = 36, ny: int = 20, nx: int = 15) -> xr.DataArray:
+    """:func:`clouded` data as a ``(time, lat, lon)`` DataArray (for the dask fit)."""
+    _, D = clouded(T=T, L=ny * nx, k=2, seed=seed)
+    return xr.DataArray(D.reshape(T, ny, nx), dims=("time", "lat", "lon"),
+                        coords={"time": np.arange(T), "lat": np.arange(float(ny)),
+                                "lon": np.arange(float(nx))})
+
+
 def naive_joint(Z, M, X0, n_iter, lam_y=0.0, lam_x=0.0):
     """The objective of glrm/offset.py minimised by alternating dense least squares from
     ``X0``: per cell ``[y; o]`` with ridge ``(lam_y, ..., lam_y, n0)``, per time ``x`` with
@@ -131,10 +139,7 @@ def test_clouded_season_is_recovered_where_centring_was_biased():
 
 def test_dask_fit_is_the_in_memory_joint_fit():
     pytest.importorskip("dask")
-    _, D = clouded(T=36, L=20 * 15, k=2, seed=4)
-    da = xr.DataArray(D.reshape(36, 20, 15), dims=("time", "lat", "lon"),
-                      coords={"time": np.arange(36), "lat": np.arange(20.0),
-                              "lon": np.arange(15.0)})
+    da = clouded_grid(seed=4)
     kw = dict(offset=True, scale=True, max_iter=15, tol=0, **FIT)
     ref = quiet(GLRM(2, **kw), da)
     out = quiet(GLRM(2, dask_options={"chunk_mb": 0.01, "block_mb": 0.05}, **kw),
@@ -144,3 +149,51 @@ def test_dask_fit_is_the_in_memory_joint_fit():
     np.testing.assert_allclose(out.objective_, ref.objective_, rtol=1e-7)
     np.testing.assert_allclose(np.asarray(out.reconstruct()), np.asarray(ref.reconstruct()),
                                rtol=0, atol=1e-5)
+
+
+def test_huber_inside_its_quadratic_zone_is_the_quadratic_joint_fit():
+    """A Huber loss whose delta exceeds every residual is ``r^2``: its majorise-minimise steps
+    with the offset's row (fit.x_block_offset, offset.OffsetRidge) are the exact ones."""
+    from lrm_cvx.glrm.losses import Huber
+
+    _, D = clouded(T=30, L=80, k=3, seed=5)
+    kw = dict(offset=True, max_iter=8, tol=0, **FIT)
+    quad = quiet(GLRM(3, **kw), D)
+    huber = quiet(GLRM(3, loss=Huber(1e6), **kw), D)
+    np.testing.assert_allclose(huber.offset_, quad.offset_, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(huber._Xv.T @ huber._Yv, quad._Xv.T @ quad._Yv, atol=1e-8)
+    np.testing.assert_allclose(huber.objective_, quad.objective_, rtol=1e-10)
+
+
+@pytest.mark.parametrize("loss", ["huber", "absolute"])
+def test_robust_losses_fit_the_offset_jointly_and_never_increase(loss):
+    truth, D = clouded(T=40, L=150, k=2, seed=6)
+    rng = np.random.default_rng(0)
+    seen = np.flatnonzero(~np.isnan(D))
+    D.flat[rng.choice(seen, 60, replace=False)] += 25.0  # gross errors (residual clouds)
+    M = ~np.isnan(D)
+    joint = quiet(GLRM(2, loss=loss, offset=True, max_iter=60, tol=0, **FIT), D)
+    h = np.asarray(joint.objective_)
+    assert np.all(np.diff(h) <= 1e-9 * np.abs(h[:-1]))
+    mean = np.nanmean(D, axis=0)
+    centred = quiet(GLRM(2, loss=loss, max_iter=60, tol=0, **FIT), D - mean)
+    err_j = np.mean((joint.reconstruct().astype(float) - truth)[~M] ** 2)
+    err_c = np.mean((centred._Xv.T @ centred._Yv + mean - truth)[~M] ** 2)
+    assert err_j < 0.5 * err_c
+
+
+def test_l1_factors_keep_the_observed_mean():
+    _, D = clouded(T=30, L=80, k=2, seed=7)
+    m = quiet(GLRM(2, offset=True, reg_y="l1", max_iter=5, **FIT), D)
+    np.testing.assert_allclose(m.offset_, np.nanmean(D, axis=0), rtol=1e-12)
+
+
+def test_dask_robust_loss_is_the_in_memory_joint_fit():
+    pytest.importorskip("dask")
+    da = clouded_grid(seed=8)
+    kw = dict(offset=True, loss="huber", reg_x="ridge", max_iter=6, tol=0, **FIT)
+    ref = quiet(GLRM(2, **kw), da)
+    out = quiet(GLRM(2, dask_options={"chunk_mb": 0.01, "block_mb": 0.05}, **kw),
+                da.chunk({"time": 7}))
+    np.testing.assert_allclose(out.offset_, ref.offset_, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(out.objective_, ref.objective_, rtol=1e-7)

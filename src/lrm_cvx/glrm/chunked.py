@@ -216,7 +216,8 @@ def _t_round(path, ssq, X, Yc, loss, reg_y, step, lams, joint=False):
             G, h, c = Q.x_stats(md, Yn)
             return Yn, (before + ry, G, h, gram_values(G, h, c, X))
         D, M = md.D, md.mask()
-        Yn, fy = y_block(D, M, X, Yc, loss, reg_y, step0=step)
+        reg = O.OffsetRidge(reg_y, X.shape[0] - 1) if joint else reg_y
+        Yn, fy = y_block(D, M, X, Yc, loss, reg, step0=step)
         G, h, f = x_pass(D, M, X, Yn, loss, step=step)
     return Yn, (fy, G, h, f)
 
@@ -517,7 +518,7 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     lam_y, lam_x = quadratic_ridge(loss, reg_y), quadratic_ridge(loss, reg_x)
     quad = lam_y is not None and lam_x is not None  # as fit_glrm: the fused quadratic path
     lams = (lam_y, lam_x) if quad else None
-    joint = quad and offset  # as fit_glrm: the offset fitted with the factors (.offset)
+    joint = offset and O.supports(reg_x, reg_y)  # as fit_glrm: the offset as a factor
     if joint:
         Ys = list(dask.persist(*[d(_t_offset_row, pure=False)(y) for y in Ys]))
         minimizer = np.append(minimizer, 0.0)
@@ -543,13 +544,14 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
                 converged = True
                 break
             if joint:  # the offset's row of X stays fixed
-                Xn = O.fixed_row_solve(G, h, lam_x)
+                Xn = O.fixed_row_solve(G, h, reg_x.ridge_coefficient)
             else:
                 Xn = np.array(solve_block(G, h, reg_x, X), dtype=np.float64)
             if quad:  # loss at (X_new, Y_new) from the same statistics, no pass
                 f_loss = float(gram_values(G, h, np.sum(ssqs, axis=0), factors(Xn)).sum())
             elif not (loss.is_quadratic or loss.majorizer_exact):
-                f2 = dask.compute(_tree_sum([d(_t_fpass, pure=False)(p, q, Xn, y, loss, it + 1)
+                f2 = dask.compute(_tree_sum([d(_t_fpass, pure=False)(p, q, factors(Xn), y, loss,
+                                                                      it + 1)
                                              for p, q, y in zip(files, ssqs, Ys,
                                                                 strict=True)]))[0]
                 worse = ~(f2 + reg_x.evaluate(Xn) <= f + reg_x.evaluate(X))

@@ -263,25 +263,27 @@ def _solve_normal(G, h, reg, F0):
     if lam is not None:
         pa, pb = K.pair_index(k)
         out = np.empty((h.shape[0], k))
-        K.chol_solve(G, h, float(lam), pa, pb, out)
+        K.chol_solve(G, h, lam, pa, pb, out)  # a number, or one per row (.offset)
         return out.T
     if reg.separable_prox:
         return _coordinate_descent(G, h, reg, F0)
     raise ModelError(f"{reg!r} has no closed form or prox: use solver='cvxpy'")
 
 
-def _mm_block(pass_fn, F, loss, reg, max_inner, inner_tol, step0=0):
+def _mm_block(pass_fn, F, loss, reg, max_inner, inner_tol, step0=0, solve=None):
     """Minimise one block by (majorised) normal equations; return ``(F_new, objective_before)``.
 
     ``pass_fn(F) -> (G, h, f)`` evaluates the loss ``f`` per column at ``F`` and the Gram of
     its quadratic majoriser. Quadratic loss: one exact solve. Otherwise up to ``max_inner``
     MM steps; inexact majorisers keep a column's old value when its objective went up.
+    ``solve(G, h, reg, F)``: the majoriser's minimiser (default :func:`_solve_normal`).
     """
+    solve = solve or _solve_normal
     G, h, f = pass_fn(F, loss.smoothed(step0))
     cur = f + reg.evaluate(F)
     first = float(cur.sum())
     for it in range(max_inner):
-        Fn = np.array(_solve_normal(G, h, reg, F), dtype=np.float64)
+        Fn = np.array(solve(G, h, reg, F), dtype=np.float64)
         last = it == max_inner - 1
         if loss.is_quadratic or (last and loss.majorizer_exact):
             return Fn, first
@@ -409,6 +411,28 @@ def y_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, out=None, step
         out[:, j0:j1] = Fn
         total += first
     return out, total
+
+
+def x_block_offset(D, M, X, Ya, loss, reg, *, max_inner=1, inner_tol=0.0, step0=0):
+    """:func:`x_block` of the joint offset (:mod:`.offset`, ridge-type ``reg``): the first ``k``
+    rows of ``[X; 1]`` given ``Ya = [Y; o]``, the majoriser's normal equations solved with the
+    last row fixed. Returns ``(X_new (k, T), objective_before)``."""
+    k, T = X.shape
+    pa, pb = K.pair_index(k + 1)
+    nchunk = _nchunk()
+    Ya = np.ascontiguousarray(Ya, dtype=np.float64)
+    lam = reg.ridge_coefficient
+
+    def pass_fn(F, lo):
+        code, p0, p1 = lo.kernel_spec
+        G = np.zeros((nchunk, T, pa.size))
+        h = np.zeros((nchunk, T, k + 1))
+        f = np.zeros((nchunk, T))
+        K.row_pass(D, M, O.augmented(F), Ya, code, p0, p1, pa, pb, nchunk, G, h, f)
+        return G.sum(0), h.sum(0), f.sum(0)
+
+    return _mm_block(pass_fn, np.array(X, dtype=np.float64), loss, reg, max_inner, inner_tol,
+                     step0, solve=lambda G, h, reg, F: O.fixed_row_solve(G, h, lam))
 
 
 def x_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, step0=0):
@@ -722,9 +746,10 @@ def fit_glrm(
     holds values (NaN) at unobserved entries is copied once, or zero-filled in place when
     ``overwrite_data`` is True. ``stats`` is :func:`check_data`'s result when already known.
     ``offset``: ``D`` is already centred by each cell's observed mean (counted in the degrees of
-    freedom of ``noise_std``); on the quadratic path the fit then refines the offset jointly
-    with the factors (:mod:`.offset`), and ``FitResult.offset`` is the correction ``(L,)`` to
-    add to the observed mean (in ``D``'s units; None on the other paths: centring only).
+    freedom of ``noise_std``); on the fast path with ridge-type regularisers the fit then
+    refines the offset jointly with the factors (:mod:`.offset`), and ``FitResult.offset`` is
+    the correction ``(L,)`` to add to the observed mean (in ``D``'s units; None otherwise: the
+    cvxpy path, L1 or non-negative factors keep the observed mean).
 
     Each iteration is a Y step then an X step. The objective recorded for iteration ``i`` is
     evaluated at the factors after ``i`` rounds (``objective[0]`` at the initialisation);
@@ -767,7 +792,7 @@ def fit_glrm(
     quad = fast and lam_y is not None and lam_x is not None
     f_loss = None  # quadratic path: loss at the current (X, Y) from the last step's Gram
 
-    joint = quad and offset  # the offset as a factor with a fixed row of X (.offset)
+    joint = fast and offset and O.supports(reg_x, reg_y)  # the offset as a factor (.offset)
     if joint:
         ridges = O.row_ridges(lam_y, rank)
         Ya = np.zeros((rank + 1, L))  # [Y; o], Y a view of its first k rows
@@ -780,10 +805,13 @@ def fit_glrm(
     bar = progress_bar(progress, max_iter, "GLRM")
     try:
         for it in range(max_iter):
-            if joint:
+            if joint and quad:
                 ry = reg_y.value(Y) + O.penalty(Ya[rank])  # at the factors before the step
                 _, lb, f_loss = quadratic_y_step(md, O.augmented(X), Ya, ridges, Ya)
                 fy = lb + ry
+            elif joint:  # a robust loss: majorise-minimise with the offset's row
+                _, fy = y_block(D, M, O.augmented(X), Ya, loss, O.OffsetRidge(reg_y, rank),
+                                max_inner=max_inner, out=Ya, step0=it * max_inner)
             elif quad:
                 ry = reg_y.value(Y)
                 Y, lb, f_loss = quadratic_y_step(md, X, Y, lam_y, Y)
@@ -797,8 +825,11 @@ def fit_glrm(
             if it >= 1 and relative_decrease(history) < tol:
                 converged = True
                 break
-            if joint:
+            if joint and quad:
                 X, _, f_loss = _quad_x_offset(md, X, Ya, lam_x)
+            elif joint:
+                X, _ = x_block_offset(D, M, X, Ya, loss, reg_x, max_inner=max_inner,
+                                      step0=it * max_inner)
             elif quad:
                 X, _, f_loss = _quad_x(md, X, Y, lam_x)
             elif fast:
@@ -814,7 +845,7 @@ def fit_glrm(
         if bar is not None:
             bar.close()
     if f_loss is None:
-        f_loss = _loss_sum(D, M, X, Y, loss)
+        f_loss = _loss_sum(D, M, *((O.augmented(X), Ya) if joint else (X, Y)), loss)
     history.append(f_loss + reg_x.value(X) + reg_y.value(Y)
                    + (O.penalty(Ya[rank]) if joint else 0.0))
     converged = finish_convergence(history, converged, max_iter, tol, stacklevel=4)
@@ -829,7 +860,8 @@ def fit_glrm(
     if sse <= SSE_RTOL * ssq:  # the Gram identity cancelled: sum the residuals directly
         sse = direct_sse(D, M, Xs, Ys)
         if is_plain_quadratic(loss):
-            history[-1] = sse + reg_x.value(X) + reg_y.value(Y)
+            history[-1] = sse + reg_x.value(X) + reg_y.value(Y) + (O.penalty(off) if joint
+                                                                   else 0.0)
     return FitResult(
         X=X, Y=Y, objective=history, n_iter=n_iter, converged=converged,
         unobserved_cells=unobserved.astype(np.int64), n_observed=n_obs, sse=sse,

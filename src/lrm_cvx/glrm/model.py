@@ -69,11 +69,12 @@ class GLRM:
     progress : show a tqdm progress bar.
     keep_dask : for dask-backed data, keep ``Y_`` as a dask array of the persisted column chunks
         (docs/scaling.md); ``dask_options``: :func:`~.chunked.fit_chunked`'s options.
-    offset, scale : fit a per-cell mean (``offset_``: with the quadratic loss jointly with the
-        factors, the observed mean plus a correction worth one pseudo-observation, glrm/offset.py;
-        else the observed mean) and/or divide by a per-cell std (``scale_``, the observed std,
-        floored at ``predictive.SCALE_FLOOR`` times the median cell's) before the low-rank fit
-        (``scale="residual"``: the residual's relative std, after it);
+    offset, scale : fit a per-cell mean (``offset_``: jointly with the factors, the observed
+        mean plus a correction with a prior worth one observation, glrm/offset.py; the observed
+        mean alone with L1 / non-negative factors or ``solver="cvxpy"``) and/or divide by a
+        per-cell std (``scale_``, the observed std, floored at ``predictive.SCALE_FLOOR`` times
+        the median cell's) before the low-rank fit (``scale="residual"``: the residual's
+        relative std, after it);
         prediction and planning undo them (docs/reconstruction.md).
     noise : ``"global"`` (the paper: one ``noise_std_``) or ``"per-cell"`` (``noise_var_``,
         per-cell training residual variance shrunk towards the global one; weights the fold-in

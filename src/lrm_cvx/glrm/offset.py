@@ -1,4 +1,4 @@
-"""The per-cell offset fitted jointly with the factors (``GLRM(offset=True)``, quadratic loss).
+"""The per-cell offset fitted jointly with the factors (``GLRM(offset=True)``, fast path).
 
 The fit first centres each cell by its observed mean ``m``, then fits the correction ``o`` as
 one more factor: ``D - m ~ X^T Y + 1 o^T = [X; 1]^T [Y; o]``, a rank-``k + 1`` model whose last
@@ -9,7 +9,9 @@ with the last one fixed (:func:`fixed_row_solve`). Both are exact block minimise
     sum_{(t, j) observed} (D_tj - m_j - x_t . y_j - o_j)^2 + reg_x + reg_y + n0 sum_j o_j^2,
 
 so the objective never increases. ``n0 = OFFSET_PRIOR_OBS``: the offset's prior is worth one
-observation at the cell's observed mean (``o`` shrinks by ``n_j / (n_j + 1)``).
+observation at the cell's observed mean (``o`` shrinks by ``n_j / (n_j + 1)``). A robust loss
+(Huber, absolute, quantile) takes the same two steps on its quadratic majoriser
+(:class:`OffsetRidge`, ``fit.x_block_offset``).
 
 Why not the observed mean alone: when values are missing not at random (clouds in the wet
 season, ice that hides the sea in winter) a cell's observed mean is biased towards the season
@@ -26,8 +28,10 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels as K
+from .regularizers import Regularizer
 
-__all__ = ["OFFSET_PRIOR_OBS", "augmented", "row_ridges", "penalty", "fixed_row_solve"]
+__all__ = ["OFFSET_PRIOR_OBS", "augmented", "row_ridges", "penalty", "fixed_row_solve",
+           "OffsetRidge", "supports"]
 
 OFFSET_PRIOR_OBS = 1.0  # the offset's ridge: one pseudo-observation at the observed mean
 
@@ -70,3 +74,29 @@ def fixed_row_solve(G: np.ndarray, h: np.ndarray, lam: float) -> np.ndarray:
     out = np.empty((T, k))
     K.chol_solve(Gk, rhs, float(lam), qa, qb, out)
     return np.ascontiguousarray(out.T)
+
+
+def supports(reg_x: Regularizer, reg_y: Regularizer) -> bool:
+    """True when both regularisers are ridge-type (none or ridge): the joint offset's steps are
+    then the fast path's normal equations with one more row (L1 and non-negativity keep the
+    observed mean: their coordinate descent has no fixed row)."""
+    return reg_x.ridge_coefficient is not None and reg_y.ridge_coefficient is not None
+
+
+class OffsetRidge(Regularizer):
+    """The regulariser of ``[Y; o]`` in the fast path's Y step (robust losses): ``reg``'s ridge
+    on the factors' rows, :data:`OFFSET_PRIOR_OBS` on the offset's (``ridge_coefficient`` one
+    per row, :func:`~.kernels.ridge_vector`)."""
+
+    name = "offset-ridge"
+    serializable = False
+
+    def __init__(self, reg: Regularizer, k: int) -> None:
+        self.reg = reg
+        self.ridge_coefficient = row_ridges(reg.ridge_coefficient, k)
+
+    def evaluate(self, F: np.ndarray) -> np.ndarray:
+        return self.reg.evaluate(F[:-1]) + OFFSET_PRIOR_OBS * np.square(F[-1])
+
+    def minimizer(self, k: int) -> np.ndarray:
+        return np.zeros(k)
