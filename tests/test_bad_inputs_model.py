@@ -498,3 +498,27 @@ def test_constant_field_warns_and_its_empirical_fold_in_returns_the_constant():
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
         GLRM(2, random_state=0, progress=False).fit(varied)
+
+
+def test_cells_with_at_most_rank_values_warn_unless_y_is_penalised():
+    """A cell with at most ``rank`` values (``rank + 1`` with an offset) has factors that
+    interpolate them: a warning counts such cells (fit.warn_sparse_cells), in memory and on
+    dask; a ridge on Y bounds them and silences it; more values silence it."""
+    rng = np.random.default_rng(2)
+    D = low_rank(T=12, L=15) + 0.1 * rng.standard_normal((12, 15))
+    D[2:, :3] = np.nan  # three cells seen twice
+    for params, count in ((dict(rank=2), 3), (dict(rank=1, offset=True), 3),
+                          (dict(rank=1), 0), (dict(rank=2, reg_y="ridge"), 0)):
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            GLRM(**params, max_iter=5, progress=False, random_state=0).fit(D)
+        hits = [w for w in got if "observed values (rank" in str(w.message)]
+        assert len(hits) == (1 if count else 0), params
+        if count:
+            assert str(hits[0].message).startswith(f"{count} of 15 cells have at most 2 ")
+            assert hits[0].filename == __file__
+    da = pytest.importorskip("dask.array")
+    with pytest.warns(UserWarning, match="3 of 15 cells have at most 2 observed values") as rec:
+        GLRM(rank=2, max_iter=2, progress=False, random_state=0).fit(
+            da.from_array(D, chunks=(4, -1)))
+    assert any(w.filename == __file__ for w in rec if "observed values" in str(w.message))

@@ -66,6 +66,7 @@ from .fit import (
     quadratic_y_step,
     relative_decrease,
     solve_block,
+    warn_sparse_cells,
     x_pass,
     y_block,
 )
@@ -480,6 +481,7 @@ def _fit_store(store, k, loss, reg_x, reg_y, max_iter, tol, init, rng, progress,
     if empty.size:
         raise DataError(f"times {empty[:10].tolist()} have no observation; drop them first")
     L_obs = int(np.count_nonzero(cols))
+    warn_sparse_cells(cols, k, offset, reg_y, stacklevel=6)
     kmax = max_identifiable_rank(n_obs, T, L_obs, offset=offset)
     if k > kmax:
         raise ModelError(f"rank {k} leaves no residual degrees of freedom: {n_obs} observed "

@@ -61,6 +61,7 @@ __all__ = [
     "is_fast_capable",
     "check_data",
     "check_magnitude",
+    "warn_sparse_cells",
     "free_parameters",
     "max_identifiable_rank",
     "noise_std",
@@ -192,6 +193,25 @@ def check_magnitude(ssq: float, D: np.ndarray, M: np.ndarray, stacklevel: int = 
             f"squares ({ssq:.3g}) overflows float32; statistics are computed in float64, but "
             "such values (unmasked fill values?) dominate a least-squares fit: mask them (NaN) "
             "or rescale the data", UserWarning, stacklevel=stacklevel)
+
+
+def warn_sparse_cells(cols: np.ndarray, rank: int, offset: bool, reg_y: Regularizer,
+                      stacklevel: int = 3) -> None:
+    """Warn (UserWarning) when cells with values have at most ``rank`` of them (``rank + 1``
+    with an offset) and ``Y`` has no penalty: such a cell's factors interpolate its few values,
+    and its predictions at other times can be far off (COADS's SST climatology at rank 2: the
+    174 cells seen in 2 of 12 months predict their other months with 944 K RMS;
+    benchmarks/bench_offset.py ``--coads``). A ridge on ``Y`` or a lower rank bounds them."""
+    if reg_y.ridge_coefficient != 0.0:  # a ridge, L1 or non-negativity: not a plain solve
+        return
+    few = int(np.count_nonzero((cols > 0) & (cols <= rank + int(bool(offset)))))
+    if few:
+        warnings.warn(
+            f"{few} of {int(np.count_nonzero(cols))} cells have at most "
+            f"{rank + int(bool(offset))} observed values (rank {rank}"
+            f"{' plus the offset' if offset else ''}): their factors interpolate those values "
+            "and their predictions at other times can be far off; use reg_y='ridge', a lower "
+            "rank, or drop cells with few values", UserWarning, stacklevel=stacklevel)
 
 
 class DataStats(tuple):
@@ -783,6 +803,7 @@ def fit_glrm(
     D = md.D  # zero-filled from here on
     ssq = float(md.ssq_rows.sum())  # float64 sums (a float32 sum overflows at |d| ~ 1e19)
     check_magnitude(ssq, D, M, stacklevel=4)
+    warn_sparse_cells(cols, rank, offset, reg_y, stacklevel=4)
     scale = float(np.sqrt(ssq / n_obs))
     loss = loss.with_scale(scale)
     X, Y = initialize(md, rank, init, rng, mu, scale)
