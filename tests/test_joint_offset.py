@@ -165,7 +165,7 @@ def test_huber_inside_its_quadratic_zone_is_the_quadratic_joint_fit():
     np.testing.assert_allclose(huber.objective_, quad.objective_, rtol=1e-10)
 
 
-@pytest.mark.parametrize("loss", ["huber", "absolute"])
+@pytest.mark.parametrize("loss", ["huber", "absolute", "quantile"])
 def test_robust_losses_fit_the_offset_jointly_and_never_increase(loss):
     truth, D = clouded(T=40, L=150, k=2, seed=6)
     rng = np.random.default_rng(0)
