@@ -433,26 +433,34 @@ def y_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, out=None, step
     return out, total
 
 
+def _x_pass_fn(D, M, Y, lift=None):
+    """The X step's ``pass_fn`` for :func:`_mm_block`: the majoriser's Grams of every time at the
+    factors ``lift(F)`` (default ``F``) against ``Y``, one compiled pass over the data."""
+    k, T = Y.shape[0], D.shape[0]
+    pa, pb = K.pair_index(k)
+    nchunk = _nchunk()
+    Y = np.ascontiguousarray(Y, dtype=np.float64)
+
+    def pass_fn(F, lo):
+        code, p0, p1 = lo.kernel_spec
+        Fc = lift(F) if lift else np.ascontiguousarray(F, dtype=np.float64)
+        G = np.zeros((nchunk, T, pa.size))
+        h = np.zeros((nchunk, T, k))
+        f = np.zeros((nchunk, T))
+        K.row_pass(D, M, Fc, Y, code, p0, p1, pa, pb, nchunk, G, h, f)
+        return G.sum(0), h.sum(0), f.sum(0)
+
+    return pass_fn
+
+
 def x_block_offset(D, M, X, Ya, loss, reg, *, max_inner=1, inner_tol=0.0, step0=0):
     """:func:`x_block` of the joint offset (:mod:`.offset`, ridge-type ``reg``): the first ``k``
     rows of ``[X; 1]`` given ``Ya = [Y; o]``, the majoriser's normal equations solved with the
     last row fixed. Returns ``(X_new (k, T), objective_before)``."""
-    k, T = X.shape
-    pa, pb = K.pair_index(k + 1)
-    nchunk = _nchunk()
-    Ya = np.ascontiguousarray(Ya, dtype=np.float64)
     lam = reg.ridge_coefficient
-
-    def pass_fn(F, lo):
-        code, p0, p1 = lo.kernel_spec
-        G = np.zeros((nchunk, T, pa.size))
-        h = np.zeros((nchunk, T, k + 1))
-        f = np.zeros((nchunk, T))
-        K.row_pass(D, M, O.augmented(F), Ya, code, p0, p1, pa, pb, nchunk, G, h, f)
-        return G.sum(0), h.sum(0), f.sum(0)
-
-    return _mm_block(pass_fn, np.array(X, dtype=np.float64), loss, reg, max_inner, inner_tol,
-                     step0, solve=lambda G, h, reg, F: O.fixed_row_solve(G, h, lam))
+    return _mm_block(_x_pass_fn(D, M, Ya, lift=O.augmented), np.array(X, dtype=np.float64),
+                     loss, reg, max_inner, inner_tol, step0,
+                     solve=lambda G, h, reg, F: O.fixed_row_solve(G, h, lam))
 
 
 def x_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, step0=0):
@@ -460,27 +468,12 @@ def x_block(D, M, X, Y, loss, reg, *, max_inner=1, inner_tol=0.0, step0=0):
 
     Returns ``(X_new (k, T), objective_before)`` (loss at ``(X, Y)`` plus ``reg(X)``).
     """
-    k, T = X.shape
     lam = quadratic_ridge(loss, reg)
     if lam is not None:
         Xn, before, _ = _quad_x(Q.prepare(D, M), X, Y, lam)
         return Xn, before + reg.value(X)
-    pa, pb = K.pair_index(k)
-    npair = pa.size
-    nchunk = _nchunk()
-    Y = np.ascontiguousarray(Y, dtype=np.float64)
-
-    def pass_fn(F, lo):
-        code, p0, p1 = lo.kernel_spec
-        Fc = np.ascontiguousarray(F, dtype=np.float64)
-        G = np.zeros((nchunk, T, npair))
-        h = np.zeros((nchunk, T, k))
-        f = np.zeros((nchunk, T))
-        K.row_pass(D, M, Fc, Y, code, p0, p1, pa, pb, nchunk, G, h, f)
-        return G.sum(0), h.sum(0), f.sum(0)
-
-    return _mm_block(pass_fn, np.array(X, dtype=np.float64), loss, reg, max_inner, inner_tol,
-                     step0)
+    return _mm_block(_x_pass_fn(D, M, Y), np.array(X, dtype=np.float64), loss, reg, max_inner,
+                     inner_tol, step0)
 
 
 def x_pass(D, M, X, Y, loss, step=0):

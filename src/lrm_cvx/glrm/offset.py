@@ -97,6 +97,3 @@ class OffsetRidge(Regularizer):
 
     def evaluate(self, F: np.ndarray) -> np.ndarray:
         return self.reg.evaluate(F[:-1]) + OFFSET_PRIOR_OBS * np.square(F[-1])
-
-    def minimizer(self, k: int) -> np.ndarray:
-        return np.zeros(k)
