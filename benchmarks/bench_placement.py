@@ -34,7 +34,9 @@ Placements:
 Target: ``auto`` <= ``QR best`` at every set and n. The risk's exchange is skipped when
 the sensors are at least as many as the training snapshots (the storm sets at 60 sensors:
 55-56 snapshots); this rule was set after seeing ``storm_t_land_6hourly`` at 60, where the
-exchange over-fitted the in-sample risk (+15 % vs QR with it, -10 % without).
+exchange over-fitted the in-sample risk (+15 % vs QR with it, -10 % without). Since session
+22 the risk on the model's own training snapshots scores a new snapshot's errors (the fit's
+residuals scaled by ``n / (n - k)``, ``planning/static.py``'s ``error_factor``).
 
 **Speed.** The default (``auto``: validation, then the chosen placement) at 15/30/60 sensors on
 the ~6k-cell synthetic record below (target <= 10 s at 60), then ``risk`` + exchange

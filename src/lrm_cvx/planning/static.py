@@ -63,7 +63,8 @@ from .request import PlanPath
 from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
 
 __all__ = ["EXCHANGE_AUTO_MAX", "RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors",
-           "place_static", "risk_objective", "stack_training", "training_residuals"]
+           "place_static", "risk_objective", "stack_training", "training_residuals",
+           "error_factor", "fitted_on"]
 
 RISK_MAX_CELLS: int = 20_000
 """Largest region (cells) of the dense risk / exchange state (``8 L^2`` bytes: 3.2 GB)."""
@@ -150,14 +151,52 @@ def _fold_in_from_prior(prior: Any, Yk: np.ndarray, region: Region) -> tuple[_Fo
                    Yk.T @ np.asarray(prior.mean, np.float64)), obs
 
 
-def training_residuals(training: Any, region: Region, obs: Any, mean: np.ndarray
-                       ) -> np.ndarray:
+def training_residuals(training: Any, region: Region, obs: Any, mean: np.ndarray,
+                       model: Any = None) -> np.ndarray:
     """``(T, L)`` training snapshots in fit units minus the fold-in's prior mean (0 where a
     value is missing). ``training``: a ``(time, lat, lon)`` DataArray on the region's grid, a
-    ``(time, cell)`` DataArray, or a ``(T, L)`` / ``(T, ny, nx)`` array."""
+    ``(time, cell)`` DataArray, or a ``(T, L)`` / ``(T, ny, nx)`` array.
+
+    ``model``: the fitted GLRM whose fold-in this is, **fitted on exactly these snapshots**
+    (:func:`fitted_on` tells). Each error is then made a new snapshot's: the fitted part
+    ``Y^T x_t - mean`` is kept and the fit's residual is scaled by :func:`error_factor`."""
     V = stack_training(training, region)
     Z = obs.to_fit_units(np.arange(region.n_cells), V) - mean[None, :]
-    return np.where(np.isfinite(Z), Z, 0.0)
+    seen = np.isfinite(Z)
+    c = 1.0 if model is None else error_factor(model)
+    if c != 1.0:
+        fitted = np.asarray(model.X_, np.float64).T @ np.asarray(obs.Y, np.float64) - mean
+        Z = fitted + c * (Z - fitted)
+    return np.where(seen, Z, 0.0)
+
+
+def error_factor(model: Any) -> float:
+    """``n / (n - k)``: how much larger a new snapshot's residual is than the model's residual
+    on its own training snapshots (std).
+
+    Each cell's ``k`` parameters (rank, plus the offset) were fitted to its ``n`` training
+    snapshots, so their residuals hold only ``(n - k) / n`` of the residual variance, while a
+    new snapshot's residual holds ``n / (n - k)`` of it: its own plus the parameters' error
+    (``glrm.calibrated.prediction_factor``, which the fold-in's covariance already carries).
+    Scaling the training residuals by ``sqrt(residual_dof * prediction_factor)`` makes the
+    risk score a placement on the errors it will meet, not on errors the fit has already
+    absorbed (1.02 at rank 5 on 300 snapshots, 1.12 on 55, 1.25 on 30)."""
+    from ..glrm.calibrated import prediction_factor, residual_dof
+
+    return float(np.sqrt(residual_dof(model) * prediction_factor(model)))
+
+
+def fitted_on(model: Any, training: Any) -> bool:
+    """Whether ``training`` holds exactly the snapshots ``model`` was fitted on: the same
+    times as its ``X_``. A model fitted on a plain array, or ``training`` given as an array,
+    cannot tell: False (the errors are taken as given)."""
+    X = getattr(model, "X_", None)
+    if not _is_model(model) or not hasattr(X, "dims") or not hasattr(training, "dims"):
+        return False
+    tdim = X.dims[-1]
+    return bool(tdim in training.dims and training.sizes[tdim] == X.sizes[tdim]
+                and np.array_equal(np.asarray(training[tdim].values),
+                                   np.asarray(X[tdim].values)))
 
 
 def stack_training(training: Any, region: Region) -> np.ndarray:
@@ -355,7 +394,9 @@ def _check_sweeps(sweeps: Any) -> int:
 def risk_objective(prior: Any, training: Any, cells: Any, region: Region | None = None) -> float:
     """``J(cells)``: the fold-in's squared error over the training snapshots (data units,
     summed over snapshots and cells; missing training values count as the prior mean), from
-    scratch. ``prior``: a LatentPosterior or a fitted GLRM."""
+    scratch. ``prior``: a LatentPosterior or a fitted GLRM; a GLRM fitted on exactly
+    ``training`` (:func:`fitted_on`) scores a new snapshot's errors (:func:`error_factor`), as
+    the placement does."""
     from ..glrm.posterior import LatentPosterior
 
     if not isinstance(prior, LatentPosterior) and hasattr(prior, "latent_prior"):
@@ -365,7 +406,8 @@ def risk_objective(prior: Any, training: Any, cells: Any, region: Region | None 
     region = check_region(region)
     Y = (prior.obs_model.Y if isinstance(prior, LatentPosterior) else prior.Y)
     gp, obs = _fold_in_from_prior(prior, np.asarray(Y, np.float64), region)
-    R = training_residuals(training, region, obs, gp.mean)
+    R = training_residuals(training, region, obs, gp.mean,
+                           model=prior if fitted_on(prior, training) else None)
     S = np.asarray(cells, dtype=np.int64)
     if S.size == 0:
         return float(gp.w @ np.einsum("ti,ti->i", R, R))
@@ -414,13 +456,17 @@ def place_static(
     method: str = "auto",
     max_candidates: int | None = None,
     other: dict[str, Any] | None = None,
+    in_sample: bool = False,
 ) -> Plan:
     """``criterion="risk"`` (greedy on the training error, then optionally the exchange), or
     the exchange after the registry criterion's greedy (``"gp-variance"`` only). Called by
     :func:`~lrm_cvx.planning.place_sensors` with ``n`` and ``allowed`` (the candidate cells)
     validated; ``other`` holds its remaining keyword arguments (passed on for gp-variance).
     ``method``: ``"auto"`` (the scalable form of ``planning/static_risk.py`` unless the
-    residual's metric is km), ``"factored"`` or ``"dense"`` (the ``L x L`` reference)."""
+    residual's metric is km), ``"factored"`` or ``"dense"`` (the ``L x L`` reference).
+    ``in_sample=True``: ``prior`` is the GLRM fitted on exactly ``training`` (the caller knows:
+    the validation's refits), so the risk takes a new snapshot's errors (:func:`error_factor`);
+    otherwise that is told from the times (:func:`fitted_on`)."""
     from . import static_risk as sr
 
     region = check_region(region)
@@ -451,7 +497,9 @@ def place_static(
             raise PlanningError(f"criterion='risk' takes its terms from prior= and training=; "
                                 f"{given} do not apply")
         gp, obs = _fold_in_from_prior(prior, Yk, region)
-        R = training_residuals(training, region, obs, gp.mean)
+        model = prior if in_sample or fitted_on(prior, training) else None
+        R = training_residuals(training, region, obs, gp.mean, model=model)
+        factor = 1.0 if model is None else error_factor(model)
         if auto and exchange and n >= R.shape[0]:
             # as many sensors as training snapshots: the training error is an optimistic
             # estimate, and searching it harder than the greedy over-fits it
@@ -507,6 +555,8 @@ def place_static(
         info = (_exchange(state, allowed, sweeps) if isinstance(state, _State)
                 else sr.exchange(state, sweeps, _REL_TOL))
     info["form"] = "dense" if isinstance(state, _State) else "factored"
+    if crit == "risk":  # the in-sample residuals' scale (1: the errors as given)
+        info["training_error_factor"] = factor
     if auto and not exchange:
         info["exchange_skipped"] = skipped
     if not isinstance(state, _State):
@@ -791,10 +841,12 @@ def _place_auto(Yk: np.ndarray, region: Region, n: int, allowed: np.ndarray, pri
                             "snapshots: pass the fitted GLRM (place_sensors(model, n, "
                             "training=...) or prior=model), not a LatentPosterior")
 
-    def place(p: Any, Vtr: np.ndarray, crit: str, exchange: Any) -> np.ndarray:
-        return place_static(np.asarray(p.obs_model.Y, np.float64), region, n, allowed,
-                            criterion=crit, prior=p, exchange=exchange,
-                            training=Vtr if crit == "risk" else None,
+    def place(fit: Any, Vtr: np.ndarray, crit: str, exchange: Any) -> np.ndarray:
+        risk = crit == "risk"  # the refit's own training: a new snapshot's errors
+        return place_static(np.asarray(fit.Y_, np.float64), region, n, allowed,
+                            criterion=crit, exchange=exchange, in_sample=risk,
+                            prior=fit if risk else fit.latent_prior("empirical", spatial=True),
+                            training=Vtr if risk else None,
                             sweeps=options["sweeps"], method=options["method"],
                             max_candidates=options["max_candidates"],
                             other={**other, "progress": False}).cells

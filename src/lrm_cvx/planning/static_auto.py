@@ -126,10 +126,10 @@ def _mse(prior: Any, values: np.ndarray, cells: np.ndarray) -> np.ndarray:
 def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
                      n_allowed: int) -> xr.Dataset:
     """The validation of ``criterion="auto"`` (module docstring): ``V (T, L)`` the training
-    snapshots in data units on ``region`` (NaN missing), ``place(prior, training, criterion,
-    exchange) -> cells`` one placement of ``n`` sensors (the caller's options bound in),
-    ``n_allowed`` the candidate cells. Returns the table; ``attrs["choice"]`` is the label
-    of :data:`AUTO_CANDIDATES` that won."""
+    snapshots in data units on ``region`` (NaN missing), ``place(refit, training, criterion,
+    exchange) -> cells`` one placement of ``n`` sensors from the model refitted on exactly
+    ``training`` (the caller's options bound in), ``n_allowed`` the candidate cells. Returns
+    the table; ``attrs["choice"]`` is the label of :data:`AUTO_CANDIDATES` that won."""
     t0 = time.perf_counter()
     spatial = getattr(model, "spatial_cov_", None) is not None
     labels = [lab for lab, (crit, _) in AUTO_CANDIDATES.items()
@@ -156,7 +156,7 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
         held = V[a:b]
         for c, lab in enumerate(labels):
             crit, exchange = AUTO_CANDIDATES[lab]
-            cells = place(prior, V[:a], crit, exchange)
+            cells = place(fit, V[:a], crit, exchange)
             e = _mse(prior, held, np.asarray(cells, dtype=np.int64))
             per[c, (held_t >= a) & (held_t < b)] = e
             mse[c, w] = float(np.nanmean(e))
