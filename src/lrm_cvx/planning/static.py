@@ -164,10 +164,14 @@ def training_residuals(training: Any, region: Region, obs: Any, mean: np.ndarray
     Z = obs.to_fit_units(np.arange(region.n_cells), V) - mean[None, :]
     seen = np.isfinite(Z)
     c = 1.0 if model is None else error_factor(model)
-    if c != 1.0:
-        fitted = np.asarray(model.X_, np.float64).T @ np.asarray(obs.Y, np.float64) - mean
-        Z = fitted + c * (Z - fitted)
-    return np.where(seen, Z, 0.0)
+    if c != 1.0:  # Z = fitted + c (Z - fitted), a block of snapshots at a time (no 2nd T x L)
+        X = np.asarray(model.X_, np.float64)
+        Y = np.asarray(obs.Y, np.float64)
+        for t in range(0, Z.shape[0], 32):
+            Z[t:t + 32] *= c
+            Z[t:t + 32] += (1.0 - c) * (X[:, t:t + 32].T @ Y - mean)
+    Z[~seen] = 0.0
+    return Z
 
 
 def error_factor(model: Any) -> float:
