@@ -39,10 +39,10 @@ residual's metric is km.
 ``"gp-variance"`` + the exchange or the ``"gp-variance"`` greedy, whichever validates best on
 the training snapshots (rolling origin; ``"risk"`` without validation above
 ``AUTO_MAX_CELLS`` candidate cells). ``"risk"``'s recommended exchange is skipped above
-:data:`EXCHANGE_AUTO_MAX` candidate cells or when ``n`` is at least the number of training
-snapshots; an explicit ``exchange=`` without a criterion keeps ``"risk"``. ``paper=True`` is the
-paper's Fisher greedy; ``place_sensors(Y, region, n)`` keeps the Fisher default (no prior to
-take a risk from), and with ``prior=`` and ``training=`` it is ``"risk"`` + the exchange.
+:data:`EXCHANGE_AUTO_MAX` candidate cells; an explicit ``exchange=`` without a criterion
+keeps ``"risk"``. ``paper=True`` is the paper's Fisher greedy; ``place_sensors(Y, region,
+n)`` keeps the Fisher default (no prior to take a risk from), and with ``prior=`` and
+``training=`` it is ``"risk"`` + the exchange.
 """
 
 from __future__ import annotations
@@ -504,12 +504,6 @@ def place_static(
         model = prior if in_sample or fitted_on(prior, training) else None
         R = training_residuals(training, region, obs, gp.mean, model=model)
         factor = 1.0 if model is None else error_factor(model)
-        if auto and exchange and n >= R.shape[0]:
-            # as many sensors as training snapshots: the training error is an optimistic
-            # estimate, and searching it harder than the greedy over-fits it
-            exchange = False
-            skipped = (f"n_sensors = {n} >= {R.shape[0]} training snapshots: greedy only "
-                       "(pass exchange=True)")
         state = _state(gp, R, [], allowed, method, int(max_candidates), "criterion='risk'",
                        n)
         hist: dict[str, list] = {k: [] for k in ("cell", "gain", "cost_increase", "ratio",

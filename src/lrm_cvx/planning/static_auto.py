@@ -63,7 +63,7 @@ AUTO_CANDIDATES: dict[str, tuple[str, Any]] = {
     "gp-variance": ("gp-variance", False),
 }
 """Label -> ``(criterion, exchange)``; ``"auto"`` is the recommended exchange rule (skipped
-when ``n`` is at least the number of training snapshots). The first one wins ties."""
+above ``static.EXCHANGE_AUTO_MAX`` candidate cells). The first one wins ties."""
 AUTO_MIN_BLOCK: int = 3
 """Fewest snapshots in a held-out block."""
 AUTO_MAX_BLOCK: int = 12
