@@ -78,8 +78,9 @@ def test_the_scaled_training_residual_is_a_new_snapshots_residual():
 
 def test_the_risk_is_the_risk_of_the_inflated_data_and_only_on_the_fit_snapshots():
     """``risk_objective(model, train)`` on the model's own snapshots (some values missing) equals
-    the plain risk of the data whose residuals were inflated by hand (passed as an array, so
-    nothing is inflated again); on other times, or as an array, the errors are as given."""
+    the plain risk of the data whose residuals were inflated and whose gaps were filled with
+    the fitted values by hand (passed as an array, so nothing is inflated or filled again); on
+    other times, or as an array, the errors are as given (gaps at the prior mean)."""
     draw = _planted(1, 16, ny=8, nx=9)
     train = draw(16)
     rng = np.random.default_rng(5)
@@ -90,14 +91,16 @@ def test_the_risk_is_the_risk_of_the_inflated_data_and_only_on_the_fit_snapshots
     V = region.stack(train).astype(np.float64)
     fitted_data = (np.asarray(model.X_, np.float64).T @ np.asarray(model.Y_, np.float64)
                    + np.asarray(model.offset_, np.float64))
-    inflated = fitted_data + c * (V - fitted_data)  # NaN stays NaN
+    inflated = np.where(np.isfinite(V), fitted_data + c * (V - fitted_data), fitted_data)
     cells = [3, 17, 40, 55]
     J = st.risk_objective(model, train, cells)
     assert st.fitted_on(model, train)
     assert J == pytest.approx(st.risk_objective(model, inflated, cells), rel=1e-9)
     plain = st.risk_objective(model, V, cells)  # an array: the errors as given
     assert not st.fitted_on(model, V)
-    assert J > plain * 1.02
+    raw_filled = np.where(np.isfinite(V), V, fitted_data)  # the gaps filled, not inflated
+    assert J > st.risk_objective(model, raw_filled, cells) * 1.02
+    assert np.isnan(V).any() and not np.isnan(inflated).any()
     other = train.assign_coords(time=train["time"].values + 1000)
     assert not st.fitted_on(model, other)
     assert st.risk_objective(model, other, cells) == pytest.approx(plain, rel=1e-12)
@@ -115,3 +118,30 @@ def test_place_sensors_records_the_factor_and_its_objective():
     assert as_given.refinement["training_error_factor"] == 1.0
     assert as_given.refinement["objective"] == pytest.approx(
         st.risk_objective(model, train.values, as_given.cells), rel=1e-8)
+
+
+def test_a_gap_in_the_training_is_the_fitted_value_not_the_mean():
+    """Clouds over a planted field (``io.cloud_gaps``, 30 % of each snapshot): the risk on the
+    clouded snapshots, gaps filled with the model's fitted values, is nearer the risk on the
+    same snapshots without clouds than the risk with the gaps at the prior mean (the old
+    rule), for every one of six random placements; the prior-mean gaps make every sensor
+    under a cloud read the mean."""
+    from lrm_cvx.io import cloud_gaps
+
+    draw = _planted(3, 40, ny=20, nx=24)
+    clean = draw(40)
+    cloudy = cloud_gaps(clean, 0.3, seed=0)
+    model = _fit(cloudy, spatial="exponential")
+    region = model.region_
+    c = st.error_factor(model)
+    V = region.stack(cloudy).astype(np.float64)
+    fitted_data = (np.asarray(model.X_, np.float64).T @ np.asarray(model.Y_, np.float64)
+                   + np.asarray(model.offset_, np.float64))
+    gaps_at_mean = fitted_data + c * (V - fitted_data)  # an array: NaN -> the prior mean
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        cells = np.sort(rng.choice(region.n_cells, 12, replace=False))
+        J_clean = st.risk_objective(model, clean, cells)  # the same times: inflated too
+        J_fill = st.risk_objective(model, cloudy, cells)
+        J_mean = st.risk_objective(model, gaps_at_mean, cells)
+        assert abs(J_fill - J_clean) < 0.5 * abs(J_mean - J_clean)

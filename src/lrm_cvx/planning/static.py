@@ -153,24 +153,32 @@ def _fold_in_from_prior(prior: Any, Yk: np.ndarray, region: Region) -> tuple[_Fo
 
 def training_residuals(training: Any, region: Region, obs: Any, mean: np.ndarray,
                        model: Any = None) -> np.ndarray:
-    """``(T, L)`` training snapshots in fit units minus the fold-in's prior mean (0 where a
-    value is missing). ``training``: a ``(time, lat, lon)`` DataArray on the region's grid, a
-    ``(time, cell)`` DataArray, or a ``(T, L)`` / ``(T, ny, nx)`` array.
+    """``(T, L)`` training snapshots in fit units minus the fold-in's prior mean (0, the
+    prior mean, where a value is missing). ``training``: a ``(time, lat, lon)`` DataArray on
+    the region's grid, a ``(time, cell)`` DataArray, or a ``(T, L)`` / ``(T, ny, nx)`` array.
 
     ``model``: the fitted GLRM whose fold-in this is, **fitted on exactly these snapshots**
     (:func:`fitted_on` tells). Each error is then made a new snapshot's: the fitted part
-    ``Y^T x_t - mean`` is kept and the fit's residual is scaled by :func:`error_factor`."""
+    ``Y^T x_t - mean`` is kept and the fit's residual is scaled by :func:`error_factor`; a
+    missing value is the fitted part alone (the snapshot's latent state is known from its
+    other cells, its residual there is not). Without ``model`` a gap under a cloud would read
+    as the mean: a sensor there would seem to measure the mean on that day."""
     V = stack_training(training, region)
     Z = obs.to_fit_units(np.arange(region.n_cells), V) - mean[None, :]
     seen = np.isfinite(Z)
-    c = 1.0 if model is None else error_factor(model)
-    if c != 1.0:  # Z = fitted + c (Z - fitted), a block of snapshots at a time (no 2nd T x L)
-        X = np.asarray(model.X_, np.float64)
-        Y = np.asarray(obs.Y, np.float64)
-        for t in range(0, Z.shape[0], 32):
-            Z[t:t + 32] *= c
-            Z[t:t + 32] += (1.0 - c) * (X[:, t:t + 32].T @ Y - mean)
-    Z[~seen] = 0.0
+    if model is None:
+        Z[~seen] = 0.0
+        return Z
+    c = error_factor(model)
+    X = np.asarray(model.X_, np.float64)
+    Y = np.asarray(obs.Y, np.float64)
+    for t in range(0, Z.shape[0], 32):  # Z = fitted + c (Z - fitted), in blocks (no 2nd T x L)
+        F = X[:, t:t + 32].T @ Y - mean
+        Zb = Z[t:t + 32]
+        Zb *= c
+        Zb += (1.0 - c) * F
+        gap = ~seen[t:t + 32]
+        Zb[gap] = F[gap]
     return Z
 
 
@@ -397,8 +405,8 @@ def _check_sweeps(sweeps: Any) -> int:
 
 def risk_objective(prior: Any, training: Any, cells: Any, region: Region | None = None) -> float:
     """``J(cells)``: the fold-in's squared error over the training snapshots (data units,
-    summed over snapshots and cells; missing training values count as the prior mean), from
-    scratch. ``prior``: a LatentPosterior or a fitted GLRM; a GLRM fitted on exactly
+    summed over snapshots and cells; missing training values as :func:`training_residuals`
+    fills them), from scratch. ``prior``: a LatentPosterior or a fitted GLRM; a GLRM fitted on exactly
     ``training`` (:func:`fitted_on`) scores a new snapshot's errors (:func:`error_factor`), as
     the placement does."""
     from ..glrm.posterior import LatentPosterior
