@@ -406,9 +406,9 @@ def _check_sweeps(sweeps: Any) -> int:
 def risk_objective(prior: Any, training: Any, cells: Any, region: Region | None = None) -> float:
     """``J(cells)``: the fold-in's squared error over the training snapshots (data units,
     summed over snapshots and cells; missing training values as :func:`training_residuals`
-    fills them), from scratch. ``prior``: a LatentPosterior or a fitted GLRM; a GLRM fitted on exactly
-    ``training`` (:func:`fitted_on`) scores a new snapshot's errors (:func:`error_factor`), as
-    the placement does."""
+    fills them), from scratch. ``prior``: a LatentPosterior or a fitted GLRM; a GLRM fitted on
+    exactly ``training`` (:func:`fitted_on`) scores a new snapshot's errors
+    (:func:`error_factor`), as the placement does."""
     from ..glrm.posterior import LatentPosterior
 
     if not isinstance(prior, LatentPosterior) and hasattr(prior, "latent_prior"):
