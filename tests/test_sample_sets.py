@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.stats import chi2_contingency
 
 from lrm_cvx.errors import DataError, ModelError
-from lrm_cvx.glrm.designs import _line, _route, sample_sets
+from lrm_cvx.glrm.designs import _line, _route, flown_sets, sample_sets
 from lrm_cvx.region import Region
 
 
@@ -205,3 +205,21 @@ def test_route_of_one_is_a_uniform_random_observed_cell():
     assert counts.size == n_obs and counts.min() > 0
     chi2 = ((counts - n / n_obs) ** 2 / (n / n_obs)).sum()
     assert chi2 < n_obs + 6 * np.sqrt(2 * n_obs)  # ~ chi-square with n_obs - 1 dof
+
+
+def test_flown_sets_ignore_the_days_gaps():
+    """A campaign's design does not know where the day's clouds are: ``flown_sets`` draws as
+    ``sample_sets`` does among every cell of the region (the same cells for the same seed), so
+    on a day with gaps some of its cells are unobserved."""
+    rng = np.random.default_rng(4)
+    region = _region(rng.random((30, 40)) < 0.9)
+    observed = rng.random(region.n_cells) < 0.7
+    every = np.ones(region.n_cells, bool)
+    hit = 0
+    for kind in ("route", "line", "scattered"):
+        for seed in range(5):
+            a = flown_sets(region, 20, kind, np.random.default_rng(seed))
+            b = sample_sets(region, every, 20, kind, np.random.default_rng(seed))
+            np.testing.assert_array_equal(a, b)
+            hit += int((~observed[a]).any())
+    assert hit >= 12  # of 15 designs of 20 cells with 30 % of the cells in gaps

@@ -12,7 +12,7 @@ import numpy as np
 
 from .._validation import as_generator
 from ..errors import ModelError
-from .designs import SET_KINDS, sample_sets
+from .designs import SET_KINDS, flown_sets
 from .paired import paired_choice
 from .refits import clone_model, training_values
 
@@ -136,7 +136,7 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
         S = memoryless_cov(sub, sub_dyn)
         Vv = V[lo:end]
         times = data["time"].values[lo:end]
-        sets = {(size, kind): [sample_sets(region, np.isfinite(Vv[i]), size, kind, rng)
+        sets = {(size, kind): [flown_sets(region, size, kind, rng)  # gaps give no value
                                for i in range(n_val)] for size in sizes for kind in kinds}
         err = np.zeros((len(alphas), len(sizes), n_val))
         for a_i, alpha in enumerate(alphas):

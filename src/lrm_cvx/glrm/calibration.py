@@ -58,7 +58,7 @@ from .calibrated import (  # noqa: F401  (re-exported: the old import location)
     predictive_std,
     variance_scale,
 )
-from .designs import ALL_KINDS, SET_KINDS, sample_sets  # noqa: F401  (re-exported, as below)
+from .designs import ALL_KINDS, SET_KINDS, flown_sets, sample_sets  # noqa: F401  (re-exported)
 from .refits import clone_model, training_values
 
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
@@ -185,7 +185,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                 observed = np.isfinite(V[t])
                 for size in sizes:
                     for kind in kinds:
-                        cells = sample_sets(region, observed, size, kind, rng)
+                        cells = flown_sets(region, size, kind, rng)  # gaps give no value
                         held = observed.copy()
                         held[cells] = False
                         hidx = np.flatnonzero(held)
@@ -384,9 +384,8 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
     combos = [(s, k) for s in sizes for k in kinds]
     out = []
     for i, t in enumerate(times):
-        observed = np.isfinite(Vb[i])
         size, kind = combos[i % len(combos)]
-        cells = sample_sets(region, observed, size, kind, rng)
+        cells = flown_sets(region, size, kind, rng)  # gaps give no value
         held = np.isfinite(Vb[i])
         held[cells] = False
         hidx = np.flatnonzero(held)

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import DataError, ModelError
 
-__all__ = ["sample_sets", "SET_KINDS", "ALL_KINDS"]
+__all__ = ["sample_sets", "flown_sets", "SET_KINDS", "ALL_KINDS"]
 
 SET_KINDS = ("route", "scattered")
 ALL_KINDS = ("route", "scattered", "line")  # line: a transect-like straight run of cells
@@ -44,6 +44,16 @@ def sample_sets(region: Any, observed: np.ndarray, size: int, kind: str,
     if kind == "line":
         return _line(region, observed, centre, int(rng.integers(2)), size, rng)
     return _route(region, observed, n_obs, centre, size, rng)
+
+
+def flown_sets(region: Any, size: int, kind: str, rng: np.random.Generator) -> np.ndarray:
+    """The cells a campaign's design visits: :func:`sample_sets` among **all** of the region's
+    cells, not only the day's observed ones. A route or a transect does not know where the
+    day's clouds are, so on a day with gaps some of its cells give no value (NaN, ignored by
+    the updates), as they do in a campaign; the validations that score campaign-like maps
+    (``temporal="auto"``, the calibration, ``select_dynamics``) draw their designs here. On a
+    day without gaps it is :func:`sample_sets` itself (the same draws)."""
+    return sample_sets(region, np.ones(region.n_cells, dtype=bool), size, kind, rng)
 
 
 def _route(region: Any, observed: np.ndarray, n_obs: int, centre: int, size: int,

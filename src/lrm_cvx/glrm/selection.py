@@ -13,8 +13,9 @@ campaign would meet them:
   with :data:`REFIT_PAIRS` variogram pairs (a variogram fit costs the same at every grid size).
 * **Campaign-like designs.** Each validation day is sampled as campaigns sample, the design
   cycling from day to day: a spatially clustered route, a straight transect, scattered cells
-  (:func:`~.calibration.sample_sets`), one campaign per sample size; the same cells for every
-  candidate (paired comparison).
+  (:func:`~.designs.flown_sets`: drawn among all of the region's cells, so on a day with gaps,
+  clouds, some give no value, as in a campaign), one campaign per sample size; the same cells
+  for every candidate (paired comparison).
 * **The campaign's metric.** The filter runs through the window with each candidate: forecast,
   assimilate the day's samples, predict the whole map; the score is the day's MSE over the
   observed cells not sampled. The candidates' filters run as one batch
@@ -145,7 +146,7 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
     ``LatentFilter.assimilate``, the observations' GLS terms computed once) and the kriged
     residual maps of all of them come from one kriging call (its weights depend on the cells
     only)."""
-    from .designs import sample_sets
+    from .designs import flown_sets
     from .filter import batch_start, batch_step, batch_transitions
 
     n = V.shape[0]
@@ -156,7 +157,7 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
     for s_i, size in enumerate(sizes):
         batch = first
         for i, t in enumerate(times):
-            cells = sample_sets(region, np.isfinite(V[i]), size, designs[i % len(designs)], rng)
+            cells = flown_sets(region, size, designs[i % len(designs)], rng)  # gaps: NaN
             h = np.isfinite(V[i])
             h[cells] = False
             h = np.flatnonzero(h)
