@@ -51,6 +51,15 @@ def _errors(model, train, inflate: bool):
     return R, fitted
 
 
+def _by_hand(model, data):
+    """``(c, V, fitted)``: the model's error factor, ``data`` stacked ``(T, L)`` (NaN gaps) and
+    the model's fitted values in data units (offset included), for the references by hand."""
+    V = model.region_.stack(data).astype(np.float64)
+    fitted = (np.asarray(model.X_, np.float64).T @ np.asarray(model.Y_, np.float64)
+              + np.asarray(model.offset_, np.float64))
+    return st.error_factor(model), V, fitted
+
+
 def test_the_scaled_training_residual_is_a_new_snapshots_residual():
     """Rank 2 + offset on 14 snapshots: ``k = 3``, ``c = 14 / 11``. The training residuals'
     variance is ``(11 / 14) sigma^2``; a new snapshot's residual (least-squares fold-in of
@@ -86,11 +95,7 @@ def test_the_risk_is_the_risk_of_the_inflated_data_and_only_on_the_fit_snapshots
     rng = np.random.default_rng(5)
     train = train.where(rng.random(train.shape) > 0.1)
     model = _fit(train, spatial="exponential")
-    region = model.region_
-    c = st.error_factor(model)
-    V = region.stack(train).astype(np.float64)
-    fitted_data = (np.asarray(model.X_, np.float64).T @ np.asarray(model.Y_, np.float64)
-                   + np.asarray(model.offset_, np.float64))
+    c, V, fitted_data = _by_hand(model, train)
     inflated = np.where(np.isfinite(V), fitted_data + c * (V - fitted_data), fitted_data)
     cells = [3, 17, 40, 55]
     J = st.risk_objective(model, train, cells)
@@ -133,10 +138,7 @@ def test_a_gap_in_the_training_is_the_fitted_value_not_the_mean():
     cloudy = cloud_gaps(clean, 0.3, seed=0)
     model = _fit(cloudy, spatial="exponential")
     region = model.region_
-    c = st.error_factor(model)
-    V = region.stack(cloudy).astype(np.float64)
-    fitted_data = (np.asarray(model.X_, np.float64).T @ np.asarray(model.Y_, np.float64)
-                   + np.asarray(model.offset_, np.float64))
+    c, V, fitted_data = _by_hand(model, cloudy)
     gaps_at_mean = fitted_data + c * (V - fitted_data)  # an array: NaN -> the prior mean
     rng = np.random.default_rng(0)
     for _ in range(6):
