@@ -153,9 +153,10 @@ def _fold_in_from_prior(prior: Any, Yk: np.ndarray, region: Region) -> tuple[_Fo
 
 def training_residuals(training: Any, region: Region, obs: Any, mean: np.ndarray,
                        model: Any = None) -> np.ndarray:
-    """``(T, L)`` training snapshots in fit units minus the fold-in's prior mean (0, the
-    prior mean, where a value is missing). ``training``: a ``(time, lat, lon)`` DataArray on
-    the region's grid, a ``(time, cell)`` DataArray, or a ``(T, L)`` / ``(T, ny, nx)`` array.
+    """``(T, L)`` training snapshots in fit units minus the fold-in's prior mean (a missing
+    value: 0, the prior mean, unless ``model`` is given, below). ``training``: a ``(time,
+    lat, lon)`` DataArray on the region's grid, a ``(time, cell)`` DataArray, or a ``(T, L)``
+    / ``(T, ny, nx)`` array.
 
     ``model``: the fitted GLRM whose fold-in this is, **fitted on exactly these snapshots**
     (:func:`fitted_on` tells). Each error is then made a new snapshot's: the fitted part
