@@ -66,9 +66,17 @@ def test_deterministic_given_the_seed():
 
 @pytest.mark.parametrize("kwargs, match", [
     (dict(missing=1.0), "missing must be in"),
-    (dict(missing=-0.1), "missing must be in"),
-    (dict(missing=0.3, size=0.0), "size must be > 0"),
+    (dict(missing=-0.1), "missing must be >= 0"),
+    (dict(missing=np.nan), "missing must be >= 0 and finite"),
+    (dict(missing=0.3, size=0.0), r"size \(cells\) must be > 0"),
     (dict(missing=0.3, correlation=1.0), "correlation must be in"),
+    # not numbers: a one-line DataError naming the argument, not a TypeError from float()
+    (dict(missing="0.3"), "missing must be a number"),
+    (dict(missing=None), "missing must be a number"),
+    (dict(missing=0.3, size="3"), r"size \(cells\) must be a number"),
+    (dict(missing=0.3, size=[3]), r"size \(cells\) must be a number"),
+    (dict(missing=0.3, correlation=True), "correlation must be a number"),
+    (dict(missing=0.3, seed="a"), "seed must be None, an int or a numpy Generator"),
 ])
 def test_bad_arguments(kwargs, match):
     with pytest.raises(DataError, match=match):

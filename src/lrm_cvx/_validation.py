@@ -21,8 +21,10 @@ __all__ = ["as_generator", "as_factor_matrix", "atomic_output", "atomic_outputs"
            "guard_outputs", "read_netcdf", "remove_stale_temps", "same_file"]
 
 
-def as_generator(random_state: Any) -> np.random.Generator:
-    """A NumPy ``Generator`` from ``None``, an int seed, a ``SeedSequence`` or a ``Generator``."""
+def as_generator(random_state: Any, name: str = "random_state", *,
+                 error: type[Exception] = ModelError) -> np.random.Generator:
+    """A NumPy ``Generator`` from ``None``, an int seed, a ``SeedSequence`` or a ``Generator``;
+    anything else raises ``error`` naming the argument ``name``."""
     if isinstance(random_state, np.random.Generator):
         return random_state
     if isinstance(random_state, np.random.RandomState):
@@ -30,8 +32,8 @@ def as_generator(random_state: Any) -> np.random.Generator:
     try:
         return np.random.default_rng(random_state)
     except (TypeError, ValueError) as exc:
-        raise ModelError(
-            f"random_state must be None, an int or a numpy Generator, got {random_state!r}"
+        raise error(
+            f"{name} must be None, an int or a numpy Generator, got {random_state!r}"
         ) from exc
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from .._validation import as_generator
+from .._validation import as_generator, check_positive
 from ..errors import DataError
 from .imagery import write_image_stack
 from .ndvi import write_ndvi_cdr
@@ -170,7 +170,7 @@ def synthetic_field(
     except (TypeError, ValueError):
         raise DataError(f"start_date must be a date, got {start_date!r}") from None
 
-    rng = as_generator(seed)
+    rng = as_generator(seed, "seed", error=DataError)
     # spatial modes, land mask, time factors: small
     ay_m, ax_m = _rbf_basis(ny, 0.2), _rbf_basis(nx, 0.2)
     ay_f, ax_f = _rbf_basis(ny, 0.08), _rbf_basis(nx, 0.08)
@@ -284,14 +284,14 @@ def cloud_gaps(data: xr.DataArray, missing: float, *, size: float = 3.0,
                         f"{type(data).__name__} with {getattr(data, 'ndim', '?')} dims")
     if data.dtype.kind != "f":
         raise DataError(f"data must hold floats (NaN marks a gap), got dtype {data.dtype}")
-    if not 0.0 <= float(missing) < 1.0:
-        raise DataError(f"missing must be in [0, 1), got {missing!r}")
-    if not (np.isfinite(size) and size > 0):
-        raise DataError(f"size must be > 0 cells, got {size!r}")
-    if not 0.0 <= float(correlation) < 1.0:
-        raise DataError(f"correlation must be in [0, 1), got {correlation!r}")
+    missing, correlation = (check_positive(v, name, numbers_only=True) for v, name in
+                            ((missing, "missing"), (correlation, "correlation")))
+    for v, name in ((missing, "missing"), (correlation, "correlation")):
+        if v >= 1.0:
+            raise DataError(f"{name} must be in [0, 1), got {v!r}")
+    size = check_positive(size, "size (cells)", strict=True, numbers_only=True)
     T, ny, nx = data.shape
-    rng = as_generator(seed)
+    rng = as_generator(seed, "seed", error=DataError)
     clouds = _Clouds(rng, _rbf_basis(ny, size / ny), _rbf_basis(nx, size / nx),
                      float(correlation))
     values = np.array(data.values, order="C", copy=True)
@@ -354,7 +354,7 @@ def synthetic_dynamic_field(
     """
     n_times = _check_int(n_times, "n_times", 1)
     rank = _check_int(rank, "rank", 1)
-    rng = as_generator(seed)
+    rng = as_generator(seed, "seed", error=DataError)
     if A is None:
         A = _stable_dynamics(rng, rank)
     A = np.asarray(A, dtype=np.float64)
