@@ -12,8 +12,11 @@ snapshots of data minus the low-rank reconstruction), the way campaigns use the 
   estimate_anisotropy`: zonal bands make the residuals of monthly winds and sea-surface
   temperatures correlate 2-6 times further east-west than north-south);
 * each residual snapshot is sampled as campaigns sample (a clustered route, a straight transect
-  and scattered cells: :func:`~lrm_cvx.glrm.calibration.sample_sets`), once per design and size
-  of :data:`~lrm_cvx.glrm.selection.AUTO_SIZES`, the same cells for every family (paired);
+  and scattered cells, drawn among all of the region's cells as they are flown:
+  :func:`~lrm_cvx.glrm.designs.flown_sets`; a design cell in one of the snapshot's gaps gives
+  no value, so under clouds the kernel interpolates across the gaps a campaign meets), once per
+  design and size of :data:`~lrm_cvx.glrm.selection.AUTO_SIZES`, the same cells for every
+  family (paired);
 * the score is the MSE of the kriged residual at (at most :data:`~lrm_cvx.glrm.selection.
   MAX_SCORED` random) held-out observed cells: the part of the map the kernel decides;
 * rule (the one of ``temporal="auto"``, :func:`~lrm_cvx.glrm.selection.paired_choice`): a
@@ -63,7 +66,7 @@ def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence
     per row, size and design (case ``i * n_designs + j``: row ``i``, ``designs[j]``), the same
     cells for every covariance of ``covs``."""
     from .. import spatial as sp
-    from .designs import sample_sets
+    from .designs import flown_sets
 
     nd = len(designs)
     err = np.full((len(covs), len(sizes), R.shape[0] * nd), np.nan)
@@ -71,9 +74,10 @@ def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence
         ok = np.isfinite(r)
         for s_i, size in enumerate(sizes):
             for j, design in enumerate(designs):
-                cells = sample_sets(region, ok, size, design, rng)
+                flown = flown_sets(region, size, design, rng)  # over the day's gaps
+                cells = flown[ok[flown]]  # the design's cells that gave a value
                 held = ok.copy()
-                held[cells] = False
+                held[flown] = False
                 h = np.flatnonzero(held)
                 if h.size > max_scored:
                     h = np.sort(rng.choice(h, max_scored, replace=False))
