@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lrm_cvx.errors import DataError
-from lrm_cvx.io.samples import synthetic_field
+from lrm_cvx.io.samples import synthetic_dynamic_field, synthetic_field
 
 
 def test_shape_coords_and_planted_truth():
@@ -40,6 +40,7 @@ def test_deterministic_by_seed():
     b = synthetic_field(4, (10, 12), seed=7)
     c = synthetic_field(4, (10, 12), seed=8)
     np.testing.assert_array_equal(a.values, b.values)
+    assert a.attrs == b.attrs
     assert not np.array_equal(np.nan_to_num(a.values), np.nan_to_num(c.values))
 
 
@@ -50,3 +51,26 @@ def test_bad_arguments():
         synthetic_field(2, (4, 4), missing=1.5)
     with pytest.raises(DataError, match="shape"):
         synthetic_field(2, (4,))
+
+
+def test_dynamic_field_attrs_are_deterministic_and_name_the_seed():
+    """The comment names the caller's seed, not the address of the Generator it shares."""
+    a = synthetic_dynamic_field(5, (6, 7), seed=4)
+    b = synthetic_dynamic_field(5, (6, 7), seed=4)
+    assert a.attrs == b.attrs
+    assert "seed 4;" in a.attrs["comment"] and "Generator" not in a.attrs["comment"]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(missing="0.3"), "missing must be a number"),
+    (dict(missing=-0.1), "missing must be >= 0"),
+    (dict(land_fraction=None), "land_fraction must be a number"),
+    (dict(land_fraction=1.2), r"land_fraction must be in \[0, 1\]"),
+    (dict(noise="x"), "noise must be a number"),
+    (dict(noise=np.inf), "noise must be >= 0 and finite"),
+    (dict(seed="a"), "seed must be None, an int or a numpy Generator"),
+])
+@pytest.mark.parametrize("make", [synthetic_field, synthetic_dynamic_field])
+def test_bad_arguments_are_one_line_data_errors(make, kwargs, match):
+    with pytest.raises(DataError, match=match):
+        make(3, (5, 6), **kwargs)

@@ -155,12 +155,10 @@ def synthetic_field(
     if ny < 1 or nx < 1:
         raise DataError(f"shape must be positive, got {shape!r}")
     rank = _check_int(rank, "rank", 1)
-    for value, label in ((missing, "missing"), (land_fraction, "land_fraction")):
-        if not 0.0 <= float(value) <= 1.0:
-            raise DataError(f"{label} must be in [0, 1], got {value!r}")
-    if not (np.isfinite(noise) and noise >= 0):
-        raise DataError(f"noise must be >= 0, got {noise!r}")
-    if float(land_fraction) == 0.0:
+    missing = _check_fraction(missing, "missing")
+    land_fraction = _check_fraction(land_fraction, "land_fraction")
+    noise = check_positive(noise, "noise", numbers_only=True)
+    if land_fraction == 0.0:
         raise DataError("land_fraction must be > 0: the field would be all NaN")
     dtype = np.dtype(dtype)
     if dtype.kind != "f":
@@ -198,7 +196,7 @@ def synthetic_field(
                             f"shape {X.shape}")
 
     land_field = _smooth_field(rng, _rbf_basis(ny, 0.1), _rbf_basis(nx, 0.1))
-    land = _top_fraction(land_field, float(land_fraction))
+    land = _top_fraction(land_field, land_fraction)
     land_idx = np.flatnonzero(land.ravel())
 
     out = np.empty((n_times, ny, nx), dtype=dtype)
@@ -257,14 +255,14 @@ def synthetic_field(
             "valid_max": 1.0,
             "source": "lrm_cvx.io.samples.synthetic_field",
             "comment": (
-                f"planted rank-{rank} field plus Gaussian noise (std {float(noise):g}); "
-                f"NaN off land ({float(land_fraction):g} of the grid) and under synthetic "
-                f"clouds ({float(missing):g} of land cells each day); seed {seed!r}"
+                f"planted rank-{rank} field plus Gaussian noise (std {noise:g}); "
+                f"NaN off land ({land_fraction:g} of the grid) and under synthetic "
+                f"clouds ({missing:g} of land cells each day); seed {seed!r}"
             ),
         },
     )
     if return_truth:
-        truth = {"X": X, "Y": Y, "land_mask": land, "noise": float(noise)}
+        truth = {"X": X, "Y": Y, "land_mask": land, "noise": noise}
         return da, truth
     return da
 
@@ -284,29 +282,26 @@ def cloud_gaps(data: xr.DataArray, missing: float, *, size: float = 3.0,
                         f"{type(data).__name__} with {getattr(data, 'ndim', '?')} dims")
     if data.dtype.kind != "f":
         raise DataError(f"data must hold floats (NaN marks a gap), got dtype {data.dtype}")
-    missing, correlation = (check_positive(v, name, numbers_only=True) for v, name in
-                            ((missing, "missing"), (correlation, "correlation")))
-    for v, name in ((missing, "missing"), (correlation, "correlation")):
-        if v >= 1.0:
-            raise DataError(f"{name} must be in [0, 1), got {v!r}")
+    missing = _check_fraction(missing, "missing", below_one=True)
+    correlation = _check_fraction(correlation, "correlation", below_one=True)
     size = check_positive(size, "size (cells)", strict=True, numbers_only=True)
     T, ny, nx = data.shape
     rng = as_generator(seed, "seed", error=DataError)
     clouds = _Clouds(rng, _rbf_basis(ny, size / ny), _rbf_basis(nx, size / nx),
-                     float(correlation))
+                     correlation)
     values = np.array(data.values, order="C", copy=True)
     flat = values.reshape(T, ny * nx)  # a view: C order
     for t in range(T):
         if t > 0:
             clouds.advance()
         valid = np.flatnonzero(np.isfinite(flat[t]))
-        n_hide = int(round(float(missing) * valid.size))
+        n_hide = int(round(missing * valid.size))
         if n_hide:
             cover = clouds.cover()[valid]
             flat[t, valid[np.argsort(-cover, kind="stable")[:n_hide]]] = np.nan
     out = data.copy(data=values)
-    note = (f"cloud_gaps: {float(missing):g} of each snapshot's values hidden by moving clouds "
-            f"(size {float(size):g} cells, correlation {float(correlation):g}, seed {seed!r})")
+    note = (f"cloud_gaps: {missing:g} of each snapshot's values hidden by moving clouds "
+            f"(size {size:g} cells, correlation {correlation:g}, seed {seed!r})")
     out.attrs["history"] = "\n".join(filter(None, [str(data.attrs.get("history", "")), note]))
     return out
 
@@ -402,7 +397,9 @@ def synthetic_dynamic_field(
         da = da.assign_coords(time=("time", pd.date_range(start, periods=n_times, freq="MS")
                                     .values.astype("datetime64[ns]"), da.time.attrs))
     da.attrs["source"] = "lrm_cvx.io.samples.synthetic_dynamic_field"
-    da.attrs["comment"] += f"; latent AR(1) dynamics, seasonal period {seasonal_period}"
+    da.attrs["comment"] = (  # the caller's seed, not the shared Generator's address
+        da.attrs["comment"].replace(f"seed {rng!r}", f"seed {seed!r}")
+        + f"; latent AR(1) dynamics, seasonal period {seasonal_period}")
     if return_truth:
         truth.update(A=A, Q=Q, mu=mu, seasonal=seasonal, Z=Z)
         return da, truth
@@ -417,6 +414,15 @@ def _top_fraction(field: np.ndarray, fraction: float) -> np.ndarray:
     mask = np.zeros(flat.size, dtype=bool)
     mask[order] = True
     return mask.reshape(field.shape)
+
+
+def _check_fraction(value: Any, name: str, *, below_one: bool = False) -> float:
+    """``value`` as a float in [0, 1] ([0, 1) when ``below_one``), else a DataError naming it
+    (a string, None or a bool included: not converted)."""
+    v = check_positive(value, name, numbers_only=True)
+    if v > 1.0 or (below_one and v == 1.0):
+        raise DataError(f"{name} must be in [0, {'1)' if below_one else '1]'}, got {value!r}")
+    return v
 
 
 def _check_int(value: Any, name: str, minimum: int) -> int:
