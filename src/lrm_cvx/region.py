@@ -421,6 +421,21 @@ class Region:
             name=self.name,
         )
 
+    def crop(self, rows: slice, cols: slice) -> Region:
+        """The region restricted to a window of its grid: rows ``rows`` and columns ``cols``
+        (slices of grid positions, step 1), coordinates and attributes kept. Its cells are this
+        region's cells inside the window, in the same (row-major) order."""
+        if not (isinstance(rows, slice) and isinstance(cols, slice)) or \
+                rows.step not in (None, 1) or cols.step not in (None, 1):
+            raise RegionError(f"rows and cols must be slices of step 1, got {rows!r}, {cols!r}")
+        mask = self.mask[rows, cols]
+        if not mask.any():
+            raise RegionError(f"the window rows {rows}, cols {cols} holds no valid cell of "
+                              f"{self!r}")
+        return Region(lat=self.lat.isel({self.dims[0]: rows}),
+                      lon=self.lon.isel({self.dims[1]: cols}), mask=mask,
+                      attrs=dict(self.attrs), name=self.name)
+
     # ------------------------------------------------------------------ persistence
     def to_dataset(self) -> xr.Dataset:
         """The region as a Dataset (grid coordinates and an int8 ``region_mask``) for NetCDF."""

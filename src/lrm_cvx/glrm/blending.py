@@ -14,7 +14,7 @@ from .._validation import as_generator
 from ..errors import ModelError
 from .designs import SET_KINDS, flown_sets
 from .paired import paired_choice
-from .refits import clone_model, training_values
+from .refits import clone_model, training_values, validation_view
 
 __all__ = ["blend_dynamics", "unblended_dynamics", "memoryless_cov", "select_dynamics"]
 
@@ -79,7 +79,9 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     own blend (:func:`unblended_dynamics`), and for each ``alpha`` the filter with
     :func:`blend_dynamics` runs through the window, one campaign per sample-set size and kind
     (the same random cells for every ``alpha``). The candidates are ``alphas``, 0
-    (memoryless) and the blend the fit chose itself (``dynamics_.blend``).
+    (memoryless) and the blend the fit chose itself (``dynamics_.blend``). On a region of
+    more than ``refits.VALIDATION_MAX_CELLS`` cells the refits and campaigns read one window
+    of it (:func:`~lrm_cvx.glrm.refits.validation_view`).
 
     **Rule (validated, with a guard on harm).** For each ``alpha`` and size the per-day
     differences ``d_t = mse_alpha(t) - mse_0(t)`` (validation days of every window, averaged
@@ -104,7 +106,8 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     if dyn is None:
         raise ModelError("select_dynamics needs a model fitted with temporal='ar1' or "
                          "'seasonal' (it has no dynamics_)")
-    region, V = training_values(model, data)
+    view, data, _ = validation_view(model, data)  # a large region: a window of it
+    region, V = training_values(view, data)
     T = V.shape[0]
     n_val = max(3, T // 5) if n_val is None else int(n_val)
     if not 2 <= n_val <= T - 3:
@@ -130,7 +133,7 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
         lo = end - n_val
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sub = clone_model(model).fit(data.isel(time=slice(None, lo)), region=region)
+            sub = clone_model(view).fit(data.isel(time=slice(None, lo)), region=region)
         sub.calibration_ = None
         sub_dyn = unblended_dynamics(sub)
         S = memoryless_cov(sub, sub_dyn)

@@ -59,7 +59,7 @@ from .calibrated import (  # noqa: F401  (re-exported: the old import location)
     variance_scale,
 )
 from .designs import ALL_KINDS, SET_KINDS, flown_sets, sample_sets  # noqa: F401  (re-exported)
-from .refits import clone_model, training_values
+from .refits import clone_model, training_values, validation_view
 
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
            "blend_dynamics", "select_dynamics", "unblended_dynamics",
@@ -132,6 +132,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     """
     from .posterior import model_prior
 
+    model, data, _ = validation_view(model, data)  # a large region: a window of it
     region, V = training_values(model, data)
     T = V.shape[0]
     if not 2 <= int(n_blocks) <= T // 2:
@@ -487,7 +488,9 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     whose forward blocks cannot carry the model's kind (a season on a short record) keeps the
     memoryless calibration; a kind named explicitly raises.
     Costs ``n_blocks`` refits plus ``n_blocks * max_snapshots * len(sizes) * len(kinds)``
-    fold-ins (and ``n_blocks // 2`` refits more with ``temporal``). ``n_blocks`` (None): 8,
+    fold-ins (and ``n_blocks // 2`` refits more with ``temporal``); on a region of more than
+    ``refits.VALIDATION_MAX_CELLS`` cells all of them read one window of it
+    (:func:`~lrm_cvx.glrm.refits.validation_view`). ``n_blocks`` (None): 8,
     fewer on a short record (half its snapshots, at least 2).
     """
     if method not in ("gaussian", "conformal"):
@@ -498,7 +501,8 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     if method == "conformal" and not levels:
         raise ModelError("levels must hold at least one level in (0, 1)")
     if n_blocks is None:  # 8 folds, fewer on a short record (each fold keeps 2 snapshots)
-        n_blocks = max(2, min(8, training_values(model, data)[1].shape[0] // 2))
+        n_blocks = max(2, min(8, training_values(*validation_view(model, data)[:2])[1]
+                                  .shape[0] // 2))
     kw = dict(n_blocks=n_blocks, sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
     rhos = RESIDUAL_SCALES if residual else (1.0,)
     conformal_fit = method == "conformal"

@@ -1,16 +1,27 @@
 """Refits of a fitted model on part of its training snapshots: the unfitted copy every
-validation refits (:func:`clone_model`) and the snapshots stacked on the model's region
-(:func:`training_values`)."""
+validation refits (:func:`clone_model`), the snapshots stacked on the model's region
+(:func:`training_values`), and the window of a large region the validations read
+(:func:`validation_view`)."""
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import numpy as np
 
 from ..errors import DataError, ModelError
 
-__all__ = ["clone_model", "training_values"]
+__all__ = ["clone_model", "training_values", "validation_window", "validation_view",
+           "VALIDATION_MAX_CELLS"]
+
+VALIDATION_MAX_CELLS = 200_000
+"""The most cells a validation's refits read (``temporal="auto"``, the calibration,
+``select_dynamics``): a larger region is validated on a window of its grid holding about this
+many cells (:func:`validation_window`). Each refit is a whole fit of the cells it reads: on the
+paper's 2.1M cells the recommended fit's validations cost about six fits and most of its
+memory, on a window of 200,000 cells (a square of about 450 cells) a tenth of that
+(docs/benchmarks.md, "The recommended fit at paper scale")."""
 
 
 def clone_model(model: Any, **override: Any):
@@ -44,3 +55,73 @@ def training_values(model: Any, data: Any, dtype: Any = np.float64):
         raise ModelError("a validation refit needs a model fitted on a DataArray (with a "
                          "region)")
     return region, region.stack(data).astype(dtype, copy=False)
+
+
+def validation_window(region: Any, max_cells: int = VALIDATION_MAX_CELLS
+                      ) -> tuple[slice, slice] | None:
+    """``(rows, cols)``: the grid window a validation of a model of ``region`` reads, or None
+    when the region has at most ``max_cells`` cells (the whole region is read).
+
+    The window is the smallest square of grid positions (clipped to the grid) centred on the
+    valid cells' median row and column that holds at least ``max_cells`` valid cells: one
+    contiguous piece of the region at its own resolution, so the validations' routes and
+    transects are flown over neighbouring cells as a campaign's are, and the residual's
+    covariance is seen at the lags a campaign samples. Deterministic; ``O(grid)``."""
+    max_cells = int(max_cells)
+    if max_cells < 1:
+        raise ModelError(f"max_cells must be a positive integer, got {max_cells}")
+    if region.n_cells <= max_cells:
+        return None
+    mask = region.mask
+    ny, nx = mask.shape
+    area = np.zeros((ny + 1, nx + 1), dtype=np.int64)  # summed-area table of the valid cells
+    area[1:, 1:] = np.cumsum(np.cumsum(mask, axis=0, dtype=np.int64), axis=1)
+    rc, cc = (int(np.median(region.grid_index[:, i])) for i in (0, 1))
+
+    def box(h: int) -> tuple[int, int, int, int]:
+        return max(0, rc - h), min(ny, rc + h + 1), max(0, cc - h), min(nx, cc + h + 1)
+
+    def count(h: int) -> int:
+        r0, r1, c0, c1 = box(h)
+        return int(area[r1, c1] - area[r0, c1] - area[r1, c0] + area[r0, c0])
+
+    lo, hi = 0, max(ny, nx)  # count(hi) is every cell
+    while lo < hi:  # the smallest half-width holding max_cells
+        mid = (lo + hi) // 2
+        lo, hi = (mid + 1, hi) if count(mid) < max_cells else (lo, mid)
+    r0, r1, c0, c1 = box(lo)
+    return slice(r0, r1), slice(c0, c1)
+
+
+def validation_view(model: Any, data: Any, values: np.ndarray | None = None,
+                    max_cells: int | None = None) -> tuple[Any, Any, np.ndarray | None]:
+    """``(view, data, values)``: what a validation of the fitted ``model`` on its training
+    ``data`` ``(time, lat, lon)`` reads. For a region of at most ``max_cells`` cells
+    (:data:`VALIDATION_MAX_CELLS`) the arguments themselves. Else the window of
+    :func:`validation_window`: ``view`` a shallow copy of ``model`` whose region is the window
+    (its refits, clones of ``model``, fit the window's cells only; its factors ``Y_`` are
+    dropped, so a validation cannot read the whole region's), ``data`` cropped
+    to it (lazily for dask: only the window is ever loaded), and ``values`` (``data`` stacked
+    ``(T, L)``, when given) the window's columns. A validation writes its result on ``model``,
+    never on the view."""
+    import xarray as xr
+
+    region = getattr(model, "region_", None)
+    if region is None or not isinstance(data, xr.DataArray) or data.ndim != 3:
+        return model, data, values  # the validation raises its own error on such input
+    window = validation_window(region, VALIDATION_MAX_CELLS if max_cells is None
+                               else max_cells)
+    if window is None:
+        return model, data, values
+    rows, cols = window
+    sub = region.crop(rows, cols)
+    view = copy.copy(model)
+    view.region_, view.n_cells_ = sub, sub.n_cells
+    view.Y_ = None  # the whole region's factors: no validation may read them
+    data = data.isel({data.dims[1]: rows, data.dims[2]: cols})
+    if values is not None and np.shape(values)[-1:] == (region.n_cells,):  # else: the
+        gi = region.grid_index  # validation's own check of its shape raises
+        inside = ((gi[:, 0] >= rows.start) & (gi[:, 0] < rows.stop)
+                  & (gi[:, 1] >= cols.start) & (gi[:, 1] < cols.stop))
+        values = np.asarray(values)[:, inside]
+    return view, data, values

@@ -217,7 +217,9 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     kriged residual and the forecast interact, so the choice is scored on the maps users get).
     Each day's map is scored on at most :data:`MAX_SCORED` random unsampled cells.
     ``values``: ``data`` already stacked by the model's region ``(T, L)`` (``GLRM.fit`` hands
-    over its own; None: stacked here). See the module docstring for the rule.
+    over its own; None: stacked here). On a region of more than
+    ``refits.VALIDATION_MAX_CELLS`` cells the refits, designs and scores read one window of it
+    (:func:`~lrm_cvx.glrm.refits.validation_view`). See the module docstring for the rule.
 
     ``ranks`` (``GLRM(rank="auto")``): also choose the rank among these. Every window is
     refitted at each rank and every candidate tried at each (labels ``"rank 8 seasonal:1
@@ -234,8 +236,9 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``choice_rank``).
     """
     from .dynamics import TEMPORAL, check_times
-    from .refits import clone_model, training_values
+    from .refits import clone_model, training_values, validation_view
 
+    model, data, values = validation_view(model, data, values)  # a large region: a window
     # one stacking pass, float32 as region.stack gives it (the scoring promotes the values
     # exactly; the refits read it as a (time, cell) DataArray, not gathered again)
     if values is None:

@@ -1,0 +1,103 @@
+"""The recommended fit at paper scale: what its validations cost beside the fit itself.
+
+    python benchmarks/bench_recommended_fit.py            # 310 days x 1500 x 1400 (2.1M cells)
+    python benchmarks/bench_recommended_fit.py --whole    # the validations over every cell
+    python benchmarks/bench_recommended_fit.py --quick --max-cells 5000   # 60 x 200 x 150
+
+A planted daily record (``synthetic_field``: rank 5, every cell land (as ``bench_glrm.py``), 30 %
+of the values missing, noise 0.05) as
+a ``(time, lat, lon)`` DataArray, fitted with ``GLRM(**GLRM.recommended_params(), rank=5)``
+(offset, ``spatial="auto"``, ``temporal="auto"``, the conformal calibration) in three timed
+stages, each with the peak RSS of the process during it:
+
+1. the fit with ``temporal="auto"`` and no calibration (the factors, the offset, the kernel's
+   choice and the temporal selection);
+2. ``select_temporal`` once more on that model, alone (its time is taken off stage 1's: the
+   ``fit`` line is the fit without its validations);
+3. ``calibrate_with`` (the recommended calibration) on that model.
+
+The two validations refit the model on parts of the record. Above
+``refits.VALIDATION_MAX_CELLS`` cells (200,000) they read a window of the grid holding that
+many cells (``refits.validation_window``); ``--whole`` lifts the cap (every cell, as before
+session 25), ``--max-cells N`` sets it. The choice and the calibration's thresholds are printed,
+so the two runs can be compared. Figures: docs/benchmarks.md, "The recommended fit at paper
+scale".
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import time
+import warnings
+
+import numpy as np
+from bench_glrm import PeakRSS, rss_gib
+
+
+def main() -> None:
+    from lrm_cvx import GLRM
+    from lrm_cvx.glrm import refits
+    from lrm_cvx.glrm.calibration import calibrate_with
+    from lrm_cvx.glrm.selection import select_temporal
+    from lrm_cvx.io.samples import synthetic_field
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="60 days x 200 x 150 cells")
+    ap.add_argument("--whole", action="store_true",
+                    help="validate on every cell (no window: the code before session 25)")
+    ap.add_argument("--max-cells", type=int, default=None,
+                    help="refits.VALIDATION_MAX_CELLS for this run")
+    a = ap.parse_args()
+    if a.whole:
+        refits.VALIDATION_MAX_CELLS = 10**12
+    elif a.max_cells is not None:
+        refits.VALIDATION_MAX_CELLS = int(a.max_cells)
+    n_times, shape = (60, (200, 150)) if a.quick else (310, (1500, 1400))
+    t0 = time.perf_counter()
+    da = synthetic_field(n_times, shape, rank=5, missing=0.3, noise=0.05, land_fraction=1.0,
+                         seed=0)
+    da = da.assign_coords(time=np.datetime64("2000-01-01", "ns")
+                          + np.arange(n_times) * np.timedelta64(1, "D"))
+    print(f"data: {n_times} days x {shape} grid, {da.dtype}, generated in "
+          f"{time.perf_counter() - t0:.1f} s; RSS {rss_gib():.2f} GiB", flush=True)
+    warnings.simplefilter("ignore")
+    w = np.random.default_rng(0).random((8, 60)).astype(np.float32)  # numba warm-up
+    GLRM(rank=2, max_iter=2, progress=False).fit(w, mask=w > 0.2)
+    params = {**GLRM.recommended_params(), "rank": 5, "random_state": 0, "progress": False}
+    cal = params.pop("calibration")
+    secs, peaks = {}, {}
+
+    def timed(stage, run):
+        gc.collect()
+        with PeakRSS() as pk:
+            t0 = time.perf_counter()
+            out = run()
+            secs[stage], peaks[stage] = time.perf_counter() - t0, pk.peak
+        return out
+
+    model = timed("fit", lambda: GLRM(**params).fit(da))
+    window = refits.validation_window(model.region_, refits.VALIDATION_MAX_CELLS)
+    cells = model.region_.n_cells if window is None else model.region_.crop(*window).n_cells
+    print(f"  {model.region_.n_cells} cells; the validations read {cells} "
+          f"({'every cell' if window is None else f'rows {window[0]}, cols {window[1]}'})",
+          flush=True)
+    timed("select_temporal", lambda: select_temporal(model, da, seed=model.random_state))
+    timed("calibrate", lambda: calibrate_with(model, da, cal))
+    secs["fit"] -= secs["select_temporal"]  # the fit above ran the same selection
+    for stage in ("fit", "select_temporal", "calibrate"):
+        print(f"  {stage:16s} {secs[stage]:7.1f} s  peak RSS {peaks[stage]:.2f} GiB", flush=True)
+    total = sum(secs.values())
+    extra = secs["select_temporal"] + secs["calibrate"]
+    print(f"recommended fit {total:.1f} s, peak RSS {max(peaks.values()):.2f} GiB; the "
+          f"validations {extra:.1f} s = {extra / secs['fit']:.2f} fits")
+    c = model.calibration_
+    print(f"choice {model.selection_.attrs['choice']!r}, kernel "
+          f"{model.spatial_cov_.model}; conformal 68 / 95 % thresholds "
+          f"{c.quantiles[0]:.3f} / {c.quantiles[1]:.3f} (filter "
+          f"{c.temporal_quantiles[0]:.3f} / {c.temporal_quantiles[1]:.3f})"
+          if c.temporal_quantiles else "")
+
+
+if __name__ == "__main__":
+    main()
