@@ -19,8 +19,8 @@ VALIDATION_MAX_CELLS = 200_000
 """The most cells a validation's refits read (``temporal="auto"``, the calibration,
 ``select_dynamics``): a larger region is validated on a window of its grid holding about this
 many cells (:func:`validation_window`). Each refit is a whole fit of the cells it reads: on the
-paper's 2.1M cells the recommended fit's validations cost about six fits and most of its
-memory, on a window of 200,000 cells (a square of about 450 cells) a tenth of that
+paper's 2.1M cells the recommended fit took 440 s at a 15 GiB peak with every cell validated,
+103 s at 9 GiB (the fit's own peak) with a window of 200,000 cells, a square of about 450
 (docs/benchmarks.md, "The recommended fit at paper scale")."""
 
 
