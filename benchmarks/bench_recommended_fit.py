@@ -92,11 +92,11 @@ def main() -> None:
     print(f"recommended fit {total:.1f} s, peak RSS {max(peaks.values()):.2f} GiB; the "
           f"validations {extra:.1f} s = {extra / secs['fit']:.2f} fits")
     c = model.calibration_
-    print(f"choice {model.selection_.attrs['choice']!r}, kernel "
-          f"{model.spatial_cov_.model}; conformal 68 / 95 % thresholds "
-          f"{c.quantiles[0]:.3f} / {c.quantiles[1]:.3f} (filter "
-          f"{c.temporal_quantiles[0]:.3f} / {c.temporal_quantiles[1]:.3f})"
-          if c.temporal_quantiles else "")
+    line = (f"choice {model.selection_.attrs['choice']!r}, kernel {model.spatial_cov_.model}; "
+            f"conformal 68 / 95 % thresholds {c.quantiles[0]:.3f} / {c.quantiles[1]:.3f}")
+    if c.temporal_quantiles:
+        line += f" (filter {c.temporal_quantiles[0]:.3f} / {c.temporal_quantiles[1]:.3f})"
+    print(line)
 
 
 if __name__ == "__main__":

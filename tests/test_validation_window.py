@@ -13,7 +13,12 @@ import xarray as xr
 from lrm_cvx import GLRM, Region
 from lrm_cvx.errors import ModelError, RegionError
 from lrm_cvx.glrm import refits
-from lrm_cvx.glrm.blending import select_dynamics
+from lrm_cvx.glrm.blending import (
+    blend_dynamics,
+    memoryless_cov,
+    select_dynamics,
+    unblended_dynamics,
+)
 from lrm_cvx.glrm.refits import validation_view, validation_window
 from lrm_cvx.io.samples import synthetic_dynamic_field
 
@@ -132,8 +137,12 @@ def test_select_dynamics_reads_only_the_window_and_applies_to_the_model(field, m
     b, table_p = select_dynamics(poisoned, poisoned_data, seed=0, apply=True)
     assert a == b
     np.testing.assert_array_equal(table.values, table_p.values)
-    # the whole model's dynamics were blended (not the window's view)
-    assert clean.dynamics_.A.shape == (3, 3) and clean.dynamics_alpha_ == a
+    # the chosen blend is applied to the whole model (not to the window's view)
+    ref = _fit(field, temporal="ar1")
+    base = unblended_dynamics(ref)
+    expected = blend_dynamics(base, a, memoryless_cov(ref, base))
+    np.testing.assert_allclose(clean.dynamics_.A, expected.A)
+    assert clean.dynamics_alpha_ == a
 
 
 def test_view_of_a_small_region_is_the_model_itself(field):

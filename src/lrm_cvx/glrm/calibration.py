@@ -501,8 +501,8 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     if method == "conformal" and not levels:
         raise ModelError("levels must hold at least one level in (0, 1)")
     if n_blocks is None:  # 8 folds, fewer on a short record (each fold keeps 2 snapshots)
-        n_blocks = max(2, min(8, training_values(*validation_view(model, data)[:2])[1]
-                                  .shape[0] // 2))
+        n_snapshots = np.shape(data)[0] if np.ndim(data) else 0  # cv_residuals checks data
+        n_blocks = max(2, min(8, n_snapshots // 2))
     kw = dict(n_blocks=n_blocks, sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
     rhos = RESIDUAL_SCALES if residual else (1.0,)
     conformal_fit = method == "conformal"

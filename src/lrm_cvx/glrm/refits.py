@@ -106,6 +106,8 @@ def validation_view(model: Any, data: Any, values: np.ndarray | None = None,
     never on the view."""
     import xarray as xr
 
+    from ..region import spatial_dims
+
     region = getattr(model, "region_", None)
     if region is None or not isinstance(data, xr.DataArray) or data.ndim != 3:
         return model, data, values  # the validation raises its own error on such input
@@ -118,7 +120,8 @@ def validation_view(model: Any, data: Any, values: np.ndarray | None = None,
     view = copy.copy(model)
     view.region_, view.n_cells_ = sub, sub.n_cells
     view.Y_ = None  # the whole region's factors: no validation may read them
-    data = data.isel({data.dims[1]: rows, data.dims[2]: cols})
+    lat_dim, lon_dim = spatial_dims(data)
+    data = data.isel({lat_dim: rows, lon_dim: cols})
     if values is not None and np.shape(values)[-1:] == (region.n_cells,):  # else: the
         gi = region.grid_index  # validation's own check of its shape raises
         inside = ((gi[:, 0] >= rows.start) & (gi[:, 0] < rows.stop)
