@@ -412,3 +412,23 @@ def test_cell_of_with_a_mask_is_brute_force_or_a_masked_error(case, seed):
         elif mask.ravel()[nearest].all():
             c = region.cell_of(la, lo)
             assert gc_dist_of_cell(region, c, la, lo) <= d.min() * (1 + 1e-12) + 1e-9
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int16])
+@pytest.mark.parametrize("lead", [(), (3,), (37,), (2, 19)])
+def test_stack_gathers_the_region_cells_as_float32(dtype, lead):
+    """``stack`` (np.take, by blocks of rows for another dtype) against a fancy-index gather."""
+    rng = np.random.default_rng(len(lead))
+    values = (rng.normal(size=lead + (5, 7)) * 100).astype(dtype)
+    mask = rng.random((5, 7)) < 0.6
+    mask[0, 0] = True
+    region = Region.from_dataarray(gridded(np.ones((1, 5, 7))), mask=mask)
+    got = region.stack(values)
+    ref = values.reshape(lead + (35,))[..., np.flatnonzero(mask)].astype(np.float32)
+    assert got.dtype == np.float32 and got.flags.c_contiguous
+    np.testing.assert_array_equal(got, ref)
+    assert not np.shares_memory(got, values)
+    full = Region.from_dataarray(gridded(np.ones((1, 5, 7))), mask=np.ones((5, 7), bool))
+    got = full.stack(values)
+    np.testing.assert_array_equal(got, values.reshape(lead + (35,)).astype(np.float32))
+    assert not np.shares_memory(got, values)  # a copy even when every cell is in the region

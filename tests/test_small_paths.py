@@ -132,3 +132,58 @@ def test_data_stats_numpy_equals_compiled(monkeypatch, check):
         np.testing.assert_allclose(np.asarray(x, dtype=float), np.asarray(y, dtype=float),
                                    rtol=1e-6)
     assert int(a[2]) == (1 if check else 0)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("L", [5, 130])  # fewer cells than the kernel's 64 ranges, and more
+def test_column_moments_and_standardize_numpy_equal_compiled(monkeypatch, dtype, L):
+    """The compiled moments and standardization give the numpy path's numbers (the same sums
+    in the same order), never read an unobserved entry (NaN), and overwrite ``D`` only when
+    asked."""
+    from lrm_cvx.glrm.predictive import column_moments, standardize
+
+    D, M = _data(6, 23, L, dtype, True)
+    M[:, 0] = False  # never observed: mean 0, std 1
+    D[~M] = np.nan
+    M[:, -1] = True  # a cell observed at every time ...
+    D[:, -1] = 2.5  # ... that never varies: std 1
+    rng = np.random.default_rng(7)
+    off, sc = rng.normal(size=L), rng.uniform(0.5, 2.0, size=L)
+
+    def run():
+        mean, std, count = column_moments(D, M)
+        full = standardize(D, M, off, sc)
+        centred = standardize(D, M, mean, None)
+        own = D.copy()
+        same = standardize(own, M, off, sc, inplace=True)
+        return mean, std, count, full, centred, own, same
+
+    a, b = _both(monkeypatch, run)
+    for x, y in zip(a[:5], b[:5], strict=True):
+        np.testing.assert_array_equal(x, y)
+    # against a direct reference
+    Dm = np.where(M, D.astype(np.float64), np.nan)
+    np.testing.assert_allclose(a[0][1:], np.nanmean(Dm[:, 1:], axis=0), rtol=1e-12)
+    np.testing.assert_allclose(a[1][1:-1], np.nanstd(Dm[:, 1:-1], axis=0), rtol=1e-10)
+    assert a[0][0] == 0 and a[1][0] == 1 and a[1][-1] == 1 and a[2][0] == 0
+    np.testing.assert_array_equal(a[2], M.sum(axis=0))
+    for r in (a, b):
+        assert r[3].dtype == dtype and not np.isnan(r[3]).any()
+        np.testing.assert_array_equal(r[3][~M], 0)
+        np.testing.assert_allclose(r[3][M], ((Dm - off) / sc)[M], rtol=1e-6 if dtype ==
+                                   np.float32 else 1e-14)
+        assert r[6] is r[5]  # in place: D itself, the same numbers as a new array
+        np.testing.assert_array_equal(r[5], r[3])
+    assert np.isnan(D[~M]).all()  # not in place: the input untouched
+
+
+def test_standardize_in_place_needs_a_writeable_float_array():
+    from lrm_cvx.glrm.predictive import standardize
+
+    D = np.ones((3, 4), dtype=np.int64)
+    with pytest.raises(ValueError, match="inplace"):
+        standardize(D, D > 0, None, None, inplace=True)
+    F = np.ones((3, 4))
+    F.setflags(write=False)
+    with pytest.raises(ValueError, match="inplace"):
+        standardize(F, F > 0, None, None, inplace=True)

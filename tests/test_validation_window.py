@@ -172,3 +172,37 @@ def test_dask_input_validates_on_the_same_window(field, monkeypatch):
     lazy = _fit(field.chunk({"time": 12}), temporal="auto")
     assert mem.selection_.attrs["choice"] == lazy.selection_.attrs["choice"]
     np.testing.assert_allclose(lazy.selection_["mse"], mem.selection_["mse"], rtol=1e-6)
+
+
+def test_fit_above_the_cap_transforms_its_own_copy_in_place(field, monkeypatch):
+    """Above the cap the fit does not keep its stacked data for ``temporal="auto"`` (the
+    validation stacks its window) and standardizes its gathered copy in place: the same model,
+    selection included, as keeping the stacked copy; the caller's data untouched."""
+    from lrm_cvx.glrm import model as model_mod
+    from lrm_cvx.glrm import predictive
+
+    monkeypatch.setattr(refits, "VALIDATION_MAX_CELLS", CAP)
+    calls = []
+    plain = predictive.standardize
+
+    def spy(*args, **kw):
+        calls.append(kw.get("inplace", False))
+        return plain(*args, **kw)
+
+    monkeypatch.setattr(predictive, "standardize", spy)
+    before = field.copy(deep=True)
+    lean = _fit(field, temporal="auto")
+    assert calls[0] is True  # the main fit's transform: in place
+    xr.testing.assert_identical(field, before)
+    monkeypatch.setattr(model_mod, "_keeps_stacked", lambda *a: True)
+    calls.clear()
+    kept = _fit(field, temporal="auto")
+    assert calls[0] is False
+    for name in ("X_", "Y_", "offset_"):
+        np.testing.assert_array_equal(np.asarray(getattr(lean, name)),
+                                      np.asarray(getattr(kept, name)))
+    assert lean.spatial_cov_ == kept.spatial_cov_
+    xr.testing.assert_identical(lean.selection_, kept.selection_)
+    monkeypatch.undo()  # at or below the cap the stacked copy is kept for the selection
+    assert model_mod._keeps_stacked("auto", np.zeros((2, 3)), lean.region_)
+    assert not model_mod._keeps_stacked(None, np.zeros((2, 3)), lean.region_)

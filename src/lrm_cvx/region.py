@@ -238,7 +238,13 @@ class Region:
                 )
         lead = values.shape[:-2]
         flat = values.reshape(lead + (-1,))
-        return np.ascontiguousarray(flat[..., self._flat], dtype=np.float32)
+        if flat.dtype == np.float32:  # np.take gathers 5-10x faster than fancy indexing
+            return np.take(flat, self._flat, axis=-1)
+        out = np.empty(lead + (self.n_cells,), dtype=np.float32)
+        src, dst = flat.reshape(-1, flat.shape[-1]), out.reshape(-1, self.n_cells)
+        for lo in range(0, src.shape[0], 16):  # no full-size temporary of another dtype
+            dst[lo:lo + 16] = np.take(src[lo:lo + 16], self._flat, axis=-1)
+        return out
 
     def unstack(
         self,

@@ -364,6 +364,53 @@ def data_stats_compiled(D, M, check):  # pragma: no cover - numba
     return rows_part.sum(axis=0), cols, bad.sum(), csum
 
 
+@numba.njit(parallel=True, cache=True)
+def column_moments_compiled(D, M):  # pragma: no cover - numba
+    """Per-cell observed sum ``(L,)``, sum of squares about the mean ``(L,)`` (float64) and
+    count ``(L,)`` of ``D (T, L)`` under ``M``: two passes over each range of cells, times in
+    order (the sums of numpy's row-by-row reduction; no fastmath). Unobserved entries are never
+    read."""
+    T, L = D.shape
+    nch = 64
+    csum = np.zeros(L)
+    css = np.zeros(L)
+    cols = np.zeros(L, dtype=np.int64)
+    for c in prange(nch):
+        s = c * L // nch
+        e = (c + 1) * L // nch
+        for t in range(T):
+            for j in range(s, e):
+                if M[t, j]:
+                    cols[j] += 1
+                    csum[j] += np.float64(D[t, j])
+        mu = np.empty(e - s)
+        for j in range(s, e):
+            mu[j - s] = csum[j] / max(cols[j], 1)
+        for t in range(T):
+            for j in range(s, e):
+                if M[t, j]:
+                    r = np.float64(D[t, j]) - mu[j - s]
+                    css[j] += r * r
+    return csum, css, cols
+
+
+@numba.njit(parallel=True, cache=True)
+def standardize_compiled(D, M, offset, scale, out):  # pragma: no cover - numba
+    """``out = (D - offset) / scale`` on the observed entries (in float64, then cast to
+    ``out``'s dtype), 0 elsewhere; ``out`` may be ``D`` itself. Ranges of cells in parallel."""
+    T, L = D.shape
+    nch = 64
+    for c in prange(nch):
+        s = c * L // nch
+        e = (c + 1) * L // nch
+        for t in range(T):
+            for j in range(s, e):
+                if M[t, j]:
+                    out[t, j] = (np.float64(D[t, j]) - offset[j]) / scale[j]
+                else:
+                    out[t, j] = 0.0
+
+
 # --------------------------------------------------------------------------- small systems
 # One k x k solve and the Gram identity ``y^T G y - 2 h . y + c`` (the quadratic loss of ``y``
 # from its block's statistics); shared with the quadratic kernels in ``quadratic.py``.

@@ -216,10 +216,12 @@ class GLRM:
         offset = bool(self.offset) if isinstance(self.offset, (bool, np.bool_)) else False
         stats = check_data(D, M, rank, offset=offset,
                            times=None if times is None else times.values)
-        pre = fit_predictive(self, D, M, region, stage="before")  # offset / scale (opt-in)
+        keep = _keeps_stacked(self.temporal, D, region)  # for temporal="auto": no re-stacking
+        pre = fit_predictive(self, D, M, region, stage="before",  # offset / scale (opt-in)
+                             inplace=owned and not keep and D.dtype in (np.float32, np.float64))
         stacked = None  # the snapshots as stacked, for temporal="auto" (no second stacking)
         if pre is not None:  # the init's mean fill needs the transformed data's sums
-            if temporal_value(self.temporal) == "auto" and D.ndim == 2 and region is not None:
+            if keep:
                 stacked = D  # the fit reads the transformed copy: D stays as stacked
             D, owned = pre.pop("data"), True
             sc = getattr(self, "_pending_scale", None)
@@ -901,6 +903,18 @@ def _same(a: Any, b: Any) -> bool:
         return bool(a == b) and type(a) is type(b)
     except Exception:
         return a is b
+
+
+def _keeps_stacked(temporal: Any, D: np.ndarray, region: Region | None) -> bool:
+    """Whether the fit keeps its stacked training data beside the offset's transformed copy,
+    for ``temporal="auto"``'s validation. Not for a region above
+    ``refits.VALIDATION_MAX_CELLS``: its validation stacks its own window, and the fit
+    transforms its gathered copy in place (one full-size copy less: 2.6 GB at paper scale)."""
+    if temporal_value(temporal) != "auto" or D.ndim != 2 or region is None:
+        return False
+    from . import refits
+
+    return refits.validation_window(region, refits.VALIDATION_MAX_CELLS) is None
 
 
 def _check_temporal(temporal: Any, data: Any) -> None:

@@ -44,6 +44,7 @@ import xarray as xr
 
 from ..errors import ModelError
 from .calibrated import residual_dof
+from .kernels import column_moments_compiled, is_small, standardize_compiled
 from .offset import augmented
 
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
@@ -146,10 +147,11 @@ def moments_to_transform(offset: bool, scale: bool, mean: np.ndarray, std: np.nd
 
 
 def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage: str,
-                   pre: dict | None = None) -> dict | None:
+                   pre: dict | None = None, inplace: bool = False) -> dict | None:
     """Called by ``GLRM.fit``: ``stage="before"`` returns ``{"data": transformed D}`` (or None
-    when neither offset nor scale is asked); ``stage="after"`` sets ``noise_var_`` and
-    ``spatial_cov_`` from the residuals of the (transformed) training data."""
+    when neither offset nor scale is asked; ``inplace``: ``D`` itself, overwritten, when it is
+    the fit's own copy); ``stage="after"`` sets ``noise_var_`` and ``spatial_cov_`` from the
+    residuals of the (transformed) training data."""
     if stage == "before":
         check_options(model, region is not None)
         model._pending_offset = model._pending_scale = model._pending_correction = None
@@ -158,7 +160,7 @@ def fit_predictive(model: Any, D: np.ndarray, M: np.ndarray, region: Any, stage:
         mean, std, count = column_moments(D, M)
         off, sc = moments_to_transform(model.offset, data_scale(model), mean, std, count)
         model._pending_offset, model._pending_scale = off, sc
-        return {"data": standardize(D, M, off, sc)}
+        return {"data": standardize(D, M, off, sc, inplace=inplace)}
     X, Y = model._Xv, model._Yv
     correction = getattr(model, "_pending_correction", None)
     if correction is not None:  # the joint offset: the residuals of [X; 1]^T [Y; o]
@@ -234,8 +236,14 @@ _BLOCK = 1 << 16
 
 def column_moments(D: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-cell observed mean, standard deviation (ddof 0) and count of ``D (T, L)`` under
-    the mask ``M``; cells without observations get mean 0 and std 1."""
+    the mask ``M``; cells without observations get mean 0 and std 1. Large data takes one
+    compiled two-pass kernel (:func:`~.kernels.column_moments_compiled`, the same sums)."""
     T, L = D.shape
+    if not is_small(D.size) and D.dtype in (np.float32, np.float64):
+        csum, css, count = column_moments_compiled(D, np.asarray(M, dtype=np.bool_))
+        n = np.maximum(count, 1)
+        sd = np.sqrt(css / n)
+        return csum / n, np.where((count > 0) & (sd > 0), sd, 1.0), count
     mean = np.zeros(L)
     std = np.ones(L)
     count = np.zeros(L, dtype=np.int64)
@@ -254,12 +262,21 @@ def column_moments(D: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def standardize(D: np.ndarray, M: np.ndarray, offset: np.ndarray | None,
-                scale: np.ndarray | None) -> np.ndarray:
-    """``(D - offset) / scale`` on the observed entries (0 elsewhere), a new array of D's float
-    dtype (float32 stays float32)."""
+                scale: np.ndarray | None, *, inplace: bool = False) -> np.ndarray:
+    """``(D - offset) / scale`` on the observed entries (0 elsewhere), of D's float dtype
+    (float32 stays float32): a new array, or ``D`` itself overwritten when ``inplace`` (a copy
+    the caller owns; the fit's gathered training data, so no second full-size copy)."""
     dtype = D.dtype if D.dtype in (np.float32, np.float64) else np.float64
-    out = np.zeros(D.shape, dtype=dtype)
+    if inplace and (D.dtype != dtype or not D.flags.writeable):
+        raise ValueError("standardize(inplace=True) needs a writeable float32/float64 D")
+    out = D if inplace else np.zeros(D.shape, dtype=dtype)
     L = D.shape[1]
+    if not is_small(D.size) and D.dtype == dtype and D.flags.c_contiguous:
+        standardize_compiled(D, np.asarray(M, dtype=np.bool_),
+                             np.zeros(L) if offset is None else np.asarray(offset, np.float64),
+                             np.ones(L) if scale is None else np.asarray(scale, np.float64),
+                             out)
+        return out
     for lo in range(0, L, _BLOCK):
         sl = slice(lo, min(L, lo + _BLOCK))
         d = D[:, sl].astype(np.float64)

@@ -20,8 +20,9 @@ VALIDATION_MAX_CELLS = 200_000
 ``select_dynamics``): a larger region is validated on a window of its grid holding about this
 many cells (:func:`validation_window`). Each refit is a whole fit of the cells it reads: on the
 paper's 2.1M cells the recommended fit took 440 s at a 15 GiB peak with every cell validated,
-103 s at 9 GiB (the fit's own peak) with a window of 200,000 cells, a square of about 450
-(docs/benchmarks.md, "The recommended fit at paper scale")."""
+103 s at 9 GiB with a window of 200,000 cells, a square of about 450 (63 s at 6.8 GiB since
+the fit's own passes were compiled; docs/benchmarks.md, "The recommended fit at paper
+scale")."""
 
 
 def clone_model(model: Any, **override: Any):
