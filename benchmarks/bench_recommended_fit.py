@@ -3,6 +3,7 @@
     python benchmarks/bench_recommended_fit.py            # 310 days x 1500 x 1400 (2.1M cells)
     python benchmarks/bench_recommended_fit.py --whole    # the validations over every cell
     python benchmarks/bench_recommended_fit.py --quick --max-cells 5000   # 60 x 200 x 150
+    python benchmarks/bench_recommended_fit.py --rank auto   # the rank validated too
 
 A planted daily record (``synthetic_field``: rank 5, every cell land (as ``bench_glrm.py``), 30 %
 of the values missing, noise 0.05) as
@@ -20,8 +21,10 @@ The two validations refit the model on parts of the record. Above
 ``refits.VALIDATION_MAX_CELLS`` cells (200,000) they read a window of the grid holding that
 many cells (``refits.validation_window``); ``--whole`` lifts the cap (every cell, as before
 session 25), ``--max-cells N`` sets it. The choice and the calibration's thresholds are printed,
-so the two runs can be compared. Figures: docs/benchmarks.md, "The recommended fit at paper
-scale".
+so the two runs can be compared. With ``--rank auto`` the rank is chosen with the temporal
+model on a reference fit (of the window, since session 26) before the real fit, and stage 2 is
+not run: the ``fit`` line then includes its validations. Figures: docs/benchmarks.md, "The
+recommended fit at paper scale".
 """
 
 from __future__ import annotations
@@ -48,6 +51,8 @@ def main() -> None:
                     help="validate on every cell (no window: the code before session 25)")
     ap.add_argument("--max-cells", type=int, default=None,
                     help="refits.VALIDATION_MAX_CELLS for this run")
+    ap.add_argument("--rank", default="5", help="the rank: an integer, or auto (validated "
+                    "with the temporal model, on a reference fit)")
     a = ap.parse_args()
     if a.whole:
         refits.VALIDATION_MAX_CELLS = 10**12
@@ -64,7 +69,8 @@ def main() -> None:
     warnings.simplefilter("ignore")
     w = np.random.default_rng(0).random((8, 60)).astype(np.float32)  # numba warm-up
     GLRM(rank=2, max_iter=2, progress=False).fit(w, mask=w > 0.2)
-    params = {**GLRM.recommended_params(), "rank": 5, "random_state": 0, "progress": False}
+    rank = a.rank if a.rank == "auto" else int(a.rank)
+    params = {**GLRM.recommended_params(), "rank": rank, "random_state": 0, "progress": False}
     cal = params.pop("calibration")
     secs, peaks = {}, {}
 
@@ -82,17 +88,23 @@ def main() -> None:
     print(f"  {model.region_.n_cells} cells; the validations read {cells} "
           f"({'every cell' if window is None else f'rows {window[0]}, cols {window[1]}'})",
           flush=True)
-    timed("select_temporal", lambda: select_temporal(model, da, seed=model.random_state))
+    if rank == "auto":  # the fit's selection ran on its reference fit: not separable
+        stages = ("fit", "calibrate")
+    else:
+        stages = ("fit", "select_temporal", "calibrate")
+        timed("select_temporal", lambda: select_temporal(model, da, seed=model.random_state))
     timed("calibrate", lambda: calibrate_with(model, da, cal))
-    secs["fit"] -= secs["select_temporal"]  # the fit above ran the same selection
-    for stage in ("fit", "select_temporal", "calibrate"):
+    if "select_temporal" in secs:
+        secs["fit"] -= secs["select_temporal"]  # the fit above ran the same selection
+    for stage in stages:
         print(f"  {stage:16s} {secs[stage]:7.1f} s  peak RSS {peaks[stage]:.2f} GiB", flush=True)
     total = sum(secs.values())
-    extra = secs["select_temporal"] + secs["calibrate"]
+    extra = secs.get("select_temporal", 0.0) + secs["calibrate"]
     print(f"recommended fit {total:.1f} s, peak RSS {max(peaks.values()):.2f} GiB; the "
           f"validations {extra:.1f} s = {extra / secs['fit']:.2f} fits")
     c = model.calibration_
-    line = (f"choice {model.selection_.attrs['choice']!r}, kernel {model.spatial_cov_.model}; "
+    line = (f"choice {model.selection_.attrs['choice']!r}, rank {model.rank_}, kernel "
+            f"{model.spatial_cov_.model}; "
             f"conformal 68 / 95 % thresholds {c.quantiles[0]:.3f} / {c.quantiles[1]:.3f}")
     if c.temporal_quantiles:
         line += f" (filter {c.temporal_quantiles[0]:.3f} / {c.temporal_quantiles[1]:.3f})"

@@ -103,8 +103,8 @@ def _poisoned_outside(data: xr.DataArray, rows: slice, cols: slice) -> xr.DataAr
 def _fit(data, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return GLRM(rank=3, offset=True, spatial="exponential", random_state=0,
-                    progress=False, **kw).fit(data)
+        return GLRM(**{"rank": 3, "offset": True, "spatial": "exponential", "random_state": 0,
+                       "progress": False, **kw}).fit(data)
 
 
 def test_validations_read_only_the_window(field, monkeypatch):
@@ -206,3 +206,34 @@ def test_fit_above_the_cap_transforms_its_own_copy_in_place(field, monkeypatch):
     monkeypatch.undo()  # at or below the cap the stacked copy is kept for the selection
     assert model_mod._keeps_stacked("auto", np.zeros((2, 3)), lean.region_)
     assert not model_mod._keeps_stacked(None, np.zeros((2, 3)), lean.region_)
+
+
+def test_rank_auto_fits_its_reference_model_on_the_window(field, monkeypatch):
+    """``rank="auto"``'s reference fit reads the window above the cap (as its refits do), so
+    poisoning every other cell leaves its table (rank and temporal choice) unchanged; without
+    the cap the table sees the poison."""
+    monkeypatch.setattr(refits, "VALIDATION_MAX_CELLS", CAP)
+    rows, cols = validation_window(Region.from_dataarray(field), CAP)
+    data, region = refits.validation_data(field)
+    assert region.n_cells == Region.from_dataarray(field).crop(rows, cols).n_cells
+    assert data.shape[1:] == (rows.stop - rows.start, cols.stop - cols.start)
+    shapes = []
+    plain_fit = GLRM.fit
+
+    def spy(self, data, *args, **kw):
+        shapes.append(data.shape[1:])
+        return plain_fit(self, data, *args, **kw)
+
+    monkeypatch.setattr(GLRM, "fit", spy)
+    clean = _fit(field, rank="auto", temporal="auto")
+    monkeypatch.setattr(GLRM, "fit", plain_fit)
+    assert shapes[0] == field.shape[1:] and len(shapes) > 2  # the model, then the reference
+    assert shapes[1] == data.shape[1:]  # the reference model: the window's grid ...
+    assert set(shapes[2:]) == {(region.n_cells,)}  # ... its refits: the window's cells
+    poisoned = _fit(_poisoned_outside(field, rows, cols), rank="auto", temporal="auto")
+    xr.testing.assert_identical(clean.selection_, poisoned.selection_)
+    assert clean.region_.n_cells == Region.from_dataarray(field).n_cells  # the model: all
+    monkeypatch.setattr(refits, "VALIDATION_MAX_CELLS", 10**9)
+    assert refits.validation_data(field)[0] is field
+    whole = _fit(_poisoned_outside(field, rows, cols), rank="auto", temporal="auto")
+    assert not whole.selection_.identical(clean.selection_)

@@ -268,8 +268,10 @@ class GLRM:
     def _choose_rank(self, data: Any, mask: Any, region: Any) -> tuple[int, Any]:
         """``rank="auto"``: ``(rank, selection)`` from :func:`~.selection.select_temporal`
         with ``ranks`` on a reference fit (rank :data:`~.selection.REFERENCE_RANK`, no
-        dynamics or calibration: its region, kernel and refits), before the real fit."""
-        from .refits import clone_model
+        dynamics or calibration: its region, kernel and refits), before the real fit. Above
+        ``refits.VALIDATION_MAX_CELLS`` cells the reference model is fitted on the window the
+        validations read (``refits.validation_data``), not on the whole region."""
+        from .refits import clone_model, validation_data
         from .selection import AUTO_INFLATIONS, AUTO_RANKS, REFERENCE_RANK, select_temporal
 
         if self.rank != "auto":
@@ -283,10 +285,12 @@ class GLRM:
                              "pass an integer rank for masked arrays or dask data")
         check_auto_data(data)
         ref_rank = int(min(REFERENCE_RANK, max(1, data.shape[0] // 4)))
-        ref = clone_model(self, rank=ref_rank, temporal=None).fit(data, region=region)
+        # a large region's reference model is fitted on the validations' window only
+        ref_data, ref_region = validation_data(data, region)
+        ref = clone_model(self, rank=ref_rank, temporal=None).fit(ref_data, region=ref_region)
         auto = temporal == "auto"
         selection = select_temporal(
-            ref, data, ranks=AUTO_RANKS, kinds=("ar1", "seasonal") if auto else (),
+            ref, ref_data, ranks=AUTO_RANKS, kinds=("ar1", "seasonal") if auto else (),
             inflations=AUTO_INFLATIONS if auto else (1.0,), seed=self.random_state)
         return int(selection.attrs["choice_rank"]), selection
 

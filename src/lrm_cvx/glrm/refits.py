@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import DataError, ModelError
 
 __all__ = ["clone_model", "training_values", "validation_window", "validation_view",
-           "VALIDATION_MAX_CELLS"]
+           "validation_data", "VALIDATION_MAX_CELLS"]
 
 VALIDATION_MAX_CELLS = 200_000
 """The most cells a validation's refits read (``temporal="auto"``, the calibration,
@@ -107,8 +107,6 @@ def validation_view(model: Any, data: Any, values: np.ndarray | None = None,
     never on the view."""
     import xarray as xr
 
-    from ..region import spatial_dims
-
     region = getattr(model, "region_", None)
     if region is None or not isinstance(data, xr.DataArray) or data.ndim != 3:
         return model, data, values  # the validation raises its own error on such input
@@ -121,11 +119,32 @@ def validation_view(model: Any, data: Any, values: np.ndarray | None = None,
     view = copy.copy(model)
     view.region_, view.n_cells_ = sub, sub.n_cells
     view.Y_ = None  # the whole region's factors: no validation may read them
-    lat_dim, lon_dim = spatial_dims(data)
-    data = data.isel({lat_dim: rows, lon_dim: cols})
+    data = _crop(data, rows, cols)
     if values is not None and np.shape(values)[-1:] == (region.n_cells,):  # else: the
         gi = region.grid_index  # validation's own check of its shape raises
         inside = ((gi[:, 0] >= rows.start) & (gi[:, 0] < rows.stop)
                   & (gi[:, 1] >= cols.start) & (gi[:, 1] < cols.stop))
         values = np.asarray(values)[:, inside]
     return view, data, values
+
+
+def validation_data(data: Any, region: Any = None) -> tuple[Any, Any]:
+    """``(data, region)`` cropped to the window of :func:`validation_window` (``region``:
+    ``data``'s, from :meth:`~lrm_cvx.region.Region.from_dataarray` when None), or the whole of
+    them when the region holds at most :data:`VALIDATION_MAX_CELLS` cells: what a validation
+    that fits its own reference model reads (``rank="auto"``'s, before the real fit)."""
+    from ..region import Region
+
+    region = Region.from_dataarray(data) if region is None else region
+    window = validation_window(region, VALIDATION_MAX_CELLS)
+    if window is None:
+        return data, region
+    return _crop(data, *window), region.crop(*window)
+
+
+def _crop(data: Any, rows: slice, cols: slice) -> Any:
+    """``data`` ``(time, lat, lon)`` at the window's grid positions (lazily for dask)."""
+    from ..region import spatial_dims
+
+    lat_dim, lon_dim = spatial_dims(data)
+    return data.isel({lat_dim: rows, lon_dim: cols})
