@@ -187,3 +187,20 @@ def test_standardize_in_place_needs_a_writeable_float_array():
     F.setflags(write=False)
     with pytest.raises(ValueError, match="inplace"):
         standardize(F, F > 0, None, None, inplace=True)
+
+
+@pytest.mark.parametrize("L", [9, (1 << 16) + 5])  # one block of cells, and two
+def test_residual_sample_by_blocks_equals_the_whole_product(L):
+    """The variogram's residual sample, computed in blocks of cells, is the whole product's to
+    the bit, NaN where unobserved."""
+    from lrm_cvx.glrm.predictive import residual_sample, sample_rows
+
+    D, M = _data(8, 30, L, np.float32, True)
+    rng = np.random.default_rng(9)
+    X, Y = rng.normal(size=(4, 30)), rng.normal(size=(4, L))
+    rows = sample_rows(30, 20)
+    ref = (D[rows].astype(np.float64) - X[:, rows].T @ Y).astype(np.float32)
+    ref[~M[rows]] = np.nan
+    got = residual_sample(D, M, X, Y)
+    assert got.dtype == np.float32 and got.shape == (rows.size, L)
+    np.testing.assert_array_equal(got, ref)

@@ -339,7 +339,11 @@ def residual_sample(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray,
     """Training residuals of at most ``max_times`` evenly spaced times, ``(t, L)`` float32 with
     NaN where unobserved (for the variogram fit; bounded memory at millions of cells)."""
     rows = sample_rows(D.shape[0], max_times)
-    R = (D[rows].astype(np.float64) - X[:, rows].T @ Y).astype(np.float32)
+    Xr = np.ascontiguousarray(X[:, rows].T)
+    R = np.empty((rows.size, D.shape[1]), dtype=np.float32)
+    for lo in range(0, D.shape[1], _BLOCK):  # no (t, L) float64 temporary
+        sl = slice(lo, min(D.shape[1], lo + _BLOCK))
+        R[:, sl] = D[rows, sl].astype(np.float64) - Xr @ Y[:, sl]
     R[~M[rows]] = np.nan
     return R
 
@@ -347,7 +351,8 @@ def residual_sample(D: np.ndarray, M: np.ndarray, X: np.ndarray, Y: np.ndarray,
 def _dof_corrected(sample: np.ndarray, model: Any) -> np.ndarray:
     """Training residuals times ``sqrt(residual_dof(model))``, in their dtype: the residuals'
     variance, not the fit's leftovers, for the variogram of ``spatial_cov_``."""
-    return (sample * np.sqrt(residual_dof(model))).astype(sample.dtype)
+    out = np.empty_like(sample)  # the product in float64, written to the sample's dtype
+    return np.multiply(sample, np.sqrt(residual_dof(model)), out=out, casting="same_kind")
 
 
 def residual_covariance(model: Any, V: np.ndarray, family: str, *, max_pairs: int = 200_000
