@@ -4,6 +4,7 @@
     python benchmarks/bench_recommended_fit.py --whole    # the validations over every cell
     python benchmarks/bench_recommended_fit.py --quick --max-cells 5000   # 60 x 200 x 150
     python benchmarks/bench_recommended_fit.py --rank auto   # the rank validated too
+    python benchmarks/bench_recommended_fit.py --dask        # the out-of-core fit
 
 A planted daily record (``synthetic_field``: rank 5, every cell land (as ``bench_glrm.py``), 30 %
 of the values missing, noise 0.05) as
@@ -51,6 +52,8 @@ def main() -> None:
                     help="validate on every cell (no window: the code before session 25)")
     ap.add_argument("--max-cells", type=int, default=None,
                     help="refits.VALIDATION_MAX_CELLS for this run")
+    ap.add_argument("--dask", action="store_true", help="the record as a dask array (chunks "
+                    "of 16 days): the out-of-core fit")
     ap.add_argument("--rank", default="5", help="the rank: an integer, or auto (validated "
                     "with the temporal model, on a reference fit)")
     a = ap.parse_args()
@@ -64,6 +67,8 @@ def main() -> None:
                          seed=0)
     da = da.assign_coords(time=np.datetime64("2000-01-01", "ns")
                           + np.arange(n_times) * np.timedelta64(1, "D"))
+    if a.dask:
+        da = da.chunk({"time": 16})
     print(f"data: {n_times} days x {shape} grid, {da.dtype}, generated in "
           f"{time.perf_counter() - t0:.1f} s; RSS {rss_gib():.2f} GiB", flush=True)
     warnings.simplefilter("ignore")
