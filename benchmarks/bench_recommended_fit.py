@@ -105,8 +105,9 @@ def main() -> None:
         print(f"  {stage:16s} {secs[stage]:7.1f} s  peak RSS {peaks[stage]:.2f} GiB", flush=True)
     total = sum(secs.values())
     extra = secs.get("select_temporal", 0.0) + secs["calibrate"]
-    print(f"recommended fit {total:.1f} s, peak RSS {max(peaks.values()):.2f} GiB; the "
-          f"validations {extra:.1f} s = {extra / secs['fit']:.2f} fits")
+    share = ("" if rank == "auto"  # the fit line holds the rank's validation itself
+             else f"; the validations {extra:.1f} s = {extra / secs['fit']:.2f} fits")
+    print(f"recommended fit {total:.1f} s, peak RSS {max(peaks.values()):.2f} GiB{share}")
     c = model.calibration_
     line = (f"choice {model.selection_.attrs['choice']!r}, rank {model.rank_}, kernel "
             f"{model.spatial_cov_.model}; "

@@ -214,7 +214,7 @@ def test_rank_auto_fits_its_reference_model_on_the_window(field, monkeypatch):
     the cap the table sees the poison."""
     monkeypatch.setattr(refits, "VALIDATION_MAX_CELLS", CAP)
     rows, cols = validation_window(Region.from_dataarray(field), CAP)
-    data, region = refits.validation_data(field)
+    data, region = refits.validation_data(field, Region.from_dataarray(field))
     assert region.n_cells == Region.from_dataarray(field).crop(rows, cols).n_cells
     assert data.shape[1:] == (rows.stop - rows.start, cols.stop - cols.start)
     shapes = []
@@ -234,6 +234,6 @@ def test_rank_auto_fits_its_reference_model_on_the_window(field, monkeypatch):
     xr.testing.assert_identical(clean.selection_, poisoned.selection_)
     assert clean.region_.n_cells == Region.from_dataarray(field).n_cells  # the model: all
     monkeypatch.setattr(refits, "VALIDATION_MAX_CELLS", 10**9)
-    assert refits.validation_data(field)[0] is field
+    assert refits.validation_data(field, Region.from_dataarray(field))[0] is field
     whole = _fit(_poisoned_outside(field, rows, cols), rank="auto", temporal="auto")
     assert not whole.selection_.identical(clean.selection_)

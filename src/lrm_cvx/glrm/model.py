@@ -205,7 +205,7 @@ class GLRM:
         rank, rank_selection = self.rank, None
         _check_temporal(self.temporal, data)
         if isinstance(rank, str):  # "auto": validated before the fit (glrm/selection.py)
-            rank, rank_selection = self._choose_rank(data, mask, region)
+            rank, rank_selection, region = self._choose_rank(data, mask, region)
         loss = get_loss(self.loss)
         reg_x = get_regularizer(self.reg_x)
         reg_y = get_regularizer(self.reg_y)
@@ -218,7 +218,7 @@ class GLRM:
                            times=None if times is None else times.values)
         keep = _keeps_stacked(self.temporal, D, region)  # for temporal="auto": no re-stacking
         pre = fit_predictive(self, D, M, region, stage="before",  # offset / scale (opt-in)
-                             inplace=owned and not keep and D.dtype in (np.float32, np.float64))
+                             inplace=owned and not keep)
         stacked = None  # the snapshots as stacked, for temporal="auto" (no second stacking)
         if pre is not None:  # the init's mean fill needs the transformed data's sums
             if keep:
@@ -265,12 +265,13 @@ class GLRM:
         self._validate_choices(data)
         return self
 
-    def _choose_rank(self, data: Any, mask: Any, region: Any) -> tuple[int, Any]:
-        """``rank="auto"``: ``(rank, selection)`` from :func:`~.selection.select_temporal`
+    def _choose_rank(self, data: Any, mask: Any, region: Any) -> tuple[int, Any, Any]:
+        """``rank="auto"``: ``(rank, selection, region)`` from :func:`~.selection.select_temporal`
         with ``ranks`` on a reference fit (rank :data:`~.selection.REFERENCE_RANK`, no
         dynamics or calibration: its region, kernel and refits), before the real fit. Above
         ``refits.VALIDATION_MAX_CELLS`` cells the reference model is fitted on the window the
-        validations read (``refits.validation_data``), not on the whole region."""
+        validations read (``refits.validation_data``), not on the whole region. ``region``:
+        the data's, found once for the reference and the real fit."""
         from .refits import clone_model, validation_data
         from .selection import AUTO_INFLATIONS, AUTO_RANKS, REFERENCE_RANK, select_temporal
 
@@ -286,13 +287,14 @@ class GLRM:
         check_auto_data(data)
         ref_rank = int(min(REFERENCE_RANK, max(1, data.shape[0] // 4)))
         # a large region's reference model is fitted on the validations' window only
+        region = Region.from_dataarray(data) if region is None else region
         ref_data, ref_region = validation_data(data, region)
         ref = clone_model(self, rank=ref_rank, temporal=None).fit(ref_data, region=ref_region)
         auto = temporal == "auto"
         selection = select_temporal(
             ref, ref_data, ranks=AUTO_RANKS, kinds=("ar1", "seasonal") if auto else (),
             inflations=AUTO_INFLATIONS if auto else (1.0,), seed=self.random_state)
-        return int(selection.attrs["choice_rank"]), selection
+        return int(selection.attrs["choice_rank"]), selection, region
 
     def _validate_choices(self, data: Any, stacked: np.ndarray | None = None,
                           selection: Any = None) -> None:

@@ -128,14 +128,11 @@ def validation_view(model: Any, data: Any, values: np.ndarray | None = None,
     return view, data, values
 
 
-def validation_data(data: Any, region: Any = None) -> tuple[Any, Any]:
-    """``(data, region)`` cropped to the window of :func:`validation_window` (``region``:
-    ``data``'s, from :meth:`~lrm_cvx.region.Region.from_dataarray` when None), or the whole of
-    them when the region holds at most :data:`VALIDATION_MAX_CELLS` cells: what a validation
-    that fits its own reference model reads (``rank="auto"``'s, before the real fit)."""
-    from ..region import Region
-
-    region = Region.from_dataarray(data) if region is None else region
+def validation_data(data: Any, region: Any) -> tuple[Any, Any]:
+    """``(data, region)`` (``data``'s region) cropped to the window of
+    :func:`validation_window`, or the whole of them when the region holds at most
+    :data:`VALIDATION_MAX_CELLS` cells: what a validation that fits its own reference model
+    reads (``rank="auto"``'s, before the real fit)."""
     window = validation_window(region, VALIDATION_MAX_CELLS)
     if window is None:
         return data, region
