@@ -6,7 +6,9 @@ a disc footprint and a towed sensor, and the fold-in of the plan's averaged obse
 Prints seconds, stops, rows and information; peak RSS at the end.
 
 ``--certificate``: the certificate of a disc plan (budget 200) at that scale: seconds, the
-candidates whose footprint rows it builds, and the peak RSS before and after it.
+candidates whose footprint rows it builds, and the peak RSS before and after it; then the
+towed sensor's certificate (docs/certificate.md §12) of a towed plan at budget 50 and 200,
+and the point plan's bound beside it.
 
 ``--quality``: what the sensors buy on the bundled SST record (5 degree cells, fitted on the
 first 40 monthly snapshots, rank 5, the empirical prior): one plan per sensor from (10, 210),
@@ -94,6 +96,22 @@ def certificate(Y: np.ndarray, region: Region, start: int, width: float) -> None
           f"{time.perf_counter() - t:.1f} s, {cert.n_candidates} candidates, bound "
           f"{cert.bound:.3f}, information {cert.information:.3f}; peak RSS {before:.2f} GiB "
           f"before it, {_peak_gib():.2f} GiB after")
+    for budget in (50.0, 200.0):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            towed = plan_greedy(Y, region, start, budget, ridge=RIDGE, sensor="towed",
+                                progress=False)
+            point = plan_greedy(Y, region, start, budget, ridge=RIDGE, progress=False)
+            t = time.perf_counter()
+            cert = towed.certify()
+            sec = time.perf_counter() - t
+            pcert = point.certify(refine=False)
+        print(f"towed plan, budget {budget:g} ({towed.stops.size} stops): certificate "
+              f"{sec:.1f} s, {cert.n_candidates} candidates, at most {cert.towed[0]} "
+              f"observations of {cert.towed[1]} leg cells; bound {cert.bound:.3f}, information "
+              f"{cert.information:.3f}, gap {cert.gap:.3f} nats (volume ratio "
+              f"{cert.volume_ratio:.3f}); the point plan: bound {pcert.bound:.3f}, information "
+              f"{pcert.information:.3f}; peak RSS {_peak_gib():.2f} GiB")
 
 
 def main() -> None:
@@ -102,7 +120,8 @@ def main() -> None:
     ap.add_argument("--quality", action="store_true",
                     help="only the reconstruction error on the bundled SST record")
     ap.add_argument("--certificate", action="store_true",
-                    help="only the certificate of a disc plan at budget 200")
+                    help="only the certificates of a disc plan at budget 200 and of towed "
+                         "plans at budgets 50 and 200")
     args = ap.parse_args()
     if args.quality:
         quality()

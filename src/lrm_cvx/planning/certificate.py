@@ -40,6 +40,7 @@ from .families import (
     cap_ladder,
     describe_path,
     family,
+    leg_family,
     min_spacing_km,
     path_spec,
     start_limit,
@@ -75,6 +76,10 @@ class PlanCertificate:
     (posterior)"`` for a Fisher greedy on the fold-in's posterior). When the two differ
     (``comparable`` is False) ``information`` is still the plan's Fisher information but
     ``gap`` and ``volume_ratio`` are NaN: a gap between different criteria means nothing.
+
+    ``towed``: for a towed (leg-average) sensor, the most observations a plan makes and the
+    most leg cells they average in all (docs/certificate.md §12; ``n_max`` is then the
+    observations and ``initial_information`` is ``-inf``: no forced set is covered); else None.
     """
 
     bound: float
@@ -100,6 +105,7 @@ class PlanCertificate:
     refine_moves: int | None = None
     path_bound: float | None = None  # the path-aware relaxation's dual bound (path_aware=True)
     path: dict[str, Any] = field(default_factory=dict, repr=False)  # the path model bounded
+    towed: tuple[int, int] | None = None  # a towed sensor's (observations, leg cells) limits
 
     @property
     def plan_slack(self) -> float | None:
@@ -163,15 +169,21 @@ class PlanCertificate:
         lines.append(
             f"  relaxation           {self.relaxation.value:.6g} (primal "
             f"{self.relaxation.primal:.6g}, status {self.relaxation.status})")
-        if self.path.get("kind", "path") == "path" and self.path.get("n_robots", 1) == 1:
+        if self.towed is None and self.path.get("kind", "path") == "path" and \
+                self.path.get("n_robots", 1) == 1:
             # (a fleet's and a static placement's forced cells are inside the relaxation)
             lines.append(f"  initial set          {self.initial_information:.6g} nats")
         if self.online_bound is not None:
             lines.append(f"  online bound         {self.online_bound:.6g} nats")
-        lines.append(
-            f"  at most {self.n_max} cells out of {self.n_candidates} candidates "
-            f"within the budget"
-        )
+        if self.towed is not None:
+            lines.append(f"  towed sensor: at most {self.towed[0]} observations averaging "
+                         f"{self.towed[1]} leg cells in all, out of {self.n_candidates} "
+                         f"candidates")
+        else:
+            lines.append(
+                f"  at most {self.n_max} cells out of {self.n_candidates} candidates "
+                f"within the budget"
+            )
         if self.tightened:
             lines.append(f"  tightened: distance limits, midpoint cover of "
                          f"{len(self.leaves)} squares")
@@ -203,8 +215,14 @@ class PlanCertificate:
         rows += [
             ("relaxation value / primal", f"{self.relaxation.value:.6g} / "
                                           f"{self.relaxation.primal:.6g}"),
-            ("initial set (nats)", f"{self.initial_information:.6g}"),
-            ("max cells / candidates", f"{self.n_max} / {self.n_candidates}"),
+        ]
+        if self.towed is not None:
+            rows.append(("towed: observations / leg cells / candidates",
+                         f"{self.towed[0]} / {self.towed[1]} / {self.n_candidates}"))
+        else:
+            rows += [("initial set (nats)", f"{self.initial_information:.6g}"),
+                     ("max cells / candidates", f"{self.n_max} / {self.n_candidates}")]
+        rows += [
             ("start, budget", f"{self.start}, {self.budget:g} ({self.metric})"),
         ]
         if self.online_bound is not None:
@@ -272,7 +290,13 @@ def plan_bound(
     function of the stop alone, so the same relaxation bounds it with every cell's whitened
     footprint row (:func:`~lrm_cvx.planning.sensors.footprint_factors`) in place of its
     column of ``Y``; ``information`` is then the plan's footprint Fisher information (noise 1
-    per cell, as the planner's). A leg-average sensor's rows depend on the legs: PlanningError.
+    per cell, as the planner's). A towed (leg-average) sensor's observations depend on the
+    legs, not on the stops (§12): by Cauchy-Schwarz each is at most the sum of ``y y^T`` over
+    its leg's cells (``1 / m`` of it for ``errors="shared"``), so the bound is the count-only
+    relaxation with weights up to the observations' count and a total of the leg cells a
+    route within the budget can pass (``towed``: those two limits). It covers every route
+    within the budget (a plan whose forced initial cells exceed it is refused), with no
+    distance limits, online bound or refinement.
 
     The bound is on the **Fisher** information (``criterion="fisher"``). For a plan chosen for
     another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or
@@ -315,11 +339,13 @@ def plan_bound(
     request = PathOptions.from_kwargs(path, where="plan_bound", **options)
     plan_sensor = getattr(getattr(plan, "path", None), "sensor", None)
     sensor = plan_sensor if plan_sensor is not None else request.sensor
-    if sensor.is_leg:
-        raise PlanningError("plan_bound certifies point and footprint sensors: a leg-average "
-                            "observation depends on the leg, not on the stop alone, so the "
-                            "relaxation over cells does not bound it")
     spec = path_spec(region, plan, start, budget, request, kind, n_sensors)
+    if sensor.is_leg:  # the observations depend on the legs (docs §12)
+        if path_aware:
+            warnings.warn("path_aware bounds point stops: a towed sensor's certificate is the "
+                          "count-only one (docs/certificate.md §12)", UserWarning, stacklevel=2)
+        return _towed_bound(Y, region, spec, sensor, plan, ridge, {"solver": solver,
+                                                                   "tol": tol})
     fam = family(spec, region, k)
     if sensor.has_footprint:  # each cell's footprint row replaces its own (docs §11)
         Y = _footprint_columns(Y, region, sensor, fam, plan, path_aware)
@@ -394,6 +420,58 @@ def plan_bound(
         greedy_information=greedy_info, refined_information=refined_info,
         refine_moves=n_moves, path_bound=path_value, path=spec.summary(),
     )
+
+
+def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, ridge: float,
+                 opts: dict[str, Any]) -> PlanCertificate:
+    """The certificate of a towed (leg-average) sensor (docs/certificate.md §12).
+
+    An observation averaging the ``m`` distinct cells of its leg has the whitened row ``u =
+    sum y / sqrt m`` (independent cell errors) or ``sum y / m`` (shared), and ``u u^T <= sum
+    y y^T`` over the leg (``1 / m`` of it when shared) by Cauchy-Schwarz. So a plan's
+    information is at most ``log det(ridge I + sum_c w_c y_c y_c^T)`` with ``0 <= w_c <=
+    rows`` (a cell is in at most one leg per observation) and ``sum w_c`` at most the leg
+    cells in all (shared: the observations), which the count-only relaxation bounds (weights
+    up to ``rows``: the columns scaled by ``sqrt rows``, the total divided by it)."""
+    from ..oracles import row_information
+    from .dopt import DIST_EPS
+    from .sensors import observation_rows, observed_cells
+
+    k = Y.shape[0]
+    fam = leg_family(spec, region, k)
+    total = fam.cells if sensor.errors == "independent" else fam.rows
+    Yc = math.sqrt(fam.rows) * np.ascontiguousarray(Y[:, fam.cand], dtype=np.float64)
+    relax = _relaxation(Yc, np.arange(fam.cand.size),
+                        _Polytope(total / fam.rows, fam.cand.size), ridge, **opts)
+    bound = float(relax.value)
+    information = gap = ratio = None
+    plan_criterion = _plan_criterion(plan) if plan is not None else None
+    if plan is not None:
+        rows = observation_rows(plan)
+        costs = np.atleast_1d(np.asarray(getattr(plan, "robot_costs", None)
+                                         if getattr(plan, "robot_costs", None) is not None
+                                         else plan.cost, dtype=np.float64))
+        over = [float(c) > b + DIST_EPS * max(1.0, b)
+                for c, b in zip(costs, spec.budgets, strict=False)]
+        outside = np.setdiff1d(observed_cells(rows), fam.cand)
+        if any(over) or outside.size or rows.shape[0] > fam.rows:
+            raise PlanningError(
+                f"the towed plan is not a route within {fam.budget_text}: its route costs "
+                f"{', '.join(f'{c:g}' for c in costs)}, {outside.size} of its leg cells lie "
+                f"beyond the budget's reach and it makes {rows.shape[0]} observations (at most "
+                f"{fam.rows}); the certificate does not cover it")
+        information = float(row_information(Y, rows, ridge, errors=sensor.errors))
+        if plan_criterion in (None, "fisher"):
+            gap, ratio = _gap(bound, information, k)
+        else:
+            gap, ratio = math.nan, math.nan
+    return PlanCertificate(
+        bound=bound, information=information, gap=gap, volume_ratio=ratio, n_max=fam.rows,
+        n_candidates=int(fam.cand.size), k=k,
+        start=int(spec.starts[0]), budget=float(sum(spec.budgets)), ridge=ridge,
+        metric=spec.metric, initial_information=-math.inf, relaxation=relax,
+        criterion="fisher", plan_criterion=plan_criterion, path=spec.summary(),
+        towed=(int(fam.rows), int(fam.cells)))
 
 
 def _footprint_columns(Y: np.ndarray, region: Any, sensor: Any, fam: Any, plan: Any,

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,8 @@ from .request import Fleet, PathOptions, PlanPath
 
 NUDGE = 1e-6  # radii sit this far (in d_min) inside their cap's interval, away from rounding
 
-__all__ = ["PathSpec", "path_spec", "Family", "family", "describe_path",
+__all__ = ["PathSpec", "path_spec", "Family", "family", "LegFamily", "leg_family",
+           "describe_path",
            "is_paper_description", "min_spacing_km", "start_limit", "cap_ladder", "NUDGE"]
 
 
@@ -224,6 +225,67 @@ def family(spec: PathSpec, region: Any, k: int) -> Family:
     dist, limits = _fleet_limits(parts, n_max)
     return Family(cand, n_max, np.zeros(0, np.int64), dist, math.inf, math.inf, None, False,
                    text, 1, limits)
+
+
+@dataclass(frozen=True)
+class LegFamily:
+    """What every route of a towed (leg-average) sensor can observe (docs/certificate.md §12).
+
+    ``cand``: every cell a route may pass; ``rows``: the most observations a plan makes (one
+    per stop and a closed tour's return to its start, over the fleet); ``cells``: the
+    most leg cells in all (the sum over the observations of the distinct cells each averages).
+    """
+
+    cand: np.ndarray
+    rows: int
+    cells: int
+    budget_text: str
+
+
+def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
+    """The candidates and counts of a towed sensor's plans under ``spec`` (docs/certificate.md
+    §12, Lemma 8): per robot, the cells a route may pass are those of sensing along (Lemma 5,
+    or the straight legs' crossed cells); its observations are at most its stop count (Lemma
+    6), a closed tour's return leg added, and at most one more than the legs its travel
+    allows; a leg of chart length ``l`` crosses at most ``sqrt 2 l + 1`` cells (straight legs,
+    chart length ``<= G``) and a travel-graph leg of travel ``l`` at most ``l / d_min + 1``,
+    so the leg cells are at most ``floor(sqrt 2 G)`` (or ``floor(travel / d_min)``) plus the
+    observations. A fleet adds its robots' counts over the union of their candidates."""
+    if spec.kind != "path":
+        raise PlanningError("a towed sensor observes along routes: path='static' has none")
+    from .sensors import POINT
+
+    stops_spec = replace(spec, options=replace(spec.options, sensor=POINT))
+    pass_spec = replace(spec, options=replace(spec.options, sensor=POINT, sense_along=True))
+    cand, rows, cells = [], 0, 0
+    for r in range(len(spec.starts)):
+        stops = _robotfamily(stops_spec, region, k, r)
+        passed = _robotfamily(pass_spec, region, k, r)
+        # one observation per stop, and a closed tour's return leg; each leg travels at
+        # least d_min, so at most floor(travel / d_min) legs follow the start's own cell
+        n_rows = stops.n_max + int(spec.closed)
+        if math.isfinite(stops.d_min) and stops.d_min > 0:
+            n_rows = min(n_rows, 1 + math.floor(stops.travel / stops.d_min + 1e-9))
+        pm = (spec.models[r] if spec.models is not None
+              else path_model(region, spec.starts[r], spec.budgets[r], pass_spec.options))
+        if pm.traversable == "none":  # straight legs: the chart argument
+            G = float(pm.grid_budget_bound()) * (1 + 1e-9) + 1e-9
+            if getattr(pm, "_wrap", True) or not math.isfinite(G):
+                raise PlanningError("the towed sensor's certificate bounds the cells a leg "
+                                    "crosses on the grid's chart: a grid whose longitudes "
+                                    "wrap has no such bound; give traversable='valid'")
+            along = math.floor(math.sqrt(2.0) * G)
+        elif math.isfinite(passed.d_min) and passed.d_min > 0:
+            along = math.floor(passed.travel / passed.d_min + 1e-9)
+        else:  # no spacing: every observation may average every candidate
+            along = n_rows * passed.cand.size
+        cand.append(passed.cand)
+        rows += n_rows
+        cells += min(along + n_rows, n_rows * passed.cand.size)
+    text = (f"budget={spec.budgets[0]:g}" if len(spec.starts) == 1 else
+            "fleet budgets " + ", ".join(f"{b:g}" for b in spec.budgets))
+    return LegFamily(np.unique(np.concatenate(cand)).astype(np.int64), int(rows), int(cells),
+                     text)
 
 
 def _fleet_limits(parts: list[Family], n_max: int

@@ -1,0 +1,187 @@
+"""The towed (leg-average) sensor's certificate bounds every route (docs/certificate.md §12).
+
+Reference: on tiny grids, every visiting order of distinct stops (start first) whose route is
+within the budget, found by exhaustive depth-first search with distances built in
+``test_certificate_paths`` (independently of ``planning/paths.py``). Each order's observations
+are written out here: the start's own cell, then one per leg, the equal-weight mean of the
+leg's distinct cells (its two stops and the cells between: those a straight leg crosses, or a
+shortest path of the 8-neighbour travel graph), a closed tour's return leg included. The
+whitened rows are ``Y a / sqrt(v)``, ``v = sum a^2`` (independent cell errors) or 1 (shared).
+The bound must be at least the best ``log det(ridge I + sum u u^T)`` over all of them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_certificate_paths import field_Y, graph, make_region, route_orders, straight
+
+from lrm_cvx.errors import PlanningError
+from lrm_cvx.planning.certificate import plan_bound
+from lrm_cvx.planning.plan import line_cells
+
+
+def info_of_rows(Y: np.ndarray, rows: list[list[int]], ridge: float, errors: str) -> float:
+    """``log det(ridge I + sum u u^T)`` of equal-weight averages over the cell lists ``rows``."""
+    M = ridge * np.eye(Y.shape[0])
+    for cells in rows:
+        m = len(cells)
+        u = Y[:, cells].mean(axis=1) * (math.sqrt(m) if errors == "independent" else 1.0)
+        M += np.outer(u, u)
+    s, v = np.linalg.slogdet(M)
+    return v if s > 0 else -math.inf
+
+
+def straight_leg(region, a: int, b: int) -> list[int]:
+    return sorted({a, b, *line_cells(region, a, b)[0].tolist()})
+
+
+def graph_paths(G: np.ndarray, step: np.ndarray):
+    """A shortest-path reconstruction over the 8-neighbour graph ``step`` (one step's length,
+    inf: no edge) given its all-pairs distances ``G``: the next hop from ``a`` to ``b`` is a
+    neighbour ``x`` with ``step[a, x] + G[x, b] == G[a, b]`` (the lowest index)."""
+
+    def leg(a: int, b: int) -> list[int]:
+        cells, cur = [a], a
+        while cur != b:
+            ok = np.flatnonzero(np.isclose(step[cur] + G[:, b], G[cur, b]) & np.isfinite(step[cur])
+                                & (np.arange(G.shape[0]) != cur))
+            cur = int(ok[0])
+            cells.append(cur)
+        return sorted(set(cells))
+
+    return leg
+
+
+def rows_of(order: list[int], leg, closed: bool) -> list[list[int]]:
+    rows = [[order[0]]]
+    stops = order + ([order[0]] if closed and len(order) > 1 else [])
+    rows += [leg(a, b) for a, b in zip(stops[:-1], stops[1:], strict=True)]
+    return rows
+
+
+@pytest.mark.parametrize("errors", ["independent", "shared"])
+@pytest.mark.parametrize("closed, budget", [(False, 3.2), (True, 4.3)])
+@pytest.mark.parametrize("k, ridge, seed", [(2, 0.0, 3), (3, 0.05, 4)])
+def test_straight_legs_bound_covers_every_route(errors, closed, budget, k, ridge, seed):
+    region = make_region(5, 6, masked=[(0, 5), (3, 3)])
+    Y = field_Y(region, k, seed)
+    start = int(region.cell_grid[2, 2])
+    D = straight(region, "grid", None)
+    leg = lambda a, b: straight_leg(region, a, b)  # noqa: E731
+    best, n_rows, n_cells = -math.inf, 0, 0
+    for order in route_orders(D, start, budget, closed):
+        rows = rows_of(order, leg, closed)
+        best = max(best, info_of_rows(Y, rows, ridge, errors))
+        n_rows = max(n_rows, len(rows))
+        n_cells = max(n_cells, sum(len(r) for r in rows))
+    assert math.isfinite(best)
+    cert = plan_bound(Y, region, start, budget, ridge=ridge, closed=closed, tol=1e-6,
+                      sensor=f"leg-average,errors={errors}")
+    assert cert.bound >= best - 1e-7
+    assert cert.towed[0] >= n_rows and cert.towed[1] >= n_cells  # the counts hold
+    assert cert.information is None and cert.gap is None  # no plan given
+
+
+@pytest.mark.parametrize("errors", ["independent", "shared"])
+@pytest.mark.parametrize("closed, budget", [(False, 3.5), (True, 5.0)])
+def test_travel_graph_legs_bound_covers_every_route(errors, closed, budget):
+    region = make_region(5, 5, masked=[(1, 2), (2, 2), (3, 2)])  # a wall to go around
+    Y = field_Y(region, 3, 8)
+    start = int(region.cell_grid[2, 1])
+    S = straight(region, "grid", None)
+    adj = (np.abs(region.grid_index[:, None, 0] - region.grid_index[None, :, 0]) <= 1) & (
+        np.abs(region.grid_index[:, None, 1] - region.grid_index[None, :, 1]) <= 1)
+    step = np.where(adj, S, np.inf)
+    G = graph(region, S)
+    leg = graph_paths(G, step)
+    best = max(info_of_rows(Y, rows_of(order, leg, closed), 0.01, errors)
+               for order in route_orders(G, start, budget, closed))
+    cert = plan_bound(Y, region, start, budget, ridge=0.01, closed=closed, tol=1e-6,
+                      traversable="valid", sensor=f"towed,errors={errors}")
+    assert cert.bound >= best - 1e-7
+
+
+def test_fleet_of_two_towed_routes():
+    region = make_region(4, 5)
+    Y = field_Y(region, 2, 6)
+    starts = [int(region.cell_grid[0, 0]), int(region.cell_grid[3, 4])]
+    budgets = [2.2, 2.5]
+    D = straight(region, "grid", None)
+    leg = lambda a, b: straight_leg(region, a, b)  # noqa: E731
+    per_robot = [[rows_of(o, leg, False) for o in route_orders(D, s, b)]
+                 for s, b in zip(starts, budgets, strict=True)]
+    best = max(info_of_rows(Y, A + B, 0.0, "independent")
+               for A in per_robot[0] for B in per_robot[1])
+    cert = plan_bound(Y, region, starts, budgets, tol=1e-6, sensor="towed")
+    assert cert.bound >= best - 1e-7
+    assert cert.path["n_robots"] == 2
+
+
+def test_greedy_towed_plan_is_certified():
+    from lrm_cvx.oracles import row_information
+    from lrm_cvx.planning import plan_greedy
+    from lrm_cvx.planning.sensors import observation_rows
+
+    region = make_region(8, 8)
+    Y = field_Y(region, 3, 0)
+    for closed in (False, True):
+        plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, sensor="leg-average", closed=closed,
+                           progress=False)
+        cert = plan.certify(tol=1e-6)
+        info = row_information(Y, observation_rows(plan), 1e-3, errors="independent")
+        assert cert.information == pytest.approx(plan.information) == pytest.approx(info)
+        assert cert.bound >= cert.information and cert.gap >= 0
+        assert cert.towed is not None and "towed sensor" in repr(cert)
+        assert "leg cells" in cert._repr_html_() and "initial set" not in cert._repr_html_()
+    # the same route certified against half its budget is refused, naming the route's cost
+    plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, sensor="leg-average", progress=False)
+    with pytest.raises(PlanningError, match="not a route within budget=4"):
+        plan_bound(Y, region, 10, 4.0, ridge=1e-3, plan=plan)
+
+
+def test_towed_bound_errors():
+    region = make_region(4, 4)
+    Y = field_Y(region, 2, 0)
+    with pytest.raises(PlanningError, match="static"):
+        plan_bound(Y, region, None, None, path="static", n_sensors=3, sensor="towed")
+    import xarray as xr
+
+    from lrm_cvx.region import Region
+
+    lon = xr.DataArray(np.arange(0.0, 360.0, 30.0), dims=("lon",))
+    lat = xr.DataArray(np.array([-10.0, 0.0, 10.0]), dims=("lat",))
+    wrapped = Region(lat=lat, lon=lon, mask=np.ones((3, 12), bool))
+    Yw = field_Y(wrapped, 2, 1)
+    with pytest.raises(PlanningError, match="wrap"):
+        plan_bound(Yw, wrapped, 0, 3.0, sensor="towed")
+
+
+@pytest.mark.parametrize("errors", ["independent", "shared"])
+def test_towed_relaxation_equals_the_weighted_design_problem(errors):
+    """The bound is the optimum of ``max log det(ridge I + sum w_c y_c y_c^T)`` over ``0 <= w_c
+    <= rows``, ``sum w <= cells`` (shared: ``rows``), solved here by cvxpy on the family's
+    candidates: the scaled count-only relaxation computes that problem, not a looser one."""
+    import cvxpy as cp
+
+    from lrm_cvx.planning.families import leg_family, path_spec
+    from lrm_cvx.planning.request import PathOptions
+
+    region = make_region(5, 6, masked=[(0, 5), (3, 3)])
+    Y = field_Y(region, 3, 4)
+    start, budget, ridge = int(region.cell_grid[2, 2]), 3.2, 0.05
+    cert = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-7,
+                      sensor=f"towed,errors={errors}")
+    fam = leg_family(path_spec(region, None, start, budget, PathOptions(), "path", None),
+                     region, 3)
+    total = fam.cells if errors == "independent" else fam.rows
+    Yc = Y[:, fam.cand]
+    w = cp.Variable(fam.cand.size)
+    prob = cp.Problem(cp.Maximize(cp.log_det(ridge * np.eye(3) + Yc @ cp.diag(w) @ Yc.T)),
+                      [w >= 0, w <= fam.rows, cp.sum(w) <= total])
+    prob.solve(solver="CLARABEL")
+    assert (fam.rows, fam.cells) == cert.towed
+    assert cert.bound >= prob.value - 1e-6
+    assert cert.bound <= prob.value + 1e-4
