@@ -100,6 +100,46 @@ def test_the_rule_against_a_naive_reading():
     assert not bool(sel["admissible"].sel(candidate="b:1"))
 
 
+def test_one_standard_error_towards_the_larger_inflation():
+    """The choice is the largest inflation of the best's kind and blend whose paired mean day
+    error is within one standard error of the best's at every size (checked naively); a
+    tie of another blend, or a larger inflation beyond one standard error at one size, is not
+    taken."""
+    rng = np.random.default_rng(1)
+    n_days = 40
+    base = 1.0 + 0.2 * rng.random((2, n_days))
+    noise = 0.01 * rng.standard_normal((6, 2, n_days))
+    noise -= noise.mean(axis=-1, keepdims=True)  # the ties differ by their 0.1 % alone
+    best = 0.8 * base
+    tie = best * 1.001  # worse on average by much less than a standard error of the noise
+    E = np.stack([base,                                  # none
+                  best,                                  # ar1:1, the lowest worst ratio
+                  tie + noise[2],                        # ar1:1 x2
+                  tie + noise[3],                        # ar1:1 x4
+                  tie + noise[4] + np.stack([0 * base[0], 0.05 + 0 * base[1]]),  # x8
+                  tie + noise[5]])                       # ar1:0.5, another blend
+    labels = ["none", "ar1:1", "ar1:1 x2", "ar1:1 x4", "ar1:1 x8", "ar1:0.5"]
+    meta = {"none": ("none", 0.0, 1.0), "ar1:1": ("ar1", 1.0, 1.0),
+            "ar1:1 x2": ("ar1", 1.0, 2.0), "ar1:1 x4": ("ar1", 1.0, 4.0),
+            "ar1:1 x8": ("ar1", 1.0, 8.0), "ar1:0.5": ("ar1", 0.5, 1.0)}
+    sel = _rule(E, labels, meta, [5, 15], ("route",), 1.645, 0.01, set())
+    ties = []
+    for c in (2, 3, 4):  # naive: the paired differences to the lowest worst ratio
+        d = E[c] - E[1]
+        se = d.std(axis=1, ddof=1) / np.sqrt(n_days)
+        if np.all(d.mean(axis=1) <= se):
+            ties.append(labels[c])
+    assert sel.attrs["best"] == "ar1:1"
+    assert ties == ["ar1:1 x2", "ar1:1 x4"]
+    assert sel.attrs["choice"] == "ar1:1 x4" and sel.attrs["choice_inflation"] == 4.0
+    assert "within one standard error" in format_selection(sel)
+    # with the ties made worse by two standard errors, the best stays the choice
+    E2 = E.copy()
+    E2[2:4] += 2 * 0.01 * np.sqrt(2 / n_days) + 0.01
+    assert _rule(E2, labels, meta, [5, 15], ("route",), 1.645, 0.01, set()).attrs[
+        "choice"] == "ar1:1"
+
+
 def test_selection_never_reads_the_test_block(seasonal_field):
     """evaluate fits on all but the last n_test snapshots: poisoning them changes nothing."""
     from lrm_cvx.evaluation import EvaluationProtocol

@@ -35,7 +35,13 @@ campaign would meet them:
 * **Rule, with a guard on harm.** A candidate is admissible when the upper confidence bound of
   its day-by-day MSE change against memoryless (one-sided, ``confidence`` standard errors) is at
   most ``tolerance`` at every size; memoryless always is. The admissible candidate with the
-  lowest worst MSE ratio (over sizes) wins.
+  lowest worst MSE ratio (over sizes) is the validated best (``attrs["best"]``). **One standard
+  error towards caution:** the choice is the largest inflation of the best's kind and blend
+  whose day-by-day MSE is within one standard error of the best's at every size (paired, the
+  one-standard-error rule of cross-validation), so validation days that cannot tell two
+  inflations apart leave the update that trusts a few samples less. A campaign's robot
+  samples around its base day after day, and an over-confident update from the same few
+  cells compounds there, which the validation's designs (a new place every day) do not show.
 
 The result is an ``xarray.Dataset`` (``model.selection_``, saved with the model by
 ``modelfile.validation_tables``): the validation table per candidate and size and the choice
@@ -232,6 +238,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``size``: ``mse`` (mean validation-day MSE), ``ratio`` (to memoryless as fitted), ``ucb``
     (the bound of the rule), ``admissible``; attributes ``choice`` (a candidate label,
     ``"none"`` for memoryless), ``choice_kind``, ``choice_alpha``, ``choice_inflation``,
+    ``best`` (the lowest worst ratio, before the one-standard-error step),
     ``n_days``, ``designs``, ``skipped`` (and with ``ranks`` a ``rank`` coordinate and
     ``choice_rank``).
     """
@@ -380,6 +387,8 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
     ``E (n_candidates, n_sizes, n_days)`` (candidate 0 is memoryless)."""
     mse, ratio, ucb, admissible, best, n_days = paired_choice(  # a day not scored: left out
         E, confidence, tolerance, "temporal='auto'")
+    validated = labels[best]
+    best = _cautious(E, labels, meta, best, admissible)
     kind, alpha, inflation, *rank = meta[labels[best]]  # (..., rank) with ranks
     ds = xr.Dataset(
         {"mse": (("candidate", "size"), mse),
@@ -394,7 +403,7 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
     ds["ratio"].attrs["long_name"] = "MSE ratio to the memoryless model"
     ds["ucb"].attrs["long_name"] = "upper confidence bound of the relative MSE change"
     ds.attrs.update(choice=labels[best], choice_kind=kind, choice_alpha=float(alpha),
-                    choice_inflation=float(inflation),
+                    choice_inflation=float(inflation), best=validated,
                     n_days=int(n_days), designs=",".join(designs),
                     skipped=",".join(sorted(skipped)), confidence=float(confidence),
                     tolerance=float(tolerance))
@@ -402,6 +411,29 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
         ds = ds.assign_coords(rank=("candidate", [int(meta[lab][3]) for lab in labels]))
         ds.attrs["choice_rank"] = int(rank[0])
     return ds
+
+
+def _cautious(E: np.ndarray, labels: list[str], meta: dict, best: int,
+              admissible: np.ndarray, n_se: float = 1.0) -> int:
+    """The one-standard-error rule on the inflation: among the admissible candidates of the
+    ``best``'s kind, blend (and rank) with a larger inflation, the index of the largest whose
+    mean day error ``E (n_candidates, n_sizes, n_days)`` exceeds the best's by at most ``n_se``
+    standard errors of the paired differences at every size (the days every candidate
+    scored, as :func:`paired_choice` keeps them); ``best`` when there is none."""
+    kind, alpha, inflation, *rank = meta[labels[best]]
+    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)
+    pick, pick_inflation = best, inflation
+    for c, lab in enumerate(labels):
+        k_c, a_c, i_c, *r_c = meta[lab]
+        if (k_c, a_c, r_c) != (kind, alpha, rank) or i_c <= pick_inflation \
+                or not admissible[c]:
+            continue
+        D = E[c] - E[best]  # (size, day)
+        n = np.isfinite(D).sum(axis=-1)
+        se = np.nanstd(D, axis=-1, ddof=1) / np.sqrt(n)
+        if np.all(np.nanmean(D, axis=-1) <= n_se * se):
+            pick, pick_inflation = c, i_c
+    return pick
 
 
 def apply_selection(model: Any, selection: xr.Dataset) -> None:
@@ -479,6 +511,10 @@ def format_selection(selection: xr.Dataset, short: bool = False) -> str:
                      "candidates; all in model.selection_)")
     if selection.attrs.get("skipped"):
         lines.append(f"skipped (the record cannot carry them): {selection.attrs['skipped']}")
+    best = selection.attrs.get("best", selection.attrs["choice"])
+    if best != selection.attrs["choice"]:
+        lines.append(f"the lowest worst ratio is {best!r}; {selection.attrs['choice']!r} is "
+                     "within one standard error of it and trusts the samples less")
     if "inflation" in selection.coords and float(selection["inflation"].max()) > 1.0:
         lines.append("'xN': residual and noise variances N times the fitted ones")
     return "\n".join(lines)
