@@ -448,9 +448,9 @@ def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, 
     plan_criterion = _plan_criterion(plan) if plan is not None else None
     if plan is not None:
         rows = observation_rows(plan)
-        costs = np.atleast_1d(np.asarray(getattr(plan, "robot_costs", None)
-                                         if getattr(plan, "robot_costs", None) is not None
-                                         else plan.cost, dtype=np.float64))
+        robot_costs = getattr(plan, "robot_costs", None)
+        costs = np.atleast_1d(np.asarray(plan.cost if robot_costs is None else robot_costs,
+                                         dtype=np.float64))
         over = [float(c) > b + DIST_EPS * max(1.0, b)
                 for c, b in zip(costs, spec.budgets, strict=False)]
         outside = np.setdiff1d(observed_cells(rows), fam.cand)
