@@ -25,6 +25,7 @@ import numpy as np
 from .._validation import as_factor_matrix
 from ..errors import PlanningError, SolverError
 from .dopt import (
+    DIST_EPS,
     Bound,
     _check_n_ridge,
     _chol,
@@ -46,7 +47,7 @@ from .families import (
     start_limit,
 )
 from .request import PathOptions
-from .sensors import footprint_factors
+from .sensors import footprint_factors, observation_rows, observed_cells
 
 __all__ = ["PlanCertificate", "plan_bound"]
 
@@ -434,8 +435,6 @@ def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, 
     cells in all (shared: the observations), which the count-only relaxation bounds (weights
     up to ``rows``: the columns scaled by ``sqrt rows``, the total divided by it)."""
     from ..oracles import row_information
-    from .dopt import DIST_EPS
-    from .sensors import observation_rows, observed_cells
 
     k = Y.shape[0]
     fam = leg_family(spec, region, k)

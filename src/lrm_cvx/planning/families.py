@@ -24,6 +24,7 @@ from ..errors import PlanningError
 from .dopt import DIST_EPS
 from .paths import make_path_model, path_model
 from .request import Fleet, PathOptions, PlanPath
+from .sensors import POINT
 
 NUDGE = 1e-6  # radii sit this far (in d_min) inside their cap's interval, away from rounding
 
@@ -253,10 +254,12 @@ def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
     observations. A fleet adds its robots' counts over the union of their candidates."""
     if spec.kind != "path":
         raise PlanningError("a towed sensor observes along routes: path='static' has none")
-    from .sensors import POINT
-
-    stops_spec = replace(spec, options=replace(spec.options, sensor=POINT))
-    pass_spec = replace(spec, options=replace(spec.options, sensor=POINT, sense_along=True))
+    # one path model per robot for both families (they do not depend on the sensor or on
+    # sensing along): a travel graph's distances are found once
+    models = spec.models or tuple(path_model(region, s, b, spec.options)
+                                  for s, b in zip(spec.starts, spec.budgets, strict=True))
+    stops_spec = replace(spec, options=replace(spec.options, sensor=POINT), models=models)
+    pass_spec = replace(stops_spec, options=replace(stops_spec.options, sense_along=True))
     cand, rows, cells = [], 0, 0
     for r in range(len(spec.starts)):
         stops = _robotfamily(stops_spec, region, k, r)
@@ -266,8 +269,7 @@ def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
         n_rows = stops.n_max + int(spec.closed)
         if math.isfinite(stops.d_min) and stops.d_min > 0:
             n_rows = min(n_rows, 1 + math.floor(stops.travel / stops.d_min + 1e-9))
-        pm = (spec.models[r] if spec.models is not None
-              else path_model(region, spec.starts[r], spec.budgets[r], pass_spec.options))
+        pm = models[r]
         if pm.traversable == "none":  # straight legs: the chart argument
             G = float(pm.grid_budget_bound()) * (1 + 1e-9) + 1e-9
             if getattr(pm, "_wrap", True) or not math.isfinite(G):
