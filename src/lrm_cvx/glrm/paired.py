@@ -10,7 +10,8 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["AUTO_DESIGNS", "AUTO_SIZES", "MAX_SCORED", "paired_choice"]
+__all__ = ["AUTO_DESIGNS", "AUTO_SIZES", "MAX_SCORED", "paired_choice", "paired_difference",
+           "shared_cases"]
 
 AUTO_DESIGNS = ("route", "line", "scattered")
 """Sample designs of the validation days: a route, a transect, scattered cells."""
@@ -32,19 +33,32 @@ def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
     reference always is); ``best`` is the admissible one with the lowest worst ratio.
     Returns ``(mse, ratio, ucb, admissible, best, n_cases)``; ModelError when fewer than 2
     cases were scored."""
-    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)
+    E = shared_cases(E)
     n_cases = int(np.isfinite(E[0]).all(axis=0).sum())
     if n_cases < 2:
         raise ModelError(f"{what} scored fewer than 2 validation cases (is the data mostly "
                          "missing?)")
     mse = np.nanmean(E, axis=-1)
     base = mse[0]
-    D = E - E[0]
-    n = np.isfinite(E[0]).sum(axis=-1)  # (size,)
-    se = np.nanstd(D, axis=-1, ddof=1) / np.sqrt(n)
-    ucb = (np.nanmean(D, axis=-1) + float(confidence) * se) / base
+    diff, se = paired_difference(E, slice(None), 0)
+    ucb = (diff + float(confidence) * se) / base
     ratio = mse / base
     admissible = ucb.max(axis=1) <= float(tolerance)
     admissible[0] = True
     best = int(np.argmin(np.where(admissible, ratio.max(axis=1), np.inf)))
     return mse, ratio, ucb, admissible, best, n_cases
+
+
+def shared_cases(E: np.ndarray) -> np.ndarray:
+    """``E (n_candidates, ...)`` with a case NaN for every candidate where any candidate is NaN,
+    so that every comparison reads the same cases."""
+    return np.where(np.isfinite(E).all(axis=0), E, np.nan)
+
+
+def paired_difference(E: np.ndarray, candidate: int | slice, reference: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard error over the cases (last axis) of ``E[candidate] - E[reference]``,
+    the paired differences of :func:`shared_cases`' errors: ``(..., n_sizes)`` each."""
+    D = E[candidate] - E[reference]
+    n = np.isfinite(D).sum(axis=-1)
+    return np.nanmean(D, axis=-1), np.nanstd(D, axis=-1, ddof=1) / np.sqrt(n)

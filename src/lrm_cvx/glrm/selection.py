@@ -62,7 +62,14 @@ from .._blas import single_threaded_blas
 from .._validation import as_generator, check_ranks
 from ..errors import DataError, ModelError
 from .dynamics import kind_dynamics
-from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
+from .paired import (
+    AUTO_DESIGNS,
+    AUTO_SIZES,
+    MAX_SCORED,
+    paired_choice,
+    paired_difference,
+    shared_cases,
+)
 
 __all__ = ["select_temporal", "paired_choice", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
            "AUTO_INFLATIONS", "AUTO_RANKS", "REFERENCE_RANK", "memoryless_twin",
@@ -421,17 +428,15 @@ def _cautious(E: np.ndarray, labels: list[str], meta: dict, best: int,
     standard errors of the paired differences at every size (the days every candidate
     scored, as :func:`paired_choice` keeps them); ``best`` when there is none."""
     kind, alpha, inflation, *rank = meta[labels[best]]
-    E = np.where(np.isfinite(E).all(axis=0), E, np.nan)
+    E = shared_cases(E)
     pick, pick_inflation = best, inflation
     for c, lab in enumerate(labels):
         k_c, a_c, i_c, *r_c = meta[lab]
         if (k_c, a_c, r_c) != (kind, alpha, rank) or i_c <= pick_inflation \
                 or not admissible[c]:
             continue
-        D = E[c] - E[best]  # (size, day)
-        n = np.isfinite(D).sum(axis=-1)
-        se = np.nanstd(D, axis=-1, ddof=1) / np.sqrt(n)
-        if np.all(np.nanmean(D, axis=-1) <= n_se * se):
+        diff, se = paired_difference(E, c, best)  # (size,)
+        if np.all(diff <= n_se * se):
             pick, pick_inflation = c, i_c
     return pick
 

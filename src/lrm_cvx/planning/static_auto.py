@@ -52,6 +52,7 @@ import numpy as np
 import xarray as xr
 
 from ..errors import PlanningError
+from ..glrm.paired import paired_difference
 
 __all__ = ["AUTO_CANDIDATES", "AUTO_CONFIDENCE", "AUTO_MAX_BLOCK", "AUTO_MAX_CELLS",
            "AUTO_MIN_BLOCK", "AUTO_MIN_FIT", "AUTO_WINDOWS", "format_placement_selection",
@@ -193,10 +194,9 @@ def _upper_bounds(mse: np.ndarray) -> np.ndarray:
     out = np.zeros(mse.shape[0])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        D = mse[1:] - mse[0]
-        n = np.sum(np.isfinite(D), axis=1)
-        se = np.nanstd(D, axis=1, ddof=1) / np.sqrt(np.maximum(n, 1))
-        ub = (np.nanmean(D, axis=1) + AUTO_CONFIDENCE * se) / np.nanmean(mse[0])
+        diff, se = paired_difference(mse, slice(1, None), 0)
+        ub = (diff + AUTO_CONFIDENCE * se) / np.nanmean(mse[0])
+    n = np.isfinite(mse[1:] - mse[0]).sum(axis=1)
     out[1:] = np.where((n >= 2) & np.isfinite(ub), ub, np.inf)
     return out
 
