@@ -140,6 +140,46 @@ def test_one_standard_error_towards_the_larger_inflation():
         "choice"] == "ar1:1"
 
 
+def test_one_standard_error_towards_the_lower_rank():
+    """Under ``rank="auto"`` the rule takes the lowest rank of the best's kind and blend within
+    one standard error of the best at every size (checked naively), then that rank's largest
+    such inflation; a rank worse by more than one standard error at one size, or a tie of
+    another blend, is not taken."""
+    rng = np.random.default_rng(2)
+    n_days = 40
+    base = 1.0 + 0.2 * rng.random((2, n_days))
+    noise = 0.01 * rng.standard_normal((7, 2, n_days))
+    noise -= noise.mean(axis=-1, keepdims=True)
+    best = 0.8 * base
+    tie = best * 1.001
+    worse_at_15 = np.stack([0 * base[0], 0.05 + 0 * base[1]])
+    E = np.stack([base,                               # rank 5 none (the reference)
+                  best,                               # rank 12 ar1:1, the lowest worst ratio
+                  tie + noise[2],                     # rank 8 ar1:1
+                  tie + noise[3],                     # rank 5 ar1:1
+                  tie + noise[4],                     # rank 5 ar1:1 x2
+                  tie + noise[5] + worse_at_15,       # rank 3 ar1:1
+                  tie + noise[6]])                    # rank 3 ar1:0.5, another blend
+    labels = ["rank 5 none", "rank 12 ar1:1", "rank 8 ar1:1", "rank 5 ar1:1",
+              "rank 5 ar1:1 x2", "rank 3 ar1:1", "rank 3 ar1:0.5"]
+    meta = {labels[0]: ("none", 0.0, 1.0, 5), labels[1]: ("ar1", 1.0, 1.0, 12),
+            labels[2]: ("ar1", 1.0, 1.0, 8), labels[3]: ("ar1", 1.0, 1.0, 5),
+            labels[4]: ("ar1", 1.0, 2.0, 5), labels[5]: ("ar1", 1.0, 1.0, 3),
+            labels[6]: ("ar1", 0.5, 1.0, 3)}
+    ties = []
+    for c in range(2, 6):  # naive: the paired differences to the lowest worst ratio
+        d = E[c] - E[1]
+        if np.all(d.mean(axis=1) <= d.std(axis=1, ddof=1) / np.sqrt(n_days)):
+            ties.append(labels[c])
+    assert ties == labels[2:5]
+    lowest = min(meta[lab][3] for lab in ties)
+    expected = max((lab for lab in ties if meta[lab][3] == lowest), key=lambda t: meta[t][2])
+    sel = _rule(E, labels, meta, [5, 15], ("route",), 1.645, 0.01, set(), ranked=True)
+    assert sel.attrs["best"] == "rank 12 ar1:1"
+    assert sel.attrs["choice"] == expected == "rank 5 ar1:1 x2"
+    assert sel.attrs["choice_rank"] == 5 and sel.attrs["choice_inflation"] == 2.0
+
+
 def test_selection_never_reads_the_test_block(seasonal_field):
     """evaluate fits on all but the last n_test snapshots: poisoning them changes nothing."""
     from lrm_cvx.evaluation import EvaluationProtocol

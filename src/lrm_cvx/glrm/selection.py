@@ -36,10 +36,11 @@ campaign would meet them:
   its day-by-day MSE change against memoryless (one-sided, ``confidence`` standard errors) is at
   most ``tolerance`` at every size; memoryless always is. The admissible candidate with the
   lowest worst MSE ratio (over sizes) is the validated best (``attrs["best"]``). **One standard
-  error towards caution:** the choice is the largest inflation of the best's kind and blend
-  whose day-by-day MSE is within one standard error of the best's at every size (paired, the
-  one-standard-error rule of cross-validation), so validation days that cannot tell two
-  inflations apart leave the update that trusts a few samples less. A campaign's robot
+  error towards caution:** among the candidates of the best's kind and blend whose
+  day-by-day MSE is within one standard error of the best's at every size (paired, the
+  one-standard-error rule of cross-validation), the choice is the lowest rank (``rank="auto"``)
+  and then the largest inflation, so validation days that cannot tell two candidates apart
+  leave the model with fewer modes and the update that trusts a few samples less. A campaign's robot
   samples around its base day after day, and an over-confident update from the same few
   cells compounds there, which the validation's designs (a new place every day) do not show.
 
@@ -422,22 +423,27 @@ def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
 
 def _cautious(E: np.ndarray, labels: list[str], meta: dict, best: int,
               admissible: np.ndarray, n_se: float = 1.0) -> int:
-    """The one-standard-error rule on the inflation: among the admissible candidates of the
-    ``best``'s kind, blend (and rank) with a larger inflation, the index of the largest whose
-    mean day error ``E (n_candidates, n_sizes, n_days)`` exceeds the best's by at most ``n_se``
-    standard errors of the paired differences at every size (the days every candidate
-    scored, as :func:`paired_choice` keeps them); ``best`` when there is none."""
-    kind, alpha, inflation, *rank = meta[labels[best]]
+    """The one-standard-error rule: among the admissible candidates of the ``best``'s kind and
+    blend whose mean day error ``E (n_candidates, n_sizes, n_days)`` exceeds the best's by at
+    most ``n_se`` standard errors of the paired differences at every size (the days every
+    candidate scored, as :func:`paired_choice` keeps them), the most cautious: the lowest rank
+    (``rank="auto"``; fewer modes to estimate from a few samples), then the largest inflation
+    (an update that trusts a few samples less). ``best`` when none is more cautious."""
+    kind, alpha, *_ = meta[labels[best]]
     E = shared_cases(E)
-    pick, pick_inflation = best, inflation
+
+    def caution(c: int) -> tuple:  # larger is more cautious
+        _, _, i_c, *r_c = meta[labels[c]]
+        return (-r_c[0] if r_c and r_c[0] is not None else 0, i_c)
+
+    pick = best
     for c, lab in enumerate(labels):
-        k_c, a_c, i_c, *r_c = meta[lab]
-        if (k_c, a_c, r_c) != (kind, alpha, rank) or i_c <= pick_inflation \
-                or not admissible[c]:
+        k_c, a_c, _, *_ = meta[lab]
+        if (k_c, a_c) != (kind, alpha) or caution(c) <= caution(pick) or not admissible[c]:
             continue
         diff, se = paired_difference(E, c, best)  # (size,)
         if np.all(diff <= n_se * se):
-            pick, pick_inflation = c, i_c
+            pick = c
     return pick
 
 
@@ -519,7 +525,8 @@ def format_selection(selection: xr.Dataset, short: bool = False) -> str:
     best = selection.attrs.get("best", selection.attrs["choice"])
     if best != selection.attrs["choice"]:
         lines.append(f"the lowest worst ratio is {best!r}; {selection.attrs['choice']!r} is "
-                     "within one standard error of it and trusts the samples less")
+                     "within one standard error of it and more cautious (a lower rank or a "
+                     "larger inflation)")
     if "inflation" in selection.coords and float(selection["inflation"].max()) > 1.0:
         lines.append("'xN': residual and noise variances N times the fitted ones")
     return "\n".join(lines)
