@@ -80,6 +80,7 @@ from generalization_data import (  # noqa: E402
     ALL_DATASETS,
     DATASETS,
     HOLDOUT_DATASETS,
+    PLANTED_DATASETS,
     SHORT_DATASETS,
     available,
     install_commands,
@@ -476,7 +477,8 @@ def main() -> None:
                     help="budget 15 only, 3 starts, 3 random walks per start")
     ap.add_argument("--data", nargs="*", default=None,
                     help=f"data sets (default: all of {list(DATASETS)}; also "
-                         f"{list(SHORT_DATASETS)} and {list(HOLDOUT_DATASETS)})")
+                         f"{list(SHORT_DATASETS)}, {list(HOLDOUT_DATASETS)} and the planted "
+                         f"{list(PLANTED_DATASETS)})")
     ap.add_argument("--holdout", action="store_true",
                     help=f"the hold-out sets {list(HOLDOUT_DATASETS)} instead (no choice was "
                          "made on them)")

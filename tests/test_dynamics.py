@@ -286,7 +286,9 @@ def test_synthetic_dynamic_field_plants_its_truth():
     da, truth = synthetic_dynamic_field(50, (6, 7), 3, seed=0, noise=0.0, missing=0.0,
                                         return_truth=True)
     X, Y = truth["X"], truth["Y"]
-    np.testing.assert_allclose(X, truth["mu"][:, None] + truth["seasonal"] + truth["Z"])
+    np.testing.assert_allclose(X, truth["mu"][:, None] + truth["seasonal"] + truth["trend"]
+                               + truth["Z"])
+    assert not truth["trend"].any()  # no trend unless asked for
     land = truth["land_mask"]
     expected = np.einsum("kt,kyx->tyx", X, Y)  # not clipped: exactly the planted model
     assert np.abs(expected[:, land]).max() > 1  # (this seed reaches beyond [-1, 1])
@@ -312,7 +314,31 @@ def test_synthetic_dynamic_field_monthly_and_given_matrices():
     assert np.all(truth["seasonal"][0] == 0)  # the level mode has no season
 
 
+def test_synthetic_dynamic_field_forced_trend_yearly():
+    """A forced trend is a quadratic ramp on mode 1 from the onset (closed form), added to the
+    same AR and seasonal parts as without it (it draws no random numbers); yearly times."""
+    kw = dict(n_times=21, shape=(4, 5), rank=3, seed=2, noise=0.0, missing=0.0,
+              return_truth=True, freq="YS", start_date="1900-01-01")
+    da, truth = synthetic_dynamic_field(trend=2.0, trend_onset=0.5, **kw)
+    flat, flat_truth = synthetic_dynamic_field(**kw)
+    t = np.arange(21)
+    expected = np.where(t >= 10, 2.0 * ((t - 10) / 10.0) ** 2, 0.0)
+    np.testing.assert_allclose(truth["trend"][1], expected)
+    assert not truth["trend"][[0, 2]].any()
+    np.testing.assert_array_equal(truth["Z"], flat_truth["Z"])
+    np.testing.assert_allclose(truth["X"] - flat_truth["X"], truth["trend"])
+    land = truth["land_mask"]
+    np.testing.assert_allclose(da.values[:, land] - flat.values[:, land],
+                               np.einsum("t,yx->tyx", expected, truth["Y"][1])[:, land],
+                               atol=1e-5)
+    assert [pd.Timestamp(v).year for v in da.time.values[[0, -1]]] == [1900, 1920]
+    assert "forced trend 2" in da.attrs["comment"]
+
+
 @pytest.mark.parametrize("kw, match", [
+    ({"trend": 1.0, "rank": 1}, "rank >= 2"),
+    ({"trend": float("nan")}, "trend must be"),
+    ({"trend": 1.0, "trend_onset": 1.0}, "trend_onset"),
     ({"A": np.eye(2) * 1.2}, "stable"),
     ({"A": np.eye(3)}, "A must be"),
     ({"Q": -np.eye(2)}, "semi-definite"),
@@ -320,8 +346,9 @@ def test_synthetic_dynamic_field_monthly_and_given_matrices():
     ({"seasonal_period": 1}, "seasonal_period"),
 ])
 def test_synthetic_dynamic_field_bad_input(kw, match):
+    kw = {"rank": 2, **kw}
     with pytest.raises(DataError, match=match):
-        synthetic_dynamic_field(10, (3, 3), 2, **kw)
+        synthetic_dynamic_field(10, (3, 3), **kw)
 
 
 def test_synthetic_field_default_is_unchanged_by_time_factors():

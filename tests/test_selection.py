@@ -8,10 +8,12 @@ import numpy as np
 import pandas as pd
 import pytest
 import xarray as xr
+from scipy.stats import norm
 
 from lrm_cvx import GLRM
 from lrm_cvx.errors import DataError, ModelError
 from lrm_cvx.glrm.calibrated import prediction_factor
+from lrm_cvx.glrm.paired import BOOTSTRAP_DRAWS, BOOTSTRAP_SEED
 from lrm_cvx.glrm.selection import _rule, format_selection, select_temporal
 from lrm_cvx.io.samples import synthetic_dynamic_field
 
@@ -90,11 +92,13 @@ def test_the_rule_against_a_naive_reading():
     labels = ["none", "a:1", "b:1", "c:1"]
     meta = {lab: (lab.split(":")[0], 1.0, 1.0) for lab in labels}
     sel = _rule(E, labels, meta, [5, 15], ("route",), 1.645, 0.01, set())
-    for c in range(4):  # naive, candidate by candidate and size by size
-        for s in range(2):
-            d = E[c, s] - E[0, s]
-            ucb = (d.mean() + 1.645 * d.std(ddof=1) / np.sqrt(n_days)) / E[0, s].mean()
-            assert np.isclose(sel["ucb"].values[c, s], ucb)
+    rng = np.random.default_rng(BOOTSTRAP_SEED)  # the paired bootstrap's draws, written out
+    for s in range(2):
+        counts = rng.multinomial(n_days, np.full(n_days, 1.0 / n_days), size=BOOTSTRAP_DRAWS)
+        picks = [np.repeat(np.arange(n_days), row) for row in counts]
+        for c in range(4):  # naive, candidate by candidate and size by size
+            draws = [E[c, s, p].mean() / E[0, s, p].mean() - 1 for p in picks]
+            assert np.isclose(sel["ucb"].values[c, s], np.quantile(draws, norm.cdf(1.645)))
             assert np.isclose(sel["ratio"].values[c, s], E[c, s].mean() / E[0, s].mean())
     assert sel.attrs["choice"] == "a:1"
     assert not bool(sel["admissible"].sel(candidate="b:1"))

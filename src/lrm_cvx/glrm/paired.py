@@ -10,13 +10,17 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["AUTO_DESIGNS", "AUTO_SIZES", "MAX_SCORED", "paired_choice", "paired_difference",
-           "shared_cases"]
+__all__ = ["AUTO_DESIGNS", "AUTO_SIZES", "MAX_SCORED", "bootstrap_upper", "paired_choice",
+           "paired_difference", "shared_cases"]
 
 AUTO_DESIGNS = ("route", "line", "scattered")
 """Sample designs of the validation days: a route, a transect, scattered cells."""
 AUTO_SIZES = (5, 15, 50)
 """Samples per validation day."""
+BOOTSTRAP_DRAWS = 2000
+"""Resamples of the paired bootstrap of :func:`bootstrap_upper`."""
+BOOTSTRAP_SEED = 0
+"""Its seed (the bound is a deterministic function of the errors)."""
 MAX_SCORED = 256
 """Cells a validation day's map is scored on (a random subset of the unsampled observed cells:
 the kriged maps cost ``O(cells)`` each)."""
@@ -28,7 +32,8 @@ def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
     errors ``E (n_candidates, n_sizes, n_cases)`` (candidate 0 the reference; a case NaN for
     any candidate is left out): per candidate and size the mean error ``mse`` over the kept
     cases, its ``ratio`` to the reference's and ``ucb``, the one-sided upper confidence bound
-    (``confidence`` standard errors of the paired differences) of the relative change; a
+    of the relative change at the normal level of ``confidence`` standard errors (a paired
+    bootstrap over the cases, :func:`bootstrap_upper`); a
     candidate is ``admissible`` when its ``ucb`` is at most ``tolerance`` at every size (the
     reference always is); ``best`` is the admissible one with the lowest worst ratio.
     Returns ``(mse, ratio, ucb, admissible, best, n_cases)``; ModelError when fewer than 2
@@ -40,13 +45,41 @@ def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
                          "missing?)")
     mse = np.nanmean(E, axis=-1)
     base = mse[0]
-    diff, se = paired_difference(E, slice(None), 0)
-    ucb = (diff + float(confidence) * se) / base
+    ucb = bootstrap_upper(E, confidence)
     ratio = mse / base
     admissible = ucb.max(axis=1) <= float(tolerance)
     admissible[0] = True
     best = int(np.argmin(np.where(admissible, ratio.max(axis=1), np.inf)))
     return mse, ratio, ucb, admissible, best, n_cases
+
+
+def bootstrap_upper(E: np.ndarray, confidence: float, n_boot: int = BOOTSTRAP_DRAWS
+                    ) -> np.ndarray:
+    """``(n_candidates, n_sizes)`` one-sided upper confidence bound of each candidate's
+    relative MSE change against candidate 0, ``mean(E_c) / mean(E_0) - 1`` over the cases
+    (last axis, the NaN ones left out per size): the percentile ``Phi(confidence)`` of the
+    paired bootstrap over the cases (one set of resamples for every candidate; seeded, so
+    deterministic). A normal bound (mean + ``confidence`` standard errors) is symmetric, so
+    one case where the reference fails badly widened it and rejected a candidate that was
+    better on most days; the bootstrap follows the skew of the differences either way (an
+    unfavourable outlier still raises the bound)."""
+    from scipy.stats import norm
+
+    level = float(norm.cdf(float(confidence)))
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    out = np.full(E.shape[:2], np.nan)
+    for s in range(E.shape[1]):
+        keep = np.isfinite(E[:, s]).all(axis=0)
+        Es = E[:, s, keep]
+        n = Es.shape[1]
+        if n < 2:
+            continue
+        counts = rng.multinomial(n, np.full(n, 1.0 / n), size=int(n_boot))  # (draw, case)
+        means = Es @ counts.T / n  # (candidate, draw): O(draws x cases) memory
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[:, s] = np.quantile(means / means[0] - 1.0, level, axis=1)
+    out[0] = 0.0
+    return out
 
 
 def shared_cases(E: np.ndarray) -> np.ndarray:

@@ -321,6 +321,8 @@ def synthetic_dynamic_field(
     Q: Any = None,
     seasonal_period: int | None = None,
     seasonal_amplitude: float = 0.5,
+    trend: float = 0.0,
+    trend_onset: float = 0.5,
     freq: str = "D",
     missing: float = 0.5,
     noise: float = 0.02,
@@ -331,21 +333,26 @@ def synthetic_dynamic_field(
 ) -> xr.DataArray | tuple[xr.DataArray, dict[str, Any]]:
     """A planted rank-``rank`` field whose latent columns follow known AR(1) dynamics.
 
-    ``x_t = mu + s_t + z_t``, ``z_t = A z_{t-1} + w_t``, ``w_t ~ N(0, Q)``, ``z_0`` drawn from
-    the stationary distribution; ``mu = (1, 0, ..., 0)`` (mode 0 of :func:`synthetic_field` is
-    the base level), ``s_t`` a seasonal cycle of ``seasonal_period`` steps (random phase per
-    component, amplitude ``seasonal_amplitude``; level mode excluded) or 0. Defaults: ``A``
+    ``x_t = mu + s_t + f_t + z_t``, ``z_t = A z_{t-1} + w_t``, ``w_t ~ N(0, Q)``, ``z_0`` drawn
+    from the stationary distribution; ``mu = (1, 0, ..., 0)`` (mode 0 of :func:`synthetic_field`
+    is the base level), ``s_t`` a seasonal cycle of ``seasonal_period`` steps (random phase per
+    component, amplitude ``seasonal_amplitude``; level mode excluded) or 0, ``f_t`` a forced
+    trend on mode 1 (a warming record's): 0 until the fraction ``trend_onset`` of the record,
+    then a quadratic ramp reaching ``trend`` (latent units; the stationary std is about 0.32)
+    at the last snapshot, so the last snapshots lie beyond every earlier one. Defaults: ``A``
     symmetric with eigenvalues in [0.6, 0.95] (strong persistence), ``Q = 0.1 (I - A A^T)``
     (stationary covariance ``0.1 I`` when ``A`` is symmetric). The rest (spatial modes,
     land mask, clouds, noise) is :func:`synthetic_field` with these ``time_factors``; ``freq``
-    ``"D"`` (daily) or ``"MS"`` (monthly, month starts) sets the time coordinate. Values are
+    ``"D"`` (daily), ``"MS"`` (monthly, month starts) or ``"YS"`` (yearly, year starts) sets
+    the time coordinate. Values are
     not clipped (``clip=False``, unlike :func:`synthetic_field`): the field is exactly the planted
     linear-Gaussian model plus noise, so the dynamics are recoverable from it (clipping at 1
     hit 2 % of the values and bent the latent coordinates: ``A`` error 0.25 instead of 0.10
     from 400 snapshots).
 
     With ``return_truth`` also returns the truth of :func:`synthetic_field` plus ``"A"``,
-    ``"Q"``, ``"mu"``, ``"seasonal"`` ``(rank, T)`` and ``"Z"`` ``(rank, T)`` (the AR part).
+    ``"Q"``, ``"mu"``, ``"seasonal"`` ``(rank, T)``, ``"trend"`` ``(rank, T)`` and ``"Z"``
+    ``(rank, T)`` (the AR part).
     """
     n_times = _check_int(n_times, "n_times", 1)
     rank = _check_int(rank, "rank", 1)
@@ -367,8 +374,16 @@ def synthetic_dynamic_field(
     if w.min() < -1e-12 * max(w.max(), 1e-300):
         raise DataError("Q must be positive semi-definite")
     Qh = V * np.sqrt(np.maximum(w, 0.0))
-    if freq not in ("D", "MS"):
-        raise DataError(f"freq must be 'D' or 'MS', got {freq!r}")
+    if freq not in ("D", "MS", "YS"):
+        raise DataError(f"freq must be 'D', 'MS' or 'YS', got {freq!r}")
+    trend = float(trend)
+    if not np.isfinite(trend):
+        raise DataError(f"trend must be a finite number, got {trend!r}")
+    onset = float(trend_onset)
+    if not 0.0 <= onset < 1.0:
+        raise DataError(f"trend_onset must be in [0, 1), got {trend_onset!r}")
+    if trend != 0.0 and rank < 2:
+        raise DataError("trend needs rank >= 2 (it drives mode 1; mode 0 is the base level)")
     import scipy.linalg
 
     S0 = scipy.linalg.solve_discrete_lyapunov(A, Q)
@@ -388,20 +403,26 @@ def synthetic_dynamic_field(
         seasonal = float(seasonal_amplitude) * np.sin(
             2 * np.pi * np.arange(n_times)[None, :] / period + phase[:, None])
         seasonal[0] = 0.0
-    X = mu[:, None] + seasonal + Z
+    forced = np.zeros((rank, n_times))
+    if trend != 0.0:
+        t0 = onset * (n_times - 1)
+        ramp = np.clip((np.arange(n_times) - t0) / max(n_times - 1 - t0, 1e-12), 0.0, None)
+        forced[1] = trend * ramp ** 2
+    X = mu[:, None] + seasonal + forced + Z
     out = synthetic_field(n_times, shape, rank, missing=missing, noise=noise, seed=rng,
                           return_truth=True, time_factors=X, clip=clip, **field_options)
     da, truth = out
-    if freq == "MS":
+    if freq != "D":
         start = pd.Timestamp(field_options.get("start_date", "2013-01-01"))
-        da = da.assign_coords(time=("time", pd.date_range(start, periods=n_times, freq="MS")
+        da = da.assign_coords(time=("time", pd.date_range(start, periods=n_times, freq=freq)
                                     .values.astype("datetime64[ns]"), da.time.attrs))
     da.attrs["source"] = "lrm_cvx.io.samples.synthetic_dynamic_field"
     da.attrs["comment"] = (  # the caller's seed, not the shared Generator's address
         da.attrs["comment"].replace(f"seed {rng!r}", f"seed {seed!r}")
-        + f"; latent AR(1) dynamics, seasonal period {seasonal_period}")
+        + f"; latent AR(1) dynamics, seasonal period {seasonal_period}"
+        + (f"; forced trend {trend:g} on mode 1 from {onset:g} of the record" if trend else ""))
     if return_truth:
-        truth.update(A=A, Q=Q, mu=mu, seasonal=seasonal, Z=Z)
+        truth.update(A=A, Q=Q, mu=mu, seasonal=seasonal, trend=forced, Z=Z)
         return da, truth
     return da
 
