@@ -25,11 +25,17 @@ def _naive_bootstrap(E: np.ndarray, confidence: float, n_boot: int) -> np.ndarra
     return out
 
 
-def test_bootstrap_bound_against_a_naive_resampling():
+def test_bootstrap_bound_against_a_naive_resampling(monkeypatch):
+    import lrm_cvx.glrm.paired as paired
+
     rng = np.random.default_rng(3)
     E = 1.0 + rng.random((3, 2, 9))
-    np.testing.assert_allclose(bootstrap_upper(E, 1.645, n_boot=300),
-                               _naive_bootstrap(E, 1.645, 300), rtol=1e-12, atol=1e-12)
+    naive = _naive_bootstrap(E, 1.645, 300)
+    np.testing.assert_allclose(bootstrap_upper(E, 1.645, n_boot=300), naive,
+                               rtol=1e-12, atol=1e-12)
+    monkeypatch.setattr(paired, "BOOTSTRAP_BLOCK", 20)  # the draws in blocks of 2: the same
+    np.testing.assert_allclose(bootstrap_upper(E, 1.645, n_boot=300), naive,
+                               rtol=1e-12, atol=1e-12)
 
 
 def test_bootstrap_bound_lies_within_the_exact_bootstrap_quantiles():

@@ -19,6 +19,8 @@ AUTO_SIZES = (5, 15, 50)
 """Samples per validation day."""
 BOOTSTRAP_DRAWS = 2000
 """Resamples of the paired bootstrap of :func:`bootstrap_upper`."""
+BOOTSTRAP_BLOCK = 1 << 21
+"""Draw x case counts held at once (16 MiB)."""
 BOOTSTRAP_SEED = 0
 """Its seed (the bound is a deterministic function of the errors)."""
 MAX_SCORED = 256
@@ -74,8 +76,10 @@ def bootstrap_upper(E: np.ndarray, confidence: float, n_boot: int = BOOTSTRAP_DR
         n = Es.shape[1]
         if n < 2:
             continue
-        counts = rng.multinomial(n, np.full(n, 1.0 / n), size=int(n_boot))  # (draw, case)
-        means = Es @ counts.T / n  # (candidate, draw): O(draws x cases) memory
+        step = max(1, min(int(n_boot), BOOTSTRAP_BLOCK // n))  # draws per block of counts
+        means = np.concatenate([  # (candidate, draw)
+            Es @ rng.multinomial(n, np.full(n, 1.0 / n), size=min(step, int(n_boot) - b)).T
+            for b in range(0, int(n_boot), step)], axis=1) / n
         with np.errstate(divide="ignore", invalid="ignore"):
             out[:, s] = np.quantile(means / means[0] - 1.0, level, axis=1)
     out[0] = 0.0
