@@ -33,16 +33,18 @@ campaign would meet them:
   residual (its kriging weights do not change); a day's maps under every candidate still come
   from one batch of filters.
 * **Rule, with a guard on harm.** A candidate is admissible when the upper confidence bound of
-  its day-by-day MSE change against memoryless (one-sided, ``confidence`` standard errors) is at
-  most ``tolerance`` at every size; memoryless always is. The admissible candidate with the
-  lowest worst MSE ratio (over sizes) is the validated best (``attrs["best"]``). **One standard
-  error towards caution:** among the candidates of the best's kind and blend whose
-  day-by-day MSE is within one standard error of the best's at every size (paired, the
-  one-standard-error rule of cross-validation), the choice is the lowest rank (``rank="auto"``)
-  and then the largest inflation, so validation days that cannot tell two candidates apart
-  leave the model with fewer modes and the update that trusts a few samples less. A campaign's robot
-  samples around its base day after day, and an over-confident update from the same few
-  cells compounds there, which the validation's designs (a new place every day) do not show.
+  its day-by-day MSE change against memoryless (one-sided at the normal level of
+  ``confidence`` standard errors, a paired bootstrap over the days:
+  :func:`~.paired.bootstrap_upper`) is at most ``tolerance`` at every size; memoryless
+  always is. The admissible candidate with the lowest worst MSE ratio (over sizes) is the
+  validated best (``attrs["best"]``). **One standard error towards caution:** among the
+  candidates of the best's kind and blend whose day-by-day MSE is within one standard error of
+  the best's at every size (paired, the one-standard-error rule of cross-validation), the
+  choice is the lowest rank (``rank="auto"``) and then the largest inflation, so validation
+  days that cannot tell two candidates apart leave the model with fewer modes and the update
+  that trusts a few samples less. A campaign's robot samples around its base day after day,
+  and an over-confident update from the same few cells compounds there, which the
+  validation's designs (a new place every day) do not show.
 
 The result is an ``xarray.Dataset`` (``model.selection_``, saved with the model by
 ``modelfile.validation_tables``): the validation table per candidate and size and the choice
@@ -438,7 +440,7 @@ def _cautious(E: np.ndarray, labels: list[str], meta: dict, best: int,
 
     pick = best
     for c, lab in enumerate(labels):
-        k_c, a_c, _, *_ = meta[lab]
+        k_c, a_c, *_ = meta[lab]
         if (k_c, a_c) != (kind, alpha) or caution(c) <= caution(pick) or not admissible[c]:
             continue
         diff, se = paired_difference(E, c, best)  # (size,)
