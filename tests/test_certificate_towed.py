@@ -162,8 +162,10 @@ def test_towed_bound_errors():
 @pytest.mark.parametrize("errors", ["independent", "shared"])
 def test_towed_relaxation_equals_the_weighted_design_problem(errors):
     """The bound is the optimum of ``max log det(ridge I + sum w_c y_c y_c^T)`` over ``0 <= w_c
-    <= rows``, ``sum w <= cells`` (shared: ``rows``), solved here by cvxpy on the family's
-    candidates: the scaled count-only relaxation computes that problem, not a looser one."""
+    <= rows``, ``sum w <= cells`` (shared: ``rows``) and Lemma 9's limits (``sum w`` over the
+    cells at chart distance ``>= r`` from the start at most each cap), solved here by cvxpy on
+    the family's candidates: the scaled relaxation computes that problem, not a looser one,
+    and the limits cut it."""
     import cvxpy as cp
 
     from lrm_cvx.planning.families import leg_family, path_spec
@@ -178,10 +180,56 @@ def test_towed_relaxation_equals_the_weighted_design_problem(errors):
                      region, 3)
     total = fam.cells if errors == "independent" else fam.rows
     Yc = Y[:, fam.cand]
+    gi, gs = region.grid_index[fam.cand], region.grid_index[start]
+    chart = np.hypot(*(gi - gs).T)  # the chart distance, written out
+    thr, caps_i, caps_s = fam.limits
+    caps = caps_i if errors == "independent" else caps_s
     w = cp.Variable(fam.cand.size)
-    prob = cp.Problem(cp.Maximize(cp.log_det(ridge * np.eye(3) + Yc @ cp.diag(w) @ Yc.T)),
-                      [w >= 0, w <= fam.rows, cp.sum(w) <= total])
+    objective = cp.Maximize(cp.log_det(ridge * np.eye(3) + Yc @ cp.diag(w) @ Yc.T))
+    box = [w >= 0, w <= fam.rows, cp.sum(w) <= total]
+    limits = [cp.sum(w[chart >= r]) <= c for r, c in zip(thr, caps, strict=True)
+              if (chart >= r).any()]
+    loose = cp.Problem(objective, box)
+    loose.solve(solver="CLARABEL")
+    prob = cp.Problem(objective, box + limits)
     prob.solve(solver="CLARABEL")
     assert (fam.rows, fam.cells) == cert.towed
     assert cert.bound >= prob.value - 1e-6
     assert cert.bound <= prob.value + 1e-4
+    assert prob.value < loose.value - 1e-3  # the limits bind on this grid
+
+
+@pytest.mark.parametrize("kind, closed, budget", [("straight", False, 4.6), ("straight", True, 5.2),
+                                                  ("graph", False, 4.5), ("graph", True, 5.0)])
+def test_leg_limits_hold_on_every_route(kind, closed, budget):
+    """Lemma 9 checked route by route: on every route within the budget, the leg cells at
+    distance ``>= r`` from the start (a cell once per leg through it) and the legs reaching
+    them are at most the caps, for every threshold; some cap is met to within 4 cells (the
+    straight-leg cap allows for diagonal legs and a cut leg's extra cells, which a tiny grid
+    cannot all show at once), so the test would see a vacuous formula."""
+    from lrm_cvx.planning.families import leg_family, path_spec
+    from lrm_cvx.planning.request import PathOptions
+
+    region = make_region(6, 6, masked=[(1, 3), (2, 3)] if kind == "graph" else [(0, 5)])
+    start = int(region.cell_grid[2, 1])
+    S = straight(region, "grid", None)
+    if kind == "graph":
+        adj = (np.abs(region.grid_index[:, None, 0] - region.grid_index[None, :, 0]) <= 1) & (
+            np.abs(region.grid_index[:, None, 1] - region.grid_index[None, :, 1]) <= 1)
+        G = graph(region, S)
+        D, leg = G, graph_paths(G, np.where(adj, S, np.inf))
+        options = PathOptions(traversable="valid", closed=closed)
+    else:
+        D, leg = S, (lambda a, b: straight_leg(region, a, b))
+        options = PathOptions(closed=closed)
+    fam = leg_family(path_spec(region, None, start, budget, options, "path", None), region, 2)
+    thr, caps_i, caps_s = fam.limits
+    tightest = np.inf
+    for order in route_orders(D, start, budget, closed):
+        legs = rows_of(order, leg, closed)[1:]  # the start's own cell is at distance 0
+        for r, ci, cs in zip(thr, caps_i, caps_s, strict=True):
+            beyond = [sum(fam.dist[c] >= r for c in cells) for cells in legs]
+            assert sum(beyond) <= ci
+            assert sum(b > 0 for b in beyond) <= cs
+            tightest = min(tightest, ci - sum(beyond))
+    assert tightest <= 4

@@ -438,10 +438,20 @@ def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, 
 
     k = Y.shape[0]
     fam = leg_family(spec, region, k)
-    total = fam.cells if sensor.errors == "independent" else fam.rows
+    independent = sensor.errors == "independent"
+    total = fam.cells if independent else fam.rows
+    levels, caps = [], []
+    if fam.limits is not None:  # Lemma 9: the leg cells beyond each distance from the start
+        thr, caps_i, caps_s = fam.limits
+        cap = caps_i if independent else caps_s
+        keep = cap < total  # a cap at the total adds nothing
+        if keep.any():
+            levels = [np.searchsorted(thr[keep], fam.dist[fam.cand], side="right")]
+            caps = [cap[keep] / fam.rows]
     Yc = math.sqrt(fam.rows) * np.ascontiguousarray(Y[:, fam.cand], dtype=np.float64)
     relax = _relaxation(Yc, np.arange(fam.cand.size),
-                        _Polytope(total / fam.rows, fam.cand.size), ridge, **opts)
+                        _Polytope(total / fam.rows, fam.cand.size, levels, caps), ridge,
+                        **opts)
     bound = float(relax.value)
     information = gap = ratio = None
     plan_criterion = _plan_criterion(plan) if plan is not None else None

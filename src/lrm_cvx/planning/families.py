@@ -28,7 +28,7 @@ from .sensors import POINT
 
 NUDGE = 1e-6  # radii sit this far (in d_min) inside their cap's interval, away from rounding
 
-__all__ = ["PathSpec", "path_spec", "Family", "family", "LegFamily", "leg_family",
+__all__ = ["PathSpec", "path_spec", "Family", "family", "LegFamily", "leg_family", "leg_limits",
            "describe_path",
            "is_paper_description", "min_spacing_km", "start_limit", "cap_ladder", "NUDGE"]
 
@@ -241,6 +241,46 @@ class LegFamily:
     rows: int
     cells: int
     budget_text: str
+    # one robot: its distance of every cell from the start (L,) and the limits on the leg
+    # cells beyond each threshold, (thresholds, caps with independent errors, caps shared)
+    dist: np.ndarray | None = None
+    limits: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+def leg_limits(span: float, shift: float, unit: float, straight: bool
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Lemma 9 (docs/certificate.md §12): limits on a route's leg cells beyond distance ``r``
+    from the start, ``(thresholds, caps_independent, caps_shared)``, ascending thresholds.
+
+    A leg cell whose distance is ``>= r`` is passed at arc length ``>= rho = r - shift``
+    (``shift = sqrt 2 / 2`` for straight legs: a crossed cell holds a point of the segment;
+    0 on a travel graph, whose legs pass through cell centres), so only the route's last
+    ``span - rho`` of arc (``x`` legs' worth, ``x = (span - rho) / unit``) reaches them. Straight
+    legs: every whole leg there is at least 1 long and crosses at most ``sqrt 2 l + 1`` cells,
+    the one leg cut at ``rho`` fewer than ``sqrt 2 l + 3``, so the leg cells beyond ``r`` (a
+    cell counted once per leg through it) are at most ``floor(sqrt 2 x + floor(x) + 3)``; over a
+    travel graph a leg of travel ``l`` passes at most ``l / unit + 1`` cells: at most ``2
+    floor(x) + 1``. The legs with a cell beyond ``r`` end past ``rho``, at least ``unit``
+    apart: at most ``floor(x) + 1`` (the cap of the shared-error weights, each leg's summing to
+    1). Thresholds are nudged up against rounding; the caps are computed from the un-nudged
+    ones. None when the route cannot reach beyond its first cell."""
+    if not (math.isfinite(span) and unit > 0) or span < unit:
+        return None
+    thr, ci, cs = [], [], []
+    for m in range(int(math.floor(span / unit)) + 1):  # floor(x) = m: x just below m + 1
+        x = m + 1 - NUDGE
+        r = span + shift - x * unit
+        if r <= 0:
+            continue
+        cap_i = (math.floor(math.sqrt(2.0) * x + m + 3) if straight else 2 * m + 1)
+        thr.append(r * (1 + 1e-12) + 1e-12)
+        ci.append(cap_i)
+        cs.append(m + 1)
+    if not thr:
+        return None
+    order = np.argsort(thr)
+    return (np.asarray(thr)[order], np.asarray(ci, dtype=np.float64)[order],
+            np.asarray(cs, dtype=np.float64)[order])
 
 
 def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
@@ -261,6 +301,7 @@ def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
     stops_spec = replace(spec, options=replace(spec.options, sensor=POINT), models=models)
     pass_spec = replace(stops_spec, options=replace(stops_spec.options, sense_along=True))
     cand, rows, cells = [], 0, 0
+    dist = limits = None
     for r in range(len(spec.starts)):
         stops = _robotfamily(stops_spec, region, k, r)
         passed = _robotfamily(pass_spec, region, k, r)
@@ -277,8 +318,15 @@ def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
                                     "crosses on the grid's chart: a grid whose longitudes "
                                     "wrap has no such bound; give traversable='valid'")
             along = math.floor(math.sqrt(2.0) * G)
+            if len(spec.starts) == 1:  # Lemma 9 on the chart
+                dist = np.asarray(pm.chart_distance(pm.start, np.arange(region.n_cells)),
+                                  dtype=np.float64)
+                limits = leg_limits(G, math.sqrt(2.0) / 2, 1.0, straight=True)
         elif math.isfinite(passed.d_min) and passed.d_min > 0:
             along = math.floor(passed.travel / passed.d_min + 1e-9)
+            if len(spec.starts) == 1 and passed.dist is not None:  # Lemma 9 on the graph
+                dist = passed.dist
+                limits = leg_limits(passed.travel, 0.0, passed.d_min, straight=False)
         else:  # no spacing: every observation may average every candidate
             along = n_rows * passed.cand.size
         cand.append(passed.cand)
@@ -287,7 +335,7 @@ def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
     text = (f"budget={spec.budgets[0]:g}" if len(spec.starts) == 1 else
             "fleet budgets " + ", ".join(f"{b:g}" for b in spec.budgets))
     return LegFamily(np.unique(np.concatenate(cand)).astype(np.int64), int(rows), int(cells),
-                     text)
+                     text, dist, limits)
 
 
 def _fleet_limits(parts: list[Family], n_max: int
