@@ -404,7 +404,7 @@ def load_planted_warming_yearly() -> xr.DataArray:
     extrapolation a trend asks for; nothing is chosen on it."""
     from lrm_cvx.io.samples import synthetic_dynamic_field
 
-    da = synthetic_dynamic_field(240, (44, 44), rank=12, trend=1.0, trend_onset=0.46,
+    da = synthetic_dynamic_field(240, (44, 44), rank=12, trend=(1.0, 0.46),
                                  freq="YS", missing=0.0, noise=0.02, seed=0, land_fraction=0.9,
                                  start_date="1860-01-01")
     return _finish(da, units="1", long_name="planted field with warming",

@@ -319,7 +319,8 @@ def test_synthetic_dynamic_field_forced_trend_yearly():
     same AR and seasonal parts as without it (it draws no random numbers); yearly times."""
     kw = dict(n_times=21, shape=(4, 5), rank=3, seed=2, noise=0.0, missing=0.0,
               return_truth=True, freq="YS", start_date="1900-01-01")
-    da, truth = synthetic_dynamic_field(trend=2.0, trend_onset=0.5, **kw)
+    da, truth = synthetic_dynamic_field(trend=(2.0, 0.5), **kw)
+    np.testing.assert_array_equal(synthetic_dynamic_field(trend=2.0, **kw)[1]["X"], truth["X"])
     flat, flat_truth = synthetic_dynamic_field(**kw)
     t = np.arange(21)
     expected = np.where(t >= 10, 2.0 * ((t - 10) / 10.0) ** 2, 0.0)
@@ -338,7 +339,8 @@ def test_synthetic_dynamic_field_forced_trend_yearly():
 @pytest.mark.parametrize("kw, match", [
     ({"trend": 1.0, "rank": 1}, "rank >= 2"),
     ({"trend": float("nan")}, "trend must be"),
-    ({"trend": 1.0, "trend_onset": 1.0}, "trend_onset"),
+    ({"trend": (1.0, 1.0)}, "onset"),
+    ({"trend": (1.0,)}, "amount, onset"),
     ({"A": np.eye(2) * 1.2}, "stable"),
     ({"A": np.eye(3)}, "A must be"),
     ({"Q": -np.eye(2)}, "semi-definite"),

@@ -321,8 +321,7 @@ def synthetic_dynamic_field(
     Q: Any = None,
     seasonal_period: int | None = None,
     seasonal_amplitude: float = 0.5,
-    trend: float = 0.0,
-    trend_onset: float = 0.5,
+    trend: float | tuple[float, float] = 0.0,
     freq: str = "D",
     missing: float = 0.5,
     noise: float = 0.02,
@@ -337,9 +336,10 @@ def synthetic_dynamic_field(
     from the stationary distribution; ``mu = (1, 0, ..., 0)`` (mode 0 of :func:`synthetic_field`
     is the base level), ``s_t`` a seasonal cycle of ``seasonal_period`` steps (random phase per
     component, amplitude ``seasonal_amplitude``; level mode excluded) or 0, ``f_t`` a forced
-    trend on mode 1 (a warming record's): 0 until the fraction ``trend_onset`` of the record,
-    then a quadratic ramp reaching ``trend`` (latent units; the stationary std is about 0.32)
-    at the last snapshot, so the last snapshots lie beyond every earlier one. Defaults: ``A``
+    trend on mode 1 (a warming record's): ``trend = amount`` or ``(amount, onset)``, 0 until
+    the fraction ``onset`` of the record (default 0.5), then a quadratic ramp reaching
+    ``amount`` (latent units; the stationary std is about 0.32) at the last snapshot, so the
+    last snapshots lie beyond every earlier one. Defaults: ``A``
     symmetric with eigenvalues in [0.6, 0.95] (strong persistence), ``Q = 0.1 (I - A A^T)``
     (stationary covariance ``0.1 I`` when ``A`` is symmetric). The rest (spatial modes,
     land mask, clouds, noise) is :func:`synthetic_field` with these ``time_factors``; ``freq``
@@ -376,12 +376,15 @@ def synthetic_dynamic_field(
     Qh = V * np.sqrt(np.maximum(w, 0.0))
     if freq not in ("D", "MS", "YS"):
         raise DataError(f"freq must be 'D', 'MS' or 'YS', got {freq!r}")
-    trend = float(trend)
+    try:
+        trend, onset = ((float(trend), 0.5) if np.ndim(trend) == 0
+                        else (float(trend[0]), float(trend[1])))
+    except (TypeError, ValueError, IndexError):
+        raise DataError(f"trend must be a number or (amount, onset), got {trend!r}") from None
     if not np.isfinite(trend):
         raise DataError(f"trend must be a finite number, got {trend!r}")
-    onset = float(trend_onset)
     if not 0.0 <= onset < 1.0:
-        raise DataError(f"trend_onset must be in [0, 1), got {trend_onset!r}")
+        raise DataError(f"trend's onset must be in [0, 1), got {onset!r}")
     if trend != 0.0 and rank < 2:
         raise DataError("trend needs rank >= 2 (it drives mode 1; mode 0 is the base level)")
     import scipy.linalg
