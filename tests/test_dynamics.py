@@ -341,6 +341,7 @@ def test_synthetic_dynamic_field_forced_trend_yearly():
     ({"trend": float("nan")}, "trend must be"),
     ({"trend": (1.0, 1.0)}, "onset"),
     ({"trend": (1.0,)}, "amount, onset"),
+    ({"trend": (1.0, 0.5, 2.0)}, "amount, onset"),
     ({"A": np.eye(2) * 1.2}, "stable"),
     ({"A": np.eye(3)}, "A must be"),
     ({"Q": -np.eye(2)}, "semi-definite"),

@@ -3,8 +3,10 @@
 from itertools import product
 
 import numpy as np
+import pytest
 from scipy.stats import norm
 
+from lrm_cvx.errors import ModelError
 from lrm_cvx.glrm.paired import BOOTSTRAP_SEED, bootstrap_upper, paired_choice
 
 
@@ -80,3 +82,8 @@ def test_a_case_left_out_is_a_case_dropped():
     holed[1, 0, 4] = np.nan  # not scored for one candidate: left out for both
     np.testing.assert_array_equal(bootstrap_upper(holed, 1.645),
                                   bootstrap_upper(np.delete(E, 4, axis=2), 1.645))
+
+
+def test_no_draws_is_a_clear_error():
+    with pytest.raises(ModelError, match="n_boot"):
+        bootstrap_upper(np.ones((2, 1, 4)), 1.645, n_boot=0)

@@ -67,6 +67,8 @@ def bootstrap_upper(E: np.ndarray, confidence: float, n_boot: int = BOOTSTRAP_DR
     unfavourable outlier still raises the bound)."""
     from scipy.stats import norm
 
+    if int(n_boot) < 1:
+        raise ModelError(f"n_boot must be a positive number of bootstrap draws, got {n_boot!r}")
     level = float(norm.cdf(float(confidence)))
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     out = np.full(E.shape[:2], np.nan)

@@ -377,9 +377,8 @@ def synthetic_dynamic_field(
     if freq not in ("D", "MS", "YS"):
         raise DataError(f"freq must be 'D', 'MS' or 'YS', got {freq!r}")
     try:
-        trend, onset = ((float(trend), 0.5) if np.ndim(trend) == 0
-                        else (float(trend[0]), float(trend[1])))
-    except (TypeError, ValueError, IndexError):
+        trend, onset = (float(trend), 0.5) if np.ndim(trend) == 0 else map(float, trend)
+    except (TypeError, ValueError):  # not numbers, or not exactly two of them
         raise DataError(f"trend must be a number or (amount, onset), got {trend!r}") from None
     if not np.isfinite(trend):
         raise DataError(f"trend must be a finite number, got {trend!r}")
