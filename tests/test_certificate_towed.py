@@ -233,3 +233,32 @@ def test_leg_limits_hold_on_every_route(kind, closed, budget):
             assert sum(b > 0 for b in beyond) <= cs
             tightest = min(tightest, ci - sum(beyond))
     assert tightest <= 4
+
+
+@pytest.mark.parametrize("straight_legs", [True, False])
+def test_leg_limits_are_a_ladder_of_the_lemma(straight_legs):
+    """A long route's limits are a subset of Lemma 9's, one per ``floor(x) = m`` written out
+    here (``x`` just below ``m + 1`` legs of arc beyond ``rho``), the farthest threshold
+    (``m = 0``) kept; a short route keeps every one."""
+    from lrm_cvx.planning.families import NUDGE, leg_limits
+
+    shift = np.sqrt(2.0) / 2 if straight_legs else 0.0
+    for span, unit in ((4.6, 1.0), (200.0, 1.0), (130.0, 1.5)):
+        thr, ci, cs = leg_limits(span, shift, unit, straight=straight_legs)
+        full = {}
+        for m in range(int(span // unit) + 1):
+            x = m + 1 - NUDGE
+            r = span + shift - x * unit
+            if r > 0:
+                cap = np.floor(np.sqrt(2.0) * x + m + 3) if straight_legs else 2 * m + 1
+                full[m] = (r, cap, m + 1)
+        got = {int(s) - 1: (t, i, s) for t, i, s in zip(thr, ci, cs, strict=True)}
+        assert np.all(np.diff(thr) > 0)
+        assert set(got) <= set(full) and 0 in got
+        for m, (t, i, s) in got.items():
+            assert t == pytest.approx(full[m][0], rel=1e-9) and t >= full[m][0]
+            assert (i, s) == full[m][1:]
+        if span < 10:
+            assert set(got) == set(full)
+        else:
+            assert len(got) < len(full)
