@@ -262,3 +262,66 @@ def test_leg_limits_are_a_ladder_of_the_lemma(straight_legs):
             assert set(got) == set(full)
         else:
             assert len(got) < len(full)
+
+
+def polyline_midpoint(points: np.ndarray) -> np.ndarray:
+    """The point at half the arc length of the polyline through ``points`` (m, 2)."""
+    seg = np.hypot(*np.diff(points, axis=0).T)
+    if seg.sum() == 0:
+        return points[0]
+    half, cum = seg.sum() / 2, np.concatenate([[0.0], np.cumsum(seg)])
+    i = min(int(np.searchsorted(cum, half, side="right")) - 1, seg.size - 1)
+    t = (half - cum[i]) / seg[i] if seg[i] > 0 else 0.0
+    return points[i] + t * (points[i + 1] - points[i])
+
+
+@pytest.mark.parametrize("closed, budget", [(False, 4.6), (True, 5.2)])
+def test_midpoint_limits_hold_on_every_route(closed, budget):
+    """Lemma 10 checked route by route at the route's own midpoint ``c`` (the tightest square
+    holding it, of side 0): every leg cell, the start's own observation included, lies within
+    ``G / 2 + sqrt 2 / 2`` of ``c``, and the leg cells at distance ``>= s`` from ``c`` (once
+    per leg) and the legs reaching them are at most the caps, for every threshold; some cap
+    is met to within 7 cells (each side's cap allows Lemma 9's slack, and one route cannot
+    meet both sides' at once), and the farthest cap is below the leg cells in all (the limit
+    binds): a vacuous formula would show."""
+    from lrm_cvx.planning.families import leg_family, leg_midpoint_limits, path_spec
+    from lrm_cvx.planning.request import PathOptions
+
+    region = make_region(6, 6, masked=[(0, 5)])
+    start = int(region.cell_grid[2, 1])
+    D = straight(region, "grid", None)
+    fam = leg_family(path_spec(region, None, start, budget, PathOptions(closed=closed), "path",
+                               None), region, 2)
+    G = fam.cover_span
+    assert G is not None and G >= budget
+    thr, caps_i, caps_s = leg_midpoint_limits(G)
+    pos = region.grid_index.astype(np.float64)
+    tightest, n_routes = np.inf, 0
+    for order in route_orders(D, start, budget, closed):
+        stops = order + ([order[0]] if closed and len(order) > 1 else [])
+        c = polyline_midpoint(pos[stops])
+        rows = rows_of(order, lambda a, b: straight_leg(region, a, b), closed)
+        dist = [np.hypot(*(pos[cells] - c).T) for cells in rows]
+        assert max(d.max() for d in dist) <= G / 2 + math.sqrt(2) / 2 + 1e-9
+        for s, ci, cs in zip(thr, caps_i, caps_s, strict=True):
+            beyond = [int((d >= s).sum()) for d in dist]
+            assert sum(beyond) <= ci
+            assert sum(b > 0 for b in beyond) <= cs
+            tightest = min(tightest, ci - sum(beyond))
+        n_routes += 1
+    assert n_routes > 100 and tightest <= 7 and caps_i.min() < fam.cells
+
+
+def test_midpoint_cover_tightens_the_towed_bound():
+    """On a 12 x 12 grid the cover's bound is below the one without it (``tighten=False``:
+    Lemma 9's limits only) and still above the greedy towed plan's information, which lies in
+    one of its pieces; the certificate lists the pieces."""
+    from lrm_cvx.planning import plan_greedy
+
+    region = make_region(12, 12)
+    Y = field_Y(region, 3, 0)
+    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, sensor="towed", progress=False)
+    cert = plan.certify(tol=1e-6)
+    loose = plan.certify(tol=1e-6, tighten=False)
+    assert cert.information <= cert.bound < loose.bound - 1e-3
+    assert cert.tightened and len(cert.leaves) > 4 and not loose.leaves

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
+import scipy.sparse as sps
 
 from .._validation import as_factor_matrix
 from ..errors import PlanningError, SolverError
@@ -42,6 +43,7 @@ from .families import (
     describe_path,
     family,
     leg_family,
+    leg_midpoint_limits,
     min_spacing_km,
     path_spec,
     start_limit,
@@ -295,9 +297,11 @@ def plan_bound(
     legs, not on the stops (§12): by Cauchy-Schwarz each is at most the sum of ``y y^T`` over
     its leg's cells (``1 / m`` of it for ``errors="shared"``), so the bound is the count-only
     relaxation with weights up to the observations' count and a total of the leg cells a
-    route within the budget can pass (``towed``: those two limits). It covers every route
-    within the budget (a plan whose forced initial cells exceed it is refused), with no
-    distance limits, online bound or refinement.
+    route within the budget can pass (``towed``: those two limits). For one robot it adds
+    the leg cells' distance limits from the start and, on straight legs (``tighten=True``),
+    the midpoint cover with Lemma 10's limits (``cover``, ``max_pieces`` as for points). It
+    covers every route within the budget (a plan whose forced initial cells exceed it is
+    refused), with no online bound or refinement.
 
     The bound is on the **Fisher** information (``criterion="fisher"``). For a plan chosen for
     another criterion (``plan.criterion`` ``"a-optimal"`` / ``"gp-variance"``, or
@@ -343,10 +347,11 @@ def plan_bound(
     spec = path_spec(region, plan, start, budget, request, kind, n_sensors)
     if sensor.is_leg:  # the observations depend on the legs (docs §12)
         if path_aware:
-            warnings.warn("path_aware bounds point stops: a towed sensor's certificate is the "
-                          "count-only one (docs/certificate.md §12)", UserWarning, stacklevel=2)
+            warnings.warn("path_aware bounds point stops: a towed sensor's certificate is "
+                          "docs/certificate.md §12's", UserWarning, stacklevel=2)
         return _towed_bound(Y, region, spec, sensor, plan, ridge, {"solver": solver,
-                                                                   "tol": tol})
+                                                                   "tol": tol},
+                            cover if tighten else 0, max_pieces)
     fam = family(spec, region, k)
     if sensor.has_footprint:  # each cell's footprint row replaces its own (docs §11)
         Y = _footprint_columns(Y, region, sensor, fam, plan, path_aware)
@@ -424,7 +429,8 @@ def plan_bound(
 
 
 def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, ridge: float,
-                 opts: dict[str, Any]) -> PlanCertificate:
+                 opts: dict[str, Any], cover: int = 0, max_pieces: int = 40
+                 ) -> PlanCertificate:
     """The certificate of a towed (leg-average) sensor (docs/certificate.md §12).
 
     An observation averaging the ``m`` distinct cells of its leg has the whitened row ``u =
@@ -433,25 +439,50 @@ def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, 
     information is at most ``log det(ridge I + sum_c w_c y_c y_c^T)`` with ``0 <= w_c <=
     rows`` (a cell is in at most one leg per observation) and ``sum w_c`` at most the leg
     cells in all (shared: the observations), which the count-only relaxation bounds (weights
-    up to ``rows``: the columns scaled by ``sqrt rows``, the total divided by it)."""
+    up to ``rows``: the columns scaled by ``sqrt rows``, the total divided by it). One robot
+    adds Lemma 9's limits from the start and, on straight legs with ``cover`` > 0, the
+    maximum over Lemma 10's midpoint cover (``max_pieces`` relaxations at most)."""
     from ..oracles import row_information
 
     k = Y.shape[0]
     fam = leg_family(spec, region, k)
     independent = sensor.errors == "independent"
     total = fam.cells if independent else fam.rows
-    levels, caps = [], []
-    if fam.limits is not None:  # Lemma 9: the leg cells beyond each distance from the start
-        thr, caps_i, caps_s = fam.limits
+
+    def limited(limits: Any, dist: np.ndarray) -> tuple[list, list]:
+        """One level family from ``limits`` at the candidates' ``dist`` (caps per row)."""
+        thr, caps_i, caps_s = limits
         cap = caps_i if independent else caps_s
         keep = cap < total  # a cap at the total adds nothing
-        if keep.any():
-            levels = [np.searchsorted(thr[keep], fam.dist[fam.cand], side="right")]
-            caps = [cap[keep] / fam.rows]
+        if not keep.any():
+            return [], []
+        return ([np.searchsorted(thr[keep], dist, side="right")], [cap[keep] / fam.rows])
+
+    levels, caps = [], []
+    if fam.limits is not None:  # Lemma 9: the leg cells beyond each distance from the start
+        levels, caps = limited(fam.limits, fam.dist[fam.cand])
     Yc = math.sqrt(fam.rows) * np.ascontiguousarray(Y[:, fam.cand], dtype=np.float64)
-    relax = _relaxation(Yc, np.arange(fam.cand.size),
-                        _Polytope(total / fam.rows, fam.cand.size, levels, caps), ridge,
-                        **opts)
+    mid = (leg_midpoint_limits(fam.cover_span) if cover and fam.cover_span is not None
+           and fam.cover_span >= 2.0 else None)
+    leaves: list[tuple[float, float, float, float]] = []
+    if mid is None:
+        relax = _relaxation(Yc, np.arange(fam.cand.size),
+                            _Polytope(total / fam.rows, fam.cand.size, levels, caps), ridge,
+                            **opts)
+    else:  # Lemma 10: the midpoint cover (one robot on straight legs)
+        pos = region.grid_index[fam.cand].astype(np.float64)
+        reach = fam.cover_span / 2 + math.sqrt(2.0) / 2  # a leg cell's centre from c
+
+        def solve(q: tuple[float, float, float]) -> Bound:
+            dq = _square_distance(pos, *q)
+            sel = np.flatnonzero(dq <= reach * (1 + 1e-12) + 1e-12)
+            lv_q, cap_q = limited(mid, dq[sel])
+            poly = _Polytope(total / fam.rows, sel.size, [lv[sel] for lv in levels] + lv_q,
+                             caps + cap_q)
+            return _relaxation(Yc, sel, poly, ridge, **opts)
+
+        relax, leaves = _cover_max(solve, region.grid_index[spec.starts[0]].astype(np.float64),
+                                   fam.cover_span / 2, cover, max_pieces, -math.inf)
     bound = float(relax.value)
     information = gap = ratio = None
     plan_criterion = _plan_criterion(plan) if plan is not None else None
@@ -469,6 +500,8 @@ def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, 
                 f"{', '.join(f'{c:g}' for c in costs)}, {outside.size} of its leg cells lie "
                 f"beyond the budget's reach and it makes {rows.shape[0]} observations (at most "
                 f"{fam.rows}); the certificate does not cover it")
+        if leaves:
+            _check_towed_cover(rows, region, leaves, fam.cover_span, mid, independent)
         information = float(row_information(Y, rows, ridge, errors=sensor.errors))
         if plan_criterion in (None, "fisher"):
             gap, ratio = _gap(bound, information, k)
@@ -480,7 +513,35 @@ def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, 
         start=int(spec.starts[0]), budget=float(sum(spec.budgets)), ridge=ridge,
         metric=spec.metric, initial_information=-math.inf, relaxation=relax,
         criterion="fisher", plan_criterion=plan_criterion, path=spec.summary(),
-        towed=(int(fam.rows), int(fam.cells)))
+        towed=(int(fam.rows), int(fam.cells)), leaves=tuple(leaves), tightened=bool(leaves))
+
+
+def _check_towed_cover(rows: Any, region: Any, leaves: list[tuple[float, float, float, float]],
+                       span: float, limits: tuple[np.ndarray, np.ndarray, np.ndarray],
+                       independent: bool) -> None:
+    """A towed plan's legs (``rows``, one per observation) lie in some piece of the midpoint
+    cover: every leg cell within ``span / 2 + sqrt 2 / 2`` of the piece and Lemma 10's counts
+    (cells once per leg; shared errors: the legs) within the caps; else PlanningError."""
+    A = sps.csr_matrix(rows)
+    leg, cell = A.nonzero()
+    pos = region.grid_index[cell].astype(np.float64)
+    thr, caps_i, caps_s = limits
+    reach = span / 2 + math.sqrt(2.0) / 2
+    for r0, c0, h, _ in leaves:
+        dq = _square_distance(pos, r0, c0, h)
+        if np.any(dq > reach * (1 + 1e-12) + 1e-12):
+            continue
+        beyond = dq[:, None] >= thr[None, :]  # (entries, thresholds)
+        if independent:
+            counts, caps = beyond.sum(axis=0), caps_i
+        else:
+            counts = np.array([np.unique(leg[beyond[:, j]]).size for j in range(thr.size)])
+            caps = caps_s
+        if np.all(counts <= caps):
+            return
+    raise PlanningError("the towed plan's legs lie in no piece of the midpoint cover "
+                        "(docs/certificate.md §12, Lemma 10); the certificate does not cover "
+                        "it")
 
 
 def _footprint_columns(Y: np.ndarray, region: Any, sensor: Any, fam: Any, plan: Any,
@@ -640,9 +701,19 @@ def _midpoint_cover(
         poly = _Polytope(n_max, sel.size, levels, caps)
         return _relaxation(Y, cand[sel], poly, ridge, **opts)
 
-    side = Bp / cover  # 2 cover squares across the disk's diameter Bp
-    squares = _cover_squares(centre, half, centre[0] - half, centre[1] - half, Bp, 2 * cover)
-    del side
+    return _cover_max(solve, centre, half, cover, max_pieces, floor_value)
+
+
+def _cover_max(solve: Any, centre: np.ndarray, half: float, cover: int, max_pieces: int,
+               floor_value: float) -> tuple[Bound, list[tuple[float, float, float, float]]]:
+    """Max of ``solve(square)`` over squares covering the disk ``B(centre, half)`` where a
+    route's midpoint lies: ``2 cover x 2 cover`` squares of side ``half / cover`` first, then the
+    piece with the largest bound split into four (children keep ``min(own, parent)``: both
+    bound the midpoints in the child) until ``max_pieces`` relaxations have been solved, the
+    piece is under half a grid unit wide, or its bound is below ``floor_value``. Returns the
+    largest piece's :class:`Bound` and every final piece ``(r0, c0, side, value)``."""
+    squares = _cover_squares(centre, half, centre[0] - half, centre[1] - half, 2 * half,
+                             2 * cover)
     pieces: list[tuple[tuple[float, float, float], Bound, float]] = []
     for q in squares:
         b = solve(q)

@@ -29,6 +29,7 @@ from .sensors import POINT
 NUDGE = 1e-6  # radii sit this far (in d_min) inside their cap's interval, away from rounding
 
 __all__ = ["PathSpec", "path_spec", "Family", "family", "LegFamily", "leg_family", "leg_limits",
+           "leg_midpoint_limits",
            "describe_path",
            "is_paper_description", "min_spacing_km", "start_limit", "cap_ladder", "NUDGE"]
 
@@ -245,13 +246,17 @@ class LegFamily:
     # cells beyond each threshold, (thresholds, caps with independent errors, caps shared)
     dist: np.ndarray | None = None
     limits: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    # one robot on straight legs: the chart-length bound G of its polyline (the midpoint
+    # cover's, Lemma 10), else None
+    cover_span: float | None = None
 
 
-#: Half the most thresholds of Lemma 9's limits (:func:`leg_limits`).
-LEG_LADDER = 40
+#: Half the most thresholds of Lemma 9's limits (:func:`leg_limits`), and of Lemma 10's
+#: (:func:`leg_midpoint_limits`, one relaxation per piece of the midpoint cover: fewer).
+LEG_LADDER, MIDPOINT_LADDER = 40, 10
 
 
-def leg_limits(span: float, shift: float, unit: float, straight: bool
+def leg_limits(span: float, shift: float, unit: float, straight: bool, ladder: int = LEG_LADDER
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Lemma 9 (docs/certificate.md §12): limits on a route's leg cells beyond distance ``r``
     from the start, ``(thresholds, caps_independent, caps_shared)``, ascending thresholds.
@@ -268,14 +273,14 @@ def leg_limits(span: float, shift: float, unit: float, straight: bool
     apart: at most ``floor(x) + 1`` (the cap of the shared-error weights, each leg's summing to
     1). Thresholds are nudged up against rounding; the caps are computed from the un-nudged
     ones. Any subset of the limits is valid, so ``floor(x)`` runs over a ladder of at most
-    ``2 LEG_LADDER`` values (:func:`cap_ladder`, dense at the far thresholds) rather than every
+    ``2 ladder`` values (:func:`cap_ladder`, dense at the far thresholds) rather than every
     integer: at budget 200 on 1,995,000 cells every integer cost 34 s for 0.05 nats of bound
     (benchmarks/bench_sensors.py --certificate). None when the route cannot reach beyond its
     first cell."""
     if not (math.isfinite(span) and unit > 0) or span < unit:
         return None
     thr, ci, cs = [], [], []
-    for m in cap_ladder(1, int(math.floor(span / unit)) + 2, LEG_LADDER) - 1:
+    for m in cap_ladder(1, int(math.floor(span / unit)) + 2, ladder) - 1:
         m = int(m)  # floor(x) = m: x just below m + 1
         x = m + 1 - NUDGE
         r = span + shift - x * unit
@@ -290,6 +295,25 @@ def leg_limits(span: float, shift: float, unit: float, straight: bool
     order = np.argsort(thr)
     return (np.asarray(thr)[order], np.asarray(ci, dtype=np.float64)[order],
             np.asarray(cs, dtype=np.float64)[order])
+
+
+def leg_midpoint_limits(span: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Lemma 10 (docs/certificate.md §12): limits on a straight-leg route's leg cells at
+    chart distance ``>= s`` from a square holding its midpoint ``c``, ``(thresholds,
+    caps_independent, caps_shared)``, ascending thresholds; ``span`` the chart-length bound
+    ``G`` of the route.
+
+    Such a cell is crossed at a point ``>= rho = s - sqrt 2 / 2`` from ``c``, hence at arc
+    length ``>= rho`` from the midpoint's, in the route's last or first ``G / 2 - rho`` of arc.
+    Each stretch is Lemma 9's (its whole legs at least 1 long, one leg cut), so each holds
+    at most Lemma 9's cap with ``x = G / 2 - rho``; the start's own observation (a cell at arc
+    0) adds one cell and one leg: twice :func:`leg_limits` on ``span / 2``, plus 1 (on a
+    ladder of :data:`MIDPOINT_LADDER`)."""
+    half = leg_limits(span / 2, math.sqrt(2.0) / 2, 1.0, straight=True, ladder=MIDPOINT_LADDER)
+    if half is None:
+        return None
+    thr, ci, cs = half
+    return thr, 2 * ci + 1, 2 * cs + 1
 
 
 def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
@@ -310,7 +334,7 @@ def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
     stops_spec = replace(spec, options=replace(spec.options, sensor=POINT), models=models)
     pass_spec = replace(stops_spec, options=replace(stops_spec.options, sense_along=True))
     cand, rows, cells = [], 0, 0
-    dist = limits = None
+    dist = limits = span = None
     for r in range(len(spec.starts)):
         stops = _robotfamily(stops_spec, region, k, r)
         passed = _robotfamily(pass_spec, region, k, r)
@@ -327,10 +351,11 @@ def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
                                     "crosses on the grid's chart: a grid whose longitudes "
                                     "wrap has no such bound; give traversable='valid'")
             along = math.floor(math.sqrt(2.0) * G)
-            if len(spec.starts) == 1:  # Lemma 9 on the chart
+            if len(spec.starts) == 1:  # Lemmas 9 and 10 on the chart
                 dist = np.asarray(pm.chart_distance(pm.start, np.arange(region.n_cells)),
                                   dtype=np.float64)
                 limits = leg_limits(G, math.sqrt(2.0) / 2, 1.0, straight=True)
+                span = G
         elif math.isfinite(passed.d_min) and passed.d_min > 0:
             along = math.floor(passed.travel / passed.d_min + 1e-9)
             if len(spec.starts) == 1 and passed.dist is not None:  # Lemma 9 on the graph
@@ -344,7 +369,7 @@ def leg_family(spec: PathSpec, region: Any, k: int) -> LegFamily:
     text = (f"budget={spec.budgets[0]:g}" if len(spec.starts) == 1 else
             "fleet budgets " + ", ".join(f"{b:g}" for b in spec.budgets))
     return LegFamily(np.unique(np.concatenate(cand)).astype(np.int64), int(rows), int(cells),
-                     text, dist, limits)
+                     text, dist, limits, span)
 
 
 def _fleet_limits(parts: list[Family], n_max: int
