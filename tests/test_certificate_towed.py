@@ -325,3 +325,33 @@ def test_midpoint_cover_tightens_the_towed_bound():
     loose = plan.certify(tol=1e-6, tighten=False)
     assert cert.information <= cert.bound < loose.bound - 1e-3
     assert cert.tightened and len(cert.leaves) > 4 and not loose.leaves
+
+
+@pytest.mark.parametrize("errors", ["independent", "shared"])
+def test_towed_cover_check_refuses_legs_outside_every_piece(errors):
+    """The plan check of the cover: the greedy's own legs lie in a piece; the same legs with
+    one more observation averaging a far corner of the grid (beyond ``G / 2 + sqrt 2 / 2`` of
+    every piece) do not, which is a PlanningError."""
+    import scipy.sparse as sps
+
+    from lrm_cvx.planning import plan_greedy
+    from lrm_cvx.planning.certificate import _check_towed_cover
+    from lrm_cvx.planning.families import leg_family, leg_midpoint_limits, path_spec
+    from lrm_cvx.planning.request import PathOptions
+    from lrm_cvx.planning.sensors import observation_rows
+
+    region = make_region(12, 12)
+    Y = field_Y(region, 3, 0)
+    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, sensor=f"towed,errors={errors}",
+                       progress=False)
+    cert = plan.certify(tol=1e-6)
+    span = leg_family(path_spec(region, None, 30, 6.0, PathOptions(), "path", None), region,
+                      3).cover_span
+    rows = observation_rows(plan)
+    limits = leg_midpoint_limits(span)
+    independent = errors == "independent"
+    _check_towed_cover(rows, region, list(cert.leaves), span, limits, independent)
+    far = sps.csr_matrix(([1.0], ([0], [int(region.cell_grid[11, 11])])), shape=(1, rows.shape[1]))
+    with pytest.raises(PlanningError, match="no piece of the midpoint cover"):
+        _check_towed_cover(sps.vstack([rows, far]), region, list(cert.leaves), span, limits,
+                           independent)

@@ -522,23 +522,12 @@ def _check_towed_cover(rows: Any, region: Any, leaves: list[tuple[float, float, 
     """A towed plan's legs (``rows``, one per observation) lie in some piece of the midpoint
     cover: every leg cell within ``span / 2 + sqrt 2 / 2`` of the piece and Lemma 10's counts
     (cells once per leg; shared errors: the legs) within the caps; else PlanningError."""
-    A = sps.csr_matrix(rows)
-    leg, cell = A.nonzero()
-    pos = region.grid_index[cell].astype(np.float64)
+    leg, cell = sps.csr_matrix(rows).nonzero()
     thr, caps_i, caps_s = limits
-    reach = span / 2 + math.sqrt(2.0) / 2
-    for r0, c0, h, _ in leaves:
-        dq = _square_distance(pos, r0, c0, h)
-        if np.any(dq > reach * (1 + 1e-12) + 1e-12):
-            continue
-        beyond = dq[:, None] >= thr[None, :]  # (entries, thresholds)
-        if independent:
-            counts, caps = beyond.sum(axis=0), caps_i
-        else:
-            counts = np.array([np.unique(leg[beyond[:, j]]).size for j in range(thr.size)])
-            caps = caps_s
-        if np.all(counts <= caps):
-            return
+    if _in_some_piece(region.grid_index[cell].astype(np.float64), leaves,
+                      span / 2 + math.sqrt(2.0) / 2, thr, caps_i if independent else caps_s,
+                      None if independent else leg):
+        return
     raise PlanningError("the towed plan's legs lie in no piece of the midpoint cover "
                         "(docs/certificate.md §12, Lemma 10); the certificate does not cover "
                         "it")
@@ -755,16 +744,29 @@ def _check_plan_limits(
                                 "does not cover it")
     if not leaves:
         return
-    pos = region.grid_index[cells].astype(np.float64)
-    sq_thr, sq_caps = _square_limit(Bp, n_max)
+    if not _in_some_piece(region.grid_index[cells].astype(np.float64), leaves, Bp / 2,
+                          *_square_limit(Bp, n_max)):
+        raise PlanningError(msg + "no piece of the midpoint cover holds it; the certificate "
+                            "does not cover it")
+
+
+def _in_some_piece(pos: np.ndarray, leaves: list[tuple[float, float, float, float]],
+                   reach: float, thr: np.ndarray, caps: np.ndarray,
+                   groups: np.ndarray | None = None) -> bool:
+    """Whether some final piece ``(r0, c0, side, value)`` of a midpoint cover holds the points
+    ``pos (m, 2)``: all within ``reach`` of the square, and at most ``caps[j]`` of them at
+    distance ``>= thr[j]`` for every ``j`` (``groups (m,)``: count the distinct groups with
+    such a point instead, a towed plan's legs under shared errors)."""
     for r0, c0, h, _ in leaves:
         dq = _square_distance(pos, r0, c0, h)
-        if np.all(dq <= Bp / 2 * (1 + 1e-12) + 1e-12) and np.all(
-            (dq[:, None] >= sq_thr[None, :]).sum(axis=0) <= sq_caps
-        ):
-            return
-    raise PlanningError(msg + "no piece of the midpoint cover holds it; the certificate does "
-                        "not cover it")
+        if np.any(dq > reach * (1 + 1e-12) + 1e-12):
+            continue
+        beyond = dq[:, None] >= thr[None, :]  # (points, thresholds)
+        counts = (beyond.sum(axis=0) if groups is None else
+                  np.array([np.unique(groups[beyond[:, j]]).size for j in range(thr.size)]))
+        if np.all(counts <= caps):
+            return True
+    return False
 
 
 def _gap(bound: float, information: float, k: int) -> tuple[float, float]:
