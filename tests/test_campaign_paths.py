@@ -120,7 +120,7 @@ def test_default_request_is_the_papers_loop(model, test_days):
     V = model.region_.stack(test_days).astype(np.float64)
     for i, t in enumerate(test_days.time.values):
         plan = plan_greedy(model.Y, model.region_, 40, 12.0, criterion="fisher",
-                           initial="start", progress=False,
+                           initial="start", progress=False, refine="lines",
                            **state.planner_kwargs(criterion="fisher", time=t))
         route = base["routes"].values[i]
         np.testing.assert_array_equal(route[route >= 0], plan.route)

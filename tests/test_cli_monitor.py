@@ -242,7 +242,7 @@ def test_monitor_plan_takes_every_path_option_and_fleets(tmp_path, capsys):
     expected = plan_greedy(model.Y_, model.region_, [(10.0, 200.0), (-20.0, 240.0)], 6000.0,
                            criterion="gp-variance", initial="start", progress=False,
                            metric="km", traversable="valid", closed=True,
-                           **s.planner_kwargs())
+                           refine="lines", **s.planner_kwargs())
     table = pd.read_csv(out)
     np.testing.assert_array_equal(table["cell"], expected.route)
     assert route_feasible(expected, model.region_) == []

@@ -167,8 +167,10 @@ def test_plan_greedy_on_a_model_is_the_recommended_planner(spatial_model):
     m = spatial_model
     got = plan_greedy(m, 5, 9.0, progress=False)
     want = plan_greedy(m.Y_, m.region_, 5, 9.0, criterion=RECOMMENDED["criterion"],
-                       initial=RECOMMENDED["initial"], progress=False,
+                       initial=RECOMMENDED["initial"], refine=RECOMMENDED["refine"],
+                       progress=False,
                        **m.planner_kwargs(prior=RECOMMENDED["prior"], spatial=True))
+    assert got.rivals["criterion"] == "gp-variance" and len(got.rivals["values"]) == 5
     same_plan(got, want)
     # the region may be given, start / budget by keyword
     same_plan(plan_greedy(m, m.region_, 5, 9.0, progress=False), want)
@@ -184,7 +186,7 @@ def test_plan_greedy_paper_is_the_bare_factor_matrix(spatial_model):
     same_plan(paper, plan_greedy(m.Y_, m.region_, 5, 9.0, progress=False))
     same_plan(paper, plan_greedy(m.Y_, m.region_, 5, 9.0, criterion="fisher",
                                  initial="nearest", progress=False))
-    assert paper.criterion == "fisher" and not paper.posterior
+    assert paper.criterion == "fisher" and not paper.posterior and not paper.rivals
 
 
 def test_plan_greedy_explicit_arguments_win(spatial_model):
@@ -198,22 +200,23 @@ def test_plan_greedy_explicit_arguments_win(spatial_model):
     # over the recommended criterion: the recommended prior stays, without the residual terms
     c = plan_greedy(m, 5, 9.0, criterion="fisher", progress=False)
     d = plan_greedy(m.Y_, m.region_, 5, 9.0, criterion="fisher", initial="start",
-                    prior=m.latent_prior("empirical"), progress=False)
+                    prior=m.latent_prior("empirical"), refine="lines", progress=False)
     same_plan(c, d)
     # a given prior wins over the recommended one
     flat = m.latent_prior(None)
     same_plan(plan_greedy(m, 5, 9.0, criterion="fisher", prior=flat, ridge=1e-3,
                           progress=False),
               plan_greedy(m.Y_, m.region_, 5, 9.0, criterion="fisher", initial="start",
-                          prior=flat, ridge=1e-3, progress=False))
+                          prior=flat, ridge=1e-3, refine="lines", progress=False))
 
 
 def test_plan_greedy_model_without_residual_plans_fisher_on_the_empirical_prior(plain_model):
     m = plain_model
     got = plan_greedy(m, 5, 9.0, progress=False)
     want = plan_greedy(m.Y_, m.region_, 5, 9.0, criterion="fisher", initial="start",
-                       progress=False, **m.planner_kwargs(prior="empirical"))
+                       refine="lines", progress=False, **m.planner_kwargs(prior="empirical"))
     same_plan(got, want)
+    assert got.rivals["chosen"] == "greedy"  # else the plan is a transect's
     assert got.criterion == "fisher" and got.posterior
 
 

@@ -209,7 +209,7 @@ def test_the_method_registry_holds_the_planners():
     assert METHOD_REGISTRY.get("transect-up") == Transect("up")
     assert METHOD_REGISTRY.get("random") == RandomWalk()
     variant = METHOD_REGISTRY.get("Greedy:GP-Variance")  # any letter case
-    assert variant == GreedyPlanner("gp-variance", initial="start", model_prior=True)
+    assert variant == GreedyPlanner("gp-variance", initial="start", model_prior=True, lines=True)
     assert METHOD_REGISTRY.get("greedy").configure(criterion="a-optimal", cost="insertion") \
         == GreedyPlanner("a-optimal", "insertion")
 

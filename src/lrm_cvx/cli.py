@@ -315,6 +315,7 @@ def _hold_out(data, args: argparse.Namespace):
 
 def _plan_from_args(args: argparse.Namespace):
     from .planning import plan_greedy
+    from .planning.lines import lines_where_possible
 
     model = load_model(args.model)
     start, budget = starts_budgets(args)
@@ -343,7 +344,8 @@ def _plan_from_args(args: argparse.Namespace):
               if k not in ("prior_cov", "spatial_cov")}
     plan = plan_greedy(model.Y_, model.region_, start, budget, criterion=criterion,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
-                       initial=initial, path=path, **kw)
+                       initial=initial, path=path,
+                       refine=None if paper else lines_where_possible(path), **kw)
     return model, plan
 
 

@@ -140,6 +140,7 @@ def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
     """``(plan, time)``: the greedy plan of ``monitor plan`` with the forecast as prior; the
     recommended criterion and initial cells unless ``--paper`` or given explicitly."""
     from .planning import plan_greedy
+    from .planning.lines import lines_where_possible
     from .recommended import RECOMMENDED
 
     model = state.model
@@ -156,7 +157,8 @@ def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
     kw = state.planner_kwargs(criterion=criterion, time=args.time)
     plan = plan_greedy(model.Y, model.region_, start, budget, criterion=criterion,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
-                       initial=initial, path=path, **kw)
+                       initial=initial, path=path,
+                       refine=None if paper else lines_where_possible(path), **kw)
     return plan, state.plan_time(args.time)
 
 

@@ -199,7 +199,8 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
     budgets = cfg["budgets"]
     for b in sorted({budgets[0], budgets[-1]}):
         plan = plan_greedy(rec.Y_, region, start, b, criterion=SETTING["criterion"],
-                           initial=SETTING["initial"], progress=False, **kw)
+                           initial=SETTING["initial"], refine=SETTING["refine"],
+                           progress=False, **kw)
         panel_rows.append(_panel(rec, values, plan.route, region, f"recommended, budget {b:g}",
                                  units, prior=SETTING["prior"], spatial=SETTING["fold_spatial"]))
     route = res_paper["greedy_route"].sel(budget=budgets[-1]).isel(start=0).values

@@ -27,6 +27,7 @@ is the A-optimal criterion of the low-rank trend + GP residual model.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -604,6 +605,18 @@ class StructuredGPVarianceOracle:
         self._pos([int(cell)])
         self._condition(int(cell))
 
+    _STATE = ("_F", "_Fk", "_Rk", "_Qk", "_Hk", "_q", "_r", "_hF", "_a", "cvar")
+    """The arrays :meth:`_condition` changes (whitened rows and their sums)."""
+
+    def fork(self) -> StructuredGPVarianceOracle:
+        """A copy that conditions on its own (the set's whitened rows copied, the whole-grid
+        terms shared): rival sets scored from one set-up (planning/lines.py)."""
+        new = copy.copy(self)
+        for name in self._STATE:
+            setattr(new, name, getattr(self, name).copy())
+        new.cells = list(self.cells)
+        return new
+
     @property
     def value(self) -> float:
         """Total posterior variance over the targets for the current set."""
@@ -754,8 +767,11 @@ def _gp_oracle(Y: Any, cells: Any, gp_method: str = "auto", **kwargs: Any
         L = Yk.shape[1]
         pool, targets = kwargs.get("pool"), kwargs.get("targets")
         n_pool = L if pool is None else np.unique(cells_array(pool, L)).size
-        T = np.arange(L) if targets is None else np.unique(cells_array(targets, L))
-        n_rows = L if pool is None else np.union1d(T, np.asarray(pool, dtype=np.int64)).size
+        if pool is None or targets is None:  # every cell is a row (no 2M-cell union1d)
+            n_rows = L
+        else:
+            T = np.unique(cells_array(targets, L))
+            n_rows = np.union1d(T, np.asarray(pool, dtype=np.int64)).size
         metric = getattr(kwargs.get("spatial_cov"), "metric", "grid")
         big = float(n_rows) * float(n_pool) > GP_STRUCTURED_MIN_ENTRIES
         gp_method = "structured" if big and metric == "grid" else "dense"

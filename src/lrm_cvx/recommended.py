@@ -3,13 +3,14 @@
 Fit ``GLRM(offset=True, spatial="auto")`` (the residual's covariance family validated on the
 training residuals: the exponential unless a smoother one is better by 2 %,
 glrm/kernel_selection.py), plan with the gp-variance criterion from the
-start cell alone (``method`` is its name in ``evaluate``), predict with the empirical prior and
-the kriged GP residual (``fold_spatial``); a model for monitoring chooses its temporal model on
-the training snapshots (``temporal="auto"``, glrm/selection.py) and calibrates its intervals
-conformally on them (``calibration``, glrm/calibration.py). It is the default of the
-CLI and of the library wherever a call has a fitted model to take it from (``--paper`` /
-``paper=True`` give the paper's setting); ``lrm_cvx.demo`` runs it beside the paper's. Plain
-data, so it sits at the base of the layers.
+start cell alone and keep a straight transect instead of the greedy's route when that criterion
+prefers it (``refine="lines"``; ``method`` is its name in ``evaluate``), predict with the
+empirical prior and the kriged GP residual (``fold_spatial``); a model for monitoring chooses
+its temporal model on the training snapshots (``temporal="auto"``, glrm/selection.py) and
+calibrates its intervals conformally on them (``calibration``, glrm/calibration.py). It is the
+default of the CLI and of the library wherever a call has a fitted model to take it from
+(``--paper`` / ``paper=True`` give the paper's setting); ``lrm_cvx.demo`` runs it beside the
+paper's. Plain data, so it sits at the base of the layers.
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ RECOMMENDED: dict[str, Any] = {
     "offset": True, "spatial": "auto", "criterion": "gp-variance",
     "method": "greedy:gp-variance", "initial": "start", "prior": "empirical",
     "fold_spatial": True, "temporal": "auto",
+    # the greedy's route is checked against the four straight transects from its start under
+    # its own criterion (planning/lines.py; docs/benchmarks.md, session 30)
+    "refine": "lines",
     # conformal intervals from forward folds of the training snapshots, the filter's own
     # thresholds for a model with dynamics (temporal="auto": closer to the coverage targets
     # under the filter, rolling origin, docs/benchmarks.md); the maps and plans are those of

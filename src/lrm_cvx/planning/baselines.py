@@ -111,6 +111,9 @@ class _Geometry:
         return travel + stops + (step + new_stop) <= budget + _TOL
 
 
+CYCLE_AFTER = 100_000
+"""Steps after which a transect stops at a repeated state (a cycle) rather than walk on."""
+
 BASELINE_FIELDS = ("metric", "speed", "stop_cost", "traversable", "closed", "sensor")
 """The path options the baselines follow (no ``end``, no ``sense_along``); a ``sensor`` only
 changes what each stop observes (``plan.observation_rows()``), not the route."""
@@ -230,7 +233,9 @@ def transect(
     enter) it instead steps once orthogonally (east for up/down transects, south for left/right
     ones; the other way when that is blocked too, and from then on) and reverses direction. It
     walks while the next step fits the budget (the paper's grid: ``floor(budget + 1e-9)`` unit
-    steps).
+    steps). A walk of more than :data:`CYCLE_AFTER` steps (a budget far beyond the region's
+    size) stops at the first state (position, heading, turn side) it repeats after that: from
+    there it would only repeat a cycle, and every cell it can reach has been observed.
 
     Path model (as :func:`~lrm_cvx.planning.plan_greedy`: ``path`` a
     :class:`~lrm_cvx.planning.request.PathOptions` and / or its keywords): ``metric`` ``"grid"``
@@ -270,7 +275,13 @@ def _transect(region: Region, start_cell: int, budget: float, direction: str,
     step_costs: list[float] = []
     seen = {start_cell}
     travel, stops = 0.0, geo.stop_cost
+    states = set()  # (position, heading, turn side) once past CYCLE_AFTER steps
     while True:
+        if len(step_costs) >= CYCLE_AFTER:
+            state = (*pos.tolist(), *d.tolist(), *orth.tolist())
+            if state in states:
+                break  # the walk is a function of its state: it would only repeat a cycle
+            states.add(state)
         nxt = geo.move(pos + d)
         if nxt is None:  # the grid's edge or a cell it may not enter: turn
             if geo.move(pos + orth) is None:

@@ -29,6 +29,7 @@ from ..information import (
 from ..recommended import RECOMMENDED
 from ..region import Region
 from . import request as _request
+from .lines import LINES, applies, best_of_lines
 from .paths import path_model
 from .plan import Plan, check_region
 from .refiners import REFINERS
@@ -168,7 +169,7 @@ def plan_greedy(
     progress: bool = True,
     initial: str | None = None,
     prior: Any = None,
-    refine: bool | dict[str, Any] = False,
+    refine: bool | str | dict[str, Any] | None = None,
     path: PathOptions | str | None = None,
     static: bool = False,
     paper: bool = False,
@@ -242,9 +243,14 @@ def plan_greedy(
         monitoring filter's forecast): its ``information()`` fills ``prior_precision``,
         ``noise_var``, ``target_weights`` and, when it has the spatial residual, ``prior_cov``
         and ``spatial_cov`` (giving one of those too is an error).
-    refine : run :func:`lrm_cvx.planning.refine.refine` on the greedy plan (a local search
-        of insertions and swaps that raises the information within the budget; Fisher and the
-        paper's path model only); a dict is passed to it as keyword arguments.
+    refine : ``True`` / ``"local"`` (or a dict of its keyword arguments): run
+        :func:`lrm_cvx.planning.refine.refine` on the greedy plan (a local search of insertions
+        and swaps that raises the information within the budget; Fisher and the paper's path
+        model only). ``"lines"``: return the straight transect from the start that beats the
+        greedy's route under the plan's own criterion, if one does (any criterion and path
+        model, point sensors, no ``end``; :mod:`~lrm_cvx.planning.lines`; ``plan.rivals``
+        records the values). Default None: nothing for ``Y``, the recommended ``"lines"`` for
+        a model (where the path options allow it).
     path : a :class:`~lrm_cvx.planning.request.PathOptions` (default: the paper's), or its
         keywords below in ``**options`` (they update ``path``).
     metric, speed, stop_cost, traversable, closed, end : (``**options``) the path model
@@ -282,6 +288,8 @@ def plan_greedy(
     budget, start, criterion, cost or path option, or a singular initial set with ``ridge=0``.
     """
     paper = check_flag(paper, "paper", error=PlanningError)
+    refine = _check_refine(refine)
+    default_refine = False  # the recommended "lines" is skipped where it cannot run
     terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
     model = None
     if _is_fitted_model(Y):
@@ -291,6 +299,9 @@ def plan_greedy(
         if not static:
             criterion, initial, prior = _model_defaults(model, criterion, initial, prior,
                                                         terms_given, paper)
+            if refine is None and not paper:
+                refine = RECOMMENDED["refine"]
+                default_refine = True
     elif hasattr(Y, "latent_prior") and hasattr(Y, "fit"):
         raise PlanningError("plan_greedy(model, ...): the model is not fitted")
     elif region is None:
@@ -331,6 +342,10 @@ def plan_greedy(
     if initial not in ("nearest", "start"):
         raise PlanningError(f"initial must be 'nearest' or 'start', got {initial!r}")
     request = request.resolved(region)
+    if refine == LINES and applies(request) is not None:
+        if not default_refine:
+            raise PlanningError(f"refine='lines' cannot run: {applies(request)}")
+        refine = None
     models = [path_model(region, s, b, request, cost) for s, b in zip(starts, budgets,
                                                                        strict=True)]
     if initial == "nearest" and k > region.n_cells:
@@ -359,7 +374,7 @@ def plan_greedy(
             gp_pool = np.union1d(union_pool, sense.reach())
     sensor = request.sensor
     if not sensor.is_point:  # every cell the oracle may observe has its row
-        if refine is not False and refine is not None:
+        if refine is not None:
             raise PlanningError("refine supports the point sensor only, not "
                                 f"sensor={sensor.describe()!r}")
         gp_pool = np.union1d(union_pool, np.asarray(init, dtype=np.int64))
@@ -447,7 +462,7 @@ def plan_greedy(
     return _route_plan(
         Yk, region, models, costers, stops, stop_robot, sense, hist, criterion=criterion,
         ridge=float(ridge), cost=cost, posterior=posterior, fleet=fleet, refine=refine,
-        terms=terms, request=request,
+        terms=terms, request=request, extra=extra,
     )
 
 
@@ -471,7 +486,7 @@ def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOption
     if set(request.changed()) - {"traversable"}:
         raise PlanningError("path='static' has no travel: metric, speed, stop_cost, closed, "
                             "end and sense_along do not apply")
-    if refine is not False and refine is not None:
+    if refine is not None:
         raise PlanningError("refine supports only the paper's path model, not "
                             "path='static'")
     from .static import place_sensors
@@ -570,7 +585,7 @@ class _SensorRows:
 
 
 def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, criterion,
-                ridge, cost, posterior, fleet, refine, terms, request) -> Plan:
+                ridge, cost, posterior, fleet, refine, terms, request, extra) -> Plan:
     """The :class:`Plan` of the greedy's final routes (and its refinement)."""
     from .plan import sensed_route
 
@@ -621,9 +636,27 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
         robot_costs=robot_costs,
         path_models=models,
     )
-    if refine is not False and refine is not None:  # refine.py registers it
-        plan = REFINERS.get("local")(plan, refine, terms)
+    if refine == LINES:
+        plan = best_of_lines(plan, Yk, region, fleet, request, criterion=criterion,
+                             ridge=ridge, extra=extra)
+    elif refine is not None:  # refine.py registers it
+        plan = REFINERS.get("local")(plan, {} if refine == "local" else refine, terms)
     return plan
+
+
+def _check_refine(refine: Any) -> Any:
+    """``refine`` as None (no refinement), ``"lines"``, ``"local"`` or a dict of the local
+    search's options (True is ``"local"``); PlanningError otherwise."""
+    if refine is None or refine is False:
+        return None
+    if refine is True:
+        return "local"
+    if isinstance(refine, str) and refine in (LINES, "local"):
+        return refine
+    if isinstance(refine, dict):
+        return refine
+    raise PlanningError(f"refine must be True, False, 'local', 'lines' or a dict of the local "
+                        f"search's options, got {refine!r}")
 
 
 def _resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:

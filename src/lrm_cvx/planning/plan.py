@@ -139,6 +139,9 @@ class Plan:
     refinement : empty, or what :func:`~lrm_cvx.planning.refine.refine` gained:
         ``information_before`` / ``information_after`` (nats), ``moves`` accepted, ``inserted``,
         ``swapped``, ``rounds``, ``seconds`` (history keys ``refine_*`` list the moves).
+    rivals : empty, or the greedy's check against straight lines (``refine="lines"``,
+        :mod:`~lrm_cvx.planning.lines`): ``criterion``, ``values`` (route name -> criterion
+        value: ``"greedy"``, ``"transect-up"``, ...) and ``chosen`` (this plan's name there).
     path : the path request (:class:`~lrm_cvx.planning.request.PlanPath`: ``options``, a
         ``PathOptions``, and ``fleet``), a read-only mapping of ``kind`` (``"path"`` or
         ``"static"``), ``metric``, ``speed``, ``stop_cost``, ``traversable`` (``"none"``,
@@ -173,6 +176,7 @@ class Plan:
     route_cost: np.ndarray = field(default_factory=lambda: np.empty(0))
     posterior: bool = False
     refinement: dict[str, Any] = field(default_factory=dict, compare=False)
+    rivals: dict[str, Any] = field(default_factory=dict, compare=False)
     path: PlanPath | Any = field(default_factory=dict)
     route_robot: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
     waypoint: np.ndarray = field(default_factory=lambda: np.empty(0, bool))

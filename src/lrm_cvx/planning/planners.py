@@ -22,6 +22,7 @@ from ..recommended import RECOMMENDED
 from ..registry import Choices, Registry
 from .baselines import DIRECTIONS, random_walk, transect
 from .greedy import plan_greedy
+from .lines import LINES, lines_where_possible
 from .plan import Plan
 from .refine import refine_plan
 from .request import Fleet, PathOptions
@@ -56,12 +57,15 @@ class GreedyPlanner(Planner):
     """The cost-benefit greedy (:func:`~lrm_cvx.planning.plan_greedy`) with ``criterion`` and
     route ``cost`` (None: the caller's, see :meth:`configure`); ``initial`` its forced cells;
     ``model_prior``: plan on the model's empirical latent prior (the ``greedy:<criterion>``
-    methods of ``evaluate``, with the GP residual for ``"gp-variance"``)."""
+    methods of ``evaluate``, with the GP residual for ``"gp-variance"``); ``lines``: keep a
+    straight transect when the criterion prefers it (``plan_greedy(refine="lines")``, where
+    the path options allow it)."""
 
     criterion: str | None = None
     cost: str | None = None
     initial: str = "nearest"
     model_prior: bool = False
+    lines: bool = False
 
     def configure(self, *, criterion: str = "fisher", cost: str = "nearest-neighbor"
                   ) -> GreedyPlanner:
@@ -77,7 +81,9 @@ class GreedyPlanner(Planner):
              terms: dict[str, Any] | None = None) -> Plan:
         return plan_greedy(Y, region, fleet, None, criterion=self.criterion or "fisher",
                            cost=self.cost or "nearest-neighbor", ridge=ridge, progress=False,
-                           initial=self.initial, prior=prior, path=path, **(terms or {}))
+                           initial=self.initial, prior=prior, path=path,
+                           refine=lines_where_possible(path) if self.lines else None,
+                           **(terms or {}))
 
 
 @dataclass(frozen=True)
@@ -168,9 +174,11 @@ METHOD_REGISTRY.register("random", RandomWalk(), description="random walk on val
 METHODS: tuple[str, ...] = METHOD_REGISTRY.choices()
 for _c in CRITERION_REGISTRY.entries():
     METHOD_REGISTRY.register(
-        f"greedy:{_c.name}", GreedyPlanner(_c.name, initial="start", model_prior=True),
+        f"greedy:{_c.name}", GreedyPlanner(_c.name, initial="start", model_prior=True,
+                                           lines=RECOMMENDED["refine"] == LINES),
         aliases=tuple(f"greedy:{a}" for a in _c.aliases),
-        description=f"greedy with the `{_c.name}` criterion and the model's predictive fold-in",
+        description=f"greedy with the `{_c.name}` criterion and the model's predictive fold-in "
+                    "(a straight transect instead where the criterion prefers it)",
     )
 GREEDY_VARIANTS: tuple[str, ...] = Choices(tuple(m for m in METHOD_REGISTRY.choices()
                                                  if m not in METHODS), METHOD_REGISTRY)

@@ -1,0 +1,114 @@
+"""Straight lines as rivals of a finished greedy route (``plan_greedy(refine="lines")``).
+
+The cost-benefit greedy adds the cell with the best gain per unit of route-cost increase, so a
+cell that lengthens the route by almost nothing (an in-fill next to the stops it has) beats
+one that extends it, and a route can end up zig-zagging in a compact patch. On its own the
+budgeted greedy has no guarantee; the standard remedy for budgeted submodular maximisation
+(Khuller, Moss and Naor 1999; Leskovec et al. 2007) is to keep the better of the greedy's
+solution and simple rival ones. Here the rivals are the four straight transects
+(:func:`~lrm_cvx.planning.baselines.transect`) from the same start under the same path model
+and budget, and the planner's **own criterion** decides (the model's belief, never data):
+the route returned is the one with the best criterion value, the greedy's unless a transect is
+strictly better. docs/benchmarks.md ("The greedy against straight lines", session 30)
+measured it: the gp-variance greedy lost to a transect under its own criterion on a third
+of the days on the global zonal-wind record.
+
+Scope: point sensors, no ``sense_along``, no ``end`` cell (a transect cannot be told where to
+finish); :func:`applies` says why not otherwise.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..errors import PlanningError
+from ..information import (
+    CRITERION_REGISTRY,
+    GP_BOUNDARY_TOL,
+    StructuredGPVarianceOracle,
+    gp_variance_value,
+    make_oracle,
+)
+from .baselines import DIRECTIONS, transect
+from .plan import Plan
+from .request import Fleet, PathOptions
+
+__all__ = ["LINES", "applies", "lines_where_possible", "route_values", "best_of_lines"]
+
+LINES = "lines"
+"""The ``refine=`` name of this check (``plan_greedy(refine="lines")``)."""
+
+_REL_TOL = 1e-9  # a rival must beat the greedy by more than this (relative): ties keep the greedy
+
+
+def applies(request: PathOptions) -> str | None:
+    """None when straight-line rivals can be flown under ``request``, else the reason not."""
+    if not request.sensor.is_point:
+        return f"the sensor is {request.sensor.describe()!r}, not a point"
+    if request.sense_along:
+        return "sense_along=True"
+    if request.end is not None:
+        return "the routes must end at a given cell (end=)"
+    return None
+
+
+def lines_where_possible(request: PathOptions | None) -> str | None:
+    """``refine=`` of a recommended plan under ``request`` (None: the paper's path model):
+    ``"lines"`` where straight-line rivals can be flown, else None (no check)."""
+    return LINES if applies(request or PathOptions()) is None else None
+
+
+def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, Any],
+                 extra: dict[str, Any]) -> dict[str, float]:
+    """``criterion``'s value of observing each route's cells (name -> ``(n,)`` cell indices;
+    log det for Fisher, total posterior variance for the variance criteria) with the greedy's
+    oracle terms ``extra``. The gp-variance values are exact: on the grid metric one structured
+    oracle is set up on the routes' cells (its whole-grid terms are the cost at paper scale)
+    and forked per route; in km the dense reference scores each route."""
+    sets = {name: np.unique(np.asarray(c, dtype=np.int64)) for name, c in routes.items()}
+    if CRITERION_REGISTRY.canonical(criterion, "criterion") != "gp-variance":
+        return {name: float(make_oracle(criterion, Y, ridge, c, **extra).value)
+                for name, c in sets.items()}
+    terms = {key: extra.get(key) for key in ("region", "spatial_cov", "prior_cov", "targets",
+                                             "target_weights")}
+    if terms["spatial_cov"].metric != "grid":
+        return {name: gp_variance_value(Y, terms["region"], terms["spatial_cov"],
+                                        terms["prior_cov"], c, terms["targets"],
+                                        terms["target_weights"]) for name, c in sets.items()}
+    union = np.unique(np.concatenate(list(sets.values())))
+    base = StructuredGPVarianceOracle(Y, [], pool=union, boundary_tol=GP_BOUNDARY_TOL, **terms)
+    out = {}
+    for name, cells in sets.items():
+        oracle = base.fork()
+        for c in cells.tolist():
+            oracle.add(c)
+        out[name] = float(oracle.value)
+    return out
+
+
+def best_of_lines(plan: Plan, Y: np.ndarray, region: Any, fleet: Fleet, request: PathOptions,
+                  *, criterion: str, ridge: float, extra: dict[str, Any]) -> Plan:
+    """``plan`` (a greedy route) or the straight transect from its starts that is strictly
+    better under ``criterion`` (``extra``: the greedy's oracle terms). The plan returned
+    records the comparison in ``plan.rivals``: ``{"criterion", "values"`` (route name ->
+    value), ``"chosen"}``; a transect keeps its ``method`` (``"transect-down"``, ...)."""
+    why = applies(request)
+    if why is not None:
+        raise PlanningError(f"refine='lines' cannot run: {why}")
+    maximize = CRITERION_REGISTRY.get(criterion, "criterion").maximize
+    sign = 1.0 if maximize else -1.0
+    plans = {"greedy": plan}
+    for d in DIRECTIONS:
+        plans[f"transect-{d}"] = transect(region, fleet, None, d, Y=Y, ridge=ridge, path=request)
+    values = route_values(criterion, Y, ridge, {name: p.cells for name, p in plans.items()},
+                          extra)
+    best = "greedy"
+    for name, v in values.items():
+        margin = _REL_TOL * max(1.0, abs(values[best]))
+        if sign * (v - values[best]) > margin:
+            best = name
+    chosen = plans[best]
+    chosen.rivals = {"criterion": criterion, "values": values, "chosen": best}
+    return chosen

@@ -1,0 +1,187 @@
+"""``plan_greedy(refine="lines")``: the greedy's route against the four straight transects from
+its start, decided by the plan's own criterion (planning/lines.py).
+
+Every criterion value is recomputed from scratch by the registry's reference (``fisher``:
+``log det``; ``gp-variance``: the dense posterior variance), so an oracle built wrongly for a
+rival, a wrong sign (maximise / minimise) or a rival left out fails here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lrm_cvx.errors import PlanningError
+from lrm_cvx.information import CRITERION_REGISTRY, gp_variance_value
+from lrm_cvx.planning import plan_greedy, transect
+from lrm_cvx.planning.baselines import CYCLE_AFTER, DIRECTIONS
+from lrm_cvx.planning.lines import lines_where_possible, route_values
+from lrm_cvx.planning.request import PathOptions
+from lrm_cvx.region import Region
+from lrm_cvx.spatial import ResidualCovariance
+
+
+def grid_region(ny: int, nx: int, holes: tuple = ()) -> Region:
+    mask = np.ones((ny, nx), bool)
+    for r, c in holes:
+        mask[r, c] = False
+    da = xr.DataArray(np.zeros((ny, nx)), dims=("lat", "lon"),
+                      coords={"lat": np.arange(ny, dtype=float),
+                              "lon": np.arange(nx, dtype=float)})
+    return Region.from_dataarray(da, mask=mask)
+
+
+def gp_terms(k: int, seed: int, anisotropy: float = 1.0) -> dict:
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(k, k))
+    cov = ResidualCovariance("exponential", sill=1.0, range=2.0, nugget=0.1,
+                            anisotropy=anisotropy)
+    return dict(prior_cov=A @ A.T / k + 0.1 * np.eye(k), spatial_cov=cov)
+
+
+def reference(criterion: str, Y, region, cells, ridge=0.0, **terms) -> float:
+    """The criterion's value of ``cells`` from scratch (the registry's reference)."""
+    if criterion == "gp-variance":
+        return gp_variance_value(Y, region, terms["spatial_cov"], terms["prior_cov"], cells)
+    return CRITERION_REGISTRY.get(criterion).value(Y, cells, ridge, **terms)
+
+
+def check_best_of_lines(plan, greedy, criterion, Y, region, start, budget, ridge=0.0,
+                        **terms):
+    """``plan`` is the best of the greedy's route and the four transects by the reference."""
+    maximize = CRITERION_REGISTRY.get(criterion).maximize
+    routes = {"greedy": greedy}
+    routes.update({f"transect-{d}": transect(region, start, budget, d) for d in DIRECTIONS})
+    ref = {name: reference(criterion, Y, region, p.cells, ridge, **terms)
+           for name, p in routes.items()}
+    for name, v in ref.items():  # the recorded values are the criterion's
+        assert plan.rivals["values"][name] == pytest.approx(v, rel=1e-8, abs=1e-9)
+    best = max(ref.values()) if maximize else min(ref.values())
+    got = ref[plan.rivals["chosen"]]
+    assert got == pytest.approx(best, rel=1e-8, abs=1e-9)
+    if plan.rivals["chosen"] == "greedy":  # ties keep the greedy, bit for bit
+        np.testing.assert_array_equal(plan.route, greedy.route)
+    else:
+        chosen = routes[plan.rivals["chosen"]]
+        np.testing.assert_array_equal(plan.route, chosen.route)
+        assert plan.method == plan.rivals["chosen"]
+        worse = ref["greedy"] < got if maximize else ref["greedy"] > got
+        assert worse  # a transect is taken only when strictly better
+    return plan.rivals["chosen"]
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), budget=st.sampled_from([3.0, 5.0, 8.0]),
+       start=st.integers(0, 41))
+def test_fisher_lines_keep_the_best_route_by_its_own_value(seed, budget, start):
+    region = grid_region(6, 7)
+    Y = np.random.default_rng(seed).normal(size=(3, region.n_cells))
+    kw = dict(criterion="fisher", ridge=1e-2, initial="start", progress=False)
+    plan = plan_greedy(Y, region, start, budget, refine="lines", **kw)
+    greedy = plan_greedy(Y, region, start, budget, **kw)
+    check_best_of_lines(plan, greedy, "fisher", Y, region, start, budget, ridge=1e-2)
+    assert plan.cost <= budget + 1e-9
+
+
+@pytest.mark.parametrize("anisotropy", [1.0, 5.0])
+def test_gp_variance_lines_keep_the_best_route_and_can_change_it(anisotropy):
+    """Over several fields and starts the check is right every time, and at least once a
+    transect beats the greedy (so the check is not a no-op on this criterion)."""
+    region = grid_region(9, 10, holes=((0, 0), (4, 5)))
+    chosen = []
+    for seed in range(6):
+        Y = np.random.default_rng(seed).normal(size=(3, region.n_cells)) * 0.5
+        terms = gp_terms(3, seed, anisotropy)
+        for start in (3, 40, 77):
+            kw = dict(criterion="gp-variance", initial="start", progress=False, **terms)
+            plan = plan_greedy(Y, region, start, 8.0, refine="lines", **kw)
+            greedy = plan_greedy(Y, region, start, 8.0, **kw)
+            chosen.append(check_best_of_lines(plan, greedy, "gp-variance", Y, region, start,
+                                              8.0, **terms))
+    assert "greedy" in chosen
+    assert any(c != "greedy" for c in chosen), chosen
+
+
+@pytest.mark.parametrize("metric", ["grid", "km"])
+def test_route_values_of_gp_variance_are_the_dense_oracles(metric):
+    """Grid: one structured oracle set up on the routes' cells and forked per route; km: the
+    dense reference. Each value is a fresh dense oracle's, whatever the order of the routes."""
+    from lrm_cvx.information import make_oracle
+
+    region = grid_region(12, 13)
+    Y = np.random.default_rng(3).normal(size=(2, region.n_cells))
+    terms = gp_terms(2, 3)
+    if metric == "km":
+        terms["spatial_cov"] = ResidualCovariance("exponential", sill=1.0, range=250.0,
+                                                  nugget=0.1, metric="km")
+    routes = {"a": np.array([4, 7, 7, 20, 29]), "b": np.array([29, 30, 31]),  # a repeat once
+              "c": np.array([100, 4]), "d": np.array([150])}
+    got = route_values("gp-variance", Y, 0.0, routes, dict(region=region, **terms))
+    for name, cells in routes.items():
+        want = make_oracle("gp-variance", Y, 0.0, np.unique(cells), region=region,
+                           gp_method="dense", **terms).value
+        assert got[name] == pytest.approx(want, rel=1e-10), name
+
+
+def test_a_forked_oracle_conditions_on_its_own():
+    from lrm_cvx.information import make_oracle
+
+    region = grid_region(10, 11)
+    Y = np.random.default_rng(5).normal(size=(3, region.n_cells))
+    terms = gp_terms(3, 5)
+    kw = dict(region=region, pool=np.arange(0, region.n_cells, 3), gp_method="structured",
+              **terms)
+    base = make_oracle("gp-variance", Y, 0.0, [0, 3], **kw)
+    before, gains = base.value, base.gains().copy()
+    fork = base.fork()
+    for c in (30, 60, 93):
+        fork.add(c)
+    fresh = make_oracle("gp-variance", Y, 0.0, [0, 3, 30, 60, 93], **kw)
+    assert fork.value == pytest.approx(fresh.value, rel=1e-10)
+    np.testing.assert_allclose(fork.gains(), fresh.gains(), rtol=1e-8, atol=1e-12)
+    assert base.value == before and base.cells == [0, 3]  # the original is untouched
+    np.testing.assert_array_equal(base.gains(), gains)
+
+
+def test_lines_under_path_options_are_feasible_transects_of_that_model():
+    region = grid_region(8, 8)
+    Y = np.random.default_rng(1).normal(size=(3, region.n_cells))
+    for opts in (dict(closed=True), dict(stop_cost=0.5), dict(traversable="valid")):
+        plan = plan_greedy(Y, region, 27, 7.0, criterion="fisher", ridge=1e-2, initial="start",
+                           refine="lines", progress=False, **opts)
+        assert plan.cost <= 7.0 + 1e-9 and set(plan.rivals["values"]) == {
+            "greedy", *(f"transect-{d}" for d in DIRECTIONS)}
+
+
+def test_lines_refuse_what_a_transect_cannot_fly():
+    region = grid_region(6, 6)
+    Y = np.random.default_rng(0).normal(size=(3, region.n_cells))
+    kw = dict(criterion="fisher", ridge=1e-2, initial="start", progress=False, refine="lines")
+    with pytest.raises(PlanningError, match="refine='lines' cannot run: the routes must end"):
+        plan_greedy(Y, region, 7, 6.0, end=30, **kw)
+    with pytest.raises(PlanningError, match="refine='lines' cannot run: sense_along"):
+        plan_greedy(Y, region, 7, 6.0, sense_along=True, **kw)
+    with pytest.raises(PlanningError, match="not a point"):
+        plan_greedy(Y, region, 7, 6.0, sensor="leg-average", **kw)
+    with pytest.raises(PlanningError, match="refine must be True, False, 'local', 'lines'"):
+        plan_greedy(Y, region, 7, 6.0, criterion="fisher", refine="straight")
+    assert lines_where_possible(PathOptions(end=3)) is None
+    assert lines_where_possible(None) == "lines"
+
+
+@pytest.mark.parametrize("direction", DIRECTIONS)
+def test_a_transect_on_a_huge_budget_stops_when_it_would_only_repeat(direction):
+    """The lawnmower covers a full grid and stops in its cycle (budget 1e9 would otherwise walk
+    1e9 steps: the hang refine="lines" met under `lrm-cvx plan --budget 1e9`)."""
+    region = grid_region(5, 7)
+    plan = transect(region, 8, 1e9, direction)
+    assert set(plan.cells.tolist()) == set(range(region.n_cells))
+    # past CYCLE_AFTER steps at most one more pass of the 4 x 35 states
+    assert CYCLE_AFTER <= plan.cost <= CYCLE_AFTER + 4 * region.n_cells
+    longer = transect(region, 8, float(CYCLE_AFTER - 3), direction)  # the paper's walk
+    assert longer.cost == CYCLE_AFTER - 3
+    small = transect(region, 8, 6.0, direction)  # a short walk is unchanged: 6 steps
+    assert small.cost == 6.0 and len(small.route) == 7
