@@ -67,7 +67,8 @@ def check_best_of_lines(plan, greedy, criterion, Y, region, start, budget, ridge
     else:
         chosen = routes[plan.rivals["chosen"]]
         np.testing.assert_array_equal(plan.route, chosen.route)
-        assert plan.method == plan.rivals["chosen"]
+        assert plan.method == plan.rivals["chosen"] and plan.criterion == criterion
+        assert plan.posterior == greedy.posterior
         worse = ref["greedy"] < got if maximize else ref["greedy"] > got
         assert worse  # a transect is taken only when strictly better
     return plan.rivals["chosen"]
@@ -84,6 +85,8 @@ def test_fisher_lines_keep_the_best_route_by_its_own_value(seed, budget, start):
     greedy = plan_greedy(Y, region, start, budget, **kw)
     check_best_of_lines(plan, greedy, "fisher", Y, region, start, budget, ridge=1e-2)
     assert plan.cost <= budget + 1e-9
+    cert = plan.certify(tighten=False)  # a kept transect is certified like any plan
+    assert cert.bound >= plan.information - 1e-9
 
 
 @pytest.mark.parametrize("anisotropy", [1.0, 5.0])

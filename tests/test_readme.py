@@ -86,6 +86,7 @@ def test_defaults_block_runs(tmp_path, monkeypatch, capsys):
     model, plan, paper = namespace["model"], namespace["plan"], namespace["paper"]
     want = plan_greedy(model.Y_, model.region_, (10.0, 200.0), 20, progress=False,
                        criterion=RECOMMENDED["criterion"], initial=RECOMMENDED["initial"],
+                       refine=RECOMMENDED["refine"],
                        prior=model.latent_prior(RECOMMENDED["prior"], spatial=True))
     np.testing.assert_array_equal(plan.route, want.route)
     bare = plan_greedy(model.Y_, model.region_, (10.0, 200.0), 20, progress=False)

@@ -784,7 +784,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_output(p)
     p.set_defaults(func=cmd_fit)
 
-    p = sub.add_parser("plan", help="plan a sampling route with the greedy planner")
+    p = sub.add_parser("plan", help="plan a sampling route with the greedy planner (the "
+                       "recommended one keeps a straight transect instead where its criterion "
+                       "prefers one)")
     _add_plan(p)
     p.add_argument("-o", "--output", help="route.csv, route.geojson, or a mission: "
                    "route.plan (QGroundControl), route.waypoints (MAVLink QGC WPL 110), "

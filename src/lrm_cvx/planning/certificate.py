@@ -585,9 +585,11 @@ def _refined(plan: Any, Y: np.ndarray, region: Any, refine: Any, metric: str,
              plan_criterion: str | None, information: float
              ) -> tuple[float | None, float | None, int | None, np.ndarray]:
     """``(greedy information, refined information, moves, refined cells)`` of a Fisher
-    greedy plan, or ``(None, None, None, plan cells)``."""
+    greedy plan, or ``(None, None, None, plan cells)`` (also for a transect that
+    ``refine="lines"`` kept: the local search refines greedy routes only)."""
     cells = np.asarray(plan.cells, dtype=np.int64)
-    if plan_criterion != "fisher" or metric != "grid":
+    if plan_criterion != "fisher" or metric != "grid" or getattr(plan, "method",
+                                                                 "greedy") != "greedy":
         return None, None, None, cells
     done = getattr(plan, "refinement", None) or {}
     if done:

@@ -110,5 +110,7 @@ def best_of_lines(plan: Plan, Y: np.ndarray, region: Any, fleet: Fleet, request:
         if sign * (v - values[best]) > margin:
             best = name
     chosen = plans[best]
+    if best != "greedy":  # the criterion it was chosen by, as the greedy's plan would say
+        chosen.criterion, chosen.posterior = plan.criterion, plan.posterior
     chosen.rivals = {"criterion": criterion, "values": values, "chosen": best}
     return chosen

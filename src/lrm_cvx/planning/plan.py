@@ -123,7 +123,8 @@ class Plan:
         for the paper; km, hours, or the number of sensors of a static placement.
     information : Fisher information ``log det(ridge I + sum_cells y y^T)`` of ``cells``
         (``-inf`` if singular, ``nan`` when a baseline was built without ``Y``).
-    criterion : the greedy's criterion (``"fisher"`` / ``"a-optimal"``), ``None`` for baselines.
+    criterion : the greedy's criterion (``"fisher"`` / ``"a-optimal"``), ``None`` for baselines
+        (a transect kept by ``refine="lines"`` carries the criterion that chose it).
     budget, start, ridge : the request (``start`` is a cell index: the first robot's for a
         fleet, ``-1`` for a static placement; ``budget`` is the robots' total).
     lat, lon, grid_index : ``(r,)``, ``(r,)``, ``(r, 2)`` coordinates of each *route* entry.
