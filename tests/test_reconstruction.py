@@ -609,7 +609,7 @@ def test_evaluate_with_predictive_options(data):
     m = GLRM(3, random_state=0, progress=False, offset=True, spatial="exponential").fit(train)
     start = int(ds["start_cell"][0])
     plan = plan_greedy(m.Y_, m.region_, start, 6.0, criterion="a-optimal", progress=False,
-                       initial="start", **m.planner_kwargs())
+                       initial="start", refine="lines", **m.planner_kwargs())
     vals = m.region_.stack(test)
     t = 0
     obs = {int(c): float(vals[t, c]) for c in plan.cells if np.isfinite(vals[t, c])}
