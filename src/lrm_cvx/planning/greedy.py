@@ -29,7 +29,7 @@ from ..information import (
 from ..recommended import RECOMMENDED
 from ..region import Region
 from . import request as _request
-from .lines import LINES, applies, best_of_lines
+from .lines import LINES, best_of_lines, lines_run
 from .paths import path_model
 from .plan import Plan, check_region
 from .refiners import REFINERS
@@ -342,9 +342,7 @@ def plan_greedy(
     if initial not in ("nearest", "start"):
         raise PlanningError(f"initial must be 'nearest' or 'start', got {initial!r}")
     request = request.resolved(region)
-    if refine == LINES and applies(request) is not None:
-        if not default_refine:
-            raise PlanningError(f"refine='lines' cannot run: {applies(request)}")
+    if refine == LINES and not lines_run(request, asked=not default_refine):
         refine = None
     models = [path_model(region, s, b, request, cost) for s, b in zip(starts, budgets,
                                                                        strict=True)]

@@ -35,7 +35,8 @@ from .baselines import DIRECTIONS, transect
 from .plan import Plan
 from .request import Fleet, PathOptions
 
-__all__ = ["LINES", "applies", "lines_where_possible", "route_values", "best_of_lines"]
+__all__ = ["LINES", "applies", "lines_run", "lines_where_possible", "route_values",
+           "best_of_lines"]
 
 LINES = "lines"
 """The ``refine=`` name of this check (``plan_greedy(refine="lines")``)."""
@@ -52,6 +53,16 @@ def applies(request: PathOptions) -> str | None:
     if request.end is not None:
         return "the routes must end at a given cell (end=)"
     return None
+
+
+def lines_run(request: PathOptions, *, asked: bool) -> bool:
+    """Whether ``refine="lines"`` runs under ``request``: True where the rivals can fly; False
+    where they cannot and the check was only the recommended default (it is then dropped); a
+    :class:`PlanningError` naming the reason when the caller ``asked`` for it explicitly."""
+    why = applies(request)
+    if why is not None and asked:
+        raise PlanningError(f"refine='lines' cannot run: {why}")
+    return why is None
 
 
 def lines_where_possible(request: PathOptions | None) -> str | None:
@@ -94,9 +105,7 @@ def best_of_lines(plan: Plan, Y: np.ndarray, region: Any, fleet: Fleet, request:
     better under ``criterion`` (``extra``: the greedy's oracle terms). The plan returned
     records the comparison in ``plan.rivals``: ``{"criterion", "values"`` (route name ->
     value), ``"chosen"}``; a transect keeps its ``method`` (``"transect-down"``, ...)."""
-    why = applies(request)
-    if why is not None:
-        raise PlanningError(f"refine='lines' cannot run: {why}")
+    lines_run(request, asked=True)
     maximize = CRITERION_REGISTRY.get(criterion, "criterion").maximize
     sign = 1.0 if maximize else -1.0
     plans = {"greedy": plan}
