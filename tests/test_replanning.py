@@ -195,3 +195,78 @@ def test_replanning_the_stored_plan_needs_one(setup):
     model, _ = setup
     with pytest.raises(ModelError, match="holds no plan"):
         MonitorState.from_model(model).replan(None, 1)
+
+
+@pytest.mark.parametrize("budget, kept", [(15.0, "transect-up"), (30.0, "greedy")])
+def test_a_plan_checked_against_lines_is_replanned_with_the_check(setup, tmp_path, budget,
+                                                                   kept):
+    """A plan made with ``refine="lines"`` (the recommended plan) is replanned with it: each
+    robot's new route is the greedy's from where it is or, when strictly better under the
+    criterion, the straight transect from there; the check survives the state file."""
+    from lrm_cvx.planning.baselines import transect
+
+    model, test = setup
+    region = model.region_
+    day = test.isel(time=0)
+    truth = region.stack(day)
+    starts = (10.0, 200.0)
+
+    def fly(refine):
+        state, plan = _state_and_plan(model, day, starts, budget)
+        assert not plan.rivals  # a bare factor matrix: no check unless asked
+        lined = plan_greedy(model.Y_, region, starts, budget, criterion="gp-variance",
+                            initial="start", progress=False, refine="lines",
+                            **state.planner_kwargs(time=day.time.values))
+        assert set(lined.rivals["values"]) == {"greedy", "transect-up", "transect-down",
+                                               "transect-left", "transect-right"}
+        done = max(2, int(np.count_nonzero(lined.route_robot == 0)) // 3)
+        seen = _flown(lined, done)
+        new = state.replan(lined, done, (seen, truth[seen]), time=day.time.values,
+                           refine=refine)
+        return lined, done, new
+
+    lined, done, auto = fly("auto")
+    _, _, plain = fly(None)
+    _, _, forced = fly("lines")
+    assert auto == forced and auto.rivals == forced.rivals and not plain.rivals
+    values, chosen = auto.rivals["values"], auto.rivals["chosen"]
+    assert chosen == kept  # both branches below are exercised
+    assert values[chosen] == min(values.values())  # gp-variance: the smaller the better
+    here = int(lined.route[done - 1])
+    tail = auto.route[done:]
+    if chosen == "greedy":
+        np.testing.assert_array_equal(tail, plain.route[done:])
+    else:
+        left = budget - float(lined.route_cost[done - 1])
+        line = transect(region, here, left, chosen.split("-")[1], Y=model.Y_)
+        np.testing.assert_array_equal(tail, line.route[1:])
+    assert route_feasible(auto, region) == []
+    state = MonitorState.from_model(model)
+    state.current_plan, state.current_plan_time = auto, day.time.values
+    model.save(tmp_path / "m.nc")
+    state.model_path = str(tmp_path / "m.nc")
+    state.save(tmp_path / "s.nc")
+    assert MonitorState.load(tmp_path / "s.nc").current_plan.rivals == auto.rivals
+    with pytest.raises(PlanningError, match="refine must be"):
+        state.replan(auto, done, refine="local")
+
+
+def test_a_kept_transect_is_replanned_with_the_greedys_cost(setup):
+    """A morning plan where the check kept a straight transect (route cost ``"steps"``) is
+    replanned, twice, with the greedy's own route cost (it failed: "cost must be one of ...,
+    got 'steps'", in every campaign with ``replan_every`` whose plan was a transect)."""
+    model, test = setup
+    region = model.region_
+    day = test.isel(time=0)
+    truth = region.stack(day)
+    state = MonitorState.from_model(model)
+    plan = plan_greedy(model.Y_, region, (40.0, 230.0), 15.0, criterion="gp-variance",
+                       initial="start", progress=False, refine="lines", cost="insertion",
+                       **state.planner_kwargs(time=day.time.values))
+    assert plan.method == "transect-down" and plan.cost_function == "steps"
+    assert plan.rivals["cost_function"] == "insertion"
+    for done in (3, 6):
+        seen = plan.route[:done]
+        plan = state.replan(plan, done, (seen, truth[seen]), time=day.time.values)
+        assert plan.cost_function == "insertion" and plan.rivals["cost_function"] == "insertion"
+        assert route_feasible(plan, region) == []

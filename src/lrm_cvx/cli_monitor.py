@@ -377,7 +377,8 @@ def add_monitor_parser(sub: Any) -> None:
     q.set_defaults(func=cmd_monitor_plan)
 
     q = msub.add_parser("replan", help="replan the rest of the stored plan en route: fold in "
-                        "the samples taken so far, keep the flown part")
+                        "the samples taken so far, keep the flown part (and the plan's check "
+                        "against straight lines, for routes with no fixed end)")
     q.add_argument("state", help="state file holding a plan ('lrm-cvx monitor plan'; replaced "
                    "atomically)")
     q.add_argument("--done", required=True, type=int, nargs="+", action="extend",

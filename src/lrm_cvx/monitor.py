@@ -131,11 +131,13 @@ class MonitorState(LatentFilter):
         return self.time if not self.observed else self.next_time()
 
     def replan(self, plan: Any, done: Any, observations: Any = None, *, time: Any = None,
-               criterion: str | None = None, progress: bool = False) -> Any:
+               criterion: str | None = None, refine: Any = "auto",
+               progress: bool = False) -> Any:
         """Replan the rest of ``plan`` en route: fold in ``observations`` (today's measurements
         so far) at ``time``, keep each robot's first ``done`` route entries, and plan the rest
         from where it is with the budget left and the same end (home for a closed tour), under
-        the same path model. See :func:`lrm_cvx.replanning.replan`.
+        the same path model and, by default, the same check against straight lines. See
+        :func:`lrm_cvx.replanning.replan`.
 
         ``plan=None`` replans ``current_plan`` (ModelError when there is none), and ``time``
         then defaults to ``current_plan_time``. The new plan becomes ``current_plan``, planned
@@ -150,7 +152,7 @@ class MonitorState(LatentFilter):
         if time is None and plan is self.current_plan:
             time = self.current_plan_time
         new = replan(self, plan, done, observations, time=time, criterion=criterion,
-                     progress=progress)
+                     refine=refine, progress=progress)
         self.current_plan = new
         self.current_plan_time = self.time if observations is not None else \
             self.plan_time(time)

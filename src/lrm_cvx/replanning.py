@@ -22,6 +22,7 @@ import numpy as np
 from .errors import PlanningError
 from .information import fisher_information
 from .planning import Plan, plan_greedy
+from .planning.lines import LINES
 
 __all__ = ["replan", "route_feasible", "plan_variables", "plan_from_variables"]
 
@@ -64,16 +65,23 @@ def _path_options(plan: Any) -> dict[str, Any]:
 
 def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any = None, *,
            time: Any = None, criterion: str | None = None, cost: str | None = None,
-           ridge: float | None = None, progress: bool = False) -> Any:
+           ridge: float | None = None, refine: Any = "auto", progress: bool = False) -> Any:
     """The plan with each robot's first ``done`` route entries kept (flown) and the rest
     replanned from where the robot is, after folding ``observations`` (today's measurements
     so far, any form :meth:`MonitorState.assimilate` takes) into ``state`` at ``time``.
 
     ``done``: route entries flown (one count for one robot, one per robot for a fleet; the
     start counts, so ``done >= 1``). ``criterion`` defaults to the original plan's, ``cost`` and
-    ``ridge`` likewise. Raises PlanningError when a robot has spent its budget (or cannot get
-    back to its end with what is left): nothing is changed then.
+    ``ridge`` likewise. ``refine``: ``"auto"`` (default) checks each robot's new route against
+    the straight transects from where it is (:mod:`~lrm_cvx.planning.lines`) when the plan was
+    planned with that check (``plan.rivals``, the recommended plan), ``"lines"`` always, None
+    never; the check needs a route with no fixed end, so a robot heading for its end or home
+    skips it. Raises PlanningError when a robot has spent its budget (or cannot get back to its
+    end with what is left): nothing is changed then.
     """
+    if refine not in ("auto", LINES, None, False):
+        raise PlanningError(f"refine must be 'auto', 'lines' or None, got {refine!r}")
+    lines = refine == LINES or (refine == "auto" and bool(plan.rivals))
     done_r = _done_per_robot(plan, done)
     opts = _path_options(plan)
     region = state.model.region_
@@ -85,7 +93,8 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
     budgets = [float(b) for b in (path.get("budgets") or [plan.budget])]
     closed, end = bool(path.get("closed")), path.get("end")
     criterion = criterion or plan.criterion or "fisher"
-    cost = cost or plan.cost_function or "nearest-neighbor"
+    # a kept transect's cost is "steps": its replan plans with the greedy's route cost
+    cost = cost or plan.rivals.get("cost_function") or plan.cost_function or "nearest-neighbor"
     ridge = float(plan.ridge if ridge is None else ridge)
     pieces = []  # per robot: the flown part and where it stands
     for r, k in enumerate(done_r):
@@ -125,16 +134,19 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
         ends: dict[str, Any] = {}
         if goal is not None:
             ends = {"closed": True} if goal == here else {"end": goal}
+        check = LINES if lines and "end" not in ends else None
         new = plan_greedy(Y, region, here, left, criterion=criterion, cost=cost, ridge=ridge,
-                          initial="start", progress=progress, **opts, **ends, **kw)
+                          initial="start", refine=check, progress=progress, **opts, **ends,
+                          **kw)
         new_plans.append(new)
         taken += [int(c) for c in new.stops if int(c) != here]
-    return _stitch(plan, pieces, new_plans, Y, region, criterion, ridge)
+    return _stitch(plan, pieces, new_plans, Y, region, criterion, ridge, cost)
 
 
 def _stitch(plan: Any, pieces: list, new_plans: list, Y: np.ndarray, region: Any,
-            criterion: str, ridge: float) -> Any:
-    """One plan: each robot's flown entries, then its new route after the current cell."""
+            criterion: str, ridge: float, cost: str) -> Any:
+    """One plan: each robot's flown entries, then its new route after the current cell (the
+    plan's ``cost_function``: the greedy's ``cost`` the rest was planned with)."""
     route, route_cost, robot, waypoint, stops, stop_robot, costs = [], [], [], [], [], [], []
     empty = np.empty(0, np.int64)
     for r, ((flown, _, spent, *_), new) in enumerate(zip(pieces, new_plans, strict=True)):
@@ -155,14 +167,31 @@ def _stitch(plan: Any, pieces: list, new_plans: list, Y: np.ndarray, region: Any
         costs.append(spent + new.cost - first_cost if tail.size else spent)
     cells = list(dict.fromkeys(stops + (np.concatenate(route).tolist()
                                         if plan.path.get("sense_along") else [])))
-    return Plan.build(
+    out = Plan.build(
         region=region, cells=cells, route=np.concatenate(route), cost=None,
         information=fisher_information(Y, cells, ridge), criterion=criterion,
         budget=plan.budget, start=plan.start, ridge=ridge, method=f"{plan.method}+replan",
-        cost_function=plan.cost_function, Y=Y, route_cost=np.concatenate(route_cost),
+        cost_function=cost, Y=Y, route_cost=np.concatenate(route_cost),
         posterior=True, path=plan.path, route_robot=np.concatenate(robot),
         waypoint=np.concatenate(waypoint), stops=stops, stop_robot=stop_robot,
         robot_costs=costs, path_models=plan._path_models)  # the same path model
+    out.rivals = _rivals(new_plans, criterion)
+    return out
+
+
+def _rivals(new_plans: list, criterion: str) -> dict[str, Any]:
+    """The robots' checks against straight lines (``plan.rivals`` of one robot; for a fleet
+    the route names are prefixed ``"robot r: "``), empty when none ran."""
+    checks = {r: p.rivals for r, p in enumerate(new_plans) if p is not None and p.rivals}
+    if not checks:
+        return {}
+    if len(new_plans) == 1:
+        return dict(checks[0])
+    return {"criterion": criterion,
+            "values": {f"robot {r}: {name}": v for r, c in checks.items()
+                       for name, v in c["values"].items()},
+            "chosen": ", ".join(f"robot {r}: {c['chosen']}" for r, c in checks.items()),
+            "cost_function": next(iter(checks.values()))["cost_function"]}
 
 
 def route_feasible(plan: Any, region: Any, *, tol: float = 1e-6) -> list[str]:
@@ -223,7 +252,8 @@ _PLAN_DIMS = {"cells": "plan_cell", "route": "plan_entry", "route_cost": "plan_e
 def plan_variables(plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """``(variables, attributes)`` holding ``plan`` in a NetCDF file (``plan_`` prefixed, own
     dimensions): its arrays and history, its path model (the traversable mask as a
-    ``(plan_lat, plan_lon)`` int8 grid) and scalars. :func:`plan_from_variables` reads it back
+    ``(plan_lat, plan_lon)`` int8 grid), its check against straight lines (``plan.rivals``)
+    and scalars. :func:`plan_from_variables` reads it back
     equal (``==``). Booleans are stored as int8, ``None`` as an absent attribute or ``-1``."""
     out: dict[str, Any] = {}
     for name in _PLAN_ARRAYS:
@@ -251,6 +281,14 @@ def plan_variables(plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     }
     if path.get("speed") is not None:
         attrs["plan_speed"] = float(path["speed"])
+    if plan.rivals:  # the check against straight lines: route names as a coordinate
+        names = list(plan.rivals["values"])
+        out["plan_rival_value"] = (("plan_rival",), np.array(
+            [plan.rivals["values"][n] for n in names], dtype=np.float64))
+        out["plan_rival"] = (("plan_rival",), np.array(names, dtype=str))
+        attrs["plan_rivals_criterion"] = str(plan.rivals["criterion"])
+        attrs["plan_rivals_chosen"] = str(plan.rivals["chosen"])
+        attrs["plan_rivals_cost_function"] = str(plan.rivals["cost_function"])
     return out, attrs
 
 
@@ -283,7 +321,7 @@ def plan_from_variables(ds: Any, region: Any, Y: Any) -> Any:
                               traversable=trav, closed=desc["closed"], end=desc["end"],
                               sense_along=desc["sense_along"],
                               sensor=str(a.get("plan_sensor", "point")))
-    return Plan.build(
+    plan = Plan.build(
         region=region, cells=arr["cells"], route=arr["route"], cost=float(a["plan_cost"]),
         information=float(a["plan_information"]), criterion=str(a["plan_criterion"]) or None,
         budget=float(a["plan_budget"]), start=int(a["plan_start"]),
@@ -292,3 +330,10 @@ def plan_from_variables(ds: Any, region: Any, Y: Any) -> Any:
         posterior=bool(int(a["plan_posterior"])), path=PlanPath(desc, options=options),
         route_robot=arr["route_robot"], waypoint=arr["waypoint"].astype(bool),
         stops=arr["stops"], stop_robot=arr["stop_robot"], robot_costs=arr["robot_costs"])
+    if "plan_rival_value" in ds:
+        plan.rivals = {"criterion": str(a["plan_rivals_criterion"]),
+                       "values": dict(zip([str(n) for n in ds["plan_rival"].values],
+                                          ds["plan_rival_value"].values.tolist(), strict=True)),
+                       "chosen": str(a["plan_rivals_chosen"]),
+                       "cost_function": str(a["plan_rivals_cost_function"])}
+    return plan

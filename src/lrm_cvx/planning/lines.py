@@ -104,7 +104,9 @@ def best_of_lines(plan: Plan, Y: np.ndarray, region: Any, fleet: Fleet, request:
     """``plan`` (a greedy route) or the straight transect from its starts that is strictly
     better under ``criterion`` (``extra``: the greedy's oracle terms). The plan returned
     records the comparison in ``plan.rivals``: ``{"criterion", "values"`` (route name ->
-    value), ``"chosen"}``; a transect keeps its ``method`` (``"transect-down"``, ...)."""
+    value), ``"chosen"``, ``"cost_function"`` (the greedy's, which a replan of a kept transect
+    plans with)``}``; a transect keeps its ``method`` (``"transect-down"``, ...) and its
+    ``cost_function`` (``"steps"``)."""
     lines_run(request, asked=True)
     maximize = CRITERION_REGISTRY.get(criterion, "criterion").maximize
     sign = 1.0 if maximize else -1.0
@@ -121,5 +123,6 @@ def best_of_lines(plan: Plan, Y: np.ndarray, region: Any, fleet: Fleet, request:
     chosen = plans[best]
     if best != "greedy":  # the criterion it was chosen by, as the greedy's plan would say
         chosen.criterion, chosen.posterior = plan.criterion, plan.posterior
-    chosen.rivals = {"criterion": criterion, "values": values, "chosen": best}
+    chosen.rivals = {"criterion": criterion, "values": values, "chosen": best,
+                     "cost_function": plan.cost_function}
     return chosen

@@ -142,7 +142,8 @@ class Plan:
         ``swapped``, ``rounds``, ``seconds`` (history keys ``refine_*`` list the moves).
     rivals : empty, or the greedy's check against straight lines (``refine="lines"``,
         :mod:`~lrm_cvx.planning.lines`): ``criterion``, ``values`` (route name -> criterion
-        value: ``"greedy"``, ``"transect-up"``, ...) and ``chosen`` (this plan's name there).
+        value: ``"greedy"``, ``"transect-up"``, ...), ``chosen`` (this plan's name there) and
+        ``cost_function`` (the greedy's route cost, which a replan uses).
     path : the path request (:class:`~lrm_cvx.planning.request.PlanPath`: ``options``, a
         ``PathOptions``, and ``fleet``), a read-only mapping of ``kind`` (``"path"`` or
         ``"static"``), ``metric``, ``speed``, ``stop_cost``, ``traversable`` (``"none"``,
