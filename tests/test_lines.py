@@ -14,6 +14,7 @@ import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from lrm_cvx.cli_common import describe_plan
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import CRITERION_REGISTRY, gp_variance_value
 from lrm_cvx.planning import plan_greedy, transect
@@ -62,9 +63,13 @@ def check_best_of_lines(plan, greedy, criterion, Y, region, start, budget, ridge
     best = max(ref.values()) if maximize else min(ref.values())
     got = ref[plan.rivals["chosen"]]
     assert got == pytest.approx(best, rel=1e-8, abs=1e-9)
+    assert plan.rivals["cost_function"] == greedy.cost_function  # what a replan plans with
+    said = describe_plan(plan)  # the CLI's line names a kept transect
     if plan.rivals["chosen"] == "greedy":  # ties keep the greedy, bit for bit
         np.testing.assert_array_equal(plan.route, greedy.route)
+        assert "beat the greedy" not in said
     else:
+        assert f"{plan.rivals['chosen']}: its {criterion} value beat the greedy route's" in said
         chosen = routes[plan.rivals["chosen"]]
         np.testing.assert_array_equal(plan.route, chosen.route)
         assert plan.method == plan.rivals["chosen"] and plan.criterion == criterion

@@ -227,7 +227,8 @@ def simulate_campaign(
     ``replan_every``: replan en route after every ``k`` route entries of each robot
     (:func:`~lrm_cvx.replanning.replan`: what was observed so far is assimilated, the rest is
     planned with the budget left, the same end and path model and the plan's check against
-    straight lines); greedy methods on the filter's belief only. ``spatial``: use the model's spatial residual (None: when it has one).
+    straight lines); greedy methods on the filter's belief only. ``spatial``: use the model's
+    spatial residual (None: when it has one).
 
     Each day: forecast, plan, observe the true snapshot at the plan's cells (cells it lacks
     give no observation), assimilate, predict. Returns a Dataset over ``time`` with ``mse``

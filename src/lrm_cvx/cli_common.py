@@ -224,10 +224,19 @@ def describe_plan(plan: Any) -> str:
               f"ends at cell {path['end']}" if path.get("end") is not None else "",
               "sensing along the route" if path.get("sense_along") else "",
               f"sensor {sensor.describe()}" if sensor is not None and not sensor.is_point
-              else ""]
+              else "",
+              _kept_line(getattr(plan, "rivals", None) or {})]
     extras = [e for e in extras if e]
     return f"{len(plan.cells)} cells, {text}, {value}" + (f" ({', '.join(extras)})" if extras
                                                          else "")
+
+
+def _kept_line(rivals: dict) -> str:
+    """What the check against straight lines kept, when not the greedy's route."""
+    chosen = str(rivals.get("chosen", "greedy"))
+    if "transect" not in chosen:
+        return ""
+    return f"{chosen}: its {rivals['criterion']} value beat the greedy route's"
 
 
 #: ``-o`` of a plan: a table, GeoJSON, or a mission file an autopilot or GIS loads.
