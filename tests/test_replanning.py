@@ -8,6 +8,8 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lrm_cvx import GLRM, load_sample, plan_greedy
 from lrm_cvx.errors import PlanningError
@@ -270,3 +272,28 @@ def test_a_kept_transect_is_replanned_with_the_greedys_cost(setup):
         plan = state.replan(plan, done, (seen, truth[seen]), time=day.time.values)
         assert plan.cost_function == "insertion" and plan.rivals["cost_function"] == "insertion"
         assert route_feasible(plan, region) == []
+
+
+@settings(max_examples=12, deadline=None)
+@given(start=st.integers(0, 10_000), budget=st.sampled_from([6.0, 10.0, 15.0]),
+       frac=st.floats(0.2, 0.8), closed=st.booleans())
+def test_replans_with_the_check_stay_feasible(setup, start, budget, frac, closed):
+    """Property: whatever route the check keeps (the greedy's or a transect, morning and en
+    route), the replanned plan keeps the flown entries and passes the brute-force check."""
+    model, test = setup
+    region = model.region_
+    day = test.isel(time=0)
+    truth = region.stack(day)
+    state = MonitorState.from_model(model)
+    plan = plan_greedy(model.Y_, region, start % region.n_cells, budget,
+                       criterion="gp-variance", initial="start", progress=False,
+                       refine="lines", closed=closed,
+                       **state.planner_kwargs(time=day.time.values))
+    if plan.route.size < 3:
+        return
+    done = min(plan.route.size - 1, max(2, int(frac * plan.route.size)))
+    seen = plan.route[:done]
+    new = state.replan(plan, done, (seen, truth[seen]), time=day.time.values)
+    np.testing.assert_array_equal(new.route[:done], plan.route[:done])
+    assert route_feasible(new, region) == []
+    assert bool(new.rivals) == (not closed or int(new.route[done - 1]) == plan.start)
