@@ -180,6 +180,15 @@ def test_lines_refuse_what_a_transect_cannot_fly():
     assert lines_where_possible(None) == "lines"
 
 
+def test_the_cli_and_the_methods_follow_the_recommended_refine(monkeypatch):
+    """``lines_where_possible`` (the CLI's and the greedy methods' refine) reads
+    ``RECOMMENDED["refine"]``: without the check there, no check anywhere."""
+    from lrm_cvx.recommended import RECOMMENDED
+
+    monkeypatch.setitem(RECOMMENDED, "refine", None)
+    assert lines_where_possible(None) is None
+
+
 @pytest.mark.parametrize("direction", DIRECTIONS)
 def test_a_transect_on_a_huge_budget_stops_when_it_would_only_repeat(direction):
     """The lawnmower covers a full grid and stops in its cycle (budget 1e9 would otherwise walk

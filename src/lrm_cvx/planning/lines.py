@@ -31,6 +31,7 @@ from ..information import (
     gp_variance_value,
     make_oracle,
 )
+from ..recommended import RECOMMENDED
 from .baselines import DIRECTIONS, transect
 from .plan import Plan
 from .request import Fleet, PathOptions
@@ -67,7 +68,10 @@ def lines_run(request: PathOptions, *, asked: bool) -> bool:
 
 def lines_where_possible(request: PathOptions | None) -> str | None:
     """``refine=`` of a recommended plan under ``request`` (None: the paper's path model):
-    ``"lines"`` where straight-line rivals can be flown, else None (no check)."""
+    ``"lines"`` where the recommended setting checks straight lines (``RECOMMENDED["refine"]``)
+    and their rivals can be flown, else None (no check)."""
+    if RECOMMENDED["refine"] != LINES:
+        return None
     return LINES if applies(request or PathOptions()) is None else None
 
 
