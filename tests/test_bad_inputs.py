@@ -656,6 +656,10 @@ def _unusual(kind: str) -> xr.DataArray | str:
         return da.assign_coords({dim: c})
     if kind == "one-snapshot":
         return da.isel(time=[0])
+    if kind == "inf-cell":  # one cell of fill values decoded as inf: named, not dropped
+        v = da.copy()
+        v[:, 1, 1] = np.inf
+        return v
     if kind == "fill-value-1e20":
         v = da.copy()
         v[0, 0, 0] = 1e20
@@ -673,6 +677,7 @@ def _unusual(kind: str) -> xr.DataArray | str:
     ("one-snapshot", 2, "rank"),
     ("text", 2, "cannot read"),
     ("one-nan-snapshot", 0, "all-NaN"),
+    ("inf-cell", 2, "non-finite observed values (inf)"),
     ("fill-value-1e20", 0, "1e+20"),
     ("descending-lat", 0, ""),
 ])

@@ -109,7 +109,7 @@ class Region:
     def from_dataarray(cls, da: xr.DataArray, mask: Any = None) -> Region:
         """Region of a ``(time, lat, lon)`` or ``(lat, lon)`` DataArray.
 
-        Valid cells are those observed (finite) at least once, or ``mask`` (a ``(lat, lon)``
+        Valid cells are those observed (not NaN) at least once, or ``mask`` (a ``(lat, lon)``
         boolean array or DataArray, True = valid) when given.
         """
         if not isinstance(da, xr.DataArray):
@@ -118,7 +118,9 @@ class Region:
             raise DataError(f"da must have dims (time, lat, lon) or (lat, lon), got {da.dims}")
         lat_dim, lon_dim = spatial_dims(da)
         if mask is None:
-            observed = np.isfinite(da)
+            # an inf is a value, not a gap: its cell stays in the region, so the fit names it
+            # (check_data) instead of dropping a cell of fill values without a word
+            observed = da.notnull()
             if da.ndim == 3:
                 observed = observed.any(da.dims[0])
             mask = np.asarray(observed.values, dtype=bool)

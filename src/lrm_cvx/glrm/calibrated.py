@@ -39,7 +39,7 @@ def check_level(level: Any, name: str = "level") -> float:
     except (TypeError, ValueError):
         raise ModelError(f"{name} must be a number in (0, 1), got {level!r}") from None
     if not 0.0 < lv < 1.0:
-        raise ModelError(f"{name} must be in (0, 1), got {level!r}")
+        raise ModelError(f"{name} must be in (0, 1), got {lv:g}")
     return lv
 
 
