@@ -50,6 +50,21 @@ def test_summary_lists_recommended_first_then_paper(demo):
     assert list(csv["setting"]) == list(result.table["setting"])
 
 
+def test_summary_names_the_setting_it_ran(demo):
+    """The note describes the recommended setting as run (read from RECOMMENDED, with the
+    kernel ``spatial="auto"`` chose), not a setting written into the text."""
+    from lrm_cvx.recommended import RECOMMENDED as SETTING
+    from lrm_cvx.spatial.covariance import MODELS
+
+    _, result, _ = demo
+    line = next(ln for ln in result.text.splitlines() if ln.startswith("recommended = GLRM"))
+    assert f"spatial={SETTING['spatial']!r}" in line
+    assert f"greedy {SETTING['criterion']!r}" in line
+    if SETTING["spatial"] == "auto":
+        chosen = line.split("spatial='auto': ")[1].split(" chosen")[0]
+        assert chosen in MODELS
+
+
 def test_summary_mse_matches_results(demo):
     """The table's means are the results' MSE averaged over starts x trials x test times."""
     import xarray as xr

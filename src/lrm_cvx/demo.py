@@ -1,7 +1,7 @@
 """``lrm-cvx demo``: the whole pipeline on the bundled SST sample in well under a minute.
 
-Fits the recommended model (docs/reconstruction.md: ``GLRM(5, offset=True,
-spatial="exponential")``, greedy ``gp-variance`` route from the start cell, empirical-prior
+Fits the recommended model (docs/reconstruction.md: ``GLRM(5, offset=True, spatial="auto",
+temporal="auto")``, greedy ``gp-variance`` route from the start cell, empirical-prior
 fold-in with the kriged GP residual) and the paper's (``GLRM(5)``, Fisher greedy, least-squares
 fold-in, fast certified bound) on all winters but the last ``n_test``, scores both and the
 baselines (random walks, four transects; predicted with the recommended fold-in, their best) on
@@ -166,8 +166,11 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
     info = res_paper["information"].isel(method=0, trial=0).mean("start").values
     notes = ["paper's greedy Fisher information / certified bound (nats): " + ", ".join(
         f"{float(i):.1f}/{float(b):.1f}" for i, b in zip(info, bound, strict=True)),
-        "recommended = GLRM(offset=True, spatial='exponential'), greedy 'gp-variance' from the",
-        "  start cell, fold-in prior='empirical', spatial=True (docs/reconstruction.md);",
+        f"recommended = GLRM(offset={SETTING['offset']}, spatial={SETTING['spatial']!r}: "
+        f"{rec.spatial_cov_.model} chosen), greedy "
+        f"{SETTING['criterion']!r} from the",
+        f"  start cell, fold-in prior={SETTING['prior']!r}, spatial={SETTING['fold_spatial']} "
+        "(docs/reconstruction.md);",
         "  paper = GLRM(5), greedy Fisher, least-squares fold-in; baselines: recommended fold-in",
         f"budget in grid cells; {cfg['n_starts']} start cells, {cfg['random_trials']} random "
         f"walks each, {n_test} held-out snapshots",

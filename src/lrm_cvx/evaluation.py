@@ -702,18 +702,18 @@ def evaluate(
 
     **Defaults** (issue #24): the recommended setting of docs/reconstruction.md
     (:data:`lrm_cvx.recommended.RECOMMENDED`, read at run time) wherever an argument is left
-    out: ``model_params`` its GLRM parameters (today ``offset=True, spatial="exponential"``;
-    no ``temporal``: the protocol is memoryless unless ``temporal=`` is given), ``methods`` its
-    method (today ``"greedy:gp-variance"``) followed by the paper's ``METHODS`` (the paper's
-    greedy, the transects, the random walk), ``fold_in`` its prediction (today ``{"prior":
-    "empirical", "spatial": True}``: the empirical prior and the kriged residual). A model
-    without a spatial residual (a given ``model``, or ``model_params`` without ``spatial``)
-    keeps the empirical prior; the default method becomes ``"greedy:fisher"`` and the default
-    fold-in drops the kriged residual, with one UserWarning. ``paper=True`` is the paper's
-    setting, unchanged: ``GLRM(rank)``, ``methods=METHODS``, the least-squares fold-in
-    (``model_params={}``, ``fold_in={}``).
-    An explicit argument wins over both (a given ``model_params`` / ``fold_in`` / ``methods``
-    replaces that default as a whole); ``paper`` must be True or False (ModelError).
+    out: ``model_params`` its GLRM parameters (today ``offset=True, spatial="auto"`` and the
+    conformal interval calibration; no ``temporal``: the protocol is memoryless unless
+    ``temporal=`` is given), ``methods`` its method (today ``"greedy:gp-variance"``) followed by
+    the paper's ``METHODS`` (the paper's greedy, the transects, the random walk), ``fold_in``
+    its prediction (today ``{"prior": "empirical", "spatial": True}``: the empirical prior and
+    the kriged residual). A model without a spatial residual (a given ``model``, or
+    ``model_params`` without ``spatial``) keeps the empirical prior; the default method becomes
+    ``"greedy:fisher"`` and the default fold-in drops the kriged residual, with one UserWarning.
+    ``paper=True`` is the paper's setting, unchanged: ``GLRM(rank)``, ``methods=METHODS``, the
+    least-squares fold-in (``model_params={}``, ``fold_in={}``). An explicit argument wins over
+    both (a given ``model_params`` / ``fold_in`` / ``methods`` replaces that default as a
+    whole); ``paper`` must be True or False (ModelError).
 
     Parameters follow the paper: a rank-``rank`` GLRM fitted on all snapshots but the last
     ``n_test`` (or the given fitted ``model``, whose region must match ``data``), ``n_starts``
