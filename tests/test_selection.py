@@ -350,3 +350,55 @@ def test_inflation_is_rejected_where_the_basis_is_right():
     assert sel.attrs["choice_inflation"] == 1.0 and model.residual_inflation_ == 1.0
     memoryless = sel["ratio"].where(sel["kind"] == "none", drop=True).max("size")
     assert float(memoryless.sel(candidate="none x8")) > 1.1
+
+
+def test_a_short_record_validates_on_the_windows_its_refits_can_carry(persistent_field):
+    """The earliest refit must leave residual degrees of freedom at the model's rank: a short
+    record gets fewer (or shorter) validation windows instead of a refit's error, and a record
+    too short for any gets :class:`AutoUnavailable` (a one-line ModelError) naming the cause.
+    Here rank 3 with an offset on 72 cells needs 5 snapshots before a window."""
+    from lrm_cvx.glrm.fit import max_identifiable_rank
+    from lrm_cvx.glrm.selection import AutoUnavailable, _history_carries, _windows
+
+    V = persistent_field.values.reshape(persistent_field.shape[0], -1)
+    carries = _history_carries(V, 3, True)
+    for lo in range(1, 12):  # the counts' check against the fit's own, on the snapshots
+        M = np.isfinite(V[:lo])
+        L_obs = int(M.any(axis=0).sum())
+        want = 3 <= min(lo, L_obs) and max_identifiable_rank(int(M.sum()), lo, L_obs,
+                                                             offset=True) >= 3
+        assert carries(lo) == want
+    first = next(lo for lo in range(1, 12) if carries(lo))
+    assert _windows(first + 6, 3, 2, carries) == (3, 2)       # room for both windows
+    assert _windows(first + 5, 3, 2, carries) == (3, 1)       # one window of 3 days
+    assert _windows(first + 2, 3, 2, carries) == (2, 1)       # one window of 2 days
+    with pytest.raises(AutoUnavailable, match="cannot validate on"):
+        _windows(first + 1, 3, 2, carries)
+    # through the fit: 10 snapshots at rank 3 with an offset (two windows of 3 would leave 4)
+    short = persistent_field.isel(time=slice(0, 10))
+    model = _fit(short, rank=3, offset=True, temporal="auto")
+    assert model.selection_.attrs["n_days"] in (2, 3)
+    with pytest.raises(ModelError, match="cannot validate on 8 snapshots") as err:
+        _fit(persistent_field.isel(time=slice(0, 8)), rank=5, offset=True, temporal="auto")
+    assert isinstance(err.value, AutoUnavailable) and "\n" not in str(err.value)
+
+
+def test_cli_fit_on_a_record_too_short_for_the_validation_falls_back(persistent_field,
+                                                                      tmp_path, capsys):
+    """``lrm-cvx fit`` (temporal='auto' by default) on 8 snapshots at rank 5: no refit before a
+    window can carry the rank, so it fits without dynamics with a note (it failed with a
+    refit's "T=5 times" error before); asked for by name, auto is a one-line error."""
+    from lrm_cvx.cli import main
+
+    path, out = tmp_path / "short.nc", tmp_path / "m.nc"
+    persistent_field.isel(time=slice(0, 8)).rename("v").to_netcdf(path)
+    assert main(["-q", "fit", str(path), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "note: the recommended temporal='auto' cannot run on these data (temporal='auto' " \
+           "cannot validate on 8 snapshots" in text
+    assert GLRM.load(out).dynamics_ is None
+    assert main(["-q", "fit", str(path), "--temporal", "auto", "-o", str(out),
+                 "--overwrite"]) == 2
+    errors = [ln for ln in capsys.readouterr().err.splitlines()
+              if ln.startswith("lrm-cvx fit: error:")]
+    assert len(errors) == 1 and "cannot validate on 8 snapshots" in errors[0]

@@ -199,6 +199,17 @@ def test_cli_place_default_is_the_recommended_and_paper_the_fisher(tmp_path, cap
         place_sensors(model.Y_, model.region_, 4).cells.tolist()
     assert main(["-q", "place", str(model_path), str(data), "--paper", "--sensors", "4"]) == 2
     assert "--paper" in capsys.readouterr().err
+    # a model fitted with --hold-out: DATA's later snapshots stay out of the placement
+    held = tmp_path / "held.nc"
+    assert main(["-q", "fit", str(data), "--rank", "2", "--recommended", "--hold-out", "3",
+                 "-o", str(held)]) == 0
+    capsys.readouterr()
+    out3 = tmp_path / "held.csv"
+    assert main(["-q", "place", str(held), str(data), "--sensors", "4", "-o", str(out3)]) == 0
+    text = capsys.readouterr().out
+    assert "DATA cut to the 9 snapshots" in text and "the 3 later ones" in text
+    ref = place_sensors(GLRM.load(held), 4, training=da.isel(time=slice(None, -3)))
+    assert pd.read_csv(out3)["cell"].tolist() == ref.cells.tolist()
 
 
 def test_default_exchanges_with_as_many_sensors_as_training_snapshots(fitted):

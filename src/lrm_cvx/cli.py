@@ -168,6 +168,29 @@ def _load(args: argparse.Namespace):
     return open_data(args.data, var=args.var, bbox=_bbox(args.bbox))
 
 
+def _fitted_part(model, data):
+    """``data`` without the snapshots after the model's last fitted one: DATA is "the data the
+    model was fitted on", so the snapshots ``fit --hold-out`` / ``--until`` kept out stay out
+    of the training (a note says how many were dropped)."""
+    X = getattr(model, "X_", None)
+    tdim = X.dims[-1] if hasattr(X, "dims") else None
+    if tdim is None or tdim not in data.dims or tdim not in X.coords:
+        return data
+    last = X[tdim].values[-1]
+    try:
+        keep = np.asarray(data[tdim].values <= last, dtype=bool)
+    except TypeError:  # times of different kinds (numbers against dates): take DATA as given
+        return data
+    if keep.all():
+        return data
+    if not keep.any():
+        raise UsageError(f"DATA starts after the model's last fitted snapshot ({last}): give "
+                         "the data the model was fitted on")
+    print(f"note: DATA cut to the {int(keep.sum())} snapshots up to the model's last fitted one "
+          f"({last}); the {int((~keep).sum())} later ones (held out of the fit) stay out")
+    return data.isel({tdim: np.flatnonzero(keep)})
+
+
 def _need_spatial(model, path: str, why: str) -> None:
     if getattr(model, "spatial_cov_", None) is None:
         raise UsageError(f"{why} needs a model fitted with a spatial covariance; {path} has none "
@@ -235,6 +258,7 @@ def _scale_option(args: argparse.Namespace) -> Any:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    from .glrm.selection import AutoUnavailable
 
     params = _model_params(args)
     (out,) = guard_paths([args.output], _input_files(args.data), args)
@@ -248,8 +272,18 @@ def cmd_fit(args: argparse.Namespace) -> int:
             note(f"the recommended temporal='auto' cannot run on these data ({why}); fitting "
                  "without dynamics (--temporal ar1|seasonal asks for them)")
             params["temporal"] = None
-    model = _fit_model(data, params, rank=args.rank, loss=args.loss, max_iter=args.max_iter,
-                       tol=args.tol, random_state=args.seed, progress=not args.quiet)
+    fit_kw = dict(rank=args.rank, loss=args.loss, max_iter=args.max_iter, tol=args.tol,
+                  random_state=args.seed, progress=not args.quiet)
+    try:
+        model = _fit_model(data, params, **fit_kw)
+    except AutoUnavailable as exc:  # a record too short for the validation's refits
+        if not (params["temporal"] == "auto" and args.temporal is None):
+            raise
+        note(f"the recommended temporal='auto' cannot run on these data "
+             f"({str(exc).split(';')[0]}); fitting without dynamics (--temporal ar1|seasonal "
+             "asks for them)")
+        params["temporal"] = None
+        model = _fit_model(data, params, **fit_kw)
     model.save(out)
     extras = [name if getattr(model, name) is True else f"{name}={getattr(model, name)}"
               for name in ("offset", "scale") if getattr(model, name)]
@@ -392,7 +426,7 @@ def cmd_place(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     if criterion == "gp-variance":
         _need_spatial(model, args.model, "--criterion gp-variance")
-    kw: dict = {"training": _load(args)} if criterion == "risk" else {}
+    kw: dict = {"training": _fitted_part(model, _load(args))} if criterion == "risk" else {}
     if args.traversable is not None:
         kw["traversable"] = read_traversable(args.traversable)
     if args.paper:  # the paper's Fisher greedy (no prior)

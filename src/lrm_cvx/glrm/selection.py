@@ -74,9 +74,9 @@ from .paired import (
     shared_cases,
 )
 
-__all__ = ["select_temporal", "paired_choice", "AUTO_ALPHAS", "AUTO_DESIGNS", "AUTO_SIZES",
-           "AUTO_INFLATIONS", "AUTO_RANKS", "REFERENCE_RANK", "memoryless_twin",
-           "MIN_AUTO_SNAPSHOTS", "MAX_SCORED", "REFIT_PAIRS",
+__all__ = ["select_temporal", "paired_choice", "AutoUnavailable", "AUTO_ALPHAS",
+           "AUTO_DESIGNS", "AUTO_SIZES", "AUTO_INFLATIONS", "AUTO_RANKS", "REFERENCE_RANK",
+           "memoryless_twin", "MIN_AUTO_SNAPSHOTS", "MAX_SCORED", "REFIT_PAIRS",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection"]
 
 AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
@@ -292,6 +292,9 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     if not 2 <= n_val <= T - 3:
         raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
     n_folds = max(1, min(int(n_folds), (T - 3) // n_val))
+    if ranks is None:  # the earliest refit must carry the model's rank (a short record)
+        n_val, n_folds = _windows(T, n_val, n_folds, _history_carries(
+            V, int(model.rank_), getattr(model, "offset_", None) is not None))
     rng = as_generator(seed)
 
     first_lo = T - n_folds * n_val  # the earliest window's history
@@ -371,6 +374,51 @@ def _candidate_models(sub: Any, kinds: Sequence[str], alphas: Sequence[float],
         models += [(kind, a, blend_dynamics(base, a, S)) for a in alphas
                    if not (kind == "ar1" and a == 0.0)]  # ar1:0 is memoryless itself
     return models
+
+
+class AutoUnavailable(ModelError):
+    """``temporal="auto"`` cannot validate on these training snapshots (too short a record
+    for a refit of the model's rank before any validation window). ``lrm-cvx fit``, whose
+    ``auto`` is a default, then fits without dynamics and says so."""
+
+
+def _history_carries(V: np.ndarray, rank: int, offset: bool):
+    """``lo -> bool``: whether a rank-``rank`` refit on the snapshots ``V[:lo]`` ``(T, L)``
+    leaves residual degrees of freedom (:func:`~lrm_cvx.glrm.fit.max_identifiable_rank`,
+    the fit's own check), from per-snapshot counts (no ``(lo, L)`` temporary)."""
+    from .fit import max_identifiable_rank
+
+    counts, seen_counts, seen = [], [], np.zeros(V.shape[1], dtype=bool)
+    for row in V:
+        f = np.isfinite(row)
+        counts.append(int(np.count_nonzero(f)))
+        seen |= f
+        seen_counts.append(int(np.count_nonzero(seen)))
+    n_obs = np.cumsum(counts)
+
+    def carries(lo: int) -> bool:
+        if lo < 1:
+            return False
+        L_obs = seen_counts[lo - 1]
+        return rank <= min(lo, L_obs) and max_identifiable_rank(
+            int(n_obs[lo - 1]), lo, L_obs, offset=offset) >= rank
+    return carries
+
+
+def _windows(T: int, n_val: int, n_folds: int, carries) -> tuple[int, int]:
+    """``(n_val, n_folds)``: the most windows (up to ``n_folds``) of ``n_val`` days, else one
+    shorter window (down to 2 days), whose earliest history ``carries`` a refit; raises
+    :class:`AutoUnavailable` when none does."""
+    for f in range(n_folds, 0, -1):
+        if carries(T - f * n_val):
+            return n_val, f
+    for v in range(n_val - 1, 1, -1):
+        if carries(T - v):
+            return v, 1
+    raise AutoUnavailable(f"temporal='auto' cannot validate on {T} snapshots: a refit of the "
+                          f"model's rank on the snapshots before a validation window (at most "
+                          f"{T - 2}) would leave no residual degrees of freedom; pass "
+                          "temporal=None or 'ar1', or a lower rank")
 
 
 def _check_ranks(ranks: Sequence[int] | None, history: int, n_cells: int
