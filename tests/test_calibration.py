@@ -429,3 +429,29 @@ def test_moved_names_still_import_from_calibration():
                                    "select_dynamics"))):
         for name in names:
             assert getattr(calibration, name) is getattr(mod, name), name
+
+
+def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry():
+    """The forward folds refit on the snapshots before each block: on a short record the
+    earliest blocks cannot carry the model's rank and are skipped (the residuals come from
+    the others, equal to a calibration that never had them); with none left, one ModelError
+    says why (before, the refit's own error surfaced, naming the refit's snapshot count)."""
+    from lrm_cvx.glrm.calibration import cv_residuals
+    from lrm_cvx.glrm.refits import refit_carries
+
+    data = _planted(T=12, ny=6, nx=7, k=3)
+    model = GLRM(rank=5, offset=True, random_state=0, progress=False).fit(data)
+    V = model.region_.stack(data)
+    blocks = np.array_split(np.arange(12), 6)[3:]  # the forward folds of n_blocks=6
+    kept = [b for b in blocks if refit_carries(V[:b[0]], 5, True)]
+    assert 0 < len(kept) < len(blocks)  # the first block is too early for rank 5
+    z = cv_residuals(model, data, n_blocks=6, folds="forward", sizes=(5,),
+                     kinds=("scattered",), max_snapshots=1)
+    assert z.size > 0 and np.all(np.isfinite(z))
+    cal = calibrate(model, data, n_blocks=6, sizes=(5,), kinds=("scattered",), max_snapshots=2,
+                    method="conformal", folds="forward", residual=False, adaptive=False)
+    assert cal.scale > 0
+    deep = GLRM(rank=10, offset=True, random_state=0, progress=False).fit(data)
+    with pytest.raises(ModelError, match="cannot refit rank 10 on the snapshots before") as err:
+        cv_residuals(deep, data, n_blocks=6, folds="forward", sizes=(5,), kinds=("scattered",))
+    assert "\n" not in str(err.value)

@@ -356,19 +356,26 @@ def test_a_short_record_validates_on_the_windows_its_refits_can_carry(persistent
     """The earliest refit must leave residual degrees of freedom at the model's rank: a short
     record gets fewer (or shorter) validation windows instead of a refit's error, and a record
     too short for any gets :class:`AutoUnavailable` (a one-line ModelError) naming the cause.
-    Here rank 3 with an offset on 72 cells needs 5 snapshots before a window."""
-    from lrm_cvx.glrm.fit import max_identifiable_rank
-    from lrm_cvx.glrm.selection import AutoUnavailable, _history_carries, _windows
+    ``refit_carries`` is checked against the fit itself: it says True exactly where
+    ``GLRM(rank=3, offset=True).fit`` of the first ``lo`` snapshots succeeds."""
+    from lrm_cvx.glrm.refits import refit_carries
+    from lrm_cvx.glrm.selection import AutoUnavailable, _windows
 
     V = persistent_field.values.reshape(persistent_field.shape[0], -1)
-    carries = _history_carries(V, 3, True)
-    for lo in range(1, 12):  # the counts' check against the fit's own, on the snapshots
-        M = np.isfinite(V[:lo])
-        L_obs = int(M.any(axis=0).sum())
-        want = 3 <= min(lo, L_obs) and max_identifiable_rank(int(M.sum()), lo, L_obs,
-                                                             offset=True) >= 3
-        assert carries(lo) == want
+
+    def fits(lo):
+        try:
+            _fit(persistent_field.isel(time=slice(0, lo)), rank=3, offset=True, max_iter=2)
+        except ModelError:
+            return False
+        return True
+
+    def carries(lo):
+        return lo >= 1 and refit_carries(V[:lo], 3, True)
+
+    assert [carries(lo) for lo in range(2, 9)] == [fits(lo) for lo in range(2, 9)]
     first = next(lo for lo in range(1, 12) if carries(lo))
+    assert first > 3  # the check has something to decide here
     assert _windows(first + 6, 3, 2, carries) == (3, 2)       # room for both windows
     assert _windows(first + 5, 3, 2, carries) == (3, 1)       # one window of 3 days
     assert _windows(first + 2, 3, 2, carries) == (2, 1)       # one window of 2 days

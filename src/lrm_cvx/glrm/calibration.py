@@ -59,7 +59,7 @@ from .calibrated import (  # noqa: F401  (re-exported: the old import location)
     variance_scale,
 )
 from .designs import ALL_KINDS, SET_KINDS, flown_sets, sample_sets  # noqa: F401  (re-exported)
-from .refits import clone_model, training_values, validation_view
+from .refits import clone_model, refit_carries, training_values, validation_view
 
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
            "blend_dynamics", "select_dynamics", "unblended_dynamics",
@@ -153,6 +153,9 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     else:  # interleaved folds: every n_blocks-th snapshot
         blocks = [np.arange(b, T, int(n_blocks)) for b in range(int(n_blocks))]
     out: list[np.ndarray] = []
+    rank = int(model.rank_)
+    offset = getattr(model, "offset_", None) is not None
+    too_short = 0  # blocks whose refit could not carry the model's rank (a short record)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for block in blocks:
@@ -160,6 +163,9 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                 train_idx = np.arange(block[0])
             else:
                 train_idx = np.setdiff1d(np.arange(T), block)
+            if not refit_carries(V[train_idx], rank, offset):
+                too_short += 1
+                continue
             has_t = "temporal" in model.get_params()
             # the filter's refits are fitted with AR(1) (no nested selection), then given the
             # model's kind and blend (refit_dynamics)
@@ -207,6 +213,10 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                         if len(recs) == len(bases):
                             out.append(recs if residual_scales is not None else recs[1.0])
     if not out:
+        if too_short:
+            raise ModelError(f"calibration cannot refit rank {rank} on the snapshots before "
+                             f"{too_short} of its {len(blocks)} blocks (a record of {T} is too "
+                             "short for them); pass fewer n_blocks or a lower rank")
         raise ModelError("calibration produced no held-out residuals")
     if temporal is not None:
         z_t = np.concatenate([p[0] for p in out])

@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import DataError, ModelError
 
 __all__ = ["clone_model", "training_values", "validation_window", "validation_view",
-           "validation_data", "VALIDATION_MAX_CELLS"]
+           "validation_data", "refit_carries", "VALIDATION_MAX_CELLS"]
 
 VALIDATION_MAX_CELLS = 200_000
 """The most cells a validation's refits read (``temporal="auto"``, the calibration,
@@ -43,6 +43,20 @@ def clone_model(model: Any, **override: Any):
         params["anisotropy"] = float(model.spatial_cov_.anisotropy)
     params = {**params, "progress": False, **override}
     return type(model)(**params)
+
+
+def refit_carries(V: np.ndarray, rank: int, offset: bool) -> bool:
+    """Whether a rank-``rank`` refit on the snapshots ``V`` ``(t, L)`` (NaN missing) leaves
+    residual degrees of freedom: the fit's own check
+    (:func:`~lrm_cvx.glrm.fit.max_identifiable_rank`), made before a validation refits, so a
+    short record skips what it cannot refit instead of failing with the refit's error."""
+    from .fit import max_identifiable_rank
+
+    M = np.isfinite(V)
+    n_obs, L_obs = int(np.count_nonzero(M)), int(np.count_nonzero(M.any(axis=0)))
+    t = int(V.shape[0])
+    return 1 <= rank <= min(t, L_obs) and max_identifiable_rank(n_obs, t, L_obs,
+                                                                offset=offset) >= rank
 
 
 def training_values(model: Any, data: Any, dtype: Any = np.float64):

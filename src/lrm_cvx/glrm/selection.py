@@ -253,7 +253,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``choice_rank``).
     """
     from .dynamics import TEMPORAL, check_times
-    from .refits import clone_model, training_values, validation_view
+    from .refits import clone_model, refit_carries, training_values, validation_view
 
     model, data, values = validation_view(model, data, values)  # a large region: a window
     # one stacking pass, float32 as region.stack gives it (the scoring promotes the values
@@ -293,8 +293,9 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
         raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
     n_folds = max(1, min(int(n_folds), (T - 3) // n_val))
     if ranks is None:  # the earliest refit must carry the model's rank (a short record)
-        n_val, n_folds = _windows(T, n_val, n_folds, _history_carries(
-            V, int(model.rank_), getattr(model, "offset_", None) is not None))
+        rank, offset = int(model.rank_), getattr(model, "offset_", None) is not None
+        n_val, n_folds = _windows(T, n_val, n_folds,
+                                  lambda lo: lo >= 1 and refit_carries(V[:lo], rank, offset))
     rng = as_generator(seed)
 
     first_lo = T - n_folds * n_val  # the earliest window's history
@@ -380,29 +381,6 @@ class AutoUnavailable(ModelError):
     """``temporal="auto"`` cannot validate on these training snapshots (too short a record
     for a refit of the model's rank before any validation window). ``lrm-cvx fit``, whose
     ``auto`` is a default, then fits without dynamics and says so."""
-
-
-def _history_carries(V: np.ndarray, rank: int, offset: bool):
-    """``lo -> bool``: whether a rank-``rank`` refit on the snapshots ``V[:lo]`` ``(T, L)``
-    leaves residual degrees of freedom (:func:`~lrm_cvx.glrm.fit.max_identifiable_rank`,
-    the fit's own check), from per-snapshot counts (no ``(lo, L)`` temporary)."""
-    from .fit import max_identifiable_rank
-
-    counts, seen_counts, seen = [], [], np.zeros(V.shape[1], dtype=bool)
-    for row in V:
-        f = np.isfinite(row)
-        counts.append(int(np.count_nonzero(f)))
-        seen |= f
-        seen_counts.append(int(np.count_nonzero(seen)))
-    n_obs = np.cumsum(counts)
-
-    def carries(lo: int) -> bool:
-        if lo < 1:
-            return False
-        L_obs = seen_counts[lo - 1]
-        return rank <= min(lo, L_obs) and max_identifiable_rank(
-            int(n_obs[lo - 1]), lo, L_obs, offset=offset) >= rank
-    return carries
 
 
 def _windows(T: int, n_val: int, n_folds: int, carries) -> tuple[int, int]:
