@@ -45,16 +45,16 @@ def clone_model(model: Any, **override: Any):
     return type(model)(**params)
 
 
-def refit_carries(V: np.ndarray, rank: int, offset: bool) -> bool:
-    """Whether a rank-``rank`` refit on the snapshots ``V`` ``(t, L)`` (NaN missing) leaves
-    residual degrees of freedom: the fit's own check
+def refit_carries(observed: np.ndarray, rank: int, offset: bool) -> bool:
+    """Whether a rank-``rank`` refit on snapshots observed where ``observed`` ``(t, L)`` (bool)
+    is True leaves residual degrees of freedom: the fit's own check
     (:func:`~lrm_cvx.glrm.fit.max_identifiable_rank`), made before a validation refits, so a
     short record skips what it cannot refit instead of failing with the refit's error."""
     from .fit import max_identifiable_rank
 
-    M = np.isfinite(V)
+    M = np.asarray(observed, dtype=bool)
     n_obs, L_obs = int(np.count_nonzero(M)), int(np.count_nonzero(M.any(axis=0)))
-    t = int(V.shape[0])
+    t = int(M.shape[0])
     return 1 <= rank <= min(t, L_obs) and max_identifiable_rank(n_obs, t, L_obs,
                                                                 offset=offset) >= rank
 

@@ -295,7 +295,8 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     if ranks is None:  # the earliest refit must carry the model's rank (a short record)
         rank, offset = int(model.rank_), getattr(model, "offset_", None) is not None
         n_val, n_folds = _windows(T, n_val, n_folds,
-                                  lambda lo: lo >= 1 and refit_carries(V[:lo], rank, offset))
+                                  lambda lo: lo >= 1 and refit_carries(np.isfinite(V[:lo]),
+                                                                  rank, offset))
     rng = as_generator(seed)
 
     first_lo = T - n_folds * n_val  # the earliest window's history
