@@ -294,9 +294,11 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     n_folds = max(1, min(int(n_folds), (T - 3) // n_val))
     if ranks is None:  # the earliest refit must carry the model's rank (a short record)
         rank, offset = int(model.rank_), getattr(model, "offset_", None) is not None
-        n_val, n_folds = _windows(T, n_val, n_folds,
-                                  lambda lo: lo >= 1 and refit_carries(np.isfinite(V[:lo]),
-                                                                  rank, offset))
+
+        def carries(lo: int) -> bool:  # a refit on the snapshots before lo
+            return lo >= 1 and refit_carries(np.isfinite(V[:lo]), rank, offset)
+
+        n_val, n_folds = _windows(T, n_val, n_folds, carries)
     rng = as_generator(seed)
 
     first_lo = T - n_folds * n_val  # the earliest window's history
