@@ -210,6 +210,21 @@ def test_cli_place_default_is_the_recommended_and_paper_the_fisher(tmp_path, cap
     assert "DATA cut to the 9 snapshots" in text and "the 3 later ones" in text
     ref = place_sensors(GLRM.load(held), 4, training=da.isel(time=slice(None, -3)))
     assert pd.read_csv(out3)["cell"].tolist() == ref.cells.tolist()
+    # too few snapshots for the validation (rank 2 + offset: 5 to refit, 3 held out): the
+    # default places by risk with the recommended exchange, with a note, not an error
+    short = tmp_path / "short.nc"
+    assert main(["-q", "fit", str(data), "--rank", "2", "--recommended", "--hold-out", "5",
+                 "-o", str(short)]) == 0
+    capsys.readouterr()
+    out4 = tmp_path / "short.csv"
+    assert main(["-q", "place", str(short), str(data), "--sensors", "4", "-o", str(out4)]) == 0
+    text = capsys.readouterr().out
+    assert "cannot validate its criterion on these data (criterion='auto' validates on the " \
+           "training snapshots: training has 7" in text and "placing by risk" in text
+    m = GLRM.load(short)
+    ref = place_sensors(m.Y_, m.region_, 4, prior=m, training=da.isel(time=slice(None, -5)))
+    assert ref.criterion == "risk" and ref.method == "greedy+exchange"
+    assert pd.read_csv(out4)["cell"].tolist() == ref.cells.tolist()
 
 
 def test_default_exchanges_with_as_many_sensors_as_training_snapshots(fitted):

@@ -433,9 +433,17 @@ def cmd_place(args: argparse.Namespace) -> int:
         plan = place_sensors(model, args.sensors, paper=True, progress=not args.quiet, **kw)
     elif args.criterion is None and criterion == "risk":
         # the recommended default: the criterion validated on DATA (risk + the exchange with
-        # --exchange)
-        plan = place_sensors(model, args.sensors, exchange=True if args.exchange else None,
-                             sweeps=args.sweeps, progress=not args.quiet, **kw)
+        # --exchange); on too short a record, risk without the validation
+        from .planning.static_auto import auto_unavailable
+
+        why = None if args.exchange else auto_unavailable(model, kw["training"].sizes["time"])
+        if why is not None:  # the (Y, region, n) form's default: risk, the recommended exchange
+            note(f"the recommended placement cannot validate its criterion on these data "
+                 f"({why}); placing by risk")
+        where = (model,) if why is None else (model.Y_, model.region_)
+        plan = place_sensors(*where, args.sensors, exchange=True if args.exchange else None,
+                             prior=None if why is None else model, sweeps=args.sweeps,
+                             progress=not args.quiet, **kw)
     else:
         prior = model.latent_prior("empirical", spatial=getattr(model, "spatial_cov_", None)
                                    is not None and criterion in ("gp-variance", "risk"))

@@ -55,8 +55,8 @@ from ..errors import PlanningError
 from ..glrm.paired import paired_difference
 
 __all__ = ["AUTO_CANDIDATES", "AUTO_CONFIDENCE", "AUTO_MAX_BLOCK", "AUTO_MAX_CELLS",
-           "AUTO_MIN_BLOCK", "AUTO_MIN_FIT", "AUTO_WINDOWS", "format_placement_selection",
-           "select_criterion", "validation_windows"]
+           "AUTO_MIN_BLOCK", "AUTO_MIN_FIT", "AUTO_WINDOWS", "auto_unavailable",
+           "format_placement_selection", "select_criterion", "validation_windows"]
 
 AUTO_CANDIDATES: dict[str, tuple[str, Any]] = {
     "risk+exchange": ("risk", "auto"),
@@ -95,6 +95,25 @@ def validation_windows(n_snapshots: int, min_fit: int = AUTO_MIN_FIT) -> list[tu
                             "more training snapshots or criterion='risk'")
     k = max(1, min(AUTO_WINDOWS, (T - min_fit) // h))
     return [(T - (j + 1) * h, T - j * h) for j in reversed(range(k))]
+
+
+def _min_fit(model: Any) -> int:
+    """Fewest snapshots a refit before a window needs: more than its parameters per cell."""
+    from ..glrm.calibrated import parameters_per_cell
+
+    nk = parameters_per_cell(model)
+    return (0 if nk is None else nk[1]) + 2
+
+
+def auto_unavailable(model: Any, n_snapshots: int) -> str | None:
+    """Why ``criterion="auto"`` cannot validate a placement from ``model`` on ``n_snapshots``
+    training snapshots (too few for one refit and one held-out block), or None. ``lrm-cvx
+    place``, whose ``auto`` is a default, then places by ``"risk"`` with a note."""
+    try:
+        validation_windows(n_snapshots, min_fit=_min_fit(model))
+    except PlanningError as exc:
+        return str(exc).split(";")[0]
+    return None
 
 
 def _refit(model: Any, V: np.ndarray, region: Any) -> Any:
@@ -141,12 +160,8 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
                    "without validation")
     elif len(labels) == 1:
         skipped = "the model has no spatial residual: risk (the only candidate)"
-    from ..glrm.calibrated import parameters_per_cell
-
     # a refit needs residual degrees of freedom: more snapshots than its k parameters per cell
-    nk = parameters_per_cell(model)
-    free = 0 if nk is None else nk[1]
-    windows = [] if skipped else validation_windows(V.shape[0], min_fit=free + 2)
+    windows = [] if skipped else validation_windows(V.shape[0], min_fit=_min_fit(model))
     mse = np.full((len(labels), len(windows)), np.nan)
     held_t = np.concatenate([np.arange(a, b) for a, b in windows]) if windows \
         else np.zeros(0, np.int64)
