@@ -1,5 +1,7 @@
 """Evaluation protocol: exact fold-in errors, protocol invariants, summary, persistence."""
 
+import warnings
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -121,3 +123,17 @@ def test_bad_arguments():
         evaluate(da, rank=3, methods=("greedy", "spiral"), progress=False)
     with pytest.raises(DataError):
         evaluate(da.isel(time=0), progress=False)
+
+
+def test_a_budget_whose_plans_are_all_unscored_warns():
+    """Plans of 2 grid units observe 3 cells, fewer than min_observations=10: every error at
+    that budget is NaN, and one warning says why (none for the budget that scores)."""
+    with pytest.warns(UserWarning, match="budget 2: no plan observes min_observations=10"):
+        ds = evaluate(planted(), rank=3, n_test=4, budgets=(2, 40), n_starts=2,
+                      random_trials=1, min_observations=10, seed=1, progress=False, paper=True)
+    assert np.isnan(ds["mse"].sel(budget=2)).all()
+    assert np.isfinite(ds["mse"].sel(budget=40)).any()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        evaluate(planted(), rank=3, n_test=4, budgets=(40,), n_starts=2, random_trials=1,
+                 min_observations=10, seed=1, progress=False, paper=True)

@@ -324,7 +324,19 @@ class EvaluationProtocol:
         fit = self._fit()
         starts, fleets = self._starts(fit.region)
         results = self._plan_all(fit, starts, fleets)
+        self._warn_unscored(results)
         return self._dataset(fit, starts, fleets, results)
+
+    def _warn_unscored(self, res: _Results) -> None:
+        """One UserWarning per budget at which no plan reaches ``min_observations`` on any
+        test snapshot: every error there is NaN, which a table alone would not explain."""
+        m = max(self.min_observations, 1)
+        for b, budget in enumerate(self.budgets):
+            if not (res.n_obs[:, b] >= m).any():
+                warnings.warn(f"budget {budget:g}: no plan observes min_observations={m} "
+                              "cells on any test snapshot, so every error at this budget is "
+                              "NaN; raise the budget or lower min_observations",
+                              UserWarning, stacklevel=4)
 
     def _fit(self) -> _Fitted:
         """The split, the model (fitted on the training snapshots unless given) and the test
