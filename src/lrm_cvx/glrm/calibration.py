@@ -156,7 +156,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     rank = int(model.rank_)
     offset = getattr(model, "offset_", None) is not None
     too_short = 0  # blocks whose refit could not carry the model's rank (a short record)
-    observed = np.isfinite(V)
+    finite = np.isfinite(V)  # (T, L): what each refit would see
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for block in blocks:
@@ -164,7 +164,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                 train_idx = np.arange(block[0])
             else:
                 train_idx = np.setdiff1d(np.arange(T), block)
-            if not refit_carries(observed[train_idx], rank, offset):
+            if not refit_carries(finite[train_idx], rank, offset):
                 too_short += 1
                 continue
             has_t = "temporal" in model.get_params()
