@@ -431,7 +431,7 @@ def test_moved_names_still_import_from_calibration():
             assert getattr(calibration, name) is getattr(mod, name), name
 
 
-def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry():
+def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry(monkeypatch):
     """The forward folds refit on the snapshots before each block: on a short record the
     earliest blocks cannot carry the model's rank and are skipped (the residuals come from
     the others, equal to a calibration that never had them); with none left, one ModelError
@@ -445,8 +445,18 @@ def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry():
     blocks = np.array_split(np.arange(12), 6)[3:]  # the forward folds of n_blocks=6
     kept = [b for b in blocks if refit_carries(np.isfinite(V[:b[0]]), 5, True)]
     assert 0 < len(kept) < len(blocks)  # the first block is too early for rank 5
+    refits = []
+    fit = GLRM.fit
+
+    def counted(self, data, *a, **k):
+        refits.append(data.sizes["time"])
+        return fit(self, data, *a, **k)
+
+    monkeypatch.setattr(GLRM, "fit", counted)
     z = cv_residuals(model, data, n_blocks=6, folds="forward", sizes=(5,),
                      kinds=("scattered",), max_snapshots=1)
+    monkeypatch.undo()
+    assert refits == [int(b[0]) for b in kept]  # exactly the blocks that can be refitted
     assert z.size > 0 and np.all(np.isfinite(z))
     cal = calibrate(model, data, n_blocks=6, sizes=(5,), kinds=("scattered",), max_snapshots=2,
                     method="conformal", folds="forward", residual=False, adaptive=False)
