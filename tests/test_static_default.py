@@ -199,32 +199,30 @@ def test_cli_place_default_is_the_recommended_and_paper_the_fisher(tmp_path, cap
         place_sensors(model.Y_, model.region_, 4).cells.tolist()
     assert main(["-q", "place", str(model_path), str(data), "--paper", "--sensors", "4"]) == 2
     assert "--paper" in capsys.readouterr().err
+    def fit_then_place(hold_out: int):
+        """Fit with --hold-out, place on the whole file: (model, cells placed, printed)."""
+        fitted, placed = tmp_path / f"held{hold_out}.nc", tmp_path / f"held{hold_out}.csv"
+        assert main(["-q", "fit", str(data), "--rank", "2", "--recommended", "--hold-out",
+                     str(hold_out), "-o", str(fitted)]) == 0
+        capsys.readouterr()
+        assert main(["-q", "place", str(fitted), str(data), "--sensors", "4", "-o",
+                     str(placed)]) == 0
+        return (GLRM.load(fitted), pd.read_csv(placed)["cell"].tolist(),
+                capsys.readouterr().out)
+
     # a model fitted with --hold-out: DATA's later snapshots stay out of the placement
-    held = tmp_path / "held.nc"
-    assert main(["-q", "fit", str(data), "--rank", "2", "--recommended", "--hold-out", "3",
-                 "-o", str(held)]) == 0
-    capsys.readouterr()
-    out3 = tmp_path / "held.csv"
-    assert main(["-q", "place", str(held), str(data), "--sensors", "4", "-o", str(out3)]) == 0
-    text = capsys.readouterr().out
+    held, cells, text = fit_then_place(3)
     assert "DATA cut to the 9 snapshots" in text and "the 3 later ones" in text
-    ref = place_sensors(GLRM.load(held), 4, training=da.isel(time=slice(None, -3)))
-    assert pd.read_csv(out3)["cell"].tolist() == ref.cells.tolist()
+    ref = place_sensors(held, 4, training=da.isel(time=slice(None, -3)))
+    assert cells == ref.cells.tolist()
     # too few snapshots for the validation (rank 2 + offset: 5 to refit, 3 held out): the
     # default places by risk with the recommended exchange, with a note, not an error
-    short = tmp_path / "short.nc"
-    assert main(["-q", "fit", str(data), "--rank", "2", "--recommended", "--hold-out", "5",
-                 "-o", str(short)]) == 0
-    capsys.readouterr()
-    out4 = tmp_path / "short.csv"
-    assert main(["-q", "place", str(short), str(data), "--sensors", "4", "-o", str(out4)]) == 0
-    text = capsys.readouterr().out
+    m, cells, text = fit_then_place(5)
     assert "cannot validate its criterion on these data (criterion='auto' validates on the " \
            "training snapshots: training has 7" in text and "placing by risk" in text
-    m = GLRM.load(short)
     ref = place_sensors(m.Y_, m.region_, 4, prior=m, training=da.isel(time=slice(None, -5)))
     assert ref.criterion == "risk" and ref.method == "greedy+exchange"
-    assert pd.read_csv(out4)["cell"].tolist() == ref.cells.tolist()
+    assert cells == ref.cells.tolist()
 
 
 def test_default_exchanges_with_as_many_sensors_as_training_snapshots(fitted):

@@ -186,8 +186,8 @@ def _fitted_part(model, data):
     if not keep.any():
         raise UsageError(f"DATA starts after the model's last fitted snapshot ({last}): give "
                          "the data the model was fitted on")
-    print(f"note: DATA cut to the {int(keep.sum())} snapshots up to the model's last fitted one "
-          f"({last}); the {int((~keep).sum())} later ones (held out of the fit) stay out")
+    note(f"DATA cut to the {int(keep.sum())} snapshots up to the model's last fitted one "
+         f"({last}); the {int((~keep).sum())} later ones (held out of the fit) stay out")
     return data.isel({tdim: np.flatnonzero(keep)})
 
 
@@ -263,26 +263,26 @@ def cmd_fit(args: argparse.Namespace) -> int:
     params = _model_params(args)
     (out,) = guard_paths([args.output], _input_files(args.data), args)
     data = _hold_out(_load(args), args)
-    if params["temporal"] == "auto" and args.temporal is None:  # the recommended default
+    default_auto = params["temporal"] == "auto" and args.temporal is None
+
+    def without_dynamics(why: str) -> None:  # the recommended default cannot run here
+        note(f"the recommended temporal='auto' cannot run on these data ({why.split(';')[0]}); "
+             "fitting without dynamics (--temporal ar1|seasonal asks for them)")
+        params["temporal"] = None
+
+    if default_auto:
         from .glrm.selection import auto_unavailable
 
-        why = auto_unavailable(data)
-        if why is not None:
-            why = why.split(";")[0]  # the reason, not the library's advice
-            note(f"the recommended temporal='auto' cannot run on these data ({why}); fitting "
-                 "without dynamics (--temporal ar1|seasonal asks for them)")
-            params["temporal"] = None
+        if (why := auto_unavailable(data)) is not None:  # found before any fit
+            without_dynamics(why)
     fit_kw = dict(rank=args.rank, loss=args.loss, max_iter=args.max_iter, tol=args.tol,
                   random_state=args.seed, progress=not args.quiet)
     try:
         model = _fit_model(data, params, **fit_kw)
     except AutoUnavailable as exc:  # a record too short for the validation's refits
-        if not (params["temporal"] == "auto" and args.temporal is None):
+        if not default_auto:
             raise
-        note(f"the recommended temporal='auto' cannot run on these data "
-             f"({str(exc).split(';')[0]}); fitting without dynamics (--temporal ar1|seasonal "
-             "asks for them)")
-        params["temporal"] = None
+        without_dynamics(str(exc))
         model = _fit_model(data, params, **fit_kw)
     model.save(out)
     extras = [name if getattr(model, name) is True else f"{name}={getattr(model, name)}"
