@@ -7,8 +7,9 @@
    model's ``Y``), exponential residual covariance of range 5 and 20 cells, budgets 50 and 200,
    ``initial="start"``, cheapest-insertion and nearest-neighbour costs: oracle set-up seconds,
    total plan seconds, seconds per pick, |P|, peak RSS, and the seconds of the recommended
-   check against the four straight transects (``refine="lines"``: five routes' criterion
-   values, planning/lines.py) with the route it keeps.
+   planner (``refine="rivals"``: the greedy, a second greedy pass with ``cost_exponent=0.5``,
+   the four straight transects and the six routes' criterion values, planning/lines.py)
+   with the route it keeps.
 
     flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_gp_planner.py [--small]
 """
@@ -26,9 +27,7 @@ from lrm_cvx import Region
 from lrm_cvx.information import GPVarianceOracle, StructuredGPVarianceOracle
 from lrm_cvx.io.samples import synthetic_field
 from lrm_cvx.planning import plan_greedy
-from lrm_cvx.planning.baselines import DIRECTIONS, transect
 from lrm_cvx.planning.greedy import budget_pool
-from lrm_cvx.planning.lines import route_values
 from lrm_cvx.spatial import ResidualCovariance
 
 S0 = np.diag([1.0, 0.5, 0.25, 0.12, 0.06])  # prior covariance of x (decaying mode variances)
@@ -98,19 +97,6 @@ def agreement(shape: tuple[int, int], budget: float) -> None:
               f"{plans[0].cells.tolist() == plans[1].cells.tolist()} (|P| = {len(plans[0])})")
 
 
-def lines_check(Y: np.ndarray, region: Region, start: int, budget: float,
-                cov: ResidualCovariance, plan) -> tuple[str, float]:
-    """What ``refine="lines"`` adds to a plan: the four transects flown and the five routes'
-    gp-variance values (the route with the lowest one is kept)."""
-    extra = dict(region=region, spatial_cov=cov, prior_cov=S0)
-    routes = {"greedy": plan.cells}
-    routes.update({f"transect-{d}": transect(region, start, budget, d).cells
-                   for d in DIRECTIONS})
-    values = route_values("gp-variance", Y, 0.0, routes, extra)
-    best = min(values, key=values.get)
-    return best, values[best]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--small", action="store_true", help="quick smoke run (300 x 280)")
@@ -127,7 +113,7 @@ def main() -> None:
     print(f"grid {shape[0]} x {shape[1]}, {region.n_cells} land cells, rank 5, start "
           f"{tuple(region.grid_index[start].tolist())}; setup {time.perf_counter() - t0:.1f} s")
     print(f"{'range':>5} {'budget':>6} {'cost':>17} {'pool':>7} {'oracle set-up s':>15} "
-          f"{'plan s':>8} {'|P|':>4} {'s/pick':>7} {'route':>7} {'lines s':>7} {'kept':>14} "
+          f"{'plan s':>8} {'|P|':>4} {'s/pick':>7} {'route':>7} {'rivals s':>8} {'kept':>15} "
           f"{'peak GiB':>8}")
     for r in (5.0, 20.0):
         cov = _cov(r)
@@ -147,12 +133,14 @@ def main() -> None:
                 sec = time.perf_counter() - t
                 n = max(len(plan) - 1, 1)
                 t = time.perf_counter()
-                kept, value = lines_check(Y, region, start, budget, cov, plan)
-                t_lines = time.perf_counter() - t
+                best = plan_greedy(Y, region, start, budget, criterion="gp-variance",
+                                   prior_cov=S0, spatial_cov=cov, initial="start", cost=cost,
+                                   progress=False, refine="rivals")
+                t_rivals = time.perf_counter() - t
                 print(f"{r:5g} {budget:6g} {cost:>17} {pool.size:7d} {t_setup:15.2f} "
                       f"{sec:8.2f} {len(plan):4d} {(sec - t_setup) / n:7.3f} "
-                      f"{plan.cost:7.2f} {t_lines:7.2f} {kept:>14} {_peak_gib():8.2f}",
-                      flush=True)
+                      f"{plan.cost:7.2f} {t_rivals:8.2f} {best.rivals['chosen']:>15} "
+                      f"{_peak_gib():8.2f}", flush=True)
     print(f"peak RSS {_peak_gib():.2f} GiB")
 
 

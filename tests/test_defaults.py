@@ -170,7 +170,7 @@ def test_plan_greedy_on_a_model_is_the_recommended_planner(spatial_model):
                        initial=RECOMMENDED["initial"], refine=RECOMMENDED["refine"],
                        progress=False,
                        **m.planner_kwargs(prior=RECOMMENDED["prior"], spatial=True))
-    assert got.rivals["criterion"] == "gp-variance" and len(got.rivals["values"]) == 5
+    assert got.rivals["criterion"] == "gp-variance" and len(got.rivals["values"]) == 6
     same_plan(got, want)
     # the region may be given, start / budget by keyword
     same_plan(plan_greedy(m, m.region_, 5, 9.0, progress=False), want)
@@ -200,14 +200,14 @@ def test_plan_greedy_explicit_arguments_win(spatial_model):
     # over the recommended criterion: the recommended prior stays, without the residual terms
     c = plan_greedy(m, 5, 9.0, criterion="fisher", progress=False)
     d = plan_greedy(m.Y_, m.region_, 5, 9.0, criterion="fisher", initial="start",
-                    prior=m.latent_prior("empirical"), refine="lines", progress=False)
+                    prior=m.latent_prior("empirical"), refine="rivals", progress=False)
     same_plan(c, d)
     # a given prior wins over the recommended one
     flat = m.latent_prior(None)
     same_plan(plan_greedy(m, 5, 9.0, criterion="fisher", prior=flat, ridge=1e-3,
                           progress=False),
               plan_greedy(m.Y_, m.region_, 5, 9.0, criterion="fisher", initial="start",
-                          prior=flat, ridge=1e-3, refine="lines", progress=False))
+                          prior=flat, ridge=1e-3, refine="rivals", progress=False))
 
 
 def test_plan_greedy_model_without_residual_plans_fisher_on_the_empirical_prior(plain_model):

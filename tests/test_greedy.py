@@ -27,9 +27,9 @@ def neg_total_variance(Y, cells, ridge):
     return -np.trace(np.linalg.solve(M, Y @ Y.T))
 
 
-def naive_greedy(Y, g, start, budget, criterion, ridge, cost):
+def naive_greedy(Y, g, start, budget, criterion, ridge, cost, exponent=1.0):
     """The paper's algorithm literally: every cell, every tour and every criterion value
-    recomputed from scratch at every iteration."""
+    recomputed from scratch at every iteration (the ratio's cost raised to ``exponent``)."""
     k, L = Y.shape
     d2 = ((g - g[start]) ** 2).sum(1)
     P = [int(c) for c in np.lexsort((np.arange(L), d2))[:k]]
@@ -55,7 +55,7 @@ def naive_greedy(Y, g, start, budget, criterion, ridge, cost):
                 c1 = options[pos]
             if c1 > budget + 1e-9:
                 continue
-            ratio = (value(Y, P + [x], ridge) - i0) / max(c1 - c0, 1e-12)
+            ratio = (value(Y, P + [x], ridge) - i0) / max(c1 - c0, 1e-12) ** exponent
             if best is None or ratio > best[0]:
                 best = (ratio, x, pos)
         if best is None or not best[0] > 0:
@@ -195,6 +195,38 @@ def test_budget_below_initial_cost_warns_and_returns_initial_set(problem):
     assert plan.history["cell"].size == 0
 
 
+@pytest.mark.parametrize("exponent", [0.0, 0.5, 0.8])
+def test_cost_exponent_equals_naive(exponent):
+    """``cost_exponent`` (the gentler greedy of ``refine="rivals"``) against the naive loop with
+    the same ratio ``gain / increase ** e``; e = 0 is the plain-gain greedy."""
+    rng = np.random.default_rng(7)
+    picks, differ = 0, 0
+    for _ in range(25):
+        ny, nx = (int(v) for v in rng.integers(4, 12, 2))
+        region = make_region(rng.random((ny, nx)) < 0.85)
+        if region.n_cells < 8:
+            continue
+        Y = rng.standard_normal((3, region.n_cells))
+        start = int(rng.integers(region.n_cells))
+        budget = float(rng.choice([5.0, 8.0, 12.0]))
+        criterion = str(rng.choice(["fisher", "a-optimal"]))
+        cost = str(rng.choice(["nearest-neighbor", "insertion"]))
+        kw = dict(criterion=criterion, cost=cost, ridge=1e-3, progress=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            plan = plan_greedy(Y, region, start, budget, cost_exponent=exponent, **kw)
+            paper = plan_greedy(Y, region, start, budget, **kw)
+        ref, ref_route = naive_greedy(Y, region.grid_index, start, budget, criterion, 1e-3,
+                                      cost, exponent)
+        assert plan.cells.tolist() == ref, (criterion, cost, budget)
+        if cost == "insertion":
+            assert plan.route.tolist() == ref_route
+        assert plan.cost <= budget + 1e-9
+        picks += len(ref) - 3
+        differ += plan.cells.tolist() != paper.cells.tolist()
+    assert picks > 100 and differ >= 3  # the exponent changes the picks
+
+
 def test_greedy_errors(problem):
     Y, region, start = problem
     for bad in (-1.0, np.nan, np.inf, "ten"):
@@ -208,6 +240,9 @@ def test_greedy_errors(problem):
         plan_greedy(Y, region, start, 5, criterion="e-opt", progress=False)
     with pytest.raises(PlanningError, match="cost"):
         plan_greedy(Y, region, start, 5, cost="tsp", progress=False)
+    for bad in (-0.1, 1.5, np.nan, "half", True, None):
+        with pytest.raises(PlanningError, match=r"cost_exponent must be a number in \[0, 1\]"):
+            plan_greedy(Y, region, start, 5, cost_exponent=bad, progress=False)
     with pytest.raises(PlanningError, match="ridge > 0"):
         plan_greedy(Y, region, start, 5, criterion="a-optimal", progress=False)
     Z = Y.copy()

@@ -51,10 +51,11 @@ def reference(criterion: str, Y, region, cells, ridge=0.0, **terms) -> float:
 
 
 def check_best_of_lines(plan, greedy, criterion, Y, region, start, budget, ridge=0.0,
-                        **terms):
-    """``plan`` is the best of the greedy's route and the four transects by the reference."""
+                        others=None, **terms):
+    """``plan`` is the best of the greedy's route, the ``others`` (name -> plan) and the four
+    transects by the reference."""
     maximize = CRITERION_REGISTRY.get(criterion).maximize
-    routes = {"greedy": greedy}
+    routes = {"greedy": greedy, **(others or {})}
     routes.update({f"transect-{d}": transect(region, start, budget, d) for d in DIRECTIONS})
     ref = {name: reference(criterion, Y, region, p.cells, ridge, **terms)
            for name, p in routes.items()}
@@ -72,7 +73,7 @@ def check_best_of_lines(plan, greedy, criterion, Y, region, start, budget, ridge
         assert f"{plan.rivals['chosen']}: its {criterion} value beat the greedy route's" in said
         chosen = routes[plan.rivals["chosen"]]
         np.testing.assert_array_equal(plan.route, chosen.route)
-        assert plan.method == plan.rivals["chosen"] and plan.criterion == criterion
+        assert plan.method == chosen.method and plan.criterion == criterion
         assert plan.posterior == greedy.posterior
         worse = ref["greedy"] < got if maximize else ref["greedy"] > got
         assert worse  # a transect is taken only when strictly better
@@ -111,6 +112,33 @@ def test_gp_variance_lines_keep_the_best_route_and_can_change_it(anisotropy):
                                               8.0, **terms))
     assert "greedy" in chosen
     assert any(c != "greedy" for c in chosen), chosen
+
+
+@pytest.mark.parametrize("criterion", ["gp-variance", "fisher"])
+def test_rivals_add_the_gentler_greedy_and_keep_the_best(criterion):
+    """``refine="rivals"``: the best of the greedy, the greedy with ``cost_exponent=0.5`` and the
+    four transects by the reference values; the gentler greedy's route is taken as it is (a
+    greedy plan) and is chosen at least once, so the rival is not a no-op."""
+    region = grid_region(9, 10, holes=((0, 0), (4, 5)))
+    chosen = []
+    for seed in range(5):
+        Y = np.random.default_rng(seed).normal(size=(3, region.n_cells)) * 0.5
+        terms = gp_terms(3, seed) if criterion == "gp-variance" else {}
+        ridge = 0.0 if terms else 1e-2
+        for start in (3, 40, 77):
+            kw = dict(criterion=criterion, initial="start", progress=False, ridge=ridge,
+                      **terms)
+            plan = plan_greedy(Y, region, start, 8.0, refine="rivals", **kw)
+            greedy = plan_greedy(Y, region, start, 8.0, **kw)
+            gentle = plan_greedy(Y, region, start, 8.0, cost_exponent=0.5, **kw)
+            assert plan.rivals["refine"] == "rivals"
+            chosen.append(check_best_of_lines(plan, greedy, criterion, Y, region, start, 8.0,
+                                              ridge, others={"greedy-cost^0.5": gentle},
+                                              **terms))
+            if plan.rivals["chosen"] == "greedy-cost^0.5":
+                assert plan.method == "greedy"
+                np.testing.assert_array_equal(plan.cells, gentle.cells)
+    assert "greedy-cost^0.5" in chosen, chosen
 
 
 @pytest.mark.parametrize("metric", ["grid", "km"])
@@ -172,12 +200,14 @@ def test_lines_refuse_what_a_transect_cannot_fly():
         plan_greedy(Y, region, 7, 6.0, end=30, **kw)
     with pytest.raises(PlanningError, match="refine='lines' cannot run: sense_along"):
         plan_greedy(Y, region, 7, 6.0, sense_along=True, **kw)
+    with pytest.raises(PlanningError, match="refine='rivals' cannot run: sense_along"):
+        plan_greedy(Y, region, 7, 6.0, sense_along=True, **{**kw, "refine": "rivals"})
     with pytest.raises(PlanningError, match="not a point"):
         plan_greedy(Y, region, 7, 6.0, sensor="leg-average", **kw)
     with pytest.raises(PlanningError, match="refine must be True, False, 'local', 'lines'"):
         plan_greedy(Y, region, 7, 6.0, criterion="fisher", refine="straight")
     assert lines_where_possible(PathOptions(end=3)) is None
-    assert lines_where_possible(None) == "lines"
+    assert lines_where_possible(None) == "rivals"
 
 
 def test_the_cli_and_the_methods_follow_the_recommended_refine(monkeypatch):

@@ -253,6 +253,35 @@ def test_a_plan_checked_against_lines_is_replanned_with_the_check(setup, tmp_pat
         state.replan(auto, done, refine="local")
 
 
+def test_a_plan_checked_against_rivals_is_replanned_with_them(setup, tmp_path):
+    """A ``refine="rivals"`` plan (the recommended check) is replanned with the same check
+    under ``refine="auto"``: the gentler greedy is among the new route's rivals, the new route
+    is the best of them, and the check survives the state file."""
+    model, test = setup
+    region = model.region_
+    day = test.isel(time=0)
+    truth = region.stack(day)
+    state = MonitorState.from_model(model)
+    kw = state.planner_kwargs(time=day.time.values)
+    plan = plan_greedy(model.Y_, region, 120, 15.0, criterion="gp-variance", initial="start",
+                       progress=False, refine="rivals", **kw)
+    assert plan.rivals["refine"] == "rivals" and "greedy-cost^0.5" in plan.rivals["values"]
+    done = 4
+    seen = _flown(plan, done)
+    new = state.replan(plan, done, (seen, truth[seen]), time=day.time.values)
+    assert new.rivals["refine"] == "rivals" and "greedy-cost^0.5" in new.rivals["values"]
+    values = new.rivals["values"]
+    assert values[new.rivals["chosen"]] == min(values.values())
+    assert route_feasible(new, region) == []
+    lined = state.replan(plan, done, refine="lines")  # asked for: the transects only
+    assert "greedy-cost^0.5" not in lined.rivals["values"] and lined.rivals["refine"] == "lines"
+    state.current_plan, state.current_plan_time = new, day.time.values
+    model.save(tmp_path / "m.nc")
+    state.model_path = str(tmp_path / "m.nc")
+    state.save(tmp_path / "s.nc")
+    assert MonitorState.load(tmp_path / "s.nc").current_plan.rivals == new.rivals
+
+
 def test_a_kept_transect_is_replanned_with_the_greedys_cost(setup):
     """A morning plan where the check kept a straight transect (route cost ``"steps"``) is
     replanned, twice, with the greedy's own route cost (it failed: "cost must be one of ...,

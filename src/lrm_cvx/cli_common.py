@@ -232,9 +232,9 @@ def describe_plan(plan: Any) -> str:
 
 
 def _kept_line(rivals: dict) -> str:
-    """What the check against straight lines kept, when not the greedy's route."""
-    chosen = str(rivals.get("chosen", "greedy"))
-    if "transect" not in chosen:
+    """What the check against rival routes kept, when not the greedy's route."""
+    chosen = str(rivals.get("chosen", "greedy"))  # a fleet's: "robot 0: greedy, robot 1: ..."
+    if all(part.split(": ")[-1] == "greedy" for part in chosen.split(", ")):
         return ""
     return f"{chosen}: its {rivals['criterion']} value beat the greedy route's"
 

@@ -378,7 +378,7 @@ def add_monitor_parser(sub: Any) -> None:
 
     q = msub.add_parser("replan", help="replan the rest of the stored plan en route: fold in "
                         "the samples taken so far, keep the flown part (and the plan's check "
-                        "against straight lines, for routes with no fixed end)")
+                        "against rival routes, for routes with no fixed end)")
     q.add_argument("state", help="state file holding a plan ('lrm-cvx monitor plan'; replaced "
                    "atomically)")
     q.add_argument("--done", required=True, type=int, nargs="+", action="extend",

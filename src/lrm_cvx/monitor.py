@@ -136,7 +136,7 @@ class MonitorState(LatentFilter):
         """Replan the rest of ``plan`` en route: fold in ``observations`` (today's measurements
         so far) at ``time``, keep each robot's first ``done`` route entries, and plan the rest
         from where it is with the budget left and the same end (home for a closed tour), under
-        the same path model and, by default, the same check against straight lines. See
+        the same path model and, by default, the same check against rival routes. See
         :func:`lrm_cvx.replanning.replan`.
 
         ``plan=None`` replans ``current_plan`` (ModelError when there is none), and ``time``

@@ -3,8 +3,9 @@
 Fit ``GLRM(offset=True, spatial="auto")`` (the residual's covariance family validated on the
 training residuals: the exponential unless a smoother one is better by 2 %,
 glrm/kernel_selection.py), plan with the gp-variance criterion from the
-start cell alone and keep a straight transect instead of the greedy's route when that criterion
-prefers it (``refine="lines"``; ``method`` is its name in ``evaluate``), predict with the
+start cell alone and keep a rival route instead of the greedy's when that criterion prefers it
+(``refine="rivals"``: the four straight transects and the greedy with a gentler cost discount;
+``method`` is its name in ``evaluate``), predict with the
 empirical prior and the kriged GP residual (``fold_spatial``); a model for monitoring chooses
 its temporal model on the training snapshots (``temporal="auto"``, glrm/selection.py) and
 calibrates its intervals conformally on them (``calibration``, glrm/calibration.py). It is the
@@ -23,9 +24,10 @@ RECOMMENDED: dict[str, Any] = {
     "offset": True, "spatial": "auto", "criterion": "gp-variance",
     "method": "greedy:gp-variance", "initial": "start", "prior": "empirical",
     "fold_spatial": True, "temporal": "auto",
-    # the greedy's route is checked against the four straight transects from its start under
-    # its own criterion (planning/lines.py; docs/benchmarks.md, session 30)
-    "refine": "lines",
+    # the greedy's route is checked under its own criterion against the four straight
+    # transects from its start (session 30) and the greedy with cost exponent 0.5 (session 33)
+    # (planning/lines.py; docs/benchmarks.md)
+    "refine": "rivals",
     # conformal intervals from forward folds of the training snapshots, the filter's own
     # thresholds for a model with dynamics (temporal="auto": closer to the coverage targets
     # under the filter, rolling origin, docs/benchmarks.md); the maps and plans are those of

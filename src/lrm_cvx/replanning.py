@@ -22,7 +22,7 @@ import numpy as np
 from .errors import PlanningError
 from .information import fisher_information
 from .planning import Plan, plan_greedy
-from .planning.lines import LINES
+from .planning.lines import CHECKS, LINES
 
 __all__ = ["replan", "route_feasible", "plan_variables", "plan_from_variables"]
 
@@ -72,16 +72,19 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
 
     ``done``: route entries flown (one count for one robot, one per robot for a fleet; the
     start counts, so ``done >= 1``). ``criterion`` defaults to the original plan's, ``cost`` and
-    ``ridge`` likewise. ``refine``: ``"auto"`` (default) checks each robot's new route against
-    the straight transects from where it is (:mod:`~lrm_cvx.planning.lines`) when the plan was
-    planned with that check (``plan.rivals``, the recommended plan), ``"lines"`` always, None
-    never; the check needs a route with no fixed end, so a robot heading for its end or home
-    skips it. Raises PlanningError when a robot has spent its budget (or cannot get back to its
-    end with what is left): nothing is changed then.
+    ``ridge`` likewise. ``refine``: ``"auto"`` (default) repeats the plan's own check of its
+    route against rivals (``plan.rivals["refine"]``: ``"rivals"`` for the recommended plan,
+    the straight transects from where the robot is and the gentler greedy; ``"lines"``, the
+    transects only; :mod:`~lrm_cvx.planning.lines`), none when the plan had none;
+    ``"lines"`` / ``"rivals"`` always, None never. The check needs a route with no fixed end,
+    so a robot heading for its end or home skips it. Raises PlanningError when a robot has
+    spent its budget (or cannot get back to its end with what is left): nothing is changed
+    then.
     """
-    if refine not in ("auto", LINES, None, False):
-        raise PlanningError(f"refine must be 'auto', 'lines' or None, got {refine!r}")
-    lines = refine == LINES or (refine == "auto" and bool(plan.rivals))
+    if refine not in ("auto", *CHECKS, None, False):
+        raise PlanningError(f"refine must be 'auto', 'lines', 'rivals' or None, got {refine!r}")
+    if refine == "auto":  # a plan saved before "rivals" existed was checked against lines
+        refine = plan.rivals.get("refine", LINES) if plan.rivals else None
     done_r = _done_per_robot(plan, done)
     opts = _path_options(plan)
     region = state.model.region_
@@ -134,7 +137,7 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
         ends: dict[str, Any] = {}
         if goal is not None:
             ends = {"closed": True} if goal == here else {"end": goal}
-        check = LINES if lines and "end" not in ends else None
+        check = refine if refine and "end" not in ends else None
         new = plan_greedy(Y, region, here, left, criterion=criterion, cost=cost, ridge=ridge,
                           initial="start", refine=check, progress=progress, **opts, **ends,
                           **kw)
@@ -180,7 +183,7 @@ def _stitch(plan: Any, pieces: list, new_plans: list, Y: np.ndarray, region: Any
 
 
 def _rivals(new_plans: list, criterion: str) -> dict[str, Any]:
-    """The robots' checks against straight lines (``plan.rivals`` of one robot; for a fleet
+    """The robots' checks against rival routes (``plan.rivals`` of one robot; for a fleet
     the route names are prefixed ``"robot r: "``), empty when none ran."""
     checks = {r: p.rivals for r, p in enumerate(new_plans) if p is not None and p.rivals}
     if not checks:
@@ -191,7 +194,8 @@ def _rivals(new_plans: list, criterion: str) -> dict[str, Any]:
             "values": {f"robot {r}: {name}": v for r, c in checks.items()
                        for name, v in c["values"].items()},
             "chosen": ", ".join(f"robot {r}: {c['chosen']}" for r, c in checks.items()),
-            "cost_function": next(iter(checks.values()))["cost_function"]}
+            "cost_function": next(iter(checks.values()))["cost_function"],
+            "refine": next(iter(checks.values())).get("refine", LINES)}
 
 
 def route_feasible(plan: Any, region: Any, *, tol: float = 1e-6) -> list[str]:
@@ -252,7 +256,7 @@ _PLAN_DIMS = {"cells": "plan_cell", "route": "plan_entry", "route_cost": "plan_e
 def plan_variables(plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """``(variables, attributes)`` holding ``plan`` in a NetCDF file (``plan_`` prefixed, own
     dimensions): its arrays and history, its path model (the traversable mask as a
-    ``(plan_lat, plan_lon)`` int8 grid), its check against straight lines (``plan.rivals``)
+    ``(plan_lat, plan_lon)`` int8 grid), its check against rival routes (``plan.rivals``)
     and scalars. :func:`plan_from_variables` reads it back
     equal (``==``). Booleans are stored as int8, ``None`` as an absent attribute or ``-1``."""
     out: dict[str, Any] = {}
@@ -281,7 +285,7 @@ def plan_variables(plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     }
     if path.get("speed") is not None:
         attrs["plan_speed"] = float(path["speed"])
-    if plan.rivals:  # the check against straight lines: route names as a coordinate
+    if plan.rivals:  # the check against rival routes: route names as a coordinate
         names = list(plan.rivals["values"])
         out["plan_rival_value"] = (("plan_rival",), np.array(
             [plan.rivals["values"][n] for n in names], dtype=np.float64))
@@ -289,6 +293,7 @@ def plan_variables(plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
         attrs["plan_rivals_criterion"] = str(plan.rivals["criterion"])
         attrs["plan_rivals_chosen"] = str(plan.rivals["chosen"])
         attrs["plan_rivals_cost_function"] = str(plan.rivals["cost_function"])
+        attrs["plan_rivals_refine"] = str(plan.rivals.get("refine", LINES))
     return out, attrs
 
 
@@ -335,5 +340,6 @@ def plan_from_variables(ds: Any, region: Any, Y: Any) -> Any:
                        "values": dict(zip([str(n) for n in ds["plan_rival"].values],
                                           ds["plan_rival_value"].values.tolist(), strict=True)),
                        "chosen": str(a["plan_rivals_chosen"]),
-                       "cost_function": str(a["plan_rivals_cost_function"])}
+                       "cost_function": str(a["plan_rivals_cost_function"]),
+                       "refine": str(a.get("plan_rivals_refine", LINES))}
     return plan

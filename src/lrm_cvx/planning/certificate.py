@@ -586,7 +586,7 @@ def _refined(plan: Any, Y: np.ndarray, region: Any, refine: Any, metric: str,
              ) -> tuple[float | None, float | None, int | None, np.ndarray]:
     """``(greedy information, refined information, moves, refined cells)`` of a Fisher
     greedy plan, or ``(None, None, None, plan cells)`` (also for a transect that
-    ``refine="lines"`` kept: the local search refines greedy routes only)."""
+    ``refine="rivals"`` kept: the local search refines greedy routes only)."""
     cells = np.asarray(plan.cells, dtype=np.int64)
     if plan_criterion != "fisher" or metric != "grid" or getattr(plan, "method",
                                                                  "greedy") != "greedy":

@@ -29,7 +29,7 @@ from ..information import (
 from ..recommended import RECOMMENDED
 from ..region import Region
 from . import request as _request
-from .lines import LINES, best_of_lines, lines_run
+from .lines import CHECKS, RIVAL_EXPONENT, RIVAL_NAME, RIVALS, best_of_lines, lines_run
 from .paths import path_model
 from .plan import Plan, check_region
 from .refiners import REFINERS
@@ -173,6 +173,7 @@ def plan_greedy(
     path: PathOptions | str | None = None,
     static: bool = False,
     paper: bool = False,
+    cost_exponent: float = 1.0,
     **options: Any,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
@@ -193,8 +194,9 @@ def plan_greedy(
     1. ``P`` = the start cell and its ``k - 1`` nearest cells (the path model's
        ``initial_cells``; :func:`initial_cells` for the paper's).
     2. Each iteration, for every candidate cell ``x`` not in ``P`` with ``C(P + x) <= budget``
-       (tolerance 1e-9): ``D_x = (I(P + x) - I(P)) / max(C(P + x) - C(P), 1e-12)``; the cell
-       with the largest ``D_x`` joins ``P`` (ties to the lowest cell index).
+       (tolerance 1e-9): ``D_x = (I(P + x) - I(P)) / max(C(P + x) - C(P), 1e-12) ** e``
+       (``e = cost_exponent``, 1 in the paper); the cell with the largest ``D_x`` joins ``P``
+       (ties to the lowest cell index).
     3. Stop when no candidate has ``D_x > 0``.
 
     ``C`` is the path model's exact route cost (:func:`lrm_cvx.planning.paths.make_path_model`):
@@ -249,8 +251,14 @@ def plan_greedy(
         model only). ``"lines"``: return the straight transect from the start that beats the
         greedy's route under the plan's own criterion, if one does (any criterion and path
         model, point sensors, no ``end``; :mod:`~lrm_cvx.planning.lines`; ``plan.rivals``
-        records the values). Default None: nothing for ``Y``, the recommended ``"lines"`` for
-        a model (where the path options allow it).
+        records the values). ``"rivals"``: the same check with one more rival, the greedy's
+        route with ``cost_exponent=0.5`` (a second greedy pass; its name in
+        ``plan.rivals["values"]`` is ``"greedy-cost^0.5"``, its ``method`` stays
+        ``"greedy"``). Default None: nothing for ``Y``, the recommended ``"rivals"`` for a
+        model (where the path options allow it).
+    cost_exponent : ``e`` in ``[0, 1]``, the exponent of the cost increase in the greedy's
+        ratio (step 2): 1 (default) is the paper's gain per unit cost, 0 the plain gain, in
+        between a gentler discount of long detours.
     path : a :class:`~lrm_cvx.planning.request.PathOptions` (default: the paper's), or its
         keywords below in ``**options`` (they update ``path``).
     metric, speed, stop_cost, traversable, closed, end : (``**options``) the path model
@@ -289,6 +297,7 @@ def plan_greedy(
     """
     paper = check_flag(paper, "paper", error=PlanningError)
     refine = _check_refine(refine)
+    cost_exponent = _check_exponent(cost_exponent)
     default_refine = False  # the recommended "lines" is skipped where it cannot run
     terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
     model = None
@@ -342,7 +351,7 @@ def plan_greedy(
     if initial not in ("nearest", "start"):
         raise PlanningError(f"initial must be 'nearest' or 'start', got {initial!r}")
     request = request.resolved(region)
-    if refine == LINES and not lines_run(request, asked=not default_refine):
+    if refine in CHECKS and not lines_run(request, asked=not default_refine, refine=refine):
         refine = None
     models = [path_model(region, s, b, request, cost) for s, b in zip(starts, budgets,
                                                                        strict=True)]
@@ -357,6 +366,39 @@ def plan_greedy(
     terms = resolve_prior(prior, terms_given)
     posterior = terms["prior_precision"] is not None or terms["noise_var"] is not None
     sense_along = request.sense_along
+    sensor = request.sensor
+    if not sensor.is_point and refine is not None:
+        raise PlanningError("refine supports the point sensor only, not "
+                            f"sensor={sensor.describe()!r}")
+    pick = dict(Yk=Yk, models=models, P0s=P0s, cands=cands, union_pool=union_pool, idx=idx,
+                budgets=budgets, tols=tols, fleet=fleet, criterion=criterion, ridge=ridge,
+                sensor=sensor, region=region, terms=terms, targets=targets,
+                sense_along=sense_along, progress=progress)
+    build = dict(criterion=criterion, ridge=float(ridge), cost=cost, posterior=posterior,
+                 fleet=fleet, request=request)
+    *picked, extra = _picks(cost_exponent, **pick)
+    plan = _route_plan(Yk, region, models, *picked, **build)
+    if refine in CHECKS:
+        others = {}
+        if refine == RIVALS and cost_exponent != RIVAL_EXPONENT:
+            *rival, _ = _picks(RIVAL_EXPONENT, **pick, extra=extra, warn=False)
+            others[RIVAL_NAME] = _route_plan(Yk, region, models, *rival, **build)
+        plan = best_of_lines(plan, Yk, region, fleet, request, criterion=criterion,
+                             ridge=ridge, extra=extra, others=others, refine=refine)
+    elif refine is not None:  # refine.py registers it
+        plan = REFINERS.get("local")(plan, {} if refine == "local" else refine, terms)
+    return plan
+
+
+def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets, tols, fleet,
+           criterion, ridge, sensor, region, terms, targets, sense_along, progress,
+           extra: dict[str, Any] | None = None, warn: bool = True) -> tuple:
+    """One greedy pass from the initial cells ``P0s``: each step adds the feasible
+    ``(cell, robot)`` of largest gain per ``cost increase ** exponent`` (1: the paper's
+    cost-benefit ratio; 0: the plain gain). Returns ``(costers, stops, stop_robot, sense,
+    hist, extra)``: the first five for :func:`_route_plan`, ``extra`` the oracle's terms
+    (computed unless given)."""
+    k, L = Yk.shape
     # (robot, stop) pairs: a cell is a stop of one robot, except starts shared by two robots
     stops = [int(c) for P in P0s for c in P]
     stop_robot = [r for r, P in enumerate(P0s) for _ in P]
@@ -370,15 +412,12 @@ def plan_greedy(
         init = list(dict.fromkeys(init + sense.observed().tolist()))
         if criterion == "gp-variance":  # pass-through cells must be cells of the GP pool
             gp_pool = np.union1d(union_pool, sense.reach())
-    sensor = request.sensor
     if not sensor.is_point:  # every cell the oracle may observe has its row
-        if refine is not None:
-            raise PlanningError("refine supports the point sensor only, not "
-                                f"sensor={sensor.describe()!r}")
         gp_pool = np.union1d(union_pool, np.asarray(init, dtype=np.int64))
         if sense is not None:
             gp_pool = np.union1d(gp_pool, sense.reach())
-    extra = oracle_terms(criterion, region, gp_pool, terms, targets)
+    if extra is None:
+        extra = oracle_terms(criterion, region, gp_pool, terms, targets)
     feed = None if sensor.is_point else _SensorRows(sensor, region, models, gp_pool, criterion,
                                                    Yk, ridge, extra)
     oracle = (make_oracle(criterion, Yk, ridge, init, **extra) if feed is None
@@ -387,13 +426,13 @@ def plan_greedy(
         if len(costers) > 1:
             for c in set(stops):
                 _take(cst, cands[r], c)
-        if cst.cost > budgets[r] + tols[r]:
+        if warn and cst.cost > budgets[r] + tols[r]:
             who = f"robot {r}'s " if fleet.is_fleet else ""
             warnings.warn(
                 f"{who}{P0s[r].size} initial cells (start and its nearest, needed for a "
                 f"rank-{k} model) already cost {cst.cost:.4g} > budget {budgets[r]:.4g}",
                 UserWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
     hist: dict[str, list[float]] = {
         "cell": [], "gain": [], "cost_increase": [], "ratio": [], "cost": [], "n_evaluated": []
@@ -412,7 +451,10 @@ def plan_greedy(
                 with np.errstate(invalid="ignore"):
                     ok = cst.active & (cst.cost + dc <= budgets[r] + tols[r])
                 g = gains if len(costers) == 1 else gains[idx[r]]
-                ratio = np.where(ok, g / np.maximum(np.where(ok, dc, 1.0), _MIN_DC), -np.inf)
+                den = np.maximum(np.where(ok, dc, 1.0), _MIN_DC)
+                if exponent != 1.0:
+                    den = den ** exponent
+                ratio = np.where(ok, g / den, -np.inf)
                 if ratio.size == 0:
                     continue
                 b = int(np.argmax(ratio))
@@ -457,11 +499,7 @@ def plan_greedy(
             bar.set_postfix(cost=f"{cst.cost:.1f}/{budgets[r]:g}", refresh=False)
     finally:
         bar.close()
-    return _route_plan(
-        Yk, region, models, costers, stops, stop_robot, sense, hist, criterion=criterion,
-        ridge=float(ridge), cost=cost, posterior=posterior, fleet=fleet, refine=refine,
-        terms=terms, request=request, extra=extra,
-    )
+    return costers, stops, stop_robot, sense, hist, extra
 
 
 def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOptions,
@@ -583,8 +621,8 @@ class _SensorRows:
 
 
 def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, criterion,
-                ridge, cost, posterior, fleet, refine, terms, request, extra) -> Plan:
-    """The :class:`Plan` of the greedy's final routes (and its refinement)."""
+                ridge, cost, posterior, fleet, request) -> Plan:
+    """The :class:`Plan` of one greedy pass's final routes."""
     from .plan import sensed_route
 
     sense_along, budgets = request.sense_along, list(fleet.budgets)
@@ -634,27 +672,33 @@ def _route_plan(Yk, region, models, costers, stops, stop_robot, sense, hist, *, 
         robot_costs=robot_costs,
         path_models=models,
     )
-    if refine == LINES:
-        plan = best_of_lines(plan, Yk, region, fleet, request, criterion=criterion,
-                             ridge=ridge, extra=extra)
-    elif refine is not None:  # refine.py registers it
-        plan = REFINERS.get("local")(plan, {} if refine == "local" else refine, terms)
     return plan
 
 
+def _check_exponent(value: Any) -> float:
+    """``cost_exponent`` as a float in ``[0, 1]``; PlanningError otherwise."""
+    try:
+        e = float(value)
+    except (TypeError, ValueError):
+        e = float("nan")
+    if isinstance(value, bool) or not 0.0 <= e <= 1.0:
+        raise PlanningError(f"cost_exponent must be a number in [0, 1], got {value!r}")
+    return e
+
+
 def _check_refine(refine: Any) -> Any:
-    """``refine`` as None (no refinement), ``"lines"``, ``"local"`` or a dict of the local
-    search's options (True is ``"local"``); PlanningError otherwise."""
+    """``refine`` as None (no refinement), ``"lines"``, ``"rivals"``, ``"local"`` or a dict of
+    the local search's options (True is ``"local"``); PlanningError otherwise."""
     if refine is None or refine is False:
         return None
     if refine is True:
         return "local"
-    if isinstance(refine, str) and refine in (LINES, "local"):
+    if isinstance(refine, str) and refine in (*CHECKS, "local"):
         return refine
     if isinstance(refine, dict):
         return refine
-    raise PlanningError(f"refine must be True, False, 'local', 'lines' or a dict of the local "
-                        f"search's options, got {refine!r}")
+    raise PlanningError(f"refine must be True, False, 'local', 'lines', 'rivals' or a dict of "
+                        f"the local search's options, got {refine!r}")
 
 
 def _resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:

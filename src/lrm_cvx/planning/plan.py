@@ -124,7 +124,8 @@ class Plan:
     information : Fisher information ``log det(ridge I + sum_cells y y^T)`` of ``cells``
         (``-inf`` if singular, ``nan`` when a baseline was built without ``Y``).
     criterion : the greedy's criterion (``"fisher"`` / ``"a-optimal"``), ``None`` for baselines
-        (a transect kept by ``refine="lines"`` carries the criterion that chose it).
+        (a transect kept by ``refine="rivals"`` / ``"lines"`` carries the criterion that chose
+        it).
     budget, start, ridge : the request (``start`` is a cell index: the first robot's for a
         fleet, ``-1`` for a static placement; ``budget`` is the robots' total).
     lat, lon, grid_index : ``(r,)``, ``(r,)``, ``(r, 2)`` coordinates of each *route* entry.
@@ -140,10 +141,11 @@ class Plan:
     refinement : empty, or what :func:`~lrm_cvx.planning.refine.refine` gained:
         ``information_before`` / ``information_after`` (nats), ``moves`` accepted, ``inserted``,
         ``swapped``, ``rounds``, ``seconds`` (history keys ``refine_*`` list the moves).
-    rivals : empty, or the greedy's check against straight lines (``refine="lines"``,
-        :mod:`~lrm_cvx.planning.lines`): ``criterion``, ``values`` (route name -> criterion
-        value: ``"greedy"``, ``"transect-up"``, ...), ``chosen`` (this plan's name there) and
-        ``cost_function`` (the greedy's route cost, which a replan uses).
+    rivals : empty, or the greedy's check against rival routes (``refine="rivals"`` or
+        ``"lines"``, :mod:`~lrm_cvx.planning.lines`): ``criterion``, ``values`` (route name ->
+        criterion value: ``"greedy"``, ``"greedy-cost^0.5"``, ``"transect-up"``, ...),
+        ``chosen`` (this plan's name there), ``cost_function`` (the greedy's route cost, which
+        a replan uses) and ``refine`` (the check, which a replan repeats).
     path : the path request (:class:`~lrm_cvx.planning.request.PlanPath`: ``options``, a
         ``PathOptions``, and ``fleet``), a read-only mapping of ``kind`` (``"path"`` or
         ``"static"``), ``metric``, ``speed``, ``stop_cost``, ``traversable`` (``"none"``,

@@ -22,7 +22,7 @@ from ..recommended import RECOMMENDED
 from ..registry import Choices, Registry
 from .baselines import DIRECTIONS, random_walk, transect
 from .greedy import plan_greedy
-from .lines import LINES, lines_where_possible
+from .lines import CHECKS, lines_where_possible
 from .plan import Plan
 from .refine import refine_plan
 from .request import Fleet, PathOptions
@@ -57,9 +57,10 @@ class GreedyPlanner(Planner):
     """The cost-benefit greedy (:func:`~lrm_cvx.planning.plan_greedy`) with ``criterion`` and
     route ``cost`` (None: the caller's, see :meth:`configure`); ``initial`` its forced cells;
     ``model_prior``: plan on the model's empirical latent prior (the ``greedy:<criterion>``
-    methods of ``evaluate``, with the GP residual for ``"gp-variance"``); ``lines``: keep a
-    straight transect when the criterion prefers it (``plan_greedy(refine="lines")``, where
-    the path options allow it)."""
+    methods of ``evaluate``, with the GP residual for ``"gp-variance"``); ``lines``: run the
+    recommended check of the route against rivals (``plan_greedy(refine="rivals")``: the
+    straight transects and the gentler greedy, kept when the criterion prefers one; where the
+    path options allow it)."""
 
     criterion: str | None = None
     cost: str | None = None
@@ -175,10 +176,11 @@ METHODS: tuple[str, ...] = METHOD_REGISTRY.choices()
 for _c in CRITERION_REGISTRY.entries():
     METHOD_REGISTRY.register(
         f"greedy:{_c.name}", GreedyPlanner(_c.name, initial="start", model_prior=True,
-                                           lines=RECOMMENDED["refine"] == LINES),
+                                           lines=RECOMMENDED["refine"] in CHECKS),
         aliases=tuple(f"greedy:{a}" for a in _c.aliases),
         description=f"greedy with the `{_c.name}` criterion and the model's predictive fold-in "
-                    "(a straight transect instead where the criterion prefers it)",
+                    "(a straight transect or the gentler greedy's route instead where the "
+                    "criterion prefers it)",
     )
 GREEDY_VARIANTS: tuple[str, ...] = Choices(tuple(m for m in METHOD_REGISTRY.choices()
                                                  if m not in METHODS), METHOD_REGISTRY)
