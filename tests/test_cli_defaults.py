@@ -255,7 +255,7 @@ def test_plan_default_is_recommended_and_paper_is_the_paper(files, tmp_path, cap
     assert _notes(capsys.readouterr().out) == []  # a spatial model takes every default
     model = GLRM.load(model_path)
     rec = plan_greedy(model.Y_, model.region_, START, 6, criterion="gp-variance",
-                      initial="start", progress=False,
+                      initial="start", progress=False, refine=RECOMMENDED["refine"],
                       **model.planner_kwargs(prior="empirical", spatial=True))
     paper = plan_greedy(model.Y_, model.region_, START, 6, criterion="fisher",
                         initial="nearest", progress=False)
@@ -361,7 +361,7 @@ def _state(root, model, tmp_path, name):
     return state
 
 
-def test_monitor_plan_defaults(files, tmp_path, capsys):
+def test_monitor_plan_defaults(files, tmp_path, capsys, monkeypatch):
     root, _ = files
     spatial = _state(root, "default", tmp_path, "spatial")
     plain = _state(root, "paper", tmp_path, "plain")
@@ -381,7 +381,12 @@ def test_monitor_plan_defaults(files, tmp_path, capsys):
         assert len(notes) == (name == "fallback"), (name, notes)
         plans[name] = _route(out)
     np.testing.assert_array_equal(plans["default"], plans["recommended"])
-    np.testing.assert_array_equal(plans["default"], plans["explicit-rec"])
+    # the explicit flags under --paper are the recommended planner without its route check
+    monkeypatch.setitem(RECOMMENDED, "refine", None)
+    unchecked = tmp_path / "unchecked.csv"
+    assert _run("monitor", "plan", spatial, "--start", *START, "--budget", 6, "-o",
+                unchecked) == 0
+    np.testing.assert_array_equal(_route(unchecked), plans["explicit-rec"])
     np.testing.assert_array_equal(plans["paper"], plans["explicit-paper"])
     np.testing.assert_array_equal(plans["fallback"], plans["explicit-fallback"])
     assert not np.array_equal(plans["default"], plans["paper"])

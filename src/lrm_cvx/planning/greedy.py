@@ -173,7 +173,6 @@ def plan_greedy(
     path: PathOptions | str | None = None,
     static: bool = False,
     paper: bool = False,
-    cost_exponent: float = 1.0,
     **options: Any,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
@@ -256,9 +255,9 @@ def plan_greedy(
         ``plan.rivals["values"]`` is ``"greedy-cost^0.5"``, its ``method`` stays
         ``"greedy"``). Default None: nothing for ``Y``, the recommended ``"rivals"`` for a
         model (where the path options allow it).
-    cost_exponent : ``e`` in ``[0, 1]``, the exponent of the cost increase in the greedy's
-        ratio (step 2): 1 (default) is the paper's gain per unit cost, 0 the plain gain, in
-        between a gentler discount of long detours.
+    cost_exponent : (``**options``) ``e`` in ``[0, 1]``, the exponent of the cost increase in
+        the greedy's ratio (step 2): 1 (default) is the paper's gain per unit cost, 0 the plain
+        gain, in between a gentler discount of long detours.
     path : a :class:`~lrm_cvx.planning.request.PathOptions` (default: the paper's), or its
         keywords below in ``**options`` (they update ``path``).
     metric, speed, stop_cost, traversable, closed, end : (``**options``) the path model
@@ -297,7 +296,7 @@ def plan_greedy(
     """
     paper = check_flag(paper, "paper", error=PlanningError)
     refine = _check_refine(refine)
-    cost_exponent = _check_exponent(cost_exponent)
+    cost_exponent = _check_exponent(options.pop("cost_exponent", 1.0))
     default_refine = False  # the recommended "lines" is skipped where it cannot run
     terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
     model = None
@@ -328,6 +327,8 @@ def plan_greedy(
             static = True
         path = None
     request = PathOptions.from_kwargs(path, where="plan_greedy", **options)
+    if static and cost_exponent != 1.0:
+        raise PlanningError("cost_exponent applies to routes, not to static=True")
     if static:  # a model: place_sensors' own defaults (recommended, or paper=True)
         extra = {"paper": paper} if model is not None else {}
         return _static(Y if model is None else model, region, start, budget, request, options,
