@@ -656,3 +656,32 @@ def test_old_chunked_staging_names_still_work_and_warn():
     for name in ("stage", "ChunkStore", "cdr_source"):
         with pytest.warns(DeprecationWarning, match="io.staging"):
             assert getattr(chunked, name) is getattr(staging, name)
+
+
+def test_chunk_files_load_as_numpy_saved_them(tmp_path):
+    """The thread-safe chunk reader (`chunked._load`: the header parsed under a lock, a CPython
+    3.11.7 race in `ast.literal_eval` seen in CI) returns what `np.save` wrote, C or Fortran
+    order, any dtype the fit stages, and names a truncated file."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from lrm_cvx.glrm.chunked import _load
+
+    rng = np.random.default_rng(0)
+    arrays = [rng.normal(size=(7, 5)).astype(np.float32),
+              np.asfortranarray(rng.normal(size=(4, 9))),
+              rng.integers(0, 255, size=(3, 11), dtype=np.uint8),
+              np.arange(6, dtype=np.int64)]
+    paths = []
+    for i, a in enumerate(arrays):
+        paths.append(str(tmp_path / f"a{i}.npy"))
+        np.save(paths[i], a)
+    with ThreadPoolExecutor(4) as pool:  # many loads at once, as dask's threads do
+        loaded = list(pool.map(_load, paths * 25))
+    for got, path in zip(loaded, paths * 25, strict=True):
+        want = np.load(path)
+        assert got.dtype == want.dtype and got.flags.writeable
+        np.testing.assert_array_equal(got, want)
+    with open(paths[0], "r+b") as f:
+        f.truncate(f.seek(0, 2) - 8)
+    with pytest.raises(OSError, match="truncated chunk file"):
+        _load(paths[0])

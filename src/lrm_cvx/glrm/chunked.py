@@ -98,6 +98,29 @@ _ZERO = ZeroReg()
 
 
 # --------------------------------------------------------------------------- chunk tasks
+_HEADER_LOCK = threading.Lock()
+
+
+def _load(path: str) -> np.ndarray:
+    """``np.load(path)`` of a chunk file that :func:`np.save` wrote, safe in dask's threads:
+    the ``.npy`` header is parsed under a lock, because ``ast.literal_eval`` (which numpy
+    parses it with) raced between threads in CPython 3.11 before 3.11.8 ("SystemError: AST
+    constructor recursion depth mismatch", python/cpython gh-106905; seen in CI); the data are
+    read outside it."""
+    with open(path, "rb") as f:
+        version = np.lib.format.read_magic(f)
+        with _HEADER_LOCK:
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+            else:
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        count = int(np.prod(shape, dtype=np.int64))
+        data = np.fromfile(f, dtype=dtype, count=count)
+    if data.size != count:
+        raise OSError(f"{path}: truncated chunk file ({data.size} of {count} values)")
+    return data.reshape(shape, order="F" if fortran else "C")
+
+
 def _codes_path(path: str) -> str:
     return path[:-4] + "_codes.npy"
 
@@ -106,7 +129,7 @@ def _t_scales(path: str, offset: bool) -> tuple[np.ndarray, np.ndarray]:
     """A staged chunk's unfloored ``scale=True`` scales and observation counts per cell (the
     pass that finds the floor of all cells, :func:`~.predictive.scale_floor`, before
     :func:`_t_prepare` standardizes)."""
-    D = np.load(path)
+    D = _load(path)
     M = ~np.isnan(D)
     mean, std, count = column_moments(D, M)
     return moments_to_transform(offset, True, mean, std, floor=0.0)[1], count
@@ -118,7 +141,7 @@ def _t_prepare(path: str, offset: bool, scale: bool, floor: float = 0.0) -> dict
     and its packed mask beside it (:func:`~.quadratic.prepare`). Returns the chunk's
     statistics: row / column counts, column sums (for the init's mean fill), per-time sums of
     squares, the last time's mask and, when asked, the cells' offset and scale."""
-    D = np.load(path)
+    D = _load(path)
     M = ~np.isnan(D)
     np.copyto(D, 0.0, where=~M)
     out: dict = {"colsum": D.sum(axis=0, dtype=np.float64)}
@@ -154,7 +177,7 @@ class _PackedRows:
 
 def _md(path: str, ssq_rows: np.ndarray) -> Q.MaskedData:
     """The prepared chunk as :class:`~.quadratic.MaskedData` (one read, no pass over it)."""
-    return Q.MaskedData(np.load(path), np.load(_codes_path(path)), ssq_rows)
+    return Q.MaskedData(_load(path), _load(_codes_path(path)), ssq_rows)
 
 
 def _t_gram(path, ssq, mu):
@@ -164,7 +187,7 @@ def _t_gram(path, ssq, mu):
 
 
 def _t_range(path, ssq, mu, om_path):
-    return Q.filled_matmul(_md(path, ssq), mu, np.load(om_path))
+    return Q.filled_matmul(_md(path, ssq), mu, _load(om_path))
 
 
 def _t_power(path, ssq, mu, W):
@@ -193,7 +216,7 @@ def _t_y0(B, R, scale, unobserved, minimizer):
 
 
 def _t_load_y0(path, unobserved, minimizer):
-    Y = np.load(path)
+    Y = _load(path)
     if unobserved.size:
         Y[:, unobserved] = minimizer[:, None]
     return Y

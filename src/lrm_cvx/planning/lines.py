@@ -18,9 +18,8 @@ with the gentler ratio ``gain / increase ** 0.5`` (:data:`RIVAL_EXPONENT`), whic
 stop's gain more against its detour, so its route reaches out instead of filling in. Taking
 the better of the cost-benefit greedy and a greedy that discounts cost is the other half of
 the same textbook remedy (Khuller, Moss and Naor take the plain-gain greedy; the square
-root did better on the training snapshots, docs/benchmarks.md, session 33). Under its own
-criterion the recommended greedy's route lost to the gentler one on about two thirds of the
-campaign days of the generalization records.
+root did better on the training snapshots, docs/benchmarks.md, session 33). The check kept
+the gentler greedy's route on 47-85 % of the campaign days of the generalization records.
 
 Scope: point sensors, no ``sense_along``, no ``end`` cell (a transect cannot be told where to
 finish); :func:`applies` says why not otherwise.
