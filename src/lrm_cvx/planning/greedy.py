@@ -297,7 +297,7 @@ def plan_greedy(
     paper = check_flag(paper, "paper", error=PlanningError)
     refine = _check_refine(refine)
     cost_exponent = _check_exponent(options.pop("cost_exponent", 1.0))
-    default_refine = False  # the recommended "lines" is skipped where it cannot run
+    default_refine = False  # the recommended check is skipped where it cannot run
     terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
     model = None
     if _is_fitted_model(Y):
