@@ -101,6 +101,18 @@ def refits(monkeypatch):
     return seen
 
 
+# ------------------------------------------------------------------------------ workers
+MAX_WORKERS = 4
+"""Most pytest-xdist workers of ``-n auto`` (pyproject's addopts): each holds ~0.8 GB at its
+peak, and the files are few enough that more workers mostly wait."""
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: one worker per core, at most :data:`MAX_WORKERS` (``-n 0`` runs serially)."""
+    return max(1, min(os.cpu_count() or 1, MAX_WORKERS))
+
+
 # ------------------------------------------------------------------------------ slow tests
 SLOW_ENV = "LRM_CVX_SLOW_TESTS"
 
