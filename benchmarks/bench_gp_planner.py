@@ -10,6 +10,10 @@
    planner (``refine="rivals"``: the greedy, a second greedy pass with ``cost_exponent=0.5``,
    the four straight transects and the six routes' criterion values, planning/lines.py)
    with the route it keeps.
+3. The check's route scoring (``planning/lines.route_values``) on the six routes of the
+   recommended plan (range 5): its seconds, whether one oracle's picks were lag-table gathers
+   (then one set-up is forked per route), the seconds of that one forked oracle for every
+   case (the only way before session 34), and the largest relative difference of the values.
 
     flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_gp_planner.py [--small]
 """
@@ -97,6 +101,49 @@ def agreement(shape: tuple[int, int], budget: float) -> None:
               f"{plans[0].cells.tolist() == plans[1].cells.tolist()} (|P| = {len(plans[0])})")
 
 
+def route_scoring(shape: tuple[int, int], budget: float) -> None:
+    """Item 3 of the module docstring: one row per grid and budget."""
+    import lrm_cvx.planning.lines as lines
+    from lrm_cvx.information import GP_BOUNDARY_TOL
+
+    Y, region, start = _problem(shape, 0)
+    cov = _cov(5.0)
+    seen: dict = {}
+    real = lines.route_values
+
+    def spy(*args):
+        seen["args"] = args
+        return real(*args)
+
+    lines.route_values = spy
+    try:
+        plan_greedy(Y, region, start, budget, criterion="gp-variance", prior_cov=S0,
+                    spatial_cov=cov, initial="start", cost="insertion", progress=False,
+                    refine="rivals")
+    finally:
+        lines.route_values = real
+    criterion, Yr, ridge, routes, extra = seen["args"]
+    t = time.perf_counter()
+    values = real(criterion, Yr, ridge, routes, extra)
+    t_now = time.perf_counter() - t
+    terms = {key: extra.get(key) for key in ("region", "spatial_cov", "prior_cov", "targets",
+                                             "target_weights")}
+    sets = {name: np.unique(np.asarray(c, dtype=np.int64)) for name, c in routes.items()}
+    t = time.perf_counter()
+    base = StructuredGPVarianceOracle(Yr, [], pool=np.unique(np.concatenate(list(sets.values()))),
+                                      boundary_tol=GP_BOUNDARY_TOL, **terms)
+    one = {}
+    for name, cells in sets.items():
+        oracle = base.fork()
+        for c in cells.tolist():
+            oracle.add(c)
+        one[name] = oracle.value
+    t_one = time.perf_counter() - t
+    diff = max(abs(values[n] - one[n]) / abs(one[n]) for n in one)
+    print(f"{shape[0]:>5} x {shape[1]:<5} {budget:6g} {sum(c.size for c in sets.values()):6d} "
+          f"{str(base.uses_lag_table):>9} {t_now:9.2f} {t_one:12.2f} {diff:9.1e}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--small", action="store_true", help="quick smoke run (300 x 280)")
@@ -105,6 +152,13 @@ def main() -> None:
     agreement((60, 55) if args.small else (120, 110), 12.0 if args.small else 25.0)
     if not args.small:  # a larger region: clipped FFT windows, 80k targets (dense: 3.6e7)
         agreement((300, 280), 12.0)
+
+    print(f"{'grid':>13} {'budget':>6} {'cells':>6} {'lag table':>9} {'scoring s':>9} "
+          f"{'one oracle s':>12} {'rel diff':>9}")
+    for shape, budget in ([((300, 280), 50.0)] if args.small else
+                          [((400, 400), 120.0), ((700, 650), 40.0), ((700, 650), 120.0),
+                           ((1500, 1400), 200.0)]):
+        route_scoring(shape, budget)
 
     shape = (300, 280) if args.small else (1500, 1400)
     budgets = (20, 50) if args.small else (50, 200)

@@ -143,8 +143,8 @@ def test_rivals_add_the_gentler_greedy_and_keep_the_best(criterion):
 
 @pytest.mark.parametrize("metric", ["grid", "km"])
 def test_route_values_of_gp_variance_are_the_dense_oracles(metric):
-    """Grid: one structured oracle set up on the routes' cells and forked per route; km: the
-    dense reference. Each value is a fresh dense oracle's, whatever the order of the routes."""
+    """Grid: structured oracles on the routes' cells; km: the dense reference. Each value is a
+    fresh dense oracle's, whatever the order of the routes."""
     from lrm_cvx.information import make_oracle
 
     region = grid_region(12, 13)
@@ -156,6 +156,34 @@ def test_route_values_of_gp_variance_are_the_dense_oracles(metric):
     routes = {"a": np.array([4, 7, 7, 20, 29]), "b": np.array([29, 30, 31]),  # a repeat once
               "c": np.array([100, 4]), "d": np.array([150])}
     got = route_values("gp-variance", Y, 0.0, routes, dict(region=region, **terms))
+    for name, cells in routes.items():
+        want = make_oracle("gp-variance", Y, 0.0, np.unique(cells), region=region,
+                           gp_method="dense", **terms).value
+        assert got[name] == pytest.approx(want, rel=1e-10), name
+
+
+@pytest.mark.parametrize("far_from_edge", [False, True])
+def test_route_values_fork_one_oracle_only_when_its_picks_are_table_gathers(monkeypatch,
+                                                                            far_from_edge):
+    """Routes far from the region's edge share one set-up (forked: the lag table's gathers);
+    near it each route gets its own exact oracle. Either way each value is the dense
+    oracle's."""
+    from lrm_cvx.information import StructuredGPVarianceOracle, make_oracle
+
+    forks = []
+    fork = StructuredGPVarianceOracle.fork
+    monkeypatch.setattr(StructuredGPVarianceOracle, "fork",
+                        lambda self: forks.append(1) or fork(self))
+    n = 50 if far_from_edge else 12
+    region = grid_region(n, n)
+    Y = np.random.default_rng(7).normal(size=(3, region.n_cells))
+    terms = gp_terms(3, 4)
+    terms["spatial_cov"] = ResidualCovariance("exponential", sill=1.0, range=1.0, nugget=0.1)
+    c0 = region.n_cells // 2 + n // 2 if far_from_edge else 0  # the centre, or a corner
+    routes = {"line": c0 + np.arange(6), "column": c0 + n * np.arange(6),
+              "patch": c0 + np.array([0, 1, n, n + 1, 2 * n + 2])}
+    got = route_values("gp-variance", Y, 0.0, routes, dict(region=region, **terms))
+    assert bool(forks) == far_from_edge
     for name, cells in routes.items():
         want = make_oracle("gp-variance", Y, 0.0, np.unique(cells), region=region,
                            gp_method="dense", **terms).value

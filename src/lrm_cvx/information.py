@@ -463,6 +463,12 @@ class StructuredGPVarianceOracle:
     def k(self) -> int:
         return int(self.Y.shape[0])
 
+    @property
+    def uses_lag_table(self) -> bool:
+        """Whether a pick's ``g(p, x)`` is gathered from the kernel's lag table (cheap) rather
+        than convolved by FFT over the pool's window (exact; the cost of each pick)."""
+        return self._k2 is not None
+
     def _lag_table(self, cT: np.ndarray, sX: np.ndarray, cov: Any, lo: np.ndarray,
                    hi: np.ndarray, tol: float) -> tuple | None:
         """``(K2, off_r, off_c, c0)`` when ``g(p, x) = c0 K2(x - p)`` holds to ``tol``, else None.
