@@ -100,7 +100,7 @@ def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, 
     the kernel's lag table (far from the region's edge: one set-up of the whole-grid terms
     serves all routes). Otherwise each pick costs an FFT over the oracle's window, and each
     route is scored by its own exact oracle over its own, smaller window (four transects span
-    a cross whose bounding box is mostly empty: 3-5x faster on 400 x 400 to 700 x 650 grids at
+    a cross whose bounding box is mostly empty: 2x faster on 400 x 400 and 700 x 650 grids at
     budget 120, the values equal to rounding). In km the dense reference scores each route."""
     sets = {name: np.unique(np.asarray(c, dtype=np.int64)) for name, c in routes.items()}
     if CRITERION_REGISTRY.canonical(criterion, "criterion") != "gp-variance":
