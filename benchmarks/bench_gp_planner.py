@@ -104,7 +104,6 @@ def agreement(shape: tuple[int, int], budget: float) -> None:
 def route_scoring(shape: tuple[int, int], budget: float) -> None:
     """Item 3 of the module docstring: one row per grid and budget."""
     import lrm_cvx.planning.lines as lines
-    from lrm_cvx.information import GP_BOUNDARY_TOL
 
     Y, region, start = _problem(shape, 0)
     cov = _cov(5.0)
@@ -126,18 +125,11 @@ def route_scoring(shape: tuple[int, int], budget: float) -> None:
     t = time.perf_counter()
     values = real(criterion, Yr, ridge, routes, extra)
     t_now = time.perf_counter() - t
-    terms = {key: extra.get(key) for key in ("region", "spatial_cov", "prior_cov", "targets",
-                                             "target_weights")}
+    terms = {key: extra.get(key) for key in lines.GP_TERMS}
     sets = {name: np.unique(np.asarray(c, dtype=np.int64)) for name, c in routes.items()}
     t = time.perf_counter()
-    base = StructuredGPVarianceOracle(Yr, [], pool=np.unique(np.concatenate(list(sets.values()))),
-                                      boundary_tol=GP_BOUNDARY_TOL, **terms)
-    one = {}
-    for name, cells in sets.items():
-        oracle = base.fork()
-        for c in cells.tolist():
-            oracle.add(c)
-        one[name] = oracle.value
+    base = lines.union_oracle(Yr, sets, terms)
+    one = lines.forked_values(base, sets)
     t_one = time.perf_counter() - t
     diff = max(abs(values[n] - one[n]) / abs(one[n]) for n in one)
     print(f"{shape[0]:>5} x {shape[1]:<5} {budget:6g} {sum(c.size for c in sets.values()):6d} "

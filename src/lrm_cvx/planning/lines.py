@@ -45,7 +45,8 @@ from .plan import Plan
 from .request import Fleet, PathOptions
 
 __all__ = ["LINES", "RIVALS", "RIVAL_EXPONENT", "RIVAL_NAME", "CHECKS", "applies", "lines_run",
-           "lines_where_possible", "route_values", "best_of_lines"]
+           "lines_where_possible", "route_values", "best_of_lines", "GP_TERMS", "union_oracle",
+           "forked_values"]
 
 LINES = "lines"
 """The ``refine=`` name of the check against the four straight transects."""
@@ -91,6 +92,10 @@ def lines_where_possible(request: PathOptions | None) -> str | None:
     return RECOMMENDED["refine"] if applies(request or PathOptions()) is None else None
 
 
+GP_TERMS = ("region", "spatial_cov", "prior_cov", "targets", "target_weights")
+"""The greedy's oracle terms (``extra``) a gp-variance route value reads."""
+
+
 def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, Any],
                  extra: dict[str, Any]) -> dict[str, float]:
     """``criterion``'s value of observing each route's cells (name -> ``(n,)`` cell indices;
@@ -106,17 +111,30 @@ def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, 
     if CRITERION_REGISTRY.canonical(criterion, "criterion") != "gp-variance":
         return {name: float(make_oracle(criterion, Y, ridge, c, **extra).value)
                 for name, c in sets.items()}
-    terms = {key: extra.get(key) for key in ("region", "spatial_cov", "prior_cov", "targets",
-                                             "target_weights")}
+    terms = {key: extra.get(key) for key in GP_TERMS}
     if terms["spatial_cov"].metric != "grid":
         return {name: gp_variance_value(Y, terms["region"], terms["spatial_cov"],
                                         terms["prior_cov"], c, terms["targets"],
                                         terms["target_weights"]) for name, c in sets.items()}
-    union = np.unique(np.concatenate(list(sets.values())))
-    base = StructuredGPVarianceOracle(Y, [], pool=union, boundary_tol=GP_BOUNDARY_TOL, **terms)
+    base = union_oracle(Y, sets, terms)
     if not base.uses_lag_table:  # exact per-pick FFTs: each route over its own window
         return {name: float(StructuredGPVarianceOracle(Y, cells, pool=cells, **terms).value)
                 for name, cells in sets.items()}
+    return forked_values(base, sets)
+
+
+def union_oracle(Y: np.ndarray, sets: dict[str, np.ndarray],
+                 terms: dict[str, Any]) -> StructuredGPVarianceOracle:
+    """A structured gp-variance oracle with no observations, set up on the union of ``sets``
+    (name -> sorted cell indices; ``terms``: the oracle's region, covariances and targets)."""
+    union = np.unique(np.concatenate(list(sets.values())))
+    return StructuredGPVarianceOracle(Y, [], pool=union, boundary_tol=GP_BOUNDARY_TOL, **terms)
+
+
+def forked_values(base: StructuredGPVarianceOracle,
+                  sets: dict[str, np.ndarray]) -> dict[str, float]:
+    """Each set's total posterior variance from ``base`` (:func:`union_oracle`) forked per set
+    and conditioned on its cells."""
     out = {}
     for name, cells in sets.items():
         oracle = base.fork()
