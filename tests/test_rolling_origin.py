@@ -3,6 +3,7 @@
 import warnings
 
 import numpy as np
+import pandas as pd
 import pytest
 import xarray as xr
 from test_evaluation import planted
@@ -239,3 +240,21 @@ def test_a_360_day_calendar_backtests_and_saves(tmp_path):
     assert list(back["origin_time"].values) == want
     labels = [t.get_text() for t in plot_backtest(res).axes[0].get_xticklabels()]
     assert labels[0].startswith("1916-07-01")
+
+
+def test_cli_evaluate_with_temporal_flies_the_filters_campaigns(tmp_path):
+    """``evaluate --temporal K`` runs ``evaluate(temporal=K)``: each start's route flown day
+    after day, the filter scored beside the memoryless fold-in (before, the flag fitted
+    dynamics the memoryless protocol never used); without it the protocol stays memoryless."""
+    from test_cli import TINY
+
+    args = ["-q", "evaluate", "sample:sst", *TINY, "--paper", "--methods", "greedy,random",
+            "--certify", "off"]
+    assert main([*args, "--temporal", "ar1", "--out", str(tmp_path / "ar1")]) == 0
+    assert main([*args, "--out", str(tmp_path / "plain")]) == 0
+    ar1 = pd.read_csv(tmp_path / "ar1" / "summary.csv")
+    plain = pd.read_csv(tmp_path / "plain" / "summary.csv")
+    assert (ar1["temporal"] == "ar1").all() and (plain["temporal"] == "none").all()
+    assert "mse_memoryless_mean" in ar1 and "mse_memoryless_mean" not in plain
+    assert not np.allclose(ar1["mse_mean"], ar1["mse_memoryless_mean"])  # the filter flew
+    assert xr.load_dataset(tmp_path / "ar1" / "results.nc").attrs["temporal"] == "ar1"

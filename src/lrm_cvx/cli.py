@@ -527,12 +527,14 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
                     model_params: dict | None = None, fold_in: dict | None = None,
                     n_jobs: int = 1, inputs: Sequence[str | Path] = (),
                     overwrite: bool = True, n_robots: int = 1, path: Any = None,
-                    origins: int = 1) -> list[Path]:
+                    origins: int = 1, temporal: str | None = None) -> list[Path]:
     """Fit, evaluate, summarise and draw everything in memory, then write every output in one
     all-or-nothing step (:func:`~lrm_cvx._validation.atomic_outputs`); returns the paths.
     ``path``: the path request of :func:`~lrm_cvx.evaluation.evaluate` (a
     :class:`~lrm_cvx.planning.request.PathOptions`), ``n_robots`` per start; ``origins`` > 1:
-    the rolling-origin backtest (the figure of routes shows the last block)."""
+    the rolling-origin backtest (the figure of routes shows the last block); ``temporal``:
+    the campaigns' dynamics (``evaluate(temporal=...)``: each start's route flown day after
+    day, the filter scored beside the memoryless fold-in), None for the memoryless protocol."""
     import matplotlib.pyplot as plt
 
     from .evaluation import (
@@ -566,7 +568,8 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
               random_trials=random_trials, min_observations=min_observations,
               criterion=criterion, cost=cost, ridge=ridge, fold_ridge=fold_ridge,
               certify=certify, seed=seed, n_jobs=n_jobs, progress=progress, model=model,
-              model_params=model_params, fold_in=fold_in, n_robots=n_robots, path=path)
+              model_params=model_params, fold_in=fold_in, n_robots=n_robots, path=path,
+              temporal=temporal)
     results = backtest(data, origins, **kw) if origins > 1 else evaluate(data, **kw)
     table = summary(results)
     last = results.isel(origin=-1) if "origin" in results.dims else results
@@ -644,6 +647,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     params = _model_params(args)
     if args.temporal is None:  # evaluate's protocol is memoryless: no dynamics to choose
         params["temporal"] = None
+    campaigns = params.get("temporal")  # --temporal K: the filter's campaigns, day by day
     fold_in = {"prior": _prior(_pick(args.prior, paper, "prior", None)),
                "spatial": bool(args.fold_spatial or (not paper and RECOMMENDED["fold_spatial"]))}
     fold_in = {k: v for k, v in fold_in.items() if v}
@@ -662,7 +666,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                     progress=not args.quiet, methods=methods, cost=args.cost, ridge=args.ridge,
                     fold_ridge=args.fold_ridge, model_params=params, fold_in=fold_in,
                     n_jobs=args.jobs, inputs=inputs, overwrite=args.overwrite,
-                    n_robots=args.robots, path=path, origins=args.origins)
+                    n_robots=args.robots, path=path, origins=args.origins,
+                    temporal=campaigns)
     return 0
 
 
@@ -730,7 +735,8 @@ def _add_model_options(p: argparse.ArgumentParser, *, fit: bool = True) -> None:
                        f"{default('temporal', 'none')}; where auto cannot run on the data, "
                        "e.g. fewer than 8 regularly spaced snapshots, a note says so and none "
                        "is fitted)" if fit else "default: none, the protocol is memoryless, "
-                       "with or without --paper)"))
+                       "with or without --paper; with it, each start's route is flown day "
+                       "after day and the filter is scored beside the memoryless fold-in)"))
 
 
 def _recommended_fit(fit: bool = True) -> str:
