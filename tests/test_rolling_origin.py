@@ -258,3 +258,18 @@ def test_cli_evaluate_with_temporal_flies_the_filters_campaigns(tmp_path):
     assert "mse_memoryless_mean" in ar1 and "mse_memoryless_mean" not in plain
     assert not np.allclose(ar1["mse_mean"], ar1["mse_memoryless_mean"])  # the filter flew
     assert xr.load_dataset(tmp_path / "ar1" / "results.nc").attrs["temporal"] == "ar1"
+
+
+def test_campaigns_say_nothing_of_forced_initial_cells_over_budget():
+    """At a budget below the paper's forced initial cells (the start and its k - 1 nearest)
+    the protocol is silent, as it is memoryless (an expected case, not news): before, the
+    filter's campaigns printed the planner's warning once per start, day and block."""
+    from lrm_cvx import load_sample
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = evaluate(load_sample("sst"), paper=True, rank=3, n_test=2, n_starts=2,
+                      random_trials=1, budgets=(1.0,), methods=("greedy",), certify=False,
+                      progress=False, temporal="ar1", min_observations=1)
+    assert ds.attrs["temporal"] == "ar1"
+    assert not [w for w in caught if "initial cells" in str(w.message)]

@@ -439,7 +439,7 @@ class EvaluationProtocol:
         with warnings.catch_warnings(), single_threaded_blas(), \
                 ThreadPoolExecutor(max_workers=max(1, self.n_jobs)) as pool:  # tiny k x k
             # at small budgets the forced initial cells exceed the budget: expected, not news
-            warnings.filterwarnings("ignore", message=r"(the|robot \d+.s) \d+ initial cells")
+            warnings.filterwarnings("ignore", message=r"(robot \d+.s )?\d+ initial cells")
             jobs = [(s, np.random.default_rng(seeds[s]), starts[s], fleets[s])
                     for s in range(self.n_starts)]
             for results in pool.map(lambda job: self._run_start(fit, planners, cov, *job),
