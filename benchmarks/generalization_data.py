@@ -421,7 +421,7 @@ def load_planted_warming_yearly() -> xr.DataArray:
 
 def _smooth_noise(rng: np.random.Generator, shape: tuple, n: int, spectrum) -> np.ndarray:
     """``n`` stationary random fields on ``shape`` (periodic), white noise filtered by the
-    amplitude ``spectrum(k2)`` of the squared angular wavenumber (cycles per cell), each scaled to
+    amplitude ``spectrum(k2)`` of the squared angular wavenumber (radians per cell), each scaled to
     unit standard deviation over its cells."""
     ky = np.fft.fftfreq(shape[0])[:, None]
     kx = np.fft.fftfreq(shape[1])[None, :]
@@ -437,7 +437,7 @@ def load_planted_regional_warming_yearly(seed: int = 7) -> xr.DataArray:
     (1860-2099, 360-day calendar) x 37 x 49 cells (15-60N, 225-315E), no gaps, in degC. A mean
     field cooling poleward and over a planted land mask; a forced warming from 1900,
     accelerating (``4 x^2.3`` K at the fraction ``x`` of 1900-2099) and amplified poleward and
-    over land (about 5.5 K at 2099 in the north of the land); six large-scale modes of
+    over land (1.5-2 times the forcing in the north: 6-8 K by 2099); six large-scale modes of
     interannual variability with lag-1 autocorrelations 0.5 .. 0, larger poleward and over land;
     an exponentially correlated residual (range 3 cells) and white noise of 0.05 K. Unlike
     ``planted_warming_yearly`` (12 AR(1) modes, one with a ramp), the trend dominates the
@@ -550,7 +550,7 @@ PLANTED_DATASETS: dict[str, Dataset] = {
         "planted, yearly, a dominant accelerating warming (stress check)", "yearly", "lrm_cvx",
         "builtin"),
 }
-"""Planted records for stress checks of a kind no real record here has (session 28): reported,
+"""Planted records for stress checks of a kind no real record here has (sessions 28, 35): reported,
 never chosen on, and not real data."""
 
 ALL_DATASETS: dict[str, Dataset] = {**DATASETS, **SHORT_DATASETS, **HOLDOUT_DATASETS,
