@@ -260,16 +260,18 @@ def test_cli_evaluate_with_temporal_flies_the_filters_campaigns(tmp_path):
     assert xr.load_dataset(tmp_path / "ar1" / "results.nc").attrs["temporal"] == "ar1"
 
 
-def test_campaigns_say_nothing_of_forced_initial_cells_over_budget():
+@pytest.mark.parametrize("n_robots", [1, 2])
+def test_campaigns_say_nothing_of_forced_initial_cells_over_budget(n_robots):
     """At a budget below the paper's forced initial cells (the start and its k - 1 nearest)
     the protocol is silent, as it is memoryless (an expected case, not news): before, the
-    filter's campaigns printed the planner's warning once per start, day and block."""
+    filter's campaigns printed the planner's warning once per start, day and block. Both
+    forms of the warning: one robot's, and a fleet's ("robot r's ...")."""
     from lrm_cvx import load_sample
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         ds = evaluate(load_sample("sst"), paper=True, rank=3, n_test=2, n_starts=2,
                       random_trials=1, budgets=(1.0,), methods=("greedy",), certify=False,
-                      progress=False, temporal="ar1", min_observations=1)
-    assert ds.attrs["temporal"] == "ar1"
+                      progress=False, temporal="ar1", min_observations=1, n_robots=n_robots)
+    assert ds.attrs["temporal"] == "ar1" and ds.attrs["n_robots"] == n_robots
     assert not [w for w in caught if "initial cells" in str(w.message)]
