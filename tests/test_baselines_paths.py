@@ -352,3 +352,32 @@ def test_bad_path_options_are_clear_errors():
         random_walk(region, 0, [1.0, 2.0], 0)
     with pytest.raises((PlanningError, RegionError)):
         transect(region, [0, 99], 3.0, "up")
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), ny=st.integers(1, 5), nx=st.integers(1, 5),
+       wrap=st.booleans(), with_enter=st.booleans())
+def test_neighbours_are_the_valid_enterable_cells_of_the_3x3_window(seed, ny, nx, wrap,
+                                                                   with_enter):
+    """Against a loop over the 3 x 3 window: valid, enterable, not the cell itself, columns
+    wrapped on a full circle; ascending cell indices, a wrapped duplicate kept twice."""
+    from lrm_cvx.planning.baselines import _neighbours
+
+    rng = np.random.default_rng(seed)
+    grid = np.where(rng.random((ny, nx)) < 0.3, -1, np.arange(ny * nx).reshape(ny, nx))
+    enter = rng.random((ny, nx)) < 0.7 if with_enter else None
+    for row in range(ny):
+        for col in range(nx):
+            want = []
+            for dr in (-1, 0, 1):
+                for dc in (-1, 0, 1):
+                    r, c = row + dr, col + dc
+                    if wrap:
+                        c %= nx
+                    if (r, c) == (row, col) or not (0 <= r < ny and 0 <= c < nx):
+                        continue
+                    if grid[r, c] >= 0 and (enter is None or enter[r, c]):
+                        want.append((int(grid[r, c]), r, c))
+            want.sort(key=lambda w: w[0])  # stable: the window's order among equal cells
+            cells, rows, cols = _neighbours(grid, row, col, enter, wrap)
+            assert list(zip(cells.tolist(), rows.tolist(), cols.tolist(), strict=True)) == want

@@ -101,6 +101,36 @@ def test_given_dynamics_and_gp_variance(field):
     assert np.all(np.isfinite(ds["mse"])) and np.all(ds["n_obs"] >= 1)
 
 
+@pytest.mark.parametrize("method,temporal,plans", [
+    ("greedy:gp-variance", None, 1),  # the memoryless belief is the same every day
+    ("greedy", "ar1", 1),  # the paper's greedy ignores the filter's belief
+    ("greedy:gp-variance", "ar1", 4),  # the forecast changes every day
+    ("random", None, 4),  # a new walk every day
+])
+def test_a_day_reuses_the_last_plan_only_when_its_inputs_are_the_same(field, monkeypatch,
+                                                                      method, temporal, plans):
+    """A planner that does not draw from ``rng``, given the same belief, plans the same route:
+    the campaign keeps it. Every score equals a campaign that replans every day."""
+    import lrm_cvx.campaign as campaign
+    from lrm_cvx.planning.planners import GreedyPlanner, RandomWalk
+
+    model = _fit(field.isel(time=slice(0, 40)), temporal="ar1", offset=True,
+                 spatial="exponential")
+    test = field.isel(time=slice(40, 44))
+    calls = []
+    for cls in (GreedyPlanner, RandomWalk):
+        original = cls.plan
+        monkeypatch.setattr(cls, "plan", lambda self, *a, _o=original, **k:
+                            calls.append(1) or _o(self, *a, **k))
+    kept = simulate_campaign(model, test, 7, 6, method=method, temporal=temporal, seed=1)
+    assert len(calls) == plans
+    monkeypatch.setattr(campaign, "_same_terms", lambda a, b: False)
+    fresh = simulate_campaign(model, test, 7, 6, method=method, temporal=temporal, seed=1)
+    assert len(calls) == plans + 4
+    for name in ("mse", "coverage95", "information", "routes", "route_cost"):
+        np.testing.assert_array_equal(kept[name].values, fresh[name].values)
+
+
 def test_bad_input(model, field):
     test = field.isel(time=slice(40, 43))
     with pytest.raises(ModelError, match="method"):

@@ -137,3 +137,54 @@ def test_a_budget_whose_plans_are_all_unscored_warns():
         warnings.simplefilter("error", UserWarning)
         evaluate(planted(), rank=3, n_test=4, budgets=(40,), n_starts=2, random_trials=1,
                  min_observations=10, seed=1, progress=False, paper=True)
+
+
+@pytest.mark.parametrize("spatial", ["exponential", None])
+def test_model_scores_equal_one_fold_in_per_snapshot(spatial):
+    """A plan's MSE and interval coverage on the test snapshots (the snapshots that observe
+    the same cells share one kriging system) equal a plain loop: fold each snapshot in, predict
+    its map and its held-out cells, score them."""
+    from lrm_cvx import GLRM
+    from lrm_cvx.glrm.calibrated import interval_coverage
+    from lrm_cvx.scoring import coverage_subset, model_coverage, model_mse, model_scores
+
+    rng = np.random.default_rng(5)
+    T, ny, nx, k = 30, 8, 9, 2
+    data = (rng.normal(size=(T, k)) @ rng.normal(size=(k, ny * nx)) + 10.0
+            + 0.3 * rng.normal(size=(T, ny * nx))).reshape(T, ny, nx)
+    da = xr.DataArray(data, dims=("time", "lat", "lon"),
+                      coords={"time": np.arange(T), "lat": np.arange(ny) * 1.0,
+                              "lon": np.arange(nx) * 1.0})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(k, offset=True, spatial=spatial, progress=False, random_state=0,
+                     max_iter=30).fit(da.isel(time=slice(0, 24)))
+    test = da.isel(time=slice(24, None)).values.reshape(6, -1).copy()
+    cells = rng.choice(ny * nx, 12, replace=False)
+    test[1, cells[:3]] = np.nan  # two snapshots see fewer of the plan's cells
+    test[4, cells[5]] = np.nan
+    test[2, cells] = np.nan  # one sees none of them
+    test[3, rng.choice(ny * nx, 20, replace=False)] = np.nan  # gaps elsewhere
+    prior = model.latent_prior("empirical", spatial=spatial is not None)
+    stats = SnapshotStatistics.from_values(np.asarray(model.Y_), test,
+                                           np.asarray(model.offset_).ravel(), None)
+    subsets = coverage_subset(test, seed=0)
+    mse, n_obs, cov = model_scores(prior, test, cells, 4, stats=stats, subsets=subsets)
+    want_mse, want_cov = np.full(6, np.nan), np.full((6, 2), np.nan)
+    for t in range(6):
+        seen = cells[np.isfinite(test[t, cells])]
+        if seen.size < 4:
+            continue
+        post = prior.update(seen, test[t, seen])
+        want_mse[t] = np.nanmean((post.predict()[0] - test[t]) ** 2)
+        held = np.setdiff1d(subsets[t], cells)
+        want_cov[t] = interval_coverage(test[t, held], post.predict(cells=held)[0],
+                                        post.predictive_std(cells=held),
+                                        multipliers=post.interval_multipliers())
+    np.testing.assert_array_equal(n_obs, np.isfinite(test[:, cells]).sum(axis=1))
+    assert np.isnan(mse[2]) and np.isfinite(mse[[0, 1, 3, 4, 5]]).all()
+    np.testing.assert_allclose(mse, want_mse, rtol=1e-9)
+    np.testing.assert_allclose(cov, want_cov, rtol=0, atol=1e-12)
+    assert 0 < np.nanmin(cov[:, 1]) and np.nanmax(cov[:, 0]) < 1  # intervals that can miss
+    np.testing.assert_allclose(model_mse(prior, stats, cells, 4)[0], mse, rtol=1e-12)
+    np.testing.assert_allclose(model_coverage(prior, test, subsets, cells, 4), cov, rtol=0)

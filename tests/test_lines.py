@@ -141,12 +141,20 @@ def test_rivals_add_the_gentler_greedy_and_keep_the_best(criterion):
     assert "greedy-cost^0.5" in chosen, chosen
 
 
-@pytest.mark.parametrize("metric", ["grid", "km"])
-def test_route_values_of_gp_variance_are_the_dense_oracles(metric):
-    """Grid: structured oracles on the routes' cells; km: the dense reference. Each value is a
-    fresh dense oracle's, whatever the order of the routes."""
-    from lrm_cvx.information import make_oracle
+@pytest.mark.parametrize("metric,small", [("grid", False), ("grid", True), ("km", False)])
+def test_route_values_of_gp_variance_are_the_dense_oracles(metric, small, monkeypatch):
+    """Grid: structured oracles on the routes' cells, or the dense reference where its
+    covariances are small; km: the dense reference. Each value is a fresh dense oracle's,
+    whatever the order of the routes."""
+    import lrm_cvx.planning.lines as lines
+    from lrm_cvx.information import StructuredGPVarianceOracle, make_oracle
 
+    built = []
+    init = StructuredGPVarianceOracle.__init__
+    monkeypatch.setattr(StructuredGPVarianceOracle, "__init__",
+                        lambda self, *a, **k: built.append(1) or init(self, *a, **k))
+    if not small:
+        monkeypatch.setattr(lines, "GP_STRUCTURED_MIN_ENTRIES", 0.0)
     region = grid_region(12, 13)
     Y = np.random.default_rng(3).normal(size=(2, region.n_cells))
     terms = gp_terms(2, 3)
@@ -156,6 +164,7 @@ def test_route_values_of_gp_variance_are_the_dense_oracles(metric):
     routes = {"a": np.array([4, 7, 7, 20, 29]), "b": np.array([29, 30, 31]),  # a repeat once
               "c": np.array([100, 4]), "d": np.array([150])}
     got = route_values("gp-variance", Y, 0.0, routes, dict(region=region, **terms))
+    assert bool(built) == (metric == "grid" and not small)
     for name, cells in routes.items():
         want = make_oracle("gp-variance", Y, 0.0, np.unique(cells), region=region,
                            gp_method="dense", **terms).value
@@ -168,8 +177,10 @@ def test_route_values_fork_one_oracle_only_when_its_picks_are_table_gathers(monk
     """Routes far from the region's edge share one set-up (forked: the lag table's gathers);
     near it each route gets its own exact oracle. Either way each value is the dense
     oracle's."""
+    import lrm_cvx.planning.lines as lines
     from lrm_cvx.information import StructuredGPVarianceOracle, make_oracle
 
+    monkeypatch.setattr(lines, "GP_STRUCTURED_MIN_ENTRIES", 0.0)  # not the small-region path
     forks = []
     fork = StructuredGPVarianceOracle.fork
     monkeypatch.setattr(StructuredGPVarianceOracle, "fork",

@@ -495,3 +495,78 @@ def test_innovation_scale_is_unbiased_for_data_from_the_model():
         qs.append(q)
         ns.append(n)
     assert np.sum(qs) / np.sum(ns) == pytest.approx(s_true, rel=0.05)
+
+
+# --------------------------------------------------------------------------- many beliefs
+@pytest.mark.parametrize("spatial,fft,local", [(True, False, False), (True, True, False),
+                                               (True, False, True), (False, False, False)])
+def test_predict_many_equals_one_prediction_per_belief(spatial, fft, local, monkeypatch):
+    """One plan's test snapshots share their kriging system: the shared path (one variance,
+    the residuals kriged together), the FFT fallback and the local (neighbour) kriging each
+    give every belief's own ``predict_all`` and, spatially, the brute-force GP conditional."""
+    import lrm_cvx.spatial as sp
+    from lrm_cvx.glrm.posterior import predict_many
+
+    if fft:
+        monkeypatch.setattr(sp, "FFT_KRIGE_MIN_WORK", 0.0)
+    if local:
+        monkeypatch.setattr(sp, "MAX_DIRECT", 3)
+    rng, obs = grid_obs(3)
+    if not spatial:
+        obs = obs.without_spatial()
+    k = obs.k
+    B = rng.normal(size=(k, k))
+    S0 = B @ B.T + 0.5 * np.eye(k)
+    m0 = rng.normal(size=k)
+    prior = LatentPosterior.prior(obs, "custom", mean=m0, cov=S0)
+    cells = rng.choice(obs.n_cells, 7, replace=False)
+    values = rng.normal(5, 1, (4, 7))
+    beliefs = [prior.update(cells, v) for v in values]
+    targets = np.sort(rng.choice(obs.n_cells, 11, replace=False))
+    for where in (None, targets):
+        mean, pstd = predict_many(beliefs, cells=where)
+        means_only, none = predict_many(beliefs, cells=where, std=False)
+        assert none is None
+        for i, b in enumerate(beliefs):
+            m1, _, p1 = b.predict_all(cells=where)
+            np.testing.assert_allclose(mean[i], m1, rtol=1e-10, atol=1e-10)
+            np.testing.assert_allclose(means_only[i], m1, rtol=1e-10, atol=1e-10)
+            np.testing.assert_allclose(pstd[i], p1, rtol=1e-10)
+            if spatial and not local and where is None:
+                z = (values[i] - obs.offset[cells]) / obs.scale[cells]
+                gm, gv = gp_conditional(obs, m0, S0, cells, z)
+                np.testing.assert_allclose(mean[i], obs.scale * gm + obs.offset, rtol=1e-8)
+                np.testing.assert_allclose(
+                    pstd[i] ** 2, obs.scale ** 2 * (gv + obs.spatial_cov.nugget), rtol=1e-7)
+    # beliefs at different cells (or one with a repeated cell) are predicted one by one
+    mixed = beliefs[:2] + [prior.update(cells[:5], values[2, :5]),
+                           prior.update(np.r_[cells, cells[:1]], np.r_[values[3], 4.0])]
+    mean, pstd = predict_many(mixed, cells=targets)
+    for i, b in enumerate(mixed):
+        m1, _, p1 = b.predict_all(cells=targets)
+        np.testing.assert_allclose(mean[i], m1, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(pstd[i], p1, rtol=1e-10)
+    with pytest.raises(ModelError, match="at least one belief"):
+        predict_many([])
+
+
+@pytest.mark.parametrize("spatial", [True, False])
+def test_fold_in_maps_equal_fold_in_snapshots(spatial):
+    """Snapshots grouped by the cells they observe (sensors, one with a gap, one empty) give
+    each snapshot's own fold-in map."""
+    from lrm_cvx.glrm.posterior import fold_in_maps, fold_in_snapshots
+
+    rng, obs = grid_obs(11)
+    if not spatial:
+        obs = obs.without_spatial()
+    k = obs.k
+    prior = LatentPosterior.prior(obs, "custom", mean=rng.normal(size=k), cov=np.eye(k))
+    V = np.full((6, obs.n_cells), np.nan)
+    sensors = rng.choice(obs.n_cells, 8, replace=False)
+    V[:, sensors] = rng.normal(5, 1, (6, 8))
+    V[2, sensors[0]] = np.nan  # a gap
+    V[4] = np.nan  # nothing observed: the prior's map
+    want, *_ = fold_in_snapshots(prior, V)
+    np.testing.assert_allclose(fold_in_maps(prior, V), want, rtol=1e-10, atol=1e-10)
+    with pytest.raises(DataError, match="shape"):
+        fold_in_maps(prior, V[:, :-1])

@@ -103,16 +103,38 @@ def path_attrs(path: PathOptions, n_robots: int = 1) -> dict[str, Any]:
     }
 
 
+def _day_terms(state: MonitorState, t: Any, planner: Planner) -> dict[str, Any] | None:
+    """The prior terms of day ``t``'s plan: a planner on the model's belief (the
+    ``greedy:<criterion>`` methods) plans on the state's belief about ``t`` (the forecast once
+    the state has observed an earlier day); the paper's greedy and the baselines ignore it
+    (None)."""
+    if not getattr(planner, "model_prior", False):
+        return None
+    return state.planner_kwargs(criterion=planner.criterion, time=t)
+
+
+def _same_terms(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
+    """Whether two days' prior terms are equal (arrays entry by entry)."""
+    if a is None or b is None:
+        return a is b
+    return a.keys() == b.keys() and all(
+        np.array_equal(a[key], b[key]) if isinstance(a[key], np.ndarray) else a[key] == b[key]
+        for key in a)
+
+
 def _plan_day(state: MonitorState, t: Any, planner: Planner, fleet: Fleet, path: PathOptions,
-              rng: np.random.Generator, ridge: float) -> Any:
-    """Day ``t``'s plan by ``planner`` for ``fleet`` under ``path``: a planner on the model's
-    belief (the ``greedy:<criterion>`` methods) plans on the state's belief about ``t`` (the
-    forecast once the state has observed an earlier day); the paper's greedy and the baselines
-    ignore it."""
+              rng: np.random.Generator, ridge: float, last: tuple | None = None
+              ) -> tuple[Any, dict[str, Any] | None]:
+    """Day ``t``'s plan by ``planner`` for ``fleet`` under ``path`` (:func:`_day_terms`) and its
+    terms. ``last``, the previous day's ``(plan, terms)``, is kept when the planner does not
+    draw from ``rng`` and the terms are the same (the memoryless model's every day, and the
+    planners that ignore the belief): the same inputs give the same route."""
+    terms = _day_terms(state, t, planner)
+    if last is not None and not planner.uses_rng and _same_terms(terms, last[1]):
+        return last
     model = state.model
-    terms = (state.planner_kwargs(criterion=planner.criterion, time=t)
-             if getattr(planner, "model_prior", False) else None)
-    return planner.plan(model.Y, model.region_, fleet, path, rng=rng, ridge=ridge, terms=terms)
+    return (planner.plan(model.Y, model.region_, fleet, path, rng=rng, ridge=ridge,
+                         terms=terms), terms)
 
 
 def _observed_entries(plan: Any, sel: np.ndarray) -> np.ndarray:
@@ -290,11 +312,12 @@ def simulate_campaign(
     n_replans = np.zeros(T, dtype=np.int64)
     robot_cost = np.full((T, fleet.n_robots), np.nan)
     routes: list[tuple[np.ndarray, np.ndarray]] = []
-    plan = None
+    plan = last = None
     for i in range(T):  # days, in time order
         t = state.plan_time(times[i])  # coerced to the filter's time kind
         if replan or plan is None:
-            plan = _plan_day(state, t, planner, fleet, request, rng, ridge)
+            last = _plan_day(state, t, planner, fleet, request, rng, ridge, last)
+            plan = last[0]
         information = float(getattr(plan, "information", np.nan))
         forecast = state.belief(t).predict()[0]
         if every:

@@ -51,8 +51,7 @@ from .scoring import (
     complete_mse,
     coverage_subset,
     foldin_mse,
-    model_coverage,
-    model_mse,
+    model_scores,
 )
 
 __all__ = ["evaluate", "backtest", "EvaluationProtocol", "summary", "save_results", "METHODS",
@@ -476,8 +475,8 @@ class EvaluationProtocol:
 
     def _score(self, fit: _Fitted, plan: Any, method: str, cov: tuple) -> tuple:
         """``(mse, n_obs, bound, coverage, None, None)`` of one plan on the test snapshots."""
-        e, n = model_mse(fit.fold_prior, fit.stats, plan.cells, self.min_observations)
-        c = model_coverage(fit.fold_prior, cov[1], cov[0], plan.cells, self.min_observations)
+        e, n, c = model_scores(fit.fold_prior, cov[1], plan.cells, self.min_observations,
+                               stats=fit.stats, subsets=cov[0])
         certify = self.certify
         cert = (plan.certify(tighten=certify == "tight", refine=False).bound
                 if certify and method == "greedy" else np.nan)  # bound only

@@ -16,10 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ModelError
-from .glrm.posterior import LatentPosterior, ObservationModel, check_cells
+from .glrm.calibrated import interval_coverage
+from .glrm.posterior import LatentPosterior, ObservationModel, check_cells, predict_many
 
 __all__ = ["SnapshotStatistics", "foldin_mse", "plain_prior", "complete_mse", "model_mse",
-           "COVERAGE_CELLS", "coverage_subset", "model_coverage"]
+           "COVERAGE_CELLS", "coverage_subset", "model_coverage", "model_scores"]
 
 
 @dataclass(frozen=True)
@@ -119,21 +120,59 @@ def model_mse(prior: LatentPosterior, stats: SnapshotStatistics, cells: np.ndarr
     """Like :func:`foldin_mse` for a model's belief (``GLRM.latent_prior``): the exact
     statistics path without the spatial residual; with it, full predicted maps (kriging) and
     the MSE over each snapshot's observed cells, ``O(n_test L k)`` (plus kriging) per plan."""
-    if not prior.obs_model.is_spatial:
-        return foldin_mse(prior.obs_model.Y, stats, cells, 0.0, min_observations, prior=prior)
-    values = stats.values
+    mse, n_obs, _ = model_scores(prior, stats.values, cells, min_observations, stats=stats)
+    return mse, n_obs
+
+
+def model_scores(prior: LatentPosterior, values: np.ndarray, cells: np.ndarray,
+                 min_observations: int, *, stats: SnapshotStatistics | None = None,
+                 subsets: list[np.ndarray] | None = None
+                 ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray | None]:
+    """``(mse, n_obs, coverage)`` of one plan's ``cells`` on the test snapshots ``values
+    (n_test, L)``: with ``stats`` (of ``values``) :func:`model_mse`'s errors, with ``subsets``
+    (:func:`coverage_subset`) :func:`model_coverage`'s (each None when not asked), from one
+    fold-in per snapshot. The snapshots that observe the same cells of the plan share one
+    kriging system (:func:`~lrm_cvx.glrm.posterior.predict_many`)."""
     cells = check_cells(cells, values.shape[1])
     vals = values[:, cells].astype(np.float64)
     obs = np.isfinite(vals)
     n_obs = obs.sum(axis=1)
-    mse = np.full(values.shape[0], np.nan)
-    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):
-        post = prior.update(cells[obs[t]], vals[t, obs[t]])
-        if not post.is_proper or stats.count[t] == 0:
+    spatial = prior.obs_model.is_spatial
+    mse = None
+    if stats is not None and spatial:
+        mse = np.full(values.shape[0], np.nan)
+    elif stats is not None:
+        mse, _ = foldin_mse(prior.obs_model.Y, stats, cells, 0.0, min_observations, prior=prior)
+    cov = None if subsets is None else np.full((values.shape[0], 2), np.nan)
+    if not (spatial and stats is not None) and cov is None:
+        return mse, n_obs, cov
+    groups: dict[bytes, list[int]] = {}
+    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):  # a loop over snapshots
+        groups.setdefault(obs[t].tobytes(), []).append(int(t))
+    for ts in groups.values():
+        posts = [prior.update(cells[obs[t]], vals[t, obs[t]]) for t in ts]
+        keep = [i for i, p in enumerate(posts) if p.is_proper]
+        if not keep:
             continue
-        pred, _ = post.predict()
-        mse[t] = float(np.nanmean((pred - values[t]) ** 2))
-    return mse, n_obs
+        posts, ts = [posts[i] for i in keep], [ts[i] for i in keep]
+        if spatial and stats is not None:
+            pred, _ = predict_many(posts, std=False)
+            for i, t in enumerate(ts):
+                if stats.count[t] > 0:
+                    mse[t] = float(np.nanmean((pred[i] - values[t]) ** 2))
+        if cov is None:
+            continue
+        held = [np.setdiff1d(subsets[t], cells, assume_unique=True) for t in ts]
+        union = np.unique(np.concatenate(held))
+        if union.size == 0:
+            continue
+        mean, pstd = predict_many(posts, cells=union)
+        for i, t in enumerate(ts):
+            if held[i].size:
+                at = np.searchsorted(union, held[i])
+                cov[t] = interval_coverage(values[t, held[i]], mean[i, at], pstd[i, at],
+                                           multipliers=posts[i].interval_multipliers())
+    return mse, n_obs, cov
 
 
 COVERAGE_CELLS = 4096  # held-out cells scored for coverage per snapshot (a fixed subset)
@@ -159,19 +198,4 @@ def model_coverage(prior: LatentPosterior, values: np.ndarray, subsets: list[np.
     calibration's per-level threshold when it has one) over each test
     snapshot's held-out observed cells (its ``subsets`` entry minus the sampled ``cells``).
     Returns ``(n_test, 2)``, NaN where the snapshot has too few observations."""
-    from .glrm.calibrated import interval_coverage
-
-    cells = check_cells(cells, values.shape[1])
-    vals = values[:, cells].astype(np.float64)
-    obs = np.isfinite(vals)
-    n_obs = obs.sum(axis=1)
-    out = np.full((values.shape[0], 2), np.nan)
-    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):  # a loop over snapshots
-        post = prior.update(cells[obs[t]], vals[t, obs[t]])
-        held = np.setdiff1d(subsets[t], cells, assume_unique=True)
-        if not post.is_proper or held.size == 0:
-            continue
-        mean, _ = post.predict(cells=held)
-        out[t] = interval_coverage(values[t, held], mean, post.predictive_std(cells=held),
-                                   multipliers=post.interval_multipliers())
-    return out
+    return model_scores(prior, values, cells, min_observations, subsets=subsets)[2]

@@ -31,6 +31,7 @@ Observations:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
@@ -46,7 +47,7 @@ from .observation import ObservationModel
 
 __all__ = ["ObservationModel", "LatentPosterior", "PRIOR_KINDS", "check_cells", "empirical_moments",
            "average_repeats", "inverse_stack", "propagate_moments", "point_terms",
-           "symmetric_part"]
+           "symmetric_part", "predict_many", "fold_in_maps"]
 
 PRIOR_KINDS = ("empirical", "flat", "ridge", "custom")
 _SINGULAR = 1e-12  # smallest eigenvalue / largest below this: the belief is improper
@@ -549,16 +550,7 @@ class LatentPosterior:
         idx = slice(None) if cells is None else cells
         mu, var = self._latent_var(sp_, cells)
         mean, std = obs.to_data_units(mu, np.sqrt(self.variance_scale * var), idx)
-        if sp_:
-            var += obs.spatial_cov.nugget
-        else:
-            nv = obs.without_spatial().noise_var
-            var += nv if np.ndim(nv) == 0 else nv[idx]
-        var *= self.variance_scale
-        pstd = np.sqrt(var, out=var)
-        if obs.scale is not None:
-            pstd *= obs.scale[idx]
-        return mean, std, pstd
+        return mean, std, _predictive_std(obs, var, sp_, idx, self.variance_scale)
 
     def interval_multipliers(self, levels: Any = (0.68, 0.95)) -> np.ndarray:
         """Half-widths of the central ``levels`` intervals in units of :meth:`predictive_std`:
@@ -689,6 +681,86 @@ def average_repeats(cells: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.nd
 _average_repeats = average_repeats
 
 
+def _predictive_std(obs: ObservationModel, var: np.ndarray, spatial: bool, idx: Any,
+                    variance_scale: Any) -> np.ndarray:
+    """Data-unit std of a new measurement from the latent variance ``var`` (fit units, at
+    ``idx``; overwritten): plus the noise (the nugget with the spatial residual), times the
+    belief's ``variance_scale`` (a scalar, or ``(m, 1)`` for ``m`` beliefs), times the scale."""
+    if spatial:
+        var += obs.spatial_cov.nugget
+    else:
+        nv = obs.without_spatial().noise_var
+        var += nv if np.ndim(nv) == 0 else nv[idx]
+    var *= variance_scale
+    pstd = np.sqrt(var, out=var)
+    if obs.scale is not None:
+        pstd *= obs.scale[idx]
+    return pstd
+
+
+def predict_many(beliefs: Sequence[LatentPosterior], spatial: bool | None = None,
+                 cells: Any = None, *, std: bool = True
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Means and predictive stds ``(m, n)`` (data units) of ``m`` proper beliefs at ``cells``
+    (default every cell): ``LatentPosterior.predict_all(spatial, cells)``'s first and last
+    output for each belief, with ``std=False`` the means only.
+
+    Beliefs updated from one prior at the same cells (one plan's test snapshots) differ only in
+    their means: the latent variance and the kriging system depend on the cells alone. So it
+    is computed once and the ``m`` residuals are kriged together, instead of ``m`` kriging
+    passes. Other beliefs (different cells, averaged rows, a whole-grid FFT map) are predicted
+    one by one; the result is the same either way."""
+    beliefs = list(beliefs)
+    if not beliefs:
+        raise ModelError("predict_many needs at least one belief")
+    b0 = beliefs[0]
+    obs = b0.obs_model
+    sp_ = b0._spatial(spatial)
+    if cells is not None:
+        cells = check_cells(cells, obs.n_cells)
+    idx = slice(None) if cells is None else cells
+    shared = all(b.obs_model is obs and (b.rows is None or b.rows.shape[0] == 0)
+                 and np.array_equal(b.cells, b0.cells)
+                 and np.array_equal(b.precision, b0.precision) for b in beliefs)
+    uc = zc = None
+    if shared and sp_:
+        pairs = [_average_repeats(b.cells, obs.to_fit_units(b.cells, b.values))
+                 for b in beliefs]
+        uc = pairs[0][0]
+        cov = obs.spatial_cov
+        from .. import spatial as sp
+
+        shared = not (cells is None and cov.metric == "grid" and cov.nugget > 0
+                      and cov.sill > 0 and float(uc.size) * obs.n_cells > sp.FFT_KRIGE_MIN_WORK)
+        zc = np.stack([z for _, z in pairs], axis=1)  # (n, m)
+    if not shared:
+        outs = [b.predict_all(sp_, cells) for b in beliefs]
+        return (np.stack([o[0] for o in outs]),
+                np.stack([o[2] for o in outs]) if std else None)
+    Y = obs.Y if cells is None else obs.Y[:, cells]
+    M = np.stack([b.mean for b in beliefs])  # (m, k)
+    S = b0.cov
+    mu = M @ Y
+    if not sp_:
+        var = np.maximum(np.einsum("ai,ai->i", Y, S @ Y), 0.0) if std else None
+    else:
+        from .. import spatial as sp
+
+        Ys = obs.Y[:, uc]
+        tg = np.arange(obs.n_cells) if cells is None else cells
+        r_mu, var = sp.krige_core(
+            cov, cov.points(obs.region, uc), zc - Ys.T @ M.T, cov.points(obs.region, tg),
+            method="direct" if uc.size <= sp.MAX_DIRECT else "neighbors", neighbors=32,
+            cutoff=1e-6, want_var=std, Ys=Ys, Yt=lambda sel: obs.Y[:, tg[sel]], cov_x=S)
+        mu += r_mu
+        var = np.maximum(var, 0.0) if std else None
+    mean, _ = obs.to_data_units(mu, None, idx)
+    if not std:
+        return mean, None
+    scales = np.array([b.variance_scale for b in beliefs])[:, None]
+    return mean, _predictive_std(obs, np.broadcast_to(var, mu.shape).copy(), sp_, idx, scales)
+
+
 # ============================================================================ model-level helpers
 def _prior_name(prior: Any) -> str | None:
     """``None`` or ``"empirical"`` from a prior name (the registry's, when present)."""
@@ -719,6 +791,27 @@ def model_prior(model: Any, prior: str | None = None, ridge: float = 0.0,
         return LatentPosterior.from_moments(
             obs, base.mean, precision=base.precision + (ridge / obs.ref_var) * np.eye(obs.k))
     return base
+
+
+def fold_in_maps(prior: LatentPosterior, V: np.ndarray, spatial: bool | None = None
+                 ) -> np.ndarray:
+    """The predicted maps ``(n, L)`` (data units) of :func:`fold_in_snapshots`, without the
+    stds: the snapshots observed at the same cells (a placement's sensors) share one kriging
+    system (:func:`predict_many`)."""
+    V = np.asarray(V, dtype=np.float64)
+    L = prior.obs_model.n_cells
+    if V.ndim != 2 or V.shape[1] != L:
+        raise DataError(f"values must have shape (n, {L}), got {V.shape}")
+    observed = ~np.isnan(V)
+    pred = np.empty(V.shape)
+    groups: dict[bytes, list[int]] = {}
+    for t in range(V.shape[0]):  # a loop over snapshots; never over cells
+        groups.setdefault(np.packbits(observed[t]).tobytes(), []).append(t)
+    for ts in groups.values():
+        cells = np.flatnonzero(observed[ts[0]])
+        beliefs = [prior.update(cells, V[t, cells]) for t in ts]
+        pred[ts] = predict_many(beliefs, spatial, std=False)[0]
+    return pred
 
 
 def fold_in_snapshots(prior: LatentPosterior, V: np.ndarray, spatial: bool | None = None

@@ -311,26 +311,31 @@ def _transect(region: Region, start_cell: int, budget: float, direction: str,
 
 
 # ---------------------------------------------------------------------------- random walk
+_STEP_ROWS = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
+_STEP_COLS = np.array([-1, 0, 1, -1, 1, -1, 0, 1])  # the 8 neighbours in row-major order
+
+
 def _neighbours(grid: np.ndarray, row: int, col: int, enter: np.ndarray | None,
                 wrap: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Valid (with ``enter``: enterable) 8-neighbours of a grid position: their cell indices
     (ascending), rows and columns (columns wrapped on a full-circle grid when ``wrap``)."""
     ny, nx = grid.shape
+    rr, cc = row + _STEP_ROWS, col + _STEP_COLS
     if wrap:
-        rr, cc = np.mgrid[max(row - 1, 0):min(row + 2, ny), col - 1:col + 2]
-        cc = cc % nx
-        cells = grid[rr, cc]
-        keep = (cells >= 0) & ~((rr == row) & (cc == col)) & enter[rr, cc]
-        order = np.argsort(cells[keep], kind="stable")
-        return cells[keep][order], rr[keep][order], cc[keep][order]
-    r0, r1 = max(row - 1, 0), min(row + 2, ny)
-    c0, c1 = max(col - 1, 0), min(col + 2, nx)
-    rr, cc = np.mgrid[r0:r1, c0:c1]
-    cells = grid[r0:r1, c0:c1]
-    keep = (cells >= 0) & ~((rr == row) & (cc == col))
+        cc %= nx
+        inside = (rr >= 0) & (rr < ny) & ~((rr == row) & (cc == col))
+    else:
+        inside = (rr >= 0) & (rr < ny) & (cc >= 0) & (cc < nx)
+    rr, cc = rr[inside], cc[inside]
+    cells = grid[rr, cc]
+    keep = cells >= 0
     if enter is not None:
-        keep &= enter[r0:r1, c0:c1]
-    return cells[keep], rr[keep], cc[keep]
+        keep &= enter[rr, cc]
+    cells, rr, cc = cells[keep], rr[keep], cc[keep]
+    if wrap:  # wrapped columns break the row-major order
+        order = np.argsort(cells, kind="stable")
+        return cells[order], rr[order], cc[order]
+    return cells, rr, cc
 
 
 def random_walk(

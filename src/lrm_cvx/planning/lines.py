@@ -35,6 +35,7 @@ from ..errors import PlanningError
 from ..information import (
     CRITERION_REGISTRY,
     GP_BOUNDARY_TOL,
+    GP_STRUCTURED_MIN_ENTRIES,
     StructuredGPVarianceOracle,
     gp_variance_value,
     make_oracle,
@@ -106,13 +107,20 @@ def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, 
     serves all routes). Otherwise each pick costs an FFT over the oracle's window, and each
     route is scored by its own exact oracle over its own, smaller window (four transects span
     a cross whose bounding box is mostly empty: 2x faster on 400 x 400 and 700 x 650 grids at
-    budget 120, the values equal to rounding). In km the dense reference scores each route."""
+    budget 120, the values equal to rounding). In km, and wherever the dense covariances are
+    as small as :func:`~lrm_cvx.information.make_oracle` holds them densely (targets plus route
+    times route below ``GP_STRUCTURED_MIN_ENTRIES``: 12x faster on a 1,813-cell region), the
+    dense reference scores each route."""
     sets = {name: np.unique(np.asarray(c, dtype=np.int64)) for name, c in routes.items()}
     if CRITERION_REGISTRY.canonical(criterion, "criterion") != "gp-variance":
         return {name: float(make_oracle(criterion, Y, ridge, c, **extra).value)
                 for name, c in sets.items()}
     terms = {key: extra.get(key) for key in GP_TERMS}
-    if terms["spatial_cov"].metric != "grid":
+    n_targets = (Y.shape[1] if terms["targets"] is None
+                 else np.unique(np.asarray(terms["targets"], dtype=np.int64)).size)
+    small = all(float(n_targets + c.size) * c.size <= GP_STRUCTURED_MIN_ENTRIES
+                for c in sets.values())
+    if terms["spatial_cov"].metric != "grid" or small:
         return {name: gp_variance_value(Y, terms["region"], terms["spatial_cov"],
                                         terms["prior_cov"], c, terms["targets"],
                                         terms["target_weights"]) for name, c in sets.items()}

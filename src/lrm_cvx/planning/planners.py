@@ -37,7 +37,10 @@ __all__ = ["Planner", "GreedyPlanner", "StaticPlacement", "Transect", "RandomWal
 class Planner:
     """The interface of a planner: :meth:`plan`; :meth:`configure` fills the choices a planner
     leaves to the caller (``evaluate``'s ``criterion=`` / ``cost=``); :meth:`prior_of` is the
-    belief it plans on given a fitted model (None: none)."""
+    belief it plans on given a fitted model (None: none); ``uses_rng``: whether its plan
+    draws from ``rng`` (else the same inputs give the same plan)."""
+
+    uses_rng = False
 
     def plan(self, Y: Any, region: Any, fleet: Fleet, path: PathOptions | None = None, *,
              rng: Any = None, ridge: float = 0.0, prior: Any = None,
@@ -127,6 +130,8 @@ class RandomWalk(Planner):
     """The random walk on valid 8-neighbours (:func:`~lrm_cvx.planning.random_walk`), drawn
     from ``rng``."""
 
+    uses_rng = True
+
     def plan(self, Y: Any, region: Any, fleet: Fleet, path: PathOptions | None = None, *,
              rng: Any = None, ridge: float = 0.0, prior: Any = None,
              terms: dict[str, Any] | None = None) -> Plan:
@@ -148,6 +153,10 @@ class Refined(Planner):
 
     def prior_of(self, model: Any) -> Any:
         return self.planner.prior_of(model)
+
+    @property
+    def uses_rng(self) -> bool:  # type: ignore[override]
+        return self.planner.uses_rng
 
     def plan(self, Y: Any, region: Any, fleet: Fleet, path: PathOptions | None = None, *,
              rng: Any = None, ridge: float = 0.0, prior: Any = None,

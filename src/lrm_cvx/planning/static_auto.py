@@ -17,7 +17,7 @@ So :func:`select_criterion` answers it on the user's own training snapshots, as
 * **Candidates** (:data:`AUTO_CANDIDATES`): ``"risk"`` with the recommended exchange rule,
   ``"gp-variance"`` + exchange and the ``"gp-variance"`` greedy (the last two need the
   model's spatial residual).
-* **Score**: the MSE of the recommended fold-in (``fold_in_snapshots`` of the refit's
+* **Score**: the MSE of the recommended fold-in (``fold_in_maps`` of the refit's
   ``latent_prior("empirical", spatial=True)``, kriging on) from the sensors' values, over
   every cell with a value of the held-out snapshots (mean over cells, then over snapshots and
   windows; data units^2): the predictor ``bench_placement.py`` scores with.
@@ -133,11 +133,11 @@ def _refit(model: Any, V: np.ndarray, region: Any) -> Any:
 def _mse(prior: Any, values: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """``(t,)`` per snapshot the MSE over the cells with a value of the recommended fold-in
     from the sensors' values (their mean is bench_placement.py's score)."""
-    from ..glrm.posterior import fold_in_snapshots
+    from ..glrm.posterior import fold_in_maps
 
     V = np.full(values.shape, np.nan)
     V[:, cells] = values[:, cells]
-    pred, *_ = fold_in_snapshots(prior, V)
+    pred = fold_in_maps(prior, V)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         return np.nanmean((pred - values) ** 2, axis=1)
