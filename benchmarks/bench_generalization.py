@@ -39,10 +39,9 @@ monthly sets only), each fitted with its ``temporal=``. Printed per set and budg
 * ``vs_all_ub_auto``: the paired upper bound of the greedy's change against each baseline, the
   worst of the five (negative: it beats every baseline with 95 % confidence).
 
-Cost: the full run 638 s for the six sets on the 2-core machine with the test suite beside it
-(navy 283 s; 2026-11-28, session 14, after the gp-variance oracle stopped copying its
-covariance; 2672 s before, with CI beside it); ``--modes ar1,seasonal,auto`` about three
-times that.
+Cost: the full run 437 s for the six sets on the idle 2-core machine (navy 185 s; 2026-11-30,
+session 36, after a plan's test snapshots began to share one kriging system; 1004 s before);
+``--modes ar1,seasonal,auto`` about three times that.
 
 MSE is in the data's units squared. A final line per set gives the wall time. ``--out DIR`` also
 writes every ``summary`` table as CSV.
