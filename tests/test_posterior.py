@@ -570,3 +570,19 @@ def test_fold_in_maps_equal_fold_in_snapshots(spatial):
     np.testing.assert_allclose(fold_in_maps(prior, V), want, rtol=1e-10, atol=1e-10)
     with pytest.raises(DataError, match="shape"):
         fold_in_maps(prior, V[:, :-1])
+
+
+def test_pattern_groups_are_the_rows_with_equal_patterns():
+    from lrm_cvx.glrm.posterior import pattern_groups
+
+    rng = np.random.default_rng(0)
+    observed = rng.random((40, 11)) < 0.5
+    observed[[3, 17, 29]] = observed[5]
+    groups = pattern_groups(observed)
+    assert sorted(t for g in groups for t in g) == list(range(40))
+    for g in groups:
+        assert g == sorted(g) and all((observed[t] == observed[g[0]]).all() for t in g)
+    firsts = [observed[g[0]].tobytes() for g in groups]
+    assert len(set(firsts)) == len(groups)  # distinct patterns, one group each
+    assert [3, 5, 17, 29] in groups
+    assert pattern_groups(np.zeros((0, 4), bool)) == []

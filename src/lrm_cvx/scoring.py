@@ -17,7 +17,13 @@ import numpy as np
 
 from .errors import ModelError
 from .glrm.calibrated import interval_coverage
-from .glrm.posterior import LatentPosterior, ObservationModel, check_cells, predict_many
+from .glrm.posterior import (
+    LatentPosterior,
+    ObservationModel,
+    check_cells,
+    pattern_groups,
+    predict_many,
+)
 
 __all__ = ["SnapshotStatistics", "foldin_mse", "plain_prior", "complete_mse", "model_mse",
            "COVERAGE_CELLS", "coverage_subset", "model_coverage", "model_scores"]
@@ -146,10 +152,9 @@ def model_scores(prior: LatentPosterior, values: np.ndarray, cells: np.ndarray,
     cov = None if subsets is None else np.full((values.shape[0], 2), np.nan)
     if not (spatial and stats is not None) and cov is None:
         return mse, n_obs, cov
-    groups: dict[bytes, list[int]] = {}
-    for t in np.flatnonzero(n_obs >= max(min_observations, 1)):  # a loop over snapshots
-        groups.setdefault(obs[t].tobytes(), []).append(int(t))
-    for ts in groups.values():
+    enough = np.flatnonzero(n_obs >= max(min_observations, 1))
+    for group in pattern_groups(obs[enough]):
+        ts = enough[group].tolist()
         posts = [prior.update(cells[obs[t]], vals[t, obs[t]]) for t in ts]
         keep = [i for i, p in enumerate(posts) if p.is_proper]
         if not keep:

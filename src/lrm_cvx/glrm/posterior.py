@@ -47,7 +47,7 @@ from .observation import ObservationModel
 
 __all__ = ["ObservationModel", "LatentPosterior", "PRIOR_KINDS", "check_cells", "empirical_moments",
            "average_repeats", "inverse_stack", "propagate_moments", "point_terms",
-           "symmetric_part", "predict_many", "fold_in_maps"]
+           "symmetric_part", "predict_many", "fold_in_maps", "pattern_groups"]
 
 PRIOR_KINDS = ("empirical", "flat", "ridge", "custom")
 _SINGULAR = 1e-12  # smallest eigenvalue / largest below this: the belief is improper
@@ -722,14 +722,14 @@ def predict_many(beliefs: Sequence[LatentPosterior], spatial: bool | None = None
     shared = all(b.obs_model is obs and (b.rows is None or b.rows.shape[0] == 0)
                  and np.array_equal(b.cells, b0.cells)
                  and np.array_equal(b.precision, b0.precision) for b in beliefs)
-    uc = zc = None
+    if sp_:
+        from .. import spatial as sp
+
+        cov = obs.spatial_cov
     if shared and sp_:
         pairs = [_average_repeats(b.cells, obs.to_fit_units(b.cells, b.values))
                  for b in beliefs]
         uc = pairs[0][0]
-        cov = obs.spatial_cov
-        from .. import spatial as sp
-
         shared = not (cells is None and cov.metric == "grid" and cov.nugget > 0
                       and cov.sill > 0 and float(uc.size) * obs.n_cells > sp.FFT_KRIGE_MIN_WORK)
         zc = np.stack([z for _, z in pairs], axis=1)  # (n, m)
@@ -744,8 +744,6 @@ def predict_many(beliefs: Sequence[LatentPosterior], spatial: bool | None = None
     if not sp_:
         var = np.maximum(np.einsum("ai,ai->i", Y, S @ Y), 0.0) if std else None
     else:
-        from .. import spatial as sp
-
         Ys = obs.Y[:, uc]
         tg = np.arange(obs.n_cells) if cells is None else cells
         r_mu, var = sp.krige_core(
@@ -793,6 +791,15 @@ def model_prior(model: Any, prior: str | None = None, ridge: float = 0.0,
     return base
 
 
+def pattern_groups(observed: np.ndarray) -> list[list[int]]:
+    """The rows of ``observed`` ``(n, m)`` (bool) grouped by their pattern, each group in row
+    order: the snapshots that observe the same cells, for :func:`predict_many`."""
+    groups: dict[bytes, list[int]] = {}
+    for t, row in enumerate(np.packbits(observed, axis=1)):  # a loop over snapshots
+        groups.setdefault(row.tobytes(), []).append(t)
+    return list(groups.values())
+
+
 def fold_in_maps(prior: LatentPosterior, V: np.ndarray, spatial: bool | None = None
                  ) -> np.ndarray:
     """The predicted maps ``(n, L)`` (data units) of :func:`fold_in_snapshots`, without the
@@ -804,10 +811,7 @@ def fold_in_maps(prior: LatentPosterior, V: np.ndarray, spatial: bool | None = N
         raise DataError(f"values must have shape (n, {L}), got {V.shape}")
     observed = ~np.isnan(V)
     pred = np.empty(V.shape)
-    groups: dict[bytes, list[int]] = {}
-    for t in range(V.shape[0]):  # a loop over snapshots; never over cells
-        groups.setdefault(np.packbits(observed[t]).tobytes(), []).append(t)
-    for ts in groups.values():
+    for ts in pattern_groups(observed):
         cells = np.flatnonzero(observed[ts[0]])
         beliefs = [prior.update(cells, V[t, cells]) for t in ts]
         pred[ts] = predict_many(beliefs, spatial, std=False)[0]
