@@ -267,7 +267,8 @@ def calibrated_variants(model, train, levels=(0.68, 0.95), seed: int = 0, **kw) 
     from lrm_cvx.glrm.calibration import calibrate
 
     cal = calibrate(model, train, method="conformal", levels=levels, seed=seed, **kw)
-    gauss = replace(cal, method="gaussian", levels=(), quantiles=(), score_table=())
+    gauss = replace(cal, method="gaussian", levels=(), quantiles=(), score_table=(),
+                    size_quantiles=(), temporal_size_quantiles=())
     return {"raw": None, "gaussian": gauss, "conformal": cal}
 
 
@@ -287,8 +288,9 @@ def filter_variants(model, train, seed: int = 0, **kw) -> dict:
     from lrm_cvx.glrm.calibration import calibrate
 
     cal = calibrate(model, train, method="conformal", temporal="auto", seed=seed, **kw)
+    # the default calibrate(method="conformal")
     shared = replace(cal, temporal_scale=None, temporal_quantiles=(), temporal_score_table=(),
-                     temporal_n_residuals=0)  # the default calibrate(method="conformal")
+                     temporal_size_quantiles=(), temporal_n_residuals=0)
     return {"raw": None, "shared": shared, "filter": cal}
 
 

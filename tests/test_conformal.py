@@ -103,6 +103,66 @@ def test_calibration_multipliers_and_attrs():
     same(Calibration.from_attrs(plain.to_attrs()), plain)
 
 
+def test_per_size_thresholds_interpolate_in_the_sample_count():
+    """``size_quantiles`` give each design size its own thresholds; a belief with ``n``
+    samples takes them interpolated in ``log n`` (clamped outside the sizes); without ``n`` or
+    at another level the pooled ones; the filter's replace them in ``for_filter``."""
+    per = np.array([[1.2, 2.4], [1.0, 2.0], [0.8, 1.6]])  # sizes 5, 15, 50 x levels
+    cal = Calibration(method="conformal", levels=(0.68, 0.95), quantiles=(1.0, 2.1),
+                      sizes="5,15,50", size_quantiles=tuple(per.ravel()),
+                      temporal_quantiles=(0.9, 1.9),
+                      temporal_size_quantiles=tuple((0.5 * per).ravel()),
+                      score_table=tuple(np.linspace(0.0, 4.0, len(SCORE_GRID))))
+    assert cal.design_sizes == (5, 15, 50)
+    for n, j in ((5, 0), (15, 1), (50, 2)):
+        assert cal.multiplier(0.68, n) == pytest.approx(per[j, 0])
+        assert cal.multiplier(0.95, n) == pytest.approx(per[j, 1])
+    mid = int(round(np.sqrt(15 * 50)))  # the log midpoint of 15 and 50
+    w = (np.log(mid) - np.log(15)) / (np.log(50) - np.log(15))
+    assert cal.multiplier(0.95, mid) == pytest.approx((1 - w) * 2.0 + w * 1.6)
+    assert cal.multiplier(0.95, 1) == pytest.approx(2.4)  # clamped below
+    assert cal.multiplier(0.95, 400) == pytest.approx(1.6)  # and above
+    assert cal.multiplier(0.95) == 2.1  # no count: pooled
+    assert cal.multiplier(0.9, 50) == cal.score_quantile(0.9)  # another level: the table
+    filt = cal.for_filter()
+    assert filt.multiplier(0.95, 50) == pytest.approx(0.8) and filt.multiplier(0.95) == 1.9
+    same(Calibration.from_attrs(cal.to_attrs()), cal)
+    with pytest.raises(ModelError, match="size_quantiles"):
+        Calibration(method="conformal", levels=(0.68,), quantiles=(1.0,), sizes="5,15",
+                    size_quantiles=(1.0, 2.0, 3.0))
+
+
+def test_per_size_thresholds_hold_each_size():
+    """Records of two design sizes whose scores differ in scale (the storms' shrink with the
+    sample count): over 1000 draws of the calibration records, each size's own threshold covers
+    a new score of that size at >= level (the split-conformal guarantee per size), while the
+    pooled threshold under-covers the wide size and over-covers the narrow one."""
+    from lrm_cvx.glrm.calibration import _size_quantiles
+
+    rng = np.random.default_rng(3)
+    sigma = {5: 1.5, 50: 0.7}
+    levels = (0.68, 0.95)
+    draws, per_rec = 1000, 10
+    cover = {s: np.zeros(2) for s in sigma}
+    pooled_cover = {s: np.zeros(2) for s in sigma}
+    for _ in range(draws):
+        records = [(rng.standard_normal(per_rec) * sg, 0.0, 1, t, 0.0, s)
+                   for s, sg in sigma.items() for t in range(8)]
+        scores = np.abs(np.concatenate([r[0] for r in records]))
+        pooled = conformal_quantile(scores, levels)
+        per = _size_quantiles(records, scores, (5, 50), levels, pooled)
+        for i, (s, sg) in enumerate(sigma.items()):
+            cover[s] += 2 * norm.cdf(per[i] / sg) - 1  # the conditional coverage, exactly
+            pooled_cover[s] += 2 * norm.cdf(pooled / sg) - 1
+    for s in sigma:
+        n = 8 * per_rec
+        got = cover[s] / draws
+        assert np.all(got >= np.array(levels) - 0.005)
+        assert np.all(got < np.array(levels) + 1 / (n + 1) + 0.005)
+    assert np.all(pooled_cover[5] / draws < np.array(levels) - 0.04)
+    assert np.all(pooled_cover[50] / draws > np.array(levels) + 0.02)
+
+
 # ----------------------------------------------------------------------------- the model
 N_TEST = 60  # many test snapshots: a snapshot's latent error is shared by all its cells
 
@@ -166,7 +226,7 @@ def test_conformal_calibration_holds_both_levels_out_of_sample(heavy_model):
     from dataclasses import replace
 
     model.calibration_ = replace(cal, method="gaussian", levels=(), quantiles=(),
-                                 score_table=())
+                                 score_table=(), size_quantiles=())
     gaussian = _test_coverage(model, data)
     model.calibration_ = cal
     # one variance scale misses at least one level by more than the conformal thresholds do
@@ -178,7 +238,8 @@ def test_posterior_interval_uses_the_thresholds(heavy_model):
     V = model.region_.stack(data.isel(time=-1)).astype(float)
     post = LatentPosterior.prior(model, "empirical").update(np.arange(0, 160, 9),
                                                             V[np.arange(0, 160, 9)])
-    np.testing.assert_array_equal(post.interval_multipliers(), cal.quantiles)
+    np.testing.assert_array_equal(post.interval_multipliers(), cal.quantiles)  # one size: 15
+    assert post.n_samples == 18 and cal.design_sizes == (15,)
     mean, _, pstd = post.predict_all()
     lo, hi = post.interval(0.95)
     np.testing.assert_allclose(lo, mean - cal.quantiles[1] * pstd)

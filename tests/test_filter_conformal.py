@@ -12,7 +12,7 @@ import pytest
 
 from lrm_cvx import GLRM
 from lrm_cvx.campaign import simulate_campaign
-from lrm_cvx.glrm.calibrated import Calibration, gaussian_multiplier
+from lrm_cvx.glrm.calibrated import Calibration, conformal_quantile, gaussian_multiplier
 from lrm_cvx.glrm.calibration import calibrate, cv_residuals, refit_dynamics
 from lrm_cvx.glrm.filter import LatentFilter
 from lrm_cvx.io.samples import synthetic_dynamic_field
@@ -66,18 +66,42 @@ def test_conformal_calibration_gives_the_filter_its_own_thresholds(persistent):
     rel = np.quantile(np.abs(zt), levels) / np.quantile(np.abs(zm), levels)
     expect = np.asarray(cal.quantiles) * rel * np.sqrt(cal.scale / cal.temporal_scale)
     np.testing.assert_allclose(cal.temporal_quantiles, expect, rtol=1e-12)
-    # the filter reads them, the memoryless filter and fold-ins the memoryless ones
+    # per design size: each size's own memoryless scores (the same fold-ins as calibrate's),
+    # and the filter's are those times the same ratio
+    records = cv_residuals(model, train, n_blocks=cal.n_blocks, sizes=(5, 15, 50),
+                           kinds=("route", "scattered", "line"), max_snapshots=2,
+                           innovations=True, residual_scales=(1.0,), max_cells=40, seed=3,
+                           folds="forward")[1.0]
+    per = np.array([conformal_quantile(np.concatenate([np.abs(r[0]) for r in records
+                                                       if r[5] == size]) / np.sqrt(cal.scale),
+                                       levels) for size in (5, 15, 50)])
+    np.testing.assert_allclose(np.reshape(cal.size_quantiles, (3, 2)), per, rtol=1e-12)
+    np.testing.assert_allclose(np.reshape(cal.temporal_size_quantiles, (3, 2)),
+                               per * rel * np.sqrt(cal.scale / cal.temporal_scale), rtol=1e-12)
+    # the filter reads them (a belief with no sample yet: the smallest size's), the memoryless
+    # filter and fold-ins the memoryless ones; with n samples, interpolated at n
     filt = LatentFilter.from_model(model)
-    np.testing.assert_allclose(filt.interval_multipliers(), cal.temporal_quantiles)
+    np.testing.assert_allclose(filt.interval_multipliers(), cal.temporal_size_quantiles[:2])
     mem = LatentFilter.from_model(model, memoryless=True)
-    np.testing.assert_allclose(mem.interval_multipliers(), cal.quantiles)
-    aci = LatentFilter.from_model(model).adaptive_conformal(gamma=0.05)
-    np.testing.assert_allclose(aci.interval_multipliers(), cal.temporal_quantiles)
+    np.testing.assert_allclose(mem.interval_multipliers(), cal.size_quantiles[:2])
+    V = model.region_.stack(train.isel(time=-1)).astype(float)
+    cells = np.flatnonzero(np.isfinite(V))  # 45 of the region's 50 cells
+    mem.assimilate((cells, V[cells]), time=train["time"].values[-1], force=True)
+    assert mem.posterior.n_samples == cells.size == 45
+    w = np.log(45 / 15) / np.log(50 / 15)
+    np.testing.assert_allclose(mem.interval_multipliers(),
+                               (1 - w) * per[1] + w * per[2], rtol=1e-12)
+    aci = LatentFilter.from_model(model).adaptive_conformal(gamma=0.05)  # alpha at its target
+    np.testing.assert_allclose(aci.interval_multipliers(), cal.temporal_size_quantiles[:2])
+    aci.aci.alpha = aci.aci.alpha + 0.01  # moved: the pooled table's, times the size's ratio
+    ratio = np.asarray(cal.temporal_size_quantiles[:2]) / np.asarray(cal.temporal_quantiles)
+    moved = [cal.for_filter().score_quantile(lv - 0.01) for lv in levels]
+    np.testing.assert_allclose(aci.interval_multipliers(), np.asarray(moved) * ratio)
     # by default (and temporal=False) none: the filter uses the memoryless thresholds
     off = calibrate(model, train, **kw)
     assert off.temporal_quantiles == () and off.for_filter() is off
     np.testing.assert_allclose(LatentFilter.from_model(model).interval_multipliers(),
-                               off.quantiles)
+                               off.size_quantiles[:2])  # no sample yet: the smallest size's
 
 
 def test_a_model_without_dynamics_gets_no_filter_thresholds(persistent):

@@ -23,7 +23,8 @@ __all__ = ["Calibration", "variance_scale", "noise_variance", "residual_factor",
            "AdaptiveConformal", "SCORE_GRID"]
 
 _PREFIX = "calibration_"
-_TUPLES = ("levels", "quantiles", "score_table", "temporal_quantiles", "temporal_score_table")
+_TUPLES = ("levels", "quantiles", "score_table", "temporal_quantiles", "temporal_score_table",
+           "size_quantiles", "temporal_size_quantiles")
 METHODS = ("gaussian", "conformal")
 SCORE_GRID = tuple(np.round(np.r_[np.arange(0.01, 0.99, 0.01), np.arange(0.99, 0.9991, 0.001)],
                             6).tolist())
@@ -88,6 +89,11 @@ class Calibration:
     dynamics also the filter's own (``temporal_quantiles``, ``temporal_score_table``, from
     ``temporal_n_residuals`` forward-chained filter residuals: the filter's maps are tighter or
     looser than a memoryless fold-in's), which :meth:`for_filter` puts in their place.
+    ``size_quantiles`` (and the filter's ``temporal_size_quantiles``): the thresholds of each
+    design size of ``sizes`` (row-major ``(len(design_sizes), len(levels))``, flattened), from
+    the fold-ins of that size alone; a belief holding ``n`` samples takes its threshold
+    interpolated in ``log n`` between them (:meth:`multiplier`): a standardized residual can
+    shrink as the samples grow denser, so one pooled threshold over-covers at large budgets.
     """
 
     scale: float = 1.0
@@ -110,6 +116,8 @@ class Calibration:
     temporal_quantiles: tuple = ()
     temporal_score_table: tuple = ()
     temporal_n_residuals: int = 0
+    size_quantiles: tuple = ()
+    temporal_size_quantiles: tuple = ()
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -122,6 +130,13 @@ class Calibration:
             raise ModelError("Calibration.temporal_quantiles must have one entry per level")
         for lv in self.levels:
             check_level(lv, "levels")
+        n_sizes = len(self.design_sizes) * len(self.levels)
+        for name in ("size_quantiles", "temporal_size_quantiles"):
+            got = len(getattr(self, name))
+            if got and got != n_sizes:
+                raise ModelError(f"Calibration.{name} must hold one entry per design size "
+                                 f"({self.sizes!r}) and level ({len(self.levels)}): "
+                                 f"{n_sizes}, got {got}")
         for name in ("scale", "temporal_scale", "dof", "residual_scale"):
             v = getattr(self, name)
             if v is None:
@@ -138,7 +153,14 @@ class Calibration:
         return replace(self, quantiles=self.temporal_quantiles,
                        score_table=self.temporal_score_table,
                        n_residuals=self.temporal_n_residuals,
-                       temporal_quantiles=(), temporal_score_table=())
+                       size_quantiles=self.temporal_size_quantiles,
+                       temporal_quantiles=(), temporal_score_table=(),
+                       temporal_size_quantiles=())
+
+    @property
+    def design_sizes(self) -> tuple[int, ...]:
+        """The sample-set sizes of the calibration's fold-ins (parsed from ``sizes``)."""
+        return tuple(int(v) for v in self.sizes.split(",") if v.strip())
 
     def variance_scale(self, temporal: bool = False) -> float:
         """The scale for the memoryless fold-in or (``temporal=True``) the filter."""
@@ -166,12 +188,30 @@ class Calibration:
             return float("inf")
         return float(np.interp(lv, SCORE_GRID, self.score_table))
 
-    def multiplier(self, level: float) -> float:
+    def multiplier(self, level: float, n_samples: int | None = None) -> float:
         """Half-width of the central ``level`` interval in units of the calibrated predictive
-        std: the conformal threshold for a conformal calibration, else the normal quantile."""
-        if self.is_conformal:
-            return self.score_quantile(level)
-        return float(gaussian_multiplier(check_level(level)))
+        std: the conformal threshold for a conformal calibration, else the normal quantile.
+        ``n_samples`` (the samples a belief holds): at a calibrated level with per-size
+        thresholds (``size_quantiles``), the threshold interpolated linearly in ``log n``
+        between the design sizes (the nearest size's outside them); else the pooled one."""
+        if not self.is_conformal:
+            return float(gaussian_multiplier(check_level(level)))
+        lv = check_level(level)
+        if n_samples is not None and self.size_quantiles:
+            for j, known in enumerate(self.levels):
+                if abs(known - lv) < 1e-12:
+                    return self._size_threshold(j, int(n_samples))
+        return self.score_quantile(lv)
+
+    def _size_threshold(self, j: int, n: int) -> float:
+        """Level ``j``'s threshold at ``n`` samples from ``size_quantiles``."""
+        sizes = np.asarray(self.design_sizes, dtype=np.float64)
+        q = np.asarray(self.size_quantiles, dtype=np.float64).reshape(sizes.size, -1)[:, j]
+        order = np.argsort(sizes)
+        sizes, q = sizes[order], q[order]
+        if np.isinf(q).any():  # a size with too few scores for the level: interp cannot
+            return float(q[np.argmin(np.abs(np.log(sizes) - np.log(max(n, 1))))])
+        return float(np.interp(np.log(max(n, 1)), np.log(sizes), q))
 
     def to_attrs(self) -> dict[str, Any]:
         """Flat NetCDF attributes ``calibration_*`` (None stored as NaN; the tuples as 1-D
@@ -357,16 +397,22 @@ class AdaptiveConformal:
         self.miss_sum = (np.zeros(len(self.levels)) if miss_sum is None
                          else np.asarray(miss_sum, dtype=np.float64))
 
-    def multipliers(self) -> np.ndarray:
-        """The current half-widths ``m(alpha_t)`` per level (units of the predictive std)."""
+    def multipliers(self, n_samples: int | None = None) -> np.ndarray:
+        """The current half-widths ``m(alpha_t)`` per level (units of the predictive std). With
+        ``n_samples`` (the belief's) and per-size thresholds in the calibration, each is scaled
+        by the level's threshold at ``n_samples`` relative to its pooled one."""
         out = np.empty(len(self.levels))
+        cal = self.calibration
         for i, a in enumerate(self.alpha):
             if a <= 0:
                 out[i] = np.inf
             elif a >= 1:
                 out[i] = 0.0
-            elif self.calibration is not None:
-                out[i] = self.calibration.multiplier(1.0 - a)
+            elif cal is not None:
+                out[i] = cal.multiplier(1.0 - a)
+                pooled = cal.multiplier(self.levels[i])
+                if n_samples is not None and cal.size_quantiles and np.isfinite(pooled):
+                    out[i] *= cal.multiplier(self.levels[i], n_samples) / pooled
             else:
                 out[i] = float(gaussian_multiplier(1.0 - a))
         return out
@@ -379,15 +425,16 @@ class AdaptiveConformal:
                 return float(self.multipliers()[i])
         raise ModelError(f"level {level!r} is not tracked (levels {self.levels})")
 
-    def update(self, scores: Any) -> np.ndarray:
+    def update(self, scores: Any, n_samples: int | None = None) -> np.ndarray:
         """Score one day: ``scores`` the standardized absolute residuals of its samples (NaN
-        ignored). Updates ``alpha`` and returns the day's miss fraction per level (NaN, and no
-        update, when no score is finite)."""
+        ignored) under a belief holding ``n_samples`` (:meth:`multipliers`). Updates ``alpha``
+        and returns the day's miss fraction per level (NaN, and no update, when no score is
+        finite)."""
         z = np.asarray(scores, dtype=np.float64).ravel()
         z = z[~np.isnan(z)]
         if z.size == 0:
             return np.full(len(self.levels), np.nan)
-        err = np.mean(z[None, :] > self.multipliers()[:, None], axis=1)
+        err = np.mean(z[None, :] > self.multipliers(n_samples)[:, None], axis=1)
         self.alpha = self.alpha + self.gamma * (self.target - err)
         self.n_days += 1
         self.miss_sum = self.miss_sum + err

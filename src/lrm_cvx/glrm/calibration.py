@@ -117,14 +117,14 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     cycled). The residuals are standardized by the *uncalibrated* predictive std of the
     refitted model. Returns a 1-D array; with ``temporal`` and ``twin=True`` a pair: the
     filter's residuals and the memoryless model's through the same loop on the same cells.
-    With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t, log_sd)`` per
-    fold-in: its standardized residuals, the innovation statistic of its samples, the snapshot
-    and the sum of the log predictive stds it was standardized by
-    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`). With ``residual_scales``
-    (memoryless, innovations) a dict ``{rho: records}``: the same fold-ins (same cells) with
-    the refitted model's residual and noise variances multiplied by ``rho``. ``max_cells``
-    (memoryless): score at most that many of each fold-in's held-out cells (a seeded random
-    subset; None: all), which bounds the kriging cost on large grids. ``folds``
+    With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t, log_sd, size)``
+    per fold-in: its standardized residuals, the innovation statistic of its samples, the
+    snapshot, the sum of the log predictive stds it was standardized by
+    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`) and its design size. With
+    ``residual_scales`` (memoryless, innovations) a dict ``{rho: records}``: the same fold-ins
+    (same cells) with the refitted model's residual and noise variances multiplied by ``rho``.
+    ``max_cells`` (memoryless): score at most that many of each fold-in's held-out cells (a
+    seeded random subset; None: all), which bounds the kriging cost on large grids. ``folds``
     (memoryless): ``"interleaved"`` (every ``n_blocks``-th snapshot, refitted on all the
     others) or ``"forward"`` (the contiguous blocks of the record's second half, each refitted
     on the snapshots before it: the fold-in of a *future* snapshot, as a test block after the
@@ -208,7 +208,8 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                             z = (V[t, hidx] - mean) / pstd
                             if innovations:
                                 q, n_eff = b.innovation(cells, V[t, cells])
-                                recs[rho] = (z, q, n_eff, int(t), float(np.sum(np.log(pstd))))
+                                recs[rho] = (z, q, n_eff, int(t), float(np.sum(np.log(pstd))),
+                                             size)
                             else:
                                 recs[rho] = z
                         if len(recs) == len(bases):
@@ -412,6 +413,19 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
     return out
 
 
+def _size_quantiles(records: Sequence[tuple], scores: np.ndarray, sizes: Sequence[int],
+                    levels: Sequence[float], pooled: np.ndarray) -> np.ndarray:
+    """``(len(sizes), len(levels))`` conformal thresholds of each design size's own scores
+    (``scores``: the records' concatenated, in order; a size without scores takes the pooled
+    thresholds)."""
+    of_size = np.repeat([int(r[5]) for r in records], [np.size(r[0]) for r in records])
+    out = np.empty((len(sizes), len(levels)))
+    for i, size in enumerate(sizes):
+        own = scores[of_size == int(size)]
+        out[i] = np.atleast_1d(conformal_quantile(own, levels)) if own.size else pooled
+    return out
+
+
 def calibrate_with(model: Any, data: Any, calibration: Any) -> Calibration:
     """:func:`calibrate` as ``GLRM(calibration=...)`` asks (``calibration``: a method name or a
     dict of its keywords; the seed is the model's ``random_state``)."""
@@ -461,10 +475,15 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     ``MonitorState.adaptive_conformal``). One
     variance scale cannot hit both the 68 % and the 95 % quantile when the residuals are
     heavier-tailed than a normal (it targets their geometric mean); the per-level thresholds
-    do, with coverage ``>= level`` for scores exchangeable with the test's. ``levels``: each
-    in (0, 1). Intervals: ``LatentPosterior.interval(level)`` /
-    ``interval_coverage``; ``predictive_std`` itself keeps the Gaussian scale. ``max_cells``,
-    ``folds``: see :func:`cv_residuals`; ``folds=None`` is ``"forward"`` for the conformal
+    do, with coverage ``>= level`` for scores exchangeable with the test's. Each design size
+    of ``sizes`` also gets its own thresholds from its fold-ins alone
+    (``Calibration.size_quantiles``): a belief holding ``n`` samples takes them interpolated
+    in ``log n`` (clamped to the sizes' range), since a standardized error can shrink as the
+    samples grow denser (the 6-hourly storms of ``bench_generalization.py``); the filter's are
+    the memoryless ones per size times its ratio below. ``levels``: each in (0, 1).
+    Intervals: ``LatentPosterior.interval(level)`` / ``interval_coverage``;
+    ``predictive_std`` itself keeps the Gaussian scale. ``max_cells``, ``folds``: see
+    :func:`cv_residuals`; ``folds=None`` is ``"forward"`` for the conformal
     method (the fold-in of a snapshot *after* its refit's training, as a test block after the
     training is: on the two 6-hourly storm records of ``bench_generalization.py`` the
     interleaved folds under-stated the next block's error and covered 0.78 / 0.83 at 95 %,
@@ -536,9 +555,11 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     conformal: dict[str, Any] = {}
     if method == "conformal":
         scores = conformal_scores(by_rho[rho], scale, dof, discount)
-        conformal = dict(method="conformal", levels=levels,
-                         quantiles=tuple(np.atleast_1d(conformal_quantile(scores, levels))),
-                         score_table=tuple(np.quantile(scores, SCORE_GRID)))
+        pooled = np.atleast_1d(conformal_quantile(scores, levels))
+        conformal = dict(method="conformal", levels=levels, quantiles=tuple(pooled),
+                         score_table=tuple(np.quantile(scores, SCORE_GRID)),
+                         size_quantiles=tuple(_size_quantiles(by_rho[rho], scores, sizes,
+                                                              levels, pooled).ravel()))
     z = np.concatenate([r[0] for r in by_rho[1.0]])
     raw = interval_coverage(z, 0.0, 1.0)
     auto = temporal == "auto"
@@ -570,8 +591,10 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
             def ratio(p: Any) -> np.ndarray:
                 return unit * np.quantile(at, p) / np.quantile(am, p)
 
+            per_size = np.reshape(conformal["size_quantiles"], (len(sizes), len(levels)))
             t_conformal = dict(
                 temporal_quantiles=tuple(np.asarray(conformal["quantiles"]) * ratio(levels)),
+                temporal_size_quantiles=tuple((per_size * ratio(levels)).ravel()),
                 temporal_score_table=tuple(np.asarray(conformal["score_table"])
                                            * ratio(SCORE_GRID)),
                 temporal_n_residuals=int(at.size))

@@ -329,7 +329,7 @@ class LatentFilter:
             for i, v in enumerate(lv):
                 hit = [j for j, a in enumerate(self.aci.levels) if abs(a - float(v)) < 1e-12]
                 if hit:
-                    out[i] = self.aci.multipliers()[hit[0]]
+                    out[i] = self.aci.multipliers(self.posterior.n_samples)[hit[0]]
         return out
 
     def _score_forecast(self, prior: LatentPosterior, cells: np.ndarray,
@@ -339,7 +339,7 @@ class LatentFilter:
         if self.aci is None or not keep.any() or not prior.is_proper:
             return
         mean, _, pstd = prior.predict_all(cells=cells[keep])
-        self.aci.update(np.abs(values[keep] - mean) / pstd)
+        self.aci.update(np.abs(values[keep] - mean) / pstd, prior.n_samples)
 
     # ------------------------------------------------------------------ assimilation
     def observation_cells(self, observations: Any) -> tuple[np.ndarray, np.ndarray]:

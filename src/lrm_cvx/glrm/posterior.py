@@ -477,6 +477,13 @@ class LatentPosterior:
         means[~proper] = np.nan
         return means, proper
 
+    @property
+    def n_samples(self) -> int:
+        """The samples of this snapshot the belief holds: its distinct cells plus its averaged
+        rows (what a calibration's design size counts)."""
+        rows = 0 if self.rows is None else int(self.rows.shape[0])
+        return int(np.unique(self.cells).size) + rows
+
     # ------------------------------------------------------------------ prediction
     def _spatial(self, spatial: bool | None) -> bool:
         if spatial is None:
@@ -555,14 +562,15 @@ class LatentPosterior:
     def interval_multipliers(self, levels: Any = (0.68, 0.95)) -> np.ndarray:
         """Half-widths of the central ``levels`` intervals in units of :meth:`predictive_std`:
         the conformal thresholds of the model's calibration (``calibrate(...,
-        method="conformal")``), else the normal quantiles. A level outside (0, 1) is a
-        ModelError naming it."""
+        method="conformal")``; interpolated at this belief's :attr:`n_samples` where it has
+        per-size thresholds), else the normal quantiles. A level
+        outside (0, 1) is a ModelError naming it."""
         from .calibrated import check_level, gaussian_multiplier
 
         cal = self.obs_model.calibration
         lv = [check_level(v, "level") for v in np.atleast_1d(levels)]
         if cal is not None and getattr(cal, "is_conformal", False):
-            return np.array([cal.multiplier(v) for v in lv])
+            return np.array([cal.multiplier(v, self.n_samples) for v in lv])
         return np.asarray(gaussian_multiplier(lv), dtype=np.float64)
 
     def interval(self, level: float = 0.95, spatial: bool | None = None, cells: Any = None,
