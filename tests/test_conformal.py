@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import sys
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -127,6 +128,14 @@ def test_per_size_thresholds_interpolate_in_the_sample_count():
     filt = cal.for_filter()
     assert filt.multiplier(0.95, 50) == pytest.approx(0.8) and filt.multiplier(0.95) == 1.9
     same(Calibration.from_attrs(cal.to_attrs()), cal)
+    # placed at the samples the fold-ins held (gaps: fewer than the design sizes)
+    gappy = replace(cal, size_samples=(4.0, 12.0, 40.0))
+    assert gappy.multiplier(0.95, 40) == pytest.approx(1.6)
+    assert gappy.multiplier(0.95, 12) == pytest.approx(2.0)
+    assert gappy.multiplier(0.95, 50) == pytest.approx(1.6)
+    same(Calibration.from_attrs(gappy.to_attrs()), gappy)
+    with pytest.raises(ModelError, match="size_samples"):
+        replace(cal, size_samples=(4.0, 12.0))
     with pytest.raises(ModelError, match="size_quantiles"):
         Calibration(method="conformal", levels=(0.68,), quantiles=(1.0,), sizes="5,15",
                     size_quantiles=(1.0, 2.0, 3.0))
@@ -146,11 +155,12 @@ def test_per_size_thresholds_hold_each_size():
     cover = {s: np.zeros(2) for s in sigma}
     pooled_cover = {s: np.zeros(2) for s in sigma}
     for _ in range(draws):
-        records = [(rng.standard_normal(per_rec) * sg, 0.0, 1, t, 0.0, s)
+        records = [(rng.standard_normal(per_rec) * sg, 0.0, 1, t, 0.0, s, s)
                    for s, sg in sigma.items() for t in range(8)]
         scores = np.abs(np.concatenate([r[0] for r in records]))
         pooled = conformal_quantile(scores, levels)
-        per = _size_quantiles(records, scores, (5, 50), levels, pooled)
+        per = np.reshape(_size_quantiles(records, scores, (5, 50), levels,
+                                         pooled)["size_quantiles"], (2, 2))
         for i, (s, sg) in enumerate(sigma.items()):
             cover[s] += 2 * norm.cdf(per[i] / sg) - 1  # the conditional coverage, exactly
             pooled_cover[s] += 2 * norm.cdf(pooled / sg) - 1
@@ -223,8 +233,6 @@ def test_conformal_calibration_holds_both_levels_out_of_sample(heavy_model):
         0.68)
     conformal = _test_coverage(model, data)
     np.testing.assert_allclose(conformal, [0.68, 0.95], atol=0.03)
-    from dataclasses import replace
-
     model.calibration_ = replace(cal, method="gaussian", levels=(), quantiles=(),
                                  score_table=(), size_quantiles=())
     gaussian = _test_coverage(model, data)

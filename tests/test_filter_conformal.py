@@ -76,6 +76,9 @@ def test_conformal_calibration_gives_the_filter_its_own_thresholds(persistent):
                                                        if r[5] == size]) / np.sqrt(cal.scale),
                                        levels) for size in (5, 15, 50)])
     np.testing.assert_allclose(np.reshape(cal.size_quantiles, (3, 2)), per, rtol=1e-12)
+    held = [np.mean([r[6] for r in records if r[5] == size]) for size in (5, 15, 50)]
+    np.testing.assert_allclose(cal.size_samples, held, rtol=1e-12)
+    assert np.all(np.asarray(held) < [5, 15, 50])  # the record's gaps give no value
     np.testing.assert_allclose(np.reshape(cal.temporal_size_quantiles, (3, 2)),
                                per * rel * np.sqrt(cal.scale / cal.temporal_scale), rtol=1e-12)
     # the filter reads them (a belief with no sample yet: the smallest size's), the memoryless
@@ -88,9 +91,12 @@ def test_conformal_calibration_gives_the_filter_its_own_thresholds(persistent):
     cells = np.flatnonzero(np.isfinite(V))  # 45 of the region's 50 cells
     mem.assimilate((cells, V[cells]), time=train["time"].values[-1], force=True)
     assert mem.posterior.n_samples == cells.size == 45
-    w = np.log(45 / 15) / np.log(50 / 15)
+    # (on this 50-cell region a "50" design that leaves cells to score is a transect of a few
+    # cells: the counts, not the sizes, place the thresholds, sorted)
+    order = np.argsort(held)
     np.testing.assert_allclose(mem.interval_multipliers(),
-                               (1 - w) * per[1] + w * per[2], rtol=1e-12)
+                               [np.interp(np.log(45), np.log(np.asarray(held)[order]),
+                                          per[order, j]) for j in (0, 1)], rtol=1e-12)
     aci = LatentFilter.from_model(model).adaptive_conformal(gamma=0.05)  # alpha at its target
     np.testing.assert_allclose(aci.interval_multipliers(), cal.temporal_size_quantiles[:2])
     aci.aci.alpha = aci.aci.alpha + 0.01  # moved: the pooled table's, times the size's ratio

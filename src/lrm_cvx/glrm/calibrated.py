@@ -24,7 +24,7 @@ __all__ = ["Calibration", "variance_scale", "noise_variance", "residual_factor",
 
 _PREFIX = "calibration_"
 _TUPLES = ("levels", "quantiles", "score_table", "temporal_quantiles", "temporal_score_table",
-           "size_quantiles", "temporal_size_quantiles")
+           "size_quantiles", "temporal_size_quantiles", "size_samples")
 METHODS = ("gaussian", "conformal")
 SCORE_GRID = tuple(np.round(np.r_[np.arange(0.01, 0.99, 0.01), np.arange(0.99, 0.9991, 0.001)],
                             6).tolist())
@@ -91,9 +91,11 @@ class Calibration:
     looser than a memoryless fold-in's), which :meth:`for_filter` puts in their place.
     ``size_quantiles`` (and the filter's ``temporal_size_quantiles``): the thresholds of each
     design size of ``sizes`` (row-major ``(len(design_sizes), len(levels))``, flattened), from
-    the fold-ins of that size alone; a belief holding ``n`` samples takes its threshold
-    interpolated in ``log n`` between them (:meth:`multiplier`): a standardized residual can
-    shrink as the samples grow denser, so one pooled threshold over-covers at large budgets.
+    the fold-ins of that size alone, whose samples gave ``size_samples`` values on average
+    (fewer than the size on snapshots with gaps); a belief holding ``n`` samples takes its
+    threshold interpolated in ``log n`` between those counts (:meth:`multiplier`): a
+    standardized residual can shrink as the samples grow denser, so one pooled threshold
+    over-covers at large budgets.
     """
 
     scale: float = 1.0
@@ -118,6 +120,7 @@ class Calibration:
     temporal_n_residuals: int = 0
     size_quantiles: tuple = ()
     temporal_size_quantiles: tuple = ()
+    size_samples: tuple = ()
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -137,6 +140,10 @@ class Calibration:
                 raise ModelError(f"Calibration.{name} must hold one entry per design size "
                                  f"({self.sizes!r}) and level ({len(self.levels)}): "
                                  f"{n_sizes}, got {got}")
+        n = np.asarray(self.size_samples)
+        if n.size and (n.size != len(self.design_sizes) or not np.all(np.isfinite(n) & (n > 0))):
+            raise ModelError("Calibration.size_samples must hold one count > 0 per design size "
+                             f"({self.sizes!r}), got {self.size_samples}")
         for name in ("scale", "temporal_scale", "dof", "residual_scale"):
             v = getattr(self, name)
             if v is None:
@@ -193,7 +200,8 @@ class Calibration:
         std: the conformal threshold for a conformal calibration, else the normal quantile.
         ``n_samples`` (the samples a belief holds): at a calibrated level with per-size
         thresholds (``size_quantiles``), the threshold interpolated linearly in ``log n``
-        between the design sizes (the nearest size's outside them); else the pooled one."""
+        between the design sizes (at the samples their fold-ins held, ``size_samples``; the
+        nearest size's outside them); else the pooled one."""
         if not self.is_conformal:
             return float(gaussian_multiplier(check_level(level)))
         lv = check_level(level)
@@ -204,8 +212,9 @@ class Calibration:
         return self.score_quantile(lv)
 
     def _size_threshold(self, j: int, n: int) -> float:
-        """Level ``j``'s threshold at ``n`` samples from ``size_quantiles``."""
-        sizes = np.asarray(self.design_sizes, dtype=np.float64)
+        """Level ``j``'s threshold at ``n`` samples from ``size_quantiles`` (placed at
+        ``size_samples``, else at the design sizes)."""
+        sizes = np.asarray(self.size_samples or self.design_sizes, dtype=np.float64)
         q = np.asarray(self.size_quantiles, dtype=np.float64).reshape(sizes.size, -1)[:, j]
         order = np.argsort(sizes)
         sizes, q = sizes[order], q[order]

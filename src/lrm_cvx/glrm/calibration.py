@@ -117,10 +117,11 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     cycled). The residuals are standardized by the *uncalibrated* predictive std of the
     refitted model. Returns a 1-D array; with ``temporal`` and ``twin=True`` a pair: the
     filter's residuals and the memoryless model's through the same loop on the same cells.
-    With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t, log_sd, size)``
-    per fold-in: its standardized residuals, the innovation statistic of its samples, the
-    snapshot, the sum of the log predictive stds it was standardized by
-    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`) and its design size. With
+    With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t, log_sd, size,
+    n_samples)`` per fold-in: its standardized residuals, the innovation statistic of its
+    samples, the snapshot, the sum of the log predictive stds it was standardized by
+    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`), its design size and the
+    samples that gave a value (fewer than the size where the snapshot has gaps). With
     ``residual_scales`` (memoryless, innovations) a dict ``{rho: records}``: the same fold-ins
     (same cells) with the refitted model's residual and noise variances multiplied by ``rho``.
     ``max_cells`` (memoryless): score at most that many of each fold-in's held-out cells (a
@@ -209,7 +210,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                             if innovations:
                                 q, n_eff = b.innovation(cells, V[t, cells])
                                 recs[rho] = (z, q, n_eff, int(t), float(np.sum(np.log(pstd))),
-                                             size)
+                                             size, post.n_samples)
                             else:
                                 recs[rho] = z
                         if len(recs) == len(bases):
@@ -414,16 +415,22 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
 
 
 def _size_quantiles(records: Sequence[tuple], scores: np.ndarray, sizes: Sequence[int],
-                    levels: Sequence[float], pooled: np.ndarray) -> np.ndarray:
-    """``(len(sizes), len(levels))`` conformal thresholds of each design size's own scores
+                    levels: Sequence[float], pooled: np.ndarray) -> dict[str, tuple]:
+    """The per-size fields of :class:`Calibration`: ``size_quantiles``, the ``(len(sizes),
+    len(levels))`` conformal thresholds of each design size's own scores, flattened
     (``scores``: the records' concatenated, in order; a size without scores takes the pooled
-    thresholds)."""
-    of_size = np.repeat([int(r[5]) for r in records], [np.size(r[0]) for r in records])
+    thresholds), and ``size_samples``, the mean number of samples that gave a value in that
+    size's fold-ins (its size without one)."""
+    size_of = np.array([int(r[5]) for r in records])
+    n_of = np.array([float(r[6]) for r in records])
+    of_size = np.repeat(size_of, [np.size(r[0]) for r in records])
     out = np.empty((len(sizes), len(levels)))
+    n_mean = np.empty(len(sizes))
     for i, size in enumerate(sizes):
         own = scores[of_size == int(size)]
         out[i] = np.atleast_1d(conformal_quantile(own, levels)) if own.size else pooled
-    return out
+        n_mean[i] = n_of[size_of == int(size)].mean() if own.size else float(size)
+    return {"size_quantiles": tuple(out.ravel()), "size_samples": tuple(n_mean)}
 
 
 def calibrate_with(model: Any, data: Any, calibration: Any) -> Calibration:
@@ -477,8 +484,9 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     heavier-tailed than a normal (it targets their geometric mean); the per-level thresholds
     do, with coverage ``>= level`` for scores exchangeable with the test's. Each design size
     of ``sizes`` also gets its own thresholds from its fold-ins alone
-    (``Calibration.size_quantiles``): a belief holding ``n`` samples takes them interpolated
-    in ``log n`` (clamped to the sizes' range), since a standardized error can shrink as the
+    (``Calibration.size_quantiles``, placed at the mean number of samples that gave a value,
+    ``size_samples``): a belief holding ``n`` samples takes them interpolated in ``log n``
+    (clamped to their range), since a standardized error can shrink as the
     samples grow denser (the 6-hourly storms of ``bench_generalization.py``); the filter's are
     the memoryless ones per size times its ratio below. ``levels``: each in (0, 1).
     Intervals: ``LatentPosterior.interval(level)`` / ``interval_coverage``;
@@ -558,8 +566,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
         pooled = np.atleast_1d(conformal_quantile(scores, levels))
         conformal = dict(method="conformal", levels=levels, quantiles=tuple(pooled),
                          score_table=tuple(np.quantile(scores, SCORE_GRID)),
-                         size_quantiles=tuple(_size_quantiles(by_rho[rho], scores, sizes,
-                                                              levels, pooled).ravel()))
+                         **_size_quantiles(by_rho[rho], scores, sizes, levels, pooled))
     z = np.concatenate([r[0] for r in by_rho[1.0]])
     raw = interval_coverage(z, 0.0, 1.0)
     auto = temporal == "auto"
