@@ -143,6 +143,38 @@ def test_filter_thresholds_round_trip_and_validate(tmp_path, persistent):
     np.testing.assert_equal(asdict(GLRM.load(tmp_path / "m.nc").calibration_), asdict(cal))
 
 
+def test_a_loaded_monitor_state_keeps_the_filters_thresholds(tmp_path, persistent):
+    """A state saved and loaded reads the same intervals as before: the filter's own
+    thresholds (per size) and scale, or the memoryless ones for a memoryless state (before
+    session 37 a loaded filter fell back to the memoryless thresholds)."""
+    from lrm_cvx.monitor import MonitorState
+
+    data, train, model = persistent
+    cal = Calibration(method="conformal", levels=(0.68, 0.95), quantiles=(1.0, 2.0),
+                      score_table=(0.5, 1.5), temporal_quantiles=(1.2, 2.5),
+                      temporal_score_table=(0.7, 1.9), sizes="5,15,50",
+                      size_quantiles=(1.1, 2.2, 1.0, 2.0, 0.9, 1.8),
+                      temporal_size_quantiles=(1.3, 2.7, 1.2, 2.5, 1.1, 2.3),
+                      scale=1.5, temporal_scale=0.8)
+    saved = model.calibration_
+    try:
+        model.calibration_ = cal
+        t = data["time"].values[train.sizes["time"]]
+        V = model.region_.stack(data.sel(time=t)).astype(float)
+        cells = np.flatnonzero(np.isfinite(V))[:15]
+        for memoryless, expect in ((False, (1.2, 2.5)), (True, (1.0, 2.0))):
+            state = MonitorState.from_model(model, memoryless=memoryless)
+            state.assimilate((cells, V[cells]), time=t)
+            np.testing.assert_allclose(state.interval_multipliers(), expect)
+            state.save(tmp_path / f"s{memoryless}.nc")
+            back = MonitorState.load(tmp_path / f"s{memoryless}.nc", model)
+            np.testing.assert_allclose(back.interval_multipliers(), expect)
+            assert back.posterior.variance_scale == state.posterior.variance_scale
+            np.testing.assert_allclose(back.predict()["std"], state.predict()["std"])
+    finally:
+        model.calibration_ = saved
+
+
 @pytest.mark.parametrize("temporal", [None, "auto"])
 def test_campaign_coverage_uses_the_calibrated_interval(persistent, temporal):
     """The campaign's coverage is counted in the interval users get: with thresholds 0 and

@@ -26,18 +26,18 @@ import xarray as xr
 
 from ._validation import atomic_output, read_netcdf
 from .errors import DataError, ModelError
-from .glrm.calibrated import variance_scale
 from .glrm.dynamics import Dynamics
 from .glrm.filter import (  # noqa: F401  (re-exported: the old import location)
     LatentFilter,
     coerce_time,
+    filter_observation_model,
     memoryless_dynamics,
     model_fingerprint,
     parse_time,
     time_label,
     time_to_str,
 )
-from .glrm.posterior import LatentPosterior, ObservationModel
+from .glrm.posterior import LatentPosterior
 from .recommended import RECOMMENDED
 
 __all__ = ["MonitorState", "model_fingerprint", "memoryless_dynamics", "time_label"]
@@ -289,9 +289,8 @@ class MonitorState(LatentFilter):
                              f"{ds.attrs.get('fingerprint')}, this model's is {fp})")
         try:
             dynamics = Dynamics.from_dataset(ds)
-            obs = ObservationModel.from_model(model, spatial=bool(int(ds.attrs["spatial"])))
-            if not int(ds.attrs["memoryless"]):  # the filter's scale, as in from_model
-                obs = replace(obs, variance_scale=variance_scale(model, temporal=True))
+            obs = filter_observation_model(model, bool(int(ds.attrs["spatial"])),
+                                           bool(int(ds.attrs["memoryless"])))
             ev = [float(ds.attrs.get(key, 0.0)) for key in ("day_q", "day_n", "scale_q",
                                                             "scale_n")]
             post = LatentPosterior(obs, ds["precision"].values, ds["shift"].values,

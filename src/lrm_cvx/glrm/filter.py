@@ -36,9 +36,9 @@ from .posterior import (
     symmetric_part,
 )
 
-__all__ = ["LatentFilter", "model_fingerprint", "memoryless_dynamics", "time_label",
-           "coerce_time", "time_to_str", "initial_cov", "FilterBatch", "batch_start",
-           "batch_transitions", "batch_step"]
+__all__ = ["LatentFilter", "filter_observation_model", "model_fingerprint",
+           "memoryless_dynamics", "time_label", "coerce_time", "time_to_str", "initial_cov",
+           "FilterBatch", "batch_start", "batch_transitions", "batch_step"]
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -166,6 +166,20 @@ def time_label(t: Any) -> str:
 
 
 # ----------------------------------------------------------------------------- the filter
+def filter_observation_model(model: Any, spatial: bool | None,
+                             memoryless: bool) -> ObservationModel:
+    """The observation model a filter over ``model`` reads: the model's, with (unless
+    ``memoryless``) the filter's own calibrated variance scale and conformal thresholds
+    (``Calibration.for_filter``, glrm/calibration.py). One place for a new state and a loaded
+    one."""
+    obs = ObservationModel.from_model(model, spatial=spatial)
+    if memoryless:
+        return obs
+    cal = obs.calibration
+    return replace(obs, variance_scale=variance_scale(model, temporal=True),
+                   calibration=None if cal is None else cal.for_filter())
+
+
 class LatentFilter:
     """The filter's belief about the latent vector of the snapshot at ``time``.
 
@@ -217,11 +231,7 @@ class LatentFilter:
         k = model.Y.shape[0]
         if dynamics.rank != k:
             raise ModelError(f"dynamics have rank {dynamics.rank}, the model {k}")
-        obs = ObservationModel.from_model(model, spatial=spatial)
-        if not memoryless:  # the filter's own calibrated variance scale and conformal
-            cal = obs.calibration  # thresholds (glrm/calibration.py)
-            obs = replace(obs, variance_scale=variance_scale(model, temporal=True),
-                          calibration=None if cal is None else cal.for_filter())
+        obs = filter_observation_model(model, spatial, memoryless)
         post = LatentPosterior.from_moments(obs, dynamics.initial_mean, initial_cov(dynamics))
         t_last = _model_times(model)[-1]
         state = cls(model, post, t_last, dynamics, observed=True, memoryless=memoryless)
