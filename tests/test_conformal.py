@@ -139,6 +139,19 @@ def test_per_size_thresholds_interpolate_in_the_sample_count():
     with pytest.raises(ModelError, match="size_quantiles"):
         Calibration(method="conformal", levels=(0.68,), quantiles=(1.0,), sizes="5,15",
                     size_quantiles=(1.0, 2.0, 3.0))
+    # a size with too few scores for the level (inf): the nearest size's, not NaN from interp
+    few = replace(cal, size_quantiles=(1.2, np.inf, 1.0, 2.0, 0.8, 1.6))
+    assert few.multiplier(0.95, 5) == np.inf and few.multiplier(0.95, 40) == pytest.approx(1.6)
+    assert few.multiplier(0.95, 8) == np.inf  # nearest in log n: 5, not 15
+    assert few.multiplier(0.95, 12) == pytest.approx(2.0)
+    assert few.multiplier(0.68, 8) == pytest.approx(cal.multiplier(0.68, 8))  # finite: interp
+    # ACI scores a day against the thresholds of its belief's sample count
+    aci = AdaptiveConformal(calibration=cal, gamma=0.1)
+    scores = np.full(10, 1.7)  # inside the pooled 95 % (2.1), outside the 50-sample one (1.6)
+    np.testing.assert_array_equal(aci.update(scores, 50), [1.0, 1.0])
+    np.testing.assert_allclose(aci.alpha, [0.32 + 0.1 * (0.32 - 1.0), 0.05 + 0.1 * (0.05 - 1.0)])
+    aci2 = AdaptiveConformal(calibration=cal, gamma=0.1)
+    np.testing.assert_array_equal(aci2.update(scores), [1.0, 0.0])  # no count: pooled
 
 
 def test_per_size_thresholds_hold_each_size():
