@@ -210,8 +210,32 @@ def test_coverage_check_against_the_blocks_by_hand(rolled):
                                     and 0.63 <= np.mean(c68) <= 0.73
                                     and 0.93 <= np.mean(c95) <= 0.97
                                     and c95.min() >= LOWEST_BLOCK_95)
+        assert (row["verdict"] == "holds") == row["holds"]
     with pytest.raises(DataError, match="origins"):
         coverage_check(rolled.isel(origin=0))
+
+
+@pytest.mark.parametrize("c68, c95, verdict", [
+    ((0.68, 0.70, 0.66), (0.95, 0.96, 0.94), "holds"),
+    ((0.80, 0.82, 0.78), (0.98, 0.99, 0.97), "68 % too wide; 95 % too wide"),
+    ((0.50, 0.55, 0.60), (0.95, 0.95, 0.95), "68 % too narrow"),
+    ((0.68, 0.68, 0.68), (0.99, 0.99, 0.85), "a block's 95 % below 0.9"),
+    ((0.60, 0.60, 0.60), (0.92, 0.92, 0.80), "68 % too narrow; 95 % too narrow; "
+                                             "a block's 95 % below 0.9"),
+    ((np.nan, 0.7, 0.7), (np.nan, 0.95, 0.95), "no intervals"),
+])
+def test_coverage_verdict_says_which_way_a_miss_goes(rolled, c68, c95, verdict):
+    """Planted per-block coverages (each block's every campaign and day alike): the verdict
+    names each miss and its side."""
+    from lrm_cvx.evaluation import coverage_check
+
+    ds = rolled.copy()
+    for name, values in (("coverage68", c68), ("coverage95", c95)):
+        planted = xr.DataArray(np.array(values, float), dims="origin")
+        ds[name] = (xr.zeros_like(rolled[name]) + planted).transpose(*rolled[name].dims)
+    check = coverage_check(ds)
+    assert (check["verdict"] == verdict).all()
+    assert (check["holds"] == (verdict == "holds")).all()
 
 
 def test_backtest_checks_evaluates_keywords_before_any_fit():

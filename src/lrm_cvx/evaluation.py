@@ -968,7 +968,10 @@ def coverage_check(results: xr.Dataset) -> pd.DataFrame:
     coverage, ``cov95_lowest_block``, ``mse`` the mean of the blocks' mean MSE, and ``holds``:
     both means inside :data:`COVERAGE_BANDS` and no block's 95 % below
     :data:`LOWEST_BLOCK_95`. A block without coverage (an uncalibrated memoryless twin) leaves
-    ``holds`` False. DataError for a result of one block."""
+    ``holds`` False. ``verdict`` says which way a miss goes (a user can live with intervals too
+    wide, not with intervals too narrow): ``"holds"``, else the misses joined by ``"; "``
+    (``"68 % too wide"``, ``"95 % too narrow"``, ``"a block's 95 % below 0.9"``, ...), or
+    ``"no intervals"``. DataError for a result of one block."""
     if "origin" not in results.dims:
         raise DataError("coverage_check needs a rolling-origin result (backtest(data, "
                         "origins): a Dataset with an 'origin' dim)")
@@ -983,7 +986,25 @@ def coverage_check(results: xr.Dataset) -> pd.DataFrame:
     out["holds"] = (complete & out["cov68"].between(lo68, hi68).to_numpy()
                     & out["cov95"].between(lo95, hi95).to_numpy()
                     & (out["cov95_lowest_block"] >= LOWEST_BLOCK_95).to_numpy())
+    out["verdict"] = [_coverage_verdict(row, ok) for row, ok in
+                      zip(out.itertuples(index=False), complete, strict=True)]
     return out
+
+
+def _coverage_verdict(row: Any, complete: bool) -> str:
+    """:func:`coverage_check`'s ``verdict`` of one method and budget."""
+    if not complete:
+        return "no intervals"
+    misses = []
+    for level, value in ((68, row.cov68), (95, row.cov95)):
+        lo, hi = COVERAGE_BANDS[level]
+        if value < lo:
+            misses.append(f"{level} % too narrow")
+        elif value > hi:
+            misses.append(f"{level} % too wide")
+    if row.cov95_lowest_block < LOWEST_BLOCK_95:
+        misses.append(f"a block's 95 % below {LOWEST_BLOCK_95:g}")
+    return "; ".join(misses) or "holds"
 
 
 def path_label(attrs: dict[str, Any]) -> str:
