@@ -119,6 +119,13 @@ def test_cli_backtest_writes_both_summaries(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "coverage over 2 blocks (holds: mean 68 % in 0.63-0.73, mean 95 % in 0.93-0.97" \
         in printed
+    from lrm_cvx.evaluation import coverage_check
+
+    check = coverage_check(got)
+    rows = printed.split("coverage over")[1].splitlines()[2:2 + len(check)]  # after the header
+    for line, (method, verdict) in zip(rows, check[["method", "verdict"]].itertuples(
+            index=False), strict=True):  # each row's verdict, as computed, in order
+        assert line.split()[0] == method and line.rstrip().endswith(verdict)
     for bad, says in (("0", "--origins: must be an integer >= 1"),
                       ("1000", "--origins 1000 blocks of --n-test 2 need")):
         assert main(["-q", "evaluate", "sample:sst", *TINY, "--paper", "--origins", bad,

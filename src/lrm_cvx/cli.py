@@ -613,7 +613,9 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
             print(f"\ncoverage over {results.sizes['origin']} blocks (holds: mean 68 % in "
                   f"{lo68:g}-{hi68:g}, mean 95 % in {lo95:g}-{hi95:g}, no block's 95 % below "
                   f"{LOWEST_BLOCK_95:g}):")
-            print(check.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+            width = int(check["verdict"].str.len().max())  # the verdicts left-aligned
+            print(check.to_string(index=False, float_format=lambda v: f"{v:.3f}",
+                                  formatters={"verdict": lambda v: str(v).ljust(width)}))
     print("wrote " + ", ".join(str(p) for p in targets))
     return targets
 
