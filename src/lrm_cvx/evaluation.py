@@ -993,7 +993,7 @@ def coverage_check(results: xr.Dataset) -> pd.DataFrame:
 
 def _coverage_verdict(row: Any, complete: bool) -> str:
     """:func:`coverage_check`'s ``verdict`` of one method and budget."""
-    if not complete:
+    if not (complete and np.isfinite(row.cov68) and np.isfinite(row.cov95)):
         return "no intervals"
     misses = []
     for level, value in ((68, row.cov68), (95, row.cov95)):
