@@ -383,3 +383,12 @@ def test_monitor_state_scores_the_forecast_before_assimilating(tmp_path):
     plain = MonitorState.from_model(model)
     assert plain.aci is None
     np.testing.assert_array_equal(plain.interval_multipliers(), [0.8, 1.5])
+
+
+def test_level_index_finds_a_level_to_rounding_only():
+    from lrm_cvx.glrm.calibrated import level_index
+
+    assert level_index((0.68, 0.95), 0.95) == 1
+    assert level_index((0.68, 0.95), 0.68 + 1e-13) == 0  # a float's rounding
+    assert level_index((0.68, 0.95), 0.9) is None
+    assert level_index((), 0.5) is None

@@ -20,7 +20,7 @@ from ..errors import ModelError
 __all__ = ["Calibration", "variance_scale", "noise_variance", "residual_factor", "residual_dof",
            "prediction_factor", "predictive_std", "parameters_per_cell",
            "interval_coverage", "conformal_quantile", "check_level", "gaussian_multiplier",
-           "AdaptiveConformal", "SCORE_GRID"]
+           "AdaptiveConformal", "SCORE_GRID", "level_index"]
 
 _PREFIX = "calibration_"
 _TUPLES = ("levels", "quantiles", "score_table", "temporal_quantiles", "temporal_score_table",
@@ -30,6 +30,14 @@ SCORE_GRID = tuple(np.round(np.r_[np.arange(0.01, 0.99, 0.01), np.arange(0.99, 0
                             6).tolist())
 """Probabilities at which a conformal calibration stores the score quantiles (for other levels
 and for adaptive conformal inference)."""
+
+
+def level_index(levels: Any, level: float) -> int | None:
+    """The position of ``level`` among ``levels`` (equal to 1e-12), or None."""
+    for i, known in enumerate(levels):
+        if abs(float(known) - float(level)) < 1e-12:
+            return i
+    return None
 
 
 def check_level(level: Any, name: str = "level") -> float:
@@ -186,9 +194,9 @@ class Calibration:
         (:data:`SCORE_GRID`; clamped to its ends; inf beyond ``1 - 1 / (n + 1)``). A Gaussian
         calibration: the normal quantile."""
         lv = check_level(level)
-        for known, q in zip(self.levels, self.quantiles, strict=True):
-            if abs(known - lv) < 1e-12:
-                return q
+        j = level_index(self.levels, lv)
+        if j is not None:
+            return self.quantiles[j]
         if not self.score_table:
             return float(gaussian_multiplier(lv))
         if self.n_residuals and lv > 1.0 - 1.0 / (self.n_residuals + 1):
@@ -205,10 +213,9 @@ class Calibration:
         if not self.is_conformal:
             return float(gaussian_multiplier(check_level(level)))
         lv = check_level(level)
-        if n_samples is not None and self.size_quantiles:
-            for j, known in enumerate(self.levels):
-                if abs(known - lv) < 1e-12:
-                    return self._size_threshold(j, int(n_samples))
+        j = level_index(self.levels, lv)
+        if n_samples is not None and self.size_quantiles and j is not None:
+            return self._size_threshold(j, int(n_samples))
         return self.score_quantile(lv)
 
     def _size_threshold(self, j: int, n: int) -> float:
@@ -428,10 +435,9 @@ class AdaptiveConformal:
 
     def multiplier(self, level: float) -> float:
         """The current half-width of ``level`` (one of ``levels``)."""
-        lv = check_level(level)
-        for i, known in enumerate(self.levels):
-            if abs(known - lv) < 1e-12:
-                return float(self.multipliers()[i])
+        i = level_index(self.levels, check_level(level))
+        if i is not None:
+            return float(self.multipliers()[i])
         raise ModelError(f"level {level!r} is not tracked (levels {self.levels})")
 
     def update(self, scores: Any, n_samples: int | None = None) -> np.ndarray:

@@ -23,7 +23,7 @@ import pandas as pd
 import xarray as xr
 
 from ..errors import DataError, ModelError, RegionError
-from .calibrated import AdaptiveConformal, variance_scale
+from .calibrated import AdaptiveConformal, level_index, variance_scale
 from .dynamics import Dynamics, time_numbers
 from .posterior import (
     LatentPosterior,
@@ -336,10 +336,11 @@ class LatentFilter:
         lv = np.atleast_1d(levels)
         out = self.posterior.interval_multipliers(lv)
         if self.aci is not None:
+            tracked = self.aci.multipliers(self.posterior.n_samples)
             for i, v in enumerate(lv):
-                hit = [j for j, a in enumerate(self.aci.levels) if abs(a - float(v)) < 1e-12]
-                if hit:
-                    out[i] = self.aci.multipliers(self.posterior.n_samples)[hit[0]]
+                j = level_index(self.aci.levels, v)
+                if j is not None:
+                    out[i] = tracked[j]
         return out
 
     def _score_forecast(self, prior: LatentPosterior, cells: np.ndarray,
