@@ -24,12 +24,12 @@ import warnings
 
 import numpy as np
 from bench_glrm import PeakRSS, rss_gib
+from bench_recommended_fit import planted_record
 
 
 def main() -> None:
     from lrm_cvx import GLRM
     from lrm_cvx.campaign import simulate_campaign
-    from lrm_cvx.io.samples import synthetic_field
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="60 days x 200 x 150 cells")
@@ -38,12 +38,9 @@ def main() -> None:
     ap.add_argument("--days", type=int, default=3, help="campaign days (the last days of "
                     "the record; the model is fitted on the others)")
     a = ap.parse_args()
-    n_times, shape = (60, (200, 150)) if a.quick else (310, (1500, 1400))
     t0 = time.perf_counter()
-    da = synthetic_field(n_times, shape, rank=5, missing=0.3, noise=0.05, land_fraction=1.0,
-                         seed=0)
-    da = da.assign_coords(time=np.datetime64("2000-01-01", "ns")
-                          + np.arange(n_times) * np.timedelta64(1, "D"))
+    da = planted_record(a.quick)
+    n_times, shape = da.sizes["time"], da.shape[1:]
     print(f"data: {n_times} days x {shape} grid, generated in {time.perf_counter() - t0:.1f} s; "
           f"RSS {rss_gib():.2f} GiB", flush=True)
     warnings.simplefilter("ignore")
