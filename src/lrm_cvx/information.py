@@ -434,11 +434,7 @@ class StructuredGPVarianceOracle:
         self._wg = _rect(lo, hi, spatial_cov.reach(truncation), shape)
         wg = self._wg
         self._gconv = GridConv(wg, out, kern, aniso)
-        # the kernel at every grid offset within the window (the pool's box lies inside it),
-        # evaluated once: a pick's k(p, x) over the pool and over the window are a gather and
-        # a slice of it (the same numbers as evaluating them, at a fraction of the cost)
-        self._ktab = spatial_cov.lattice(np.arange(1 - wg[2], wg[2], dtype=np.float64)[:, None],
-                                         np.arange(1 - wg[3], wg[3], dtype=np.float64)[None, :])
+        self._ktab = None  # the kernel at every offset of the window (_kernel_table)
         self._cwin = cgrid[wg[0]:wg[0] + wg[2], wg[1]:wg[1] + wg[3]]
 
         self._W = (self.Y * cT) @ self.Y.T
@@ -523,6 +519,19 @@ class StructuredGPVarianceOracle:
             return None
         return np.ascontiguousarray(tab), int(ext[0]), int(ext[1]), c0
 
+    def _kernel_table(self) -> np.ndarray:
+        """The kernel at every grid offset within the window ``(2 n_rows - 1, 2 n_cols - 1)``
+        (offset 0 at the centre; the pool's box lies inside the window), evaluated on the
+        first pick that convolves and kept (shared by forks): each such pick's ``k(p, x)``
+        over the pool and over the window are then a gather and a slice of it, the same
+        numbers as evaluating them, where every pick evaluated the whole window before."""
+        if self._ktab is None:
+            n_rows, n_cols = self._wg[2], self._wg[3]
+            self._ktab = self.cov.lattice(
+                np.arange(1 - n_rows, n_rows, dtype=np.float64)[:, None],
+                np.arange(1 - n_cols, n_cols, dtype=np.float64)[None, :])
+        return self._ktab
+
     def _xpos(self, cells: np.ndarray) -> np.ndarray:
         return np.minimum(np.searchsorted(self._X, cells), self._X.size - 1)
 
@@ -567,23 +576,24 @@ class StructuredGPVarianceOracle:
         F, Fk, Rk, Qk, Hk = (self._F[:m], self._Fk[:m], self._Rk[:m], self._Qk[:m, :m],
                              self._Hk[:, :m])
         gxp = self._gX[j]
-        wg = self._wg
-        r0, c0 = wg[2] - 1 - gxp[0], wg[3] - 1 - gxp[1]  # table index of offset 0 from p
         den = self.cvar[j] + self.noise
         d = np.sqrt(den)
         self._value -= float(self._numerator(np.array([j]))[0]) / den
         ell = F[:, j].copy()
         ap = self._a[:, j].copy()
-        kp = self._ktab[self._gX[:, 0] + r0, self._gX[:, 1] + c0]  # k(p, x) on the pool
-        fk = (kp - ell @ Fk) / d                                  # GP part of the new row
-        phi = (ap @ self._YX) / d + fk                            # C_P(p, x) / d
         if self._k2 is not None:  # translation-invariant table (see _lag_table)
+            kp = self.cov.lattice(self._gX[:, 0] - gxp[0], self._gX[:, 1] - gxp[1])
             tab, o0, o1, c0 = self._k2
             g = c0 * tab[self._oidx[0] - self._oidx[0][j] + o0,
                          self._oidx[1] - self._oidx[1][j] + o1]
-        else:
-            win = self._ktab[wg[0] + r0:wg[0] + r0 + wg[2], wg[1] + c0:wg[1] + c0 + wg[3]]
+        else:  # k(p, .) over the window, a slice of the kernel's table, then one convolution
+            wg, ktab = self._wg, self._kernel_table()
+            rp, cp = wg[2] - 1 - gxp[0], wg[3] - 1 - gxp[1]  # the table's offset 0 from p
+            kp = ktab[self._gX[:, 0] + rp, self._gX[:, 1] + cp]
+            win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
             g = self._gconv(win * self._cwin)[self._oidx]        # g(p, x)
+        fk = (kp - ell @ Fk) / d                                  # GP part of the new row
+        phi = (ap @ self._YX) / d + fk                            # C_P(p, x) / d
         Rkp = Rk[:, j].copy()
         Ql = Qk @ ell
         gam = (Rkp - Ql) / d
