@@ -58,6 +58,7 @@ def main() -> None:
     from lrm_cvx.glrm import refits
     from lrm_cvx.glrm.calibration import calibrate_with
     from lrm_cvx.glrm.selection import select_temporal
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="60 days x 200 x 150 cells")
     ap.add_argument("--whole", action="store_true",

@@ -522,9 +522,10 @@ class StructuredGPVarianceOracle:
     def _kernel_table(self) -> np.ndarray:
         """The kernel at every grid offset within the window ``(2 n_rows - 1, 2 n_cols - 1)``
         (offset 0 at the centre; the pool's box lies inside the window), evaluated on the
-        first pick that convolves and kept (shared by forks): each such pick's ``k(p, x)``
-        over the pool and over the window are then a gather and a slice of it, the same
-        numbers as evaluating them, where every pick evaluated the whole window before."""
+        first pick that convolves and kept (a fork made after shares it): each such pick's
+        ``k(p, x)`` over the pool and over the window are then a gather and a slice of it,
+        the same numbers as evaluating them, where every pick evaluated the whole window
+        before."""
         if self._ktab is None:
             n_rows, n_cols = self._wg[2], self._wg[3]
             self._ktab = self.cov.lattice(
