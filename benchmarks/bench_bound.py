@@ -1,4 +1,4 @@
-"""Benchmark of the D-optimal relaxation bound and the plan certificate (issue #5).
+"""Benchmark of the D-optimal relaxation bound and the plan certificate.
 
 Paper scale: a 1500 x 1400 grid with a land mask (~2M cells), rank 5 planted smooth factors
 from ``synthetic_field(..., return_truth=True)``, budget 200 grid units from a central cell:
@@ -11,8 +11,8 @@ from ``synthetic_field(..., return_truth=True)``, budget 200 grid units from a c
 budgets 5, 50, 100, 200 on the bundled real sample (``load_sample("sst")``, rank 5, three
 starts; refinement ``SAMPLE_REFINE``: 20000 polyline shapes with
 64 climbs and four chains of 150 kicks within 120 s), and with
-``--path-aware [walk|flow]`` also the king-walk (default) or layered-block relaxation of issue
-#16 (the certificate keeps the smaller bound). Every run also refines the greedy plan
+``--path-aware [walk|flow]`` also the king-walk (default) or layered-block relaxation
+(the certificate keeps the smaller bound). Every run also refines the greedy plan
 (``refine``: its time and gain) and splits the certified gap into plan slack (greedy ->
 refined) and bound slack (refined -> bound), and prints the convex floor (``convex_floor``
 with the refined route in the pool: no convex relaxation containing every route is below it;
@@ -22,7 +22,7 @@ relaxation with the default bound on windows of the paper-scale field (docs/cert
 
 Run under the shared lock::
 
-    flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_bound.py [--small|--sample]
+    flock /tmp/lrm-bench.lock python benchmarks/bench_bound.py [--small|--sample]
 """
 
 from __future__ import annotations
@@ -277,7 +277,7 @@ def main() -> None:
     p.add_argument("--sample", action="store_true", help="certify greedy plans on sample data")
     p.add_argument("--path-aware", nargs="?", const="walk", default=False,
                    choices=["walk", "flow"],
-                   help="--sample: also a path-aware relaxation (issue #16; min of both bounds): "
+                   help="--sample: also a path-aware relaxation (min of both bounds): "
                         "'walk' (default, the king-walk relaxation) or 'flow' (layered blocks)")
     p.add_argument("--window", nargs="+", type=float, metavar="BUDGET",
                    help="walk relaxation vs the default bound on windows of the paper-scale "

@@ -1,4 +1,4 @@
-"""Issue #15 target on the bundled ``sst`` sample: a glider fleet's closed campaign in km.
+"""On the bundled ``sst`` sample: a glider fleet's closed campaign in km.
 
 ``evaluate`` with ``metric="km"``, ``traversable="valid"`` (the gliders stay in the ocean),
 ``closed=True`` (each returns to its deployment cell) and ``n_robots=2`` (budget per robot):

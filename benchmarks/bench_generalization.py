@@ -1,4 +1,4 @@
-"""Generalization benchmark (issue #24, item 5): the recommended setting on real records the
+"""Generalization benchmark : the recommended setting on real records the
 project has never seen.
 
     python benchmarks/bench_generalization.py            # every set, budgets 15/30/60,
@@ -13,7 +13,7 @@ project has never seen.
     python benchmarks/bench_generalization.py --clouds 0.3   # 30 % of every snapshot clouded
 
 The data sets are those of ``benchmarks/generalization_data.py`` (data shipped inside PyPI and
-Debian packages; that module's docstring has the install commands). Per set, the issue's
+Debian packages; that module's docstring has the install commands). Per set, the
 protocol: the last 8 snapshots held out, the recommended setting
 (``lrm_cvx.recommended.RECOMMENDED``'s model keys, :func:`recommended_params`: offset,
 ``spatial="auto"`` (the residual's family validated on the training residuals),
@@ -39,14 +39,13 @@ monthly sets only), each fitted with its ``temporal=``. Printed per set and budg
 * ``vs_all_ub_auto``: the paired upper bound of the greedy's change against each baseline, the
   worst of the five (negative: it beats every baseline with 95 % confidence).
 
-Cost: the full run 437 s for the six sets on the idle 2-core machine (navy 185 s; 2026-11-30,
-session 36, after a plan's test snapshots began to share one kriging system; 1004 s before);
+Cost: the full run 437 s for the six sets on the idle 2-core machine (navy 185 s);
 ``--modes ar1,seasonal,auto`` about three times that.
 
 MSE is in the data's units squared. A final line per set gives the wall time. ``--out DIR`` also
 writes every ``summary`` table as CSV.
 
-``--coverage`` (issue #24, item 3) runs instead the rolling-origin coverage check: for each of
+``--coverage`` runs instead the rolling-origin coverage check: for each of
 ``--origins`` consecutive test blocks of 8 snapshots at the end of the record, the model is
 fitted on the snapshots before the block and calibrated on them only
 (``calibrate(model, train, method="conformal", **CALIBRATE_KW)``: cross-validated,
@@ -398,7 +397,7 @@ def coverage_report(name: str, table: pd.DataFrame) -> pd.DataFrame:
 def forecast_vs_posterior(data, n_starts: int = 3, budget: float = 15.0) -> pd.DataFrame:
     """Per temporal mode (memoryless, the model's ``temporal="auto"`` choice): the campaign's
     mean map MSE of the morning forecast and of the posterior after the day's samples over the
-    last ``N_TEST`` snapshots, ``n_starts`` starts, greedy gp-variance (issue #24 item 3: a
+    last ``N_TEST`` snapshots, ``n_starts`` starts, greedy gp-variance (a
     posterior never worse than its forecast on average), with a 95 % interval of the change
     from the paired (start, day) differences."""
     import numpy as np
@@ -504,7 +503,7 @@ def main() -> None:
                     help="the GLRM's spatial= instead of the recommended one (e.g. auto)")
     ap.add_argument("--rank", default=None,
                     help="the recommended GLRM's rank instead of its own (auto): an integer "
-                         f"({RANK}: the issue's protocol) or auto")
+                         f"({RANK}: the protocol's) or auto")
     ap.add_argument("--forecast", action="store_true",
                     help="posterior vs forecast map MSE of the campaigns (forecast_vs_posterior)")
     ap.add_argument("--last", type=int, default=None,

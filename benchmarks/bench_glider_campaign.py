@@ -1,4 +1,4 @@
-"""Issue #25 item 1 on the bundled ``sst``: a two-glider campaign under the whole path model.
+"""On the bundled ``sst``: a two-glider campaign under the whole path model.
 
 Two closed gliders over the ocean (great-circle km, ``traversable="valid"``: ocean cells only,
 ``closed=True``: each returns to its deployment cell, a km budget per glider, ``sense_along``:

@@ -1,6 +1,6 @@
 """GLRM fit at paper scale: quadratic (20 iterations), Huber to convergence, naive cvxpy estimate.
 
-Run under the shared lock:  flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_glrm.py
+Run under the shared lock:  flock /tmp/lrm-bench.lock python benchmarks/bench_glrm.py
 ``--small`` runs a quick smoke version (60 x 200 x 150).
 """
 

@@ -13,9 +13,9 @@
 3. The check's route scoring (``planning/lines.route_values``) on the six routes of the
    recommended plan (range 5): its seconds, whether one oracle's picks were lag-table gathers
    (then one set-up is forked per route), the seconds of that one forked oracle for every
-   case (the only way before session 34), and the largest relative difference of the values.
+   case, and the largest relative difference of the values.
 
-    flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_gp_planner.py [--small]
+    flock /tmp/lrm-bench.lock python benchmarks/bench_gp_planner.py [--small]
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Peers side by side (issue #17, item 4): H2O's GLRM and PySensors' QR placement.
+"""Peers side by side: H2O's GLRM and PySensors' QR placement.
 
     flock /tmp/bench.lock python benchmarks/bench_peers.py [--small] [--skip-h2o] [--skip-pysensors]
 
@@ -70,7 +70,7 @@ def jvm_cpu() -> float:
         return np.nan
 
 
-#: the previous session's measurement, kept visible (issue #17)
+#: an earlier measurement on a larger record, printed beside the run's
 PREVIOUS = ("earlier: lrm-cvx 60-150x faster than H2O to equal held-out RMSE, 310 x 100k; "
             "2026-11-23, max_iterations 150: H2O 534 s (JVM CPU 401 s, load 4.6) vs lrm-cvx "
             "1.44 s (CPU 2.38 s): 168x by CPU seconds, 370x by wall time")

@@ -1,4 +1,4 @@
-"""Persistent monitoring (issue 13): every figure of the issue's Targets section measurable here.
+"""Persistent monitoring: every figure of its targets measurable here.
 
     python benchmarks/bench_persistent.py [--data planted sst hgt500] [--starts 10] [--quick]
 
@@ -71,10 +71,10 @@ def planted_dynamics(rank: int, eig_range: tuple = (0.90, 0.97), seed: int = 0
     return A, 0.5 * (Q + Q.T)
 
 
-# The planted field (issue 13, targets on data with persistence). Last session's field (rank 4,
-# eigenvalues 0.70-0.90, mode amplitudes 0.2 x 0.6^(k-1)) left too little for any prior to do:
-# its weak modes carried almost none of the variance, so 15 samples pinned every mode that
-# matters (the filter with the *true* A, Q cut only 10 % at budget 15). Here the latent state is
+# The planted field (targets on data with persistence). A field of rank 4
+# (eigenvalues 0.70-0.90, mode amplitudes 0.2 x 0.6^(k-1)) leaves too little for any prior to do:
+# its weak modes carry almost none of the variance, so 15 samples pin every mode that
+# matters (the filter with the *true* A, Q cuts only 10 % at budget 15). Here the latent state is
 # not pinned by 15 samples: rank 6, every spatial mode of amplitude 0.2 (comparable weight),
 # stronger persistence (eigenvalues 0.90-0.97), noise 0.02, 30 % clouds, 400 days (with 200
 # the strongly persistent A is estimated too roughly for the filter to match the true one).
@@ -460,7 +460,7 @@ def _als_continue(model, train, n_iter: int, rts: bool):
 
 def rts_experiment(name: str, n_starts: int = 5, budgets: tuple = (5, 15, 50),
                    n_iter: int = 5) -> None:
-    """Optional item of issue 13: smoothing ``X`` with the AR prior during the fit. Held-out
+    """Smoothing ``X`` with the AR prior during the fit. Held-out
     campaign MSE (``greedy:gp-variance`` and the random walk, ``n_starts`` starts, filter and
     memoryless) of the fitted model, of ``n_iter`` more plain alternating steps, and of
     ``n_iter`` alternating steps whose X step is the RTS smoother."""

@@ -1,4 +1,4 @@
-"""Static placement defaults and speed (issue #24, items 4 and 6).
+"""Static placement defaults and speed.
 
     python benchmarks/bench_placement.py                 # every set, 15/30/60 sensors + speed
     python benchmarks/bench_placement.py --quick         # 15 sensors, no paper scale
@@ -32,12 +32,9 @@ Placements:
   with PySensors' randomized SVD and with the exact SVD (``bench_static.qr_cells``): QR's best
   case, chosen with the test set.
 
-Target: ``auto`` <= ``QR best`` at every set and n. Until session 23 the risk's exchange was
-skipped when the sensors were at least as many as the training snapshots (set after seeing
-``storm_t_land_6hourly`` at 60); on the training snapshots alone (each record without its test
-block, the 8 before it playing the test) the exchange lowered the error of all three storm
-records at ``n >= T`` (-8 to -18 %), so the rule is gone. Since session
-22 the risk on the model's own training snapshots scores a new snapshot's errors (the fit's
+Target: ``auto`` <= ``QR best`` at every set and n. The risk's exchange runs whatever the
+number of sensors (on the training snapshots alone it lowered the error of all three storm
+records at ``n >= T`` by 8-18 %). The risk on the model's own training snapshots scores a new snapshot's errors (the fit's
 residuals scaled by ``n / (n - k)``, ``planning/static.py``'s ``error_factor``).
 
 **Speed.** The default (``auto``: validation, then the chosen placement) at 15/30/60 sensors on

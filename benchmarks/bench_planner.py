@@ -4,7 +4,7 @@ Prints seconds, |P| and Fisher information for budgets 5, 50, 100, 200 with the 
 nearest-neighbour cost and with cheapest insertion, then the speed-up over a naive
 implementation (every tour and log det from scratch) on a 60 x 60 grid, and peak RSS.
 
-Issue #15 targets (``--paths-only`` runs only these): a glider-like path model at paper scale,
+Path-model targets (``--paths-only`` runs only these): a glider-like path model at paper scale,
 ``metric="km"`` with the km budget equivalent to 200 grid units at the start,
 ``traversable="valid"``, ``closed=True``: one robot <= 15 s, a fleet of 3 <= 30 s, peak memory
 <= 4 GB; each figure is printed beside its target.
@@ -85,7 +85,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--small", action="store_true", help="quick smoke run (300 x 280)")
     parser.add_argument("--paths-only", action="store_true",
-                        help="only the issue #15 path-model targets")
+                        help="only the path-model targets")
     args = parser.parse_args()
     shape = (300, 280) if args.small else (1500, 1400)
     budgets = (5, 50) if args.small else (5, 50, 100, 200)
@@ -161,7 +161,7 @@ def _nearest_valid(region: Region, row: int, col: int) -> int:
 
 
 def _path_targets(Y: np.ndarray, region: Region, start: int, grid_budget: float) -> None:
-    """Issue #15: km budget equivalent to ``grid_budget`` grid units, traversable="valid",
+    """The path-model target: km budget equivalent to ``grid_budget`` grid units, traversable="valid",
     closed tours; one robot (target 15 s) and a fleet of 3 (target 30 s), on the noisy
     factors (scattered picks, like a fitted model's)."""
     noisy = Y + 0.3 * Y.std(axis=1, keepdims=True) * np.random.default_rng(0).standard_normal(
@@ -175,7 +175,7 @@ def _path_targets(Y: np.ndarray, region: Region, start: int, grid_budget: float)
     off = int(0.75 * grid_budget)
     fleet = [start, _nearest_valid(region, g[0] - off, g[1] - off),
              _nearest_valid(region, g[0] + off, g[1] + off)]
-    print(f"issue #15 path model: metric km, budget {km:.1f} km (= {grid_budget:g} grid units "
+    print(f"path model: metric km, budget {km:.1f} km (= {grid_budget:g} grid units "
           f"x {km / grid_budget:.3f} km), traversable 'valid', closed tours")
     print(f"{'robots':>6} {'cost':>17} {'seconds':>8} {'target':>7} {'|P|':>5} "
           f"{'robot costs (km)':>28} {'information':>11} {'route rows':>10}")

@@ -12,8 +12,7 @@ cell land, 30 % of the values missing, noise 0.05) is fitted with
 filter's forecast, with the check against straight lines), the samples assimilated and the map
 predicted with its intervals. Printed per budget: the seconds per day, the peak RSS of the
 campaign, the samples a day, the map's MSE and the coverage of its 68 % / 95 % intervals.
-Figures: docs/benchmarks.md, "A large region's validation in pieces, and calm and stormy cells
-(session 39)".
+Figures: docs/benchmarks.md, "Persistent monitoring".
 """
 
 from __future__ import annotations

@@ -20,10 +20,9 @@ stages, each with the peak RSS of the process during it:
 
 The two validations refit the model on parts of the record. Above
 ``refits.VALIDATION_MAX_CELLS`` cells (200,000) they read a window of the grid holding that
-many cells (``refits.validation_window``); ``--whole`` lifts the cap (every cell, as before
-session 25), ``--max-cells N`` sets it. The choice and the calibration's thresholds are printed,
+many cells (``refits.validation_window``); ``--whole`` lifts the cap (every cell), ``--max-cells N`` sets it. The choice and the calibration's thresholds are printed,
 so the two runs can be compared. With ``--rank auto`` the rank is chosen with the temporal
-model on a reference fit (of the window, since session 26) before the real fit, and stage 2 is
+model on a reference fit (of the window) before the real fit, and stage 2 is
 not run: the ``fit`` line then includes its validations. Figures: docs/benchmarks.md, "The
 recommended fit at paper scale".
 """
@@ -62,7 +61,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="60 days x 200 x 150 cells")
     ap.add_argument("--whole", action="store_true",
-                    help="validate on every cell (no window: the code before session 25)")
+                    help="validate on every cell (no window)")
     ap.add_argument("--max-cells", type=int, default=None,
                     help="refits.VALIDATION_MAX_CELLS for this run")
     ap.add_argument("--dask", action="store_true", help="the record as a dask array (chunks "

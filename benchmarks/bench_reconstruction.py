@@ -1,7 +1,7 @@
-"""Reconstruction error of the planners (issue #8): route-constrained protocol and an
+"""Reconstruction error of the planners: route-constrained protocol and an
 unconstrained comparison with QR pivoting (PySensors) and random cells.
 
-    flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_reconstruction.py [--small]
+    flock /tmp/lrm-bench.lock python benchmarks/bench_reconstruction.py [--small]
 
 Data: the bundled real sample ``sst`` (``lrm_cvx.datasets.load_sample``; falls back to the
 ``eofs`` package's example file), a second real data set shipped with a package (``hgt500``:

@@ -1,4 +1,4 @@
-"""Replanning en route vs planning once a day (issue #25, item 2), on the bundled ``sst``.
+"""Replanning en route vs planning once a day, on the bundled ``sst``.
 
 Two closed gliders over the ocean (km budgets, ocean cells only, back home, measuring every cell
 they pass), the filter (``temporal="ar1"``, recommended setting), the last ``--days`` snapshots
@@ -14,7 +14,7 @@ replans, the wall time of a day, and every flown route's brute-force feasibility
 
     python benchmarks/bench_replan.py [--days 8] [--every 4] [--budget 6000]
 
-``--paper-scale`` (issue #25 target: a replan at paper scale, 2.1M cells, budget 200, km,
+``--paper-scale`` (the target: a replan at paper scale, 2.1M cells, budget 200, km,
 traversable, in <= 3 s on 2 cores): a planted field on the 1500 x 1400 grid (95 % of it
 valid, 2.0M cells), a rank-5 model (offset, AR(1); criterion fisher, the monitor's default
 without a spatial residual) fitted on 29 snapshots (``--model-cache`` keeps it), one glider
@@ -97,7 +97,7 @@ def _after_route(state, plan, done, t, truth):
 
 
 def paper_scale(cache: str | None, small: bool, criterion: str, profile: bool) -> None:
-    """The issue #25 replan target at paper scale (see the module docstring)."""
+    """The replan target at paper scale (see the module docstring)."""
     from lrm_cvx.planning import paths
 
     model, truth = _paper_model(cache, small)

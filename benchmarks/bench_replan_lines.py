@@ -1,4 +1,4 @@
-"""Replanning en route with and without the check against straight lines (session 31).
+"""Replanning en route with and without the check against straight lines.
 
 On the records of the generalization benchmark (``generalization_data``): the recommended model
 (``bench_generalization.recommended_params``, rank 5) fitted on all but the last 8 snapshots,

@@ -1,4 +1,4 @@
-"""What ``GLRM(temporal="auto")`` costs beside a plain fit (issue #24, item 6: "adds at most the
+"""What ``GLRM(temporal="auto")`` costs beside a plain fit ("adds at most the
 time of two more fits").
 
     python benchmarks/bench_selection.py                   # 5k, 50k, 200k cells, 120 months

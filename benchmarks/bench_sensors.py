@@ -1,4 +1,4 @@
-"""Benchmark of sensors that see more than a point (issue #25 item 6, docs/planning.md "Sensors").
+"""Benchmark of sensors that see more than a point (docs/planning.md "Sensors").
 
 At the paper's scale (1500 x 1400 grid, ~2.0M valid cells, rank 5): the footprint rows of every
 cell a budget-200 plan may visit (one KD-tree query), the greedy with the point sensor against

@@ -1,4 +1,4 @@
-"""Benchmark of the spatial residual model (issue #8 item 4) at paper scale (~2M cells).
+"""Benchmark of the spatial residual model at paper scale (~2M cells).
 
 A 1414 x 1414 grid (1,999,396 cells), exponential covariance with range 20 cells:
 
@@ -13,7 +13,7 @@ A 1414 x 1414 grid (1,999,396 cells), exponential covariance with range 20 cells
 
 ``--small`` runs a 300 x 300 grid. Run under the shared lock::
 
-    flock /tmp/lrm-bench.lock /work/venv/bin/python benchmarks/bench_spatial.py [--small]
+    flock /tmp/lrm-bench.lock python benchmarks/bench_spatial.py [--small]
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Static placement vs PySensors' QR (issue #15): reconstruction error at 15, 30, 60 sensors.
+"""Static placement vs PySensors' QR: reconstruction error at 15, 30, 60 sensors.
 
     flock /tmp/bench.lock python benchmarks/bench_static.py [--small] [--data sst,hgt500]
 
@@ -31,7 +31,7 @@ Honest choice: nothing is tuned on the test snapshots. The placement method is c
 set and sensor count on **validation** snapshots: the model is refitted on the training
 snapshots minus their last 8, every method places sensors, and the 8 held-back training
 snapshots score them. The method with the lowest validation error is then run on the full
-training set and scored on the test set. Target (issue #15): its test error is at or below
+training set and scored on the test set. Target: its test error is at or below
 QR's at 15, 30 and 60 sensors on both data sets.
 """
 

