@@ -34,7 +34,8 @@ Placements:
 
 Target: ``auto`` <= ``QR best`` at every set and n. The risk's exchange runs whatever the
 number of sensors (on the training snapshots alone it lowered the error of all three storm
-records at ``n >= T`` by 8-18 %). The risk on the model's own training snapshots scores a new snapshot's errors (the fit's
+records at ``n >= T`` by 8-18 %). The risk on the model's own training snapshots scores a
+new snapshot's errors (the fit's
 residuals scaled by ``n / (n - k)``, ``planning/static.py``'s ``error_factor``).
 
 **Speed.** The default (``auto``: validation, then the chosen placement) at 15/30/60 sensors on

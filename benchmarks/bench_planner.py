@@ -161,7 +161,8 @@ def _nearest_valid(region: Region, row: int, col: int) -> int:
 
 
 def _path_targets(Y: np.ndarray, region: Region, start: int, grid_budget: float) -> None:
-    """The path-model target: km budget equivalent to ``grid_budget`` grid units, traversable="valid",
+    """The path-model target: km budget equivalent to ``grid_budget`` grid units,
+    traversable="valid",
     closed tours; one robot (target 15 s) and a fleet of 3 (target 30 s), on the noisy
     factors (scattered picks, like a fitted model's)."""
     noisy = Y + 0.3 * Y.std(axis=1, keepdims=True) * np.random.default_rng(0).standard_normal(

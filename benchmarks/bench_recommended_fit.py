@@ -20,9 +20,10 @@ stages, each with the peak RSS of the process during it:
 
 The two validations refit the model on parts of the record. Above
 ``refits.VALIDATION_MAX_CELLS`` cells (200,000) they read a window of the grid holding that
-many cells (``refits.validation_window``); ``--whole`` lifts the cap (every cell), ``--max-cells N`` sets it. The choice and the calibration's thresholds are printed,
-so the two runs can be compared. With ``--rank auto`` the rank is chosen with the temporal
-model on a reference fit (of the window) before the real fit, and stage 2 is
+many cells (``refits.validation_window``); ``--whole`` lifts the cap (every cell),
+``--max-cells N`` sets it. The choice and the calibration's thresholds are printed, so the
+two runs can be compared. With ``--rank auto`` the rank is chosen with the temporal model on
+a reference fit (of the window) before the real fit, and stage 2 is
 not run: the ``fit`` line then includes its validations. Figures: docs/benchmarks.md, "The
 recommended fit at paper scale".
 """
