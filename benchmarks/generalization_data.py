@@ -404,8 +404,9 @@ def load_planted_warming_yearly() -> xr.DataArray:
     found; a climate model's yearly record is reserved for independent checks):
     ``synthetic_dynamic_field`` with 12 persistent AR(1) modes (the GLRM at rank 5 leaves a
     structured residual) and a trend on mode 1 from 1970 on, reaching about three stationary
-    standard deviations in the last year, so the test block lies beyond every training year. 240 years (1860-2099) x 1,742 cells, no gaps. A stress check of the
-    extrapolation a trend asks for; nothing is chosen on it."""
+    standard deviations in the last year, so the test block lies beyond every training year.
+    240 years (1860-2099) x 1,742 cells, no gaps. A stress check of the extrapolation a trend
+    asks for; nothing is chosen on it."""
     from lrm_cvx.io.samples import synthetic_dynamic_field
 
     da = synthetic_dynamic_field(240, (44, 44), rank=12, trend=(1.0, 0.46),
