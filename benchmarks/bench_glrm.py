@@ -18,7 +18,7 @@ import numpy as np
 
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm import quadratic as Q
-from lrm_cvx.glrm.fit import _quad_x, _quad_y, check_data, initialize
+from lrm_cvx.glrm.fit import _quad_x, check_data, initialize, quadratic_y_step
 from lrm_cvx.io.samples import synthetic_field
 from lrm_cvx.region import Region
 
@@ -124,7 +124,7 @@ def main() -> None:
     X, Y = initialize(md, k, "svd", np.random.default_rng(0), mu, 1.0)
     t_init = time.perf_counter() - t0
     t0 = time.perf_counter()
-    Y, _, _ = _quad_y(md, X, Y, 0.0, Y)
+    Y, _, _ = quadratic_y_step(md, X, Y, 0.0, Y)
     t_y = time.perf_counter() - t0
     t0 = time.perf_counter()
     X, _, _ = _quad_x(md, X, Y, 0.0)

@@ -20,6 +20,7 @@ from lrm_cvx.glrm.calibration import (
     predictive_std,
 )
 from lrm_cvx.glrm.designs import sample_sets
+from lrm_cvx.monitor import MonitorState
 
 
 def _planted(T=60, ny=16, nx=20, k=3, noise=0.3, seed=0):
@@ -188,7 +189,6 @@ def test_blend_dynamics_endpoints_and_select_dynamics():
     from lrm_cvx.glrm.blending import blend_dynamics, select_dynamics
     from lrm_cvx.glrm.posterior import empirical_moments
     from lrm_cvx.io.samples import synthetic_dynamic_field
-    from lrm_cvx.monitor import MonitorState
 
     data = synthetic_dynamic_field(30, (8, 10), rank=2, missing=0.1, noise=0.05, seed=2)
     with warnings.catch_warnings():
@@ -235,20 +235,20 @@ def test_filter_scale_is_used_by_the_monitor_state():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = GLRM(rank=2, temporal="ar1", progress=False, random_state=0).fit(data)
-    before = model.monitor().forecast()
+    before = MonitorState.from_model(model).forecast()
     cal = calibrate(model, data, n_blocks=4, sizes=(5, 20), max_snapshots=2, temporal="ar1",
                     adaptive=False, residual=False)  # a pure variance scale
     assert cal.temporal_scale is not None and cal.temporal_scale > 0
-    after = model.monitor().forecast()
+    after = MonitorState.from_model(model).forecast()
     np.testing.assert_allclose(after["predictive_std"].values,
                                np.sqrt(cal.temporal_scale) * before["predictive_std"].values,
                                rtol=1e-10)
     # the memoryless state uses the memoryless scale
     ml0 = Calibration(scale=1.0)
     model.calibration_ = ml0
-    base = model.monitor(memoryless=True).forecast()
+    base = MonitorState.from_model(model, memoryless=True).forecast()
     model.calibration_ = cal
-    ml = model.monitor(memoryless=True).forecast()
+    ml = MonitorState.from_model(model, memoryless=True).forecast()
     np.testing.assert_allclose(ml["std"].values, np.sqrt(cal.scale) * base["std"].values,
                                rtol=1e-10)
 
@@ -331,7 +331,6 @@ def test_residual_scale_multiplies_the_residual_and_noise_variances():
 
 def test_adaptive_scale_is_carried_by_the_monitor_state_and_saved(tmp_path):
     from lrm_cvx.io.samples import synthetic_dynamic_field
-    from lrm_cvx.monitor import MonitorState
 
     data = synthetic_dynamic_field(30, (8, 10), rank=2, missing=0.1, noise=0.05, seed=4)
     train, test = data.isel(time=slice(None, -3)), data.isel(time=slice(-3, None))
@@ -339,7 +338,7 @@ def test_adaptive_scale_is_carried_by_the_monitor_state_and_saved(tmp_path):
         warnings.simplefilter("ignore")
         model = GLRM(rank=2, temporal="ar1", progress=False, random_state=0).fit(train)
     model.calibration_ = Calibration(scale=1.5, dof=8.0, discount=0.5)
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     region = model.region_
     V = region.stack(test).astype(float)
     qs, ns = [], []

@@ -10,7 +10,6 @@ import xarray as xr
 
 from lrm_cvx import cli
 from lrm_cvx.cli import main
-from lrm_cvx.cost import COSTS
 from lrm_cvx.datasets import load_sample
 from lrm_cvx.evaluation import METHODS, evaluate
 from lrm_cvx.glrm import GLRM
@@ -18,6 +17,7 @@ from lrm_cvx.glrm.losses import LOSSES
 from lrm_cvx.glrm.predictive import PRIORS
 from lrm_cvx.information import CRITERIA
 from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning.routecost import COSTS
 from lrm_cvx.spatial import MODELS
 
 

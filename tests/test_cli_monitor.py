@@ -51,7 +51,7 @@ def test_the_field_loop(files, tmp_path, capsys):
     assert _run("monitor", "assimilate", state, folder / "obs30.nc",
                 "--time", "2013-01-31") == 0
     s = MonitorState.load(state)
-    expected = model.monitor().assimilate(da.isel(time=30), da.time.values[30])
+    expected = MonitorState.from_model(model).assimilate(da.isel(time=30), da.time.values[30])
     np.testing.assert_allclose(s.posterior.mean, expected.posterior.mean, rtol=1e-10)
     assert _run("monitor", "assimilate", state, folder / "obs31.csv",
                 "--time", "2013-02-01") == 0

@@ -162,12 +162,3 @@ def test_insertion_hand_checked():
     oracle.add(2)
     assert oracle.tour.tolist() == [0, 2, 1]
     assert oracle.cost == pytest.approx(2 * math.sqrt(5))
-
-
-def test_old_cost_module_still_works_and_warns():
-    import lrm_cvx.cost as old
-    from lrm_cvx.planning import routecost
-
-    for name in old.__all__:
-        with pytest.warns(DeprecationWarning, match="routecost"):
-            assert getattr(old, name) is getattr(routecost, name)

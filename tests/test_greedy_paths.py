@@ -431,7 +431,7 @@ def test_static_pairs_brute_force_and_naive_greedy():
         for _ in range(6):
             vals = [logdet(Y, P + [c], 0.05) if c not in P else -np.inf for c in range(L)]
             P.append(int(np.argmax(vals)))
-        plan = plan_greedy(Y, region, None, None, path="static", n_sensors=6, ridge=0.05,
+        plan = plan_greedy(Y, region, None, None, static=True, n_sensors=6, ridge=0.05,
                            progress=False)
         assert plan.cells.tolist() == P
         assert plan.path["kind"] == "static" and plan.cost == 6 and plan.budget == 6
@@ -488,10 +488,10 @@ def test_bad_path_inputs_name_the_argument(sea):
         (dict(sense_along="yes"), "sense_along"),
         (dict(path="teleport"), "path"),
         (dict(n_sensors=3), "n_sensors"),
-        (dict(path="static", n_sensors=3), "start"),
-        (dict(start=None, path="static", n_sensors=0), "n_sensors"),
-        (dict(start=None, path="static", n_sensors=2.5), "n_sensors"),
-        (dict(start=None, path="static", n_sensors=3, closed=True), "static"),
+        (dict(static=True, n_sensors=3), "start"),
+        (dict(start=None, static=True, n_sensors=0), "n_sensors"),
+        (dict(start=None, static=True, n_sensors=2.5), "n_sensors"),
+        (dict(start=None, static=True, n_sensors=3, closed=True), "static"),
         (dict(start=None), "start"),
     ]
     for kw, word in cases:

@@ -57,7 +57,7 @@ def test_filter_matches_a_naive_kalman_filter(model, field):
     """Offset, scale and per-cell noise: z = (v - offset) / scale, R = diag(noise_var)."""
     rng = np.random.default_rng(0)
     dyn = model.dynamics_
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     Y = model._Yv
     off, sc, nv = model.offset_, model.scale_, model.noise_var_ * prediction_factor(model)
     m = dyn.initial_mean.copy()
@@ -90,7 +90,7 @@ def test_filter_matches_a_naive_kalman_filter(model, field):
 
 
 def test_forecast_is_the_propagated_belief(model):
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     dyn = model.dynamics_
     ds = state.forecast()
     assert ds["time"].values == state.time + np.timedelta64(1, "D")
@@ -114,7 +114,7 @@ def test_zero_dynamics_reproduce_the_memoryless_fold_in(plain, field):
                    initial_mean=plain._Xv[:, -1], initial_cov=S0, step=1.0,
                    time_kind="datetime")
     explicit = MonitorState.from_model(plain, dynamics=dyn)
-    default = plain.monitor()  # a model without dynamics: memoryless
+    default = MonitorState.from_model(plain)  # a model without dynamics: memoryless
     assert default.memoryless
     rng = np.random.default_rng(1)
     for day in (30, 31, 32):
@@ -137,23 +137,23 @@ def test_observation_forms_agree(model, field):
     vals = region.stack(snap).astype(np.float64)
     cells = np.flatnonzero(np.isfinite(vals))[:8]
     t = snap.time.values
-    a = model.monitor().assimilate((cells, vals[cells]), t)
+    a = MonitorState.from_model(model).assimilate((cells, vals[cells]), t)
     grid = region.unstack(np.where(np.isin(np.arange(vals.size), cells), vals, np.nan))
-    b = model.monitor().assimilate(grid, t)
+    b = MonitorState.from_model(model).assimilate(grid, t)
     table = pd.DataFrame({"lat": region.cell_lat[cells], "lon": region.cell_lon[cells],
                           "value": vals[cells]})
-    c = model.monitor().assimilate(table, str(pd.Timestamp(t).date()))
+    c = MonitorState.from_model(model).assimilate(table, str(pd.Timestamp(t).date()))
     for s in (b, c):
         np.testing.assert_allclose(s.posterior.mean, a.posterior.mean, rtol=1e-12)
         assert s.n_assimilated == 8
     # NaN values are ignored and counted
     table.loc[0, "value"] = np.nan
-    d = model.monitor().assimilate(table, t)
+    d = MonitorState.from_model(model).assimilate(table, t)
     assert d.n_assimilated == 7 and d.n_dropped == 1
 
 
 def test_time_order_is_enforced(model, field):
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     t30, t31 = field.time.values[30], field.time.values[31]
     with pytest.raises(DataError, match="earlier than"):
         state.assimilate(([0], [0.3]), field.time.values[10])
@@ -174,7 +174,7 @@ def test_public_belief_api_of_replanning(model, field):
     """``belief`` / ``plan_time`` / ``time_after`` / ``assimilate_today``: the public form of
     what replanning and the CLI read (the forecast's belief, the day a plan is for, more of
     today's observations added to the same snapshot)."""
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     t29, t30, t31 = field.time.values[29:32]
     assert state.plan_time() == t30 and state.plan_time(t31) == t31
     assert state.time_after(t31) == 2 and state.time_after(t29) == 0
@@ -186,7 +186,7 @@ def test_public_belief_api_of_replanning(model, field):
     np.testing.assert_allclose(prior.mean, dyn.A @ dyn.initial_mean + dyn.mean
                                - dyn.A @ dyn.mean, rtol=1e-9)
     assert state.time == t29 and state.posterior.cells.size == 0
-    ref = model.monitor().assimilate(([0], [0.3]), t30).assimilate(([1], [0.2]), t30,
+    ref = MonitorState.from_model(model).assimilate(([0], [0.3]), t30).assimilate(([1], [0.2]), t30,
                                                                     force=True)
     state.assimilate_today(([0], [0.3]), t30)  # a new day: in time order
     state.assimilate_today(([1], [0.2]), t30)  # more of it: added, not refused
@@ -199,7 +199,7 @@ def test_public_belief_api_of_replanning(model, field):
 
 def test_monitor_at_a_time_accepts_that_day(model, field):
     t = field.time.values[32]
-    state = model.monitor(time=t)
+    state = MonitorState.from_model(model, time=t)
     assert not state.observed and state.time == t
     # three steps from the last fitted day (29)
     A3 = np.linalg.matrix_power(model.dynamics_.A, 3)
@@ -213,7 +213,7 @@ def test_monitor_at_a_time_accepts_that_day(model, field):
 
 
 def test_bad_observations(model, field):
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     t = field.time.values[30]
     region = model.region_
     with pytest.raises(RegionError, match="outside the region"):
@@ -241,13 +241,14 @@ def test_bad_observations(model, field):
 
 def test_duplicate_cells_are_repeated_measurements(plain, field):
     t = field.time.values[30]
-    once = plain.monitor().assimilate(([3, 3], [0.4, 0.4]), t)
-    twice = plain.monitor().assimilate(([3], [0.4]), t).assimilate(([3], [0.4]), t, force=True)
+    once = MonitorState.from_model(plain).assimilate(([3, 3], [0.4, 0.4]), t)
+    twice = (MonitorState.from_model(plain).assimilate(([3], [0.4]), t)
+             .assimilate(([3], [0.4]), t, force=True))
     np.testing.assert_allclose(once.posterior.precision, twice.posterior.precision)
 
 
 def test_planner_kwargs_have_the_forecast_prior(model, plain):
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     kw = state.planner_kwargs(criterion="fisher")
     P1 = np.linalg.inv(state._propagated(state.next_time()).cov)
     np.testing.assert_allclose(kw["prior_precision"], P1, rtol=1e-6)
@@ -266,7 +267,7 @@ def test_planner_kwargs_have_the_forecast_prior(model, plain):
 
 def test_planner_kwargs_gp_variance(field):
     model = _fit(field.isel(time=slice(0, 30)), temporal="ar1", spatial="exponential")
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     kw = state.planner_kwargs()
     f = prediction_factor(model)  # a new snapshot's residual (calibrated.prediction_factor)
     assert kw["spatial_cov"] == replace(model.spatial_cov_, sill=model.spatial_cov_.sill * f,
@@ -282,7 +283,7 @@ def test_planner_kwargs_gp_variance(field):
 
 
 def test_save_load_round_trip(model, plain, field, tmp_path):
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     state.assimilate(([0, 5, 9], [0.3, np.nan, 0.5]), field.time.values[31])
     path = tmp_path / "state.nc"
     state.save(path)
@@ -309,7 +310,7 @@ def test_save_load_round_trip(model, plain, field, tmp_path):
 
 def test_save_is_atomic(model, field, tmp_path, monkeypatch):
     path = tmp_path / "state.nc"
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     state.save(path)
     before = path.read_bytes()
     state.assimilate(([0], [0.3]), field.time.values[30])
@@ -329,7 +330,7 @@ def test_save_is_atomic(model, field, tmp_path, monkeypatch):
 def test_seasonal_and_monthly_states(tmp_path):
     da = synthetic_dynamic_field(40, (5, 6), 2, seed=0, seasonal_period=12, freq="MS")
     model = _fit(da.isel(time=slice(0, 36)), temporal="seasonal")
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     nxt = state.next_time()
     assert pd.Timestamp(nxt) == pd.Timestamp(da.time.values[36])
     ds = state.forecast()
@@ -348,7 +349,7 @@ def test_model_without_region_and_numeric_times(field):
 
     D = Region.from_dataarray(field).stack(field).astype(np.float64)
     model = _fit(D[:30], temporal="ar1")
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     assert state.time == 29
     state.assimilate((np.arange(10), D[30, :10]), 30)
     ds = state.predict()
@@ -362,7 +363,7 @@ def test_cftime_calendar_end_to_end(tmp_path):
     da = da.assign_coords(time=times)
     model = _fit(da.isel(time=slice(0, 36)), temporal="seasonal")
     assert model.dynamics_.time_kind == "cftime"
-    state = model.monitor()
+    state = MonitorState.from_model(model)
     assert state.next_time() == times[36]
     state.assimilate(da.isel(time=36), da.time.values[36])
     state.assimilate(da.isel(time=37), "2004-02-01")  # a string in the model's calendar

@@ -1,10 +1,8 @@
-"""Issue #27, layers: the names that moved keep working (old locations warn), the single
+"""Layers: helpers re-exported where they were first defined are the same objects, the single
 registries and settings are the ones every reader uses, and ``GLRM.X`` / ``Y`` are the arrays."""
 
 from __future__ import annotations
 
-import importlib
-import sys
 import warnings
 
 import numpy as np
@@ -32,39 +30,6 @@ def test_glrm_x_y_are_the_fitted_arrays(model):
         model.Y = np.zeros((3, 4))
     with pytest.raises(ModelError):
         _ = GLRM(2).Y
-
-
-def test_glrm_monitor_warns_and_equals_from_model(model):
-    from lrm_cvx.monitor import MonitorState
-
-    with pytest.warns(DeprecationWarning, match="MonitorState.from_model"):
-        old = model.monitor()
-    new = MonitorState.from_model(model)
-    assert isinstance(old, MonitorState)
-    np.testing.assert_array_equal(old.forecast()["mean"], new.forecast()["mean"])
-
-
-def test_moved_spatial_fold_ins_warn():
-    import lrm_cvx.spatial as sp
-    from lrm_cvx.glrm import foldin
-
-    for name in ("gls_fold_in", "residual_correction"):
-        with pytest.warns(DeprecationWarning, match="glrm.foldin"):
-            assert getattr(sp, name) is getattr(foldin, name)
-    with pytest.raises(AttributeError):
-        _ = sp.no_such_name
-
-
-def test_moved_floor_warns():
-    import lrm_cvx.planning as planning
-    from lrm_cvx.experimental import floor
-
-    with pytest.warns(DeprecationWarning, match="experimental"):
-        assert planning.convex_floor is floor.convex_floor
-    sys.modules.pop("lrm_cvx.planning.floor", None)
-    with pytest.warns(DeprecationWarning, match="experimental.floor"):
-        old = importlib.import_module("lrm_cvx.planning.floor")
-    assert old.route_mixture is floor.route_mixture
 
 
 def test_old_locations_of_moved_helpers_are_the_same_objects():

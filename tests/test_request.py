@@ -190,10 +190,10 @@ def test_static_placement_is_place_sensors(small):
     a = StaticPlacement().plan(Y, region, Fleet((), (6,), unit="sensors"), None, ridge=1e-3)
     b = place_sensors(Y, region, 6, ridge=1e-3)
     assert a == b and a.path["kind"] == "static"
-    with pytest.warns(DeprecationWarning, match="static=True"):
-        c = plan_greedy(Y, region, None, 6, path="static", ridge=1e-3, progress=False)
     d = plan_greedy(Y, region, None, 6, static=True, ridge=1e-3, progress=False)
-    assert c == b and d == b
+    assert d == b
+    with pytest.raises(PlanningError, match="place_sensors"):
+        plan_greedy(Y, region, None, 6, path="static", ridge=1e-3, progress=False)
 
 
 def test_refined_is_plan_greedy_refine(small):
@@ -212,15 +212,6 @@ def test_the_method_registry_holds_the_planners():
     assert variant == GreedyPlanner("gp-variance", initial="start", model_prior=True, lines=True)
     assert METHOD_REGISTRY.get("greedy").configure(criterion="a-optimal", cost="insertion") \
         == GreedyPlanner("a-optimal", "insertion")
-
-
-def test_old_locations_warn():
-    import lrm_cvx.planning.greedy as greedy
-
-    with pytest.warns(DeprecationWarning, match="static.place_sensors"):
-        assert greedy.place_sensors is place_sensors
-    with pytest.warns(DeprecationWarning, match="Fleet.resolve"):
-        greedy.resolve_starts  # noqa: B018
 
 
 # ------------------------------------------------------------------ the protocol object
@@ -249,9 +240,9 @@ MODULES = ("lrm_cvx", "lrm_cvx.planning", "lrm_cvx.planning.request", "lrm_cvx.p
            "lrm_cvx.planning.plan", "lrm_cvx.planning.families", "lrm_cvx.planning.terms",
            "lrm_cvx.evaluation", "lrm_cvx.scoring", "lrm_cvx.campaign", "lrm_cvx.monitor",
            "lrm_cvx.glrm", "lrm_cvx.io", "lrm_cvx.information", "lrm_cvx.spatial",
-           "lrm_cvx.cost", "lrm_cvx.region", "lrm_cvx.glrm.fit", "lrm_cvx.glrm.chunked",
-           "lrm_cvx.io.samples", "lrm_cvx.replanning", "lrm_cvx.interactive",
-           "lrm_cvx.planning.missions")
+           "lrm_cvx.planning.routecost", "lrm_cvx.region", "lrm_cvx.glrm.fit",
+           "lrm_cvx.glrm.chunked", "lrm_cvx.io.samples", "lrm_cvx.replanning",
+           "lrm_cvx.interactive", "lrm_cvx.planning.missions")
 KNOWN_LONG: set[str] = set()  # to stay empty
 
 

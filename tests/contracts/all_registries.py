@@ -11,12 +11,12 @@ from lrm_cvx.registry import PRIOR_REGISTRY, Registry
 
 def registries() -> dict[str, Registry]:
     """Every registry of the package by kind (imports the modules that own them)."""
-    from lrm_cvx.cost import COST_REGISTRY
     from lrm_cvx.evaluation import METHOD_REGISTRY
     from lrm_cvx.glrm.dynamics import TEMPORAL
     from lrm_cvx.glrm.losses import LOSS_REGISTRY
     from lrm_cvx.glrm.regularizers import REGULARIZER_REGISTRY
     from lrm_cvx.information import CRITERION_REGISTRY
+    from lrm_cvx.planning.routecost import COST_REGISTRY
     from lrm_cvx.planning.sensors import SENSOR_REGISTRY
     from lrm_cvx.spatial import KERNEL_REGISTRY
 

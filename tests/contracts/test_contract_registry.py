@@ -62,12 +62,12 @@ def test_choices_is_a_tuple_that_accepts_aliases():
 
 # ---------------------------------------------------------------- constants = choices
 def test_constants_are_the_registries_choices():
-    from lrm_cvx.cost import COSTS
     from lrm_cvx.evaluation import GREEDY_VARIANTS, METHODS
     from lrm_cvx.glrm.losses import LOSSES
     from lrm_cvx.glrm.predictive import PRIORS
     from lrm_cvx.glrm.regularizers import REGULARIZERS
     from lrm_cvx.information import CRITERIA
+    from lrm_cvx.planning.routecost import COSTS
     from lrm_cvx.spatial import MODELS
 
     regs = registries()
@@ -99,12 +99,12 @@ def test_aliases_are_accepted_by_the_public_functions_and_normalised():
     import xarray as xr
 
     from lrm_cvx import Region
-    from lrm_cvx.cost import make_cost
     from lrm_cvx.evaluation import check_method
     from lrm_cvx.glrm.losses import Absolute, get_loss
     from lrm_cvx.glrm.regularizers import L1, NonNegative, ZeroReg, get_regularizer
     from lrm_cvx.information import AOptimalOracle, make_oracle
     from lrm_cvx.planning import plan_greedy
+    from lrm_cvx.planning.routecost import make_cost
 
     rng = np.random.default_rng(0)
     lat, lon = np.linspace(4, 0, 5), np.linspace(0, 4, 5)

@@ -8,8 +8,8 @@ straight from CDR NDVI files). One preparation task per chunk then zero-fills it
 (:func:`~.quadratic.prepare`), so every later task reads exactly what the in-memory kernels
 read, with no NaN test, zero-fill or packing:
 
-* Y step: the fused quadratic kernel (:func:`~.fit._quad_y`) or :func:`~.fit.y_block` per chunk
-  (cells are independent given ``X``);
+* Y step: the fused quadratic kernel (:func:`~.fit.quadratic_y_step`) or :func:`~.fit.y_block`
+  per chunk (cells are independent given ``X``);
 * X step: the chunk's Gram statistics (:func:`~.quadratic.x_stats` / :func:`~.fit.x_pass`)
   summed over chunks, then :func:`~.fit.solve_block` on the client (times are independent
   given ``Y``);
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import shutil
 import threading
-import warnings
 from typing import Any
 
 import numpy as np
@@ -82,16 +81,6 @@ from .predictive import (
 from .regularizers import Regularizer, ZeroReg
 
 __all__ = ["fit_chunked", "is_dask_backed"]
-
-_MOVED = ("ChunkStore", "stage", "cdr_source")  # to lrm_cvx.io.staging (issue #27)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        warnings.warn(f"lrm_cvx.glrm.chunked.{name} moved to lrm_cvx.io.staging.{name}; the "
-                      "old location goes in the next release", DeprecationWarning, stacklevel=2)
-        return getattr(staging, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 _LOCK = threading.Lock()  # one compiled kernel at a time per process (they are parallel already)
 _ZERO = ZeroReg()

@@ -385,9 +385,6 @@ def _quad_x_offset(md, X, Ya, lam):
             float(gram_values(G, h, cc, O.augmented(Xn)).sum()))
 
 
-_quad_y = quadratic_y_step  # its name before issue #27 (benchmarks/bench_glrm.py)
-
-
 def quadratic_loss(md, X, Y) -> float:
     """The quadratic loss over observed entries at ``(X, Y)`` (Gram identity, one pass)."""
     G, h, c = Q.x_stats(md, Y)

@@ -598,19 +598,6 @@ class GLRM:
         self.dynamics_ = estimate_dynamics(temporal, X, times, **options)
         return self
 
-    def monitor(self, time: Any = None, **options: Any) -> Any:
-        """Deprecated (removed in the next release): ``lrm_cvx.monitor.MonitorState.from_model(
-        model, time, **options)``, a state after the last fitted snapshot (or at ``time``)
-        filtering with ``dynamics_`` (memoryless without); the model layer does not import the
-        monitoring layer above it."""
-        from ..monitor import MonitorState  # the deprecated shim's upward import
-
-        warnings.warn("GLRM.monitor() is deprecated: use "
-                      "lrm_cvx.monitor.MonitorState.from_model(model, ...)",
-                      DeprecationWarning, stacklevel=2)
-        self._check_fitted()
-        return MonitorState.from_model(self, time=time, **options)
-
     def planner_kwargs(self, prior: str | None = "empirical", spatial: bool = False) -> dict:
         """Keyword arguments for :func:`~lrm_cvx.planning.plan_greedy` matching this model's
         fold-in (prior precision, per-cell noise, per-cell scale; with ``spatial=True`` also

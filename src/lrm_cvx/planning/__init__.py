@@ -47,14 +47,6 @@ __all__ = [
 
 
 def __getattr__(name: str) -> Any:
-    if name in ("convex_floor", "ConvexFloor"):  # deprecated shim: moved to lrm_cvx.experimental
-        import warnings
-
-        from ..experimental import floor
-
-        warnings.warn(f"lrm_cvx.planning.{name} moved to lrm_cvx.experimental.{name}",
-                      DeprecationWarning, stacklevel=2)
-        return getattr(floor, name)
     # the certificate module (cvxpy, scipy) is imported only when used
     if name == "plan_bound":
         from .certificate import plan_bound

@@ -28,7 +28,6 @@ from ..information import (
 )
 from ..recommended import RECOMMENDED
 from ..region import Region
-from . import request as _request
 from .lines import CHECKS, RIVAL_EXPONENT, RIVAL_NAME, RIVALS, best_of_lines, lines_run
 from .paths import path_model
 from .plan import Plan, check_region
@@ -286,7 +285,7 @@ def plan_greedy(
         the averaged rows; ``plan.observation_rows()`` gives them. Not with ``refine``.
     static : fixed sensors, no travel (see :func:`~lrm_cvx.planning.static.place_sensors`;
         ``start`` must then be None and ``n_sensors`` (or ``budget``) is the number of
-        sensors). ``path="static"`` is the old spelling (DeprecationWarning).
+        sensors).
     n_sensors, training, exchange : (``**options``) ``static=True`` only: the number of
         sensors, the training snapshots of ``criterion="risk"`` and the exchange search.
 
@@ -318,14 +317,8 @@ def plan_greedy(
     region = check_region(region)
     static_opts = pop_options(options, STATIC_OPTIONS)
     if isinstance(path, str):
-        if path not in ("route", "static"):
-            raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
-        if path == "static":
-            warnings.warn("plan_greedy(path='static') is deprecated: pass static=True (or use "
-                          "lrm_cvx.planning.static.place_sensors)", DeprecationWarning,
-                          stacklevel=2)
-            static = True
-        path = None
+        raise PlanningError(f"path must be a PathOptions or None, got {path!r} (fixed sensors: "
+                            "lrm_cvx.planning.place_sensors)")
     request = PathOptions.from_kwargs(path, where="plan_greedy", **options)
     if static and cost_exponent != 1.0:
         raise PlanningError("cost_exponent applies to routes, not to static=True")
@@ -339,9 +332,9 @@ def plan_greedy(
     criterion = criterion or "fisher"  # Y alone: the paper's defaults
     initial = initial or "nearest"
     if "n_sensors" in static_opts:
-        raise PlanningError("n_sensors applies to path='static' only")
+        raise PlanningError("n_sensors applies to static=True only")
     if static_opts:
-        raise PlanningError("training and exchange apply to path='static' only")
+        raise PlanningError("training and exchange apply to static=True only")
 
     Yk = as_factor_matrix(Y, region)
     k, L = Yk.shape
@@ -509,23 +502,22 @@ def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOption
     """``plan_greedy(static=True)``: :func:`~lrm_cvx.planning.static.place_sensors` of the
     request (``given``: the path keywords as passed; only ``traversable`` applies)."""
     if start is not None:
-        raise PlanningError("path='static' places fixed sensors and has no start: pass "
+        raise PlanningError("static=True places fixed sensors and has no start: pass "
                         "start=None")
     n_sensors = static_opts.pop("n_sensors", None)
     if n_sensors is None:
         n_sensors = budget
     elif budget is not None and float(budget) != float(n_sensors):
-        raise PlanningError(f"path='static': give n_sensors ({n_sensors}) or budget "
+        raise PlanningError(f"static=True: give n_sensors ({n_sensors}) or budget "
                             f"({budget}), not two different numbers")
     if not request.sensor.is_point:
         raise PlanningError("static placement supports the point sensor only, not "
                             f"sensor={request.sensor.describe()!r}")
     if set(request.changed()) - {"traversable"}:
-        raise PlanningError("path='static' has no travel: metric, speed, stop_cost, closed, "
+        raise PlanningError("static=True has no travel: metric, speed, stop_cost, closed, "
                             "end and sense_along do not apply")
     if refine is not None:
-        raise PlanningError("refine supports only the paper's path model, not "
-                            "path='static'")
+        raise PlanningError("refine does not apply to static=True")
     from .static import place_sensors
 
     return place_sensors(Y, region, n_sensors, traversable=given.get("traversable"),
@@ -702,26 +694,3 @@ def _check_refine(refine: Any) -> Any:
                         f"the local search's options, got {refine!r}")
 
 
-def _resolve_budgets(budget: Any, n: int, fleet: bool) -> list[float]:
-    return [check_budget(b) for b in _request.resolve_budgets(budget, n, fleet)]
-
-
-_MOVED = {"resolve_starts": (lambda: _request.resolve_starts, "Fleet.resolve"),
-          "resolve_budgets": (lambda: _resolve_budgets, "Fleet.resolve")}
-
-
-def __getattr__(name: str) -> Any:
-    # moved names (issue #27): the old locations warn for one release
-    if name in _MOVED:
-        get, new = _MOVED[name]
-        warnings.warn(f"lrm_cvx.planning.greedy.{name} is deprecated: use lrm_cvx.planning."
-                      f"request.{new}", DeprecationWarning, stacklevel=2)
-        return get()
-    if name == "place_sensors":
-        warnings.warn("lrm_cvx.planning.greedy.place_sensors moved to "
-                      "lrm_cvx.planning.static.place_sensors (or lrm_cvx.planning."
-                      "place_sensors)", DeprecationWarning, stacklevel=2)
-        from .static import place_sensors
-
-        return place_sensors
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

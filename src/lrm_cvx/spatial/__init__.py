@@ -36,9 +36,6 @@ convolution, the GP criterion's model). The fold-ins that use the GP residual
 
 from __future__ import annotations
 
-import warnings
-from typing import Any
-
 from .covariance import (
     KERNEL_REGISTRY,
     MODELS,
@@ -93,15 +90,3 @@ __all__ = [
     "check_gp_inputs",
 ]
 
-_MOVED = {"gls_fold_in": "lrm_cvx.glrm.foldin", "residual_correction": "lrm_cvx.glrm.foldin"}
-
-
-def __getattr__(name: str) -> Any:
-    # deprecated shim (one release): the GP fold-ins moved up to the model layer
-    if name in _MOVED:
-        warnings.warn(f"lrm_cvx.spatial.{name} moved to {_MOVED[name]}.{name}",
-                      DeprecationWarning, stacklevel=2)
-        from ..glrm import foldin
-
-        return getattr(foldin, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
