@@ -31,7 +31,7 @@ root_doc = "index"
 # MyST: headings become link targets, ``$...$`` maths, fenced directives
 myst_heading_anchors = 3
 myst_enable_extensions = ["dollarmath", "colon_fence", "deflist"]
-suppress_warnings = ["myst.xref_missing"]  # links to source files (src/, benchmarks/) stay text
+suppress_warnings: list[str] = []
 
 # Notebooks: rendered as committed (without outputs) unless LRM_CVX_DOCS_EXECUTE=1
 nb_execution_mode = "force" if os.environ.get("LRM_CVX_DOCS_EXECUTE") == "1" else "off"
