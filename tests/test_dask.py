@@ -510,7 +510,7 @@ def test_decode_tile_equals_decode_day(shuffled):
     nd = rng.integers(-12000, 12000, (cr, cc)).astype(np.int16)
     nd[0, :3] = -9999
     qa = rng.choice(np.array([0, 2, 4, 16, 64, -32767], np.int16), (cr, cc))
-    tables = N.decode_tables("AVHRR", N.DEFAULT_MASK_FLAGS["AVHRR"], N._encoding({}, {}))
+    tables = N.decode_tables("AVHRR", N.DEFAULT_MASK_FLAGS["AVHRR"], N.file_encoding({}, {}))
     want = N.decode_day(nd, qa, tables)
 
     def raw(a):
@@ -580,7 +580,7 @@ def test_decode_tables_match_loader_on_every_code():
     """Table decoding equals the loader's elementwise rules on all 65 536 x a sample of codes."""
     from lrm_cvx.io import ndvi as N
 
-    enc = N._encoding({}, {})
+    enc = N.file_encoding({}, {})
     codes = np.arange(65536, dtype=np.uint32).astype(np.uint16).view(np.int16)
     rng = np.random.default_rng(0)
     for product in ("AVHRR", "VIIRS"):

@@ -1,4 +1,4 @@
-"""Campaigns: plan, observe, assimilate and score day after day (issue 13, step 4; issue #25).
+"""Campaigns: plan, observe, assimilate and score day after day.
 
 :func:`simulate_campaign` replays a field campaign on held-out snapshots: for each snapshot in
 time order the filter (:class:`~lrm_cvx.monitor.MonitorState`) forecasts, the planner plans
@@ -329,7 +329,7 @@ def simulate_campaign(
             cells = np.unique(np.asarray(plan.cells, dtype=np.int64))
             vals = V[i, cells]
             state.assimilate((cells, vals), t)
-        else:  # a footprint / towed sensor: one averaged value per observation (#25 item 6)
+        else:  # a footprint / towed sensor: one averaged value per observation
             flown = plan
             rows, vals = plan_observations(plan, V[i])
             state.assimilate_rows(rows, vals, t, errors=plan.sensor.errors)

@@ -1,4 +1,4 @@
-"""Coastlines on the maps (issue #25, item 4): real coastlines where a shapefile is at hand,
+"""Coastlines on the maps: real coastlines where a shapefile is at hand,
 the valid-cell outline otherwise.
 
 The maps are plain matplotlib axes in degrees (longitude x, latitude y). Real coastlines come

@@ -711,7 +711,7 @@ def evaluate(
 ) -> xr.Dataset:
     """Run the paper's evaluation protocol on ``data`` ``(time, lat, lon)``.
 
-    **Defaults** (issue #24): the recommended setting of docs/reconstruction.md
+    **Defaults**: the recommended setting of docs/reconstruction.md
     (:data:`lrm_cvx.recommended.RECOMMENDED`, read at run time) wherever an argument is left
     out: ``model_params`` its GLRM parameters (today ``offset=True, spatial="auto"`` and the
     conformal interval calibration; no ``temporal``: the protocol is memoryless unless
@@ -742,7 +742,7 @@ def evaluate(
     ``"random"`` is among ``methods``) must be integers >= 1, ``methods`` non-empty without
     repeats, ``budgets`` finite, >= 0 and distinct (ModelError / DataError otherwise).
 
-    Reconstruction options (issue #8, docs/reconstruction.md; defaults above):
+    Reconstruction options (docs/reconstruction.md; defaults above):
     ``methods`` may add ``"greedy:fisher"``, ``"greedy:a-optimal"``, ``"greedy:gp-variance"``:
     the greedy with a criterion on the model's posterior (``GLRM.planner_kwargs`` with the
     empirical prior; ``gp-variance`` also with the GP residual, needs ``spatial`` in
@@ -755,7 +755,7 @@ def evaluate(
     from every observed cell) included, is in the data's units (the model's offset and scale
     are undone).
 
-    Persistent monitoring (issue 13, docs/monitoring.md): ``temporal=None`` (default) is the
+    Persistent monitoring (docs/monitoring.md): ``temporal=None`` (default) is the
     protocol above, each test snapshot folded in on its own. ``"ar1"``/``"seasonal"``: for every
     start, method, budget (and random trial) one campaign
     (:func:`~lrm_cvx.campaign.simulate_campaign`) runs over the test snapshots in time order,
@@ -768,10 +768,10 @@ def evaluate(
     was made for the inflated variances).
     ``information``, ``cost``, ``n_cells`` and ``greedy_route`` are those of the first day's
     plan; ``bound`` is not computed (NaN). Campaigns take the whole path model below and
-    fleets (issue #25): every method of a campaign plans every day under the same path request
+    fleets: every method of a campaign plans every day under the same path request
     and fleet.
 
-    Path model (issue #15, docs/evaluation.md; defaults are the paper's): ``path`` (a
+    Path model (docs/evaluation.md; defaults are the paper's): ``path`` (a
     :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords ``metric``
     (``"grid"`` or ``"km"``), ``speed`` (km/h: budgets in hours), ``stop_cost`` (budget unit
     per sampling stop), ``traversable`` (``None``, ``"valid"`` or a boolean ``(lat, lon)``
@@ -957,9 +957,9 @@ def summary(results: xr.Dataset, by_origin: bool = False) -> pd.DataFrame:
 
 COVERAGE_BANDS = {68: (0.63, 0.73), 95: (0.93, 0.97)}
 """Where the mean coverage of calibrated 68 % / 95 % intervals should fall over a rolling-origin
-backtest (issue #24's targets): :func:`coverage_check`, ``plots.plot_backtest``."""
+backtest: :func:`coverage_check`, ``plots.plot_backtest``."""
 LOWEST_BLOCK_95 = 0.90
-"""The lowest 95 % coverage one block of a backtest may show (issue #24's target)."""
+"""The lowest 95 % coverage one block of a backtest may show."""
 
 
 def coverage_check(results: xr.Dataset) -> pd.DataFrame:

@@ -16,7 +16,7 @@ Two criteria share one interface (:class:`FisherOracle`, :class:`AOptimalOracle`
   ``(y_x^T S W S y_x) / (1 + y_x^T S y_x)`` with ``S = M^-1`` and ``W = Y Y^T``.
   It needs ``ridge > 0`` (``V`` is infinite for a singular ``M``).
 
-Posterior versions (issue #8, docs/reconstruction.md): both oracles accept a prior precision
+Posterior versions (docs/reconstruction.md): both oracles accept a prior precision
 ``P0`` (``(k, k)``, replacing ``ridge I``) and per-cell noise variances ``noise_var`` (weights
 ``w_p = 1 / sigma_p^2``): ``M = P0 + sum_P w_p y_p y_p^T`` is then the posterior precision of the
 fold-in, and the A-optimal target ``W = sum_i c_i y_i y_i^T`` may weight cells

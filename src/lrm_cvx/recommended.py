@@ -25,7 +25,7 @@ RECOMMENDED: dict[str, Any] = {
     "method": "greedy:gp-variance", "initial": "start", "prior": "empirical",
     "fold_spatial": True, "temporal": "auto",
     # the greedy's route is checked under its own criterion against the four straight
-    # transects from its start (session 30) and the greedy with cost exponent 0.5 (session 33)
+    # transects from its start and the greedy with cost exponent 0.5
     # (planning/lines.py; docs/benchmarks.md)
     "refine": "rivals",
     # conformal intervals from forward folds of the training snapshots, the filter's own

@@ -1,4 +1,4 @@
-"""Replanning en route (issue #25, item 2): after each leg, the robot folds in what it has just
+"""Replanning en route: after each leg, the robot folds in what it has just
 measured and plans the rest of its route with the budget it has left and the same end.
 
 :func:`replan` (``MonitorState.replan``) keeps every route entry already flown, starts a new

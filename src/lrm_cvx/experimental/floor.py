@@ -1,4 +1,4 @@
-"""The convex floor: how tight any convex relaxation of the route constraint can be (issue #16).
+"""The convex floor: how tight any convex relaxation of the route constraint can be.
 
 A convex relaxation whose feasible set contains the incidence vector ``1_P`` of every route
 ``P`` within the budget (the disk relaxation, the layered-flow and walk relaxations of

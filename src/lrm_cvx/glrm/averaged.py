@@ -1,4 +1,4 @@
-"""The algebra of averaged observations (sensor footprints, towed sensors; issue #25 item 6).
+"""The algebra of averaged observations (sensor footprints, towed sensors).
 
 An averaged observation is ``z = B f + e`` over the snapshot's latent field ``f = Y^T x + r``
 (fit units, ``B (m, L)`` sparse weights): one row ``Y B_i`` per observation with the noise of

@@ -1,4 +1,4 @@
-"""Calibrated predictive uncertainty (issue 13, step 6).
+"""Calibrated predictive uncertainty.
 
 A fitted GLRM's predictive interval for a held-out cell is ``mean +- z * sqrt(s * (std^2 +
 noise))``: ``std`` the posterior std of the latent value (trend + kriged residual), ``noise``

@@ -1,4 +1,4 @@
-"""Temporal dynamics of the latent vectors (issue 13): AR(1) and seasonal AR(1) on ``X``.
+"""Temporal dynamics of the latent vectors: AR(1) and seasonal AR(1) on ``X``.
 
 A fitted GLRM gives one latent column ``x_t (k,)`` per snapshot. For persistent monitoring the
 columns are modelled as a linear-Gaussian process, so yesterday's posterior is today's prior:

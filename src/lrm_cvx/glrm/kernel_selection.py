@@ -1,4 +1,4 @@
-"""A spatial residual kernel that validates itself: ``GLRM(spatial="auto")`` (issue #24, item 1).
+"""A spatial residual kernel that validates itself: ``GLRM(spatial="auto")``.
 
 Which covariance family interpolates a record's residual best (the rough exponential, the
 smoother Matern 3/2 and 5/2, the very smooth Gaussian) is an empirical question, answered here

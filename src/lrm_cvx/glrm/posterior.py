@@ -1,4 +1,4 @@
-"""The Gaussian belief over one snapshot's latent vector (issue 13, step 1).
+"""The Gaussian belief over one snapshot's latent vector.
 
 Every fold-in of the project (``GLRM.complete``, the planner's prior terms, ``evaluate``'s
 errors, the monitoring filter) is this module's algebra. The observation model of a fitted GLRM:

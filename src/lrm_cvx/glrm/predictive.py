@@ -1,4 +1,4 @@
-"""The predictive options of :class:`~lrm_cvx.glrm.GLRM` (issue #8, docs/reconstruction.md).
+"""The predictive options of :class:`~lrm_cvx.glrm.GLRM` (docs/reconstruction.md).
 
 All opt-in; the paper's model is the default and untouched:
 

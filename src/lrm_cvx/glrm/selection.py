@@ -1,4 +1,4 @@
-"""A temporal model that validates itself: ``GLRM(temporal="auto")`` (issue #24, item 1).
+"""A temporal model that validates itself: ``GLRM(temporal="auto")``.
 
 Which temporal model maps a record best is an empirical question (monthly sea-surface
 temperature gains 40 % from a seasonal model and loses 8 % with a plain AR(1); yearly records have

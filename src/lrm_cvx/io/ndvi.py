@@ -243,7 +243,6 @@ def file_encoding(ndvi_attrs: Any, qa_attrs: Any) -> tuple:
             int(qa_attrs.get("_FillValue", QA_FILL)))
 
 
-_encoding = file_encoding  # its name before issue #27
 
 
 def _ndvi_ok(ndvi_raw: Any, enc: tuple) -> Any:

@@ -6,7 +6,7 @@ the travel itself. Directions are geographic: ``"up"`` is north (increasing lati
 ``"down"`` south, ``"left"`` west (decreasing longitude), ``"right"`` east, whatever the grid's
 row order.
 
-They obey the planners' path model (issue #15, :mod:`lrm_cvx.planning.paths`): the budget is
+They obey the planners' path model (:mod:`lrm_cvx.planning.paths`): the budget is
 in grid units (``metric="grid"``, the paper), great-circle km (``metric="km"``) or hours
 (``speed`` km/h); each step costs the distance between the two grid positions' centres (1 or
 sqrt 2 in grid units, haversine in km, divided by ``speed``); ``stop_cost`` is charged once per

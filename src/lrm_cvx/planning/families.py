@@ -115,7 +115,7 @@ def _starts_list(x: Any) -> Any:
 
 def is_paper_description(desc: Any) -> bool:
     """``plan.path`` describes the paper's path model (old plans, the default): the caller's
-    keywords (e.g. ``metric="km"``) then apply, as before issue #15."""
+    keywords (e.g. ``metric="km"``) then apply."""
     trav = desc.get("traversable")
     return (desc.get("kind", "path") == "path" and int(desc.get("n_robots", 1) or 1) == 1
             and desc.get("metric", "grid") == "grid" and desc.get("speed") is None
@@ -406,7 +406,7 @@ def _fleet_limits(parts: list[Family], n_max: int
 
 
 def _paperfamily(spec: PathSpec, region: Any, k: int) -> Family:
-    """The paper's path (grid or km, straight lines, open, no stop cost): as issue #5."""
+    """The paper's path (grid or km, straight lines, open, no stop cost)."""
 
     start, budget, metric = spec.starts[0], spec.budgets[0], spec.metric
     L = region.n_cells

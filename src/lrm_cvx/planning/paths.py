@@ -1,4 +1,4 @@
-"""The path model (issue #15): how a robot travels, what a route costs, exact incremental costs.
+"""The path model: how a robot travels, what a route costs, exact incremental costs.
 
 One :class:`PathModel` per robot (:func:`make_path_model`) answers every geometric question the
 planners, the baselines, :class:`~lrm_cvx.planning.plan.Plan` and the certificate ask:
@@ -818,7 +818,7 @@ def path_model(region: Region, start: Any, budget: float, request: PathOptions,
         # every point x of a route start -> ... -> end within the travel budget has
         # d(start, x) + d(x, end) <= travel (straight-line lower bounds): the graph holds that
         # ellipse only (a disk of radius travel around the start has ~4x its cells; a replan en
-        # route is such a route, issue #25). An end beyond the budget keeps the disk.
+        # route is such a route). An end beyond the budget keeps the disk.
         ellipse = travel if to_end <= travel and ELLIPSE_GRAPH else None
     model._graph = _Graph(model, radius, limit + model.tol, ellipse)
     return model

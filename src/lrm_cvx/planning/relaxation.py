@@ -1,4 +1,4 @@
-"""A path-aware relaxation of the plan certificate (issue #16, item 1).
+"""A path-aware relaxation of the plan certificate.
 
 The disk relaxation of :func:`~lrm_cvx.planning.certificate.plan_bound` knows how many cells fit in
 the budget disk, not that they lie on *one* path. Here the cells are aggregated into ``b x b``

@@ -1,7 +1,7 @@
 """One path request: how the robots travel (:class:`PathOptions`) and who travels (:class:`Fleet`).
 
 Every planner, baseline, the certificate, ``evaluate`` and the CLI read a request through these
-two objects, validated here and nowhere else (issue #27). The public entry points keep their
+two objects, validated here and nowhere else. The public entry points keep their
 keywords (``metric=``, ``speed=``, ``stop_cost=``, ``traversable=``, ``closed=``, ``end=``,
 ``sense_along=``) and turn them into a :class:`PathOptions` once (:meth:`PathOptions.from_kwargs`);
 starts and budgets become a :class:`Fleet` once (:meth:`Fleet.resolve`: a budget is checked in

@@ -1,4 +1,4 @@
-"""Sensors that see more than a point (issue #25, item 6): footprints and towed sensors.
+"""Sensors that see more than a point: footprints and towed sensors.
 
 A sensor turns a sampling stop into **one** observation, a weighted average ``a^T d`` of the
 values ``d`` of the cells it covers (``a >= 0`` over those cells, summing to 1):

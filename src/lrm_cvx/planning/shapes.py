@@ -1,4 +1,4 @@
-"""Route-shape search: a global move for plan refinement (issue #16).
+"""Route-shape search: a global move for plan refinement.
 
 Insert, swap and refill moves keep a plan's overall shape. On smooth fields the information
 of a route depends mostly on its shape (a straight line sees nearly collinear factor vectors;

@@ -1,6 +1,6 @@
 """Static sensor placement (no travel): :func:`place_sensors`, its greedy on the information
 criteria, and on the fold-in's own error the ``"risk"`` criterion and the exchange search
-(issue #15, docs/planning.md "Static placement").
+(docs/planning.md "Static placement").
 
 **Risk.** The recommended fold-in (``complete(prior=..., spatial=...)``) predicts a snapshot
 from sensors ``S`` by Gaussian conditioning: with ``C0`` the prior covariance of the latent

@@ -1,5 +1,5 @@
 """A static placement criterion that validates itself: ``place_sensors(model, n,
-training=snapshots)`` / ``criterion="auto"`` (issue #24, item 4).
+training=snapshots)`` / ``criterion="auto"``.
 
 Which criterion places sensors best for the recommended fold-in is an empirical question: the
 fold-in's training risk + exchange beats PySensors' QR on most records, but on a 6-hourly
@@ -29,7 +29,7 @@ So :func:`select_criterion` answers it on the user's own training snapshots, as
   window share one draw of each candidate's placement, and their spread says nothing about how
   much the placement itself varies with the training. The change is paired per window (the
   window's mean MSE minus risk's), and its standard error is the spread of those changes over
-  the windows (session 19; with snapshots as the unit, two windows picked the test's best
+  the windows (with snapshots as the unit, two windows picked the test's best
   candidate 8 times in 18 on the storms). With one window there is no such spread: risk stays.
 
 Above :data:`AUTO_MAX_CELLS` candidate cells (the region where the recommended exchange is

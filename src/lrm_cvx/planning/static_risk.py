@@ -1,5 +1,5 @@
-"""The scalable form of the static placement's ``"risk"`` / ``"gp-variance"`` greedy and exchange
-(issue #24 item 6): no ``L x L`` covariance, exact on the grid metric.
+"""The scalable form of the static placement's ``"risk"`` / ``"gp-variance"`` greedy and exchange:
+no ``L x L`` covariance, exact on the grid metric.
 
 The dense reference (``planning/static.py``, ``_State``) keeps the posterior covariance ``C``
 (``L x L``). Here the prior covariance ``C0 = Y^T S0 Y + K`` (low-rank trend plus the stationary

@@ -1,7 +1,7 @@
 """Spatial residual model: low-rank trend plus a stationary Gaussian-process residual.
 
 The paper's completion predicts a new snapshot by the least-squares fold-in ``Y^T x`` and
-leaves spatial locality as future work. This module adds it (issue #8, item 4): the residuals of
+leaves spatial locality as future work. This module adds it: the residuals of
 the low-rank model are modelled as a zero-mean stationary Gaussian process with an isotropic
 covariance of the distance between cells,
 
