@@ -250,8 +250,16 @@ def test_campaigns_use_the_models_choice(persistent_field):
     given = simulate_campaign(model, test, cell, 4.0, method="greedy",
                               temporal=model.dynamics_)
     np.testing.assert_array_equal(auto["mse"].values, given["mse"].values)
-    with pytest.raises(ModelError, match="GLRM\\(temporal='auto'\\)"):
-        simulate_campaign(_fit(train), test, cell, 4.0, method="greedy", temporal="auto")
+    default = simulate_campaign(model, test, cell, 4.0, method="greedy")  # RECOMMENDED's "auto"
+    np.testing.assert_array_equal(default["mse"].values, auto["mse"].values)
+    # a model without a validated choice or dynamics: "auto" is its own, memoryless
+    plain = _fit(train)
+    assert plain.dynamics_ is None
+    mine = simulate_campaign(plain, test, cell, 4.0, method="greedy", temporal="auto")
+    memoryless = simulate_campaign(plain, test, cell, 4.0, method="greedy", temporal=None)
+    ar1 = simulate_campaign(plain, test, cell, 4.0, method="greedy", temporal="ar1")
+    np.testing.assert_array_equal(mine["mse"].values, memoryless["mse"].values)
+    assert not np.array_equal(mine["mse"].values, ar1["mse"].values)
 
 
 def test_auto_bad_input(persistent_field):

@@ -35,6 +35,7 @@ from .planning.planners import (
 )
 from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
 from .planning.sensors import observed_cells, plan_observations
+from .recommended import RECOMMENDED
 
 __all__ = ["simulate_campaign", "method_request", "path_attrs", "CAMPAIGN_OPTIONS"]
 
@@ -52,12 +53,8 @@ def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
     temporal = temporal_value(temporal)
     if temporal is None:
         return None, True
-    if temporal == "auto":  # the model's own validated choice (glrm/selection.py)
-        if getattr(model, "selection_", None) is None:
-            raise ModelError("temporal='auto' campaigns need a model fitted with "
-                             "GLRM(temporal='auto') (its choice is validated on the training "
-                             "snapshots)")
-        dyn = model.dynamics_
+    if temporal == "auto":  # the model's own: its validated choice (glrm/selection.py) or fit
+        dyn = getattr(model, "dynamics_", None)
         return dyn, dyn is None
     dyn = getattr(model, "dynamics_", None)
     if dyn is not None and dyn.kind == temporal:
@@ -214,7 +211,7 @@ def simulate_campaign(
     budget: Any,
     *,
     method: str | None = None,
-    temporal: str | None = "ar1",
+    temporal: Any = RECOMMENDED["temporal"],
     replan: bool = True,
     seed: Any = 0,
     spatial: bool | None = None,
@@ -236,9 +233,12 @@ def simulate_campaign(
     (the forecast as prior, Fisher criterion) for a model without a spatial residual;
     ``paper=True``: the paper's ``"greedy"`` (the filter still assimilates and predicts; an
     explicit ``method`` wins). ``paper`` must be True or False.
-    ``temporal``: None (memoryless), ``"ar1"`` or ``"seasonal"`` (the model's ``dynamics_`` when
-    of that kind, else estimated from ``X_``), or a :class:`~lrm_cvx.glrm.dynamics.Dynamics`
-    (e.g. the true dynamics of a planted field, in the model's latent coordinates).
+    ``temporal``: ``"auto"`` (default, ``RECOMMENDED["temporal"]``: the model's own temporal
+    model: its validated choice when fitted with ``temporal="auto"``, else its ``dynamics_``,
+    else memoryless), None (memoryless), ``"ar1"`` or ``"seasonal"`` (the model's ``dynamics_``
+    when of that kind, else estimated from ``X_``), or a
+    :class:`~lrm_cvx.glrm.dynamics.Dynamics` (e.g. the true dynamics of a planted field, in the
+    model's latent coordinates).
     ``replan=False`` plans once, on the first day, and flies that route every day.
     ``options``: ``cost``, ``ridge``, ``criterion`` (for ``"greedy"``) and the path options
     of :func:`~lrm_cvx.planning.plan_greedy` (``metric``, ``speed``, ``stop_cost``,
