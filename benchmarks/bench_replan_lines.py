@@ -41,7 +41,7 @@ def campaigns(model, days, starts, budget: float, every: int, refine) -> tuple[n
     try:
         t = time.perf_counter()
         mse = [float(simulate_campaign(model, days, int(s), budget, method="greedy:gp-variance",
-                                       replan_every=every, seed=0)["mse"].mean())
+                                       temporal="ar1", replan_every=every, seed=0)["mse"].mean())
                for s in starts]
         return np.array(mse), time.perf_counter() - t
     finally:
