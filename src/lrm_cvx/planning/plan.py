@@ -570,7 +570,11 @@ class Plan:
         as a Point (a static placement: a Point per sensor, no LineString).
 
         Coordinates are ``[lon, lat]`` with longitudes in [-180, 180) (RFC 7946); a route that
-        crosses the antimeridian is a MultiLineString cut there. LineString properties: ``kind``
+        crosses the antimeridian is a MultiLineString cut there, as RFC 7946 section 3.1.9 asks:
+        the cut points are interpolated exactly on the meridian (``[180, lat]`` ending one part,
+        ``[-180, lat]`` starting the next) and each part stays on its side; a route that only
+        touches the meridian stays one LineString (see
+        :func:`lrm_cvx.planning.missions.split_antimeridian`). LineString properties: ``kind``
         ``"route"``, ``robot``, ``cost``, ``budget``. Point properties: ``cell``, ``robot``,
         ``order`` (first visit on its robot's route), ``selection`` (index in ``stops``),
         ``start`` (a sensor: ``kind`` ``"sensor"``, ``sensor``, ``cell``, ``gain``). The
