@@ -765,6 +765,21 @@ def test_bbox_across_the_antimeridian_on_a_0_360_record(run, inputs_unchanged, t
     assert code == 0, err
     region = GLRM.load(out).region_
     np.testing.assert_array_equal(region.lon.values, np.arange(170.0, 191, 5))  # not 0 .. 360
+    # a route across the antimeridian: a MultiLineString cut exactly on it (RFC 7946 3.1.9)
+    route = tmp_path / "route.geojson"
+    code, _, err = run(["plan", str(out), "--start", "-26,185", "--budget", "12", "--paper",
+                        "-o", str(route)])
+    assert code == 0, err
+    geometry = json.loads(route.read_text())["features"][0]["geometry"]
+    assert geometry["type"] == "MultiLineString"
+    pieces = geometry["coordinates"]
+    for piece in pieces:
+        xs = np.array([x for x, _ in piece])
+        assert len(piece) >= 2 and (np.all(xs >= 170) or np.all(xs <= -170))
+        assert np.any(np.abs(xs) < 180)  # no part along the meridian
+        assert all(p != q for p, q in zip(piece[:-1], piece[1:], strict=True))  # no repeats
+    for a, b in zip(pieces[:-1], pieces[1:], strict=True):
+        assert abs(a[-1][0]) == 180 and b[0] == [-a[-1][0], a[-1][1]]
 
 
 def test_one_cell_bbox_is_a_clear_error(run, tmp_path):
