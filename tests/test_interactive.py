@@ -114,7 +114,7 @@ def _mbtiles(path: Path, zooms: range, fmt: str = "png") -> dict[tuple[int, int,
 
 
 def test_mbtiles_tiles_over_the_extent_are_written_into_the_page(tmp_path):
-    source = tmp_path / "charts.mbtiles"
+    source = tmp_path / "sea charts #1?.mbtiles"  # a name a file: URI must escape
     tiles = _mbtiles(source, range(0, 4))
     html = _html(explore_map(LAT, LON, {"v": (VALUES, "viridis", "K")}, tiles=source),
                  tmp_path)
@@ -162,6 +162,8 @@ def test_a_tile_source_across_the_antimeridian_wraps_its_columns():
      "not an MBTiles file"),
     (lambda p: (p / "far" / "3" / "0" / "0.png").parent.mkdir(parents=True) or
      (p / "far" / "3" / "0" / "0.png").write_bytes(b"x") and p / "far", "has no tile over"),
+    (lambda p: (p / "fine" / "12" / "0").mkdir(parents=True) or p / "fine",
+     r"coarsest zoom level of .* \(12\) needs \d+ tiles"),
 ])
 def test_a_bad_tile_source_is_one_clear_line(tmp_path, make, match):
     source = make(tmp_path)

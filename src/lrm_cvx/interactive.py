@@ -133,7 +133,7 @@ def _local_tiles(source: Path, bounds: tuple[float, float, float, float],
     mbtiles = source.is_file()
     if mbtiles:
         try:
-            con = sqlite3.connect(f"file:{source}?mode=ro", uri=True)
+            con = sqlite3.connect(source.resolve().as_uri() + "?mode=ro", uri=True)
             meta = dict(con.execute("SELECT name, value FROM metadata").fetchall())
             zooms = [int(r[0]) for r in con.execute(
                 "SELECT DISTINCT zoom_level FROM tiles ORDER BY zoom_level")]
@@ -147,11 +147,17 @@ def _local_tiles(source: Path, bounds: tuple[float, float, float, float],
     else:
         zooms = sorted(int(d.name) for d in source.iterdir() if d.is_dir() and d.name.isdigit())
     out: dict[str, str] = {}
+    looked = 0
     try:
         for z in zooms:
             cols, rows = _tile_range(z, *bounds)
-            if len(out) + cols.size * rows.size > _MAX_TILES and out:
+            if looked + cols.size * rows.size > _MAX_TILES:
+                if looked == 0:
+                    raise DataError(f"{label}: the coarsest zoom level of {source} ({z}) needs "
+                                    f"{cols.size * rows.size} tiles over the map's extent, more "
+                                    f"than the {_MAX_TILES} a page holds; add coarser levels")
                 break
+            looked += cols.size * rows.size
             for x in cols.tolist():
                 for y in rows.tolist():
                     if mbtiles:
