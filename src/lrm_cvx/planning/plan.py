@@ -632,8 +632,8 @@ class Plan:
 
         Examples
         --------
-        >>> pred = model.predict()  # doctest: +SKIP
-        >>> fmap = plan.explore(pred["std"], tiles="tiles/")  # doctest: +SKIP
+        >>> std = state.predict()["std"]  # doctest: +SKIP
+        >>> fmap = plan.explore(std, tiles="tiles/")  # doctest: +SKIP
         >>> fmap.save("plan.html")  # doctest: +SKIP
         """
         from ..interactive import explore_map, record_label
