@@ -704,6 +704,84 @@ def test_unusual_data_files(run, tmp_path, inputs_unchanged, kind, code, needle)
         assert (region.cell_lat[cell], region.cell_lon[cell]) == (-30.0, -78.0)
 
 
+def _input_file(tmp_path: Path, da: xr.DataArray, name: str, guard) -> str:
+    """``da`` written to ``tmp_path/in/name`` (a folder of its own, watched by ``guard``)."""
+    path = tmp_path / "in" / name
+    path.parent.mkdir()
+    da.to_netcdf(path)
+    guard.watch(path.parent)
+    return str(path)
+
+
+def test_fit_refuses_a_latitude_beyond_a_pole(run, inputs_unchanged, tmp_path):
+    da = _field().assign_coords(lat=LAT + 120.0)  # 90 .. 100: colatitudes, or a typo
+    path = _input_file(tmp_path, da, "polar.nc", inputs_unchanged)
+    out = tmp_path / "m.nc"
+    code, _, err = run(["fit", path, "--rank", "2", "-o", str(out)])
+    assert code == 2
+    one_line_error(err, "fit", "coordinate lat is 92", "[-90, 90]")
+    assert not out.exists()
+
+
+def test_hold_out_on_unsorted_times_holds_out_the_last_times(run, inputs_unchanged, tmp_path):
+    da = _field()
+    order = [0, 1, 2, 3, 12, 4, 5, 6, 13, 7, 8, 9, 10, 11]  # the two latest months mid-file
+    path = _input_file(tmp_path, da.isel(time=order), "shuffled.nc", inputs_unchanged)
+    out = tmp_path / "m.nc"
+    code, stdout, err = run(["fit", path, "--hold-out", "2", "--rank", "2", "--paper", "-o",
+                             str(out)])
+    assert code == 0, err
+    assert "time is not sorted; snapshots were sorted by time" in err
+    assert ("held out the last 2 of 14 snapshots (2001-01-01T00:00:00 .. 2001-02-01T00:00:00)"
+            in stdout)
+    fitted = GLRM.load(out).X_["time"].values
+    np.testing.assert_array_equal(fitted, da["time"].values[:12])
+
+
+def test_hold_out_on_duplicate_times_is_refused(run, inputs_unchanged, tmp_path):
+    da = _field()
+    da = da.assign_coords(time=da["time"].values[[*range(13), 12]])
+    path = _input_file(tmp_path, da, "twice.nc", inputs_unchanged)
+    code, _, err = run(["fit", path, "--hold-out", "1", "--rank", "2", "-o",
+                        str(tmp_path / "m.nc")])
+    assert code == 2
+    one_line_error(err, "fit", "2001-01-01", "more than once")
+    assert not (tmp_path / "m.nc").exists()
+
+
+def test_bbox_across_the_antimeridian_on_a_0_360_record(run, inputs_unchanged, tmp_path):
+    rng = np.random.default_rng(3)
+    lon = np.arange(0.0, 360.0, 5.0)
+    T, ny = 12, LAT.size
+    v = (rng.normal(size=(T, 2)) @ rng.normal(size=(2, ny * lon.size))
+         + 0.05 * rng.normal(size=(T, ny * lon.size))).reshape(T, ny, lon.size)
+    da = xr.DataArray(v.astype(np.float32), dims=("time", "lat", "lon"), name="sst",
+                      coords={"time": pd.date_range("2000-01-01", periods=T, freq="MS"),
+                              "lat": LAT, "lon": lon})
+    path = _input_file(tmp_path, da, "global.nc", inputs_unchanged)
+    out = tmp_path / "m.nc"
+    code, _, err = run(["fit", path, "--bbox", "-30,170,-20,-170", "--rank", "2", "--paper",
+                        "-o", str(out)])
+    assert code == 0, err
+    region = GLRM.load(out).region_
+    np.testing.assert_array_equal(region.lon.values, np.arange(170.0, 191, 5))  # not 0 .. 360
+    # a route across the antimeridian: a MultiLineString cut exactly on it (RFC 7946 3.1.9)
+    route = tmp_path / "route.geojson"
+    code, _, err = run(["plan", str(out), "--start", "-26,185", "--budget", "12", "--paper",
+                        "-o", str(route)])
+    assert code == 0, err
+    geometry = json.loads(route.read_text())["features"][0]["geometry"]
+    assert geometry["type"] == "MultiLineString"
+    pieces = geometry["coordinates"]
+    for piece in pieces:
+        xs = np.array([x for x, _ in piece])
+        assert len(piece) >= 2 and (np.all(xs >= 170) or np.all(xs <= -170))
+        assert np.any(np.abs(xs) < 180)  # no part along the meridian
+        assert all(p != q for p, q in zip(piece[:-1], piece[1:], strict=True))  # no repeats
+    for a, b in zip(pieces[:-1], pieces[1:], strict=True):
+        assert abs(a[-1][0]) == 180 and b[0] == [-a[-1][0], a[-1][1]]
+
+
 def test_one_cell_bbox_is_a_clear_error(run, tmp_path):
     code, _, err = run(["fit", "{a}", "--bbox", "-30.5,-80.5,-29.5,-79.5", "--rank", "2", "-o",
                         str(tmp_path / "m.nc")])

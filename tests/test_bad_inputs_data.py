@@ -191,6 +191,34 @@ def test_region_refuses_longitudes_out_of_geographic_order():
         Region.from_dataarray(da)
 
 
+@pytest.mark.parametrize("lat, bad", [([80.0, 85, 90, 95], "95 at position 3"),
+                                      ([-100.0, -95, -90], "-100 at position 0")])
+def test_latitude_beyond_a_pole_is_refused(tmp_path, lat, bad, untouched):
+    da = field(lat=lat)
+    path = write(tmp_path, da)
+    with untouched(), pytest.raises(DataError, match=f"coordinate lat is {bad}, beyond a pole"):
+        open_data(path)
+    with pytest.raises(DataError, match=f"coordinate lat is {bad}") as err:
+        Region.from_dataarray(da)  # what GLRM.fit builds from an in-memory record
+    assert "\n" not in str(err.value) and "[-90, 90]" in str(err.value)
+
+
+def test_latitude_in_degrees_north_is_checked_whatever_the_values():
+    da = field(lat=np.arange(100.0), lon=[0.0, 1, 2, 3])
+    Region.from_dataarray(da)  # a bare index 0, 1, 2, ... is a pixel grid, not degrees
+    da["lat"].attrs["units"] = "degrees_north"
+    with pytest.raises(DataError, match="coordinate lat is 91 at position 91"):
+        Region.from_dataarray(da)
+
+
+def test_latitudes_of_a_grid_in_metres_are_not_degrees(tmp_path, untouched):
+    da = field(lat=[1e5, 2e5, 3e5], lon=[4e5, 5e5, 6e5, 7e5])
+    path = write(tmp_path, da)
+    with untouched():
+        out = open_data(path)
+    np.testing.assert_array_equal(out.lat.values, [1e5, 2e5, 3e5])
+
+
 # ------------------------------------------------------------------ files
 def test_empty_file(tmp_path, untouched):
     (tmp_path / "empty.nc").write_bytes(b"")

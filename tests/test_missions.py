@@ -79,11 +79,40 @@ def test_split_antimeridian_against_brute_force(points):  # the unwrapping's rou
     kept = [p for p in flat if abs(abs(p[0]) - 180.0) > 1e-9]
     expect = [list(p) for p in wrapped if abs(abs(p[0]) - 180.0) > 1e-9]
     assert (np.allclose(kept, expect) if expect else not kept)
-    # each crossing lies on its leg: interpolate the brute-force unwrapped polyline
+    # one cut per change of side of the brute-force unwrapped polyline, a point on the
+    # antimeridian being on its neighbour's side (the previous point's; the first: the next's)
     unwrapped = np.round(_unwrapped(lon), 9)  # a point on the antimeridian up to rounding
-    n_cross = sum(1 for a, b in zip(unwrapped[:-1], unwrapped[1:], strict=True)
-                  if np.floor((a + 180.0) / 360.0) != np.floor((b + 180.0) / 360.0))
+    side = np.floor((unwrapped + 180.0) / 360.0)
+    on = np.mod(unwrapped + 180.0, 360.0) == 0
+    for i in [*range(1, side.size), 0]:
+        if on[i] and side.size > 1:
+            neighbour = side[i - 1] if i else side[1]
+            side[i] = neighbour if neighbour in (side[i] - 1, side[i]) else side[i]
+    n_cross = int(np.count_nonzero(np.diff(side)))
     assert len(pieces) == 1 + n_cross
+    for piece in pieces:  # each piece on its side: only its ends may lie on the meridian
+        assert len(piece) >= 2 or len(pieces) == 1
+        inner = np.array([x for x, _ in piece])
+        off = inner[np.abs(inner) < 180.0]
+        assert np.all(off >= 0) or np.all(off <= 0) or np.all(np.abs(np.diff(off)) <= 180.0)
+    for a, b in zip(pieces[:-1], pieces[1:], strict=True):  # cut exactly on the meridian
+        assert abs(a[-1][0]) == 180.0 and b[0][0] == -a[-1][0] and b[0][1] == a[-1][1]
+
+
+@pytest.mark.parametrize("lon, lat, expect", [
+    # through a point on the meridian: one cut there, no zero-length piece
+    ([170.0, 180.0, 190.0], [0.0, 1, 2],
+     [[[170.0, 0.0], [180.0, 1.0]], [[-180.0, 1.0], [-170.0, 2.0]]]),
+    # touching the meridian and turning back: not cut, the touch point on the line's side
+    ([170.0, 180.0, 170.0], [0.0, 1, 2], [[[170.0, 0.0], [180.0, 1.0], [170.0, 2.0]]]),
+    ([-170.0, 180.0, -160.0], [0.0, 1, 2], [[[-170.0, 0.0], [-180.0, 1.0], [-160.0, 2.0]]]),
+    # starting or ending on it: on the side the line goes to or comes from
+    ([180.0, 170.0], [0.0, 1], [[[180.0, 0.0], [170.0, 1.0]]]),
+    ([180.0, 190.0], [0.0, 1], [[[-180.0, 0.0], [-170.0, 1.0]]]),
+    ([170.0, 180.0], [0.0, 1], [[[170.0, 0.0], [180.0, 1.0]]]),
+])
+def test_split_at_a_point_on_the_antimeridian(lon, lat, expect):
+    assert split_antimeridian(lon, lat) == expect
 
 
 def test_split_crossing_latitude_is_interpolated():
@@ -93,17 +122,30 @@ def test_split_crossing_latitude_is_interpolated():
     assert pieces == [[[-175.0, 4.0], [-180.0, 2.0]], [[180.0, 2.0], [175.0, 0.0]]]
 
 
-def test_geojson_wraps_longitudes_and_splits_the_route(setup):
-    _, plan, _ = setup
+@pytest.mark.parametrize("which", ["plan", "fleet", (0.0, 180.0), (0.0, 182.0)])
+def test_geojson_wraps_longitudes_and_splits_the_route(setup, which):
+    model, plan, fleet = setup
+    plan = {"plan": plan, "fleet": fleet}.get(which) if isinstance(which, str) else \
+        plan_greedy(model.Y_, model.region_, which, 8.0, progress=False)
     doc = plan.to_geojson()
-    route = doc["features"][0]["geometry"]
-    lons = np.asarray(wrap_lon(plan.lon))
-    crosses = np.any(np.abs(np.diff(lons)) > 180)
-    assert route["type"] == ("MultiLineString" if crosses else "LineString")
-    coords = route["coordinates"] if not crosses else [p for piece in route["coordinates"]
-                                                       for p in piece]
-    assert all(-180 <= x <= 180 for x, _ in coords)
-    points = [f["geometry"]["coordinates"] for f in doc["features"][1:]]
+    for r in range(plan.n_robots):
+        route = doc["features"][r]["geometry"]
+        sel = plan.route_robot == r
+        lons = np.asarray(plan.lon[sel])  # continuous on this grid: east of 180 is across
+        crosses = bool(np.any(lons > 180) and np.any(lons < 180))
+        assert route["type"] == ("MultiLineString" if crosses else "LineString")
+        if not crosses:  # touching the meridian is no crossing: the route as flown
+            np.testing.assert_array_equal(route["coordinates"], np.column_stack(
+                [np.where(lons == 180, 180 if np.all(lons <= 180) else -180, wrap_lon(lons)),
+                 plan.lat[sel]]))
+            continue
+        pieces = route["coordinates"]
+        for piece in pieces:  # each piece on one side, its cut ends exactly on the meridian
+            xs = np.array([x for x, _ in piece])
+            assert len(piece) >= 2 and (np.all(xs >= 0) or np.all(xs <= 0))
+        for a, b in zip(pieces[:-1], pieces[1:], strict=True):
+            assert abs(a[-1][0]) == 180 and b[0] == [-a[-1][0], a[-1][1]]
+    points = [f["geometry"]["coordinates"] for f in doc["features"][plan.n_robots:]]
     assert all(-180 <= x < 180 for x, _ in points)
     json.dumps(doc)
 

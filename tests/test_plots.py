@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -160,6 +162,7 @@ def test_plan_and_state_explore_layers(tmp_path):
     from lrm_cvx.planning import plan_greedy
 
     da = synthetic_dynamic_field(24, (6, 7), 3, seed=4, noise=0.03)
+    da.attrs.update(long_name="sea surface temperature", units="K")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = GLRM(3, progress=False, temporal="ar1", spatial="exponential",
@@ -169,6 +172,11 @@ def test_plan_and_state_explore_layers(tmp_path):
                        progress=False)
     html = plan.explore(tiles=None).get_root().render()
     assert html.count("L.polyline") == 1 and html.count("L.circleMarker") == len(plan.stops)
+    std = xr.DataArray(np.ones((6, 7)), dims=("lat", "lon"), name="prior std",
+                       attrs={"units": "mK"})
+    html = plan.explore(std, tiles=None).get_root().render()
+    assert "sea surface temperature: prior std [mK]" in html
+    assert not re.search(r"<(?:script|link)[^>]*(?:src|href)=\S*https?:", html)
     state = MonitorState.from_model(model)
     snap = model.region_.stack(da.isel(time=20))
     state.assimilate((plan.stops, snap[plan.stops]), da.time.values[20])
@@ -176,6 +184,7 @@ def test_plan_and_state_explore_layers(tmp_path):
     html = fmap.get_root().render()
     assert html.count("L.imageOverlay") == 3  # mean, std, predictive std
     assert "posterior mean" in html and "predictive std" in html
+    assert "sea surface temperature: predictive std [K]" in html
     n_seen = int(np.isfinite(snap[plan.stops]).sum())  # NaN values are not assimilated
     assert html.count("L.circleMarker") == n_seen == state.posterior.cells.size
     assert "L.control.layers" in html

@@ -159,21 +159,49 @@ class MonitorState(LatentFilter):
         return new
 
     def explore(self, plan: Any = None, *, forecast: bool = False, time: Any = None,
-                tiles: str | None = "OpenStreetMap") -> Any:
-        """An interactive ``folium.Map`` for notebooks: the belief's mean, ``std`` and
-        ``predictive_std`` as layers (the posterior, or with ``forecast=True`` the forecast for
-        ``time``), today's samples, and ``plan``'s routes when given. Needs folium
-        (``lrm-cvx[explore]``)."""
-        from .interactive import explore_map
+                tiles: Any = "auto") -> Any:
+        """An interactive ``folium.Map`` of the belief, for a notebook or a field laptop.
+
+        The belief's mean, ``std`` and ``predictive_std`` are layers (the posterior, or with
+        ``forecast=True`` the forecast for ``time``), each with a legend in the record's units
+        (its ``long_name`` and ``units`` attributes); today's samples are circles and
+        ``plan``'s routes lines. Needs folium (``lrm-cvx[explore]``).
+
+        Parameters
+        ----------
+        plan : Plan, optional
+            Routes to draw.
+        forecast : bool
+            Draw the forecast for ``time`` instead of the posterior.
+        time : optional
+            The forecast's time (``forecast=True``).
+        tiles : str, path or None
+            The base map: ``"auto"`` (default) OpenStreetMap when its tile server answers,
+            else none; ``None`` none; a ``{z}/{x}/{y}.png`` folder or an ``.mbtiles`` file
+            written into the page for offline use; see :func:`lrm_cvx.interactive.explore_map`.
+
+        Returns
+        -------
+        folium.Map
+            Shown inline in a notebook; ``.save("state.html")`` writes a page that, without
+            online tiles, loads nothing from the internet.
+
+        Examples
+        --------
+        >>> fmap = state.explore(plan, tiles="charts.mbtiles")  # doctest: +SKIP
+        >>> fmap.save("state.html")  # doctest: +SKIP
+        """
+        from .interactive import explore_map, record_label
 
         ds = self.forecast(time) if forecast else self.predict()
         region = self.model.region_
         if region is None:
             raise DataError("an interactive map needs a model fitted on gridded data")
         what = "forecast" if forecast else "posterior"
-        fields = {f"{what} mean": (ds["mean"].values, "viridis"),
-                  "std": (ds["std"].values, "magma"),
-                  "predictive std": (ds["predictive_std"].values, "magma")}
+        quantity, units = record_label(region.attrs, region.name)
+        fields = {f"{what} mean": (ds["mean"].values, "viridis", units),
+                  "std": (ds["std"].values, "magma", units),
+                  "predictive std": (ds["predictive_std"].values, "magma", units)}
         cells = np.asarray(self.posterior.cells, dtype=np.int64)
         values = np.asarray(self.posterior.values, dtype=np.float64)
         stops = [(region.cell_lat[c], region.cell_lon[c], f"cell {int(c)}: {v:.4g}")
@@ -182,7 +210,7 @@ class MonitorState(LatentFilter):
             (plan.lat[plan.route_robot == r], plan.lon[plan.route_robot == r])
             for r in range(plan.n_robots)]
         return explore_map(region.lat.values, region.lon.values, fields, routes=routes,
-                           stops=stops, tiles=tiles)
+                           stops=stops, tiles=tiles, quantity=quantity)
 
     def predict(self) -> xr.Dataset:
         """Posterior ``mean``, ``std`` and ``predictive_std`` maps of the snapshot at the

@@ -137,6 +137,7 @@ class Region:
                 raise RegionError(f"mask must be boolean, got dtype {mask.dtype}")
         lat = xr.DataArray(_grid_coord(da, lat_dim), dims=(lat_dim,), name=lat_dim)
         lon = xr.DataArray(_grid_coord(da, lon_dim), dims=(lon_dim,), name=lon_dim)
+        check_coords(lat.values, lon.values, "da", geographic=_geographic(da, lat_dim, lon.values))
         if lat_dim in da.coords:
             lat.attrs.update(da[lat_dim].attrs)
         if lon_dim in da.coords:
@@ -517,6 +518,22 @@ def lon_in_box(lon: Any, west: float, east: float) -> np.ndarray:
     return np.mod(lon - west, 360.0) <= width + 1e-9
 
 
+def _geographic(da: xr.DataArray, lat_dim: Hashable, lon: np.ndarray) -> bool:
+    """True when ``da``'s latitudes are degrees north, so they must lie in [-90, 90]: its
+    ``lat_dim`` coordinate says so in its ``units`` (``degrees_north``, CF), or it is not a
+    bare index ``0, 1, 2, ...`` (a pixel grid) and the longitudes look like degrees
+    (:func:`_is_degrees`)."""
+    if lat_dim not in da.coords:
+        return False
+    units = str(da[lat_dim].attrs.get("units", "")).lower().replace(" ", "_")
+    if units in ("degrees_north", "degree_north", "degrees_n", "degree_n", "degreesn",
+                 "degreen"):
+        return True
+    lat = np.asarray(da[lat_dim].values, dtype=np.float64)
+    index = lat.size > 0 and np.array_equal(lat, np.arange(lat.size, dtype=np.float64))
+    return not index and _is_degrees(np.asarray(lon, dtype=np.float64))
+
+
 def _is_degrees(lon: np.ndarray) -> bool:
     """True when a longitude axis looks like degrees east (the periodic rules apply).
 
@@ -538,8 +555,9 @@ def _first_bad_step(values: np.ndarray) -> int | None:
 
 
 def check_coords(lat: Any, lon: Any, where: str = "data",
-                 error: type[Exception] = DataError) -> None:
-    """Check grid axes: finite, ``lat`` strictly monotonic, no duplicated ``lon`` (modulo 360).
+                 error: type[Exception] = DataError, *, geographic: bool = False) -> None:
+    """Check grid axes: finite, ``lat`` strictly monotonic, no duplicated ``lon`` (modulo 360)
+    and, with ``geographic`` (``lat`` given in degrees north), every latitude in [-90, 90].
 
     Raises ``error`` naming the coordinate, the position and the value.
     """
@@ -551,6 +569,11 @@ def check_coords(lat: Any, lon: Any, where: str = "data",
                         f"at position {bad[0]}")
     lat = np.asarray(lat, dtype=np.float64)
     lon = np.asarray(lon, dtype=np.float64)
+    beyond = np.flatnonzero(np.abs(lat) > 90.0) if geographic else np.zeros(0, dtype=np.int64)
+    if beyond.size:
+        i = int(beyond[0])
+        raise error(f"{where}: coordinate lat is {lat[i]:g} at position {i}, beyond a pole; "
+                    "latitudes must lie in [-90, 90] degrees north (are lat and lon swapped?)")
     i = _first_bad_step(lat)
     if i is not None:
         kind = "duplicated" if lat[i] == lat[i + 1] else "not monotonic"
@@ -625,7 +648,7 @@ def to_geographic_order(da: xr.DataArray, bbox: Any = None,
     name = da.name if da.name is not None else "data"
     lat = _grid_coord(da, lat_dim)
     lon = _grid_coord(da, lon_dim)
-    check_coords(lat, lon, f"variable {name!r}", error)
+    check_coords(lat, lon, f"variable {name!r}", error, geographic=_geographic(da, lat_dim, lon))
     rows = np.arange(lat.size)
     cols = np.arange(lon.size)
     west = None

@@ -51,24 +51,39 @@ def wrap_lon(lon: Any) -> np.ndarray:
 
 
 def split_antimeridian(lon: Any, lat: Any) -> list[list[list[float]]]:
-    """A polyline as pieces of ``[lon, lat]`` points, longitudes wrapped, cut where a leg
-    crosses the antimeridian (the shorter way round, as a robot flies it): the crossing point is
-    interpolated and ends one piece at +-180 and starts the next at -+180."""
+    """A polyline as pieces of ``[lon, lat]`` points in [-180, 180], cut where it crosses the
+    antimeridian, as RFC 7946 section 3.1.9 asks of a GeoJSON line that crosses it.
+
+    Each leg goes the shorter way round (as a robot flies it). Where a leg crosses, the
+    crossing latitude is interpolated linearly in (lon, lat) and the cut lies exactly on the
+    meridian: the piece ends at ``[180, lat]`` (or ``[-180, lat]`` going west) and the next one
+    starts at the same point on the other side, ``[-180, lat]`` (``[180, lat]``). Every other
+    point of a piece lies strictly on that piece's side. A point exactly on the antimeridian is
+    written on the side the line comes from (points the line starts with: the side it goes
+    to), so no piece is a lone point or a line along the meridian, and a line that touches the
+    meridian and turns back is not cut.
+    """
     lon, lat = wrap_lon(lon), np.asarray(lat, dtype=np.float64)
     if lon.size == 0:
         return []
     pieces = [[[float(lon[0]), float(lat[0])]]]
     for i in range(1, lon.size):  # a loop over route points, never over the region's cells
-        a, b = lon[i - 1], lon[i]
-        d = b - a
-        if abs(d) > 180.0:
-            b_unwrapped = b - 360.0 * np.sign(d)
-            edge = 180.0 if b_unwrapped > a else -180.0
-            t = (edge - a) / (b_unwrapped - a)
-            crossing = float(lat[i - 1] + t * (lat[i] - lat[i - 1]))
+        x, y = pieces[-1][-1]
+        d = lon[i] - x
+        b = float(lon[i] - 360.0 * np.sign(d)) if abs(d) > 180.0 else float(lon[i])
+        if -180.0 <= b <= 180.0:  # on this side (or on the meridian, written on this side)
+            pieces[-1].append([b, float(lat[i])])
+            continue
+        edge = 180.0 if b > 180.0 else -180.0
+        if all(px == edge for px, _ in pieces[-1]):  # it starts on the meridian: that side
+            for point in pieces[-1]:
+                point[0] = -edge
+            pieces[-1].append([b - 2.0 * edge, float(lat[i])])
+            continue
+        crossing = float(y + (edge - x) / (b - x) * (lat[i] - y))
+        if x != edge:
             pieces[-1].append([edge, crossing])
-            pieces.append([[-edge, crossing]])
-        pieces[-1].append([float(b), float(lat[i])])
+        pieces.append([[-edge, crossing], [b - 2.0 * edge, float(lat[i])]])
     return pieces
 
 

@@ -570,7 +570,11 @@ class Plan:
         as a Point (a static placement: a Point per sensor, no LineString).
 
         Coordinates are ``[lon, lat]`` with longitudes in [-180, 180) (RFC 7946); a route that
-        crosses the antimeridian is a MultiLineString cut there. LineString properties: ``kind``
+        crosses the antimeridian is a MultiLineString cut there, as RFC 7946 section 3.1.9 asks:
+        the cut points are interpolated exactly on the meridian (``[180, lat]`` ending one part,
+        ``[-180, lat]`` starting the next) and each part stays on its side; a route that only
+        touches the meridian stays one LineString (see
+        :func:`lrm_cvx.planning.missions.split_antimeridian`). LineString properties: ``kind``
         ``"route"``, ``robot``, ``cost``, ``budget``. Point properties: ``cell``, ``robot``,
         ``order`` (first visit on its robot's route), ``selection`` (index in ``stops``),
         ``start`` (a sensor: ``kind`` ``"sensor"``, ``sensor``, ``cell``, ``gain``). The
@@ -600,27 +604,59 @@ class Plan:
                              hold=hold)
 
     def explore(self, background: Any = None, *, cmap: str = "viridis",
-                tiles: str | None = "OpenStreetMap") -> Any:
-        """An interactive ``folium.Map`` for notebooks: each robot's route, its sampling stops
-        and, when given, ``background`` (a ``(lat, lon)`` field on the region's grid, e.g. a
-        prediction or its std) as a layer. Needs folium (``lrm-cvx[explore]``)."""
-        from ..interactive import explore_map
+                tiles: Any = "auto") -> Any:
+        """An interactive ``folium.Map`` of the plan, for a notebook or a field laptop.
+
+        Each robot's route is a line (its start starred), each sampling stop a circle and, when
+        given, ``background`` a layer with a legend in its units. Needs folium
+        (``lrm-cvx[explore]``).
+
+        Parameters
+        ----------
+        background : xarray.DataArray or numpy.ndarray, optional
+            A field on the region's grid, ``(lat, lon)`` or one value per cell (e.g. a
+            prediction or its std). A DataArray's ``name`` labels the layer and its ``units``
+            attribute the legend; otherwise the units of the record the region came from.
+        cmap : str
+            Matplotlib colour map of ``background``.
+        tiles : str, path or None
+            The base map: ``"auto"`` (default) OpenStreetMap when its tile server answers,
+            else none; ``None`` none; a ``{z}/{x}/{y}.png`` folder or an ``.mbtiles`` file
+            written into the page for offline use; see :func:`lrm_cvx.interactive.explore_map`.
+
+        Returns
+        -------
+        folium.Map
+            Shown inline in a notebook; ``.save("plan.html")`` writes a page that, without
+            online tiles, loads nothing from the internet.
+
+        Examples
+        --------
+        >>> std = state.predict()["std"]  # doctest: +SKIP
+        >>> fmap = plan.explore(std, tiles="tiles/")  # doctest: +SKIP
+        >>> fmap.save("plan.html")  # doctest: +SKIP
+        """
+        from ..interactive import explore_map, record_label
 
         region = check_region(self._region, "the plan's region")
         fields = {}
+        quantity, units = record_label(region.attrs, region.name)
         if background is not None:
             values = np.asarray(getattr(background, "values", background), dtype=float)
             if values.ndim == 1:
                 values = region.unstack(values).values
             name = str(getattr(background, "name", None) or "background")
-            fields[name] = (values, cmap)
+            attrs = getattr(background, "attrs", None)
+            if attrs is not None and "units" in attrs:
+                units = str(attrs["units"])
+            fields[name] = (values, cmap, units)
         routes = [(self.lat[self.route_robot == r], self.lon[self.route_robot == r])
                   for r in range(self.n_robots if self.path.get("kind") != "static" else 0)]
         first = np.unique(self.route, return_index=True)[1]
         first = first[np.isin(self.route[first], self.stops) & self.waypoint[first]]
         stops = [(self.lat[i], self.lon[i], f"cell {int(self.route[i])}") for i in first]
         return explore_map(region.lat.values, region.lon.values, fields, routes=routes,
-                           stops=stops, tiles=tiles)
+                           stops=stops, tiles=tiles, quantity=quantity)
 
     def plot(self, ax: Any = None, background: Any = None, *, coast: Any = "auto",
              **background_kw: Any) -> Any:
