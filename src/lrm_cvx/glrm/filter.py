@@ -128,6 +128,8 @@ def coerce_time(value: Any, kind: str, calendar: str | None, name: str = "time")
         if not np.isfinite(v):
             raise ValueError("not finite")
         return v
+    except DataError:
+        raise
     except (TypeError, ValueError, OverflowError) as exc:
         expected = {"datetime": "a date such as '2020-03-01'",
                     "cftime": f"a date in the {calendar} calendar",
