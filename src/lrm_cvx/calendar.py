@@ -7,9 +7,10 @@ itself would:
 * **cadence**: a whole number of months (monthly, quarterly, yearly records: the step between
   the record's calendar months), else a fixed step in days (or in the coordinate's units);
 * **convention**: where in its period the record puts a stamp. A monthly record stamped on the
-  same day and time of every month (the 15th) keeps that day; one stamped at the same fraction
-  of every month (CF monthly means: 16 Jan 12:00, 15 Feb 00:00, ...) keeps the fraction; else
-  each calendar month's own stamp in the record. A fixed-step record either lies on one grid
+  same day and time of every month (the 15th) keeps that day, one on each month's last day
+  keeps that; one stamped at the same fraction of every month (CF monthly means: 16 Jan 12:00,
+  15 Feb 00:00, ...) keeps the fraction; else each calendar month's own stamp in the record
+  (else the day and time of the state's own stamp). A fixed-step record either lies on one grid
   (``last + k * step``) or restarts every year on the same day of the year (8-day composites:
   days 1, 9, ..., 361, then day 1 again);
 * **period**: the times a stamp stands for. A month-cadence stamp stands for its calendar month
@@ -88,7 +89,8 @@ def _fields(times: np.ndarray) -> dict[str, np.ndarray]:
                                                                         np.int64)
     return {"year": np.asarray(idx.year, np.int64), "month": np.asarray(idx.month, np.int64),
             "day": np.asarray(idx.day, np.int64), "us": us,
-            "doy": np.asarray(idx.dayofyear, np.int64),
+            "doy": np.asarray(getattr(idx, "day_of_year", None) if hasattr(idx, "day_of_year")
+                              else idx.dayofyear, np.int64),
             "dim": np.asarray(idx.days_in_month, np.int64)}
 
 
@@ -112,6 +114,7 @@ class RecordCalendar:
     offset: int = 0                     # first day of the year - 1 ("dayofyear")
     day_us: int = 0                     # the stamps' time into the day ("dayofyear")
     day_of_month: tuple[int, int] | None = None   # (day, us into the day) of every stamp
+    from_end: tuple[int, int] | None = None       # (days before the month's end, us)
     fraction: float | None = None       # the stamps' fraction of their month
     month_stamps: dict[int, tuple[int, int]] = field(default_factory=dict)
 
@@ -163,6 +166,10 @@ class RecordCalendar:
         day_of_month = None
         if np.all(f["day"] == f["day"][0]) and np.all(f["us"] == f["us"][0]):
             day_of_month = (int(f["day"][0]), int(f["us"][0]))
+        before_end = f["dim"] - f["day"]
+        from_end = None
+        if np.all(before_end == before_end[0]) and np.all(f["us"] == f["us"][0]):
+            from_end = (int(before_end[0]), int(f["us"][0]))
         frac = offset / (f["dim"] * float(_DAY_US))
         fraction = float(np.median(frac)) if np.ptp(frac) * 31 * 24 <= 1.0 else None
         stamps: dict[int, set] = {}
@@ -171,7 +178,7 @@ class RecordCalendar:
             stamps.setdefault(m, set()).add((day, us))
         table = {m: next(iter(s)) for m, s in stamps.items() if len(s) == 1}
         return cls("months", n=n, phase=int(index[0] % n), day_of_month=day_of_month,
-                   fraction=fraction, month_stamps=table, **base)
+                   from_end=from_end, fraction=fraction, month_stamps=table, **base)
 
     # ------------------------------------------------------------------ the questions
     def describe(self) -> str:
@@ -236,6 +243,9 @@ class RecordCalendar:
         if self.day_of_month is not None:
             day, us = self.day_of_month
             offset = (min(day, dim) - 1) * _DAY_US + us
+        elif self.from_end is not None:
+            days, us = self.from_end
+            offset = max(dim - 1 - days, 0) * _DAY_US + us
         elif self.fraction is not None:
             offset = int(round(self.fraction * dim * 86_400)) * 1_000_000
         elif month0 + 1 in self.month_stamps:
