@@ -236,7 +236,7 @@ def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
         sensor = _assimilate_sensor(args, state)
         obs = _read_observations(args.observations, state.model.region_, args.var)
         before = state.n_dropped
-        t = _observation_time(state, args)
+        t, notes = _observation_time(state, args)
         if sensor.is_point:
             state.assimilate(obs, t, force=args.force)
         else:  # each value is the footprint's average around its cell (issue #25 item 6)
@@ -250,6 +250,7 @@ def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
             state.assimilate_rows(rows, values, t, force=args.force,
                                   errors=sensor.errors)
         _save_state(state, args.state)
+    _print_notes(notes)
     p = state.posterior
     n_today = int(p.cells.size) + (0 if p.rows is None else int(p.rows.shape[0]))
     dropped = state.n_dropped - before
@@ -327,18 +328,25 @@ def _parse_time_option(state: Any, args: argparse.Namespace) -> None:
         args.time = state.as_time(args.time, "--time")
 
 
-def _observation_time(state: Any, args: argparse.Namespace) -> Any:
-    """The time ``monitor assimilate`` folds the observations in at: ``--time``, or the
-    stored plan's time (the state's own) when ``--time`` lies in its period (its calendar
-    month for a monthly record); with ``--force``, one line says what a move other than
-    the step onto the record's next stamp does."""
+def _observation_time(state: Any, args: argparse.Namespace) -> tuple[Any, list[str]]:
+    """``(time, notes)``: the time ``monitor assimilate`` folds the observations in at
+    (``--time``, or the stored plan's time, or the state's own, when ``--time`` lies in its
+    period: its calendar month for a monthly record) and the lines to print once done: that
+    move, and with ``--force`` what a move other than one step onto the record's next stamp
+    does."""
     t = state.observation_time(args.time, "--time")
-    if t is not args.time and state.time_after(t) != state.time_after(args.time, "--time"):
-        print(f"observations at {args.time} belong to the snapshot at {_label(t)} "
-              f"({state.record_calendar.describe()} record)")
+    notes = []
+    if state.time_after(t) != state.time_after(args.time, "--time"):
+        notes.append(f"observations at {args.time} belong to the snapshot at {_label(t)} "
+                     f"({state.record_calendar.describe()} record)")
     if args.force and (what := state.forced_move(t)) is not None:
-        note(f"--force: {what}")
-    return t
+        notes.append(f"--force: {what}")
+    return t, notes
+
+
+def _print_notes(notes: list[str]) -> None:
+    for text in notes:
+        note(text)
 
 
 def _label(t: Any) -> str:
