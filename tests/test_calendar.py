@@ -11,8 +11,8 @@ import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lrm_cvx.calendar import RecordCalendar, datetime_ns
 from lrm_cvx.errors import DataError
+from lrm_cvx.glrm.calendar import RecordCalendar, datetime_ns
 
 CALENDARS = ["standard", "proleptic_gregorian", "noleap", "all_leap", "360_day", "julian"]
 

@@ -139,7 +139,7 @@ class MonitorState(LatentFilter):
     def same_snapshot(self, a: Any, b: Any, name: str = "time") -> bool:
         """Whether times ``a`` and ``b`` lie in the period of one stamp of the record (its
         calendar month for a monthly record, its day for a daily one: see
-        :class:`~lrm_cvx.calendar.RecordCalendar`). ``name`` labels a bad ``a``'s error."""
+        :class:`~lrm_cvx.glrm.calendar.RecordCalendar`). ``name`` labels a bad ``a``'s error."""
         return self.record_calendar.same_period(self._coerce(a, name), self._coerce(b))
 
     def observation_time(self, time: Any, name: str = "time") -> Any:

@@ -111,7 +111,7 @@ def coerce_time(value: Any, kind: str, calendar: str | None, name: str = "time")
             if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
                     value, bool):
                 raise TypeError("a number is not a date")
-            from ..calendar import datetime_ns
+            from .calendar import datetime_ns
 
             return datetime_ns(value, name)  # DataError outside datetime64[ns]'s range
         if kind == "cftime":
@@ -261,15 +261,15 @@ class LatentFilter:
     def next_time(self) -> Any:
         """The record's next stamp after the state's time: one step of the record's cadence,
         with the record's own day-of-month (or fraction of the month, or day-of-year)
-        convention (:class:`lrm_cvx.calendar.RecordCalendar`): monthly on the 15th -> the 15th
-        of the next month, CF mid-month stamps -> the next month's mid-month stamp, daily ->
-        the next day."""
+        convention (:class:`lrm_cvx.glrm.calendar.RecordCalendar`): monthly on the 15th ->
+        the 15th of the next month, CF mid-month stamps -> the next month's mid-month stamp,
+        daily -> the next day."""
         return self.record_calendar.next_stamp(self.time)
 
     @property
     def record_calendar(self) -> Any:
-        """The :class:`~lrm_cvx.calendar.RecordCalendar` of the model's training times."""
-        from ..calendar import RecordCalendar
+        """The :class:`~lrm_cvx.glrm.calendar.RecordCalendar` of the model's training times."""
+        from .calendar import RecordCalendar
 
         cached = getattr(self, "_record_calendar", None)
         if cached is None or cached[0] is not self.model:

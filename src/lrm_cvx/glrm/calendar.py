@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from .errors import DataError
+from ..errors import DataError
+from .dynamics import time_numbers
 
 __all__ = ["RecordCalendar", "datetime_ns", "NS_RANGE"]
 
@@ -123,8 +124,6 @@ class RecordCalendar:
     def of(cls, times: Any, step: float | None = None) -> RecordCalendar:
         """The calendar of the record whose time coordinate is ``times`` (sorted, >= 1 time).
         ``step``: the dynamics' step (default: the median spacing of ``times``)."""
-        from .glrm.dynamics import time_numbers
-
         values = np.asarray(getattr(times, "values", times)).ravel()
         t, kind, calendar = time_numbers(values, "time")
         d = np.diff(t)
@@ -259,8 +258,6 @@ class RecordCalendar:
     # ------------------------------------------------------------------ fixed steps
     def _days(self, a: Any, b: Any) -> float:
         """``b - a`` in days (or coordinate units)."""
-        from .glrm.dynamics import time_numbers
-
         if self.time_kind == "numeric":
             return float(b) - float(a)
         arr = np.empty(2, dtype=object)
