@@ -11,8 +11,9 @@ import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from lrm_cvx._validation import datetime_ns
 from lrm_cvx.errors import DataError
-from lrm_cvx.glrm.calendar import RecordCalendar, datetime_ns
+from lrm_cvx.glrm.calendar import RecordCalendar
 
 CALENDARS = ["standard", "proleptic_gregorian", "noleap", "all_leap", "360_day", "julian"]
 

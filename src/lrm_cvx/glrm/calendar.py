@@ -18,8 +18,8 @@ itself would:
   calendar days from its date to the next stamp, any other step for the times nearer to it than
   to its neighbours.
 
-:func:`datetime_ns` turns a user's date into ``datetime64[ns]`` or refuses it in one line: that
-type holds 1677-09-21 to 2262-04-11 only, and a date outside would wrap around silently.
+Dates outside ``datetime64[ns]``'s range (1677-09-21 to 2262-04-11) are refused in one line
+(:func:`lrm_cvx._validation.datetime_ns`), never wrapped around.
 """
 
 from __future__ import annotations
@@ -31,34 +31,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from .._validation import NS_RANGE, datetime_ns
 from ..errors import DataError
 from .dynamics import time_numbers
 
-__all__ = ["RecordCalendar", "datetime_ns", "NS_RANGE"]
-
-#: The first and last dates ``datetime64[ns]`` holds (as printed in messages).
-NS_RANGE = ("1677-09-21", "2262-04-11")
+__all__ = ["RecordCalendar"]
 
 _DAY_US = 86_400_000_000
 _MEAN_MONTH_DAYS = 365.2425 / 12
-
-
-def datetime_ns(value: Any, name: str = "time") -> np.datetime64:
-    """``value`` (a string, datetime or ``pandas.Timestamp``) as ``datetime64[ns]``.
-
-    DataError naming ``name`` when the date is outside the type's range (``NS_RANGE``)
-    instead of wrapping around; ValueError/TypeError as ``pandas.Timestamp`` raises them for a
-    text that is no date.
-    """
-    ts = pd.Timestamp(str(value) if hasattr(value, "calendar") else value)
-    if ts is pd.NaT:
-        raise ValueError("NaT")
-    if ts.tzinfo:
-        ts = ts.tz_localize(None)
-    if not pd.Timestamp.min <= ts <= pd.Timestamp.max:
-        raise DataError(f"{name} {value} is outside the dates the record's time coordinate "
-                        f"(datetime64[ns]) can hold: {NS_RANGE[0]} to {NS_RANGE[1]}")
-    return ts.as_unit("ns").to_datetime64()
 
 
 def _calendar_of(t: Any) -> str:
@@ -293,7 +273,14 @@ class RecordCalendar:
         if self.time_kind == "numeric":
             return float(t) + days
         if self.time_kind == "datetime":
-            return datetime_ns(pd.Timestamp(t) + pd.Timedelta(days=days), "the next time")
+            try:
+                later = pd.Timestamp(t) + pd.Timedelta(days=days)
+            except (OverflowError, ValueError):
+                later = None
+            if later is None or later > pd.Timestamp.max:
+                raise DataError(f"the time {days:g} day(s) after {t} is past {NS_RANGE[1]}, the "
+                                "last date a datetime64[ns] time coordinate can hold")
+            return later.as_unit("ns").to_datetime64()
         return t + _dt.timedelta(days=days)
 
     # ------------------------------------------------------------------ day of year

@@ -111,7 +111,7 @@ def coerce_time(value: Any, kind: str, calendar: str | None, name: str = "time")
             if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
                     value, bool):
                 raise TypeError("a number is not a date")
-            from .calendar import datetime_ns
+            from .._validation import datetime_ns
 
             return datetime_ns(value, name)  # DataError outside datetime64[ns]'s range
         if kind == "cftime":
