@@ -159,8 +159,8 @@ def monthly_records(draw):
     return calendar, n, np.asarray(times, dtype=object)
 
 
-@settings(max_examples=60, deadline=None)
-@given(monthly_records(), st.integers(0, 40), st.floats(0.0, 1.0))
+@settings(max_examples=40, deadline=None)
+@given(monthly_records(), st.integers(0, 12), st.floats(0.0, 1.0))
 def test_next_stamp_follows_every_monthly_record(record, ahead, where):
     calendar, n, times = record
     cal = RecordCalendar.of(times[:-1])
@@ -184,7 +184,7 @@ def test_next_stamp_follows_every_monthly_record(record, ahead, where):
 
 @settings(max_examples=40, deadline=None)
 @given(st.sampled_from(CALENDARS), st.sampled_from([1, 2, 7]), st.integers(2, 40),
-       st.integers(0, 23), st.floats(-3.0, 60.0))
+       st.integers(0, 23), st.integers(-3 * 1440, 60 * 1440))
 def test_next_stamp_of_fixed_day_steps(calendar, step, size, hour, offset):
     start = cftime.datetime(2001, 3, 5, hour, calendar=calendar)
     times = np.asarray([start + pd.Timedelta(days=step * i).to_pytimedelta()
@@ -192,7 +192,7 @@ def test_next_stamp_of_fixed_day_steps(calendar, step, size, hour, offset):
     cal = RecordCalendar.of(times)
     assert cal.kind == "grid"
     assert all(cal.next_stamp(a) == b for a, b in zip(times[:-1], times[1:], strict=True))
-    t = times[-1] + pd.Timedelta(days=offset).to_pytimedelta()
+    t = times[-1] + pd.Timedelta(minutes=offset).to_pytimedelta()
     stamp, nxt = cal.stamp_of(t), cal.next_stamp(t)
     assert cal.same_period(t, stamp) and nxt - stamp == pd.Timedelta(days=step)
     assert (stamp.hour, stamp.minute) == (hour, 0)

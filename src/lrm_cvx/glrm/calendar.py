@@ -41,21 +41,6 @@ _DAY_US = 86_400_000_000
 _MEAN_MONTH_DAYS = 365.2425 / 12
 
 
-def _calendar_of(t: Any) -> str:
-    return str(t.calendar) if hasattr(t, "calendar") else "proleptic_gregorian"
-
-
-def _to_cftime(t: Any, calendar: str) -> Any:
-    """A date as a cftime date (``datetime64`` -> the proleptic Gregorian calendar)."""
-    import cftime
-
-    if hasattr(t, "calendar"):
-        return t
-    ts = pd.Timestamp(t)
-    return cftime.datetime(ts.year, ts.month, ts.day, ts.hour, ts.minute, ts.second,
-                           ts.microsecond, calendar=calendar)
-
-
 def _fields(times: np.ndarray) -> dict[str, np.ndarray]:
     """Year, month, day, microseconds into the day, day of year and days in the month (int64
     arrays) of ``datetime64`` or cftime ``times``."""
@@ -70,9 +55,21 @@ def _fields(times: np.ndarray) -> dict[str, np.ndarray]:
                                                                         np.int64)
     return {"year": np.asarray(idx.year, np.int64), "month": np.asarray(idx.month, np.int64),
             "day": np.asarray(idx.day, np.int64), "us": us,
-            "doy": np.asarray(getattr(idx, "day_of_year", None) if hasattr(idx, "day_of_year")
+            "doy": np.asarray(idx.day_of_year if hasattr(idx, "day_of_year")
                               else idx.dayofyear, np.int64),
             "dim": np.asarray(idx.days_in_month, np.int64)}
+
+
+def _one(t: Any) -> tuple[int, int, int, int, int]:
+    """``(year, month, day, us into the day, day of year)`` of one date (``_fields``' for
+    one time, without building an index)."""
+    if hasattr(t, "calendar"):
+        c, doy = t, int(t.dayofyr)
+    else:
+        c = pd.Timestamp(t)
+        doy = int(c.day_of_year)
+    us = ((c.hour * 60 + c.minute) * 60 + c.second) * 1_000_000 + c.microsecond
+    return int(c.year), int(c.month), int(c.day), int(us), doy
 
 
 @dataclass
@@ -114,7 +111,7 @@ class RecordCalendar:
         if values.size == 0:
             return cls("irregular", **base)
         if kind != "numeric":
-            months = cls._months(values, t, step, base)
+            months = cls._months(values, step, base)
             if months is not None:
                 return months
         tol = 1e-6 if kind != "numeric" else 1e-9 * max(abs(step), 1.0)
@@ -130,8 +127,7 @@ class RecordCalendar:
         return cls("irregular", **base)
 
     @classmethod
-    def _months(cls, values: np.ndarray, t: np.ndarray, step: float,
-                base: dict) -> RecordCalendar | None:
+    def _months(cls, values: np.ndarray, step: float, base: dict) -> RecordCalendar | None:
         """The month-cadence calendar of a record stepping by whole calendar months, or None."""
         n = int(round(step / _MEAN_MONTH_DAYS))
         if n < 1 or not 27 * n <= step <= 32 * n:
@@ -150,7 +146,7 @@ class RecordCalendar:
         if np.all(before_end == before_end[0]) and np.all(f["us"] == f["us"][0]):
             from_end = (int(before_end[0]), int(f["us"][0]))
         frac = offset / (f["dim"] * float(_DAY_US))
-        fraction = float(np.median(frac)) if np.ptp(frac) * 31 * 24 <= 1.0 else None
+        fraction = float(np.median(frac)) if np.ptp(frac) * 31 * 1440 <= 1.0 else None  # 1 min
         stamps: dict[int, set] = {}
         for m, day, us in zip(f["month"].tolist(), f["day"].tolist(), f["us"].tolist(),
                               strict=True):  # twelve months at most: a small table
@@ -184,8 +180,7 @@ class RecordCalendar:
             return self._month_stamp(self._month_index(t) + self.n, t)
         if self.kind == "dayofyear":
             year, j = self._doy_index(t)
-            c = _to_cftime(t, _calendar_of(t))
-            if self.offset + 1 + (j + 1) * int(round(self.step)) > self._days_in_year(year, c):
+            if self.offset + 1 + (j + 1) * int(round(self.step)) > self._days_in_year(year):
                 return self._doy_time(year + 1, 0)
             return self._doy_time(year, j + 1)
         return self._add(self.stamp_of(t), self.step)
@@ -202,8 +197,8 @@ class RecordCalendar:
 
     # ------------------------------------------------------------------ months
     def _month_index(self, t: Any) -> int:
-        f = _fields(np.asarray([t]))
-        m = int(f["year"][0] * 12 + f["month"][0] - 1)
+        year, month = _one(t)[:2]
+        m = year * 12 + month - 1
         n, p = self.n, self.phase
         if n % 12 == 0:  # whole years: the block of n // 12 calendar years holding t
             base = p - p % 12
@@ -231,8 +226,8 @@ class RecordCalendar:
             day, us = self.month_stamps[month0 + 1]
             offset = (min(day, dim) - 1) * _DAY_US + us
         else:
-            f = _fields(np.asarray([t]))
-            offset = (min(int(f["day"][0]), dim) - 1) * _DAY_US + int(f["us"][0])
+            _, _, day, us, _ = _one(t)
+            offset = (min(day, dim) - 1) * _DAY_US + us
         return self._native(first + _dt.timedelta(microseconds=offset))
 
     # ------------------------------------------------------------------ fixed steps
@@ -284,23 +279,21 @@ class RecordCalendar:
         return t + _dt.timedelta(days=days)
 
     # ------------------------------------------------------------------ day of year
-    @staticmethod
-    def _days_in_year(year: int, like: Any) -> int:
+    def _days_in_year(self, year: int) -> int:
         import cftime
 
-        cal = _calendar_of(like)
+        cal = self.calendar or "proleptic_gregorian"
         return int((cftime.datetime(year + 1, 1, 1, calendar=cal)
                     - cftime.datetime(year, 1, 1, calendar=cal)).days)
 
     def _doy_index(self, t: Any) -> tuple[int, int]:
         """``(year, j)``: ``t`` lies in the period of that year's ``j``-th stamp."""
-        f = _fields(np.asarray([t]))
-        year, pos = int(f["year"][0]), int(f["doy"][0]) - 1 - self.offset
+        year, _, _, _, doy = _one(t)
+        pos = doy - 1 - self.offset
         s = int(round(self.step))
         if pos < 0:  # before the year's first stamp: the previous year's last period
-            c = _to_cftime(t, _calendar_of(t))
             year -= 1
-            pos = self._days_in_year(year, c) - 1 - self.offset
+            pos = self._days_in_year(year) - 1 - self.offset
         return year, pos // s
 
     def _doy_time(self, year: int, j: int) -> Any:
