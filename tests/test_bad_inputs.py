@@ -1021,3 +1021,40 @@ def test_concurrent_assimilate_never_loses_an_update(run, files, tmp_path):
             assert same(final, only_b), f"trial {trial}: B's update was lost"
             outcomes.append("B, A refused")
     assert len(outcomes) == 20
+
+
+# ------------------------------------------------- dates datetime64[ns] cannot hold
+OUT_OF_RANGE = [
+    (["monitor", "plan", "{state}", "--start", "-24,-70", "--budget", "3", "--time",
+      "2700-01-15", "-o", "{out}/p.csv"], "--time 2700-01-15"),
+    (["monitor", "assimilate", "{state}", "{obs}", "--time", "2700-01-15"], "--time 2700-01-15"),
+    (["monitor", "assimilate", "{state}", "{obs}", "--time", "2500-01-15"], "--time 2500-01-15"),
+    (["monitor", "assimilate", "{state}", "{obs}", "--time", "1500-01-15", "--force"],
+     "--time 1500-01-15"),
+    (["monitor", "map", "{state}", "--forecast", "--time", "2700-01-15", "-o", "{out}/m.nc"],
+     "--time 2700-01-15"),
+    (["monitor", "replan", "{state}", "--done", "1", "--time", "2700-01-15"],
+     "--time 2700-01-15"),
+    (["monitor", "init", "{model}", "--state", "{out}/new.nc", "--temporal", "ar1", "--time",
+      "2800-03-01"], "--time 2800-03-01"),
+    (["fit", "{a}", "--rank", "2", "--until", "1600-01-01", "-o", "{out}/f.nc"],
+     "--until 1600-01-01"),
+]
+
+
+@pytest.mark.parametrize("argv, needle", OUT_OF_RANGE)
+def test_a_date_outside_datetime64_ns_is_refused_not_wrapped(run, files, tmp_path,
+                                                              inputs_unchanged, argv, needle):
+    # a datetime64[ns] record holds 1677-09-21 .. 2262-04-11: a date outside would wrap around
+    # (2800-03-01 -> 2215-08-12); it is refused in one line naming the option
+    state = _state(run, tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    code, _, err = run(["monitor", "plan", str(state), "--start", "-24,-70", "--budget", "3",
+                        "-o", str(tmp_path / "day.csv")])  # a stored plan (for replan)
+    assert code == 0, err
+    inputs_unchanged.watch(state, out)
+    argv = [a.replace("{state}", str(state)).replace("{out}", str(out)) for a in argv]
+    code, _, err = run(argv)
+    assert code == 2
+    one_line_error(err, argv[0], needle, "1677-09-21 to 2262-04-11")

@@ -190,3 +190,23 @@ def test_replan_refusals_are_one_line_and_change_nothing(campaign, tmp_path, cap
     s.save(state)
     assert _run("monitor", "replan", state, "--done", 1, 1) == 2
     assert "has moved on" in _err(capsys)
+
+
+def test_a_yearly_record_plans_for_its_next_stamp_and_replans_within_the_year(campaign,
+                                                                              tmp_path, capsys):
+    # sample:sst holds one January mean a year (15 Jan 12:00 or 16 Jan 00:00): the default
+    # plan after 15 Jan 2009 12:00 is for the held-out 15 Jan 2010 12:00, and any time of 2010
+    # is that plan's snapshot
+    folder = campaign["folder"]
+    state = tmp_path / "s.nc"
+    t = campaign["days"][0]["t"]
+    assert _run("monitor", "init", folder / "model.nc", "--state", state) == 0
+    capsys.readouterr()
+    assert _run("monitor", "plan", state, "--start", STARTS[0], "--budget", 3000, "--metric",
+                "km", "-o", tmp_path / "p.csv") == 0
+    assert f"plan for {str(t)[:19]}:" in capsys.readouterr().out
+    assert MonitorState.load(state).current_plan_time == t
+    assert _run("monitor", "replan", state, "--done", 2, "--time", "2010-06-30") == 0
+    assert MonitorState.load(state).current_plan_time == t
+    assert _run("monitor", "replan", state, "--done", 2, "--time", "2011-01-15") == 2
+    assert "not the time of the stored plan" in capsys.readouterr().err

@@ -253,3 +253,109 @@ def test_monitor_plan_takes_every_path_option_and_fleets(tmp_path, capsys):
     assert _run("monitor", "plan", state, "--start", "10,200", "--start", "-20,240",
                 "--budget", 1, "--budget", 2, "--budget", 3, "-o", tmp_path / "x.csv") == 2
     assert "once per --start" in capsys.readouterr().err
+
+
+# ------------------------------------------------- the record's calendar in the field loop
+@pytest.fixture(scope="module")
+def monthly(tmp_path_factory):
+    """A model of a monthly record dated on the 15th (Mar - Dec 2009: no February of its own)
+    and three samples."""
+    folder = tmp_path_factory.mktemp("monthly")
+    times = pd.date_range("2009-03-01", periods=10, freq="MS") + pd.Timedelta(days=14)
+    da = xr.DataArray(np.random.default_rng(5).normal(size=(10, 4, 5)).astype(np.float32),
+                      dims=("time", "lat", "lon"),
+                      coords={"time": times, "lat": np.arange(4.0), "lon": np.arange(5.0)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        GLRM(2, temporal="ar1", progress=False, random_state=0).fit(da).save(folder / "m.nc")
+    pd.DataFrame({"cell": [0, 3, 7], "value": [0.1, -0.2, 0.3]}).to_csv(folder / "obs.csv",
+                                                                        index=False)
+    return folder
+
+
+def _state_after_january(monthly, tmp_path):
+    """A state observed at 16 Jan 2010 12:00, a time off the record's stamps (the 15th)."""
+    state = tmp_path / "s.nc"
+    assert _run("monitor", "init", monthly / "m.nc", "--state", state) == 0
+    assert _run("monitor", "assimilate", state, monthly / "obs.csv", "--time",
+                "2010-01-16T12:00") == 0
+    return state
+
+
+def _plan(state, out, *argv):
+    return _run("monitor", "plan", state, "--start", "1,1", "--budget", 3, "--criterion",
+                "fisher", *argv, "-o", out)
+
+
+def test_the_default_plan_time_is_the_records_next_stamp(monthly, tmp_path, capsys):
+    state = _state_after_january(monthly, tmp_path)
+    capsys.readouterr()
+    assert _plan(state, tmp_path / "p.csv") == 0
+    assert "plan for 2010-02-15T00:00:00:" in capsys.readouterr().out
+    assert MonitorState.load(state).current_plan_time == np.datetime64("2010-02-15", "ns")
+    assert _run("monitor", "map", state, "--forecast", "-o", tmp_path / "f.nc") == 0
+    with xr.open_dataset(tmp_path / "f.nc") as m:
+        assert m["time"].values == np.datetime64("2010-02-15", "ns")
+    # replan --time: any time in the plan's month is the plan's day; another month is not
+    assert _run("monitor", "replan", state, "--done", 1, "--time", "2010-02-15") == 0
+    assert _run("monitor", "replan", state, "--done", 1, "--time", "2010-02-27T18:00") == 0
+    before = state.read_bytes()
+    capsys.readouterr()
+    assert _run("monitor", "replan", state, "--done", 1, "--time", "2010-03-15") == 2
+    assert "not the time of the stored plan" in capsys.readouterr().err
+    assert state.read_bytes() == before
+
+
+def test_an_observation_in_the_plans_month_is_the_plans_step(monthly, tmp_path, capsys):
+    state = _state_after_january(monthly, tmp_path)
+    assert _plan(state, tmp_path / "p.csv", "--time", "2010-02-16T12:00") == 0
+    start = MonitorState.load(state)
+    capsys.readouterr()
+    assert _run("monitor", "assimilate", state, monthly / "obs.csv", "--time",
+                "2010-02-15") == 0
+    out = capsys.readouterr().out
+    assert ("note: observations at 2010-02-15 belong to the snapshot at 2010-02-16T12:00:00 "
+            "(monthly record)") in out
+    s = MonitorState.load(state)
+    expected = start.assimilate(([0, 3, 7], [0.1, -0.2, 0.3]), "2010-02-16T12:00")
+    assert s.time == np.datetime64("2010-02-16T12:00", "ns")
+    np.testing.assert_allclose(s.posterior.mean, expected.posterior.mean, rtol=1e-12)
+    # the same month again is the same, already observed snapshot: refused, or with --force
+    # added to it (no step, said in one line)
+    before = state.read_bytes()
+    assert _run("monitor", "assimilate", state, monthly / "obs.csv", "--time",
+                "2010-02-20") == 2
+    refused = capsys.readouterr()
+    assert "equal to the state's time" in refused.err and refused.out == ""
+    assert state.read_bytes() == before
+    assert _run("monitor", "assimilate", state, monthly / "obs.csv", "--time", "2010-02-20",
+                "--force") == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "--force" in line]
+    assert notes == ["note: --force: the observations are added to the snapshot at "
+                     "2010-02-16T12:00:00, already observed (no step)"]
+    added = MonitorState.load(state)
+    assert added.time == s.time and added.n_assimilated == s.n_assimilated + 3
+    np.testing.assert_allclose(
+        added.posterior.mean,
+        expected.assimilate(([0, 3, 7], [0.1, -0.2, 0.3]), s.time, force=True).posterior.mean,
+        rtol=1e-12)
+
+
+def test_force_says_when_it_moves_more_than_the_next_stamp(monthly, tmp_path, capsys):
+    state = _state_after_january(monthly, tmp_path)
+    capsys.readouterr()
+    # the ordinary step onto the record's next stamp: no note
+    assert _run("monitor", "assimilate", state, monthly / "obs.csv", "--time", "2010-02-15",
+                "--force") == 0
+    assert "note" not in capsys.readouterr().out
+    assert _run("monitor", "assimilate", state, monthly / "obs.csv", "--time", "2010-05-15",
+                "--force") == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "--force" in line]
+    assert notes == ["note: --force: the filter moves 3 steps, from 2010-02-15T00:00:00 to "
+                     "2010-05-15T00:00:00 (the record's next stamp is 2010-03-15T00:00:00)"]
+    assert _run("monitor", "assimilate", state, monthly / "obs.csv", "--time", "2010-04-15",
+                "--force") == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "--force" in line]
+    assert notes == ["note: --force: 2010-04-15T00:00:00 is earlier than the state's time "
+                     "2010-05-15T00:00:00: the filter moves one step, to 2010-04-15T00:00:00"]
+    assert MonitorState.load(state).time == np.datetime64("2010-04-15", "ns")

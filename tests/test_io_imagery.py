@@ -257,6 +257,16 @@ def test_unparseable_and_invalid_dates(tmp_path):
         open_image_stack(bad, BBOX)
 
 
+def test_dates_outside_datetime64_ns_are_refused_not_wrapped(tmp_path):
+    rng = np.random.default_rng(0)
+    _save(tmp_path / "snapshot-2800-03-01T00_00_00Z.png", _random_rgb(rng))
+    with pytest.raises(DataError, match=r"'2800-03-01T00_00_00' in the file name .* is outside"
+                                        r" .* 1677-09-21 to 2262-04-11"):
+        open_image_stack(tmp_path, BBOX)
+    with pytest.raises(DataError, match=r"times\[0\] = 1600-01-01 00:00:00 is outside"):
+        open_image_stack(tmp_path, BBOX, times=["1600-01-01"])
+
+
 def test_duplicate_dates(tmp_path):
     rng = np.random.default_rng(0)
     _save(tmp_path / "snapshot-2013-09-01T00_00_00Z.png", _random_rgb(rng))

@@ -124,6 +124,8 @@ def test_parse_name():
     assert m["date"] == pd.Timestamp("2013-12-31")
     m = parse_cdr_name("VIIRS-Land_v001_JP113C1_NOAA-20_20200101_c20200301.nc")
     assert m["product"] == "VIIRS"
+    with pytest.raises(DataError, match="the date 28000624 is outside .* 2262-04-11"):
+        parse_cdr_name("AVHRR-Land_v005_AVH13C1_NOAA-19_28000624_c20140107.nc")  # not wrapped
 
 
 def test_errors_name_the_problem(tmp_path):

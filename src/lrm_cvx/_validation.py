@@ -17,7 +17,8 @@ import xarray as xr
 from .errors import DataError, ModelError
 
 __all__ = ["as_generator", "as_factor_matrix", "atomic_output", "atomic_outputs",
-           "check_flag", "check_positive", "check_target", "check_time_labels", "file_lock",
+           "check_flag", "check_positive", "check_target", "check_time_labels",
+           "datetime_ns", "file_lock",
            "guard_outputs", "read_netcdf", "remove_stale_temps", "same_file"]
 
 
@@ -121,6 +122,32 @@ def check_time_labels(times: Any, source: str = "data") -> None:
         raise DataError(f"{source}: time has {missing.size} missing value(s) (NaT) at "
                         f"position(s) {missing[:10].tolist()}; drop those snapshots or fix "
                         "their times")
+
+
+#: The first and last dates ``datetime64[ns]`` holds (as printed in messages).
+NS_RANGE = ("1677-09-21", "2262-04-11")
+
+
+def datetime_ns(value: Any, name: str = "time", *, label: str | None = None) -> np.datetime64:
+    """``value`` (a string, datetime, cftime date or ``pandas.Timestamp``) as
+    ``datetime64[ns]``.
+
+    DataError when the date is outside the type's range (``NS_RANGE``) instead of wrapping
+    around, naming ``label`` (default ``"{name} {value}"``); ValueError/TypeError as
+    ``pandas.Timestamp`` raises them for a text that is no date.
+    """
+    import pandas as pd
+
+    ts = pd.Timestamp(str(value) if hasattr(value, "calendar") else value)
+    if ts is pd.NaT:
+        raise ValueError("NaT")
+    if ts.tzinfo:
+        ts = ts.tz_localize(None)
+    if not pd.Timestamp.min <= ts <= pd.Timestamp.max:
+        what = label or f"{name} {value}"
+        raise DataError(f"{what} is outside the dates a datetime64[ns] time coordinate can "
+                        f"hold: {NS_RANGE[0]} to {NS_RANGE[1]}")
+    return ts.as_unit("ns").to_datetime64()
 
 
 def _umask() -> int:

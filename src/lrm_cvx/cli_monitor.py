@@ -109,8 +109,11 @@ def _init_locked(args: argparse.Namespace, out: Path) -> int:
           and getattr(model, "selection_", None) is None):  # auto may choose memoryless
         raise _usage(f"model {args.model} has no dynamics: pass --temporal ar1 (or seasonal) "
                      "to estimate them from the model, or --memoryless")
-    state = MonitorState.from_model(model, time=args.time, dynamics=dynamics,
-                                    memoryless=True if args.memoryless else None)
+    memoryless = True if args.memoryless else None
+    state = MonitorState.from_model(model, dynamics=dynamics, memoryless=memoryless)
+    if args.time is not None:  # --time in the record's calendar, named in its errors
+        state = MonitorState.from_model(model, time=state.as_time(args.time, "--time"),
+                                        dynamics=dynamics, memoryless=memoryless)
     state.model_path = os.path.abspath(args.model)
     _save_state(state, out)
     kind = "memoryless" if state.memoryless else state.dynamics.kind
@@ -125,6 +128,7 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
     guard_paths([args.output], [args.state, *mask_files(args)], args)
     with _state_lock(args.state):  # the plan is stored in the state: read, plan, write back
         state = _load_state(args.state)
+        _parse_time_option(state, args)
         out = _guard_state_outputs(args.output, state, args)
         plan, t = _plan_day(state, args, start, budget, path)
         print(f"plan for {_label(t)}: {describe_plan(plan)}")
@@ -174,8 +178,7 @@ def cmd_monitor_replan(args: argparse.Namespace) -> int:
             raise _usage(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
                          "first")
         out = None if args.output is None else _guard_state_outputs(args.output, state, args)
-        if args.time is not None and state.time_after(args.time, "--time") != \
-                state.time_after(t):
+        if args.time is not None and not state.same_snapshot(args.time, t, "--time"):
             raise _usage(f"--time {args.time} is not the time of the stored plan "
                          f"({_label(t)}): observations for a different day cannot replan it")
         if state.time_after(t) < 0:
@@ -233,8 +236,9 @@ def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
         sensor = _assimilate_sensor(args, state)
         obs = _read_observations(args.observations, state.model.region_, args.var)
         before = state.n_dropped
+        t, notes = _observation_time(state, args)
         if sensor.is_point:
-            state.assimilate(obs, args.time, force=args.force)
+            state.assimilate(obs, t, force=args.force)
         else:  # each value is the footprint's average around its cell (issue #25 item 6)
             from .planning.sensors import footprint_matrix
 
@@ -243,9 +247,10 @@ def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
                              "(value and cell or lat, lon), not a NetCDF map")
             cells, values = obs
             rows = footprint_matrix(state.model.region_, sensor, cells)
-            state.assimilate_rows(rows, values, args.time, force=args.force,
+            state.assimilate_rows(rows, values, t, force=args.force,
                                   errors=sensor.errors)
         _save_state(state, args.state)
+    _print_notes(notes)
     p = state.posterior
     n_today = int(p.cells.size) + (0 if p.rows is None else int(p.rows.shape[0]))
     dropped = state.n_dropped - before
@@ -280,6 +285,7 @@ def cmd_monitor_map(args: argparse.Namespace) -> int:
     guard_paths([args.output], [args.state], args)
     state = _load_state(args.state)
     out = _guard_state_outputs(args.output, state, args)
+    _parse_time_option(state, args)
     ds = state.forecast(args.time) if args.forecast else state.predict()
     what = "forecast" if args.forecast else "posterior"
     if suffix == ".nc":
@@ -314,6 +320,33 @@ def cmd_monitor_map(args: argparse.Namespace) -> int:
         plt.close(fig)
     print(f"{what} map at {_label(ds['time'].values)} written to {out}")
     return 0
+
+
+def _parse_time_option(state: Any, args: argparse.Namespace) -> None:
+    """``args.time`` read in the record's calendar (errors name ``--time``)."""
+    if args.time is not None:
+        args.time = state.as_time(args.time, "--time")
+
+
+def _observation_time(state: Any, args: argparse.Namespace) -> tuple[Any, list[str]]:
+    """``(time, notes)``: the time ``monitor assimilate`` folds the observations in at
+    (``--time``, or the stored plan's time, or the state's own, when ``--time`` lies in its
+    period: its calendar month for a monthly record) and the lines to print once done: that
+    move, and with ``--force`` what a move other than one step onto the record's next stamp
+    does."""
+    t = state.observation_time(args.time, "--time")
+    notes = []
+    if state.time_after(t) != state.time_after(args.time, "--time"):
+        notes.append(f"observations at {args.time} belong to the snapshot at {_label(t)} "
+                     f"({state.record_calendar.describe()} record)")
+    if args.force and (what := state.forced_move(t)) is not None:
+        notes.append(f"--force: {what}")
+    return t, notes
+
+
+def _print_notes(notes: list[str]) -> None:
+    for text in notes:
+        note(text)
 
 
 def _label(t: Any) -> str:

@@ -130,6 +130,50 @@ class MonitorState(LatentFilter):
             return t
         return self.time if not self.observed else self.next_time()
 
+    def as_time(self, time: Any, name: str = "time") -> Any:
+        """``time`` (a string, date or number) as a time of the model's record, in its
+        calendar; DataError naming ``name`` otherwise (a date the record's type cannot hold
+        included)."""
+        return self._coerce(time, name)
+
+    def same_snapshot(self, a: Any, b: Any, name: str = "time") -> bool:
+        """Whether times ``a`` and ``b`` lie in the period of one stamp of the record (its
+        calendar month for a monthly record, its day for a daily one: see
+        :class:`~lrm_cvx.glrm.calendar.RecordCalendar`). ``name`` labels a bad ``a``'s error."""
+        return self.record_calendar.same_period(self._coerce(a, name), self._coerce(b))
+
+    def observation_time(self, time: Any, name: str = "time") -> Any:
+        """The snapshot observations taken at ``time`` belong to: the stored plan's time
+        (``current_plan_time``) when ``time`` lies in its period, else the state's own time
+        when ``time`` lies in the period of the state's snapshot, else ``time``."""
+        t = self._coerce(time, name)
+        cal = self.record_calendar
+        plan_t = self.current_plan_time
+        if plan_t is not None and cal.same_period(t, plan_t):
+            return plan_t
+        if cal.same_period(t, self.time):
+            return self.time
+        return t
+
+    def forced_move(self, time: Any) -> str | None:
+        """What assimilating at ``time`` with ``force`` does when it is not the ordinary step
+        onto the record's next stamp (one line for the user), else None."""
+        t = self._coerce(time)
+        here, there = time_label(self.time), time_label(t)
+        dt = self._dt(t)
+        if dt == 0:
+            return (f"the observations are added to the snapshot at {here}, already observed "
+                    "(no step)") if self.observed else None
+        if dt < 0:
+            return (f"{there} is earlier than the state's time {here}: the filter moves one "
+                    f"step, to {there}")
+        n = self.dynamics.n_steps(self.time, t)
+        nxt = self.next_time() if self.observed else self.time
+        if n == 1 and self._dt(nxt) == dt:
+            return None
+        other = "" if self._dt(nxt) == dt else f" (the record's next stamp is {time_label(nxt)})"
+        return f"the filter moves {n} step{'s' if n > 1 else ''}, from {here} to {there}{other}"
+
     def replan(self, plan: Any, done: Any, observations: Any = None, *, time: Any = None,
                criterion: str | None = None, refine: Any = "auto",
                progress: bool = False) -> Any:

@@ -11,7 +11,6 @@ planner's prior and the state file on top.
 
 from __future__ import annotations
 
-import datetime as _dt
 import hashlib
 import re
 import weakref
@@ -112,10 +111,9 @@ def coerce_time(value: Any, kind: str, calendar: str | None, name: str = "time")
             if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
                     value, bool):
                 raise TypeError("a number is not a date")
-            ts = pd.Timestamp(str(value) if hasattr(value, "calendar") else value)
-            if ts is pd.NaT:
-                raise ValueError("NaT")
-            return np.datetime64(ts.tz_localize(None) if ts.tzinfo else ts, "ns")
+            from .._validation import datetime_ns
+
+            return datetime_ns(value, name)  # DataError outside datetime64[ns]'s range
         if kind == "cftime":
             import cftime
 
@@ -130,6 +128,8 @@ def coerce_time(value: Any, kind: str, calendar: str | None, name: str = "time")
         if not np.isfinite(v):
             raise ValueError("not finite")
         return v
+    except DataError:
+        raise
     except (TypeError, ValueError, OverflowError) as exc:
         expected = {"datetime": "a date such as '2020-03-01'",
                     "cftime": f"a date in the {calendar} calendar",
@@ -259,50 +259,24 @@ class LatentFilter:
                         "time order (pass force=True / --force to override)")
 
     def next_time(self) -> Any:
-        """The time one step after the state's (one month for monthly data). Monthly data keep
-        their own stamps: when every training snapshot of the next calendar month has the same
-        day and time of day (mid-month records: 16 Jan 12:00, 15 Feb 00:00, ...), the next time
-        takes them; otherwise the state's day and time one month on."""
-        step = self.dynamics.step
-        t = self.time
-        monthly = self._time_kind != "numeric" and 27.0 <= step <= 32.0
-        if self._time_kind == "datetime":
-            ts = pd.Timestamp(t)
-            ts = ts + (pd.DateOffset(months=1) if monthly else pd.Timedelta(days=step))
-            if monthly and (stamp := self._month_stamp(ts.month)) is not None:
-                ts = (ts.normalize().replace(day=1)
-                      + pd.Timedelta(days=stamp[0] - 1, seconds=stamp[1]))
-            return np.datetime64(ts, "ns")
-        if self._time_kind == "cftime":
-            if monthly:
-                y, m = divmod(t.month, 12)
-                stamp = self._month_stamp(m + 1)
-                if stamp is not None:
-                    first = t.replace(year=t.year + y, month=m + 1, day=1, hour=0, minute=0,
-                                      second=0, microsecond=0)
-                    return first + _dt.timedelta(days=stamp[0] - 1, seconds=stamp[1])
-                try:
-                    return t.replace(year=t.year + y, month=m + 1)
-                except ValueError:
-                    return t.replace(year=t.year + y, month=m + 1, day=28)
-            return t + _dt.timedelta(days=step)
-        return float(t) + step
+        """The record's next stamp after the state's time: one step of the record's cadence,
+        with the record's own day-of-month (or fraction of the month, or day-of-year)
+        convention (:class:`lrm_cvx.glrm.calendar.RecordCalendar`): monthly on the 15th ->
+        the 15th of the next month, CF mid-month stamps -> the next month's mid-month stamp,
+        daily -> the next day."""
+        return self.record_calendar.next_stamp(self.time)
 
-    def _month_stamp(self, month: int) -> tuple[int, int] | None:
-        """``(day, seconds into the day)`` shared by every training time in calendar
-        ``month``, or None (no such time, or they differ)."""
-        stamps = set()
-        for v in np.asarray(_model_times(self.model)).ravel():
-            if isinstance(v, np.datetime64):
-                ts = pd.Timestamp(v)
-            elif hasattr(v, "calendar"):
-                ts = v
-            else:
-                return None
-            if ts.month == month:
-                stamps.add((int(ts.day), int(ts.hour) * 3600 + int(ts.minute) * 60
-                            + int(ts.second)))
-        return stamps.pop() if len(stamps) == 1 else None
+    @property
+    def record_calendar(self) -> Any:
+        """The :class:`~lrm_cvx.glrm.calendar.RecordCalendar` of the model's training times."""
+        from .calendar import RecordCalendar
+
+        cached = getattr(self, "_record_calendar", None)
+        if cached is None or cached[0] is not self.model:
+            cached = (self.model, RecordCalendar.of(_model_times(self.model),
+                                                    self.dynamics.step))
+            self._record_calendar = cached
+        return cached[1]
 
     def _propagated(self, t: Any) -> LatentPosterior:
         """The belief about the snapshot at ``t`` before its observations."""

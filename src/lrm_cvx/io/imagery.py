@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from .._validation import atomic_output, check_positive
+from .._validation import atomic_output, check_positive, datetime_ns
 from ..errors import DataError, RegionError
 from ..region import check_bbox
 
@@ -156,9 +156,10 @@ def _parse_time(path: Path) -> np.datetime64:
     y, m, d, hh, mm, ss = match.groups()
     text = f"{y}-{m}-{d}" + (f"T{hh}:{mm}:{ss}" if hh is not None else "T00:00:00")
     try:
-        return np.datetime64(pd.Timestamp(text).to_datetime64(), "ns")
+        stamp = pd.Timestamp(text)
     except (ValueError, OverflowError):
         raise DataError(f"invalid date {match.group(0)!r} in the file name {path}") from None
+    return datetime_ns(stamp, label=f"the date {match.group(0)!r} in the file name {path}")
 
 
 def _times(files: list[Path], times: Any) -> np.ndarray:
@@ -169,9 +170,12 @@ def _times(files: list[Path], times: Any) -> np.ndarray:
     if len(times) != len(files):
         raise DataError(f"times has {len(times)} dates but there are {len(files)} images")
     try:
-        values = pd.to_datetime(list(times)).values.astype("datetime64[ns]")
+        stamps = pd.to_datetime(list(times))
     except (TypeError, ValueError, OverflowError) as exc:
         raise DataError(f"times must be dates: {exc}") from None
+    for i in np.flatnonzero((stamps < pd.Timestamp.min) | (stamps > pd.Timestamp.max))[:1]:
+        datetime_ns(stamps[i], label=f"times[{i}] = {stamps[i]}")  # refused, not wrapped
+    values = stamps.values.astype("datetime64[ns]")
     if np.isnat(values).any():
         raise DataError(f"times has a missing date (NaT) at index {int(np.isnat(values).argmax())}")
     return values

@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from .._validation import atomic_output
+from .._validation import atomic_output, datetime_ns
 from ..errors import DataError
 from ..region import check_bbox, check_coords, geographic_order, lon_in_box
 
@@ -97,6 +97,7 @@ def parse_cdr_name(path: str | os.PathLike) -> dict[str, Any]:
         date = pd.Timestamp(m["date"])
     except ValueError:
         raise DataError(f"{name!r}: {m['date']} is not a valid date") from None
+    datetime_ns(date, label=f"{name!r}: the date {m['date']}")  # refused, not wrapped
     return {"product": m["product"], "platform": m["platform"], "date": date}
 
 
