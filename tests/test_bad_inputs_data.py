@@ -474,3 +474,35 @@ def test_a_bad_timeout_variable_is_named(monkeypatch):
     monkeypatch.setenv("LRM_CVX_READ_TIMEOUT", "soon")
     with pytest.raises(DataError, match="LRM_CVX_READ_TIMEOUT must be a number of seconds"):
         open_data("http://127.0.0.1:9/data.nc")
+
+
+@pytest.mark.parametrize("kind", ["fifo", "loop"])
+def test_a_fifo_or_symlink_loop_as_data_is_refused(tmp_path, kind):
+    import os
+
+    path = tmp_path / "d.nc"
+    if kind == "fifo":
+        os.mkfifo(path)  # reading it would wait for a writer forever
+    else:
+        path.symlink_to(path)
+    needle = "is not a regular file" if kind == "fifo" else "is a symlink loop"
+    with pytest.raises(DataError, match=f"data file {path} {needle}"):
+        open_data(path)
+    with pytest.raises(DataError, match=needle):
+        open_data([write(tmp_path, field(), "ok.nc"), path])
+
+
+def test_values_beyond_float32_are_named_not_called_missing(tmp_path, untouched):
+    da = field().astype(np.float64)
+    da[1, 1, 2] = 3e38  # still a float32: read as it is
+    fits = write(tmp_path, da, "ok.nc")
+    da[1, 1, 2] = 1e301
+    path = write(tmp_path, da)
+    with untouched():
+        np.testing.assert_allclose(open_data(fits).values[1, 1, 2], 3e38, rtol=1e-6)
+        with pytest.raises(DataError) as exc:
+            open_data(path)
+    text = str(exc.value)
+    assert "all NaN" not in text and "\n" not in text
+    assert "1 value(s) up to 1e+301" in text and "beyond float32" in text
+    assert "rescale the data" in text
