@@ -11,6 +11,9 @@ bbox, then load, so only the HDF5 chunks covering the bbox (plus the file's meta
   (Apache, nginx autoindex, NOAA's NCEI, Python's ``http.server``); otherwise give explicit URLs.
 - :func:`read_remote`: ``func(xr.Dataset)`` on one opened URL with bounded retries and one
   :class:`~lrm_cvx.errors.DataError` naming the URL (and the HTTP status) on failure.
+- :func:`timeouts`: how long an HTTP request may take in all and without a byte
+  (``$LRM_CVX_TIMEOUT``, ``$LRM_CVX_READ_TIMEOUT``): a server that never answers is an error
+  within about a minute.
 
 Cache: ``cache="~/.cache/lrm-cvx"`` wraps the filesystem in fsspec's ``blockcache``
 (``CachingFileSystem``): a sparse local copy of each file that holds only the blocks read so
@@ -42,9 +45,12 @@ __all__ = [
     "expand_urls",
     "remote_filesystem",
     "read_remote",
+    "timeouts",
     "BLOCK_SIZE",
     "RETRIES",
     "BACKOFF",
+    "TIMEOUT",
+    "READ_TIMEOUT",
 ]
 
 T = TypeVar("T")
