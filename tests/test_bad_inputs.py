@@ -1058,3 +1058,160 @@ def test_a_date_outside_datetime64_ns_is_refused_not_wrapped(run, files, tmp_pat
     code, _, err = run(argv)
     assert code == 2
     one_line_error(err, argv[0], needle, "1677-09-21 to 2262-04-11")
+
+
+# ------------------------------------------- model and state files are untrusted input
+def _restate(state: Path, out: Path, **attrs) -> Path:
+    """A copy of the state file ``state`` at ``out`` with ``attrs`` changed."""
+    with xr.open_dataset(state) as f:
+        ds = f.load()
+    ds.attrs.update(attrs)
+    ds.to_netcdf(out)
+    return out
+
+
+def test_a_model_or_state_with_an_external_link_is_refused(run, files, tmp_path):
+    import shutil
+
+    h5py = pytest.importorskip("h5py")
+    secret = tmp_path / "secret.h5"
+    with h5py.File(secret, "w") as f:
+        f["data"] = np.arange(4.0)
+    model = tmp_path / "model.nc"
+    shutil.copy(files["model"], model)
+    with h5py.File(model, "a") as f:
+        f["leak"] = h5py.ExternalLink(str(secret), "/data")
+    code, out, err = run(["plan", str(model), "--start", "-24,-70", "--budget", "3", "-o",
+                          str(tmp_path / "p.csv")])
+    assert code == 2 and out == ""
+    one_line_error(err, "plan", "model file", "model.nc", "external link 'leak'", "secret.h5")
+    assert not (tmp_path / "p.csv").exists()
+    state = _state(run, tmp_path)
+    with h5py.File(state, "a") as f:
+        f["leak"] = h5py.ExternalLink(str(secret), "/data")
+    code, _, err = run(["monitor", "map", str(state), "-o", str(tmp_path / "m.png")])
+    assert code == 2
+    one_line_error(err, "monitor", "state file", "state.nc", "external link 'leak'")
+
+
+def test_a_state_whose_model_is_a_url_contacts_no_server(run, tmp_path):
+    import socket
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    server.settimeout(0.2)
+    url = f"http://127.0.0.1:{server.getsockname()[1]}/model.nc"
+    state = _restate(_state(run, tmp_path), tmp_path / "url.nc", model_path=url)
+    try:
+        code, _, err = run(["monitor", "map", str(state), "-o", str(tmp_path / "m.png")])
+        with pytest.raises(TimeoutError):  # nobody knocked
+            server.accept()
+    finally:
+        server.close()
+    assert code == 2
+    one_line_error(err, "monitor", "url.nc", "records its model as the URL", url)
+
+
+def test_a_state_relative_model_path_is_taken_from_the_state_folder(run, files, tmp_path):
+    import shutil
+
+    folder = tmp_path / "campaign"
+    folder.mkdir()
+    shutil.copy(files["model"], folder / "model.nc")
+    state = _restate(_state(run, tmp_path), folder / "state.nc", model_path="model.nc")
+    assert not (files["root"] / "model.nc").exists()  # run() works in another folder
+    code, out, err = run(["monitor", "map", str(state), "-o", str(tmp_path / "m.png")])
+    assert code == 0, err
+    assert (tmp_path / "m.png").stat().st_size > 0
+
+
+def test_a_fifo_as_the_state_model_or_the_observations_is_refused(run, tmp_path):
+    fifo = tmp_path / "fifo.nc"
+    os.mkfifo(fifo)  # opening it would wait for a writer forever
+    state = _state(run, tmp_path)
+    bad = _restate(state, tmp_path / "s.nc", model_path=str(fifo))
+    code, _, err = run(["monitor", "map", str(bad), "-o", str(tmp_path / "m.png")])
+    assert code == 2
+    one_line_error(err, "monitor", "fifo.nc", "not a regular file")
+    fifo_csv = tmp_path / "obs.csv"
+    os.mkfifo(fifo_csv)
+    code, _, err = run(["monitor", "assimilate", str(state), str(fifo_csv), "--time",
+                        "2001-03-01"])
+    assert code == 2
+    one_line_error(err, "monitor", "obs.csv", "not a regular file")
+
+
+# ---------------------------------------------------------------------- symbolic links
+def _obs_csv(path: Path, value: float) -> Path:
+    pd.DataFrame({"lat": [-24.0, -28.0], "lon": [-70.0, -76.0],
+                  "value": [value, -value]}).to_csv(path, index=False)
+    return path
+
+
+def test_assimilate_through_a_symlink_updates_the_real_state(run, tmp_path):
+    from lrm_cvx.monitor import MonitorState
+
+    real = _state(run, tmp_path, "{plain}")
+    n0 = MonitorState.load(real).n_assimilated
+    link = tmp_path / "link.nc"
+    link.symlink_to(real)
+    code, _, err = run(["monitor", "assimilate", str(link), str(_obs_csv(tmp_path / "a.csv",
+                                                                         0.3)),
+                        "--time", "2001-03-01"])
+    assert code == 0, err
+    assert link.is_symlink() and os.readlink(link) == str(real)
+    assert MonitorState.load(real).n_assimilated == n0 + 2
+    code, _, err = run(["monitor", "assimilate", str(real), str(_obs_csv(tmp_path / "b.csv",
+                                                                         0.5)),
+                        "--time", "2001-04-01"])
+    assert code == 0, err
+    assert MonitorState.load(link).n_assimilated == n0 + 4  # both updates, none lost
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_a_link_and_its_target_take_the_same_lock(tmp_path):
+    from lrm_cvx._validation import file_lock
+
+    real = tmp_path / "state.nc"
+    real.write_text("x")
+    link = tmp_path / "link.nc"
+    link.symlink_to(real)
+    with file_lock(real):
+        with pytest.raises(TimeoutError, match="link.nc is being updated"):
+            with file_lock(link, timeout=0.2):
+                pass
+    with file_lock(link):  # released: taken at once
+        pass
+
+
+def test_fit_onto_a_symlink_keeps_the_link(run, tmp_path):
+    real = tmp_path / "models" / "m.nc"
+    real.parent.mkdir()
+    real.write_text("old")
+    link = tmp_path / "current.nc"
+    link.symlink_to(real)
+    code, _, err = run(["fit", "{a}", "--rank", "2", "-o", str(link), "--overwrite"])
+    assert code == 0, err
+    assert link.is_symlink() and os.readlink(link) == str(real)
+    assert GLRM.load(real).rank == 2
+    assert leftovers(tmp_path) == [] and leftovers(real.parent) == []
+
+
+@pytest.mark.parametrize("where", ["output", "data", "model"])
+def test_a_symlink_loop_is_named(run, tmp_path, where):
+    loop = tmp_path / "loop.nc"
+    loop.symlink_to(loop)
+    argv = {"output": ["fit", "{a}", "--rank", "2", "-o", str(loop)],
+            "data": ["fit", str(loop), "--rank", "2", "-o", str(tmp_path / "m.nc")],
+            "model": ["predict", str(loop), "--observations", "{obs}", "-o",
+                      str(tmp_path / "p.nc")]}[where]
+    code, _, err = run(argv)
+    assert code == 2
+    one_line_error(err, argv[0], "loop.nc is a symlink loop")
+
+
+def test_place_onto_its_own_input_says_so(run, files):
+    code, _, err = run(["place", "{model}", "--sensors", "3", "-o", "{model}", "--overwrite"])
+    assert code == 2
+    one_line_error(err, "place", "refusing to overwrite the input file", "model.nc")

@@ -435,3 +435,102 @@ def test_nat_time_is_refused_by_open_data_and_fit(tmp_path):
         open_data(tmp_path / "nat.nc")
     with pytest.raises(DataError, match="NaT"):  # a plain fit never carries NaT into X_.time
         GLRM(2, progress=False).fit(da)
+
+
+# ------------------------------------------------------------- hangs and unclear failures
+@contextlib.contextmanager
+def _unhelpful_server(kind: str):
+    """A server on 127.0.0.1 that accepts connections and then never answers (``silent``) or
+    answers with a status line and headers, then one byte of the body now and then
+    (``trickle``); yields its URL."""
+    import socket
+    import threading
+
+    stop = threading.Event()
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(8)
+    sock.settimeout(0.05)
+    conns = []
+
+    def serve():
+        while not stop.is_set():
+            with contextlib.suppress(OSError):
+                conn, _ = sock.accept()
+                conns.append(conn)
+                if kind == "trickle":
+                    conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Length: 100000\r\n"
+                                 b"Accept-Ranges: bytes\r\n\r\n")
+            if kind == "trickle":
+                for conn in conns:
+                    with contextlib.suppress(OSError):
+                        conn.send(b"\x89")
+                stop.wait(0.1)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{sock.getsockname()[1]}/data.nc"
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        for conn in conns:
+            conn.close()
+        sock.close()
+
+
+@pytest.mark.parametrize("kind", ["silent", "trickle"])
+def test_a_server_that_never_answers_times_out_with_one_line(monkeypatch, kind):
+    import time
+
+    pytest.importorskip("aiohttp")
+    pytest.importorskip("fsspec")
+    monkeypatch.setenv("LRM_CVX_TIMEOUT", "1.5")
+    monkeypatch.setenv("LRM_CVX_READ_TIMEOUT", "0.5")
+    with _unhelpful_server(kind) as url:
+        start = time.monotonic()
+        with pytest.raises(DataError) as exc:
+            open_data(url)
+        took = time.monotonic() - start
+    text = str(exc.value)
+    assert "\n" not in text and text.startswith(f"cannot read {url}: timed out"), text
+    assert "LRM_CVX_TIMEOUT" in text
+    assert took < 6, took  # one timeout, a retry within LRM_CVX_TIMEOUT, never minutes
+
+
+def test_a_bad_timeout_variable_is_named(monkeypatch):
+    monkeypatch.setenv("LRM_CVX_READ_TIMEOUT", "soon")
+    with pytest.raises(DataError, match="LRM_CVX_READ_TIMEOUT must be a number of seconds"):
+        open_data("http://127.0.0.1:9/data.nc")
+
+
+@pytest.mark.parametrize("kind", ["fifo", "loop"])
+def test_a_fifo_or_symlink_loop_as_data_is_refused(tmp_path, kind):
+    import os
+
+    path = tmp_path / "d.nc"
+    if kind == "fifo":
+        os.mkfifo(path)  # reading it would wait for a writer forever
+    else:
+        path.symlink_to(path)
+    needle = "is not a regular file" if kind == "fifo" else "is a symlink loop"
+    with pytest.raises(DataError, match=f"data file {path} {needle}"):
+        open_data(path)
+    with pytest.raises(DataError, match=needle):
+        open_data([write(tmp_path, field(), "ok.nc"), path])
+
+
+def test_values_beyond_float32_are_named_not_called_missing(tmp_path, untouched):
+    da = field().astype(np.float64)
+    da[1, 1, 2] = 3e38  # still a float32: read as it is
+    fits = write(tmp_path, da, "ok.nc")
+    da[1, 1, 2] = 1e301
+    path = write(tmp_path, da)
+    with untouched():
+        np.testing.assert_allclose(open_data(fits).values[1, 1, 2], 3e38, rtol=1e-6)
+        with pytest.raises(DataError) as exc:
+            open_data(path)
+    text = str(exc.value)
+    assert "all NaN" not in text and "\n" not in text
+    assert "1 value(s) up to 1e+301" in text and "beyond float32" in text
+    assert "rescale the data" in text

@@ -6,6 +6,7 @@ reference; file inputs are checksummed before and after (``inputs_unchanged``).
 
 from __future__ import annotations
 
+import os
 import warnings
 
 import numpy as np
@@ -522,3 +523,146 @@ def test_cells_with_at_most_rank_values_warn_unless_y_is_penalised():
         GLRM(rank=2, max_iter=2, progress=False, random_state=0).fit(
             da.from_array(D, chunks=(4, -1)))
     assert any(w.filename == __file__ for w in rec if "observed values" in str(w.message))
+
+
+# --------------------------------------------------------------- model files are untrusted input
+def _swap_dataset(path, name, **create):
+    """Replace the variable ``name`` of the HDF5 file ``path`` by a dataset made with
+    ``create`` (``external=...`` or ``layout=...``), keeping its attributes and dimensions, so
+    netCDF readers take it for the original variable."""
+    h5py = pytest.importorskip("h5py")
+    with h5py.File(path, "r+") as h:
+        old = h[name]
+        shape, dtype = old.shape, old.dtype
+        attrs = {k: v for k, v in old.attrs.items()
+                 if k not in ("DIMENSION_LIST", "_Netcdf4Dimid")}
+        scales = [old.dims[i][0].name for i in range(old.ndim)]
+        for i, scale in enumerate(scales):
+            old.dims[i].detach_scale(h[scale])
+        del h[name]
+        if "layout" in create:
+            new = h.create_virtual_dataset(name, create["layout"])
+        else:
+            new = h.create_dataset(name, shape=shape, dtype=dtype, external=create["external"])
+        for k, v in attrs.items():
+            new.attrs[k] = v
+        for i, scale in enumerate(scales):
+            new.dims[i].attach_scale(h[scale])
+    return shape
+
+
+def _secret(tmp_path, n):
+    """A file outside the model ("the password file") whose bytes are recognisable floats."""
+    path = tmp_path / "secret.bin"
+    np.arange(n, dtype="<f8").tofile(path)
+    return path
+
+
+def _one_line_refusal(exc_info, path, *needles):
+    text = str(exc_info.value)
+    assert "\n" not in text and repr(str(path)) in text, text
+    for needle in needles:
+        assert needle in text, (needle, text)
+
+
+def test_load_refuses_external_storage(saved, tmp_path, inputs_unchanged):
+    import shutil
+
+    bad = tmp_path / "external.nc"
+    shutil.copy(saved[0], bad)
+    n = int(np.prod(saved[1]["Y"].shape))
+    secret = _secret(tmp_path, n)
+    _swap_dataset(bad, "Y", external=[(str(secret), 0, 8 * n)])
+    with xr.open_dataset(bad) as f:  # the crafted file reads the other file's bytes as Y
+        np.testing.assert_array_equal(f["Y"].values.ravel(), np.arange(n))
+    inputs_unchanged.watch(bad, secret)
+    with pytest.raises(DataError) as exc:
+        GLRM.load(bad)
+    _one_line_refusal(exc, bad, "variable 'Y' uses external storage", str(secret))
+
+
+def test_load_refuses_a_virtual_dataset(saved, tmp_path, inputs_unchanged):
+    import shutil
+
+    h5py = pytest.importorskip("h5py")
+    shape = saved[1]["Y"].shape
+    source = tmp_path / "source.h5"
+    with h5py.File(source, "w") as f:
+        f["data"] = np.arange(np.prod(shape), dtype=np.float64).reshape(shape)
+    layout = h5py.VirtualLayout(shape=shape, dtype="f8")
+    layout[:] = h5py.VirtualSource(str(source), "data", shape=shape)
+    bad = tmp_path / "virtual.nc"
+    shutil.copy(saved[0], bad)
+    _swap_dataset(bad, "Y", layout=layout)
+    with xr.open_dataset(bad) as f:
+        assert f["Y"].values[0, 1] == 1.0  # read from the other file
+    inputs_unchanged.watch(bad, source)
+    with pytest.raises(DataError) as exc:
+        GLRM.load(bad)
+    _one_line_refusal(exc, bad, "variable 'Y' is a virtual dataset", str(source))
+
+
+def test_load_refuses_an_external_link(saved, tmp_path, inputs_unchanged):
+    import shutil
+
+    h5py = pytest.importorskip("h5py")
+    source = tmp_path / "other.h5"
+    with h5py.File(source, "w") as f:
+        f.create_group("g")["v"] = np.arange(3.0)
+    bad = tmp_path / "linked.nc"
+    shutil.copy(saved[0], bad)
+    with h5py.File(bad, "r+") as f:
+        f["extra"] = h5py.ExternalLink(str(source), "/g")
+    GLRM.load(saved[0])  # the same file without the link loads
+    inputs_unchanged.watch(bad, source)
+    with pytest.raises(DataError) as exc:
+        GLRM.load(bad)
+    _one_line_refusal(exc, bad, "external link 'extra'", str(source))
+
+
+def test_load_netcdf3_model_is_not_taken_for_hdf5(saved, tmp_path, inputs_unchanged):
+    # NetCDF-3 has no external storage: a classic file loads as before
+    ds = saved[1].copy()
+    ds.encoding = {}
+    for v in ds.variables.values():
+        v.encoding = {}
+    path = tmp_path / "classic.nc"
+    ds.to_netcdf(path, format="NETCDF3_64BIT")
+    assert path.read_bytes()[:3] == b"CDF"
+    inputs_unchanged.watch(path)
+    np.testing.assert_allclose(GLRM.load(path).Y_.values, saved[1]["Y"].values)
+
+
+def test_load_refuses_non_finite_factors(saved, tmp_path, inputs_unchanged):
+    ds = saved[1].copy()
+    X = ds["X"].values.copy()
+    X[1, 3] = np.nan
+    ds["X"] = (ds["X"].dims, X)
+    bad = tmp_path / "nan.nc"
+    ds.to_netcdf(bad)
+    inputs_unchanged.watch(bad)
+    with pytest.raises(DataError, match=r"nan\.nc' has 1 non-finite value.*factor X"):
+        GLRM.load(bad)
+
+
+@pytest.mark.parametrize("attr", ["params", "region_attrs"])
+def test_load_deeply_nested_json_attribute(saved, tmp_path, inputs_unchanged, attr):
+    ds = saved[1].copy()
+    depth = 100_000
+    ds.attrs = {**ds.attrs, attr: '{"a": ' * depth + "1" + "}" * depth}
+    bad = tmp_path / "deep.nc"
+    ds.to_netcdf(bad)
+    inputs_unchanged.watch(bad)
+    with pytest.raises(DataError, match=f"'{attr}' is JSON nested too deeply"):
+        GLRM.load(bad)
+
+
+def test_load_refuses_a_fifo_and_a_symlink_loop(tmp_path):
+    fifo = tmp_path / "model.nc"
+    os.mkfifo(fifo)  # opening it would wait for a writer forever
+    with pytest.raises(DataError, match="model.nc is not a regular file"):
+        GLRM.load(fifo)
+    loop = tmp_path / "loop.nc"
+    loop.symlink_to(loop)
+    with pytest.raises(DataError, match="loop.nc is a symlink loop"):
+        GLRM.load(loop)

@@ -280,7 +280,7 @@ def test_http_dropped_connection_is_data_error_after_bounded_retries(http, globa
 def test_http_stalled_server_times_out_after_bounded_retries(http, global_files,
                                                             monkeypatch):
     path = global_files["tiled"]
-    monkeypatch.setattr("lrm_cvx.io.remote.TIMEOUT", 0.2)
+    monkeypatch.setattr("lrm_cvx.io.remote.READ_TIMEOUT", 0.2)
     http.stall = threading.Event()
     try:
         with pytest.raises(DataError, match=re.escape(url_of(http, path)) +

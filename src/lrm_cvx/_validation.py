@@ -17,9 +17,9 @@ import xarray as xr
 from .errors import DataError, ModelError
 
 __all__ = ["as_generator", "as_factor_matrix", "atomic_output", "atomic_outputs",
-           "check_flag", "check_positive", "check_target", "check_time_labels",
-           "datetime_ns", "file_lock",
-           "guard_outputs", "read_netcdf", "remove_stale_temps", "same_file"]
+           "check_flag", "check_input_file", "check_positive", "check_target",
+           "check_time_labels", "datetime_ns", "file_lock", "guard_outputs", "is_symlink_loop",
+           "read_netcdf", "remove_stale_temps", "same_file"]
 
 
 def as_generator(random_state: Any, name: str = "random_state", *,
@@ -215,11 +215,38 @@ def remove_stale_temps(path: str | os.PathLike) -> list[Path]:
     return removed
 
 
+def is_symlink_loop(path: str | os.PathLike) -> bool:
+    """True when following ``path``'s symbolic links never ends (a link to itself, or links
+    that lead to each other)."""
+    try:
+        os.stat(path)
+    except OSError as exc:
+        return exc.errno == errno.ELOOP
+    return False
+
+
+def check_input_file(path: str | os.PathLike, what: str, *,
+                     error: type[Exception] = DataError) -> None:
+    """``error`` naming ``what`` and ``path`` when ``path`` is a symlink loop or exists but is
+    neither a regular file nor a folder (a FIFO, device or socket: reading one may wait
+    forever). A missing path or a folder is left to the caller, which says what it expected."""
+    name = os.fspath(path)
+    if is_symlink_loop(path):
+        raise error(f"{what} {name} is a symlink loop (its links lead back to themselves); "
+                    "give the real file")
+    if os.path.exists(path) and not (os.path.isfile(path) or os.path.isdir(path)):
+        raise error(f"{what} {name} is not a regular file (a FIFO, device or socket); give a "
+                    "file")
+
+
 def check_target(path: str | os.PathLike) -> Path:
     """``path`` as a Path, refused (``IsADirectoryError`` / ``FileExistsError``) when it exists
-    and is not a regular file: a folder, a device node, a FIFO or a socket is never replaced by
-    an output."""
+    and is not a regular file: a folder, a device node, a FIFO, a socket or a symlink loop is
+    never replaced by an output."""
     path = Path(path)
+    if is_symlink_loop(path):
+        raise FileExistsError(f"output {path} is a symlink loop (its links lead back to "
+                              "themselves); give another file name")
     if path.is_dir():
         raise IsADirectoryError(f"output {path} is an existing folder; give a file name")
     if (path.exists() or path.is_symlink()) and not path.is_file():
@@ -262,7 +289,8 @@ def atomic_output(path: str | os.PathLike, *, overwrite: bool = True) -> Iterato
     """Yield a temporary path beside ``path``; on success move it onto ``path`` atomically.
 
     A failure leaves ``path`` untouched and removes the temporary file. With
-    ``overwrite=False`` an existing ``path`` is an error.
+    ``overwrite=False`` an existing ``path`` is an error. A symbolic link is kept: the file
+    it points to is replaced.
     """
     with atomic_outputs([path], overwrite=overwrite) as (tmp,):
         yield tmp
@@ -281,9 +309,12 @@ def atomic_outputs(
     a target that exists and is not a regular file (folder, device, FIFO) is always refused.
     A write that fails for lack of room is an ``OSError`` saying so (ENOSPC, EFBIG, EDQUOT),
     whatever the writing library reported. Temporary files that a killed earlier write left
-    beside a target are removed first (:func:`remove_stale_temps`).
+    beside a target are removed first (:func:`remove_stale_temps`). A target that is a
+    symbolic link stays one: the file it points to is written (beside that file, so the
+    rename stays atomic).
     """
     targets = [check_target(p) for p in paths]
+    targets = [Path(os.path.realpath(p)) if p.is_symlink() else p for p in targets]
     for path in targets:
         if not overwrite and path.exists():
             raise FileExistsError(f"refusing to overwrite existing file {path}")
@@ -332,12 +363,14 @@ def file_lock(path: str | os.PathLike, *, timeout: float = 60.0, what: str = "fi
     a lock taken on a lock file that was removed meanwhile is dropped and taken again, so two
     holders never coexist. A process that cannot get it within ``timeout`` seconds raises
     ``TimeoutError`` naming ``what``. The kernel releases the lock when its process dies, so a
-    killed writer never leaves it held.
+    killed writer never leaves it held. The lock belongs to the real file: a symbolic link to
+    ``path`` and ``path`` itself take the same lock.
     """
     import fcntl
 
     path = Path(path)
-    lock = path.parent / f".{path.name}.lock"
+    real = Path(os.path.realpath(path))
+    lock = real.parent / f".{real.name}.lock"
     deadline = time.monotonic() + float(timeout)
     while True:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
@@ -370,7 +403,7 @@ def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     """True when ``a`` and ``b`` name the same file: equal resolved paths (symlinks, ``..``),
     or ``os.path.samefile`` (hard links) when both exist."""
     pa, pb = Path(a), Path(b)
-    if pa.resolve() == pb.resolve():
+    if os.path.realpath(pa) == os.path.realpath(pb):  # never raises on a symlink loop
         return True
     try:
         return os.path.samefile(pa, pb)
@@ -391,9 +424,14 @@ def guard_outputs(
     :func:`same_file`, so globs and folders must be expanded by the caller) or lies in an input
     folder (every file there is read as input), whatever
     ``overwrite`` says, an existing output unless ``overwrite`` (the message names ``flag``),
-    and an output that exists but is not a regular file (:func:`check_target`).
+    and an output that exists but is not a regular file (:func:`check_target`). An input or
+    output that is a symlink loop is refused naming it.
     """
     outs = [Path(p) for p in outputs]
+    for inp in inputs:
+        check_input_file(inp, "input")
+    for out in outs:
+        check_target(out)
     folders = [Path(p) for p in inputs if Path(p).is_dir()]
     for out in outs:
         for inp in inputs:
@@ -412,17 +450,63 @@ def guard_outputs(
     return outs
 
 
+def _refuse_outside_data(path: str | os.PathLike, what: str, name: str) -> None:
+    """DataError when the HDF5 file ``path`` would make a reader fetch bytes from other files:
+    a dataset with external storage (raw data in another file), a virtual dataset (mapped
+    from other files) or an external link. A NetCDF-3 file (not HDF5) has none of these."""
+    import h5py
+
+    if not h5py.is_hdf5(path):
+        return
+    why = "is untrusted input and must hold all its data itself"
+    try:
+        with h5py.File(path, "r") as f:
+            links: list[str] = []
+            f.visititems_links(lambda key, link: links.append(
+                f"an external link {key!r} to {link.filename}:{link.path}")
+                if isinstance(link, h5py.ExternalLink) else None)
+            if links:  # before any object is visited: an external link is never followed
+                raise DataError(f"{what} {name} is refused: it has {links[0]} (a {what} "
+                                f"{why})")
+
+            def check(key: str, obj: Any) -> None:
+                if not isinstance(obj, h5py.Dataset):
+                    return
+                if obj.is_virtual:
+                    sources = sorted({m.file_name for m in obj.virtual_sources()})
+                    raise DataError(f"{what} {name} is refused: variable {key!r} is a virtual "
+                                    f"dataset mapped from {', '.join(sources)} (a {what} {why})")
+                if obj.external:
+                    files = sorted({os.fsdecode(e[0]) for e in obj.external})
+                    raise DataError(f"{what} {name} is refused: variable {key!r} uses external "
+                                    f"storage in {', '.join(files)} (a {what} {why})")
+
+            f.visititems(check)
+    except DataError:
+        raise
+    except Exception as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"{what} {name} is not a readable NetCDF file (corrupt or truncated?): "
+                        f"{first}") from exc
+
+
 def read_netcdf(path: str | os.PathLike, what: str, writer: str) -> xr.Dataset:
     """Load a whole NetCDF file written by ``writer`` (e.g. ``"GLRM.save"``) into memory.
 
     A folder, an empty, missing, truncated or corrupt file is a :class:`DataError` naming
-    ``what`` (e.g. ``"model file"``) and the path; the file is only read, never changed.
+    ``what`` (e.g. ``"model file"``) and the path; so is a symlink loop, a FIFO, device or
+    socket (never opened: reading one may wait forever) and an HDF5 file that would pull data
+    from other files (external storage, virtual datasets, external links): the file is
+    untrusted input. The file is only read, never changed.
     """
     name = repr(os.fspath(path))
+    check_input_file(path, what)
     if os.path.isdir(path):
         raise DataError(f"{what} {name} is a folder, expected a file written by {writer}")
     if os.path.isfile(path) and os.path.getsize(path) == 0:
         raise DataError(f"{what} {name} is empty (0 bytes)")
+    if os.path.isfile(path):
+        _refuse_outside_data(path, what, name)
     try:
         with xr.open_dataset(path) as f:
             return f.load()

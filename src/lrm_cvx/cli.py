@@ -402,8 +402,9 @@ def cmd_place(args: argparse.Namespace) -> int:
 
     out = None
     if args.output:
-        check_plan_output(args.output, SENSOR_SUFFIXES)
         ins = [args.model, *mask_files(args), *(_input_files(args.data) if args.data else [])]
+        guard_outputs([args.output], ins, overwrite=True)  # onto an input: said before the suffix
+        check_plan_output(args.output, SENSOR_SUFFIXES)
         (out,) = guard_paths([args.output], ins, args)
     if args.paper:
         if args.criterion not in (None, "fisher") or args.exchange or args.data:

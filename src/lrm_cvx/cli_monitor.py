@@ -203,6 +203,9 @@ def cmd_monitor_replan(args: argparse.Namespace) -> int:
 def _read_observations(path: str, region: Any, var: str | None) -> Any:
     """``(cells, values)`` from a CSV (``value`` + ``cell`` or ``lat``, ``lon``), or a
     ``(lat, lon)`` DataArray from a NetCDF file (NaN where not observed)."""
+    from ._validation import check_input_file
+
+    check_input_file(path, "observations file")  # a FIFO would be waited on forever
     p = Path(path)
     if not p.exists():
         raise _usage(f"observations file {path} does not exist")

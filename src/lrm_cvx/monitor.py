@@ -335,8 +335,9 @@ class MonitorState(LatentFilter):
     @classmethod
     def load(cls, path: str | os.PathLike, model: Any = None) -> MonitorState:
         """Read a state written by :meth:`save`. ``model`` (default: the model file recorded in
-        the state, ``model_path``) must be the model the state was started from (same
-        fingerprint), else ModelError; a missing, corrupt or truncated file is a DataError."""
+        the state, ``model_path``; a relative one is taken from the state file's folder, a URL
+        is refused) must be the model the state was started from (same fingerprint), else
+        ModelError; a missing, corrupt or truncated file is a DataError."""
         spath = os.fspath(path)
         ds = read_netcdf(path, "state file", "MonitorState.save")
         need = ("precision", "shift", "base_precision", "base_shift", "cells", "values")
@@ -346,6 +347,7 @@ class MonitorState(LatentFilter):
             mpath = ds.attrs.get("model_path", "")
             if not mpath:
                 raise ModelError(f"state file {spath!r} records no model file; pass the model")
+            mpath = _recorded_model_path(spath, str(mpath))
             from .glrm import GLRM
 
             model = GLRM.load(mpath)
@@ -407,6 +409,18 @@ class MonitorState(LatentFilter):
         return (f"MonitorState(time={time_label(self.time)}, observed={self.observed}, "
                 f"dynamics={'memoryless' if self.memoryless else self.dynamics.kind}, "
                 f"n_obs_today={self.posterior.cells.size}, n_assimilated={self.n_assimilated})")
+
+
+def _recorded_model_path(spath: str, mpath: str) -> str:
+    """The model file a state file at ``spath`` records as ``mpath``: a relative path is
+    resolved against the state file's folder (not the current one); a URL is a DataError (a
+    state file is untrusted input: it must not make the command contact a server)."""
+    if "://" in mpath:
+        raise DataError(f"state file {spath!r} records its model as the URL {mpath!r}; a "
+                        "state's model must be a local file: pass the model file")
+    if not os.path.isabs(mpath):
+        mpath = os.path.join(os.path.dirname(os.path.abspath(spath)), mpath)
+    return mpath
 
 
 def _saved_rows(ds: xr.Dataset, n_cells: int) -> tuple:

@@ -148,16 +148,29 @@ def read_model_file(path: str | os.PathLike) -> tuple[xr.Dataset, dict]:
         raise DataError(f"model file {name} has inconsistent factors: X {X.dims} {X.shape}, "
                         f"Y {Y.dims} {Y.shape} (expected (component, {tdim}) and "
                         "(component, cell) with the same number of components)")
+    for key, factor in (("X", X), ("Y", Y)):
+        if not np.issubdtype(factor.dtype, np.number):
+            raise DataError(f"model file {name}: the factor {key} holds {factor.dtype} values, "
+                            "expected numbers")
+        bad = int(np.count_nonzero(~np.isfinite(np.asarray(factor.values, dtype=np.float64))))
+        if bad:
+            raise DataError(f"model file {name} has {bad} non-finite value(s) (NaN or inf) in "
+                            f"the factor {key}; a fitted model's factors are finite: refit it")
     if tdim not in ds.variables:
         raise DataError(f"model file {name} is missing the variable {tdim!r} (the time "
                         "coordinate)")
+    key = "params"
     try:
         params = json.loads(ds.attrs["params"])
+        key = "region_attrs"
+        json.loads(ds.attrs.get("region_attrs", "{}"))
         noise = float(ds.attrs["noise_std"])
         int(ds.attrs["n_iter"]), int(ds.attrs["converged"]), int(ds.attrs["n_observed"])
-        json.loads(ds.attrs.get("region_attrs", "{}"))
     except (TypeError, ValueError) as exc:
         raise DataError(f"model file {name} has a corrupt attribute: {exc}") from None
+    except RecursionError:
+        raise DataError(f"model file {name} has a corrupt attribute: {key!r} is JSON nested "
+                        "too deeply to read") from None
     if not isinstance(params, dict):
         raise DataError(f"model file {name} has a corrupt 'params' attribute (not a mapping)")
     if not np.isfinite(noise) or noise < 0:

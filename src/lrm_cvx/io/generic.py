@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from .._validation import check_time_labels
+from .._validation import check_input_file, check_time_labels
 from ..errors import DataError
 from ..region import to_geographic_order
 
@@ -90,14 +90,17 @@ def _normalise(da: xr.DataArray, source: str, bbox: Sequence[float] | None, *,
                           UserWarning, stacklevel=3)
             da = da.sortby("time")
     da = _bbox_select(da, bbox)
+    source_da = da
     try:
-        da = da.astype(np.float32)
-        if not lazy:
-            da = da.load()
+        with np.errstate(over="ignore"):  # a value beyond float32 is reported below
+            da = da.astype(np.float32)
+            if not lazy:
+                da = da.load()
     except Exception as exc:  # netCDF4/HDF5 raise several types for truncated data
         raise DataError(f"cannot read {source}: {exc}") from None
     if lazy:
         return da
+    _refuse_float32_overflow(source_da, da, source, name)
     finite = np.isfinite(da.values).reshape(da.shape[0], -1).any(axis=1)
     if not finite.any():
         raise DataError(f"{source}: variable {name!r} has no finite value (all NaN"
@@ -110,6 +113,25 @@ def _normalise(da: xr.DataArray, source: str, bbox: Sequence[float] | None, *,
                       UserWarning, stacklevel=3)
         da = da.isel(time=np.flatnonzero(finite))
     return da
+
+
+def _refuse_float32_overflow(original: xr.DataArray, cast: xr.DataArray, source: str,
+                             name: Any) -> None:
+    """DataError when finite values of ``original`` became inf in its float32 ``cast``: data
+    are held in float32 (max 3.4e38), so such values would read as missing."""
+    if not (np.issubdtype(original.dtype, np.floating) and original.dtype.itemsize > 4):
+        return
+    if not np.isinf(cast.values).any():  # the usual case: nothing read twice
+        return
+    values = np.asarray(original.values)
+    over = np.isinf(cast.values) & np.isfinite(values)
+    if over.any():
+        top = float(np.abs(values[over]).max())
+        raise DataError(f"{source}: variable {name!r} has {int(over.sum())} value(s) up to "
+                        f"{top:.3g} in magnitude, beyond float32 (max "
+                        f"{float(np.finfo(np.float32).max):.3g}), which lrm-cvx holds data in; "
+                        "rescale the data (other units) or mask them (NaN) if they are fill "
+                        "values")
 
 
 def _choose_var(ds: xr.Dataset, var: str | None, source: str) -> xr.DataArray:
@@ -242,6 +264,8 @@ def open_data(paths: Any, *, var: str | None = None, bbox: Sequence[float] | Non
         files = sorted(folder.glob("*.nc"))
         if not files:
             raise DataError(f"folder {folder} holds no images and no NetCDF files")
+    for p in files:  # a symlink loop or a FIFO, device or socket: reading one may hang
+        check_input_file(p, "data file")
     missing = [str(p) for p in files if not p.exists()]
     if missing:
         raise DataError(f"file not found: {missing[0]}")

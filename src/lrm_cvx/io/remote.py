@@ -11,6 +11,9 @@ bbox, then load, so only the HDF5 chunks covering the bbox (plus the file's meta
   (Apache, nginx autoindex, NOAA's NCEI, Python's ``http.server``); otherwise give explicit URLs.
 - :func:`read_remote`: ``func(xr.Dataset)`` on one opened URL with bounded retries and one
   :class:`~lrm_cvx.errors.DataError` naming the URL (and the HTTP status) on failure.
+- :func:`timeouts`: how long an HTTP request may take in all and without a byte
+  (``$LRM_CVX_TIMEOUT``, ``$LRM_CVX_READ_TIMEOUT``): a server that never answers is an error
+  within about a minute.
 
 Cache: ``cache="~/.cache/lrm-cvx"`` wraps the filesystem in fsspec's ``blockcache``
 (``CachingFileSystem``): a sparse local copy of each file that holds only the blocks read so
@@ -42,9 +45,12 @@ __all__ = [
     "expand_urls",
     "remote_filesystem",
     "read_remote",
+    "timeouts",
     "BLOCK_SIZE",
     "RETRIES",
     "BACKOFF",
+    "TIMEOUT",
+    "READ_TIMEOUT",
 ]
 
 T = TypeVar("T")
@@ -57,11 +63,17 @@ RETRIES = 3
 BACKOFF = 0.5
 """Seconds before the first retry; doubled before each next one (0.5, 1, 2 s by default)."""
 TIMEOUT = 60.0
+"""HTTP: the longest one request may take, and the longest a read keeps retrying after timed
+out tries (seconds; ``$LRM_CVX_TIMEOUT`` overrides it). A server that trickles a byte now and
+then is abandoned after it. aiohttp's own default would wait up to 300 s a request."""
+READ_TIMEOUT = 30.0
 """HTTP: seconds to connect, and seconds of silence while reading, before a try is abandoned
-(a transient failure, so retried). aiohttp's own default would wait up to 300 s a request."""
+(a transient failure, so retried within :data:`TIMEOUT`); ``$LRM_CVX_READ_TIMEOUT`` overrides
+it."""
 
 _URL = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://")
 _CACHE_ENV = "LRM_CVX_CACHE"
+_TIMEOUT_ENV = {"total": "LRM_CVX_TIMEOUT", "read": "LRM_CVX_READ_TIMEOUT"}
 _AWS_CREDENTIAL_ENV = ("AWS_ACCESS_KEY_ID", "AWS_PROFILE", "AWS_WEB_IDENTITY_TOKEN_FILE",
                        "AWS_CONTAINER_CREDENTIALS_RELATIVE_URI",
                        "AWS_CONTAINER_CREDENTIALS_FULL_URI")
@@ -100,6 +112,27 @@ def cache_folder(cache: Any) -> str | None:
     return str(Path(cache).expanduser())
 
 
+def timeouts() -> tuple[float, float]:
+    """``(total, read)``: :data:`TIMEOUT` and :data:`READ_TIMEOUT`, or the seconds set in
+    ``$LRM_CVX_TIMEOUT`` and ``$LRM_CVX_READ_TIMEOUT`` (DataError naming a variable that is not
+    a number > 0)."""
+    out = []
+    for key, default in (("total", TIMEOUT), ("read", READ_TIMEOUT)):
+        text = os.environ.get(_TIMEOUT_ENV[key], "").strip()
+        if not text:
+            out.append(float(default))
+            continue
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        if not (value > 0 and value != float("inf")):
+            raise DataError(f"{_TIMEOUT_ENV[key]} must be a number of seconds > 0, got "
+                            f"{text!r}")
+        out.append(value)
+    return out[0], out[1]
+
+
 def remote_filesystem(url: str, storage_options: dict[str, Any] | None = None,
                       cache: Any = None):
     """The fsspec filesystem that reads ``url``, wrapped in a block cache when ``cache`` is set.
@@ -127,8 +160,9 @@ def remote_filesystem(url: str, storage_options: dict[str, Any] | None = None,
         if "timeout" not in client:
             import aiohttp
 
-            client["timeout"] = aiohttp.ClientTimeout(total=None, sock_connect=TIMEOUT,
-                                                      sock_read=TIMEOUT)
+            total, read = timeouts()
+            client["timeout"] = aiohttp.ClientTimeout(total=total, sock_connect=read,
+                                                      sock_read=read)
         options["client_kwargs"] = client
     try:
         fs = fsspec.filesystem(protocol, **options)
@@ -237,7 +271,12 @@ def _classify(exc: BaseException) -> tuple[bool, str]:
         transient = True
         reason = f"connection dropped while reading ({type(dropped).__name__}: {dropped})"
     elif timeout is not None:
-        transient, reason = True, f"timed out ({type(timeout).__name__}: {timeout})"
+        total, read = timeouts()
+        transient = True
+        reason = (f"timed out: the server sent nothing for {read:g} s or a request took over "
+                  f"{total:g} s ({type(timeout).__name__}{': ' if str(timeout) else ''}"
+                  f"{timeout}); set {_TIMEOUT_ENV['read']} / {_TIMEOUT_ENV['total']} (seconds)"
+                  " to wait longer")
     elif missing is not None:
         transient, reason = False, "not found (HTTP status 404)"
     else:
@@ -252,6 +291,7 @@ def _with_retries(func: Callable[[], T], url: str, retries: int | None = None,
     DataError naming ``url``."""
     retries = RETRIES if retries is None else int(retries)
     backoff = BACKOFF if backoff is None else float(backoff)
+    start = time.monotonic()
     for attempt in range(retries + 1):
         try:
             return func()
@@ -263,6 +303,9 @@ def _with_retries(func: Callable[[], T], url: str, retries: int | None = None,
         # outside the except block: the failure's traceback (its frames hold the half-opened
         # h5py file and the remote file object under it) is gone, and nothing chains to it
         _release_failed_reads()
+        if reason.startswith("timed out") and (
+                time.monotonic() - start + backoff * 2**attempt > timeouts()[0]):
+            transient = False  # timed out tries are retried within TIMEOUT s only
         if transient and attempt < retries:
             time.sleep(backoff * 2**attempt)
             continue
