@@ -1,4 +1,4 @@
-"""The monitoring filter: a Kalman filter on the latent vector of a fitted GLRM (issue 13).
+"""The monitoring filter: a Kalman filter on the latent vector of a fitted GLRM.
 
 :class:`MonitorState` carries the Gaussian belief about the current snapshot's latent vector
 (a :class:`~lrm_cvx.glrm.posterior.LatentPosterior`, the same fold-in algebra as
