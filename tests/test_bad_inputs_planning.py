@@ -216,10 +216,12 @@ def test_a_budget_that_cannot_leave_the_start_is_an_error_naming_the_nearest_cel
     assert len(greedy(budget=1.0, initial="start").cells) > 1  # one step is enough
 
 
-def test_a_fleet_names_the_robot_that_cannot_leave():
-    corner = int(REGION.cell_grid[5, 5])
+def test_a_fleet_names_every_robot_that_cannot_leave():
+    corner, edge = int(REGION.cell_grid[5, 5]), int(REGION.cell_grid[0, 3])
     with pytest.raises(PlanningError, match=r"^robot 1's budget 0\.5 grid units cannot reach"):
         greedy(start=[START, corner], budget=[3.0, 0.5], initial="start")
+    with pytest.raises(PlanningError, match=r"^robot 0's budget 0\.2 .*; robot 2's budget 0\.7"):
+        greedy(start=[START, corner, edge], budget=[0.2, 3.0, 0.7], initial="start")
 
 
 def test_forced_initial_cells_and_stay_keep_a_tiny_budget_legitimate():

@@ -23,7 +23,7 @@ __all__ = ["UsageError", "parse_floats", "check_lat", "parse_start", "finite_num
            "add_common", "add_output", "check_writable", "guard_paths", "load_model",
            "read_observations_csv", "describe_plan", "criterion_value", "write_plan",
            "PLAN_SUFFIXES",
-           "SENSOR_SUFFIXES", "check_plan_output", "add_mission_options", "add_plan_outputs",
+           "SENSOR_SUFFIXES", "check_plan_output", "add_plan_outputs",
            "plan_outputs", "write_plans", "check_robot", "FOLDER_SUFFIXES", "starts_budgets",
            "read_traversable", "path_options", "metric_choices", "add_path_options",
            "mask_files", "add_starts_budgets", "add_setting", "paper_setting", "note"]
@@ -375,18 +375,6 @@ def write_plans(plan: Any, files: Sequence[tuple[Path, int | None]],
     for path, robot in files:
         path.parent.mkdir(parents=True, exist_ok=True)
         noted = write_plan(plan, path, args, robot=robot, altitude_noted=noted) or noted
-
-
-def add_mission_options(p: argparse.ArgumentParser) -> None:
-    """``--altitude`` and ``--robot`` of the mission files (.plan, .waypoints, .gpx, .kml)."""
-    from .planning.missions import DEFAULT_ALTITUDE
-
-    p.add_argument("--altitude", type=finite_number, default=None,
-                   help="mission altitude in m above home (.plan, .waypoints; default "
-                   f"{DEFAULT_ALTITUDE:g}) or above ground (.gpx, .kml; default none)")
-    p.add_argument("--robot", type=int, default=0,
-                   help="which robot of a fleet a .plan / .waypoints mission is for "
-                   "(default 0; .gpx and .kml hold every robot)")
 
 
 def write_plan(plan: Any, out: Path, args: argparse.Namespace | None = None, *,

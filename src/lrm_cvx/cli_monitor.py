@@ -219,11 +219,12 @@ def cmd_monitor_export(args: argparse.Namespace) -> int:
                      "first")
     files = plan_outputs(args.output, plan.n_robots, args.robot)
     _guard_state_outputs([f for f, _ in files], state, args)
-    try:  # its criterion under the day's prior (a state moved past the day: its Fisher)
+    try:  # its criterion under the day's prior
         kw = state.planner_kwargs(criterion=plan.criterion, time=t)
         value = criterion_value(plan, state.model.Y, state.model.region_, kw, reuse=False)
-    except LrmError:
-        value = None
+    except LrmError:  # the state has moved past the plan's day: its cells' own Fisher
+        value = (f"Fisher information {plan.information:.4f} nats of its cells alone (the "
+                 f"state has moved on to {_label(state.time)}, past the plan's prior)")
     print(f"plan for {_label(t)} ({plan.method}): {describe_plan(plan, value)}")
     write_plans(plan, files, args)
     return 0

@@ -401,9 +401,10 @@ def plan_greedy(
 def _check_leaves(models: list[Any], P0s: list[np.ndarray], cands: list[np.ndarray],
                   is_fleet: bool) -> None:
     """PlanningError when a robot has its start alone and no candidate: its budget cannot
-    reach any cell beyond the start (the message names the cheapest route to the nearest
-    cell, in the budget's unit). A start that can reach no other cell at all is left alone (a
-    one-cell region plans its start)."""
+    reach any cell beyond the start (the message names, for every such robot, the nearest
+    cell's distance and the cheapest route to it, in the budget's unit). A start that can reach
+    no other cell at all is left alone (a one-cell region plans its start)."""
+    stuck = []
     for r, (m, P0, cand) in enumerate(zip(models, P0s, cands, strict=True)):
         if P0.size != 1 or cand.size:
             continue
@@ -419,8 +420,10 @@ def _check_leaves(models: list[Any], P0s: list[np.ndarray], cands: list[np.ndarr
                        f"{' (there and back)' if m.closed else ''}"
                        f"{' with the stop costs' if m.stop_cost else ''}")
         who = f"robot {r}'s budget" if is_fleet else "the budget"
-        raise PlanningError(f"{who} {m.budget:g} {unit} cannot reach any cell beyond its start: "
-                            f"{', '.join(how)}; give a budget of at least {need:.4g} {unit}")
+        stuck.append(f"{who} {m.budget:g} {unit} cannot reach any cell beyond its start: "
+                     f"{', '.join(how)}; give a budget of at least {need:.4g} {unit}")
+    if stuck:
+        raise PlanningError("; ".join(stuck))
 
 
 def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets, tols, fleet,
