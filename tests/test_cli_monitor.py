@@ -414,4 +414,4 @@ def test_assimilate_reports_what_the_file_added_and_names_its_argument(files, tm
 def test_init_help_says_how_the_dynamics_are_chosen(capsys):
     assert main(["monitor", "init", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
-    assert "(with --temporal)" not in text and "fitted by default" in text
+    assert "(with --temporal)" not in text and "by default, --temporal auto" in text

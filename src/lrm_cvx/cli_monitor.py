@@ -374,9 +374,10 @@ def add_monitor_parser(sub: Any) -> None:
     msub = p.add_subparsers(dest="monitor_command", required=True, metavar="STEP")
 
     q = msub.add_parser("init", help="start a monitor state after the model's last snapshot")
-    q.add_argument("model", help="model file written by 'lrm-cvx fit' (its dynamics, fitted "
-                   "by default, carry the state from day to day; a model fitted without them "
-                   "needs --temporal or --memoryless here)")
+    q.add_argument("model", help="model file written by 'lrm-cvx fit': the temporal model "
+                   "fit chose (by default, --temporal auto: ar1, seasonal or none) carries the "
+                   "state from day to day; a model fitted with --paper or --temporal none "
+                   "needs --temporal or --memoryless here")
     q.add_argument("--state", required=True, help="state file to write (.nc)")
     q.add_argument("--time", default=None,
                    help="position the state at this time (default: the last fitted snapshot)")

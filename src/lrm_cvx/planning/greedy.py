@@ -173,7 +173,6 @@ def plan_greedy(
     path: PathOptions | str | None = None,
     static: bool = False,
     paper: bool = False,
-    stay: bool = False,
     **options: Any,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
@@ -288,9 +287,10 @@ def plan_greedy(
     static : fixed sensors, no travel (see :func:`~lrm_cvx.planning.static.place_sensors`;
         ``start`` must then be None and ``n_sensors`` (or ``budget``) is the number of
         sensors). ``path="static"`` is the old spelling (DeprecationWarning).
-    stay : a robot whose budget reaches no cell beyond its start (and no forced initial cell
-        takes it away) stays there, a route of its start alone (a replan at the end of a
-        route); default False: :class:`PlanningError` naming the cost of the nearest cell.
+    stay : (``**options``) a robot whose budget reaches no cell beyond its start (with no
+        forced initial cell to take it away) stays there, a route of its start alone (a
+        replan at the end of a route); default False: :class:`PlanningError` naming the
+        nearest cell's distance and the budget a route to it needs.
     n_sensors, training, exchange : (``**options``) ``static=True`` only: the number of
         sensors, the training snapshots of ``criterion="risk"`` and the exchange search.
 
@@ -302,6 +302,7 @@ def plan_greedy(
     paper = check_flag(paper, "paper", error=PlanningError)
     refine = _check_refine(refine)
     cost_exponent = _check_exponent(options.pop("cost_exponent", 1.0))
+    stay = check_flag(options.pop("stay", False), "stay", error=PlanningError)
     default_refine = False  # the recommended check is skipped where it cannot run
     terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
     model = None
@@ -365,7 +366,7 @@ def plan_greedy(
         raise PlanningError(f"the region has {region.n_cells} cells, fewer than the rank k = {k}")
     P0s = _robot_initial(models, k, initial)
     cands = [np.asarray(m.candidates(), dtype=np.int64) for m in models]
-    if not check_flag(stay, "stay", error=PlanningError) and (initial == "start" or k == 1):
+    if not stay and (initial == "start" or k == 1):
         _check_leaves(models, P0s, cands, fleet.is_fleet)
     tols = [float(getattr(m, "tol", _TOL)) for m in models]  # 1e-9 (x budget off the grid)
     union_pool = cands[0] if len(cands) == 1 else np.unique(np.concatenate(cands))
