@@ -367,7 +367,7 @@ def test_a_budget_that_cannot_leave_the_start_is_one_line_per_robot(spatial_stat
 
 
 def test_summaries_report_each_plan_under_its_own_criterion(spatial_state, tmp_path, capsys):
-    from lrm_cvx.information import fisher_set_value, gp_variance_value
+    from lrm_cvx.information import CRITERION_REGISTRY, fisher_set_value, gp_variance_value
 
     _, da, _ = spatial_state
     state = _copy_state(spatial_state, tmp_path)
@@ -390,6 +390,13 @@ def test_summaries_report_each_plan_under_its_own_criterion(spatial_state, tmp_p
     kw = s.planner_kwargs("fisher", s.current_plan_time)
     value = fisher_set_value(s.model.Y, s.current_plan.cells, 0.0, **kw)  # the posterior's
     assert f"Fisher information {value:.4f} nats" in line and "variance" not in line
+    assert _run("monitor", "plan", state, *start, "--criterion", "a-optimal", "--overwrite",
+                "-o", tmp_path / "g.csv") == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    s = MonitorState.load(state)
+    kw = s.planner_kwargs("a-optimal", s.current_plan_time)
+    left = CRITERION_REGISTRY.get("a-optimal").value(s.model.Y, s.current_plan.cells, 0.0, **kw)
+    assert f"a-optimal prediction variance left {left:.4g} (data units squared)" in line
 
 
 def test_assimilate_reports_what_the_file_added_and_names_its_argument(files, tmp_path,

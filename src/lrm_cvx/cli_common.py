@@ -198,11 +198,12 @@ def criterion_value(plan: Any, Y: Any, region: Any, terms: dict[str, Any], *,
                     reuse: bool = True) -> str:
     """``plan`` under its own criterion, with units, for :func:`describe_plan`: Fisher, the log
     det of the (posterior) information in nats; gp-variance, the total posterior variance the
-    route removes, in the data's units squared; a-optimal, the total prediction variance left.
+    route removes, in the data's units squared; a-optimal, the total prediction variance left
+    (in the data's units squared with the fold-in's noise, else in units of the noise).
     ``Y`` / ``region`` / ``terms``: the factor matrix, region and prior terms it was planned
     with (``plan_greedy``'s keywords); the value of the check against rival routes is reused
     when it was computed for the whole plan (``reuse``; a replan's is for the new part)."""
-    from .information import CRITERION_REGISTRY, gp_variance_value
+    from .information import gp_variance_value
     from .planning.lines import GP_TERMS, route_values
 
     criterion = plan.criterion or "fisher"
@@ -224,15 +225,16 @@ def criterion_value(plan: Any, Y: Any, region: Any, terms: dict[str, Any], *,
     else:
         value = route_values(criterion, np.asarray(Y), float(plan.ridge),
                              {"plan": np.asarray(plan.cells)}, extra)["plan"]
-    CRITERION_REGISTRY.get(criterion, "criterion")  # a known criterion
     if gp:
         before = gp_variance_value(np.asarray(Y), region, extra["spatial_cov"],
                                    extra["prior_cov"], [], extra["targets"],
                                    extra["target_weights"])
         return (f"variance removed {before - value:.4g} (data units squared; "
                 f"{value:.4g} of {before:.4g} left)")
-    if criterion == "a-optimal":
-        return f"a-optimal prediction variance left {value:.4g} (data units squared)"
+    if criterion == "a-optimal":  # with the fold-in's noise: its variance; else noise units
+        unit = ("data units squared" if terms.get("noise_var") is not None
+                else "in units of the noise variance")
+        return f"a-optimal prediction variance left {value:.4g} ({unit})"
     text = f"Fisher information {value:.4f} nats"
     return text + (" (fewer informative cells than the rank)" if not np.isfinite(value)
                    else "")
