@@ -109,7 +109,7 @@ def paper_scale(cache: str | None, small: bool, criterion: str, profile: bool) -
           f"{40 if small else 200} grid units), traversable 'valid', closed, criterion "
           f"{criterion}", flush=True)
     plan_greedy(model.Y, region, start, km / 40, initial="start", progress=False, ridge=1e-6,
-                **PATH)  # compile the kernels outside the timings
+                stay=True, **PATH)  # compile the kernels outside the timings
     state = MonitorState.from_model(model)
     t_day = state.next_time()
     tic = time.perf_counter()

@@ -842,7 +842,7 @@ def test_the_state_model_is_never_an_output(run, files, tmp_path, step):
     finally:
         out.unlink()
     assert code == 2
-    one_line_error(err, "monitor", "input file", "model.nc")
+    one_line_error(err, f"monitor {step}", "input file", "model.nc")
     assert GLRM.load(files["model"]).rank == 2
 
 
@@ -958,14 +958,18 @@ def test_observation_cell_and_coordinates_must_agree(run, files, tmp_path):
     assert code == 0, err
 
 
-def test_monitor_plan_budget_zero_names_the_fisher_value(run, tmp_path):
+def test_monitor_plan_budget_zero_is_an_error_naming_the_nearest_cell(run, tmp_path):
     state = _state(run, tmp_path)
     code, out, err = run(["monitor", "plan", str(state), "--start", "-24,-70", "--budget", "0",
                           "-o", str(tmp_path / "p.csv")])
+    assert code == 2 and not (tmp_path / "p.csv").exists()
+    one_line_error(err, "monitor plan", "cannot reach any cell beyond its start")
+    assert "the nearest cell is" in err and "grid units away" in err
+    # the paper's forced initial cells are a plan still (over the budget, said so)
+    code, out, err = run(["monitor", "plan", str(state), "--start", "-24,-70", "--budget", "0",
+                          "--paper", "-o", str(tmp_path / "p.csv")])
     assert code == 0, err
-    line = out.splitlines()[0]
-    assert "gp-variance criterion -inf" not in line
-    assert "Fisher information -inf nats" in line and "planned by the gp-variance" in line
+    assert "> (forced initial cells) budget 0" in out and "Fisher information" in out
 
 
 def _assimilate_cmd(state, obs, time):
@@ -1017,7 +1021,7 @@ def test_concurrent_assimilate_never_loses_an_update(run, files, tmp_path):
             outcomes.append("AB")
         else:  # B ran first: A (an earlier day) is refused with one line, B's update is kept
             assert done["B"][0] == 0 and done["A"][0] == 2, done
-            one_line_error(done["A"][1], "monitor", "earlier")
+            one_line_error(done["A"][1], "monitor assimilate", "earlier")
             assert same(final, only_b), f"trial {trial}: B's update was lost"
             outcomes.append("B, A refused")
     assert len(outcomes) == 20

@@ -199,3 +199,36 @@ def test_certify_a_plan_against_a_budget_it_exceeds_is_refused():
 def test_case_count():
     """At least 20 bad-input cases (the brief's target); this file holds many more."""
     assert len(ERRORS) >= 20
+
+
+# ------------------------------------------------------- a budget that cannot leave the start
+def test_a_budget_that_cannot_leave_the_start_is_an_error_naming_the_nearest_cell():
+    # the grid's cells are 1 apart: a budget of 0.5 grid units reaches no cell from the start
+    with pytest.raises(PlanningError, match=r"^the budget 0\.5 grid units cannot reach any "
+                       r"cell beyond its start: the nearest cell is 1 grid units away"):
+        greedy(budget=0.5, initial="start")
+    with pytest.raises(PlanningError, match=r"a route to it costs 2 grid units \(there and "
+                       r"back\).*at least 2 grid units"):
+        greedy(budget=1.5, initial="start", closed=True)
+    # km: the nearest cell of the 1-degree grid is ~111 km away
+    with pytest.raises(PlanningError, match=r"nearest cell is 111\.\d km away"):
+        greedy(budget=10, initial="start", metric="km")
+    assert len(greedy(budget=1.0, initial="start").cells) > 1  # one step is enough
+
+
+def test_a_fleet_names_every_robot_that_cannot_leave():
+    corner, edge = int(REGION.cell_grid[5, 5]), int(REGION.cell_grid[0, 3])
+    with pytest.raises(PlanningError, match=r"^robot 1's budget 0\.5 grid units cannot reach"):
+        greedy(start=[START, corner], budget=[3.0, 0.5], initial="start")
+    with pytest.raises(PlanningError, match=r"^robot 0's budget 0\.2 .*; robot 2's budget 0\.7"):
+        greedy(start=[START, corner, edge], budget=[0.2, 3.0, 0.7], initial="start")
+
+
+def test_forced_initial_cells_and_stay_keep_a_tiny_budget_legitimate():
+    with pytest.warns(UserWarning, match="initial cells"):  # the rank's nearest cells: forced
+        plan = greedy(budget=0.5, initial="nearest")
+    assert len(plan.cells) == 2
+    stayed = greedy(budget=0.5, initial="start", stay=True)  # e.g. a replan at the route's end
+    assert stayed.cells.tolist() == [START] and stayed.cost == 0
+    with pytest.raises(PlanningError, match="stay"):
+        greedy(budget=0.5, initial="start", stay="yes")

@@ -123,6 +123,43 @@ def test_user_errors_exit_2_with_one_line(argv, message, model_file, data_file, 
     assert message in err
 
 
+def test_plan_writes_every_robot_in_several_formats(model_file, tmp_path, capsys):
+    fleet = ["plan", str(model_file), "--start", "41,-68", "--start", "43,-66", "--budget", "3",
+             "--paper"]
+    assert main(["-q", *fleet, "-o", str(tmp_path / "r.csv"), "-o", str(tmp_path / "r.plan"),
+                 "-o", f"{tmp_path / 'all'}/"]) == 0
+    table = pd.read_csv(tmp_path / "r.csv")
+    for r in (0, 1):  # one QGroundControl mission per robot, each with its own route
+        items = json.loads((tmp_path / f"r_robot{r}.plan").read_text())["mission"]["items"]
+        rows = table[table["robot"] == r]
+        assert [it["params"][4] for it in items] == rows["lat"].tolist()
+        assert (tmp_path / "all" / f"route_robot{r}.waypoints").exists()
+    assert not (tmp_path / "r.plan").exists()
+    assert {p.suffix for p in (tmp_path / "all").iterdir()} == {
+        ".csv", ".geojson", ".plan", ".waypoints", ".gpx", ".kml"}
+    # --robot picks one robot under the name given; a robot the fleet lacks: one line, no plan
+    assert main(["-q", *fleet, "--robot", "1", "-o", str(tmp_path / "one.plan")]) == 0
+    assert (tmp_path / "one.plan").read_text() == (tmp_path / "r_robot1.plan").read_text()
+    capsys.readouterr()
+    assert main(["-q", *fleet, "--robot", "2", "-o", str(tmp_path / "two.plan")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lrm-cvx plan: error: --robot 2 ") and err.count("\n") == 1
+    assert main(["-q", *fleet, "-o", str(tmp_path / "x.csv"), "-o", str(tmp_path / "x.csv")]) == 2
+    assert "twice" in capsys.readouterr().err and not (tmp_path / "x.csv").exists()
+
+
+def test_plan_with_a_budget_that_cannot_leave_the_start_is_an_error(model_file, tmp_path,
+                                                                   capsys):
+    out = tmp_path / "r.csv"
+    # the grid is 0.5 degrees (about 55 km): 10 km reaches no cell
+    assert main(["-q", "plan", str(model_file), "--start", "41,-68", "--budget", "10",
+                 "--metric", "km", "--initial", "start", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lrm-cvx plan: error: the budget 10 km cannot reach any cell beyond "
+                          "its start: the nearest cell is ") and "km away" in err
+    assert not out.exists()
+
+
 def test_refuses_to_overwrite_input(data_file, capsys):
     assert main(["-q", "fit", str(data_file), "--rank", "3", "-o", str(data_file)]) == 2
     assert "overwrite" in capsys.readouterr().err

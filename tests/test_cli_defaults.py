@@ -232,7 +232,8 @@ def test_paper_and_recommended_together_is_one_line(argv, tmp_path, capsys, monk
     assert _run(*argv, "--paper", "--recommended") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--paper and --recommended exclude each other" in err[0]
-    assert err[0].startswith(f"lrm-cvx {argv[0]}: error:")
+    command = " ".join(argv[:2]) if argv[0] == "monitor" else argv[0]  # a monitor step too
+    assert err[0].startswith(f"lrm-cvx {command}: error:")
     assert list(tmp_path.iterdir()) == []
 
 

@@ -192,7 +192,7 @@ def test_a_360_day_calendar_date_is_a_valid_time(tmp_path, capsys):
     assert _run("monitor", "plan", state, "--start", "1,1", "--budget", 3, "--time",
                 "2092-04-31", "-o", tmp_path / "q.csv") == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("lrm-cvx monitor: error: --time") or "360_day calendar" in err
+    assert err.startswith("lrm-cvx monitor plan: error: --time") or "360_day calendar" in err
     assert len(err.splitlines()) == 1 and not (tmp_path / "q.csv").exists()
 
 
@@ -359,3 +359,172 @@ def test_force_says_when_it_moves_more_than_the_next_stamp(monthly, tmp_path, ca
     assert notes == ["note: --force: 2010-04-15T00:00:00 is earlier than the state's time "
                      "2010-05-15T00:00:00: the filter moves one step, to 2010-04-15T00:00:00"]
     assert MonitorState.load(state).time == np.datetime64("2010-04-15", "ns")
+
+
+# --------------------------------------- a day's missions in one call, honest summaries, errors
+@pytest.fixture(scope="module")
+def spatial_state(files, tmp_path_factory):
+    """A spatial (gp-variance) model of the small field and its monitor state: ``(folder,
+    da, state)``; tests copy the state before changing it."""
+    folder, da, _ = files
+    out = tmp_path_factory.mktemp("spatial")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        GLRM(3, progress=False, max_iter=20, temporal="ar1", offset=True,
+             spatial="exponential").fit(da.isel(time=slice(0, 30))).save(out / "model.nc")
+    assert _run("monitor", "init", out / "model.nc", "--state", out / "state.nc") == 0
+    return out, da, out / "state.nc"
+
+
+def _starts(da):
+    return ["--start", f"{da.lat.values[2]},{da.lon.values[3]}",
+            "--start", f"{da.lat.values[0]},{da.lon.values[0]}"]
+
+
+def _copy_state(spatial_state, tmp_path):
+    import shutil
+
+    state = tmp_path / "state.nc"
+    shutil.copy(spatial_state[2], state)
+    return state
+
+
+def test_a_fleet_day_in_every_format_in_one_call_and_exported_again(spatial_state, tmp_path,
+                                                                   capsys):
+    import json
+
+    import gpxpy
+    from pymavlink import mavwp
+
+    _, da, _ = spatial_state
+    state = _copy_state(spatial_state, tmp_path)
+    day = tmp_path / "day1"
+    assert _run("monitor", "plan", state, *_starts(da), "--budget", 4, "-o", f"{day}/",
+                "-o", tmp_path / "extra.kml") == 0
+    names = sorted(p.name for p in day.iterdir())
+    assert names == ["route.csv", "route.geojson", "route.gpx", "route.kml",
+                     "route_robot0.plan", "route_robot0.waypoints", "route_robot1.plan",
+                     "route_robot1.waypoints"]
+    assert (tmp_path / "extra.kml").stat().st_size > 0
+    table = pd.read_csv(day / "route.csv")
+    gpx = gpxpy.parse((day / "route.gpx").read_text())
+    assert len(gpx.routes) == 2
+    for r in (0, 1):  # each robot's missions hold its own route, read back by their readers
+        rows = table[table["robot"] == r]
+        keep = np.r_[True, rows["cell"].to_numpy()[1:] != rows["cell"].to_numpy()[:-1]]
+        lat = rows["lat"].to_numpy()[keep]
+        items = json.loads((day / f"route_robot{r}.plan").read_text())["mission"]["items"]
+        np.testing.assert_allclose([it["params"][4] for it in items], lat)
+        loader = mavwp.MAVWPLoader()
+        loader.load(str(day / f"route_robot{r}.waypoints"))
+        np.testing.assert_allclose([loader.wp(i).x for i in range(1, loader.count())], lat,
+                                   atol=1e-6)
+        np.testing.assert_allclose([p.latitude for p in gpx.routes[r].points], lat)
+    # the stored plan in other formats, without planning again: same route, state unchanged
+    before = state.read_bytes()
+    capsys.readouterr()
+    assert _run("monitor", "export", state, "-o", tmp_path / "again.csv",
+                "-o", tmp_path / "one.plan", "--robot", 1) == 0
+    assert state.read_bytes() == before
+    assert (tmp_path / "again.csv").read_bytes() == (day / "route.csv").read_bytes()
+    assert (json.loads((tmp_path / "one.plan").read_text())
+            == json.loads((day / "route_robot1.plan").read_text()))
+    assert "(greedy)" in capsys.readouterr().out  # its method, not renamed by a replan
+
+
+def test_a_robot_the_fleet_does_not_have_is_refused_before_planning(spatial_state, tmp_path,
+                                                                    capsys, monkeypatch,
+                                                                    inputs_unchanged):
+    import lrm_cvx.planning
+
+    _, da, _ = spatial_state
+    state = _copy_state(spatial_state, tmp_path)
+    inputs_unchanged.watch(state)
+
+    def never(*args, **kwargs):
+        raise AssertionError("planned before checking --robot")
+
+    monkeypatch.setattr(lrm_cvx.planning, "plan_greedy", never)
+    capsys.readouterr()
+    assert _run("monitor", "plan", state, *_starts(da), "--budget", 4, "--robot", 2,
+                "-o", tmp_path / "p.plan") == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lrm-cvx monitor plan: error: --robot 2 ") and "2 robots" in err
+    assert err.count("\n") == 1 and not (tmp_path / "p.plan").exists()
+
+
+def test_a_budget_that_cannot_leave_the_start_is_one_line_per_robot(spatial_state, tmp_path,
+                                                                   capsys, inputs_unchanged):
+    _, da, _ = spatial_state
+    state = _copy_state(spatial_state, tmp_path)
+    inputs_unchanged.watch(state)
+    capsys.readouterr()
+    # the grid's cells are ~1100 km apart: 10 km reaches none
+    assert _run("monitor", "plan", state, "--start", f"{da.lat.values[2]},{da.lon.values[3]}",
+                "--budget", 10, "--metric", "km", "-o", tmp_path / "p.plan") == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lrm-cvx monitor plan: error: the budget 10 km cannot reach any cell")
+    assert "km away" in err and err.count("\n") == 1
+    assert _run("monitor", "plan", state, *_starts(da), "--budget", 4, "--budget", 0.5,
+                "-o", tmp_path / "p.csv") == 2
+    err = capsys.readouterr().err
+    assert "robot 1's budget 0.5 grid units cannot reach" in err and "1 grid units away" in err
+    assert not (tmp_path / "p.csv").exists() and not (tmp_path / "p.plan").exists()
+
+
+def test_summaries_report_each_plan_under_its_own_criterion(spatial_state, tmp_path, capsys):
+    from lrm_cvx.information import CRITERION_REGISTRY, fisher_set_value, gp_variance_value
+
+    _, da, _ = spatial_state
+    state = _copy_state(spatial_state, tmp_path)
+    start = ["--start", f"{da.lat.values[2]},{da.lon.values[3]}", "--budget", 4]
+    capsys.readouterr()
+    assert _run("monitor", "plan", state, *start, "-o", tmp_path / "g.csv") == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    s = MonitorState.load(state)
+    cells, kw = s.current_plan.cells, s.planner_kwargs("gp-variance", s.current_plan_time)
+    args = (s.model.Y, s.model.region_, kw["spatial_cov"], kw["prior_cov"])
+    prior = gp_variance_value(*args, [], None, kw["target_weights"])
+    left = gp_variance_value(*args, cells, None, kw["target_weights"])
+    assert "Fisher information" not in line
+    assert f"variance removed {prior - left:.4g} (data units squared; {left:.4g} of " \
+           f"{prior:.4g} left)" in line
+    assert _run("monitor", "plan", state, *start, "--criterion", "fisher", "--overwrite",
+                "-o", tmp_path / "g.csv") == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    s = MonitorState.load(state)
+    kw = s.planner_kwargs("fisher", s.current_plan_time)
+    value = fisher_set_value(s.model.Y, s.current_plan.cells, 0.0, **kw)  # the posterior's
+    assert f"Fisher information {value:.4f} nats" in line and "variance" not in line
+    assert _run("monitor", "plan", state, *start, "--criterion", "a-optimal", "--overwrite",
+                "-o", tmp_path / "g.csv") == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    s = MonitorState.load(state)
+    kw = s.planner_kwargs("a-optimal", s.current_plan_time)
+    left = CRITERION_REGISTRY.get("a-optimal").value(s.model.Y, s.current_plan.cells, 0.0, **kw)
+    assert f"a-optimal prediction variance left {left:.4g} (data units squared)" in line
+
+
+def test_assimilate_reports_what_the_file_added_and_names_its_argument(files, tmp_path,
+                                                                       capsys):
+    folder, da, _ = files
+    state = tmp_path / "state.nc"
+    assert _run("monitor", "init", folder / "model.nc", "--state", state) == 0
+    obs = folder / "obs31.csv"  # 6 rows
+    assert _run("monitor", "assimilate", state, obs, "--time", "2013-02-01") == 0
+    assert _run("monitor", "assimilate", state, obs, "--time", "2013-02-01", "--force") == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "assimilated 6 observation(s) from" in out[-2] and "(6 in all that day)" in out[-2]
+    assert "assimilated 6 observation(s) from" in out[-1] and "(12 in all that day)" in out[-1]
+    bad = tmp_path / "bad.csv"
+    bad.write_text("lat,lon,temp\n1,2,3\n")
+    assert _run("monitor", "assimilate", state, bad, "--time", "2013-02-02") == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lrm-cvx monitor assimilate: error: observations file ")
+    assert "--observations" not in err
+
+
+def test_init_help_says_how_the_dynamics_are_chosen(capsys):
+    assert main(["monitor", "init", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(with --temporal)" not in text and "by default, --temporal auto" in text

@@ -10,6 +10,7 @@ import pytest
 import xarray as xr
 
 from lrm_cvx import Region
+from lrm_cvx.errors import PlanningError
 from lrm_cvx.planning import Plan, plan_greedy, random_walk, transect
 
 matplotlib.use("Agg")
@@ -149,9 +150,15 @@ def test_last_cumulative_cost_is_the_plan_cost(inst, direction):
     region, start, budget, seed = inst
     plans = [transect(region, start, budget, direction), random_walk(region, start, budget, seed)]
     Y = np.random.default_rng(seed).standard_normal((1, region.n_cells))
+    gi = region.grid_index.astype(float)
+    nearest = np.delete(np.sqrt(((gi - gi[start]) ** 2).sum(axis=1)), start)
     for cost in ("nearest-neighbor", "insertion"):
-        plans.append(plan_greedy(Y, region, start, budget, cost=cost, ridge=1e-6,
-                                 progress=False))
+        try:
+            plans.append(plan_greedy(Y, region, start, budget, cost=cost, ridge=1e-6,
+                                     progress=False))
+        except PlanningError as exc:  # only a budget below the nearest cell's distance
+            assert "cannot reach any cell beyond its start" in str(exc)
+            assert nearest.size and budget < nearest.min()
     for plan in plans:
         cum = plan.to_dataframe()["cumulative_cost"].to_numpy()
         assert cum[0] == 0.0 and cum[-1] == plan.cost, plan

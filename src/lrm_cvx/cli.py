@@ -29,13 +29,14 @@ from .cli_common import (
     SENSOR_SUFFIXES,
     UsageError,
     add_common,
-    add_mission_options,
     add_output,
     add_path_options,
+    add_plan_outputs,
     add_setting,
     add_starts_budgets,
     check_lat,
     check_plan_output,
+    criterion_value,
     describe_plan,
     finite_number,
     guard_paths,
@@ -45,10 +46,12 @@ from .cli_common import (
     paper_setting,
     parse_floats,
     path_options,
+    plan_outputs,
     read_observations_csv,
     read_traversable,
     starts_budgets,
     write_plan,
+    write_plans,
 )
 from .errors import LrmError
 from .recommended import RECOMMENDED  # the default unless --paper (one dict with the demo)
@@ -380,18 +383,15 @@ def _plan_from_args(args: argparse.Namespace):
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
                        initial=initial, path=path,
                        refine=None if paper else lines_where_possible(path), **kw)
-    return model, plan
+    return model, plan, kw
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
-    out = None
-    if args.output:
-        check_plan_output(args.output)
-        (out,) = guard_paths([args.output], [args.model, *mask_files(args)], args)
-    _, plan = _plan_from_args(args)
-    print(describe_plan(plan))
-    if out is not None:
-        write_plan(plan, out, args)
+    files = plan_outputs(args.output, len(args.start), args.robot)  # before any work
+    guard_paths([f for f, _ in files], [args.model, *mask_files(args)], args)
+    model, plan, kw = _plan_from_args(args)
+    print(describe_plan(plan, criterion_value(plan, model.Y_, model.region_, kw)))
+    write_plans(plan, files, args)
     return 0
 
 
@@ -474,7 +474,7 @@ def cmd_place(args: argparse.Namespace) -> int:
 
 
 def cmd_bound(args: argparse.Namespace) -> int:
-    _, plan = _plan_from_args(args)
+    _, plan, _ = _plan_from_args(args)
     cert = plan.certify(tighten=args.certify == "tight")
     bounded = getattr(cert, "criterion", "fisher")
     print(f"greedy plan: {describe_plan(plan)}")
@@ -839,10 +839,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "recommended one keeps a straight transect instead where its criterion "
                        "prefers one)")
     _add_plan(p)
-    p.add_argument("-o", "--output", help="route.csv, route.geojson, or a mission: "
-                   "route.plan (QGroundControl), route.waypoints (MAVLink QGC WPL 110), "
-                   "route.gpx, route.kml")
-    add_mission_options(p)
+    add_plan_outputs(p, required=False)
     add_output(p)
     p.set_defaults(func=cmd_plan)
 
@@ -989,7 +986,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("lrm-cvx: interrupted", file=sys.stderr)
         return 130
-    prefix = f"lrm-cvx {args.command}"
+    prefix = " ".join(["lrm-cvx", args.command]
+                      + ([args.monitor_command] if args.command == "monitor" else []))
 
     def show(message, category, filename, lineno, file=None, line=None):
         print(f"{prefix}: warning: {_one_line(str(message))}", file=sys.stderr)

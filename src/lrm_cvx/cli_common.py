@@ -21,8 +21,10 @@ from .errors import LrmError
 
 __all__ = ["UsageError", "parse_floats", "check_lat", "parse_start", "finite_number",
            "add_common", "add_output", "check_writable", "guard_paths", "load_model",
-           "read_observations_csv", "describe_plan", "write_plan", "PLAN_SUFFIXES",
-           "SENSOR_SUFFIXES", "check_plan_output", "add_mission_options", "starts_budgets",
+           "read_observations_csv", "describe_plan", "criterion_value", "write_plan",
+           "PLAN_SUFFIXES",
+           "SENSOR_SUFFIXES", "check_plan_output", "add_plan_outputs",
+           "plan_outputs", "write_plans", "check_robot", "FOLDER_SUFFIXES", "starts_budgets",
            "read_traversable", "path_options", "metric_choices", "add_path_options",
            "mask_files", "add_starts_budgets", "add_setting", "paper_setting", "note"]
 
@@ -148,26 +150,27 @@ def load_model(path: str, *, need_region: bool = True) -> Any:
     return model
 
 
-def read_observations_csv(path: str, region: Any) -> tuple[np.ndarray, np.ndarray]:
+def read_observations_csv(path: str, region: Any, what: str = "--observations"
+                          ) -> tuple[np.ndarray, np.ndarray]:
     """``(cells, values)`` of an observations CSV: a ``value`` column and ``cell`` or
-    ``lat``,``lon`` columns (UsageError naming ``--observations`` otherwise)."""
+    ``lat``,``lon`` columns (UsageError naming the argument as ``what`` otherwise)."""
     import pandas as pd
 
     try:
         obs = pd.read_csv(path)
     except (OSError, ValueError) as exc:
-        raise UsageError(f"cannot read --observations {path}: "
+        raise UsageError(f"cannot read {what} {path}: "
                          f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
                          ) from None
     if "value" not in obs:
-        raise UsageError(f"--observations {path} needs a 'value' column and "
+        raise UsageError(f"{what} {path} needs a 'value' column and "
                          f"'cell' or 'lat','lon' columns; it has {list(obs.columns)}")
     if obs.empty:
-        raise UsageError(f"--observations {path} has no rows")
+        raise UsageError(f"{what} {path} has no rows")
     numeric = obs.apply(pd.to_numeric, errors="coerce")
     for col in ("value", "cell", "lat", "lon"):
         if col in obs and (numeric[col].isna() & obs[col].notna()).any():
-            raise UsageError(f"--observations column {col!r} must hold numbers")
+            raise UsageError(f"{what} {path}: column {col!r} must hold numbers")
     has_coords = {"lat", "lon"} <= set(obs.columns)
     if "cell" in obs:
         cells = region.check_cells(numeric["cell"].to_numpy(), "cell")
@@ -178,7 +181,7 @@ def read_observations_csv(path: str, region: Any) -> tuple[np.ndarray, np.ndarra
             if bad.size:
                 i = int(bad[0])
                 raise UsageError(
-                    f"--observations {path}: {bad.size} row(s) give a 'cell' that is not at "
+                    f"{what} {path}: {bad.size} row(s) give a 'cell' that is not at "
                     f"their 'lat','lon' (row {i + 1}: cell {int(cells[i])}, but lat "
                     f"{numeric['lat'].iloc[i]:g}, lon {numeric['lon'].iloc[i]:g} is cell "
                     f"{int(at[i])}); give one of the two")
@@ -186,21 +189,67 @@ def read_observations_csv(path: str, region: Any) -> tuple[np.ndarray, np.ndarra
         cells = np.atleast_1d(region.cell_of(numeric["lat"].to_numpy(),
                                              numeric["lon"].to_numpy()))
     else:
-        raise UsageError(f"--observations {path} needs a 'cell' column or 'lat' "
+        raise UsageError(f"{what} {path} needs a 'cell' column or 'lat' "
                          f"and 'lon' columns; it has {list(obs.columns)}")
     return cells, numeric["value"].to_numpy(dtype=float)
 
 
-def describe_plan(plan: Any) -> str:
+def criterion_value(plan: Any, Y: Any, region: Any, terms: dict[str, Any], *,
+                    reuse: bool = True) -> str:
+    """``plan`` under its own criterion, with units, for :func:`describe_plan`: Fisher, the log
+    det of the (posterior) information in nats; gp-variance, the total posterior variance the
+    route removes, in the data's units squared; a-optimal, the total prediction variance left
+    (in the data's units squared with the fold-in's noise, else in units of the noise).
+    ``Y`` / ``region`` / ``terms``: the factor matrix, region and prior terms it was planned
+    with (``plan_greedy``'s keywords); the value of the check against rival routes is reused
+    when it was computed for the whole plan (``reuse``; a replan's is for the new part)."""
+    from .information import gp_variance_value
+    from .planning.lines import GP_TERMS, route_values
+
+    criterion = plan.criterion or "fisher"
+    rivals = getattr(plan, "rivals", None) or {}
+    sensor = getattr(plan, "sensor", None)
+    if sensor is not None and not sensor.is_point:  # averaged rows: the Fisher log det of them
+        return f"Fisher information {plan.information:.4f} nats" + (
+            f" (of the footprint averages; planned by the {criterion} criterion)"
+            if criterion != "fisher" else "")
+    gp = criterion == "gp-variance"
+    extra = ({**{k: terms.get(k) for k in GP_TERMS}, "region": region} if gp else
+             {k: terms[k] for k in ("prior_precision", "noise_var")
+              if terms.get(k) is not None})
+    if criterion == "a-optimal" and terms.get("target_weights") is not None:
+        extra["target_weights"] = terms["target_weights"]
+    values = rivals.get("values") or {}
+    if reuse and rivals.get("criterion") == criterion and rivals.get("chosen") in values:
+        value = float(values[rivals["chosen"]])
+    else:
+        value = route_values(criterion, np.asarray(Y), float(plan.ridge),
+                             {"plan": np.asarray(plan.cells)}, extra)["plan"]
+    if gp:
+        before = gp_variance_value(np.asarray(Y), region, extra["spatial_cov"],
+                                   extra["prior_cov"], [], extra["targets"],
+                                   extra["target_weights"])
+        return (f"variance removed {before - value:.4g} (data units squared; "
+                f"{value:.4g} of {before:.4g} left)")
+    if criterion == "a-optimal":  # with the fold-in's noise: its variance; else noise units
+        unit = ("data units squared" if terms.get("noise_var") is not None
+                else "in units of the noise variance")
+        return f"a-optimal prediction variance left {value:.4g} ({unit})"
+    text = f"Fisher information {value:.4f} nats"
+    return text + (" (fewer informative cells than the rank)" if not np.isfinite(value)
+                   else "")
+
+
+def describe_plan(plan: Any, value: str | None = None) -> str:
     """One line about a :class:`~lrm_cvx.planning.Plan`: cells, cost against the budget(s)
-    (each robot's for a fleet), the criterion value and the non-default path options."""
-    # plan.information is always the Fisher log det (nats) of the plan's cells, whatever
-    # criterion chose them; -inf while fewer cells than the rank are observed
-    value = f"Fisher information {plan.information:.4f} nats"
-    if not np.isfinite(plan.information):
-        value += " (fewer informative cells than the rank)"
-    if plan.criterion != "fisher":
-        value += f", planned by the {plan.criterion} criterion"
+    (each robot's for a fleet), the plan's value (``value``, from :func:`criterion_value`;
+    default its Fisher information) and the non-default path options."""
+    if value is None:  # plan.information: the Fisher log det (nats) of the plan's cells
+        value = f"Fisher information {plan.information:.4f} nats"
+        if not np.isfinite(plan.information):
+            value += " (fewer informative cells than the rank)"
+        if plan.criterion not in (None, "fisher"):
+            value += f", planned by the {plan.criterion} criterion"
     path = getattr(plan, "path", None) or {}
     sensor = getattr(plan, "sensor", None)
     unit = path.get("unit", "grid units")
@@ -251,23 +300,93 @@ def check_plan_output(path: str, suffixes: Sequence[str] = PLAN_SUFFIXES) -> Non
         raise UsageError(f"-o must end in {', '.join(suffixes)}; got {Path(path).name!r}")
 
 
-def add_mission_options(p: argparse.ArgumentParser) -> None:
-    """``--altitude`` and ``--robot`` of the mission files (.plan, .waypoints, .gpx, .kml)."""
+#: The formats ``-o FOLDER/`` writes, one file of each (``.json`` is GeoJSON again).
+FOLDER_SUFFIXES = (".csv", ".geojson", ".plan", ".waypoints", ".gpx", ".kml")
+#: Mission formats that hold one vehicle: a fleet's is one file per robot (``NAME_robotR``).
+ONE_VEHICLE_SUFFIXES = (".plan", ".waypoints")
+#: The file name (before its suffix) of each format ``-o FOLDER/`` writes.
+FOLDER_STEM = "route"
+
+
+def add_plan_outputs(p: argparse.ArgumentParser, *, required: bool) -> None:
+    """``-o`` of a route (repeatable: several formats at once; ``FOLDER/``: every format),
+    ``--altitude`` and ``--robot`` (read with :func:`plan_outputs`)."""
     from .planning.missions import DEFAULT_ALTITUDE
 
+    p.add_argument("-o", "--output", action="append", required=required,
+                   metavar="FILE|FOLDER/",
+                   help="write the route: route.csv, route.geojson, or a mission: route.plan "
+                   "(QGroundControl), route.waypoints (MAVLink QGC WPL 110), route.gpx, "
+                   "route.kml; repeat -o for several files; a folder (ending in /) gets every "
+                   f"format ({', '.join(FOLDER_STEM + s for s in FOLDER_SUFFIXES)}). A "
+                   "fleet's .plan / .waypoints are one file per robot (route_robot0.plan, ...)")
     p.add_argument("--altitude", type=finite_number, default=None,
                    help="mission altitude in m above home (.plan, .waypoints; default "
                    f"{DEFAULT_ALTITUDE:g}) or above ground (.gpx, .kml; default none)")
-    p.add_argument("--robot", type=int, default=0,
-                   help="which robot of a fleet a .plan / .waypoints mission is for "
-                   "(default 0; .gpx and .kml hold every robot)")
+    p.add_argument("--robot", type=int, default=None,
+                   help="write the .plan / .waypoints of this robot of a fleet only, under the "
+                   "name given (default: every robot, one file each; .gpx, .kml, .csv and "
+                   ".geojson hold every robot)")
 
 
-def write_plan(plan: Any, out: Path, args: argparse.Namespace | None = None) -> None:
+def check_robot(robot: int | None, n_robots: int) -> None:
+    """UsageError unless ``--robot`` is None or a robot of a fleet of ``n_robots``."""
+    if robot is not None and not 0 <= robot < n_robots:
+        raise UsageError(f"--robot {robot} is not a robot of this plan: it has {n_robots} "
+                         f"robot{'s' if n_robots > 1 else ''} (--robot 0"
+                         f"{f' to {n_robots - 1}' if n_robots > 1 else ''})")
+
+
+def plan_outputs(outputs: Sequence[str] | None, n_robots: int,
+                 robot: int | None = None) -> list[tuple[Path, int | None]]:
+    """Each file ``-o`` asks for, with the robot it holds (None: every robot): a file by its
+    suffix (:data:`PLAN_SUFFIXES`), a folder (``FOLDER/``, the slash written) as
+    :data:`FOLDER_SUFFIXES` under :data:`FOLDER_STEM`; a one-vehicle format of a fleet of
+    ``n_robots`` is one file per robot (``NAME_robotR``) unless ``robot`` picks one. Checks
+    ``robot`` and refuses a file asked for twice (UsageError), all before any work."""
+    check_robot(robot, n_robots)
+    files: list[tuple[Path, int | None]] = []
+    for out in outputs or []:
+        if str(out).endswith(("/", os.sep)):
+            paths = [Path(out) / f"{FOLDER_STEM}{s}" for s in FOLDER_SUFFIXES]
+        else:
+            check_plan_output(out)
+            paths = [Path(out)]
+        for path in paths:
+            if path.suffix.lower() not in ONE_VEHICLE_SUFFIXES:
+                files.append((path, None))
+            elif robot is not None or n_robots == 1:
+                files.append((path, robot or 0))
+            else:
+                files += [(path.with_name(f"{path.stem}_robot{r}{path.suffix}"), r)
+                          for r in range(n_robots)]
+    seen: set[Path] = set()
+    for path, _ in files:
+        key = Path(os.path.abspath(path))
+        if key in seen:
+            raise UsageError(f"-o asks for {path} twice; give each output once")
+        seen.add(key)
+    return files
+
+
+def write_plans(plan: Any, files: Sequence[tuple[Path, int | None]],
+                args: argparse.Namespace) -> None:
+    """Write ``plan`` to each of :func:`plan_outputs`' files (checked outputs; each atomic),
+    making the folder of a ``-o FOLDER/`` that does not exist yet."""
+    noted = False
+    for path, robot in files:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        noted = write_plan(plan, path, args, robot=robot, altitude_noted=noted) or noted
+
+
+def write_plan(plan: Any, out: Path, args: argparse.Namespace | None = None, *,
+               robot: int | None = None, altitude_noted: bool = False) -> bool:
     """Write ``plan`` by ``out``'s suffix (checked by the caller): CSV, GeoJSON, or a mission
-    file (:func:`lrm_cvx.planning.missions.write_mission`, ``args.altitude`` / ``args.robot``).
-    """
+    file (:func:`lrm_cvx.planning.missions.write_mission`, ``args.altitude``; ``robot``, by
+    default ``args.robot``, else 0). Returns True when it printed the default altitude's note
+    (not again when ``altitude_noted``)."""
     suffix = out.suffix.lower()
+    noted = False
     if suffix == ".csv":
         plan.to_csv(out)
     elif suffix in (".geojson", ".json"):
@@ -276,11 +395,17 @@ def write_plan(plan: Any, out: Path, args: argparse.Namespace | None = None) -> 
         from .planning.missions import DEFAULT_ALTITUDE, write_mission
 
         altitude = getattr(args, "altitude", None)
-        write_mission(plan, out, robot=getattr(args, "robot", 0), altitude=altitude)
-        if altitude is None and suffix in (".plan", ".waypoints"):
+        if robot is None:
+            robot = getattr(args, "robot", None) or 0
+        write_mission(plan, out, robot=robot, altitude=altitude)
+        if altitude is None and suffix in ONE_VEHICLE_SUFFIXES and not altitude_noted:
             print(f"mission altitude {DEFAULT_ALTITUDE:g} m above home (the default; set "
                   "--altitude)")
-    print(f"{'sensors' if plan.path.get('kind') == 'static' else 'route'} written to {out}")
+            noted = True
+    what = "sensors" if plan.path.get("kind") == "static" else "route"
+    who = f" (robot {robot})" if suffix in ONE_VEHICLE_SUFFIXES and plan.n_robots > 1 else ""
+    print(f"{what}{who} written to {out}")
+    return noted
 
 
 # ----------------------------------------------------------------------- the path request

@@ -5,6 +5,7 @@
     lrm-cvx monitor init MODEL.nc --state STATE.nc [--time T]
     lrm-cvx monitor plan STATE.nc --start LAT LON --budget B [--criterion ...] [--paper] -o plan.csv
     lrm-cvx monitor replan STATE.nc --done K [K ...] [--observations OBS] [-o plan.csv]
+    lrm-cvx monitor export STATE.nc -o plan.gpx [-o DIR/ ...]
     lrm-cvx monitor assimilate STATE.nc OBS.csv|OBS.nc --time T [--force]
     lrm-cvx monitor map STATE.nc -o map.nc|map.png [--forecast]
 
@@ -26,12 +27,12 @@ import numpy as np
 from .cli_common import (
     UsageError,
     add_common,
-    add_mission_options,
     add_output,
     add_path_options,
+    add_plan_outputs,
     add_setting,
     add_starts_budgets,
-    check_plan_output,
+    criterion_value,
     describe_plan,
     finite_number,
     guard_paths,
@@ -40,10 +41,12 @@ from .cli_common import (
     note,
     paper_setting,
     path_options,
+    plan_outputs,
     read_observations_csv,
     starts_budgets,
-    write_plan,
+    write_plans,
 )
+from .errors import LrmError
 
 __all__ = ["add_monitor_parser"]
 
@@ -78,10 +81,13 @@ def _state_lock(path: str | Path):
     return file_lock(path, timeout=LOCK_TIMEOUT, what="state file")
 
 
-def _guard_state_outputs(out: str, state: Any, args: argparse.Namespace) -> Path:
-    """``out`` after the output checks, with the state file *and the model file it points to*
-    as inputs: neither is ever replaced by a plan or a map, ``--overwrite`` or not."""
+def _guard_state_outputs(out: str | list[str], state: Any, args: argparse.Namespace) -> Any:
+    """``out`` (one path, or a list) after the output checks, with the state file *and the
+    model file it points to* as inputs: neither is ever replaced by a plan or a map,
+    ``--overwrite`` or not."""
     inputs = [args.state] + ([state.model_path] if getattr(state, "model_path", "") else [])
+    if isinstance(out, list):
+        return guard_paths(out, inputs, args)
     (path,) = guard_paths([out], inputs, args)
     return path
 
@@ -122,17 +128,19 @@ def _init_locked(args: argparse.Namespace, out: Path) -> int:
 
 
 def cmd_monitor_plan(args: argparse.Namespace) -> int:
-    check_plan_output(args.output)
+    files = plan_outputs(args.output, len(args.start), args.robot)
     start, budget = starts_budgets(args)  # the request first: a bad flag costs no state read
     path = path_options(args)
-    guard_paths([args.output], [args.state, *mask_files(args)], args)
+    outs = [f for f, _ in files]
+    guard_paths(outs, [args.state, *mask_files(args)], args)
     with _state_lock(args.state):  # the plan is stored in the state: read, plan, write back
         state = _load_state(args.state)
         _parse_time_option(state, args)
-        out = _guard_state_outputs(args.output, state, args)
-        plan, t = _plan_day(state, args, start, budget, path)
-        print(f"plan for {_label(t)}: {describe_plan(plan)}")
-        write_plan(plan, out, args)
+        _guard_state_outputs(outs, state, args)
+        plan, t, kw = _plan_day(state, args, start, budget, path)
+        value = criterion_value(plan, state.model.Y, state.model.region_, kw)
+        print(f"plan for {_label(t)}: {describe_plan(plan, value)}")
+        write_plans(plan, files, args)
         state.current_plan, state.current_plan_time = plan, t
         _save_state(state, args.state)
     print(f"plan stored in {args.state} (lrm-cvx monitor replan replans it en route)")
@@ -140,8 +148,8 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
 
 
 def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
-              path: Any) -> tuple[Any, Any]:
-    """``(plan, time)``: the greedy plan of ``monitor plan`` with the forecast as prior; the
+              path: Any) -> tuple[Any, Any, dict]:
+    """``(plan, time, terms)``: the greedy plan of ``monitor plan`` with the forecast as prior; the
     recommended criterion and initial cells unless ``--paper`` or given explicitly."""
     from .planning import plan_greedy
     from .planning.lines import lines_where_possible
@@ -163,21 +171,21 @@ def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
                        initial=initial, path=path,
                        refine=None if paper else lines_where_possible(path), **kw)
-    return plan, state.plan_time(args.time)
+    return plan, state.plan_time(args.time), kw
 
 
 def cmd_monitor_replan(args: argparse.Namespace) -> int:
-    if args.output is not None:
-        check_plan_output(args.output)
-        guard_paths([args.output], [args.state] + ([args.observations] if args.observations
-                                                   else []), args)
+    inputs = [args.state] + ([args.observations] if args.observations else [])
+    files = plan_outputs(args.output, 1)  # suffixes and repeats; the robots once read
+    guard_paths([f for f, _ in files], inputs, args)
     with _state_lock(args.state):  # read, assimilate, replan and write back as one step
         state = _load_state(args.state)
         plan, t = state.current_plan, state.current_plan_time
         if plan is None:
             raise _usage(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
                          "first")
-        out = None if args.output is None else _guard_state_outputs(args.output, state, args)
+        files = plan_outputs(args.output, plan.n_robots, args.robot)
+        _guard_state_outputs([f for f, _ in files], state, args)
         if args.time is not None and not state.same_snapshot(args.time, t, "--time"):
             raise _usage(f"--time {args.time} is not the time of the stored plan "
                          f"({_label(t)}): observations for a different day cannot replan it")
@@ -189,26 +197,53 @@ def cmd_monitor_replan(args: argparse.Namespace) -> int:
         if args.observations is not None:
             obs = _read_observations(args.observations, state.model.region_, args.var)
         before = state.n_assimilated
+        kw = state.planner_kwargs(criterion=args.criterion or plan.criterion, time=t)
         new = state.replan(None, done, obs, criterion=args.criterion, progress=not args.quiet)
         if obs is not None:
             print(f"assimilated {state.n_assimilated - before} observation(s) at {_label(t)}")
-        print(f"replan for {_label(t)}: {describe_plan(new)}")
-        if out is not None:
-            write_plan(new, out, args)
+        value = criterion_value(new, state.model.Y, state.model.region_, kw, reuse=False)
+        print(f"replan for {_label(t)}: {describe_plan(new, value)} (the whole route, under "
+              "the day's prior before this call)")
+        write_plans(new, files, args)
         _save_state(state, args.state)
     print(f"plan stored in {args.state}")
     return 0
 
 
-def _read_observations(path: str, region: Any, var: str | None) -> Any:
+def cmd_monitor_export(args: argparse.Namespace) -> int:
+    """Write the plan stored in the state (planned or replanned) in the formats of ``-o``,
+    without planning again; the state is not changed."""
+    files = plan_outputs(args.output, 1)  # suffixes and repeats; the robots once read
+    guard_paths([f for f, _ in files], [args.state], args)
+    state = _load_state(args.state)
+    plan, t = state.current_plan, state.current_plan_time
+    if plan is None:
+        raise _usage(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
+                     "first")
+    files = plan_outputs(args.output, plan.n_robots, args.robot)
+    _guard_state_outputs([f for f, _ in files], state, args)
+    try:  # its criterion under the day's prior
+        kw = state.planner_kwargs(criterion=plan.criterion, time=t)
+        value = criterion_value(plan, state.model.Y, state.model.region_, kw, reuse=False)
+    except LrmError:  # the state has moved past the plan's day: its cells' own Fisher
+        value = (f"Fisher information {plan.information:.4f} nats of its cells alone (the "
+                 f"state has moved on to {_label(state.time)}, past the plan's prior)")
+    print(f"plan for {_label(t)} ({plan.method}): {describe_plan(plan, value)}")
+    write_plans(plan, files, args)
+    return 0
+
+
+def _read_observations(path: str, region: Any, var: str | None,
+                       what: str = "--observations") -> Any:
     """``(cells, values)`` from a CSV (``value`` + ``cell`` or ``lat``, ``lon``), or a
-    ``(lat, lon)`` DataArray from a NetCDF file (NaN where not observed)."""
+    ``(lat, lon)`` DataArray from a NetCDF file (NaN where not observed); errors name the
+    argument as ``what``."""
     from ._validation import check_input_file
 
-    check_input_file(path, "observations file")  # a FIFO would be waited on forever
+    check_input_file(path, what)  # a FIFO would be waited on forever
     p = Path(path)
     if not p.exists():
-        raise _usage(f"observations file {path} does not exist")
+        raise _usage(f"{what} {path} does not exist")
     if p.suffix.lower() in (".nc", ".nc4", ".netcdf"):
         import xarray as xr
 
@@ -230,15 +265,16 @@ def _read_observations(path: str, region: Any, var: str | None) -> Any:
             raise _usage(f"{path}: variable {names[0]!r} must be a (lat, lon) map, got dims "
                          f"{da.dims}")
         return da
-    return read_observations_csv(path, region)
+    return read_observations_csv(path, region, what)
 
 
 def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
     with _state_lock(args.state):  # read, update and write back with no other writer between
         state = _load_state(args.state)
         sensor = _assimilate_sensor(args, state)
-        obs = _read_observations(args.observations, state.model.region_, args.var)
-        before = state.n_dropped
+        obs = _read_observations(args.observations, state.model.region_, args.var,
+                                 "observations file")
+        before, added_before = state.n_dropped, state.n_assimilated
         t, notes = _observation_time(state, args)
         if sensor.is_point:
             state.assimilate(obs, t, force=args.force)
@@ -259,8 +295,9 @@ def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
     dropped = state.n_dropped - before
     note = f"; {dropped} NaN value(s) ignored" if dropped else ""
     what = "" if sensor.is_point else f" ({sensor.describe()} footprint averages)"
-    print(f"assimilated {n_today} observation(s){what} at {_label(state.time)}{note}; state "
-          f"{args.state} updated")
+    added = state.n_assimilated - added_before
+    print(f"assimilated {added} observation(s){what} from {args.observations} at "
+          f"{_label(state.time)} ({n_today} in all that day){note}; state {args.state} updated")
     return 0
 
 
@@ -363,17 +400,20 @@ def _label(t: Any) -> str:
 
 # ----------------------------------------------------------------------------- parser
 def add_monitor_parser(sub: Any) -> None:
-    """Add ``monitor init|plan|replan|assimilate|map`` to ``lrm-cvx``'s subcommands."""
+    """Add ``monitor init|plan|replan|export|assimilate|map`` to ``lrm-cvx``'s subcommands."""
     from .information import CRITERIA
     from .planning.routecost import COSTS
     from .recommended import RECOMMENDED
 
     p = sub.add_parser("monitor", help="the field loop: a filter state carried from day to day "
-                       "(init, plan, replan, assimilate, map)")
+                       "(init, plan, replan, export, assimilate, map)")
     msub = p.add_subparsers(dest="monitor_command", required=True, metavar="STEP")
 
     q = msub.add_parser("init", help="start a monitor state after the model's last snapshot")
-    q.add_argument("model", help="model file written by 'lrm-cvx fit' (with --temporal)")
+    q.add_argument("model", help="model file written by 'lrm-cvx fit': the temporal model "
+                   "fit chose (by default, --temporal auto: ar1, seasonal or none) carries the "
+                   "state from day to day; a model fitted with --paper or --temporal none "
+                   "needs --temporal or --memoryless here")
     q.add_argument("--state", required=True, help="state file to write (.nc)")
     q.add_argument("--time", default=None,
                    help="position the state at this time (default: the last fitted snapshot)")
@@ -403,12 +443,10 @@ def add_monitor_parser(sub: Any) -> None:
                    help="plan for this time (default: the next step, or the state's time if "
                    "not observed yet)")
     add_path_options(q, route=True)
-    q.add_argument("-o", "--output", required=True, help="plan.csv, plan.geojson, or a "
-                   "mission: .plan (QGroundControl), .waypoints (MAVLink), .gpx, .kml")
     add_setting(q, f"--criterion {RECOMMENDED['criterion']} --initial "
                 f"{RECOMMENDED['initial']} (the forecast is always the prior)",
                 "--criterion fisher --initial nearest (the forecast is still the prior)")
-    add_mission_options(q)
+    add_plan_outputs(q, required=True)
     add_output(q)
     q.set_defaults(func=cmd_monitor_plan)
 
@@ -428,11 +466,16 @@ def add_monitor_parser(sub: Any) -> None:
     q.add_argument("--var", default=None, help="variable of a NetCDF observations file")
     q.add_argument("--criterion", choices=CRITERIA, default=None,
                    help="planning criterion (default: the stored plan's)")
-    q.add_argument("-o", "--output", default=None, help="write the new plan: plan.csv, "
-                   "plan.geojson, or a mission (.plan, .waypoints, .gpx, .kml)")
-    add_mission_options(q)
+    add_plan_outputs(q, required=False)
     add_output(q)
     q.set_defaults(func=cmd_monitor_replan)
+
+    q = msub.add_parser("export", help="write the plan stored in the state (by monitor plan "
+                        "or replan) in other formats, without planning again")
+    q.add_argument("state", help="state file holding a plan (read only)")
+    add_plan_outputs(q, required=True)
+    add_output(q)
+    q.set_defaults(func=cmd_monitor_export)
 
     q = msub.add_parser("assimilate", help="fold a day's observations into the state")
     q.add_argument("state", help="state file (replaced atomically)")

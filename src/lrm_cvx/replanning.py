@@ -139,8 +139,8 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
             ends = {"closed": True} if goal == here else {"end": goal}
         check = refine if refine and "end" not in ends else None
         new = plan_greedy(Y, region, here, left, criterion=criterion, cost=cost, ridge=ridge,
-                          initial="start", refine=check, progress=progress, **opts, **ends,
-                          **kw)
+                          initial="start", refine=check, progress=progress, stay=True,
+                          **opts, **ends, **kw)
         new_plans.append(new)
         taken += [int(c) for c in new.stops if int(c) != here]
     return _stitch(plan, pieces, new_plans, Y, region, criterion, ridge, cost)

@@ -286,16 +286,22 @@ def plan_greedy(
     static : fixed sensors, no travel (see :func:`~lrm_cvx.planning.static.place_sensors`;
         ``start`` must then be None and ``n_sensors`` (or ``budget``) is the number of
         sensors).
+    stay : (``**options``) a robot whose budget reaches no cell beyond its start (with no
+        forced initial cell to take it away) stays there, a route of its start alone (a
+        replan at the end of a route); default False: :class:`PlanningError` naming the
+        nearest cell's distance and the budget a route to it needs.
     n_sensors, training, exchange : (``**options``) ``static=True`` only: the number of
         sensors, the training snapshots of ``criterion="risk"`` and the exchange search.
 
     If the initial cells alone already exceed a robot's budget, the plan is still returned
     (the paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
-    budget, start, criterion, cost or path option, or a singular initial set with ``ridge=0``.
+    budget, start, criterion, cost or path option, a budget that cannot leave the start (unless
+    ``stay``), or a singular initial set with ``ridge=0``.
     """
     paper = check_flag(paper, "paper", error=PlanningError)
     refine = _check_refine(refine)
     cost_exponent = _check_exponent(options.pop("cost_exponent", 1.0))
+    stay = check_flag(options.pop("stay", False), "stay", error=PlanningError)
     default_refine = False  # the recommended check is skipped where it cannot run
     terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
     model = None
@@ -352,8 +358,10 @@ def plan_greedy(
     if initial == "nearest" and k > region.n_cells:
         raise PlanningError(f"the region has {region.n_cells} cells, fewer than the rank k = {k}")
     P0s = _robot_initial(models, k, initial)
-    tols = [float(getattr(m, "tol", _TOL)) for m in models]  # 1e-9 (x budget off the grid)
     cands = [np.asarray(m.candidates(), dtype=np.int64) for m in models]
+    if not stay and (initial == "start" or k == 1):
+        _check_leaves(models, P0s, cands, fleet.is_fleet)
+    tols = [float(getattr(m, "tol", _TOL)) for m in models]  # 1e-9 (x budget off the grid)
     union_pool = cands[0] if len(cands) == 1 else np.unique(np.concatenate(cands))
     idx = [np.searchsorted(union_pool, c) for c in cands]
     targets = terms_given.pop("targets")
@@ -382,6 +390,34 @@ def plan_greedy(
     elif refine is not None:  # refine.py registers it
         plan = REFINERS.get("local")(plan, {} if refine == "local" else refine, terms)
     return plan
+
+
+def _check_leaves(models: list[Any], P0s: list[np.ndarray], cands: list[np.ndarray],
+                  is_fleet: bool) -> None:
+    """PlanningError when a robot has its start alone and no candidate: its budget cannot
+    reach any cell beyond the start (the message names, for every such robot, the nearest
+    cell's distance and the cheapest route to it, in the budget's unit). A start that can reach
+    no other cell at all is left alone (a one-cell region plans its start)."""
+    stuck = []
+    for r, (m, P0, cand) in enumerate(zip(models, P0s, cands, strict=True)):
+        if P0.size != 1 or cand.size:
+            continue
+        try:  # the nearest cell by the path model's distance (its travel graph grows to it)
+            nearest = int(m.initial_cells(2)[1])
+        except PlanningError:
+            continue
+        need = float(m.route_cost([m.start, nearest]))
+        unit = getattr(m, "unit", "grid units")
+        how = [f"the nearest cell is {float(m.distances(m.start, [nearest])[0]):.4g} {unit} away"]
+        if m.closed or m.stop_cost:
+            how.append(f"a route to it costs {need:.4g} {unit}"
+                       f"{' (there and back)' if m.closed else ''}"
+                       f"{' with the stop costs' if m.stop_cost else ''}")
+        who = f"robot {r}'s budget" if is_fleet else "the budget"
+        stuck.append(f"{who} {m.budget:g} {unit} cannot reach any cell beyond its start: "
+                     f"{', '.join(how)}; give a budget of at least {need:.4g} {unit}")
+    if stuck:
+        raise PlanningError("; ".join(stuck))
 
 
 def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets, tols, fleet,

@@ -87,7 +87,7 @@ class GreedyPlanner(Planner):
                            cost=self.cost or "nearest-neighbor", ridge=ridge, progress=False,
                            initial=self.initial, prior=prior, path=path,
                            refine=lines_where_possible(path) if self.lines else None,
-                           **(terms or {}))
+                           stay=True, **(terms or {}))
 
 
 @dataclass(frozen=True)
