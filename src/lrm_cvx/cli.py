@@ -1,6 +1,6 @@
 """The ``lrm-cvx`` command: thin wrappers over the public functions.
 
-Defaults (issue #24): the recommended setting (:data:`RECOMMENDED`) wherever ``--paper`` is not
+Defaults: the recommended setting (:data:`RECOMMENDED`) wherever ``--paper`` is not
 given; ``--paper`` reproduces the paper, an explicit option always wins, and a recommended
 default the input cannot take falls back with one printed ``note:`` line.
 

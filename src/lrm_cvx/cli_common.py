@@ -82,7 +82,7 @@ def add_common(p: argparse.ArgumentParser) -> None:
 
 
 def add_setting(p: argparse.ArgumentParser, recommended: str, paper: str) -> None:
-    """``--paper`` and ``--recommended`` (issue #24): the recommended setting is the default,
+    """``--paper`` and ``--recommended``: the recommended setting is the default,
     ``--paper`` reproduces the paper; ``--recommended`` is kept so old scripts still run.
     ``recommended`` / ``paper``: what each means for this command (read with
     :func:`paper_setting`)."""

@@ -1,4 +1,4 @@
-"""``lrm-cvx monitor``: the field loop from a shell (issue 13, step 7).
+"""``lrm-cvx monitor``: the field loop from a shell.
 
 ::
 
@@ -278,7 +278,7 @@ def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
         t, notes = _observation_time(state, args)
         if sensor.is_point:
             state.assimilate(obs, t, force=args.force)
-        else:  # each value is the footprint's average around its cell (issue #25 item 6)
+        else:  # each value is the footprint's average around its cell
             from .planning.sensors import footprint_matrix
 
             if not isinstance(obs, tuple):

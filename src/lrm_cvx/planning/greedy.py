@@ -2,8 +2,8 @@
 
 ``plan_greedy(Y, region, start, budget)`` on a bare factor matrix is the paper's planner (Fisher
 criterion, the start and its ``k - 1`` nearest cells forced, no prior: ``Y`` carries no belief);
-``plan_greedy(model, start, budget)`` on a fitted GLRM is the recommended planner (issue #24:
-the criterion, prior and initial cells of :data:`lrm_cvx.recommended.RECOMMENDED`), and
+``plan_greedy(model, start, budget)`` on a fitted GLRM is the recommended planner
+(the criterion, prior and initial cells of :data:`lrm_cvx.recommended.RECOMMENDED`), and
 ``paper=True`` the paper's again.
 """
 
@@ -176,7 +176,7 @@ def plan_greedy(
 ) -> Plan:
     """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
 
-    Two call forms (issue #24):
+    Two call forms:
 
     * ``plan_greedy(Y, region, start, budget)`` with a factor matrix: ``Y`` carries no belief,
       so the defaults are the paper's (``criterion="fisher"``, ``initial="nearest"``, no prior).
@@ -226,8 +226,8 @@ def plan_greedy(
         (cheapest insertion route, cheaper and usually shorter).
     ridge : ``>= 0``, added to the information matrix (``ridge * I``).
     progress : show a tqdm progress bar.
-    prior_precision, noise_var, target_weights : (``**options``) the fold-in's posterior (issue #8,
-        docs/reconstruction.md): ``M = prior_precision + sum_P y_p y_p^T / noise_var_p``
+    prior_precision, noise_var, target_weights : (``**options``) the fold-in's posterior
+        (docs/reconstruction.md): ``M = prior_precision + sum_P y_p y_p^T / noise_var_p``
         replaces ``ridge I + sum_P y_p y_p^T`` in ``"fisher"`` and ``"a-optimal"``, and the
         A-optimal target is ``sum_i target_weights_i y_i y_i^T``. ``GLRM.planner_kwargs()``
         returns them for a fitted model. Default None: the paper.

@@ -1,4 +1,4 @@
-"""A plan as files that robots, ground stations and GIS tools load (issue #25, item 3).
+"""A plan as files that robots, ground stations and GIS tools load.
 
 * GeoJSON (RFC 7946): longitudes in [-180, 180), a route that crosses the antimeridian split
   into a ``MultiLineString`` there (RFC 7946 section 3.1.9); fixed sensors as Points.
