@@ -1,6 +1,6 @@
 """Shared test fixtures.
 
-``inputs_unchanged`` (issue 14, "never write onto an input"): register every input file or folder
+``inputs_unchanged`` ("never write onto an input"): register every input file or folder
 of a command with ``inputs_unchanged.watch(path, ...)`` before running it; at teardown (or on
 ``inputs_unchanged.check()``) the test fails if any watched file changed (SHA-256 of its bytes),
 disappeared, or if a file appeared in or vanished from a watched folder. Use it in every

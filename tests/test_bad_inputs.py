@@ -1,4 +1,4 @@
-"""Issue 14, the command line: bad or unusual inputs as a new user types them.
+"""The command line: bad or unusual inputs as a new user types them.
 
 Every case asserts the outcome (exit status 2 and one line ``lrm-cvx <cmd>: error: ...`` naming
 the problem, or the correct result) AND that no input file changed (``inputs_unchanged``,
@@ -821,7 +821,7 @@ def test_ctrl_c_during_the_write_keeps_the_old_file(run, tmp_path, monkeypatch):
     assert out.read_text() == "old" and leftovers(tmp_path) == []
 
 
-# ------------------------------------------------------------- issue 26: trust, round two
+# ------------------------------------------------------------- trust: files, locks, crashes
 def _state(run, tmp_path, model="{model}"):
     state = tmp_path / "state.nc"
     code, _, err = run(["monitor", "init", model, "--state", str(state), "--temporal", "ar1"])

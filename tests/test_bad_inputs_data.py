@@ -1,4 +1,4 @@
-"""Bad or unusual data inputs (issue 14): each gives the named error class or the right answer,
+"""Bad or unusual data inputs: each gives the named error class or the right answer,
 and never changes an input file (every file under the test's folder is checksummed before and
 after the call)."""
 
@@ -412,7 +412,7 @@ def test_ndvi_cdr_bbox_in_the_other_convention(tmp_path, untouched):
     np.testing.assert_array_equal(out.values, full.sel(lon=[-176.5, -175.5, -174.5]).values)
 
 
-# ------------------------------------------------------------- issue 26: a NaT time
+# ------------------------------------------------------------- a NaT time
 def _with_nat() -> xr.DataArray:
     import pandas as pd
 

@@ -1,4 +1,4 @@
-"""Bad and unusual inputs of the GLRM model and of ``evaluate`` (issue 14, helper H3).
+"""Bad and unusual inputs of the GLRM model and of ``evaluate``.
 
 Each case asserts the named error class or the correct result against a naive numpy
 reference; file inputs are checksummed before and after (``inputs_unchanged``).
@@ -43,7 +43,7 @@ def field():
     return synthetic_field(14, (6, 7), rank=2, seed=3, missing=0.2, dtype=np.float64)
 
 
-# --------------------------------------------------------------------------- data units (#8)
+# --------------------------------------------------------------------------- data units
 @pytest.mark.parametrize("offset,scale", [(False, False), (True, False), (False, True),
                                           (True, True)])
 def test_reconstruct_and_score_in_data_units_exact(offset, scale):
@@ -119,7 +119,7 @@ def test_loaded_model_reconstructs_in_data_units(tmp_path):
     assert back.score(D) < 1e-8
 
 
-# --------------------------------------------------------------------------- magnitudes (#3)
+# --------------------------------------------------------------------------- magnitudes
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_one_huge_value_warns_and_noise_is_not_zero(dtype):
     rng = np.random.default_rng(0)
@@ -177,7 +177,7 @@ def test_offset_counts_in_the_noise_degrees_of_freedom():
     assert m.noise_std_ == pytest.approx(np.sqrt(sse / (D.size - p)), rel=1e-3)
 
 
-# --------------------------------------------------------------------------- identifiability (#4)
+# --------------------------------------------------------------------------- identifiability
 def test_rank_equal_to_number_of_snapshots_is_refused():
     with pytest.raises(ModelError, match=r"rank 3.*T=3"):
         GLRM(rank=3, progress=False).fit(low_rank(3, 15))
@@ -377,7 +377,7 @@ def test_load_round_trip_reads_only(saved, inputs_unchanged):
     assert m.noise_std_ == pytest.approx(float(saved[1].attrs["noise_std"]))
 
 
-# --------------------------------------------------------------------------- evaluate (#2, #6)
+# --------------------------------------------------------------------------- evaluate
 EV = dict(rank=2, n_test=3, budgets=(3.0,), n_starts=2, methods=("greedy", "random"),
           random_trials=2, min_observations=1, progress=False, certify=False, paper=True)
 
@@ -481,7 +481,7 @@ def test_snapshot_masked_out_entirely_is_refused():
         GLRM(rank=2, progress=False).fit(D, mask=M)
 
 
-# ------------------------------------------------------------- issue 26: a constant field
+# ------------------------------------------------------------- a constant field
 def test_constant_field_warns_and_its_empirical_fold_in_returns_the_constant():
     import pandas as pd
 

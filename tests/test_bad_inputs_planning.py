@@ -1,4 +1,4 @@
-"""Bad and unusual inputs to the planners, the baselines and the certificate (issue 14).
+"""Bad and unusual inputs to the planners, the baselines and the certificate.
 
 Each case asserts the project's named error class (with the argument named in the message) or
 the correct result. Counted by outcome in the module docstring of the report: see

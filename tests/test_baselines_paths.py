@@ -1,4 +1,4 @@
-"""Transects and the random walk under the path model (issue #15): km / hour step costs, stop
+"""Transects and the random walk under the path model: km / hour step costs, stop
 costs, cells they may not enter, closed out-and-back tours, fleets; defaults unchanged."""
 
 import math

@@ -1,4 +1,4 @@
-"""The pure parts of ``benchmarks/bench_peers.py`` (issue #17, item 4) on tiny data; the peers
+"""The pure parts of ``benchmarks/bench_peers.py`` on tiny data; the peers
 (H2O, PySensors) are skipped when not installed."""
 
 from __future__ import annotations

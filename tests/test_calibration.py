@@ -1,4 +1,4 @@
-"""Calibrated predictive uncertainty (glrm/calibration.py, issue 13 step 6)."""
+"""Calibrated predictive uncertainty (glrm/calibration.py)."""
 
 from __future__ import annotations
 

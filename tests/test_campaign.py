@@ -1,4 +1,4 @@
-"""simulate_campaign (issue 13 step 4): the memoryless loop equals the empirical fold-in, the
+"""simulate_campaign: the memoryless loop equals the empirical fold-in, the
 scores are what they say, the filter helps on planted dynamics, and bad input is refused."""
 
 from __future__ import annotations

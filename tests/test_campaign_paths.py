@@ -1,4 +1,4 @@
-"""Campaigns under the whole path model and fleets (issue #25, item 1): every method plans every
+"""Campaigns under the whole path model and fleets: every method plans every
 day under the same path request, the routes flown are feasible (a brute-force recomputation of
 their length, their cells and their end), the default request is the paper's loop, and bad
 requests fail with one line."""

@@ -1,4 +1,4 @@
-"""The plan certificate bounds every route of every path model (issue #15).
+"""The plan certificate bounds every route of every path model.
 
 Reference: on tiny grids, every set of stops a route within the budget can visit, found by an
 exhaustive depth-first search over visiting orders with the exact route cost (travel over a

@@ -1,4 +1,4 @@
-"""The CLI's defaults (issue #24 item 4): the recommended setting unless ``--paper``.
+"""The CLI's defaults: the recommended setting unless ``--paper``.
 
 No flag gives the same outputs as ``--recommended``; ``--paper`` gives the paper's outputs
 (checked against the paper's Python calls); an explicit option beats either setting; ``--paper
@@ -202,7 +202,7 @@ def test_fit_notes_the_fallback_after_hold_out(files, tmp_path, capsys):
 def test_fit_notes_a_record_too_short_to_calibrate(files, tmp_path, capsys):
     """On 4 snapshots no refit of the recommended calibration can carry rank 2 with an offset:
     one note, the model is saved uncalibrated (its calibration parameter None). On 6 the
-    blocks whose refit can are used (session 32; before, the first block's refit failed the
+    blocks whose refit can are used (before, the first block's refit failed the
     whole calibration)."""
     root, _ = files
     capsys.readouterr()

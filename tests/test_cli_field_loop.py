@@ -1,4 +1,4 @@
-"""The glider campaign through the CLI alone (issue #25, items 1-2): ``fit --hold-out``, ``monitor
+"""The glider campaign through the CLI alone (items 1-2): ``fit --hold-out``, ``monitor
 init``, then each day ``monitor plan`` (km budgets, closed tours, a no-go band, two robots),
 ``monitor replan`` after part of the route with the samples taken so far, ``monitor assimilate``
 of the rest and ``monitor map``. Every route is checked by the brute-force feasibility checker

@@ -150,7 +150,7 @@ def test_a_crash_during_the_state_write_keeps_the_old_state(files, tmp_path, mon
     assert sorted(p.name for p in tmp_path.iterdir()) == ["state.nc"]  # no temporary left
 
 
-# ----------------------------------------------- issue 25, item 5: a user's own record
+# ----------------------------------------------- a user's own record
 def test_mid_month_stamps_are_kept(tmp_path):
     # a monthly record stamped mid-month (16 Jan 12:00, 15 Feb 00:00, 16 Mar 12:00, 16 Apr
     # 00:00, ...): the next time is the record's own April stamp, not 16 Apr 12:00
@@ -217,7 +217,7 @@ def test_fit_hold_out_bad_input(tmp_path, capsys, argv, needle):
     assert not (tmp_path / "m.nc").exists()
 
 
-# ------------------------------------------- issue 25, item 1: one daily loop, every path model
+# ------------------------------------------- one daily loop, every path model
 def test_monitor_plan_takes_every_path_option_and_fleets(tmp_path, capsys):
     from lrm_cvx import load_sample
     from lrm_cvx.monitor import MonitorState

@@ -1,4 +1,4 @@
-"""`lrm-cvx plan|bound|evaluate` with the path model (issue #15): the same plans and results as
+"""`lrm-cvx plan|bound|evaluate` with the path model: the same plans and results as
 the Python API, fleets from repeated --start, and one-line errors for bad options."""
 
 import json

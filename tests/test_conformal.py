@@ -1,4 +1,4 @@
-"""Conformal intervals (issue #24, item 3b): the split-conformal threshold's exact finite-sample
+"""Conformal intervals (item 3b): the split-conformal threshold's exact finite-sample
 guarantee, the conformal calibration of a model on cross-validated fold-ins (never reading the
 test block), and adaptive conformal inference online in the filter."""
 

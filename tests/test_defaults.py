@@ -1,4 +1,4 @@
-"""Issue #24 item 4: the recommended setting is the library's default wherever the paper's is not
+"""The recommended setting is the library's default wherever the paper's is not
 asked for (``paper=True``); explicit arguments win over both; ``paper`` must be a bool.
 
 Every default is compared with the same call spelled out explicitly (outputs equal), so a
@@ -93,7 +93,7 @@ def test_evaluate_default_is_the_recommended_setting_spelled_out(data):
 
 
 def test_evaluate_paper_is_the_old_default_bit_for_bit(data):
-    """``paper=True`` is what ``evaluate`` did before issue #24 with no option: GLRM(rank), the
+    """``paper=True`` is the paper's protocol: GLRM(rank), the
     paper's METHODS, the least-squares fold-in (the old defaults, given explicitly)."""
     paper = evaluate(data, paper=True, **EV)
     old = evaluate(data, methods=METHODS, model_params={}, fold_in={}, **EV)

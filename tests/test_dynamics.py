@@ -1,4 +1,4 @@
-"""Temporal dynamics of the latent columns (issue 13 step 2): estimation, bad input, model io."""
+"""Temporal dynamics of the latent columns: estimation, bad input, model io."""
 
 from __future__ import annotations
 

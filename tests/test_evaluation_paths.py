@@ -1,4 +1,4 @@
-"""evaluate() with the path model (issue #15): options passed to every method, fleets of starts,
+"""evaluate() with the path model: options passed to every method, fleets of starts,
 recorded options, early errors; the defaults keep the paper's results."""
 
 import numpy as np

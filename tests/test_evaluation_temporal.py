@@ -1,4 +1,4 @@
-"""evaluate(temporal=...) and the coverage outputs (issue 13, step 5)."""
+"""evaluate(temporal=...) and the coverage outputs."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The filter's own conformal thresholds (issue #24, item 3): a conformal calibration of a model
+"""The filter's own conformal thresholds: a conformal calibration of a model
 with dynamics also calibrates the filter's intervals on forward-chained filter residuals, the
 filter uses them, and campaigns score coverage with the intervals users get."""
 
@@ -145,8 +145,7 @@ def test_filter_thresholds_round_trip_and_validate(tmp_path, persistent):
 
 def test_a_loaded_monitor_state_keeps_the_filters_thresholds(tmp_path, persistent):
     """A state saved and loaded reads the same intervals as before: the filter's own
-    thresholds (per size) and scale, or the memoryless ones for a memoryless state (before
-    session 37 a loaded filter fell back to the memoryless thresholds)."""
+    thresholds (per size) and scale, or the memoryless ones for a memoryless state."""
     from lrm_cvx.monitor import MonitorState
 
     data, train, model = persistent

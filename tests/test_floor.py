@@ -1,4 +1,4 @@
-"""Tests of the convex floor (issue #16): the mixture solver against cvxpy, the routes'
+"""Tests of the convex floor: the mixture solver against cvxpy, the routes'
 feasibility, and the theorem it rests on (every convex route relaxation reaches the best
 mixture of routes), checked by brute force over every route on tiny grids."""
 

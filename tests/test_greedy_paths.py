@@ -1,4 +1,4 @@
-"""plan_greedy on every path model (issue #15) against a naive greedy, fleets, sensing along the
+"""plan_greedy on every path model against a naive greedy, fleets, sensing along the
 route, static placement, and the Plan of all of these."""
 
 import json
@@ -445,7 +445,7 @@ def test_static_pairs_brute_force_and_naive_greedy():
     assert len(plan) == 5 and np.isfinite(plan.information)
     with pytest.raises(PlanningError, match="n_sensors"):
         place_sensors(Y, region, 2)  # fewer sensors than the rank with ridge 0
-    df = plan.to_dataframe()  # fixed sensors: their own columns, not a route's (issue #25)
+    df = plan.to_dataframe()  # fixed sensors: their own columns, not a route's
     assert df["sensor"].tolist() == [0, 1, 2, 3, 4]
     assert df["cell"].tolist() == plan.cells.tolist() and "cumulative_cost" not in df
     assert plan.route.tolist() == plan.cells.tolist()

@@ -1,4 +1,4 @@
-"""Issue 26: the README's install command works on a fresh Python 3.11 venv with the pip it ships
+"""The README's install command works on a fresh Python 3.11 venv with the pip it ships
 (23.2.1 resolves without backtracking into ResolutionImpossible) and with the newest pip.
 
 Slow (a real install, 1.5-3 minutes each): run when ``LRM_CVX_SLOW_TESTS=1`` (``.ci/run`` sets

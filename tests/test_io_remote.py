@@ -387,7 +387,7 @@ def test_cli_fit_reads_a_url(http, tmp_path):
     assert os.path.getsize(out) > 0
 
 
-# ------------------------------------------------------- a server without Range (issue 26)
+# ------------------------------------------------------- a server without Range
 @pytest.fixture
 def no_range_file(http):
     """A 0.5 MB NetCDF-4 file (larger than one block) served without Range support."""

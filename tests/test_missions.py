@@ -1,4 +1,4 @@
-"""Missions and exports (issue #25, item 3): every file is read back with the reference library
+"""Missions and exports: every file is read back with the reference library
 (pymavlink, gpxpy; the KML with the standard library's XML parser, simplekml only writes), and
 the antimeridian split is checked against a brute-force reference."""
 

@@ -1,4 +1,4 @@
-"""The monitoring filter (issue 13 step 3) against a naive dense Kalman filter and the
+"""The monitoring filter against a naive dense Kalman filter and the
 memoryless fold-in; observations in every form; save/load; bad input."""
 
 from __future__ import annotations

@@ -121,7 +121,7 @@ def test_certify_without_model_fails(setup):
     assert isinstance(walk, Plan)
 
 
-# ---------------------------------------------------------------------- issue 14, item 10
+# ---------------------------------------------------------------------- bad input
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
@@ -196,7 +196,7 @@ def test_plan_built_without_route_cost_and_inconsistent_cost(setup):
         Plan.build(cost=plan.cost + 1.0, **kw)
 
 
-# ---------------------------------------------------------------------- issue 14, item 9
+# ---------------------------------------------------------------------- figures
 @pytest.fixture(scope="module")
 def tiny():
     rng = np.random.default_rng(4)
@@ -252,7 +252,7 @@ def test_certify_baseline_is_judged_by_fisher(tiny):
     assert cert.plan_criterion is None and cert.comparable and np.isfinite(cert.gap)
 
 
-# ---------------------------------------------------------------------- issue 15: path models
+# ---------------------------------------------------------------------- path models
 def test_fleet_csv_roundtrip_and_closed_tours(setup, tmp_path):
     Y, region, start, _ = setup
     other = int(region.cell_grid[2, 3]) if region.cell_grid[2, 3] >= 0 else 0

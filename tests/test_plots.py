@@ -113,7 +113,7 @@ def test_route_lines_break_between_robots():
     np.testing.assert_array_equal(single["lon"].values, region.cell_lon[[0, 1, 2, 5, 6]])
 
 
-# --------------------------------------------- issue 25, item 4: maps people read
+# --------------------------------------------- maps people read
 def _tick_labels_overlap(ax) -> bool:
     fig = ax.figure
     fig.canvas.draw()

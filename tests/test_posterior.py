@@ -328,7 +328,7 @@ def fit_model(da, **kw):
 @pytest.mark.parametrize("kw", [dict(offset=True), dict(offset=True, scale=True),
                                 dict(offset=True, scale=True, noise="per-cell"), {}])
 def test_complete_mse_is_in_data_units(kw):
-    """issue 14 item 7: complete_mse honours the model's offset and scale."""
+    """complete_mse honours the model's offset and scale."""
     from lrm_cvx.evaluation import evaluate
 
     da = small_field()

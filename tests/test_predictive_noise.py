@@ -1,4 +1,4 @@
-"""The noise of a new measurement in a spatial model (issue #24, item 3a): the nugget's floor
+"""The noise of a new measurement in a spatial model (item 3a): the nugget's floor
 (the fit's sub-cell variation), and the fitted model's posterior mean and predictive std
 against a dense brute-force GP (trend prior + kernel + nugget) on tiny inputs."""
 

@@ -1,4 +1,4 @@
-"""Reconstruction-targeted options (issue #8) against brute-force references."""
+"""Reconstruction-targeted options against brute-force references."""
 
 import warnings
 

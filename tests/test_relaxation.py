@@ -1,4 +1,4 @@
-"""Tests of the path-aware relaxation (issue #16 item 1): validity by brute force, the dual
+"""Tests of the path-aware relaxation: validity by brute force, the dual
 value against an independent cvxpy solve, the LP dual term, and bad input."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Replanning en route (issue #25, item 2): the flown part is kept, the rest is replanned from
+"""Replanning en route: the flown part is kept, the rest is replanned from
 where the robot is, and the stitched route stays feasible for the original path model (budget,
 no-go cells, return home), checked against a brute-force recomputation of its length."""
 

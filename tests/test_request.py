@@ -1,4 +1,4 @@
-"""The path request (issue #27): PathOptions and Fleet validated once, plan.path a read-only
+"""The path request: PathOptions and Fleet validated once, plan.path a read-only
 mapping, planners as objects equal to the keyword functions, EvaluationProtocol equal to
 evaluate, and the 15-parameter rule of the public API."""
 
@@ -228,7 +228,7 @@ def test_evaluation_protocol_run_is_evaluate():
     xr.testing.assert_identical(a, b)
     assert a.attrs["stop_cost"] == 0.5
     with pytest.raises(PlanningError, match="temporal campaigns only"):
-        evaluate(da, sense_along=True, **kw)  # sensing along needs a campaign (issue #25)
+        evaluate(da, sense_along=True, **kw)  # sensing along needs a campaign
     with pytest.raises(PlanningError, match="n_robots"):
         EvaluationProtocol(da, n_robots=0, **kw)  # checked when built, before any fit
 

@@ -1,4 +1,4 @@
-"""Sensors that see more than a point (issue #25 item 6), against brute force.
+"""Sensors that see more than a point, against brute force.
 
 Footprint rows against a cell-by-cell loop over the region, averaged rows against the dense
 mean of the covered cells' factors, the greedy's gains against log det / trace / GP variance

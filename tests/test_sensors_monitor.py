@@ -1,6 +1,6 @@
 """Footprint readings through the daily loop: ``monitor assimilate`` folds in one average per
 footprint (the stored plan's sensor by default), the state file keeps today's averaged rows, and
-the stored plan keeps its sensor (issue #25, item 6)."""
+the stored plan keeps its sensor."""
 
 from __future__ import annotations
 

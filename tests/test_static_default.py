@@ -1,4 +1,4 @@
-"""place_sensors' recommended default (issue #24 item 4) and the scalable form of the risk /
+"""place_sensors' recommended default and the scalable form of the risk /
 gp-variance greedy and exchange (item 6, planning/static_risk.py), checked against the dense
 ``L x L`` reference and the fold-in recomputed from scratch on tiny grids."""
 
@@ -226,9 +226,8 @@ def test_cli_place_default_is_the_recommended_and_paper_the_fisher(tmp_path, cap
 
 
 def test_default_exchanges_with_as_many_sensors_as_training_snapshots(fitted):
-    """The risk's exchange runs whatever ``n`` against the snapshot count (session 23: the
-    rule that skipped it at ``n >= T`` was set on a test block; without it the exchange
-    lowered the error of every storm record at ``n >= T`` on the training snapshots)."""
+    """The risk's exchange runs whatever ``n`` against the snapshot count (on the
+    training snapshots the exchange lowered the error of every storm record at ``n >= T``)."""
     model, train = fitted
     T = train.sizes["time"]
     Y, region = model.Y_, model.region_  # the (Y, region, n) form's default: risk

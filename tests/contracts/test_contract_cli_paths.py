@@ -1,4 +1,4 @@
-"""CLI parity for the path model (issue #15): every path option of the Python API has its flag,
+"""CLI parity for the path model: every path option of the Python API has its flag,
 with the library's choices, on every command that plans, and docs/cli.md names it."""
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def _flags(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
 
 
 def test_the_python_api_takes_every_path_option():
-    # issue #27: a path option is a field of the one request object (PathOptions), taken as
+    # a path option is a field of the one request object (PathOptions), taken as
     # `path=PathOptions(...)` or as its keyword through `**options`, with the request's defaults
     fields = {f.name: f.default for f in dataclasses.fields(PathOptions)}
     for fn, names in ((plan_greedy, PLAN_OPTIONS), (evaluate, EVALUATE_OPTIONS),
