@@ -1061,7 +1061,8 @@ def test_a_date_outside_datetime64_ns_is_refused_not_wrapped(run, files, tmp_pat
     argv = [a.replace("{state}", str(state)).replace("{out}", str(out)) for a in argv]
     code, _, err = run(argv)
     assert code == 2
-    one_line_error(err, argv[0], needle, "1677-09-21 to 2262-04-11")
+    one_line_error(err, " ".join(argv[:2]) if argv[0] == "monitor" else argv[0], needle,
+                   "1677-09-21 to 2262-04-11")
 
 
 # ------------------------------------------- model and state files are untrusted input
@@ -1095,7 +1096,7 @@ def test_a_model_or_state_with_an_external_link_is_refused(run, files, tmp_path)
         f["leak"] = h5py.ExternalLink(str(secret), "/data")
     code, _, err = run(["monitor", "map", str(state), "-o", str(tmp_path / "m.png")])
     assert code == 2
-    one_line_error(err, "monitor", "state file", "state.nc", "external link 'leak'")
+    one_line_error(err, "monitor map", "state file", "state.nc", "external link 'leak'")
 
 
 def test_a_state_whose_model_is_a_url_contacts_no_server(run, tmp_path):
@@ -1114,7 +1115,7 @@ def test_a_state_whose_model_is_a_url_contacts_no_server(run, tmp_path):
     finally:
         server.close()
     assert code == 2
-    one_line_error(err, "monitor", "url.nc", "records its model as the URL", url)
+    one_line_error(err, "monitor map", "url.nc", "records its model as the URL", url)
 
 
 def test_a_state_relative_model_path_is_taken_from_the_state_folder(run, files, tmp_path):
@@ -1137,13 +1138,13 @@ def test_a_fifo_as_the_state_model_or_the_observations_is_refused(run, tmp_path)
     bad = _restate(state, tmp_path / "s.nc", model_path=str(fifo))
     code, _, err = run(["monitor", "map", str(bad), "-o", str(tmp_path / "m.png")])
     assert code == 2
-    one_line_error(err, "monitor", "fifo.nc", "not a regular file")
+    one_line_error(err, "monitor map", "fifo.nc", "not a regular file")
     fifo_csv = tmp_path / "obs.csv"
     os.mkfifo(fifo_csv)
     code, _, err = run(["monitor", "assimilate", str(state), str(fifo_csv), "--time",
                         "2001-03-01"])
     assert code == 2
-    one_line_error(err, "monitor", "obs.csv", "not a regular file")
+    one_line_error(err, "monitor assimilate", "obs.csv", "not a regular file")
 
 
 # ---------------------------------------------------------------------- symbolic links

@@ -514,8 +514,10 @@ def test_assimilate_reports_what_the_file_added_and_names_its_argument(files, tm
     assert _run("monitor", "assimilate", state, obs, "--time", "2013-02-01") == 0
     assert _run("monitor", "assimilate", state, obs, "--time", "2013-02-01", "--force") == 0
     out = capsys.readouterr().out.splitlines()
-    assert "assimilated 6 observation(s) from" in out[-2] and "(6 in all that day)" in out[-2]
-    assert "assimilated 6 observation(s) from" in out[-1] and "(12 in all that day)" in out[-1]
+    added = [line for line in out if line.startswith("assimilated")]
+    assert "assimilated 6 observation(s) from" in added[-2] and "(6 in all that day)" in added[-2]
+    assert "assimilated 6 observation(s) from" in added[-1] and "(12 in all that day)" in added[-1]
+    assert any(line.startswith("note: --force:") for line in out)  # no silent step
     bad = tmp_path / "bad.csv"
     bad.write_text("lat,lon,temp\n1,2,3\n")
     assert _run("monitor", "assimilate", state, bad, "--time", "2013-02-02") == 2
