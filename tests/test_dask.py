@@ -649,15 +649,6 @@ def test_cdr_file_staging_on_local_cluster(cdr_files, tmp_path):
     np.testing.assert_array_equal(_staged(got).view(np.uint32), _staged(ref).view(np.uint32))
 
 
-def test_old_chunked_staging_names_still_work_and_warn():
-    from lrm_cvx.glrm import chunked
-    from lrm_cvx.io import staging
-
-    for name in ("stage", "ChunkStore", "cdr_source"):
-        with pytest.warns(DeprecationWarning, match="io.staging"):
-            assert getattr(chunked, name) is getattr(staging, name)
-
-
 def test_chunk_files_load_as_numpy_saved_them(tmp_path):
     """The thread-safe chunk reader (`chunked._load`: the header parsed under a lock, a CPython
     3.11.7 race in `ast.literal_eval` seen in CI) returns what `np.save` wrote, C or Fortran
