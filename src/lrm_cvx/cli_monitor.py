@@ -180,12 +180,7 @@ def cmd_monitor_replan(args: argparse.Namespace) -> int:
     guard_paths([f for f, _ in files], inputs, args)
     with _state_lock(args.state):  # read, assimilate, replan and write back as one step
         state = _load_state(args.state)
-        plan, t = state.current_plan, state.current_plan_time
-        if plan is None:
-            raise _usage(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
-                         "first")
-        files = plan_outputs(args.output, plan.n_robots, args.robot)
-        _guard_state_outputs([f for f, _ in files], state, args)
+        plan, t, files = _stored_plan(state, args)
         if args.time is not None and not state.same_snapshot(args.time, t, "--time"):
             raise _usage(f"--time {args.time} is not the time of the stored plan "
                          f"({_label(t)}): observations for a different day cannot replan it")
@@ -210,18 +205,25 @@ def cmd_monitor_replan(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_monitor_export(args: argparse.Namespace) -> int:
-    """Write the plan stored in the state (planned or replanned) in the formats of ``-o``,
-    without planning again; the state is not changed."""
-    files = plan_outputs(args.output, 1)  # suffixes and repeats; the robots once read
-    guard_paths([f for f, _ in files], [args.state], args)
-    state = _load_state(args.state)
+def _stored_plan(state: Any, args: argparse.Namespace) -> tuple[Any, Any, list]:
+    """``(plan, time, files)``: the plan ``monitor plan`` stored in ``state`` (one line when
+    there is none) and the output files of ``-o`` for its robots, checked."""
     plan, t = state.current_plan, state.current_plan_time
     if plan is None:
         raise _usage(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
                      "first")
     files = plan_outputs(args.output, plan.n_robots, args.robot)
     _guard_state_outputs([f for f, _ in files], state, args)
+    return plan, t, files
+
+
+def cmd_monitor_export(args: argparse.Namespace) -> int:
+    """Write the plan stored in the state (planned or replanned) in the formats of ``-o``,
+    without planning again; the state is not changed."""
+    files = plan_outputs(args.output, 1)  # suffixes and repeats; the robots once read
+    guard_paths([f for f, _ in files], [args.state], args)
+    state = _load_state(args.state)
+    plan, t, files = _stored_plan(state, args)
     try:  # its criterion under the day's prior
         kw = state.planner_kwargs(criterion=plan.criterion, time=t)
         value = criterion_value(plan, state.model.Y, state.model.region_, kw, reuse=False)
