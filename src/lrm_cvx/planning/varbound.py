@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -306,7 +307,7 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: _Polytope, *, iters: in
         w = np.maximum(w + gam * d, 0.0)
     if polish is None:
         polish = pos.size <= _CVX_MAX
-    if polish and best_val - best_primal > 1e-12 * abs(best_val):
+    if polish and best_val - best_primal > tol * max(abs(best_val), 1e-300):
         wc = _cvx_solve(obj, pos, poly, solver)
         if wc is not None:
             used = f"Frank-Wolfe + {solver}"
@@ -333,13 +334,15 @@ def _cvx_solve(obj: Any, pos: np.ndarray, poly: _Polytope, solver: str) -> np.nd
     prob = cp.Problem(cp.Maximize(objective), cons)
     opts = ({"tol_gap_abs": 1e-11, "tol_gap_rel": 1e-11, "tol_feas": 1e-11}
             if solver == "CLARABEL" else {})
-    try:
-        prob.solve(solver=solver, **opts)
-    except (cp.error.SolverError, ValueError, ArithmeticError):
+    with warnings.catch_warnings():  # an inaccurate solution is still a design to certify at
+        warnings.simplefilter("ignore")
         try:
-            prob.solve(solver=solver)
+            prob.solve(solver=solver, **opts)
         except (cp.error.SolverError, ValueError, ArithmeticError):
-            return None
+            try:
+                prob.solve(solver=solver)
+            except (cp.error.SolverError, ValueError, ArithmeticError):
+                return None
     if w.value is None or prob.status not in ("optimal", "optimal_inaccurate"):
         return None
     return poly.project(np.asarray(w.value, dtype=np.float64))
