@@ -244,3 +244,22 @@ def test_bad_inputs_get_one_line_errors():
         with pytest.raises(PlanningError, match=match) as err:
             call()
         assert "\n" not in str(err.value), name
+
+
+# ------------------------------------------------------------------------- CLI
+def test_cli_bound_reports_the_variance_gap_and_fisher_on_request(tmp_path, capsys):
+    from lrm_cvx.cli import main
+
+    path = tmp_path / "model.nc"
+    assert main(["-q", "fit", "sample:sst", "--rank", "2", "--recommended", "-o",
+                 str(path)]) == 0
+    argv = ["-q", "bound", str(path), "--start", "10,-150", "--budget", "2", "--certify",
+            "fast"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "gp-variance criterion (variance removed)" in out and "unit^2" in out
+    gap = next(x for x in out.splitlines() if x.startswith("optimality gap"))
+    assert "% of the bound" in gap and "not reported" not in gap
+    assert main([*argv, "--fisher"]) == 0
+    out = capsys.readouterr().out
+    assert "fisher criterion" in out and "nats" in out and "not reported" in out

@@ -523,8 +523,10 @@ class Plan:
         if criterion is None:
             criterion = (self.criterion if self.criterion in ("a-optimal", "gp-variance")
                          else "fisher")
+        if criterion != "fisher":  # plan_bound's default is the Fisher certificate
+            kwargs["criterion"] = criterion
         return plan_bound(self._Y, self._region, self.start, self.budget, ridge=self.ridge,
-                          plan=self, criterion=criterion, **kwargs)
+                          plan=self, **kwargs)
 
     # ------------------------------------------------------------------ exports
     def _order(self) -> np.ndarray:
