@@ -73,8 +73,13 @@ class PlanCertificate:
     ``leaves``: the final squares of the midpoint cover ``(row0, col0, side, value)``, whose
     largest value is ``relaxation.value`` (empty without the cover).
 
-    ``criterion`` is what the bound bounds: always ``"fisher"`` (``log det(ridge I + sum y
-    y^T)``). ``plan_criterion`` is what the plan was chosen for (``None`` for a baseline, which
+    ``criterion`` is what the bound bounds: ``"fisher"`` (``log det(ridge I + sum y y^T)``,
+    nats) or a variance criterion (``"gp-variance"``, ``"a-optimal"``: the variance removed,
+    ``unit == "unit^2"``; then ``information`` is the plan's value, ``initial_information``
+    the initial set's, ``relaxation`` a :class:`~lrm_cvx.planning.varbound.VarianceBound`,
+    ``volume_ratio`` None and ``greedy_information`` / ``refined_information`` the greedy's
+    and the kept route's values; docs/certificate.md §13). ``plan_criterion`` is what the
+    plan was chosen for (``None`` for a baseline, which
     optimises nothing and is judged by its Fisher information as in the paper; ``"fisher
     (posterior)"`` for a Fisher greedy on the fold-in's posterior). When the two differ
     (``comparable`` is False) ``information`` is still the plan's Fisher information but
@@ -594,8 +599,9 @@ def _variance_certificate(Y: np.ndarray, region: Any, spec: Any, plan: Any, crit
                            n_max, plan)
         information = value(cells)
         if plan_criterion in (None, criterion):
-            gap = max(bound - information, 0.0) if bound >= information - 1e-9 * max(
-                abs(bound), 1.0) else bound - information
+            gap = bound - information
+            if -1e-9 * max(abs(bound), 1.0) <= gap < 0:  # rounding at an optimal plan
+                gap = 0.0
             rivals = getattr(plan, "rivals", None) or {}
             if rivals.get("criterion") == criterion and "greedy" in rivals.get("values", {}):
                 refined_v = information
