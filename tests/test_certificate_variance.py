@@ -86,7 +86,7 @@ def test_bound_is_above_every_feasible_route(criterion, budget, closed, tight):
     kw = GP if criterion == "gp-variance" else {}
     plan = plan_greedy(Y, REGION, START, budget, criterion=criterion, ridge=RIDGE,
                        initial="start", closed=closed, progress=False, **kw)
-    cert = plan.certify(tol=1e-4, **tight)  # the midpoint cover (one square a quarter) or not
+    cert = plan.certify(**tight)  # the midpoint cover (one square a quarter) or not
     assert cert.criterion == criterion and cert.comparable
     best = best_route_value(criterion, START, budget, closed)
     assert cert.bound >= best - 1e-9
@@ -130,7 +130,7 @@ def test_relaxed_objective_at_a_plan_is_the_planners_value(criterion):
     kw = GP if criterion == "gp-variance" else {}
     plan = plan_greedy(Y, REGION, START, 4, criterion=criterion, ridge=RIDGE, initial="start",
                        progress=False, **kw)
-    cert = plan.certify(tighten=False)
+    cert = plan.certify(tighten=False, tol=1e-2)
     assert cert.information == pytest.approx(reduction(criterion, plan.cells), rel=1e-10)
 
 
@@ -163,24 +163,24 @@ def cvx_optimum(criterion: str, cells: np.ndarray, n: float) -> float:
     return float(prob.value)
 
 
-@settings(max_examples=6, deadline=None)
+@settings(max_examples=4, deadline=None, derandomize=True)
 @given(seed=st.integers(0, 10_000), n=st.sampled_from([1.0, 2.5, 4.0]),
        criterion=st.sampled_from(["gp-variance", "a-optimal"]))
 def test_frank_wolfe_bound_equals_the_cvxpy_optimum(seed, n, criterion):
     rng = np.random.default_rng(seed)
-    cells = np.sort(rng.choice(REGION.n_cells, 10, replace=False))
+    cells = np.sort(rng.choice(REGION.n_cells, 8, replace=False))
     terms = dict(GP, region=REGION) if criterion == "gp-variance" else {}
     obj = variance_objective(criterion, Y, cells, RIDGE, terms)
-    b = variance_relaxation(obj, np.arange(cells.size), _Polytope(n, cells.size), iters=200,
+    b = variance_relaxation(obj, np.arange(cells.size), _Polytope(n, cells.size), iters=40,
                             tol=1e-9, polish=True)
     opt = cvx_optimum(criterion, cells, n)
-    assert b.value >= opt * (1 - 1e-9)  # a valid bound
+    assert b.value >= opt * (1 - 1e-7)  # a valid bound (cvxpy's value is accurate to ~1e-8)
     assert b.value == pytest.approx(opt, rel=1e-6)  # and tight at convergence
     assert b.primal <= b.value
 
 
 def test_frank_wolfe_alone_is_a_valid_bound_at_any_iterate():
-    cells = np.arange(REGION.n_cells)
+    cells = np.arange(12)
     obj = variance_objective("gp-variance", Y, cells, RIDGE, dict(GP, region=REGION))
     poly = _Polytope(3, cells.size)
     exact = variance_relaxation(obj, cells, poly, iters=30, tol=1e-9, polish=True)
@@ -207,9 +207,9 @@ def test_certify_defaults_to_the_plans_criterion_and_fisher_is_one_keyword_away(
     text = repr(cert)
     assert "certified gap" in text and "unit^2" in text and "nats" not in text
     assert "gp-variance" in cert._repr_html_()
-    fisher = plan.certify(criterion="fisher")
+    fisher = plan.certify(criterion="fisher", tighten=False)
     assert fisher.criterion == "fisher" and math.isnan(fisher.gap)
-    assert fisher.bound == plan_bound(Y, REGION, START, 3, plan=plan).bound  # unchanged
+    assert fisher.bound == plan_bound(Y, REGION, START, 3, plan=plan, tighten=False).bound
 
 
 def test_baseline_and_fisher_plans_under_a_variance_bound():
@@ -248,11 +248,12 @@ def test_bad_inputs_get_one_line_errors():
 
 # ------------------------------------------------------------------------- CLI
 def test_cli_bound_reports_the_variance_gap_and_fisher_on_request(tmp_path, capsys):
+    from lrm_cvx import GLRM, load_sample
     from lrm_cvx.cli import main
 
     path = tmp_path / "model.nc"
-    assert main(["-q", "fit", "sample:sst", "--rank", "2", "--recommended", "-o",
-                 str(path)]) == 0
+    GLRM(rank=2, offset=True, spatial="exponential", random_state=0,
+         progress=False).fit(load_sample("sst").isel(time=slice(0, 20))).save(path)
     argv = ["-q", "bound", str(path), "--start", "10,-150", "--budget", "2", "--certify",
             "fast"]
     assert main(argv) == 0

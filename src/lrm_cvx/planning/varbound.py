@@ -272,14 +272,19 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: _Polytope, *, iters: in
     """Certified upper bound on ``max F(w)`` over ``poly`` (weights on ``obj``'s cells at the
     positions ``pos``): the smallest (FW) bound over Frank-Wolfe's iterates (from the
     polytope's uniform design, parabolic line search, ``iters`` steps or until the relative
-    gap ``(bound - F) / bound <= tol``) and, when ``polish`` (default: at most 25 candidates),
-    over cvxpy's solution of the same relaxation (projected into the polytope)."""
+    gap ``(bound - F) / bound <= tol``) and, when ``polish`` (default: at most 25 candidates;
+    then at most 10 Frank-Wolfe steps), over cvxpy's solution of the same relaxation
+    (projected into the polytope)."""
     t0 = time.perf_counter()
     pos = np.asarray(pos, dtype=np.int64)
     if pos.size == 0:
         return VarianceBound(0.0, 0.0, 0.0, {}, 0, 0, 0.0, "none", "empty")
     # start at the vertex of the prior gains (sparse iterates: the support grows by a vertex
     # a step), not at the uniform design
+    if polish is None:
+        polish = pos.size <= _CVX_MAX
+    if polish:  # a few first-order steps, then the conic solve does the rest
+        iters = min(iters, 10)
     w = _support(poly, obj.value_grad(pos, np.zeros(pos.size), pos)[1])[1]
     best_val, best_primal, best_w = math.inf, -math.inf, w
     steps = 0
@@ -305,8 +310,6 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: _Polytope, *, iters: in
                 break
             gam = step
         w = np.maximum(w + gam * d, 0.0)
-    if polish is None:
-        polish = pos.size <= _CVX_MAX
     if polish and best_val - best_primal > tol * max(abs(best_val), 1e-300):
         wc = _cvx_solve(obj, pos, poly, solver)
         if wc is not None:
