@@ -21,7 +21,7 @@ from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import a_optimal_value, gp_latent_cov, gp_variance_value
 from lrm_cvx.planning import plan_bound, plan_greedy, transect
-from lrm_cvx.planning.dopt import _Polytope
+from lrm_cvx.planning.dopt import Polytope
 from lrm_cvx.planning.varbound import variance_objective, variance_relaxation
 from lrm_cvx.spatial import ResidualCovariance
 
@@ -171,7 +171,7 @@ def test_frank_wolfe_bound_equals_the_cvxpy_optimum(seed, n, criterion):
     cells = np.sort(rng.choice(REGION.n_cells, 8, replace=False))
     terms = dict(GP, region=REGION) if criterion == "gp-variance" else {}
     obj = variance_objective(criterion, Y, cells, RIDGE, terms)
-    b = variance_relaxation(obj, np.arange(cells.size), _Polytope(n, cells.size), iters=40,
+    b = variance_relaxation(obj, np.arange(cells.size), Polytope(n, cells.size), iters=40,
                             tol=1e-9, polish=True)
     opt = cvx_optimum(criterion, cells, n)
     assert b.value >= opt * (1 - 1e-7)  # a valid bound (cvxpy's value is accurate to ~1e-8)
@@ -182,7 +182,7 @@ def test_frank_wolfe_bound_equals_the_cvxpy_optimum(seed, n, criterion):
 def test_frank_wolfe_alone_is_a_valid_bound_at_any_iterate():
     cells = np.arange(12)
     obj = variance_objective("gp-variance", Y, cells, RIDGE, dict(GP, region=REGION))
-    poly = _Polytope(3, cells.size)
+    poly = Polytope(3, cells.size)
     exact = variance_relaxation(obj, cells, poly, iters=30, tol=1e-9, polish=True)
     for iters in (1, 3, 10):
         b = variance_relaxation(obj, cells, poly, iters=iters, polish=False)

@@ -504,6 +504,12 @@ def _top_vertex(g: np.ndarray, n: float) -> tuple[np.ndarray, np.ndarray]:
     return order, s
 
 
+# public names of the feasible set and its exact top-n oracle (the variance bound reuses them)
+Polytope = _Polytope
+top_sum = _top_sum
+top_vertex = _top_vertex
+
+
 def _frank_wolfe(
     Yc: np.ndarray, n: float | _Polytope, ridge: float, iters: int, tol: float
 ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float]]]:

@@ -15,7 +15,7 @@ polytope ``Q`` containing every feasible plan's indicator,
 
 (concavity), so each Frank-Wolfe iterate gives a certified upper bound: ``F`` and its gradient
 are evaluated in float64 and ``max_Q`` is the exact top-n sum or an LP dual value evaluated
-exactly (:meth:`~lrm_cvx.planning.dopt._Polytope.support`). No solver tolerance enters.
+exactly (:meth:`~lrm_cvx.planning.dopt.Polytope.support`). No solver tolerance enters.
 
 * ``"a-optimal"``: latent ``x`` with prior precision ``P0`` (``ridge I`` without a prior),
   ``F(w) = tr(W P0^-1) - tr(W M(w)^-1)``, ``M(w) = P0 + sum_i w_i y_i y_i^T / s_i^2``,
@@ -46,7 +46,7 @@ import numpy as np
 from scipy.linalg import cho_solve, cholesky, solve_triangular
 
 from ..errors import PlanningError
-from .dopt import _Polytope, _top_sum, _top_vertex
+from .dopt import Polytope, top_sum, top_vertex
 
 __all__ = ["VarianceBound", "AOptimalObjective", "GPVarianceObjective", "variance_relaxation",
            "variance_objective", "VARIANCE_CRITERIA"]
@@ -244,7 +244,7 @@ def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: 
 
 
 # ----------------------------------------------------------------------------- relaxation
-def _fw_bound(obj: Any, pos: np.ndarray, poly: _Polytope, w: np.ndarray
+def _fw_bound(obj: Any, pos: np.ndarray, poly: Polytope, w: np.ndarray
               ) -> tuple[float, float, np.ndarray, np.ndarray]:
     """``(bound (FW), F(w), gradient, a maximising vertex)`` at any ``w >= 0`` on the
     positions ``pos``: the bound is ``F(w) + max_v g . v - g . w`` with ``max_v g . v`` the
@@ -255,18 +255,18 @@ def _fw_bound(obj: Any, pos: np.ndarray, poly: _Polytope, w: np.ndarray
     return F + sup - float(g @ w), F, g, v
 
 
-def _support(poly: _Polytope, g: np.ndarray) -> tuple[float, np.ndarray]:
+def _support(poly: Polytope, g: np.ndarray) -> tuple[float, np.ndarray]:
     """``(upper bound on max_{v in poly} g . v, a feasible maximiser v)``: one LP at most."""
     v = np.zeros(poly.N)
     if not poly.limited:
-        idx, s = _top_vertex(g, poly.n)
+        idx, s = top_vertex(g, poly.n)
         v[idx] = s
-        return _top_sum(g, poly.n)[0], v
+        return top_sum(g, poly.n)[0], v
     nu, mus, x = poly.lp(g)
     return poly.h(g, nu, mus), poly.project(x)
 
 
-def variance_relaxation(obj: Any, pos: np.ndarray, poly: _Polytope, *, iters: int = 60,
+def variance_relaxation(obj: Any, pos: np.ndarray, poly: Polytope, *, iters: int = 60,
                         tol: float = 1e-3, polish: bool | None = None,
                         solver: str = "CLARABEL") -> VarianceBound:
     """Certified upper bound on ``max F(w)`` over ``poly`` (weights on ``obj``'s cells at the
@@ -325,7 +325,7 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: _Polytope, *, iters: in
                          steps, time.perf_counter() - t0, used, status)
 
 
-def _cvx_solve(obj: Any, pos: np.ndarray, poly: _Polytope, solver: str) -> np.ndarray | None:
+def _cvx_solve(obj: Any, pos: np.ndarray, poly: Polytope, solver: str) -> np.ndarray | None:
     """cvxpy's maximiser of ``F`` over ``poly`` (projected into it), or None if it failed."""
     import cvxpy as cp
 
