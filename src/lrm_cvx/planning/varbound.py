@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import cho_solve, cholesky, solve_triangular
 
+from .._validation import as_factor_matrix
 from ..errors import PlanningError
 from .dopt import Polytope, top_sum, top_vertex
 
@@ -215,6 +216,7 @@ def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: 
     ``"gp-variance"``)."""
     from ..information import check_gp_inputs, gp_latent_cov, gp_noise
 
+    Y = as_factor_matrix(Y)
     k, L = Y.shape
     tw = terms.get("target_weights")
     if criterion == "a-optimal":
