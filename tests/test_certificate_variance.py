@@ -264,3 +264,11 @@ def test_cli_bound_reports_the_variance_gap_and_fisher_on_request(tmp_path, caps
     assert main([*argv, "--fisher"]) == 0
     out = capsys.readouterr().out
     assert "fisher criterion" in out and "nats" in out and "not reported" in out
+
+
+def test_objective_takes_a_dataarray_factor_matrix():
+    cells = np.arange(6)
+    a = variance_objective("a-optimal", Y, cells, RIDGE, {})
+    b = variance_objective("a-optimal", xr.DataArray(Y, dims=("rank", "cell")), cells, RIDGE, {})
+    w = np.linspace(0.1, 1.0, 6)
+    assert a.value(cells, w) == b.value(cells, w)
