@@ -155,8 +155,8 @@ class PlanCertificate:
 
     def _variance_rows(self) -> list[tuple[str, str]]:
         """(label, text) rows of a variance criterion's certificate."""
-        rows = [("upper bound", f"{self.bound:.6g} unit^2 of {self.criterion} variance removed "
-                                f"by any plan")]
+        rows = [("upper bound", f"{self.bound:.6g} unit^2 of variance removed by any plan "
+                                f"({self.criterion})")]
         if self.information is not None and not self.comparable:
             who = self.plan_criterion
             rows += [("plan value", f"{self.information:.6g} unit^2 removed"),
