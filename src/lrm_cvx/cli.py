@@ -474,15 +474,25 @@ def cmd_place(args: argparse.Namespace) -> int:
 
 
 def cmd_bound(args: argparse.Namespace) -> int:
-    _, plan, _ = _plan_from_args(args)
-    cert = plan.certify(tighten=args.certify == "tight")
+    model, plan, kw = _plan_from_args(args)
+    cert = plan.certify(tighten=args.certify == "tight",
+                        criterion="fisher" if args.fisher else None)
     bounded = getattr(cert, "criterion", "fisher")
-    print(f"greedy plan: {describe_plan(plan)}")
-    print(f"certified upper bound on the {bounded} criterion of any feasible plan: "
-          f"{cert.bound:.4f}{' nats' if bounded == 'fisher' else ''}")
+    print(f"greedy plan: {describe_plan(plan, criterion_value(plan, model.Y_, model.region_, kw))}")
+    if bounded != "fisher":  # a variance criterion: variance removed, the data's unit squared
+        print(f"certified upper bound on the {bounded} criterion (variance removed) of any "
+              f"feasible plan: {cert.bound:.4f} unit^2")
+        print(f"plan value: {cert.information:.4f} unit^2")
+    else:
+        print(f"certified upper bound on the {bounded} criterion of any feasible plan: "
+              f"{cert.bound:.4f} nats")
     if not cert.comparable or cert.gap is None:
         print(f"optimality gap: not reported (the plan maximised {cert.plan_criterion}, the "
               f"certificate bounds {bounded})")
+    elif bounded != "fisher":
+        rel = cert.relative_gap
+        print(f"optimality gap: {cert.gap:.4f} unit^2"
+              + (f" ({100 * rel:.2f} % of the bound)" if rel is not None else ""))
     else:
         print(f"optimality gap: {cert.gap:.4f} nats (volume ratio per dimension "
               f"{cert.volume_ratio:.4f})")
@@ -848,6 +858,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--certify", choices=CERTIFY_LEVELS[:2], default="tight",
                    help="fast: the budget-disk relaxation; tight: with distance limits and "
                    "the midpoint cover (default)")
+    p.add_argument("--fisher", action="store_true",
+                   help="bound the Fisher information instead of the plan's own criterion")
     p.set_defaults(func=cmd_bound)
 
     p = sub.add_parser("place", help="place fixed sensors (static placement, no travel)")

@@ -73,8 +73,13 @@ class PlanCertificate:
     ``leaves``: the final squares of the midpoint cover ``(row0, col0, side, value)``, whose
     largest value is ``relaxation.value`` (empty without the cover).
 
-    ``criterion`` is what the bound bounds: always ``"fisher"`` (``log det(ridge I + sum y
-    y^T)``). ``plan_criterion`` is what the plan was chosen for (``None`` for a baseline, which
+    ``criterion`` is what the bound bounds: ``"fisher"`` (``log det(ridge I + sum y y^T)``,
+    nats) or a variance criterion (``"gp-variance"``, ``"a-optimal"``: the variance removed,
+    ``unit == "unit^2"``; then ``information`` is the plan's value, ``initial_information``
+    the initial set's, ``relaxation`` a :class:`~lrm_cvx.planning.varbound.VarianceBound`,
+    ``volume_ratio`` None and ``greedy_information`` / ``refined_information`` the greedy's
+    and the kept route's values; docs/certificate.md §13). ``plan_criterion`` is what the
+    plan was chosen for (``None`` for a baseline, which
     optimises nothing and is judged by its Fisher information as in the paper; ``"fisher
     (posterior)"`` for a Fisher greedy on the fold-in's posterior). When the two differ
     (``comparable`` is False) ``information`` is still the plan's Fisher information but
@@ -142,7 +147,51 @@ class PlanCertificate:
             return None
         return self.gap / abs(self.bound)
 
+    @property
+    def unit(self) -> str:
+        """The unit of ``bound``, ``information`` and ``gap``: ``"nats"`` (Fisher) or
+        ``"unit^2"`` (variance removed, the data's unit squared)."""
+        return "nats" if self.criterion == "fisher" else "unit^2"
+
+    def _variance_rows(self) -> list[tuple[str, str]]:
+        """(label, text) rows of a variance criterion's certificate."""
+        rows = [("upper bound", f"{self.bound:.6g} unit^2 of variance removed by any plan "
+                                f"({self.criterion})")]
+        if self.information is not None and not self.comparable:
+            who = self.plan_criterion
+            rows += [("plan value", f"{self.information:.6g} unit^2 removed"),
+                     ("no gap", f"the plan was chosen for the {who} criterion, the bound is on "
+                                f"{self.criterion}")]
+        elif self.information is not None:
+            rel = self.relative_gap
+            rows += [("plan value", f"{self.information:.6g} unit^2 removed"),
+                     ("certified gap", f"{self.gap:.4g} unit^2"
+                      + (f" ({100 * rel:.2f} % of the bound)" if rel is not None else ""))]
+            if self.refined_information is not None:
+                rows += [("greedy / kept route", f"{self.greedy_information:.6g} / "
+                                                 f"{self.refined_information:.6g} unit^2"),
+                         ("gap split", f"plan slack {self.plan_slack:.4g} + bound slack "
+                                       f"{self.bound_slack:.4g} unit^2")]
+        r = self.relaxation
+        rows.append(("relaxation", f"{r.value:.6g} (primal {r.primal:.6g}, status {r.status}, "
+                                   f"{r.solver})"))
+        if self.path.get("kind", "path") == "path" and self.path.get("n_robots", 1) == 1:
+            rows.append(("initial set", f"{self.initial_information:.6g} unit^2"))
+        rows.append(("cells", f"at most {self.n_max} out of {self.n_candidates} candidates "
+                              "within the budget"))
+        if self.tightened:
+            rows.append(("tightened", f"distance limits, midpoint cover of {len(self.leaves)} "
+                                      "squares"))
+        model = describe_path(self.path)
+        if model:
+            rows.append(("path model", model))
+        return rows
+
     def __repr__(self) -> str:
+        if self.criterion != "fisher":
+            head = (f"PlanCertificate(start={self.start}, budget={self.budget:g} "
+                    f"({self.metric}), criterion={self.criterion}, k={self.k})")
+            return "\n".join([head] + [f"  {a:<20} {b}" for a, b in self._variance_rows()])
         lines = [
             f"PlanCertificate(start={self.start}, budget={self.budget:g} "
             f"({self.metric}), k={self.k}, ridge={self.ridge:g})",
@@ -196,6 +245,9 @@ class PlanCertificate:
         return "\n".join(lines)
 
     def _repr_html_(self) -> str:
+        if self.criterion != "fisher":
+            body = "".join(f"<tr><td>{a}</td><td>{b}</td></tr>" for a, b in self._variance_rows())
+            return f"<table><caption>PlanCertificate ({self.criterion})</caption>{body}</table>"
         rows = [("upper bound (nats)", f"{self.bound:.6g}"),
                 ("bounded criterion", self.criterion)]
         if self.information is not None and not self.comparable:
@@ -251,6 +303,8 @@ def plan_bound(
     max_pieces: int = 40,
     refine: bool | dict[str, Any] = True,
     path_aware: bool | str | dict[str, Any] = False,
+    criterion: str | None = "fisher",
+    terms: dict[str, Any] | None = None,
     **options: Any,
 ) -> PlanCertificate:
     """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
@@ -273,7 +327,7 @@ def plan_bound(
     gives the plain disk relaxation. When the plan is given, the submodularity online bound is
     computed too and the smaller one is kept. Proofs in docs/certificate.md.
 
-    **Every path model** (issue #15, docs/certificate.md §10). ``path`` (a
+    **Every path model** (docs/certificate.md §10). ``path`` (a
     :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords in ``**options``
     (``metric``, ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``end``,
     ``sense_along``) describe the route as in :func:`~lrm_cvx.planning.plan_greedy` (``budget``
@@ -322,6 +376,18 @@ def plan_bound(
     fails, a warning says the disk bound is used. ``path_aware="walk"`` (or a dict with
     ``"method": "walk"``) uses the king-walk relaxation ``walk_relaxation_bound`` instead
     (tighter on small regions; its columns are dense, so not for paper scale).
+
+    **Variance criteria** (docs/certificate.md, "Variance criteria"): ``criterion=
+    "gp-variance"`` or ``"a-optimal"`` bounds that criterion instead, the variance removed
+    (the data's unit squared) by any plan of the same path model, over the same candidates,
+    count and distance limits and midpoint cover, by the Frank-Wolfe dual bound of
+    :mod:`lrm_cvx.planning.varbound`. ``terms`` are the criterion's terms as the planner
+    read them (``prior_precision``, ``noise_var``, ``target_weights``; for gp-variance
+    ``region``, ``spatial_cov``, ``prior_cov``, ``targets``); default: the ones the plan was
+    planned with. Point sensors only; no online bound, no ``path_aware``; ``gap = bound -
+    value`` and ``relative_gap = gap / bound``; ``greedy_information`` /
+    ``refined_information`` are the greedy's route's and the kept route's values when the
+    planner compared rival routes (``plan.rivals``).
     """
     from ..information import fisher_information
     from ..region import check_region
@@ -345,6 +411,15 @@ def plan_bound(
     plan_sensor = getattr(getattr(plan, "path", None), "sensor", None)
     sensor = plan_sensor if plan_sensor is not None else request.sensor
     spec = path_spec(region, plan, start, budget, request, kind, n_sensors)
+    bounded = _bound_criterion(criterion)
+    if bounded != "fisher":
+        if not sensor.is_point:
+            raise PlanningError(f"the {bounded} bound covers point sensors only, not "
+                                f"sensor={sensor.describe()!r} (criterion='fisher' bounds it)")
+        if path_aware:
+            raise PlanningError(f"path_aware bounds the Fisher criterion only, not {bounded!r}")
+        return _variance_certificate(Y, region, spec, plan, bounded, terms, ridge,
+                                     cover if tighten else 0, max_pieces, tighten, tol, solver)
     if sensor.is_leg:  # the observations depend on the legs (docs §12)
         if path_aware:
             warnings.warn("path_aware bounds point stops: a towed sensor's certificate is "
@@ -426,6 +501,124 @@ def plan_bound(
         greedy_information=greedy_info, refined_information=refined_info,
         refine_moves=n_moves, path_bound=path_value, path=spec.summary(),
     )
+
+
+def _bound_criterion(criterion: Any) -> str:
+    """The criterion a certificate bounds, canonical: ``"fisher"`` (None), ``"a-optimal"`` or
+    ``"gp-variance"``; PlanningError otherwise."""
+    from ..information import CRITERION_REGISTRY
+    from .varbound import VARIANCE_CRITERIA
+
+    if criterion is None:
+        return "fisher"
+    try:
+        name = CRITERION_REGISTRY.canonical(criterion, "criterion")
+    except (PlanningError, TypeError):
+        name = None
+    if name not in ("fisher", *VARIANCE_CRITERIA):
+        raise PlanningError("criterion must be 'fisher', 'a-optimal' or 'gp-variance' (the "
+                            f"criteria a certificate bounds), got {criterion!r}")
+    return name
+
+
+_TERM_KEYS = ("prior_precision", "noise_var", "target_weights", "region", "spatial_cov",
+              "prior_cov", "targets", "pool")
+
+
+def _variance_certificate(Y: np.ndarray, region: Any, spec: Any, plan: Any, criterion: str,
+                          terms: dict[str, Any] | None, ridge: float, cover: int,
+                          max_pieces: int, tighten: bool, tol: float, solver: str
+                          ) -> PlanCertificate:
+    """The certificate of a variance criterion (docs/certificate.md, "Variance criteria"): the
+    Fisher certificate's candidates, count and distance limits and midpoint cover, each piece
+    bounded by :func:`~lrm_cvx.planning.varbound.variance_relaxation`."""
+    from .varbound import variance_objective, variance_relaxation
+
+    k = Y.shape[0]
+    if plan is not None:
+        pY = getattr(plan, "_Y", None)
+        if pY is not None and (np.shape(pY) != Y.shape or not np.array_equal(pY, Y)):
+            raise PlanningError("the plan was made with another model (its Y differs from the "
+                                "one given): certify it with its own model")
+    if terms is None:
+        terms = getattr(plan, "_terms", None) if plan is not None else None
+        if terms is None and criterion == "gp-variance":
+            raise PlanningError("the gp-variance bound needs the criterion's terms: pass terms="
+                                "{'spatial_cov': ..., 'prior_cov': ...} (this plan was not "
+                                "planned with them)")
+    if not isinstance(terms, dict | type(None)):
+        raise PlanningError(f"terms must be a dict of the criterion's terms, got {terms!r}")
+    unknown = sorted(set(terms or {}) - set(_TERM_KEYS))
+    if unknown:
+        raise PlanningError(f"terms has unknown keys {unknown}; expected some of {_TERM_KEYS}")
+    terms = dict(terms or {})
+    terms["region"] = region
+    fam = family(spec, region, k)
+    cand, n_max, init = fam.cand, fam.n_max, fam.init
+    cells = (np.asarray(plan.cells, dtype=np.int64) if plan is not None
+             else np.zeros(0, np.int64))
+    universe = np.unique(np.concatenate([cand, init, cells]))
+    obj = variance_objective(criterion, Y, universe, ridge, terms)
+
+    def at(c: np.ndarray) -> np.ndarray:
+        return np.searchsorted(universe, c)
+
+    def value(c: np.ndarray) -> float:
+        c = np.unique(c)
+        return obj.value(at(c), np.ones(c.size))
+
+    init_value = value(init) if init.size else -math.inf
+    start_lim = None
+    if tighten and fam.limits is not None:
+        start_lim = fam.limits
+    elif tighten and fam.dist is not None and math.isfinite(fam.d_min) and fam.d_min > 0:
+        start_lim = start_limit(fam.travel, fam.d_min, n_max, fam.ways)
+    start_lv = (
+        np.searchsorted(start_lim[0], fam.dist[cand], side="right") if start_lim else None
+    )
+    opts = {"tol": tol, "solver": solver}
+
+    def relax(_Y: Any, c: np.ndarray, poly: _Polytope, _ridge: float, **o: Any) -> Any:
+        return variance_relaxation(obj, at(c), poly, **o)
+
+    leaves: list[tuple[float, float, float, float]] = []
+    if cover and fam.cover_budget is not None and fam.cover_budget >= 2.0:
+        centre = region.grid_index[spec.starts[0]].astype(np.float64)
+        relaxed, leaves = _midpoint_cover(Y, region, cand, start_lv, start_lim, centre,
+                                          fam.cover_budget, n_max, ridge, cover, max_pieces,
+                                          init_value, opts, relax)
+    else:
+        levels, caps = ([start_lv], [start_lim[1]]) if start_lim else ([], [])
+        relaxed = relax(Y, cand, _Polytope(n_max, cand.size, levels, caps), ridge, **opts)
+    bound = max(init_value, relaxed.value)
+    information = gap = greedy_v = refined_v = None
+    plan_criterion = _plan_criterion(plan) if plan is not None else None
+    if plan is not None:
+        _check_plan_feasible(cells, init, cand, n_max, plan, fam.budget_text, 0.0)
+        _check_plan_limits(cells, init, region, fam.dist, start_lim, leaves, fam.cover_budget,
+                           n_max, plan)
+        information = value(cells)
+        if plan_criterion in (None, criterion):
+            gap = bound - information
+            if -1e-9 * max(abs(bound), 1.0) <= gap < 0:  # rounding at an optimal plan
+                gap = 0.0
+            rivals = getattr(plan, "rivals", None) or {}
+            if rivals.get("criterion") == criterion and "greedy" in rivals.get("values", {}):
+                refined_v = information
+                greedy_v = (information if rivals.get("chosen") == "greedy"
+                            else obj.prior_total - float(rivals["values"]["greedy"]))
+        else:  # a bound on another criterion says nothing of this plan's gap
+            gap = math.nan
+    budget0 = float(sum(spec.budgets)) if spec.budgets else float(spec.n_sensors)
+    return PlanCertificate(
+        bound=float(bound), information=information, gap=gap, volume_ratio=None,
+        n_max=int(n_max), n_candidates=int(cand.size), k=k,
+        start=int(spec.starts[0] if spec.starts else -1), budget=budget0, ridge=ridge,
+        metric=spec.metric if spec.kind == "path" else "sensors",
+        initial_information=float(init_value), relaxation=relaxed,
+        tightened=bool(start_lim is not None or leaves), leaves=tuple(leaves),
+        criterion=criterion, plan_criterion=plan_criterion, greedy_information=greedy_v,
+        refined_information=refined_v, path=spec.summary())
 
 
 def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, ridge: float,
@@ -665,7 +858,7 @@ def _midpoint_cover(
     Y: np.ndarray, region: Any, cand: np.ndarray, start_lv: np.ndarray | None,
     start_lim: tuple[np.ndarray, np.ndarray] | None, centre: np.ndarray, Bp: float,
     n_max: int, ridge: float, cover: int, max_pieces: int, floor_value: float,
-    opts: dict[str, Any],
+    opts: dict[str, Any], relax: Any = None,
 ) -> tuple[Bound, list[tuple[float, float, float, float]]]:
     """Max over a cover of the possible path midpoints of the relaxation restricted to each piece.
 
@@ -676,7 +869,11 @@ def _midpoint_cover(
     the child) until ``max_pieces`` relaxations have been solved or it is below ``floor_value``
     (the initial set's information, which the certificate takes the maximum with anyway).
     Returns the largest piece's :class:`Bound` and every final piece ``(r0, c0, side, value)``.
+    ``relax(Y, cells, polytope, ridge, **opts)`` solves a piece (default: the Fisher
+    relaxation; a variance criterion's is :func:`~lrm_cvx.planning.varbound.
+    variance_relaxation`).
     """
+    relax = _relaxation if relax is None else relax
     pos = region.grid_index[cand].astype(np.float64)
     sq_thr, sq_caps = _square_limit(Bp, n_max)
     half = Bp / 2
@@ -690,7 +887,7 @@ def _midpoint_cover(
             levels.append(start_lv[sel])
             caps.append(start_lim[1])
         poly = _Polytope(n_max, sel.size, levels, caps)
-        return _relaxation(Y, cand[sel], poly, ridge, **opts)
+        return relax(Y, cand[sel], poly, ridge, **opts)
 
     return _cover_max(solve, centre, half, cover, max_pieces, floor_value)
 

@@ -1,4 +1,4 @@
-"""The D-optimal design relaxation and its solver-independent dual bound (issue #5).
+"""The D-optimal design relaxation and its solver-independent dual bound.
 
 Every plan is a set of at most ``n`` cells out of a candidate set, so its Fisher information
 ``log det(ridge I + sum_{p in P} y_p y_p^T)`` is at most the optimum of the continuous D-optimal
@@ -502,6 +502,12 @@ def _top_vertex(g: np.ndarray, n: float) -> tuple[np.ndarray, np.ndarray]:
     if q > m:
         s[-1] = f
     return order, s
+
+
+# public names of the feasible set and its exact top-n oracle (the variance bound reuses them)
+Polytope = _Polytope
+top_sum = _top_sum
+top_vertex = _top_vertex
 
 
 def _frank_wolfe(

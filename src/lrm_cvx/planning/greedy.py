@@ -389,6 +389,7 @@ def plan_greedy(
                              ridge=ridge, extra=extra, others=others, refine=refine)
     elif refine is not None:  # refine.py registers it
         plan = REFINERS.get("local")(plan, {} if refine == "local" else refine, terms)
+    plan._terms = extra  # the criterion's terms, which plan.certify() bounds
     return plan
 
 

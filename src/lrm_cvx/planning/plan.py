@@ -190,6 +190,7 @@ class Plan:
     _Y: Any = field(default=None, repr=False, compare=False)
     _region: Any = field(default=None, repr=False, compare=False)
     _path_models: Any = field(default=None, repr=False, compare=False)
+    _terms: Any = field(default=None, repr=False, compare=False)  # the criterion's terms
 
     def __post_init__(self) -> None:
         # plans built the old way (baselines, by hand): the paper's path model, one robot
@@ -495,15 +496,18 @@ class Plan:
     __hash__ = None  # type: ignore[assignment]
 
     # ------------------------------------------------------------------ certificate
-    def certify(self, **kwargs: Any) -> Any:
-        """Upper bound on the achievable Fisher information and this plan's optimality gap.
+    def certify(self, criterion: str | None = None, **kwargs: Any) -> Any:
+        """Upper bound on the plan's criterion over every feasible plan, and its optimality gap.
 
         Calls :func:`lrm_cvx.planning.certificate.plan_bound` with this plan's model, region, start,
-        budget and ridge; keyword arguments are passed on (e.g. ``tol``). The certificate
-        always bounds the **Fisher** information (``certificate.criterion == "fisher"``); its
-        ``gap`` and ``volume_ratio`` are NaN when the plan was chosen for another criterion
-        (``"a-optimal"``, ``"gp-variance"``, or Fisher on a posterior): a gap between two
-        criteria means nothing (docs/certificate.md, "Which criterion is certified").
+        budget and ridge; keyword arguments are passed on (e.g. ``tol``). ``criterion``: the
+        criterion bounded, by default the plan's own: ``"gp-variance"`` / ``"a-optimal"``
+        plans get a bound on the variance they remove (with the terms they were planned
+        with), every other plan (Fisher, a baseline) the bound on the **Fisher** information;
+        ``criterion="fisher"`` gives the Fisher certificate of any plan. Its ``gap`` and
+        ``volume_ratio`` are NaN when the plan was chosen for another criterion than the one
+        bounded: a gap between two criteria means nothing (docs/certificate.md, "Which
+        criterion is certified").
 
         For a Fisher greedy plan the certificate also splits the gap: ``greedy_information``,
         ``refined_information`` (this plan's refinement, or a :func:`refine` run here; pass
@@ -516,6 +520,11 @@ class Plan:
             raise PlanningError("this plan has no model Y attached: build it with Y to certify")
         from .certificate import plan_bound
 
+        if criterion is None:
+            criterion = (self.criterion if self.criterion in ("a-optimal", "gp-variance")
+                         else "fisher")
+        if criterion != "fisher":  # plan_bound's default is the Fisher certificate
+            kwargs["criterion"] = criterion
         return plan_bound(self._Y, self._region, self.start, self.budget, ridge=self.ridge,
                           plan=self, **kwargs)
 

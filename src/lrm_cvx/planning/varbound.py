@@ -1,0 +1,353 @@
+"""Upper bounds for the variance-reduction criteria (``"gp-variance"``, ``"a-optimal"``).
+
+Both criteria score a set of observed cells by how much it removes from a weighted total
+posterior variance. Observing cell ``i`` with weight ``w_i`` (noise variance ``s_i^2 / w_i``;
+``w_i = 0``: not observed) gives a Gaussian posterior whose variance reduction
+
+    F(w) = sum_t c_t [Var(f_t) - Var(f_t | w)]
+
+is concave in ``w >= 0`` (the latent form ``tr(W S0) - tr(W (S0^-1 + sum_i w_i a_i a_i^T /
+s_i^2)^-1)``: a trace of the inverse of an affine positive definite matrix is convex), and at
+the indicator of a set ``P`` equals the planner's value of ``P``. For any ``w >= 0`` and any
+polytope ``Q`` containing every feasible plan's indicator,
+
+    max_{v in Q} F(v)  <=  F(w) + max_{v in Q} grad F(w) . (v - w)                 (FW)
+
+(concavity), so each Frank-Wolfe iterate gives a certified upper bound: ``F`` and its gradient
+are evaluated in float64 and ``max_Q`` is the exact top-n sum or an LP dual value evaluated
+exactly (:meth:`~lrm_cvx.planning.dopt.Polytope.support`). No solver tolerance enters.
+
+* ``"a-optimal"``: latent ``x`` with prior precision ``P0`` (``ridge I`` without a prior),
+  ``F(w) = tr(W P0^-1) - tr(W M(w)^-1)``, ``M(w) = P0 + sum_i w_i y_i y_i^T / s_i^2``,
+  ``dF/dw_i = y_i^T M^-1 W M^-1 y_i / s_i^2``.
+* ``"gp-variance"``: the field ``f = Y^T x + r`` (low-rank trend plus GP residual) observed with
+  the nugget ``s^2``. Its latent state ``[x; r]`` carries the GP prior, so the criterion is the
+  A-optimal one of that larger latent; in observation space (no cells x cells latent) with
+  ``S`` the support of ``w``, ``K`` the field's prior covariance and ``G = K_{.T} C K_{T.}``
+  (``C`` the target weights): ``F(w) = tr(G_SS (K_SS + s^2 diag(1/w_S))^-1)`` and
+  ``dF/dw_i = sum_t c_t C_w(t, i)^2 / s^2`` with ``C_w`` the posterior covariance: the greedy's
+  own gain numerator.
+
+The relaxation's maximiser is approached by Frank-Wolfe (the polytope's exact vertex oracle,
+a parabolic line search) and, on small candidate sets, polished by cvxpy; either way the
+reported ``value`` is the smallest (FW) bound over the designs tried (docs/certificate.md,
+"Variance criteria").
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.linalg import cho_solve, cholesky, solve_triangular
+
+from .._validation import as_factor_matrix
+from ..errors import PlanningError
+from .dopt import Polytope, top_sum, top_vertex
+
+__all__ = ["VarianceBound", "AOptimalObjective", "GPVarianceObjective", "variance_relaxation",
+           "variance_objective", "VARIANCE_CRITERIA"]
+
+VARIANCE_CRITERIA = ("a-optimal", "gp-variance")
+"""The criteria :func:`variance_relaxation` bounds (canonical names)."""
+
+_CVX_MAX = 25  # cvxpy polishes a piece of at most this many candidates (by default)
+
+
+@dataclass(frozen=True, eq=False)
+class VarianceBound:
+    """A certified upper bound on the variance reduction of every design in a polytope.
+
+    ``value`` is the smallest Frank-Wolfe bound (FW) over the designs tried (valid whatever
+    the solvers did); ``primal`` is ``F`` at the best feasible design found (``weights``, over
+    cell indices), so the relaxation's optimum lies in ``[primal, value]``. Units: the
+    criterion's (variance removed, the data's unit squared)."""
+
+    value: float
+    primal: float
+    gap: float
+    weights: dict[int, float]
+    n_candidates: int
+    iterations: int
+    solve_time: float
+    solver: str
+    status: str
+
+    def __repr__(self) -> str:
+        return (f"VarianceBound(value={self.value:.6g}, primal={self.primal:.6g}, "
+                f"gap={self.gap:.3g}, candidates={self.n_candidates}, "
+                f"iterations={self.iterations}, {self.solve_time:.2f} s, solver={self.solver}, "
+                f"status={self.status!r})")
+
+
+# ----------------------------------------------------------------------------- objectives
+class AOptimalObjective:
+    """``F(w) = tr(W P0^-1) - tr(W M(w)^-1)`` on the cells ``cells`` (k-dimensional latent).
+
+    ``Y`` (k, L), ``P0`` (k, k) prior precision, ``noise_var`` scalar or (L,), ``W`` (k, k) the
+    target matrix ``sum_t c_t y_t y_t^T``."""
+
+    def __init__(self, Y: np.ndarray, cells: np.ndarray, P0: np.ndarray, noise_var: Any,
+                 W: np.ndarray) -> None:
+        self.cells = np.asarray(cells, dtype=np.int64)
+        nv = np.broadcast_to(np.asarray(noise_var, dtype=np.float64), (Y.shape[1],))
+        self.A = np.ascontiguousarray(Y[:, self.cells] / np.sqrt(nv[self.cells]))
+        self.P0 = 0.5 * (P0 + P0.T)
+        self.W = 0.5 * (W + W.T)
+        Lp = _cholesky(self.P0, "the prior precision")
+        self.prior_total = float(np.trace(cho_solve((Lp, True), self.W)))
+
+    def _inv(self, pos: np.ndarray, w: np.ndarray) -> np.ndarray:
+        M = self.P0 + (self.A[:, pos] * w) @ self.A[:, pos].T
+        Lm = _cholesky(M, "the posterior precision")
+        return cho_solve((Lm, True), np.eye(M.shape[0]))
+
+    def value(self, pos: np.ndarray, w: np.ndarray) -> float:
+        """``F`` at weights ``w`` on the positions ``pos`` (others 0)."""
+        keep = w > 0
+        Minv = self._inv(pos[keep], w[keep])
+        return self.prior_total - float(np.sum(Minv * self.W))
+
+    def value_grad(self, pos: np.ndarray, w: np.ndarray, at: np.ndarray
+                   ) -> tuple[float, np.ndarray]:
+        """``F`` at ``w`` on ``pos`` and its gradient at the positions ``at``."""
+        keep = w > 0
+        Minv = self._inv(pos[keep], w[keep])
+        Z = Minv @ self.W @ Minv
+        Aa = self.A[:, at]
+        return (self.prior_total - float(np.sum(Minv * self.W)),
+                np.einsum("ai,ab,bi->i", Aa, Z, Aa))
+
+    def cvx_model(self, pos: np.ndarray) -> tuple[Any, Any, Any]:
+        """``(w, objective, constraints)`` of cvxpy for ``F`` on the positions ``pos``."""
+        import cvxpy as cp
+
+        w = cp.Variable(pos.size, nonneg=True)
+        A = self.A[:, pos]
+        M = self.P0 + A @ cp.diag(w) @ A.T
+        R = _sqrt_psd(self.W)
+        return w, self.prior_total - cp.matrix_frac(R, 0.5 * (M + M.T)), []
+
+
+class GPVarianceObjective:
+    """``F(w) = tr(G_SS (K_SS + s^2 diag(1/w_S))^-1)`` on the cells ``cells`` (observation
+    space: the field's prior covariance ``K`` and ``G = K_{.T} C K_{T.}`` on ``cells`` only).
+    """
+
+    def __init__(self, K: np.ndarray, G: np.ndarray, noise: float, prior_total: float,
+                 cells: np.ndarray) -> None:
+        self.cells = np.asarray(cells, dtype=np.int64)
+        self.K = 0.5 * (K + K.T)
+        self.G = 0.5 * (G + G.T)
+        self.noise = float(noise)
+        self.prior_total = float(prior_total)
+
+    def _solve(self, pos: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                             np.ndarray]:
+        """``(S, Gamma, chol(B))`` with ``B = I + Gamma K_SS Gamma``, ``Gamma = sqrt(w_S)/s``."""
+        keep = w > 0
+        S = pos[keep]
+        gam = np.sqrt(w[keep] / self.noise)
+        B = np.eye(S.size) + gam[:, None] * self.K[np.ix_(S, S)] * gam[None, :]
+        return S, gam, _cholesky(B, "I + Gamma K Gamma")
+
+    def value(self, pos: np.ndarray, w: np.ndarray) -> float:
+        S, gam, LB = self._solve(pos, w)
+        if S.size == 0:
+            return 0.0
+        X = solve_triangular(LB, gam[:, None] * self.G[np.ix_(S, S)] * gam[None, :],
+                             lower=True)
+        X = solve_triangular(LB, X.T, lower=True)
+        return float(np.trace(X))
+
+    def value_grad(self, pos: np.ndarray, w: np.ndarray, at: np.ndarray
+                   ) -> tuple[float, np.ndarray]:
+        S, gam, LB = self._solve(pos, w)
+        g0 = np.diag(self.G)[at]
+        if S.size == 0:
+            return 0.0, g0 / self.noise
+        # X = Q K_{S,at}, Q = (K_SS + D)^-1 = Gamma B^-1 Gamma
+        X = gam[:, None] * cho_solve((LB, True), gam[:, None] * self.K[np.ix_(S, at)])
+        GS = self.G[np.ix_(S, at)]
+        t2 = np.einsum("ji,ji->i", X, GS)
+        t3 = np.einsum("ji,ji->i", X, self.G[np.ix_(S, S)] @ X)
+        Y = gam[:, None] * self.G[np.ix_(S, S)] * gam[None, :]
+        F = float(np.trace(cho_solve((LB, True), Y)))
+        return F, np.maximum(g0 - 2.0 * t2 + t3, 0.0) / self.noise
+
+    def cvx_model(self, pos: np.ndarray) -> tuple[Any, Any, Any]:
+        """cvxpy model in the whitened latent ``z = chol(K_pos)^-1 f_pos``: ``F = tr(R^T R) -
+        tr(R^T (I + L^T diag(w) L / s^2)^-1 R)`` with ``R R^T = L^-1 G L^-T``."""
+        import cvxpy as cp
+
+        Kp = self.K[np.ix_(pos, pos)]
+        L = _cholesky(Kp, "the field's prior covariance on the candidates")
+        Li = solve_triangular(L, np.eye(pos.size), lower=True)
+        Wz = Li @ self.G[np.ix_(pos, pos)] @ Li.T
+        R = _sqrt_psd(Wz)
+        w = cp.Variable(pos.size, nonneg=True)
+        P = np.eye(pos.size) + (L.T / self.noise) @ cp.diag(w) @ L
+        return w, float(np.sum(R * R)) - cp.matrix_frac(R, 0.5 * (P + P.T)), []
+
+
+def _cholesky(M: np.ndarray, what: str) -> np.ndarray:
+    try:
+        return cholesky(0.5 * (M + M.T), lower=True)
+    except np.linalg.LinAlgError:
+        raise PlanningError(f"{what} is not positive definite: the variance bound cannot be "
+                            "evaluated") from None
+
+
+def _sqrt_psd(W: np.ndarray) -> np.ndarray:
+    lam, V = np.linalg.eigh(0.5 * (W + W.T))
+    keep = lam > lam.max(initial=0.0) * 1e-14
+    return V[:, keep] * np.sqrt(lam[keep])
+
+
+def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: float,
+                       terms: dict[str, Any]) -> AOptimalObjective | GPVarianceObjective:
+    """The objective of ``criterion`` on the cells ``cells`` from the planner's oracle terms
+    ``terms`` (``prior_precision``, ``noise_var``, ``target_weights`` for ``"a-optimal"``;
+    ``region``, ``spatial_cov``, ``prior_cov``, ``targets``, ``target_weights`` for
+    ``"gp-variance"``)."""
+    from ..information import check_gp_inputs, gp_latent_cov, gp_noise
+
+    Y = as_factor_matrix(Y)
+    k, L = Y.shape
+    tw = terms.get("target_weights")
+    if criterion == "a-optimal":
+        P0 = terms.get("prior_precision")
+        if P0 is None:
+            if not ridge > 0:
+                raise PlanningError("the a-optimal bound needs ridge > 0 or a prior precision "
+                                    "(the prior variance is infinite otherwise)")
+            P0 = ridge * np.eye(k)
+        c = np.ones(L) if tw is None else np.asarray(tw, dtype=np.float64)
+        W = (Y * c) @ Y.T
+        nv = terms.get("noise_var")
+        return AOptimalObjective(Y, cells, np.asarray(P0, float), 1.0 if nv is None else nv, W)
+    if criterion != "gp-variance":
+        raise PlanningError(f"the variance bound covers {VARIANCE_CRITERIA}, not {criterion!r}")
+    region, cov = terms.get("region"), terms.get("spatial_cov")
+    S0 = check_gp_inputs(Y, region, cov, terms.get("prior_cov"))
+    targets = terms.get("targets")
+    T = np.arange(L) if targets is None else np.unique(np.asarray(targets, dtype=np.int64))
+    c = (np.ones(L) if tw is None else np.asarray(tw, dtype=np.float64))[T]
+    cells = np.asarray(cells, dtype=np.int64)
+    K = gp_latent_cov(Y, S0, region, cov, cells, cells)
+    KcT = gp_latent_cov(Y, S0, region, cov, cells, T)
+    G = (KcT * c) @ KcT.T
+    prior = float(c @ (np.einsum("ai,ab,bi->i", Y[:, T], S0, Y[:, T]) + cov.sill))
+    return GPVarianceObjective(K, G, gp_noise(cov), prior, cells)
+
+
+# ----------------------------------------------------------------------------- relaxation
+def _fw_bound(obj: Any, pos: np.ndarray, poly: Polytope, w: np.ndarray
+              ) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """``(bound (FW), F(w), gradient, a maximising vertex)`` at any ``w >= 0`` on the
+    positions ``pos``: the bound is ``F(w) + max_v g . v - g . w`` with ``max_v g . v`` the
+    exact top-n sum or the LP's dual value evaluated exactly (an upper bound whatever HiGHS
+    returned)."""
+    F, g = obj.value_grad(pos, w, pos)
+    sup, v = _support(poly, g)
+    return F + sup - float(g @ w), F, g, v
+
+
+def _support(poly: Polytope, g: np.ndarray) -> tuple[float, np.ndarray]:
+    """``(upper bound on max_{v in poly} g . v, a feasible maximiser v)``: one LP at most."""
+    v = np.zeros(poly.N)
+    if not poly.limited:
+        idx, s = top_vertex(g, poly.n)
+        v[idx] = s
+        return top_sum(g, poly.n)[0], v
+    nu, mus, x = poly.lp(g)
+    return poly.h(g, nu, mus), poly.project(x)
+
+
+def variance_relaxation(obj: Any, pos: np.ndarray, poly: Polytope, *, iters: int = 60,
+                        tol: float = 1e-3, polish: bool | None = None,
+                        solver: str = "CLARABEL") -> VarianceBound:
+    """Certified upper bound on ``max F(w)`` over ``poly`` (weights on ``obj``'s cells at the
+    positions ``pos``): the smallest (FW) bound over Frank-Wolfe's iterates (from the
+    polytope's uniform design, parabolic line search, ``iters`` steps or until the relative
+    gap ``(bound - F) / bound <= tol``) and, when ``polish`` (default: at most 25 candidates;
+    then at most 10 Frank-Wolfe steps), over cvxpy's solution of the same relaxation
+    (projected into the polytope)."""
+    t0 = time.perf_counter()
+    pos = np.asarray(pos, dtype=np.int64)
+    if pos.size == 0:
+        return VarianceBound(0.0, 0.0, 0.0, {}, 0, 0, 0.0, "none", "empty")
+    # start at the vertex of the prior gains (sparse iterates: the support grows by a vertex
+    # a step), not at the uniform design
+    if polish is None:
+        polish = pos.size <= _CVX_MAX
+    if polish:  # a few first-order steps, then the conic solve does the rest
+        iters = min(iters, 10)
+    w = _support(poly, obj.value_grad(pos, np.zeros(pos.size), pos)[1])[1]
+    best_val, best_primal, best_w = math.inf, -math.inf, w
+    steps = 0
+    used = "Frank-Wolfe"
+    for _ in range(iters):
+        steps += 1
+        val, F, g, v = _fw_bound(obj, pos, poly, w)
+        best_val = min(best_val, val)
+        if F > best_primal:
+            best_primal, best_w = F, w
+        if best_val - best_primal <= tol * max(abs(best_val), 1e-300):
+            break
+        d = v - w
+        slope = float(g @ d)
+        if not slope > 0:
+            break
+        gam = 1.0
+        for _ in range(4):  # parabola through F(0), F'(0), F(gam); concave: curvature >= 0
+            Fg = obj.value(pos, w + gam * d)
+            curv = (F + slope * gam - Fg) / gam ** 2
+            step = gam if curv <= 0 else min(gam, slope / (2.0 * curv))
+            if step >= gam * 0.999:
+                break
+            gam = step
+        w = np.maximum(w + gam * d, 0.0)
+    if polish and best_val - best_primal > tol * max(abs(best_val), 1e-300):
+        wc = _cvx_solve(obj, pos, poly, solver)
+        if wc is not None:
+            used = f"Frank-Wolfe + {solver}"
+            val, F, _, _ = _fw_bound(obj, pos, poly, wc)
+            best_val = min(best_val, val)
+            if F > best_primal:
+                best_primal, best_w = F, wc
+    weights = {int(obj.cells[p]): float(x) for p, x in zip(pos, best_w, strict=True) if x > 0}
+    gap = max(best_val - best_primal, 0.0)
+    status = "optimal" if gap <= tol * max(abs(best_val), 1e-300) else "inexact"
+    return VarianceBound(float(best_val), float(best_primal), float(gap), weights, int(pos.size),
+                         steps, time.perf_counter() - t0, used, status)
+
+
+def _cvx_solve(obj: Any, pos: np.ndarray, poly: Polytope, solver: str) -> np.ndarray | None:
+    """cvxpy's maximiser of ``F`` over ``poly`` (projected into it), or None if it failed."""
+    import cvxpy as cp
+
+    w, objective, cons = obj.cvx_model(pos)
+    cons = cons + [w <= 1, cp.sum(w) <= poly.n]
+    if poly.limited:
+        A, b = poly._rows(np.arange(pos.size))
+        cons.append(A[1:] @ w <= b[1:])
+    prob = cp.Problem(cp.Maximize(objective), cons)
+    opts = ({"tol_gap_abs": 1e-11, "tol_gap_rel": 1e-11, "tol_feas": 1e-11}
+            if solver == "CLARABEL" else {})
+    with warnings.catch_warnings():  # an inaccurate solution is still a design to certify at
+        warnings.simplefilter("ignore")
+        try:
+            prob.solve(solver=solver, **opts)
+        except (cp.error.SolverError, ValueError, ArithmeticError):
+            try:
+                prob.solve(solver=solver)
+            except (cp.error.SolverError, ValueError, ArithmeticError):
+                return None
+    if w.value is None or prob.status not in ("optimal", "optimal_inaccurate"):
+        return None
+    return poly.project(np.asarray(w.value, dtype=np.float64))
