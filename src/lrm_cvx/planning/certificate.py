@@ -300,11 +300,9 @@ def plan_bound(
     tol: float = 1e-3,
     tighten: bool = True,
     cover: int = 2,
-    max_pieces: int = 40,
     refine: bool | dict[str, Any] = True,
     path_aware: bool | str | dict[str, Any] = False,
     criterion: str | None = "fisher",
-    terms: dict[str, Any] | None = None,
     **options: Any,
 ) -> PlanCertificate:
     """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
@@ -323,7 +321,8 @@ def plan_bound(
     disk of radius ``budget / 2`` around the start, the plan then lies within ``budget / 2`` of
     that square and holds at most ``floor(budget - 2 s) + 2`` cells at distance ``>= s`` from it.
     The bound is the maximum of one relaxation per square; the square with the largest bound is
-    split into four while at most ``max_pieces`` relaxations have been solved. ``tighten=False``
+    split into four while at most ``max_pieces`` (in ``**options``, default 40) relaxations have
+    been solved. ``tighten=False``
     gives the plain disk relaxation. When the plan is given, the submodularity online bound is
     computed too and the smaller one is kept. Proofs in docs/certificate.md.
 
@@ -381,10 +380,10 @@ def plan_bound(
     "gp-variance"`` or ``"a-optimal"`` bounds that criterion instead, the variance removed
     (the data's unit squared) by any plan of the same path model, over the same candidates,
     count and distance limits and midpoint cover, by the Frank-Wolfe dual bound of
-    :mod:`lrm_cvx.planning.varbound`. ``terms`` are the criterion's terms as the planner
-    read them (``prior_precision``, ``noise_var``, ``target_weights``; for gp-variance
-    ``region``, ``spatial_cov``, ``prior_cov``, ``targets``); default: the ones the plan was
-    planned with. Point sensors only; no online bound, no ``path_aware``; ``gap = bound -
+    :mod:`lrm_cvx.planning.varbound`. ``terms`` (in ``**options``) are the criterion's
+    terms as the planner read them (``prior_precision``, ``noise_var``, ``target_weights``; for
+    gp-variance ``region``, ``spatial_cov``, ``prior_cov``, ``targets``); default: the ones the
+    plan was planned with. Point sensors only; no online bound, no ``path_aware``; ``gap = bound -
     value`` and ``relative_gap = gap / bound``; ``greedy_information`` /
     ``refined_information`` are the greedy's route's and the kept route's values when the
     planner compared rival routes (``plan.rivals``).
@@ -398,6 +397,8 @@ def plan_bound(
     _, ridge = _check_n_ridge(1.0, ridge)
     if not isinstance(cover, (int, np.integer)) or cover < 1:
         raise PlanningError(f"cover must be an integer >= 1, got {cover!r}")
+    max_pieces = options.pop("max_pieces", 40)
+    terms = options.pop("terms", None)
     if not isinstance(max_pieces, (int, np.integer)) or max_pieces < 1:
         raise PlanningError(f"max_pieces must be an integer >= 1, got {max_pieces!r}")
     n_sensors = options.pop("n_sensors", None)
