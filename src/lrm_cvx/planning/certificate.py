@@ -439,14 +439,7 @@ def plan_bound(
     init_info = float(fisher_information(Y, init, ridge=ridge)) if init.size else -math.inf
     opts = {"solver": solver, "tol": tol}
     leaves: list[tuple[float, float, float, float]] = []
-    start_lim = None
-    if tighten and fam.limits is not None:
-        start_lim = fam.limits
-    elif tighten and fam.dist is not None and math.isfinite(fam.d_min) and fam.d_min > 0:
-        start_lim = start_limit(fam.travel, fam.d_min, n_max, fam.ways)
-    start_lv = (
-        np.searchsorted(start_lim[0], fam.dist[cand], side="right") if start_lim else None
-    )
+    start_lim, start_lv = _start_limits(fam, tighten, n_max, cand)
     if tighten and fam.cover_budget is not None and fam.cover_budget >= 2.0:
         centre = region.grid_index[spec.starts[0]].astype(np.float64)
         relax, leaves = _midpoint_cover(
@@ -569,14 +562,7 @@ def _variance_certificate(Y: np.ndarray, region: Any, spec: Any, plan: Any, crit
         return obj.value(at(c), np.ones(c.size))
 
     init_value = value(init) if init.size else -math.inf
-    start_lim = None
-    if tighten and fam.limits is not None:
-        start_lim = fam.limits
-    elif tighten and fam.dist is not None and math.isfinite(fam.d_min) and fam.d_min > 0:
-        start_lim = start_limit(fam.travel, fam.d_min, n_max, fam.ways)
-    start_lv = (
-        np.searchsorted(start_lim[0], fam.dist[cand], side="right") if start_lim else None
-    )
+    start_lim, start_lv = _start_limits(fam, tighten, n_max, cand)
     opts = {"tol": tol, "solver": solver}
 
     def relax(_Y: Any, c: np.ndarray, poly: _Polytope, _ridge: float, **o: Any) -> Any:
@@ -708,6 +694,21 @@ def _towed_bound(Y: np.ndarray, region: Any, spec: Any, sensor: Any, plan: Any, 
         metric=spec.metric, initial_information=-math.inf, relaxation=relax,
         criterion="fisher", plan_criterion=plan_criterion, path=spec.summary(),
         towed=(int(fam.rows), int(fam.cells)), leaves=tuple(leaves), tightened=bool(leaves))
+
+
+def _start_limits(fam: Any, tighten: bool, n_max: int, cand: np.ndarray) -> tuple[Any, Any]:
+    """``(limits, levels)``: the family's count limits by distance from the start (its own, or
+    Lemma 10's from its minimum spacing) and each candidate's level in them; ``(None, None)``
+    without ``tighten`` or a distance to limit by."""
+    start_lim = None
+    if tighten and fam.limits is not None:
+        start_lim = fam.limits
+    elif tighten and fam.dist is not None and math.isfinite(fam.d_min) and fam.d_min > 0:
+        start_lim = start_limit(fam.travel, fam.d_min, n_max, fam.ways)
+    start_lv = (
+        np.searchsorted(start_lim[0], fam.dist[cand], side="right") if start_lim else None
+    )
+    return start_lim, start_lv
 
 
 def _check_towed_cover(rows: Any, region: Any, leaves: list[tuple[float, float, float, float]],
