@@ -24,7 +24,7 @@ the random walk from the same starts.
 
 For each set one ``evaluate(..., temporal="auto")`` runs a campaign over the 8 test snapshots
 per start, budget and method, through the filter the model chose on its training snapshots
-(glrm/selection.py; the choice is printed) and memoryless through the same loop (the same
+(validation/selection.py; the choice is printed) and memoryless through the same loop (the same
 starts and data). ``--modes ar1,seasonal,auto`` also runs the fixed kinds (the seasonal one on
 monthly sets only), each fitted with its ``temporal=``. Printed per set and budget:
 
@@ -263,7 +263,7 @@ def calibrated_variants(model, train, levels=(0.68, 0.95), seed: int = 0, **kw) 
     its conformal thresholds)."""
     from dataclasses import replace
 
-    from lrm_cvx.glrm.calibration import calibrate
+    from lrm_cvx.validation.calibration import calibrate
 
     cal = calibrate(model, train, method="conformal", levels=levels, seed=seed, **kw)
     gauss = replace(cal, method="gaussian", levels=(), quantiles=(), score_table=(),
@@ -284,7 +284,7 @@ def filter_variants(model, train, seed: int = 0, **kw) -> dict:
     filter's own (``filter``: ``temporal_scale`` and ``temporal_quantiles``)."""
     from dataclasses import replace
 
-    from lrm_cvx.glrm.calibration import calibrate
+    from lrm_cvx.validation.calibration import calibrate
 
     cal = calibrate(model, train, method="conformal", temporal="auto", seed=seed, **kw)
     # the default calibrate(method="conformal")
@@ -353,9 +353,9 @@ def aci_coverage(data, n_days: int = 3 * N_TEST, size: int = 15,
 
     from lrm_cvx import GLRM
     from lrm_cvx.glrm.calibrated import interval_coverage
-    from lrm_cvx.glrm.calibration import calibrate
-    from lrm_cvx.glrm.designs import sample_sets
     from lrm_cvx.monitor import MonitorState
+    from lrm_cvx.validation.calibration import calibrate
+    from lrm_cvx.validation.designs import sample_sets
 
     train, test = data.isel(time=slice(None, -n_days)), data.isel(time=slice(-n_days, None))
     model = GLRM(rank=RANK, offset=True, spatial="exponential", temporal="ar1", random_state=0,
@@ -438,8 +438,8 @@ def residual_growth(data, step: int = 4) -> pd.DataFrame:
     import numpy as np
 
     from lrm_cvx import GLRM
+    from lrm_cvx.belief.posterior import fold_in_snapshots
     from lrm_cvx.glrm.calibrated import residual_factor
-    from lrm_cvx.glrm.posterior import fold_in_snapshots
 
     T = data.sizes["time"]
     rows = []

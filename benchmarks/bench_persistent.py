@@ -7,11 +7,11 @@ recommended model ``GLRM(rank, offset=True, spatial="exponential", temporal="ar1
 on all snapshots but the last ``n_test`` (12 planted, 8 real), then
 
 1. the dynamics are shrunk towards the memoryless model on validation snapshots (the last fifth
-   of the training snapshots; :func:`~lrm_cvx.glrm.calibration.select_dynamics`: the blend
+   of the training snapshots; :func:`~lrm_cvx.validation.calibration.select_dynamics`: the blend
    weight ``alpha`` minimising the worst validation MSE ratio to memoryless over sample sizes,
    applied to the unblended estimate: it replaces the fit's own blend, never composes with it);
 2. the predictive variance is calibrated on cross-validated fold-in residuals of the training
-   snapshots (:func:`~lrm_cvx.glrm.calibration.calibrate`; the filter's scale by forward
+   snapshots (:func:`~lrm_cvx.validation.calibration.calibrate`; the filter's scale by forward
    chaining);
 3. ``evaluate(temporal="ar1")`` runs one campaign over the test snapshots per start, budget and
    method (``greedy:gp-variance``, the four transects, the random walk), with the filter and
@@ -46,10 +46,10 @@ import lrm_cvx
 from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.evaluation import evaluate, summary
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.blending import select_dynamics
-from lrm_cvx.glrm.calibration import calibrate
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
+from lrm_cvx.validation.blending import select_dynamics
+from lrm_cvx.validation.calibration import calibrate
 
 warnings.filterwarnings("ignore")
 
@@ -117,8 +117,8 @@ def a_recovery(n_times: int, seeds: tuple = (0, 1, 2)) -> None:
     corrected, no blend), the same without the correction, the model's ``dynamics_`` (with the
     fit's validated blend, a shrinkage for prediction), and least squares on the *true* latent
     series (the finite-sample floor of any estimate from ``n_times`` snapshots)."""
-    from lrm_cvx.glrm.blending import unblended_dynamics
     from lrm_cvx.glrm.dynamics import estimate_ar1
+    from lrm_cvx.validation.blending import unblended_dynamics
 
     for seed in seeds:
         data, truth = planted_field(n_times, seed)

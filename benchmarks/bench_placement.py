@@ -202,7 +202,7 @@ def _planted(shape: tuple[int, int], T: int) -> tuple:
     from the trend plus white misfit (which the residual does not explain)."""
     from bench_planner import _problem
 
-    from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel
+    from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel
     from lrm_cvx.spatial import ResidualCovariance
 
     Y, region, _ = _problem(shape, 5, 0)

@@ -55,9 +55,9 @@ def planted_record(quick: bool = False) -> xr.DataArray:
 
 def main() -> None:
     from lrm_cvx import GLRM
-    from lrm_cvx.glrm import refits
-    from lrm_cvx.glrm.calibration import calibrate_with
-    from lrm_cvx.glrm.selection import select_temporal
+    from lrm_cvx.validation import refits
+    from lrm_cvx.validation.calibration import calibrate_with
+    from lrm_cvx.validation.selection import select_temporal
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="60 days x 200 x 150 cells")

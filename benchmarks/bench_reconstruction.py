@@ -29,9 +29,9 @@ import warnings
 import numpy as np
 import xarray as xr
 
+from lrm_cvx.belief.posterior import fold_in_snapshots
 from lrm_cvx.evaluation import evaluate, summary
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.posterior import fold_in_snapshots
 from lrm_cvx.information import GPVarianceOracle, make_oracle
 
 warnings.filterwarnings("ignore")

@@ -30,7 +30,7 @@ import warnings
 import numpy as np
 
 from lrm_cvx import Region
-from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel
+from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel
 from lrm_cvx.io.samples import synthetic_field
 from lrm_cvx.planning import plan_greedy
 from lrm_cvx.planning.greedy import budget_pool

@@ -31,7 +31,7 @@ def rss_gb() -> float:
 
 
 def main() -> None:
-    from lrm_cvx.glrm.foldin import residual_correction
+    from lrm_cvx.belief.foldin import residual_correction
     from lrm_cvx.region import Region
     from lrm_cvx.spatial import (
         ResidualCovariance,

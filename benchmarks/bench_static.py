@@ -44,9 +44,9 @@ import warnings
 
 import numpy as np
 
+from lrm_cvx.belief.posterior import fold_in_snapshots
 from lrm_cvx.datasets import load_sample
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.posterior import fold_in_snapshots
 from lrm_cvx.planning import place_sensors
 
 HOLDOUT = 8

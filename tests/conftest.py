@@ -78,9 +78,9 @@ def inputs_unchanged():
 @pytest.fixture
 def refits(monkeypatch):
     """A list of ``(overrides, n_times)``, one per fit of a model made by
-    ``lrm_cvx.glrm.refits.clone_model`` during the test (the calibration's, the dynamics
+    ``lrm_cvx.validation.refits.clone_model`` during the test (the calibration's, the dynamics
     blend's and the temporal / rank validation's refits; patched where each module reads it)."""
-    from lrm_cvx.glrm import blending, calibration, refits
+    from lrm_cvx.validation import blending, calibration, refits
 
     seen: list[tuple[dict, int]] = []
     real = refits.clone_model

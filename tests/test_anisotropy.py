@@ -137,8 +137,8 @@ def test_estimate_recovers_a_planted_anisotropy(a):
 
 
 def test_spatial_auto_chooses_the_anisotropy_and_refits_keep_it():
-    from lrm_cvx.glrm.kernel_selection import select_kernel
-    from lrm_cvx.glrm.refits import clone_model
+    from lrm_cvx.validation.kernel_selection import select_kernel
+    from lrm_cvx.validation.refits import clone_model
 
     region, R = _planted_field(3.0, n=20, seed=1)
     cov, table = select_kernel(R, region, seed=0)
@@ -227,7 +227,7 @@ def test_cli_fits_a_fixed_anisotropy(tmp_path, capsys):
 def test_an_anisotropic_fit_validated_worse_does_not_compete(monkeypatch):
     """The rule: the anisotropic fit replaces its family's isotropic one unless its paired
     errors are worse with confidence at some size; then the isotropic fit competes."""
-    import lrm_cvx.glrm.kernel_selection as ks
+    import lrm_cvx.validation.kernel_selection as ks
 
     assert ks._not_worse(np.full((2, 30), 1.0), np.full((2, 30), 1.0), 1.645)
     rng = np.random.default_rng(0)

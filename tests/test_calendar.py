@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lrm_cvx._validation import datetime_ns
+from lrm_cvx.belief.calendar import RecordCalendar
 from lrm_cvx.errors import DataError
-from lrm_cvx.glrm.calendar import RecordCalendar
 
 CALENDARS = ["standard", "proleptic_gregorian", "noleap", "all_leap", "360_day", "julian"]
 

@@ -1,4 +1,4 @@
-"""Calibrated predictive uncertainty (glrm/calibration.py)."""
+"""Calibrated predictive uncertainty (validation/calibration.py)."""
 
 from __future__ import annotations
 
@@ -12,15 +12,15 @@ from scipy.stats import norm
 from lrm_cvx.errors import ModelError
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import prediction_factor
-from lrm_cvx.glrm.calibration import (
+from lrm_cvx.monitor import MonitorState
+from lrm_cvx.validation.calibration import (
     Calibration,
     calibrate,
     fit_scale,
     interval_coverage,
     predictive_std,
 )
-from lrm_cvx.glrm.designs import sample_sets
-from lrm_cvx.monitor import MonitorState
+from lrm_cvx.validation.designs import sample_sets
 
 
 def _planted(T=60, ny=16, nx=20, k=3, noise=0.3, seed=0):
@@ -144,7 +144,7 @@ def test_overconfident_model_is_inflated_to_nominal():
     # cv refits estimate their own noise; the scale only fixes what they get wrong, so check
     # the effect on the (deliberately broken) model through a scale fitted on its own errors
     assert cal.scale > 0
-    from lrm_cvx.glrm.calibration import _standardized
+    from lrm_cvx.validation.calibration import _standardized
 
     region = model.region_
     V = region.stack(train).astype(float)
@@ -186,9 +186,9 @@ def test_calibration_scales_complete_std_and_survives_save_load(tmp_path):
 
 
 def test_blend_dynamics_endpoints_and_select_dynamics():
-    from lrm_cvx.glrm.blending import blend_dynamics, select_dynamics
-    from lrm_cvx.glrm.posterior import empirical_moments
+    from lrm_cvx.belief.posterior import empirical_moments
     from lrm_cvx.io.samples import synthetic_dynamic_field
+    from lrm_cvx.validation.blending import blend_dynamics, select_dynamics
 
     data = synthetic_dynamic_field(30, (8, 10), rank=2, missing=0.1, noise=0.05, seed=2)
     with warnings.catch_warnings():
@@ -205,8 +205,8 @@ def test_blend_dynamics_endpoints_and_select_dynamics():
     np.testing.assert_allclose(a["std"].values, b["std"].values, rtol=1e-6, equal_nan=True)
     with pytest.raises(ModelError, match="alpha"):
         blend_dynamics(dyn, 1.5, S)
-    from lrm_cvx.glrm.blending import unblended_dynamics
     from lrm_cvx.glrm.dynamics import estimate_ar1
+    from lrm_cvx.validation.blending import unblended_dynamics
 
     base = unblended_dynamics(model)  # the plain fit, without the fit's own blend
     plain = estimate_ar1(model._Xv, model.X_["time"], initial_cov=dyn.initial_cov,
@@ -256,7 +256,7 @@ def test_filter_scale_is_used_by_the_monitor_state():
 def test_fit_adaptive_scale_finds_informative_innovations():
     """Per-snapshot scales that the innovations reveal: a finite dof and a likelihood gain;
     innovations unrelated to the held-out scale: (nearly) the fixed scale."""
-    from lrm_cvx.glrm.calibration import fit_adaptive_scale
+    from lrm_cvx.validation.calibration import fit_adaptive_scale
 
     rng = np.random.default_rng(0)
     n = 30
@@ -287,8 +287,8 @@ def test_calibration_attrs_keep_the_adaptive_scale():
 
 
 def test_select_dynamics_keeps_memoryless_without_significant_gain():
-    from lrm_cvx.glrm.blending import select_dynamics
     from lrm_cvx.io.samples import synthetic_dynamic_field
+    from lrm_cvx.validation.blending import select_dynamics
 
     data = synthetic_dynamic_field(40, (8, 10), rank=2, missing=0.1, noise=0.05, seed=3)
     with warnings.catch_warnings():
@@ -310,7 +310,7 @@ def test_select_dynamics_keeps_memoryless_without_significant_gain():
 
 
 def test_residual_scale_multiplies_the_residual_and_noise_variances():
-    from lrm_cvx.glrm.posterior import ObservationModel
+    from lrm_cvx.belief.posterior import ObservationModel
 
     data = _planted(T=20)
     with warnings.catch_warnings():
@@ -420,7 +420,7 @@ def test_default_folds_shrink_on_a_short_record():
 def test_moved_names_still_import_from_calibration():
     """The sample designs, refits and dynamics blends moved to their own modules; the old
     import location keeps serving the same objects."""
-    from lrm_cvx.glrm import blending, calibration, designs, refits
+    from lrm_cvx.validation import blending, calibration, designs, refits
 
     for mod, names in ((designs, ("sample_sets", "SET_KINDS", "ALL_KINDS")),
                        (refits, ("clone_model", "training_values")),
@@ -435,8 +435,8 @@ def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry(monkeypatc
     earliest blocks cannot carry the model's rank and are skipped (the residuals come from
     the others, equal to a calibration that never had them); with none left, one ModelError
     says why (before, the refit's own error surfaced, naming the refit's snapshot count)."""
-    from lrm_cvx.glrm.calibration import cv_residuals
-    from lrm_cvx.glrm.refits import refit_carries
+    from lrm_cvx.validation.calibration import cv_residuals
+    from lrm_cvx.validation.refits import refit_carries
 
     data = _planted(T=12, ny=6, nx=7, k=3)
     model = GLRM(rank=5, offset=True, random_state=0, progress=False).fit(data)

@@ -172,7 +172,7 @@ def test_auto_unavailable_agrees_with_the_fit(kind):
     """The pre-check fit's fallback relies on says no exactly when GLRM(temporal="auto")
     fails on the data."""
     from lrm_cvx.errors import LrmError
-    from lrm_cvx.glrm.selection import auto_unavailable
+    from lrm_cvx.validation.selection import auto_unavailable
 
     da = _field()
     data = {"good": da, "five": da.isel(time=slice(0, 5)),

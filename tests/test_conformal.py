@@ -14,6 +14,7 @@ import pytest
 import xarray as xr
 from scipy.stats import norm
 
+from lrm_cvx.belief.posterior import LatentPosterior
 from lrm_cvx.errors import ModelError
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import (
@@ -24,8 +25,7 @@ from lrm_cvx.glrm.calibrated import (
     gaussian_multiplier,
     interval_coverage,
 )
-from lrm_cvx.glrm.calibration import calibrate
-from lrm_cvx.glrm.posterior import LatentPosterior
+from lrm_cvx.validation.calibration import calibrate
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -159,7 +159,7 @@ def test_per_size_thresholds_hold_each_size():
     sample count): over 1000 draws of the calibration records, each size's own threshold covers
     a new score of that size at >= level (the split-conformal guarantee per size), while the
     pooled threshold under-covers the wide size and over-covers the narrow one."""
-    from lrm_cvx.glrm.calibration import _size_quantiles
+    from lrm_cvx.validation.calibration import _size_quantiles
 
     rng = np.random.default_rng(3)
     sigma = {5: 1.5, 50: 0.7}

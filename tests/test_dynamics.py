@@ -366,8 +366,8 @@ def test_synthetic_field_default_is_unchanged_by_time_factors():
 
 # ----------------------------------------------------------------------------- validated blend
 def test_validation_blend_shrinks_without_persistence_and_keeps_it_with():
+    from lrm_cvx.belief.posterior import empirical_moments
     from lrm_cvx.glrm.dynamics import estimate
-    from lrm_cvx.glrm.posterior import empirical_moments
 
     rng = np.random.default_rng(0)
     white = rng.standard_normal((3, 120)) * np.array([[1.0], [0.5], [0.2]])
@@ -388,8 +388,8 @@ def test_validation_blend_shrinks_without_persistence_and_keeps_it_with():
 
 
 def test_blend_zero_is_the_memoryless_prior():
+    from lrm_cvx.belief.posterior import empirical_moments
     from lrm_cvx.glrm.dynamics import _stationary_cov, blend_moments
-    from lrm_cvx.glrm.posterior import empirical_moments
 
     X = np.random.default_rng(1).standard_normal((2, 30))
     dyn = estimate_ar1(X, np.arange(30))
@@ -447,7 +447,7 @@ def test_error_correction_removes_the_attenuation_of_noisy_columns():
 def test_fitted_model_recovers_planted_dynamics_in_the_planted_basis(seed):
     """A from a fitted model's X_ (not the true latent series), mapped to the planted latent
     coordinates (the fitted basis is a linear transform of the planted one)."""
-    from lrm_cvx.glrm.blending import unblended_dynamics
+    from lrm_cvx.validation.blending import unblended_dynamics
 
     da, truth = synthetic_dynamic_field(800, (12, 16), 3, missing=0.3, noise=0.02, seed=seed,
                                         return_truth=True)

@@ -11,9 +11,9 @@ from lrm_cvx.errors import ModelError
 from lrm_cvx.evaluation import evaluate, summary
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import prediction_factor
-from lrm_cvx.glrm.calibration import Z68, Z95
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.planning import transect
+from lrm_cvx.validation.calibration import Z68, Z95
 
 N_TEST = 4
 

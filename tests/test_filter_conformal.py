@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from lrm_cvx import GLRM
+from lrm_cvx.belief.filter import LatentFilter
 from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.glrm.calibrated import Calibration, conformal_quantile, gaussian_multiplier
-from lrm_cvx.glrm.calibration import calibrate, cv_residuals, refit_dynamics
-from lrm_cvx.glrm.filter import LatentFilter
 from lrm_cvx.io.samples import synthetic_dynamic_field
+from lrm_cvx.validation.calibration import calibrate, cv_residuals, refit_dynamics
 
 N_TEST = 6
 
@@ -215,7 +215,7 @@ def test_campaign_coverage_uses_the_calibrated_interval(persistent, temporal):
 def test_auto_falls_back_when_no_block_can_carry_the_kind(persistent, monkeypatch):
     """temporal='auto' keeps the memoryless calibration when the forward-chained filter
     residuals cannot be made; a kind asked for by name says why."""
-    import lrm_cvx.glrm.calibration as C
+    import lrm_cvx.validation.calibration as C
     from lrm_cvx.errors import ModelError
 
     _, train, model = persistent

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import xarray as xr
 
+from lrm_cvx.belief import fold_in, fold_in_many
 from lrm_cvx.errors import ConvergenceWarning, DataError, ModelError, NotFittedError
-from lrm_cvx.glrm import GLRM, L1, Huber, Ridge, fold_in, fold_in_many
+from lrm_cvx.glrm import GLRM, L1, Huber, Ridge
 from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.region import Region
 

@@ -1,5 +1,5 @@
 """spatial="auto": the residual kernel chosen by design-matched kriging cross-validation on the
-training residuals (glrm/kernel_selection.py), and the paired rule it shares with
+training residuals (validation/kernel_selection.py), and the paired rule it shares with
 temporal="auto"."""
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from scipy.spatial.distance import cdist
 
 from lrm_cvx import GLRM
 from lrm_cvx.errors import ModelError
-from lrm_cvx.glrm.kernel_selection import _kriging_errors, format_kernel_selection
-from lrm_cvx.glrm.selection import paired_choice
 from lrm_cvx.spatial import ResidualCovariance
 from lrm_cvx.spatial.covariance import correlation
+from lrm_cvx.validation.kernel_selection import _kriging_errors, format_kernel_selection
+from lrm_cvx.validation.selection import paired_choice
 
 
 def _field(kernel: str, range_: float, T: int = 30, n: int = 18, seed: int = 0) -> xr.DataArray:
@@ -64,8 +64,8 @@ def test_kriging_errors_match_a_naive_simple_kriging():
     """The scored MSE is simple kriging of the held-out residuals, solved here densely, from
     designs flown over the snapshot's gaps: drawn among all of the region's cells, a design cell
     in a gap gives no value (as in a campaign), and is not held out either."""
-    from lrm_cvx.glrm.designs import sample_sets
     from lrm_cvx.region import Region
+    from lrm_cvx.validation.designs import sample_sets
 
     data = _field("matern32", 3.0, T=4, n=12, seed=1)
     region = Region.from_dataarray(data)
@@ -134,7 +134,7 @@ def test_bad_spatial_names_auto_in_the_error():
 
 
 def test_refits_keep_the_chosen_family():
-    from lrm_cvx.glrm.refits import clone_model
+    from lrm_cvx.validation.refits import clone_model
 
     model = _fit(_field("gaussian", 4.0, T=20, n=12), "auto")
     refit = clone_model(model)

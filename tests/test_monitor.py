@@ -11,11 +11,11 @@ import pandas as pd
 import pytest
 import xarray as xr
 
+from lrm_cvx.belief.posterior import empirical_moments
 from lrm_cvx.errors import DataError, ModelError, RegionError
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.glrm.dynamics import Dynamics
-from lrm_cvx.glrm.posterior import empirical_moments
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
 

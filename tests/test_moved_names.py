@@ -36,7 +36,9 @@ def test_old_locations_of_moved_helpers_are_the_same_objects():
     import lrm_cvx.information as info
     import lrm_cvx.monitor as monitor
     import lrm_cvx.spatial as sp
-    from lrm_cvx.glrm import calibrated, calibration, filter
+    from lrm_cvx.belief import filter
+    from lrm_cvx.glrm import calibrated
+    from lrm_cvx.validation import calibration
 
     assert info.GridConv is sp.GridConv and info.gp_noise is sp.gp_noise
     assert info.gp_latent_cov is sp.gp_latent_cov and info.check_gp_inputs is sp.check_gp_inputs

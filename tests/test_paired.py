@@ -1,4 +1,4 @@
-"""The paired rule's upper bound (glrm/paired.py): a paired bootstrap of the MSE ratio."""
+"""The paired rule's upper bound (validation/paired.py): a paired bootstrap of the MSE ratio."""
 
 from itertools import product
 
@@ -7,7 +7,7 @@ import pytest
 from scipy.stats import norm
 
 from lrm_cvx.errors import ModelError
-from lrm_cvx.glrm.paired import BOOTSTRAP_SEED, bootstrap_upper, paired_choice
+from lrm_cvx.validation.paired import BOOTSTRAP_SEED, bootstrap_upper, paired_choice
 
 
 def _naive_bootstrap(E: np.ndarray, confidence: float, n_boot: int) -> np.ndarray:
@@ -28,7 +28,7 @@ def _naive_bootstrap(E: np.ndarray, confidence: float, n_boot: int) -> np.ndarra
 
 
 def test_bootstrap_bound_against_a_naive_resampling(monkeypatch):
-    import lrm_cvx.glrm.paired as paired
+    import lrm_cvx.validation.paired as paired
 
     rng = np.random.default_rng(3)
     E = 1.0 + rng.random((3, 2, 9))

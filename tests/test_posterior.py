@@ -1,4 +1,4 @@
-"""The latent belief (glrm/posterior.py) against naive dense references on tiny problems."""
+"""The latent belief (belief/posterior.py) against naive dense references on tiny problems."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.distance import cdist
 
+from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel, empirical_moments
 from lrm_cvx.errors import DataError, ModelError
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel, empirical_moments
 from lrm_cvx.spatial import ResidualCovariance
 
 
@@ -505,7 +505,7 @@ def test_predict_many_equals_one_prediction_per_belief(spatial, fft, local, monk
     the residuals kriged together), the FFT fallback and the local (neighbour) kriging each
     give every belief's own ``predict_all`` and, spatially, the brute-force GP conditional."""
     import lrm_cvx.spatial as sp
-    from lrm_cvx.glrm.posterior import predict_many
+    from lrm_cvx.belief.posterior import predict_many
 
     if fft:
         monkeypatch.setattr(sp, "FFT_KRIGE_MIN_WORK", 0.0)
@@ -554,7 +554,7 @@ def test_predict_many_equals_one_prediction_per_belief(spatial, fft, local, monk
 def test_fold_in_maps_equal_fold_in_snapshots(spatial):
     """Snapshots grouped by the cells they observe (sensors, one with a gap, one empty) give
     each snapshot's own fold-in map."""
-    from lrm_cvx.glrm.posterior import fold_in_maps, fold_in_snapshots
+    from lrm_cvx.belief.posterior import fold_in_maps, fold_in_snapshots
 
     rng, obs = grid_obs(11)
     if not spatial:
@@ -573,7 +573,7 @@ def test_fold_in_maps_equal_fold_in_snapshots(spatial):
 
 
 def test_pattern_groups_are_the_rows_with_equal_patterns():
-    from lrm_cvx.glrm.posterior import pattern_groups
+    from lrm_cvx.belief.posterior import pattern_groups
 
     rng = np.random.default_rng(0)
     observed = rng.random((40, 11)) < 0.5

@@ -11,8 +11,8 @@ import xarray as xr
 from scipy.spatial.distance import cdist
 
 from lrm_cvx import GLRM
+from lrm_cvx.belief.posterior import LatentPosterior, empirical_moments
 from lrm_cvx.errors import ModelError
-from lrm_cvx.glrm.posterior import LatentPosterior, empirical_moments
 from lrm_cvx.glrm.predictive import residual_sample
 from lrm_cvx.spatial import ResidualCovariance, fit_residual_covariance
 from lrm_cvx.spatial.covariance import cell_semivariance, cell_size
@@ -215,7 +215,7 @@ def test_residual_scale_makes_the_spatial_residual_heteroscedastic(noise):
 
 
 def test_residual_scale_saves_refits_and_rejects_bad_values(tmp_path):
-    from lrm_cvx.glrm.refits import clone_model
+    from lrm_cvx.validation.refits import clone_model
 
     noisy = _edgy_field()
     with warnings.catch_warnings():

@@ -1,5 +1,5 @@
 """rank="auto": the rank chosen with the temporal model by rolling-origin validation
-(glrm/selection.py, ``select_temporal(ranks=)``)."""
+(validation/selection.py, ``select_temporal(ranks=)``)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import xarray as xr
 from lrm_cvx import GLRM
 from lrm_cvx.cli import main
 from lrm_cvx.errors import DataError, ModelError
-from lrm_cvx.glrm.refits import clone_model
-from lrm_cvx.glrm.selection import REFERENCE_RANK, format_selection, select_temporal
 from lrm_cvx.io.samples import synthetic_dynamic_field
+from lrm_cvx.validation.refits import clone_model
+from lrm_cvx.validation.selection import REFERENCE_RANK, format_selection, select_temporal
 
 
 def _auto(data, **kw):

@@ -9,12 +9,12 @@ from references import naive_tour
 from scipy.spatial.distance import cdist
 
 from lrm_cvx import Region
+from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel, empirical_moments
 from lrm_cvx.errors import ModelError, PlanningError
 from lrm_cvx.evaluation import evaluate
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.glrm.offset import OFFSET_PRIOR_OBS
-from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel, empirical_moments
 from lrm_cvx.glrm.predictive import NOISE_PRIOR_DF, shrink_noise
 from lrm_cvx.information import (
     AOptimalOracle,

@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 from scipy.stats import chi2_contingency
 
 from lrm_cvx.errors import DataError, ModelError
-from lrm_cvx.glrm.designs import _line, _route, flown_sets, sample_sets
 from lrm_cvx.region import Region
+from lrm_cvx.validation.designs import _line, _route, flown_sets, sample_sets
 
 
 def naive_sample_sets(region, observed, size, kind, rng, centre=None, axis=None):

@@ -1,4 +1,4 @@
-"""temporal="auto": a temporal model chosen by rolling-origin validation (glrm/selection.py)."""
+"""temporal="auto": a temporal model chosen by rolling-origin validation (validation.selection)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from scipy.stats import norm
 from lrm_cvx import GLRM
 from lrm_cvx.errors import DataError, ModelError
 from lrm_cvx.glrm.calibrated import prediction_factor
-from lrm_cvx.glrm.paired import BOOTSTRAP_DRAWS, BOOTSTRAP_SEED
-from lrm_cvx.glrm.selection import _rule, format_selection, select_temporal
 from lrm_cvx.io.samples import synthetic_dynamic_field
+from lrm_cvx.validation.paired import BOOTSTRAP_DRAWS, BOOTSTRAP_SEED
+from lrm_cvx.validation.selection import _rule, format_selection, select_temporal
 
 
 def _fit(data, **kw):
@@ -217,7 +217,7 @@ def test_memoryless_choice_leaves_no_dynamics(white_field):
     model = _fit(white_field, temporal="auto")
     forced = select_temporal(model, white_field, kinds=("ar1",), tolerance=-1.0)
     assert forced.attrs["choice"] == "none"  # nothing is admissible but memoryless
-    from lrm_cvx.glrm.selection import apply_selection
+    from lrm_cvx.validation.selection import apply_selection
 
     apply_selection(model, forced)
     assert model.dynamics_ is None
@@ -280,9 +280,9 @@ def test_auto_bad_input(persistent_field):
 
 def test_shared_kriging_equals_each_posteriors_own_map():
     """The candidates' maps from one kriging call equal each posterior's own prediction."""
-    from lrm_cvx.glrm.blending import blend_dynamics, memoryless_cov
-    from lrm_cvx.glrm.filter import LatentFilter
-    from lrm_cvx.glrm.selection import _map_means
+    from lrm_cvx.belief.filter import LatentFilter
+    from lrm_cvx.validation.blending import blend_dynamics, memoryless_cov
+    from lrm_cvx.validation.selection import _map_means
 
     da = synthetic_dynamic_field(30, (9, 10), 3, seed=5, freq="D", missing=0.1, noise=0.1)
     model = _fit(da, temporal="ar1", offset=True, spatial="exponential")
@@ -308,8 +308,8 @@ def test_residual_inflation_is_a_candidate_applied_and_saved(persistent_field, t
     """Every temporal candidate is also scored with the residual and noise variances inflated
     (AUTO_INFLATIONS); the choice's factor becomes ``residual_inflation_``, which every
     observation model of the model carries, and the model file keeps it."""
-    from lrm_cvx.glrm.observation import ObservationModel
-    from lrm_cvx.glrm.selection import AUTO_INFLATIONS, apply_selection
+    from lrm_cvx.belief.observation import ObservationModel
+    from lrm_cvx.validation.selection import AUTO_INFLATIONS, apply_selection
 
     model = _fit(persistent_field, temporal="auto")
     sel = model.selection_
@@ -366,8 +366,8 @@ def test_a_short_record_validates_on_the_windows_its_refits_can_carry(persistent
     too short for any gets :class:`AutoUnavailable` (a one-line ModelError) naming the cause.
     ``refit_carries`` is checked against the fit itself: it says True exactly where
     ``GLRM(rank=3, offset=True).fit`` of the first ``lo`` snapshots succeeds."""
-    from lrm_cvx.glrm.refits import refit_carries
-    from lrm_cvx.glrm.selection import AutoUnavailable, _windows
+    from lrm_cvx.validation.refits import refit_carries
+    from lrm_cvx.validation.selection import AutoUnavailable, _windows
 
     V = persistent_field.values.reshape(persistent_field.shape[0], -1)
 

@@ -13,13 +13,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lrm_cvx import GLRM
+from lrm_cvx.belief.filter import LatentFilter, batch_start, batch_step, batch_transitions
 from lrm_cvx.errors import ModelError
-from lrm_cvx.glrm.blending import blend_dynamics, memoryless_cov
-from lrm_cvx.glrm.designs import sample_sets
 from lrm_cvx.glrm.dynamics import kind_dynamics
-from lrm_cvx.glrm.filter import LatentFilter, batch_start, batch_step, batch_transitions
-from lrm_cvx.glrm.selection import MAX_SCORED, _window_errors
 from lrm_cvx.io.samples import synthetic_dynamic_field
+from lrm_cvx.validation.blending import blend_dynamics, memoryless_cov
+from lrm_cvx.validation.designs import sample_sets
+from lrm_cvx.validation.selection import MAX_SCORED, _window_errors
 
 
 def _inflated(model, factor):
@@ -160,7 +160,7 @@ def test_residual_covariance_is_the_fits_own(scale):
 def test_first_window_never_sees_later_snapshots(monkeypatch):
     """The shared residual covariance comes from the earliest refit: poisoning the last
     window's snapshots leaves every score of the first window as it was."""
-    import lrm_cvx.glrm.selection as sel
+    import lrm_cvx.validation.selection as sel
 
     data = synthetic_dynamic_field(40, (8, 9), 3, seed=3, seasonal_period=12,
                                    seasonal_amplitude=0.8, A=0.6 * np.eye(3),
@@ -193,7 +193,7 @@ def test_fit_hands_its_stacked_snapshots_to_the_selection():
     """GLRM(temporal="auto").fit passes its own stacking (no second one): the same table as
     select_temporal stacking the data itself; a wrong shape is refused."""
     from lrm_cvx.errors import DataError
-    from lrm_cvx.glrm.selection import select_temporal
+    from lrm_cvx.validation.selection import select_temporal
 
     data = synthetic_dynamic_field(40, (7, 8), 3, seed=2, seasonal_period=12,
                                    seasonal_amplitude=0.8, A=0.6 * np.eye(3),

@@ -16,9 +16,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from references import naive_tour
 
+from lrm_cvx.belief.foldin import fold_in, fold_in_rows
+from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel
 from lrm_cvx.errors import DataError, PlanningError
-from lrm_cvx.glrm.foldin import fold_in, fold_in_rows
-from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel
 from lrm_cvx.information import make_row_oracle, row_factors, row_information
 from lrm_cvx.planning import plan_greedy
 from lrm_cvx.planning.request import PathOptions

@@ -10,8 +10,8 @@ from scipy.special import gamma as gamma_fn
 from scipy.special import kv
 
 from lrm_cvx import Region
+from lrm_cvx.belief.foldin import gls_fold_in, residual_correction
 from lrm_cvx.errors import DataError, LrmError, ModelError, RegionError
-from lrm_cvx.glrm.foldin import gls_fold_in, residual_correction
 from lrm_cvx.spatial import (
     MODELS,
     ResidualCovariance,

@@ -9,8 +9,8 @@ import pytest
 import xarray as xr
 
 from lrm_cvx import Region
+from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel, fold_in_snapshots
 from lrm_cvx.errors import PlanningError
-from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel, fold_in_snapshots
 from lrm_cvx.information import gp_variance_value
 from lrm_cvx.planning import place_sensors, plan_greedy
 from lrm_cvx.planning import static as st

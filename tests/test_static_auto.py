@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import xarray as xr
 
+from lrm_cvx.belief.posterior import fold_in_snapshots
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.posterior import fold_in_snapshots
 from lrm_cvx.planning import place_sensors
 from lrm_cvx.planning import static_auto as sa
 

@@ -247,7 +247,7 @@ def test_factored_windows_smaller_than_the_grid_equal_the_dense_reference(model_
     (and sensors sit near its edges), so the window indexing is exercised; with an anisotropy
     the windows differ per axis."""
     from lrm_cvx import Region
-    from lrm_cvx.glrm.posterior import LatentPosterior, ObservationModel
+    from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel
     from lrm_cvx.spatial import ResidualCovariance
 
     rng = np.random.default_rng(7)

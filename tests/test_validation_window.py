@@ -1,4 +1,4 @@
-"""The window of a large region the validations read (glrm/refits.py: ``validation_window``,
+"""The window of a large region the validations read (validation/refits.py: ``validation_window``,
 ``validation_view``; ``Region.crop``): checked against a brute-force search, and by poisoning
 every cell outside the window (the validations' results must not move)."""
 
@@ -12,15 +12,15 @@ import xarray as xr
 
 from lrm_cvx import GLRM, Region
 from lrm_cvx.errors import ModelError, RegionError
-from lrm_cvx.glrm import refits
-from lrm_cvx.glrm.blending import (
+from lrm_cvx.io.samples import synthetic_dynamic_field
+from lrm_cvx.validation import refits
+from lrm_cvx.validation.blending import (
     blend_dynamics,
     memoryless_cov,
     select_dynamics,
     unblended_dynamics,
 )
-from lrm_cvx.glrm.refits import validation_view, validation_window
-from lrm_cvx.io.samples import synthetic_dynamic_field
+from lrm_cvx.validation.refits import validation_view, validation_window
 
 
 def _grid(mask: np.ndarray) -> xr.DataArray:

@@ -46,8 +46,8 @@ _LAZY = {
     "MonitorState": "lrm_cvx.monitor",
     "simulate_campaign": "lrm_cvx.campaign",
     "Dynamics": "lrm_cvx.glrm.dynamics",
-    "calibrate": "lrm_cvx.glrm.calibration",
-    "select_dynamics": "lrm_cvx.glrm.blending",
+    "calibrate": "lrm_cvx.validation.calibration",
+    "select_dynamics": "lrm_cvx.validation.blending",
     "synthetic_dynamic_field": "lrm_cvx.io.samples",
 }
 

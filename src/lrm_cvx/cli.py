@@ -261,7 +261,7 @@ def _scale_option(args: argparse.Namespace) -> Any:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .glrm.selection import AutoUnavailable
+    from .validation.selection import AutoUnavailable
 
     params = _model_params(args)
     (out,) = guard_paths([args.output], _input_files(args.data), args)
@@ -274,7 +274,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         params["temporal"] = None
 
     if default_auto:
-        from .glrm.selection import auto_unavailable
+        from .validation.selection import auto_unavailable
 
         if (why := auto_unavailable(data)) is not None:  # found before any fit
             without_dynamics(why)
@@ -296,11 +296,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
           f"{data.sizes['time']} snapshots x {model.region_.n_cells} cells in {model.n_iter_} "
           f"iterations (noise std {model.noise_std_:.4g}); saved {out}")
     if getattr(model, "selection_", None) is not None:
-        from .glrm.selection import format_selection
+        from .validation.selection import format_selection
 
         print(format_selection(model.selection_))
     if getattr(model, "kernel_selection_", None) is not None:
-        from .glrm.kernel_selection import format_kernel_selection
+        from .validation.kernel_selection import format_kernel_selection
 
         print(format_kernel_selection(model.kernel_selection_))
     return 0
@@ -311,7 +311,7 @@ def _fit_model(data, params: dict, **kw):
     asks for one) runs after the fit and, on a record too short for its refits, is left out with
     one note instead of failing the fit."""
     from .glrm import GLRM
-    from .glrm.calibration import fit_then_try_calibrate
+    from .validation.calibration import fit_then_try_calibrate
 
     model = GLRM(**kw, **params)
     if (why := fit_then_try_calibrate(model, data)) is not None:

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from ._blas import single_threaded_blas
-from .glrm.selection import format_selection
 from .recommended import RECOMMENDED as SETTING  # the setting; RECOMMENDED here is its label
+from .validation.selection import format_selection
 
 __all__ = ["run_demo", "DemoResult", "DEMO_SETTINGS", "RECOMMENDED", "PAPER", "format_summary"]
 

@@ -6,7 +6,7 @@ cells (cells the snapshot lacks give no observation), fold the observations in, 
 predicted map against the snapshot's observed cells. Results come back as an
 ``xarray.Dataset`` with dims ``(method, budget, start, trial, test_time)``.
 
-The fold-in is the model's :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (offset, scale,
+The fold-in is the model's :class:`~lrm_cvx.belief.posterior.LatentPosterior` (offset, scale,
 per-cell noise, prior). Its reconstruction error is computed from per-snapshot sufficient
 statistics in data units, ``G = Y_O W Y_O^T``, ``b = Y_O W z_O`` and ``c = z_O^T W z_O`` over the
 snapshot's observed cells ``O`` (``z = (d - offset) / scale``, ``W = diag(scale^2)``):
@@ -30,10 +30,8 @@ from tqdm.auto import tqdm
 
 from ._blas import single_threaded_blas
 from ._validation import as_factor_matrix, as_generator, atomic_output, check_flag, check_positive
+from .belief.posterior import LatentPosterior
 from .errors import DataError, ModelError, PlanningError
-from .glrm.calibration import fit_then_try_calibrate
-from .glrm.posterior import LatentPosterior
-from .glrm.selection import memoryless_twin
 from .planning.planners import (
     GREEDY_VARIANTS,
     METHOD_REGISTRY,
@@ -53,6 +51,8 @@ from .scoring import (
     foldin_mse,
     model_scores,
 )
+from .validation.calibration import fit_then_try_calibrate
+from .validation.selection import memoryless_twin
 
 __all__ = ["evaluate", "backtest", "EvaluationProtocol", "summary", "save_results", "METHODS",
            "coverage_check", "COVERAGE_BANDS", "LOWEST_BLOCK_95",
@@ -218,7 +218,7 @@ class _Fitted:
     paper_prior: LatentPosterior
     fold_prior: LatentPosterior
 
-    twin: Any  # the campaigns' memoryless twin (glrm.selection.memoryless_twin)
+    twin: Any  # the campaigns' memoryless twin (validation.selection.memoryless_twin)
 
 
 @dataclass(eq=False)
@@ -790,7 +790,7 @@ def evaluate(
     ``coverage68`` / ``coverage95`` ``(method, budget, start, trial, test_time)``: fraction of
     the held-out observed cells (at most 4096 per snapshot, a fixed subset, minus the sampled
     cells) inside the central 68 % / 95 % predictive interval of the fold-in used for ``mse``
-    (calibrated when the model is: :func:`~lrm_cvx.glrm.calibration.calibrate`).
+    (calibrated when the model is: :func:`~lrm_cvx.validation.calibration.calibrate`).
 
     Returns a Dataset with ``information``, ``cost``, ``n_cells`` ``(method, budget, start,
     trial)``, ``mse`` and ``n_obs`` ``(method, budget, start, trial, test_time)``, ``bound``

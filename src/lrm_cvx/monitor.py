@@ -1,7 +1,7 @@
 """The monitoring filter: a Kalman filter on the latent vector of a fitted GLRM.
 
 :class:`MonitorState` carries the Gaussian belief about the current snapshot's latent vector
-(a :class:`~lrm_cvx.glrm.posterior.LatentPosterior`, the same fold-in algebra as
+(a :class:`~lrm_cvx.belief.posterior.LatentPosterior`, the same fold-in algebra as
 ``GLRM.complete``) from one field day to the next with the model's dynamics
 (:class:`~lrm_cvx.glrm.dynamics.Dynamics`):
 
@@ -25,9 +25,7 @@ import numpy as np
 import xarray as xr
 
 from ._validation import atomic_output, read_netcdf
-from .errors import DataError, ModelError
-from .glrm.dynamics import Dynamics
-from .glrm.filter import (  # noqa: F401  (re-exported: the old import location)
+from .belief.filter import (  # noqa: F401  (re-exported: the old import location)
     LatentFilter,
     coerce_time,
     filter_observation_model,
@@ -37,7 +35,9 @@ from .glrm.filter import (  # noqa: F401  (re-exported: the old import location)
     time_label,
     time_to_str,
 )
-from .glrm.posterior import LatentPosterior
+from .belief.posterior import LatentPosterior
+from .errors import DataError, ModelError
+from .glrm.dynamics import Dynamics
 from .recommended import RECOMMENDED
 
 __all__ = ["MonitorState", "model_fingerprint", "memoryless_dynamics", "time_label"]
@@ -51,8 +51,8 @@ class MonitorState(LatentFilter):
     """The filter's belief about the latent vector of the snapshot at ``time``.
 
     Build with :meth:`from_model` (inherited from the filter core,
-    :class:`~lrm_cvx.glrm.filter.LatentFilter`, which also holds ``assimilate``). ``posterior``
-    is the :class:`~lrm_cvx.glrm.posterior.LatentPosterior` of the current snapshot (its
+    :class:`~lrm_cvx.belief.filter.LatentFilter`, which also holds ``assimilate``). ``posterior``
+    is the :class:`~lrm_cvx.belief.posterior.LatentPosterior` of the current snapshot (its
     ``cells`` and ``values`` are today's observations), ``observed`` whether the snapshot at
     ``time`` has been observed (the last fitted snapshot counts as observed; a state positioned
     at a later time by ``from_model(model, time=T)`` has not, so observations at ``T`` are
@@ -139,7 +139,7 @@ class MonitorState(LatentFilter):
     def same_snapshot(self, a: Any, b: Any, name: str = "time") -> bool:
         """Whether times ``a`` and ``b`` lie in the period of one stamp of the record (its
         calendar month for a monthly record, its day for a daily one: see
-        :class:`~lrm_cvx.glrm.calendar.RecordCalendar`). ``name`` labels a bad ``a``'s error."""
+        :class:`~lrm_cvx.belief.calendar.RecordCalendar`). ``name`` labels a bad ``a``'s error."""
         return self.record_calendar.same_period(self._coerce(a, name), self._coerce(b))
 
     def observation_time(self, time: Any, name: str = "time") -> Any:

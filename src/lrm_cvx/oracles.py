@@ -14,8 +14,8 @@ import numpy as np
 import scipy.sparse as sps
 
 from ._validation import as_factor_matrix, check_positive
+from .belief.averaged import row_noise
 from .errors import DataError, PlanningError
-from .glrm.averaged import row_noise
 
 __all__ = ["fisher_information", "a_optimal_value", "FisherOracle", "AOptimalOracle",
            "cells_array", "row_factors", "whitened_rows", "row_information", "RowOracle",
@@ -265,7 +265,7 @@ def row_factors(Y: Any, rows: Any, noise_var: Any = None, errors: str = "indepen
     weights ``a`` over cells; observation ``a^T d`` has the row ``Yr = Y a`` and, from cell
     errors of variance ``noise_var`` (scalar or ``(L,)``; default 1), the noise variance
     ``vr = sum_j a_j^2 noise_var_j`` (``errors="independent"``) or ``(sum_j |a_j| sigma_j)^2``
-    (``"shared"``; :func:`lrm_cvx.glrm.averaged.row_noise`)."""
+    (``"shared"``; :func:`lrm_cvx.belief.averaged.row_noise`)."""
     Y = as_factor_matrix(Y)
     L = Y.shape[1]
     A = sps.csr_matrix(rows, dtype=np.float64)

@@ -1,7 +1,7 @@
 """Scores of a plan on held-out snapshots: exact fold-in errors from sufficient statistics, and
 the coverage of the predictive intervals (the arithmetic of :mod:`lrm_cvx.evaluation`).
 
-The fold-in is the model's :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (offset, scale,
+The fold-in is the model's :class:`~lrm_cvx.belief.posterior.LatentPosterior` (offset, scale,
 per-cell noise, prior). Its reconstruction error is computed from per-snapshot sufficient
 statistics in data units, ``G = Y_O W Y_O^T``, ``b = Y_O W z_O`` and ``c = z_O^T W z_O`` over the
 snapshot's observed cells ``O`` (``z = (d - offset) / scale``, ``W = diag(scale^2)``):
@@ -15,15 +15,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import ModelError
-from .glrm.calibrated import interval_coverage
-from .glrm.posterior import (
+from .belief.posterior import (
     LatentPosterior,
     ObservationModel,
     check_cells,
     pattern_groups,
     predict_many,
 )
+from .errors import ModelError
+from .glrm.calibrated import interval_coverage
 
 __all__ = ["SnapshotStatistics", "foldin_mse", "plain_prior", "complete_mse", "model_mse",
            "COVERAGE_CELLS", "coverage_subset", "model_coverage", "model_scores"]
@@ -138,7 +138,7 @@ def model_scores(prior: LatentPosterior, values: np.ndarray, cells: np.ndarray,
     (n_test, L)``: with ``stats`` (of ``values``) :func:`model_mse`'s errors, with ``subsets``
     (:func:`coverage_subset`) :func:`model_coverage`'s (each None when not asked), from one
     fold-in per snapshot. The snapshots that observe the same cells of the plan share one
-    kriging system (:func:`~lrm_cvx.glrm.posterior.predict_many`)."""
+    kriging system (:func:`~lrm_cvx.belief.posterior.predict_many`)."""
     cells = check_cells(cells, values.shape[1])
     vals = values[:, cells].astype(np.float64)
     obs = np.isfinite(vals)

@@ -413,7 +413,7 @@ _BLEND_GRID = np.linspace(0.0, 1.0, 11)
 
 def _stationary_cov(Z: np.ndarray) -> np.ndarray:
     """Covariance (ddof 1) of the columns of ``Z`` plus 1e-9 x its mean eigenvalue (as the
-    empirical prior of :func:`~lrm_cvx.glrm.posterior.empirical_moments`)."""
+    empirical prior of :func:`~lrm_cvx.belief.posterior.empirical_moments`)."""
     k = Z.shape[0]
     S = np.atleast_2d(np.cov(Z))
     return S + 1e-9 * max(np.trace(S), 1e-300) / k * np.eye(k)

@@ -17,9 +17,11 @@ import pandas as pd
 import xarray as xr
 
 from .._validation import as_generator, atomic_output, check_positive, check_ranks
+from ..belief.posterior import LatentPosterior, fold_in_snapshots, model_prior
 from ..errors import DataError, ModelError, NotFittedError
 from ..recommended import RECOMMENDED
 from ..region import Region
+from ..validation.selection import check_auto_data
 from . import kernels as K
 from .dynamics import TEMPORAL, Dynamics, error_rows, foldin_covs, temporal_value
 from .dynamics import estimate as estimate_dynamics
@@ -34,10 +36,8 @@ from .modelfile import (
     restore_validation_tables,
     validation_tables,
 )
-from .posterior import LatentPosterior, fold_in_snapshots, model_prior
 from .predictive import PREDICTIVE_ATTRS, add_joint_offset, fit_predictive
 from .regularizers import get_regularizer
-from .selection import check_auto_data
 
 __all__ = ["GLRM"]
 
@@ -48,9 +48,9 @@ class GLRM:
     Parameters
     ----------
     rank : k, the number of components, or ``"auto"``: chosen among
-        :data:`~lrm_cvx.glrm.selection.AUTO_RANKS` by the rolling-origin validation of
+        :data:`~lrm_cvx.validation.selection.AUTO_RANKS` by the rolling-origin validation of
         ``temporal="auto"`` (jointly with the temporal model; memoryless candidates only with
-        ``temporal=None``), against rank :data:`~lrm_cvx.glrm.selection.REFERENCE_RANK`:
+        ``temporal=None``), against rank :data:`~lrm_cvx.validation.selection.REFERENCE_RANK`:
         a higher rank gives the forecast more modes to carry, a lower one fewer to estimate
         from a few samples. ``rank_`` is the rank fitted, the table is ``selection_``.
     loss : ``"quadratic"`` (the paper), ``"huber"``, ``"absolute"``/``"l1"``, ``"quantile"``, or
@@ -81,7 +81,7 @@ class GLRM:
         and the planner's information; with ``spatial`` only its non-kriging fold-ins).
     spatial : None, a covariance model name (``"exponential"``, ``"matern32"``, ...) or
         ``"auto"`` (the family validated on the training residuals, ``kernel_selection_``,
-        :mod:`~lrm_cvx.glrm.kernel_selection`): fit a stationary covariance of the training
+        :mod:`~lrm_cvx.validation.kernel_selection`): fit a stationary covariance of the training
         residuals (``spatial_cov_``) for the trend + GP residual prediction.
     anisotropy : a fixed ``spatial`` family's east-west over north-south range (grid cells;
         1: isotropic, the default). ``spatial="auto"`` validates its own: the isotropic
@@ -95,7 +95,7 @@ class GLRM:
         factor of the residual variances (``residual_inflation_``; :mod:`~lrm_cvx.glrm.
         selection`; the table is ``selection_``, saved with the model).
     calibration : None (default), ``"gaussian"`` / ``"conformal"`` or a dict of
-        :func:`~lrm_cvx.glrm.calibration.calibrate` keywords: after the fit, calibrate the
+        :func:`~lrm_cvx.validation.calibration.calibrate` keywords: after the fit, calibrate the
         variances on cross-validated fold-ins of the training snapshots (``calibration_``).
 
     Learned attributes: ``X_`` ``(component, time)``, ``Y_`` ``(component, cell)`` (DataArrays
@@ -272,8 +272,13 @@ class GLRM:
         ``refits.VALIDATION_MAX_CELLS`` cells the reference model is fitted on the window the
         validations read (``refits.validation_data``), not on the whole region. ``region``:
         the data's, found once for the reference and the real fit."""
-        from .refits import clone_model, validation_data
-        from .selection import AUTO_INFLATIONS, AUTO_RANKS, REFERENCE_RANK, select_temporal
+        from ..validation.refits import clone_model, validation_data
+        from ..validation.selection import (
+            AUTO_INFLATIONS,
+            AUTO_RANKS,
+            REFERENCE_RANK,
+            select_temporal,
+        )
 
         if self.rank != "auto":
             raise ModelError(f"rank must be an integer or 'auto', got {self.rank!r}")
@@ -302,17 +307,17 @@ class GLRM:
         (glrm/selection.py; ``selection``: the one ``rank="auto"`` made already), then
         ``calibration``'s ``calibration_`` (glrm/calibration.py). ``stacked``: ``data`` as the
         fit stacked it ``(T, L)``, when it still holds it."""
-        from .selection import apply_selection
+        from ..validation.selection import apply_selection
 
         if selection is not None:
             apply_selection(self, selection)
         elif temporal_value(self.temporal) == "auto":
-            from .selection import select_temporal
+            from ..validation.selection import select_temporal
 
             apply_selection(self, select_temporal(self, data, seed=self.random_state,
                                                   values=stacked))
         if self.calibration is not None:
-            from .calibration import calibrate_with
+            from ..validation.calibration import calibrate_with
 
             calibrate_with(self, data, self.calibration)
 
@@ -520,7 +525,7 @@ class GLRM:
         truncated); NaN values are dropped (not counted in ``n_observations``); a repeated cell
         is a repeated independent measurement; no observation at all gives the prior's map with
         a prior, or a ModelError without one. The algebra is
-        :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (:meth:`latent_prior`).
+        :class:`~lrm_cvx.belief.posterior.LatentPosterior` (:meth:`latent_prior`).
         """
         self._check_fitted()
         ridge = check_positive(ridge, "ridge", error=ModelError)
@@ -545,7 +550,7 @@ class GLRM:
     def latent_prior(self, prior: str | None = None, ridge: float = 0.0,
                      spatial: bool = False) -> LatentPosterior:
         """The belief over a new snapshot's latent vector that :meth:`complete` folds in from
-        (:class:`~lrm_cvx.glrm.posterior.LatentPosterior`; ``prior``/``ridge``/``spatial`` as in
+        (:class:`~lrm_cvx.belief.posterior.LatentPosterior`; ``prior``/``ridge``/``spatial`` as in
         :meth:`complete`). ``.update(cells, values)`` assimilates observations (data units),
         ``.predict()`` maps them, ``.information()`` is the planner's prior."""
         self._check_fitted()
@@ -763,7 +768,7 @@ class GLRM:
                     seed: Any = 0) -> pd.Series:
         """Held-out RMSE for each rank: fit a copy of this model on a training split of the
         observed entries and score it on the rest. Returns a Series indexed by rank."""
-        from .refits import clone_model  # a refit that never calibrates itself
+        from ..validation.refits import clone_model  # a refit that never calibrates itself
 
         ranks = check_ranks(ranks)
         if isinstance(data, xr.DataArray) and data.ndim == 3:
@@ -905,7 +910,7 @@ def _keeps_stacked(temporal: Any, D: np.ndarray, region: Region | None) -> bool:
     transforms its gathered copy in place (one full-size copy less: 2.6 GB at paper scale)."""
     if temporal_value(temporal) != "auto" or D.ndim != 2 or region is None:
         return False
-    from . import refits
+    from ..validation import refits
 
     return refits.validation_window(region, refits.VALIDATION_MAX_CELLS) is None
 

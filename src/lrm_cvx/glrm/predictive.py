@@ -86,7 +86,7 @@ def _check_calibration(value: Any) -> None:
     """``GLRM(calibration=)``: None, a method name or a dict of ``calibrate`` keywords."""
     import inspect
 
-    from .calibration import calibrate
+    from ..validation.calibration import calibrate
 
     if isinstance(value, dict):
         names = set(inspect.signature(calibrate).parameters) - {"model", "data"}
@@ -215,7 +215,7 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
             if sample is not None:
                 sample = (sample / rs).astype(sample.dtype)
     if model.spatial == "auto":  # the kernel validated on the residuals (kernel_selection.py)
-        from .kernel_selection import select_kernel
+        from ..validation.kernel_selection import select_kernel
 
         model.spatial_cov_, model.kernel_selection_ = select_kernel(
             sample, region, seed=model.random_state)

@@ -239,7 +239,7 @@ def plan_greedy(
         information matrix is nonsingular from the start, so the budget is not spent on
         ``k - 1`` forced cells). Default None: ``"nearest"`` for ``Y``, the recommended
         ``"start"`` for a model.
-    prior : a :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (``GLRM.latent_prior(...)``, a
+    prior : a :class:`~lrm_cvx.belief.posterior.LatentPosterior` (``GLRM.latent_prior(...)``, a
         monitoring filter's forecast): its ``information()`` fills ``prior_precision``,
         ``noise_var``, ``target_weights`` and, when it has the spatial residual, ``prior_cov``
         and ``spatial_cov`` (giving one of those too is an error).

@@ -18,8 +18,8 @@ Under the low-rank model ``d_j = y_j^T x + e_j`` an averaged observation is
 even when their footprints overlap, as repeated point measurements do), and with the GP
 residual ``r`` its residual covariance with another observation ``b`` is ``a^T K b``. Every
 criterion (:func:`lrm_cvx.information.make_row_oracle`), the fold-in
-(:meth:`lrm_cvx.glrm.posterior.LatentPosterior.update_rows`) and the monitoring filter
-(:meth:`lrm_cvx.glrm.filter.LatentFilter.assimilate_rows`) read these rows: a sparse
+(:meth:`lrm_cvx.belief.posterior.LatentPosterior.update_rows`) and the monitoring filter
+(:meth:`lrm_cvx.belief.filter.LatentFilter.assimilate_rows`) read these rows: a sparse
 ``(n, L)`` matrix (:func:`footprint_matrix`, :func:`leg_matrix`, :func:`observation_rows`).
 """
 
@@ -35,8 +35,8 @@ import scipy.sparse as sps
 from scipy.spatial import cKDTree
 
 from .._validation import check_positive
+from ..belief.averaged import ERRORS
 from ..errors import PlanningError
-from ..glrm.averaged import ERRORS
 from ..oracles import whitened_rows
 from ..region import EARTH_RADIUS_KM, Region
 from ..registry import Registry

@@ -111,7 +111,7 @@ class _FoldIn:
 def _fold_in_from_prior(prior: Any, Yk: np.ndarray, region: Region) -> tuple[_FoldIn, Any]:
     """``(fold-in, observation model)`` of ``prior`` (a :class:`LatentPosterior` or a fitted
     GLRM) for the risk."""
-    from ..glrm.posterior import LatentPosterior
+    from ..belief.posterior import LatentPosterior
 
     if prior is None:
         raise PlanningError("criterion='risk' needs prior=: the fold-in's belief "
@@ -410,7 +410,7 @@ def risk_objective(prior: Any, training: Any, cells: Any, region: Region | None 
     fills them), from scratch. ``prior``: a LatentPosterior or a fitted GLRM; a GLRM fitted on
     exactly ``training`` (:func:`fitted_on`) scores a new snapshot's errors
     (:func:`error_factor`), as the placement does."""
-    from ..glrm.posterior import LatentPosterior
+    from ..belief.posterior import LatentPosterior
 
     if not isinstance(prior, LatentPosterior) and hasattr(prior, "latent_prior"):
         region = prior.region_ if region is None else region

@@ -52,7 +52,7 @@ import numpy as np
 import xarray as xr
 
 from ..errors import PlanningError
-from ..glrm.paired import paired_difference
+from ..validation.paired import paired_difference
 
 __all__ = ["AUTO_CANDIDATES", "AUTO_CONFIDENCE", "AUTO_MAX_BLOCK", "AUTO_MAX_CELLS",
            "AUTO_MIN_BLOCK", "AUTO_MIN_FIT", "AUTO_WINDOWS", "auto_unavailable",
@@ -133,7 +133,7 @@ def _refit(model: Any, V: np.ndarray, region: Any) -> Any:
 def _mse(prior: Any, values: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """``(t,)`` per snapshot the MSE over the cells with a value of the recommended fold-in
     from the sensors' values (their mean is bench_placement.py's score)."""
-    from ..glrm.posterior import fold_in_maps
+    from ..belief.posterior import fold_in_maps
 
     V = np.full(values.shape, np.nan)
     V[:, cells] = values[:, cells]

@@ -12,9 +12,9 @@ scale parameter, not the "practical range"; ``sill`` is the partial sill, ``nugg
 variance that no neighbour can predict: noise and sub-cell variation). The parameters come from
 a binned empirical semivariogram of the training residuals fitted by weighted least squares
 (:func:`fit_residual_covariance`). A new snapshot is predicted as trend + kriged residual
-(:func:`~lrm_cvx.glrm.foldin.residual_correction`), with the trend estimated either by the
+(:func:`~lrm_cvx.belief.foldin.residual_correction`), with the trend estimated either by the
 paper's fold-in ("ols", regression kriging) or by generalised least squares under the GP
-covariance ("gls", universal kriging, :func:`~lrm_cvx.glrm.foldin.gls_fold_in`).
+covariance ("gls", universal kriging, :func:`~lrm_cvx.belief.foldin.gls_fold_in`).
 
 Scaling (L up to ~2M cells): no dense ``L x L`` matrix is ever built. :func:`krige` factors the
 ``n x n`` observation covariance once and streams targets in chunks of bounded memory
@@ -31,7 +31,7 @@ residual; ``include_nugget=True`` adds the nugget to the variance to predict a n
 Modules: :mod:`.covariance` (the covariance model and its fit), :mod:`.kriging` (kriging, the FFT
 convolution, the GP criterion's model). The fold-ins that use the GP residual
 (``gls_fold_in``, ``residual_correction``) live with the other fold-ins in
-:mod:`lrm_cvx.glrm.foldin`: the model layer sits above this one.
+:mod:`lrm_cvx.belief.foldin`: the model layer sits above this one.
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ import pandas as pd
 
 from .._validation import NS_RANGE, datetime_ns
 from ..errors import DataError
-from .dynamics import time_numbers
+from ..glrm.dynamics import time_numbers
 
 __all__ = ["RecordCalendar"]
 

@@ -1,5 +1,5 @@
 """How a snapshot's values relate to its latent vector: :class:`ObservationModel` (the
-observation half of :mod:`~lrm_cvx.glrm.posterior`, which re-exports it).
+observation half of :mod:`~lrm_cvx.belief.posterior`, which re-exports it).
 
 For cell ``j``: ``value_j = offset_j + scale_j * (y_j^T x + r_j + e_j)``, ``e_j ~ N(0,
 noise_var_j)``, ``r ~ GP(spatial_cov)`` optional (then ``e`` is the covariance's nugget). The
@@ -113,7 +113,7 @@ class ObservationModel:
                              "(or another covariance model)")
         nv = getattr(model, "noise_var_", None)
         sigma2 = float(model.noise_std_) ** 2
-        from .calibrated import residual_factor
+        from ..glrm.calibrated import residual_factor
 
         rho = residual_factor(model)
         if rho != 1.0:  # a new snapshot's, validated (selection, calibration): the variances
@@ -192,14 +192,14 @@ class ObservationModel:
     def fit_rows(self, rows: sps.csr_matrix, values: np.ndarray, errors: str = "independent"
                  ) -> tuple[sps.csr_matrix, np.ndarray, np.ndarray]:
         """Averaged observations in fit units ``(B, z, noise)``
-        (:func:`~lrm_cvx.glrm.averaged.fit_rows`; the nugget with the spatial residual)."""
+        (:func:`~lrm_cvx.belief.averaged.fit_rows`; the nugget with the spatial residual)."""
         nv = self.spatial_cov.nugget if self.is_spatial else self.noise_var
         return fit_rows(rows, values, self.offset, self.scale, nv, errors)
 
     def row_terms(self, B: sps.csr_matrix, z: np.ndarray, noise: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, float]:
         """``(Yr W Yr^T, Yr W z, z^T W z)`` of averaged observations ``z = B f + e`` (fit units;
-        :func:`~lrm_cvx.glrm.averaged.row_terms`)."""
+        :func:`~lrm_cvx.belief.averaged.row_terms`)."""
         return row_terms(self.Y, B, z, noise, self.spatial_cov, self.region)
 
     def _terms(self, cells: np.ndarray, z: np.ndarray
@@ -237,6 +237,6 @@ def _scale_discount(model: Any) -> float:
 
 def _variance_scale(model: Any, temporal: bool = False) -> float:
     """The model's calibrated variance scale (``calibration_``; 1.0 when not calibrated)."""
-    from .calibrated import variance_scale
+    from ..glrm.calibrated import variance_scale
 
     return variance_scale(model, temporal)

@@ -1,5 +1,5 @@
 """Region completion (paper, Approach) on a bare factor matrix: thin wrappers of
-:class:`~lrm_cvx.glrm.posterior.LatentPosterior`.
+:class:`~lrm_cvx.belief.posterior.LatentPosterior`.
 
 A new snapshot ``d`` seen at cells ``S`` is a new row of ``D``; its latent column is
 
@@ -132,7 +132,7 @@ def gls_fold_in(
 
 
 def _gls(Y, cells, d, cov, region, ridge):
-    """GLS fold-in: the posterior of :class:`~lrm_cvx.glrm.posterior.LatentPosterior` with the
+    """GLS fold-in: the posterior of :class:`~lrm_cvx.belief.posterior.LatentPosterior` with the
     GP residual and the prior precision ``ridge I`` (flat at 0). Returns ``(x, cov_x)``."""
     k = Y.shape[0]
     if cells.size == 0 and ridge == 0:

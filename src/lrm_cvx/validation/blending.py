@@ -1,6 +1,6 @@
 """How far to trust a model's dynamics: the blend towards the memoryless model
 (:func:`blend_dynamics`) and its choice by forward-chaining validation (:func:`select_dynamics`,
-the paired rule of :func:`~lrm_cvx.glrm.paired.paired_choice`)."""
+the paired rule of :func:`~lrm_cvx.validation.paired.paired_choice`)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
     product with the fit's own validated blend."""
     from dataclasses import replace
 
-    from .dynamics import blend_moments
+    from ..glrm.dynamics import blend_moments
 
     a = float(alpha)
     if not 0.0 <= a <= 1.0:
@@ -42,7 +42,7 @@ def unblended_dynamics(model: Any) -> Any:
     """The model's dynamics re-estimated from ``X_`` without the fit's validated blend
     (``validation=None``; same kind, shrinkage, error correction and initial belief): the
     starting point of :func:`select_dynamics`."""
-    from .dynamics import estimate
+    from ..glrm.dynamics import estimate
 
     dyn = model.dynamics_
     X = model._Xv
@@ -56,7 +56,7 @@ def unblended_dynamics(model: Any) -> Any:
 def memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
     """``(k, k)`` the latent covariance of the memoryless model that ``dynamics`` blend
     towards: the empirical covariance of ``X_`` for ``"ar1"``, else the stationary one."""
-    from .posterior import empirical_moments
+    from ..belief.posterior import empirical_moments
 
     if dynamics.kind == "ar1":
         return empirical_moments(model._Xv)[1]
@@ -81,7 +81,7 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     (the same random cells for every ``alpha``). The candidates are ``alphas``, 0
     (memoryless) and the blend the fit chose itself (``dynamics_.blend``). On a region of
     more than ``refits.VALIDATION_MAX_CELLS`` cells the refits and campaigns read one window
-    of it (:func:`~lrm_cvx.glrm.refits.validation_view`).
+    of it (:func:`~lrm_cvx.validation.refits.validation_view`).
 
     **Rule (validated, with a guard on harm).** For each ``alpha`` and size the per-day
     differences ``d_t = mse_alpha(t) - mse_0(t)`` (validation days of every window, averaged
@@ -125,7 +125,7 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     alphas = sorted({0.0, round(float(dyn.blend), 12), *(float(a) for a in alphas)})
     sizes = [int(s) for s in sizes]
     rng = as_generator(seed)
-    from .filter import LatentFilter
+    from ..belief.filter import LatentFilter
 
     day_err: list[np.ndarray] = []  # per window: (n_alpha, n_size, n_val), kinds averaged
     for f in range(n_folds):

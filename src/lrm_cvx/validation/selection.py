@@ -64,7 +64,7 @@ import xarray as xr
 from .._blas import single_threaded_blas
 from .._validation import as_generator, check_ranks
 from ..errors import DataError, ModelError
-from .dynamics import kind_dynamics
+from ..glrm.dynamics import kind_dynamics
 from .paired import (
     AUTO_DESIGNS,
     AUTO_SIZES,
@@ -118,7 +118,7 @@ def auto_unavailable(data: Any) -> str | None:
     no, unsorted or irregular time coordinate: the checks of :func:`select_temporal`), or None.
     ``lrm-cvx fit`` falls back to no dynamics on it when auto is only its default."""
     from ..errors import LrmError
-    from .dynamics import check_times
+    from ..glrm.dynamics import check_times
 
     try:
         check_auto_data(data)
@@ -135,7 +135,7 @@ def auto_unavailable(data: Any) -> str | None:
 
 def _check_regular(times: Any, name: str) -> None:
     """ModelError unless most steps of ``times`` are one median step (dynamics need a step)."""
-    from .dynamics import time_numbers
+    from ..glrm.dynamics import time_numbers
 
     t = time_numbers(times, name)[0]
     d = np.diff(t)
@@ -162,8 +162,8 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
     ``LatentFilter.assimilate``, the observations' GLS terms computed once) and the kriged
     residual maps of all of them come from one kriging call (its weights depend on the cells
     only)."""
+    from ..belief.filter import batch_start, batch_step, batch_transitions
     from .designs import flown_sets
-    from .filter import batch_start, batch_step, batch_transitions
 
     n = V.shape[0]
     err = np.full((len(dynamics), len(sizes), n), np.nan)
@@ -196,7 +196,7 @@ def _map_means(means: np.ndarray, obs: Any, cells: np.ndarray, values: np.ndarra
     mu = obs.Y[:, targets].T @ M  # (|targets|, n_cand)
     if obs.is_spatial:
         from .. import spatial as sp
-        from .posterior import average_repeats
+        from ..belief.posterior import average_repeats
 
         keep = ~np.isnan(values)
         uc, zc = average_repeats(cells[keep], obs.to_fit_units(cells[keep], values[keep]))
@@ -252,7 +252,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``n_days``, ``designs``, ``skipped`` (and with ``ranks`` a ``rank`` coordinate and
     ``choice_rank``).
     """
-    from .dynamics import TEMPORAL, check_times
+    from ..glrm.dynamics import TEMPORAL, check_times
     from .refits import clone_model, refit_carries, training_values, validation_view
 
     model, data, values = validation_view(model, data, values)  # a large region: a window
@@ -344,7 +344,7 @@ def _refit_before(model: Any, V: np.ndarray, lo: int, times: np.ndarray, tdim: s
     """``(sub, shared_cov)``: ``model`` refitted (AR(1), no spatial fit, ``rank`` when given)
     on the snapshots ``V[:lo]`` before a window, given the residual covariance shared by every
     refit (fitted here on the first refit's residuals when there is none yet)."""
-    from .predictive import residual_covariance
+    from ..glrm.predictive import residual_covariance
     from .refits import clone_model
 
     over = {} if rank is None else {"rank": int(rank)}

@@ -42,13 +42,7 @@ import numpy as np
 
 from .._validation import as_generator
 from ..errors import ModelError
-from .blending import (  # noqa: F401  (re-exported: the old import location)
-    blend_dynamics,
-    memoryless_cov,
-    select_dynamics,
-    unblended_dynamics,
-)
-from .calibrated import (  # noqa: F401  (re-exported: the old import location)
+from ..glrm.calibrated import (  # noqa: F401  (re-exported: the old import location)
     SCORE_GRID,
     Calibration,
     check_level,
@@ -57,6 +51,12 @@ from .calibrated import (  # noqa: F401  (re-exported: the old import location)
     noise_variance,
     predictive_std,
     variance_scale,
+)
+from .blending import (  # noqa: F401  (re-exported: the old import location)
+    blend_dynamics,
+    memoryless_cov,
+    select_dynamics,
+    unblended_dynamics,
 )
 from .designs import ALL_KINDS, SET_KINDS, flown_sets, sample_sets  # noqa: F401  (re-exported)
 from .refits import clone_model, refit_carries, training_values, validation_view
@@ -131,7 +131,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     on the snapshots before it: the fold-in of a *future* snapshot, as a test block after the
     training is; less training data per refit, so wider on stationary records).
     """
-    from .posterior import model_prior
+    from ..belief.posterior import model_prior
 
     model, data, _ = validation_view(model, data)  # a large region: a window of it
     region, V = training_values(model, data)
@@ -234,7 +234,7 @@ def _rescaled(prior: Any, rho: float) -> Any:
     """``prior`` with its observation model's residual and noise variances times ``rho``."""
     from dataclasses import replace
 
-    from .posterior import LatentPosterior
+    from ..belief.posterior import LatentPosterior
 
     obs = prior.obs_model
     nv = obs.noise_var * rho if np.ndim(obs.noise_var) else float(obs.noise_var) * rho
@@ -370,7 +370,7 @@ def refit_dynamics(model: Any, sub: Any, kind: str, times: Any) -> Any:
     by the ``temporal="auto"`` choice's ``alpha`` or ``select_dynamics``'
     (``dynamics_alpha_``). None when ``sub``'s history cannot carry the kind (a season on
     less than two years)."""
-    from .dynamics import kind_dynamics
+    from ..glrm.dynamics import kind_dynamics
 
     base = kind_dynamics(kind, sub, times)
     if base is None:
@@ -390,7 +390,7 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
     memoryless model through the same loop on the same cells: ``[(z_filter, z_memoryless)]``
     (at most ``max_cells`` random held-out cells per day)."""
     region = sub.region_
-    from .filter import LatentFilter
+    from ..belief.filter import LatentFilter
 
     states = (LatentFilter.from_model(sub, spatial=spatial),
               LatentFilter.from_model(sub, memoryless=True, spatial=spatial))

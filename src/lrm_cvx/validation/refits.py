@@ -50,7 +50,7 @@ def refit_carries(observed: np.ndarray, rank: int, offset: bool) -> bool:
     is True leaves residual degrees of freedom: the fit's own check
     (:func:`~lrm_cvx.glrm.fit.max_identifiable_rank`), made before a validation refits, so a
     short record skips what it cannot refit instead of failing with the refit's error."""
-    from .fit import max_identifiable_rank
+    from ..glrm.fit import max_identifiable_rank
 
     M = np.asarray(observed, dtype=bool)
     n_obs, L_obs = int(np.count_nonzero(M)), int(np.count_nonzero(M.any(axis=0)))

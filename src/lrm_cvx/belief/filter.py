@@ -22,8 +22,8 @@ import pandas as pd
 import xarray as xr
 
 from ..errors import DataError, ModelError, RegionError
-from .calibrated import AdaptiveConformal, level_index, variance_scale
-from .dynamics import Dynamics, time_numbers
+from ..glrm.calibrated import AdaptiveConformal, level_index, variance_scale
+from ..glrm.dynamics import Dynamics, time_numbers
 from .posterior import (
     LatentPosterior,
     ObservationModel,

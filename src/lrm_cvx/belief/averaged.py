@@ -6,7 +6,7 @@ An averaged observation is ``z = B f + e`` over the snapshot's latent field ``f 
 cells' errors equal within one observation, ``(sum_j |B_ij| sigma_j)^2``), and with the GP
 residual ``r`` the observations' covariance ``B K B^T + diag(that noise with the nugget)``;
 observations are independent of each other. Plain arrays in, arrays out:
-:class:`~lrm_cvx.glrm.posterior.LatentPosterior` (``update_rows``, ``predict``) calls these.
+:class:`~lrm_cvx.belief.posterior.LatentPosterior` (``update_rows``, ``predict``) calls these.
 """
 
 from __future__ import annotations

@@ -565,7 +565,7 @@ class LatentPosterior:
         method="conformal")``; interpolated at this belief's :attr:`n_samples` where it has
         per-size thresholds), else the normal quantiles. A level
         outside (0, 1) is a ModelError naming it."""
-        from .calibrated import check_level, gaussian_multiplier
+        from ..glrm.calibrated import check_level, gaussian_multiplier
 
         cal = self.obs_model.calibration
         lv = [check_level(v, "level") for v in np.atleast_1d(levels)]
@@ -588,7 +588,7 @@ class LatentPosterior:
                           levels: Any = (0.68, 0.95)) -> np.ndarray:
         """Fraction of ``values`` (data units at ``cells``, default every cell; NaN left out)
         inside this belief's :meth:`interval` per level, ``(len(levels),)``."""
-        from .calibrated import interval_coverage
+        from ..glrm.calibrated import interval_coverage
 
         mean, _, pstd = self.predict_all(None, cells)
         return interval_coverage(values, mean, pstd, tuple(np.atleast_1d(levels)),

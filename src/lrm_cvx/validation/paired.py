@@ -1,5 +1,5 @@
 """The paired rule of the validated choices (``GLRM(temporal="auto")``,
-``GLRM(spatial="auto")``, :func:`~lrm_cvx.glrm.blending.select_dynamics`) and the validation
+``GLRM(spatial="auto")``, :func:`~lrm_cvx.validation.blending.select_dynamics`) and the validation
 designs they share: candidates scored on the same sample sets, chosen with a guard on harm
 against a reference (:func:`paired_choice`). Its own module so the choices read it without
 importing each other."""
