@@ -38,8 +38,14 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("lrm_cvx.io", "lrm_cvx.datasets"),
     # the GP residual model (covariance, kriging): the fold-in's spatial noise uses it
     ("lrm_cvx.spatial",),
-    # the low-rank model, its fold-in, dynamics and calibration
-    ("lrm_cvx.glrm", "lrm_cvx.belief", "lrm_cvx.validation"),
+    # the low-rank model and its fit (with the temporal model of its factors and the variance
+    # factors it carries); it reaches the packages above through glrm.hooks.HOOKS
+    ("lrm_cvx.glrm",),
+    # the belief: the posterior of a new snapshot, observation rows, fold-in, the filter
+    ("lrm_cvx.belief",),
+    # validated choices: refits, designs, the paired rule, temporal / spatial / rank "auto",
+    # the calibration and the dynamics blend
+    ("lrm_cvx.validation",),
     # what a planner maximises and what a route costs
     ("lrm_cvx.information", "lrm_cvx.oracles"),
     # planners, plans and certificates
@@ -268,6 +274,21 @@ def test_graph_sees_function_level_and_reexported_imports():
     assert ("lrm_cvx.cli_common", "lrm_cvx.glrm.model") in edges
     # a package __init__ importing its children is not an edge
     assert not any(a == "lrm_cvx.glrm" and b.startswith("lrm_cvx.glrm.") for a, b in edges)
+
+
+def test_the_model_reaches_the_packages_above_through_registered_hooks():
+    # glrm imports neither the belief nor the validation: GLRM looks their steps up in HOOKS,
+    # which `import lrm_cvx` fills (a step used but never registered fails here)
+    import re
+
+    from lrm_cvx.glrm.hooks import HOOKS
+
+    used = {name for path in sorted((SRC / "glrm").glob("*.py"))
+            for name in re.findall(r'HOOKS\.get\("([a-z-]+)"\)', path.read_text(encoding="utf-8"))}
+    assert {"model-prior", "choose-rank", "validate-choices"} <= used
+    assert used <= set(HOOKS.choices()), sorted(used - set(HOOKS.choices()))
+    assert not [e.where() for e in import_edges(SRC) if e.importer.startswith("lrm_cvx.glrm")
+                and e.target.startswith(("lrm_cvx.belief", "lrm_cvx.validation"))]
 
 
 # ------------------------------------------------------------------------------ the checker itself

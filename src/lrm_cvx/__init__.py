@@ -14,7 +14,9 @@ import importlib
 from typing import Any
 
 from . import accessor as _accessor  # noqa: F401  (registers the .lrm accessor)
+from . import belief as _belief  # noqa: F401  (registers the model's fold-in hooks)
 from . import errors
+from . import validation as _validation  # noqa: F401  (registers its validated choices)
 from .region import Region
 
 __version__ = "0.1.0"

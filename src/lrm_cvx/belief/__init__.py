@@ -3,12 +3,20 @@
 The Gaussian posterior of the latent vector (:class:`~.posterior.LatentPosterior`: every
 completion, the planner's prior, the monitoring filter), the observation model of point and
 averaged rows, the fold-in on a bare factor matrix, and the filter that carries the belief from
-one snapshot to the next with the model's dynamics.
+one snapshot to the next with the model's dynamics. Importing this package registers the
+fold-in that ``GLRM.complete`` and ``GLRM.latent_prior`` run in
+:data:`~lrm_cvx.glrm.hooks.HOOKS`.
 """
 
 from __future__ import annotations
 
+from ..glrm.hooks import HOOKS
 from .foldin import fold_in, fold_in_many
-from .posterior import LatentPosterior, ObservationModel
+from .posterior import LatentPosterior, ObservationModel, fold_in_snapshots, model_prior
 
 __all__ = ["fold_in", "fold_in_many", "LatentPosterior", "ObservationModel"]
+
+HOOKS.register("model-prior", model_prior,
+               description="the belief over a new snapshot's latent vector (latent_prior)")
+HOOKS.register("fold-in-snapshots", fold_in_snapshots,
+               description="the fold-in of whole snapshots (complete)")

@@ -17,15 +17,14 @@ import pandas as pd
 import xarray as xr
 
 from .._validation import as_generator, atomic_output, check_positive, check_ranks
-from ..belief.posterior import LatentPosterior, fold_in_snapshots, model_prior
 from ..errors import DataError, ModelError, NotFittedError
 from ..recommended import RECOMMENDED
 from ..region import Region
-from ..validation.selection import check_auto_data
 from . import kernels as K
 from .dynamics import TEMPORAL, Dynamics, error_rows, foldin_covs, temporal_value
 from .dynamics import estimate as estimate_dynamics
 from .fit import DataStats, FitResult, check_data, fit_glrm
+from .hooks import HOOKS
 from .losses import get_loss
 from .modelfile import (
     MODEL_FORMAT,
@@ -266,60 +265,16 @@ class GLRM:
         return self
 
     def _choose_rank(self, data: Any, mask: Any, region: Any) -> tuple[int, Any, Any]:
-        """``rank="auto"``: ``(rank, selection, region)`` from :func:`~.selection.select_temporal`
-        with ``ranks`` on a reference fit (rank :data:`~.selection.REFERENCE_RANK`, no
-        dynamics or calibration: its region, kernel and refits), before the real fit. Above
-        ``refits.VALIDATION_MAX_CELLS`` cells the reference model is fitted on the window the
-        validations read (``refits.validation_data``), not on the whole region. ``region``:
-        the data's, found once for the reference and the real fit."""
-        from ..validation.refits import clone_model, validation_data
-        from ..validation.selection import (
-            AUTO_INFLATIONS,
-            AUTO_RANKS,
-            REFERENCE_RANK,
-            select_temporal,
-        )
-
-        if self.rank != "auto":
-            raise ModelError(f"rank must be an integer or 'auto', got {self.rank!r}")
-        temporal = temporal_value(self.temporal)
-        if temporal not in (None, "auto"):
-            raise ModelError(f"rank='auto' is validated with temporal='auto' or None, got "
-                             f"temporal={self.temporal!r}")
-        if mask is not None or _is_dask(data):
-            raise ModelError("rank='auto' refits in memory on a (time, lat, lon) DataArray: "
-                             "pass an integer rank for masked arrays or dask data")
-        check_auto_data(data)
-        ref_rank = int(min(REFERENCE_RANK, max(1, data.shape[0] // 4)))
-        # a large region's reference model is fitted on the validations' window only
-        region = Region.from_dataarray(data) if region is None else region
-        ref_data, ref_region = validation_data(data, region)
-        ref = clone_model(self, rank=ref_rank, temporal=None).fit(ref_data, region=ref_region)
-        auto = temporal == "auto"
-        selection = select_temporal(
-            ref, ref_data, ranks=AUTO_RANKS, kinds=("ar1", "seasonal") if auto else (),
-            inflations=AUTO_INFLATIONS if auto else (1.0,), seed=self.random_state)
-        return int(selection.attrs["choice_rank"]), selection, region
+        """``rank="auto"``: ``(rank, selection, region)``, validated before the real fit
+        (:func:`lrm_cvx.validation.choices.choose_rank`)."""
+        return HOOKS.get("choose-rank")(self, data, mask, region, _is_dask(data))
 
     def _validate_choices(self, data: Any, stacked: np.ndarray | None = None,
                           selection: Any = None) -> None:
-        """The choices validated on the training ``data``: ``temporal="auto"``'s ``dynamics_``
-        (glrm/selection.py; ``selection``: the one ``rank="auto"`` made already), then
-        ``calibration``'s ``calibration_`` (glrm/calibration.py). ``stacked``: ``data`` as the
-        fit stacked it ``(T, L)``, when it still holds it."""
-        from ..validation.selection import apply_selection
-
-        if selection is not None:
-            apply_selection(self, selection)
-        elif temporal_value(self.temporal) == "auto":
-            from ..validation.selection import select_temporal
-
-            apply_selection(self, select_temporal(self, data, seed=self.random_state,
-                                                  values=stacked))
-        if self.calibration is not None:
-            from ..validation.calibration import calibrate_with
-
-            calibrate_with(self, data, self.calibration)
+        """The choices validated on the training ``data``: ``temporal="auto"``'s
+        ``dynamics_``, then ``calibration``'s ``calibration_``
+        (:func:`lrm_cvx.validation.choices.validate_choices`)."""
+        HOOKS.get("validate-choices")(self, data, stacked, selection)
 
     def _prepare(self, data, mask, region):
         """``(D, M, region, times, owned)`` from any supported input (no copy of clean arrays);
@@ -537,7 +492,7 @@ class GLRM:
             x, n_obs, single, lead = post.mean, int(post.cells.size), True, None
         else:
             V, single, lead = self._stack_snapshots(observations)
-            pred, std, x, n_obs = fold_in_snapshots(base, V)
+            pred, std, x, n_obs = HOOKS.get("fold-in-snapshots")(base, V)
             if single:
                 pred, std, x, n_obs = pred[0], std[0], x[0], int(n_obs[0])
         ds = self._completion_dataset(pred, std, x, n_obs, ridge, single, lead)
@@ -548,13 +503,13 @@ class GLRM:
         return ds
 
     def latent_prior(self, prior: str | None = None, ridge: float = 0.0,
-                     spatial: bool = False) -> LatentPosterior:
+                     spatial: bool = False) -> Any:
         """The belief over a new snapshot's latent vector that :meth:`complete` folds in from
         (:class:`~lrm_cvx.belief.posterior.LatentPosterior`; ``prior``/``ridge``/``spatial`` as in
         :meth:`complete`). ``.update(cells, values)`` assimilates observations (data units),
         ``.predict()`` maps them, ``.information()`` is the planner's prior."""
         self._check_fitted()
-        return model_prior(self, prior, ridge=ridge, spatial=spatial)
+        return HOOKS.get("model-prior")(self, prior, ridge=ridge, spatial=spatial)
 
     # ------------------------------------------------------------------ temporal dynamics
     def _foldin_covs(self, masks: Any) -> list[np.ndarray | None]:
@@ -768,8 +723,6 @@ class GLRM:
                     seed: Any = 0) -> pd.Series:
         """Held-out RMSE for each rank: fit a copy of this model on a training split of the
         observed entries and score it on the rest. Returns a Series indexed by rank."""
-        from ..validation.refits import clone_model  # a refit that never calibrates itself
-
         ranks = check_ranks(ranks)
         if isinstance(data, xr.DataArray) and data.ndim == 3:
             region = Region.from_dataarray(data)
@@ -780,7 +733,7 @@ class GLRM:
         np.copyto(train, 0, where=~mask)  # ours: zero-filled once, so no fit copies it
         out = {}
         for r in ranks:
-            model = clone_model(self, rank=int(r))
+            model = HOOKS.get("clone-model")(self, rank=int(r))  # never calibrates itself
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 model.fit(train, mask=mask)
@@ -910,9 +863,7 @@ def _keeps_stacked(temporal: Any, D: np.ndarray, region: Region | None) -> bool:
     transforms its gathered copy in place (one full-size copy less: 2.6 GB at paper scale)."""
     if temporal_value(temporal) != "auto" or D.ndim != 2 or region is None:
         return False
-    from ..validation import refits
-
-    return refits.validation_window(region, refits.VALIDATION_MAX_CELLS) is None
+    return HOOKS.get("validation-window")(region) is None
 
 
 def _check_temporal(temporal: Any, data: Any) -> None:
@@ -921,7 +872,7 @@ def _check_temporal(temporal: Any, data: Any) -> None:
         return
     n_times = np.shape(data)[0] if np.ndim(data) >= 2 else 0
     if temporal_value(temporal) == "auto":
-        check_auto_data(data)
+        HOOKS.get("check-auto-data")(data)
     if n_times < 3:
         raise ModelError(f"temporal={temporal!r} needs at least 3 snapshots to fit, got "
                          f"{n_times}")

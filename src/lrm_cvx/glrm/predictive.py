@@ -44,6 +44,7 @@ import xarray as xr
 
 from ..errors import ModelError
 from .calibrated import residual_dof
+from .hooks import HOOKS
 from .kernels import column_moments_compiled, is_small, standardize_compiled
 from .offset import augmented
 
@@ -86,10 +87,8 @@ def _check_calibration(value: Any) -> None:
     """``GLRM(calibration=)``: None, a method name or a dict of ``calibrate`` keywords."""
     import inspect
 
-    from ..validation.calibration import calibrate
-
     if isinstance(value, dict):
-        names = set(inspect.signature(calibrate).parameters) - {"model", "data"}
+        names = set(inspect.signature(HOOKS.get("calibrate")).parameters) - {"model", "data"}
         bad = sorted(set(value) - names)
         if bad:
             raise ModelError(f"calibration: unknown calibrate() keyword(s) {bad}; choose from "
@@ -215,9 +214,7 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
             if sample is not None:
                 sample = (sample / rs).astype(sample.dtype)
     if model.spatial == "auto":  # the kernel validated on the residuals (kernel_selection.py)
-        from ..validation.kernel_selection import select_kernel
-
-        model.spatial_cov_, model.kernel_selection_ = select_kernel(
+        model.spatial_cov_, model.kernel_selection_ = HOOKS.get("select-kernel")(
             sample, region, seed=model.random_state)
     elif model.spatial is not None:
         from ..spatial import fit_residual_covariance
