@@ -53,7 +53,7 @@ def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
     temporal = temporal_value(temporal)
     if temporal is None:
         return None, True
-    if temporal == "auto":  # the model's own: its validated choice (glrm/selection.py) or fit
+    if temporal == "auto":  # the model's own: its validated choice (validation/selection.py) or fit
         dyn = getattr(model, "dynamics_", None)
         return dyn, dyn is None
     dyn = getattr(model, "dynamics_", None)

@@ -2,13 +2,13 @@
 
 Fit ``GLRM(offset=True, spatial="auto")`` (the residual's covariance family validated on the
 training residuals: the exponential unless a smoother one is better by 2 %,
-glrm/kernel_selection.py), plan with the gp-variance criterion from the
+validation/kernel_selection.py), plan with the gp-variance criterion from the
 start cell alone and keep a rival route instead of the greedy's when that criterion prefers it
 (``refine="rivals"``: the four straight transects and the greedy with a gentler cost discount;
 ``method`` is its name in ``evaluate``), predict with the
 empirical prior and the kriged GP residual (``fold_spatial``); a model for monitoring chooses
-its temporal model on the training snapshots (``temporal="auto"``, glrm/selection.py) and
-calibrates its intervals conformally on them (``calibration``, glrm/calibration.py). It is the
+its temporal model on the training snapshots (``temporal="auto"``, validation/selection.py) and
+calibrates its intervals conformally on them (``calibration``, validation/calibration.py). It is the
 default of the CLI and of the library wherever a call has a fitted model to take it from
 (``--paper`` / ``paper=True`` give the paper's setting); ``lrm_cvx.demo`` runs it beside the
 paper's. Plain data, so it sits at the base of the layers.

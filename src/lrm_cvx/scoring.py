@@ -199,7 +199,7 @@ def coverage_subset(values: np.ndarray, seed: int = 0) -> list[np.ndarray]:
 def model_coverage(prior: LatentPosterior, values: np.ndarray, subsets: list[np.ndarray],
                     cells: np.ndarray, min_observations: int) -> np.ndarray:
     """Coverage of the central 68 % / 95 % predictive intervals (``mean +- z *
-    predictive_std``, calibrated when the model is: glrm/calibration.py; ``z`` a conformal
+    predictive_std``, calibrated when the model is: validation/calibration.py; ``z`` a conformal
     calibration's per-level threshold when it has one) over each test
     snapshot's held-out observed cells (its ``subsets`` entry minus the sampled ``cells``).
     Returns ``(n_test, 2)``, NaN where the snapshot has too few observations."""

@@ -48,7 +48,7 @@ class ObservationModel:
     spatial_cov: Any = None
     region: Any = None
     ref_var: float | None = None
-    variance_scale: float = 1.0  # calibration (glrm/calibration.py): multiplies output variances
+    variance_scale: float = 1.0  # calibration (validation.calibration): multiplies output variances
     adaptive_dof: float | None = None  # calibration: prior dof of the per-snapshot scale
     scale_discount: float = 0.0  # calibration: weight per step of earlier snapshots' evidence
     calibration: Any = None  # the model's Calibration (conformal interval multipliers), or None

@@ -617,7 +617,7 @@ def estimate(temporal: str, X: Any, times: Any, shrinkage: float = 1e-3,
                          f"{temporal!r}")
     if kind == "auto":
         raise ModelError("temporal='auto' is chosen by GLRM.fit from the training snapshots "
-                         "(glrm/selection.py); estimate needs 'ar1' or 'seasonal'")
+                         "(validation/selection.py); estimate needs 'ar1' or 'seasonal'")
     return TEMPORAL.get(kind)(X, times, shrinkage, initial_cov, validation, error_cov)
 
 

@@ -203,7 +203,7 @@ class GLRM:
         """
         rank, rank_selection = self.rank, None
         _check_temporal(self.temporal, data)
-        if isinstance(rank, str):  # "auto": validated before the fit (glrm/selection.py)
+        if isinstance(rank, str):  # "auto": validated before the fit (validation/selection.py)
             rank, rank_selection, region = self._choose_rank(data, mask, region)
         loss = get_loss(self.loss)
         reg_x = get_regularizer(self.reg_x)
@@ -348,8 +348,8 @@ class GLRM:
         self.unobserved_cells_ = np.asarray(res.unobserved_cells, dtype=np.int64)
         self.n_observed_ = int(res.n_observed)
         self.solver_ = res.solver
-        self.calibration_ = None  # a new fit invalidates a calibration (glrm/calibration.py)
-        self.selection_ = None  # temporal="auto"'s validation (glrm/selection.py)
+        self.calibration_ = None  # a new fit invalidates a calibration (validation/calibration.py)
+        self.selection_ = None  # temporal="auto"'s validation (validation/selection.py)
 
     # ------------------------------------------------------------------ accessors
     @property

@@ -38,8 +38,8 @@ _TABLES = (  # (attribute, file prefix, its variables and coords, int attrs, flo
      ("n_rows", "n_cases"), ("confidence", "tolerance")),
 )
 """The validated choices' tables a model file carries: ``temporal="auto"``'s ``selection_``
-(glrm/selection.py) and ``spatial="auto"``'s ``kernel_selection_``
-(glrm/kernel_selection.py)."""
+(validation/selection.py) and ``spatial="auto"``'s ``kernel_selection_``
+(validation/kernel_selection.py)."""
 
 
 def validation_tables(model: object) -> list[xr.Dataset]:

@@ -191,7 +191,7 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
     :func:`residual_moments` (for ``noise="per-cell"``) and ``sample`` of
     :func:`residual_sample` (for ``spatial``). Shared by the in-memory and the dask fit, which
     computes the same statistics chunk by chunk. ``residual_inflation_`` starts at 1 (the
-    variances as fitted; ``temporal="auto"`` validates a factor, glrm/selection.py)."""
+    variances as fitted; ``temporal="auto"`` validates a factor, validation/selection.py)."""
     model.offset_, model.scale_ = offset, scale
     model.noise_var_ = None
     model.residual_inflation_ = 1.0

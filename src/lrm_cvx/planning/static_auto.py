@@ -5,7 +5,7 @@ Which criterion places sensors best for the recommended fold-in is an empirical 
 fold-in's training risk + exchange beats PySensors' QR on most records, but on a 6-hourly
 storm over land the total posterior variance (``"gp-variance"``) does and the risk does not.
 So :func:`select_criterion` answers it on the user's own training snapshots, as
-``GLRM(temporal="auto")`` does for the temporal model (``glrm/selection.py``):
+``GLRM(temporal="auto")`` does for the temporal model (``validation/selection.py``):
 
 * **Rolling origin.** Up to :data:`AUTO_WINDOWS` forward windows of ``h`` snapshots each (a
   tenth of the training, between :data:`AUTO_MIN_BLOCK` and :data:`AUTO_MAX_BLOCK`), the last
