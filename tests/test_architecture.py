@@ -356,7 +356,7 @@ def test_checker_allows_a_package_importing_its_children(tmp_path):
 
 def test_nothing_outside_glrm_reads_the_models_private_arrays():
     # GLRM.X / GLRM.Y are the public (k, T) / (k, L) arrays
-    inside = {"glrm", "belief", "validation"}
+    inside = {"glrm", "validation"}  # validation.selection still reads model._Xv
     found = [f"{path}:{i}" for path in sorted(SRC.rglob("*.py")) if not inside & set(path.parts)
              for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
              if "._Xv" in line or "._Yv" in line]

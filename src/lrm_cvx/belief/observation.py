@@ -121,7 +121,7 @@ class ObservationModel:
             nv = None if nv is None else np.asarray(nv, dtype=np.float64) * rho
             if cov is not None:
                 cov = replace(cov, sill=cov.sill * rho, nugget=cov.nugget * rho)
-        return cls(Y=model._Yv, offset=getattr(model, "offset_", None),
+        return cls(Y=model.Y, offset=getattr(model, "offset_", None),
                    scale=getattr(model, "scale_", None),
                    noise_var=sigma2 if nv is None else nv,
                    spatial_cov=cov if spatial else None,

@@ -237,7 +237,7 @@ class LatentPosterior:
             if model is None:
                 raise ModelError("kind='empirical' needs the fitted model (its X_), not an "
                                  "ObservationModel")
-            m0, S0 = empirical_moments(model._Xv)
+            m0, S0 = empirical_moments(model.X)
             return cls.from_moments(obs, m0, S0)
         if ridge > 0:
             return cls.from_moments(obs, None, precision=(ridge / obs.ref_var) * np.eye(obs.k))

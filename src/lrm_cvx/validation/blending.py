@@ -45,7 +45,7 @@ def unblended_dynamics(model: Any) -> Any:
     from ..glrm.dynamics import estimate
 
     dyn = model.dynamics_
-    X = model._Xv
+    X = model.X
     xa = model.X_
     times = xa[xa.dims[1]] if hasattr(xa, "dims") else np.arange(X.shape[1])
     return estimate(dyn.kind, X, times, shrinkage=dyn.shrinkage,
@@ -59,7 +59,7 @@ def memoryless_cov(model: Any, dynamics: Any) -> np.ndarray:
     from ..belief.posterior import empirical_moments
 
     if dynamics.kind == "ar1":
-        return empirical_moments(model._Xv)[1]
+        return empirical_moments(model.X)[1]
     return dynamics.stationary_cov()
 
 
