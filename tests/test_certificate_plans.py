@@ -173,6 +173,18 @@ def test_a_sensor_without_a_variance_bound_is_refused_in_one_line(sensor):
     assert math.isfinite(plan.certify(criterion="fisher", tighten=False).bound)
 
 
+def test_too_many_cells_for_the_dense_gp_bound_is_refused_in_one_line(monkeypatch):
+    from lrm_cvx.planning import varbound
+
+    plan = plan_greedy(Y, REGION, START, 3, criterion="gp-variance", initial="start",
+                       progress=False, **GP)
+    monkeypatch.setattr(varbound, "DENSE_MAX", 10)
+    with pytest.raises(PlanningError, match="covers at most 10") as err:
+        plan.certify(tighten=False)
+    assert "\n" not in str(err.value) and "criterion='fisher'" in str(err.value)
+    assert math.isfinite(plan.certify(criterion="fisher", tighten=False).bound)
+
+
 # ------------------------------------------------------------------------- CLI
 def _run(*argv):
     from lrm_cvx.cli import main
@@ -216,3 +228,39 @@ def test_cli_bound_state_bad_input_is_one_line(spatial, tmp_path, capsys, inputs
         assert _run("bound", model_path, *argv) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("lrm-cvx bound: error:") and needle in err and "\n" not in err
+
+
+# ------------------------------------------------------------------------- evaluate
+def test_evaluate_reports_the_recommended_methods_gap_beside_the_papers():
+    from test_evaluation import planted
+
+    from lrm_cvx.evaluation import evaluate
+
+    kw = dict(rank=2, n_test=2, budgets=(3, 6), n_starts=2, min_observations=1, seed=1,
+              methods=("greedy:gp-variance", "greedy"), progress=False,
+              model_params={"offset": True, "spatial": "exponential"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = evaluate(planted(), certify="fast", **kw)
+        off = evaluate(planted(), certify=False, **kw)
+    bound, value = ds["recommended_bound"], ds["recommended_value"]
+    assert bound.dims == ds["bound"].dims == ("budget", "start")
+    assert bound.attrs["method"] == "greedy:gp-variance" and bound.attrs["units"] == "(K)^2"
+    assert bool(np.isfinite(bound).all()) and bool((value > 0).all())
+    assert bool((bound >= value - 1e-9).all())  # a valid bound on the plan's own value
+    assert bool(np.isfinite(ds["bound"]).all())  # the paper's Fisher bound, as before
+    assert bool(np.isnan(off["recommended_bound"]).all())
+    assert bool(np.isnan(off["recommended_value"]).all())
+    # where the dense bound does not reach, NaN and a warning, the rest unchanged
+    from lrm_cvx.planning import varbound
+
+    with pytest.MonkeyPatch.context() as mp, warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        mp.setattr(varbound, "DENSE_MAX", 5)
+        big = evaluate(planted(), certify="fast", **kw)
+    assert bool(np.isnan(big["recommended_bound"]).all())
+    assert any("gap is not reported" in str(w.message) for w in seen)
+    np.testing.assert_array_equal(big["bound"].values, ds["bound"].values)
+    # the maps and plans are the same with or without the certificate
+    np.testing.assert_array_equal(ds["mse"].values, off["mse"].values)
+    np.testing.assert_array_equal(ds["greedy_route"].values, off["greedy_route"].values)
