@@ -185,6 +185,19 @@ def test_too_many_cells_for_the_dense_gp_bound_is_refused_in_one_line(monkeypatc
     assert math.isfinite(plan.certify(criterion="fisher", tighten=False).bound)
 
 
+def test_the_gp_objective_sums_its_targets_in_blocks(monkeypatch):
+    from lrm_cvx.planning import varbound
+
+    cells = np.arange(10)
+    whole = varbound.variance_objective("gp-variance", Y, cells, RIDGE, dict(GP, region=REGION))
+    monkeypatch.setattr(varbound, "_BLOCK", 30)  # three targets a block: nine blocks
+    blocks = varbound.variance_objective("gp-variance", Y, cells, RIDGE,
+                                         dict(GP, region=REGION))
+    np.testing.assert_allclose(blocks.G, whole.G, rtol=1e-12, atol=1e-12 * np.abs(whole.G).max())
+    w = np.linspace(0.2, 1.0, cells.size)
+    assert blocks.value(cells, w) == pytest.approx(whole.value(cells, w), rel=1e-12)
+
+
 # ------------------------------------------------------------------------- CLI
 def _run(*argv):
     from lrm_cvx.cli import main
