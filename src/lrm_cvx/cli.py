@@ -473,12 +473,38 @@ def cmd_place(args: argparse.Namespace) -> int:
     return 0
 
 
+def _stored_plan(args: argparse.Namespace) -> tuple[Any, Any, dict]:
+    """``(model, plan, terms)`` of ``bound --state``: the plan stored in a monitor state file
+    (planned or replanned) of the model ``MODEL``."""
+    from .monitor import MonitorState
+
+    if args.start is not None or args.budget is not None:
+        raise UsageError("--state certifies the plan stored in the state file: --start and "
+                         "--budget do not apply")
+    model = load_model(args.model)
+    state = MonitorState.load(args.state, model=model)
+    if state.current_plan is None:
+        raise UsageError(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
+                         "first")
+    plan = state.current_plan
+    return model, plan, plan.criterion_terms or {}
+
+
 def cmd_bound(args: argparse.Namespace) -> int:
-    model, plan, kw = _plan_from_args(args)
+    if args.state is not None:
+        model, plan, kw = _stored_plan(args)
+    elif args.start is None or args.budget is None:
+        raise UsageError("bound needs --start and --budget (the plan to make and certify), or "
+                         "--state STATE.nc (the plan stored there)")
+    else:
+        model, plan, kw = _plan_from_args(args)
     cert = plan.certify(tighten=args.certify == "tight",
                         criterion="fisher" if args.fisher else None)
     bounded = getattr(cert, "criterion", "fisher")
-    print(f"greedy plan: {describe_plan(plan, criterion_value(plan, model.Y_, model.region_, kw))}")
+    who = "stored plan" if args.state is not None else "greedy plan"
+    value = criterion_value(plan, model.Y_, model.region_, kw,  # a replan's rivals: its part
+                            reuse=not plan.method.endswith("+replan"))
+    print(f"{who}: {describe_plan(plan, value)}")
     if bounded != "fisher":  # a variance criterion: variance removed, the data's unit squared
         print(f"certified upper bound on the {bounded} criterion (variance removed) of any "
               f"feasible plan: {cert.bound:.4f} unit^2")
@@ -860,6 +886,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "the midpoint cover (default)")
     p.add_argument("--fisher", action="store_true",
                    help="bound the Fisher information instead of the plan's own criterion")
+    p.add_argument("--state", default=None, metavar="STATE.nc",
+                   help="certify the plan stored in this monitor state file (by 'lrm-cvx "
+                   "monitor plan' or 'replan') instead of planning one: no --start / --budget")
+    for action in p._actions:  # --start / --budget: required unless --state
+        if action.dest in ("start", "budget"):
+            action.required = False
     p.set_defaults(func=cmd_bound)
 
     p = sub.add_parser("place", help="place fixed sensors (static placement, no travel)")

@@ -115,6 +115,9 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
                                 "left to replan")
         pieces.append((sel[:k], here, spent, max(left, 0.0), None if finished else goal,
                        finished))
+    # the certificate's terms: the day's prior before this call's observations (the belief the
+    # whole route is judged under), for the replan's criterion
+    day_terms = _criterion_terms(state.belief(time).information(), criterion, region)
     if observations is not None:
         if time is None:
             raise PlanningError("time is required with observations (the day they belong to)")
@@ -143,7 +146,22 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
                           **opts, **ends, **kw)
         new_plans.append(new)
         taken += [int(c) for c in new.stops if int(c) != here]
-    return _stitch(plan, pieces, new_plans, Y, region, criterion, ridge, cost)
+    out = _stitch(plan, pieces, new_plans, Y, region, criterion, ridge, cost)
+    out._terms = day_terms
+    return out
+
+
+def _criterion_terms(info: dict[str, Any], criterion: str, region: Any) -> dict[str, Any]:
+    """The terms of ``criterion`` a certificate reads (:func:`~lrm_cvx.planning.terms.
+    oracle_terms` without the oracle's candidate pool) from a belief's ``information()``."""
+    from .planning.terms import PRIOR_TERMS, oracle_terms
+
+    t = {key: info.get(key) for key in PRIOR_TERMS}
+    if criterion == "gp-variance" and t["spatial_cov"] is None:
+        return {}  # the replan itself refuses this criterion
+    terms = oracle_terms(criterion, region, np.empty(0, np.int64), t, None)
+    terms.pop("pool", None)
+    return terms
 
 
 def _stitch(plan: Any, pieces: list, new_plans: list, Y: np.ndarray, region: Any,
@@ -285,6 +303,16 @@ def plan_variables(plan: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     }
     if path.get("speed") is not None:
         attrs["plan_speed"] = float(path["speed"])
+    terms = getattr(plan, "_terms", None)
+    if terms is not None:  # the criterion's terms, which the plan's certificate bounds
+        saved = [key for key in _TERM_ARRAYS if terms.get(key) is not None]
+        for key in saved:
+            v = np.asarray(terms[key], dtype=np.int64 if key == "targets" else np.float64)
+            out[f"plan_term_{key}"] = (tuple(f"plan_term_{key}_{i}" for i in range(v.ndim)), v)
+        if terms.get("spatial_cov") is not None:
+            saved.append("spatial_cov")
+            attrs.update({f"plan_term_{k}": v for k, v in terms["spatial_cov"].to_attrs().items()})
+        attrs["plan_terms"] = " ".join(saved) or "none"
     if plan.rivals:  # the check against rival routes: route names as a coordinate
         names = list(plan.rivals["values"])
         out["plan_rival_value"] = (("plan_rival",), np.array(
@@ -342,4 +370,27 @@ def plan_from_variables(ds: Any, region: Any, Y: Any) -> Any:
                        "chosen": str(a["plan_rivals_chosen"]),
                        "cost_function": str(a["plan_rivals_cost_function"]),
                        "refine": str(a.get("plan_rivals_refine", LINES))}
+    if "plan_terms" in a:  # a plan saved with its criterion's terms
+        plan._terms = _read_terms(ds, region)
     return plan
+
+
+_TERM_ARRAYS = ("prior_precision", "noise_var", "target_weights", "prior_cov", "targets")
+
+
+def _read_terms(ds: Any, region: Any) -> dict[str, Any]:
+    """The criterion's terms :func:`plan_variables` wrote (``plan_term_*``)."""
+    from .spatial import ResidualCovariance
+
+    keys = str(ds.attrs["plan_terms"]).split()
+    terms: dict[str, Any] = {}
+    for key in keys:
+        if key == "spatial_cov":
+            pre = "plan_term_"
+            terms[key] = ResidualCovariance.from_attrs(
+                {k[len(pre):]: v for k, v in ds.attrs.items() if k.startswith(pre)})
+            terms["region"] = region
+        elif key in _TERM_ARRAYS:
+            v = np.asarray(ds[f"plan_term_{key}"].values)
+            terms[key] = float(v) if v.ndim == 0 else v
+    return terms

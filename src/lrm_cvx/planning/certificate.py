@@ -537,9 +537,14 @@ def _variance_certificate(Y: np.ndarray, region: Any, spec: Any, plan: Any, crit
     if terms is None:
         terms = getattr(plan, "_terms", None) if plan is not None else None
         if terms is None and criterion == "gp-variance":
-            raise PlanningError("the gp-variance bound needs the criterion's terms: pass terms="
-                                "{'spatial_cov': ..., 'prior_cov': ...} (this plan was not "
-                                "planned with them)")
+            why = "no plan gives them" if plan is None else "the plan carries none"
+            raise PlanningError(f"the gp-variance bound needs the criterion's terms ({why}): "
+                                "pass terms={'spatial_cov': ..., 'prior_cov': ...}")
+        if (terms is None and plan is not None and getattr(plan, "posterior", False)
+                and _plan_criterion(plan) == criterion):
+            raise PlanningError(f"this {criterion} plan was planned on a posterior whose terms "
+                                "it does not carry (saved without them): pass terms="
+                                "{'prior_precision': ..., 'noise_var': ...}")
     if not isinstance(terms, dict | type(None)):
         raise PlanningError(f"terms must be a dict of the criterion's terms, got {terms!r}")
     unknown = sorted(set(terms or {}) - set(_TERM_KEYS))

@@ -161,6 +161,8 @@ class Plan:
     robot_costs : ``(n_robots,)`` each robot's cost; ``cost`` is their sum and ``budget`` the
         sum of the robots' budgets. ``route_cost`` restarts at each robot's start (at its stop
         cost) and ends at its cost.
+    criterion_terms : (read-only) the criterion's terms the plan is judged under, which
+        :meth:`certify` bounds (see the property).
     """
 
     cells: np.ndarray
@@ -253,6 +255,19 @@ class Plan:
         if hasattr(truth, "dims"):
             truth = self._region.stack(truth)
         return plan_observations(self, np.asarray(truth, dtype=np.float64))
+
+    @property
+    def criterion_terms(self) -> dict[str, Any] | None:
+        """The criterion's terms the plan is judged under, which :meth:`certify` bounds (a
+        copy; None when the plan carries none): ``prior_precision``, ``noise_var``,
+        ``target_weights`` and, for ``"gp-variance"``, ``spatial_cov``, ``prior_cov``,
+        ``targets`` (the ones given). A greedy plan carries the terms it was planned with,
+        a replanned plan the day's prior before the replan's observations, and a plan stored
+        in a monitor state file reads them back."""
+        if self._terms is None:
+            return None
+        return {key: v for key, v in self._terms.items()
+                if key not in ("region", "pool") and v is not None}
 
     @property
     def n_robots(self) -> int:
@@ -454,6 +469,7 @@ class Plan:
                 waypoint=self.waypoint[on], stops=stops,
                 path_models=None if self._path_models is None else [self._path_models[r]],
             ))
+            out[-1]._terms = self._terms  # one robot's route under the fleet's criterion
         return out
 
     # ------------------------------------------------------------------ basics

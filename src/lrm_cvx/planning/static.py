@@ -816,7 +816,7 @@ def place_sensors(
     finally:
         bar.close()
     route_cost = np.arange(1, len(cells) + 1, dtype=np.float64)
-    return Plan.build(
+    plan = Plan.build(
         region=region, cells=cells, route=cells, cost=float(len(cells)),
         information=fisher_information(Yk, cells, ridge), criterion=criterion,
         budget=float(n), start=-1, ridge=float(ridge), method="greedy",
@@ -825,6 +825,8 @@ def place_sensors(
         path=PlanPath(kind="static", unit="sensors", budgets=[float(n)],
                       traversable="none" if allowed.size == L else "mask"),
     )
+    plan._terms = extra  # the criterion's terms, which plan.certify() bounds
+    return plan
 
 
 def _place_auto(Yk: np.ndarray, region: Region, n: int, allowed: np.ndarray, prior: Any,

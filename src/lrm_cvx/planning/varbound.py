@@ -56,6 +56,10 @@ VARIANCE_CRITERIA = ("a-optimal", "gp-variance")
 """The criteria :func:`variance_relaxation` bounds (canonical names)."""
 
 _CVX_MAX = 25  # cvxpy polishes a piece of at most this many candidates (by default)
+_BLOCK = 1 << 25  # entries of one (cells x targets) block of K (256 MB)
+DENSE_MAX = 10_000
+"""The most cells the gp-variance bound reads: it forms two dense cells x cells matrices
+(0.8 GB each at this size)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -238,9 +242,17 @@ def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: 
     T = np.arange(L) if targets is None else np.unique(np.asarray(targets, dtype=np.int64))
     c = (np.ones(L) if tw is None else np.asarray(tw, dtype=np.float64))[T]
     cells = np.asarray(cells, dtype=np.int64)
+    if cells.size > DENSE_MAX:
+        raise PlanningError(
+            f"the gp-variance bound forms dense covariances over the {cells.size} cells a plan "
+            f"of this budget may observe ({2 * 8 * cells.size ** 2 / 1e9:.3g} GB); it covers "
+            f"at most {DENSE_MAX} (a smaller budget or region; criterion='fisher' scales)")
     K = gp_latent_cov(Y, S0, region, cov, cells, cells)
-    KcT = gp_latent_cov(Y, S0, region, cov, cells, T)
-    G = (KcT * c) @ KcT.T
+    G = np.zeros_like(K)
+    step = max(1, _BLOCK // max(cells.size, 1))  # targets a block: cells x step entries
+    for lo in range(0, T.size, step):  # G = K_cT C K_Tc, summed over blocks of targets
+        KcT = gp_latent_cov(Y, S0, region, cov, cells, T[lo:lo + step])
+        G += (KcT * c[lo:lo + step]) @ KcT.T
     prior = float(c @ (np.einsum("ai,ab,bi->i", Y[:, T], S0, Y[:, T]) + cov.sill))
     return GPVarianceObjective(K, G, gp_noise(cov), prior, cells)
 
