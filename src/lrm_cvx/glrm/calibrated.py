@@ -20,7 +20,7 @@ from ..errors import ModelError
 __all__ = ["Calibration", "variance_scale", "noise_variance", "residual_factor", "residual_dof",
            "prediction_factor", "predictive_std", "parameters_per_cell",
            "interval_coverage", "conformal_quantile", "check_level", "gaussian_multiplier",
-           "AdaptiveConformal", "SCORE_GRID", "level_index"]
+           "AdaptiveConformal", "SCORE_GRID", "level_index", "ONLINE_GAMMA"]
 
 _PREFIX = "calibration_"
 _TUPLES = ("levels", "quantiles", "score_table", "temporal_quantiles", "temporal_score_table",
@@ -380,6 +380,13 @@ def interval_coverage(values: Any, mean: Any, std: Any,
 
 
 # ----------------------------------------------------------------------------- online (ACI)
+ONLINE_GAMMA = 0.05
+"""Step size of the online calibration ``MonitorState`` runs by default
+(:class:`AdaptiveConformal`): chosen on rolling 30-day campaigns of some of the generalization
+benchmark's records and reported on the others (docs/monitoring.md, "Online calibration")."""
+_ATTRS = ("levels", "gamma", "alpha", "days", "miss")
+
+
 class AdaptiveConformal:
     """Adaptive conformal inference (Gibbs & Candes 2021) for a stream of days.
 
@@ -412,6 +419,9 @@ class AdaptiveConformal:
         self.n_days = int(n_days)
         self.miss_sum = (np.zeros(len(self.levels)) if miss_sum is None
                          else np.asarray(miss_sum, dtype=np.float64))
+        if self.miss_sum.shape != self.target.shape or self.n_days < 0:
+            raise ModelError(f"miss_sum must be {len(self.levels)} numbers and n_days >= 0, "
+                             f"got {miss_sum!r}, {n_days!r}")
 
     def multipliers(self, n_samples: int | None = None) -> np.ndarray:
         """The current half-widths ``m(alpha_t)`` per level (units of the predictive std). With
@@ -461,6 +471,31 @@ class AdaptiveConformal:
         if self.n_days == 0:
             return np.full(len(self.levels), np.nan)
         return 1.0 - self.miss_sum / self.n_days
+
+    def to_attrs(self, prefix: str = "aci_") -> dict[str, Any]:
+        """The state as flat NetCDF attributes ``{prefix}levels``, ``gamma``, ``alpha``,
+        ``days``, ``miss`` (what :meth:`from_attrs` reads back equal)."""
+        values = (np.asarray(self.levels, dtype=np.float64), self.gamma,
+                  np.asarray(self.alpha, dtype=np.float64), self.n_days,
+                  np.asarray(self.miss_sum, dtype=np.float64))
+        return {prefix + key: v for key, v in zip(_ATTRS, values, strict=True)}
+
+    @classmethod
+    def from_attrs(cls, attrs: Any, calibration: Calibration | None = None,
+                   prefix: str = "aci_") -> AdaptiveConformal | None:
+        """The state stored by :meth:`to_attrs` in ``attrs`` (None when they hold none), its
+        multipliers read from ``calibration``. A ModelError names a corrupt entry."""
+        if prefix + "levels" not in attrs:
+            return None
+        try:
+            levels = np.atleast_1d(np.asarray(attrs[prefix + "levels"], dtype=np.float64))
+            return cls(levels, float(attrs[prefix + "gamma"]), calibration,
+                       alpha=np.atleast_1d(np.asarray(attrs[prefix + "alpha"], np.float64)),
+                       n_days=int(attrs[prefix + "days"]),
+                       miss_sum=np.atleast_1d(np.asarray(attrs[prefix + "miss"], np.float64)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelError(f"the online calibration's {prefix}* entries are incomplete or "
+                             f"corrupt: {exc}") from None
 
     def __repr__(self) -> str:
         al = ", ".join(f"{lv:g}: {a:.4f}" for lv, a in zip(self.levels, self.alpha, strict=True))
