@@ -430,9 +430,9 @@ class AdaptiveConformal:
         out = np.empty(len(self.levels))
         cal = self.calibration
         for i, a in enumerate(self.alpha):
-            if a <= 0:
+            if 1.0 - a >= 1.0:  # alpha <= 0, or too small to leave 1 - alpha below 1
                 out[i] = np.inf
-            elif a >= 1:
+            elif 1.0 - a <= 0.0:
                 out[i] = 0.0
             elif cal is not None:
                 out[i] = cal.multiplier(1.0 - a)
