@@ -411,7 +411,7 @@ def interval_coverage(values: Any, mean: Any, std: Any,
 
 
 # ----------------------------------------------------------------------------- online (ACI)
-ONLINE_GAMMA = 0.05
+ONLINE_GAMMA = 0.1
 """Step size of the online calibration ``MonitorState`` runs by default
 (:class:`AdaptiveConformal`): chosen on rolling 30-day campaigns of some of the generalization
 benchmark's records and reported on the others (docs/monitoring.md, "Online calibration")."""
