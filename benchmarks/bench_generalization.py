@@ -367,7 +367,7 @@ def aci_coverage(data, n_days: int = 3 * N_TEST, size: int = 15,
             for i in range(n_days)]
     rows = []
     for gamma in gammas:
-        state = MonitorState.from_model(model)
+        state = MonitorState.from_model(model, online=False)
         if gamma:
             state.adaptive_conformal(gamma=gamma)
         cov = []

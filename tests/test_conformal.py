@@ -380,9 +380,12 @@ def test_monitor_state_scores_the_forecast_before_assimilating(tmp_path):
     np.testing.assert_allclose(back.aci.alpha, state.aci.alpha)
     assert back.aci.n_days == 4 and back.aci.levels == (0.68, 0.95)
     np.testing.assert_allclose(back.interval_multipliers(), state.interval_multipliers())
-    plain = MonitorState.from_model(model)
+    plain = MonitorState.from_model(model, online=False)
     assert plain.aci is None
     np.testing.assert_array_equal(plain.interval_multipliers(), [0.8, 1.5])
+    default = MonitorState.from_model(model)  # online by default, from the offline thresholds
+    assert default.aci is not None
+    np.testing.assert_array_equal(default.interval_multipliers(), [0.8, 1.5])
 
 
 def test_level_index_finds_a_level_to_rounding_only():

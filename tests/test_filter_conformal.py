@@ -162,7 +162,7 @@ def test_a_loaded_monitor_state_keeps_the_filters_thresholds(tmp_path, persisten
         V = model.region_.stack(data.sel(time=t)).astype(float)
         cells = np.flatnonzero(np.isfinite(V))[:15]
         for memoryless, expect in ((False, (1.2, 2.5)), (True, (1.0, 2.0))):
-            state = MonitorState.from_model(model, memoryless=memoryless)
+            state = MonitorState.from_model(model, memoryless=memoryless, online=False)
             state.assimilate((cells, V[cells]), time=t)
             np.testing.assert_allclose(state.interval_multipliers(), expect)
             state.save(tmp_path / f"s{memoryless}.nc")

@@ -302,7 +302,7 @@ def simulate_campaign(
     times = test_data[tdim].values
     # the belief forecast to the first test snapshot (DataError if it is not after the fit's)
     state = MonitorState.from_model(model, times[0], dynamics=dynamics,
-                                    memoryless=memoryless, spatial=spatial)
+                                    memoryless=memoryless, spatial=spatial, online=False)
 
     T = V.shape[0]
     out = {name: np.full(T, np.nan) for name in (

@@ -116,10 +116,13 @@ def _init_locked(args: argparse.Namespace, out: Path) -> int:
         raise _usage(f"model {args.model} has no dynamics: pass --temporal ar1 (or seasonal) "
                      "to estimate them from the model, or --memoryless")
     memoryless = True if args.memoryless else None
-    state = MonitorState.from_model(model, dynamics=dynamics, memoryless=memoryless)
+    online = not args.offline_intervals
+    state = MonitorState.from_model(model, dynamics=dynamics, memoryless=memoryless,
+                                    online=online)
     if args.time is not None:  # --time in the record's calendar, named in its errors
         state = MonitorState.from_model(model, time=state.as_time(args.time, "--time"),
-                                        dynamics=dynamics, memoryless=memoryless)
+                                        dynamics=dynamics, memoryless=memoryless,
+                                        online=online)
     state.model_path = os.path.abspath(args.model)
     _save_state(state, out)
     kind = "memoryless" if state.memoryless else state.dynamics.kind
@@ -300,6 +303,10 @@ def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
     added = state.n_assimilated - added_before
     print(f"assimilated {added} observation(s){what} from {args.observations} at "
           f"{_label(state.time)} ({n_today} in all that day){note}; state {args.state} updated")
+    if state.aci is not None:
+        m68, m95 = state.interval_multipliers((0.68, 0.95))
+        print(f"intervals recalibrated online ({state.aci.n_days} day(s) scored): 68 % = mean "
+              f"+- {m68:.3g} x predictive_std, 95 % +- {m95:.3g} x")
     return 0
 
 
@@ -424,6 +431,10 @@ def add_monitor_parser(sub: Any) -> None:
                    "model's own, fitted with temporal=...)")
     q.add_argument("--memoryless", action="store_true",
                    help="no dynamics: every day's prior is the empirical prior")
+    q.add_argument("--offline-intervals", action="store_true",
+                   help="keep the model's calibrated interval thresholds all campaign (default: "
+                   "each assimilate first recalibrates them online from the forecast's errors "
+                   "at the day's samples)")
     add_output(q)
     q.set_defaults(func=cmd_monitor_init)
 

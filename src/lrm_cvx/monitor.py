@@ -25,6 +25,9 @@ import numpy as np
 import xarray as xr
 
 from ._validation import atomic_output, read_netcdf
+from .errors import DataError, ModelError
+from .glrm.calibrated import ONLINE_GAMMA, AdaptiveConformal
+from .glrm.dynamics import Dynamics
 from .belief.filter import (  # noqa: F401  (re-exported: the old import location)
     LatentFilter,
     coerce_time,
@@ -66,6 +69,26 @@ class MonitorState(LatentFilter):
 
     current_plan: Any = None
     current_plan_time: Any = None
+
+    @classmethod
+    def from_model(cls, model: Any, time: Any = None, *, dynamics: Any = None,
+                   spatial: bool | None = None, memoryless: bool | None = None,
+                   online: bool = True) -> MonitorState:
+        """A state after the last fitted snapshot, or forecast to ``time`` (see
+        :meth:`LatentFilter.from_model <lrm_cvx.glrm.filter.LatentFilter.from_model>`).
+
+        ``online`` (default True): the intervals recalibrate themselves day by day
+        (:meth:`adaptive_conformal` with ``gamma`` :data:`~lrm_cvx.glrm.calibrated.ONLINE_GAMMA`):
+        each :meth:`assimilate` first scores the forecast at the day's sampled cells, before
+        they are assimilated, and moves the 68 % and 95 % thresholds towards their nominal
+        coverage, starting from the model's offline (conformal) thresholds; the state file
+        carries them. ``online=False``: the offline thresholds throughout. The maps, plans
+        and the belief are the same either way."""
+        state = super().from_model(model, time, dynamics=dynamics, spatial=spatial,
+                                   memoryless=memoryless)
+        if online:
+            state.adaptive_conformal(gamma=ONLINE_GAMMA)
+        return state
 
     # ------------------------------------------------------------------ maps
     def _dataset(self, mean: np.ndarray, std: np.ndarray, pstd: np.ndarray, t: Any,
@@ -319,10 +342,9 @@ class MonitorState(LatentFilter):
             for name, value in variables.items():
                 ds[name] = value
             ds.attrs.update(attrs, plan_time=time_to_str(self.current_plan_time))
+        ds.attrs["online_calibration"] = int(self.aci is not None)
         if self.aci is not None:  # the online conformal state (adaptive_conformal)
-            a = self.aci
-            ds.attrs.update(aci_levels=np.asarray(a.levels), aci_gamma=a.gamma,
-                            aci_alpha=a.alpha, aci_days=a.n_days, aci_miss=a.miss_sum)
+            ds.attrs.update(self.aci.to_attrs())
         return ds
 
     def save(self, path: str | os.PathLike) -> None:
@@ -398,11 +420,13 @@ class MonitorState(LatentFilter):
                 raise DataError(f"state file {spath!r} holds an incomplete or corrupt plan: "
                                 f"{exc}") from None
             state.current_plan_time = float(pt) if kind == "numeric" else pt
-        if "aci_levels" in ds.attrs:
-            state.adaptive_conformal(ds.attrs["aci_levels"], float(ds.attrs["aci_gamma"]))
-            state.aci.alpha = np.atleast_1d(np.asarray(ds.attrs["aci_alpha"], np.float64))
-            state.aci.n_days = int(ds.attrs["aci_days"])
-            state.aci.miss_sum = np.atleast_1d(np.asarray(ds.attrs["aci_miss"], np.float64))
+        try:
+            state.aci = AdaptiveConformal.from_attrs(ds.attrs, post.obs_model.calibration)
+            online = int(ds.attrs.get("online_calibration", 1))
+        except (ModelError, TypeError, ValueError) as exc:
+            raise DataError(f"state file {spath!r}: {exc}") from None
+        if state.aci is None and online:  # a state file without one: from the offline ones
+            state.adaptive_conformal(gamma=ONLINE_GAMMA)
         return state
 
     def __repr__(self) -> str:

@@ -202,7 +202,7 @@ class LatentFilter:
         self.memoryless = bool(memoryless)
         self.n_assimilated = int(n_assimilated)
         self.n_dropped = int(n_dropped)
-        self.aci: AdaptiveConformal | None = None  # online interval calibration (opt-in)
+        self.aci: AdaptiveConformal | None = None  # online interval calibration
         _, self._time_kind, self._calendar = time_numbers(_model_times(model)[:1], "time")
         self.fingerprint = model_fingerprint(model)
 
@@ -298,7 +298,8 @@ class LatentFilter:
         even when the record drifts away from the calibration. The multipliers start from the
         model's conformal calibration (``calibrate(..., method="conformal")``), else the normal
         quantiles (the filter's own thresholds, ``Calibration.for_filter``, unless memoryless).
-        Returns ``self``."""
+        ``MonitorState.from_model`` switches it on by default (``online=True``). Returns
+        ``self``."""
         self.aci = AdaptiveConformal(np.atleast_1d(levels), gamma,
                                      self.posterior.obs_model.calibration)
         return self

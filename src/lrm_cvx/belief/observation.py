@@ -39,6 +39,9 @@ class ObservationModel:
     (fit units) or None; ``region`` the cells' Region (needed with ``spatial_cov``);
     ``ref_var`` the global noise variance that scales a ridge prior ``N(0, ref_var / ridge I)``
     (default: ``spatial_cov.total_variance`` when spatial, else the mean of ``noise_var``).
+    ``interval_factor`` ``(L,)`` (> 0) or None: a per-cell factor of the predictive std only
+    (a calibration's locally weighted intervals, ``Calibration.local_power``); the means,
+    latent stds and plans do not see it.
     """
 
     Y: np.ndarray
@@ -52,6 +55,7 @@ class ObservationModel:
     adaptive_dof: float | None = None  # calibration: prior dof of the per-snapshot scale
     scale_discount: float = 0.0  # calibration: weight per step of earlier snapshots' evidence
     calibration: Any = None  # the model's Calibration (conformal interval multipliers), or None
+    interval_factor: np.ndarray | None = None  # calibration: per-cell factor of predictive stds
 
     def __post_init__(self) -> None:
         Y = np.asarray(self.Y)
@@ -71,6 +75,12 @@ class ObservationModel:
             if name == "scale" and np.any(v <= 0):
                 raise ModelError("scale must be > 0 at every cell")
             object.__setattr__(self, name, v)
+        if self.interval_factor is not None:
+            v = np.asarray(self.interval_factor, dtype=np.float64)
+            if v.shape != (L,) or not np.all(np.isfinite(v) & (v > 0)):
+                raise ModelError(f"interval_factor must be a ({L},) array of finite numbers > 0, "
+                                 f"got shape {v.shape}")
+            object.__setattr__(self, "interval_factor", v)
         nv = np.asarray(self.noise_var, dtype=np.float64)
         if nv.ndim not in (0,) and nv.shape != (L,):
             raise ModelError(f"noise_var must be a scalar or ({L},), got shape {nv.shape}")
@@ -113,7 +123,7 @@ class ObservationModel:
                              "(or another covariance model)")
         nv = getattr(model, "noise_var_", None)
         sigma2 = float(model.noise_std_) ** 2
-        from ..glrm.calibrated import residual_factor
+        from ..glrm.calibrated import interval_factor, residual_factor
 
         rho = residual_factor(model)
         if rho != 1.0:  # a new snapshot's, validated (selection, calibration): the variances
@@ -130,7 +140,8 @@ class ObservationModel:
                    variance_scale=_variance_scale(model),
                    adaptive_dof=_adaptive_dof(model),
                    scale_discount=_scale_discount(model),
-                   calibration=getattr(model, "calibration_", None))
+                   calibration=getattr(model, "calibration_", None),
+                   interval_factor=interval_factor(model))
 
     # ------------------------------------------------------------------ helpers
     @property

@@ -693,7 +693,8 @@ def _predictive_std(obs: ObservationModel, var: np.ndarray, spatial: bool, idx: 
                     variance_scale: Any) -> np.ndarray:
     """Data-unit std of a new measurement from the latent variance ``var`` (fit units, at
     ``idx``; overwritten): plus the noise (the nugget with the spatial residual), times the
-    belief's ``variance_scale`` (a scalar, or ``(m, 1)`` for ``m`` beliefs), times the scale."""
+    belief's ``variance_scale`` (a scalar, or ``(m, 1)`` for ``m`` beliefs), times the scale
+    and the calibration's per-cell ``interval_factor``."""
     if spatial:
         var += obs.spatial_cov.nugget
     else:
@@ -703,6 +704,8 @@ def _predictive_std(obs: ObservationModel, var: np.ndarray, spatial: bool, idx: 
     pstd = np.sqrt(var, out=var)
     if obs.scale is not None:
         pstd *= obs.scale[idx]
+    if obs.interval_factor is not None:
+        pstd *= obs.interval_factor[idx]
     return pstd
 
 

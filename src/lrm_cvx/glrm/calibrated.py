@@ -20,7 +20,8 @@ from ..errors import ModelError
 __all__ = ["Calibration", "variance_scale", "noise_variance", "residual_factor", "residual_dof",
            "prediction_factor", "predictive_std", "parameters_per_cell",
            "interval_coverage", "conformal_quantile", "check_level", "gaussian_multiplier",
-           "AdaptiveConformal", "SCORE_GRID", "level_index"]
+           "AdaptiveConformal", "SCORE_GRID", "level_index", "ONLINE_GAMMA",
+           "interval_factor"]
 
 _PREFIX = "calibration_"
 _TUPLES = ("levels", "quantiles", "score_table", "temporal_quantiles", "temporal_score_table",
@@ -97,6 +98,11 @@ class Calibration:
     dynamics also the filter's own (``temporal_quantiles``, ``temporal_score_table``, from
     ``temporal_n_residuals`` forward-chained filter residuals: the filter's maps are tighter or
     looser than a memoryless fold-in's), which :meth:`for_filter` puts in their place.
+    ``local_power``: each cell's predictive std is multiplied by the model's
+    ``residual_spread_`` (its training residual std relative to the cells' rms) to this power,
+    validated among :data:`~lrm_cvx.glrm.calibration.LOCAL_POWERS` (0: every cell alike; 1:
+    the std in proportion to the cell's residual std): locally weighted intervals, which cover
+    calm and stormy cells alike where the residual's amplitude varies over the region.
     ``size_quantiles`` (and the filter's ``temporal_size_quantiles``): the thresholds of each
     design size of ``sizes`` (row-major ``(len(design_sizes), len(levels))``, flattened), from
     the fold-ins of that size alone, whose samples gave ``size_samples`` values on average
@@ -118,6 +124,7 @@ class Calibration:
     dof: float | None = None
     discount: float = 0.0
     residual_scale: float = 1.0
+    local_power: float = 0.0
     dof_loglik_gain: float = 0.0
     method: str = "gaussian"
     levels: tuple = ()
@@ -152,6 +159,14 @@ class Calibration:
         if n.size and (n.size != len(self.design_sizes) or not np.all(np.isfinite(n) & (n > 0))):
             raise ModelError("Calibration.size_samples must hold one count > 0 per design size "
                              f"({self.sizes!r}), got {self.size_samples}")
+        try:
+            lp = float(self.local_power)
+        except (TypeError, ValueError):
+            lp = float("nan")
+        if not (np.isfinite(lp) and lp >= 0):
+            raise ModelError(f"Calibration.local_power must be a finite number >= 0, got "
+                             f"{self.local_power!r}")
+        object.__setattr__(self, "local_power", lp)
         for name in ("scale", "temporal_scale", "dof", "residual_scale"):
             v = getattr(self, name)
             if v is None:
@@ -340,6 +355,18 @@ def noise_variance(model: Any, spatial: bool = False) -> Any:
     return nv if sc is None else nv * np.asarray(sc, dtype=np.float64) ** 2
 
 
+def interval_factor(model: Any) -> np.ndarray | None:
+    """The per-cell factor of a fitted model's predictive stds, ``(L,)``: its
+    ``residual_spread_`` to the power of its calibration's validated ``local_power``; None
+    when either is missing or the power is 0 (every cell alike)."""
+    cal = getattr(model, "calibration_", None)
+    power = float(getattr(cal, "local_power", 0.0) or 0.0)
+    spread = getattr(model, "residual_spread_", None)
+    if power == 0.0 or spread is None:
+        return None
+    return np.asarray(spread, dtype=np.float64) ** power
+
+
 def predictive_std(model: Any, std: Any, spatial: bool = False,
                    temporal: bool = False) -> np.ndarray:
     """Calibrated std of a new measurement: ``sqrt(std^2 + s * noise)``.
@@ -347,10 +374,14 @@ def predictive_std(model: Any, std: Any, spatial: bool = False,
     ``std`` ``(..., L)`` (data units) is the posterior std of the latent value as returned by
     ``complete`` / ``MonitorState.predict`` (which already carry the scale ``s``: the
     observation model's ``variance_scale``); ``noise`` is :func:`noise_variance`; ``s`` the
-    model's :func:`variance_scale`. Equals ``LatentPosterior.predictive_std``.
+    model's :func:`variance_scale`; times the calibration's per-cell factor
+    (:func:`interval_factor`, ``std`` then ``(..., L)``). Equals
+    ``LatentPosterior.predictive_std``.
     """
     s = np.asarray(std, dtype=np.float64)
-    return np.sqrt(s * s + variance_scale(model, temporal) * noise_variance(model, spatial))
+    out = np.sqrt(s * s + variance_scale(model, temporal) * noise_variance(model, spatial))
+    factor = interval_factor(model)
+    return out if factor is None else out * factor
 
 
 def interval_coverage(values: Any, mean: Any, std: Any,
@@ -380,6 +411,13 @@ def interval_coverage(values: Any, mean: Any, std: Any,
 
 
 # ----------------------------------------------------------------------------- online (ACI)
+ONLINE_GAMMA = 0.1
+"""Step size of the online calibration ``MonitorState`` runs by default
+(:class:`AdaptiveConformal`): chosen on rolling 30-day campaigns of some of the generalization
+benchmark's records and reported on the others (docs/monitoring.md, "Online calibration")."""
+_ATTRS = ("levels", "gamma", "alpha", "days", "miss")
+
+
 class AdaptiveConformal:
     """Adaptive conformal inference (Gibbs & Candes 2021) for a stream of days.
 
@@ -412,6 +450,9 @@ class AdaptiveConformal:
         self.n_days = int(n_days)
         self.miss_sum = (np.zeros(len(self.levels)) if miss_sum is None
                          else np.asarray(miss_sum, dtype=np.float64))
+        if self.miss_sum.shape != self.target.shape or self.n_days < 0:
+            raise ModelError(f"miss_sum must be {len(self.levels)} numbers and n_days >= 0, "
+                             f"got {miss_sum!r}, {n_days!r}")
 
     def multipliers(self, n_samples: int | None = None) -> np.ndarray:
         """The current half-widths ``m(alpha_t)`` per level (units of the predictive std). With
@@ -420,9 +461,9 @@ class AdaptiveConformal:
         out = np.empty(len(self.levels))
         cal = self.calibration
         for i, a in enumerate(self.alpha):
-            if a <= 0:
+            if 1.0 - a >= 1.0:  # alpha <= 0, or too small to leave 1 - alpha below 1
                 out[i] = np.inf
-            elif a >= 1:
+            elif 1.0 - a <= 0.0:
                 out[i] = 0.0
             elif cal is not None:
                 out[i] = cal.multiplier(1.0 - a)
@@ -461,6 +502,31 @@ class AdaptiveConformal:
         if self.n_days == 0:
             return np.full(len(self.levels), np.nan)
         return 1.0 - self.miss_sum / self.n_days
+
+    def to_attrs(self, prefix: str = "aci_") -> dict[str, Any]:
+        """The state as flat NetCDF attributes ``{prefix}levels``, ``gamma``, ``alpha``,
+        ``days``, ``miss`` (what :meth:`from_attrs` reads back equal)."""
+        values = (np.asarray(self.levels, dtype=np.float64), self.gamma,
+                  np.asarray(self.alpha, dtype=np.float64), self.n_days,
+                  np.asarray(self.miss_sum, dtype=np.float64))
+        return {prefix + key: v for key, v in zip(_ATTRS, values, strict=True)}
+
+    @classmethod
+    def from_attrs(cls, attrs: Any, calibration: Calibration | None = None,
+                   prefix: str = "aci_") -> AdaptiveConformal | None:
+        """The state stored by :meth:`to_attrs` in ``attrs`` (None when they hold none), its
+        multipliers read from ``calibration``. A ModelError names a corrupt entry."""
+        if prefix + "levels" not in attrs:
+            return None
+        try:
+            levels = np.atleast_1d(np.asarray(attrs[prefix + "levels"], dtype=np.float64))
+            return cls(levels, float(attrs[prefix + "gamma"]), calibration,
+                       alpha=np.atleast_1d(np.asarray(attrs[prefix + "alpha"], np.float64)),
+                       n_days=int(attrs[prefix + "days"]),
+                       miss_sum=np.atleast_1d(np.asarray(attrs[prefix + "miss"], np.float64)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelError(f"the online calibration's {prefix}* entries are incomplete or "
+                             f"corrupt: {exc}") from None
 
     def __repr__(self) -> str:
         al = ", ".join(f"{lv:g}: {a:.4f}" for lv, a in zip(self.levels, self.alpha, strict=True))

@@ -51,7 +51,8 @@ from .offset import augmented
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
            "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
            "check_options", "moments_to_transform", "set_predictive", "sample_rows",
-           "residual_scale", "residual_covariance", "SCALE_FLOOR", "scale_floor"]
+           "residual_scale", "residual_covariance", "SCALE_FLOOR", "scale_floor",
+           "residual_spread", "spread_model"]
 
 CALIBRATIONS = (None, "gaussian", "conformal")  # GLRM(calibration=): calibrate after the fit
 NOISE_PRIOR_DF = 10.0  # pseudo-observations of the global variance in each per-cell estimate
@@ -114,9 +115,28 @@ def data_scale(model: Any) -> bool:
 
 
 def wants_residual_moments(model: Any) -> bool:
-    """The per-cell residual statistics are needed (``noise="per-cell"`` or
-    ``scale="residual"``)."""
-    return model.noise == "per-cell" or model.scale == "residual"
+    """The per-cell residual statistics are needed (``noise="per-cell"``,
+    ``scale="residual"``, or a stationary spatial residual: its ``residual_spread_``)."""
+    return model.noise == "per-cell" or model.scale == "residual" or spread_model(model)
+
+
+def spread_model(model: Any) -> bool:
+    """The model gets a ``residual_spread_``: a spatial residual with one stationary amplitude
+    (``noise="global"``, no ``scale="residual"``), whose intervals a calibration may widen per
+    cell (``Calibration.local_power``)."""
+    return (model.spatial is not None and model.noise == "global"
+            and model.scale != "residual")
+
+
+def residual_spread(cell_var: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """``residual_spread_`` ``(L,)``: each cell's shrunk training residual std
+    (:func:`shrink_noise`) relative to their root mean square over the observed cells (1 for
+    a cell never observed, whose variance is the global one). A calibration raises it to its
+    validated ``local_power`` to widen the intervals of cells whose residual varies more
+    (locally weighted conformal prediction, Lei et al. 2018); the maps and plans do not use it."""
+    seen = np.asarray(count) > 0
+    ref = float(np.mean(cell_var[seen])) if seen.any() else 1.0
+    return np.sqrt(np.asarray(cell_var, dtype=np.float64) / max(ref, 1e-300))
 
 
 def scale_floor(std: np.ndarray, count: np.ndarray) -> float:
@@ -193,7 +213,7 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
     computes the same statistics chunk by chunk. ``residual_inflation_`` starts at 1 (the
     variances as fitted; ``temporal="auto"`` validates a factor, validation/selection.py)."""
     model.offset_, model.scale_ = offset, scale
-    model.noise_var_ = None
+    model.noise_var_ = model.residual_spread_ = None
     model.residual_inflation_ = 1.0
     model.spatial_cov_ = model.kernel_selection_ = None
     if sample is not None:
@@ -205,6 +225,8 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
         cell_var = shrink_noise(sse * inflate, cnt, model.noise_std_ ** 2, NOISE_PRIOR_DF)
         if model.noise == "per-cell":
             model.noise_var_ = cell_var
+        if spread_model(model):
+            model.residual_spread_ = residual_spread(cell_var, cnt)
         if model.scale == "residual":
             rs = residual_scale(cell_var, model.noise_std_ ** 2)
             _divide_factor(model, rs)
@@ -375,7 +397,7 @@ def residual_covariance(model: Any, V: np.ndarray, family: str, *, max_pairs: in
 class _PredictiveIO:
     """Save / restore the predictive attributes with the model's NetCDF file."""
 
-    names = ("offset", "scale", "noise_var")
+    names = ("offset", "scale", "noise_var", "residual_spread")
 
     def arrays(self, model: Any) -> dict[str, np.ndarray]:
         out = {}

@@ -66,7 +66,7 @@ __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_co
            "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95",
            "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "RESIDUAL_SCALES", "clone_model",
            "training_values", "memoryless_cov", "conformal_quantile", "conformal_scores",
-           "calibrate_with", "fit_then_try_calibrate"]
+           "calibrate_with", "fit_then_try_calibrate", "LOCAL_POWERS"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
 Z95 = 1.959963984540054   # two-sided 95%
@@ -107,7 +107,8 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                  prior: str = "empirical", spatial: bool | None = None,
                  temporal: str | None = None, seed: Any = 0, twin: bool = False,
                  innovations: bool = False, residual_scales: Sequence[float] | None = None,
-                 max_cells: int | None = None, folds: str = "interleaved") -> Any:
+                 max_cells: int | None = None, folds: str = "interleaved",
+                 local_power: float = 0.0) -> Any:
     """Standardized cross-validated fold-in residuals (see the module docstring).
 
     ``data`` ``(time, lat, lon)``: the snapshots ``model`` was fitted on (its region is used).
@@ -118,10 +119,11 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     refitted model. Returns a 1-D array; with ``temporal`` and ``twin=True`` a pair: the
     filter's residuals and the memoryless model's through the same loop on the same cells.
     With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t, log_sd, size,
-    n_samples)`` per fold-in: its standardized residuals, the innovation statistic of its
+    n_samples, spread)`` per fold-in: its standardized residuals, the innovation statistic of its
     samples, the snapshot, the sum of the log predictive stds it was standardized by
     (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`), its design size and the
-    samples that gave a value (fewer than the size where the snapshot has gaps). With
+    samples that gave a value (fewer than the size where the snapshot has gaps), and the
+    refit's ``residual_spread_`` at the scored cells (ones without one). With
     ``residual_scales`` (memoryless, innovations) a dict ``{rho: records}``: the same fold-ins
     (same cells) with the refitted model's residual and noise variances multiplied by ``rho``.
     ``max_cells`` (memoryless): score at most that many of each fold-in's held-out cells (a
@@ -130,6 +132,8 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     others) or ``"forward"`` (the contiguous blocks of the record's second half, each refitted
     on the snapshots before it: the fold-in of a *future* snapshot, as a test block after the
     training is; less training data per refit, so wider on stationary records).
+    ``local_power`` (with ``temporal``): the residuals divided by each refit's
+    ``residual_spread_`` to that power (the calibration's locally weighted intervals).
     """
     from ..belief.posterior import model_prior
 
@@ -182,8 +186,9 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                 if sub.dynamics_ is None:  # this block's history cannot carry the kind
                     continue
                 out.extend(_filter_residuals(sub, data.isel(time=block), V[block], sizes, kinds,
-                                             spatial, rng, max_cells))
+                                             spatial, rng, max_cells, local_power))
                 continue
+            spread = _spread(sub, region.n_cells)
             pick = block[np.unique(np.linspace(0, block.size - 1,
                                                min(block.size, max_snapshots)).round()
                                    .astype(int))]
@@ -210,7 +215,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                             if innovations:
                                 q, n_eff = b.innovation(cells, V[t, cells])
                                 recs[rho] = (z, q, n_eff, int(t), float(np.sum(np.log(pstd))),
-                                             size, post.n_samples)
+                                             size, post.n_samples, spread[hidx])
                             else:
                                 recs[rho] = z
                         if len(recs) == len(bases):
@@ -230,6 +235,25 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     return out if innovations else np.concatenate(out)
 
 
+def _spread(model: Any, n_cells: int) -> np.ndarray:
+    """``model.residual_spread_`` ``(L,)``, ones when it has none."""
+    spread = getattr(model, "residual_spread_", None)
+    return np.ones(n_cells) if spread is None else np.asarray(spread, dtype=np.float64)
+
+
+def _powered(records: Sequence[tuple], power: float) -> list[tuple]:
+    """:func:`cv_residuals` records (``innovations``) as the intervals of ``local_power =
+    power`` see them: each residual divided by its cell's spread to ``power``, and the log
+    predictive stds (the standardization's Jacobian) raised by as much."""
+    if power == 0.0:
+        return list(records)
+    out = []
+    for r in records:
+        f = np.asarray(r[7], dtype=np.float64) ** power
+        out.append((r[0] / f, r[1], r[2], r[3], r[4] + float(np.sum(np.log(f))), *r[5:]))
+    return out
+
+
 def _rescaled(prior: Any, rho: float) -> Any:
     """``prior`` with its observation model's residual and noise variances times ``rho``."""
     from dataclasses import replace
@@ -247,6 +271,9 @@ def _rescaled(prior: Any, rho: float) -> Any:
 
 
 RESIDUAL_SCALES = (0.5, 0.71, 1.0, 1.41, 2.0, 2.83, 4.0, 5.66, 8.0)
+LOCAL_POWERS = (0.0, 0.25, 0.5, 0.75, 1.0)
+"""The powers of a cell's ``residual_spread_`` a calibration validates for its intervals
+(``Calibration.local_power``)."""
 
 
 DOF_GRID = (1.0, 4.0, 16.0, 64.0, 256.0, 1024.0)
@@ -385,11 +412,13 @@ def refit_dynamics(model: Any, sub: Any, kind: str, times: Any) -> Any:
 
 def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int],
                       kinds: Sequence[str], spatial: bool, rng: np.random.Generator,
-                      max_cells: int | None = None):
+                      max_cells: int | None = None, local_power: float = 0.0):
     """Standardized residuals of the filter run through one block in time order, and of the
     memoryless model through the same loop on the same cells: ``[(z_filter, z_memoryless)]``
-    (at most ``max_cells`` random held-out cells per day)."""
+    (at most ``max_cells`` random held-out cells per day; divided by ``sub``'s
+    ``residual_spread_`` to ``local_power``)."""
     region = sub.region_
+    factor = _spread(sub, region.n_cells) ** float(local_power)
     from ..belief.filter import LatentFilter
 
     states = (LatentFilter.from_model(sub, spatial=spatial),
@@ -409,7 +438,7 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
         for state in states:
             state.assimilate((cells, Vb[i, cells]), time=t)
             mean, _, pstd = state.posterior.predict_all(cells=hidx)
-            pair.append((Vb[i, hidx] - mean) / pstd)
+            pair.append((Vb[i, hidx] - mean) / (pstd * factor[hidx]))
         out.append(tuple(pair))
     return out
 
@@ -464,7 +493,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
               sizes: Sequence[int] = (5, 15, 50),
               kinds: Sequence[str] = ALL_KINDS, max_snapshots: int = 3,
               temporal: str | None | bool = None, adaptive: bool = True,
-              residual: bool = True, method: str = "gaussian",
+              residual: bool = True, local: bool = True, method: str = "gaussian",
               levels: Sequence[float] = (0.68, 0.95), max_cells: int | None = None,
               folds: str | None = None, seed: Any = 0) -> Calibration:
     """Estimate the model's variance scale from cross-validated fold-in residuals on its
@@ -509,6 +538,13 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     log-likelihood *of the raw residuals* wins): the fitted nugget and sill come from training
     residuals, which
     under-state a new snapshot's.
+    ``local`` (default; a model with a ``residual_spread_``: a spatial residual of one
+    stationary amplitude): also choose ``Calibration.local_power`` among
+    :data:`LOCAL_POWERS` on the same log-likelihood, jointly with the residual's factor. Each
+    cell's predictive std is then its spread to that power times the stationary one, so cells
+    whose residual varies more get wider intervals and calm cells narrower ones (locally
+    weighted conformal prediction, Lei et al. 2018). The maps, plans and the pooled coverage
+    stay as they were; what changes is which cells the intervals cover (docs/monitoring.md).
 
     The filter (``MonitorState``) uses the same scale by default: measured on held-out
     campaigns (docs/monitoring.md) that calibrates it as well as the memoryless fold-in, while a
@@ -546,27 +582,32 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     conformal_fit = method == "conformal"
     by_rho = cv_residuals(model, data, seed=seed, innovations=True, residual_scales=rhos,
                           max_cells=max_cells, folds=folds, **kw)
+    powers = LOCAL_POWERS if local and getattr(model, "residual_spread_", None) is not None \
+        else (0.0,)
     best = None
-    for rho, records in by_rho.items():
-        zr = np.concatenate([r[0] for r in records])
-        if adaptive:
-            # conformal: no evidence carried between snapshots (discount 0), so the scores are
-            # standardized exactly as a memoryless fold-in's predictive std (exchangeable)
-            fit = fit_adaptive_scale(records, discounts=(0.0,) if conformal_fit else
-                                     DISCOUNT_GRID)
-        else:
-            fit = (fit_scale(zr), None, 0.0, 0.0)
-        ll = _loglik(records, *fit[:3])
-        if best is None or ll > best[0]:
-            best = (ll, rho, fit)
-    _, rho, (scale, dof, discount, gain) = best
+    for rho, raw_records in by_rho.items():
+        for power in powers:
+            records = _powered(raw_records, power)
+            zr = np.concatenate([r[0] for r in records])
+            if adaptive:
+                # conformal: no evidence carried between snapshots (discount 0), so the scores
+                # are standardized exactly as a memoryless fold-in's predictive std
+                fit = fit_adaptive_scale(records, discounts=(0.0,) if conformal_fit else
+                                         DISCOUNT_GRID)
+            else:
+                fit = (fit_scale(zr), None, 0.0, 0.0)
+            ll = _loglik(records, *fit[:3])
+            if best is None or ll > best[0]:
+                best = (ll, rho, power, fit)
+    _, rho, power, (scale, dof, discount, gain) = best
     conformal: dict[str, Any] = {}
     if method == "conformal":
-        scores = conformal_scores(by_rho[rho], scale, dof, discount)
+        chosen = _powered(by_rho[rho], power)
+        scores = conformal_scores(chosen, scale, dof, discount)
         pooled = np.atleast_1d(conformal_quantile(scores, levels))
         conformal = dict(method="conformal", levels=levels, quantiles=tuple(pooled),
                          score_table=tuple(np.quantile(scores, SCORE_GRID)),
-                         **_size_quantiles(by_rho[rho], scores, sizes, levels, pooled))
+                         **_size_quantiles(chosen, scores, sizes, levels, pooled))
     z = np.concatenate([r[0] for r in by_rho[1.0]])
     raw = interval_coverage(z, 0.0, 1.0)
     auto = temporal == "auto"
@@ -583,7 +624,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
         # filter's scale *relative* to the memoryless model's on the same days and cells
         try:
             zt, zm = cv_residuals(model, data, seed=seed, temporal=temporal, twin=True,
-                                  max_cells=max_cells, **kw)
+                                  max_cells=max_cells, local_power=power, **kw)
         except ModelError:  # no forward block's history carries the kind (a short record)
             if not auto:  # asked for by name: say so; "auto": the memoryless calibration
                 raise
@@ -611,6 +652,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
                       temporal_coverage95_raw=float(t_raw[1]), n_blocks=int(n_blocks),
                       sizes=",".join(str(int(s)) for s in sizes), dof=dof,
                       discount=float(discount), dof_loglik_gain=float(gain),
-                      residual_scale=float(rho), **conformal, **t_conformal)
+                      residual_scale=float(rho), local_power=float(power), **conformal,
+                      **t_conformal)
     model.calibration_ = cal
     return cal
