@@ -18,10 +18,10 @@ from lrm_cvx.glrm.calibrated import (
     interval_factor,
     predictive_std,
 )
-from lrm_cvx.glrm.calibration import LOCAL_POWERS, calibrate
-from lrm_cvx.glrm.designs import sample_sets
-from lrm_cvx.glrm.observation import ObservationModel
-from lrm_cvx.glrm.posterior import model_prior
+from lrm_cvx.validation.calibration import LOCAL_POWERS, calibrate
+from lrm_cvx.validation.designs import sample_sets
+from lrm_cvx.belief.observation import ObservationModel
+from lrm_cvx.belief.posterior import model_prior
 
 N_TEST = 12
 _KW = {"method": "conformal", "n_blocks": 8, "max_snapshots": 2, "residual": False,
@@ -166,7 +166,7 @@ def test_every_predictive_std_carries_the_factor_and_nothing_else_does(stormy):
     # the model-level function agrees with the posterior's
     np.testing.assert_allclose(predictive_std(model, s1, spatial=True), p1, rtol=1e-10)
     # the filter's belief too
-    from lrm_cvx.glrm.filter import LatentFilter
+    from lrm_cvx.belief.filter import LatentFilter
 
     filt = LatentFilter.from_model(model, memoryless=True, spatial=True)
     np.testing.assert_array_equal(filt.posterior.obs_model.interval_factor, f)
@@ -209,7 +209,7 @@ def test_power_zero_is_the_global_calibration_bit_for_bit(stormy, monkeypatch):
     field for field, and its intervals are the global ones bit for bit."""
     from dataclasses import asdict
 
-    from lrm_cvx.glrm import calibration as calibration_module
+    from lrm_cvx.validation import calibration as calibration_module
 
     data, train, centre, model, flat, _ = stormy
     monkeypatch.setattr(calibration_module, "LOCAL_POWERS", (0.0,))

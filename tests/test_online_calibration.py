@@ -20,7 +20,7 @@ from lrm_cvx.glrm.calibrated import (
     AdaptiveConformal,
     Calibration,
 )
-from lrm_cvx.glrm.filter import LatentFilter
+from lrm_cvx.belief.filter import LatentFilter
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
 

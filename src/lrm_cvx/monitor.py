@@ -75,7 +75,7 @@ class MonitorState(LatentFilter):
                    spatial: bool | None = None, memoryless: bool | None = None,
                    online: bool = True) -> MonitorState:
         """A state after the last fitted snapshot, or forecast to ``time`` (see
-        :meth:`LatentFilter.from_model <lrm_cvx.glrm.filter.LatentFilter.from_model>`).
+        :meth:`LatentFilter.from_model <lrm_cvx.belief.filter.LatentFilter.from_model>`).
 
         ``online`` (default True): the intervals recalibrate themselves day by day
         (:meth:`adaptive_conformal` with ``gamma`` :data:`~lrm_cvx.glrm.calibrated.ONLINE_GAMMA`):

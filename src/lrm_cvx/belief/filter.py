@@ -1,7 +1,7 @@
 """The filter core of persistent monitoring: a Kalman filter on a fitted GLRM's latent vector.
 
 :class:`LatentFilter` carries the Gaussian belief about the current snapshot's latent vector (a
-:class:`~lrm_cvx.glrm.posterior.LatentPosterior`) from one snapshot to the next with the model's
+:class:`~lrm_cvx.belief.posterior.LatentPosterior`) from one snapshot to the next with the model's
 dynamics (:class:`~lrm_cvx.glrm.dynamics.Dynamics`): ``from_model`` starts it after the last
 fitted snapshot, ``assimilate`` moves it to a time (predict step) and folds observations in
 (update step). It lives in ``glrm`` so the calibration (``select_dynamics``, the temporal
@@ -184,7 +184,7 @@ class LatentFilter:
     """The filter's belief about the latent vector of the snapshot at ``time``.
 
     Build with :meth:`from_model`. ``posterior`` is the
-    :class:`~lrm_cvx.glrm.posterior.LatentPosterior` of the current snapshot (its ``cells`` and
+    :class:`~lrm_cvx.belief.posterior.LatentPosterior` of the current snapshot (its ``cells`` and
     ``values`` are today's observations), ``observed`` whether the snapshot at ``time`` has
     been observed (the last fitted snapshot counts as observed; a state positioned at a later
     time by ``from_model(model, time=T)`` has not, so observations at ``T`` are accepted).
@@ -261,14 +261,14 @@ class LatentFilter:
     def next_time(self) -> Any:
         """The record's next stamp after the state's time: one step of the record's cadence,
         with the record's own day-of-month (or fraction of the month, or day-of-year)
-        convention (:class:`lrm_cvx.glrm.calendar.RecordCalendar`): monthly on the 15th ->
+        convention (:class:`lrm_cvx.belief.calendar.RecordCalendar`): monthly on the 15th ->
         the 15th of the next month, CF mid-month stamps -> the next month's mid-month stamp,
         daily -> the next day."""
         return self.record_calendar.next_stamp(self.time)
 
     @property
     def record_calendar(self) -> Any:
-        """The :class:`~lrm_cvx.glrm.calendar.RecordCalendar` of the model's training times."""
+        """The :class:`~lrm_cvx.belief.calendar.RecordCalendar` of the model's training times."""
         from .calendar import RecordCalendar
 
         cached = getattr(self, "_record_calendar", None)
@@ -307,7 +307,7 @@ class LatentFilter:
     def interval_multipliers(self, levels: Any = (0.68, 0.95)) -> np.ndarray:
         """Half-widths (units of the predictive std) of the central ``levels`` intervals: the
         online ACI's current ones for the levels it tracks, else the posterior's
-        (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.interval_multipliers`)."""
+        (:meth:`~lrm_cvx.belief.posterior.LatentPosterior.interval_multipliers`)."""
         lv = np.atleast_1d(levels)
         out = self.posterior.interval_multipliers(lv)
         if self.aci is not None:
@@ -423,7 +423,7 @@ class LatentFilter:
         """:meth:`assimilate` of averaged observations (a sensor footprint, a towed sensor's
         legs): ``values[i]`` (data units) is ``rows[i] @`` the snapshot (``rows`` ``(m, L)``
         weights; ``errors``: a sensor's, see
-        :meth:`~lrm_cvx.glrm.posterior.LatentPosterior.update_rows`). Returns ``self``."""
+        :meth:`~lrm_cvx.belief.posterior.LatentPosterior.update_rows`). Returns ``self``."""
         t = self._coerce(time)
         self._check_order(t, force)
         v = np.atleast_1d(np.asarray(values, dtype=np.float64))

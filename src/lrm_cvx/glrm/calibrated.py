@@ -88,7 +88,7 @@ class Calibration:
     degrees of freedom of the per-snapshot scale (None: the scale is fixed); with it each
     snapshot's variances are scaled by ``(dof * scale + q) / (dof + n)``, ``q`` the squared
     norm of the standardized innovations of its ``n`` observations
-    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`), plus the earlier snapshots'
+    (:meth:`~lrm_cvx.belief.posterior.LatentPosterior.innovation`), plus the earlier snapshots'
     ``q`` and ``n`` weighted by ``discount`` per step (0: each snapshot on its own; carried by
     ``MonitorState``). ``dof_loglik_gain``: the cross-validated Gaussian log-likelihood per
     residual gained over the fixed scale. ``n_residuals``
@@ -100,7 +100,7 @@ class Calibration:
     looser than a memoryless fold-in's), which :meth:`for_filter` puts in their place.
     ``local_power``: each cell's predictive std is multiplied by the model's
     ``residual_spread_`` (its training residual std relative to the cells' rms) to this power,
-    validated among :data:`~lrm_cvx.glrm.calibration.LOCAL_POWERS` (0: every cell alike; 1:
+    validated among :data:`~lrm_cvx.validation.calibration.LOCAL_POWERS` (0: every cell alike; 1:
     the std in proportion to the cell's residual std): locally weighted intervals, which cover
     calm and stormy cells alike where the residual's amplitude varies over the region.
     ``size_quantiles`` (and the filter's ``temporal_size_quantiles``): the thresholds of each

@@ -121,7 +121,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t, log_sd, size,
     n_samples, spread)`` per fold-in: its standardized residuals, the innovation statistic of its
     samples, the snapshot, the sum of the log predictive stds it was standardized by
-    (:meth:`~lrm_cvx.glrm.posterior.LatentPosterior.innovation`), its design size and the
+    (:meth:`~lrm_cvx.belief.posterior.LatentPosterior.innovation`), its design size and the
     samples that gave a value (fewer than the size where the snapshot has gaps), and the
     refit's ``residual_spread_`` at the scored cells (ones without one). With
     ``residual_scales`` (memoryless, innovations) a dict ``{rho: records}``: the same fold-ins
@@ -564,7 +564,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     Costs ``n_blocks`` refits plus ``n_blocks * max_snapshots * len(sizes) * len(kinds)``
     fold-ins (and ``n_blocks // 2`` refits more with ``temporal``); on a region of more than
     ``refits.VALIDATION_MAX_CELLS`` cells all of them read one window of it
-    (:func:`~lrm_cvx.glrm.refits.validation_view`). ``n_blocks`` (None): 8,
+    (:func:`~lrm_cvx.validation.refits.validation_view`). ``n_blocks`` (None): 8,
     fewer on a short record (half its snapshots, at least 2).
     """
     if method not in ("gaussian", "conformal"):

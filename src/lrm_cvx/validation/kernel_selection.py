@@ -13,13 +13,13 @@ snapshots of data minus the low-rank reconstruction), the way campaigns use the 
   temperatures correlate 2-6 times further east-west than north-south);
 * each residual snapshot is sampled as campaigns sample (a clustered route, a straight transect
   and scattered cells, drawn among all of the region's cells as they are flown:
-  :func:`~lrm_cvx.glrm.designs.flown_sets`; a design cell in one of the snapshot's gaps gives
+  :func:`~lrm_cvx.validation.designs.flown_sets`; a design cell in one of the snapshot's gaps gives
   no value, so under clouds the kernel interpolates across the gaps a campaign meets), once per
-  design and size of :data:`~lrm_cvx.glrm.selection.AUTO_SIZES`, the same cells for every
+  design and size of :data:`~lrm_cvx.validation.selection.AUTO_SIZES`, the same cells for every
   family (paired);
-* the score is the MSE of the kriged residual at (at most :data:`~lrm_cvx.glrm.selection.
+* the score is the MSE of the kriged residual at (at most :data:`~lrm_cvx.validation.selection.
   MAX_SCORED` random) held-out observed cells: the part of the map the kernel decides;
-* rule (the one of ``temporal="auto"``, :func:`~lrm_cvx.glrm.selection.paired_choice`): a
+* rule (the one of ``temporal="auto"``, :func:`~lrm_cvx.validation.selection.paired_choice`): a
   family is admissible when the upper confidence bound of its MSE change against the
   exponential (the recommended default) is at most ``-MIN_GAIN`` (2 %) at every size; the
   admissible family with the lowest worst ratio wins.

@@ -235,7 +235,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     ``values``: ``data`` already stacked by the model's region ``(T, L)`` (``GLRM.fit`` hands
     over its own; None: stacked here). On a region of more than
     ``refits.VALIDATION_MAX_CELLS`` cells the refits, designs and scores read one window of it
-    (:func:`~lrm_cvx.glrm.refits.validation_view`). See the module docstring for the rule.
+    (:func:`~lrm_cvx.validation.refits.validation_view`). See the module docstring for the rule.
 
     ``ranks`` (``GLRM(rank="auto")``): also choose the rank among these. Every window is
     refitted at each rank and every candidate tried at each (labels ``"rank 8 seasonal:1
