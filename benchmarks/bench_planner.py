@@ -24,7 +24,7 @@ import numpy as np
 
 from lrm_cvx import Region
 from lrm_cvx.io.samples import synthetic_field
-from lrm_cvx.planning import place_sensors, plan_greedy
+from lrm_cvx.planning import PathOptions, place_sensors, plan_greedy
 
 RIDGE = 1e-6  # the planted factors are so smooth that 5 adjacent cells are singular
 
@@ -194,7 +194,7 @@ def _path_targets(Y: np.ndarray, region: Region, start: int, grid_budget: float)
     # no targets: sensing along the route (one robot) and a static placement of as many
     # sensors as the route has stops
     t = time.perf_counter()
-    plan = plan_greedy(noisy, region, start, km, sense_along=True, **opts)
+    plan = plan_greedy(noisy, region, start, km, path=PathOptions(sense_along=True), **opts)
     print(f"sense_along, 1 robot: {time.perf_counter() - t:.2f} s, {plan.stops.size} stops, "
           f"{len(plan)} cells observed, information {plan.information:.4f}")
     t = time.perf_counter()

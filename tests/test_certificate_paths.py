@@ -21,6 +21,7 @@ import pytest
 import xarray as xr
 
 from lrm_cvx.errors import PlanningError
+from lrm_cvx.planning import PathOptions
 from lrm_cvx.planning.certificate import plan_bound
 from lrm_cvx.region import Region
 
@@ -347,8 +348,8 @@ def test_certify_bounds_fleet_and_static_plans():
     region = make_region(6, 6, masked=MASKED)
     Y = field_Y(region, 3, 8)
     starts = [int(region.cell_grid[0, 0]), int(region.cell_grid[5, 5])]
-    fleet = plan_greedy(Y, region, starts, [5.0, 4.0], ridge=0.01, closed=True,
-                        progress=False)
+    fleet = plan_greedy(Y, region, starts, [5.0, 4.0], ridge=0.01, progress=False,
+                        path=PathOptions(closed=True))
     cert = fleet.certify(tol=1e-5)
     assert cert.bound >= fleet.information - 1e-7 and cert.path["n_robots"] == 2
     static = place_sensors(Y, region, 6, ridge=0.01)
@@ -363,7 +364,8 @@ def test_a_plan_outside_its_model_is_refused():
     region = make_region(6, 6)
     Y = field_Y(region, 2, 9)
     start = int(region.cell_grid[2, 2])
-    plan = plan_greedy(Y, region, start, 6.0, closed=True, ridge=0.01, progress=False)
+    plan = plan_greedy(Y, region, start, 6.0, ridge=0.01, progress=False,
+                       path=PathOptions(closed=True))
     # the same cells do not fit a closed tour of half the budget
     with pytest.raises(PlanningError, match="not"):
         plan_bound(Y, region, start, 2.0, ridge=0.01, plan=_with_budget(plan, 2.0))

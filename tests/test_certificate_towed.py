@@ -19,6 +19,7 @@ import pytest
 from test_certificate_paths import field_Y, graph, make_region, route_orders, straight
 
 from lrm_cvx.errors import PlanningError
+from lrm_cvx.planning import PathOptions
 from lrm_cvx.planning.certificate import plan_bound
 from lrm_cvx.planning.plan import line_cells
 
@@ -128,8 +129,8 @@ def test_greedy_towed_plan_is_certified():
     region = make_region(8, 8)
     Y = field_Y(region, 3, 0)
     for closed in (False, True):
-        plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, sensor="leg-average", closed=closed,
-                           progress=False)
+        plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, progress=False,
+                           path=PathOptions(sensor="leg-average", closed=closed))
         cert = plan.certify(tol=1e-6)
         info = row_information(Y, observation_rows(plan), 1e-3, errors="independent")
         assert cert.information == pytest.approx(plan.information) == pytest.approx(info)
@@ -137,7 +138,8 @@ def test_greedy_towed_plan_is_certified():
         assert cert.towed is not None and "towed sensor" in repr(cert)
         assert "leg cells" in cert._repr_html_() and "initial set" not in cert._repr_html_()
     # the same route certified against half its budget is refused, naming the route's cost
-    plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, sensor="leg-average", progress=False)
+    plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, progress=False,
+                       path=PathOptions(sensor="leg-average"))
     with pytest.raises(PlanningError, match="not a route within budget=4"):
         plan_bound(Y, region, 10, 4.0, ridge=1e-3, plan=plan)
 
@@ -320,7 +322,8 @@ def test_midpoint_cover_tightens_the_towed_bound():
 
     region = make_region(12, 12)
     Y = field_Y(region, 3, 0)
-    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, sensor="towed", progress=False)
+    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, progress=False,
+                       path=PathOptions(sensor="towed"))
     cert = plan.certify(tol=1e-6)
     loose = plan.certify(tol=1e-6, tighten=False)
     assert cert.information <= cert.bound < loose.bound - 1e-3
@@ -342,8 +345,8 @@ def test_towed_cover_check_refuses_legs_outside_every_piece(errors):
 
     region = make_region(12, 12)
     Y = field_Y(region, 3, 0)
-    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, sensor=f"towed,errors={errors}",
-                       progress=False)
+    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, progress=False,
+                       path=PathOptions(sensor=f"towed,errors={errors}"))
     cert = plan.certify(tol=1e-6)
     span = leg_family(path_spec(region, None, 30, 6.0, PathOptions(), "path", None), region,
                       3).cover_span

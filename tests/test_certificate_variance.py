@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import a_optimal_value, gp_latent_cov, gp_variance_value
-from lrm_cvx.planning import plan_bound, plan_greedy, transect
+from lrm_cvx.planning import PathOptions, plan_bound, plan_greedy, transect
 from lrm_cvx.planning.dopt import Polytope
 from lrm_cvx.planning.varbound import variance_objective, variance_relaxation
 from lrm_cvx.spatial import ResidualCovariance
@@ -84,8 +84,8 @@ def best_route_value(criterion: str, start: int, budget: float, closed: bool) ->
                           (3.0, True, {"tighten": False})])
 def test_bound_is_above_every_feasible_route(criterion, budget, closed, tight):
     kw = GP if criterion == "gp-variance" else {}
-    plan = plan_greedy(Y, REGION, START, budget, criterion=criterion, ridge=RIDGE,
-                       initial="start", closed=closed, progress=False, **kw)
+    plan = plan_greedy(Y, REGION, START, budget, criterion=criterion, ridge=RIDGE, initial="start",
+                       progress=False, path=PathOptions(closed=closed), **kw)
     cert = plan.certify(**tight)  # the midpoint cover (one square a quarter) or not
     assert cert.criterion == criterion and cert.comparable
     best = best_route_value(criterion, START, budget, closed)

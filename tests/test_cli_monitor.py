@@ -13,6 +13,7 @@ from lrm_cvx.cli import main
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
+from lrm_cvx.planning import PathOptions
 
 
 @pytest.fixture(scope="module")
@@ -240,9 +241,9 @@ def test_monitor_plan_takes_every_path_option_and_fleets(tmp_path, capsys):
     # the same plan as the Python loop with the same path model
     s = MonitorState.load(state)
     expected = plan_greedy(model.Y_, model.region_, [(10.0, 200.0), (-20.0, 240.0)], 6000.0,
-                           criterion="gp-variance", initial="start", progress=False,
-                           metric="km", traversable="valid", closed=True,
-                           refine="lines", **s.planner_kwargs())
+                           criterion="gp-variance", initial="start", progress=False, refine="lines",
+                           path=PathOptions(metric="km", traversable="valid", closed=True),
+                           **s.planner_kwargs())
     table = pd.read_csv(out)
     np.testing.assert_array_equal(table["cell"], expected.route)
     assert route_feasible(expected, model.region_) == []

@@ -12,7 +12,7 @@ from lrm_cvx.cli import main
 from lrm_cvx.datasets import load_sample
 from lrm_cvx.evaluation import evaluate
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning import PathOptions, plan_greedy
 
 STARTS = [["--start", "10", "-150"], ["--start", "-5,-120"]]
 PY_STARTS = [(10, 210), (-5, 240)]
@@ -61,8 +61,8 @@ def test_one_budget_per_start_and_the_printed_line(sst_model, tmp_path, capsys):
     assert "closed" in line and "traversable valid" in line
     df = pd.read_csv(route)
     model = GLRM.load(sst_model)
-    plan = plan_greedy(model.Y_, model.region_, PY_STARTS, [3000.0, 7000.0], metric="km",
-                       traversable="valid", closed=True, progress=False)
+    plan = plan_greedy(model.Y_, model.region_, PY_STARTS, [3000.0, 7000.0], progress=False,
+                       path=PathOptions(metric="km", traversable="valid", closed=True))
     np.testing.assert_array_equal(df["cell"], plan.route)
     for r, budget in enumerate((3000, 7000)):
         rows = df[df["robot"] == r]
@@ -97,8 +97,8 @@ def test_traversable_mask_file(sst_model, tmp_path):
     mask.to_netcdf(path)
     flags = ["--budget", "5000", "--metric", "km", "--traversable", str(path), "--closed"]
     route = _plan(sst_model, [*STARTS[0], *flags], tmp_path)
-    plan = plan_greedy(model.Y_, region, PY_STARTS[0], 5000.0, metric="km", traversable=mask,
-                       closed=True, progress=False)
+    plan = plan_greedy(model.Y_, region, PY_STARTS[0], 5000.0, progress=False,
+                       path=PathOptions(metric="km", traversable=mask, closed=True))
     df = pd.read_csv(route)
     np.testing.assert_array_equal(df["cell"], plan.route)
     assert allowed[df["row"], df["col"]].all()

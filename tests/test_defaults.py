@@ -220,14 +220,6 @@ def test_plan_greedy_model_without_residual_plans_fisher_on_the_empirical_prior(
     assert got.criterion == "fisher" and got.posterior
 
 
-def test_plan_greedy_static_on_a_model_is_place_sensors(spatial_model, train):
-    m = spatial_model
-    same_plan(plan_greedy(m, static=True, n_sensors=4, progress=False),
-              place_sensors(m, 4))
-    same_plan(plan_greedy(m, static=True, n_sensors=4, paper=True, progress=False),
-              place_sensors(m.Y_, m.region_, 4))
-
-
 def test_plan_greedy_bad_model_calls(train):
     with pytest.raises(PlanningError, match="not fitted"):
         plan_greedy(GLRM(3), 5, 9.0)

@@ -14,7 +14,7 @@ import xarray as xr
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError, RegionError
 from lrm_cvx.information import fisher_information
-from lrm_cvx.planning import Plan, place_sensors, plan_greedy, refine
+from lrm_cvx.planning import PathOptions, Plan, place_sensors, plan_greedy, refine
 from lrm_cvx.planning.paths import make_path_model
 
 
@@ -431,8 +431,7 @@ def test_static_pairs_brute_force_and_naive_greedy():
         for _ in range(6):
             vals = [logdet(Y, P + [c], 0.05) if c not in P else -np.inf for c in range(L)]
             P.append(int(np.argmax(vals)))
-        plan = plan_greedy(Y, region, None, None, static=True, n_sensors=6, ridge=0.05,
-                           progress=False)
+        plan = place_sensors(Y, region, 6, ridge=0.05)
         assert plan.cells.tolist() == P
         assert plan.path["kind"] == "static" and plan.cost == 6 and plan.budget == 6
         assert plan.information == pytest.approx(logdet(Y, P, 0.05))
@@ -626,8 +625,8 @@ def test_forced_initial_cells_beyond_a_tiny_budget_have_a_finite_route(closed):
     region = make_region(mask)
     Y = np.random.default_rng(3).normal(size=(4, region.n_cells))
     with pytest.warns(UserWarning, match="initial cells"):
-        plan = plan_greedy(Y, region, 3, 0.5, metric="km", traversable="valid", closed=closed,
-                           progress=False)
+        plan = plan_greedy(Y, region, 3, 0.5, progress=False,
+                           path=PathOptions(metric="km", traversable="valid", closed=closed))
     assert np.isfinite(plan.cost) and plan.cost > 0.5
     df = plan.to_dataframe()
     assert df["cumulative_cost"].iloc[-1] == pytest.approx(plan.cost)

@@ -236,13 +236,14 @@ def test_lines_refuse_what_a_transect_cannot_fly():
     Y = np.random.default_rng(0).normal(size=(3, region.n_cells))
     kw = dict(criterion="fisher", ridge=1e-2, initial="start", progress=False, refine="lines")
     with pytest.raises(PlanningError, match="refine='lines' cannot run: the routes must end"):
-        plan_greedy(Y, region, 7, 6.0, end=30, **kw)
+        plan_greedy(Y, region, 7, 6.0, path=PathOptions(end=30), **kw)
     with pytest.raises(PlanningError, match="refine='lines' cannot run: sense_along"):
-        plan_greedy(Y, region, 7, 6.0, sense_along=True, **kw)
+        plan_greedy(Y, region, 7, 6.0, path=PathOptions(sense_along=True), **kw)
     with pytest.raises(PlanningError, match="refine='rivals' cannot run: sense_along"):
-        plan_greedy(Y, region, 7, 6.0, sense_along=True, **{**kw, "refine": "rivals"})
+        plan_greedy(Y, region, 7, 6.0, path=PathOptions(sense_along=True),
+                    **{**kw, "refine": "rivals"})
     with pytest.raises(PlanningError, match="not a point"):
-        plan_greedy(Y, region, 7, 6.0, sensor="leg-average", **kw)
+        plan_greedy(Y, region, 7, 6.0, path=PathOptions(sensor="leg-average"), **kw)
     with pytest.raises(PlanningError, match="refine must be True, False, 'local', 'lines'"):
         plan_greedy(Y, region, 7, 6.0, criterion="fisher", refine="straight")
     assert lines_where_possible(PathOptions(end=3)) is None

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from lrm_cvx import GLRM, load_sample, plan_greedy
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.monitor import MonitorState
+from lrm_cvx.planning import PathOptions
 from lrm_cvx.replanning import route_feasible
 
 
@@ -314,9 +315,9 @@ def test_replans_with_the_check_stay_feasible(setup, start, budget, frac, closed
     day = test.isel(time=0)
     truth = region.stack(day)
     state = MonitorState.from_model(model)
-    plan = plan_greedy(model.Y_, region, start % region.n_cells, budget,
-                       criterion="gp-variance", initial="start", progress=False,
-                       refine="lines", closed=closed,
+    plan = plan_greedy(model.Y_, region, start % region.n_cells, budget, criterion="gp-variance",
+                       initial="start", progress=False, refine="lines",
+                       path=PathOptions(closed=closed),
                        **state.planner_kwargs(time=day.time.values))
     if plan.route.size < 3:
         return

@@ -35,6 +35,7 @@ from .planning.planners import (
 )
 from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
 from .planning.sensors import observed_cells, plan_observations
+from .planning.terms import PriorTerms
 from .recommended import RECOMMENDED
 
 __all__ = ["simulate_campaign", "method_request", "path_attrs", "CAMPAIGN_OPTIONS"]
@@ -100,28 +101,26 @@ def path_attrs(path: PathOptions, n_robots: int = 1) -> dict[str, Any]:
     }
 
 
-def _day_terms(state: MonitorState, t: Any, planner: Planner) -> dict[str, Any] | None:
+def _day_terms(state: MonitorState, t: Any, planner: Planner) -> PriorTerms | None:
     """The prior terms of day ``t``'s plan: a planner on the model's belief (the
     ``greedy:<criterion>`` methods) plans on the state's belief about ``t`` (the forecast once
     the state has observed an earlier day); the paper's greedy and the baselines ignore it
     (None)."""
     if not getattr(planner, "model_prior", False):
         return None
-    return state.planner_kwargs(criterion=planner.criterion, time=t)
+    return state.planner_kwargs(criterion=planner.criterion, time=t)["prior"]
 
 
-def _same_terms(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
+def _same_terms(a: PriorTerms | None, b: PriorTerms | None) -> bool:
     """Whether two days' prior terms are equal (arrays entry by entry)."""
     if a is None or b is None:
         return a is b
-    return a.keys() == b.keys() and all(
-        np.array_equal(a[key], b[key]) if isinstance(a[key], np.ndarray) else a[key] == b[key]
-        for key in a)
+    return a.same(b)
 
 
 def _plan_day(state: MonitorState, t: Any, planner: Planner, fleet: Fleet, path: PathOptions,
               rng: np.random.Generator, ridge: float, last: tuple | None = None
-              ) -> tuple[Any, dict[str, Any] | None]:
+              ) -> tuple[Any, PriorTerms | None]:
     """Day ``t``'s plan by ``planner`` for ``fleet`` under ``path`` (:func:`_day_terms`) and its
     terms. ``last``, the previous day's ``(plan, terms)``, is kept when the planner does not
     draw from ``rng`` and the terms are the same (the memoryless model's every day, and the
@@ -131,7 +130,7 @@ def _plan_day(state: MonitorState, t: Any, planner: Planner, fleet: Fleet, path:
         return last
     model = state.model
     return (planner.plan(model.Y, model.region_, fleet, path, rng=rng, ridge=ridge,
-                         terms=terms), terms)
+                         prior=terms), terms)
 
 
 def _observed_entries(plan: Any, sel: np.ndarray) -> np.ndarray:

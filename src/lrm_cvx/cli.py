@@ -377,8 +377,7 @@ def _plan_from_args(args: argparse.Namespace):
                              "default for this criterion)")
         kw = model.planner_kwargs(prior=prior or "empirical", spatial=True)
     elif prior is not None:
-        kw = {k: v for k, v in model.planner_kwargs(prior=prior).items()
-              if k not in ("prior_cov", "spatial_cov")}
+        kw = model.planner_kwargs(prior=prior)
     plan = plan_greedy(model.Y_, model.region_, start, budget, criterion=criterion,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
                        initial=initial, path=path,
@@ -390,7 +389,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     files = plan_outputs(args.output, len(args.start), args.robot)  # before any work
     guard_paths([f for f, _ in files], [args.model, *mask_files(args)], args)
     model, plan, kw = _plan_from_args(args)
-    print(describe_plan(plan, criterion_value(plan, model.Y_, model.region_, kw)))
+    value = criterion_value(plan, model.Y_, model.region_, kw.get("prior"))
+    print(describe_plan(plan, value))
     write_plans(plan, files, args)
     return 0
 
@@ -478,7 +478,8 @@ def cmd_bound(args: argparse.Namespace) -> int:
     cert = plan.certify(tighten=args.certify == "tight",
                         criterion="fisher" if args.fisher else None)
     bounded = getattr(cert, "criterion", "fisher")
-    print(f"greedy plan: {describe_plan(plan, criterion_value(plan, model.Y_, model.region_, kw))}")
+    value = criterion_value(plan, model.Y_, model.region_, kw.get("prior"))
+    print(f"greedy plan: {describe_plan(plan, value)}")
     if bounded != "fisher":  # a variance criterion: variance removed, the data's unit squared
         print(f"certified upper bound on the {bounded} criterion (variance removed) of any "
               f"feasible plan: {cert.bound:.4f} unit^2")

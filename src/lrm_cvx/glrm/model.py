@@ -600,15 +600,15 @@ class GLRM:
 
     def planner_kwargs(self, prior: str | None = "empirical", spatial: bool = False) -> dict:
         """Keyword arguments for :func:`~lrm_cvx.planning.plan_greedy` matching this model's
-        fold-in (prior precision, per-cell noise, per-cell scale; with ``spatial=True`` also
+        fold-in: ``{"prior": belief}``, the :meth:`latent_prior` whose ``information()`` gives
+        the prior precision, per-cell noise and per-cell scale (with ``spatial=True`` also
         ``prior_cov`` and ``spatial_cov`` for ``criterion="gp-variance"``)."""
         self._check_fitted()
         post = self.latent_prior(prior, spatial=spatial)
-        info = post.information()
-        if spatial and info["prior_cov"] is None:
+        if spatial and post.information()["prior_cov"] is None:
             raise ModelError("the gp-variance criterion needs prior='empirical' (a proper prior "
                              "covariance of the latent vector)")
-        return info
+        return {"prior": post}
 
     @property
     def is_plain_low_rank(self) -> bool:
