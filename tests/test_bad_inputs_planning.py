@@ -16,7 +16,7 @@ import xarray as xr
 
 from lrm_cvx import Region
 from lrm_cvx.errors import DataError, LrmError, PlanningError, RegionError
-from lrm_cvx.planning import plan_bound, plan_greedy, random_walk, transect
+from lrm_cvx.planning import PathOptions, plan_bound, plan_greedy, random_walk, transect
 from lrm_cvx.spatial import ResidualCovariance
 
 
@@ -104,7 +104,8 @@ ERRORS = {
     "bound budget negative": (lambda: plan_bound(Y, REGION, START, -2), PlanningError,
                               "budget"),
     "bound budget string": (lambda: plan_bound(Y, REGION, START, "2"), PlanningError, "budget"),
-    "bound metric unknown": (lambda: plan_bound(Y, REGION, START, 2, metric="miles"),
+    "bound metric unknown": (lambda: plan_bound(Y, REGION, START, 2,
+                                                path=PathOptions(metric="miles")),
                              PlanningError, "metric"),
     "certify a baseline built without Y": (lambda: transect(REGION, START, 3, "up").certify(),
                                            PlanningError, "no model"),

@@ -79,8 +79,8 @@ def test_straight_legs_bound_covers_every_route(errors, closed, budget, k, ridge
         n_rows = max(n_rows, len(rows))
         n_cells = max(n_cells, sum(len(r) for r in rows))
     assert math.isfinite(best)
-    cert = plan_bound(Y, region, start, budget, ridge=ridge, closed=closed, tol=1e-6,
-                      sensor=f"leg-average,errors={errors}")
+    cert = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6,
+                      path=PathOptions(closed=closed, sensor=f"leg-average,errors={errors}"))
     assert cert.bound >= best - 1e-7
     assert cert.towed[0] >= n_rows and cert.towed[1] >= n_cells  # the counts hold
     assert cert.information is None and cert.gap is None  # no plan given
@@ -100,8 +100,9 @@ def test_travel_graph_legs_bound_covers_every_route(errors, closed, budget):
     leg = graph_paths(G, step)
     best = max(info_of_rows(Y, rows_of(order, leg, closed), 0.01, errors)
                for order in route_orders(G, start, budget, closed))
-    cert = plan_bound(Y, region, start, budget, ridge=0.01, closed=closed, tol=1e-6,
-                      traversable="valid", sensor=f"towed,errors={errors}")
+    cert = plan_bound(Y, region, start, budget, ridge=0.01, tol=1e-6,
+                      path=PathOptions(closed=closed, traversable="valid",
+                                       sensor=f"towed,errors={errors}"))
     assert cert.bound >= best - 1e-7
 
 
@@ -116,7 +117,7 @@ def test_fleet_of_two_towed_routes():
                  for s, b in zip(starts, budgets, strict=True)]
     best = max(info_of_rows(Y, A + B, 0.0, "independent")
                for A in per_robot[0] for B in per_robot[1])
-    cert = plan_bound(Y, region, starts, budgets, tol=1e-6, sensor="towed")
+    cert = plan_bound(Y, region, starts, budgets, tol=1e-6, path=PathOptions(sensor="towed"))
     assert cert.bound >= best - 1e-7
     assert cert.path["n_robots"] == 2
 
@@ -148,7 +149,7 @@ def test_towed_bound_errors():
     region = make_region(4, 4)
     Y = field_Y(region, 2, 0)
     with pytest.raises(PlanningError, match="static"):
-        plan_bound(Y, region, None, None, path="static", n_sensors=3, sensor="towed")
+        plan_bound(Y, region, None, 3, path=PathOptions(sensor="towed"))
     import xarray as xr
 
     from lrm_cvx.region import Region
@@ -158,7 +159,7 @@ def test_towed_bound_errors():
     wrapped = Region(lat=lat, lon=lon, mask=np.ones((3, 12), bool))
     Yw = field_Y(wrapped, 2, 1)
     with pytest.raises(PlanningError, match="wrap"):
-        plan_bound(Yw, wrapped, 0, 3.0, sensor="towed")
+        plan_bound(Yw, wrapped, 0, 3.0, path=PathOptions(sensor="towed"))
 
 
 @pytest.mark.parametrize("errors", ["independent", "shared"])
@@ -177,7 +178,7 @@ def test_towed_relaxation_equals_the_weighted_design_problem(errors):
     Y = field_Y(region, 3, 4)
     start, budget, ridge = int(region.cell_grid[2, 2]), 3.2, 0.05
     cert = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-7,
-                      sensor=f"towed,errors={errors}")
+                      path=PathOptions(sensor=f"towed,errors={errors}"))
     fam = leg_family(path_spec(region, None, start, budget, PathOptions(), "path", None),
                      region, 3)
     total = fam.cells if errors == "independent" else fam.rows

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import a_optimal_value, gp_latent_cov, gp_variance_value
-from lrm_cvx.planning import PathOptions, plan_bound, plan_greedy, transect
+from lrm_cvx.planning import PathOptions, PriorTerms, plan_bound, plan_greedy, transect
 from lrm_cvx.planning.dopt import Polytope
 from lrm_cvx.planning.varbound import variance_objective, variance_relaxation
 from lrm_cvx.spatial import ResidualCovariance
@@ -39,7 +39,7 @@ def grid(ny: int = 5, nx: int = 5) -> Region:
 REGION = grid()
 Y = np.random.default_rng(3).standard_normal((2, REGION.n_cells))
 START = int(REGION.cell_grid[2, 2])
-GP = dict(spatial_cov=COV, prior_cov=np.eye(2))
+GP = dict(prior=PriorTerms(spatial_cov=COV, prior_cov=np.eye(2)))
 
 
 def reduction(criterion: str, cells) -> float:
@@ -196,7 +196,7 @@ def test_frank_wolfe_alone_is_a_valid_bound_at_any_iterate():
 def test_certify_defaults_to_the_plans_criterion_and_fisher_is_one_keyword_away():
     plan = plan_greedy(Y, REGION, START, 3, criterion="gp-variance", initial="start",
                        refine="rivals", progress=False, **GP)
-    cert = plan.certify(cover=1, max_pieces=4)
+    cert = plan.certify(tighten={"cover": 1, "max_pieces": 4})
     assert cert.criterion == "gp-variance" and cert.unit == "unit^2"
     assert np.isfinite(cert.gap) and cert.relative_gap == pytest.approx(cert.gap / cert.bound)
     # the gap split: the greedy's route vs the route kept, then the bound's slack
@@ -233,9 +233,9 @@ def test_bad_inputs_get_one_line_errors():
         "criterion": (lambda: plan.certify(criterion="risk"), "criterion must be"),
         "no terms": (lambda: plan_bound(Y, REGION, START, 2, criterion="gp-variance"),
                      "needs the criterion's terms"),
-        "unknown term": (lambda: plan.certify(terms={"spatial": COV}), "unknown keys"),
-        "footprint": (lambda: plan_bound(Y, REGION, START, 2, criterion="gp-variance",
-                                         terms=GP, sensor="disc:1"), "point sensors only"),
+        "unknown prior": (lambda: plan.certify(prior={"spatial": COV}), "PriorTerms"),
+        "footprint": (lambda: plan_bound(Y, REGION, START, 2, criterion="gp-variance", **GP,
+                                         path=PathOptions(sensor="disc:1")), "point sensors only"),
         "path_aware": (lambda: plan.certify(path_aware=True), "Fisher criterion only"),
         "no ridge": (lambda: plan_bound(Y, REGION, START, 2, criterion="a-optimal"),
                      "ridge > 0"),

@@ -164,9 +164,9 @@ def test_evaluate_path_options_match_python(tmp_path, capsys):
     got = xr.load_dataset(out / "results.nc")
     ref = evaluate(load_sample("sst"), rank=3, n_test=2, n_starts=2, random_trials=2,
                    budgets=(3000, 6000), min_observations=1, certify=False, progress=False,
-                   methods=("greedy", "transect-up", "random"), metric="km",
-                   traversable="valid", closed=True, n_robots=2, stop_cost=10.0,
-                   model_params={"noise": "global"}, paper=True)
+                   methods=("greedy", "transect-up", "random"), n_robots=2,
+                   model_params={"noise": "global"}, paper=True,
+                   path=PathOptions(metric="km", traversable="valid", closed=True, stop_cost=10.0))
     np.testing.assert_allclose(got["mse"], ref["mse"], rtol=1e-6, equal_nan=True)
     np.testing.assert_allclose(got["robot_cost"], ref["robot_cost"], rtol=1e-12)
     np.testing.assert_array_equal(got["fleet_start_cell"], ref["fleet_start_cell"])

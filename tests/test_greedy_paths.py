@@ -14,8 +14,9 @@ import xarray as xr
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError, RegionError
 from lrm_cvx.information import fisher_information
-from lrm_cvx.planning import PathOptions, Plan, place_sensors, plan_greedy, refine
+from lrm_cvx.planning import PathOptions, Plan, PriorTerms, place_sensors, plan_greedy, refine
 from lrm_cvx.planning.paths import make_path_model
+from lrm_cvx.planning.request import PATH_FIELDS
 
 
 # --------------------------------------------------------------------------- helpers
@@ -460,7 +461,7 @@ def test_static_mask_and_prior():
                          traversable=xr.DataArray(sites, dims=("lat", "lon"),
                                                   coords={"lat": region.lat, "lon": region.lon}))
     assert np.all(region.grid_index[plan.cells, 1] < 3)
-    post = place_sensors(Y, region, 3, prior_precision=np.eye(2))
+    post = place_sensors(Y, region, 3, prior=PriorTerms(prior_precision=np.eye(2)))
     assert post.posterior and len(post) == 3
     with pytest.raises(PlanningError, match="traversable"):
         place_sensors(Y, region, 3, traversable=np.ones((2, 2), dtype=bool))
@@ -486,17 +487,14 @@ def test_bad_path_inputs_name_the_argument(sea):
         (dict(traversable=land), "start"),
         (dict(sense_along="yes"), "sense_along"),
         (dict(path="teleport"), "path"),
-        (dict(n_sensors=3), "n_sensors"),
-        (dict(static=True, n_sensors=3), "start"),
-        (dict(start=None, static=True, n_sensors=0), "n_sensors"),
-        (dict(start=None, static=True, n_sensors=2.5), "n_sensors"),
-        (dict(start=None, static=True, n_sensors=3, closed=True), "static"),
         (dict(start=None), "start"),
     ]
     for kw, word in cases:
         args = dict(start=starts[0], budget=5.0) | kw
+        path = {key: args.pop(key) for key in PATH_FIELDS if key in args}
         with pytest.raises((PlanningError, RegionError)) as info:
-            greedy(Y, region, args.pop("start"), args.pop("budget"), **args)
+            greedy(Y, region, args.pop("start"), args.pop("budget"),
+                   path=PathOptions(**path) if path else args.pop("path", None), **args)
         assert word in str(info.value), (kw, str(info.value))
 
 

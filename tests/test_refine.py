@@ -212,9 +212,9 @@ def test_certificate_splits_the_gap_and_bounds_the_refined_plan(seed):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         plan = plan_greedy(Y, region, start, budget, ridge=1e-6, progress=False)
-        cert = plan.certify(max_pieces=2)
+        cert = plan.certify(tighten={"max_pieces": 2})
         done = plan_greedy(Y, region, start, budget, ridge=1e-6, progress=False, refine=True)
-        cert2 = done.certify(max_pieces=2)
+        cert2 = done.certify(tighten={"max_pieces": 2})
     assert cert.greedy_information == pytest.approx(plan.information)
     assert cert.refined_information >= cert.greedy_information
     assert cert.plan_slack >= 0 and cert.bound_slack >= -1e-9

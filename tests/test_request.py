@@ -181,7 +181,7 @@ def test_baseline_planners_are_the_baselines(small):
     fleet = Fleet.resolve(region, 5, 7.0)
     for d in ("up", "down", "left", "right"):
         a = Transect(d).plan(Y, region, fleet, PathOptions(metric="km"))
-        b = transect(region, 5, 7.0, d, Y=Y, metric="km")
+        b = transect(region, 5, 7.0, d, Y=Y, path=PathOptions(metric="km"))
         assert a == b
     a = RandomWalk().plan(Y, region, fleet, None, rng=np.random.default_rng(3), ridge=0.1)
     b = random_walk(region, 5, 7.0, np.random.default_rng(3), Y=Y, ridge=0.1)
@@ -225,11 +225,11 @@ def test_evaluation_protocol_run_is_evaluate():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         a = EvaluationProtocol(da, path=PathOptions(stop_cost=0.5), **kw).run()
-        b = evaluate(da, stop_cost=0.5, **kw)
+        b = evaluate(da, path=PathOptions(stop_cost=0.5), **kw)
     xr.testing.assert_identical(a, b)
     assert a.attrs["stop_cost"] == 0.5
     with pytest.raises(PlanningError, match="temporal campaigns only"):
-        evaluate(da, sense_along=True, **kw)  # sensing along needs a campaign
+        evaluate(da, path=PathOptions(sense_along=True), **kw)  # sensing along needs a campaign
     with pytest.raises(PlanningError, match="n_robots"):
         EvaluationProtocol(da, n_robots=0, **kw)  # checked when built, before any fit
 

@@ -376,15 +376,14 @@ def test_footprint_certificate_is_the_relaxation_of_the_footprint_rows(region, Y
     U = np.column_stack([Y @ a / np.sqrt(var_of(a, np.ones(region.n_cells), shared))
                          for a in rows])  # (k, L): each cell's whitened footprint row
     ref = dopt_upper_bound(U, 3, ridge=1e-3, tol=1e-5).value
-    static = plan_bound(Y, region, None, None, path="static", n_sensors=3, sensor=spec,
-                        ridge=1e-3, tol=1e-5)
+    static = plan_bound(Y, region, None, 3, path=PathOptions(sensor=spec), ridge=1e-3,
+                        tol=1e-5)
     assert static.bound == pytest.approx(ref, abs=1e-4)
     G = np.einsum("ai,bi->iab", U, U)
     best = max(np.linalg.slogdet(1e-3 * np.eye(3) + G[list(t)].sum(0))[1]
                for t in combinations(range(0, region.n_cells, 3), 3))
     assert static.bound >= best - 1e-9
-    point = plan_bound(Y, region, None, None, path="static", n_sensors=3, ridge=1e-3,
-                       tol=1e-5)
+    point = plan_bound(Y, region, None, 3, ridge=1e-3, tol=1e-5)
     assert abs(point.bound - static.bound) > 1e-3  # the footprints were used
 
 

@@ -33,7 +33,7 @@ from .planning.planners import (
     planner_for,
     recommended_method,
 )
-from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
+from .planning.request import Fleet, PathOptions
 from .planning.sensors import observed_cells, plan_observations
 from .planning.terms import PriorTerms
 from .recommended import RECOMMENDED
@@ -41,7 +41,7 @@ from .recommended import RECOMMENDED
 __all__ = ["simulate_campaign", "method_request", "path_attrs", "CAMPAIGN_OPTIONS"]
 
 CAMPAIGN_OPTIONS = ("cost", "ridge", "criterion")
-"""The planner options of :func:`simulate_campaign` (besides the path options)."""
+"""The planner options of :func:`simulate_campaign` (besides the path)."""
 
 
 def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
@@ -217,7 +217,9 @@ def simulate_campaign(
     path: PathOptions | None = None,
     replan_every: int | None = None,
     paper: bool = False,
-    **options: Any,
+    criterion: str = "fisher",
+    cost: str = "nearest-neighbor",
+    ridge: float = 0.0,
 ) -> xr.Dataset:
     """Replay a campaign over the snapshots of ``test_data`` ``(time, lat, lon)``.
 
@@ -239,12 +241,11 @@ def simulate_campaign(
     :class:`~lrm_cvx.glrm.dynamics.Dynamics` (e.g. the true dynamics of a planted field, in the
     model's latent coordinates).
     ``replan=False`` plans once, on the first day, and flies that route every day.
-    ``options``: ``cost``, ``ridge``, ``criterion`` (for ``"greedy"``) and the path options
-    of :func:`~lrm_cvx.planning.plan_greedy` (``metric``, ``speed``, ``stop_cost``,
-    ``traversable``, ``closed``, ``end``, ``sense_along``; or ``path``, a
-    :class:`~lrm_cvx.planning.request.PathOptions`), which **every** method follows (the
-    baselines cannot take ``end``; ``sense_along`` changes nothing for them, see
-    :func:`method_request`). With ``sense_along`` every cell passed is observed.
+    ``criterion`` (for ``"greedy"``), ``cost`` and ``ridge`` are the planner's, ``path`` (a
+    :class:`~lrm_cvx.planning.request.PathOptions`) the path model of
+    :func:`~lrm_cvx.planning.plan_greedy`, which **every** method follows (the baselines cannot
+    take ``end``; ``sense_along`` changes nothing for them, see :func:`method_request`). With
+    ``sense_along`` every cell passed is observed.
     ``replan_every``: replan en route after every ``k`` route entries of each robot
     (:func:`~lrm_cvx.replanning.replan`: what was observed so far is assimilated, the rest is
     planned with the budget left, the same end and path model and the plan's check against
@@ -265,20 +266,14 @@ def simulate_campaign(
     robot)``, with ``replan_every`` ``n_replans``. The attrs record the method, the budget(s),
     start(s) and the path model (:func:`path_attrs`).
     """
-    bad = set(options) - set(CAMPAIGN_OPTIONS) - set(PATH_FIELDS)
-    if bad:
-        raise TypeError(f"simulate_campaign() got an unexpected keyword argument "
-                        f"{sorted(bad)[0]!r}")
-    request = PathOptions.from_kwargs(path, where="simulate_campaign",
-                                      **pop_options(options, PATH_FIELDS))
+    request = PathOptions.from_kwargs(path, where="simulate_campaign")
     paper = check_flag(paper, "paper", error=PlanningError)
     if method is None:
         residual = getattr(model, "spatial_cov_", None) is not None and spatial is not False
         method = "greedy" if paper else recommended_method(residual)
     method = check_method(method)
-    planner = planner_for(method, criterion=options.get("criterion", "fisher"),
-                          cost=options.get("cost", "nearest-neighbor"))
-    ridge = float(options.get("ridge", 0.0))
+    planner = planner_for(method, criterion=criterion, cost=cost)
+    ridge = float(ridge)
     every = _check_every(replan_every, replan, planner, method)
     rng = as_generator(seed)
     dynamics, memoryless = _dynamics_for(model, temporal)

@@ -28,10 +28,10 @@ from ..information import (
 )
 from ..recommended import RECOMMENDED, recommended_criterion
 from ..region import Region
-from .lines import CHECKS, RIVAL_EXPONENT, RIVAL_NAME, RIVALS, best_of_lines, lines_run
+from .lines import CHECKS, RIVAL_EXPONENT, lines_run
 from .paths import path_model
 from .plan import Plan, check_region
-from .refiners import REFINERS
+from .refiners import REFINERS, RefineContext
 from .request import Fleet, PathOptions, PlanPath
 from .routecost import COST_REGISTRY
 from .sensors import footprint_matrix, leg_matrix
@@ -328,15 +328,17 @@ def plan_greedy(
                  fleet=fleet, request=request)
     *picked, extra = _picks(cost_exponent, **pick)
     plan = _route_plan(Yk, region, models, *picked, **build)
-    if refine in CHECKS:
-        others = {}
-        if refine == RIVALS and cost_exponent != RIVAL_EXPONENT:
-            *rival, _ = _picks(RIVAL_EXPONENT, **pick, extra=extra, warn=False)
-            others[RIVAL_NAME] = _route_plan(Yk, region, models, *rival, **build)
-        plan = best_of_lines(plan, Yk, region, fleet, request, criterion=criterion,
-                             ridge=ridge, extra=extra, others=others, refine=refine)
-    elif refine is not None:  # refine.py registers it
-        plan = REFINERS.get("local")(plan, {} if refine == "local" else refine, terms)
+    if refine is not None:  # refine.py and lines.py register the refinements
+
+        def rival(exponent: float) -> Plan:
+            *again, _ = _picks(exponent, **pick, extra=extra, warn=False)
+            return _route_plan(Yk, region, models, *again, **build)
+
+        context = RefineContext(terms=terms, Y=Yk, region=region, fleet=fleet, request=request,
+                                criterion=criterion, ridge=ridge, extra=extra,
+                                rival=None if cost_exponent == RIVAL_EXPONENT else rival)
+        name, opts = (refine, {}) if isinstance(refine, str) else ("local", refine)
+        plan = REFINERS.get(name, "refine")(plan, opts, context)
     plan._terms = extra  # the criterion's terms, which plan.certify() bounds
     return plan
 
@@ -637,17 +639,17 @@ def _check_exponent(value: Any) -> float:
 
 
 def _check_refine(refine: Any) -> Any:
-    """``refine`` as None (no refinement), ``"lines"``, ``"rivals"``, ``"local"`` or a dict of
-    the local search's options (True is ``"local"``); PlanningError otherwise."""
+    """``refine`` as None (no refinement), the name of a refinement of :data:`REFINERS` or a
+    dict of the local search's options (True is ``"local"``); PlanningError otherwise."""
     if refine is None or refine is False:
         return None
     if refine is True:
         return "local"
-    if isinstance(refine, str) and refine in (*CHECKS, "local"):
-        return refine
+    if isinstance(refine, str) and refine in REFINERS:
+        return REFINERS.canonical(refine, "refine")
     if isinstance(refine, dict):
         return refine
-    raise PlanningError(f"refine must be True, False, 'local', 'lines', 'rivals' or a dict of "
-                        f"the local search's options, got {refine!r}")
+    raise PlanningError(f"refine must be True, False, one of {list(REFINERS)} or a dict of the "
+                        f"local search's options, got {refine!r}")
 
 

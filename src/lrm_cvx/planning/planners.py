@@ -26,6 +26,7 @@ from .greedy import plan_greedy
 from .lines import CHECKS, lines_where_possible
 from .plan import Plan
 from .refine import refine_plan
+from .refiners import RefineContext
 from .request import Fleet, PathOptions
 from .static import place_sensors
 from .terms import prior_terms
@@ -159,7 +160,7 @@ class Refined(Planner):
         plan = self.planner.plan(Y, region, fleet, path, rng=rng, ridge=ridge, prior=prior)
         terms = prior_terms(prior)
         terms.pop("targets")
-        return refine_plan(plan, dict(self.options) or True, terms)
+        return refine_plan(plan, dict(self.options) or True, RefineContext(terms=terms))
 
 
 # ------------------------------------------------------------------------------ the registry

@@ -31,7 +31,7 @@ from .._validation import as_factor_matrix
 from ..errors import PlanningError
 from ..information import fisher_set_value
 from .plan import Plan, check_region, is_paper_path
-from .refiners import REFINERS
+from .refiners import REFINERS, RefineContext
 from .routecost import (
     NearestNeighborCost,
     insertion_costs,
@@ -568,15 +568,15 @@ def _fill(g, rest, r, ys, limit, nn, crit, Sx):
     return new_cells, rr, c
 
 
-def refine_plan(plan: Plan, options: bool | dict[str, Any], terms: dict[str, Any]) -> Plan:
+def refine_plan(plan: Plan, options: bool | dict[str, Any], context: RefineContext) -> Plan:
     """:func:`refine` of ``plan`` with ``options`` (True or a dict of its keyword arguments),
-    a posterior plan's ``prior_precision`` / ``noise_var`` taken from ``terms`` (the greedy's
-    resolved prior terms) unless given: ``plan_greedy(refine=...)`` and
+    a posterior plan's ``prior_precision`` / ``noise_var`` taken from ``context.terms`` (the
+    greedy's resolved prior terms) unless given: ``plan_greedy(refine=...)`` and
     :class:`~lrm_cvx.planning.planners.Refined`."""
     opts = dict(options) if isinstance(options, dict) else {}
     if plan.posterior:
-        opts.setdefault("prior_precision", terms.get("prior_precision"))
-        opts.setdefault("noise_var", terms.get("noise_var"))
+        opts.setdefault("prior_precision", context.terms.get("prior_precision"))
+        opts.setdefault("noise_var", context.terms.get("noise_var"))
     return refine(plan, **opts)
 
 
