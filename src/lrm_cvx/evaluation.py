@@ -797,6 +797,13 @@ def evaluate(
 
     A rolling-origin backtest of the protocol (its test block repeated back in time, each
     block's model fitted on the snapshots before it) is :func:`backtest`.
+
+    Parameters
+    ----------
+    random_trials, min_observations, ridge, fold_ridge, certify : (``**options``) the protocol's
+        numbers above (defaults 70, 10, 0.0, 0.0 and ``"fast"``).
+    n_jobs, progress, model_params, fold_in : (``**options``) worker processes, a progress bar,
+        the fit's extra GLRM parameters and the prediction (above).
     """
     bad = set(options) - set(_EVALUATE_OPTIONS)
     if bad:
