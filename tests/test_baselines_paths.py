@@ -207,8 +207,8 @@ def test_routes_never_enter_forbidden_cells_and_fit_the_budget(seed, closed, km,
         kw.update(metric="km")
         budget *= 150.0  # ~ 220 km per 2-degree step
     enterable = allowed & mask
-    plans = [transect(region, start, budget, d, **kw) for d in DIRS]
-    plans.append(random_walk(region, start, budget, seed, **kw))
+    plans = [transect(region, start, budget, d, path=PathOptions(**kw)) for d in DIRS]
+    plans.append(random_walk(region, start, budget, seed, path=PathOptions(**kw)))
     for plan in plans:
         rows, cols = region.grid_index[plan.route].T
         assert enterable[rows, cols].all()
@@ -349,8 +349,8 @@ def test_bad_path_options_are_clear_errors():
         (dict(closed="yes"), "closed"),
     ]
     for kw, match in cases:
-        for fn in (lambda **k: transect(region, 0, 5, "up", **k),
-                   lambda **k: random_walk(region, 0, 5, 0, **k)):
+        for fn in (lambda **k: transect(region, 0, 5, "up", path=PathOptions(**k)),
+                   lambda **k: random_walk(region, 0, 5, 0, path=PathOptions(**k))):
             with pytest.raises(PlanningError, match=match):
                 fn(**kw)
     with pytest.raises(PlanningError, match="budget"):

@@ -5,6 +5,7 @@ requests fail with one line."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from types import SimpleNamespace
 
@@ -133,13 +134,13 @@ def test_default_request_is_the_papers_loop(model, test_days):
 
 
 def test_first_day_is_a_direct_plan_greedy_call(model, test_days, no_go):
-    path = dict(metric="km", traversable=no_go, closed=True, stop_cost=50.0,
-                sense_along=True)
+    path = PathOptions(metric="km", traversable=no_go, closed=True, stop_cost=50.0,
+                       sense_along=True)
     ds = simulate_campaign(model, test_days, STARTS, BUDGETS, method="greedy:gp-variance",
-                           **path)
+                           path=path)
     prior = MonitorState.from_model(model).planner_kwargs(time=test_days.time.values[0])
     plan = plan_greedy(model.Y, model.region_, STARTS, BUDGETS, criterion="gp-variance",
-                       initial="start", progress=False, **prior, **path)
+                       initial="start", progress=False, **prior, path=path)
     route = ds["routes"].values[0]
     np.testing.assert_array_equal(route[route >= 0], plan.route)
     np.testing.assert_array_equal(ds["route_robot"].values[0][route >= 0], plan.route_robot)
@@ -155,31 +156,31 @@ def test_first_day_is_a_direct_plan_greedy_call(model, test_days, no_go):
 
 def test_baselines_follow_the_path_model_as_their_direct_calls(model, test_days, no_go):
     region = model.region_
-    path = dict(metric="km", traversable=no_go, closed=True)
-    tr = simulate_campaign(model, test_days, STARTS, BUDGETS, method="transect-up", **path)
-    direct = transect(region, STARTS, BUDGETS, "up", Y=model.Y, **path)
+    path = PathOptions(metric="km", traversable=no_go, closed=True)
+    tr = simulate_campaign(model, test_days, STARTS, BUDGETS, method="transect-up", path=path)
+    direct = transect(region, STARTS, BUDGETS, "up", Y=model.Y, path=path)
     for day in range(N_DAYS):  # a transect flies the same route every day
         route = tr["routes"].values[day]
         np.testing.assert_array_equal(route[route >= 0], direct.route)
     np.testing.assert_allclose(tr["robot_cost"].values[0], direct.robot_costs)
     rnd = simulate_campaign(model, test_days, STARTS, BUDGETS, method="random", seed=7,
-                            **path)
+                            path=path)
     gen = np.random.default_rng(7)  # one stream, drawn day after day
     for day in range(N_DAYS):
-        walk = random_walk(region, STARTS, BUDGETS, gen, Y=model.Y, **path)
+        walk = random_walk(region, STARTS, BUDGETS, gen, Y=model.Y, path=path)
         route = rnd["routes"].values[day]
         np.testing.assert_array_equal(route[route >= 0], walk.route)
     # sensing along changes nothing for a baseline: its route passes only its own cells
     along = simulate_campaign(model, test_days, STARTS, BUDGETS, method="transect-up",
-                              path=PathOptions(sense_along=True), **path)
+                              path=dataclasses.replace(path, sense_along=True))
     np.testing.assert_array_equal(along["mse"].values, tr["mse"].values)
 
 
 def test_evaluate_campaigns_take_the_path_model_and_fleets(sst, model):
     kw = dict(model=model, n_test=N_DAYS, budgets=(3000.0,), n_starts=1, random_trials=1,
               certify=False, progress=False, min_observations=1, temporal="ar1",
-              methods=("greedy:gp-variance", "transect-up"), metric="km",
-              traversable="valid", closed=True, n_robots=2, seed=1,
+              methods=("greedy:gp-variance", "transect-up"),
+              path=PathOptions(metric="km", traversable="valid", closed=True), n_robots=2, seed=1,
               fold_in={"prior": "empirical", "spatial": True})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

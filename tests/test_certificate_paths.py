@@ -162,8 +162,8 @@ def test_bound_covers_every_route_brute_force(name, k, ridge, seed):
     opts, budget, kind = CASES[name]
     region, Y, start, end, o, D, sets = _instance(opts, budget, kind, k, seed)
     assert len(sets) > 3, "the instance should admit several routes"
-    cert = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6, path=PathOptions(end=end),
-                      **o)
+    cert = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6,
+                      path=PathOptions(end=end, **o))
     best = best_over(Y, sets, ridge)
     init = nearest(D, start, k, end)
     best_init = logdet(Y, init, ridge)
@@ -177,7 +177,7 @@ def test_bound_covers_every_route_brute_force(name, k, ridge, seed):
     assert cert.path["kind"] == "path" and cert.path["n_robots"] == 1
     # the bound is not vacuous: the plain count over all cells is looser or equal
     loose = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6, tighten=False,
-                       path=PathOptions(end=end), **o)
+                       path=PathOptions(end=end, **o))
     assert loose.bound >= cert.bound - 1e-6
 
 
@@ -337,7 +337,7 @@ def test_certify_bounds_greedy_plans_of_every_model(opts):
         o["end"] = int(region.cell_grid[o["end"]])
     budget = 6.0 if o.get("metric", "grid") == "grid" else (40.0 if "speed" in o else 600.0)
     plan = plan_greedy(Y, region, int(region.cell_grid[2, 1]), budget, ridge=0.01,
-                       progress=False, **o)
+                       progress=False, path=PathOptions(**o))
     cert = plan.certify(tol=1e-5)
     assert cert.information == pytest.approx(plan.information)
     assert cert.bound >= plan.information - 1e-7 and cert.gap >= -1e-7

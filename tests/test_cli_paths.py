@@ -44,7 +44,7 @@ def test_fleet_plan_matches_plan_greedy(sst_model, tmp_path, flags, python):
     route = _plan(sst_model, [*STARTS[0], *STARTS[1], "--budget", budget, *flags], tmp_path)
     model = GLRM.load(sst_model)
     plan = plan_greedy(model.Y_, model.region_, PY_STARTS, float(budget), progress=False,
-                       **python)
+                       path=PathOptions(**python))
     got = pd.read_csv(route)
     ref = plan.to_dataframe()
     for col in ("robot", "order", "cell", "waypoint"):

@@ -55,7 +55,7 @@ def test_fleet_evaluation_passes_the_path_model_to_every_method(model):
     allowed[5:, 6] = False  # a wall the robots may not cross
     mask = xr.DataArray(allowed, dims=("lat", "lon"),
                         coords={"lat": da["lat"].values, "lon": da["lon"].values})
-    opts = dict(metric="km", stop_cost=20.0, traversable=mask, closed=True)
+    opts = dict(path=PathOptions(metric="km", stop_cost=20.0, traversable=mask, closed=True))
     budgets = (800.0, 1600.0)
     ds = evaluate(da, budgets=budgets, model=model, n_robots=2, **opts, **COMMON)
     region = model.region_
@@ -132,8 +132,9 @@ def test_bad_options_fail_before_the_fit(kw, error, match, monkeypatch):
         raise AssertionError("fitted before checking the path options")
 
     monkeypatch.setattr(GLRM, "fit", no_fit)
+    n_robots = kw.pop("n_robots", 1)
     with pytest.raises(error, match=match):
-        evaluate(planted(), budgets=(3,), **kw, **COMMON)
+        evaluate(planted(), budgets=(3,), n_robots=n_robots, path=PathOptions(**kw), **COMMON)
 
 
 def test_bad_mask_and_too_many_robots(model):

@@ -126,8 +126,12 @@ def naive_greedy(Y, region, starts, budgets, ridge, cost="nearest-neighbor", ini
 
 
 def greedy(Y, region, start, budget, **kw):
+    """plan_greedy with the cases' path keywords gathered into one PathOptions."""
+    path = {key: kw.pop(key) for key in PATH_FIELDS if key in kw}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
+        if path:
+            kw["path"] = PathOptions(**path)
         return plan_greedy(Y, region, start, budget, progress=False, **kw)
 
 
@@ -491,10 +495,8 @@ def test_bad_path_inputs_name_the_argument(sea):
     ]
     for kw, word in cases:
         args = dict(start=starts[0], budget=5.0) | kw
-        path = {key: args.pop(key) for key in PATH_FIELDS if key in args}
         with pytest.raises((PlanningError, RegionError)) as info:
-            greedy(Y, region, args.pop("start"), args.pop("budget"),
-                   path=PathOptions(**path) if path else args.pop("path", None), **args)
+            greedy(Y, region, args.pop("start"), args.pop("budget"), **args)
         assert word in str(info.value), (kw, str(info.value))
 
 

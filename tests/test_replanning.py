@@ -33,7 +33,7 @@ def _state_and_plan(model, day, starts, budget, **path):
     state = MonitorState.from_model(model)
     prior = state.planner_kwargs(time=day.time.values)
     plan = plan_greedy(model.Y_, model.region_, starts, budget, criterion="gp-variance",
-                       initial="start", progress=False, **prior, **path)
+                       initial="start", progress=False, **prior, path=PathOptions(**path))
     return state, plan
 
 
@@ -146,7 +146,7 @@ def test_a_route_to_an_end_plans_on_the_ellipse_as_on_the_disk(setup, monkeypatc
         monkeypatch.setattr(paths, "ELLIPSE_GRAPH", ellipse)
         pm = paths.make_path_model(region, (20.0, 200.0), budget, **path)
         plan = plan_greedy(model.Y_, region, pm.start, budget, criterion="gp-variance",
-                           initial="start", progress=False, **prior, **path)
+                           initial="start", progress=False, **prior, path=PathOptions(**path))
         out[ellipse] = (pm, plan)
     (small, a), (disk, b) = out[True], out[False]
     assert a == b and route_feasible(a, region) == [] and len(a.stops) > 2

@@ -336,10 +336,11 @@ def test_greedy_leg_average_records_the_legs(region, Y):
                                 {"sense_along": True}, {"metric": "km", "closed": True}])
 def test_point_sensor_is_todays_plan_bit_for_bit(region, Y, kw):
     budget = 60.0 if kw.get("metric") == "km" else 12.0
-    a = plan_greedy(Y, region, 10, budget, progress=False, **kw)
+    path = {key: kw.pop(key) for key in ("sense_along", "metric", "closed") if key in kw}
+    a = plan_greedy(Y, region, 10, budget, progress=False, path=PathOptions(**path), **kw)
     for sensor in ("point", Sensor(), None):
-        b = plan_greedy(Y, region, 10, budget, progress=False, path=PathOptions(sensor=sensor),
-                        **kw)
+        b = plan_greedy(Y, region, 10, budget, progress=False,
+                        path=PathOptions(sensor=sensor, **path), **kw)
         assert np.array_equal(a.cells, b.cells) and np.array_equal(a.route, b.route)
         assert a.information == b.information
         for key in a.history:
