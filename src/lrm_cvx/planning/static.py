@@ -61,7 +61,7 @@ from ..recommended import recommended_criterion
 from ..region import Region
 from .plan import Plan, check_region
 from .request import PlanPath
-from .terms import history_arrays, oracle_terms, resolve_prior, split_prior
+from .terms import PRIOR_TERMS, PriorTerms, history_arrays, oracle_terms, resolve_prior, split_prior
 
 __all__ = ["EXCHANGE_AUTO_MAX", "RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors",
            "place_static", "risk_objective", "stack_training", "training_residuals",
@@ -544,8 +544,10 @@ def place_static(
                      np.ones(L) if tw is None else np.asarray(tw, np.float64), None)
         if method == "dense" or getattr(terms["spatial_cov"], "metric", "grid") != "grid":
             # the registry's greedy, then the dense state for the exchange
-            base = place_sensors(Yk, region, n, criterion=crit, prior=prior, exchange=False,
-                                 **other)
+            rest = {k: v for k, v in other.items() if k not in PRIOR_TERMS}
+            given = {k: other[k] for k in PRIOR_TERMS if other.get(k) is not None}
+            base = place_sensors(Yk, region, n, criterion=crit, exchange=False, prior=(
+                PriorTerms(**given) if prior is None and given else prior), **rest)
             state = _state(gp, None, [int(c) for c in base.cells], allowed, method,
                            int(max_candidates), "exchange=True", n)
             hist = {k: list(v) for k, v in base.history.items()}
