@@ -403,8 +403,6 @@ def test_plan_greedy_takes_the_posterior_as_prior():
     m = fit_model(da, offset=True, noise="per-cell", spatial="exponential")
     for crit, spatial in (("a-optimal", False), ("fisher", False), ("gp-variance", True)):
         kw = m.planner_kwargs(spatial=spatial)
-        if not spatial:
-            kw = {k: v for k, v in kw.items() if k not in ("prior_cov", "spatial_cov")}
         a = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion=crit, initial="start",
                         progress=False, **kw)
         b = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion=crit, initial="start",
