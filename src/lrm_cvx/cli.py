@@ -54,7 +54,7 @@ from .cli_common import (
     write_plans,
 )
 from .errors import LrmError
-from .recommended import RECOMMENDED  # the default unless --paper (one dict with the demo)
+from .recommended import RECOMMENDED, recommended_criterion  # the default unless --paper
 
 __all__ = ["main", "build_parser", "RECOMMENDED"]
 
@@ -361,12 +361,12 @@ def _plan_from_args(args: argparse.Namespace):
 
     paper = paper_setting(args)
     criterion = _canonical(CRITERIA, _pick(args.criterion, paper, "criterion", "fisher"))
-    if (args.criterion is None and criterion == "gp-variance"
-            and getattr(model, "spatial_cov_", None) is None):
+    fallback = recommended_criterion(getattr(model, "spatial_cov_", None) is not None)
+    if args.criterion is None and not paper and fallback != criterion:
         note(f"model {args.model} has no spatial residual (fitted with --paper or without "
-             "--spatial), so the recommended gp-variance criterion cannot run; planning with "
-             "fisher (--criterion chooses)")
-        criterion = "fisher"
+             f"--spatial), so the recommended {criterion} criterion cannot run; planning with "
+             f"{fallback} (--criterion chooses)")
+        criterion = fallback
     prior = _prior(_pick(args.prior, paper, "prior", None))
     initial = _pick(args.initial, paper, "initial", "nearest")
     kw: dict = {}
