@@ -397,14 +397,14 @@ def test_complete_pairs_edge_cases():
 
 def test_plan_greedy_takes_the_posterior_as_prior():
     from lrm_cvx.errors import PlanningError
-    from lrm_cvx.planning import plan_greedy
+    from lrm_cvx.planning import PriorTerms, plan_greedy
 
     da = small_field(3)
     m = fit_model(da, offset=True, noise="per-cell", spatial="exponential")
     for crit, spatial in (("a-optimal", False), ("fisher", False), ("gp-variance", True)):
-        kw = m.planner_kwargs(spatial=spatial)
+        terms = PriorTerms(**m.latent_prior("empirical", spatial=spatial).information())
         a = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion=crit, initial="start",
-                        progress=False, **kw)
+                        progress=False, prior=terms)
         b = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion=crit, initial="start",
                         progress=False, prior=m.latent_prior("empirical", spatial=spatial))
         assert a.cells.tolist() == b.cells.tolist()

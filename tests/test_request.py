@@ -326,3 +326,59 @@ def test_no_public_function_takes_more_than_15_parameters():
     for fn in (plan_greedy, lrm_cvx.plan_bound, place_sensors, transect, random_walk,
                lrm_cvx.refine, lrm_cvx.simulate_campaign):
         assert _count(fn) <= 15, (fn.__name__, _count(fn))
+
+
+# ------------------------------------------------------------------ one object per idea
+def test_every_refine_mode_is_an_entry_of_refiners(small, monkeypatch):
+    from lrm_cvx.planning.refiners import REFINERS
+
+    region, Y = small
+    assert {"local", "lines", "rivals"} <= set(REFINERS)
+    monkeypatch.setattr(REFINERS, "_entries", dict(REFINERS._entries))
+    monkeypatch.setattr(REFINERS, "_lookup", dict(REFINERS._lookup))
+    seen = {}
+
+    def keep(plan, options, context):
+        seen.update(options=options, context=context)
+        return plan
+
+    REFINERS.register("keep", keep, description="the plan as it is")
+    kw = dict(ridge=1e-3, progress=False)
+    plain = plan_greedy(Y, region, 5, 6.0, **kw)
+    assert plan_greedy(Y, region, 5, 6.0, refine="keep", **kw) == plain
+    context = seen["context"]
+    assert seen["options"] == {} and context.criterion == "fisher" and context.ridge == 1e-3
+    gentle = plan_greedy(Y, region, 5, 6.0, cost_exponent=0.5, **kw)
+    assert context.rival(0.5) == gentle  # the greedy rerun, as "rivals" uses it
+    with pytest.raises(PlanningError, match="refine must be"):
+        plan_greedy(Y, region, 5, 6.0, refine="nope", **kw)
+
+
+def test_the_prior_and_the_path_are_one_argument_each(small):
+    from lrm_cvx.planning import PriorTerms
+
+    region, Y = small
+    k, L = Y.shape
+    terms = PriorTerms(prior_precision=np.eye(k), noise_var=np.linspace(0.5, 1.5, L))
+    plan = plan_greedy(Y, region, 5, 6.0, criterion="a-optimal", initial="start",
+                       progress=False, prior=terms)
+    assert plan.posterior and plan.cells[0] == 5
+    assert terms.same(PriorTerms(np.eye(k), np.linspace(0.5, 1.5, L)))
+    assert not terms.same(PriorTerms(noise_var=1.0))
+    for bad in (dict(noise_var=1.0), dict(closed=True), dict(static=True)):
+        with pytest.raises(TypeError, match=next(iter(bad))):
+            plan_greedy(Y, region, 5, 6.0, progress=False, **bad)
+    with pytest.raises(PlanningError, match="PriorTerms"):
+        plan_greedy(Y, region, 5, 6.0, progress=False, prior={"noise_var": 1.0})
+    for fn in (transect, random_walk):
+        with pytest.raises(TypeError, match="metric"):
+            fn(region, 5, 6.0, *(("up",) if fn is transect else ()), metric="km")
+
+
+def test_the_recommended_criterion_and_its_fallback_read_recommended(monkeypatch):
+    from lrm_cvx.recommended import RECOMMENDED, recommended_criterion
+
+    assert recommended_criterion(True) == RECOMMENDED["criterion"] == "gp-variance"
+    assert recommended_criterion(False) == "fisher"  # gp-variance needs the residual
+    monkeypatch.setitem(RECOMMENDED, "criterion", "a-optimal")
+    assert recommended_criterion(False) == recommended_criterion(True) == "a-optimal"
