@@ -1,4 +1,5 @@
 """One path request: how the robots travel (:class:`PathOptions`) and who travels (:class:`Fleet`).
+
 Every planner, baseline, the certificate, ``evaluate`` and the CLI read a request through these
 two objects, validated here and nowhere else. The public entry points take the path as one
 ``path=PathOptions(...)`` (the CLI turns its flags into one); :meth:`PathOptions.from_kwargs`
