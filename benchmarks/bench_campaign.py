@@ -36,6 +36,7 @@ def main() -> None:
     from lrm_cvx import load_sample
     from lrm_cvx.evaluation import evaluate, summary
     from lrm_cvx.glrm import GLRM
+    from lrm_cvx.planning import PathOptions
 
     budgets = tuple(float(b) for b in args.budgets.split(","))
     n_starts, trials = (4, 5) if args.quick else (10, 20)
@@ -49,7 +50,7 @@ def main() -> None:
     common = dict(rank=rank, n_test=n_test, budgets=budgets, n_starts=n_starts,
                   random_trials=trials, min_observations=1, seed=args.seed, progress=False,
                   model=rec, fold_in={"prior": "empirical", "spatial": True}, certify=False,
-                  **path)
+                  path=PathOptions(**path))
     pd.set_option("display.width", 200)
     results = {}
     for n_robots in sorted({1, args.robots}):

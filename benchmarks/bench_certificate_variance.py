@@ -57,8 +57,8 @@ def main(argv: list[str] | None = None) -> int:
                     plan = plan_greedy(model, start, budget, progress=False)
                     t_plan = time.perf_counter() - t0
                     t0 = time.perf_counter()
-                    cert = plan.certify(tol=args.tol, max_pieces=args.max_pieces,
-                                        cover=args.cover)
+                    cert = plan.certify(tol=args.tol, tighten={"max_pieces": args.max_pieces,
+                                                               "cover": args.cover})
                 dt = time.perf_counter() - t0
                 relax = cert.relaxation
                 fw = (relax.value - relax.primal) / relax.value if relax.value else 0.0

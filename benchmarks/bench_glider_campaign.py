@@ -44,6 +44,7 @@ import numpy as np
 from lrm_cvx import GLRM, load_sample
 from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.errors import ModelError
+from lrm_cvx.planning import PathOptions
 from lrm_cvx.planning.paths import startable_cells
 from lrm_cvx.replanning import route_feasible
 
@@ -108,7 +109,7 @@ def main() -> None:
         rng = np.random.default_rng(0)
         pairs += [[int(c) for c in rng.choice(cand, 2, replace=False)]
                   for _ in range(args.pairs - 1)]
-    common = dict(method="greedy:gp-variance", **PATH)
+    common = dict(method="greedy:gp-variance", path=PathOptions(**PATH))
     rep = f"filter + replan every {args.every}"
     mse, n_obs, seconds, problems, used = {}, {}, {}, [], 0.0
 

@@ -30,7 +30,7 @@ import numpy as np
 from lrm_cvx import Region
 from lrm_cvx.information import GPVarianceOracle, StructuredGPVarianceOracle
 from lrm_cvx.io.samples import synthetic_field
-from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning import PriorTerms, plan_greedy
 from lrm_cvx.planning.greedy import budget_pool
 from lrm_cvx.spatial import ResidualCovariance
 
@@ -93,8 +93,8 @@ def agreement(shape: tuple[int, int], budget: float) -> None:
                 info.GP_STRUCTURED_MIN_ENTRIES = thr
                 try:
                     plans.append(plan_greedy(Y, region, start, budget, criterion="gp-variance",
-                                             prior_cov=S0, spatial_cov=cov, initial="start",
-                                             cost="insertion", progress=False))
+                                             initial="start", cost="insertion", progress=False,
+                                             prior=PriorTerms(prior_cov=S0, spatial_cov=cov)))
                 finally:
                     info.GP_STRUCTURED_MIN_ENTRIES = old
         print(f"  plan_greedy budget {budget:g} (insertion): dense and structured picks equal: "
@@ -116,9 +116,9 @@ def route_scoring(shape: tuple[int, int], budget: float) -> None:
 
     lines.route_values = spy
     try:
-        plan_greedy(Y, region, start, budget, criterion="gp-variance", prior_cov=S0,
-                    spatial_cov=cov, initial="start", cost="insertion", progress=False,
-                    refine="rivals")
+        plan_greedy(Y, region, start, budget, criterion="gp-variance", initial="start",
+                    cost="insertion", progress=False, refine="rivals",
+                    prior=PriorTerms(prior_cov=S0, spatial_cov=cov))
     finally:
         lines.route_values = real
     criterion, Yr, ridge, routes, extra = seen["args"]
@@ -174,14 +174,14 @@ def main() -> None:
                     continue  # the exact NN cost: once is enough
                 t = time.perf_counter()
                 plan = plan_greedy(Y, region, start, budget, criterion="gp-variance",
-                                   prior_cov=S0, spatial_cov=cov, initial="start", cost=cost,
-                                   progress=False)
+                                   initial="start", cost=cost, progress=False,
+                                   prior=PriorTerms(prior_cov=S0, spatial_cov=cov))
                 sec = time.perf_counter() - t
                 n = max(len(plan) - 1, 1)
                 t = time.perf_counter()
                 best = plan_greedy(Y, region, start, budget, criterion="gp-variance",
-                                   prior_cov=S0, spatial_cov=cov, initial="start", cost=cost,
-                                   progress=False, refine="rivals")
+                                   initial="start", cost=cost, progress=False, refine="rivals",
+                                   prior=PriorTerms(prior_cov=S0, spatial_cov=cov))
                 t_rivals = time.perf_counter() - t
                 print(f"{r:5g} {budget:6g} {cost:>17} {pool.size:7d} {t_setup:15.2f} "
                       f"{sec:8.2f} {len(plan):4d} {(sec - t_setup) / n:7.3f} "

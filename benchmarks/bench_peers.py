@@ -367,7 +367,7 @@ def greedy_sets(paper: GLRM, model: GLRM, n: int) -> dict[str, np.ndarray]:
     (no path cost): ``fisher`` on the paper model's basis (ridge 1e-6), ``gp-variance`` on the
     predictive model (empirical prior + GP residual)."""
     L = model.region_.n_cells
-    kw_gp = model.planner_kwargs(prior="empirical", spatial=True)
+    kw_gp = model.latent_prior("empirical", spatial=True).information()
     return {
         "fisher": cost_free_greedy(make_oracle("fisher", paper.Y, 1e-6), n, L),
         "gp": cost_free_greedy(GPVarianceOracle(

@@ -24,7 +24,7 @@ import numpy as np
 
 from lrm_cvx import Region
 from lrm_cvx.io.samples import synthetic_field
-from lrm_cvx.planning import place_sensors, plan_greedy
+from lrm_cvx.planning import PathOptions, place_sensors, plan_greedy
 
 RIDGE = 1e-6  # the planted factors are so smooth that 5 adjacent cells are singular
 
@@ -168,7 +168,8 @@ def _path_targets(Y: np.ndarray, region: Region, start: int, grid_budget: float)
     noisy = Y + 0.3 * Y.std(axis=1, keepdims=True) * np.random.default_rng(0).standard_normal(
         Y.shape)
     km = grid_budget * _km_per_grid_unit(region, start)
-    opts = dict(metric="km", traversable="valid", closed=True, ridge=RIDGE, progress=False)
+    path = PathOptions(metric="km", traversable="valid", closed=True)
+    opts = dict(path=path, ridge=RIDGE, progress=False)
     # compile the path model's kernels once, outside the timings
     small = _small_region(region, 400)
     plan_greedy(Y[:, :400], small, 0, 3 * _km_per_grid_unit(region, start), **opts)
@@ -194,7 +195,9 @@ def _path_targets(Y: np.ndarray, region: Region, start: int, grid_budget: float)
     # no targets: sensing along the route (one robot) and a static placement of as many
     # sensors as the route has stops
     t = time.perf_counter()
-    plan = plan_greedy(noisy, region, start, km, sense_along=True, **opts)
+    plan = plan_greedy(noisy, region, start, km, ridge=RIDGE, progress=False,
+                       path=PathOptions(metric="km", traversable="valid", closed=True,
+                                        sense_along=True))
     print(f"sense_along, 1 robot: {time.perf_counter() - t:.2f} s, {plan.stops.size} stops, "
           f"{len(plan)} cells observed, information {plan.information:.4f}")
     t = time.perf_counter()

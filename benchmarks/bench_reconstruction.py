@@ -172,8 +172,8 @@ def run_free(name: str, da: xr.DataArray, ns, n_random) -> None:
     vals = region.stack(test).astype(np.float64)
     Yp = paper.Y
     Y = model.Y
-    kw_post = model.planner_kwargs(prior="empirical")
-    kw_gp = model.planner_kwargs(prior="empirical", spatial=True)
+    kw_post = model.latent_prior("empirical").information()
+    kw_gp = model.latent_prior("empirical", spatial=True).information()
     rng = np.random.default_rng(0)
     print(f"\n[{name}] unconstrained (no route), L = {L}; MSE with the paper's fold-in "
           f"(paper model) / the GP prediction (predictive model); complete (paper) "

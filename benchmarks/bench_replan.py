@@ -42,7 +42,7 @@ from bench_planner import _km_per_grid_unit  # one grid step in km at the start
 from lrm_cvx import GLRM, load_sample
 from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.monitor import MonitorState
-from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning import PathOptions, plan_greedy
 from lrm_cvx.replanning import route_feasible
 
 
@@ -109,12 +109,13 @@ def paper_scale(cache: str | None, small: bool, criterion: str, profile: bool) -
           f"{40 if small else 200} grid units), traversable 'valid', closed, criterion "
           f"{criterion}", flush=True)
     plan_greedy(model.Y, region, start, km / 40, initial="start", progress=False, ridge=1e-6,
-                stay=True, **PATH)  # compile the kernels outside the timings
+                stay=True, path=PathOptions(**PATH))  # compile the kernels outside the timings
     state = MonitorState.from_model(model)
     t_day = state.next_time()
     tic = time.perf_counter()
     plan = plan_greedy(model.Y, region, start, km, criterion=criterion, initial="start",
-                       progress=False, **state.planner_kwargs(criterion, time=t_day), **PATH)
+                       progress=False, **state.planner_kwargs(criterion, time=t_day),
+                       path=PathOptions(**PATH))
     t_plan = time.perf_counter() - tic
     assert route_feasible(plan, region) == []
     done = plan.route.size // 2
@@ -166,7 +167,7 @@ def paper_scale(cache: str | None, small: bool, criterion: str, profile: bool) -
     tic = time.perf_counter()
     two = plan_greedy(model.Y, region, [start, second], km, criterion=criterion,
                       initial="start", progress=False,
-                      **st.planner_kwargs(criterion, time=t_day), **fleet)
+                      **st.planner_kwargs(criterion, time=t_day), path=PathOptions(**fleet))
     t_two = time.perf_counter() - tic
     done2 = [int(np.count_nonzero(two.route_robot == r)) // 2 for r in range(2)]
     seen = np.concatenate([two.route[two.route_robot == r][:k] for r, k in enumerate(done2)])
@@ -207,7 +208,7 @@ def main() -> None:
         tic = time.perf_counter()
         runs[name] = simulate_campaign(model, test, STARTS, budgets,
                                        method="greedy:gp-variance", temporal="ar1",
-                                       replan_every=every, **PATH)
+                                       replan_every=every, path=PathOptions(**PATH))
         seconds[name] = (time.perf_counter() - tic) / args.days
     once, again = runs["once"], runs["replan"]
     for i in range(args.days):

@@ -32,7 +32,7 @@ import numpy as np
 from lrm_cvx import Region
 from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel
 from lrm_cvx.io.samples import synthetic_field
-from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning import PathOptions, plan_greedy
 from lrm_cvx.planning.greedy import budget_pool
 from lrm_cvx.planning.sensors import footprint_matrix, plan_observations
 
@@ -64,8 +64,8 @@ def quality() -> None:
             for sensor in ("point", "disc:1200km", "square:1200km", "leg-average",
                            "disc:1200km,errors=shared", "square:1200km,errors=shared",
                            "leg-average,errors=shared"):
-                plan = plan_greedy(model.Y_, model.region_, (10, 210), budget, sensor=sensor,
-                                   prior=prior, initial="start", progress=False)
+                plan = plan_greedy(model.Y_, model.region_, (10, 210), budget, prior=prior,
+                                   initial="start", progress=False, path=PathOptions(sensor=sensor))
                 err = []
                 for t in range(V.shape[0]):
                     rows, vals = plan.observe(V[t])
@@ -85,8 +85,8 @@ def certificate(Y: np.ndarray, region: Region, start: int, width: float) -> None
     """The footprint plan's certificate (docs/certificate.md §11): time, candidates, memory."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        plan = plan_greedy(Y, region, start, 200.0, ridge=RIDGE, sensor=f"disc:{width}km",
-                           progress=False)
+        plan = plan_greedy(Y, region, start, 200.0, ridge=RIDGE, progress=False,
+                           path=PathOptions(sensor=f"disc:{width}km"))
     before = _peak_gib()
     t = time.perf_counter()
     with warnings.catch_warnings():
@@ -99,8 +99,8 @@ def certificate(Y: np.ndarray, region: Region, start: int, width: float) -> None
     for budget in (50.0, 200.0):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            towed = plan_greedy(Y, region, start, budget, ridge=RIDGE, sensor="towed",
-                                progress=False)
+            towed = plan_greedy(Y, region, start, budget, ridge=RIDGE, progress=False,
+                                path=PathOptions(sensor="towed"))
             point = plan_greedy(Y, region, start, budget, ridge=RIDGE, progress=False)
             t = time.perf_counter()
             cert = towed.certify()
@@ -145,8 +145,8 @@ def main() -> None:
             t = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                plan = plan_greedy(Y, region, start, budget, ridge=RIDGE, sensor=sensor,
-                                   progress=False)
+                plan = plan_greedy(Y, region, start, budget, ridge=RIDGE, progress=False,
+                                   path=PathOptions(sensor=sensor))
             sec = time.perf_counter() - t
             print(f"budget {budget:5.0f}  {plan.sensor.describe():>14s}: {sec:6.2f} s, "
                   f"{plan.stops.size:4d} stops, information {plan.information:9.3f}")

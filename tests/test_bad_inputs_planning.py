@@ -16,7 +16,9 @@ import xarray as xr
 
 from lrm_cvx import Region
 from lrm_cvx.errors import DataError, LrmError, PlanningError, RegionError
-from lrm_cvx.planning import plan_bound, plan_greedy, random_walk, transect
+from lrm_cvx.planning import PathOptions, PriorTerms, plan_bound, plan_greedy, random_walk, transect
+from lrm_cvx.planning.request import PATH_FIELDS
+from lrm_cvx.planning.terms import PRIOR_TERMS
 from lrm_cvx.spatial import ResidualCovariance
 
 
@@ -35,10 +37,15 @@ START = int(REGION.cell_grid[3, 3])
 
 
 def greedy(**kw):
+    """plan_greedy with the table's keywords: path options into one PathOptions, prior terms
+    into one PriorTerms (built in the call, so their checks are the call's)."""
     args = dict(Y=Y, region=REGION, start=START, budget=3.0, ridge=1e-3, progress=False)
     args.update(kw)
+    path = {key: args.pop(key) for key in PATH_FIELDS if key in args}
+    prior = {key: args.pop(key) for key in PRIOR_TERMS if key in args}
     return plan_greedy(args.pop("Y"), args.pop("region"), args.pop("start"), args.pop("budget"),
-                       **args)
+                       path=PathOptions(**path) if path else None,
+                       prior=PriorTerms(**prior) if prior else None, **args)
 
 
 # ------------------------------------------------------------------ errors: (call, class, text)
@@ -104,7 +111,8 @@ ERRORS = {
     "bound budget negative": (lambda: plan_bound(Y, REGION, START, -2), PlanningError,
                               "budget"),
     "bound budget string": (lambda: plan_bound(Y, REGION, START, "2"), PlanningError, "budget"),
-    "bound metric unknown": (lambda: plan_bound(Y, REGION, START, 2, metric="miles"),
+    "bound metric unknown": (lambda: plan_bound(Y, REGION, START, 2,
+                                                path=PathOptions(metric="miles")),
                              PlanningError, "metric"),
     "certify a baseline built without Y": (lambda: transect(REGION, START, 3, "up").certify(),
                                            PlanningError, "no model"),

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError, RegionError
 from lrm_cvx.information import fisher_information
-from lrm_cvx.planning import Plan, random_walk, transect
+from lrm_cvx.planning import PathOptions, Plan, random_walk, transect
 from lrm_cvx.planning.plan import PAPER_PATH
 from lrm_cvx.region import EARTH_RADIUS_KM
 
@@ -68,12 +68,13 @@ def test_defaults_are_the_paper_and_explicit_defaults_change_nothing():
     start = int(region.n_cells // 2)
     for d in DIRS:
         a = transect(region, start, 9.5, d, Y=Y)
-        b = transect(region, start, 9.5, d, Y=Y, metric="grid", speed=None, stop_cost=0.0,
-                     traversable=None, closed=False)
+        b = transect(region, start, 9.5, d, Y=Y,
+                     path=PathOptions(metric="grid", speed=None, stop_cost=0.0, traversable=None,
+                                      closed=False))
         assert a == b and a.path == dict(PAPER_PATH, starts=[start], budgets=[9.5], n_robots=1)
     a = random_walk(region, start, 9.5, 3, Y=Y)
-    assert a == random_walk(region, start, 9.5, 3, Y=Y, metric="grid", stop_cost=0,
-                            closed=False)
+    assert a == random_walk(region, start, 9.5, 3, Y=Y,
+                            path=PathOptions(metric="grid", stop_cost=0, closed=False))
 
 
 def test_defaults_are_bit_identical_to_the_baselines_before_the_path_model():
@@ -109,11 +110,11 @@ def test_the_path_model_branch_reproduces_the_paper_branch():
         budget = float(rng.uniform(0, 15))
         for d in DIRS:
             a, b = transect(region, start, budget, d), transect(region, start, budget, d,
-                                                                metric="GRID")
+                                                                path=PathOptions(metric="GRID"))
             assert a.route.tolist() == b.route.tolist() and a.cost == b.cost
             np.testing.assert_array_equal(a.route_cost, b.route_cost)
-        a, b = random_walk(region, start, budget, trial), random_walk(region, start, budget,
-                                                                      trial, metric="Grid")
+        a, b = random_walk(region, start, budget, trial), random_walk(region, start, budget, trial,
+                                                                      path=PathOptions(metric="Grid"))
         assert a.route.tolist() == b.route.tolist() and a.cost == b.cost
 
 
@@ -123,10 +124,12 @@ def test_km_costs_are_haversine_sums_plus_stops(speed, stop_cost):
     region = make_region(np.ones((6, 9), dtype=bool), lat0=30, step=3.0)
     start = int(region.cell_grid[3, 4])
     budget = 2500.0 if speed is None else 1500.0
-    plans = [transect(region, start, budget, d, metric="km", speed=speed, stop_cost=stop_cost)
+    plans = [transect(region, start, budget, d,
+                      path=PathOptions(metric="km", speed=speed, stop_cost=stop_cost))
              for d in DIRS]
-    plans += [random_walk(region, start, budget, s, metric="km", speed=speed,
-                          stop_cost=stop_cost) for s in range(5)]
+    plans += [random_walk(region, start, budget, s,
+                          path=PathOptions(metric="km", speed=speed,
+                                           stop_cost=stop_cost)) for s in range(5)]
     for plan in plans:
         ref = reference_cost(plan, speed, stop_cost)
         np.testing.assert_allclose(plan.route_cost, ref, rtol=1e-12, atol=1e-9)
@@ -138,8 +141,9 @@ def test_km_costs_are_haversine_sums_plus_stops(speed, stop_cost):
     # an east-west km step is shorter at high latitude: the transect walks farther there
     north = make_region(np.ones((3, 30), dtype=bool), lat0=60, step=1.0)
     equator = make_region(np.ones((3, 30), dtype=bool), lat0=-1, step=1.0)
-    far = transect(north, int(north.cell_grid[1, 0]), 800.0, "right", metric="km")
-    near = transect(equator, int(equator.cell_grid[1, 0]), 800.0, "right", metric="km")
+    far = transect(north, int(north.cell_grid[1, 0]), 800.0, "right", path=PathOptions(metric="km"))
+    near = transect(equator, int(equator.cell_grid[1, 0]), 800.0, "right",
+                    path=PathOptions(metric="km"))
     assert len(far.route) > len(near.route)
     assert len(near.route) - 1 == math.floor(800.0 / haversine(0, 150, 0, 151))
 
@@ -147,8 +151,8 @@ def test_km_costs_are_haversine_sums_plus_stops(speed, stop_cost):
 def test_transect_stops_at_the_first_step_that_does_not_fit():
     region = make_region(np.ones((1, 12), dtype=bool), lat0=0, step=1.0)
     step = haversine(0, 150, 0, 151)
-    plan = transect(region, 0, 3 * step + 5 * 10.0 - 1e-6, "right", metric="km",
-                    stop_cost=10.0)
+    plan = transect(region, 0, 3 * step + 5 * 10.0 - 1e-6, "right",
+                    path=PathOptions(metric="km", stop_cost=10.0))
     # start stop + 3 steps with 3 stops = 3 step + 40 fits; a 4th step needs 4 step + 50
     assert plan.route.tolist() == [0, 1, 2, 3]
     assert plan.cost == pytest.approx(3 * step + 40.0)
@@ -160,7 +164,7 @@ def test_transect_turns_at_a_cell_it_may_not_enter_like_at_the_edge():
     allowed = np.ones((5, 5), dtype=bool)
     allowed[0, :] = False  # the top row is land
     start = int(region.cell_grid[3, 1])
-    plan = transect(region, start, 6, "up", traversable=as_mask(region, allowed))
+    plan = transect(region, start, 6, "up", path=PathOptions(traversable=as_mask(region, allowed)))
     # the same lawnmower as on the grid without its top row
     small = make_region(np.ones((4, 5), dtype=bool))
     ref = transect(small, int(small.cell_grid[2, 1]), 6, "up")
@@ -179,7 +183,7 @@ def test_transect_with_valid_turns_at_masked_cells_instead_of_crossing():
     crossing = transect(region, start, 4, "up")
     assert [tuple(p) for p in region.grid_index[crossing.route].tolist()] == [
         (5, 1), (4, 1), (3, 1), (1, 1)]
-    turning = transect(region, start, 5, "up", traversable="valid")
+    turning = transect(region, start, 5, "up", path=PathOptions(traversable="valid"))
     assert [tuple(p) for p in region.grid_index[turning.route].tolist()] == [
         (5, 1), (4, 1), (3, 1), (3, 2), (4, 2), (5, 2)]
     assert turning.cost == 5 and neighbours_only(region, turning)
@@ -203,8 +207,8 @@ def test_routes_never_enter_forbidden_cells_and_fit_the_budget(seed, closed, km,
         kw.update(metric="km")
         budget *= 150.0  # ~ 220 km per 2-degree step
     enterable = allowed & mask
-    plans = [transect(region, start, budget, d, **kw) for d in DIRS]
-    plans.append(random_walk(region, start, budget, seed, **kw))
+    plans = [transect(region, start, budget, d, path=PathOptions(**kw)) for d in DIRS]
+    plans.append(random_walk(region, start, budget, seed, path=PathOptions(**kw)))
     for plan in plans:
         rows, cols = region.grid_index[plan.route].T
         assert enterable[rows, cols].all()
@@ -225,25 +229,25 @@ def test_random_walk_steps_only_to_enterable_neighbours_and_stops_when_none_fits
     allowed[2, :] = True  # a one-wide channel
     region = make_region(mask)
     start = int(region.cell_grid[2, 2])
-    plan = random_walk(region, start, 7, 0, traversable=as_mask(region, allowed))
+    plan = random_walk(region, start, 7, 0, path=PathOptions(traversable=as_mask(region, allowed)))
     assert set(region.grid_index[plan.route][:, 0].tolist()) == {2}
     assert plan.cost == 7
     # from an isolated enterable cell the walk has nowhere to go: a one-cell plan
     lone = np.zeros((5, 5), dtype=bool)
     lone[0, 0] = True
-    single = random_walk(region, 0, 5, 0, traversable=as_mask(region, lone))
+    single = random_walk(region, 0, 5, 0, path=PathOptions(traversable=as_mask(region, lone)))
     assert single.route.tolist() == [0] and single.cost == 0
 
 
 # ---------------------------------------------------------------- closed tours
 def test_closed_transect_goes_out_half_and_retraces():
     region = make_region(np.ones((1, 20), dtype=bool), lat0=0, step=1.0)
-    plan = transect(region, 0, 9.0, "right", closed=True, traversable="valid")
+    plan = transect(region, 0, 9.0, "right", path=PathOptions(closed=True, traversable="valid"))
     assert plan.route.tolist() == [0, 1, 2, 3, 4, 3, 2, 1, 0]
     assert plan.cost == 8 and plan.cells.tolist() == [0, 1, 2, 3, 4]
     assert plan.waypoint.tolist() == [True] * 5 + [False] * 3 + [True]
     # stop costs are paid once per observed cell, the way back observes nothing new
-    plan = transect(region, 0, 9.0, "right", closed=True, stop_cost=0.5)
+    plan = transect(region, 0, 9.0, "right", path=PathOptions(closed=True, stop_cost=0.5))
     # k cells out: 2 (k - 1) + 0.5 k <= 9 -> k = 4
     assert plan.route.tolist() == [0, 1, 2, 3, 2, 1, 0] and plan.cost == 8.0
 
@@ -253,17 +257,19 @@ def test_closed_transect_without_graph_turns_back_at_its_last_observed_cell():
     mask[0, 3:] = False
     mask[0, 9] = True
     region = make_region(mask)
-    plan = transect(region, 0, 10, "right", closed=True)  # masked positions crossed
+    plan = transect(region, 0, 10, "right",
+                    path=PathOptions(closed=True))  # masked positions crossed
     assert plan.route.tolist() == [0, 1, 2, 1, 0] and plan.cost == 4
-    plan = transect(region, 0, 18, "right", closed=True)
+    plan = transect(region, 0, 18, "right", path=PathOptions(closed=True))
     assert plan.route.tolist() == [0, 1, 2, 3, 2, 1, 0] and plan.cost == 18
 
 
 def test_closed_random_walk_returns_within_budget_in_hours():
     region = make_region(np.ones((8, 8), dtype=bool), lat0=40, step=1.0)
     for seed in range(10):
-        plan = random_walk(region, 27, 300.0, seed, metric="km", speed=2.0, stop_cost=3.0,
-                           closed=True, traversable="valid")
+        plan = random_walk(region, 27, 300.0, seed,
+                           path=PathOptions(metric="km", speed=2.0, stop_cost=3.0, closed=True,
+                                            traversable="valid"))
         assert plan.route[0] == plan.route[-1] == 27 and plan.cost <= 300.0 + 1e-9
         np.testing.assert_allclose(plan.route_cost, reference_cost(plan, 2.0, 3.0), rtol=1e-12)
         out = plan.route[: (plan.route.size + 1) // 2]
@@ -292,7 +298,7 @@ def test_travel_graph_wraps_longitude_on_a_full_circle():
                     lon=xr.DataArray(lon, dims="lon", coords={"lon": lon}),
                     mask=np.ones((2, 36), dtype=bool))
     start = int(region.cell_grid[0, 34])
-    wrapped = transect(region, start, 3.0, "right", traversable="valid")
+    wrapped = transect(region, start, 3.0, "right", path=PathOptions(traversable="valid"))
     assert region.grid_index[wrapped.route][:, 1].tolist() == [34, 35, 0, 1]
     paper = transect(region, start, 3.0, "right")  # no graph: turns at the grid's edge
     assert region.grid_index[paper.route].tolist() == [[0, 34], [0, 35], [1, 35], [1, 34]]
@@ -303,8 +309,8 @@ def test_fleet_is_one_baseline_per_robot_joined():
     region = make_region(np.ones((6, 8), dtype=bool))
     Y = np.random.default_rng(3).standard_normal((3, region.n_cells))
     starts, budgets = [3, 40], [4.0, 6.0]
-    fleet = transect(region, starts, budgets, "down", Y=Y, closed=True)
-    one = [transect(region, s, b, "down", Y=Y, closed=True) for s, b in
+    fleet = transect(region, starts, budgets, "down", Y=Y, path=PathOptions(closed=True))
+    one = [transect(region, s, b, "down", Y=Y, path=PathOptions(closed=True)) for s, b in
            zip(starts, budgets, strict=True)]
     assert fleet == Plan.from_robots(one, Y=Y, ridge=0.0, method="transect-down")
     assert fleet.n_robots == 2 and fleet.method == "transect-down"
@@ -313,11 +319,12 @@ def test_fleet_is_one_baseline_per_robot_joined():
     for sub, ref in zip(fleet.robots, one, strict=True):
         assert sub.route.tolist() == ref.route.tolist() and sub.cost == ref.cost
     # random walks draw from one generator in robot order: deterministic given the seed
-    a = random_walk(region, starts, 1000.0, 7, metric="km", traversable="valid")
+    a = random_walk(region, starts, 1000.0, 7, path=PathOptions(metric="km", traversable="valid"))
     gen = np.random.default_rng(7)
-    ref = [random_walk(region, s, 1000.0, gen, metric="km", traversable="valid")
+    ref = [random_walk(region, s, 1000.0, gen, path=PathOptions(metric="km", traversable="valid"))
            for s in starts]
-    assert a == random_walk(region, starts, 1000.0, 7, metric="km", traversable="valid")
+    assert a == random_walk(region, starts, 1000.0, 7,
+                            path=PathOptions(metric="km", traversable="valid"))
     assert [r.route.tolist() for r in a.robots] == [p.route.tolist() for p in ref]
     assert all(p.route.size > 3 for p in ref)
     assert (a.robot_costs <= 1000.0 + 1e-9).all() and a.method == "random"
@@ -342,8 +349,8 @@ def test_bad_path_options_are_clear_errors():
         (dict(closed="yes"), "closed"),
     ]
     for kw, match in cases:
-        for fn in (lambda **k: transect(region, 0, 5, "up", **k),
-                   lambda **k: random_walk(region, 0, 5, 0, **k)):
+        for fn in (lambda **k: transect(region, 0, 5, "up", path=PathOptions(**k)),
+                   lambda **k: random_walk(region, 0, 5, 0, path=PathOptions(**k))):
             with pytest.raises(PlanningError, match=match):
                 fn(**kw)
     with pytest.raises(PlanningError, match="budget"):

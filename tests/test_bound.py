@@ -20,6 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lrm_cvx.errors import ConvergenceWarning, PlanningError
+from lrm_cvx.planning import PathOptions
 from lrm_cvx.planning import certificate as B
 from lrm_cvx.planning import dopt as D
 from lrm_cvx.planning.dopt import certify_weights, dopt_upper_bound, dual_value
@@ -313,12 +314,13 @@ def test_plan_bound_km_metric_uses_the_smallest_spacing():
     assert B._min_spacing_km(region, cand) == pytest.approx(dmin, rel=1e-8)
     assert B._min_spacing_km(region, cand) <= dmin
     budget = 2.5 * dmin
-    cert = B.plan_bound(Y, region, start, budget, metric="km", tol=1e-6, tighten=False)
+    cert = B.plan_bound(Y, region, start, budget, tol=1e-6, tighten=False,
+                        path=PathOptions(metric="km"))
     disk = np.flatnonzero(D[start] <= budget)
     assert cert.n_max == 3 and cert.n_candidates == disk.size
     assert cert.bound >= brute_force_best(Y, 3, 0.0, disk) - 1e-9
     # tightened (distance limits from the start): still covers every path-feasible set
-    tight = B.plan_bound(Y, region, start, budget, metric="km", tol=1e-6)
+    tight = B.plan_bound(Y, region, start, budget, tol=1e-6, path=PathOptions(metric="km"))
     best = max(logdet(Y[:, sorted(S)] @ Y[:, sorted(S)].T)
                for S in path_feasible_sets(D, start, budget))
     assert best - 1e-9 <= tight.bound <= cert.bound + 1e-6
@@ -330,7 +332,7 @@ def test_plan_bound_bad_input():
     with pytest.raises(PlanningError, match="budget"):
         B.plan_bound(Y, region, 0, -1.0)
     with pytest.raises(PlanningError, match="metric"):
-        B.plan_bound(Y, region, 0, 2.0, metric="miles")
+        B.plan_bound(Y, region, 0, 2.0, path=PathOptions(metric="miles"))
     with pytest.raises(PlanningError, match="ridge"):
         B.plan_bound(Y, region, 0, 2.0, ridge=-1)
 
@@ -358,7 +360,7 @@ def test_plan_bound_covers_greedy_and_baseline_plans(instance):
 
     region, start, k, budget, seed = instance
     Y = _grid_Y(region, k, seed)
-    cert = B.plan_bound(Y, region, start, budget, max_pieces=8)
+    cert = B.plan_bound(Y, region, start, budget, tighten={"max_pieces": 8})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         plans = [plan_greedy(Y, region, start, budget, progress=False)]
@@ -367,7 +369,7 @@ def test_plan_bound_covers_greedy_and_baseline_plans(instance):
     for plan in plans:
         info = logdet(Y[:, plan.cells] @ Y[:, plan.cells].T)
         assert cert.bound >= info - 1e-9, (plan.method, cert.bound, info)
-    greedy_cert = plans[0].certify(max_pieces=8)
+    greedy_cert = plans[0].certify(tighten={"max_pieces": 8})
     assert greedy_cert.gap >= -1e-9
     assert greedy_cert.bound <= cert.bound + 1e-9
     assert greedy_cert.information == pytest.approx(plans[0].information)
@@ -498,9 +500,11 @@ def test_limits_bad_input():
     region = make_region(4, 4)
     Yr = _grid_Y(region, 2, 0)
     with pytest.raises(PlanningError, match="cover"):
-        B.plan_bound(Yr, region, 0, 3.0, cover=0)
+        B.plan_bound(Yr, region, 0, 3.0, tighten={"cover": 0})
     with pytest.raises(PlanningError, match="max_pieces"):
-        B.plan_bound(Yr, region, 0, 3.0, max_pieces=0)
+        B.plan_bound(Yr, region, 0, 3.0, tighten={"max_pieces": 0})
+    with pytest.raises(PlanningError, match="tighten"):
+        B.plan_bound(Yr, region, 0, 3.0, tighten={"pieces": 3})
 
 
 def test_path_limits_hold_on_random_paths():
@@ -577,5 +581,6 @@ def test_tightened_bound_covers_every_path_feasible_set_brute_force(budget, k, r
     assert best - 1e-9 <= tight.bound <= loose.bound + 1e-6
     assert tight.bound < loose.bound - 0.1  # the tightening does something here
     # no refinement at all is valid too (and looser or equal)
-    coarse = B.plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6, max_pieces=1)
+    coarse = B.plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6,
+                          tighten={"max_pieces": 1})
     assert best - 1e-9 <= coarse.bound and tight.bound <= coarse.bound + 1e-6

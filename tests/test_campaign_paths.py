@@ -5,6 +5,7 @@ requests fail with one line."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from types import SimpleNamespace
 
@@ -87,8 +88,8 @@ def _brute_force_problems(ds, model, mask, starts, budgets):
                                            ("random", None)])
 def test_closed_km_fleet_with_no_go_cells_is_feasible_every_day(model, test_days, no_go,
                                                                 method, every):
-    ds = simulate_campaign(model, test_days, STARTS, BUDGETS, method=method, metric="km",
-                           traversable=no_go, closed=True, replan_every=every, seed=2)
+    ds = simulate_campaign(model, test_days, STARTS, BUDGETS, method=method, replan_every=every,
+                           seed=2, path=PathOptions(metric="km", traversable=no_go, closed=True))
     region = model.region_
     starts = [region.resolve_cell(s) for s in STARTS]
     assert _brute_force_problems(ds, model, no_go, starts, BUDGETS) == []
@@ -111,7 +112,7 @@ def test_default_request_is_the_papers_loop(model, test_days):
     loop (forecast, plan_greedy on it, assimilate the plan's cells) day by day."""
     base = simulate_campaign(model, test_days, 40, 12.0, method="greedy:fisher")
     same = simulate_campaign(model, test_days, 40, 12.0, method="greedy:fisher",
-                             path=PathOptions(), metric="grid", closed=False)
+                             path=PathOptions(metric="grid", closed=False))
     for name in base.data_vars:
         np.testing.assert_array_equal(base[name].values, same[name].values)
     assert "route_robot" not in base and base.attrs["budget"] == 12.0
@@ -133,13 +134,13 @@ def test_default_request_is_the_papers_loop(model, test_days):
 
 
 def test_first_day_is_a_direct_plan_greedy_call(model, test_days, no_go):
-    path = dict(metric="km", traversable=no_go, closed=True, stop_cost=50.0,
-                sense_along=True)
+    path = PathOptions(metric="km", traversable=no_go, closed=True, stop_cost=50.0,
+                       sense_along=True)
     ds = simulate_campaign(model, test_days, STARTS, BUDGETS, method="greedy:gp-variance",
-                           **path)
+                           path=path)
     prior = MonitorState.from_model(model).planner_kwargs(time=test_days.time.values[0])
     plan = plan_greedy(model.Y, model.region_, STARTS, BUDGETS, criterion="gp-variance",
-                       initial="start", progress=False, **prior, **path)
+                       initial="start", progress=False, **prior, path=path)
     route = ds["routes"].values[0]
     np.testing.assert_array_equal(route[route >= 0], plan.route)
     np.testing.assert_array_equal(ds["route_robot"].values[0][route >= 0], plan.route_robot)
@@ -155,39 +156,39 @@ def test_first_day_is_a_direct_plan_greedy_call(model, test_days, no_go):
 
 def test_baselines_follow_the_path_model_as_their_direct_calls(model, test_days, no_go):
     region = model.region_
-    path = dict(metric="km", traversable=no_go, closed=True)
-    tr = simulate_campaign(model, test_days, STARTS, BUDGETS, method="transect-up", **path)
-    direct = transect(region, STARTS, BUDGETS, "up", Y=model.Y, **path)
+    path = PathOptions(metric="km", traversable=no_go, closed=True)
+    tr = simulate_campaign(model, test_days, STARTS, BUDGETS, method="transect-up", path=path)
+    direct = transect(region, STARTS, BUDGETS, "up", Y=model.Y, path=path)
     for day in range(N_DAYS):  # a transect flies the same route every day
         route = tr["routes"].values[day]
         np.testing.assert_array_equal(route[route >= 0], direct.route)
     np.testing.assert_allclose(tr["robot_cost"].values[0], direct.robot_costs)
     rnd = simulate_campaign(model, test_days, STARTS, BUDGETS, method="random", seed=7,
-                            **path)
+                            path=path)
     gen = np.random.default_rng(7)  # one stream, drawn day after day
     for day in range(N_DAYS):
-        walk = random_walk(region, STARTS, BUDGETS, gen, Y=model.Y, **path)
+        walk = random_walk(region, STARTS, BUDGETS, gen, Y=model.Y, path=path)
         route = rnd["routes"].values[day]
         np.testing.assert_array_equal(route[route >= 0], walk.route)
     # sensing along changes nothing for a baseline: its route passes only its own cells
     along = simulate_campaign(model, test_days, STARTS, BUDGETS, method="transect-up",
-                              sense_along=True, **path)
+                              path=dataclasses.replace(path, sense_along=True))
     np.testing.assert_array_equal(along["mse"].values, tr["mse"].values)
 
 
 def test_evaluate_campaigns_take_the_path_model_and_fleets(sst, model):
     kw = dict(model=model, n_test=N_DAYS, budgets=(3000.0,), n_starts=1, random_trials=1,
               certify=False, progress=False, min_observations=1, temporal="ar1",
-              methods=("greedy:gp-variance", "transect-up"), metric="km",
-              traversable="valid", closed=True, n_robots=2, seed=1,
+              methods=("greedy:gp-variance", "transect-up"),
+              path=PathOptions(metric="km", traversable="valid", closed=True), n_robots=2, seed=1,
               fold_in={"prior": "empirical", "spatial": True})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = evaluate(sst, **kw)
     fleet = [int(c) for c in res["fleet_start_cell"].values[0]]
     direct = simulate_campaign(model, sst.isel(time=slice(-N_DAYS, None)), fleet, 3000.0,
-                               method="transect-up", metric="km", traversable="valid",
-                               closed=True)
+                               method="transect-up",
+                               path=PathOptions(metric="km", traversable="valid", closed=True))
     sel = {"method": "transect-up", "start": 0, "trial": 0, "budget": 3000.0}
     np.testing.assert_allclose(res["mse"].sel(sel).values, direct["mse"].values)
     np.testing.assert_allclose(res["robot_cost"].sel(sel).values, direct["robot_cost"][0])
@@ -198,11 +199,11 @@ def test_evaluate_campaigns_take_the_path_model_and_fleets(sst, model):
 
 def test_bad_requests_fail_in_one_line(model, test_days):
     with pytest.raises(PlanningError, match="budget has 1 values but there are 2 starts"):
-        simulate_campaign(model, test_days, STARTS, [4000.0], metric="km")
+        simulate_campaign(model, test_days, STARTS, [4000.0], path=PathOptions(metric="km"))
     with pytest.raises(PlanningError, match="'transect-up' cannot finish at a fixed end"):
-        simulate_campaign(model, test_days, 40, 9.0, method="transect-up", end=45)
+        simulate_campaign(model, test_days, 40, 9.0, method="transect-up", path=PathOptions(end=45))
     with pytest.raises(PlanningError, match="metric"):
-        simulate_campaign(model, test_days, 40, 9.0, metric="miles")
+        simulate_campaign(model, test_days, 40, 9.0, path=PathOptions(metric="miles"))
     with pytest.raises(PlanningError, match="replan_every"):
         simulate_campaign(model, test_days, 40, 9.0, replan_every=0)
     with pytest.raises(PlanningError, match="replan_every needs a greedy"):
@@ -211,17 +212,18 @@ def test_bad_requests_fail_in_one_line(model, test_days):
         simulate_campaign(model, test_days, 40, 9.0, refine=True)
     data = load_sample("sst")
     with pytest.raises(PlanningError, match="cannot finish at a fixed end"):
-        evaluate(data, model=model, n_test=N_DAYS, temporal="ar1", end=45, budgets=(9,),
-                 methods=("greedy:gp-variance", "random"), progress=False)
+        evaluate(data, model=model, n_test=N_DAYS, temporal="ar1", budgets=(9,),
+                 methods=("greedy:gp-variance", "random"), progress=False, path=PathOptions(end=45))
     with pytest.raises(PlanningError, match="temporal campaigns only"):
-        evaluate(data, model=model, n_test=N_DAYS, sense_along=True, budgets=(9,),
-                 progress=False)
+        evaluate(data, model=model, n_test=N_DAYS, budgets=(9,), progress=False,
+                 path=PathOptions(sense_along=True))
 
 
 def test_fixed_end_fleet_and_attrs_round_trip_through_netcdf(sst, model, test_days, tmp_path):
     end = (-12.5, 200.0)
     ds = simulate_campaign(model, test_days, STARTS, [9000.0, 9000.0], method="greedy:fisher",
-                           metric="km", traversable="valid", end=end, temporal=None)
+                           temporal=None,
+                           path=PathOptions(metric="km", traversable="valid", end=end))
     cell = model.region_.resolve_cell(end)
     for day in range(N_DAYS):
         assert all(r[-1] == cell for r in _robot_routes(ds, day))  # every robot ends there
@@ -234,7 +236,8 @@ def test_fixed_end_fleet_and_attrs_round_trip_through_netcdf(sst, model, test_da
         warnings.simplefilter("ignore")
         res = evaluate(sst, model=model, n_test=N_DAYS, budgets=(9000.0,), n_starts=1,
                        certify=False, progress=False, min_observations=1, temporal="ar1",
-                       methods=("greedy:fisher",), metric="km", traversable="valid", end=end)
+                       methods=("greedy:fisher",),
+                       path=PathOptions(metric="km", traversable="valid", end=end))
     assert res.attrs["end"] == cell and np.isfinite(res["mse"]).all()
 
 
@@ -247,16 +250,16 @@ def test_a_footprint_campaign_observes_one_average_per_stop(model, test_days, me
     from lrm_cvx.planning.sensors import plan_observations
 
     ds = simulate_campaign(model, test_days.isel(time=[0]), (0.0, 200.0), 10.0, method=method,
-                           temporal=None, sensor="disc:1500km")
+                           temporal=None, path=PathOptions(sensor="disc:1500km"))
     assert ds.attrs["sensor"] == "disc 1500 km"
     region = model.region_
     state = MonitorState.from_model(model, memoryless=True)
     path = PathOptions(sensor="disc:1500km")
     planner = planner_for(method)
-    terms = (state.planner_kwargs(criterion=planner.criterion)
+    prior = (state.planner_kwargs(criterion=planner.criterion)["prior"]
              if getattr(planner, "model_prior", False) else None)
     plan = planner.plan(model.Y, region, Fleet.resolve(region, (0.0, 200.0), 10.0), path,
-                        rng=np.random.default_rng(0), ridge=0.0, terms=terms)
+                        rng=np.random.default_rng(0), ridge=0.0, prior=prior)
     np.testing.assert_array_equal(ds["routes"].values[0, : len(plan.route)], plan.route)
     truth = region.stack(test_days.isel(time=0)).astype(np.float64)
     rows, vals = plan_observations(plan, truth)
@@ -275,7 +278,7 @@ def test_a_footprint_campaign_observes_one_average_per_stop(model, test_days, me
 def test_replanning_en_route_refuses_a_footprint_sensor(model, test_days):
     with pytest.raises(PlanningError, match="footprint or towed sensor"):
         simulate_campaign(model, test_days, (0.0, 200.0), 10.0, replan_every=2,
-                          sensor="disc:1500km")
+                          path=PathOptions(sensor="disc:1500km"))
 
 
 def test_the_forecast_error_is_the_morning_map_before_the_samples(model, test_days):

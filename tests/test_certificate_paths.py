@@ -21,6 +21,7 @@ import pytest
 import xarray as xr
 
 from lrm_cvx.errors import PlanningError
+from lrm_cvx.planning import PathOptions
 from lrm_cvx.planning.certificate import plan_bound
 from lrm_cvx.region import Region
 
@@ -161,7 +162,8 @@ def test_bound_covers_every_route_brute_force(name, k, ridge, seed):
     opts, budget, kind = CASES[name]
     region, Y, start, end, o, D, sets = _instance(opts, budget, kind, k, seed)
     assert len(sets) > 3, "the instance should admit several routes"
-    cert = plan_bound(Y, region, start, budget, ridge=ridge, end=end, tol=1e-6, **o)
+    cert = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6,
+                      path=PathOptions(end=end, **o))
     best = best_over(Y, sets, ridge)
     init = nearest(D, start, k, end)
     best_init = logdet(Y, init, ridge)
@@ -174,8 +176,8 @@ def test_bound_covers_every_route_brute_force(name, k, ridge, seed):
     assert cert.n_max >= max(len(S) for S in sets)
     assert cert.path["kind"] == "path" and cert.path["n_robots"] == 1
     # the bound is not vacuous: the plain count over all cells is looser or equal
-    loose = plan_bound(Y, region, start, budget, ridge=ridge, end=end, tol=1e-6,
-                       tighten=False, **o)
+    loose = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6, tighten=False,
+                       path=PathOptions(end=end, **o))
     assert loose.bound >= cert.bound - 1e-6
 
 
@@ -184,8 +186,8 @@ def test_closed_tour_stops_lie_within_half_the_budget():
     Y = field_Y(region, 2, 3)
     start = int(region.cell_grid[2, 2])
     budget = 3.0
-    cert = plan_bound(Y, region, start, budget, closed=True, tol=1e-6)
-    open_ = plan_bound(Y, region, start, budget, tol=1e-6, stop_cost=1e-12)
+    cert = plan_bound(Y, region, start, budget, tol=1e-6, path=PathOptions(closed=True))
+    open_ = plan_bound(Y, region, start, budget, tol=1e-6, path=PathOptions(stop_cost=1e-12))
     D = straight(region, "grid", None)
     assert cert.n_candidates == int((2 * D[start] <= budget + 1e-9).sum())
     assert open_.n_candidates == int((D[start] <= budget + 1e-9).sum())
@@ -220,11 +222,11 @@ def test_end_restricts_candidates_to_the_ellipse_and_stop_cost_caps_the_count():
     Y = field_Y(region, 2, 4)
     start, end = int(region.cell_grid[2, 0]), int(region.cell_grid[2, 4])
     D = straight(region, "grid", None)
-    cert = plan_bound(Y, region, start, 5.0, end=end, tol=1e-6)
+    cert = plan_bound(Y, region, start, 5.0, tol=1e-6, path=PathOptions(end=end))
     ellipse = np.flatnonzero(D[start] + D[:, end] <= 5.0 + 1e-9)
     assert cert.n_candidates == ellipse.size
     # stop_cost 2, budget 5: n stops cost 2 n + (n - 1) >= ... -> at most 2 stops
-    capped = plan_bound(Y, region, start, 5.0, stop_cost=2.0, tol=1e-6)
+    capped = plan_bound(Y, region, start, 5.0, tol=1e-6, path=PathOptions(stop_cost=2.0))
     assert capped.n_max == 2
 
 
@@ -267,7 +269,8 @@ def test_sensing_along_straight_legs_covers_every_route(closed, budget):
     best = best_over(Y, seen, 0.0)
     if not closed:  # more cells than a stops-only route of this length can hold
         assert max(len(S) for S in seen) > math.floor(budget) + 1
-    cert = plan_bound(Y, region, start, budget, closed=closed, sense_along=True, tol=1e-6)
+    cert = plan_bound(Y, region, start, budget, tol=1e-6,
+                      path=PathOptions(closed=closed, sense_along=True))
     assert cert.bound >= best - 1e-7
     assert cert.n_max >= max(len(S) for S in seen)
     assert cert.n_candidates >= len(set().union(*seen))
@@ -285,12 +288,13 @@ def test_fleet_of_two_covers_every_pair_of_routes(closed, budgets):
     for s, b in zip(starts, budgets, strict=True):
         fams.append(list(route_sets(D, s, b, closed=closed)) + [frozenset(nearest(D, s, k))])
     best = max(logdet(Y, A | B, ridge) for A in fams[0] for B in fams[1])
-    cert = plan_bound(Y, region, starts, budgets, ridge=ridge, closed=closed, tol=1e-6)
+    cert = plan_bound(Y, region, starts, budgets, ridge=ridge, tol=1e-6,
+                      path=PathOptions(closed=closed))
     assert cert.bound >= best - 1e-7
     assert cert.path["n_robots"] == 2
     # the fleet's distance limits (nearest start) only tighten the count-only union bound
-    loose = plan_bound(Y, region, starts, budgets, ridge=ridge, closed=closed, tol=1e-6,
-                       tighten=False)
+    loose = plan_bound(Y, region, starts, budgets, ridge=ridge, tol=1e-6, tighten=False,
+                       path=PathOptions(closed=closed))
     assert cert.bound <= loose.bound + 1e-6
     # two robots can do what one does
     assert cert.bound >= best_over(Y, fams[0], ridge) - 1e-7
@@ -301,11 +305,11 @@ def test_static_placement_bound_covers_every_placement():
     k, n = 2, 3
     Y = field_Y(region, k, 6)
     best = max(logdet(Y, S, 0.0) for S in itertools.combinations(range(region.n_cells), n))
-    cert = plan_bound(Y, region, None, None, path="static", n_sensors=n, tol=1e-6)
+    cert = plan_bound(Y, region, None, n, tol=1e-6)  # no start: fixed sensors
     assert cert.bound >= best - 1e-7
     assert cert.n_max == n and cert.n_candidates == region.n_cells
-    with pytest.raises(PlanningError, match="n_sensors"):
-        plan_bound(Y, region, None, None, path="static", n_sensors=0)
+    with pytest.raises(PlanningError, match="number of fixed sensors"):
+        plan_bound(Y, region, None, 0)
 
 
 # ----------------------------------------------------------------------------- planner's plans
@@ -333,7 +337,7 @@ def test_certify_bounds_greedy_plans_of_every_model(opts):
         o["end"] = int(region.cell_grid[o["end"]])
     budget = 6.0 if o.get("metric", "grid") == "grid" else (40.0 if "speed" in o else 600.0)
     plan = plan_greedy(Y, region, int(region.cell_grid[2, 1]), budget, ridge=0.01,
-                       progress=False, **o)
+                       progress=False, path=PathOptions(**o))
     cert = plan.certify(tol=1e-5)
     assert cert.information == pytest.approx(plan.information)
     assert cert.bound >= plan.information - 1e-7 and cert.gap >= -1e-7
@@ -347,8 +351,8 @@ def test_certify_bounds_fleet_and_static_plans():
     region = make_region(6, 6, masked=MASKED)
     Y = field_Y(region, 3, 8)
     starts = [int(region.cell_grid[0, 0]), int(region.cell_grid[5, 5])]
-    fleet = plan_greedy(Y, region, starts, [5.0, 4.0], ridge=0.01, closed=True,
-                        progress=False)
+    fleet = plan_greedy(Y, region, starts, [5.0, 4.0], ridge=0.01, progress=False,
+                        path=PathOptions(closed=True))
     cert = fleet.certify(tol=1e-5)
     assert cert.bound >= fleet.information - 1e-7 and cert.path["n_robots"] == 2
     static = place_sensors(Y, region, 6, ridge=0.01)
@@ -363,7 +367,8 @@ def test_a_plan_outside_its_model_is_refused():
     region = make_region(6, 6)
     Y = field_Y(region, 2, 9)
     start = int(region.cell_grid[2, 2])
-    plan = plan_greedy(Y, region, start, 6.0, closed=True, ridge=0.01, progress=False)
+    plan = plan_greedy(Y, region, start, 6.0, ridge=0.01, progress=False,
+                       path=PathOptions(closed=True))
     # the same cells do not fit a closed tour of half the budget
     with pytest.raises(PlanningError, match="not"):
         plan_bound(Y, region, start, 2.0, ridge=0.01, plan=_with_budget(plan, 2.0))
@@ -382,13 +387,13 @@ def test_bad_path_options():
     region = make_region(4, 4)
     Y = field_Y(region, 2, 0)
     with pytest.raises(PlanningError, match="speed"):
-        plan_bound(Y, region, 0, 3.0, speed=2.0)
+        plan_bound(Y, region, 0, 3.0, path=PathOptions(speed=2.0))
     with pytest.raises(PlanningError, match="closed"):
-        plan_bound(Y, region, 0, 3.0, closed=True, end=5)
+        plan_bound(Y, region, 0, 3.0, path=PathOptions(closed=True, end=5))
     with pytest.raises(PlanningError, match="budget"):
         plan_bound(Y, region, [0, 5], [3.0, 2.0, 1.0])
     with pytest.raises(PlanningError, match="stop_cost"):
-        plan_bound(Y, region, 0, 3.0, stop_cost=-1.0)
+        plan_bound(Y, region, 0, 3.0, path=PathOptions(stop_cost=-1.0))
     with pytest.raises(PlanningError, match="path"):
         plan_bound(Y, region, 0, 3.0, path="teleport")
 

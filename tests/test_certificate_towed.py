@@ -19,6 +19,7 @@ import pytest
 from test_certificate_paths import field_Y, graph, make_region, route_orders, straight
 
 from lrm_cvx.errors import PlanningError
+from lrm_cvx.planning import PathOptions
 from lrm_cvx.planning.certificate import plan_bound
 from lrm_cvx.planning.plan import line_cells
 
@@ -78,8 +79,8 @@ def test_straight_legs_bound_covers_every_route(errors, closed, budget, k, ridge
         n_rows = max(n_rows, len(rows))
         n_cells = max(n_cells, sum(len(r) for r in rows))
     assert math.isfinite(best)
-    cert = plan_bound(Y, region, start, budget, ridge=ridge, closed=closed, tol=1e-6,
-                      sensor=f"leg-average,errors={errors}")
+    cert = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-6,
+                      path=PathOptions(closed=closed, sensor=f"leg-average,errors={errors}"))
     assert cert.bound >= best - 1e-7
     assert cert.towed[0] >= n_rows and cert.towed[1] >= n_cells  # the counts hold
     assert cert.information is None and cert.gap is None  # no plan given
@@ -99,8 +100,9 @@ def test_travel_graph_legs_bound_covers_every_route(errors, closed, budget):
     leg = graph_paths(G, step)
     best = max(info_of_rows(Y, rows_of(order, leg, closed), 0.01, errors)
                for order in route_orders(G, start, budget, closed))
-    cert = plan_bound(Y, region, start, budget, ridge=0.01, closed=closed, tol=1e-6,
-                      traversable="valid", sensor=f"towed,errors={errors}")
+    cert = plan_bound(Y, region, start, budget, ridge=0.01, tol=1e-6,
+                      path=PathOptions(closed=closed, traversable="valid",
+                                       sensor=f"towed,errors={errors}"))
     assert cert.bound >= best - 1e-7
 
 
@@ -115,7 +117,7 @@ def test_fleet_of_two_towed_routes():
                  for s, b in zip(starts, budgets, strict=True)]
     best = max(info_of_rows(Y, A + B, 0.0, "independent")
                for A in per_robot[0] for B in per_robot[1])
-    cert = plan_bound(Y, region, starts, budgets, tol=1e-6, sensor="towed")
+    cert = plan_bound(Y, region, starts, budgets, tol=1e-6, path=PathOptions(sensor="towed"))
     assert cert.bound >= best - 1e-7
     assert cert.path["n_robots"] == 2
 
@@ -128,8 +130,8 @@ def test_greedy_towed_plan_is_certified():
     region = make_region(8, 8)
     Y = field_Y(region, 3, 0)
     for closed in (False, True):
-        plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, sensor="leg-average", closed=closed,
-                           progress=False)
+        plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, progress=False,
+                           path=PathOptions(sensor="leg-average", closed=closed))
         cert = plan.certify(tol=1e-6)
         info = row_information(Y, observation_rows(plan), 1e-3, errors="independent")
         assert cert.information == pytest.approx(plan.information) == pytest.approx(info)
@@ -137,7 +139,8 @@ def test_greedy_towed_plan_is_certified():
         assert cert.towed is not None and "towed sensor" in repr(cert)
         assert "leg cells" in cert._repr_html_() and "initial set" not in cert._repr_html_()
     # the same route certified against half its budget is refused, naming the route's cost
-    plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, sensor="leg-average", progress=False)
+    plan = plan_greedy(Y, region, 10, 9.0, ridge=1e-3, progress=False,
+                       path=PathOptions(sensor="leg-average"))
     with pytest.raises(PlanningError, match="not a route within budget=4"):
         plan_bound(Y, region, 10, 4.0, ridge=1e-3, plan=plan)
 
@@ -146,7 +149,7 @@ def test_towed_bound_errors():
     region = make_region(4, 4)
     Y = field_Y(region, 2, 0)
     with pytest.raises(PlanningError, match="static"):
-        plan_bound(Y, region, None, None, path="static", n_sensors=3, sensor="towed")
+        plan_bound(Y, region, None, 3, path=PathOptions(sensor="towed"))
     import xarray as xr
 
     from lrm_cvx.region import Region
@@ -156,7 +159,7 @@ def test_towed_bound_errors():
     wrapped = Region(lat=lat, lon=lon, mask=np.ones((3, 12), bool))
     Yw = field_Y(wrapped, 2, 1)
     with pytest.raises(PlanningError, match="wrap"):
-        plan_bound(Yw, wrapped, 0, 3.0, sensor="towed")
+        plan_bound(Yw, wrapped, 0, 3.0, path=PathOptions(sensor="towed"))
 
 
 @pytest.mark.parametrize("errors", ["independent", "shared"])
@@ -175,7 +178,7 @@ def test_towed_relaxation_equals_the_weighted_design_problem(errors):
     Y = field_Y(region, 3, 4)
     start, budget, ridge = int(region.cell_grid[2, 2]), 3.2, 0.05
     cert = plan_bound(Y, region, start, budget, ridge=ridge, tol=1e-7,
-                      sensor=f"towed,errors={errors}")
+                      path=PathOptions(sensor=f"towed,errors={errors}"))
     fam = leg_family(path_spec(region, None, start, budget, PathOptions(), "path", None),
                      region, 3)
     total = fam.cells if errors == "independent" else fam.rows
@@ -320,7 +323,8 @@ def test_midpoint_cover_tightens_the_towed_bound():
 
     region = make_region(12, 12)
     Y = field_Y(region, 3, 0)
-    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, sensor="towed", progress=False)
+    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, progress=False,
+                       path=PathOptions(sensor="towed"))
     cert = plan.certify(tol=1e-6)
     loose = plan.certify(tol=1e-6, tighten=False)
     assert cert.information <= cert.bound < loose.bound - 1e-3
@@ -342,8 +346,8 @@ def test_towed_cover_check_refuses_legs_outside_every_piece(errors):
 
     region = make_region(12, 12)
     Y = field_Y(region, 3, 0)
-    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, sensor=f"towed,errors={errors}",
-                       progress=False)
+    plan = plan_greedy(Y, region, 30, 6.0, ridge=1e-3, progress=False,
+                       path=PathOptions(sensor=f"towed,errors={errors}"))
     cert = plan.certify(tol=1e-6)
     span = leg_family(path_spec(region, None, 30, 6.0, PathOptions(), "path", None), region,
                       3).cover_span

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import a_optimal_value, gp_latent_cov, gp_variance_value
-from lrm_cvx.planning import plan_bound, plan_greedy, transect
+from lrm_cvx.planning import PathOptions, PriorTerms, plan_bound, plan_greedy, transect
 from lrm_cvx.planning.dopt import Polytope
 from lrm_cvx.planning.varbound import variance_objective, variance_relaxation
 from lrm_cvx.spatial import ResidualCovariance
@@ -39,7 +39,8 @@ def grid(ny: int = 5, nx: int = 5) -> Region:
 REGION = grid()
 Y = np.random.default_rng(3).standard_normal((2, REGION.n_cells))
 START = int(REGION.cell_grid[2, 2])
-GP = dict(spatial_cov=COV, prior_cov=np.eye(2))
+GP_TERMS = dict(spatial_cov=COV, prior_cov=np.eye(2))
+GP = dict(prior=PriorTerms(**GP_TERMS))
 
 
 def reduction(criterion: str, cells) -> float:
@@ -80,12 +81,12 @@ def best_route_value(criterion: str, start: int, budget: float, closed: bool) ->
 # ------------------------------------------------------------------------- validity
 @pytest.mark.parametrize("criterion", ["gp-variance", "a-optimal"])
 @pytest.mark.parametrize(("budget", "closed", "tight"),
-                         [(2.5, False, {"cover": 1, "max_pieces": 4}),
+                         [(2.5, False, {"tighten": {"cover": 1, "max_pieces": 4}}),
                           (3.0, True, {"tighten": False})])
 def test_bound_is_above_every_feasible_route(criterion, budget, closed, tight):
     kw = GP if criterion == "gp-variance" else {}
-    plan = plan_greedy(Y, REGION, START, budget, criterion=criterion, ridge=RIDGE,
-                       initial="start", closed=closed, progress=False, **kw)
+    plan = plan_greedy(Y, REGION, START, budget, criterion=criterion, ridge=RIDGE, initial="start",
+                       progress=False, path=PathOptions(closed=closed), **kw)
     cert = plan.certify(**tight)  # the midpoint cover (one square a quarter) or not
     assert cert.criterion == criterion and cert.comparable
     best = best_route_value(criterion, START, budget, closed)
@@ -169,7 +170,7 @@ def cvx_optimum(criterion: str, cells: np.ndarray, n: float) -> float:
 def test_frank_wolfe_bound_equals_the_cvxpy_optimum(seed, n, criterion):
     rng = np.random.default_rng(seed)
     cells = np.sort(rng.choice(REGION.n_cells, 8, replace=False))
-    terms = dict(GP, region=REGION) if criterion == "gp-variance" else {}
+    terms = dict(GP_TERMS, region=REGION) if criterion == "gp-variance" else {}
     obj = variance_objective(criterion, Y, cells, RIDGE, terms)
     b = variance_relaxation(obj, np.arange(cells.size), Polytope(n, cells.size), iters=40,
                             tol=1e-9, polish=True)
@@ -181,7 +182,7 @@ def test_frank_wolfe_bound_equals_the_cvxpy_optimum(seed, n, criterion):
 
 def test_frank_wolfe_alone_is_a_valid_bound_at_any_iterate():
     cells = np.arange(12)
-    obj = variance_objective("gp-variance", Y, cells, RIDGE, dict(GP, region=REGION))
+    obj = variance_objective("gp-variance", Y, cells, RIDGE, dict(GP_TERMS, region=REGION))
     poly = Polytope(3, cells.size)
     exact = variance_relaxation(obj, cells, poly, iters=30, tol=1e-9, polish=True)
     for iters in (1, 3, 10):
@@ -196,7 +197,7 @@ def test_frank_wolfe_alone_is_a_valid_bound_at_any_iterate():
 def test_certify_defaults_to_the_plans_criterion_and_fisher_is_one_keyword_away():
     plan = plan_greedy(Y, REGION, START, 3, criterion="gp-variance", initial="start",
                        refine="rivals", progress=False, **GP)
-    cert = plan.certify(cover=1, max_pieces=4)
+    cert = plan.certify(tighten={"cover": 1, "max_pieces": 4})
     assert cert.criterion == "gp-variance" and cert.unit == "unit^2"
     assert np.isfinite(cert.gap) and cert.relative_gap == pytest.approx(cert.gap / cert.bound)
     # the gap split: the greedy's route vs the route kept, then the bound's slack
@@ -233,9 +234,9 @@ def test_bad_inputs_get_one_line_errors():
         "criterion": (lambda: plan.certify(criterion="risk"), "criterion must be"),
         "no terms": (lambda: plan_bound(Y, REGION, START, 2, criterion="gp-variance"),
                      "needs the criterion's terms"),
-        "unknown term": (lambda: plan.certify(terms={"spatial": COV}), "unknown keys"),
-        "footprint": (lambda: plan_bound(Y, REGION, START, 2, criterion="gp-variance",
-                                         terms=GP, sensor="disc:1"), "point sensors only"),
+        "unknown prior": (lambda: plan.certify(prior={"spatial": COV}), "PriorTerms"),
+        "footprint": (lambda: plan_bound(Y, REGION, START, 2, criterion="gp-variance", **GP,
+                                         path=PathOptions(sensor="disc:1")), "point sensors only"),
         "path_aware": (lambda: plan.certify(path_aware=True), "Fisher criterion only"),
         "no ridge": (lambda: plan_bound(Y, REGION, START, 2, criterion="a-optimal"),
                      "ridge > 0"),

@@ -266,8 +266,6 @@ def test_plan_flags_match_plan_greedy(sst_model, tmp_path, flags, python):
     kw = {}
     if prior:
         kw = model.planner_kwargs(prior=prior, spatial=spatial)
-        if not spatial:
-            kw = {k: v for k, v in kw.items() if k not in ("prior_cov", "spatial_cov")}
     refine = None if "--paper" in flags else "rivals"  # the recommended check against rivals
     plan = plan_greedy(model.Y_, model.region_, (10, 210), 12, progress=False, refine=refine,
                        **python, **kw)

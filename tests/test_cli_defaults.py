@@ -277,8 +277,7 @@ def test_plan_on_a_paper_model_falls_back_with_one_note(files, tmp_path, capsys)
     notes = _notes(out)
     assert len(notes) == 1 and "gp-variance" in notes[0] and "fisher" in notes[0], out
     model = GLRM.load(model_path)
-    kw = {k: v for k, v in model.planner_kwargs(prior="empirical").items()
-          if k not in ("prior_cov", "spatial_cov")}
+    kw = model.planner_kwargs(prior="empirical")
     ref = plan_greedy(model.Y_, model.region_, START, 6, criterion="fisher", initial="start",
                       progress=False, **kw)
     np.testing.assert_array_equal(_route(tmp_path / "r.csv"), ref.route)

@@ -13,6 +13,7 @@ from lrm_cvx.cli import main
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
+from lrm_cvx.planning import PathOptions
 
 
 @pytest.fixture(scope="module")
@@ -240,9 +241,9 @@ def test_monitor_plan_takes_every_path_option_and_fleets(tmp_path, capsys):
     # the same plan as the Python loop with the same path model
     s = MonitorState.load(state)
     expected = plan_greedy(model.Y_, model.region_, [(10.0, 200.0), (-20.0, 240.0)], 6000.0,
-                           criterion="gp-variance", initial="start", progress=False,
-                           metric="km", traversable="valid", closed=True,
-                           refine="lines", **s.planner_kwargs())
+                           criterion="gp-variance", initial="start", progress=False, refine="lines",
+                           path=PathOptions(metric="km", traversable="valid", closed=True),
+                           **s.planner_kwargs())
     table = pd.read_csv(out)
     np.testing.assert_array_equal(table["cell"], expected.route)
     assert route_feasible(expected, model.region_) == []
@@ -482,7 +483,8 @@ def test_summaries_report_each_plan_under_its_own_criterion(spatial_state, tmp_p
     assert _run("monitor", "plan", state, *start, "-o", tmp_path / "g.csv") == 0
     line = capsys.readouterr().out.splitlines()[0]
     s = MonitorState.load(state)
-    cells, kw = s.current_plan.cells, s.planner_kwargs("gp-variance", s.current_plan_time)
+    cells = s.current_plan.cells
+    kw = s.planner_kwargs("gp-variance", s.current_plan_time)["prior"].information()
     args = (s.model.Y, s.model.region_, kw["spatial_cov"], kw["prior_cov"])
     prior = gp_variance_value(*args, [], None, kw["target_weights"])
     left = gp_variance_value(*args, cells, None, kw["target_weights"])
@@ -493,14 +495,16 @@ def test_summaries_report_each_plan_under_its_own_criterion(spatial_state, tmp_p
                 "-o", tmp_path / "g.csv") == 0
     line = capsys.readouterr().out.splitlines()[0]
     s = MonitorState.load(state)
-    kw = s.planner_kwargs("fisher", s.current_plan_time)
+    kw = s.planner_kwargs("fisher", s.current_plan_time)["prior"].information()
+    kw = {k: v for k, v in kw.items() if v is not None}
     value = fisher_set_value(s.model.Y, s.current_plan.cells, 0.0, **kw)  # the posterior's
     assert f"Fisher information {value:.4f} nats" in line and "variance" not in line
     assert _run("monitor", "plan", state, *start, "--criterion", "a-optimal", "--overwrite",
                 "-o", tmp_path / "g.csv") == 0
     line = capsys.readouterr().out.splitlines()[0]
     s = MonitorState.load(state)
-    kw = s.planner_kwargs("a-optimal", s.current_plan_time)
+    kw = s.planner_kwargs("a-optimal", s.current_plan_time)["prior"].information()
+    kw = {k: v for k, v in kw.items() if v is not None}
     left = CRITERION_REGISTRY.get("a-optimal").value(s.model.Y, s.current_plan.cells, 0.0, **kw)
     assert f"a-optimal prediction variance left {left:.4g} (data units squared)" in line
 

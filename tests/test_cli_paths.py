@@ -12,7 +12,7 @@ from lrm_cvx.cli import main
 from lrm_cvx.datasets import load_sample
 from lrm_cvx.evaluation import evaluate
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning import PathOptions, plan_greedy
 
 STARTS = [["--start", "10", "-150"], ["--start", "-5,-120"]]
 PY_STARTS = [(10, 210), (-5, 240)]
@@ -44,7 +44,7 @@ def test_fleet_plan_matches_plan_greedy(sst_model, tmp_path, flags, python):
     route = _plan(sst_model, [*STARTS[0], *STARTS[1], "--budget", budget, *flags], tmp_path)
     model = GLRM.load(sst_model)
     plan = plan_greedy(model.Y_, model.region_, PY_STARTS, float(budget), progress=False,
-                       **python)
+                       path=PathOptions(**python))
     got = pd.read_csv(route)
     ref = plan.to_dataframe()
     for col in ("robot", "order", "cell", "waypoint"):
@@ -61,8 +61,8 @@ def test_one_budget_per_start_and_the_printed_line(sst_model, tmp_path, capsys):
     assert "closed" in line and "traversable valid" in line
     df = pd.read_csv(route)
     model = GLRM.load(sst_model)
-    plan = plan_greedy(model.Y_, model.region_, PY_STARTS, [3000.0, 7000.0], metric="km",
-                       traversable="valid", closed=True, progress=False)
+    plan = plan_greedy(model.Y_, model.region_, PY_STARTS, [3000.0, 7000.0], progress=False,
+                       path=PathOptions(metric="km", traversable="valid", closed=True))
     np.testing.assert_array_equal(df["cell"], plan.route)
     for r, budget in enumerate((3000, 7000)):
         rows = df[df["robot"] == r]
@@ -97,8 +97,8 @@ def test_traversable_mask_file(sst_model, tmp_path):
     mask.to_netcdf(path)
     flags = ["--budget", "5000", "--metric", "km", "--traversable", str(path), "--closed"]
     route = _plan(sst_model, [*STARTS[0], *flags], tmp_path)
-    plan = plan_greedy(model.Y_, region, PY_STARTS[0], 5000.0, metric="km", traversable=mask,
-                       closed=True, progress=False)
+    plan = plan_greedy(model.Y_, region, PY_STARTS[0], 5000.0, progress=False,
+                       path=PathOptions(metric="km", traversable=mask, closed=True))
     df = pd.read_csv(route)
     np.testing.assert_array_equal(df["cell"], plan.route)
     assert allowed[df["row"], df["col"]].all()
@@ -164,9 +164,9 @@ def test_evaluate_path_options_match_python(tmp_path, capsys):
     got = xr.load_dataset(out / "results.nc")
     ref = evaluate(load_sample("sst"), rank=3, n_test=2, n_starts=2, random_trials=2,
                    budgets=(3000, 6000), min_observations=1, certify=False, progress=False,
-                   methods=("greedy", "transect-up", "random"), metric="km",
-                   traversable="valid", closed=True, n_robots=2, stop_cost=10.0,
-                   model_params={"noise": "global"}, paper=True)
+                   methods=("greedy", "transect-up", "random"), n_robots=2,
+                   model_params={"noise": "global"}, paper=True,
+                   path=PathOptions(metric="km", traversable="valid", closed=True, stop_cost=10.0))
     np.testing.assert_allclose(got["mse"], ref["mse"], rtol=1e-6, equal_nan=True)
     np.testing.assert_allclose(got["robot_cost"], ref["robot_cost"], rtol=1e-12)
     np.testing.assert_array_equal(got["fleet_start_cell"], ref["fleet_start_cell"])

@@ -220,14 +220,6 @@ def test_plan_greedy_model_without_residual_plans_fisher_on_the_empirical_prior(
     assert got.criterion == "fisher" and got.posterior
 
 
-def test_plan_greedy_static_on_a_model_is_place_sensors(spatial_model, train):
-    m = spatial_model
-    same_plan(plan_greedy(m, static=True, n_sensors=4, progress=False),
-              place_sensors(m, 4))
-    same_plan(plan_greedy(m, static=True, n_sensors=4, paper=True, progress=False),
-              place_sensors(m.Y_, m.region_, 4))
-
-
 def test_plan_greedy_bad_model_calls(train):
     with pytest.raises(PlanningError, match="not fitted"):
         plan_greedy(GLRM(3), 5, 9.0)
@@ -272,14 +264,11 @@ def test_campaign_default_method(spatial_model, plain_model, test_data):
 
 def test_monitor_planner_kwargs_default(spatial_model, plain_model):
     s = MonitorState.from_model(spatial_model)
-    got, want = s.planner_kwargs(), s.planner_kwargs(criterion="gp-variance")
-    assert got.keys() == want.keys() and "spatial_cov" in got
-    for key in got:
-        if isinstance(got[key], np.ndarray):
-            np.testing.assert_array_equal(got[key], want[key])
+    got, want = s.planner_kwargs()["prior"], s.planner_kwargs(criterion="gp-variance")["prior"]
+    assert got.same(want) and got.spatial_cov is not None
     p = MonitorState.from_model(plain_model)
-    got, want = p.planner_kwargs(), p.planner_kwargs(criterion="fisher")
-    assert got.keys() == want.keys() and "spatial_cov" not in got
+    got, want = p.planner_kwargs()["prior"], p.planner_kwargs(criterion="fisher")["prior"]
+    assert got.same(want) and got.spatial_cov is None and got.noise_var is not None
     with pytest.raises(ModelError, match="gp-variance"):
         p.planner_kwargs(criterion="gp-variance")  # explicit: still refused without residual
 

@@ -8,7 +8,7 @@ import xarray as xr
 from lrm_cvx.errors import DataError, PlanningError
 from lrm_cvx.evaluation import evaluate, path_label, summary
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.planning import plan_greedy, random_walk, transect
+from lrm_cvx.planning import PathOptions, plan_greedy, random_walk, transect
 
 METHODS = ("greedy", "transect-up", "transect-right", "random")
 
@@ -38,8 +38,10 @@ def model():
 def test_explicit_defaults_are_the_paper(model):
     da = planted()
     paper = evaluate(da, budgets=(3, 6), model=model, **COMMON)
-    explicit = evaluate(da, budgets=(3, 6), model=model, metric="grid", speed=None,
-                        stop_cost=0.0, traversable=None, closed=False, n_robots=1, **COMMON)
+    explicit = evaluate(da, budgets=(3, 6), model=model, n_robots=1,
+                        path=PathOptions(metric="grid", speed=None, stop_cost=0.0,
+                                         traversable=None, closed=False),
+                        **COMMON)
     xr.testing.assert_identical(paper, explicit)
     assert paper.attrs["metric"] == "grid" and paper.attrs["n_robots"] == 1
     assert paper.attrs["traversable"] == "none" and paper.attrs["closed"] == 0
@@ -53,7 +55,7 @@ def test_fleet_evaluation_passes_the_path_model_to_every_method(model):
     allowed[5:, 6] = False  # a wall the robots may not cross
     mask = xr.DataArray(allowed, dims=("lat", "lon"),
                         coords={"lat": da["lat"].values, "lon": da["lon"].values})
-    opts = dict(metric="km", stop_cost=20.0, traversable=mask, closed=True)
+    opts = dict(path=PathOptions(metric="km", stop_cost=20.0, traversable=mask, closed=True))
     budgets = (800.0, 1600.0)
     ds = evaluate(da, budgets=budgets, model=model, n_robots=2, **opts, **COMMON)
     region = model.region_
@@ -100,13 +102,15 @@ def test_fleet_evaluation_passes_the_path_model_to_every_method(model):
 
 def test_random_baseline_fleets_follow_the_start_generator(model):
     da = planted()
-    ds = evaluate(da, budgets=(5.0,), model=model, n_robots=3, closed=True,
-                  traversable="valid", **dict(COMMON, methods=("random",)))
+    ds = evaluate(da, budgets=(5.0,), model=model, n_robots=3,
+                  path=PathOptions(closed=True, traversable="valid"),
+                  **dict(COMMON, methods=("random",)))
     costs = ds["robot_cost"].values[0, 0]  # (start, trial, robot)
     assert np.isfinite(costs).all() and (costs <= 5.0 + 1e-9).all()
     assert ds["n_cells"].values.min() >= 3  # each robot observes at least its start
     fleet = [int(c) for c in ds["fleet_start_cell"].values[0]]
-    plan = random_walk(model.region_, fleet, 5.0, 0, closed=True, traversable="valid")
+    plan = random_walk(model.region_, fleet, 5.0, 0,
+                       path=PathOptions(closed=True, traversable="valid"))
     assert plan.n_robots == 3 and all(r.route[-1] == r.route[0] for r in plan.robots)
 
 
@@ -128,15 +132,16 @@ def test_bad_options_fail_before_the_fit(kw, error, match, monkeypatch):
         raise AssertionError("fitted before checking the path options")
 
     monkeypatch.setattr(GLRM, "fit", no_fit)
+    n_robots = kw.pop("n_robots", 1)
     with pytest.raises(error, match=match):
-        evaluate(planted(), budgets=(3,), **kw, **COMMON)
+        evaluate(planted(), budgets=(3,), n_robots=n_robots, path=PathOptions(**kw), **COMMON)
 
 
 def test_bad_mask_and_too_many_robots(model):
     da = planted()
     wrong = xr.DataArray(np.ones((7, 10), dtype=bool), dims=("lat", "lon"))
     with pytest.raises(PlanningError, match="traversable mask has shape"):
-        evaluate(da, budgets=(3,), model=model, traversable=wrong, **COMMON)
+        evaluate(da, budgets=(3,), model=model, path=PathOptions(traversable=wrong), **COMMON)
     with pytest.raises(DataError, match="n_robots"):
         evaluate(da, budgets=(3,), model=model, n_robots=40, **COMMON)
 

@@ -243,9 +243,6 @@ def test_greedy_errors(problem):
     for bad in (-0.1, 1.5, np.nan, "half", True, None):
         with pytest.raises(PlanningError, match=r"cost_exponent must be a number in \[0, 1\]"):
             plan_greedy(Y, region, start, 5, cost_exponent=bad, progress=False)
-    with pytest.raises(PlanningError, match="cost_exponent applies to routes"):
-        plan_greedy(Y, region, None, static=True, n_sensors=4, cost_exponent=0.5,
-                    progress=False)
     with pytest.raises(PlanningError, match="ridge > 0"):
         plan_greedy(Y, region, start, 5, criterion="a-optimal", progress=False)
     Z = Y.copy()

@@ -14,8 +14,9 @@ import xarray as xr
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError, RegionError
 from lrm_cvx.information import fisher_information
-from lrm_cvx.planning import Plan, place_sensors, plan_greedy, refine
+from lrm_cvx.planning import PathOptions, Plan, PriorTerms, place_sensors, plan_greedy, refine
 from lrm_cvx.planning.paths import make_path_model
+from lrm_cvx.planning.request import PATH_FIELDS
 
 
 # --------------------------------------------------------------------------- helpers
@@ -125,8 +126,12 @@ def naive_greedy(Y, region, starts, budgets, ridge, cost="nearest-neighbor", ini
 
 
 def greedy(Y, region, start, budget, **kw):
+    """plan_greedy with the cases' path keywords gathered into one PathOptions."""
+    path = {key: kw.pop(key) for key in PATH_FIELDS if key in kw}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
+        if path:
+            kw["path"] = PathOptions(**path)
         return plan_greedy(Y, region, start, budget, progress=False, **kw)
 
 
@@ -431,8 +436,7 @@ def test_static_pairs_brute_force_and_naive_greedy():
         for _ in range(6):
             vals = [logdet(Y, P + [c], 0.05) if c not in P else -np.inf for c in range(L)]
             P.append(int(np.argmax(vals)))
-        plan = plan_greedy(Y, region, None, None, static=True, n_sensors=6, ridge=0.05,
-                           progress=False)
+        plan = place_sensors(Y, region, 6, ridge=0.05)
         assert plan.cells.tolist() == P
         assert plan.path["kind"] == "static" and plan.cost == 6 and plan.budget == 6
         assert plan.information == pytest.approx(logdet(Y, P, 0.05))
@@ -461,7 +465,7 @@ def test_static_mask_and_prior():
                          traversable=xr.DataArray(sites, dims=("lat", "lon"),
                                                   coords={"lat": region.lat, "lon": region.lon}))
     assert np.all(region.grid_index[plan.cells, 1] < 3)
-    post = place_sensors(Y, region, 3, prior_precision=np.eye(2))
+    post = place_sensors(Y, region, 3, prior=PriorTerms(prior_precision=np.eye(2)))
     assert post.posterior and len(post) == 3
     with pytest.raises(PlanningError, match="traversable"):
         place_sensors(Y, region, 3, traversable=np.ones((2, 2), dtype=bool))
@@ -487,11 +491,6 @@ def test_bad_path_inputs_name_the_argument(sea):
         (dict(traversable=land), "start"),
         (dict(sense_along="yes"), "sense_along"),
         (dict(path="teleport"), "path"),
-        (dict(n_sensors=3), "n_sensors"),
-        (dict(static=True, n_sensors=3), "start"),
-        (dict(start=None, static=True, n_sensors=0), "n_sensors"),
-        (dict(start=None, static=True, n_sensors=2.5), "n_sensors"),
-        (dict(start=None, static=True, n_sensors=3, closed=True), "static"),
         (dict(start=None), "start"),
     ]
     for kw, word in cases:
@@ -626,8 +625,8 @@ def test_forced_initial_cells_beyond_a_tiny_budget_have_a_finite_route(closed):
     region = make_region(mask)
     Y = np.random.default_rng(3).normal(size=(4, region.n_cells))
     with pytest.warns(UserWarning, match="initial cells"):
-        plan = plan_greedy(Y, region, 3, 0.5, metric="km", traversable="valid", closed=closed,
-                           progress=False)
+        plan = plan_greedy(Y, region, 3, 0.5, progress=False,
+                           path=PathOptions(metric="km", traversable="valid", closed=closed))
     assert np.isfinite(plan.cost) and plan.cost > 0.5
     df = plan.to_dataframe()
     assert df["cumulative_cost"].iloc[-1] == pytest.approx(plan.cost)

@@ -17,10 +17,9 @@ from hypothesis import strategies as st
 from lrm_cvx.cli_common import describe_plan
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import CRITERION_REGISTRY, gp_variance_value
-from lrm_cvx.planning import plan_greedy, transect
+from lrm_cvx.planning import PathOptions, PriorTerms, plan_greedy, transect
 from lrm_cvx.planning.baselines import CYCLE_AFTER, DIRECTIONS
 from lrm_cvx.planning.lines import lines_where_possible, route_values
-from lrm_cvx.planning.request import PathOptions
 from lrm_cvx.region import Region
 from lrm_cvx.spatial import ResidualCovariance
 
@@ -105,7 +104,8 @@ def test_gp_variance_lines_keep_the_best_route_and_can_change_it(anisotropy):
         Y = np.random.default_rng(seed).normal(size=(3, region.n_cells)) * 0.5
         terms = gp_terms(3, seed, anisotropy)
         for start in (3, 40, 77):
-            kw = dict(criterion="gp-variance", initial="start", progress=False, **terms)
+            kw = dict(criterion="gp-variance", initial="start", progress=False,
+                      prior=PriorTerms(**terms))
             plan = plan_greedy(Y, region, start, 8.0, refine="lines", **kw)
             greedy = plan_greedy(Y, region, start, 8.0, **kw)
             chosen.append(check_best_of_lines(plan, greedy, "gp-variance", Y, region, start,
@@ -127,7 +127,7 @@ def test_rivals_add_the_gentler_greedy_and_keep_the_best(criterion):
         ridge = 0.0 if terms else 1e-2
         for start in (3, 40, 77):
             kw = dict(criterion=criterion, initial="start", progress=False, ridge=ridge,
-                      **terms)
+                      prior=PriorTerms(**terms) if terms else None)
             plan = plan_greedy(Y, region, start, 8.0, refine="rivals", **kw)
             greedy = plan_greedy(Y, region, start, 8.0, **kw)
             gentle = plan_greedy(Y, region, start, 8.0, cost_exponent=0.5, **kw)
@@ -226,7 +226,7 @@ def test_lines_under_path_options_are_feasible_transects_of_that_model():
     Y = np.random.default_rng(1).normal(size=(3, region.n_cells))
     for opts in (dict(closed=True), dict(stop_cost=0.5), dict(traversable="valid")):
         plan = plan_greedy(Y, region, 27, 7.0, criterion="fisher", ridge=1e-2, initial="start",
-                           refine="lines", progress=False, **opts)
+                           refine="lines", progress=False, path=PathOptions(**opts))
         assert plan.cost <= 7.0 + 1e-9 and set(plan.rivals["values"]) == {
             "greedy", *(f"transect-{d}" for d in DIRECTIONS)}
 
@@ -236,14 +236,15 @@ def test_lines_refuse_what_a_transect_cannot_fly():
     Y = np.random.default_rng(0).normal(size=(3, region.n_cells))
     kw = dict(criterion="fisher", ridge=1e-2, initial="start", progress=False, refine="lines")
     with pytest.raises(PlanningError, match="refine='lines' cannot run: the routes must end"):
-        plan_greedy(Y, region, 7, 6.0, end=30, **kw)
+        plan_greedy(Y, region, 7, 6.0, path=PathOptions(end=30), **kw)
     with pytest.raises(PlanningError, match="refine='lines' cannot run: sense_along"):
-        plan_greedy(Y, region, 7, 6.0, sense_along=True, **kw)
+        plan_greedy(Y, region, 7, 6.0, path=PathOptions(sense_along=True), **kw)
     with pytest.raises(PlanningError, match="refine='rivals' cannot run: sense_along"):
-        plan_greedy(Y, region, 7, 6.0, sense_along=True, **{**kw, "refine": "rivals"})
+        plan_greedy(Y, region, 7, 6.0, path=PathOptions(sense_along=True),
+                    **{**kw, "refine": "rivals"})
     with pytest.raises(PlanningError, match="not a point"):
-        plan_greedy(Y, region, 7, 6.0, sensor="leg-average", **kw)
-    with pytest.raises(PlanningError, match="refine must be True, False, 'local', 'lines'"):
+        plan_greedy(Y, region, 7, 6.0, path=PathOptions(sensor="leg-average"), **kw)
+    with pytest.raises(PlanningError, match=r"refine must be True, False, one of \['"):
         plan_greedy(Y, region, 7, 6.0, criterion="fisher", refine="straight")
     assert lines_where_possible(PathOptions(end=3)) is None
     assert lines_where_possible(None) == "rivals"

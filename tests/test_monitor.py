@@ -249,12 +249,12 @@ def test_duplicate_cells_are_repeated_measurements(plain, field):
 
 def test_planner_kwargs_have_the_forecast_prior(model, plain):
     state = MonitorState.from_model(model)
-    kw = state.planner_kwargs(criterion="fisher")
+    kw = state.planner_kwargs(criterion="fisher")["prior"]
     P1 = np.linalg.inv(state._propagated(state.next_time()).cov)
-    np.testing.assert_allclose(kw["prior_precision"], P1, rtol=1e-6)
-    np.testing.assert_allclose(kw["noise_var"], model.noise_var_ * prediction_factor(model))
-    np.testing.assert_allclose(kw["target_weights"], model.scale_ ** 2)
-    assert "spatial_cov" not in kw
+    np.testing.assert_allclose(kw.prior_precision, P1, rtol=1e-6)
+    np.testing.assert_allclose(kw.noise_var, model.noise_var_ * prediction_factor(model))
+    np.testing.assert_allclose(kw.target_weights, model.scale_ ** 2)
+    assert kw.spatial_cov is None
     with pytest.raises(ModelError, match="gp-variance"):
         state.planner_kwargs(criterion="gp-variance")
     from lrm_cvx.planning import plan_greedy
@@ -270,9 +270,10 @@ def test_planner_kwargs_gp_variance(field):
     state = MonitorState.from_model(model)
     kw = state.planner_kwargs()
     f = prediction_factor(model)  # a new snapshot's residual (calibrated.prediction_factor)
-    assert kw["spatial_cov"] == replace(model.spatial_cov_, sill=model.spatial_cov_.sill * f,
-                                        nugget=model.spatial_cov_.nugget * f)
-    np.testing.assert_allclose(kw["prior_cov"], state._propagated(state.next_time()).cov)
+    assert kw["prior"].spatial_cov == replace(model.spatial_cov_,
+                                              sill=model.spatial_cov_.sill * f,
+                                              nugget=model.spatial_cov_.nugget * f)
+    np.testing.assert_allclose(kw["prior"].prior_cov, state._propagated(state.next_time()).cov)
     from lrm_cvx.planning import plan_greedy
 
     plan = plan_greedy(model._Yv, model.region_, 0, 4, criterion="gp-variance",

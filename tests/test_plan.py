@@ -11,7 +11,7 @@ import xarray as xr
 
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError
-from lrm_cvx.planning import Plan, plan_greedy, random_walk, transect
+from lrm_cvx.planning import PathOptions, Plan, PriorTerms, plan_greedy, random_walk, transect
 
 matplotlib.use("Agg")
 
@@ -238,8 +238,8 @@ def test_certify_a_optimal_plan_names_the_criterion_and_gives_no_gap(tiny, crite
 
 def test_certify_posterior_fisher_plan_gives_no_gap(tiny):
     Y, region, start = tiny
-    plan = plan_greedy(Y, region, start, 4, prior_precision=np.eye(2), initial="start",
-                       progress=False)
+    plan = plan_greedy(Y, region, start, 4, initial="start", progress=False,
+                       prior=PriorTerms(prior_precision=np.eye(2)))
     assert plan.posterior
     cert = plan.certify(tighten=False)
     assert cert.plan_criterion == "fisher (posterior)" and math.isnan(cert.gap)
@@ -256,9 +256,9 @@ def test_certify_baseline_is_judged_by_fisher(tiny):
 def test_fleet_csv_roundtrip_and_closed_tours(setup, tmp_path):
     Y, region, start, _ = setup
     other = int(region.cell_grid[2, 3]) if region.cell_grid[2, 3] >= 0 else 0
-    plan = plan_greedy(Y, region, [start, other], 600.0, metric="km", traversable="valid",
-                       closed=True, stop_cost=10.0, sense_along=True, ridge=1e-6,
-                       progress=False)
+    plan = plan_greedy(Y, region, [start, other], 600.0, ridge=1e-6, progress=False,
+                       path=PathOptions(metric="km", traversable="valid", closed=True,
+                                        stop_cost=10.0, sense_along=True))
     back = pd.read_csv(plan.to_csv(tmp_path / "fleet.csv"))
     pd.testing.assert_frame_equal(back, plan.to_dataframe(), check_dtype=False)
     for r, rows in back.groupby("robot"):
@@ -266,12 +266,12 @@ def test_fleet_csv_roundtrip_and_closed_tours(setup, tmp_path):
         assert rows["cumulative_cost"].iloc[0] == 10.0  # the start's stop cost
         assert rows["cumulative_cost"].iloc[-1] == pytest.approx(plan.robot_costs[r], rel=1e-12)
         assert rows["cumulative_cost"].iloc[-1] <= 600.0 * (1 + 1e-9)
-    assert plan == plan_greedy(Y, region, [start, other], 600.0, metric="km",
-                               traversable="valid", closed=True, stop_cost=10.0,
-                               sense_along=True, ridge=1e-6, progress=False)
-    assert plan != plan_greedy(Y, region, [start, other], 600.0, metric="km",
-                               traversable="valid", closed=True, stop_cost=10.0, ridge=1e-6,
-                               progress=False)
+    assert plan == plan_greedy(Y, region, [start, other], 600.0, ridge=1e-6, progress=False,
+                               path=PathOptions(metric="km", traversable="valid", closed=True,
+                                                stop_cost=10.0, sense_along=True))
+    assert plan != plan_greedy(Y, region, [start, other], 600.0, ridge=1e-6, progress=False,
+                               path=PathOptions(metric="km", traversable="valid", closed=True,
+                                                stop_cost=10.0))
     doc = plan.to_geojson()
     assert doc["properties"]["path"]["closed"] and doc["properties"]["n_robots"] == 2
     assert "2 robots" in repr(plan)

@@ -397,16 +397,14 @@ def test_complete_pairs_edge_cases():
 
 def test_plan_greedy_takes_the_posterior_as_prior():
     from lrm_cvx.errors import PlanningError
-    from lrm_cvx.planning import plan_greedy
+    from lrm_cvx.planning import PriorTerms, plan_greedy
 
     da = small_field(3)
     m = fit_model(da, offset=True, noise="per-cell", spatial="exponential")
     for crit, spatial in (("a-optimal", False), ("fisher", False), ("gp-variance", True)):
-        kw = m.planner_kwargs(spatial=spatial)
-        if not spatial:
-            kw = {k: v for k, v in kw.items() if k not in ("prior_cov", "spatial_cov")}
+        terms = PriorTerms(**m.latent_prior("empirical", spatial=spatial).information())
         a = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion=crit, initial="start",
-                        progress=False, **kw)
+                        progress=False, prior=terms)
         b = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion=crit, initial="start",
                         progress=False, prior=m.latent_prior("empirical", spatial=spatial))
         assert a.cells.tolist() == b.cells.tolist()
@@ -415,7 +413,7 @@ def test_plan_greedy_takes_the_posterior_as_prior():
     c = plan_greedy(m.Y_, m.region_, 5, 6.0, criterion="a-optimal", initial="start",
                     progress=False, prior=post)
     assert c.cells[0] == 5
-    with pytest.raises(PlanningError, match="either prior"):
+    with pytest.raises(TypeError, match="noise_var"):  # the terms come with the prior only
         plan_greedy(m.Y_, m.region_, 5, 6.0, criterion="a-optimal", progress=False,
                     prior=post, noise_var=1.0)
     with pytest.raises(PlanningError, match="LatentPosterior"):

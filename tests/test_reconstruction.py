@@ -22,7 +22,7 @@ from lrm_cvx.information import (
     GPVarianceOracle,
     gp_variance_value,
 )
-from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning import PriorTerms, plan_greedy
 from lrm_cvx.spatial import ResidualCovariance
 
 
@@ -428,12 +428,12 @@ def test_greedy_posterior_criteria_equal_naive(seed):
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        pa = plan_greedy(Y, region, start, budget, criterion="a-optimal", prior_precision=P0,
-                         noise_var=nv, progress=False)
-        pg = plan_greedy(Y, region, start, budget, criterion="gp-variance", prior_cov=S0,
-                         spatial_cov=cov, progress=False)
-        ps = plan_greedy(Y, region, start, budget, criterion="gp-variance", prior_cov=S0,
-                         spatial_cov=cov, progress=False, initial="start")
+        pa = plan_greedy(Y, region, start, budget, criterion="a-optimal", progress=False,
+                         prior=PriorTerms(prior_precision=P0, noise_var=nv))
+        pg = plan_greedy(Y, region, start, budget, criterion="gp-variance", progress=False,
+                         prior=PriorTerms(prior_cov=S0, spatial_cov=cov))
+        ps = plan_greedy(Y, region, start, budget, criterion="gp-variance", progress=False,
+                         initial="start", prior=PriorTerms(prior_cov=S0, spatial_cov=cov))
     assert pa.cells.tolist() == naive_greedy(neg_aopt, g, start, budget, k)
     assert pg.cells.tolist() == naive_greedy(neg_gp, g, start, budget, k)
     assert ps.cells.tolist() == naive_greedy(neg_gp, g, start, budget, 1)
@@ -583,8 +583,9 @@ def test_make_oracle_switches_to_structured_and_greedy_picks_are_unchanged(monke
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             plans[thr] = [plan_greedy(Y, region, start, 7.0, criterion="gp-variance",
-                                      prior_cov=S0, spatial_cov=cov, progress=False,
-                                      initial=ini).cells.tolist()
+                                      progress=False, initial=ini,
+                                      prior=PriorTerms(prior_cov=S0,
+                                                       spatial_cov=cov)).cells.tolist()
                           for ini in ("nearest", "start")]
 
     def neg_gp(P):

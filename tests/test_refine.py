@@ -16,7 +16,7 @@ from references import naive_tour
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import fisher_information
-from lrm_cvx.planning import plan_greedy, refine
+from lrm_cvx.planning import PriorTerms, plan_greedy, refine
 from lrm_cvx.planning.routecost import or_opt, repair_route, two_opt
 
 
@@ -212,9 +212,9 @@ def test_certificate_splits_the_gap_and_bounds_the_refined_plan(seed):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         plan = plan_greedy(Y, region, start, budget, ridge=1e-6, progress=False)
-        cert = plan.certify(max_pieces=2)
+        cert = plan.certify(tighten={"max_pieces": 2})
         done = plan_greedy(Y, region, start, budget, ridge=1e-6, progress=False, refine=True)
-        cert2 = done.certify(max_pieces=2)
+        cert2 = done.certify(tighten={"max_pieces": 2})
     assert cert.greedy_information == pytest.approx(plan.information)
     assert cert.refined_information >= cert.greedy_information
     assert cert.plan_slack >= 0 and cert.bound_slack >= -1e-9
@@ -240,7 +240,8 @@ def test_refine_posterior_fisher_plan_raises_its_own_criterion():
 
     region, Y, start = instance(3, 9, 9, 3)
     P0, nv = 0.5 * np.eye(3), np.linspace(0.5, 2.0, Y.shape[1])
-    kw = dict(prior_precision=P0, noise_var=nv, progress=False, initial="start")
+    kw = dict(prior=PriorTerms(prior_precision=P0, noise_var=nv), progress=False,
+              initial="start")
     plan = plan_greedy(Y, region, start, 8.0, **kw)
     out = plan_greedy(Y, region, start, 8.0, refine=True, **kw)
     value = lambda c: fisher_set_value(Y, c, 0.0, prior_precision=P0, noise_var=nv)  # noqa: E731
@@ -249,3 +250,5 @@ def test_refine_posterior_fisher_plan_raises_its_own_criterion():
     assert out.cost <= 8.0 + 1e-9 and out.posterior
     with pytest.raises(PlanningError, match="posterior"):
         refine(plan)
+    again = refine(plan, prior=kw["prior"])  # the prior given: the same search as refine=True
+    assert again.cells.tolist() == out.cells.tolist()

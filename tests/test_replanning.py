@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from lrm_cvx import GLRM, load_sample, plan_greedy
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.monitor import MonitorState
+from lrm_cvx.planning import PathOptions
 from lrm_cvx.replanning import route_feasible
 
 
@@ -32,7 +33,7 @@ def _state_and_plan(model, day, starts, budget, **path):
     state = MonitorState.from_model(model)
     prior = state.planner_kwargs(time=day.time.values)
     plan = plan_greedy(model.Y_, model.region_, starts, budget, criterion="gp-variance",
-                       initial="start", progress=False, **prior, **path)
+                       initial="start", progress=False, **prior, path=PathOptions(**path))
     return state, plan
 
 
@@ -145,7 +146,7 @@ def test_a_route_to_an_end_plans_on_the_ellipse_as_on_the_disk(setup, monkeypatc
         monkeypatch.setattr(paths, "ELLIPSE_GRAPH", ellipse)
         pm = paths.make_path_model(region, (20.0, 200.0), budget, **path)
         plan = plan_greedy(model.Y_, region, pm.start, budget, criterion="gp-variance",
-                           initial="start", progress=False, **prior, **path)
+                           initial="start", progress=False, **prior, path=PathOptions(**path))
         out[ellipse] = (pm, plan)
     (small, a), (disk, b) = out[True], out[False]
     assert a == b and route_feasible(a, region) == [] and len(a.stops) > 2
@@ -314,9 +315,9 @@ def test_replans_with_the_check_stay_feasible(setup, start, budget, frac, closed
     day = test.isel(time=0)
     truth = region.stack(day)
     state = MonitorState.from_model(model)
-    plan = plan_greedy(model.Y_, region, start % region.n_cells, budget,
-                       criterion="gp-variance", initial="start", progress=False,
-                       refine="lines", closed=closed,
+    plan = plan_greedy(model.Y_, region, start % region.n_cells, budget, criterion="gp-variance",
+                       initial="start", progress=False, refine="lines",
+                       path=PathOptions(closed=closed),
                        **state.planner_kwargs(time=day.time.values))
     if plan.route.size < 3:
         return

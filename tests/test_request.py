@@ -7,6 +7,8 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
+import pkgutil
+import re
 import warnings
 
 import numpy as np
@@ -138,8 +140,8 @@ def test_a_fleet_checks_its_budgets_in_one_place():
 # ------------------------------------------------------------------ plan.path
 def test_plan_path_is_a_read_only_mapping_with_the_old_items(small):
     region, Y = small
-    plan = plan_greedy(Y, region, 5, 6.0, ridge=1e-3, progress=False, closed=True,
-                       stop_cost=0.5)
+    plan = plan_greedy(Y, region, 5, 6.0, ridge=1e-3, progress=False,
+                       path=PathOptions(closed=True, stop_cost=0.5))
     path = plan.path
     assert isinstance(path, PlanPath)
     assert list(path) == [*PAPER_PATH, "starts", "budgets", "n_robots"]
@@ -165,7 +167,8 @@ def test_greedy_planner_is_plan_greedy(small):
                          dict(criterion="a-optimal", cost="insertion")),
                         (GreedyPlanner(initial="start"), dict(initial="start"))):
         a = planner.plan(Y, region, fleet, PathOptions(closed=True), ridge=1e-2)
-        b = plan_greedy(Y, region, 5, 8.0, ridge=1e-2, progress=False, closed=True, **kw)
+        b = plan_greedy(Y, region, 5, 8.0, ridge=1e-2, progress=False,
+                        path=PathOptions(closed=True), **kw)
         assert a == b and a.information == b.information and a.cost == b.cost
     fleet2 = Fleet.resolve(region, [5, 40], 6.0)
     a = GreedyPlanner().plan(Y, region, fleet2, None, ridge=1e-2)
@@ -178,7 +181,7 @@ def test_baseline_planners_are_the_baselines(small):
     fleet = Fleet.resolve(region, 5, 7.0)
     for d in ("up", "down", "left", "right"):
         a = Transect(d).plan(Y, region, fleet, PathOptions(metric="km"))
-        b = transect(region, 5, 7.0, d, Y=Y, metric="km")
+        b = transect(region, 5, 7.0, d, Y=Y, path=PathOptions(metric="km"))
         assert a == b
     a = RandomWalk().plan(Y, region, fleet, None, rng=np.random.default_rng(3), ridge=0.1)
     b = random_walk(region, 5, 7.0, np.random.default_rng(3), Y=Y, ridge=0.1)
@@ -190,8 +193,6 @@ def test_static_placement_is_place_sensors(small):
     a = StaticPlacement().plan(Y, region, Fleet((), (6,), unit="sensors"), None, ridge=1e-3)
     b = place_sensors(Y, region, 6, ridge=1e-3)
     assert a == b and a.path["kind"] == "static"
-    d = plan_greedy(Y, region, None, 6, static=True, ridge=1e-3, progress=False)
-    assert d == b
     with pytest.raises(PlanningError, match="place_sensors"):
         plan_greedy(Y, region, None, 6, path="static", ridge=1e-3, progress=False)
 
@@ -224,44 +225,160 @@ def test_evaluation_protocol_run_is_evaluate():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         a = EvaluationProtocol(da, path=PathOptions(stop_cost=0.5), **kw).run()
-        b = evaluate(da, stop_cost=0.5, **kw)
+        b = evaluate(da, path=PathOptions(stop_cost=0.5), **kw)
     xr.testing.assert_identical(a, b)
     assert a.attrs["stop_cost"] == 0.5
     with pytest.raises(PlanningError, match="temporal campaigns only"):
-        evaluate(da, sense_along=True, **kw)  # sensing along needs a campaign
+        evaluate(da, path=PathOptions(sense_along=True), **kw)  # sensing along needs a campaign
     with pytest.raises(PlanningError, match="n_robots"):
         EvaluationProtocol(da, n_robots=0, **kw)  # checked when built, before any fit
 
 
 # ------------------------------------------------------------------ at most 15 parameters
-MODULES = ("lrm_cvx", "lrm_cvx.planning", "lrm_cvx.planning.request", "lrm_cvx.planning.planners",
-           "lrm_cvx.planning.greedy", "lrm_cvx.planning.static", "lrm_cvx.planning.baselines",
-           "lrm_cvx.planning.certificate", "lrm_cvx.planning.paths", "lrm_cvx.planning.refine",
-           "lrm_cvx.planning.plan", "lrm_cvx.planning.families", "lrm_cvx.planning.terms",
-           "lrm_cvx.evaluation", "lrm_cvx.scoring", "lrm_cvx.campaign", "lrm_cvx.monitor",
-           "lrm_cvx.glrm", "lrm_cvx.io", "lrm_cvx.information", "lrm_cvx.spatial",
-           "lrm_cvx.planning.routecost", "lrm_cvx.region", "lrm_cvx.glrm.fit",
-           "lrm_cvx.glrm.chunked", "lrm_cvx.io.samples", "lrm_cvx.replanning",
-           "lrm_cvx.interactive", "lrm_cvx.planning.missions")
 KNOWN_LONG: set[str] = set()  # to stay empty
+RECORDS = {"Plan", "PlanCertificate", "Calibration"}
+"""Results the library builds and returns: their generated ``__init__`` lists outputs, not
+settings a user chooses."""
+PENDING = {"evaluate": 23, "EvaluationProtocol.__init__": 23, "GLRM.__init__": 19,
+           "Plan.build": 22}
+"""Entry points still over 15 settings, with their counts today: each may only shrink (and
+leave this table at 15 or fewer)."""
+_OPTION_KEYS = re.compile(r"^(\s*)([A-Za-z_][\w, ]*?) : \(``\*\*(\w+)``\)", re.M)
+
+
+def _public_modules() -> list[str]:
+    """Every module of the package with an ``__all__`` (the experimental package aside)."""
+    names = ["lrm_cvx"]
+    for info in pkgutil.walk_packages(lrm_cvx.__path__, "lrm_cvx."):
+        if ".experimental" in info.name or info.name.rsplit(".", 1)[-1].startswith("_"):
+            continue
+        names.append(info.name)
+    return names
+
+
+def _documented_keys(fn, var_kw: str) -> set[str]:
+    """The keys of ``**var_kw`` documented in ``fn``'s numpydoc Parameters section, written
+    ``a, b : (``**var_kw``) ...``."""
+    doc = inspect.getdoc(fn) or ""
+    return {key.strip() for m in _OPTION_KEYS.finditer(doc) if m.group(3) == var_kw
+            for key in m.group(2).split(",") if key.strip()}
 
 
 def _count(fn) -> int:
-    """Parameters of ``fn``, ``*args`` and ``**kwargs`` one each."""
-    return len(inspect.signature(fn).parameters)
+    """The settings of ``fn``: its named parameters (``self`` aside), ``*args`` one, and
+    ``**options`` as many as the keys its docstring documents (one if it documents none)."""
+    n = 0
+    for i, p in enumerate(inspect.signature(fn).parameters.values()):
+        if i == 0 and p.name in ("self", "cls"):
+            continue
+        if p.kind is p.VAR_KEYWORD:
+            n += max(1, len(_documented_keys(fn, p.name)))
+        else:
+            n += 1
+    return n
+
+
+def _callables(obj):
+    """``obj`` itself (a function) or a class's ``__init__`` (a record's aside) and public
+    methods defined on it."""
+    if inspect.isfunction(obj):
+        yield obj.__name__, obj
+    elif inspect.isclass(obj):
+        for key, member in vars(obj).items():
+            if key == "__init__" and obj.__name__ in RECORDS:
+                continue
+            if key == "__init__" or not key.startswith("_"):
+                member = getattr(member, "__func__", member)
+                if inspect.isfunction(member):
+                    yield f"{obj.__name__}.{key}", member
+
+
+def test_the_settings_counter_counts_documented_option_keys():
+    def f(a, b, *, c=1, **options):
+        """Doc.
+
+        Parameters
+        ----------
+        a : one
+        x, y, z : (``**options``) three keys
+        w : (``**other``) not these options
+        """
+    assert _count(f) == 6
+    assert _count(lambda a, **kw: None) == 2
+    assert _count(plan_greedy) > len(inspect.signature(plan_greedy).parameters) - 1 or not \
+        _documented_keys(plan_greedy, "options")
 
 
 def test_no_public_function_takes_more_than_15_parameters():
     too_many = {}
-    for name in MODULES:
+    for name in _public_modules():
         module = importlib.import_module(name)
         for attr in getattr(module, "__all__", ()):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", DeprecationWarning)
-                obj = getattr(module, attr)
-            if inspect.isfunction(obj) and attr not in KNOWN_LONG and _count(obj) > 15:
-                too_many[f"{name}.{attr}"] = _count(obj)
-    assert not too_many, too_many
-    for fn in (plan_greedy, lrm_cvx.evaluate, lrm_cvx.plan_bound, place_sensors, transect,
-               random_walk, lrm_cvx.refine):
+                obj = getattr(module, attr, None)
+            for label, fn in _callables(obj):
+                if label not in KNOWN_LONG and _count(fn) > 15:
+                    too_many[label] = _count(fn)
+    pending = {label: n for label, n in too_many.items() if n <= PENDING.get(label, 15)}
+    assert not set(too_many) - set(pending), sorted(too_many.items())
+    assert set(pending) == set(PENDING), f"narrowed: drop {set(PENDING) - set(pending)}"
+    for fn in (plan_greedy, lrm_cvx.plan_bound, place_sensors, transect, random_walk,
+               lrm_cvx.refine, lrm_cvx.simulate_campaign):
         assert _count(fn) <= 15, (fn.__name__, _count(fn))
+
+
+# ------------------------------------------------------------------ one object per idea
+def test_every_refine_mode_is_an_entry_of_refiners(small, monkeypatch):
+    from lrm_cvx.planning.refiners import REFINERS
+
+    region, Y = small
+    assert {"local", "lines", "rivals"} <= set(REFINERS)
+    monkeypatch.setattr(REFINERS, "_entries", dict(REFINERS._entries))
+    monkeypatch.setattr(REFINERS, "_lookup", dict(REFINERS._lookup))
+    seen = {}
+
+    def keep(plan, options, context):
+        seen.update(options=options, context=context)
+        return plan
+
+    REFINERS.register("keep", keep, description="the plan as it is")
+    kw = dict(ridge=1e-3, progress=False)
+    plain = plan_greedy(Y, region, 5, 6.0, **kw)
+    assert plan_greedy(Y, region, 5, 6.0, refine="keep", **kw) == plain
+    context = seen["context"]
+    assert seen["options"] == {} and context.criterion == "fisher" and context.ridge == 1e-3
+    gentle = plan_greedy(Y, region, 5, 6.0, cost_exponent=0.5, **kw)
+    assert context.rival(0.5) == gentle  # the greedy rerun, as "rivals" uses it
+    with pytest.raises(PlanningError, match="refine must be"):
+        plan_greedy(Y, region, 5, 6.0, refine="nope", **kw)
+
+
+def test_the_prior_and_the_path_are_one_argument_each(small):
+    from lrm_cvx.planning import PriorTerms
+
+    region, Y = small
+    k, L = Y.shape
+    terms = PriorTerms(prior_precision=np.eye(k), noise_var=np.linspace(0.5, 1.5, L))
+    plan = plan_greedy(Y, region, 5, 6.0, criterion="a-optimal", initial="start",
+                       progress=False, prior=terms)
+    assert plan.posterior and plan.cells[0] == 5
+    assert terms.same(PriorTerms(np.eye(k), np.linspace(0.5, 1.5, L)))
+    assert not terms.same(PriorTerms(noise_var=1.0))
+    for bad in (dict(noise_var=1.0), dict(closed=True), dict(static=True)):
+        with pytest.raises(TypeError, match=next(iter(bad))):
+            plan_greedy(Y, region, 5, 6.0, progress=False, **bad)
+    with pytest.raises(PlanningError, match="PriorTerms"):
+        plan_greedy(Y, region, 5, 6.0, progress=False, prior={"noise_var": 1.0})
+    for fn in (transect, random_walk):
+        with pytest.raises(TypeError, match="metric"):
+            fn(region, 5, 6.0, *(("up",) if fn is transect else ()), metric="km")
+
+
+def test_the_recommended_criterion_and_its_fallback_read_recommended(monkeypatch):
+    from lrm_cvx.recommended import RECOMMENDED, recommended_criterion
+
+    assert recommended_criterion(True) == RECOMMENDED["criterion"] == "gp-variance"
+    assert recommended_criterion(False) == "fisher"  # gp-variance needs the residual
+    monkeypatch.setitem(RECOMMENDED, "criterion", "a-optimal")
+    assert recommended_criterion(False) == recommended_criterion(True) == "a-optimal"

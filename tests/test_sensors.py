@@ -20,7 +20,7 @@ from lrm_cvx.belief.foldin import fold_in, fold_in_rows
 from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel
 from lrm_cvx.errors import DataError, PlanningError
 from lrm_cvx.information import make_row_oracle, row_factors, row_information
-from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning import PriorTerms, plan_greedy
 from lrm_cvx.planning.request import PathOptions
 from lrm_cvx.planning.sensors import (
     Sensor,
@@ -163,7 +163,8 @@ def test_sensor_with_sense_along_or_refine_refused(region, Y):
     with pytest.raises(PlanningError, match="sense_along"):
         PathOptions(sensor="leg-average", sense_along=True)
     with pytest.raises(PlanningError, match="refine supports the point sensor"):
-        plan_greedy(Y, region, 0, 20.0, sensor="disc:10km", refine=True, progress=False)
+        plan_greedy(Y, region, 0, 20.0, refine=True, progress=False,
+                    path=PathOptions(sensor="disc:10km"))
 
 
 # --------------------------------------------------------------------------- footprint rows
@@ -280,8 +281,8 @@ def test_row_gp_oracle_equals_brute_force_gp(region, Y, errors):
 @pytest.mark.parametrize("start, budget", [(10, 14.0), ([10, 80], [8.0, 6.0])])
 def test_greedy_gains_with_a_footprint_equal_brute_force(region, Y, criterion, ridge, spec,
                                                          start, budget):
-    plan = plan_greedy(Y, region, start, budget, criterion=criterion, ridge=ridge, sensor=spec,
-                       progress=False)
+    plan = plan_greedy(Y, region, start, budget, criterion=criterion, ridge=ridge, progress=False,
+                       path=PathOptions(sensor=spec))
     sensor = Sensor.of(spec)
     rows = [naive_footprint(region, sensor, c) for c in plan.stops]
     n0 = plan.stops.size - plan.history["cell"].size
@@ -305,8 +306,9 @@ def test_greedy_gains_with_a_footprint_equal_brute_force(region, Y, criterion, r
 def test_greedy_gp_variance_with_a_footprint_equals_brute_force(region, Y):
     cov = ResidualCovariance("exponential", sill=0.6, range=15.0, nugget=0.1, metric="km")
     S0 = np.diag([1.0, 0.5, 0.3])
-    plan = plan_greedy(Y, region, 10, 10.0, criterion="gp-variance", sensor="disc:20km",
-                       spatial_cov=cov, prior_cov=S0, initial="start", progress=False)
+    plan = plan_greedy(Y, region, 10, 10.0, criterion="gp-variance", initial="start",
+                       progress=False, path=PathOptions(sensor="disc:20km"),
+                       prior=PriorTerms(spatial_cov=cov, prior_cov=S0))
     Kr = residual_matrix(region, cov)
     rows = [naive_footprint(region, Sensor.of("disc:20km"), c) for c in plan.stops]
     n0 = plan.stops.size - plan.history["cell"].size
@@ -317,14 +319,15 @@ def test_greedy_gp_variance_with_a_footprint_equals_brute_force(region, Y):
 
 
 def test_greedy_leg_average_records_the_legs(region, Y):
-    plan = plan_greedy(Y, region, 10, 12.0, ridge=1e-3, sensor="leg-average", progress=False)
+    plan = plan_greedy(Y, region, 10, 12.0, ridge=1e-3, progress=False,
+                       path=PathOptions(sensor="leg-average"))
     rows = naive_legs(plan.route, plan.waypoint, plan.route_robot, region.n_cells)
     assert rows.shape[0] == plan.stops.size  # one observation per stop
     np.testing.assert_allclose(plan.observation_rows().toarray(), rows)
     assert plan.information == pytest.approx(fisher_rows(Y, rows, 1e-3), rel=1e-10)
     assert (~plan.waypoint).any()  # the cells the legs pass are on the route
-    closed = plan_greedy(Y, region, [10, 60], [10.0, 8.0], ridge=1e-3, sensor="leg",
-                         closed=True, progress=False)
+    closed = plan_greedy(Y, region, [10, 60], [10.0, 8.0], ridge=1e-3, progress=False,
+                         path=PathOptions(sensor="leg", closed=True))
     rows = naive_legs(closed.route, closed.waypoint, closed.route_robot, region.n_cells)
     np.testing.assert_allclose(closed.observation_rows().toarray(), rows)
 
@@ -333,9 +336,11 @@ def test_greedy_leg_average_records_the_legs(region, Y):
                                 {"sense_along": True}, {"metric": "km", "closed": True}])
 def test_point_sensor_is_todays_plan_bit_for_bit(region, Y, kw):
     budget = 60.0 if kw.get("metric") == "km" else 12.0
-    a = plan_greedy(Y, region, 10, budget, progress=False, **kw)
+    path = {key: kw.pop(key) for key in ("sense_along", "metric", "closed") if key in kw}
+    a = plan_greedy(Y, region, 10, budget, progress=False, path=PathOptions(**path), **kw)
     for sensor in ("point", Sensor(), None):
-        b = plan_greedy(Y, region, 10, budget, progress=False, sensor=sensor, **kw)
+        b = plan_greedy(Y, region, 10, budget, progress=False,
+                        path=PathOptions(sensor=sensor, **path), **kw)
         assert np.array_equal(a.cells, b.cells) and np.array_equal(a.route, b.route)
         assert a.information == b.information
         for key in a.history:
@@ -347,7 +352,7 @@ def test_point_sensor_is_todays_plan_bit_for_bit(region, Y, kw):
 
 def test_a_tiny_footprint_plans_as_the_point_sensor(region, Y):
     a = plan_greedy(Y, region, 10, 12.0, progress=False)
-    b = plan_greedy(Y, region, 10, 12.0, sensor="square:0.01km", progress=False)
+    b = plan_greedy(Y, region, 10, 12.0, progress=False, path=PathOptions(sensor="square:0.01km"))
     assert np.array_equal(a.stops, b.stops)
     assert b.information == pytest.approx(a.information, rel=1e-12)
 
@@ -364,7 +369,7 @@ def test_footprint_certificate_is_the_relaxation_of_the_footprint_rows(region, Y
 
     sensor = Sensor.of(spec)
     shared = sensor.errors == "shared"
-    plan = plan_greedy(Y, region, 10, 8.0, sensor=spec, progress=False)
+    plan = plan_greedy(Y, region, 10, 8.0, progress=False, path=PathOptions(sensor=spec))
     cert = plan.certify()
     assert cert.information == pytest.approx(plan.information, rel=1e-10)
     assert cert.bound >= cert.information - 1e-9 and 0 <= cert.gap < np.inf
@@ -372,21 +377,21 @@ def test_footprint_certificate_is_the_relaxation_of_the_footprint_rows(region, Y
     U = np.column_stack([Y @ a / np.sqrt(var_of(a, np.ones(region.n_cells), shared))
                          for a in rows])  # (k, L): each cell's whitened footprint row
     ref = dopt_upper_bound(U, 3, ridge=1e-3, tol=1e-5).value
-    static = plan_bound(Y, region, None, None, path="static", n_sensors=3, sensor=spec,
-                        ridge=1e-3, tol=1e-5)
+    static = plan_bound(Y, region, None, 3, path=PathOptions(sensor=spec), ridge=1e-3,
+                        tol=1e-5)
     assert static.bound == pytest.approx(ref, abs=1e-4)
     G = np.einsum("ai,bi->iab", U, U)
     best = max(np.linalg.slogdet(1e-3 * np.eye(3) + G[list(t)].sum(0))[1]
                for t in combinations(range(0, region.n_cells, 3), 3))
     assert static.bound >= best - 1e-9
-    point = plan_bound(Y, region, None, None, path="static", n_sensors=3, ridge=1e-3,
-                       tol=1e-5)
+    point = plan_bound(Y, region, None, 3, ridge=1e-3, tol=1e-5)
     assert abs(point.bound - static.bound) > 1e-3  # the footprints were used
 
 
 def test_leg_average_plans_are_certified(region, Y):
     """(The brute-force checks are in test_certificate_towed.py.)"""
-    plan = plan_greedy(Y, region, 10, 12.0, ridge=1e-3, sensor="leg-average", progress=False)
+    plan = plan_greedy(Y, region, 10, 12.0, ridge=1e-3, progress=False,
+                       path=PathOptions(sensor="leg-average"))
     cert = plan.certify()
     assert cert.towed is not None and cert.bound >= cert.information
 
@@ -511,8 +516,8 @@ def test_a_campaign_day_with_a_footprint():
     model = GLRM(rank=2, random_state=0).fit(da.isel(time=slice(0, 10)))
     state = MonitorState.from_model(model)
     sensor = Sensor.of("disc:25km")
-    plan = plan_greedy(model.Y_, model.region_, 5, 10.0, sensor=sensor, ridge=1e-6,
-                       progress=False)
+    plan = plan_greedy(model.Y_, model.region_, 5, 10.0, ridge=1e-6, progress=False,
+                       path=PathOptions(sensor=sensor))
     truth = model.region_.stack(da.isel(time=10)).astype(np.float64)
     truth[plan.stops[0]] = np.nan  # a cloud over the first stop
     rows, values = plan_observations(plan, truth)
@@ -544,20 +549,19 @@ def test_a_campaign_day_with_a_footprint():
                                np.linalg.solve(P, day.shift + Yr @ W @ z), rtol=1e-9)
 
 
-def test_refine_and_static_placement_refuse_a_footprint(region, Y):
+def test_refine_refuses_a_footprint(region, Y):
     from lrm_cvx.planning import refine
 
-    plan = plan_greedy(Y, region, 10, 8.0, sensor="disc:20km", progress=False)
+    plan = plan_greedy(Y, region, 10, 8.0, progress=False, path=PathOptions(sensor="disc:20km"))
     assert not plan.path.is_paper
     with pytest.raises(PlanningError):
         refine(plan)
-    with pytest.raises(PlanningError, match="static placement supports the point sensor"):
-        plan_greedy(Y, region, None, 5, static=True, sensor="disc:20km", progress=False)
 
 
 def test_footprints_along_the_route(region, Y):
-    plan = plan_greedy(Y, region, 10, 14.0, sensor="square:20km", sense_along=True,
-                       ridge=1e-3, initial="start", end=region.n_cells - 1, progress=False)
+    plan = plan_greedy(Y, region, 10, 14.0, ridge=1e-3, initial="start", progress=False,
+                       path=PathOptions(sensor="square:20km", sense_along=True,
+                                        end=region.n_cells - 1))
     rows = np.array([naive_footprint(region, Sensor.of("square:20km"), c) for c in plan.cells])
     assert plan.cells.size > plan.stops.size  # the cells passed are footprints too
     np.testing.assert_allclose(plan.observation_rows().toarray(), rows, atol=1e-15)
@@ -681,8 +685,8 @@ def test_greedy_with_a_footprint_equals_a_naive_greedy(region, Y, spec, criterio
         if best is None or not best[0] > 0:
             break
         P.append(best[1])
-    plan = plan_greedy(Y, region, start, budget, criterion=criterion, ridge=ridge,
-                       sensor=sensor, progress=False)
+    plan = plan_greedy(Y, region, start, budget, criterion=criterion, ridge=ridge, progress=False,
+                       path=PathOptions(sensor=sensor))
     assert plan.stops.tolist() == P
 
 
@@ -707,7 +711,8 @@ def test_a_route_certificate_builds_the_footprint_rows_of_its_candidates_only(re
         return real(region_, sensor_, cells, **kw)
 
     monkeypatch.setattr(sensors_module, "footprint_matrix", spy)
-    plan = plan_greedy(Y, region, 10, 4.0, sensor=spec, ridge=1e-3, progress=False)
+    plan = plan_greedy(Y, region, 10, 4.0, ridge=1e-3, progress=False,
+                       path=PathOptions(sensor=spec))
     asked.clear()
     cert = plan.certify(tol=1e-5)
     ref = plan_bound(U, region, 10, 4.0, ridge=1e-3, tol=1e-5)  # a point sensor on U

@@ -6,7 +6,7 @@ import pytest
 
 from lrm_cvx.cli import main
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.planning import plan_greedy
+from lrm_cvx.planning import PathOptions, plan_greedy
 
 
 @pytest.fixture(scope="module")
@@ -25,8 +25,8 @@ def test_plan_with_a_sensor_matches_plan_greedy(sst_model, tmp_path, capsys, fla
     assert main(argv) == 0
     line = capsys.readouterr().out.splitlines()[0]
     model = GLRM.load(sst_model)
-    plan = plan_greedy(model.Y_, model.region_, (10, 210), 12.0, ridge=1e-6, sensor=sensor,
-                       progress=False)
+    plan = plan_greedy(model.Y_, model.region_, (10, 210), 12.0, ridge=1e-6, progress=False,
+                       path=PathOptions(sensor=sensor))
     np.testing.assert_array_equal(pd.read_csv(out)["cell"], plan.to_dataframe()["cell"])
     assert f"sensor {plan.sensor.describe()}" in line
     assert f"{plan.information:.4f}" in line

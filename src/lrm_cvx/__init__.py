@@ -38,6 +38,7 @@ _LAZY = {
     "random_walk": "lrm_cvx.planning",
     "refine": "lrm_cvx.planning",
     "PathOptions": "lrm_cvx.planning",
+    "PriorTerms": "lrm_cvx.planning",
     "Fleet": "lrm_cvx.planning",
     "plan_bound": "lrm_cvx.planning.certificate",
     "dopt_upper_bound": "lrm_cvx.planning.dopt",

@@ -33,14 +33,15 @@ from .planning.planners import (
     planner_for,
     recommended_method,
 )
-from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
+from .planning.request import Fleet, PathOptions
 from .planning.sensors import observed_cells, plan_observations
+from .planning.terms import PriorTerms
 from .recommended import RECOMMENDED
 
 __all__ = ["simulate_campaign", "method_request", "path_attrs", "CAMPAIGN_OPTIONS"]
 
 CAMPAIGN_OPTIONS = ("cost", "ridge", "criterion")
-"""The planner options of :func:`simulate_campaign` (besides the path options)."""
+"""The planner options of :func:`simulate_campaign` (besides the path)."""
 
 
 def _dynamics_for(model: Any, temporal: Any) -> tuple[Any, bool]:
@@ -100,28 +101,26 @@ def path_attrs(path: PathOptions, n_robots: int = 1) -> dict[str, Any]:
     }
 
 
-def _day_terms(state: MonitorState, t: Any, planner: Planner) -> dict[str, Any] | None:
+def _day_terms(state: MonitorState, t: Any, planner: Planner) -> PriorTerms | None:
     """The prior terms of day ``t``'s plan: a planner on the model's belief (the
     ``greedy:<criterion>`` methods) plans on the state's belief about ``t`` (the forecast once
     the state has observed an earlier day); the paper's greedy and the baselines ignore it
     (None)."""
     if not getattr(planner, "model_prior", False):
         return None
-    return state.planner_kwargs(criterion=planner.criterion, time=t)
+    return state.planner_kwargs(criterion=planner.criterion, time=t)["prior"]
 
 
-def _same_terms(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
+def _same_terms(a: PriorTerms | None, b: PriorTerms | None) -> bool:
     """Whether two days' prior terms are equal (arrays entry by entry)."""
     if a is None or b is None:
         return a is b
-    return a.keys() == b.keys() and all(
-        np.array_equal(a[key], b[key]) if isinstance(a[key], np.ndarray) else a[key] == b[key]
-        for key in a)
+    return a.same(b)
 
 
 def _plan_day(state: MonitorState, t: Any, planner: Planner, fleet: Fleet, path: PathOptions,
               rng: np.random.Generator, ridge: float, last: tuple | None = None
-              ) -> tuple[Any, dict[str, Any] | None]:
+              ) -> tuple[Any, PriorTerms | None]:
     """Day ``t``'s plan by ``planner`` for ``fleet`` under ``path`` (:func:`_day_terms`) and its
     terms. ``last``, the previous day's ``(plan, terms)``, is kept when the planner does not
     draw from ``rng`` and the terms are the same (the memoryless model's every day, and the
@@ -131,7 +130,7 @@ def _plan_day(state: MonitorState, t: Any, planner: Planner, fleet: Fleet, path:
         return last
     model = state.model
     return (planner.plan(model.Y, model.region_, fleet, path, rng=rng, ridge=ridge,
-                         terms=terms), terms)
+                         prior=terms), terms)
 
 
 def _observed_entries(plan: Any, sel: np.ndarray) -> np.ndarray:
@@ -218,7 +217,9 @@ def simulate_campaign(
     path: PathOptions | None = None,
     replan_every: int | None = None,
     paper: bool = False,
-    **options: Any,
+    criterion: str = "fisher",
+    cost: str = "nearest-neighbor",
+    ridge: float = 0.0,
 ) -> xr.Dataset:
     """Replay a campaign over the snapshots of ``test_data`` ``(time, lat, lon)``.
 
@@ -240,12 +241,11 @@ def simulate_campaign(
     :class:`~lrm_cvx.glrm.dynamics.Dynamics` (e.g. the true dynamics of a planted field, in the
     model's latent coordinates).
     ``replan=False`` plans once, on the first day, and flies that route every day.
-    ``options``: ``cost``, ``ridge``, ``criterion`` (for ``"greedy"``) and the path options
-    of :func:`~lrm_cvx.planning.plan_greedy` (``metric``, ``speed``, ``stop_cost``,
-    ``traversable``, ``closed``, ``end``, ``sense_along``; or ``path``, a
-    :class:`~lrm_cvx.planning.request.PathOptions`), which **every** method follows (the
-    baselines cannot take ``end``; ``sense_along`` changes nothing for them, see
-    :func:`method_request`). With ``sense_along`` every cell passed is observed.
+    ``criterion`` (for ``"greedy"``), ``cost`` and ``ridge`` are the planner's, ``path`` (a
+    :class:`~lrm_cvx.planning.request.PathOptions`) the path model of
+    :func:`~lrm_cvx.planning.plan_greedy`, which **every** method follows (the baselines cannot
+    take ``end``; ``sense_along`` changes nothing for them, see :func:`method_request`). With
+    ``sense_along`` every cell passed is observed.
     ``replan_every``: replan en route after every ``k`` route entries of each robot
     (:func:`~lrm_cvx.replanning.replan`: what was observed so far is assimilated, the rest is
     planned with the budget left, the same end and path model and the plan's check against
@@ -266,20 +266,14 @@ def simulate_campaign(
     robot)``, with ``replan_every`` ``n_replans``. The attrs record the method, the budget(s),
     start(s) and the path model (:func:`path_attrs`).
     """
-    bad = set(options) - set(CAMPAIGN_OPTIONS) - set(PATH_FIELDS)
-    if bad:
-        raise TypeError(f"simulate_campaign() got an unexpected keyword argument "
-                        f"{sorted(bad)[0]!r}")
-    request = PathOptions.from_kwargs(path, where="simulate_campaign",
-                                      **pop_options(options, PATH_FIELDS))
+    request = PathOptions.from_kwargs(path, where="simulate_campaign")
     paper = check_flag(paper, "paper", error=PlanningError)
     if method is None:
         residual = getattr(model, "spatial_cov_", None) is not None and spatial is not False
         method = "greedy" if paper else recommended_method(residual)
     method = check_method(method)
-    planner = planner_for(method, criterion=options.get("criterion", "fisher"),
-                          cost=options.get("cost", "nearest-neighbor"))
-    ridge = float(options.get("ridge", 0.0))
+    planner = planner_for(method, criterion=criterion, cost=cost)
+    ridge = float(ridge)
     every = _check_every(replan_every, replan, planner, method)
     rng = as_generator(seed)
     dynamics, memoryless = _dynamics_for(model, temporal)

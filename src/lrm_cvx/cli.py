@@ -54,7 +54,7 @@ from .cli_common import (
     write_plans,
 )
 from .errors import LrmError
-from .recommended import RECOMMENDED  # the default unless --paper (one dict with the demo)
+from .recommended import RECOMMENDED, recommended_criterion  # the default unless --paper
 
 __all__ = ["main", "build_parser", "RECOMMENDED"]
 
@@ -361,12 +361,12 @@ def _plan_from_args(args: argparse.Namespace):
 
     paper = paper_setting(args)
     criterion = _canonical(CRITERIA, _pick(args.criterion, paper, "criterion", "fisher"))
-    if (args.criterion is None and criterion == "gp-variance"
-            and getattr(model, "spatial_cov_", None) is None):
+    fallback = recommended_criterion(getattr(model, "spatial_cov_", None) is not None)
+    if args.criterion is None and not paper and fallback != criterion:
         note(f"model {args.model} has no spatial residual (fitted with --paper or without "
-             "--spatial), so the recommended gp-variance criterion cannot run; planning with "
-             "fisher (--criterion chooses)")
-        criterion = "fisher"
+             f"--spatial), so the recommended {criterion} criterion cannot run; planning with "
+             f"{fallback} (--criterion chooses)")
+        criterion = fallback
     prior = _prior(_pick(args.prior, paper, "prior", None))
     initial = _pick(args.initial, paper, "initial", "nearest")
     kw: dict = {}
@@ -377,8 +377,7 @@ def _plan_from_args(args: argparse.Namespace):
                              "default for this criterion)")
         kw = model.planner_kwargs(prior=prior or "empirical", spatial=True)
     elif prior is not None:
-        kw = {k: v for k, v in model.planner_kwargs(prior=prior).items()
-              if k not in ("prior_cov", "spatial_cov")}
+        kw = model.planner_kwargs(prior=prior)
     plan = plan_greedy(model.Y_, model.region_, start, budget, criterion=criterion,
                        cost=args.cost, ridge=args.ridge, progress=not args.quiet,
                        initial=initial, path=path,
@@ -390,7 +389,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     files = plan_outputs(args.output, len(args.start), args.robot)  # before any work
     guard_paths([f for f, _ in files], [args.model, *mask_files(args)], args)
     model, plan, kw = _plan_from_args(args)
-    print(describe_plan(plan, criterion_value(plan, model.Y_, model.region_, kw)))
+    value = criterion_value(plan, model.Y_, model.region_, kw.get("prior"))
+    print(describe_plan(plan, value))
     write_plans(plan, files, args)
     return 0
 
@@ -502,7 +502,7 @@ def cmd_bound(args: argparse.Namespace) -> int:
                         criterion="fisher" if args.fisher else None)
     bounded = getattr(cert, "criterion", "fisher")
     who = "stored plan" if args.state is not None else "greedy plan"
-    value = criterion_value(plan, model.Y_, model.region_, kw,  # a replan's rivals: its part
+    value = criterion_value(plan, model.Y_, model.region_, kw.get("prior"),  # a replan's rivals
                             reuse=not plan.method.endswith("+replan"))
     print(f"{who}: {describe_plan(plan, value)}")
     if bounded != "fisher":  # a variance criterion: variance removed, the data's unit squared

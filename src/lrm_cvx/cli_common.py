@@ -194,17 +194,18 @@ def read_observations_csv(path: str, region: Any, what: str = "--observations"
     return cells, numeric["value"].to_numpy(dtype=float)
 
 
-def criterion_value(plan: Any, Y: Any, region: Any, terms: dict[str, Any], *,
+def criterion_value(plan: Any, Y: Any, region: Any, prior: Any, *,
                     reuse: bool = True) -> str:
     """``plan`` under its own criterion, with units, for :func:`describe_plan`: Fisher, the log
     det of the (posterior) information in nats; gp-variance, the total posterior variance the
     route removes, in the data's units squared; a-optimal, the total prediction variance left
     (in the data's units squared with the fold-in's noise, else in units of the noise).
-    ``Y`` / ``region`` / ``terms``: the factor matrix, region and prior terms it was planned
-    with (``plan_greedy``'s keywords); the value of the check against rival routes is reused
+    ``Y`` / ``region`` / ``prior``: the factor matrix, region and prior it was planned
+    with (``plan_greedy``'s ``prior=``); the value of the check against rival routes is reused
     when it was computed for the whole plan (``reuse``; a replan's is for the new part)."""
     from .information import gp_variance_value
     from .planning.lines import GP_TERMS, route_values
+    from .planning.terms import prior_terms
 
     criterion = plan.criterion or "fisher"
     rivals = getattr(plan, "rivals", None) or {}
@@ -214,6 +215,7 @@ def criterion_value(plan: Any, Y: Any, region: Any, terms: dict[str, Any], *,
             f" (of the footprint averages; planned by the {criterion} criterion)"
             if criterion != "fisher" else "")
     gp = criterion == "gp-variance"
+    terms = prior_terms(prior)
     extra = ({**{k: terms.get(k) for k in GP_TERMS}, "region": region} if gp else
              {k: terms[k] for k in ("prior_precision", "noise_var")
               if terms.get(k) is not None})

@@ -141,7 +141,7 @@ def cmd_monitor_plan(args: argparse.Namespace) -> int:
         _parse_time_option(state, args)
         _guard_state_outputs(outs, state, args)
         plan, t, kw = _plan_day(state, args, start, budget, path)
-        value = criterion_value(plan, state.model.Y, state.model.region_, kw)
+        value = criterion_value(plan, state.model.Y, state.model.region_, kw.get("prior"))
         print(f"plan for {_label(t)}: {describe_plan(plan, value)}")
         write_plans(plan, files, args)
         state.current_plan, state.current_plan_time = plan, t
@@ -156,18 +156,18 @@ def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
     recommended criterion and initial cells unless ``--paper`` or given explicitly."""
     from .planning import plan_greedy
     from .planning.lines import lines_where_possible
-    from .recommended import RECOMMENDED
+    from .recommended import RECOMMENDED, recommended_criterion
 
     model = state.model
     paper = paper_setting(args)
     criterion = args.criterion
     if criterion is None:
-        criterion = "fisher" if paper else RECOMMENDED["criterion"]
-        if criterion == "gp-variance" and not state.posterior.obs_model.is_spatial:
+        spatial = state.posterior.obs_model.is_spatial
+        criterion = "fisher" if paper else recommended_criterion(spatial)
+        if not paper and criterion != RECOMMENDED["criterion"]:
             note(f"state {args.state}: its model has no spatial residual (fitted with --paper "
                  "or without --spatial), so the recommended gp-variance criterion cannot run; "
                  "planning with fisher (--criterion chooses)")
-            criterion = "fisher"
     initial = args.initial or ("nearest" if paper else RECOMMENDED["initial"])
     kw = state.planner_kwargs(criterion=criterion, time=args.time)
     plan = plan_greedy(model.Y, model.region_, start, budget, criterion=criterion,
@@ -199,7 +199,8 @@ def cmd_monitor_replan(args: argparse.Namespace) -> int:
         new = state.replan(None, done, obs, criterion=args.criterion, progress=not args.quiet)
         if obs is not None:
             print(f"assimilated {state.n_assimilated - before} observation(s) at {_label(t)}")
-        value = criterion_value(new, state.model.Y, state.model.region_, kw, reuse=False)
+        value = criterion_value(new, state.model.Y, state.model.region_, kw.get("prior"),
+                                reuse=False)
         print(f"replan for {_label(t)}: {describe_plan(new, value)} (the whole route, under "
               "the day's prior before this call)")
         write_plans(new, files, args)
@@ -229,7 +230,8 @@ def cmd_monitor_export(args: argparse.Namespace) -> int:
     plan, t, files = _stored_plan(state, args)
     try:  # its criterion under the day's prior
         kw = state.planner_kwargs(criterion=plan.criterion, time=t)
-        value = criterion_value(plan, state.model.Y, state.model.region_, kw, reuse=False)
+        value = criterion_value(plan, state.model.Y, state.model.region_, kw.get("prior"),
+                                reuse=False)
     except LrmError:  # the state has moved past the plan's day: its cells' own Fisher
         value = (f"Fisher information {plan.information:.4f} nats of its cells alone (the "
                  f"state has moved on to {_label(state.time)}, past the plan's prior)")

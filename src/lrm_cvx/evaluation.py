@@ -41,7 +41,7 @@ from .planning.planners import (
     planner_for,
     recommended_method,
 )
-from .planning.request import PATH_FIELDS, Fleet, PathOptions, pop_options
+from .planning.request import PATH_FIELDS, Fleet, PathOptions
 from .recommended import RECOMMENDED
 from .region import Region
 from .scoring import (
@@ -811,13 +811,11 @@ def evaluate(
     fleets: every method of a campaign plans every day under the same path request
     and fleet.
 
-    Path model (docs/evaluation.md; defaults are the paper's): ``path`` (a
-    :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords ``metric``
-    (``"grid"`` or ``"km"``), ``speed`` (km/h: budgets in hours), ``stop_cost`` (budget unit
-    per sampling stop), ``traversable`` (``None``, ``"valid"`` or a boolean ``(lat, lon)``
-    DataArray), ``closed`` and, with ``temporal`` campaigns, ``end`` (greedy methods only)
+    Path model (docs/evaluation.md; defaults are the paper's): ``path``, a
+    :class:`~lrm_cvx.planning.request.PathOptions` (``metric``, ``speed``, ``stop_cost``,
+    ``traversable``, ``closed`` and, with ``temporal`` campaigns, ``end`` (greedy methods only)
     and ``sense_along`` (every cell passed is observed; a baseline's route already passes only
-    its own cells) are passed to every method, the greedy and the baselines alike.
+    its own cells)), is passed to every method, the greedy and the baselines alike.
     ``n_robots > 1``: every start is a fleet of ``n_robots`` distinct start cells (drawn with
     the seed; ``start_cell`` is the first robot's, ``fleet_start_cell`` ``(start, robot)`` all
     of them), each robot with the whole ``budget``; ``cost`` is the fleet's total and
@@ -840,12 +838,18 @@ def evaluate(
 
     A rolling-origin backtest of the protocol (its test block repeated back in time, each
     block's model fitted on the snapshots before it) is :func:`backtest`.
+
+    Parameters
+    ----------
+    random_trials, min_observations, ridge, fold_ridge, certify : (``**options``) the protocol's
+        numbers above (defaults 70, 10, 0.0, 0.0 and ``"fast"``).
+    n_jobs, progress, model_params, fold_in : (``**options``) worker processes, a progress bar,
+        the fit's extra GLRM parameters and the prediction (above).
     """
-    bad = set(options) - set(_EVALUATE_OPTIONS) - set(_EVALUATE_PATH)
+    bad = set(options) - set(_EVALUATE_OPTIONS)
     if bad:
         raise TypeError(f"evaluate() got an unexpected keyword argument {sorted(bad)[0]!r}")
-    request = PathOptions.from_kwargs(path, where="evaluate", allowed=_EVALUATE_PATH,
-                                      **pop_options(options, _EVALUATE_PATH))
+    request = PathOptions.from_kwargs(path, where="evaluate", allowed=_EVALUATE_PATH)
     return EvaluationProtocol(data, rank=rank, n_test=n_test, budgets=budgets,
                               n_starts=n_starts, methods=methods, criterion=criterion,
                               cost=cost, model=model, seed=seed,
@@ -879,8 +883,7 @@ def backtest(data: xr.DataArray, origins: int = 3, *, model: Any = None,
 
     n_origins = _int_arg(origins, "origins", 1, DataError)
     request = PathOptions.from_kwargs(kwargs.pop("path", None), where="backtest",
-                                      allowed=_EVALUATE_PATH,
-                                      **pop_options(kwargs, _EVALUATE_PATH))
+                                      allowed=_EVALUATE_PATH)
     known = {f.name for f in fields(EvaluationProtocol)} - {"data", "model", "path"}
     bad = set(kwargs) - known
     if bad:

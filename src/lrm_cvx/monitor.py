@@ -41,7 +41,8 @@ from .belief.filter import (  # noqa: F401  (re-exported: the old import locatio
 from .belief.posterior import LatentPosterior
 from .errors import DataError, ModelError
 from .glrm.dynamics import Dynamics
-from .recommended import RECOMMENDED
+from .planning.terms import PriorTerms
+from .recommended import RECOMMENDED, recommended_criterion
 
 __all__ = ["MonitorState", "model_fingerprint", "memoryless_dynamics", "time_label"]
 
@@ -286,21 +287,20 @@ class MonitorState(LatentFilter):
 
     def planner_kwargs(self, criterion: str | None = None, time: Any = None) -> dict:
         """Keyword arguments of :func:`~lrm_cvx.planning.plan_greedy` with the prior of the
-        next plan: the forecast for ``time`` (default as :meth:`forecast`). ``criterion``
+        next plan, ``{"prior": PriorTerms(...)}``: the forecast for ``time`` (default as
+        :meth:`forecast`). ``criterion``
         ``"fisher"``/``"a-optimal"`` drop the spatial terms ``"gp-variance"`` needs; None (the
         default) is the recommended criterion (``RECOMMENDED["criterion"]``) when the state
         has the spatial residual it needs, else ``"fisher"``."""
         kw = self.belief(time).information()
         if criterion is None:
-            criterion = RECOMMENDED["criterion"]
-            if criterion == "gp-variance" and "spatial_cov" not in kw:
-                criterion = "fisher"
+            criterion = recommended_criterion("spatial_cov" in kw)
         if criterion != "gp-variance":
             kw = {k: v for k, v in kw.items() if k not in ("prior_cov", "spatial_cov")}
         elif "spatial_cov" not in kw:
             raise ModelError("criterion 'gp-variance' needs a model fitted with spatial=... "
                              "(use 'fisher' or 'a-optimal')")
-        return kw
+        return {"prior": PriorTerms(**kw)}
 
     # ------------------------------------------------------------------ persistence
     def to_dataset(self) -> xr.Dataset:

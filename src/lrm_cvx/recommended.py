@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["RECOMMENDED"]
+__all__ = ["RECOMMENDED", "RESIDUAL_CRITERIA", "recommended_criterion"]
 
 RECOMMENDED: dict[str, Any] = {
     "offset": True, "spatial": "auto", "criterion": "gp-variance",
@@ -36,3 +36,29 @@ RECOMMENDED: dict[str, Any] = {
     "calibration": {"method": "conformal", "residual": False, "adaptive": False,
                     "max_snapshots": 2, "max_cells": 300, "temporal": "auto"},
 }
+
+RESIDUAL_CRITERIA = ("gp-variance",)
+"""The criteria that plan on the model's GP residual (a model without one cannot run them)."""
+
+
+def recommended_criterion(spatial: bool) -> str:
+    """The recommended criterion for a model with (``spatial=True``) or without a GP residual.
+
+    Parameters
+    ----------
+    spatial : bool
+        Whether the model (or belief) has the spatial residual.
+
+    Returns
+    -------
+    str
+        ``RECOMMENDED["criterion"]`` (read now), or ``"fisher"`` when that criterion plans on
+        the residual and there is none.
+
+    Examples
+    --------
+    >>> recommended_criterion(spatial=False)
+    'fisher'
+    """
+    criterion = RECOMMENDED["criterion"]
+    return "fisher" if not spatial and criterion in RESIDUAL_CRITERIA else criterion

@@ -23,6 +23,8 @@ from .errors import PlanningError
 from .information import fisher_information
 from .planning import Plan, plan_greedy
 from .planning.lines import CHECKS, LINES
+from .planning.request import PathOptions
+from .planning.terms import PriorTerms
 
 __all__ = ["replan", "route_feasible", "plan_variables", "plan_from_variables"]
 
@@ -143,7 +145,7 @@ def replan(state: Any, plan: Any, done: int | Sequence[int], observations: Any =
         check = refine if refine and "end" not in ends else None
         new = plan_greedy(Y, region, here, left, criterion=criterion, cost=cost, ridge=ridge,
                           initial="start", refine=check, progress=progress, stay=True,
-                          **opts, **ends, **kw)
+                          path=PathOptions(**opts, **ends), prior=PriorTerms(**kw))
         new_plans.append(new)
         taken += [int(c) for c in new.stops if int(c) != here]
     out = _stitch(plan, pieces, new_plans, Y, region, criterion, ridge, cost)

@@ -43,14 +43,13 @@ def _flags(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
 
 def test_the_python_api_takes_every_path_option():
     # a path option is a field of the one request object (PathOptions), taken as
-    # `path=PathOptions(...)` or as its keyword through `**options`, with the request's defaults
+    # `path=PathOptions(...)` only, with the request's defaults
     fields = {f.name: f.default for f in dataclasses.fields(PathOptions)}
     for fn, names in ((plan_greedy, PLAN_OPTIONS), (evaluate, EVALUATE_OPTIONS),
                       (transect, BASELINE_OPTIONS), (random_walk, BASELINE_OPTIONS)):
         params = inspect.signature(fn).parameters
-        takes_request = "path" in params and any(
-            p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-        missing = [n for n in names if n not in params and not (takes_request and n in fields)]
+        assert "path" in params and not set(names) & set(fields) & set(params), fn.__name__
+        missing = [n for n in names if n not in fields and n not in params]
         assert not missing, f"{fn.__name__} lacks {missing}"
     # the baselines, evaluate and the planner share the paper's defaults: the request's
     assert {n: fields[n] for n in BASELINE_OPTIONS} == {
@@ -61,9 +60,11 @@ def test_the_python_api_takes_every_path_option():
                  lambda **k: transect(region, 0, 2.0, "up", **k),
                  lambda **k: random_walk(region, 0, 2.0, 0, **k)):
         with pytest.raises(PlanningError, match="metric"):
-            call(metric="miles")
+            call(path=PathOptions(metric="miles"))
         with pytest.raises(TypeError, match="nonsense"):
             call(nonsense=1)
+        with pytest.raises(TypeError, match="metric"):  # the path is one object
+            call(metric="km")
 
 
 def test_every_path_option_has_its_flag_on_every_planning_command():

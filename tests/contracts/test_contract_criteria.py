@@ -138,11 +138,13 @@ def test_certificate_bounds_or_refuses(name):
 
     spec = CRITERION_REGISTRY.get(name)
     region, Y, kw = _problem(name, 5)
-    kw = {key: v for key, v in kw.items() if key != "region"}
+    from lrm_cvx.planning import PriorTerms
+
+    prior = PriorTerms(**{key: v for key, v in kw.items() if key != "region"})
     start = int(region.cell_grid[2, 2])
     budget = 2.0
     plan = plan_greedy(Y, region, start, budget, criterion=name, ridge=RIDGE, progress=False,
-                       **kw)
+                       prior=prior)
     cert = plan.certify(tighten=False, criterion="fisher")
     assert cert.criterion == "fisher" and cert.plan_criterion == name
     # brute force: the best Fisher information of any set the certificate covers

@@ -80,7 +80,10 @@ from .predictive import (
 )
 from .regularizers import Regularizer, ZeroReg
 
-__all__ = ["fit_chunked", "is_dask_backed"]
+__all__ = ["fit_chunked", "is_dask_backed", "STAGING_KEYS"]
+
+STAGING_KEYS = ("chunk_mb", "scratch_dir", "block_mb")
+"""The staging's options (:func:`~lrm_cvx.io.staging.stage`), ``fit_chunked(staging_options=)``."""
 
 _LOCK = threading.Lock()  # one compiled kernel at a time per process (they are parallel already)
 _ZERO = ZeroReg()
@@ -378,7 +381,7 @@ def fit_chunked(
     residual_moments: bool = False,
     residual_rows: int | None = None,
     extras: dict | None = None,
-    **options: Any,
+    fit: FitOptions | None = None,
 ) -> tuple[FitResult, Region | None, Any, str]:
     """Fit a GLRM to (dask-backed) ``data`` chunk by chunk; return ``(result, region, times,
     time_dim)``.
@@ -403,16 +406,19 @@ def fit_chunked(
     ``"error_masks"`` (the masks of the :func:`~.dynamics.error_rows` snapshots, bit-packed,
     ``error_masks[t]`` a row) for the dynamics' errors-in-variables correction.
 
-    ``options``: the :class:`~.fit.FitOptions` as keywords (``max_iter``, ``tol``, ``init``,
-    ``solver``, ``rng``, ``progress``, ``offset``; not ``max_inner``) and the staging's
-    ``chunk_mb``, ``scratch_dir``, ``block_mb`` (or all three in ``staging_options``).
+    ``fit``: the :class:`~.fit.FitOptions` (``max_iter``, ``tol``, ``init``, ``solver``,
+    ``rng``, ``progress``, ``offset``; ``max_inner`` must stay 1; default: its defaults);
+    ``staging_options``: the staging's ``chunk_mb``, ``scratch_dir``, ``block_mb``.
     """
-    stage_kw = {"chunk_mb": 256.0, "scratch_dir": None, "block_mb": 256.0}
+    stage_kw = dict(zip(STAGING_KEYS, (256.0, None, 256.0), strict=True))
+    unknown = sorted(set(staging_options or {}) - set(stage_kw))
+    if unknown:
+        raise TypeError(f"fit_chunked() got unexpected staging option(s) {unknown}; the staging "
+                        f"options are {sorted(stage_kw)}")
     stage_kw.update(staging_options or {})
-    for key in ("chunk_mb", "scratch_dir", "block_mb"):
-        if key in options:
-            stage_kw[key] = options.pop(key)
-    o = FitOptions.from_kwargs("fit_chunked", options, exclude=("max_inner",))
+    o = FitOptions() if fit is None else fit
+    if not isinstance(o, FitOptions) or o.max_inner != 1:
+        raise TypeError("fit_chunked(fit=...) takes a FitOptions with max_inner=1")
     max_iter, tol, init, solver, progress, offset = (o.max_iter, o.tol, o.init, o.solver,
                                                      o.progress, o.offset)
     rng = np.random.default_rng() if o.rng is None else o.rng

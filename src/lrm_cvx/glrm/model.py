@@ -243,20 +243,25 @@ class GLRM:
         return self
 
     def _fit_dask(self, data, mask, region, rank, loss, reg_x, reg_y, rng) -> GLRM:
-        from .chunked import fit_chunked
+        from .chunked import STAGING_KEYS, fit_chunked
+        from .fit import FitOptions
         from .predictive import check_options, data_scale, set_predictive, wants_residual_moments
 
         # the same options as in memory, computed chunk by chunk (every statistic is per cell)
         check_options(self, region is not None or getattr(data, "ndim", 0) == 3)
         extras: dict = {}
+        opts = dict(self.dask_options or {})  # fit_chunked's keywords and the staging's
+        staging = {**(opts.pop("staging_options", None) or {}),
+                   **{key: opts.pop(key) for key in STAGING_KEYS if key in opts}}
+        fit = FitOptions(max_iter=self.max_iter, tol=self.tol, init=self.init,
+                         solver=self.solver, rng=rng, progress=bool(self.progress),
+                         offset=bool(self.offset))
         res, region, times, self._time_dim = fit_chunked(
-            data, rank, loss, reg_x, reg_y, mask=mask, region=region, max_iter=self.max_iter,
-            tol=self.tol, init=self.init, solver=self.solver, rng=rng,
-            progress=bool(self.progress), keep_dask=bool(self.keep_dask),
-            offset=bool(self.offset), scale=data_scale(self),
+            data, rank, loss, reg_x, reg_y, mask=mask, region=region,
+            keep_dask=bool(self.keep_dask), scale=data_scale(self),
             residual_moments=wants_residual_moments(self),
-            residual_rows=20 if self.spatial is not None else None, extras=extras,
-            **(self.dask_options or {}))
+            residual_rows=20 if self.spatial is not None else None, extras=extras, fit=fit,
+            staging_options=staging, **opts)
         self._set_result(res, region, times, xarray=region is not None)
         set_predictive(self, region, extras["offset"], extras["scale"], extras.get("moments"),
                        extras.get("sample"))
@@ -560,15 +565,15 @@ class GLRM:
 
     def planner_kwargs(self, prior: str | None = "empirical", spatial: bool = False) -> dict:
         """Keyword arguments for :func:`~lrm_cvx.planning.plan_greedy` matching this model's
-        fold-in (prior precision, per-cell noise, per-cell scale; with ``spatial=True`` also
+        fold-in: ``{"prior": belief}``, the :meth:`latent_prior` whose ``information()`` gives
+        the prior precision, per-cell noise and per-cell scale (with ``spatial=True`` also
         ``prior_cov`` and ``spatial_cov`` for ``criterion="gp-variance"``)."""
         self._check_fitted()
         post = self.latent_prior(prior, spatial=spatial)
-        info = post.information()
-        if spatial and info["prior_cov"] is None:
+        if spatial and post.information()["prior_cov"] is None:
             raise ModelError("the gp-variance criterion needs prior='empirical' (a proper prior "
                              "covariance of the latent vector)")
-        return info
+        return {"prior": post}
 
     @property
     def is_plain_low_rank(self) -> bool:

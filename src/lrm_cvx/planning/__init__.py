@@ -20,6 +20,7 @@ from .refine import refine
 from .request import Fleet, PathOptions, PlanPath
 from .sensors import Sensor, plan_observations
 from .static import place_sensors
+from .terms import PriorTerms
 
 __all__ = [
     "Plan",
@@ -32,6 +33,7 @@ __all__ = [
     "plan_bound",
     "dopt_upper_bound",
     "PathOptions",
+    "PriorTerms",
     "Fleet",
     "PlanPath",
     "Sensor",

@@ -141,11 +141,11 @@ def _path_setup(region: Region, start: int, budget: float, request: PathOptions
     return geo, PlanPath.describe(request, Fleet((start,), (budget,)), traversable=kind)
 
 
-def _request(where: str, region: Any, start: Any, budget: Any, path: Any,
-             options: dict[str, Any]) -> tuple[Region, PathOptions, Fleet]:
+def _request(where: str, region: Any, start: Any, budget: Any, path: Any
+             ) -> tuple[Region, PathOptions, Fleet]:
     """The baseline's request read once: region, path options, fleet."""
     region = check_region(region)
-    request = PathOptions.from_kwargs(path, where=where, allowed=BASELINE_FIELDS, **options)
+    request = PathOptions.from_kwargs(path, where=where, allowed=BASELINE_FIELDS)
     return region, request, Fleet.resolve(region, start, budget, request.unit)
 
 
@@ -224,7 +224,6 @@ def transect(
     Y: Any = None,
     ridge: float = 0.0,
     path: PathOptions | None = None,
-    **options: Any,
 ) -> Plan:
     """A straight transect from ``start``, one grid step at a time (a lawnmower at the edges).
 
@@ -238,7 +237,7 @@ def transect(
     there it would only repeat a cycle, and every cell it can reach has been observed.
 
     Path model (as :func:`~lrm_cvx.planning.plan_greedy`: ``path`` a
-    :class:`~lrm_cvx.planning.request.PathOptions` and / or its keywords): ``metric`` ``"grid"``
+    :class:`~lrm_cvx.planning.request.PathOptions`): ``metric`` ``"grid"``
     (each step costs 1) or ``"km"`` (the haversine distance between the two positions' centres),
     ``speed`` (km/h, with ``"km"``) for a budget in hours; ``stop_cost`` (budget unit) is
     charged at each cell's first visit, the start included; ``traversable`` (``"valid"`` or a
@@ -255,7 +254,7 @@ def transect(
     """
     if direction not in DIRECTIONS:
         raise PlanningError(f"direction must be one of {DIRECTIONS}, got {direction!r}")
-    region, request, fleet = _request("transect", region, start, budget, path, options)
+    region, request, fleet = _request("transect", region, start, budget, path)
     return _per_robot(lambda s, b: _transect(region, s, b, direction, request, Y, ridge),
                       fleet, Y, ridge, f"transect-{direction}")
 
@@ -347,7 +346,6 @@ def random_walk(
     Y: Any = None,
     ridge: float = 0.0,
     path: PathOptions | None = None,
-    **options: Any,
 ) -> Plan:
     """The paper's random-sampling baseline: a random walk on valid 8-neighbours.
 
@@ -367,7 +365,7 @@ def random_walk(
     except LrmError:
         raise PlanningError(f"rng must be None, an int seed or a numpy Generator, got {rng!r}") \
             from None
-    region, request, fleet = _request("random_walk", region, start, budget, path, options)
+    region, request, fleet = _request("random_walk", region, start, budget, path)
     return _per_robot(lambda s, b: _random_walk(region, s, b, gen, request, Y, ridge), fleet,
                       Y, ridge, "random")
 

@@ -50,6 +50,7 @@ from .families import (
 )
 from .request import PathOptions
 from .sensors import footprint_factors, observation_rows, observed_cells
+from .terms import prior_terms
 
 __all__ = ["PlanCertificate", "plan_bound"]
 
@@ -295,15 +296,14 @@ def plan_bound(
     *,
     ridge: float = 0.0,
     plan: Any = None,
-    path: PathOptions | str | None = None,
+    path: PathOptions | None = None,
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL",
     tol: float = 1e-3,
-    tighten: bool = True,
-    cover: int = 2,
+    tighten: bool | dict[str, int] = True,
     refine: bool | dict[str, Any] = True,
     path_aware: bool | str | dict[str, Any] = False,
     criterion: str | None = "fisher",
-    **options: Any,
+    prior: Any = None,
 ) -> PlanCertificate:
     """Upper bound on the Fisher information of every plan from ``start`` within ``budget``.
 
@@ -321,19 +321,19 @@ def plan_bound(
     disk of radius ``budget / 2`` around the start, the plan then lies within ``budget / 2`` of
     that square and holds at most ``floor(budget - 2 s) + 2`` cells at distance ``>= s`` from it.
     The bound is the maximum of one relaxation per square; the square with the largest bound is
-    split into four while at most ``max_pieces`` (in ``**options``, default 40) relaxations have
-    been solved. ``tighten=False``
-    gives the plain disk relaxation. When the plan is given, the submodularity online bound is
-    computed too and the smaller one is kept. Proofs in docs/certificate.md.
+    split into four while at most ``max_pieces`` relaxations have been solved. ``tighten`` may
+    be a dict ``{"cover": 2, "max_pieces": 40}`` (the defaults; integers >= 1) to set those two;
+    ``tighten=False`` gives the plain disk relaxation. When the plan is given, the
+    submodularity online bound is computed too and the smaller one is kept. Proofs in
+    docs/certificate.md.
 
     **Every path model** (docs/certificate.md §10). ``path`` (a
-    :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords in ``**options``
-    (``metric``, ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``end``,
-    ``sense_along``) describe the route as in :func:`~lrm_cvx.planning.plan_greedy` (``budget``
-    in the path model's unit: grid units, km or hours); ``start`` and ``budget`` may be lists (a
-    fleet); ``path="static"`` with ``n_sensors`` (in ``**options``) bounds every placement of
-    ``n_sensors`` cells anywhere in the region. When a ``plan`` with a ``path`` description is
-    given, its path model is used and these keywords are ignored. The candidates are the cells
+    :class:`~lrm_cvx.planning.request.PathOptions`) describes the route as in
+    :func:`~lrm_cvx.planning.plan_greedy` (``budget`` in the path model's unit: grid units, km
+    or hours); ``start`` and ``budget`` may be lists (a fleet); ``start=None`` without a plan
+    bounds fixed sensors: every placement of ``budget`` (an integer >= 1) cells anywhere in the
+    region. When a ``plan`` with a ``path`` description is given, its path model is used and
+    ``path`` is ignored. The candidates are the cells
     some feasible route can observe (shortest travel distances: ``d(start, x) + d(x, back) +
     stop costs <= budget``, ``back`` = nothing, the start of a closed tour or the ``end``); the
     count limit uses the smallest spacing and the stop cost; the start's distance limits use the
@@ -380,13 +380,13 @@ def plan_bound(
     "gp-variance"`` or ``"a-optimal"`` bounds that criterion instead, the variance removed
     (the data's unit squared) by any plan of the same path model, over the same candidates,
     count and distance limits and midpoint cover, by the Frank-Wolfe dual bound of
-    :mod:`lrm_cvx.planning.varbound`. ``terms`` (in ``**options``) are the criterion's
-    terms as the planner read them (``prior_precision``, ``noise_var``, ``target_weights``; for
-    gp-variance ``region``, ``spatial_cov``, ``prior_cov``, ``targets``); default: the ones the
-    plan was planned with. Point sensors only; no online bound, no ``path_aware``; ``gap = bound -
-    value`` and ``relative_gap = gap / bound``; ``greedy_information`` /
-    ``refined_information`` are the greedy's route's and the kept route's values when the
-    planner compared rival routes (``plan.rivals``).
+    :mod:`lrm_cvx.planning.varbound`. ``prior`` is the criterion's prior as the planner read it
+    (a :class:`~lrm_cvx.planning.terms.PriorTerms` or a belief: ``prior_precision``,
+    ``noise_var``, ``target_weights``; for gp-variance ``spatial_cov``, ``prior_cov``,
+    ``targets``); default: the terms the plan was planned with. Point sensors only; no online
+    bound, no ``path_aware``; ``gap = bound - value`` and ``relative_gap = gap / bound``;
+    ``greedy_information`` / ``refined_information`` are the greedy's route's and the kept
+    route's values when the planner compared rival routes (``plan.rivals``).
     """
     from ..information import fisher_information
     from ..region import check_region
@@ -395,23 +395,15 @@ def plan_bound(
     Y = as_factor_matrix(Y, region)
     k, L = Y.shape
     _, ridge = _check_n_ridge(1.0, ridge)
-    if not isinstance(cover, (int, np.integer)) or cover < 1:
-        raise PlanningError(f"cover must be an integer >= 1, got {cover!r}")
-    max_pieces = options.pop("max_pieces", 40)
-    terms = options.pop("terms", None)
-    if not isinstance(max_pieces, (int, np.integer)) or max_pieces < 1:
-        raise PlanningError(f"max_pieces must be an integer >= 1, got {max_pieces!r}")
-    n_sensors = options.pop("n_sensors", None)
-    kind = "path"
-    if isinstance(path, str) or path is None:
-        kind = {"route": "path", "static": "static", None: "path"}.get(path)
-        if kind is None:
-            raise PlanningError(f"path must be 'route' or 'static', got {path!r}")
-        path = None
-    request = PathOptions.from_kwargs(path, where="plan_bound", **options)
+    tighten, cover, max_pieces = _check_tighten(tighten)
+    terms = None if prior is None else {key: v for key, v in prior_terms(prior).items()
+                                        if v is not None}
+    static = plan is None and start is None
+    request = PathOptions.from_kwargs(path, where="plan_bound")
     plan_sensor = getattr(getattr(plan, "path", None), "sensor", None)
     sensor = plan_sensor if plan_sensor is not None else request.sensor
-    spec = path_spec(region, plan, start, budget, request, kind, n_sensors)
+    spec = path_spec(region, plan, start, budget, request, "static" if static else "path",
+                     budget if static else None)
     bounded = _bound_criterion(criterion)
     if bounded != "fisher":
         if not sensor.is_point:
@@ -519,6 +511,26 @@ _TERM_KEYS = ("prior_precision", "noise_var", "target_weights", "region", "spati
               "prior_cov", "targets", "pool")
 
 
+def _check_tighten(tighten: Any) -> tuple[bool, int, int]:
+    """``(tighten, cover, max_pieces)`` of :func:`plan_bound`'s ``tighten``: True / False (the
+    default cover 2 and 40 pieces) or a dict of ``cover`` and ``max_pieces`` (integers >= 1)."""
+    opts = {"cover": 2, "max_pieces": 40}
+    if isinstance(tighten, dict):
+        unknown = sorted(set(tighten) - set(opts))
+        if unknown:
+            raise PlanningError(f"tighten takes the keys {sorted(opts)}, got {unknown}")
+        opts.update(tighten)
+        tighten = True
+    elif not isinstance(tighten, (bool, np.bool_)):
+        raise PlanningError(f"tighten must be True, False or a dict of cover and max_pieces, "
+                            f"got {tighten!r}")
+    for name, value in opts.items():
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+                or value < 1:
+            raise PlanningError(f"{name} must be an integer >= 1, got {value!r}")
+    return bool(tighten), int(opts["cover"]), int(opts["max_pieces"])
+
+
 def _variance_certificate(Y: np.ndarray, region: Any, spec: Any, plan: Any, criterion: str,
                           terms: dict[str, Any] | None, ridge: float, cover: int,
                           max_pieces: int, tighten: bool, tol: float, solver: str
@@ -539,12 +551,12 @@ def _variance_certificate(Y: np.ndarray, region: Any, spec: Any, plan: Any, crit
         if terms is None and criterion == "gp-variance":
             why = "no plan gives them" if plan is None else "the plan carries none"
             raise PlanningError(f"the gp-variance bound needs the criterion's terms ({why}): "
-                                "pass terms={'spatial_cov': ..., 'prior_cov': ...}")
+                                "pass prior=PriorTerms(spatial_cov=..., prior_cov=...)")
         if (terms is None and plan is not None and getattr(plan, "posterior", False)
                 and _plan_criterion(plan) == criterion):
             raise PlanningError(f"this {criterion} plan was planned on a posterior whose terms "
-                                "it does not carry (saved without them): pass terms="
-                                "{'prior_precision': ..., 'noise_var': ...}")
+                                "it does not carry (saved without them): pass prior="
+                                "PriorTerms(prior_precision=..., noise_var=...)")
     if not isinstance(terms, dict | type(None)):
         raise PlanningError(f"terms must be a dict of the criterion's terms, got {terms!r}")
     unknown = sorted(set(terms or {}) - set(_TERM_KEYS))
@@ -796,10 +808,10 @@ def _refined(plan: Any, Y: np.ndarray, region: Any, refine: Any, metric: str,
         return float(done["information_before"]), float(information), int(done["moves"]), cells
     if refine is False or refine is None or not hasattr(plan, "cost_function"):
         return None, None, None, cells
-    from .refiners import REFINERS  # the search registers itself: no import of the planner
+    from .refiners import REFINERS, RefineContext  # the search registers itself
 
     opts = dict(refine) if isinstance(refine, dict) else {}
-    better = REFINERS.get("local")(plan, dict(opts, Y=Y, region=region), {})
+    better = REFINERS.get("local")(plan, dict(opts, Y=Y, region=region), RefineContext())
     moves = int(better.refinement.get("moves", 0)) if better is not plan else 0
     return (float(information), max(float(better.information), float(information)), moves,
             np.asarray(better.cells, dtype=np.int64))

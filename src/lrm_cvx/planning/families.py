@@ -166,8 +166,8 @@ def path_spec(region: Any, plan: Any, start: Any, budget: Any, request: PathOpti
     if kind == "static":
         n = n_sensors
         if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise PlanningError(f"n_sensors must be an integer >= 1 for path='static', "
-                                f"got {n!r}")
+            raise PlanningError(f"the number of fixed sensors (budget, with start=None) must be "
+                                f"an integer >= 1, got {n!r}")
         return PathSpec("static", request, Fleet((), ()), int(n))
     start = _starts_list(start)
     if (isinstance(budget, (list, tuple, np.ndarray)) and len(budget) == 1

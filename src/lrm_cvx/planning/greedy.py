@@ -26,22 +26,19 @@ from ..information import (
     row_factors,
     row_information,
 )
-from ..recommended import RECOMMENDED
+from ..recommended import RECOMMENDED, recommended_criterion
 from ..region import Region
-from .lines import CHECKS, RIVAL_EXPONENT, RIVAL_NAME, RIVALS, best_of_lines, lines_run
+from .lines import CHECKS, RIVAL_EXPONENT, lines_run
 from .paths import path_model
 from .plan import Plan, check_region
-from .refiners import REFINERS
-from .request import Fleet, PathOptions, PlanPath, pop_options
+from .refiners import REFINERS, RefineContext
+from .request import Fleet, PathOptions, PlanPath
 from .routecost import COST_REGISTRY
 from .sensors import footprint_matrix, leg_matrix
-from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
+from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior, split_prior
 
 __all__ = ["initial_cells", "plan_greedy", "check_budget", "budget_pool", "resolve_prior",
-           "PRIOR_TERMS", "STATIC_OPTIONS"]
-
-STATIC_OPTIONS = ("n_sensors", "training", "exchange")
-"""The keywords of ``plan_greedy(static=True)`` only."""
+           "PRIOR_TERMS"]
 
 _TOL = 1e-9  # budget tolerance (grid units)
 _MIN_DC = 1e-12  # floor of the cost increase in the ratio (NN tours can get shorter)
@@ -142,9 +139,7 @@ def _model_defaults(model: Any, criterion: str | None, initial: str | None, prio
         return criterion or "fisher", initial or "nearest", prior
     spatial = getattr(model, "spatial_cov_", None) is not None
     if criterion is None:
-        criterion = RECOMMENDED["criterion"]
-        if CRITERION_REGISTRY.canonical(criterion, "criterion") == "gp-variance" and not spatial:
-            criterion = "fisher"
+        criterion = recommended_criterion(spatial)
     initial = initial or RECOMMENDED["initial"]
     given = any(v is not None for key, v in terms_given.items() if key != "targets")
     if prior is None and not given:
@@ -169,10 +164,10 @@ def plan_greedy(
     initial: str | None = None,
     prior: Any = None,
     refine: bool | str | dict[str, Any] | None = None,
-    path: PathOptions | str | None = None,
-    static: bool = False,
+    path: PathOptions | None = None,
     paper: bool = False,
-    **options: Any,
+    cost_exponent: float = 1.0,
+    stay: bool = False,
 ) -> Plan:
     """The paper's cost-benefit greedy path planner, for one robot or a fleet, on any path model.
 
@@ -226,23 +221,20 @@ def plan_greedy(
         (cheapest insertion route, cheaper and usually shorter).
     ridge : ``>= 0``, added to the information matrix (``ridge * I``).
     progress : show a tqdm progress bar.
-    prior_precision, noise_var, target_weights : (``**options``) the fold-in's posterior
-        (docs/reconstruction.md): ``M = prior_precision + sum_P y_p y_p^T / noise_var_p``
-        replaces ``ridge I + sum_P y_p y_p^T`` in ``"fisher"`` and ``"a-optimal"``, and the
-        A-optimal target is ``sum_i target_weights_i y_i y_i^T``. ``GLRM.planner_kwargs()``
-        returns them for a fitted model. Default None: the paper.
-    prior_cov, spatial_cov, targets : (``**options``) for ``criterion="gp-variance"`` (the
-        A-optimal criterion of the low-rank trend + GP residual model;
-        :class:`~lrm_cvx.information.GPVarianceOracle`).
     initial : ``"nearest"`` (the paper: the start and its ``k - 1`` nearest cells are forced) or
         ``"start"`` (only the start cell, and the ``end`` cell when given: with a prior the
         information matrix is nonsingular from the start, so the budget is not spent on
         ``k - 1`` forced cells). Default None: ``"nearest"`` for ``Y``, the recommended
         ``"start"`` for a model.
-    prior : a :class:`~lrm_cvx.belief.posterior.LatentPosterior` (``GLRM.latent_prior(...)``, a
-        monitoring filter's forecast): its ``information()`` fills ``prior_precision``,
-        ``noise_var``, ``target_weights`` and, when it has the spatial residual, ``prior_cov``
-        and ``spatial_cov`` (giving one of those too is an error).
+    prior : the criterion's prior: a :class:`~lrm_cvx.belief.posterior.LatentPosterior`
+        (``GLRM.latent_prior(...)``, a monitoring filter's forecast) or a
+        :class:`~lrm_cvx.planning.terms.PriorTerms` (``prior_precision``, ``noise_var``,
+        ``target_weights``; ``prior_cov``, ``spatial_cov`` and ``targets`` for
+        ``"gp-variance"``; ``GLRM.planner_kwargs()`` gives one as ``{"prior": ...}``). With a
+        prior, ``M = prior_precision + sum_P y_p y_p^T / noise_var_p`` replaces
+        ``ridge I + sum_P y_p y_p^T`` in ``"fisher"`` and ``"a-optimal"``, and the A-optimal
+        target is ``sum_i target_weights_i y_i y_i^T`` (docs/reconstruction.md). Default None:
+        the paper's (no prior) for ``Y``, the recommended prior for a model.
     refine : ``True`` / ``"local"`` (or a dict of its keyword arguments): run
         :func:`lrm_cvx.planning.refine.refine` on the greedy plan (a local search of insertions
         and swaps that raises the information within the budget; Fisher and the paper's path
@@ -254,44 +246,17 @@ def plan_greedy(
         ``plan.rivals["values"]`` is ``"greedy-cost^0.5"``, its ``method`` stays
         ``"greedy"``). Default None: nothing for ``Y``, the recommended ``"rivals"`` for a
         model (where the path options allow it).
-    cost_exponent : (``**options``) ``e`` in ``[0, 1]``, the exponent of the cost increase in
-        the greedy's ratio (step 2): 1 (default) is the paper's gain per unit cost, 0 the plain
-        gain, in between a gentler discount of long detours.
-    path : a :class:`~lrm_cvx.planning.request.PathOptions` (default: the paper's), or its
-        keywords below in ``**options`` (they update ``path``).
-    metric, speed, stop_cost, traversable, closed, end : (``**options``) the path model
-        (docs/planning.md, "Path models"): ``"grid"`` or ``"km"`` (great circle); ``speed``
-        km/h makes the unit hours; ``stop_cost`` is charged per sampling stop (start
-        included); ``traversable`` ``None`` (straight lines), ``"valid"`` or a boolean
-        ``(lat, lon)`` DataArray (travel over the 8-connected grid of enterable cells, routes
-        include the cells passed);
-        ``closed=True`` returns to the start; ``end`` (a cell or ``(lat, lon)``) is where every
-        route must finish.
-    sense_along : (``**options``) every cell a route passes through is observed: after each
-        pick the route's new pass-through cells join the information (cells a re-ordered route
-        no longer passes leave it). Candidates are still scored by **their own** gain per unit
-        cost (not by the pass-through cells their detour would add); cells already observed
-        are not candidates.
-        Without a travel graph a straight leg passes the cells its segment crosses (between
-        grid positions; masked positions are skipped). ``plan.cells`` holds every observed
-        cell, ``plan.stops`` the sampling stops.
-    sensor : (``**options``) what each stop observes (docs/planning.md, "Sensors"): ``"point"``
-        (default, the paper's), a footprint (``"disc:5km"``, ``"square:2km"`` or a
-        :class:`~lrm_cvx.planning.sensors.Sensor`, optionally growing with altitude): one
-        averaged row ``Y a`` per stop with noise ``sum a^2 sigma^2``, exact gains for every
-        criterion; or ``"leg-average"`` (a towed sensor: one row per stop, the mean of the
-        cells of the leg arriving there; candidates scored by their own cell, the oracle
-        rebuilt from the legs after each pick). ``plan.information`` is then the log det of
-        the averaged rows; ``plan.observation_rows()`` gives them. Not with ``refine``.
-    static : fixed sensors, no travel (see :func:`~lrm_cvx.planning.static.place_sensors`;
-        ``start`` must then be None and ``n_sensors`` (or ``budget``) is the number of
-        sensors).
-    stay : (``**options``) a robot whose budget reaches no cell beyond its start (with no
+    path : the path model, a :class:`~lrm_cvx.planning.request.PathOptions` (docs/planning.md,
+        "Path models" and "Sensors": metric, speed, stop costs, travel graph, closed tours,
+        end cell, sensing along the route, the sensor's footprint). Default None: the paper's.
+    paper : True: the paper's planner on a model's ``Y_`` (Fisher, nearest cells, no prior).
+    cost_exponent : ``e`` in ``[0, 1]``, the exponent of the cost increase in the greedy's
+        ratio (step 2): 1 (default) is the paper's gain per unit cost, 0 the plain gain, in
+        between a gentler discount of long detours.
+    stay : a robot whose budget reaches no cell beyond its start (with no
         forced initial cell to take it away) stays there, a route of its start alone (a
         replan at the end of a route); default False: :class:`PlanningError` naming the
         nearest cell's distance and the budget a route to it needs.
-    n_sensors, training, exchange : (``**options``) ``static=True`` only: the number of
-        sensors, the training snapshots of ``criterion="risk"`` and the exchange search.
 
     If the initial cells alone already exceed a robot's budget, the plan is still returned
     (the paper's initial set is forced) with a warning. Raises :class:`PlanningError` for a bad
@@ -300,48 +265,31 @@ def plan_greedy(
     """
     paper = check_flag(paper, "paper", error=PlanningError)
     refine = _check_refine(refine)
-    cost_exponent = _check_exponent(options.pop("cost_exponent", 1.0))
-    stay = check_flag(options.pop("stay", False), "stay", error=PlanningError)
+    cost_exponent = _check_exponent(cost_exponent)
+    stay = check_flag(stay, "stay", error=PlanningError)
     default_refine = False  # the recommended check is skipped where it cannot run
-    terms_given = {key: options.pop(key, None) for key in PRIOR_TERMS}
-    model = None
+    prior, terms_given = split_prior(prior)
     if _is_fitted_model(Y):
         model = Y
         region, start, budget = _model_call(model, region, start, budget)
         Y = model.Y_
-        if not static:
-            criterion, initial, prior = _model_defaults(model, criterion, initial, prior,
-                                                        terms_given, paper)
-            if refine is None and not paper:
-                refine = RECOMMENDED["refine"]
-                default_refine = True
+        criterion, initial, prior = _model_defaults(model, criterion, initial, prior,
+                                                    terms_given, paper)
+        if refine is None and not paper:
+            refine = RECOMMENDED["refine"]
+            default_refine = True
     elif hasattr(Y, "latent_prior") and hasattr(Y, "fit"):
         raise PlanningError("plan_greedy(model, ...): the model is not fitted")
     elif region is None:
         raise PlanningError("plan_greedy(Y, region, start, budget): region is missing (or pass "
                             "a fitted GLRM: plan_greedy(model, start, budget))")
     region = check_region(region)
-    static_opts = pop_options(options, STATIC_OPTIONS)
     if isinstance(path, str):
         raise PlanningError(f"path must be a PathOptions or None, got {path!r} (fixed sensors: "
                             "lrm_cvx.planning.place_sensors)")
-    request = PathOptions.from_kwargs(path, where="plan_greedy", **options)
-    if static and cost_exponent != 1.0:
-        raise PlanningError("cost_exponent applies to routes, not to static=True")
-    if static:  # a model: place_sensors' own defaults (recommended, or paper=True)
-        extra = {"paper": paper} if model is not None else {}
-        return _static(Y if model is None else model, region, start, budget, request, options,
-                       static_opts, refine, dict(criterion=criterion if model is not None
-                                                 else criterion or "fisher", ridge=ridge,
-                                                 progress=progress, prior=prior, **extra,
-                                                 **terms_given))
+    request = PathOptions.from_kwargs(path, where="plan_greedy")
     criterion = criterion or "fisher"  # Y alone: the paper's defaults
     initial = initial or "nearest"
-    if "n_sensors" in static_opts:
-        raise PlanningError("n_sensors applies to static=True only")
-    if static_opts:
-        raise PlanningError("training and exchange apply to static=True only")
-
     Yk = as_factor_matrix(Y, region)
     k, L = Yk.shape
     fleet = Fleet.resolve(region, start, budget, request.unit)
@@ -380,15 +328,17 @@ def plan_greedy(
                  fleet=fleet, request=request)
     *picked, extra = _picks(cost_exponent, **pick)
     plan = _route_plan(Yk, region, models, *picked, **build)
-    if refine in CHECKS:
-        others = {}
-        if refine == RIVALS and cost_exponent != RIVAL_EXPONENT:
-            *rival, _ = _picks(RIVAL_EXPONENT, **pick, extra=extra, warn=False)
-            others[RIVAL_NAME] = _route_plan(Yk, region, models, *rival, **build)
-        plan = best_of_lines(plan, Yk, region, fleet, request, criterion=criterion,
-                             ridge=ridge, extra=extra, others=others, refine=refine)
-    elif refine is not None:  # refine.py registers it
-        plan = REFINERS.get("local")(plan, {} if refine == "local" else refine, terms)
+    if refine is not None:  # refine.py and lines.py register the refinements
+
+        def rival(exponent: float) -> Plan:
+            *again, _ = _picks(exponent, **pick, extra=extra, warn=False)
+            return _route_plan(Yk, region, models, *again, **build)
+
+        context = RefineContext(terms=terms, Y=Yk, region=region, fleet=fleet, request=request,
+                                criterion=criterion, ridge=ridge, extra=extra,
+                                rival=None if cost_exponent == RIVAL_EXPONENT else rival)
+        name, opts = (refine, {}) if isinstance(refine, str) else ("local", refine)
+        plan = REFINERS.get(name, "refine")(plan, opts, context)
     plan._terms = extra  # the criterion's terms, which plan.certify() bounds
     return plan
 
@@ -531,34 +481,6 @@ def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets,
     finally:
         bar.close()
     return costers, stops, stop_robot, sense, hist, extra
-
-
-def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOptions,
-            given: dict[str, Any], static_opts: dict[str, Any], refine: Any,
-            common: dict[str, Any]) -> Plan:
-    """``plan_greedy(static=True)``: :func:`~lrm_cvx.planning.static.place_sensors` of the
-    request (``given``: the path keywords as passed; only ``traversable`` applies)."""
-    if start is not None:
-        raise PlanningError("static=True places fixed sensors and has no start: pass "
-                        "start=None")
-    n_sensors = static_opts.pop("n_sensors", None)
-    if n_sensors is None:
-        n_sensors = budget
-    elif budget is not None and float(budget) != float(n_sensors):
-        raise PlanningError(f"static=True: give n_sensors ({n_sensors}) or budget "
-                            f"({budget}), not two different numbers")
-    if not request.sensor.is_point:
-        raise PlanningError("static placement supports the point sensor only, not "
-                            f"sensor={request.sensor.describe()!r}")
-    if set(request.changed()) - {"traversable"}:
-        raise PlanningError("static=True has no travel: metric, speed, stop_cost, closed, "
-                            "end and sense_along do not apply")
-    if refine is not None:
-        raise PlanningError("refine does not apply to static=True")
-    from .static import place_sensors
-
-    return place_sensors(Y, region, n_sensors, traversable=given.get("traversable"),
-                         **static_opts, **common)
 
 
 def _take(coster: Any, pool: np.ndarray, cell: int) -> None:
@@ -717,17 +639,17 @@ def _check_exponent(value: Any) -> float:
 
 
 def _check_refine(refine: Any) -> Any:
-    """``refine`` as None (no refinement), ``"lines"``, ``"rivals"``, ``"local"`` or a dict of
-    the local search's options (True is ``"local"``); PlanningError otherwise."""
+    """``refine`` as None (no refinement), the name of a refinement of :data:`REFINERS` or a
+    dict of the local search's options (True is ``"local"``); PlanningError otherwise."""
     if refine is None or refine is False:
         return None
     if refine is True:
         return "local"
-    if isinstance(refine, str) and refine in (*CHECKS, "local"):
-        return refine
+    if isinstance(refine, str) and refine in REFINERS:
+        return REFINERS.canonical(refine, "refine")
     if isinstance(refine, dict):
         return refine
-    raise PlanningError(f"refine must be True, False, 'local', 'lines', 'rivals' or a dict of "
-                        f"the local search's options, got {refine!r}")
+    raise PlanningError(f"refine must be True, False, one of {list(REFINERS)} or a dict of the "
+                        f"local search's options, got {refine!r}")
 
 

@@ -27,6 +27,7 @@ finish); :func:`applies` says why not otherwise.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -43,6 +44,7 @@ from ..information import (
 from ..recommended import RECOMMENDED
 from .baselines import DIRECTIONS, transect
 from .plan import Plan
+from .refiners import REFINERS, RefineContext
 from .request import Fleet, PathOptions
 
 __all__ = ["LINES", "RIVALS", "RIVAL_EXPONENT", "RIVAL_NAME", "CHECKS", "applies", "lines_run",
@@ -181,3 +183,22 @@ def best_of_lines(plan: Plan, Y: np.ndarray, region: Any, fleet: Fleet, request:
     chosen.rivals = {"criterion": criterion, "values": values, "chosen": best,
                      "cost_function": plan.cost_function, "refine": refine}
     return chosen
+
+
+def _check_against(name: str) -> Callable[[Plan, dict[str, Any], RefineContext], Plan]:
+    """The refiner ``name`` (:data:`LINES` or :data:`RIVALS`) of :data:`REFINERS`: the greedy's
+    route or its best rival (:func:`best_of_lines`); ``"rivals"`` adds the gentler greedy."""
+    def check(plan: Plan, options: dict[str, Any], context: RefineContext) -> Plan:
+        others = {}
+        if name == RIVALS and context.rival is not None:
+            others[RIVAL_NAME] = context.rival(RIVAL_EXPONENT)
+        return best_of_lines(plan, context.Y, context.region, context.fleet, context.request,
+                             criterion=context.criterion, ridge=context.ridge,
+                             extra=context.extra, others=others, refine=name)
+    return check
+
+
+REFINERS.register(LINES, _check_against(LINES), description="the route or the straight "
+                  "transect from its start that the plan's criterion prefers")
+REFINERS.register(RIVALS, _check_against(RIVALS), description="as 'lines', with the greedy "
+                  f"of cost exponent {RIVAL_EXPONENT:g} as one more rival")

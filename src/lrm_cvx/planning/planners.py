@@ -1,11 +1,12 @@
 """Planners as objects, held by the method registry (the way PySensors plugs an optimizer).
 
 Each planner is a small frozen object with one method, ``plan(Y, region, fleet, path, *, rng,
-ridge, prior, terms) -> Plan``: ``fleet`` a :class:`~lrm_cvx.planning.request.Fleet` (who travels,
+ridge, prior) -> Plan``: ``fleet`` a :class:`~lrm_cvx.planning.request.Fleet` (who travels,
 with which budget), ``path`` a :class:`~lrm_cvx.planning.request.PathOptions` (how), ``rng`` for
-the random walk, ``prior`` / ``terms`` the criterion's belief. ``evaluate``, ``simulate_campaign``
-and the CLI look a method's planner up in :data:`METHOD_REGISTRY` by name (``"greedy"``,
-``"greedy:gp-variance"``, ``"transect-up"``, ``"random"``) instead of branching on it.
+the random walk, ``prior`` the criterion's belief (a ``LatentPosterior`` or a ``PriorTerms``).
+``evaluate``, ``simulate_campaign`` and the CLI look a method's planner up in
+:data:`METHOD_REGISTRY` by name (``"greedy"``, ``"greedy:gp-variance"``, ``"transect-up"``,
+``"random"``) instead of branching on it.
 
 A new planner goes here: a frozen class with ``plan(...)`` and, to make it an ``evaluate``
 method, one ``METHOD_REGISTRY.register(name, planner, description=...)`` line.
@@ -18,20 +19,21 @@ from typing import Any
 
 from ..errors import ModelError
 from ..information import CRITERION_REGISTRY
-from ..recommended import RECOMMENDED
+from ..recommended import RECOMMENDED, recommended_criterion
 from ..registry import Choices, Registry
 from .baselines import DIRECTIONS, random_walk, transect
 from .greedy import plan_greedy
 from .lines import CHECKS, lines_where_possible
 from .plan import Plan
 from .refine import refine_plan
+from .refiners import RefineContext
 from .request import Fleet, PathOptions
 from .static import place_sensors
-from .terms import PRIOR_TERMS, resolve_prior
+from .terms import prior_terms
 
 __all__ = ["Planner", "GreedyPlanner", "StaticPlacement", "Transect", "RandomWalk", "Refined",
            "METHOD_REGISTRY", "METHODS", "GREEDY_VARIANTS", "check_method", "planner_for",
-           "needs_spatial", "recommended_method", "SPATIAL_FALLBACK"]
+           "needs_spatial", "recommended_method"]
 
 
 class Planner:
@@ -43,8 +45,7 @@ class Planner:
     uses_rng = False
 
     def plan(self, Y: Any, region: Any, fleet: Fleet, path: PathOptions | None = None, *,
-             rng: Any = None, ridge: float = 0.0, prior: Any = None,
-             terms: dict[str, Any] | None = None) -> Plan:
+             rng: Any = None, ridge: float = 0.0, prior: Any = None) -> Plan:
         raise NotImplementedError
 
     def configure(self, *, criterion: str = "fisher", cost: str = "nearest-neighbor"
@@ -81,13 +82,12 @@ class GreedyPlanner(Planner):
         return model.latent_prior("empirical", spatial=self.criterion == "gp-variance")
 
     def plan(self, Y: Any, region: Any, fleet: Fleet, path: PathOptions | None = None, *,
-             rng: Any = None, ridge: float = 0.0, prior: Any = None,
-             terms: dict[str, Any] | None = None) -> Plan:
+             rng: Any = None, ridge: float = 0.0, prior: Any = None) -> Plan:
         return plan_greedy(Y, region, fleet, None, criterion=self.criterion or "fisher",
                            cost=self.cost or "nearest-neighbor", ridge=ridge, progress=False,
                            initial=self.initial, prior=prior, path=path,
                            refine=lines_where_possible(path) if self.lines else None,
-                           stay=True, **(terms or {}))
+                           stay=True)
 
 
 @dataclass(frozen=True)
@@ -103,14 +103,13 @@ class StaticPlacement(Planner):
     sweeps: int = 5
 
     def plan(self, Y: Any, region: Any, fleet: Fleet, path: PathOptions | None = None, *,
-             rng: Any = None, ridge: float = 0.0, prior: Any = None,
-             terms: dict[str, Any] | None = None) -> Plan:
+             rng: Any = None, ridge: float = 0.0, prior: Any = None) -> Plan:
         n = fleet.budgets[0] if fleet.budgets else None
         n = int(n) if n is not None and float(n) == int(n) else n
         return place_sensors(Y, region, n, criterion=self.criterion, ridge=ridge, prior=prior,
                              traversable=None if path is None else path.traversable,
                              training=self.training, exchange=self.exchange,
-                             sweeps=self.sweeps, **(terms or {}))
+                             sweeps=self.sweeps)
 
 
 @dataclass(frozen=True)
@@ -120,8 +119,7 @@ class Transect(Planner):
     direction: str = "up"
 
     def plan(self, Y: Any, region: Any, fleet: Fleet, path: PathOptions | None = None, *,
-             rng: Any = None, ridge: float = 0.0, prior: Any = None,
-             terms: dict[str, Any] | None = None) -> Plan:
+             rng: Any = None, ridge: float = 0.0, prior: Any = None) -> Plan:
         return transect(region, fleet, None, self.direction, Y=Y, ridge=ridge, path=path)
 
 
@@ -133,8 +131,7 @@ class RandomWalk(Planner):
     uses_rng = True
 
     def plan(self, Y: Any, region: Any, fleet: Fleet, path: PathOptions | None = None, *,
-             rng: Any = None, ridge: float = 0.0, prior: Any = None,
-             terms: dict[str, Any] | None = None) -> Plan:
+             rng: Any = None, ridge: float = 0.0, prior: Any = None) -> Plan:
         return random_walk(region, fleet, None, rng, Y=Y, ridge=ridge, path=path)
 
 
@@ -159,12 +156,11 @@ class Refined(Planner):
         return self.planner.uses_rng
 
     def plan(self, Y: Any, region: Any, fleet: Fleet, path: PathOptions | None = None, *,
-             rng: Any = None, ridge: float = 0.0, prior: Any = None,
-             terms: dict[str, Any] | None = None) -> Plan:
-        plan = self.planner.plan(Y, region, fleet, path, rng=rng, ridge=ridge, prior=prior,
-                                 terms=terms)
-        given = {key: (terms or {}).get(key) for key in PRIOR_TERMS if key != "targets"}
-        return refine_plan(plan, dict(self.options) or True, resolve_prior(prior, given))
+             rng: Any = None, ridge: float = 0.0, prior: Any = None) -> Plan:
+        plan = self.planner.plan(Y, region, fleet, path, rng=rng, ridge=ridge, prior=prior)
+        terms = prior_terms(prior)
+        terms.pop("targets")
+        return refine_plan(plan, dict(self.options) or True, RefineContext(terms=terms))
 
 
 # ------------------------------------------------------------------------------ the registry
@@ -207,11 +203,6 @@ def planner_for(method: str, *, criterion: str = "fisher", cost: str = "nearest-
     return METHOD_REGISTRY.get(method, "method").configure(criterion=criterion, cost=cost)
 
 
-SPATIAL_FALLBACK = "greedy:fisher"
-"""The stand-in of a method on the GP residual for a model without one: the greedy on the
-model's empirical prior (a filter's forecast in a campaign) with the Fisher criterion."""
-
-
 def needs_spatial(method: str) -> bool:
     """Whether ``method`` plans on the model's GP residual (a ``gp-variance`` greedy)."""
     planner = planner_for(method)
@@ -221,7 +212,9 @@ def needs_spatial(method: str) -> bool:
 
 def recommended_method(spatial: bool) -> str:
     """The recommended setting's method (``RECOMMENDED["method"]``, read now) for a model with
-    (``spatial=True``) or without a GP residual: without, a method on the residual becomes
-    :data:`SPATIAL_FALLBACK`."""
+    (``spatial=True``) or without a GP residual: without, a method on the residual becomes the
+    greedy on the model's empirical prior with :func:`~lrm_cvx.recommended.recommended_criterion`
+    (a filter's forecast in a campaign)."""
     method = check_method(RECOMMENDED["method"])
-    return SPATIAL_FALLBACK if not spatial and needs_spatial(method) else method
+    return f"greedy:{recommended_criterion(False)}" if not spatial and needs_spatial(method) \
+        else method

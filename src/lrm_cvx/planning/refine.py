@@ -31,7 +31,7 @@ from .._validation import as_factor_matrix
 from ..errors import PlanningError
 from ..information import fisher_set_value
 from .plan import Plan, check_region, is_paper_path
-from .refiners import REFINERS
+from .refiners import REFINERS, RefineContext
 from .routecost import (
     NearestNeighborCost,
     insertion_costs,
@@ -39,6 +39,7 @@ from .routecost import (
     repair_route,
     route_length,
 )
+from .terms import PriorTerms, prior_terms
 
 __all__ = ["refine"]
 
@@ -130,7 +131,7 @@ def refine(
     shapes: int = 2000,
     climbs: int = 8,
     seed: int | None = 0,
-    **posterior: Any,
+    prior: Any = None,
 ) -> Plan:
     """Local search on ``plan`` (insert / swap stops, route repair) that raises its Fisher
     information and keeps its exact path cost within ``plan.budget``.
@@ -138,7 +139,7 @@ def refine(
     Parameters
     ----------
     plan : a greedy :class:`Plan` (criterion ``"fisher"``; a posterior-Fisher plan needs its
-        ``prior_precision`` / ``noise_var``). Its cost model (``plan.cost_function``) is kept:
+        ``prior``). Its cost model (``plan.cost_function``) is kept:
         ``"nearest-neighbor"`` (the cost of a set is its nearest-neighbour tour from the start)
         or ``"insertion"`` (the cost is the length of the kept route, repaired by 2-opt and
         Or-opt after every move).
@@ -170,8 +171,9 @@ def refine(
     climbs : how many of the best shapes are hill-climbed.
     seed : seeds the kicks and the shapes (``numpy.random.default_rng``); the result is
         deterministic given it (and a ``time_limit`` that is not reached).
-    prior_precision, noise_var : (``**posterior``) the fold-in's posterior terms of a
-        posterior-Fisher plan (as :func:`~lrm_cvx.planning.plan_greedy` takes them).
+    prior : the prior of a posterior-Fisher plan, as :func:`~lrm_cvx.planning.plan_greedy` takes
+        it (a belief or a :class:`~lrm_cvx.planning.terms.PriorTerms`; its ``prior_precision``
+        and ``noise_var`` are read).
 
     Returns a new :class:`Plan` (``method`` unchanged) whose ``information`` is ``>=`` the
     input's and ``cost <= budget + 1e-9`` (or the input itself when no move helped), with
@@ -192,13 +194,11 @@ def refine(
         raise PlanningError(
             f"refine supports Fisher plans (criterion 'fisher'), got criterion="
             f"{plan.criterion!r}")
-    bad = set(posterior) - {"prior_precision", "noise_var"}
-    if bad:
-        raise TypeError(f"refine() got an unexpected keyword argument {sorted(bad)[0]!r}")
-    prior_precision, noise_var = posterior.get("prior_precision"), posterior.get("noise_var")
+    terms = prior_terms(prior)
+    prior_precision, noise_var = terms["prior_precision"], terms["noise_var"]
     if plan.posterior and prior_precision is None and noise_var is None:
         raise PlanningError("this plan's Fisher criterion is on the fold-in's posterior: "
-                            "pass its prior_precision / noise_var to refine it")
+                            "pass its prior (prior=) to refine it")
     if not is_paper_path(plan.path):
         raise PlanningError(
             "refine supports only the paper's path model (one robot, metric 'grid', no "
@@ -568,15 +568,15 @@ def _fill(g, rest, r, ys, limit, nn, crit, Sx):
     return new_cells, rr, c
 
 
-def refine_plan(plan: Plan, options: bool | dict[str, Any], terms: dict[str, Any]) -> Plan:
+def refine_plan(plan: Plan, options: bool | dict[str, Any], context: RefineContext) -> Plan:
     """:func:`refine` of ``plan`` with ``options`` (True or a dict of its keyword arguments),
-    a posterior plan's ``prior_precision`` / ``noise_var`` taken from ``terms`` (the greedy's
-    resolved prior terms) unless given: ``plan_greedy(refine=...)`` and
+    a posterior plan's ``prior_precision`` / ``noise_var`` taken from ``context.terms`` (the
+    greedy's resolved prior terms) unless a ``prior`` is given: ``plan_greedy(refine=...)`` and
     :class:`~lrm_cvx.planning.planners.Refined`."""
     opts = dict(options) if isinstance(options, dict) else {}
-    if plan.posterior:
-        opts.setdefault("prior_precision", terms.get("prior_precision"))
-        opts.setdefault("noise_var", terms.get("noise_var"))
+    if plan.posterior and opts.get("prior") is None:
+        opts["prior"] = PriorTerms(prior_precision=context.terms.get("prior_precision"),
+                                   noise_var=context.terms.get("noise_var"))
     return refine(plan, **opts)
 
 

@@ -57,10 +57,11 @@ from tqdm.auto import tqdm
 from .._validation import as_factor_matrix, check_flag
 from ..errors import DataError, ModelError, PlanningError, RegionError
 from ..information import CRITERION_REGISTRY, fisher_information, make_oracle
+from ..recommended import recommended_criterion
 from ..region import Region
 from .plan import Plan, check_region
 from .request import PlanPath
-from .terms import PRIOR_TERMS, history_arrays, oracle_terms, resolve_prior
+from .terms import PRIOR_TERMS, PriorTerms, history_arrays, oracle_terms, resolve_prior, split_prior
 
 __all__ = ["EXCHANGE_AUTO_MAX", "RISK_MAX_CELLS", "STATIC_CRITERIA", "place_sensors",
            "place_static", "risk_objective", "stack_training", "training_residuals",
@@ -543,8 +544,10 @@ def place_static(
                      np.ones(L) if tw is None else np.asarray(tw, np.float64), None)
         if method == "dense" or getattr(terms["spatial_cov"], "metric", "grid") != "grid":
             # the registry's greedy, then the dense state for the exchange
-            base = place_sensors(Yk, region, n, criterion=crit, prior=prior, exchange=False,
-                                 **other)
+            rest = {k: v for k, v in other.items() if k not in PRIOR_TERMS}
+            given = {k: other[k] for k in PRIOR_TERMS if other.get(k) is not None}
+            base = place_sensors(Yk, region, n, criterion=crit, exchange=False, prior=(
+                PriorTerms(**given) if prior is None and given else prior), **rest)
             state = _state(gp, None, [int(c) for c in base.cells], allowed, method,
                            int(max_candidates), "exchange=True", n)
             hist = {k: list(v) for k, v in base.history.items()}
@@ -659,9 +662,9 @@ def _recommended(from_model: bool, prior: Any, training: Any, paper: bool, crite
         if from_model and exchange is None:  # the criterion validated on the training
             return "auto", None
         return "risk", "auto" if exchange is None else bool(exchange)
-    if from_model and getattr(_model_of(prior), "spatial_cov_", None) is not None:
-        return "gp-variance", bool(exchange) if exchange is not None else False
-    return "fisher", bool(exchange) if exchange is not None else False
+    spatial = from_model and getattr(_model_of(prior), "spatial_cov_", None) is not None
+    criterion = recommended_criterion(spatial) if from_model else "fisher"
+    return criterion, bool(exchange) if exchange is not None else False
 
 
 def _model_of(prior: Any) -> Any:
@@ -684,7 +687,6 @@ def place_sensors(
     paper: bool = False,
     method: str = "auto",
     max_candidates: int | None = None,
-    **terms: Any,
 ) -> Plan:
     """Static placement: ``n_sensors`` fixed sensors (moorings, stations), no travel.
 
@@ -708,8 +710,8 @@ def place_sensors(
     The greedy of :func:`~lrm_cvx.planning.plan_greedy` with every sensor costing 1: candidates
     are all valid cells (or the cells of a boolean ``(lat, lon)`` DataArray ``traversable``:
     where a sensor may stand), and each step adds the cell of largest gain (ties to the lowest
-    cell) until ``n_sensors`` are placed (or no cell gains anything). The criteria, ``prior``
-    and posterior terms are those of :func:`plan_greedy`.
+    cell) until ``n_sensors`` are placed (or no cell gains anything). The criteria and ``prior``
+    (a belief or a :class:`~lrm_cvx.planning.terms.PriorTerms`) are those of :func:`plan_greedy`.
 
     Initial cells: none when the information is nonsingular from the start (``ridge > 0``, a
     prior precision, or ``"gp-variance"``); else (Fisher with ``ridge=0`` and no prior) the
@@ -728,6 +730,7 @@ def place_sensors(
     metric is km; ``"dense"`` is the ``L x L`` reference (at most ``RISK_MAX_CELLS`` cells).
     """
     paper = check_flag(paper, "paper", error=PlanningError)
+    prior, terms = split_prior(prior)
     Y, region, n_sensors, prior, from_model = _resolve_call(Y, region, n_sensors, prior)
     criterion, exchange = _recommended(from_model, prior, training, paper, criterion, exchange)
     auto = isinstance(criterion, str) and criterion == "auto"
@@ -737,10 +740,6 @@ def place_sensors(
     elif from_model and _is_model(prior) and criterion == "fisher":
         prior = None  # the paper's Fisher greedy: no prior
     region = check_region(region)
-    bad = set(terms) - set(PRIOR_TERMS)
-    if bad:
-        raise TypeError(f"place_sensors() got an unexpected keyword argument {sorted(bad)[0]!r}")
-    terms = {key: terms.get(key) for key in PRIOR_TERMS}
     Yk = as_factor_matrix(Y, region)
     k, L = Yk.shape
     if isinstance(n_sensors, (bool, np.bool_)) or n_sensors is None:

@@ -6,6 +6,7 @@ Shared by the greedy (:mod:`~lrm_cvx.planning.greedy`) and static placement
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -13,11 +14,94 @@ import numpy as np
 from ..errors import PlanningError
 from ..region import Region
 
-__all__ = ["PRIOR_TERMS", "resolve_prior", "oracle_terms", "history_arrays"]
+__all__ = ["PRIOR_TERMS", "PriorTerms", "split_prior", "prior_terms", "resolve_prior",
+           "oracle_terms", "history_arrays"]
 
 PRIOR_TERMS = ("prior_precision", "noise_var", "target_weights", "prior_cov", "spatial_cov",
                "targets")
-"""The criterion's posterior terms a planner takes as keywords (or from ``prior=``)."""
+"""The criterion's posterior terms a planner reads from its ``prior=`` (the fields of
+:class:`PriorTerms`)."""
+
+
+@dataclass(frozen=True, eq=False)
+class PriorTerms:
+    """The criterion's prior as explicit terms: what a planner's ``prior=`` takes besides a
+    :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (``MonitorState.planner_kwargs()`` returns
+    one as ``{"prior": PriorTerms(...)}``).
+
+    Parameters
+    ----------
+    prior_precision : ``(k, k)`` array or None
+        The fold-in's prior precision ``M0`` (docs/reconstruction.md): the information matrix
+        of ``"fisher"`` and ``"a-optimal"`` is ``M0 + sum_P y_p y_p^T / noise_var_p``.
+    noise_var : float, ``(L,)`` array or None
+        The measurement noise variance, one value or one per cell.
+    target_weights : ``(L,)`` array or None
+        The A-optimal target ``sum_i target_weights_i y_i y_i^T`` (per-cell variances).
+    prior_cov : ``(k, k)`` array or None
+        The latent covariance of ``criterion="gp-variance"``.
+    spatial_cov : a spatial covariance or None
+        The GP residual of ``criterion="gp-variance"``.
+    targets : ``(m,)`` cells or None
+        The cells whose variance ``"gp-variance"`` sums (None: every cell).
+
+    Examples
+    --------
+    >>> PriorTerms(noise_var=0.5).information()["noise_var"]
+    0.5
+    """
+
+    prior_precision: Any = None
+    noise_var: Any = None
+    target_weights: Any = None
+    prior_cov: Any = None
+    spatial_cov: Any = None
+    targets: Any = None
+
+    def information(self) -> dict[str, Any]:
+        """The terms as the planner's keyword dictionary (``targets`` aside), the form of
+        ``LatentPosterior.information()``."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "targets"}
+
+    def without_spatial(self) -> PriorTerms:
+        """These terms without ``prior_cov`` and ``spatial_cov`` (the Fisher and A-optimal
+        criteria's)."""
+        return PriorTerms(self.prior_precision, self.noise_var, self.target_weights,
+                          targets=self.targets)
+
+    def same(self, other: Any) -> bool:
+        """Whether ``other`` holds the same terms (arrays equal entry by entry)."""
+        if not isinstance(other, PriorTerms):
+            return False
+        for f in fields(self):
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if a is b:
+                continue
+            if a is None or b is None:
+                return False
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if not np.array_equal(np.asarray(a), np.asarray(b)):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+
+def split_prior(prior: Any) -> tuple[Any, dict[str, Any]]:
+    """``(belief, terms)`` of a planner's ``prior=``: a :class:`PriorTerms` gives its fields as
+    ``terms`` (every name of :data:`PRIOR_TERMS`) and no belief; a belief (or None) is returned
+    as it is, with every term None."""
+    if isinstance(prior, PriorTerms):
+        return None, {key: getattr(prior, key) for key in PRIOR_TERMS}
+    return prior, dict.fromkeys(PRIOR_TERMS)
+
+
+def prior_terms(prior: Any) -> dict[str, Any]:
+    """Every term of :data:`PRIOR_TERMS` that a planner's ``prior=`` (a :class:`PriorTerms`, a
+    belief or None) gives, None where it gives none."""
+    belief, terms = split_prior(prior)
+    targets = terms.pop("targets")
+    return {**resolve_prior(belief, terms), "targets": targets}
 
 
 def _prior_terms(prior: Any) -> dict[str, Any]:
@@ -25,7 +109,7 @@ def _prior_terms(prior: Any) -> dict[str, Any]:
     info = getattr(prior, "information", None)
     if not callable(info):
         raise PlanningError("prior must be a LatentPosterior (e.g. model.latent_prior("
-                            f"'empirical')), got {type(prior).__name__}")
+                            f"'empirical')) or a PriorTerms, got {type(prior).__name__}")
     return info()
 
 
@@ -34,9 +118,6 @@ def resolve_prior(prior: Any, terms_given: dict[str, Any]) -> dict[str, Any]:
     if prior is None:
         return terms_given
     terms = _prior_terms(prior)
-    clash = sorted(key for key in terms if terms_given.get(key) is not None)
-    if clash:
-        raise PlanningError(f"prior= already gives {clash}; pass either prior or those")
     return {key: terms.get(key) for key in terms_given}
 
 
