@@ -22,6 +22,7 @@ from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import CRITERION_REGISTRY, gp_variance_value
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
+from lrm_cvx.planning.terms import PriorTerms
 from lrm_cvx.replanning import plan_from_variables, plan_variables
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -122,7 +123,7 @@ def test_a_plan_saved_without_terms_is_refused_in_one_line(spatial):
         assert "\n" not in str(err.value)
         # its own terms, given, certify it as the saved plan would be
         terms = plan.criterion_terms
-        assert old.certify(terms=terms, **FAST).bound == plan.certify(**FAST).bound
+        assert old.certify(prior=PriorTerms(**terms), **FAST).bound == plan.certify(**FAST).bound
 
 
 # ------------------------------------------------------------------------- path models

@@ -26,7 +26,7 @@ PRIOR_TERMS = ("prior_precision", "noise_var", "target_weights", "prior_cov", "s
 @dataclass(frozen=True, eq=False)
 class PriorTerms:
     """The criterion's prior as explicit terms: what a planner's ``prior=`` takes besides a
-    :class:`~lrm_cvx.glrm.posterior.LatentPosterior` (``MonitorState.planner_kwargs()`` returns
+    :class:`~lrm_cvx.belief.posterior.LatentPosterior` (``MonitorState.planner_kwargs()`` returns
     one as ``{"prior": PriorTerms(...)}``).
 
     Parameters
