@@ -38,8 +38,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("lrm_cvx.io", "lrm_cvx.datasets"),
     # the GP residual model (covariance, kriging): the fold-in's spatial noise uses it
     ("lrm_cvx.spatial",),
-    # the low-rank model, its fold-in, dynamics and calibration
-    ("lrm_cvx.glrm",),
+    # the low-rank model, its fold-in, dynamics and calibration; the one search of the
+    # validated choices
+    ("lrm_cvx.glrm", "lrm_cvx.validation"),
     # what a planner maximises and what a route costs
     ("lrm_cvx.information", "lrm_cvx.oracles"),
     # planners, plans and certificates

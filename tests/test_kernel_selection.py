@@ -15,9 +15,9 @@ from scipy.spatial.distance import cdist
 from lrm_cvx import GLRM
 from lrm_cvx.errors import ModelError
 from lrm_cvx.glrm.kernel_selection import _kriging_errors, format_kernel_selection
-from lrm_cvx.glrm.selection import paired_choice
 from lrm_cvx.spatial import ResidualCovariance
 from lrm_cvx.spatial.covariance import correlation
+from lrm_cvx.validation.search import paired_choice
 
 
 def _field(kernel: str, range_: float, T: int = 30, n: int = 18, seed: int = 0) -> xr.DataArray:

@@ -1,6 +1,6 @@
 """How far to trust a model's dynamics: the blend towards the memoryless model
 (:func:`blend_dynamics`) and its choice by forward-chaining validation (:func:`select_dynamics`,
-the paired rule of :func:`~lrm_cvx.glrm.paired.paired_choice`)."""
+the paired rule of :func:`~lrm_cvx.validation.search.paired_choice`)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 
 from .._validation import as_generator
 from ..errors import ModelError
+from ..validation.search import paired_choice
 from .designs import SET_KINDS, flown_sets
-from .paired import paired_choice
 from .refits import clone_model, training_values, validation_view
 
 __all__ = ["blend_dynamics", "unblended_dynamics", "memoryless_cov", "select_dynamics"]
