@@ -20,6 +20,7 @@ from lrm_cvx.glrm.designs import flown_sets
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.region import Region
 from lrm_cvx.validation.search import (
+    Best,
     Decision,
     HeldOutCells,
     InterleavedBlocks,
@@ -153,3 +154,43 @@ def test_one_standard_error_keeps_the_group_and_takes_the_most_cautious():
                             caution=lambda lab: int(lab.split("x")[-1]) if "x" in lab else 0)
     d = rule(E, labels)
     assert isinstance(d, Decision) and d.best == 1 and d.choice == 2
+
+
+@pytest.mark.parametrize(("name", "choice", "cells"), [
+    ("sst", "risk+exchange", [109, 294, 285, 160, 410, 374]),
+    ("planted", "gp-variance+exchange", [7, 9, 6, 45, 2, 43])])
+def test_criterion_auto_is_pinned(name, choice, cells):
+    from lrm_cvx.planning import place_sensors
+
+    data = load_sample("sst") if name == "sst" else _planted()
+    model = _fit(data, rank=3, spatial="exponential")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plan = place_sensors(model, 6, training=data)
+    table = plan.refinement["selection"]
+    assert table.attrs.pop("seconds") > 0  # the one attribute that is not a result
+    assert table.attrs["choice"] == choice and plan.cells.tolist() == cells
+    xr.testing.assert_identical(table, _pin(f"{name}_placement"))
+
+
+def test_select_dynamics_is_pinned():
+    from lrm_cvx.glrm.blending import select_dynamics
+
+    data = _planted()
+    model = _fit(data, rank=3, temporal="ar1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        alpha, table = select_dynamics(model, data, sizes=(5, 15), apply=False)
+    pin = _pin("planted_dynamics")
+    assert alpha == pin.attrs["alpha"] == 1.0 and table.attrs["n_days"] == pin.attrs["n_days"]
+    assert np.array_equal(table.index.values, pin["alpha"].values)
+    assert np.array_equal(table.values, pin["mse"].values)
+    assert np.array_equal(table.attrs["ucb"].values, pin["ucb"].values)
+
+
+def test_best_takes_the_lowest_worst_ratio_without_a_guard():
+    E = np.array([[[1.0, 1.2], [2.0, 2.0]], [[0.5, 0.7], [2.2, 2.2]], [[0.9, 1.0], [1.8, 2.0]]])
+    d = Best()(E)
+    worst = (E.mean(axis=-1) / E[0].mean(axis=-1)).max(axis=1)  # 1, 1.1 and 0.95
+    assert d.choice == d.best == int(np.argmin(worst)) == 2
+    assert d.admissible.all() and np.isnan(d.ucb).all() and d.n_cases == 2

@@ -763,6 +763,7 @@ class GLRM:
                     seed: Any = 0) -> pd.Series:
         """Held-out RMSE for each rank: fit a copy of this model on a training split of the
         observed entries and score it on the rest. Returns a Series indexed by rank."""
+        from ..validation.search import Best, search
         from .refits import clone_model  # a refit that never calibrates itself
 
         ranks = check_ranks(ranks)
@@ -773,14 +774,20 @@ class GLRM:
         train = np.asarray(getattr(train, "values", train))
         mask = ~np.isnan(train)
         np.copyto(train, 0, where=~mask)  # ours: zero-filled once, so no fit copies it
-        out = {}
-        for r in ranks:
-            model = clone_model(self, rank=int(r))
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                model.fit(train, mask=mask)
-            out[int(r)] = float(np.sqrt(model.score(np.asarray(getattr(test, "values", test)))))
-        return pd.Series(out, name="holdout_rmse").rename_axis("rank")
+        test = np.asarray(getattr(test, "values", test))
+
+        def mse_by_rank(split: tuple) -> dict[int, np.ndarray]:  # one split: (1, 1) each
+            out = {}
+            for r in ranks:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    fit = clone_model(self, rank=int(r)).fit(split[0], mask=split[1])
+                out[int(r)] = np.array([[fit.score(split[2])]])
+            return out
+
+        labels, E, _ = search(mse_by_rank, [(train, mask, test)], Best())
+        return pd.Series({r: float(np.sqrt(e[0, 0])) for r, e in zip(labels, E, strict=True)},
+                         name="holdout_rmse").rename_axis("rank")
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> None:

@@ -11,11 +11,13 @@ estimator with one loop:
   leaves, scored on at most ``max_scored`` of them), each with a ``split(...)`` method;
 * **a scorer**: a callable that scores every candidate on one split, on the same sample cells
   (paired), returning errors ``(n_sizes, n_cases)`` per label (day-map MSE, kriging MSE, ...);
-* **a rule** (:class:`PairedGuard`: the lowest worst ratio among candidates whose paired
-  bootstrap bound against the reference (candidate 0) is at most ``tolerance``;
+* **a rule** (:class:`Best`: the lowest mean error; :class:`PairedGuard`: the lowest worst
+  ratio among candidates whose paired bootstrap bound against the reference (candidate 0) is
+  at most ``tolerance``;
   :class:`OneStandardError`: then the most cautious candidate within one standard error of
   it; :class:`FamilyVariants`: a fitted variant of a candidate replaces it unless validated
-  worse);
+  worse; :class:`BlockGuard`: the reference unless another is surely better, counted in
+  blocks of cases);
 * **one table** (:func:`selection_table`): an ``xarray.Dataset`` over the candidates and the
   sample sizes with ``mse``, ``ratio``, ``ucb`` and ``admissible``, the choice in
   ``attrs["choice"]``; the models save it with their other fitted state.
@@ -35,9 +37,9 @@ import xarray as xr
 from ..errors import ModelError
 from ..glrm.paired import MAX_SCORED, bootstrap_upper, paired_difference, shared_cases
 
-__all__ = ["RollingOrigin", "InterleavedBlocks", "HeldOutCells", "PairedGuard",
-           "OneStandardError", "FamilyVariants", "Decision", "paired_choice", "search",
-           "selection_table"]
+__all__ = ["RollingOrigin", "InterleavedBlocks", "HeldOutCells", "Best", "PairedGuard",
+           "OneStandardError", "FamilyVariants", "BlockGuard", "Decision", "paired_choice",
+           "search", "selection_table"]
 
 
 # ------------------------------------------------------------------------------ splitters
@@ -233,6 +235,20 @@ def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
 
 
 @dataclass(frozen=True)
+class Best:
+    """The candidate with the lowest worst ratio (over the sizes) of its mean error to the
+    reference's; no guard (every candidate admissible, ``ucb`` NaN)."""
+
+    def __call__(self, E: np.ndarray, labels: Sequence[str] = ()) -> Decision:
+        """The decision on errors ``E (n_candidates, n_sizes, n_cases)``."""
+        mse = np.nanmean(E, axis=-1)
+        ratio = mse / mse[0]
+        best = int(np.argmin(ratio.max(axis=1)))
+        return Decision(mse, ratio, np.full_like(mse, np.nan), np.ones(E.shape[0], bool),
+                        best, best, int(np.isfinite(E).all(axis=(0, 1)).sum()))
+
+
+@dataclass(frozen=True)
 class PairedGuard:
     """The lowest worst ratio among the candidates not worse than the reference (candidate 0)
     by more than ``tolerance`` with confidence (:func:`paired_choice`).
@@ -338,6 +354,55 @@ class FamilyVariants:
         ucb = paired_choice(np.stack([Ea, Ei]), self.guard.confidence, 0.0,
                             self.guard.what)[2][1]
         return bool(np.all(ucb >= 0))
+
+
+@dataclass(frozen=True)
+class BlockGuard:
+    """The reference (candidate 0) unless another candidate is surely better, counted in
+    blocks of cases (a placement's validation window: its cases share one draw of each
+    candidate, so their spread says nothing about the candidate's).
+
+    The errors are averaged per block; the change against the reference is paired per block
+    and its one-sided upper bound (``confidence`` standard errors of the changes' spread over
+    the blocks, relative to the reference's mean) must be below ``tolerance``; among those
+    candidates, the lowest mean over the blocks. With fewer than two blocks the bound is
+    +inf and the reference stays. The decision's ``mse`` is per candidate and block.
+
+    Parameters
+    ----------
+    blocks : sequence of (int, int)
+        Case ranges ``(start, stop)``.
+    confidence : float
+        Standard errors of the one-sided bound.
+    tolerance : float
+        The bound a candidate must stay below.
+    """
+
+    blocks: Sequence[tuple[int, int]]
+    confidence: float = 1.645
+    tolerance: float = 0.0
+
+    def __call__(self, E: np.ndarray, labels: Sequence[str] = ()) -> Decision:
+        """The decision on paired errors ``E (n_candidates, 1, n_cases)``."""
+        import warnings
+
+        mse = np.array([[float(np.nanmean(row[a:b])) for a, b in self.blocks]
+                        for row in E[:, 0]]).reshape(E.shape[0], len(self.blocks))
+        score = mse.mean(axis=1) if self.blocks else np.full(E.shape[0], np.nan)
+        ucb = np.zeros(E.shape[0])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            diff, se = paired_difference(mse, slice(1, None), 0)
+            ub = (diff + self.confidence * se) / np.nanmean(mse[0])
+        n = np.isfinite(mse[1:] - mse[0]).sum(axis=1)
+        ucb[1:] = np.where((n >= 2) & np.isfinite(ub), ub, np.inf)
+        admissible = ucb < self.tolerance
+        admissible[0] = True
+        best = 0
+        for c in range(1, E.shape[0]):
+            if admissible[c] and score[c] < score[best]:
+                best = c
+        return Decision(mse, score / score[0], ucb, admissible, best, best, E.shape[-1])
 
 
 # ------------------------------------------------------------------------------ the search
