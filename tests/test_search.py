@@ -22,6 +22,7 @@ from lrm_cvx.region import Region
 from lrm_cvx.validation.search import (
     Best,
     Decision,
+    ForwardBlocks,
     HeldOutCells,
     InterleavedBlocks,
     OneStandardError,
@@ -97,11 +98,11 @@ def test_rolling_origin_windows_end_at_the_last_snapshot():
     assert RollingOrigin(3, 2).split(6, lambda lo: lo >= 5) is None
 
 
-def test_interleaved_blocks_hold_out_every_kth_block_once():
-    folds = InterleavedBlocks(3, block=2).split(11)
+def test_interleaved_blocks_hold_out_every_kth_snapshot_once():
+    folds = InterleavedBlocks(3).split(11)
     assert len(folds) == 3
     tests = [test for _, test in folds]
-    assert tests[0].tolist() == [0, 1, 6, 7] and tests[2].tolist() == [4, 5, 10]
+    assert tests[0].tolist() == [0, 3, 6, 9] and tests[2].tolist() == [2, 5, 8]
     assert sorted(np.concatenate(tests).tolist()) == list(range(11))
     for train, test in folds:
         assert np.intersect1d(train, test).size == 0 and train.size + test.size == 11
@@ -194,3 +195,25 @@ def test_best_takes_the_lowest_worst_ratio_without_a_guard():
     worst = (E.mean(axis=-1) / E[0].mean(axis=-1)).max(axis=1)  # 1, 1.1 and 0.95
     assert d.choice == d.best == int(np.argmin(worst)) == 2
     assert d.admissible.all() and np.isnan(d.ucb).all() and d.n_cases == 2
+
+
+def test_cv_residuals_folds_are_pinned():
+    """The calibration's interleaved and forward folds and held-out cells are the search's
+    splitters: the fold-in residuals on the planted record are those pinned."""
+    from lrm_cvx.glrm.calibration import cv_residuals
+
+    data = _planted()
+    model = _fit(data, rank=3, spatial="exponential", temporal="ar1")
+    pin = np.load(PINS / "planted_cv_residuals.npz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        inter = cv_residuals(model, data, max_cells=40)
+        forward = cv_residuals(model, data, folds="forward")
+    assert np.array_equal(inter, pin["interleaved"])
+    assert np.array_equal(forward, pin["forward"])
+
+
+def test_forward_blocks_refit_on_everything_before_each_later_block():
+    folds = ForwardBlocks(4).split(10)  # blocks 0-2, 3-5, 6-7, 8-9: the last two held out
+    assert [test.tolist() for _, test in folds] == [[6, 7], [8, 9]]
+    assert [train.tolist() for train, _ in folds] == [list(range(6)), list(range(8))]

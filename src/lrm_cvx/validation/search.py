@@ -6,7 +6,8 @@ estimator with one loop:
 
 * **candidates**: labelled settings (a temporal model, a kernel, a rank);
 * **a splitter** (:class:`RollingOrigin`: forward windows trained on the snapshots before
-  them; :class:`InterleavedBlocks`: every ``k``-th block of snapshots held out;
+  them; :class:`ForwardBlocks`: the second half's blocks, each after the snapshots before
+  it; :class:`InterleavedBlocks`: every ``k``-th snapshot held out;
   :class:`HeldOutCells`: the cells a campaign design samples against the observed cells it
   leaves, scored on at most ``max_scored`` of them), each with a ``split(...)`` method;
 * **a scorer**: a callable that scores every candidate on one split, on the same sample cells
@@ -37,9 +38,9 @@ import xarray as xr
 from ..errors import ModelError
 from ..glrm.paired import MAX_SCORED, bootstrap_upper, paired_difference, shared_cases
 
-__all__ = ["RollingOrigin", "InterleavedBlocks", "HeldOutCells", "Best", "PairedGuard",
-           "OneStandardError", "FamilyVariants", "BlockGuard", "Decision", "paired_choice",
-           "search", "selection_table"]
+__all__ = ["RollingOrigin", "ForwardBlocks", "InterleavedBlocks", "HeldOutCells", "Best",
+           "PairedGuard", "OneStandardError", "FamilyVariants", "BlockGuard", "Decision",
+           "paired_choice", "search", "selection_table"]
 
 
 # ------------------------------------------------------------------------------ splitters
@@ -91,34 +92,40 @@ class RollingOrigin:
 
 @dataclass(frozen=True)
 class InterleavedBlocks:
-    """Every ``n_folds``-th block of ``block`` consecutive snapshots held out, in turn.
+    """Every ``n_folds``-th snapshot held out, in turn, after a refit on all the others.
 
     Parameters
     ----------
     n_folds : int
-        Folds (each holds out one block in ``n_folds``).
-    block : int
-        Snapshots per block.
+        Folds.
     """
 
     n_folds: int
-    block: int = 1
 
     def split(self, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
-        """``[(train, test)]`` index arrays over ``n`` snapshots, one pair per fold.
-
-        Parameters
-        ----------
-        n : int
-            Snapshots of the record.
-
-        Returns
-        -------
-        list of (numpy.ndarray, numpy.ndarray)
-        """
-        fold = (np.arange(n) // max(1, int(self.block))) % int(self.n_folds)
+        """``[(train, test)]`` index arrays over ``n`` snapshots, one pair per fold."""
+        fold = np.arange(n) % int(self.n_folds)
         return [(np.flatnonzero(fold != f), np.flatnonzero(fold == f))
                 for f in range(int(self.n_folds))]
+
+
+@dataclass(frozen=True)
+class ForwardBlocks:
+    """The record cut into ``n_blocks`` contiguous blocks; each block of the second half is
+    held out after a refit on the snapshots before it (forward chaining).
+
+    Parameters
+    ----------
+    n_blocks : int
+        Blocks of the record.
+    """
+
+    n_blocks: int
+
+    def split(self, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``[(train, test)]`` index arrays over ``n`` snapshots, earliest block first."""
+        blocks = np.array_split(np.arange(n), int(self.n_blocks))[int(self.n_blocks) // 2:]
+        return [(np.arange(block[0]), block) for block in blocks]
 
 
 @dataclass(frozen=True)
