@@ -1,8 +1,8 @@
 """The one search of the validated choices (validation/search.py): its splitters, its loop and
 the choices every ``"auto"`` makes through it, pinned on the bundled records and a planted one.
 
-The pinned tables (``tests/pins/*.nc``) were written by the selectors' code before they ran
-through the search; a change of a choice or of any table value fails here.
+The pinned tables (``tests/pins/``) hold every choice and table value bit for bit; a change
+of a choice or of any value fails here.
 """
 
 from __future__ import annotations
