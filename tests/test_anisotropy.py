@@ -228,14 +228,16 @@ def test_an_anisotropic_fit_validated_worse_does_not_compete(monkeypatch):
     """The rule: the anisotropic fit replaces its family's isotropic one unless its paired
     errors are worse with confidence at some size; then the isotropic fit competes."""
     import lrm_cvx.validation.kernel_selection as ks
+    from lrm_cvx.validation.search import FamilyVariants, PairedGuard
 
-    assert ks._not_worse(np.full((2, 30), 1.0), np.full((2, 30), 1.0), 1.645)
+    not_worse = FamilyVariants(PairedGuard(1.645)).not_worse
+    assert not_worse(np.full((2, 30), 1.0), np.full((2, 30), 1.0))
     rng = np.random.default_rng(0)
     base = rng.uniform(1, 2, (2, 30))
-    assert ks._not_worse(base + rng.normal(0, 0.01, (2, 30)), base, 1.645)  # noise: kept
+    assert not_worse(base + rng.normal(0, 0.01, (2, 30)), base)  # noise: kept
     worse = base.copy()
     worse[1] += 0.05  # worse at the second size only
-    assert not ks._not_worse(worse, base, 1.645)
+    assert not not_worse(worse, base)
     region, R = _planted_field(3.0, n=20, seed=1)
     real = ks._kriging_errors
 

@@ -14,10 +14,10 @@ from scipy.spatial.distance import cdist
 
 from lrm_cvx import GLRM
 from lrm_cvx.errors import ModelError
+from lrm_cvx.validation.kernel_selection import _kriging_errors, format_kernel_selection
 from lrm_cvx.spatial import ResidualCovariance
 from lrm_cvx.spatial.covariance import correlation
-from lrm_cvx.validation.kernel_selection import _kriging_errors, format_kernel_selection
-from lrm_cvx.validation.selection import paired_choice
+from lrm_cvx.validation.search import paired_choice
 
 
 def _field(kernel: str, range_: float, T: int = 30, n: int = 18, seed: int = 0) -> xr.DataArray:

@@ -7,7 +7,8 @@ import pytest
 from scipy.stats import norm
 
 from lrm_cvx.errors import ModelError
-from lrm_cvx.validation.paired import BOOTSTRAP_SEED, bootstrap_upper, paired_choice
+from lrm_cvx.validation.paired import BOOTSTRAP_SEED, bootstrap_upper
+from lrm_cvx.validation.search import paired_choice
 
 
 def _naive_bootstrap(E: np.ndarray, confidence: float, n_boot: int) -> np.ndarray:

@@ -367,7 +367,8 @@ def test_a_short_record_validates_on_the_windows_its_refits_can_carry(persistent
     ``refit_carries`` is checked against the fit itself: it says True exactly where
     ``GLRM(rank=3, offset=True).fit`` of the first ``lo`` snapshots succeeds."""
     from lrm_cvx.validation.refits import refit_carries
-    from lrm_cvx.validation.selection import AutoUnavailable, _windows
+    from lrm_cvx.validation.selection import AutoUnavailable
+    from lrm_cvx.validation.search import RollingOrigin
 
     V = persistent_field.values.reshape(persistent_field.shape[0], -1)
 
@@ -384,11 +385,12 @@ def test_a_short_record_validates_on_the_windows_its_refits_can_carry(persistent
     assert [carries(lo) for lo in range(2, 9)] == [fits(lo) for lo in range(2, 9)]
     first = next(lo for lo in range(1, 12) if carries(lo))
     assert first > 3  # the check has something to decide here
-    assert _windows(first + 6, 3, 2, carries) == (3, 2)       # room for both windows
-    assert _windows(first + 5, 3, 2, carries) == (3, 1)       # one window of 3 days
-    assert _windows(first + 2, 3, 2, carries) == (2, 1)       # one window of 2 days
-    with pytest.raises(AutoUnavailable, match="cannot validate on"):
-        _windows(first + 1, 3, 2, carries)
+    split = RollingOrigin(3, 2).split
+    n = first + 6  # room for both windows
+    assert split(n, carries) == [(n - 6, n - 3), (n - 3, n)]
+    assert split(first + 5, carries) == [(first + 2, first + 5)]  # one window of 3 days
+    assert split(first + 2, carries) == [(first, first + 2)]      # one window of 2 days
+    assert split(first + 1, carries) is None  # none: select_temporal says AutoUnavailable
     # through the fit: 10 snapshots at rank 3 with an offset (two windows of 3 would leave 4)
     short = persistent_field.isel(time=slice(0, 10))
     model = _fit(short, rank=3, offset=True, temporal="auto")

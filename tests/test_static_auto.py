@@ -15,6 +15,7 @@ from lrm_cvx.errors import PlanningError
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.planning import place_sensors
 from lrm_cvx.planning import static_auto as sa
+from lrm_cvx.validation.search import BlockGuard
 
 HOT = (1, 2)  # the cell of a planted independent, strong signal
 
@@ -152,9 +153,14 @@ def test_the_guard_counts_windows_not_snapshots():
     mse = np.array([[10.0, 10.0, 10.0], [6.0, 11.0, 7.0], [9.0, 9.5, 9.2]])
     d1, d2 = np.array([-4.0, 1.0, -3.0]), np.array([-1.0, -0.5, -0.8])
     ref = [(d.mean() + sa.AUTO_CONFIDENCE * d.std(ddof=1) / np.sqrt(3)) / 10.0 for d in (d1, d2)]
-    np.testing.assert_allclose(sa._upper_bounds(mse), [0.0, *ref], rtol=1e-12)
+    # snapshots of a window: every value of mse[c, w] twice, so the window means are mse
+    E = np.repeat(mse, 2, axis=1)[:, None, :]
+    guard = BlockGuard([(0, 2), (2, 4), (4, 6)], sa.AUTO_CONFIDENCE)
+    np.testing.assert_allclose(guard(E).ucb, [0.0, *ref], rtol=1e-12)
     assert ref[0] > 0 > ref[1]  # the erratic candidate keeps risk, the steady one does not
-    assert sa._upper_bounds(mse[:, :1]).tolist() == [0.0, np.inf, np.inf]
+    assert guard(E).choice == 2
+    assert BlockGuard([(0, 2)], sa.AUTO_CONFIDENCE)(E[..., :2]).ucb.tolist() == [0.0, np.inf,
+                                                                                  np.inf]
     # through the real validation: 8 snapshots leave room for one window (rank 2 + offset refits
     # on >= 5), so rigged placements that beat risk by far still do not switch
     one, *_ = _rigged(*_field(0, T=8))

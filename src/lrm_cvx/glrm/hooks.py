@@ -20,5 +20,5 @@ HOOKS = Registry("model hook", ModelError)
 Registered by :mod:`lrm_cvx.belief`: ``"model-prior"`` and ``"fold-in-snapshots"`` (the
 fold-in behind ``latent_prior`` and ``complete``). Registered by :mod:`lrm_cvx.validation`:
 ``"check-auto-data"``, ``"choose-rank"``, ``"validate-choices"``, ``"validation-window"``,
-``"clone-model"``, ``"calibrate"`` and ``"select-kernel"`` (``rank=``, ``temporal=``,
-``spatial="auto"`` and ``calibration=``)."""
+``"clone-model"``, ``"calibrate"``, ``"select-kernel"`` and ``"select-rank"`` (``rank=``,
+``temporal=``, ``spatial="auto"`` and ``calibration=``)."""

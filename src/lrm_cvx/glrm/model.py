@@ -728,22 +728,7 @@ class GLRM:
                     seed: Any = 0) -> pd.Series:
         """Held-out RMSE for each rank: fit a copy of this model on a training split of the
         observed entries and score it on the rest. Returns a Series indexed by rank."""
-        ranks = check_ranks(ranks)
-        if isinstance(data, xr.DataArray) and data.ndim == 3:
-            region = Region.from_dataarray(data)
-            data = xr.DataArray(region.stack(data), dims=(data.dims[0], "cell"))
-        train, test = self.holdout(data, fraction, seed)
-        train = np.asarray(getattr(train, "values", train))
-        mask = ~np.isnan(train)
-        np.copyto(train, 0, where=~mask)  # ours: zero-filled once, so no fit copies it
-        out = {}
-        for r in ranks:
-            model = HOOKS.get("clone-model")(self, rank=int(r))  # never calibrates itself
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                model.fit(train, mask=mask)
-            out[int(r)] = float(np.sqrt(model.score(np.asarray(getattr(test, "values", test)))))
-        return pd.Series(out, name="holdout_rmse").rename_axis("rank")
+        return HOOKS.get("select-rank")(self, data, ranks, fraction, seed)
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> None:

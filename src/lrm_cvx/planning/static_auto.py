@@ -52,7 +52,7 @@ import numpy as np
 import xarray as xr
 
 from ..errors import PlanningError
-from ..validation.paired import paired_difference
+from ..validation.search import BlockGuard, RollingOrigin, search
 
 __all__ = ["AUTO_CANDIDATES", "AUTO_CONFIDENCE", "AUTO_MAX_BLOCK", "AUTO_MAX_CELLS",
            "AUTO_MIN_BLOCK", "AUTO_MIN_FIT", "AUTO_WINDOWS", "auto_unavailable",
@@ -93,8 +93,7 @@ def validation_windows(n_snapshots: int, min_fit: int = AUTO_MIN_FIT) -> list[tu
                             f"has {T}, it needs at least {AUTO_MIN_BLOCK + min_fit} "
                             f"({min_fit} to refit the model, {AUTO_MIN_BLOCK} held out); pass "
                             "more training snapshots or criterion='risk'")
-    k = max(1, min(AUTO_WINDOWS, (T - min_fit) // h))
-    return [(T - (j + 1) * h, T - j * h) for j in reversed(range(k))]
+    return RollingOrigin(h, max(1, min(AUTO_WINDOWS, (T - min_fit) // h))).split(T)
 
 
 def _min_fit(model: Any) -> int:
@@ -162,26 +161,28 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
         skipped = "the model has no spatial residual: risk (the only candidate)"
     # a refit needs residual degrees of freedom: more snapshots than its k parameters per cell
     windows = [] if skipped else validation_windows(V.shape[0], min_fit=_min_fit(model))
-    mse = np.full((len(labels), len(windows)), np.nan)
     held_t = np.concatenate([np.arange(a, b) for a, b in windows]) if windows \
         else np.zeros(0, np.int64)
-    per = np.full((len(labels), held_t.size), np.nan)
-    for w, (a, b) in enumerate(windows):
+
+    def window_errors(window: tuple[int, int]) -> dict[str, np.ndarray]:
+        """Per held-out snapshot ``(1, b - a)`` the fold-in MSE of each candidate's
+        placement from the model refitted on the snapshots before the window."""
+        a, b = window
         fit = _refit(model, V[:a], region)
         prior = fit.latent_prior("empirical", spatial=spatial)
-        held = V[a:b]
-        for c, lab in enumerate(labels):
-            crit, exchange = AUTO_CANDIDATES[lab]
-            cells = place(fit, V[:a], crit, exchange)
-            e = _mse(prior, held, np.asarray(cells, dtype=np.int64))
-            per[c, (held_t >= a) & (held_t < b)] = e
-            mse[c, w] = float(np.nanmean(e))
+        return {lab: _mse(prior, V[a:b], np.asarray(place(fit, V[:a], *AUTO_CANDIDATES[lab]),
+                                                     dtype=np.int64))[None]
+                for lab in labels}
+
+    stops = np.cumsum([0] + [b - a for a, b in windows])
+    rule = BlockGuard(list(zip(stops[:-1], stops[1:], strict=True)), AUTO_CONFIDENCE)
+    if windows:
+        _, E, decision = search(window_errors, windows, rule)
+    else:
+        E = np.full((len(labels), 1, 0), np.nan)
+        decision = rule(E)
+    per, mse, ucb, best = E[:, 0], decision.mse, decision.ucb, decision.choice
     score = mse.mean(axis=1) if windows else np.full(len(labels), np.nan)
-    ucb = _upper_bounds(mse)
-    best = 0  # risk, unless a candidate is surely better (its upper bound below 0)
-    for c in range(1, len(labels)):
-        if ucb[c] < 0 and score[c] < score[best]:
-            best = c
     ds = xr.Dataset(
         {"mse": (("candidate", "window"), mse), "score": (("candidate",), score),
          "ucb": (("candidate",), ucb),
@@ -199,21 +200,6 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
                          "window, spread over the windows) is below 0; "
                          "then the lowest mean MSE of the recommended fold-in")
     return ds
-
-
-def _upper_bounds(mse: np.ndarray) -> np.ndarray:
-    """``(candidates,)`` one-sided upper confidence bound of each candidate's relative MSE
-    change against the first (risk), from ``mse (candidates, windows)``: the change is paired
-    per window, its standard error the spread over the windows (:data:`AUTO_CONFIDENCE` of
-    them); 0 for the first, +inf with fewer than two windows."""
-    out = np.zeros(mse.shape[0])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        diff, se = paired_difference(mse, slice(1, None), 0)
-        ub = (diff + AUTO_CONFIDENCE * se) / np.nanmean(mse[0])
-    n = np.isfinite(mse[1:] - mse[0]).sum(axis=1)
-    out[1:] = np.where((n >= 2) & np.isfinite(ub), ub, np.inf)
-    return out
 
 
 def format_placement_selection(ds: xr.Dataset) -> str:

@@ -1,10 +1,12 @@
-"""Validated choices: refit a model on part of its record, score the held-out part, choose.
+"""Validated choices: candidates scored on held-out parts of a record, one rule, one table.
 
-``rank=``/``temporal="auto"`` (:mod:`.selection`), ``spatial="auto"``
-(:mod:`.kernel_selection`), the calibration (:mod:`.calibration`) and the dynamics blend
-(:mod:`.blending`) share the refits (:mod:`.refits`), the sample designs a campaign flies
-(:mod:`.designs`) and the paired bootstrap rule (:mod:`.paired`); :mod:`.choices` runs the
-ones ``GLRM.fit`` validates. Importing this package registers them in
+Every ``"auto"`` setting is a specification of the one search of :mod:`.search` (splitters,
+rules, the selection table): ``rank=``/``temporal="auto"`` (:mod:`.selection`),
+``spatial="auto"`` (:mod:`.kernel_selection`), the calibration (:mod:`.calibration`), the
+dynamics blend (:mod:`.blending`) and :meth:`GLRM.select_rank
+<lrm_cvx.glrm.model.GLRM.select_rank>`. They share the refits (:mod:`.refits`), the sample
+designs a campaign flies (:mod:`.designs`) and the paired statistics (:mod:`.paired`);
+:mod:`.choices` runs the ones ``GLRM.fit`` validates. Importing this package registers them in
 :data:`~lrm_cvx.glrm.hooks.HOOKS`.
 """
 
@@ -12,7 +14,7 @@ from __future__ import annotations
 
 from ..glrm.hooks import HOOKS
 from .calibration import calibrate
-from .choices import choose_rank, clone, validate_choices, window_of
+from .choices import choose_rank, clone, select_rank, validate_choices, window_of
 from .kernel_selection import select_kernel
 from .selection import check_auto_data
 
@@ -27,3 +29,5 @@ HOOKS.register("clone-model", clone, description="an unfitted copy for a refit")
 HOOKS.register("calibrate", calibrate, description="calibration=: the keywords it accepts")
 HOOKS.register("select-kernel", select_kernel,
                description="spatial='auto': the residual kernel validated on a sample")
+HOOKS.register("select-rank", select_rank,
+               description="GLRM.select_rank: held-out RMSE per rank")

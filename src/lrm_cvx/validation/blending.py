@@ -1,6 +1,6 @@
 """How far to trust a model's dynamics: the blend towards the memoryless model
 (:func:`blend_dynamics`) and its choice by forward-chaining validation (:func:`select_dynamics`,
-the paired rule of :func:`~lrm_cvx.validation.paired.paired_choice`)."""
+the paired rule of :func:`~lrm_cvx.validation.search.paired_choice`)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 
 from .._validation import as_generator
 from ..errors import ModelError
-from .designs import SET_KINDS, flown_sets
-from .paired import paired_choice
+from .search import HeldOutCells, PairedGuard, RollingOrigin, search
+from .designs import SET_KINDS
 from .refits import clone_model, training_values, validation_view
 
 __all__ = ["blend_dynamics", "unblended_dynamics", "memoryless_cov", "select_dynamics"]
@@ -127,36 +127,40 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     rng = as_generator(seed)
     from ..belief.filter import LatentFilter
 
-    day_err: list[np.ndarray] = []  # per window: (n_alpha, n_size, n_val), kinds averaged
-    for f in range(n_folds):
-        end = T - f * n_val
-        lo = end - n_val
+    windows = RollingOrigin(n_val, n_folds).split(T)
+    # the sample sets of every window, the latest window's first (the same random cells for
+    # every alpha); every observed cell a set leaves is scored
+    holdout = HeldOutCells(max_scored=region.n_cells)
+    sets = {w: {(size, kind): [holdout.split(region, np.isfinite(V[w[0] + i]), size, kind, rng)
+                               for i in range(n_val)] for size in sizes for kind in kinds}
+            for w in windows[::-1]}
+
+    def day_errors(window: tuple[int, int]) -> dict[float, np.ndarray]:
+        """Per alpha the day MSE ``(size, day)`` through ``window`` (set kinds averaged)."""
+        lo, end = window
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             sub = clone_model(view).fit(data.isel(time=slice(None, lo)), region=region)
         sub.calibration_ = None
         sub_dyn = unblended_dynamics(sub)
         S = memoryless_cov(sub, sub_dyn)
-        Vv = V[lo:end]
-        times = data["time"].values[lo:end]
-        sets = {(size, kind): [flown_sets(region, size, kind, rng)  # gaps give no value
-                               for i in range(n_val)] for size in sizes for kind in kinds}
+        Vv, times = V[lo:end], data["time"].values[lo:end]
         err = np.zeros((len(alphas), len(sizes), n_val))
         for a_i, alpha in enumerate(alphas):
             d = blend_dynamics(sub_dyn, alpha, S)
-            for (size, _kind), cell_sets in sets.items():
+            for (size, _kind), cell_sets in sets[window].items():
                 state = LatentFilter.from_model(sub, dynamics=d)
                 for i, t in enumerate(times):
-                    cells = cell_sets[i]
+                    cells, held = cell_sets[i]
                     state.assimilate((cells, Vv[i, cells]), time=t)
-                    held = np.isfinite(Vv[i])
-                    held[cells] = False
-                    mean, _ = state.posterior.predict(cells=np.flatnonzero(held))
+                    mean, _ = state.posterior.predict(cells=held)
                     err[a_i, sizes.index(size), i] += float(np.mean((mean - Vv[i, held]) ** 2))
-        day_err.append(err / len(kinds))
-    E = np.concatenate(day_err[::-1], axis=2)  # (alpha, size, days), in time order
+        return dict(zip(alphas, err / len(kinds), strict=True))
+
     # alpha 0 (memoryless) is the reference: the rule of every validated choice
-    _, _, ucb, _, best, n_days = paired_choice(E, confidence, tolerance, "select_dynamics")
+    _, E, decision = search(day_errors, windows,
+                            PairedGuard(confidence, tolerance, "select_dynamics"))
+    ucb, best, n_days = decision.ucb, decision.best, decision.n_cases
     alpha = alphas[best]
     table = pd.DataFrame(np.nansum(E, axis=-1), index=pd.Index(alphas, name="alpha"),
                          columns=pd.Index(sizes, name="size"))

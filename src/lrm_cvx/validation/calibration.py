@@ -52,6 +52,7 @@ from ..glrm.calibrated import (  # noqa: F401  (re-exported: the old import loca
     predictive_std,
     variance_scale,
 )
+from .search import ForwardBlocks, HeldOutCells, InterleavedBlocks
 from .blending import (  # noqa: F401  (re-exported: the old import location)
     blend_dynamics,
     memoryless_cov,
@@ -153,10 +154,10 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     if folds not in ("interleaved", "forward"):
         raise ModelError(f"folds must be 'interleaved' or 'forward', got {folds!r}")
     forward = temporal is not None or folds == "forward"
-    if forward:  # contiguous blocks, forward chaining from half the record on
-        blocks = np.array_split(np.arange(T), int(n_blocks))[int(n_blocks) // 2:]
-    else:  # interleaved folds: every n_blocks-th snapshot
-        blocks = [np.arange(b, T, int(n_blocks)) for b in range(int(n_blocks))]
+    # contiguous blocks, forward chaining from half the record on; or every n_blocks-th
+    # snapshot held out, refitted on all the others
+    folds = (ForwardBlocks(n_blocks) if forward else InterleavedBlocks(n_blocks)).split(T)
+    holdout = HeldOutCells(region.n_cells if max_cells is None else int(max_cells))
     out: list[np.ndarray] = []
     rank = int(model.rank_)
     offset = getattr(model, "offset_", None) is not None
@@ -164,11 +165,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     finite = np.isfinite(V)  # (T, L): what each refit would see
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for block in blocks:
-            if forward:
-                train_idx = np.arange(block[0])
-            else:
-                train_idx = np.setdiff1d(np.arange(T), block)
+        for train_idx, block in folds:
             if not refit_carries(finite[train_idx], rank, offset):
                 too_short += 1
                 continue
@@ -199,12 +196,8 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
                 observed = np.isfinite(V[t])
                 for size in sizes:
                     for kind in kinds:
-                        cells = flown_sets(region, size, kind, rng)  # gaps give no value
-                        held = observed.copy()
-                        held[cells] = False
-                        hidx = np.flatnonzero(held)
-                        if max_cells is not None and hidx.size > int(max_cells):
-                            hidx = np.sort(rng.choice(hidx, int(max_cells), replace=False))
+                        # the design's cells (gaps give no value) and those scored
+                        cells, hidx = holdout.split(region, observed, size, kind, rng)
                         recs = {}
                         for rho, b in bases.items():
                             post = b.update(cells, V[t, cells])
@@ -223,7 +216,7 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     if not out:
         if too_short:
             raise ModelError(f"calibration cannot refit rank {rank} on the snapshots before "
-                             f"{too_short} of its {len(blocks)} blocks (a record of {T} is too "
+                             f"{too_short} of its {len(folds)} blocks (a record of {T} is too "
                              "short for them); pass fewer n_blocks or a lower rank")
         raise ModelError("calibration produced no held-out residuals")
     if temporal is not None:
@@ -428,12 +421,9 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
     out = []
     for i, t in enumerate(times):
         size, kind = combos[i % len(combos)]
-        cells = flown_sets(region, size, kind, rng)  # gaps give no value
-        held = np.isfinite(Vb[i])
-        held[cells] = False
-        hidx = np.flatnonzero(held)
-        if max_cells is not None and hidx.size > int(max_cells):
-            hidx = np.sort(rng.choice(hidx, int(max_cells), replace=False))
+        # the design's cells (gaps give no value) and those scored
+        cells, hidx = HeldOutCells(region.n_cells if max_cells is None else int(max_cells)
+                                   ).split(region, np.isfinite(Vb[i]), size, kind, rng)
         pair = []
         for state in states:
             state.assimilate((cells, Vb[i, cells]), time=t)

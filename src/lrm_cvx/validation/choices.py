@@ -7,15 +7,21 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
+import pandas as pd
+import xarray as xr
+
+from .._validation import check_ranks
 
 from ..errors import ModelError
 from ..glrm.dynamics import temporal_value
 from ..region import Region
 from . import refits
 from .calibration import calibrate_with
+from .search import Best, search
 from .selection import (
     AUTO_INFLATIONS,
     AUTO_RANKS,
@@ -25,7 +31,7 @@ from .selection import (
     select_temporal,
 )
 
-__all__ = ["choose_rank", "validate_choices", "window_of", "clone"]
+__all__ = ["choose_rank", "validate_choices", "window_of", "clone", "select_rank"]
 
 
 def choose_rank(model: Any, data: Any, mask: Any, region: Any,
@@ -88,3 +94,34 @@ def validate_choices(model: Any, data: Any, stacked: np.ndarray | None = None,
                                                values=stacked))
     if model.calibration is not None:
         calibrate_with(model, data, model.calibration)
+
+
+def select_rank(model: Any, data: Any, ranks: Any, fraction: float = 0.1,
+                seed: Any = 0) -> pd.Series:
+    """:meth:`GLRM.select_rank <lrm_cvx.glrm.model.GLRM.select_rank>`: the held-out RMSE of each
+    rank, from copies of ``model`` fitted on a random training split of the observed entries
+    (``fraction`` held out, ``seed``) and scored on the rest, through the one search
+    (:func:`~.search.search`, one split, the :class:`~.search.Best` rule). Returns a Series
+    indexed by rank."""
+    ranks = check_ranks(ranks)
+    if isinstance(data, xr.DataArray) and data.ndim == 3:
+        region = Region.from_dataarray(data)
+        data = xr.DataArray(region.stack(data), dims=(data.dims[0], "cell"))
+    train, test = model.holdout(data, fraction, seed)
+    train = np.asarray(getattr(train, "values", train))
+    mask = ~np.isnan(train)
+    np.copyto(train, 0, where=~mask)  # ours: zero-filled once, so no fit copies it
+    test = np.asarray(getattr(test, "values", test))
+
+    def mse_by_rank(split: tuple) -> dict[int, np.ndarray]:  # one split: (1, 1) each
+        out = {}
+        for r in ranks:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                fit = refits.clone_model(model, rank=int(r)).fit(split[0], mask=split[1])
+            out[int(r)] = np.array([[fit.score(split[2])]])
+        return out
+
+    labels, E, _ = search(mse_by_rank, [(train, mask, test)], Best())
+    return pd.Series({r: float(np.sqrt(e[0, 0])) for r, e in zip(labels, E, strict=True)},
+                     name="holdout_rmse").rename_axis("rank")

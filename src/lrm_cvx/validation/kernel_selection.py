@@ -19,7 +19,8 @@ snapshots of data minus the low-rank reconstruction), the way campaigns use the 
   family (paired);
 * the score is the MSE of the kriged residual at (at most :data:`~lrm_cvx.validation.selection.
   MAX_SCORED` random) held-out observed cells: the part of the map the kernel decides;
-* rule (the one of ``temporal="auto"``, :func:`~lrm_cvx.validation.selection.paired_choice`): a
+* rule (the paired guard of the one search, :class:`~lrm_cvx.validation.search.
+  FamilyVariants` and :class:`~lrm_cvx.validation.search.PairedGuard`): a
   family is admissible when the upper confidence bound of its MSE change against the
   exponential (the recommended default) is at most ``-MIN_GAIN`` (2 %) at every size; the
   admissible family with the lowest worst ratio wins.
@@ -40,6 +41,7 @@ import xarray as xr
 
 from .._validation import as_generator
 from ..errors import DataError
+from .search import FamilyVariants, HeldOutCells, PairedGuard, selection_table
 
 __all__ = ["select_kernel", "AUTO_KERNELS", "DEFAULT_KERNEL", "MIN_GAIN", "MIN_ANISOTROPY",
            "format_kernel_selection"]
@@ -66,21 +68,15 @@ def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence
     per row, size and design (case ``i * n_designs + j``: row ``i``, ``designs[j]``), the same
     cells for every covariance of ``covs``."""
     from .. import spatial as sp
-    from .designs import flown_sets
 
-    nd = len(designs)
+    nd, holdout = len(designs), HeldOutCells(max_scored)
     err = np.full((len(covs), len(sizes), R.shape[0] * nd), np.nan)
     for i, r in enumerate(R):  # a loop over the (at most 20) residual snapshots
         ok = np.isfinite(r)
         for s_i, size in enumerate(sizes):
             for j, design in enumerate(designs):
-                flown = flown_sets(region, size, design, rng)  # over the day's gaps
+                flown, h = holdout.split(region, ok, size, design, rng)  # over the day's gaps
                 cells = flown[ok[flown]]  # the design's cells that gave a value
-                held = ok.copy()
-                held[flown] = False
-                h = np.flatnonzero(held)
-                if h.size > max_scored:
-                    h = np.sort(rng.choice(h, max_scored, replace=False))
                 if cells.size == 0 or h.size == 0:
                     continue
                 z = r[cells].astype(np.float64)[:, None]
@@ -92,16 +88,6 @@ def _kriging_errors(covs: list[Any], R: np.ndarray, region: Any, sizes: Sequence
                                           cutoff=1e-6, want_var=False)
                     err[c_i, s_i, i * nd + j] = float(np.mean((mu[0] - truth) ** 2))
     return err
-
-
-def _not_worse(Ea: np.ndarray, Ei: np.ndarray, confidence: float) -> bool:
-    """Whether errors ``Ea (n_sizes, n_cases)`` are not worse than the paired ``Ei`` with
-    confidence at any size: the lower confidence bound of the mean change ``Ea - Ei`` is
-    <= 0, i.e. the upper bound of ``Ei``'s change against ``Ea`` (``paired_choice``) is >= 0."""
-    from .paired import paired_choice
-
-    ucb = paired_choice(np.stack([Ea, Ei]), confidence, 0.0, "spatial='auto'")[2][1]
-    return bool(np.all(ucb >= 0))
 
 
 def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KERNELS,
@@ -124,7 +110,7 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
     :data:`MIN_GAIN` with confidence, not only as good."""
     from ..spatial import fit_residual_covariance
     from ..spatial.covariance import anisotropy_from_variograms, axis_variograms
-    from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED, paired_choice
+    from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED
 
     kernels = list(dict.fromkeys([DEFAULT_KERNEL, *kernels]))  # the reference first
     R = np.asarray(sample)  # float32 from the fit: no float64 copy of (rows, L)
@@ -148,42 +134,21 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
                 labels.append(f"{k} x{a:.3g}")
                 variants[i] = len(covs) - 1
     E = _kriging_errors(covs, R, region, sizes, designs, as_generator(seed), MAX_SCORED)
-    mse, _, _, _, _, n_cases = paired_choice(E, confidence, tolerance, "spatial='auto'")
     # the anisotropy is a fitted parameter of its family (as the range is): the family
     # competes with it unless the validation finds it worse, with confidence, at some size
-    use = list(range(len(kernels)))
-    for i, j in variants.items():
-        if _not_worse(E[j], E[i], confidence):
-            use[i] = j
-    _, _, ucb_u, adm_u, best, _ = paired_choice(E[use], confidence, tolerance,
-                                                "spatial='auto'")
-    ucb = np.full_like(mse, np.nan)
-    ucb[use] = ucb_u
-    admissible = np.zeros(len(covs), dtype=bool)
-    admissible[use] = adm_u
-    competes = np.isin(np.arange(len(covs)), use)
-    best = use[best]
-    ratio = mse / mse[use[0]]  # to the reference family as it competes
-    ds = xr.Dataset(
-        {"mse": (("kernel", "size"), mse),
-         "ratio": (("kernel", "size"), ratio),
-         "ucb": (("kernel", "size"), ucb),
-         "admissible": (("kernel",), admissible),
-         "competes": (("kernel",), competes),
-         "sill": (("kernel",), [c.sill for c in covs]),
-         "range": (("kernel",), [c.range for c in covs]),
-         "nugget": (("kernel",), [c.nugget for c in covs]),
-         "anisotropy": (("kernel",), [c.anisotropy for c in covs])},
-        coords={"kernel": labels, "size": sizes})
-    ds["mse"].attrs["long_name"] = "mean MSE of the kriged residual at held-out cells"
-    ds["ratio"].attrs["long_name"] = f"MSE ratio to the {DEFAULT_KERNEL} family (as it competes)"
+    decision = FamilyVariants(PairedGuard(confidence, tolerance, "spatial='auto'"),
+                              variants)(E)
+    ds = selection_table(
+        decision, labels, sizes, dim="kernel", reference=f"the {DEFAULT_KERNEL} family (as it "
+        "competes)", what="mean MSE of the kriged residual at held-out cells",
+        data_vars={name: (("kernel",), [getattr(c, name) for c in covs])
+                   for name in ("sill", "range", "nugget", "anisotropy")},
+        n_rows=R.shape[0], n_cases=int(decision.n_cases), designs=",".join(designs),
+        confidence=float(confidence), tolerance=float(tolerance))
     ds["competes"].attrs["long_name"] = ("the variant of its family in the choice (the "
                                          "anisotropic one unless validated worse)")
-    ds["ucb"].attrs["long_name"] = "upper confidence bound of the relative MSE change"
-    ds.attrs.update(choice=labels[best], n_rows=R.shape[0], n_cases=int(n_cases),
-                    designs=",".join(designs),
-                    confidence=float(confidence), tolerance=float(tolerance))
-    return covs[best], ds
+    return covs[decision.choice], ds
+
 
 
 def format_kernel_selection(table: xr.Dataset) -> str:

@@ -1,8 +1,6 @@
-"""The paired rule of the validated choices (``GLRM(temporal="auto")``,
-``GLRM(spatial="auto")``, :func:`~lrm_cvx.validation.blending.select_dynamics`) and the validation
-designs they share: candidates scored on the same sample sets, chosen with a guard on harm
-against a reference (:func:`paired_choice`). Its own module so the choices read it without
-importing each other."""
+"""The paired statistics of the validated choices (the bootstrap bound and the paired
+differences of candidates scored on the same sample sets) and the validation designs they
+share; the rules that read them are those of :mod:`lrm_cvx.validation.search`."""
 
 from __future__ import annotations
 
@@ -10,7 +8,7 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["AUTO_DESIGNS", "AUTO_SIZES", "MAX_SCORED", "bootstrap_upper", "paired_choice",
+__all__ = ["AUTO_DESIGNS", "AUTO_SIZES", "MAX_SCORED", "bootstrap_upper",
            "paired_difference", "shared_cases"]
 
 AUTO_DESIGNS = ("route", "line", "scattered")
@@ -26,33 +24,6 @@ BOOTSTRAP_SEED = 0
 MAX_SCORED = 256
 """Cells a validation day's map is scored on (a random subset of the unsampled observed cells:
 the kriged maps cost ``O(cells)`` each)."""
-
-
-def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
-                  what: str = "the selection") -> tuple:
-    """The rule of the validated choices (``temporal="auto"``, ``spatial="auto"``) on paired
-    errors ``E (n_candidates, n_sizes, n_cases)`` (candidate 0 the reference; a case NaN for
-    any candidate is left out): per candidate and size the mean error ``mse`` over the kept
-    cases, its ``ratio`` to the reference's and ``ucb``, the one-sided upper confidence bound
-    of the relative change at the normal level of ``confidence`` standard errors (a paired
-    bootstrap over the cases, :func:`bootstrap_upper`); a
-    candidate is ``admissible`` when its ``ucb`` is at most ``tolerance`` at every size (the
-    reference always is); ``best`` is the admissible one with the lowest worst ratio.
-    Returns ``(mse, ratio, ucb, admissible, best, n_cases)``; ModelError when fewer than 2
-    cases were scored."""
-    E = shared_cases(E)
-    n_cases = int(np.isfinite(E[0]).all(axis=0).sum())
-    if n_cases < 2:
-        raise ModelError(f"{what} scored fewer than 2 validation cases (is the data mostly "
-                         "missing?)")
-    mse = np.nanmean(E, axis=-1)
-    base = mse[0]
-    ucb = bootstrap_upper(E, confidence)
-    ratio = mse / base
-    admissible = ucb.max(axis=1) <= float(tolerance)
-    admissible[0] = True
-    best = int(np.argmin(np.where(admissible, ratio.max(axis=1), np.inf)))
-    return mse, ratio, ucb, admissible, best, n_cases
 
 
 def bootstrap_upper(E: np.ndarray, confidence: float, n_boot: int = BOOTSTRAP_DRAWS

@@ -65,16 +65,17 @@ from .._blas import single_threaded_blas
 from .._validation import as_generator, check_ranks
 from ..errors import DataError, ModelError
 from ..glrm.dynamics import kind_dynamics
-from .paired import (
-    AUTO_DESIGNS,
-    AUTO_SIZES,
-    MAX_SCORED,
-    paired_choice,
-    paired_difference,
-    shared_cases,
+from .search import (
+    HeldOutCells,
+    OneStandardError,
+    PairedGuard,
+    RollingOrigin,
+    search,
+    selection_table,
 )
+from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED
 
-__all__ = ["select_temporal", "paired_choice", "AutoUnavailable", "AUTO_ALPHAS",
+__all__ = ["select_temporal", "AutoUnavailable", "AUTO_ALPHAS",
            "AUTO_DESIGNS", "AUTO_SIZES", "AUTO_INFLATIONS", "AUTO_RANKS", "REFERENCE_RANK",
            "memoryless_twin", "MIN_AUTO_SNAPSHOTS", "MAX_SCORED", "REFIT_PAIRS",
            "apply_selection", "auto_unavailable", "check_auto_data", "format_selection"]
@@ -163,9 +164,8 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
     residual maps of all of them come from one kriging call (its weights depend on the cells
     only)."""
     from ..belief.filter import batch_start, batch_step, batch_transitions
-    from .designs import flown_sets
 
-    n = V.shape[0]
+    n, holdout = V.shape[0], HeldOutCells(MAX_SCORED)
     err = np.full((len(dynamics), len(sizes), n), np.nan)
     first = batch_start(sub, dynamics, spatial=spatial, inflation=inflation)
     steps = [batch_transitions(first.dynamics, t0, t1)  # the same for every size
@@ -173,12 +173,9 @@ def _window_errors(sub: Any, dynamics: list[Any], V: np.ndarray, times: np.ndarr
     for s_i, size in enumerate(sizes):
         batch = first
         for i, t in enumerate(times):
-            cells = flown_sets(region, size, designs[i % len(designs)], rng)  # gaps: NaN
-            h = np.isfinite(V[i])
-            h[cells] = False
-            h = np.flatnonzero(h)
-            if h.size > MAX_SCORED:  # an unbiased sample of the map's error, shared by all
-                h = np.sort(rng.choice(h, MAX_SCORED, replace=False))
+            # the design's cells (gaps: NaN) and an unbiased sample of the map's error
+            cells, h = holdout.split(region, np.isfinite(V[i]), size,
+                                     designs[i % len(designs)], rng)
             batch = batch_step(batch, steps[i], cells, V[i, cells], t)
             if h.size:
                 means = _map_means(batch.mean, batch.obs, cells, V[i, cells], h)
@@ -292,32 +289,37 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
     if not 2 <= n_val <= T - 3:
         raise ModelError(f"n_val must be in [2, {T - 3}] for {T} snapshots, got {n_val}")
     n_folds = max(1, min(int(n_folds), (T - 3) // n_val))
+    carries = None
     if ranks is None:  # the earliest refit must carry the model's rank (a short record)
         rank, offset = int(model.rank_), getattr(model, "offset_", None) is not None
 
         def carries(lo: int) -> bool:  # a refit on the snapshots before lo
             return lo >= 1 and refit_carries(np.isfinite(V[:lo]), rank, offset)
 
-        n_val, n_folds = _windows(T, n_val, n_folds, carries)
+    windows = RollingOrigin(n_val, n_folds).split(T, carries)
+    if windows is None:
+        raise AutoUnavailable(f"temporal='auto' cannot validate on {T} snapshots: a refit of "
+                              f"the model's rank on the snapshots before a validation window "
+                              f"(at most {T - 2}) would leave no residual degrees of freedom; "
+                              "pass temporal=None or 'ar1', or a lower rank")
     rng = as_generator(seed)
-
-    first_lo = T - n_folds * n_val  # the earliest window's history
-    rank_list, skipped_ranks = _check_ranks(ranks, first_lo, int(model.n_cells_))
+    # the earliest window's history
+    rank_list, skipped_ranks = _check_ranks(ranks, windows[0][0], int(model.n_cells_))
     ranked = rank_list != [None]  # then every rank's candidates meet the same days' cells
     all_times = data[tdim].values
-    errs: list[dict[str, np.ndarray]] = []  # per window, in time order: label -> (size, day)
     meta: dict[str, tuple[str, float, float, int | None]] = {}
     skipped: set[str] = set(skipped_ranks)
     family = getattr(clone_model(model), "spatial", None)  # a spatial="auto" model's choice
-    shared_cov = None  # the first refit's residual covariance, shared by the later refits
-    for f in reversed(range(n_folds)):  # earliest window first: it has the shortest history
-        end = T - f * n_val
-        lo = end - n_val
+    shared = [None]  # the first refit's residual covariance, shared by the later refits
+
+    def score(window: tuple[int, int]) -> dict[str, np.ndarray]:
+        """Day errors ``(size, day)`` per candidate label on one window."""
+        lo, end = window
         window_seed = int(rng.integers(2**62)) if ranked else 0
-        window: dict[str, np.ndarray] = {}
+        out: dict[str, np.ndarray] = {}
         for rank in rank_list:
-            sub, shared_cov = _refit_before(model, V, lo, all_times, tdim, region, rank,
-                                            family, shared_cov)
+            sub, shared[0] = _refit_before(model, V, lo, all_times, tdim, region, rank,
+                                           family, shared[0])
             models = _candidate_models(sub, kinds, alphas, all_times[:lo], skipped)
             labels, dyns, infl = [], [], []
             for r in inflations:  # the memoryless model as fitted first: the rule's reference
@@ -330,12 +332,13 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
                 E = _window_errors(sub, dyns, V[lo:end], all_times[lo:end], region, sizes,
                                    designs, np.random.default_rng(window_seed) if ranked
                                    else rng, spatial, infl)
-            window.update(zip(labels, E, strict=True))
-        errs.append(window)
-    labels = [lab for lab in errs[0] if all(lab in e and meta[lab][0] not in skipped
-                                            for e in errs)]
-    E = np.stack([np.concatenate([e[lab] for e in errs], axis=-1) for lab in labels])
-    return _rule(E, labels, meta, sizes, designs, confidence, tolerance, skipped, ranked)
+            out.update(zip(labels, E, strict=True))
+        return out
+
+    labels, E, decision = search(score, windows, _temporal_rule(meta, confidence, tolerance),
+                                 drop=lambda lab: meta[lab][0] in skipped)
+    return _table(decision, labels, meta, sizes, designs, confidence, tolerance, skipped,
+                  ranked)
 
 
 def _refit_before(model: Any, V: np.ndarray, lo: int, times: np.ndarray, tdim: str,
@@ -386,22 +389,6 @@ class AutoUnavailable(ModelError):
     ``auto`` is a default, then fits without dynamics and says so."""
 
 
-def _windows(T: int, n_val: int, n_folds: int, carries) -> tuple[int, int]:
-    """``(n_val, n_folds)``: the most windows (up to ``n_folds``) of ``n_val`` days, else one
-    shorter window (down to 2 days), whose earliest history ``carries`` a refit; raises
-    :class:`AutoUnavailable` when none does."""
-    for f in range(n_folds, 0, -1):
-        if carries(T - f * n_val):
-            return n_val, f
-    for v in range(n_val - 1, 1, -1):
-        if carries(T - v):
-            return v, 1
-    raise AutoUnavailable(f"temporal='auto' cannot validate on {T} snapshots: a refit of the "
-                          f"model's rank on the snapshots before a validation window (at most "
-                          f"{T - 2}) would leave no residual degrees of freedom; pass "
-                          "temporal=None or 'ar1', or a lower rank")
-
-
 def _check_ranks(ranks: Sequence[int] | None, history: int, n_cells: int
                  ) -> tuple[list[int | None], list[str]]:
     """The ranks :func:`select_temporal` refits at, reference first (``[None]``: the model's
@@ -419,63 +406,48 @@ def _check_ranks(ranks: Sequence[int] | None, history: int, n_cells: int
     return [ref] + [r for r in ok if r != ref], [f"rank {r}" for r in asked if r not in ok]
 
 
+def _temporal_rule(meta: dict, confidence: float, tolerance: float) -> OneStandardError:
+    """The rule of :func:`select_temporal`: the paired guard against memoryless (candidate
+    0), then one standard error towards caution among the best's kind and blend: the lowest
+    rank (``rank="auto"``; fewer modes to estimate from a few samples), then the largest
+    inflation (an update that trusts a few samples less)."""
+    def caution(lab: str) -> tuple:  # larger is more cautious
+        _, _, inflation, *rank = meta[lab]
+        return (-rank[0] if rank and rank[0] is not None else 0, inflation)
+
+    return OneStandardError(PairedGuard(confidence, tolerance, "temporal='auto'"),
+                            group=lambda lab: tuple(meta[lab][:2]), caution=caution)
+
+
 def _rule(E: np.ndarray, labels: list[str], meta: dict, sizes: list[int],
           designs: Sequence[str], confidence: float, tolerance: float,
           skipped: set[str], ranked: bool = False) -> xr.Dataset:
-    """The validation table and the choice of :func:`select_temporal` from the day errors
-    ``E (n_candidates, n_sizes, n_days)`` (candidate 0 is memoryless)."""
-    mse, ratio, ucb, admissible, best, n_days = paired_choice(  # a day not scored: left out
-        E, confidence, tolerance, "temporal='auto'")
-    validated = labels[best]
-    best = _cautious(E, labels, meta, best, admissible)
-    kind, alpha, inflation, *rank = meta[labels[best]]  # (..., rank) with ranks
-    ds = xr.Dataset(
-        {"mse": (("candidate", "size"), mse),
-         "ratio": (("candidate", "size"), ratio),
-         "ucb": (("candidate", "size"), ucb),
-         "admissible": (("candidate",), admissible)},
-        coords={"candidate": labels, "size": sizes,
-                "kind": ("candidate", [meta[lab][0] for lab in labels]),
-                "alpha": ("candidate", [meta[lab][1] for lab in labels]),
-                "inflation": ("candidate", [meta[lab][2] for lab in labels])})
-    ds["mse"].attrs["long_name"] = "mean validation-day MSE of the map (held-out cells)"
-    ds["ratio"].attrs["long_name"] = "MSE ratio to the memoryless model"
-    ds["ucb"].attrs["long_name"] = "upper confidence bound of the relative MSE change"
-    ds.attrs.update(choice=labels[best], choice_kind=kind, choice_alpha=float(alpha),
-                    choice_inflation=float(inflation), best=validated,
-                    n_days=int(n_days), designs=",".join(designs),
-                    skipped=",".join(sorted(skipped)), confidence=float(confidence),
-                    tolerance=float(tolerance))
+    """The table of :func:`select_temporal` from the day errors ``E (n_candidates, n_sizes,
+    n_days)`` (candidate 0 is memoryless) under its rule."""
+    decision = _temporal_rule(meta, confidence, tolerance)(E, labels)
+    return _table(decision, labels, meta, sizes, designs, confidence, tolerance, skipped,
+                  ranked)
+
+
+def _table(decision: Any, labels: list[str], meta: dict, sizes: list[int],
+           designs: Sequence[str], confidence: float, tolerance: float, skipped: set[str],
+           ranked: bool) -> xr.Dataset:
+    """The validation table of :func:`select_temporal` (the search's, with the candidates'
+    kind, blend and inflation, and their rank with ``ranked``)."""
+    kind, alpha, inflation, *rank = meta[labels[decision.choice]]  # (..., rank) with ranks
+    coords = {name: ("candidate", [meta[lab][i] for lab in labels])
+              for i, name in enumerate(("kind", "alpha", "inflation"))}
+    ds = selection_table(
+        decision, labels, sizes, reference="the memoryless model", coords=coords,
+        what="mean validation-day MSE of the map (held-out cells)", choice_kind=kind,
+        choice_alpha=float(alpha), choice_inflation=float(inflation),
+        best=labels[decision.best], n_days=int(decision.n_cases), designs=",".join(designs),
+        skipped=",".join(sorted(skipped)), confidence=float(confidence),
+        tolerance=float(tolerance))
     if ranked:
         ds = ds.assign_coords(rank=("candidate", [int(meta[lab][3]) for lab in labels]))
         ds.attrs["choice_rank"] = int(rank[0])
     return ds
-
-
-def _cautious(E: np.ndarray, labels: list[str], meta: dict, best: int,
-              admissible: np.ndarray, n_se: float = 1.0) -> int:
-    """The one-standard-error rule: among the admissible candidates of the ``best``'s kind and
-    blend whose mean day error ``E (n_candidates, n_sizes, n_days)`` exceeds the best's by at
-    most ``n_se`` standard errors of the paired differences at every size (the days every
-    candidate scored, as :func:`paired_choice` keeps them), the most cautious: the lowest rank
-    (``rank="auto"``; fewer modes to estimate from a few samples), then the largest inflation
-    (an update that trusts a few samples less). ``best`` when none is more cautious."""
-    kind, alpha, *_ = meta[labels[best]]
-    E = shared_cases(E)
-
-    def caution(c: int) -> tuple:  # larger is more cautious
-        _, _, i_c, *r_c = meta[labels[c]]
-        return (-r_c[0] if r_c and r_c[0] is not None else 0, i_c)
-
-    pick = best
-    for c, lab in enumerate(labels):
-        k_c, a_c, *_ = meta[lab]
-        if (k_c, a_c) != (kind, alpha) or caution(c) <= caution(pick) or not admissible[c]:
-            continue
-        diff, se = paired_difference(E, c, best)  # (size,)
-        if np.all(diff <= n_se * se):
-            pick = c
-    return pick
 
 
 def apply_selection(model: Any, selection: xr.Dataset) -> None:

@@ -1,0 +1,219 @@
+"""The one search of the validated choices (validation/search.py): its splitters, its loop and
+the choices every ``"auto"`` makes through it, pinned on the bundled records and a planted one.
+
+The pinned tables (``tests/pins/``) hold every choice and table value bit for bit; a change
+of a choice or of any value fails here.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from lrm_cvx import GLRM
+from lrm_cvx.datasets import load_sample
+from lrm_cvx.validation.designs import flown_sets
+from lrm_cvx.io.samples import synthetic_dynamic_field
+from lrm_cvx.region import Region
+from lrm_cvx.validation.search import (
+    Best,
+    Decision,
+    ForwardBlocks,
+    HeldOutCells,
+    InterleavedBlocks,
+    OneStandardError,
+    PairedGuard,
+    RollingOrigin,
+    search,
+    selection_table,
+)
+
+PINS = Path(__file__).parent / "pins"
+
+
+def _planted() -> xr.DataArray:
+    """Two persistent latent modes on a small grid, daily: rank 3 with AR(1) is chosen."""
+    return synthetic_dynamic_field(60, (8, 9), 2, seed=4, A=0.9 * np.eye(2),
+                                   Q=0.1 * (1 - 0.81) * np.eye(2), freq="D", missing=0.1,
+                                   noise=0.1)
+
+
+def _fit(data: xr.DataArray, **kw) -> GLRM:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return GLRM(random_state=0, progress=False, **kw).fit(data)
+
+
+def _pin(name: str) -> xr.Dataset:
+    return xr.load_dataset(PINS / f"{name}.nc")
+
+
+@pytest.mark.parametrize(("name", "kernel"), [("sst", "gaussian x1.69"),
+                                              ("hgt500", "gaussian x2.19")])
+def test_temporal_and_spatial_auto_are_pinned_and_saved(name, kernel, tmp_path):
+    model = _fit(load_sample(name), rank=5, temporal="auto", spatial="auto")
+    assert model.selection_.attrs["choice"] == "none"
+    assert model.kernel_selection_.attrs["choice"] == kernel
+    xr.testing.assert_identical(model.selection_, _pin(f"{name}_selection"))
+    xr.testing.assert_identical(model.kernel_selection_, _pin(f"{name}_kernel"))
+    model.save(tmp_path / "model.nc")  # the tables travel with the model file
+    back = GLRM.load(tmp_path / "model.nc")
+    xr.testing.assert_identical(back.selection_, model.selection_)
+    xr.testing.assert_identical(back.kernel_selection_, model.kernel_selection_)
+
+
+@pytest.mark.parametrize(("name", "choice", "rank"), [("sst_rank", "rank 5 none", 5),
+                                                      ("planted_rank", "rank 3 ar1:0.9 x2", 3)])
+def test_rank_auto_is_pinned(name, choice, rank):
+    data = load_sample("sst") if name == "sst_rank" else _planted()
+    model = _fit(data, rank="auto", temporal="auto")
+    assert model.selection_.attrs["choice"] == choice and model.rank_ == rank
+    xr.testing.assert_identical(model.selection_, _pin(f"{name}_selection"))
+
+
+@pytest.mark.parametrize(("name", "rmse"), [
+    ("sst", (0.4517830101801136, 0.36962619478437986, 0.3387943236602003, 0.2926369071870525)),
+    ("hgt500", (42.18314769302541, 32.017609766118916, 27.37952946330153, 20.048938433298385)),
+    ("planted", (0.1036559143623305, 0.1076903655844934, 0.11063380839306351,
+                 0.12318431676282623))])
+def test_select_rank_is_pinned(name, rmse):
+    data = _planted() if name == "planted" else load_sample(name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got = GLRM(rank=3, random_state=0, progress=False).select_rank(data, [1, 2, 3, 5])
+    assert got.index.tolist() == [1, 2, 3, 5]
+    assert got.tolist() == list(rmse)
+
+
+def test_rolling_origin_windows_end_at_the_last_snapshot():
+    assert RollingOrigin(3, 2).split(10) == [(4, 7), (7, 10)]
+    assert RollingOrigin(4, 1).split(10) == [(6, 10)]
+    # a refit needs 5 snapshots: one window of 3, then one shorter window, then none
+    assert RollingOrigin(3, 2).split(8, lambda lo: lo >= 5) == [(5, 8)]
+    assert RollingOrigin(3, 2).split(7, lambda lo: lo >= 5) == [(5, 7)]
+    assert RollingOrigin(3, 2).split(6, lambda lo: lo >= 5) is None
+
+
+def test_interleaved_blocks_hold_out_every_kth_snapshot_once():
+    folds = InterleavedBlocks(3).split(11)
+    assert len(folds) == 3
+    tests = [test for _, test in folds]
+    assert tests[0].tolist() == [0, 3, 6, 9] and tests[2].tolist() == [2, 5, 8]
+    assert sorted(np.concatenate(tests).tolist()) == list(range(11))
+    for train, test in folds:
+        assert np.intersect1d(train, test).size == 0 and train.size + test.size == 11
+
+
+def test_held_out_cells_are_the_observed_cells_a_design_leaves():
+    region = Region.from_dataarray(load_sample("sst"))
+    observed = np.random.default_rng(1).random(region.n_cells) < 0.7
+    flown, held = HeldOutCells(max_scored=40).split(region, observed, 15, "route",
+                                                    np.random.default_rng(3))
+    assert np.array_equal(flown, flown_sets(region, 15, "route", np.random.default_rng(3)))
+    assert held.size == 40 and np.all(np.diff(held) > 0)
+    assert observed[held].all() and np.intersect1d(held, flown).size == 0
+    _, every = HeldOutCells(max_scored=10**6).split(region, observed, 15, "route",
+                                                    np.random.default_rng(3))
+    assert np.array_equal(every, np.setdiff1d(np.flatnonzero(observed), flown))
+
+
+def test_search_concatenates_the_splits_and_drops_what_a_split_lacks():
+    rng = np.random.default_rng(0)
+    days = {0: rng.uniform(1, 2, (2, 5)), 1: rng.uniform(1, 2, (2, 4))}
+
+    def score(split):  # "c" only on the first split, "d" dropped by name
+        out = {"ref": days[split], "a": 0.5 * days[split], "d": 0.1 * days[split]}
+        return {**out, "c": days[split]} if split == 0 else out
+
+    seen = []
+
+    def rule(E, labels):
+        seen.append((E.copy(), list(labels)))
+        return PairedGuard(1.645, 0.01)(E)
+
+    labels, E, d = search(score, [0, 1], rule, drop=lambda lab: lab == "d")
+    assert labels == ["ref", "a"] and E.shape == (2, 2, 9)
+    assert np.array_equal(E[0], np.concatenate([days[0], days[1]], axis=-1))
+    assert seen[0][1] == labels and d.choice == d.best == 1
+    table = selection_table(d, labels, [5, 15], what="day MSE", best=labels[d.best])
+    assert table.attrs["choice"] == "a" and table["ratio"].values[1] == pytest.approx(0.5)
+    assert "competes" not in table and table["mse"].attrs["long_name"] == "day MSE"
+
+
+def test_one_standard_error_keeps_the_group_and_takes_the_most_cautious():
+    rng = np.random.default_rng(1)
+    base = 1.0 + 0.2 * rng.random((2, 40))
+    noise = 0.01 * rng.standard_normal((2, 40))
+    noise -= noise.mean(axis=-1, keepdims=True)
+    E = np.stack([base, 0.8 * base, 0.8 * base * 1.001 + noise, 0.8 * base * 1.001 + noise])
+    labels = ["none", "g x1", "g x2", "h x4"]  # "h x4": as cautious, another group
+    rule = OneStandardError(PairedGuard(1.645, 0.01), group=lambda lab: lab[0],
+                            caution=lambda lab: int(lab.split("x")[-1]) if "x" in lab else 0)
+    d = rule(E, labels)
+    assert isinstance(d, Decision) and d.best == 1 and d.choice == 2
+
+
+@pytest.mark.parametrize(("name", "choice", "cells"), [
+    ("sst", "risk+exchange", [109, 294, 285, 160, 410, 374]),
+    ("planted", "gp-variance+exchange", [7, 9, 6, 45, 2, 43])])
+def test_criterion_auto_is_pinned(name, choice, cells):
+    from lrm_cvx.planning import place_sensors
+
+    data = load_sample("sst") if name == "sst" else _planted()
+    model = _fit(data, rank=3, spatial="exponential")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plan = place_sensors(model, 6, training=data)
+    table = plan.refinement["selection"]
+    assert table.attrs.pop("seconds") > 0  # the one attribute that is not a result
+    assert table.attrs["choice"] == choice and plan.cells.tolist() == cells
+    xr.testing.assert_identical(table, _pin(f"{name}_placement"))
+
+
+def test_select_dynamics_is_pinned():
+    from lrm_cvx.validation.blending import select_dynamics
+
+    data = _planted()
+    model = _fit(data, rank=3, temporal="ar1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        alpha, table = select_dynamics(model, data, sizes=(5, 15), apply=False)
+    pin = _pin("planted_dynamics")
+    assert alpha == pin.attrs["alpha"] == 1.0 and table.attrs["n_days"] == pin.attrs["n_days"]
+    assert np.array_equal(table.index.values, pin["alpha"].values)
+    assert np.array_equal(table.values, pin["mse"].values)
+    assert np.array_equal(table.attrs["ucb"].values, pin["ucb"].values)
+
+
+def test_best_takes_the_lowest_worst_ratio_without_a_guard():
+    E = np.array([[[1.0, 1.2], [2.0, 2.0]], [[0.5, 0.7], [2.2, 2.2]], [[0.9, 1.0], [1.8, 2.0]]])
+    d = Best()(E)
+    worst = (E.mean(axis=-1) / E[0].mean(axis=-1)).max(axis=1)  # 1, 1.1 and 0.95
+    assert d.choice == d.best == int(np.argmin(worst)) == 2
+    assert d.admissible.all() and np.isnan(d.ucb).all() and d.n_cases == 2
+
+
+def test_cv_residuals_folds_are_pinned():
+    """The calibration's interleaved and forward folds and held-out cells are the search's
+    splitters: the fold-in residuals on the planted record are those pinned."""
+    from lrm_cvx.validation.calibration import cv_residuals
+
+    data = _planted()
+    model = _fit(data, rank=3, spatial="exponential", temporal="ar1")
+    pin = np.load(PINS / "planted_cv_residuals.npz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        inter = cv_residuals(model, data, max_cells=40)
+        forward = cv_residuals(model, data, folds="forward")
+    assert np.array_equal(inter, pin["interleaved"])
+    assert np.array_equal(forward, pin["forward"])
+
+
+def test_forward_blocks_refit_on_everything_before_each_later_block():
+    folds = ForwardBlocks(4).split(10)  # blocks 0-2, 3-5, 6-7, 8-9: the last two held out
+    assert [test.tolist() for _, test in folds] == [[6, 7], [8, 9]]
+    assert [train.tolist() for train, _ in folds] == [list(range(6)), list(range(8))]
