@@ -62,10 +62,10 @@ def campaign(data, n_days: int = 30, gammas: tuple = (0.02, 0.05, 0.1), size: in
     returns the table (one row per variant) and facts of the run (days, fit seconds)."""
     from lrm_cvx import GLRM
     from lrm_cvx.glrm.calibrated import interval_coverage
-    from lrm_cvx.validation.calibration import calibrate
-    from lrm_cvx.validation.designs import sample_sets
     from lrm_cvx.monitor import MonitorState
     from lrm_cvx.recommended import RECOMMENDED
+    from lrm_cvx.validation.calibration import calibrate
+    from lrm_cvx.validation.designs import sample_sets
 
     T = data.sizes["time"]
     n_days = min(int(n_days), T // 2)

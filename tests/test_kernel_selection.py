@@ -14,9 +14,9 @@ from scipy.spatial.distance import cdist
 
 from lrm_cvx import GLRM
 from lrm_cvx.errors import ModelError
-from lrm_cvx.validation.kernel_selection import _kriging_errors, format_kernel_selection
 from lrm_cvx.spatial import ResidualCovariance
 from lrm_cvx.spatial.covariance import correlation
+from lrm_cvx.validation.kernel_selection import _kriging_errors, format_kernel_selection
 from lrm_cvx.validation.search import paired_choice
 
 

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
+from lrm_cvx.belief.observation import ObservationModel
+from lrm_cvx.belief.posterior import model_prior
 from lrm_cvx.errors import ModelError
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import (
@@ -20,8 +22,6 @@ from lrm_cvx.glrm.calibrated import (
 )
 from lrm_cvx.validation.calibration import LOCAL_POWERS, calibrate
 from lrm_cvx.validation.designs import sample_sets
-from lrm_cvx.belief.observation import ObservationModel
-from lrm_cvx.belief.posterior import model_prior
 
 N_TEST = 12
 _KW = {"method": "conformal", "n_blocks": 8, "max_snapshots": 2, "residual": False,

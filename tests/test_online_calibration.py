@@ -12,6 +12,7 @@ import pytest
 import xarray as xr
 from scipy.stats import norm
 
+from lrm_cvx.belief.filter import LatentFilter
 from lrm_cvx.cli import main
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import (
@@ -20,7 +21,6 @@ from lrm_cvx.glrm.calibrated import (
     AdaptiveConformal,
     Calibration,
 )
-from lrm_cvx.belief.filter import LatentFilter
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
 

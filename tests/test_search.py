@@ -16,9 +16,9 @@ import xarray as xr
 
 from lrm_cvx import GLRM
 from lrm_cvx.datasets import load_sample
-from lrm_cvx.validation.designs import flown_sets
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.region import Region
+from lrm_cvx.validation.designs import flown_sets
 from lrm_cvx.validation.search import (
     Best,
     Decision,

@@ -367,8 +367,8 @@ def test_a_short_record_validates_on_the_windows_its_refits_can_carry(persistent
     ``refit_carries`` is checked against the fit itself: it says True exactly where
     ``GLRM(rank=3, offset=True).fit`` of the first ``lo`` snapshots succeeds."""
     from lrm_cvx.validation.refits import refit_carries
-    from lrm_cvx.validation.selection import AutoUnavailable
     from lrm_cvx.validation.search import RollingOrigin
+    from lrm_cvx.validation.selection import AutoUnavailable
 
     V = persistent_field.values.reshape(persistent_field.shape[0], -1)
 

@@ -25,9 +25,6 @@ import numpy as np
 import xarray as xr
 
 from ._validation import atomic_output, read_netcdf
-from .errors import DataError, ModelError
-from .glrm.calibrated import ONLINE_GAMMA, AdaptiveConformal
-from .glrm.dynamics import Dynamics
 from .belief.filter import (  # noqa: F401  (re-exported: the old import location)
     LatentFilter,
     coerce_time,
@@ -40,9 +37,10 @@ from .belief.filter import (  # noqa: F401  (re-exported: the old import locatio
 )
 from .belief.posterior import LatentPosterior
 from .errors import DataError, ModelError
+from .glrm.calibrated import ONLINE_GAMMA, AdaptiveConformal
 from .glrm.dynamics import Dynamics
 from .planning.terms import PriorTerms
-from .recommended import RECOMMENDED, recommended_criterion
+from .recommended import recommended_criterion
 
 __all__ = ["MonitorState", "model_fingerprint", "memoryless_dynamics", "time_label"]
 

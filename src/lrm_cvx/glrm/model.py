@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from .._validation import as_generator, atomic_output, check_positive, check_ranks
+from .._validation import as_generator, atomic_output, check_positive
 from ..errors import DataError, ModelError, NotFittedError
 from ..recommended import RECOMMENDED
 from ..region import Region

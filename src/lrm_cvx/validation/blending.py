@@ -12,9 +12,9 @@ import numpy as np
 
 from .._validation import as_generator
 from ..errors import ModelError
-from .search import HeldOutCells, PairedGuard, RollingOrigin, search
 from .designs import SET_KINDS
 from .refits import clone_model, training_values, validation_view
+from .search import HeldOutCells, PairedGuard, RollingOrigin, search
 
 __all__ = ["blend_dynamics", "unblended_dynamics", "memoryless_cov", "select_dynamics"]
 

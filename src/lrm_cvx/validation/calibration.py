@@ -52,7 +52,6 @@ from ..glrm.calibrated import (  # noqa: F401  (re-exported: the old import loca
     predictive_std,
     variance_scale,
 )
-from .search import ForwardBlocks, HeldOutCells, InterleavedBlocks
 from .blending import (  # noqa: F401  (re-exported: the old import location)
     blend_dynamics,
     memoryless_cov,
@@ -61,6 +60,7 @@ from .blending import (  # noqa: F401  (re-exported: the old import location)
 )
 from .designs import ALL_KINDS, SET_KINDS, flown_sets, sample_sets  # noqa: F401  (re-exported)
 from .refits import clone_model, refit_carries, training_values, validation_view
+from .search import ForwardBlocks, HeldOutCells, InterleavedBlocks
 
 __all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
            "blend_dynamics", "select_dynamics", "unblended_dynamics",

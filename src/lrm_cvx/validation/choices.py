@@ -15,7 +15,6 @@ import pandas as pd
 import xarray as xr
 
 from .._validation import check_ranks
-
 from ..errors import ModelError
 from ..glrm.dynamics import temporal_value
 from ..region import Region

@@ -65,6 +65,7 @@ from .._blas import single_threaded_blas
 from .._validation import as_generator, check_ranks
 from ..errors import DataError, ModelError
 from ..glrm.dynamics import kind_dynamics
+from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED
 from .search import (
     HeldOutCells,
     OneStandardError,
@@ -73,7 +74,6 @@ from .search import (
     search,
     selection_table,
 )
-from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED
 
 __all__ = ["select_temporal", "AutoUnavailable", "AUTO_ALPHAS",
            "AUTO_DESIGNS", "AUTO_SIZES", "AUTO_INFLATIONS", "AUTO_RANKS", "REFERENCE_RANK",
