@@ -441,22 +441,31 @@ class StructuredGPVarianceOracle:
         self._YX = np.ascontiguousarray(self.Y[:, X])
         self._uX = uX
         self._sX = sX
-        self._a = S0 @ self._YX                      # trend coefficients a_x
-        self._hF = np.zeros((k, X.size))             # Hk F(x)
-        self._r = np.zeros(X.size)                   # F(x)^T Rk(x)
-        self._q = np.zeros(X.size)                   # F(x)^T Qk F(x)
-        self.cvar = np.einsum("an,an->n", self._YX, self._a) + spatial_cov.sill
-        self._F = np.empty((0, X.size))              # whitened C(P, x)
-        self._Fk = np.empty((0, X.size))             # its GP part
-        self._Rk = np.empty((0, X.size))             # sum_i c_i Fk(i) k(i, x)
+        self._S0 = S0
+        self._gcache = _PickCache(X.size)  # g(p, .) of the picks, shared by every fork
+        prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
+        self._value0 = float(cT[T] @ prior_var)
+        self._reset()
+        for p in init:
+            self._condition(int(p))
+
+    def _reset(self) -> None:
+        """The state of no observation: the prior's trend coefficients, variances and value,
+        no whitened row."""
+        k, n = self._YX.shape
+        self._a = self._S0 @ self._YX                # trend coefficients a_x
+        self._hF = np.zeros((k, n))                  # Hk F(x)
+        self._r = np.zeros(n)                        # F(x)^T Rk(x)
+        self._q = np.zeros(n)                        # F(x)^T Qk F(x)
+        self.cvar = np.einsum("an,an->n", self._YX, self._a) + self.cov.sill
+        self._F = np.empty((0, n))                   # whitened C(P, x)
+        self._Fk = np.empty((0, n))                  # its GP part
+        self._Rk = np.empty((0, n))                  # sum_i c_i Fk(i) k(i, x)
         self._Qk = np.zeros((0, 0))                  # sum_i c_i Fk(i) Fk(i)^T
         self._Hk = np.zeros((k, 0))                  # sum_i c_i y_i Fk(i)^T
         self._m = 0
-        prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
-        self._value = float(cT[T] @ prior_var)
+        self._value = self._value0
         self.cells: list[int] = []
-        for p in init:
-            self._condition(int(p))
 
     @property
     def k(self) -> int:
@@ -591,8 +600,10 @@ class StructuredGPVarianceOracle:
             wg, ktab = self._wg, self._kernel_table()
             rp, cp = wg[2] - 1 - gxp[0], wg[3] - 1 - gxp[1]  # the table's offset 0 from p
             kp = ktab[self._gX[:, 0] + rp, self._gX[:, 1] + cp]
-            win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
-            g = self._gconv(win * self._cwin)[self._oidx]        # g(p, x)
+            g = self._gcache.get(j)
+            if g is None:  # a cell no fork of this set-up has conditioned on yet
+                win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
+                g = self._gcache.put(j, self._gconv(win * self._cwin)[self._oidx])  # g(p, x)
         fk = (kp - ell @ Fk) / d                                  # GP part of the new row
         phi = (ap @ self._YX) / d + fk                            # C_P(p, x) / d
         Rkp = Rk[:, j].copy()
@@ -623,8 +634,10 @@ class StructuredGPVarianceOracle:
         return num / np.maximum(self.cvar[pos] + self.noise, 1e-300)
 
     def add(self, cell: int) -> None:
-        """Condition on an observation at ``cell`` (a pool cell), ``O((m + k) n)`` + one FFT."""
-        self._pos([int(cell)])
+        """Condition on an observation at ``cell`` (a pool or initial cell), ``O((m + k) n)``
+        + one FFT."""
+        if not self.covers([int(cell)]):
+            self._pos([int(cell)])  # the error naming the pool
         self._condition(int(cell))
 
     _STATE = ("_F", "_Fk", "_Rk", "_Qk", "_Hk", "_q", "_r", "_hF", "_a", "cvar")
@@ -639,10 +652,49 @@ class StructuredGPVarianceOracle:
         new.cells = list(self.cells)
         return new
 
+    def fresh(self) -> StructuredGPVarianceOracle:
+        """A fork conditioned on nothing (the prior): the whole-grid terms and the picks'
+        convolutions shared, so rival sets of cells of this oracle's pool and initial cells
+        (:meth:`covers`) are scored without a new set-up (planning/lines.py)."""
+        new = copy.copy(self)
+        new._reset()
+        return new
+
+    def covers(self, cells: Any) -> bool:
+        """Whether every cell of ``cells`` is one the oracle holds (its pool and initial
+        cells), so :meth:`add` conditions on it."""
+        cells = np.asarray(cells, dtype=np.int64).ravel()
+        return bool(np.all(self._X[self._xpos(cells)] == cells)) if cells.size else True
+
     @property
     def value(self) -> float:
         """Total posterior variance over the targets for the current set."""
         return self._value
+
+
+GP_PICK_CACHE_BYTES: float = 2.0 ** 28
+"""Most bytes (256 MiB) a structured gp-variance oracle and its forks keep of the picks'
+convolutions ``g(p, .)`` (:class:`_PickCache`); picks beyond it are convolved again when
+another fork conditions on them."""
+
+
+class _PickCache:
+    """The convolutions ``g(p, x)`` over the pool of the cells a structured oracle has
+    conditioned on, by position ``p`` in the oracle's cells, shared by its forks: a cell the
+    greedy, a rival greedy or a rival route conditions on is convolved once (the same numbers
+    as convolving it again). Holds at most :data:`GP_PICK_CACHE_BYTES`."""
+
+    def __init__(self, n: int) -> None:
+        self._rows: dict[int, np.ndarray] = {}
+        self._max = int(GP_PICK_CACHE_BYTES // max(8 * n, 1))
+
+    def get(self, j: int) -> np.ndarray | None:
+        return self._rows.get(j)
+
+    def put(self, j: int, g: np.ndarray) -> np.ndarray:
+        if len(self._rows) < self._max:
+            self._rows[j] = g
+        return g
 
 
 GP_BOUNDARY_TOL: float = 1e-3

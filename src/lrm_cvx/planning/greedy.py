@@ -378,15 +378,17 @@ def plan_greedy(
                 sense_along=sense_along, progress=progress)
     build = dict(criterion=criterion, ridge=float(ridge), cost=cost, posterior=posterior,
                  fleet=fleet, request=request)
-    *picked, extra = _picks(cost_exponent, **pick)
+    *picked, extra, first = _picks(cost_exponent, **pick, keep=refine in CHECKS)
     plan = _route_plan(Yk, region, models, *picked, **build)
-    if refine in CHECKS:
+    if refine in CHECKS:  # the rivals start from the greedy's set-up (``first``)
         others = {}
         if refine == RIVALS and cost_exponent != RIVAL_EXPONENT:
-            *rival, _ = _picks(RIVAL_EXPONENT, **pick, extra=extra, warn=False)
+            *rival, _, _ = _picks(RIVAL_EXPONENT, **pick, extra=extra, warn=False,
+                                  start=first)
             others[RIVAL_NAME] = _route_plan(Yk, region, models, *rival, **build)
         plan = best_of_lines(plan, Yk, region, fleet, request, criterion=criterion,
-                             ridge=ridge, extra=extra, others=others, refine=refine)
+                             ridge=ridge, extra=extra, others=others, refine=refine,
+                             base=first)
     elif refine is not None:  # refine.py registers it
         plan = REFINERS.get("local")(plan, {} if refine == "local" else refine, terms)
     plan._terms = extra  # the criterion's terms, which plan.certify() bounds
@@ -423,12 +425,16 @@ def _check_leaves(models: list[Any], P0s: list[np.ndarray], cands: list[np.ndarr
 
 def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets, tols, fleet,
            criterion, ridge, sensor, region, terms, targets, sense_along, progress,
-           extra: dict[str, Any] | None = None, warn: bool = True) -> tuple:
+           extra: dict[str, Any] | None = None, warn: bool = True, start: Any = None,
+           keep: bool = False) -> tuple:
     """One greedy pass from the initial cells ``P0s``: each step adds the feasible
     ``(cell, robot)`` of largest gain per ``cost increase ** exponent`` (1: the paper's
     cost-benefit ratio; 0: the plain gain). Returns ``(costers, stops, stop_robot, sense,
-    hist, extra)``: the first five for :func:`_route_plan`, ``extra`` the oracle's terms
-    (computed unless given)."""
+    hist, extra, first)``: the first five for :func:`_route_plan`, ``extra`` the oracle's terms
+    (computed unless given), ``first`` (with ``keep``, for an oracle that forks: the
+    structured gp-variance one) a fork of the oracle on the initial cells, before the picks.
+    ``start``: such a fork, which the pass forks instead of setting up its oracle again (the
+    same numbers: a rival pass shares the set-up and the picks' convolutions)."""
     k, L = Yk.shape
     # (robot, stop) pairs: a cell is a stop of one robot, except starts shared by two robots
     stops = [int(c) for P in P0s for c in P]
@@ -451,8 +457,12 @@ def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets,
         extra = oracle_terms(criterion, region, gp_pool, terms, targets)
     feed = None if sensor.is_point else _SensorRows(sensor, region, models, gp_pool, criterion,
                                                    Yk, ridge, extra)
-    oracle = (make_oracle(criterion, Yk, ridge, init, **extra) if feed is None
-              else feed.oracle(init, costers))
+    if start is not None and feed is None:
+        oracle = start.fork()
+    else:
+        oracle = (make_oracle(criterion, Yk, ridge, init, **extra) if feed is None
+                  else feed.oracle(init, costers))
+    first = oracle.fork() if keep and feed is None and hasattr(oracle, "fork") else None
     for r, cst in enumerate(costers):  # cells forced for other robots are taken
         if len(costers) > 1:
             for c in set(stops):
@@ -530,7 +540,7 @@ def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets,
             bar.set_postfix(cost=f"{cst.cost:.1f}/{budgets[r]:g}", refresh=False)
     finally:
         bar.close()
-    return costers, stops, stop_robot, sense, hist, extra
+    return costers, stops, stop_robot, sense, hist, extra, first
 
 
 def _static(Y: Any, region: Region, start: Any, budget: Any, request: PathOptions,
