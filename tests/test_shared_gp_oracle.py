@@ -49,6 +49,16 @@ def structured(monkeypatch):
     monkeypatch.setattr(lines, "GP_STRUCTURED_MIN_ENTRIES", 0.0)
 
 
+def count_convolutions(monkeypatch) -> list:
+    """A list that grows by one at each FFT convolution over the grid."""
+    calls = []
+    call, product = GridConv.__call__, GridConv.product
+    monkeypatch.setattr(GridConv, "__call__", lambda self, f: calls.append(1) or call(self, f))
+    monkeypatch.setattr(GridConv, "product", lambda self, f1, f2: calls.append(1)
+                        or product(self, f1, f2))
+    return calls
+
+
 def own_oracle_value(Y, region, cells, terms) -> float:
     """A route's value by its own exact structured oracle, set up on its cells alone."""
     cells = np.unique(np.asarray(cells, dtype=np.int64))
@@ -68,8 +78,9 @@ def test_rivals_from_one_set_up_plan_as_separate_oracles(structured, seed, start
     Y, region, terms = problem(seed)
     kw = dict(criterion="gp-variance", initial="start", progress=False, **terms)
     plan = plan_greedy(Y, region, start, budget, refine="rivals", **kw)
-    assert isinstance(plan._terms, dict)
+    information._GRID_TERMS.clear()  # the lone plans set up on their own
     greedy = plan_greedy(Y, region, start, budget, **kw)
+    information._GRID_TERMS.clear()
     gentle = plan_greedy(Y, region, start, budget, cost_exponent=0.5, **kw)
     routes = {"greedy": greedy, "greedy-cost^0.5": gentle}
     routes.update({f"transect-{d}": transect(region, start, budget, d) for d in DIRECTIONS})
@@ -93,13 +104,13 @@ def test_one_set_up_and_one_convolution_per_cell(structured, monkeypatch):
     """A plan with its rivals sets the structured oracle up once, and convolves each cell that
     the greedy, the gentler greedy or a route conditions on once."""
     Y, region, terms = problem(4, 13, 14)
-    built, convolved = [], []
-    init, call = StructuredGPVarianceOracle.__init__, GridConv.__call__
+    built = []
+    init = StructuredGPVarianceOracle.__init__
     monkeypatch.setattr(StructuredGPVarianceOracle, "__init__",
                         lambda self, *a, **k: built.append(1) or init(self, *a, **k))
-    monkeypatch.setattr(GridConv, "__call__", lambda self, f: convolved.append(f.shape)
-                        or call(self, f))
+    convolved = count_convolutions(monkeypatch)
     kw = dict(criterion="gp-variance", initial="start", progress=False, **terms)
+    information._GRID_TERMS.clear()
     plan = plan_greedy(Y, region, 90, 8.0, refine="rivals", **kw)
     assert len(built) == 1
     n_convolved = len(convolved)
@@ -122,6 +133,7 @@ def test_forks_and_fresh_forks_are_set_up_oracles_bit_for_bit(seed, picks):
     kw = dict(region=region, pool=np.arange(0, region.n_cells), **terms)
     base = StructuredGPVarianceOracle(Y, [5], **kw)
     a, b = base.fork(), base.fork()
+    information._GRID_TERMS.clear()  # set up on its own
     alone = StructuredGPVarianceOracle(Y, [5], **kw)
     for c in picks:
         a.add(c)
@@ -132,6 +144,7 @@ def test_forks_and_fresh_forks_are_set_up_oracles_bit_for_bit(seed, picks):
         np.testing.assert_array_equal(o.gains(), alone.gains())
         assert o.value == alone.value
     zero = base.fresh()
+    information._GRID_TERMS.clear()
     empty = StructuredGPVarianceOracle(Y, [], **kw)
     assert zero.cells == [] and zero.value == empty.value
     np.testing.assert_array_equal(zero.gains(), empty.gains())
@@ -151,3 +164,32 @@ def test_a_set_up_adds_its_initial_cells_but_not_others(structured):
     o.fresh().add(0)
     with pytest.raises(information.PlanningError, match="pool"):
         o.add(5)
+
+
+def test_a_second_plan_of_the_same_set_up_convolves_only_new_cells(structured, monkeypatch):
+    """The next day's plan (same factors, weights, grid and start; another prior covariance)
+    reuses the set-up and the cells already convolved, and plans as a plan set up alone."""
+    Y, region, terms = problem(8, 12, 12)
+    convolved = count_convolutions(monkeypatch)
+    kw = dict(criterion="gp-variance", initial="start", progress=False, refine="rivals")
+    information._GRID_TERMS.clear()
+    plan_greedy(Y, region, 66, 7.0, **kw, **terms)
+    first = len(convolved)
+    day2 = {**terms, "prior_cov": 0.5 * terms["prior_cov"]}
+    plan = plan_greedy(Y, region, 66, 7.0, **kw, **day2)
+    assert 0 <= len(convolved) - first < first - Y.shape[0] - 1  # no set-up, fewer cells
+    information._GRID_TERMS.clear()
+    alone = plan_greedy(Y, region, 66, 7.0, **kw, **day2)
+    np.testing.assert_array_equal(plan.route, alone.route)
+    assert plan.rivals["values"] == alone.rivals["values"]
+
+
+@settings(max_examples=10, deadline=None)
+@given(shape=st.tuples(st.integers(1, 30), st.integers(1, 30)),
+       out=st.tuples(st.integers(0, 20), st.integers(0, 20), st.integers(1, 12),
+                     st.integers(1, 12)), seed=st.integers(0, 1000))
+def test_a_convolution_of_a_product_is_the_convolution_bit_for_bit(shape, out, seed):
+    rng = np.random.default_rng(seed)
+    conv = GridConv((0, 0, *shape), out, lambda d: np.exp(-d / 3.0), anisotropy=1.5)
+    f1, f2 = rng.normal(size=shape), rng.normal(size=shape)
+    np.testing.assert_array_equal(conv.product(f1, f2), conv(f1 * f2))

@@ -28,6 +28,7 @@ is the A-optimal criterion of the low-rank trend + GP residual model.
 from __future__ import annotations
 
 import copy
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -409,40 +410,22 @@ class StructuredGPVarianceOracle:
         out = (int(lo[0]), int(lo[1]), int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
         self._oidx = (gX[:, 0] - out[0], gX[:, 1] - out[1])
 
-        def kern(d):
-            return spatial_cov.covariance(d, nugget=False)
-
-        cgrid = np.zeros(shape)
-        cgrid[gi[:, 0], gi[:, 1]] = cT
-        # u(x) and s(x) = sum_i c_i k(i, x)^2 over (almost) the whole grid: terms left out
-        # are below 1e-17 sill each
-        aniso = spatial_cov.anisotropy
-        wb = _rect(lo, hi, spatial_cov.reach(1e-17), shape)
-        sl = (slice(wb[0], wb[0] + wb[2]), slice(wb[1], wb[1] + wb[3]))
-        conv = GridConv(wb, out, kern, aniso)
-        uX = np.empty((k, X.size))
-        buf = np.zeros(shape)
-        for a in range(k):
-            buf[gi[:, 0], gi[:, 1]] = cT * self.Y[a]
-            uX[a] = conv(buf[sl])[self._oidx]
-        del conv
-        sX = GridConv(wb, out, lambda d: kern(d) ** 2, aniso)(cgrid[sl])[self._oidx]
-        # g(p, x) = sum_i c_i k(p, i) k(i, x): with equal weights on the targets, the lattice
-        # autocorrelation K2(x - p) of k minus the targets' complement (bounded below), a table
-        # gather per pick; else one convolution per pick over the smaller window
-        self._k2 = self._lag_table(cT, sX, spatial_cov, lo, hi, boundary_tol)
-        self._wg = _rect(lo, hi, spatial_cov.reach(truncation), shape)
-        wg = self._wg
-        self._gconv = GridConv(wg, out, kern, aniso)
-        self._ktab = None  # the kernel at every offset of the window (_kernel_table)
-        self._cwin = cgrid[wg[0]:wg[0] + wg[2], wg[1]:wg[1] + wg[3]]
-
-        self._W = (self.Y * cT) @ self.Y.T
+        key = (_digest(self.Y, cT, gi, X), shape, spatial_cov.model, spatial_cov.sill,
+               spatial_cov.range, spatial_cov.anisotropy, truncation, float(boundary_tol),
+               LAG_TABLE_MAX_ENTRIES)
+        grid = _GRID_TERMS.get(key)
+        if grid is None:
+            grid = self._grid_terms(cT, region, lo, hi, out, truncation, boundary_tol)
+            _GRID_TERMS.clear()  # one set-up kept: the latest plan's
+            _GRID_TERMS[key] = grid
+        elif grid.bound is not None:
+            self.boundary_bound = grid.bound
+        self._grid = grid
+        self._k2, self._wg, self._gconv, self._cwin = grid.k2, grid.wg, grid.gconv, grid.cwin
+        self._W, self._uX, self._sX = grid.W, grid.uX, grid.sX
         self._YX = np.ascontiguousarray(self.Y[:, X])
-        self._uX = uX
-        self._sX = sX
         self._S0 = S0
-        self._gcache = _PickCache(X.size)  # g(p, .) of the picks, shared by every fork
+        self._gcache = grid.picks  # g(p, .) of the picks, shared by every fork
         prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
         self._value0 = float(cT[T] @ prior_var)
         self._reset()
@@ -476,6 +459,44 @@ class StructuredGPVarianceOracle:
         """Whether a pick's ``g(p, x)`` is gathered from the kernel's lag table (cheap) rather
         than convolved by FFT over the pool's window (exact; the cost of each pick)."""
         return self._k2 is not None
+
+    def _grid_terms(self, cT: np.ndarray, region: Any, lo: np.ndarray, hi: np.ndarray,
+                    out: tuple[int, int, int, int], truncation: float,
+                    boundary_tol: float) -> _GridTerms:
+        """The set-up's terms that do not depend on the prior covariance nor on the initial
+        cells: ``u``, ``s``, ``W``, the lag table or the per-pick convolution (k + 1 FFT
+        convolutions over the grid)."""
+        spatial_cov, gi, shape = self.cov, region.grid_index, region.shape
+        k, X = self.Y.shape[0], self._X
+
+        def kern(d):
+            return spatial_cov.covariance(d, nugget=False)
+
+        cgrid = np.zeros(shape)
+        cgrid[gi[:, 0], gi[:, 1]] = cT
+        # u(x) and s(x) = sum_i c_i k(i, x)^2 over (almost) the whole grid: terms left out
+        # are below 1e-17 sill each
+        aniso = spatial_cov.anisotropy
+        wb = _rect(lo, hi, spatial_cov.reach(1e-17), shape)
+        sl = (slice(wb[0], wb[0] + wb[2]), slice(wb[1], wb[1] + wb[3]))
+        conv = GridConv(wb, out, kern, aniso)
+        uX = np.empty((k, X.size))
+        buf = np.zeros(shape)
+        for a in range(k):
+            buf[gi[:, 0], gi[:, 1]] = cT * self.Y[a]
+            uX[a] = conv(buf[sl])[self._oidx]
+        del conv
+        sX = GridConv(wb, out, lambda d: kern(d) ** 2, aniso)(cgrid[sl])[self._oidx]
+        # g(p, x) = sum_i c_i k(p, i) k(i, x): with equal weights on the targets, the lattice
+        # autocorrelation K2(x - p) of k minus the targets' complement (bounded below), a table
+        # gather per pick; else one convolution per pick over the smaller window
+        k2 = self._lag_table(cT, sX, spatial_cov, lo, hi, boundary_tol)
+        wg = _rect(lo, hi, spatial_cov.reach(truncation), shape)
+        return _GridTerms(uX=uX, sX=sX, W=(self.Y * cT) @ self.Y.T, k2=k2, wg=wg,
+                          gconv=GridConv(wg, out, kern, aniso),
+                          cwin=cgrid[wg[0]:wg[0] + wg[2], wg[1]:wg[1] + wg[3]],
+                          bound=getattr(self, "boundary_bound", None),
+                          picks=_PickCache(X.size))
 
     def _lag_table(self, cT: np.ndarray, sX: np.ndarray, cov: Any, lo: np.ndarray,
                    hi: np.ndarray, tol: float) -> tuple | None:
@@ -531,16 +552,17 @@ class StructuredGPVarianceOracle:
     def _kernel_table(self) -> np.ndarray:
         """The kernel at every grid offset within the window ``(2 n_rows - 1, 2 n_cols - 1)``
         (offset 0 at the centre; the pool's box lies inside the window), evaluated on the
-        first pick that convolves and kept (a fork made after shares it): each such pick's
+        first pick that convolves and kept (every oracle of the same set-up shares it): each
+        such pick's
         ``k(p, x)`` over the pool and over the window are then a gather and a slice of it,
         the same numbers as evaluating them, where every pick evaluated the whole window
         before."""
-        if self._ktab is None:
+        if self._grid.ktab is None:
             n_rows, n_cols = self._wg[2], self._wg[3]
-            self._ktab = self.cov.lattice(
+            self._grid.ktab = self.cov.lattice(
                 np.arange(1 - n_rows, n_rows, dtype=np.float64)[:, None],
                 np.arange(1 - n_cols, n_cols, dtype=np.float64)[None, :])
-        return self._ktab
+        return self._grid.ktab
 
     def _xpos(self, cells: np.ndarray) -> np.ndarray:
         return np.minimum(np.searchsorted(self._X, cells), self._X.size - 1)
@@ -603,7 +625,7 @@ class StructuredGPVarianceOracle:
             g = self._gcache.get(j)
             if g is None:  # a cell no fork of this set-up has conditioned on yet
                 win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
-                g = self._gcache.put(j, self._gconv(win * self._cwin)[self._oidx])  # g(p, x)
+                g = self._gcache.put(j, self._gconv.product(win, self._cwin)[self._oidx])
         fk = (kp - ell @ Fk) / d                                  # GP part of the new row
         phi = (ap @ self._YX) / d + fk                            # C_P(p, x) / d
         Rkp = Rk[:, j].copy()
@@ -676,6 +698,44 @@ GP_PICK_CACHE_BYTES: float = 2.0 ** 28
 """Most bytes (256 MiB) a structured gp-variance oracle and its forks keep of the picks'
 convolutions ``g(p, .)`` (:class:`_PickCache`); picks beyond it are convolved again when
 another fork conditions on them."""
+
+
+@dataclass
+class _GridTerms:
+    """What a structured oracle's set-up computes from the grid (:meth:`StructuredGPVariance
+    Oracle._grid_terms`), shared by every oracle of the same set-up: ``u``, ``s`` and ``W``,
+    the lag table ``k2`` (or None), the per-pick convolution ``gconv`` over the window ``wg``
+    with the target weights ``cwin`` there, the lag table's ``bound``, the picks'
+    convolutions ``picks`` and the kernel's table ``ktab`` (evaluated on the first pick that
+    convolves)."""
+
+    uX: np.ndarray
+    sX: np.ndarray
+    W: np.ndarray
+    k2: tuple | None
+    wg: tuple[int, int, int, int]
+    gconv: GridConv
+    cwin: np.ndarray
+    bound: float | None
+    picks: _PickCache
+    ktab: np.ndarray | None = None
+
+
+_GRID_TERMS: dict[tuple, _GridTerms] = {}
+"""The latest structured set-up's grid terms, by a digest of its factors, target weights,
+grid and cells and by its covariance: the plans of a campaign's days (the same model, start
+and budget; only the forecast's prior covariance changes) set up once and share the picks'
+convolutions, the same numbers as computing them again."""
+
+
+def _digest(*arrays: np.ndarray) -> str:
+    """A digest of the arrays' bytes, shapes and dtypes."""
+    h = hashlib.blake2b(digest_size=20)
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
 
 
 class _PickCache:
