@@ -113,9 +113,11 @@ def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, 
     dense reference scores each route. ``base``: the greedy's structured oracle on its initial
     cells (:func:`~lrm_cvx.planning.greedy.plan_greedy`), or None; when it convolves each pick
     exactly and its cells hold every route's, each route is scored by a fork of it with no
-    observation (:meth:`~lrm_cvx.information.StructuredGPVarianceOracle.fresh`): no new
-    set-up, and the cells the greedy passes conditioned on are not convolved again (the values
-    equal those of the routes' own exact oracles to rounding)."""
+    observation on the route's cells alone
+    (:meth:`~lrm_cvx.information.StructuredGPVarianceOracle.restricted`): no new set-up, the
+    cells the greedy passes conditioned on are not convolved again, nor the same route on the
+    next plan of that set-up (the values equal those of the routes' own exact oracles to
+    rounding)."""
     sets = {name: np.unique(np.asarray(c, dtype=np.int64)) for name, c in routes.items()}
     if CRITERION_REGISTRY.canonical(criterion, "criterion") != "gp-variance":
         return {name: float(make_oracle(criterion, Y, ridge, c, **extra).value)
@@ -131,7 +133,10 @@ def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, 
                                         terms["target_weights"]) for name, c in sets.items()}
     if (isinstance(base, StructuredGPVarianceOracle) and not base.uses_lag_table
             and all(base.covers(c) for c in sets.values())):
-        return forked_values(base.fresh(), sets)
+        out = {}
+        for name, cells in sets.items():  # a route's fork on its own cells
+            out.update(forked_values(base.restricted(cells), {name: cells}))
+        return out
     base = union_oracle(Y, sets, terms)
     if not base.uses_lag_table:  # exact per-pick FFTs: each route over its own window
         return {name: float(StructuredGPVarianceOracle(Y, cells, pool=cells, **terms).value)
