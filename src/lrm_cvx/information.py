@@ -28,8 +28,9 @@ is the A-optimal criterion of the low-rank trend + GP residual model.
 from __future__ import annotations
 
 import copy
+import hashlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -409,6 +410,65 @@ class StructuredGPVarianceOracle:
         out = (int(lo[0]), int(lo[1]), int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
         self._oidx = (gX[:, 0] - out[0], gX[:, 1] - out[1])
 
+        key = (_digest(self.Y, cT, gi, X), shape, spatial_cov.model, spatial_cov.sill,
+               spatial_cov.range, spatial_cov.anisotropy, truncation, float(boundary_tol),
+               LAG_TABLE_MAX_ENTRIES)
+        grid = _GRID_TERMS.get(key)
+        if grid is None:
+            grid = self._grid_terms(cT, region, lo, hi, out, truncation, boundary_tol)
+            _GRID_TERMS.clear()  # one set-up kept: the latest plan's
+            _GRID_TERMS[key] = grid
+        elif grid.bound is not None:
+            self.boundary_bound = grid.bound
+        self._grid = grid
+        self._k2, self._wg, self._gconv, self._cwin = grid.k2, grid.wg, grid.gconv, grid.cwin
+        self._W, self._uX, self._sX = grid.W, grid.uX, grid.sX
+        self._YX = np.ascontiguousarray(self.Y[:, X])
+        self._S0 = S0
+        self._gcache = grid.picks  # g(p, .) of the picks, shared by every fork
+        prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
+        self._value0 = float(cT[T] @ prior_var)
+        self._reset()
+        for p in init:
+            self._condition(int(p))
+
+    def _reset(self) -> None:
+        """The state of no observation: the prior's trend coefficients, variances and value,
+        no whitened row."""
+        k, n = self._YX.shape
+        self._a = self._S0 @ self._YX                # trend coefficients a_x
+        self._hF = np.zeros((k, n))                  # Hk F(x)
+        self._r = np.zeros(n)                        # F(x)^T Rk(x)
+        self._q = np.zeros(n)                        # F(x)^T Qk F(x)
+        self.cvar = np.einsum("an,an->n", self._YX, self._a) + self.cov.sill
+        self._F = np.empty((0, n))                   # whitened C(P, x)
+        self._Fk = np.empty((0, n))                  # its GP part
+        self._Rk = np.empty((0, n))                  # sum_i c_i Fk(i) k(i, x)
+        self._Qk = np.zeros((0, 0))                  # sum_i c_i Fk(i) Fk(i)^T
+        self._Hk = np.zeros((k, 0))                  # sum_i c_i y_i Fk(i)^T
+        self._m = 0
+        self._value = self._value0
+        self.cells: list[int] = []
+
+    @property
+    def k(self) -> int:
+        return int(self.Y.shape[0])
+
+    @property
+    def uses_lag_table(self) -> bool:
+        """Whether a pick's ``g(p, x)`` is gathered from the kernel's lag table (cheap) rather
+        than convolved by FFT over the pool's window (exact; the cost of each pick)."""
+        return self._k2 is not None
+
+    def _grid_terms(self, cT: np.ndarray, region: Any, lo: np.ndarray, hi: np.ndarray,
+                    out: tuple[int, int, int, int], truncation: float,
+                    boundary_tol: float) -> _GridTerms:
+        """The set-up's terms that do not depend on the prior covariance nor on the initial
+        cells: ``u``, ``s``, ``W``, the lag table or the per-pick convolution (k + 1 FFT
+        convolutions over the grid)."""
+        spatial_cov, gi, shape = self.cov, region.grid_index, region.shape
+        k, X = self.Y.shape[0], self._X
+
         def kern(d):
             return spatial_cov.covariance(d, nugget=False)
 
@@ -430,43 +490,13 @@ class StructuredGPVarianceOracle:
         # g(p, x) = sum_i c_i k(p, i) k(i, x): with equal weights on the targets, the lattice
         # autocorrelation K2(x - p) of k minus the targets' complement (bounded below), a table
         # gather per pick; else one convolution per pick over the smaller window
-        self._k2 = self._lag_table(cT, sX, spatial_cov, lo, hi, boundary_tol)
-        self._wg = _rect(lo, hi, spatial_cov.reach(truncation), shape)
-        wg = self._wg
-        self._gconv = GridConv(wg, out, kern, aniso)
-        self._ktab = None  # the kernel at every offset of the window (_kernel_table)
-        self._cwin = cgrid[wg[0]:wg[0] + wg[2], wg[1]:wg[1] + wg[3]]
-
-        self._W = (self.Y * cT) @ self.Y.T
-        self._YX = np.ascontiguousarray(self.Y[:, X])
-        self._uX = uX
-        self._sX = sX
-        self._a = S0 @ self._YX                      # trend coefficients a_x
-        self._hF = np.zeros((k, X.size))             # Hk F(x)
-        self._r = np.zeros(X.size)                   # F(x)^T Rk(x)
-        self._q = np.zeros(X.size)                   # F(x)^T Qk F(x)
-        self.cvar = np.einsum("an,an->n", self._YX, self._a) + spatial_cov.sill
-        self._F = np.empty((0, X.size))              # whitened C(P, x)
-        self._Fk = np.empty((0, X.size))             # its GP part
-        self._Rk = np.empty((0, X.size))             # sum_i c_i Fk(i) k(i, x)
-        self._Qk = np.zeros((0, 0))                  # sum_i c_i Fk(i) Fk(i)^T
-        self._Hk = np.zeros((k, 0))                  # sum_i c_i y_i Fk(i)^T
-        self._m = 0
-        prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
-        self._value = float(cT[T] @ prior_var)
-        self.cells: list[int] = []
-        for p in init:
-            self._condition(int(p))
-
-    @property
-    def k(self) -> int:
-        return int(self.Y.shape[0])
-
-    @property
-    def uses_lag_table(self) -> bool:
-        """Whether a pick's ``g(p, x)`` is gathered from the kernel's lag table (cheap) rather
-        than convolved by FFT over the pool's window (exact; the cost of each pick)."""
-        return self._k2 is not None
+        k2 = self._lag_table(cT, sX, spatial_cov, lo, hi, boundary_tol)
+        wg = _rect(lo, hi, spatial_cov.reach(truncation), shape)
+        return _GridTerms(uX=uX, sX=sX, W=(self.Y * cT) @ self.Y.T, k2=k2, wg=wg,
+                          gconv=GridConv(wg, out, kern, aniso),
+                          cwin=cgrid[wg[0]:wg[0] + wg[2], wg[1]:wg[1] + wg[3]],
+                          bound=getattr(self, "boundary_bound", None),
+                          picks=_PickCache(X.size))
 
     def _lag_table(self, cT: np.ndarray, sX: np.ndarray, cov: Any, lo: np.ndarray,
                    hi: np.ndarray, tol: float) -> tuple | None:
@@ -522,16 +552,17 @@ class StructuredGPVarianceOracle:
     def _kernel_table(self) -> np.ndarray:
         """The kernel at every grid offset within the window ``(2 n_rows - 1, 2 n_cols - 1)``
         (offset 0 at the centre; the pool's box lies inside the window), evaluated on the
-        first pick that convolves and kept (a fork made after shares it): each such pick's
+        first pick that convolves and kept (every oracle of the same set-up shares it): each
+        such pick's
         ``k(p, x)`` over the pool and over the window are then a gather and a slice of it,
         the same numbers as evaluating them, where every pick evaluated the whole window
         before."""
-        if self._ktab is None:
+        if self._grid.ktab is None:
             n_rows, n_cols = self._wg[2], self._wg[3]
-            self._ktab = self.cov.lattice(
+            self._grid.ktab = self.cov.lattice(
                 np.arange(1 - n_rows, n_rows, dtype=np.float64)[:, None],
                 np.arange(1 - n_cols, n_cols, dtype=np.float64)[None, :])
-        return self._ktab
+        return self._grid.ktab
 
     def _xpos(self, cells: np.ndarray) -> np.ndarray:
         return np.minimum(np.searchsorted(self._X, cells), self._X.size - 1)
@@ -591,8 +622,10 @@ class StructuredGPVarianceOracle:
             wg, ktab = self._wg, self._kernel_table()
             rp, cp = wg[2] - 1 - gxp[0], wg[3] - 1 - gxp[1]  # the table's offset 0 from p
             kp = ktab[self._gX[:, 0] + rp, self._gX[:, 1] + cp]
-            win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
-            g = self._gconv(win * self._cwin)[self._oidx]        # g(p, x)
+            g = self._gcache.get(j)
+            if g is None:  # a cell no fork of this set-up has conditioned on yet
+                win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
+                g = self._gcache.put(j, self._gconv.product(win, self._cwin)[self._oidx])
         fk = (kp - ell @ Fk) / d                                  # GP part of the new row
         phi = (ap @ self._YX) / d + fk                            # C_P(p, x) / d
         Rkp = Rk[:, j].copy()
@@ -623,8 +656,10 @@ class StructuredGPVarianceOracle:
         return num / np.maximum(self.cvar[pos] + self.noise, 1e-300)
 
     def add(self, cell: int) -> None:
-        """Condition on an observation at ``cell`` (a pool cell), ``O((m + k) n)`` + one FFT."""
-        self._pos([int(cell)])
+        """Condition on an observation at ``cell`` (a pool or initial cell), ``O((m + k) n)``
+        + one FFT."""
+        if not self.covers([int(cell)]):
+            self._pos([int(cell)])  # the error naming the pool
         self._condition(int(cell))
 
     _STATE = ("_F", "_Fk", "_Rk", "_Qk", "_Hk", "_q", "_r", "_hF", "_a", "cvar")
@@ -639,10 +674,121 @@ class StructuredGPVarianceOracle:
         new.cells = list(self.cells)
         return new
 
+    def fresh(self) -> StructuredGPVarianceOracle:
+        """A fork conditioned on nothing (the prior): the whole-grid terms and the picks'
+        convolutions shared, so rival sets of cells of this oracle's pool and initial cells
+        (:meth:`covers`) are scored without a new set-up (planning/lines.py)."""
+        new = copy.copy(self)
+        new._reset()
+        return new
+
+    def restricted(self, cells: Any) -> StructuredGPVarianceOracle:
+        """A fork with no observation whose pool is ``cells`` (cells :meth:`covers`): the
+        set-up's terms gathered there, so conditioning costs ``O((m + k) |cells|)`` plus a
+        pick's convolution, gathered from this set-up's when it has it. Its values are a fork's
+        to rounding; the convolutions over ``cells`` are kept with the set-up, so the same
+        rival routes on the next plan are not convolved again."""
+        cells = np.unique(np.asarray(cells, dtype=np.int64))
+        pos = self._xpos(cells)
+        new = copy.copy(self)
+        new.pool = new._X = cells
+        new._gX = self._gX[pos]
+        new._oidx = (self._oidx[0][pos], self._oidx[1][pos])
+        new._uX, new._sX = self._uX[:, pos], self._sX[pos]
+        new._YX = np.ascontiguousarray(self._YX[:, pos])
+        subsets = self._grid.subsets
+        key = _digest(cells)
+        cache = subsets.pop(key, None)  # the most recently used last
+        if cache is None:
+            cache = _PickCache(cells.size, parent=(self._grid.picks, pos))
+            if len(subsets) >= 32:
+                subsets.pop(next(iter(subsets)))
+        subsets[key] = new._gcache = cache
+        new._reset()
+        return new
+
+    def covers(self, cells: Any) -> bool:
+        """Whether every cell of ``cells`` is one the oracle holds (its pool and initial
+        cells), so :meth:`add` conditions on it."""
+        cells = np.asarray(cells, dtype=np.int64).ravel()
+        return bool(np.all(self._X[self._xpos(cells)] == cells)) if cells.size else True
+
     @property
     def value(self) -> float:
         """Total posterior variance over the targets for the current set."""
         return self._value
+
+
+GP_PICK_CACHE_BYTES: float = 2.0 ** 28
+"""Most bytes (256 MiB) a structured gp-variance oracle and its forks keep of the picks'
+convolutions ``g(p, .)`` (:class:`_PickCache`); picks beyond it are convolved again when
+another fork conditions on them."""
+
+
+@dataclass
+class _GridTerms:
+    """What a structured oracle's set-up computes from the grid (:meth:`StructuredGPVariance
+    Oracle._grid_terms`), shared by every oracle of the same set-up: ``u``, ``s`` and ``W``,
+    the lag table ``k2`` (or None), the per-pick convolution ``gconv`` over the window ``wg``
+    with the target weights ``cwin`` there, the lag table's ``bound``, the picks'
+    convolutions ``picks``, the kernel's table ``ktab`` (evaluated on the first pick that
+    convolves) and the convolutions over the cells of the oracles' ``restricted`` forks
+    (``subsets``, by a digest of the cells)."""
+
+    uX: np.ndarray
+    sX: np.ndarray
+    W: np.ndarray
+    k2: tuple | None
+    wg: tuple[int, int, int, int]
+    gconv: GridConv
+    cwin: np.ndarray
+    bound: float | None
+    picks: _PickCache
+    ktab: np.ndarray | None = None
+    subsets: dict[str, _PickCache] = field(default_factory=dict)
+
+
+_GRID_TERMS: dict[tuple, _GridTerms] = {}
+"""The latest structured set-up's grid terms, by a digest of its factors, target weights,
+grid and cells and by its covariance: the plans of a campaign's days (the same model, start
+and budget; only the forecast's prior covariance changes) set up once and share the picks'
+convolutions, the same numbers as computing them again."""
+
+
+def _digest(*arrays: np.ndarray) -> str:
+    """A digest of the arrays' bytes, shapes and dtypes."""
+    h = hashlib.blake2b(digest_size=20)
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
+
+
+class _PickCache:
+    """The convolutions ``g(p, x)`` over the pool of the cells a structured oracle has
+    conditioned on, by position ``p`` in the oracle's cells, shared by its forks: a cell the
+    greedy, a rival greedy or a rival route conditions on is convolved once (the same numbers
+    as convolving it again). Holds at most :data:`GP_PICK_CACHE_BYTES`."""
+
+    def __init__(self, n: int, parent: tuple[_PickCache, np.ndarray] | None = None) -> None:
+        self._rows: dict[int, np.ndarray] = {}
+        self._max = int(GP_PICK_CACHE_BYTES // max(8 * n, 1))
+        self._parent = parent  # (the set-up's cache, these cells' positions in its cells)
+
+    def get(self, j: int) -> np.ndarray | None:
+        g = self._rows.get(j)
+        if g is None and self._parent is not None:
+            cache, pos = self._parent
+            full = cache._rows.get(int(pos[j]))
+            if full is not None:
+                g = self.put(j, full[pos])
+        return g
+
+    def put(self, j: int, g: np.ndarray) -> np.ndarray:
+        if len(self._rows) < self._max:
+            self._rows[j] = g
+        return g
 
 
 GP_BOUNDARY_TOL: float = 1e-3

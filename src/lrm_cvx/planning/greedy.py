@@ -326,17 +326,18 @@ def plan_greedy(
                 sense_along=sense_along, progress=progress)
     build = dict(criterion=criterion, ridge=float(ridge), cost=cost, posterior=posterior,
                  fleet=fleet, request=request)
-    *picked, extra = _picks(cost_exponent, **pick)
+    *picked, extra, first = _picks(cost_exponent, **pick, keep=refine in CHECKS)
     plan = _route_plan(Yk, region, models, *picked, **build)
     if refine is not None:  # refine.py and lines.py register the refinements
 
-        def rival(exponent: float) -> Plan:
-            *again, _ = _picks(exponent, **pick, extra=extra, warn=False)
+        def rival(exponent: float) -> Plan:  # from the greedy's set-up (``first``)
+            *again, _, _ = _picks(exponent, **pick, extra=extra, warn=False, start=first)
             return _route_plan(Yk, region, models, *again, **build)
 
         context = RefineContext(terms=terms, Y=Yk, region=region, fleet=fleet, request=request,
                                 criterion=criterion, ridge=ridge, extra=extra,
-                                rival=None if cost_exponent == RIVAL_EXPONENT else rival)
+                                rival=None if cost_exponent == RIVAL_EXPONENT else rival,
+                                base=first)
         name, opts = (refine, {}) if isinstance(refine, str) else ("local", refine)
         plan = REFINERS.get(name, "refine")(plan, opts, context)
     plan._terms = extra  # the criterion's terms, which plan.certify() bounds
@@ -373,12 +374,16 @@ def _check_leaves(models: list[Any], P0s: list[np.ndarray], cands: list[np.ndarr
 
 def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets, tols, fleet,
            criterion, ridge, sensor, region, terms, targets, sense_along, progress,
-           extra: dict[str, Any] | None = None, warn: bool = True) -> tuple:
+           extra: dict[str, Any] | None = None, warn: bool = True, start: Any = None,
+           keep: bool = False) -> tuple:
     """One greedy pass from the initial cells ``P0s``: each step adds the feasible
     ``(cell, robot)`` of largest gain per ``cost increase ** exponent`` (1: the paper's
     cost-benefit ratio; 0: the plain gain). Returns ``(costers, stops, stop_robot, sense,
-    hist, extra)``: the first five for :func:`_route_plan`, ``extra`` the oracle's terms
-    (computed unless given)."""
+    hist, extra, first)``: the first five for :func:`_route_plan`, ``extra`` the oracle's terms
+    (computed unless given), ``first`` (with ``keep``, for an oracle that forks: the
+    structured gp-variance one) a fork of the oracle on the initial cells, before the picks.
+    ``start``: such a fork, which the pass forks instead of setting up its oracle again (the
+    same numbers: a rival pass shares the set-up and the picks' convolutions)."""
     k, L = Yk.shape
     # (robot, stop) pairs: a cell is a stop of one robot, except starts shared by two robots
     stops = [int(c) for P in P0s for c in P]
@@ -401,8 +406,12 @@ def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets,
         extra = oracle_terms(criterion, region, gp_pool, terms, targets)
     feed = None if sensor.is_point else _SensorRows(sensor, region, models, gp_pool, criterion,
                                                    Yk, ridge, extra)
-    oracle = (make_oracle(criterion, Yk, ridge, init, **extra) if feed is None
-              else feed.oracle(init, costers))
+    if start is not None and feed is None:
+        oracle = start.fork()
+    else:
+        oracle = (make_oracle(criterion, Yk, ridge, init, **extra) if feed is None
+                  else feed.oracle(init, costers))
+    first = oracle.fork() if keep and feed is None and hasattr(oracle, "fork") else None
     for r, cst in enumerate(costers):  # cells forced for other robots are taken
         if len(costers) > 1:
             for c in set(stops):
@@ -480,7 +489,7 @@ def _picks(exponent: float, *, Yk, models, P0s, cands, union_pool, idx, budgets,
             bar.set_postfix(cost=f"{cst.cost:.1f}/{budgets[r]:g}", refresh=False)
     finally:
         bar.close()
-    return costers, stops, stop_robot, sense, hist, extra
+    return costers, stops, stop_robot, sense, hist, extra, first
 
 
 def _take(coster: Any, pool: np.ndarray, cell: int) -> None:

@@ -100,7 +100,7 @@ GP_TERMS = ("region", "spatial_cov", "prior_cov", "targets", "target_weights")
 
 
 def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, Any],
-                 extra: dict[str, Any]) -> dict[str, float]:
+                 extra: dict[str, Any], base: Any = None) -> dict[str, float]:
     """``criterion``'s value of observing each route's cells (name -> ``(n,)`` cell indices;
     log det for Fisher, total posterior variance for the variance criteria) with the greedy's
     oracle terms ``extra``. The gp-variance values on the grid metric come from one structured
@@ -112,7 +112,14 @@ def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, 
     budget 120, the values equal to rounding). In km, and wherever the dense covariances are
     as small as :func:`~lrm_cvx.information.make_oracle` holds them densely (targets plus route
     times route below ``GP_STRUCTURED_MIN_ENTRIES``: 12x faster on a 1,813-cell region), the
-    dense reference scores each route."""
+    dense reference scores each route. ``base``: the greedy's structured oracle on its initial
+    cells (:func:`~lrm_cvx.planning.greedy.plan_greedy`), or None; when it convolves each pick
+    exactly and its cells hold every route's, each route is scored by a fork of it with no
+    observation on the route's cells alone
+    (:meth:`~lrm_cvx.information.StructuredGPVarianceOracle.restricted`): no new set-up, the
+    cells the greedy passes conditioned on are not convolved again, nor the same route on the
+    next plan of that set-up (the values equal those of the routes' own exact oracles to
+    rounding)."""
     sets = {name: np.unique(np.asarray(c, dtype=np.int64)) for name, c in routes.items()}
     if CRITERION_REGISTRY.canonical(criterion, "criterion") != "gp-variance":
         return {name: float(make_oracle(criterion, Y, ridge, c, **extra).value)
@@ -126,6 +133,12 @@ def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, 
         return {name: gp_variance_value(Y, terms["region"], terms["spatial_cov"],
                                         terms["prior_cov"], c, terms["targets"],
                                         terms["target_weights"]) for name, c in sets.items()}
+    if (isinstance(base, StructuredGPVarianceOracle) and not base.uses_lag_table
+            and all(base.covers(c) for c in sets.values())):
+        out = {}
+        for name, cells in sets.items():  # a route's fork on its own cells
+            out.update(forked_values(base.restricted(cells), {name: cells}))
+        return out
     base = union_oracle(Y, sets, terms)
     if not base.uses_lag_table:  # exact per-pick FFTs: each route over its own window
         return {name: float(StructuredGPVarianceOracle(Y, cells, pool=cells, **terms).value)
@@ -156,14 +169,17 @@ def forked_values(base: StructuredGPVarianceOracle,
 
 def best_of_lines(plan: Plan, Y: np.ndarray, region: Any, fleet: Fleet, request: PathOptions,
                   *, criterion: str, ridge: float, extra: dict[str, Any],
-                  others: dict[str, Plan] | None = None, refine: str = LINES) -> Plan:
+                  others: dict[str, Plan] | None = None, refine: str = LINES,
+                  base: Any = None) -> Plan:
     """``plan`` (a greedy route) or the rival that is strictly better under ``criterion``
     (``extra``: the greedy's oracle terms): the straight transects from its starts and the
     ``others`` given (name -> plan; the gentler greedy of ``refine="rivals"``). The plan
     returned records the comparison in ``plan.rivals``: ``{"criterion", "values"`` (route name
     -> value), ``"chosen"``, ``"cost_function"`` (the greedy's, which a replan of a kept
     transect plans with), ``"refine"`` (the check, which a replan repeats)``}``; a transect
-    keeps its ``method`` (``"transect-down"``, ...) and its ``cost_function`` (``"steps"``)."""
+    keeps its ``method`` (``"transect-down"``, ...) and its ``cost_function`` (``"steps"``).
+    ``base``: the greedy's oracle on its initial cells, shared with the routes' values
+    (:func:`route_values`)."""
     lines_run(request, asked=True, refine=refine)
     maximize = CRITERION_REGISTRY.get(criterion, "criterion").maximize
     sign = 1.0 if maximize else -1.0
@@ -171,7 +187,7 @@ def best_of_lines(plan: Plan, Y: np.ndarray, region: Any, fleet: Fleet, request:
     for d in DIRECTIONS:
         plans[f"transect-{d}"] = transect(region, fleet, None, d, Y=Y, ridge=ridge, path=request)
     values = route_values(criterion, Y, ridge, {name: p.cells for name, p in plans.items()},
-                          extra)
+                          extra, base=base)
     best = "greedy"
     for name, v in values.items():
         margin = _REL_TOL * max(1.0, abs(values[best]))
@@ -194,7 +210,8 @@ def _check_against(name: str) -> Callable[[Plan, dict[str, Any], RefineContext],
             others[RIVAL_NAME] = context.rival(RIVAL_EXPONENT)
         return best_of_lines(plan, context.Y, context.region, context.fleet, context.request,
                              criterion=context.criterion, ridge=context.ridge,
-                             extra=context.extra, others=others, refine=name)
+                             extra=context.extra, others=others, refine=name,
+                             base=context.base)
     return check
 
 

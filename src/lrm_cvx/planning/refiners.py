@@ -26,8 +26,10 @@ a refinement up here, so neither imports it."""
 class RefineContext:
     """What a refiner reads besides the plan: the criterion's resolved prior ``terms``; from the
     greedy also its factor matrix ``Y``, ``region``, ``fleet``, path ``request``, ``criterion``,
-    ``ridge``, oracle terms ``extra`` and ``rival(exponent)``, the greedy rerun with another
-    cost exponent (None when that is the exponent it ran with)."""
+    ``ridge``, oracle terms ``extra``, ``rival(exponent)``, the greedy rerun with another
+    cost exponent (None when that is the exponent it ran with), and ``base``, the greedy's
+    oracle on its initial cells (kept for the checks against rival routes, which start from
+    it)."""
 
     terms: Mapping[str, Any] = field(default_factory=dict)
     Y: Any = None
@@ -38,3 +40,4 @@ class RefineContext:
     ridge: float = 0.0
     extra: Mapping[str, Any] = field(default_factory=dict)
     rival: Callable[[float], Any] | None = None
+    base: Any = None

@@ -512,6 +512,19 @@ class GridConv:
         full = sfft.irfft2(sfft.rfft2(f, s=self.s, workers=-1) * self.H, s=self.s, workers=-1)
         return full[self.a - 1:self.a - 1 + self.oa, self.b - 1:self.b - 1 + self.ob]
 
+    def product(self, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+        """``self(f1 * f2)``, the same numbers, with the product written straight into the
+        zero-padded transform's input and the spectra multiplied in place (no window-sized
+        temporaries)."""
+        import scipy.fft as sfft
+
+        buf = np.zeros(self.s)
+        np.multiply(f1, f2, out=buf[:self.a, :self.b])
+        spec = sfft.rfft2(buf, workers=-1, overwrite_x=True)
+        spec *= self.H
+        full = sfft.irfft2(spec, s=self.s, workers=-1, overwrite_x=True)
+        return full[self.a - 1:self.a - 1 + self.oa, self.b - 1:self.b - 1 + self.ob]
+
 
 # ---------------------------------------------------------------------------- the GP criterion
 def gp_noise(spatial_cov: Any) -> float:
