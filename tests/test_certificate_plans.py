@@ -22,11 +22,12 @@ from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import CRITERION_REGISTRY, gp_variance_value
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
-from lrm_cvx.planning.terms import PriorTerms
+from lrm_cvx.planning import PathOptions, place_sensors
+from lrm_cvx.planning.terms import PriorTerms, prior_terms
 from lrm_cvx.replanning import plan_from_variables, plan_variables
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_certificate_variance import GP, REGION, RIDGE, START, Y, reduction  # noqa: E402
+from test_certificate_variance import GP, GP_TERMS, REGION, RIDGE, START, Y, reduction  # noqa: E402,E501
 
 FAST = dict(tighten=False)  # the budget-disk relaxation: valid, and quick
 
@@ -54,6 +55,7 @@ def _day_plan(model, criterion="gp-variance", budget=4.0, **path):
 
 
 def _gp_removed(model, kw, cells):
+    kw = prior_terms(kw["prior"])
     args = (model.Y, model.region_, kw["spatial_cov"], kw["prior_cov"])
     return (gp_variance_value(*args, [], None, kw["target_weights"])
             - gp_variance_value(*args, cells, None, kw["target_weights"]))
@@ -82,7 +84,8 @@ def test_a_replan_under_another_criterion_carries_that_criterions_terms(spatial)
     new = state.replan(plan, 2, time=t, criterion="a-optimal")
     cert = new.certify(**FAST)
     assert cert.criterion == "a-optimal" and math.isfinite(cert.gap) and cert.gap >= 0
-    kw = state.planner_kwargs("a-optimal", t)
+    terms = prior_terms(state.planner_kwargs("a-optimal", t)["prior"])
+    kw = {k: terms[k] for k in ("prior_precision", "noise_var", "target_weights")}
     crit = CRITERION_REGISTRY.get("a-optimal")
     removed = (crit.value(model.Y, [], 0.0, **kw) - crit.value(model.Y, new.cells, 0.0, **kw))
     assert cert.information == pytest.approx(removed, rel=1e-9)
@@ -132,15 +135,15 @@ MASK[1, 1:4] = False
 NO_GO = xr.DataArray(MASK, dims=("lat", "lon"),
                      coords={"lat": REGION.lat.values, "lon": REGION.lon.values})
 PATHS = {
-    "closed tour": dict(closed=True),
+    "closed tour": dict(path=PathOptions(closed=True)),
     "fleet": dict(start=[0, 24], budget=[2.0, 2.0]),
-    "no-go cells": dict(traversable=NO_GO),
-    "km": dict(metric="km", budget=300.0),
-    "hours": dict(metric="km", speed=100.0, budget=3.0),
-    "stop cost": dict(stop_cost=0.5),
-    "fixed end": dict(end=0),
-    "sense along": dict(sense_along=True),
-    "static": dict(static=True, start=None, budget=4),
+    "no-go cells": dict(path=PathOptions(traversable=NO_GO)),
+    "km": dict(path=PathOptions(metric="km"), budget=300.0),
+    "hours": dict(path=PathOptions(metric="km", speed=100.0), budget=3.0),
+    "stop cost": dict(path=PathOptions(stop_cost=0.5)),
+    "fixed end": dict(path=PathOptions(end=0)),
+    "sense along": dict(path=PathOptions(sense_along=True)),
+    "static": dict(static=True),
 }
 
 
@@ -152,9 +155,12 @@ def test_every_path_model_gets_a_finite_valid_gap(name, criterion):
     terms = GP if criterion == "gp-variance" else {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        plan = plan_greedy(Y, REGION, start, budget, criterion=criterion, ridge=RIDGE,
-                           initial="start", progress=False, **terms, **kw)
-    cert = plan.certify(cover=1, max_pieces=1, tol=0.1)  # a looser bound, as valid
+        if kw.pop("static", False):  # fixed sensors: the placement of as many as the budget
+            plan = place_sensors(Y, REGION, 4, criterion=criterion, ridge=RIDGE, **terms)
+        else:
+            plan = plan_greedy(Y, REGION, start, budget, criterion=criterion, ridge=RIDGE,
+                               initial="start", progress=False, **terms, **kw)
+    cert = plan.certify(tighten={"cover": 1, "max_pieces": 1}, tol=0.1)  # looser, as valid
     assert cert.criterion == criterion and cert.comparable
     assert cert.information == pytest.approx(reduction(criterion, plan.cells), rel=1e-9)
     assert math.isfinite(cert.gap) and 0 <= cert.gap <= cert.bound
@@ -167,7 +173,7 @@ def test_a_sensor_without_a_variance_bound_is_refused_in_one_line(sensor):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         plan = plan_greedy(Y, REGION, START, 3, criterion="gp-variance", initial="start",
-                           progress=False, sensor=sensor, **GP)
+                           progress=False, path=PathOptions(sensor=sensor), **GP)
     with pytest.raises(PlanningError, match="point sensors only") as err:
         plan.certify()
     assert "\n" not in str(err.value) and "criterion='fisher'" in str(err.value)
@@ -190,10 +196,11 @@ def test_the_gp_objective_sums_its_targets_in_blocks(monkeypatch):
     from lrm_cvx.planning import varbound
 
     cells = np.arange(10)
-    whole = varbound.variance_objective("gp-variance", Y, cells, RIDGE, dict(GP, region=REGION))
+    whole = varbound.variance_objective("gp-variance", Y, cells, RIDGE,
+                                        dict(GP_TERMS, region=REGION))
     monkeypatch.setattr(varbound, "_BLOCK", 30)  # three targets a block: nine blocks
     blocks = varbound.variance_objective("gp-variance", Y, cells, RIDGE,
-                                         dict(GP, region=REGION))
+                                         dict(GP_TERMS, region=REGION))
     np.testing.assert_allclose(blocks.G, whole.G, rtol=1e-12, atol=1e-12 * np.abs(whole.G).max())
     w = np.linspace(0.2, 1.0, cells.size)
     assert blocks.value(cells, w) == pytest.approx(whole.value(cells, w), rel=1e-12)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 import lrm_cvx.information as information
 import lrm_cvx.planning.lines as lines
 from lrm_cvx.information import StructuredGPVarianceOracle
-from lrm_cvx.planning import plan_greedy, transect
+from lrm_cvx.planning import PriorTerms, plan_greedy, transect
 from lrm_cvx.planning.baselines import DIRECTIONS
 from lrm_cvx.region import Region
 from lrm_cvx.spatial import ResidualCovariance
@@ -76,7 +76,8 @@ def test_rivals_from_one_set_up_plan_as_separate_oracles(structured, seed, start
     own exact oracles' values; the values recorded equal those to 1e-10 relative, and a kept
     greedy is the lone greedy's plan bit for bit."""
     Y, region, terms = problem(seed)
-    kw = dict(criterion="gp-variance", initial="start", progress=False, **terms)
+    kw = dict(criterion="gp-variance", initial="start", progress=False,
+              prior=PriorTerms(**terms))
     plan = plan_greedy(Y, region, start, budget, refine="rivals", **kw)
     information._GRID_TERMS.clear()  # the lone plans set up on their own
     greedy = plan_greedy(Y, region, start, budget, **kw)
@@ -109,7 +110,8 @@ def test_one_set_up_and_one_convolution_per_cell(structured, monkeypatch):
     monkeypatch.setattr(StructuredGPVarianceOracle, "__init__",
                         lambda self, *a, **k: built.append(1) or init(self, *a, **k))
     convolved = count_convolutions(monkeypatch)
-    kw = dict(criterion="gp-variance", initial="start", progress=False, **terms)
+    kw = dict(criterion="gp-variance", initial="start", progress=False,
+              prior=PriorTerms(**terms))
     information._GRID_TERMS.clear()
     plan = plan_greedy(Y, region, 90, 8.0, refine="rivals", **kw)
     assert len(built) == 1
@@ -173,13 +175,13 @@ def test_a_second_plan_of_the_same_set_up_convolves_only_new_cells(structured, m
     convolved = count_convolutions(monkeypatch)
     kw = dict(criterion="gp-variance", initial="start", progress=False, refine="rivals")
     information._GRID_TERMS.clear()
-    plan_greedy(Y, region, 66, 7.0, **kw, **terms)
+    plan_greedy(Y, region, 66, 7.0, **kw, prior=PriorTerms(**terms))
     first = len(convolved)
     day2 = {**terms, "prior_cov": 0.5 * terms["prior_cov"]}
-    plan = plan_greedy(Y, region, 66, 7.0, **kw, **day2)
+    plan = plan_greedy(Y, region, 66, 7.0, **kw, prior=PriorTerms(**day2))
     assert 0 <= len(convolved) - first < first - Y.shape[0] - 1  # no set-up, fewer cells
     information._GRID_TERMS.clear()
-    alone = plan_greedy(Y, region, 66, 7.0, **kw, **day2)
+    alone = plan_greedy(Y, region, 66, 7.0, **kw, prior=PriorTerms(**day2))
     np.testing.assert_array_equal(plan.route, alone.route)
     assert plan.rivals["values"] == alone.rivals["values"]
 

@@ -474,9 +474,11 @@ def cmd_place(args: argparse.Namespace) -> int:
 
 
 def _stored_plan(args: argparse.Namespace) -> tuple[Any, Any, dict]:
-    """``(model, plan, terms)`` of ``bound --state``: the plan stored in a monitor state file
-    (planned or replanned) of the model ``MODEL``."""
+    """``(model, plan, kw)`` of ``bound --state``: the plan stored in a monitor state file
+    (planned or replanned) of the model ``MODEL``, and ``{"prior": PriorTerms}`` of the terms it
+    carries (empty without)."""
     from .monitor import MonitorState
+    from .planning.terms import PriorTerms
 
     if args.start is not None or args.budget is not None:
         raise UsageError("--state certifies the plan stored in the state file: --start and "
@@ -487,7 +489,8 @@ def _stored_plan(args: argparse.Namespace) -> tuple[Any, Any, dict]:
         raise UsageError(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
                          "first")
     plan = state.current_plan
-    return model, plan, plan.criterion_terms or {}
+    terms = plan.criterion_terms
+    return model, plan, {"prior": PriorTerms(**terms)} if terms else {}
 
 
 def cmd_bound(args: argparse.Namespace) -> int:
