@@ -108,7 +108,11 @@ def reexports(mods: dict) -> dict[tuple[str, str], str]:
     for mod, (path, package) in mods.items():
         if path.name != "__init__.py":
             continue
-        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        body = ast.parse(path.read_text(encoding="utf-8")).body
+        for block in body:  # names loaded on first use are declared under TYPE_CHECKING
+            if isinstance(block, ast.If) and getattr(block.test, "id", "") == "TYPE_CHECKING":
+                body = body + block.body
+        for node in body:
             if isinstance(node, ast.ImportFrom):
                 owner = _owner(node, package)
                 for alias in node.names:

@@ -19,8 +19,9 @@ while ``alias in choices`` is true too, so ``argparse``'s ``choices=`` accepts a
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Hashable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from .errors import LrmError, ModelError
@@ -39,6 +40,20 @@ class Entry:
 
 
 _DECORATE = object()
+
+
+@dataclass(frozen=True)
+class Deferred:
+    """An object registered by its import path, ``"package.module:name"``: imported on first
+    lookup, so that registering costs no import (a package's hooks registered when ``lrm_cvx``
+    is imported, the heavy modules behind them loaded only when used)."""
+
+    target: str
+
+    def load(self) -> Any:
+        """The object the path names."""
+        module, _, name = self.target.partition(":")
+        return getattr(importlib.import_module(module), name)
 
 
 def _key(name: Any) -> Any:
@@ -124,7 +139,10 @@ class Registry:
 
     def entry(self, name: Any, argument: str | None = None) -> Entry:
         """The :class:`Entry` of ``name`` (or an alias); raises the registry's error if unknown."""
-        return self._entries[self.canonical(name, argument)]
+        entry = self._entries[self.canonical(name, argument)]
+        if isinstance(entry.obj, Deferred):  # registered by path: imported on first use
+            entry = self._entries[entry.name] = replace(entry, obj=entry.obj.load())
+        return entry
 
     def get(self, name: Any, argument: str | None = None) -> Any:
         """The object registered under ``name`` (or an alias); raises the registry's error

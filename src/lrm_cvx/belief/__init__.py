@@ -10,13 +10,35 @@ fold-in that ``GLRM.complete`` and ``GLRM.latent_prior`` run in
 
 from __future__ import annotations
 
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from ..glrm.hooks import HOOKS
-from .foldin import fold_in, fold_in_many
-from .posterior import LatentPosterior, ObservationModel, fold_in_snapshots, model_prior
+from ..registry import Deferred
+
+if TYPE_CHECKING:  # the names of _LAZY, for readers and type checkers
+    from .foldin import fold_in, fold_in_many
+    from .posterior import LatentPosterior, ObservationModel
+
+_LAZY = {"fold_in": ".foldin", "fold_in_many": ".foldin", "LatentPosterior": ".posterior",
+         "ObservationModel": ".posterior"}
+"""Public name -> its module, imported on first use."""
 
 __all__ = ["fold_in", "fold_in_many", "LatentPosterior", "ObservationModel"]
 
-HOOKS.register("model-prior", model_prior,
+HOOKS.register("model-prior", Deferred("lrm_cvx.belief.posterior:model_prior"),
                description="the belief over a new snapshot's latent vector (latent_prior)")
-HOOKS.register("fold-in-snapshots", fold_in_snapshots,
+HOOKS.register("fold-in-snapshots", Deferred("lrm_cvx.belief.posterior:fold_in_snapshots"),
                description="the fold-in of whole snapshots (complete)")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -7,34 +7,47 @@ the choices validated on its record in :mod:`lrm_cvx.validation`.
 
 from __future__ import annotations
 
-from .fit import FitResult, fit_glrm
-from .losses import Absolute, Huber, Loss, Quadratic, Quantile, get_loss
-from .model import GLRM
-from .regularizers import (
-    L1,
-    CvxpyRegularizer,
-    NonNegative,
-    Regularizer,
-    Ridge,
-    ZeroReg,
-    get_regularizer,
-)
+import importlib
+from typing import TYPE_CHECKING, Any
 
-__all__ = [
-    "GLRM",
-    "fit_glrm",
-    "FitResult",
-    "Loss",
-    "Quadratic",
-    "Huber",
-    "Absolute",
-    "Quantile",
-    "get_loss",
-    "Regularizer",
-    "ZeroReg",
-    "Ridge",
-    "L1",
-    "NonNegative",
-    "CvxpyRegularizer",
-    "get_regularizer",
-]
+if TYPE_CHECKING:  # the names of _LAZY, for readers and type checkers
+    from .fit import FitResult, fit_glrm
+    from .losses import Absolute, Huber, Loss, Quadratic, Quantile, get_loss
+    from .model import GLRM
+    from .regularizers import (
+        L1,
+        CvxpyRegularizer,
+        NonNegative,
+        Regularizer,
+        Ridge,
+        ZeroReg,
+        get_regularizer,
+    )
+
+_LAZY = {
+    "GLRM": ".model",
+    "fit_glrm": ".fit",
+    "FitResult": ".fit",
+    **dict.fromkeys(("Loss", "Quadratic", "Huber", "Absolute", "Quantile", "get_loss"),
+                    ".losses"),
+    **dict.fromkeys(("Regularizer", "ZeroReg", "Ridge", "L1", "NonNegative",
+                     "CvxpyRegularizer", "get_regularizer"), ".regularizers"),
+}
+"""Public name -> its module, imported on first use (the fit imports cvxpy and numba, which
+``import lrm_cvx`` does not need)."""
+
+__all__ = ["GLRM", "fit_glrm", "FitResult", "Loss", "Quadratic", "Huber", "Absolute", "Quantile",
+           "get_loss", "Regularizer", "ZeroReg", "Ridge", "L1", "NonNegative", "CvxpyRegularizer",
+           "get_regularizer"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
