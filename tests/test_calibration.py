@@ -437,6 +437,7 @@ def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry(monkeypatc
     says why (before, the refit's own error surfaced, naming the refit's snapshot count)."""
     from lrm_cvx.validation.calibration import cv_residuals
     from lrm_cvx.validation.refits import refit_carries
+    from lrm_cvx.validation.search import ForwardBlocks
 
     data = _planted(T=12, ny=6, nx=7, k=3)
     model = GLRM(rank=5, offset=True, random_state=0, progress=False).fit(data)
@@ -452,7 +453,7 @@ def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry(monkeypatc
         return fit(self, data, *a, **k)
 
     monkeypatch.setattr(GLRM, "fit", counted)
-    z = cv_residuals(model, data, n_blocks=6, folds="forward", sizes=(5,),
+    z = cv_residuals(model, data, folds=ForwardBlocks(6), sizes=(5,),
                      kinds=("scattered",), max_snapshots=1)
     monkeypatch.undo()
     assert refits == [int(b[0]) for b in kept]  # exactly the blocks that can be refitted
@@ -462,5 +463,17 @@ def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry(monkeypatc
     assert cal.scale > 0
     deep = GLRM(rank=10, offset=True, random_state=0, progress=False).fit(data)
     with pytest.raises(ModelError, match="cannot refit rank 10 on the snapshots before") as err:
-        cv_residuals(deep, data, n_blocks=6, folds="forward", sizes=(5,), kinds=("scattered",))
+        cv_residuals(deep, data, folds=ForwardBlocks(6), sizes=(5,), kinds=("scattered",))
     assert "\n" not in str(err.value)
+    # the folds are the search's splitters: the names are those with 8 blocks, and anything
+    # else is one line naming the argument
+    from lrm_cvx.validation.search import InterleavedBlocks, RollingOrigin
+
+    cheap = dict(sizes=(5,), kinds=("scattered",), max_snapshots=1, seed=1)
+    with pytest.raises(ModelError, match=r"n_blocks must be in \[2, 6\] for 12 snapshots, got 8"):
+        cv_residuals(model, data, folds="interleaved", **cheap)  # the name: 8 blocks
+    assert np.all(np.isfinite(cv_residuals(model, data, folds=InterleavedBlocks(6), **cheap)))
+    for bad in ("sideways", RollingOrigin(2, 2)):
+        with pytest.raises(ModelError, match="folds must be") as err:
+            cv_residuals(model, data, folds=bad, **cheap)
+        assert "\n" not in str(err.value)

@@ -16,6 +16,7 @@ from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.glrm.calibrated import Calibration, conformal_quantile, gaussian_multiplier
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.validation.calibration import calibrate, cv_residuals, refit_dynamics
+from lrm_cvx.validation.search import ForwardBlocks
 
 N_TEST = 6
 
@@ -58,7 +59,7 @@ def test_conformal_calibration_gives_the_filter_its_own_thresholds(persistent):
     # the thresholds are the memoryless ones times the filter's score quantile relative to the
     # memoryless model's on the same forward-chained days and cells, in units of the filter's
     # calibrated std (the same folds, seed and cells as calibrate's own call)
-    zt, zm = cv_residuals(model, train, n_blocks=cal.n_blocks, sizes=(5, 15, 50),
+    zt, zm = cv_residuals(model, train, folds=ForwardBlocks(cal.n_blocks), sizes=(5, 15, 50),
                           kinds=("route", "scattered", "line"), max_snapshots=2,
                           temporal="ar1", twin=True, max_cells=40, seed=3)
     assert zt.size == zm.size == cal.temporal_n_residuals
@@ -68,10 +69,10 @@ def test_conformal_calibration_gives_the_filter_its_own_thresholds(persistent):
     np.testing.assert_allclose(cal.temporal_quantiles, expect, rtol=1e-12)
     # per design size: each size's own memoryless scores (the same fold-ins as calibrate's),
     # and the filter's are those times the same ratio
-    records = cv_residuals(model, train, n_blocks=cal.n_blocks, sizes=(5, 15, 50),
+    records = cv_residuals(model, train, folds=ForwardBlocks(cal.n_blocks), sizes=(5, 15, 50),
                            kinds=("route", "scattered", "line"), max_snapshots=2,
-                           innovations=True, residual_scales=(1.0,), max_cells=40, seed=3,
-                           folds="forward")[1.0]
+                           innovations=True, residual_scales=(1.0,), max_cells=40,
+                           seed=3)[1.0]
     per = np.array([conformal_quantile(np.concatenate([np.abs(r[0]) for r in records
                                                        if r[5] == size]) / np.sqrt(cal.scale),
                                        levels) for size in (5, 15, 50)])

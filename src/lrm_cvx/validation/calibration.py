@@ -103,13 +103,13 @@ def _standardized(model: Any, values: np.ndarray, cells: np.ndarray, pred: np.nd
     return (values[held] - pred[held]) / sd
 
 
-def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[int] = (5, 15, 50),
-                 kinds: Sequence[str] = SET_KINDS, max_snapshots: int = 3,
-                 prior: str = "empirical", spatial: bool | None = None,
+def cv_residuals(model: Any, data: Any, *,
+                 folds: str | InterleavedBlocks | ForwardBlocks = "interleaved",
+                 sizes: Sequence[int] = (5, 15, 50), kinds: Sequence[str] = SET_KINDS,
+                 max_snapshots: int = 3, prior: str = "empirical", spatial: bool | None = None,
                  temporal: str | None = None, seed: Any = 0, twin: bool = False,
                  innovations: bool = False, residual_scales: Sequence[float] | None = None,
-                 max_cells: int | None = None, folds: str = "interleaved",
-                 local_power: float = 0.0) -> Any:
+                 max_cells: int | None = None, local_power: float = 0.0) -> Any:
     """Standardized cross-validated fold-in residuals (see the module docstring).
 
     ``data`` ``(time, lat, lon)``: the snapshots ``model`` was fitted on (its region is used).
@@ -128,11 +128,13 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     ``residual_scales`` (memoryless, innovations) a dict ``{rho: records}``: the same fold-ins
     (same cells) with the refitted model's residual and noise variances multiplied by ``rho``.
     ``max_cells`` (memoryless): score at most that many of each fold-in's held-out cells (a
-    seeded random subset; None: all), which bounds the kriging cost on large grids. ``folds``
-    (memoryless): ``"interleaved"`` (every ``n_blocks``-th snapshot, refitted on all the
-    others) or ``"forward"`` (the contiguous blocks of the record's second half, each refitted
-    on the snapshots before it: the fold-in of a *future* snapshot, as a test block after the
-    training is; less training data per refit, so wider on stationary records).
+    seeded random subset; None: all), which bounds the kriging cost on large grids. ``folds``:
+    the search's splitter, :class:`~.search.InterleavedBlocks` ``(n)`` (every ``n``-th snapshot,
+    refitted on all the others) or :class:`~.search.ForwardBlocks` ``(n)`` (the contiguous
+    blocks of the record's second half, each refitted on the snapshots before it: the fold-in
+    of a *future* snapshot, as a test block after the training is; less training data per
+    refit, so wider on stationary records); ``"interleaved"`` / ``"forward"`` are those with 8
+    blocks. With ``temporal`` the blocks are always forward (the filter runs forward in time).
     ``local_power`` (with ``temporal``): the residuals divided by each refit's
     ``residual_spread_`` to that power (the calibration's locally weighted intervals).
     """
@@ -141,6 +143,15 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
     model, data, _ = validation_view(model, data)  # a large region: a window of it
     region, V = training_values(model, data)
     T = V.shape[0]
+    if isinstance(folds, str):
+        if folds not in ("interleaved", "forward"):
+            raise ModelError(f"folds must be 'interleaved' or 'forward', got {folds!r}")
+        folds = ForwardBlocks(8) if folds == "forward" else InterleavedBlocks(8)
+    if not isinstance(folds, InterleavedBlocks | ForwardBlocks):
+        raise ModelError("folds must be 'interleaved', 'forward', InterleavedBlocks(n) or "
+                         f"ForwardBlocks(n), got {folds!r}")
+    forward = temporal is not None or isinstance(folds, ForwardBlocks)
+    n_blocks = folds.n_blocks if isinstance(folds, ForwardBlocks) else folds.n_folds
     if not 2 <= int(n_blocks) <= T // 2:
         raise ModelError(f"n_blocks must be in [2, {T // 2}] for {T} snapshots, got {n_blocks}")
     for kind in kinds:
@@ -151,9 +162,6 @@ def cv_residuals(model: Any, data: Any, *, n_blocks: int = 8, sizes: Sequence[in
         raise ModelError(f"sizes must be positive integers, got {sizes}")
     spatial = _use_spatial(model, spatial)
     rng = as_generator(seed)
-    if folds not in ("interleaved", "forward"):
-        raise ModelError(f"folds must be 'interleaved' or 'forward', got {folds!r}")
-    forward = temporal is not None or folds == "forward"
     # contiguous blocks, forward chaining from half the record on; or every n_blocks-th
     # snapshot held out, refitted on all the others
     folds = (ForwardBlocks(n_blocks) if forward else InterleavedBlocks(n_blocks)).split(T)
@@ -567,11 +575,14 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     if n_blocks is None:  # 8 folds, fewer on a short record (each fold keeps 2 snapshots)
         n_snapshots = np.shape(data)[0] if np.ndim(data) else 0  # cv_residuals checks data
         n_blocks = max(2, min(8, n_snapshots // 2))
-    kw = dict(n_blocks=n_blocks, sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
+    if folds not in ("interleaved", "forward"):
+        raise ModelError(f"folds must be 'interleaved' or 'forward', got {folds!r}")
+    splitter = (ForwardBlocks if folds == "forward" else InterleavedBlocks)(n_blocks)
+    kw = dict(sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
     rhos = RESIDUAL_SCALES if residual else (1.0,)
     conformal_fit = method == "conformal"
     by_rho = cv_residuals(model, data, seed=seed, innovations=True, residual_scales=rhos,
-                          max_cells=max_cells, folds=folds, **kw)
+                          max_cells=max_cells, folds=splitter, **kw)
     powers = LOCAL_POWERS if local and getattr(model, "residual_spread_", None) is not None \
         else (0.0,)
     best = None
@@ -614,7 +625,8 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
         # filter's scale *relative* to the memoryless model's on the same days and cells
         try:
             zt, zm = cv_residuals(model, data, seed=seed, temporal=temporal, twin=True,
-                                  max_cells=max_cells, local_power=power, **kw)
+                                  max_cells=max_cells, local_power=power,
+                                  folds=ForwardBlocks(n_blocks), **kw)
         except ModelError:  # no forward block's history carries the kind (a short record)
             if not auto:  # asked for by name: say so; "auto": the memoryless calibration
                 raise
