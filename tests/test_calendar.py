@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import xarray as xr
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from lrm_cvx._validation import datetime_ns
@@ -163,6 +163,10 @@ def monthly_records(draw):
 @given(monthly_records(), st.integers(0, 12), st.floats(0.0, 1.0))
 def test_next_stamp_follows_every_monthly_record(record, ahead, where):
     calendar, n, times = record
+    # stamps seen only in months of one length cannot tell a fixed day from a fraction of the
+    # month (16 Dec 12:00 and 16 Jan 12:00 are both): the next stamp is then undetermined
+    lengths = {t.daysinmonth for t in times}
+    assume(len({t.daysinmonth for t in times[:-1]}) > 1 or len(lengths) == 1)
     cal = RecordCalendar.of(times[:-1])
     assert cal.kind == "months" and cal.n == n
     # the record's own next stamp, and each stamp is the stamp of its own period
