@@ -409,3 +409,17 @@ def test_no_new_private_imports_across_modules():
 if __name__ == "__main__":  # print the graph's problems and cycles (a development aid)
     for line in layer_problems(SRC, LAYERS, {}):
         print(line)
+
+
+def test_importing_the_package_loads_neither_cvxpy_nor_numba():
+    # the public names load on first use (registry.lazy_attributes): a CLI start stays light
+    import subprocess
+    import sys
+
+    code = ("import sys, lrm_cvx, lrm_cvx.glrm, lrm_cvx.belief; "
+            "print(sorted(m for m in ('cvxpy', 'numba') if m in sys.modules)); "
+            "from lrm_cvx.glrm import GLRM; from lrm_cvx.glrm.model import GLRM as G; "
+            "print(GLRM is G)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split("\n")
+    assert out[0] == "[]" and out[1] == "True"

@@ -10,14 +10,12 @@ The main entry points are importable from the top level (loaded on first use)::
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
-
 from . import accessor as _accessor  # noqa: F401  (registers the .lrm accessor)
 from . import belief as _belief  # noqa: F401  (registers the model's fold-in hooks)
 from . import errors
 from . import validation as _validation  # noqa: F401  (registers its validated choices)
 from .region import Region
+from .registry import lazy_attributes
 
 __version__ = "0.1.0"
 
@@ -57,13 +55,4 @@ _LAZY = {
 __all__ = ["Region", "errors", "__version__", *_LAZY]
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'lrm_cvx' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)

@@ -20,7 +20,8 @@ while ``alias in choices`` is true too, so ``argparse``'s ``choices=`` accepts a
 from __future__ import annotations
 
 import importlib
-from collections.abc import Hashable, Iterator
+import sys
+from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -40,6 +41,25 @@ class Entry:
 
 
 _DECORATE = object()
+
+
+def lazy_attributes(module: str, table: dict[str, str]
+                    ) -> tuple[Callable[[str], Any], Callable[[], list[str]]]:
+    """``(__getattr__, __dir__)`` of the package ``module`` whose public names load on first use:
+    ``table`` maps each name to the module defining it (absolute, or relative to ``module``), so
+    importing the package costs none of those modules' imports (PEP 562)."""
+    namespace = sys.modules[module].__dict__
+
+    def get(name: str) -> Any:
+        if name in table:
+            value = namespace[name] = getattr(importlib.import_module(table[name], module), name)
+            return value
+        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+
+    def names() -> list[str]:
+        return sorted(set(namespace) | set(table))
+
+    return get, names
 
 
 @dataclass(frozen=True)

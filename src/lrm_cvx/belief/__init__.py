@@ -10,11 +10,10 @@ fold-in that ``GLRM.complete`` and ``GLRM.latent_prior`` run in
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from ..glrm.hooks import HOOKS
-from ..registry import Deferred
+from ..registry import Deferred, lazy_attributes
 
 if TYPE_CHECKING:  # the names of _LAZY, for readers and type checkers
     from .foldin import fold_in, fold_in_many
@@ -32,13 +31,4 @@ HOOKS.register("fold-in-snapshots", Deferred("lrm_cvx.belief.posterior:fold_in_s
                description="the fold-in of whole snapshots (complete)")
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name], __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)

@@ -7,8 +7,9 @@ the choices validated on its record in :mod:`lrm_cvx.validation`.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from ..registry import lazy_attributes
 
 if TYPE_CHECKING:  # the names of _LAZY, for readers and type checkers
     from .fit import FitResult, fit_glrm
@@ -41,13 +42,4 @@ __all__ = ["GLRM", "fit_glrm", "FitResult", "Loss", "Quadratic", "Huber", "Absol
            "get_regularizer"]
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name], __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)
