@@ -1,18 +1,8 @@
-"""``lrm-cvx monitor``: the field loop from a shell.
+"""``lrm-cvx monitor``: the field loop from a shell (``init``, ``plan``, ``replan``,
+``export``, ``assimilate``, ``map``; docs/cli.md).
 
-::
-
-    lrm-cvx monitor init MODEL.nc --state STATE.nc [--time T]
-    lrm-cvx monitor plan STATE.nc --start LAT LON --budget B [--criterion ...] [--paper] -o plan.csv
-    lrm-cvx monitor replan STATE.nc --done K [K ...] [--observations OBS] [-o plan.csv]
-    lrm-cvx monitor export STATE.nc -o plan.gpx [-o DIR/ ...]
-    lrm-cvx monitor assimilate STATE.nc OBS.csv|OBS.nc --time T [--force]
-    lrm-cvx monitor map STATE.nc -o map.nc|map.png [--forecast]
-
-The state file (:class:`~lrm_cvx.monitor.MonitorState`) records its model file and is always
-replaced atomically (temporary file + rename): a crash mid-write leaves the previous state
-readable. Errors follow ``lrm-cvx``'s conventions (one line on stderr, exit status 2; nothing is
-written).
+The state file is always replaced atomically; errors follow ``lrm-cvx``'s conventions (one line on
+stderr, exit status 2; nothing is written).
 """
 
 from __future__ import annotations

@@ -1,19 +1,8 @@
-"""Coastlines on the maps: real coastlines where a shapefile is at hand,
-the valid-cell outline otherwise.
+"""Coastlines on the maps: real coastlines where a shapefile is at hand, the valid-cell
+outline otherwise.
 
-The maps are plain matplotlib axes in degrees (longitude x, latitude y). Real coastlines come
-from a shapefile found offline, never downloaded (a field laptop or CI has no network):
-
-1. ``$LRM_CVX_COASTLINES``: a path to any line or polygon ``.shp`` in degrees;
-2. with cartopy installed (``pip install "lrm-cvx[maps]"``), Natural Earth's
-   ``ne_{10m,50m,110m}_coastline.shp`` or GSHHS's ``GSHHS_{i,l,c}_L1.shp`` where cartopy's
-   downloaders would look before downloading (``cartopy.config["pre_existing_data_dir"]``,
-   ``cartopy.config["data_dir"]``, cartopy's own data) or Debian's ``python-cartopy-data``
-   (``/usr/share/cartopy/data``).
-
-The file is read with pyshp (a cartopy dependency), only the records in the map's latitude
-band; its lines are moved to the grid's longitude convention (0..360 or -180..180, or any
-other window), cut to the map's extent and drawn without changing the axes' limits.
+A shapefile is found offline, never downloaded (``$LRM_CVX_COASTLINES``, then cartopy's data
+folders; docs/monitoring.md), read with pyshp and drawn without changing the axes' limits.
 """
 
 from __future__ import annotations

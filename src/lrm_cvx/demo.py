@@ -1,17 +1,7 @@
 """``lrm-cvx demo``: the whole pipeline on the bundled SST sample in well under a minute.
 
-Fits the recommended model (docs/reconstruction.md: ``GLRM(5, offset=True, spatial="auto",
-temporal="auto")``, greedy ``gp-variance`` route from the start cell, empirical-prior
-fold-in with the kriged GP residual) and the paper's (``GLRM(5)``, Fisher greedy, least-squares
-fold-in, fast certified bound) on all winters but the last ``n_test``, scores both and the
-baselines (random walks, four transects; predicted with the recommended fold-in, their best) on
-the held-out winters, and writes ``results_recommended.nc``, ``results_paper.nc``,
-``summary.csv``, ``summary.txt``, ``metrics.png/pdf`` and ``predictions.png/pdf``.
-
-The settings are chosen to be as informative as the paper's protocol at demo size (3 budgets, 6
-start cells, 10 random walks per start) and to run in ~10-20 s once the compiled kernels are
-cached (numba ``cache=True``), ~35-50 s on a fresh install on a 2-core machine
-(``benchmarks/bench_first_run.py``).
+Fits the recommended and the paper's model on all winters but the last ``n_test``, scores both
+and the baselines on the held-out winters, and writes the results, a summary and two figures.
 """
 
 from __future__ import annotations

@@ -1,17 +1,8 @@
 """Interactive maps for notebooks and the field: folium (Leaflet) layers of the belief, its
-uncertainty and the routes, switchable in a layer control, each field with a legend in its units.
+uncertainty and the routes, each field with a legend in its units.
 
-Plain arrays in, a ``folium.Map`` out: :meth:`Plan.explore` and :meth:`MonitorState.explore`
-call :func:`explore_map` with their own fields and routes. folium is an optional extra
-(``pip install "lrm-cvx[explore]"``); without it the call says how to get it. Longitudes are
-kept continuous (a route or grid across the antimeridian is drawn unbroken: Leaflet accepts
-longitudes beyond 180), and fields are drawn as image overlays on the Web Mercator map.
-
-The map works offline: Leaflet's script and style sheet (Leaflet 1.9.4, BSD-2-Clause, shipped in
-``lrm_cvx/data/leaflet``) are written into the page, folium's other web assets (jQuery,
-Bootstrap, Font Awesome markers) are left out, and the base map comes from the internet only
-when asked for or when the tile server answers (``tiles="auto"``); a local ``{z}/{x}/{y}.png``
-folder or an MBTiles file gives a base map without a network.
+Plain arrays in, a ``folium.Map`` out (:meth:`Plan.explore`, :meth:`MonitorState.explore`).
+folium is an optional extra; the map works offline (docs/monitoring.md).
 """
 
 from __future__ import annotations

@@ -1,20 +1,8 @@
 """Registries: the one source of truth for every name a user can pick.
 
-Criteria, path costs, losses, regularisers, priors, spatial kernels and evaluation methods are
-each a :class:`Registry`: canonical name -> object, with aliases and a one-line description.
-Functions resolve names through :meth:`Registry.get` / :meth:`Registry.canonical`; the CLI's
-``choices``, the docs' tables (``tests/test_docs_choices.py``) and the contract tests
-(``tests/contracts/``, which gather them all in ``all_registries.py``) read the same
-registries.
-
-The rule for names (docs/architecture.md, "Names and aliases"): every entry has one canonical
-lower-case name; its aliases are accepted everywhere a name is (Python API, CLI, ``evaluate``'s
-methods) and are normalised to the canonical name before anything is stored; matching ignores
-case; listings (``choices()``, ``--help``, docs tables) show canonical names only.
-
-``Registry.choices()`` returns a :class:`Choices` tuple: equal to the tuple of canonical names,
-while ``alias in choices`` is true too, so ``argparse``'s ``choices=`` accepts aliases and
-``--help`` lists the canonical names.
+Each kind of choice is a :class:`Registry`: canonical name -> object, with aliases and a one-line
+description; the CLI's ``choices``, the docs' tables and the contract tests read the same
+registries. Names and aliases follow docs/planning.md, "Names and aliases".
 """
 
 from __future__ import annotations

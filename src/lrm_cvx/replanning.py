@@ -1,15 +1,8 @@
-"""Replanning en route: after each leg, the robot folds in what it has just
-measured and plans the rest of its route with the budget it has left and the same end.
+"""Replanning en route: the robot folds in what it has measured and plans the rest of its
+route with the budget it has left, the same end and the same path model.
 
-:func:`replan` (``MonitorState.replan``) keeps every route entry already flown, starts a new
-greedy plan at the robot's current cell with ``budget - cost so far``, ends it where the original
-had to end (home for a closed tour, ``end`` for a fixed end), under the original path model
-(metric, speed, stop cost, cells it may enter, sensing along), and stitches the two. So the
-stitched route is feasible whenever the original was: its cost is at most the budget (the
-current cell's stop cost is charged twice, never less), it enters only cells the original's path
-model allows, and it ends where the original ended. A fleet is replanned robot by robot; each
-later robot's prior counts the earlier robots' new stops as observed (a planning variance does
-not depend on the values), so two robots do not chase the same gap.
+The stitched route is feasible whenever the original was; a fleet is replanned robot by robot
+(docs/monitoring.md).
 """
 
 from __future__ import annotations

@@ -1,12 +1,5 @@
-"""Scores of a plan on held-out snapshots: exact fold-in errors from sufficient statistics, and
-the coverage of the predictive intervals (the arithmetic of :mod:`lrm_cvx.evaluation`).
-
-The fold-in is the model's :class:`~lrm_cvx.belief.posterior.LatentPosterior` (offset, scale,
-per-cell noise, prior). Its reconstruction error is computed from per-snapshot sufficient
-statistics in data units, ``G = Y_O W Y_O^T``, ``b = Y_O W z_O`` and ``c = z_O^T W z_O`` over the
-snapshot's observed cells ``O`` (``z = (d - offset) / scale``, ``W = diag(scale^2)``):
-``MSE = (x^T G x - 2 b^T x + c) / |O|``. That is exact and costs ``O(k^2)`` per trial instead
-of an ``O(L k)`` map; only the spatial residual needs full kriged maps.
+"""Scores of a plan on held-out snapshots: exact fold-in errors from sufficient statistics,
+and the coverage of the predictive intervals (the arithmetic of :mod:`lrm_cvx.evaluation`).
 """
 
 from __future__ import annotations

@@ -1,12 +1,8 @@
 """The algebra of averaged observations (sensor footprints, towed sensors).
 
-An averaged observation is ``z = B f + e`` over the snapshot's latent field ``f = Y^T x + r``
-(fit units, ``B (m, L)`` sparse weights): one row ``Y B_i`` per observation with the noise of
-:func:`row_noise` (``errors="independent"``: ``sum_j B_ij^2 noise_var_j``; ``"shared"``: the
-cells' errors equal within one observation, ``(sum_j |B_ij| sigma_j)^2``), and with the GP
-residual ``r`` the observations' covariance ``B K B^T + diag(that noise with the nugget)``;
-observations are independent of each other. Plain arrays in, arrays out:
-:class:`~lrm_cvx.belief.posterior.LatentPosterior` (``update_rows``, ``predict``) calls these.
+An averaged observation is ``z = B f + e`` over the snapshot's latent field (``B (m, L)`` sparse
+weights); plain arrays in, arrays out, called by
+:class:`~lrm_cvx.belief.posterior.LatentPosterior` (``update_rows``, ``predict``).
 """
 
 from __future__ import annotations

@@ -1,25 +1,8 @@
 """A record's own calendar: its cadence, its stamps and the period each stamp stands for.
 
-:class:`RecordCalendar` reads a record's time coordinate (``datetime64``, cftime dates of any
-calendar, or plain numbers) and answers the field loop's time questions the way the record
-itself would:
-
-* **cadence**: a whole number of months (monthly, quarterly, yearly records: the step between
-  the record's calendar months), else a fixed step in days (or in the coordinate's units);
-* **convention**: where in its period the record puts a stamp. A monthly record stamped on the
-  same day and time of every month (the 15th) keeps that day, one on each month's last day
-  keeps that; one stamped at the same fraction of every month (CF monthly means: 16 Jan 12:00,
-  15 Feb 00:00, ...) keeps the fraction; else each calendar month's own stamp in the record
-  (else the day and time of the state's own stamp). A fixed-step record either lies on one grid
-  (``last + k * step``) or restarts every year on the same day of the year (8-day composites:
-  days 1, 9, ..., 361, then day 1 again);
-* **period**: the times a stamp stands for. A month-cadence stamp stands for its calendar month
-  (a block of ``n`` months around it; whole years for yearly records), a whole-day step for the
-  calendar days from its date to the next stamp, any other step for the times nearer to it than
-  to its neighbours.
-
-Dates outside ``datetime64[ns]``'s range (1677-09-21 to 2262-04-11) are refused in one line
-(:func:`lrm_cvx._validation.datetime_ns`), never wrapped around.
+:class:`RecordCalendar` reads a record's time coordinate (``datetime64``, cftime dates or plain
+numbers) and answers the field loop's time questions the way the record itself would
+(docs/monitoring.md). Dates outside ``datetime64[ns]``'s range are refused in one line.
 """
 
 from __future__ import annotations

@@ -1,19 +1,9 @@
 """Region completion (paper, Approach) on a bare factor matrix: thin wrappers of
 :class:`~lrm_cvx.belief.posterior.LatentPosterior`.
 
-A new snapshot ``d`` seen at cells ``S`` is a new row of ``D``; its latent column is
-
-    x = argmin ||Y_S^T x - d_S||^2 (+ ridge ||x||^2) = (Y_S Y_S^T + ridge I)^-1 Y_S d_S
-
-and the completed map is ``Y^T x``. With noise of standard deviation ``sigma`` on the
-observations, ``Cov(x) = sigma^2 (Y_S Y_S^T + ridge I)^-1`` (for ``ridge > 0`` the posterior
-covariance under the prior ``x ~ N(0, sigma^2 / ridge I)``). For a fitted model use
-``GLRM.complete`` or ``GLRM.latent_prior`` (offset, scale, per-cell noise, priors, spatial
-residual).
-
-:func:`gls_fold_in` and :func:`residual_correction` (moved here from ``lrm_cvx.spatial``, which
-still offers them with a DeprecationWarning) are the same fold-in under the GP residual
-covariance: generalised least squares, and trend + kriged residual.
+The completed map is ``Y^T x`` with ``x`` the (ridge) least-squares fit at the observed cells;
+:func:`gls_fold_in` and :func:`residual_correction` are the same fold-in under the GP residual
+covariance. For a fitted model use ``GLRM.complete`` or ``GLRM.latent_prior``.
 """
 
 from __future__ import annotations

@@ -1,26 +1,9 @@
 """The convex floor: how tight any convex relaxation of the route constraint can be.
 
-A convex relaxation whose feasible set contains the incidence vector ``1_P`` of every route
-``P`` within the budget (the disk relaxation, the layered-flow and walk relaxations of
-:mod:`~lrm_cvx.planning.relaxation`, or any other) contains their convex hull, and its
-objective ``log det M(w)`` is linear in ``w`` inside the determinant. So for routes ``P_1 ..
-P_m`` and weights ``lam`` on the simplex, ``w = sum_j lam_j 1_{P_j}`` is feasible and
-
-    value of the relaxation  >=  log det(ridge I + sum_j lam_j M_j),
-    M_j = sum_{p in P_j} y_p y_p^T.
-
-The best such mixture of *found* routes is therefore a lower limit ("floor") on every convex
-relaxation's bound, and ``floor - I(plan)`` is a certified gap no convex relaxation can go
-below for that plan. On smooth fields routes in different directions see complementary
-directions of the factor space, and the mixture is far above any single route
-(docs/certificate.md §9, "The convex floor"). A disjunctive bound (``plan_bound``'s cover of
-midpoint squares) is not one convex relaxation and can lie below the floor.
-
-Routes are polylines from the start (:mod:`~lrm_cvx.planning.shapes`) cut to the budget in the
-grid metric, so every route is an open path through distinct valid cells of length ``<=
-budget``: exactly the routes every certificate of the package covers. The mixture is found by
-column generation: random routes, then rounds of pricing (hill-climbing a route's linear score
-``tr(M^-1 M_P)``) and the multiplicative D-optimal update of the weights.
+The best mixture of found routes is a lower limit on every convex relaxation's bound, so
+``floor - I(plan)`` is a gap no convex relaxation can go below (docs/certificate.md §9, "The
+convex floor"). Routes come from :mod:`~lrm_cvx.planning.shapes`; the mixture is found by
+column generation.
 """
 
 from __future__ import annotations

@@ -1,17 +1,8 @@
 """Loaders of gridded snapshots and writers of the real file formats.
 
-- :func:`open_data` (``io/generic.py``): any of the sources below, ``sample:NAME`` or a NetCDF
-  file with a ``(time, lat, lon)`` variable, chosen from the paths.
-- :func:`open_ndvi_cdr` (``io/ndvi.py``): NOAA Climate Data Record NDVI daily NetCDF files
-  (AVHRR v5 and VIIRS v1) -> DataArray ``(time, lat, lon)`` with QA-bit masking.
-- :func:`open_image_stack` (``io/imagery.py``): RGB snapshots (e.g. NASA Worldview) -> hue in
-  degrees with cloud, edge and no-data masks.
-- :func:`write_ndvi_cdr`, :func:`write_image_stack`: writers of the two real formats, beside
-  their readers.
-- :func:`synthetic_field` (``io/samples.py``): a planted low-rank field for tests, benchmarks
-  and notebooks; :func:`cloud_gaps`: its moving clouds laid over any record.
-
-Submodules are imported on first use, so ``import lrm_cvx.io`` stays cheap.
+:func:`open_data` (any source), :func:`open_ndvi_cdr` (NOAA NDVI CDR), :func:`open_image_stack`
+(RGB snapshots -> hue), their writers, and :func:`synthetic_field` / :func:`cloud_gaps` (planted
+fields). Submodules are imported on first use, so ``import lrm_cvx.io`` stays cheap.
 """
 
 from __future__ import annotations

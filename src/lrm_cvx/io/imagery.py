@@ -1,20 +1,8 @@
 """RGB image stacks (e.g. NASA Worldview snapshots) <-> hue in degrees, with masks.
 
-The paper's Fall-foliage data set is a stack of Worldview true-colour snapshots of one bounding
-box; the modelled quantity is the hue of each pixel, with clouds and lighting artefacts (found
-with Canny edges) masked out. :func:`open_image_stack` reads such a stack into a float32
-``(time, lat, lon)`` DataArray of hue in degrees ``[0, 360)`` with NaN where masked, and
-:func:`write_image_stack` writes any ``(time, lat, lon)`` field as snapshots whose hue encodes
-the field linearly, so synthetic data can take the real path through the loader.
-
-Masking rules (``s``, ``v``: HSV saturation and value in ``[0, 1]`` from
-``skimage.color.rgb2hsv``), a pixel is NaN when any holds:
-
-- cloud: ``s < saturation_min and v > value_max`` (bright and grey/white);
-- no data: ``v < dark_max`` (black fill outside the satellite swath), or alpha == 0;
-- lighting artefact: within ``edge_dilate`` pixels (Euclidean) of a Canny edge of ``v``
-  (``skimage.feature.canny(v, edge_sigma, edge_low, edge_high)``); ``edge_sigma=None`` turns
-  this off.
+:func:`open_image_stack` reads a stack into a float32 ``(time, lat, lon)`` DataArray of hue in
+``[0, 360)`` with NaN where a pixel is cloud, no data or a lighting artefact (the masking rules
+are in docs/data-formats.md); :func:`write_image_stack` writes any field as such snapshots.
 """
 
 from __future__ import annotations

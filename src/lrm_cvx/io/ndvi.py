@@ -1,20 +1,8 @@
 """NOAA Climate Data Record (CDR) of daily NDVI -> ``(time, lat, lon)`` DataArray with QA masking.
 
-Two products, told apart by the file name:
-
-- AVHRR v5 (1981-2013): ``AVHRR-Land_v005[-preliminary]_AVH13C1_<PLATFORM>_<YYYYMMDD>_c<proc>.nc``
-  with a ``QA`` int16 whose bits 1..15 are the ``flag_masks`` 2, 4, ..., 16384, -32768:
-  cloudy, cloud_shadow, water, sunglint, dense_dark_vegetation, night, ch1_to_5_valid,
-  ch1_invalid ... ch5_invalid, rho3_invalid, BRDF_corr_problem, polar_flag.
-- VIIRS v1 (2014-): ``VIIRS-Land_v001[-preliminary]_<CODE>_<PLATFORM>_<YYYYMMDD>_c<proc>.nc``
-  (``NPP13C1_S-NPP`` or ``JP113C1_NOAA-20``) with a ``QA`` whose bits 0-1 are the cloud
-  state (0 clear, 1 cloudy, 2 mixed, 3 not set), bit 2 cloud shadow, bits 3-5 the land/water
-  class (0 land and desert, 1 land, 2 inland water, 3 sea water, 5 coastal), bits 6-7 aerosol
-  quantity, 8-9 thin cirrus, 10 internal cloud flag, 15 snow/ice.
-
-``NDVI`` is int16 with ``scale_factor`` 1e-4, ``add_offset`` 0, ``_FillValue`` -9999 and
-``valid_range`` [-1000, 10000]. Everything is decoded from the raw integers (xarray applies
-neither ``valid_range`` nor bit flags), so a QA fill value is never mistaken for a flag.
+AVHRR v5 and VIIRS v1 files are told apart by name; NDVI and QA bits are decoded from the raw
+integers, so a QA fill value is never mistaken for a flag. File names and QA bits are described
+in docs/data-formats.md.
 """
 
 from __future__ import annotations

@@ -1,27 +1,9 @@
 """Reading NetCDF files from HTTP(S) and S3 servers without downloading them whole.
 
-A URL (``https://...``, ``http://...``, ``s3://...``; other fsspec protocols pass through) is
-opened as a random-access file object by fsspec (HTTP ``Range`` requests; s3fs ranged GETs) and
-read by h5netcdf (NetCDF-4/HDF5) or scipy (NetCDF-3). The callers open lazily, subset to the
-bbox, then load, so only the HDF5 chunks covering the bbox (plus the file's metadata) travel.
-
-- :func:`is_url`, :func:`url_name`: what is a URL, and its file name.
-- :func:`expand_urls`: lists and globs of URLs -> URLs. S3 globs list the bucket; HTTP globs
-  and folder URLs (ending in ``/``) need a server that lists the folder as an HTML page of links
-  (Apache, nginx autoindex, NOAA's NCEI, Python's ``http.server``); otherwise give explicit URLs.
-- :func:`read_remote`: ``func(xr.Dataset)`` on one opened URL with bounded retries and one
-  :class:`~lrm_cvx.errors.DataError` naming the URL (and the HTTP status) on failure.
-- :func:`timeouts`: how long an HTTP request may take in all and without a byte
-  (``$LRM_CVX_TIMEOUT``, ``$LRM_CVX_READ_TIMEOUT``): a server that never answers is an error
-  within about a minute.
-
-Cache: ``cache="~/.cache/lrm-cvx"`` wraps the filesystem in fsspec's ``blockcache``
-(``CachingFileSystem``): a sparse local copy of each file that holds only the blocks read so
-far. The whole-file ``filecache`` would download every 50 MB global daily file to read a
-2 x 2 degree window, which is what remote reading avoids; the block cache keeps the partial
-reads partial and serves a repeated read from disk without contacting the server. Files are
-taken as immutable (NOAA publishes reprocessed data under a new name): delete the folder to
-refresh it.
+A URL is opened as a random-access file by fsspec and read lazily, so only the chunks covering
+the bbox travel; an optional block cache keeps a sparse local copy. URL globs, retries,
+timeouts (``$LRM_CVX_TIMEOUT``, ``$LRM_CVX_READ_TIMEOUT``) and the cache are described in
+docs/data-formats.md.
 """
 
 from __future__ import annotations

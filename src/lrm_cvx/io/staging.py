@@ -1,16 +1,9 @@
-"""Staging: a ``(T, L)`` matrix written once to disk as column chunks, from dask data or
-straight from NOAA CDR NDVI daily files (the input of the out-of-core fit,
-:mod:`lrm_cvx.glrm.chunked`).
+"""Staging: a ``(T, L)`` matrix written once to disk as column chunks (the input of the
+out-of-core fit, :mod:`lrm_cvx.glrm.chunked`).
 
-:func:`stage` writes ``T x L`` float32 values (NaN = missing) as ``.npy`` column files of about
-``chunk_mb`` MB each (a :class:`ChunkStore`), in one streaming pass: one task per block of
-consecutive times computes the block on the active dask scheduler (workers or threads) and
-writes its rows into every column file with ``pwrite``; nothing of the matrix travels through
-the client. A DataArray exactly as :func:`~lrm_cvx.io.open_ndvi_cdr` returned it lazily
-(:func:`cdr_source`) is staged from the files themselves: each day's window is read as raw HDF5
-chunks, inflated and decoded by table lookup with the loader's own rules (bit for bit the
-loader's values), or read with netCDF4 for other layouts. Without a region the observed cells
-are found on the way and the files compacted to them. docs/scaling.md has the measurements.
+:func:`stage` writes float32 values (NaN = missing) as ``.npy`` column files in one streaming
+pass over dask data, or straight from NOAA CDR NDVI files with the loader's own decoding rules
+(docs/scaling.md).
 """
 
 from __future__ import annotations

@@ -1,19 +1,9 @@
 """The paper's baselines: straight transects and the random walk, under any path model.
 
-Both move on the grid from the start cell, one grid step at a time, and return a :class:`Plan`
-whose ``cells`` are the distinct valid cells visited (first-visit order) and whose ``route`` is
-the travel itself. Directions are geographic: ``"up"`` is north (increasing latitude),
-``"down"`` south, ``"left"`` west (decreasing longitude), ``"right"`` east, whatever the grid's
-row order.
-
-They obey the planners' path model (:mod:`lrm_cvx.planning.paths`): the budget is
-in grid units (``metric="grid"``, the paper), great-circle km (``metric="km"``) or hours
-(``speed`` km/h); each step costs the distance between the two grid positions' centres (1 or
-sqrt 2 in grid units, haversine in km, divided by ``speed``); ``stop_cost`` is charged once per
-observed cell (its first visit, the start included), as the greedy charges it once per sampling
-stop; with ``traversable`` they never enter a cell the robot may not enter; ``closed=True``
-walks out while the remaining budget still pays the way back along the travelled path, then
-retraces it to the start. With every option at its default the plans are exactly the paper's.
+Both move on the grid from the start cell one step at a time (``"up"`` is north, ``"left"`` west,
+whatever the grid's row order) and return a :class:`Plan` of the distinct valid cells visited.
+They obey the planners' path model (:mod:`lrm_cvx.planning.paths`); with every option at its
+default the plans are exactly the paper's.
 """
 
 from __future__ import annotations

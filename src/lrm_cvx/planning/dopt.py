@@ -1,24 +1,9 @@
 """The D-optimal design relaxation and its solver-independent dual bound.
 
-Every plan is a set of at most ``n`` cells out of a candidate set, so its Fisher information
-``log det(ridge I + sum_{p in P} y_p y_p^T)`` is at most the optimum of the continuous D-optimal
-design relaxation (Joshi & Boyd, "Sensor selection via convex optimization")::
-
-    maximise  log det M(w),   M(w) = ridge I + sum_i w_i y_i y_i^T
-    subject to  0 <= w <= 1,  sum_i w_i <= n   (and optional nested count limits).
-
-The relaxation is modelled in cvxpy on a small working set of cells that grows by column
-generation (the cells whose leverage ``g_i = y_i^T M(w)^-1 y_i`` violates optimality), warm
-started by a vectorised Frank-Wolfe over all candidates. The reported bound does not trust any
-solver: it is the Lagrange dual function evaluated at ``Z = t M(w)^-1`` with the best scale ``t``
-and multiplier ``nu`` (closed forms), which bounds the relaxation for *any* ``w``::
-
-    log det M*  <=  log det M(w) + k log(S / k),
-    S = ridge tr M(w)^-1 + (sum of the n largest g_i over all candidates).
-
-This module knows nothing of regions, paths or plans: :mod:`lrm_cvx.planning.certificate`
-turns a path model's budget into the candidates and count limits given here. Derivations in
-``docs/certificate.md`` §1-3.
+The continuous relaxation ``max log det(ridge I + sum_i w_i y_i y_i^T)`` over ``0 <= w <= 1``,
+``sum_i w_i <= n`` (and nested count limits) is solved on a working set grown by column
+generation; the reported bound is a Lagrange dual value valid for any ``w``. Regions, paths and
+plans are :mod:`lrm_cvx.planning.certificate`'s business; derivations in docs/certificate.md §1-3.
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
 """The plan family of a path request: every set of cells a feasible plan can observe.
 
-A plan's cells are either the greedy's forced initial set or the stops (and, with
-``sense_along``, the pass-through cells) of a route within the budget of its path model. This
-module turns the request (:class:`~lrm_cvx.planning.request.PathOptions` and
-:class:`~lrm_cvx.planning.request.Fleet`, or a plan's ``path`` record) into what the relaxation
-of :mod:`lrm_cvx.planning.dopt` needs (:class:`Family`): the candidate cells (every cell some
-feasible route can observe), a count limit ``n_max`` (budget, smallest spacing, stop cost) and
-the start's distance limits. Fleets add their robots' counts over the union of their
-candidates; a static placement is the count-only family over all valid cells. Proofs:
-``docs/certificate.md`` §4-6 and §10. :mod:`~lrm_cvx.planning.certificate` reads it.
+Turns a request (:class:`~lrm_cvx.planning.request.PathOptions` and
+:class:`~lrm_cvx.planning.request.Fleet`, or a plan's ``path`` record) into the candidate cells,
+count limits and start distance limits that :mod:`lrm_cvx.planning.dopt` needs
+(:class:`Family`). Proofs: docs/certificate.md §4-6 and §10.
 """
 
 from __future__ import annotations

@@ -1,28 +1,9 @@
 """Rival routes of a finished greedy route (``plan_greedy(refine="rivals")`` and ``"lines"``).
 
-The cost-benefit greedy adds the cell with the best gain per unit of route-cost increase, so a
-cell that lengthens the route by almost nothing (an in-fill next to the stops it has) beats
-one that extends it, and a route can end up zig-zagging in a compact patch. On its own the
-budgeted greedy has no guarantee; the standard remedy for budgeted submodular maximisation
-(Khuller, Moss and Naor 1999; Leskovec et al. 2007) is to keep the better of the greedy's
-solution and simple rival ones. Here the rivals are the four straight transects
-(:func:`~lrm_cvx.planning.baselines.transect`) from the same start under the same path model
-and budget, and the planner's **own criterion** decides (the model's belief, never data):
-the route returned is the one with the best criterion value, the greedy's unless a transect is
-strictly better. docs/benchmarks.md ("The greedy against straight lines")
-measured it: the gp-variance greedy lost to a transect under its own criterion on a third
-of the days on the global zonal-wind record.
-
-``refine="rivals"`` (the recommended check) adds one more rival: the same greedy
-with the gentler ratio ``gain / increase ** 0.5`` (:data:`RIVAL_EXPONENT`), which weighs a
-stop's gain more against its detour, so its route reaches out instead of filling in. Taking
-the better of the cost-benefit greedy and a greedy that discounts cost is the other half of
-the same textbook remedy (Khuller, Moss and Naor take the plain-gain greedy; the square
-root did better on the training snapshots, docs/benchmarks.md). The check kept
-the gentler greedy's route on 47-85 % of the campaign days of the generalization records.
-
-Scope: point sensors, no ``sense_along``, no ``end`` cell (a transect cannot be told where to
-finish); :func:`applies` says why not otherwise.
+The route returned is the one with the best value of the planner's own criterion among the
+greedy's route, the four straight transects from the same start and (``"rivals"``) the greedy with
+the gentler ratio ``gain / increase ** RIVAL_EXPONENT`` (docs/planning.md, rival routes). Point
+sensors only, no ``sense_along``, no ``end`` cell; :func:`applies` says why not otherwise.
 """
 
 from __future__ import annotations

@@ -1,19 +1,8 @@
 """A plan as files that robots, ground stations and GIS tools load.
 
-* GeoJSON (RFC 7946): longitudes in [-180, 180), a route that crosses the antimeridian split
-  into a ``MultiLineString`` there (RFC 7946 section 3.1.9); fixed sensors as Points.
-* QGroundControl ``.plan`` (the JSON mission ArduPilot and PX4 ground stations load): a
-  ``NAV_WAYPOINT`` (command 16) per route point at ``altitude`` metres above home, the start as
-  ``plannedHomePosition``, the cruise speed when the path model has one.
-* MAVLink waypoint text (``QGC WPL 110``), written and read by pymavlink's ``MAVWPLoader``.
-* GPX 1.1 (gpxpy): a route per robot and a waypoint per sampling stop.
-* KML (simplekml): a line per robot (a ``MultiGeometry`` where it crosses the antimeridian) and a
-  placemark per stop.
-
-Every route point is exported, pass-through cells included: they keep a robot on the cells it
-may enter (a travel graph around no-go cells); ``stop`` marks where it samples. ``altitude``
-defaults to :data:`DEFAULT_ALTITUDE` (50 m above the home position, MAVLink's relative frame):
-a stated default, never a silent 0.
+GeoJSON, QGroundControl ``.plan``, MAVLink waypoint text, GPX 1.1 and KML; every route point is
+exported and ``stop`` marks where the robot samples. Formats, the antimeridian and
+:data:`DEFAULT_ALTITUDE` are described in docs/planning.md.
 """
 
 from __future__ import annotations

@@ -1,39 +1,10 @@
 """The path model: how a robot travels, what a route costs, exact incremental costs.
 
-One :class:`PathModel` per robot (:func:`make_path_model`) answers every geometric question the
-planners, the baselines, :class:`~lrm_cvx.planning.plan.Plan` and the certificate ask:
-
-* the metric (``"grid"`` units, great-circle ``"km"``, or hours = km / ``speed``) and a per-stop
-  cost ``stop_cost`` (time on station), in the budget's unit;
-* straight-line travel between stops (``traversable=None``, the paper) or a travel graph:
-  shortest paths over the 8-connected grid of enterable cells (``"valid"`` or a boolean mask),
-  longitude wrapping on a grid spanning the full circle;
-* open paths (the paper), closed tours (``closed=True``) or routes to a given ``end``;
-* the route ordering heuristic ``cost``: the paper's nearest-neighbour tour or cheapest
-  insertion, with exact incremental costs ``C(P + x) - C(P)`` for a whole candidate pool
-  (:meth:`PathModel.coster`).
-
-The route-cost algorithms live in :mod:`lrm_cvx.planning.routecost`. The default model
-(``metric="grid"``, no graph, open, ``stop_cost=0``) uses its coordinate oracles
-(:class:`~lrm_cvx.planning.routecost.NearestNeighborCost` / ``InsertionCost``), so its numbers
-are exactly those of the paper's planner. The other models keep an ``(n, m)`` matrix of travel
-distances from the pool to the route's stops (one column per stop, computed when the stop
-joins) and run the same exact incremental kernels (docs/planning.md) on matrix lookups
-(:class:`IncrementalCost`).
-
-Exactness of the distances: every straight-line distance comes from one compiled function
-(:func:`_dist_pairs`), symmetric by construction, so the same pair always gives the same float.
-Graph edge lengths are rounded *up* to a multiple of ``2**-20`` (of the budget's unit), so every
-path length is an exact float sum: shortest-path distances are exactly symmetric and
-independent of the summation order, and never shorter than the true path.
-
-Travel graph scope: the graph holds the enterable cells within straight-line reach of the start
-(the travel budget; half of it for a closed tour; for a route to an ``end``, the ellipse
-``d(start, x) + d(x, end) <= travel``), and Dijkstra stops at that reach (no leg of a
-feasible closed tour is longer than half the budget: the rest of the tour is a way back). Every
-point of a feasible route lies in that region, so a route's cost is its true shortest-path cost
-whenever it is within the budget; distances beyond the reach are ``inf`` (such routes are
-infeasible either way).
+One :class:`PathModel` per robot (:func:`make_path_model`) answers the geometric questions of the
+planners, the baselines, :class:`~lrm_cvx.planning.plan.Plan` and the certificate: the metric,
+stop costs, straight lines or a travel graph, open paths, closed tours or routes to an ``end``.
+The route-cost algorithms live in :mod:`lrm_cvx.planning.routecost`; docs/planning.md describes
+the path options and why distances are exact.
 """
 
 from __future__ import annotations

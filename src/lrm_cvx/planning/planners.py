@@ -1,15 +1,9 @@
-"""Planners as objects, held by the method registry (the way PySensors plugs an optimizer).
+"""Planners as objects, held by the method registry.
 
 Each planner is a small frozen object with one method, ``plan(Y, region, fleet, path, *, rng,
-ridge, prior) -> Plan``: ``fleet`` a :class:`~lrm_cvx.planning.request.Fleet` (who travels,
-with which budget), ``path`` a :class:`~lrm_cvx.planning.request.PathOptions` (how), ``rng`` for
-the random walk, ``prior`` the criterion's belief (a ``LatentPosterior`` or a ``PriorTerms``).
-``evaluate``, ``simulate_campaign`` and the CLI look a method's planner up in
-:data:`METHOD_REGISTRY` by name (``"greedy"``, ``"greedy:gp-variance"``, ``"transect-up"``,
-``"random"``) instead of branching on it.
-
-A new planner goes here: a frozen class with ``plan(...)`` and, to make it an ``evaluate``
-method, one ``METHOD_REGISTRY.register(name, planner, description=...)`` line.
+ridge, prior) -> Plan``; ``evaluate``, ``simulate_campaign`` and the CLI look a method's planner
+up in :data:`METHOD_REGISTRY` by name. A new planner goes here, registered with one
+``METHOD_REGISTRY.register(name, planner, description=...)`` line.
 """
 
 from __future__ import annotations

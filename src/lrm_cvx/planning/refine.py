@@ -1,22 +1,8 @@
 """Plan refinement: a local search that raises a plan's information within its budget.
 
-The greedy planner stops when no single addition fits; refinement then tries
-
-* **insert** a stop (every candidate of the budget disk at once: exact cost increases from
-  :mod:`lrm_cvx.planning.routecost`, gains from the rank-one formula), and
-* **swap** a stop ``x`` for a candidate ``y`` (remove ``x``, insert ``y``; every pair of a
-  shortlist at once: the information of ``P - x + y`` in closed form, the exact cost of
-  ``P - x + y`` for all ``y`` by one incremental cost oracle per ``x``),
-* with route repair after every accepted move when the cost is a route (``cost="insertion"``:
-  routecost's 2-opt and Or-opt on the visiting order, which only shorten it). For the paper's
-  nearest-neighbour cost the cost of a set *is* its nearest-neighbour tour, so repair means
-  re-evaluating that tour exactly.
-
-A move is accepted only when the information rises strictly (> 1e-9 nats, recomputed from
-scratch) and the exact path cost is within the budget (+1e-9, the greedy's tolerance). Removing
-a stop never raises log det, so removal appears only inside a swap. The start cell is never
-moved. The result is a :class:`~lrm_cvx.planning.plan.Plan` with ``refinement`` recording what
-was gained (docs/planning.md, "Refinement").
+Insert and swap moves, with route repair after every accepted move; a move is accepted only when
+the information rises strictly and the exact path cost stays within the budget. The start cell
+is never moved (docs/planning.md, "Refinement").
 """
 
 from __future__ import annotations

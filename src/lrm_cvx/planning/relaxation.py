@@ -1,21 +1,8 @@
 """A path-aware relaxation of the plan certificate.
 
-The disk relaxation of :func:`~lrm_cvx.planning.certificate.plan_bound` knows how many cells fit in
-the budget disk, not that they lie on *one* path. Here the cells are aggregated into ``b x b``
-blocks and every route is mapped to a unit flow in a **layered block graph**: node ``(A, l)``
-is block ``A`` after a cumulative path length of at least ``l`` grid units; a leg from a cell of
-``A`` to a cell of ``B != A`` moves ``(A, l) -> (B, l + floor(d_AB))`` with ``d_AB`` the least
-distance between cells of the two blocks, and a leg inside ``A`` moves ``(A, l) -> (A, l + 1)``.
-Layers increase along every leg, so the flow graph is acyclic (no subtours) and the unit flow
-from ``(start block, 0)`` is a convex combination of paths. Visit weights ``w`` on cells are
-bounded by the arrivals in their block. The bound reported is a Lagrange **dual** value, valid
-at any iterate (docs/certificate.md §9)::
-
-    p*  <=  log det M + k log(S / k),   S = ridge tr M^-1 + LPdual(g),   g_i = y_i^T M^-1 y_i,
-
-for *any* ``M`` positive definite, where ``LPdual(g)`` is the value of a dual-feasible point of
-the linear program ``max { g^T w : (w, flow) in the path polytope }`` (evaluated exactly from
-the multipliers, so it is an upper bound whatever the LP solver returned).
+Cells are aggregated into blocks and every route is mapped to a unit flow in a layered, acyclic
+block graph; the bound reported is a Lagrange dual value, valid at any iterate whatever the LP
+solver returned (docs/certificate.md §9).
 """
 
 from __future__ import annotations

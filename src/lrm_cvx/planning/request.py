@@ -1,15 +1,9 @@
 """One path request: how the robots travel (:class:`PathOptions`) and who travels (:class:`Fleet`).
 
 Every planner, baseline, the certificate, ``evaluate`` and the CLI read a request through these
-two objects, validated here and nowhere else. The public entry points take the path as one
-``path=PathOptions(...)`` (the CLI turns its flags into one); :meth:`PathOptions.from_kwargs`
-checks it against what the entry point supports. Starts and budgets become a :class:`Fleet` once
-(:meth:`Fleet.resolve`: a budget is checked in this module only). A plan records both in
-:class:`PlanPath` (``plan.path``), a read-only mapping whose items are the plan's path
-description as before (``plan.path["closed"]``).
-
-A new path option goes here: a field of :class:`PathOptions`, its check in ``__post_init__``,
-its summary in :meth:`PlanPath.describe`; the path model (``paths.py``) then reads it.
+two objects, validated here and nowhere else; a plan records both in :class:`PlanPath`. A new
+path option goes here: a field of :class:`PathOptions`, its check in ``__post_init__``, its
+summary in :meth:`PlanPath.describe`; the path model (``paths.py``) then reads it.
 """
 
 from __future__ import annotations

@@ -1,27 +1,10 @@
 """Route costs, one home: nearest-neighbour tours, cheapest insertion, 2-opt and Or-opt.
 
-Every algorithm works on grid **coordinates** (cells at integer positions ``grid_index[cell] =
-(row, col)``, Euclidean grid units: the paper's cost) and on **distance matrices** (any metric,
-straight lines or a travel graph: :mod:`lrm_cvx.planning.paths` builds them).
-
-* :func:`nearest_neighbor_tour` / :func:`nearest_neighbor_order`: the paper's cost ``C(P)``, an
-  open path from the start, each step to the nearest unvisited stop, ties to the lowest cell.
-* :class:`NearestNeighborCost` (coordinates) and :class:`MatrixRouteCost` (matrices, ``nn=True``)
-  give the greedy ``C(P + x) - C(P)`` for every candidate ``x`` at once, exactly
-  (``docs/planning.md``): the tour of ``P + x`` follows the tour of ``P`` until the first step
-  where ``x`` wins; only the tail after it is recomputed, until it rejoins the old tour in the
-  same state. Results are cached per candidate and kept after an addition when provably unchanged.
-* :class:`InsertionCost` / :class:`MatrixRouteCost` (``nn=False``) and :func:`insertion_costs`:
-  cheapest insertion (``cost="insertion"``): a candidate goes where it lengthens the route least.
-* :func:`two_opt`, :func:`or_opt`, :func:`repair_route` (coordinates) and
-  :func:`two_opt_matrix`, :func:`or_opt_matrix` (matrices): local search on a visiting order.
-
-One compiled kernel per algorithm serves both inputs: it reads distances through ``_cand`` /
-``_stop`` / ``_key`` / ``_len`` from a *geometry* of four arrays, points ``(pr, pc, tr, tc)``
-(candidate and tour rows / cols; key = the exact integer squared distance, length = its square
-root, so every comparison and tie is decided exactly) or a matrix ``(DT, S, ts, ts)``
-(candidate-to-slot ``DT``, slot-to-slot ``S``, the tour's slots ``ts``; key = length = the float
-distance). Numba compiles one specialisation per kind, so neither pays for the other.
+Every algorithm works on grid coordinates (the paper's Euclidean grid cost) and on distance
+matrices (any metric, built by :mod:`lrm_cvx.planning.paths`), with exact incremental costs
+``C(P + x) - C(P)`` for every candidate at once (docs/planning.md). One compiled kernel per
+algorithm reads distances through ``_cand`` / ``_stop`` / ``_key`` / ``_len`` from a geometry of
+four arrays: points ``(pr, pc, tr, tc)`` or a matrix ``(DT, S, ts, ts)``.
 """
 
 from __future__ import annotations

@@ -1,16 +1,9 @@
 """Route-shape search: a global move for plan refinement.
 
-Insert, swap and refill moves keep a plan's overall shape. On smooth fields the information
-of a route depends mostly on its shape (a straight line sees nearly collinear factor vectors;
-an L or a hook sees more directions), and the greedy's shape is fixed by its first myopic
-steps. This module searches shapes directly: a route is the sequence of valid cells a
-*polyline* from the start passes through (a 4-connected staircase along each leg, first visits
-only, in order), cut where its exact path length would exceed the budget. Random polylines of
-2-4 legs are scored by the exact Fisher information, and the best are hill-climbed by moving
-and inserting waypoints (compass search, steps halving down to one grid unit).
-
-Every route returned is a path from the start of length ``<= limit`` over valid cells, in
-visiting order, so whatever cost the caller uses only has to be checked, never trusted.
+A route is the sequence of valid cells a polyline from the start passes through, cut at the
+budget; random polylines of 2-4 legs are scored by the exact Fisher information and the best are
+hill-climbed by moving and inserting waypoints. Every route returned is a path from the start of
+length ``<= limit`` over valid cells, in visiting order.
 """
 
 from __future__ import annotations

@@ -1,37 +1,8 @@
 """Upper bounds for the variance-reduction criteria (``"gp-variance"``, ``"a-optimal"``).
 
-Both criteria score a set of observed cells by how much it removes from a weighted total
-posterior variance. Observing cell ``i`` with weight ``w_i`` (noise variance ``s_i^2 / w_i``;
-``w_i = 0``: not observed) gives a Gaussian posterior whose variance reduction
-
-    F(w) = sum_t c_t [Var(f_t) - Var(f_t | w)]
-
-is concave in ``w >= 0`` (the latent form ``tr(W S0) - tr(W (S0^-1 + sum_i w_i a_i a_i^T /
-s_i^2)^-1)``: a trace of the inverse of an affine positive definite matrix is convex), and at
-the indicator of a set ``P`` equals the planner's value of ``P``. For any ``w >= 0`` and any
-polytope ``Q`` containing every feasible plan's indicator,
-
-    max_{v in Q} F(v)  <=  F(w) + max_{v in Q} grad F(w) . (v - w)                 (FW)
-
-(concavity), so each Frank-Wolfe iterate gives a certified upper bound: ``F`` and its gradient
-are evaluated in float64 and ``max_Q`` is the exact top-n sum or an LP dual value evaluated
-exactly (:meth:`~lrm_cvx.planning.dopt.Polytope.support`). No solver tolerance enters.
-
-* ``"a-optimal"``: latent ``x`` with prior precision ``P0`` (``ridge I`` without a prior),
-  ``F(w) = tr(W P0^-1) - tr(W M(w)^-1)``, ``M(w) = P0 + sum_i w_i y_i y_i^T / s_i^2``,
-  ``dF/dw_i = y_i^T M^-1 W M^-1 y_i / s_i^2``.
-* ``"gp-variance"``: the field ``f = Y^T x + r`` (low-rank trend plus GP residual) observed with
-  the nugget ``s^2``. Its latent state ``[x; r]`` carries the GP prior, so the criterion is the
-  A-optimal one of that larger latent; in observation space (no cells x cells latent) with
-  ``S`` the support of ``w``, ``K`` the field's prior covariance and ``G = K_{.T} C K_{T.}``
-  (``C`` the target weights): ``F(w) = tr(G_SS (K_SS + s^2 diag(1/w_S))^-1)`` and
-  ``dF/dw_i = sum_t c_t C_w(t, i)^2 / s^2`` with ``C_w`` the posterior covariance: the greedy's
-  own gain numerator.
-
-The relaxation's maximiser is approached by Frank-Wolfe (the polytope's exact vertex oracle,
-a parabolic line search) and, on small candidate sets, polished by cvxpy; either way the
-reported ``value`` is the smallest (FW) bound over the designs tried (docs/certificate.md,
-"Variance criteria").
+The variance reduction is concave in the observation weights, so every Frank-Wolfe iterate gives a
+certified upper bound over any polytope of feasible plans; the derivation is in
+docs/certificate.md §13.
 """
 
 from __future__ import annotations
