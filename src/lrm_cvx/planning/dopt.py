@@ -30,8 +30,8 @@ __all__ = [
 ]
 
 _SOLVERS = ("CLARABEL", "SCS")
-# Clarabel settings tried in turn (DESIGN.md: its defaults fail on unscaled problems; on the
-# congruence-scaled working-set problems equilibration is what most often breaks it)
+# Clarabel settings tried in turn: its defaults fail on unscaled problems, and equilibration is
+# what most often breaks it on the congruence-scaled working-set problems
 _TIGHT = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10}
 _CLARABEL_OPTS = (
     {"max_step_fraction": 0.9, "chordal_decomposition_enable": False, "equilibrate_enable": False,

@@ -269,9 +269,7 @@ def leg_limits(span: float, shift: float, unit: float, straight: bool, ladder: i
     1). Thresholds are nudged up against rounding; the caps are computed from the un-nudged
     ones. Any subset of the limits is valid, so ``floor(x)`` runs over a ladder of at most
     ``2 ladder`` values (:func:`cap_ladder`, dense at the far thresholds) rather than every
-    integer: at budget 200 on 1,995,000 cells every integer cost 34 s for 0.05 nats of bound
-    (benchmarks/bench_sensors.py --certificate). None when the route cannot reach beyond its
-    first cell."""
+    integer. None when the route cannot reach beyond its first cell."""
     if not (math.isfinite(span) and unit > 0) or span < unit:
         return None
     thr, ci, cs = [], [], []

@@ -89,10 +89,9 @@ def route_values(criterion: str, Y: np.ndarray, ridge: float, routes: dict[str, 
     the kernel's lag table (far from the region's edge: one set-up of the whole-grid terms
     serves all routes). Otherwise each pick costs an FFT over the oracle's window, and each
     route is scored by its own exact oracle over its own, smaller window (four transects span
-    a cross whose bounding box is mostly empty: 2x faster on 400 x 400 and 700 x 650 grids at
-    budget 120, the values equal to rounding). In km, and wherever the dense covariances are
+    a cross whose bounding box is mostly empty). In km, and wherever the dense covariances are
     as small as :func:`~lrm_cvx.information.make_oracle` holds them densely (targets plus route
-    times route below ``GP_STRUCTURED_MIN_ENTRIES``: 12x faster on a 1,813-cell region), the
+    times route below ``GP_STRUCTURED_MIN_ENTRIES``), the
     dense reference scores each route. ``base``: the greedy's structured oracle on its initial
     cells (:func:`~lrm_cvx.planning.greedy.plan_greedy`), or None; when it convolves each pick
     exactly and its cells hold every route's, each route is scored by a fork of it with no

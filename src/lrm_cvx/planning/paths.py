@@ -47,7 +47,7 @@ __all__ = [
 ELLIPSE_GRAPH = True
 """Routes to an ``end``: the travel graph holds only the cells ``x`` with ``d(start, x) +
 d(x, end) <= travel budget`` (straight-line lower bounds), not the disk of radius travel around
-the start. False restores the disk (benchmarks compare the two)."""
+the start. False uses the disk."""
 
 _QUANTUM = 2.0 ** -20  # graph edge lengths are multiples of this (budget unit): exact sums
 _TOL = 1e-9  # budget tolerance (as the greedy's)

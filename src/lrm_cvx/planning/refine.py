@@ -146,7 +146,7 @@ def refine(
         cells excluded), search again; the result is kept only when it beats the best plan.
     restarts : independent chains of ``kicks`` kicks (iterated local search restarted from the
         local optimum, chain ``j`` seeded with ``seed + j``; the time left is split evenly); the
-        best plan over all chains is kept. ``1`` is the single chain of earlier versions.
+        best plan over all chains is kept.
     shapes : after the local search converges, score this many random polyline routes from the
         start (2-4 legs, :func:`~lrm_cvx.planning.shapes.search_shapes`; at most 10 per square
         grid unit of budget, as few distinct shapes fit a small one), hill-climb the best
