@@ -65,32 +65,17 @@ def a_optimal_value(Y: Any, cells: Any, ridge: float) -> float:
 
 
 # --------------------------------------------------------------------------- compiled kernels
-@numba.njit(cache=True, nogil=True)
-def _fisher_gains(Y, S, idx, out):  # pragma: no cover - compiled
-    """out[j] = log1p(y^T S y) for y = Y[:, idx[j]] (idx < 0: all columns in order)."""
-    k = Y.shape[0]
-    n = out.shape[0]
-    y = np.empty(k)
-    for j in range(n):
-        c = j if idx.shape[0] == 0 else idx[j]
-        for a in range(k):
-            y[a] = Y[a, c]
-        q = 0.0
-        for a in range(k):
-            s = 0.0
-            for b in range(k):
-                s += S[a, b] * y[b]
-            q += y[a] * s
-        out[j] = np.log1p(q)
+_NO_SWS = np.empty((0, 0))  # the Fisher gains' third argument of :func:`_gains`
 
 
 @numba.njit(cache=True, nogil=True)
-def _aopt_gains(Y, S, SWS, idx, out):  # pragma: no cover - compiled
-    """out[j] = (y^T SWS y) / (1 + y^T S y) for y = Y[:, idx[j]]."""
+def _gains(Y, S, SWS, idx, out):  # pragma: no cover - compiled
+    """For ``y = Y[:, idx[j]]`` (idx empty: all columns in order), ``out[j] = log1p(y^T S y)``
+    (Fisher: ``SWS`` empty) or ``(y^T SWS y) / (1 + y^T S y)`` (A-optimal)."""
     k = Y.shape[0]
-    n = out.shape[0]
+    aopt = SWS.shape[0] > 0
     y = np.empty(k)
-    for j in range(n):
+    for j in range(out.shape[0]):
         c = j if idx.shape[0] == 0 else idx[j]
         for a in range(k):
             y[a] = Y[a, c]
@@ -101,10 +86,11 @@ def _aopt_gains(Y, S, SWS, idx, out):  # pragma: no cover - compiled
             t = 0.0
             for b in range(k):
                 s += S[a, b] * y[b]
-                t += SWS[a, b] * y[b]
+                if aopt:
+                    t += SWS[a, b] * y[b]
             q += y[a] * s
             r += y[a] * t
-        out[j] = r / (1.0 + q)
+        out[j] = r / (1.0 + q) if aopt else np.log1p(q)
 
 
 # --------------------------------------------------------------------------- oracles
@@ -200,7 +186,7 @@ class FisherOracle(_Oracle):
         """Gain of every column (``(L,)``) or of the given column indices (``(n,)``), float64."""
         idx = self._idx(candidates)
         out = np.empty(idx.size if candidates is not None else self.Y.shape[1])
-        _fisher_gains(self.Yw, self.S, idx, out)
+        _gains(self.Yw, self.S, _NO_SWS, idx, out)
         return out
 
     @property
@@ -249,7 +235,7 @@ class AOptimalOracle(_Oracle):
         """Variance reduction of every column (``(L,)``) or of the given columns (``(n,)``)."""
         idx = self._idx(candidates)
         out = np.empty(idx.size if candidates is not None else self.Y.shape[1])
-        _aopt_gains(self.Yw, self.S, self.SWS, idx, out)
+        _gains(self.Yw, self.S, self.SWS, idx, out)
         return out
 
     @property
