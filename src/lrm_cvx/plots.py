@@ -43,6 +43,22 @@ def _style(method: str, i: int) -> dict[str, Any]:
     return {"color": cmap(i % 10), "marker": "osD^v<>"[i % 7], "label": method}
 
 
+def _panels(axes: Sequence[Any] | None, n: int, figsize: tuple[float, float],
+            **layout: Any) -> tuple[Any, Any]:
+    """``(figure, axes)``: the caller's ``axes`` and their figure, or ``n`` new side-by-side."""
+    import matplotlib.pyplot as plt
+
+    if axes is None:
+        return plt.subplots(1, n, figsize=figsize, **layout)
+    return axes[0].figure, axes
+
+
+def _mse_label(results: xr.Dataset, label: str) -> str:
+    """``label`` with the units of ``results["mse"]`` when it has them."""
+    units = results["mse"].attrs.get("units")
+    return f"{label} ({units})" if units else label
+
+
 def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
                  title: str | None = None, log_mse: bool = True):
     """Fisher information and reconstruction MSE vs budget, mean +- standard error per method.
@@ -57,10 +73,7 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
 
     df = summary(results)
     with plt.rc_context(_PRINT_RC):
-        if axes is None:
-            fig, axes = plt.subplots(1, 2, figsize=(7.2, 2.6), constrained_layout=True)
-        else:
-            fig = axes[0].figure
+        fig, axes = _panels(axes, 2, (7.2, 2.6), constrained_layout=True)
         for i, (method, rows) in enumerate(df.groupby("method", sort=False)):
             st = _style(method, i)
             for ax, metric in zip(axes, ("information", "mse"), strict=True):
@@ -76,8 +89,7 @@ def plot_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = None,
         complete = float(results["complete_mse"].mean())
         axes[1].axhline(complete, color="0.4", ls="--", lw=1, label="complete")
         axes[0].set_ylabel("Fisher information (nats)")
-        units = results["mse"].attrs.get("units")
-        axes[1].set_ylabel(f"reconstruction MSE ({units})" if units else "reconstruction MSE")
+        axes[1].set_ylabel(_mse_label(results, "reconstruction MSE"))
         for ax in axes:
             ax.set_xlabel("budget (grid cells)")
             ax.grid(alpha=0.3, lw=0.5)
@@ -115,10 +127,7 @@ def plot_backtest(results: xr.Dataset, *, budget: float | None = None,
     labels = (list(np.datetime_as_string(times, unit="D")) if times.dtype.kind == "M"
               else [str(t) for t in times])
     with plt.rc_context(_PRINT_RC):
-        if axes is None:
-            fig, axes = plt.subplots(1, 3, figsize=(7.2, 2.9), layout="constrained")
-        else:
-            fig = axes[0].figure
+        fig, axes = _panels(axes, 3, (7.2, 2.9), layout="constrained")
         x = np.arange(len(labels))
         for i, (method, rows) in enumerate(df.groupby("method", sort=False)):
             st = _style(method, i)
@@ -132,8 +141,7 @@ def plot_backtest(results: xr.Dataset, *, budget: float | None = None,
             ax.axhspan(lo, hi, color="0.85", lw=0, zorder=0)
             ax.axhline(level / 100, color="0.4", ls="--", lw=1)
             ax.set_ylabel(f"{level} % interval coverage")
-        units = results["mse"].attrs.get("units")
-        axes[0].set_ylabel(f"reconstruction MSE ({units})" if units else "reconstruction MSE")
+        axes[0].set_ylabel(_mse_label(results, "reconstruction MSE"))
         for ax in axes:
             ax.set_xticks(x, labels, rotation=30, ha="right")
             ax.set_xlabel("test block (first time)")
@@ -164,10 +172,7 @@ def plot_temporal_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = N
     df = summary(results)
     temporal = "mse_memoryless_mean" in df
     with plt.rc_context(_PRINT_RC):
-        if axes is None:
-            fig, axes = plt.subplots(1, 3, figsize=(10.5, 2.8), constrained_layout=True)
-        else:
-            fig = axes[0].figure
+        fig, axes = _panels(axes, 3, (10.5, 2.8), constrained_layout=True)
         for i, (method, rows) in enumerate(df.groupby("method", sort=False)):
             st = _style(method, i)
             x = rows["budget"].to_numpy()
@@ -188,8 +193,7 @@ def plot_temporal_metrics(results: xr.Dataset, *, axes: Sequence[Any] | None = N
                                  marker=st["marker"], color=st["color"], mfc="none", alpha=0.6)
         for level in (0.68, 0.95):
             axes[2].axhline(level, color="0.4", lw=0.8, ls="--")
-        units = results["mse"].attrs.get("units")
-        axes[0].set_ylabel(f"MSE ({units})" if units else "MSE")
+        axes[0].set_ylabel(_mse_label(results, "MSE"))
         axes[0].set_yscale("log")
         axes[1].axhline(0.0, color="0.4", lw=0.8)
         axes[1].set_ylabel("error cut by the filter (%)")
