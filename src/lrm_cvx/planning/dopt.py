@@ -590,20 +590,34 @@ def _solve_restricted(
     if limit_rows is not None and limit_rows[0].shape[0]:
         cons.append(limit_rows[0] @ w <= limit_rows[1])
     prob = cp.Problem(cp.Maximize(cp.log_det(Mexpr)), cons)
-    attempts = _CLARABEL_OPTS if solver == "CLARABEL" else (_SCS_OPTS,)
+    opts = _CLARABEL_OPTS if solver == "CLARABEL" else (_SCS_OPTS,)
+    value, _, status = _solve_in_turn(prob, w, [(solver, o) for o in opts], verbose=verbose)
+    return value, status
+
+
+def _solve_in_turn(prob: Any, w: Any, attempts: Any, *, verbose: bool | int = False
+                  ) -> tuple[np.ndarray | None, str, str]:
+    """Solve the cvxpy problem ``prob`` with each ``(solver, options)`` of ``attempts`` in turn.
+
+    Returns ``(value of w, solver, status)`` of the first attempt whose status is ``optimal`` or
+    ``optimal_inaccurate`` with a value of the variable ``w``; otherwise ``(None, "", status)``
+    of the last attempt (``"error: ..."`` when it raised, ``"not run"`` without attempts).
+    """
+    import cvxpy as cp
+
     status = "not run"
-    for opts in attempts:
+    for solver, opts in attempts:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)  # "solution may be inaccurate"
                 prob.solve(solver=solver, verbose=verbose, **opts)
         except (cp.error.SolverError, ValueError, ArithmeticError) as exc:
-            status = f"error: {str(exc).splitlines()[0][:80]}"
+            status = f"error: {(str(exc).splitlines() or [''])[0][:80]}"
             continue
         status = str(prob.status)
         if w.value is not None and status in ("optimal", "optimal_inaccurate"):
-            return np.asarray(w.value, dtype=np.float64), status
-    return None, status
+            return np.asarray(w.value, dtype=np.float64), solver, status
+    return None, "", status
 
 
 def _feasible(w: np.ndarray, n: float) -> np.ndarray:

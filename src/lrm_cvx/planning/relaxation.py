@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,6 +28,7 @@ from .dopt import (
     _leverages,
     _moment,
     _moment_map,
+    _solve_in_turn,
 )
 
 _LP_METHOD = "highs-ipm"
@@ -228,19 +228,10 @@ def _solve_cvx(Yw: np.ndarray, C: np.ndarray, poly: PathPolytope, solver: str
     prob = cp.Problem(cp.Maximize(cp.log_det(Mexpr)), cons)
     attempts = [("CLARABEL", o) for o in _CLARABEL_OPTS] if solver == "CLARABEL" else []
     attempts.append(("SCS", _SCS_OPTS))
-    status = "not run"
-    for name, opts in attempts:
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)
-                prob.solve(solver=name, **opts)
-        except (cp.error.SolverError, ValueError, ArithmeticError) as exc:
-            status = f"error: {str(exc).splitlines()[0][:80]}"
-            continue
-        status = str(prob.status)
-        if w.value is not None and status in ("optimal", "optimal_inaccurate"):
-            return np.clip(np.asarray(w.value, float), 0.0, 1.0), f"{name} {status}"
-    return None, status
+    value, name, status = _solve_in_turn(prob, w, attempts)
+    if value is None:
+        return None, status
+    return np.clip(value, 0.0, 1.0), f"{name} {status}"
 
 
 def _dual_at(Yc: np.ndarray, M: np.ndarray, poly: PathPolytope, ridge: float
@@ -588,18 +579,12 @@ def _solve_walk_cvx(Yc: np.ndarray, ridge: float, A: Any, b: np.ndarray, V: np.n
     cons = [w >= 0, w <= 1, th >= 0, cp.sum(th) == 1, w <= V @ th, A @ w <= b]
     prob = cp.Problem(cp.Maximize(cp.log_det(Mexpr)), cons)
     attempts = [("CLARABEL", o) for o in _CLARABEL_OPTS] + [("SCS", _SCS_OPTS)]
-    for name, opts in attempts:
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)
-                prob.solve(solver=name, **opts)
-        except (cp.error.SolverError, ValueError, ArithmeticError):
-            continue
-        if w.value is not None and str(prob.status) in ("optimal", "optimal_inaccurate"):
-            wv = np.clip(np.asarray(w.value, float), 0.0, 1.0)
-            wv[wv < 1e-9] = 0.0
-            over = A @ wv
-            with np.errstate(divide="ignore", invalid="ignore"):
-                f = np.where(over > b, b / over, 1.0)
-            return wv * min(1.0, float(f.min()) if f.size else 1.0)
-    return None
+    wv = _solve_in_turn(prob, w, attempts)[0]
+    if wv is None:
+        return None
+    wv = np.clip(wv, 0.0, 1.0)
+    wv[wv < 1e-9] = 0.0
+    over = A @ wv
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(over > b, b / over, 1.0)
+    return wv * min(1.0, float(f.min()) if f.size else 1.0)
