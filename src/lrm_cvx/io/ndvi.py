@@ -232,8 +232,6 @@ def file_encoding(ndvi_attrs: Any, qa_attrs: Any) -> tuple:
             int(qa_attrs.get("_FillValue", QA_FILL)))
 
 
-
-
 def _ndvi_ok(ndvi_raw: Any, enc: tuple) -> Any:
     """Raw NDVI that is not fill and inside ``valid_range``."""
     _, _, fill, vmin, vmax, _ = enc

@@ -25,7 +25,6 @@ from ..region import Region
 __all__ = ["ChunkStore", "stage", "cdr_source", "is_dask_backed"]
 
 
-
 def is_dask_backed(data: Any) -> bool:
     """True when ``data`` is a dask collection (a dask array, or a DataArray backed by one)."""
     try:

@@ -91,7 +91,6 @@ class Bound:
         )
 
 
-
 # ----------------------------------------------------------------------------- kernels
 @numba.njit(cache=True, nogil=True)
 def _leverages_kernel(Y: np.ndarray, Linv: np.ndarray, out: np.ndarray) -> None:

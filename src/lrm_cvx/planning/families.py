@@ -92,12 +92,6 @@ class PathSpec:
         }
 
 
-def _check_region(region: Any) -> Any:
-    from ..region import check_region
-
-    return check_region(region)
-
-
 def _starts_list(x: Any) -> Any:
     """The certificate's reading of ``start``: a tuple of cell indices is a fleet (a tuple
     with a float is one ``(lat, lon)``); else as :meth:`Fleet.resolve` reads it."""
@@ -509,7 +503,6 @@ def _spacing(region: Any, cand: np.ndarray, spec: PathSpec) -> float:
         return 1.0
     d = min_spacing_km(region, cand)
     return d / spec.speed if spec.speed is not None else d
-
 
 
 def min_spacing_km(region: Any, cand: np.ndarray) -> float:

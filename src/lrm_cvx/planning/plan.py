@@ -20,15 +20,13 @@ __all__ = ["Plan", "PAPER_PATH"]
 
 def path_cumulative(grid_index: np.ndarray) -> np.ndarray:
     """Cumulative Euclidean grid length ``(r,)`` of the path through ``grid_index`` ``(r, 2)``,
-    summed in order from 0 exactly as :func:`lrm_cvx.cost.route_length` sums it."""
+    summed in order from 0 exactly as :func:`~lrm_cvx.planning.routecost.route_length` sums it."""
     g = np.asarray(grid_index, dtype=np.int64).reshape(-1, 2)
     if g.shape[0] == 0:
         return np.empty(0)
     d = np.diff(g, axis=0)
     steps = np.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]).astype(np.float64))
     return np.cumsum(np.concatenate([[0.0], steps]))
-
-
 
 
 def path_dict(starts: Any, budgets: Any, **options: Any) -> PlanPath:
