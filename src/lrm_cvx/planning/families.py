@@ -103,7 +103,7 @@ def _starts_list(x: Any) -> Any:
 
 
 def is_paper_description(desc: Any) -> bool:
-    """``plan.path`` describes the paper's path model (old plans, the default): the caller's
+    """``plan.path`` describes the paper's path model (the default): the caller's
     keywords (e.g. ``metric="km"``) then apply."""
     trav = desc.get("traversable")
     return (desc.get("kind", "path") == "path" and int(desc.get("n_robots", 1) or 1) == 1

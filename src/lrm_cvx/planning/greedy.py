@@ -211,7 +211,7 @@ def plan_greedy(
         left out with a model).
     start : a cell index or a ``(lat, lon)`` tuple (one robot), or a **list** of those, one per
         robot (a fleet; also a 1-D integer array of cells or an ``(n, 2)`` array of lat/lon). A
-        list of two non-integer numbers is read as one ``[lat, lon]`` (as before).
+        list of two non-integer numbers is read as one ``[lat, lon]``.
     budget : the path budget, ``>= 0``, in the path model's unit (grid units; km with
         ``metric="km"``; hours with ``speed``): a number (every robot) or a list, one per robot.
     criterion : ``"fisher"`` (log det gain, the paper) or ``"a-optimal"`` (decrease of the

@@ -740,7 +740,7 @@ def make_path_model(
 
     ``start``: a cell index or ``(lat, lon)``. ``budget`` (>= 0) is in the unit of the path
     options. ``path`` (a :class:`~lrm_cvx.planning.request.PathOptions`) or its keywords
-    ``metric``, ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``end`` (as before):
+    ``metric``, ``speed``, ``stop_cost``, ``traversable``, ``closed``, ``end``:
     ``stop_cost`` (>= 0) is charged per sampling stop, start and end included; ``end`` is a cell
     index or ``(lat, lon)``. ``cost``: ``"nearest-neighbor"`` or ``"insertion"``.
     """

@@ -11,7 +11,7 @@ import numpy as np
 
 from .._validation import atomic_output
 from ..errors import PlanningError
-from ..region import check_region  # noqa: F401  (its old home; planners import it here)
+from ..region import check_region
 from .refiners import REFINERS  # noqa: F401  (re-exported: its first home)
 from .request import PAPER_PATH, PlanPath
 

@@ -274,7 +274,7 @@ def resolve_starts(region: Any, start: Any) -> tuple[list[int], bool]:
                    not isinstance(v, (bool, np.bool_)) for v in start)
         if len(start) == 2 and flat and not all(isinstance(v, (int, np.integer))
                                                 for v in start):
-            return [region.resolve_cell(tuple(start), "start")], False  # [lat, lon], as before
+            return [region.resolve_cell(tuple(start), "start")], False  # one [lat, lon]
         if not start:
             raise PlanningError("start must not be an empty list (one start per robot)")
         cells = [region.resolve_cell(tuple(v) if isinstance(v, list) else v, f"start[{i}]")
@@ -315,8 +315,7 @@ class PlanPath(Mapping):
     built by hand) and :class:`Fleet` (``fleet``), seen as a read-only mapping of the plan's
     path description: ``kind``, ``metric``, ``speed``, ``stop_cost``, ``traversable``
     (``"none"``, ``"valid"`` or ``"mask"``), ``closed``, ``end``, ``unit``, ``sense_along``,
-    ``starts``, ``budgets`` and ``n_robots`` (the same keys, order and values as before, so
-    exports are unchanged; ``dict(plan.path)`` is that description)."""
+    ``starts``, ``budgets`` and ``n_robots`` (``dict(plan.path)`` is that description)."""
 
     __slots__ = ("_items", "_options")
 

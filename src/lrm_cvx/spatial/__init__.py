@@ -20,7 +20,7 @@ from .covariance import (
     estimate_anisotropy,
     fit_residual_covariance,
 )
-from .covariance import cell_xyz as _coords  # noqa: F401  (old private names, kept for tests)
+from .covariance import cell_xyz as _coords  # noqa: F401  (private names the tests use)
 from .kriging import (
     FFT_KRIGE_MIN_WORK,
     FFT_KRIGE_VAR_TOL,

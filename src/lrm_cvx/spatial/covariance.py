@@ -226,7 +226,7 @@ class ResidualCovariance:
             range=float(np.asarray(get["range"]).item()),
             nugget=float(np.asarray(get["nugget"]).item()),
             metric=str(get["metric"]),
-            # files written before the anisotropy (isotropic) have no such attribute
+            # isotropic files may lack the attribute
             anisotropy=float(np.asarray(attrs.get(f"{_ATTR_PREFIX}anisotropy", 1.0)).item()),
         )
 
