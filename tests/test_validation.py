@@ -90,3 +90,11 @@ def test_read_netcdf_names_what_and_path_for_every_unreadable_file(tmp_path):
         with pytest.raises(DataError, match=match) as err:
             read_netcdf(path, "state file", "W")
         assert "state file" in str(err.value)
+
+
+def test_first_line_of_an_exception_message():
+    from lrm_cvx._validation import first_line
+
+    assert first_line(ValueError("  bad value\nthe traceback's detail")) == "bad value"
+    assert first_line(OSError()) == "OSError"
+    assert first_line(RuntimeError(" \n ")) == "RuntimeError"

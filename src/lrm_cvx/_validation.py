@@ -18,8 +18,8 @@ from .errors import DataError, ModelError
 
 __all__ = ["as_generator", "as_factor_matrix", "atomic_output", "atomic_outputs",
            "check_flag", "check_input_file", "check_positive", "check_target",
-           "check_time_labels", "datetime_ns", "file_lock", "guard_outputs", "is_symlink_loop",
-           "read_netcdf", "remove_stale_temps", "same_file"]
+           "check_time_labels", "datetime_ns", "file_lock", "first_line", "guard_outputs",
+           "is_symlink_loop", "read_netcdf", "remove_stale_temps", "same_file"]
 
 
 def as_generator(random_state: Any, name: str = "random_state", *,
@@ -450,6 +450,12 @@ def guard_outputs(
     return outs
 
 
+def first_line(exc: BaseException) -> str:
+    """The first line of ``exc``'s message, or its class name when the message is blank."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 def _refuse_outside_data(path: str | os.PathLike, what: str, name: str) -> None:
     """DataError when the HDF5 file ``path`` would make a reader fetch bytes from other files:
     a dataset with external storage (raw data in another file), a virtual dataset (mapped
@@ -485,9 +491,8 @@ def _refuse_outside_data(path: str | os.PathLike, what: str, name: str) -> None:
     except DataError:
         raise
     except Exception as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DataError(f"{what} {name} is not a readable NetCDF file (corrupt or truncated?): "
-                        f"{first}") from exc
+                        f"{first_line(exc)}") from exc
 
 
 def read_netcdf(path: str | os.PathLike, what: str, writer: str) -> xr.Dataset:
@@ -513,6 +518,5 @@ def read_netcdf(path: str | os.PathLike, what: str, writer: str) -> xr.Dataset:
     except FileNotFoundError:
         raise DataError(f"{what} {name} does not exist") from None
     except Exception as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DataError(f"{what} {name} is not a readable NetCDF file (corrupt or truncated?): "
-                        f"{first}") from exc
+                        f"{first_line(exc)}") from exc

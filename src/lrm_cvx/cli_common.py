@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import guard_outputs
+from ._validation import first_line, guard_outputs
 from .errors import LrmError
 
 __all__ = ["UsageError", "parse_floats", "check_lat", "parse_start", "finite_number",
@@ -159,9 +159,7 @@ def read_observations_csv(path: str, region: Any, what: str = "--observations"
     try:
         obs = pd.read_csv(path)
     except (OSError, ValueError) as exc:
-        raise UsageError(f"cannot read {what} {path}: "
-                         f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
-                         ) from None
+        raise UsageError(f"cannot read {what} {path}: {first_line(exc)}") from None
     if "value" not in obs:
         raise UsageError(f"{what} {path} needs a 'value' column and "
                          f"'cell' or 'lat','lon' columns; it has {list(obs.columns)}")

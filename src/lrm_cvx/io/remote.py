@@ -47,7 +47,7 @@ BACKOFF = 0.5
 TIMEOUT = 60.0
 """HTTP: the longest one request may take, and the longest a read keeps retrying after timed
 out tries (seconds; ``$LRM_CVX_TIMEOUT`` overrides it). A server that trickles a byte now and
-then is abandoned after it. aiohttp's own default would wait up to 300 s a request."""
+then is abandoned after it."""
 READ_TIMEOUT = 30.0
 """HTTP: seconds to connect, and seconds of silence while reading, before a try is abandoned
 (a transient failure, so retried within :data:`TIMEOUT`); ``$LRM_CVX_READ_TIMEOUT`` overrides

@@ -346,9 +346,7 @@ def synthetic_dynamic_field(
     ``"D"`` (daily), ``"MS"`` (monthly, month starts) or ``"YS"`` (yearly, year starts) sets
     the time coordinate. Values are
     not clipped (``clip=False``, unlike :func:`synthetic_field`): the field is exactly the planted
-    linear-Gaussian model plus noise, so the dynamics are recoverable from it (clipping at 1
-    hit 2 % of the values and bent the latent coordinates: ``A`` error 0.25 instead of 0.10
-    from 400 snapshots).
+    linear-Gaussian model plus noise, so the dynamics are recoverable from it.
 
     With ``return_truth`` also returns the truth of :func:`synthetic_field` plus ``"A"``,
     ``"Q"``, ``"mu"``, ``"seasonal"`` ``(rank, T)``, ``"trend"`` ``(rank, T)`` and ``"Z"``

@@ -117,10 +117,8 @@ def _pread_all(fd: int, buf: np.ndarray, offset: int) -> None:
 
 class _Deferred:
     """A dask collection carried into a task unevaluated (dask does not look inside): the task
-    computes it with the synchronous scheduler. A staging block's input is thousands of tiny
-    decode tasks (one per HDF5 tile and operation); run by the scheduler, their overhead
-    dominated staging (16-18 MB/s); run synchronously inside one task per block, they cost
-    what the decoding costs."""
+    computes it with the synchronous scheduler, so the thousands of tiny decode tasks of a
+    staging block cost what the decoding costs, without the scheduler's overhead."""
 
     def __init__(self, obj: Any) -> None:
         self.obj = obj
@@ -617,8 +615,7 @@ def _stage_cdr(data, src, region, chunk_mb, directory, timings) -> tuple[list[st
     clock = time.perf_counter()
     cpu0 = time.process_time()
     # each whole-grid file is removed as soon as the last compacted file reading it is
-    # written: the page cache never holds both copies of the matrix (it did: 21.6 GB at
-    # paper scale, and the kernel reclaimed pages while we wrote)
+    # written: the page cache never holds both copies of the matrix
     first = np.searchsorted(bounds, index[nb[:-1]], side="right") - 1
     last = np.searchsorted(bounds, index[nb[1:] - 1], side="right") - 1
     readers = np.zeros(len(files), dtype=np.int64)

@@ -19,7 +19,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
-from .._validation import as_factor_matrix
+from .._validation import as_factor_matrix, first_line
 from ..errors import ConvergenceWarning, PlanningError, SolverError
 
 __all__ = [
@@ -611,7 +611,7 @@ def _solve_in_turn(prob: Any, w: Any, attempts: Any, *, verbose: bool | int = Fa
                 warnings.simplefilter("ignore", UserWarning)  # "solution may be inaccurate"
                 prob.solve(solver=solver, verbose=verbose, **opts)
         except (cp.error.SolverError, ValueError, ArithmeticError) as exc:
-            status = f"error: {(str(exc).splitlines() or [''])[0][:80]}"
+            status = f"error: {first_line(exc)[:80]}"
             continue
         status = str(prob.status)
         if w.value is not None and status in ("optimal", "optimal_inaccurate"):

@@ -667,7 +667,7 @@ def fit_residual_covariance(
     ``GLRM(spatial=...)`` uses) bounds it by the fitted covariance's own sub-cell semivariance
     (:func:`cell_semivariance` of a typical cell, :func:`cell_size`), refitted to a fixed point:
     a grid's variogram has no lag below one cell, so on smooth fields the fitted nugget
-    collapses to 0 (the bundled sst: 4e-32 against a sill of 0.07) and the GP interpolates the
+    collapses to 0 and the GP interpolates the
     samples exactly, with a zero predictive std at every sampled cell. A new measurement is a
     point value, which differs from its cell's modelled value by at least that sub-cell
     variation; the bound is > 0 whenever the sill is, is scale-free, and needs no other
