@@ -321,12 +321,7 @@ def _best_insert(g, pool, in_plan, lev, cells, route, cost, limit, value, nn, cr
             break
         x = int(pool[free[b]])
         new_cells = np.append(cells, x)
-        if nn:
-            c, r = nearest_neighbor_tour(g, new_cells)
-        else:
-            r = np.insert(route, int(pos[b]) + 1, x)
-            r = repair_route(g, r)
-            c = route_length(g, r)
+        c, r = _exact_route(g, new_cells, None if nn else np.insert(route, int(pos[b]) + 1, x))
         v = crit.value(new_cells)
         if c <= limit and v > value + _EPS:
             return 1, x, -1, new_cells, r, c, v
@@ -375,11 +370,7 @@ def _best_swap(g, pool, in_plan, lev, S, cells, route, limit, value, nn, crit, s
         for b in ok[np.argsort(-new_val[cand[ok]], kind="stable")][:4]:
             y = int(ys[cand[b]])
             new_cells = np.append(rest, y)
-            if nn:
-                c, r = nearest_neighbor_tour(g, new_cells)
-            else:
-                r = repair_route(g, np.insert(r0, int(pos[b]) + 1, y))
-                c = route_length(g, r)
+            c, r = _exact_route(g, new_cells, None if nn else np.insert(r0, int(pos[b]) + 1, y))
             v = crit.value(new_cells)
             if c <= limit and v > target:
                 best = (2, y, int(cells[xi]), new_cells, r, c, v)
@@ -477,11 +468,7 @@ def _shape_restart(region, samples, climbs, seed, time_limit, *, g, start, limit
     if found is None:
         return None
     route = found[0]
-    if nn:
-        c, rr = nearest_neighbor_tour(g, route)
-    else:
-        rr = repair_route(g, route)
-        c = route_length(g, rr)
+    c, rr = _exact_route(g, route, None if nn else route)
     return (route, rr, c, crit.value(route)) if c <= limit else None
 
 
@@ -546,12 +533,18 @@ def _fill(g, rest, r, ys, limit, nn, crit, Sx):
         else:
             r = np.insert(r, int(pos[b]) + 1, y)
             cur = route_length(g, r)
-    if nn:
-        c, rr = nearest_neighbor_tour(g, new_cells)
-    else:
-        rr = repair_route(g, r)
-        c = route_length(g, rr)
+    c, rr = _exact_route(g, new_cells, None if nn else r)
     return new_cells, rr, c
+
+
+def _exact_route(g: np.ndarray, cells: np.ndarray, route: np.ndarray | None
+                 ) -> tuple[float, np.ndarray]:
+    """``(cost, route)`` of a plan's cells under its cost: the nearest-neighbour tour of
+    ``cells`` (``route`` None), else ``route`` repaired by 2-opt and Or-opt."""
+    if route is None:
+        return nearest_neighbor_tour(g, cells)
+    r = repair_route(g, route)
+    return route_length(g, r), r
 
 
 def refine_plan(plan: Plan, options: bool | dict[str, Any], context: RefineContext) -> Plan:
