@@ -7,8 +7,7 @@ fields). Submodules are imported on first use, so ``import lrm_cvx.io`` stays ch
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from ..registry import lazy_attributes
 
 __all__ = [
     "open_data",
@@ -24,27 +23,17 @@ __all__ = [
 ]
 
 _WHERE = {
-    "open_data": "generic",
-    "open_ndvi_cdr": "ndvi",
-    "AVHRR_FLAGS": "ndvi",
-    "VIIRS_FLAGS": "ndvi",
-    "DEFAULT_MASK_FLAGS": "ndvi",
-    "open_image_stack": "imagery",
-    "synthetic_field": "samples",
-    "cloud_gaps": "samples",
-    "write_ndvi_cdr": "ndvi",
-    "write_image_stack": "imagery",
+    "open_data": ".generic",
+    "open_ndvi_cdr": ".ndvi",
+    "AVHRR_FLAGS": ".ndvi",
+    "VIIRS_FLAGS": ".ndvi",
+    "DEFAULT_MASK_FLAGS": ".ndvi",
+    "open_image_stack": ".imagery",
+    "synthetic_field": ".samples",
+    "cloud_gaps": ".samples",
+    "write_ndvi_cdr": ".ndvi",
+    "write_image_stack": ".imagery",
 }
+"""Public name -> its module, imported on first use."""
 
-
-def __getattr__(name: str) -> Any:
-    if name in _WHERE:
-        module = importlib.import_module(f"{__name__}.{_WHERE[name]}")
-        value = getattr(module, name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_attributes(__name__, _WHERE)

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
-
+from ..registry import lazy_attributes
 from .baselines import random_walk, transect
 from .greedy import initial_cells, plan_greedy
 from .plan import Plan
@@ -48,14 +47,6 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    # the certificate module (cvxpy, scipy) is imported only when used
-    if name == "plan_bound":
-        from .certificate import plan_bound
-
-        return plan_bound
-    if name == "dopt_upper_bound":
-        from .dopt import dopt_upper_bound
-
-        return dopt_upper_bound
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# the certificate module (cvxpy, scipy) is imported only when used
+__getattr__, __dir__ = lazy_attributes(
+    __name__, {"plan_bound": ".certificate", "dopt_upper_bound": ".dopt"})
