@@ -2,9 +2,8 @@
 
 Every algorithm works on grid coordinates (the paper's Euclidean grid cost) and on distance
 matrices (any metric, built by :mod:`lrm_cvx.planning.paths`), with exact incremental costs
-``C(P + x) - C(P)`` for every candidate at once (docs/planning.md). One compiled kernel per
-algorithm reads distances through ``_cand`` / ``_stop`` / ``_key`` / ``_len`` from a geometry of
-four arrays: points ``(pr, pc, tr, tc)`` or a matrix ``(DT, S, ts, ts)``.
+``C(P + x) - C(P)`` for every candidate at once (docs/planning.md); one compiled kernel per
+algorithm serves both inputs.
 """
 
 from __future__ import annotations
@@ -554,7 +553,26 @@ class _PoolCost:
         self.active[self.pool == int(cell)] = False
 
 
-class NearestNeighborCost(_PoolCost):
+class _PointCost(_PoolCost):
+    """The tour of the coordinate costs: its cells, their grid positions and step lengths."""
+
+    def _set_tour(self, tour: np.ndarray) -> None:
+        self.tour = np.ascontiguousarray(tour, dtype=np.int64)
+        self._tr = np.ascontiguousarray(self._g[self.tour, 0])
+        self._tc = np.ascontiguousarray(self._g[self.tour, 1])
+        self._r2, self._d = _steps(self._tr, self._tc)
+        self.cost = float(_path_length(self._tr, self._tc))
+
+    def _geometry(self) -> tuple[np.ndarray, ...]:
+        return self._pr, self._pc, self._tr, self._tc
+
+    @property
+    def route(self) -> np.ndarray:
+        """The current route (cell indices from the start)."""
+        return self.tour.copy()
+
+
+class NearestNeighborCost(_PointCost):
     """Exact nearest-neighbour tour cost increases ``C(P + x) - C(P)`` for a candidate pool.
 
     Parameters
@@ -580,16 +598,6 @@ class NearestNeighborCost(_PoolCost):
         self._set_tour(nearest_neighbor_tour(g, cells)[1])
         self._refresh(np.zeros(n, dtype=np.int64))
         self.n_evaluated = int(self.active.sum())
-
-    def _set_tour(self, tour: np.ndarray) -> None:
-        self.tour = np.ascontiguousarray(tour, dtype=np.int64)
-        self._tr = np.ascontiguousarray(self._g[self.tour, 0])
-        self._tc = np.ascontiguousarray(self._g[self.tour, 1])
-        self._r2, self._d = _steps(self._tr, self._tc)
-        self.cost = float(_path_length(self._tr, self._tc))
-
-    def _geometry(self) -> tuple[np.ndarray, ...]:
-        return self._pr, self._pc, self._tr, self._tc
 
     def _refresh(self, t0s: np.ndarray) -> None:
         _nn_eval_all(*self._geometry(), self.pool, self.active, t0s, self.tour, self._r2,
@@ -622,13 +630,8 @@ class NearestNeighborCost(_PoolCost):
         self.n_evaluated = int((t0s >= 0).sum())
         self._refresh(t0s)
 
-    @property
-    def route(self) -> np.ndarray:
-        """The current tour (cell indices from the start)."""
-        return self.tour.copy()
 
-
-class InsertionCost(_PoolCost):
+class InsertionCost(_PointCost):
     """Cheapest-insertion route costs: ``C(P + x) - C(P)`` = the cheapest way to add x.
 
     The route starts as the nearest-neighbour tour of the initial cells. A candidate x can be
@@ -644,25 +647,15 @@ class InsertionCost(_PoolCost):
 
     def __init__(self, grid_index: Any, cells: Any, pool: Any) -> None:
         g, cells = self._init_pool(grid_index, cells, pool)
-        self._set_route(nearest_neighbor_tour(g, cells)[1])
+        self._set_tour(nearest_neighbor_tour(g, cells)[1])
         self._sv = np.full(self.pool.size, np.inf)
         self._sp = np.full(self.pool.size, -1, dtype=np.int64)
-        _ins_all(*self._geometry(), self.active, self._seg, self._sv, self._sp, 0.0)
+        _ins_all(*self._geometry(), self.active, self._d, self._sv, self._sp, 0.0)
         self.n_evaluated = int(self.active.sum())
 
-    def _set_route(self, route: np.ndarray) -> None:
-        self.tour = np.ascontiguousarray(route, dtype=np.int64)
-        self._rr = np.ascontiguousarray(self._g[self.tour, 0])
-        self._rc = np.ascontiguousarray(self._g[self.tour, 1])
-        _, self._seg = _steps(self._rr, self._rc)
-        self.cost = float(_path_length(self._rr, self._rc))
-
-    def _geometry(self) -> tuple[np.ndarray, ...]:
-        return self._pr, self._pc, self._rr, self._rc
-
     def _best(self) -> tuple[np.ndarray, np.ndarray]:
-        dr = self._pr - self._rr[-1]
-        dc = self._pc - self._rc[-1]
+        dr = self._pr - self._tr[-1]
+        dc = self._pc - self._tc[-1]
         append = np.sqrt((dr * dr + dc * dc).astype(np.float64))
         return _cheapest(self._sv, self._sp, append, self.tour.size)
 
@@ -679,15 +672,10 @@ class InsertionCost(_PoolCost):
         i = self._index(cell)
         s = int(self.positions()[i])
         self.active[i] = False
-        self._set_route(np.insert(self.tour, s + 1, int(cell)))
+        self._set_tour(np.insert(self.tour, s + 1, int(cell)))
         n_split = int((self.active & (self._sp == s)).sum())
-        _ins_update(*self._geometry(), self.active, self._seg, s, self._sv, self._sp, 0.0)
+        _ins_update(*self._geometry(), self.active, self._d, s, self._sv, self._sp, 0.0)
         self.n_evaluated = n_split
-
-    @property
-    def route(self) -> np.ndarray:
-        """The current route (cell indices from the start)."""
-        return self.tour.copy()
 
 
 class MatrixRouteCost(_PoolCost):
