@@ -274,25 +274,7 @@ def _dijkstra(indptr, indices, data, src, limit):  # pragma: no cover - compiled
         pos[u] = -2
         size -= 1
         if size > 0:
-            v = heap[size]
-            dv = key[size]
-            i = 0
-            while True:
-                c = 2 * i + 1
-                if c >= size:
-                    break
-                if c + 1 < size and key[c + 1] < key[c]:
-                    c += 1
-                if key[c] < dv:
-                    heap[i] = heap[c]
-                    key[i] = key[c]
-                    pos[heap[i]] = i
-                    i = c
-                else:
-                    break
-            heap[i] = v
-            key[i] = dv
-            pos[v] = i
+            _sift(heap, key, pos, 0, size, heap[size], key[size])
         for e in range(indptr[u], indptr[u + 1]):
             w = indices[e]
             if pos[w] == -2:
@@ -305,19 +287,33 @@ def _dijkstra(indptr, indices, data, src, limit):  # pragma: no cover - compiled
                 if i < 0:
                     i = size
                     size += 1
-                while i > 0:  # sift up
-                    par = (i - 1) >> 1
-                    if key[par] > nd:
-                        heap[i] = heap[par]
-                        key[i] = key[par]
-                        pos[heap[i]] = i
-                        i = par
-                    else:
-                        break
-                heap[i] = w
-                key[i] = nd
-                pos[w] = i
+                _sift(heap, key, pos, i, size, w, nd)
     return dist, pred
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sift(heap, key, pos, i, size, node, d):  # pragma: no cover - compiled
+    """Put ``node`` (key ``d``) at heap position ``i`` of the first ``size`` and restore the
+    order: up while the parent's key is larger, then down while a child's key is smaller."""
+    while i > 0 and key[(i - 1) >> 1] > d:
+        par = (i - 1) >> 1
+        heap[i] = heap[par]
+        key[i] = key[par]
+        pos[heap[i]] = i
+        i = par
+    while 2 * i + 1 < size:
+        c = 2 * i + 1
+        if c + 1 < size and key[c + 1] < key[c]:
+            c += 1
+        if key[c] >= d:
+            break
+        heap[i] = heap[c]
+        key[i] = key[c]
+        pos[heap[i]] = i
+        i = c
+    heap[i] = node
+    key[i] = d
+    pos[node] = i
 
 
 @numba.njit(cache=True, nogil=True)
