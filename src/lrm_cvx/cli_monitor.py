@@ -43,10 +43,6 @@ __all__ = ["add_monitor_parser"]
 _MAP_SUFFIXES = (".nc", ".png", ".pdf")
 
 
-def _usage(message: str) -> Exception:
-    return UsageError(message)
-
-
 #: Seconds a command waits for another one updating the same state file before it gives up
 #: (nothing changed; run it again).
 LOCK_TIMEOUT = 60.0
@@ -94,7 +90,7 @@ def _init_locked(args: argparse.Namespace, out: Path) -> int:
 
     model = load_model(args.model)
     if args.memoryless and args.temporal:
-        raise _usage("--memoryless and --temporal exclude each other")
+        raise UsageError("--memoryless and --temporal exclude each other")
     dynamics = None
     if args.temporal:  # estimated from the model's X_ (the model file is not changed)
         from .glrm.dynamics import estimate
@@ -103,8 +99,8 @@ def _init_locked(args: argparse.Namespace, out: Path) -> int:
         dynamics = estimate(args.temporal, model.X, X[X.dims[1]])
     elif (not args.memoryless and getattr(model, "dynamics_", None) is None
           and getattr(model, "selection_", None) is None):  # auto may choose memoryless
-        raise _usage(f"model {args.model} has no dynamics: pass --temporal ar1 (or seasonal) "
-                     "to estimate them from the model, or --memoryless")
+        raise UsageError(f"model {args.model} has no dynamics: pass --temporal ar1 (or seasonal) "
+                         "to estimate them from the model, or --memoryless")
     memoryless = True if args.memoryless else None
     online = not args.offline_intervals
     state = MonitorState.from_model(model, dynamics=dynamics, memoryless=memoryless,
@@ -175,11 +171,11 @@ def cmd_monitor_replan(args: argparse.Namespace) -> int:
         state = _load_state(args.state)
         plan, t, files = _stored_plan(state, args)
         if args.time is not None and not state.same_snapshot(args.time, t, "--time"):
-            raise _usage(f"--time {args.time} is not the time of the stored plan "
-                         f"({_label(t)}): observations for a different day cannot replan it")
+            raise UsageError(f"--time {args.time} is not the time of the stored plan "
+                             f"({_label(t)}): observations for a different day cannot replan it")
         if state.time_after(t) < 0:
-            raise _usage(f"the stored plan is for {_label(t)} but the state has moved on to "
-                         f"{_label(state.time)}: plan the new day with 'lrm-cvx monitor plan'")
+            raise UsageError(f"the stored plan is for {_label(t)} but the state has moved on to "
+                             f"{_label(state.time)}: plan the new day with 'lrm-cvx monitor plan'")
         done = args.done[0] if len(args.done) == 1 else list(args.done)
         obs = None
         if args.observations is not None:
@@ -204,8 +200,8 @@ def _stored_plan(state: Any, args: argparse.Namespace) -> tuple[Any, Any, list]:
     there is none) and the output files of ``-o`` for its robots, checked."""
     plan, t = state.current_plan, state.current_plan_time
     if plan is None:
-        raise _usage(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
-                     "first")
+        raise UsageError(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
+                         "first")
     files = plan_outputs(args.output, plan.n_robots, args.robot)
     _guard_state_outputs([f for f, _ in files], state, args)
     return plan, t, files
@@ -240,7 +236,7 @@ def _read_observations(path: str, region: Any, var: str | None,
     check_input_file(path, what)  # a FIFO would be waited on forever
     p = Path(path)
     if not p.exists():
-        raise _usage(f"{what} {path} does not exist")
+        raise UsageError(f"{what} {path} does not exist")
     if p.suffix.lower() in (".nc", ".nc4", ".netcdf"):
         import xarray as xr
 
@@ -253,14 +249,14 @@ def _read_observations(path: str, region: Any, var: str | None,
             raise DataError(f"{path} is not a readable NetCDF file: {exc}") from None
         names = [var] if var else [n for n in ds.data_vars if ds[n].ndim >= 2]
         if len(names) != 1 or names[0] not in ds:
-            raise _usage(f"{path}: pick the observation variable with --var (found "
-                         f"{list(ds.data_vars)})")
+            raise UsageError(f"{path}: pick the observation variable with --var (found "
+                             f"{list(ds.data_vars)})")
         da = ds[names[0]]
         extra = [d for d in da.dims if da.sizes[d] == 1 and d not in ("lat", "lon")]
         da = da.squeeze(extra, drop=True) if extra else da
         if da.ndim != 2:
-            raise _usage(f"{path}: variable {names[0]!r} must be a (lat, lon) map, got dims "
-                         f"{da.dims}")
+            raise UsageError(f"{path}: variable {names[0]!r} must be a (lat, lon) map, got dims "
+                             f"{da.dims}")
         return da
     return read_observations_csv(path, region, what)
 
@@ -279,8 +275,8 @@ def cmd_monitor_assimilate(args: argparse.Namespace) -> int:
             from .planning.sensors import footprint_matrix
 
             if not isinstance(obs, tuple):
-                raise _usage("--sensor with a footprint reads a CSV of footprint centres "
-                             "(value and cell or lat, lon), not a NetCDF map")
+                raise UsageError("--sensor with a footprint reads a CSV of footprint centres "
+                                 "(value and cell or lat, lon), not a NetCDF map")
             cells, values = obs
             rows = footprint_matrix(state.model.region_, sensor, cells)
             state.assimilate_rows(rows, values, t, force=args.force,
@@ -313,8 +309,8 @@ def _assimilate_sensor(args: argparse.Namespace, state: Any) -> Any:
         plan = getattr(state, "current_plan", None)
         sensor = plan.sensor if plan is not None else POINT
     if sensor.is_leg:
-        raise _usage("monitor assimilate takes point or footprint readings; for a towed "
-                     "(leg-average) sensor give each leg's cells as points")
+        raise UsageError("monitor assimilate takes point or footprint readings; for a towed "
+                         "(leg-average) sensor give each leg's cells as points")
     return sensor
 
 
@@ -322,7 +318,7 @@ def cmd_monitor_map(args: argparse.Namespace) -> int:
 
     suffix = Path(args.output).suffix.lower()
     if suffix not in _MAP_SUFFIXES:
-        raise _usage(f"-o must end in .nc, .png or .pdf, got {Path(args.output).name!r}")
+        raise UsageError(f"-o must end in .nc, .png or .pdf, got {Path(args.output).name!r}")
     guard_paths([args.output], [args.state], args)
     state = _load_state(args.state)
     out = _guard_state_outputs(args.output, state, args)
@@ -336,7 +332,7 @@ def cmd_monitor_map(args: argparse.Namespace) -> int:
             ds.to_netcdf(tmp)
     else:
         if state.model.region_ is None:
-            raise _usage("a map image needs a model fitted on gridded data")
+            raise UsageError("a map image needs a model fitted on gridded data")
         import matplotlib
 
         matplotlib.use("Agg")

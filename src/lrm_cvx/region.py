@@ -502,9 +502,6 @@ def check_bbox(bbox: Any, error: type[Exception] = RegionError) -> BBox:
     return south, west, north, east
 
 
-_check_bbox = check_bbox
-
-
 def lon_in_box(lon: Any, west: float, east: float) -> np.ndarray:
     """Boolean mask of longitudes inside ``[west, east]`` going east, in any convention.
 
