@@ -307,8 +307,7 @@ def _release_failed_reads() -> None:
     h5py's Python file-object driver. HDF5 frees it only at process exit, from a C ``atexit``
     handler that runs after Python has shut down; the driver's free callback then takes the
     GIL of a finalized interpreter and the process dies with SIGSEGV (exit 139) after the right
-    error was printed (gdb: ``H5_term_library -> H5FD_fileobj_fapl_free ->
-    PyGILState_Ensure``). So after a failure the file-object property lists nothing in Python
+    error was printed. So after a failure the file-object property lists nothing in Python
     holds any more are released here, while the interpreter is alive."""
     import gc
 
