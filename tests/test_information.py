@@ -276,3 +276,22 @@ def test_structured_oracle_with_a_kernel_far_longer_than_the_grid_skips_the_lag_
         d.add(c)
     gs, gd = s.gains(), d.gains()
     np.testing.assert_allclose(gs, gd, rtol=1e-6, atol=1e-9 * np.max(np.abs(gd)))
+
+
+def test_a_singular_information_matrix_is_one_line_naming_its_observations():
+    import scipy.sparse as sps
+
+    from lrm_cvx.oracles import FisherOracle, RowOracle
+
+    Y = np.ones((3, 6))  # every column the same: rank 1 < k = 3
+    with pytest.raises(PlanningError, match=r"^the information matrix of the 2 initial cells is "
+                       r"singular \(rank 1 < k = 3\); pass a small ridge \(e\.g\. ridge=1e-6\) "
+                       r"or start with more cells$"):
+        FisherOracle(Y, 0.0, [0, 1])
+    Y = np.random.default_rng(0).standard_normal((3, 6))
+    legs = sps.identity(6, format="csr")[:3]
+    oracle = RowOracle("fisher", Y, pool=np.arange(6), rows=sps.identity(6, format="csr"),
+                       extra_rows=legs)
+    with pytest.raises(PlanningError, match=r"^the information matrix of the 0 observations is "
+                       r"singular \(rank 0 < k = 3\); pass a small ridge \(e\.g\. ridge=1e-6\)$"):
+        oracle.set_extra(sps.csr_matrix((0, 6)))

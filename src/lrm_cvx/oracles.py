@@ -94,6 +94,18 @@ def _gains(Y, S, SWS, idx, out):  # pragma: no cover - compiled
 
 
 # --------------------------------------------------------------------------- oracles
+def _inverse(M: np.ndarray, what: str, hint: str = "") -> tuple[np.ndarray, float]:
+    """``(M^-1 symmetrised, log det M)`` of an information matrix; PlanningError naming
+    ``what`` (its observations) when ``M`` is singular."""
+    sign, logdet = np.linalg.slogdet(M)
+    if sign <= 0 or np.linalg.cond(M) > 1e13:
+        raise PlanningError(
+            f"the information matrix of {what} is singular (rank {np.linalg.matrix_rank(M)} "
+            f"< k = {M.shape[0]}); pass a small ridge (e.g. ridge=1e-6){hint}")
+    S = np.linalg.inv(M)
+    return 0.5 * (S + S.T), float(logdet)
+
+
 class _Oracle:
     """Shared state: the factor matrix, the current set and ``S = M^-1`` in float64."""
 
@@ -120,16 +132,8 @@ class _Oracle:
                 raise PlanningError(f"prior_precision must be a finite ({k}, {k}) matrix")
             self.P0 = 0.5 * (P0 + P0.T)
         M = self._M(np.asarray(self.cells, dtype=np.int64))
-        sign, logdet = np.linalg.slogdet(M)
-        if sign <= 0 or np.linalg.cond(M) > 1e13:
-            raise PlanningError(
-                f"the information matrix of the {len(self.cells)} initial cells is singular "
-                f"(rank {np.linalg.matrix_rank(M)} < k = {self.Y.shape[0]}); "
-                "pass a small ridge (e.g. ridge=1e-6) or start with more cells"
-            )
-        self.S = np.linalg.inv(M)
-        self.S = 0.5 * (self.S + self.S.T)
-        self._logdet = float(logdet)
+        self.S, self._logdet = _inverse(M, f"the {len(self.cells)} initial cells",
+                                        " or start with more cells")
 
     def _M(self, cells: np.ndarray) -> np.ndarray:
         """``P0 (or ridge I) + sum_{p in cells} w_p y_p y_p^T``."""
@@ -346,14 +350,7 @@ class RowOracle:
         Ye, ve = row_factors(self._Yk, sps.csr_matrix(extra_rows), self._noise, self._errors)
         Yw = np.hstack([b.Yw[:, self._pos(self.cells)], Ye / np.sqrt(ve)])
         M = (b.ridge * np.eye(b.k) if b.P0 is None else b.P0) + Yw @ Yw.T
-        sign, logdet = np.linalg.slogdet(M)
-        if sign <= 0 or np.linalg.cond(M) > 1e13:
-            raise PlanningError(
-                f"the information matrix of the {Yw.shape[1]} observations is singular (rank "
-                f"{np.linalg.matrix_rank(M)} < k = {b.k}); pass a small ridge (e.g. "
-                "ridge=1e-6)")
-        S = np.linalg.inv(M)
-        b.S, b._logdet = 0.5 * (S + S.T), float(logdet)
+        b.S, b._logdet = _inverse(M, f"the {Yw.shape[1]} observations")
         b._after_add()
 
     def _pos(self, cells: Any) -> np.ndarray:
