@@ -7,7 +7,7 @@ recommended model ``GLRM(rank, offset=True, spatial="exponential", temporal="ar1
 on all snapshots but the last ``n_test`` (12 planted, 8 real), then
 
 1. the dynamics are shrunk towards the memoryless model on validation snapshots (the last fifth
-   of the training snapshots; :func:`~lrm_cvx.validation.calibration.select_dynamics`: the blend
+   of the training snapshots; :func:`~lrm_cvx.validation.blending.select_dynamics`: the blend
    weight ``alpha`` minimising the worst validation MSE ratio to memoryless over sample sizes,
    applied to the unblended estimate: it replaces the fit's own blend, never composes with it);
 2. the predictive variance is calibrated on cross-validated fold-in residuals of the training

@@ -11,15 +11,14 @@ from scipy.stats import norm
 
 from lrm_cvx.errors import ModelError
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.calibrated import prediction_factor
-from lrm_cvx.monitor import MonitorState
-from lrm_cvx.validation.calibration import (
+from lrm_cvx.glrm.calibrated import (
     Calibration,
-    calibrate,
-    fit_scale,
     interval_coverage,
+    prediction_factor,
     predictive_std,
 )
+from lrm_cvx.monitor import MonitorState
+from lrm_cvx.validation.calibration import calibrate, fit_scale
 from lrm_cvx.validation.designs import sample_sets
 
 

@@ -42,32 +42,22 @@ import numpy as np
 
 from .._validation import as_generator
 from ..errors import ModelError
-from ..glrm.calibrated import (  # noqa: F401  (re-exported: the old import location)
+from ..glrm.calibrated import (
     SCORE_GRID,
     Calibration,
     check_level,
     conformal_quantile,
     interval_coverage,
-    noise_variance,
     predictive_std,
-    variance_scale,
 )
-from .blending import (  # noqa: F401  (re-exported: the old import location)
-    blend_dynamics,
-    memoryless_cov,
-    select_dynamics,
-    unblended_dynamics,
-)
-from .designs import ALL_KINDS, SET_KINDS, flown_sets, sample_sets  # noqa: F401  (re-exported)
+from .blending import blend_dynamics, memoryless_cov
+from .designs import ALL_KINDS, SET_KINDS
 from .refits import clone_model, refit_carries, training_values, validation_view
 from .search import ForwardBlocks, HeldOutCells, InterleavedBlocks
 
-__all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
-           "blend_dynamics", "select_dynamics", "unblended_dynamics",
-           "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95",
-           "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "RESIDUAL_SCALES", "clone_model",
-           "training_values", "memoryless_cov", "conformal_quantile", "conformal_scores",
-           "calibrate_with", "fit_then_try_calibrate", "LOCAL_POWERS"]
+__all__ = ["calibrate", "cv_residuals", "fit_scale", "Z68", "Z95", "fit_adaptive_scale",
+           "DOF_GRID", "DISCOUNT_GRID", "LOCAL_POWERS", "conformal_scores", "calibrate_with",
+           "fit_then_try_calibrate", "refit_dynamics"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
 Z95 = 1.959963984540054   # two-sided 95%

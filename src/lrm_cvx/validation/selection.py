@@ -22,7 +22,7 @@ campaign would meet them:
   (:func:`~.filter.batch_step`, the algebra of ``LatentFilter.assimilate``).
 * **Candidates** (cadence-aware): memoryless (every day's prior the empirical prior), AR(1) and
   the seasonal model (monthly or daily dates seen over two years; yearly data has no season), each
-  blended towards the memoryless prior by ``alpha`` (:func:`~.calibration.blend_dynamics`):
+  blended towards the memoryless prior by ``alpha`` (:func:`~.blending.blend_dynamics`):
   ``seasonal`` with ``alpha = 0`` is the seasonal climatology with the anomalies' covariance,
   with ``alpha = 1`` the climatology plus AR(1) anomalies. Each is tried with the residual and
   noise variances inflated by the factors :data:`AUTO_INFLATIONS` (``model.residual_inflation_``,
