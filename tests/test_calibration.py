@@ -328,6 +328,38 @@ def test_residual_scale_multiplies_the_residual_and_noise_variances():
     assert back.residual_scale == 2.0
 
 
+def test_one_grid_of_the_residual_factor(monkeypatch):
+    """temporal='auto' tries the whole doublings of the one grid of the residual factor and
+    calibrate(residual=True) all of it, on top of the model's residual_inflation_ (which the
+    residual factor multiplies)."""
+    from lrm_cvx.glrm.calibrated import RESIDUAL_FACTORS, residual_factor
+    from lrm_cvx.validation import calibration as calibration_module
+    from lrm_cvx.validation.selection import AUTO_INFLATIONS
+
+    assert AUTO_INFLATIONS == (1.0, 2.0, 4.0, 8.0)
+    assert set(AUTO_INFLATIONS) < set(RESIDUAL_FACTORS) and min(RESIDUAL_FACTORS) < 1.0
+    assert not hasattr(calibration_module, "RESIDUAL_SCALES")
+    asked = []
+
+    def spy(*args, **kw):
+        asked.append(kw["residual_scales"])
+        raise ModelError("stop")
+
+    monkeypatch.setattr(calibration_module, "cv_residuals", spy)
+    for residual in (True, False):
+        with pytest.raises(ModelError, match="stop"):
+            calibrate(object(), np.zeros((20, 3, 3)), residual=residual)
+    assert asked == [RESIDUAL_FACTORS, (1.0,)]
+    data = _planted(T=20, ny=6, nx=7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=3, progress=False, random_state=0, max_iter=5).fit(data)
+    one = residual_factor(model)
+    model.residual_inflation_ = 4.0
+    model.calibration_ = Calibration(scale=1.0, residual_scale=1.41)
+    assert residual_factor(model) == pytest.approx(4.0 * 1.41 * one)
+
+
 def test_adaptive_scale_is_carried_by_the_monitor_state_and_saved(tmp_path):
     from lrm_cvx.io.samples import synthetic_dynamic_field
 

@@ -43,6 +43,7 @@ import numpy as np
 from .._validation import as_generator
 from ..errors import ModelError
 from ..glrm.calibrated import (
+    RESIDUAL_FACTORS,
     SCORE_GRID,
     Calibration,
     check_level,
@@ -261,7 +262,6 @@ def _rescaled(prior: Any, rho: float) -> Any:
                            prior.base_shift)
 
 
-RESIDUAL_SCALES = (0.5, 0.71, 1.0, 1.41, 2.0, 2.83, 4.0, 5.66, 8.0)
 LOCAL_POWERS = (0.0, 0.25, 0.5, 0.75, 1.0)
 """The powers of a cell's ``residual_spread_`` a calibration validates for its intervals
 (``Calibration.local_power``)."""
@@ -521,7 +521,9 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     under the prior (the conjugate update of the scale by the standardized innovations), so a
     calm period gets narrower intervals and a stormy one wider ones, memoryless or filtered.
     ``residual`` (default): also re-estimate the residual and noise variances by a factor
-    ``Calibration.residual_scale`` among :data:`RESIDUAL_SCALES` (the same cross-validated
+    ``Calibration.residual_scale`` among the one grid of the factor,
+    :data:`~lrm_cvx.glrm.calibrated.RESIDUAL_FACTORS`, on top of the model's validated
+    ``residual_inflation_`` (the same cross-validated
     fold-ins redone with each; the factor whose scaled residuals have the highest Gaussian
     log-likelihood *of the raw residuals* wins): the fitted nugget and sill come from training
     residuals, which
@@ -569,7 +571,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
         raise ModelError(f"folds must be 'interleaved' or 'forward', got {folds!r}")
     splitter = (ForwardBlocks if folds == "forward" else InterleavedBlocks)(n_blocks)
     kw = dict(sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
-    rhos = RESIDUAL_SCALES if residual else (1.0,)
+    rhos = RESIDUAL_FACTORS if residual else (1.0,)
     conformal_fit = method == "conformal"
     by_rho = cv_residuals(model, data, seed=seed, innovations=True, residual_scales=rhos,
                           max_cells=max_cells, folds=splitter, **kw)
