@@ -173,8 +173,8 @@ def fit_and_evaluate(data, n_test: int, rank: int, budgets: tuple, n_starts: int
         f"({time.perf_counter() - t0:.1f} s, {table.attrs['n_days']} validation days); "
         "validation MSE ratio to memoryless per size, then the 95 % upper bound of the "
         "relative change (admissible <= 0.01):")
-    say((table / table.loc[0.0]).round(3).to_string())
-    say(table.attrs["ucb"].round(3).to_string())
+    say(table["ratio"].swap_dims(candidate="alpha").to_pandas().round(3).to_string())
+    say(table["ucb"].swap_dims(candidate="alpha").to_pandas().round(3).to_string())
 
     t0 = time.perf_counter()
     cal = calibrate(model, train, seed=0)
