@@ -321,6 +321,29 @@ DOF_GRID = (1.0, 4.0, 16.0, 64.0, 256.0, 1024.0)
 DISCOUNT_GRID = (0.0, 0.5, 0.8, 0.95, 1.0)
 
 
+def _innovation_evidence(records: Sequence[tuple]) -> tuple[np.ndarray, np.ndarray, Any]:
+    """``(q, n, evidence)``: each record's innovation statistic and count (0 where it has
+    none) and ``evidence(discount) -> (E_q, E_n)``, the mean ``q`` and ``n`` per earlier
+    snapshot ``t' < t`` weighted by ``discount^(t - t')`` (0 with ``discount`` 0)."""
+    q = np.array([float(r[1]) for r in records])
+    n = np.array([float(r[2]) for r in records])
+    t = np.array([int(r[3]) if len(r) > 3 else 0 for r in records])
+    ok = np.isfinite(q) & (n > 0)
+    q, n = np.where(ok, q, 0.0), np.where(ok, n, 0.0)
+    snaps = np.unique(t)
+    qbar = np.array([q[t == u].mean() for u in snaps])
+    nbar = np.array([n[t == u].mean() for u in snaps])
+    gap = t[:, None] - snaps[None, :]  # (records, snapshots): steps back to each earlier one
+
+    def evidence(disc: float) -> tuple[np.ndarray, np.ndarray]:
+        if disc == 0.0:
+            return np.zeros(len(records)), np.zeros(len(records))
+        w = np.where(gap > 0, disc ** np.maximum(gap, 0).astype(np.float64), 0.0)
+        return w @ qbar, w @ nbar
+
+    return q, n, evidence
+
+
 def fit_adaptive_scale(records: Sequence[tuple], dofs: Sequence[float] = DOF_GRID,
                        discounts: Sequence[float] = DISCOUNT_GRID
                        ) -> tuple[float, float | None, float, float]:
@@ -336,23 +359,9 @@ def fit_adaptive_scale(records: Sequence[tuple], dofs: Sequence[float] = DOF_GRI
     log-likelihood of the held-out residuals under ``N(0, s_i)`` wins. ``gain`` is its
     log-likelihood per residual minus the fixed scale's (>= 0)."""
     z = [np.asarray(r[0], dtype=np.float64) for r in records]
-    q = np.array([float(r[1]) for r in records])
-    n = np.array([float(r[2]) for r in records])
-    t = np.array([int(r[3]) if len(r) > 3 else 0 for r in records])
-    ok = np.isfinite(q) & (n > 0)
-    q, n = np.where(ok, q, 0.0), np.where(ok, n, 0.0)
+    q, n, evidence = _innovation_evidence(records)
     sizes = np.array([zi.size for zi in z])
     zall = np.concatenate(z)
-    snaps = np.unique(t)
-    qbar = np.array([q[t == u].mean() for u in snaps])
-    nbar = np.array([n[t == u].mean() for u in snaps])
-    gap = t[:, None] - snaps[None, :]  # (records, snapshots): steps back to each earlier one
-
-    def evidence(disc: float) -> tuple[np.ndarray, np.ndarray]:
-        if disc == 0.0:
-            return np.zeros(len(z)), np.zeros(len(z))
-        w = np.where(gap > 0, disc ** np.maximum(gap, 0).astype(np.float64), 0.0)
-        return w @ qbar, w @ nbar
 
     def scales(s0: float, dof: float | None, eq: np.ndarray, en: np.ndarray) -> np.ndarray:
         if dof is None:
@@ -389,20 +398,8 @@ def _record_scales(records: Sequence[tuple], scale: float, dof: float | None,
     (:func:`fit_adaptive_scale`'s model; ``scale`` for all when ``dof`` is None)."""
     if dof is None:
         return np.full(len(records), float(scale))
-    q = np.array([float(r[1]) for r in records])
-    n = np.array([float(r[2]) for r in records])
-    t = np.array([int(r[3]) for r in records])
-    ok = np.isfinite(q) & (n > 0)
-    q, n = np.where(ok, q, 0.0), np.where(ok, n, 0.0)
-    snaps = np.unique(t)
-    qbar = np.array([q[t == u].mean() for u in snaps])
-    nbar = np.array([n[t == u].mean() for u in snaps])
-    gap = t[:, None] - snaps[None, :]
-    if discount > 0:
-        w = np.where(gap > 0, discount ** np.maximum(gap, 0).astype(np.float64), 0.0)
-        eq, en = w @ qbar, w @ nbar
-    else:
-        eq, en = np.zeros(len(records)), np.zeros(len(records))
+    q, n, evidence = _innovation_evidence(records)
+    eq, en = evidence(float(discount))
     return (dof * scale + eq + q) / (dof + en + n)
 
 
