@@ -7,7 +7,7 @@ recommended model ``GLRM(rank, offset=True, spatial="exponential", temporal="ar1
 on all snapshots but the last ``n_test`` (12 planted, 8 real), then
 
 1. the dynamics are shrunk towards the memoryless model on validation snapshots (the last fifth
-   of the training snapshots; :func:`~lrm_cvx.validation.calibration.select_dynamics`: the blend
+   of the training snapshots; :func:`~lrm_cvx.validation.blending.select_dynamics`: the blend
    weight ``alpha`` minimising the worst validation MSE ratio to memoryless over sample sizes,
    applied to the unblended estimate: it replaces the fit's own blend, never composes with it);
 2. the predictive variance is calibrated on cross-validated fold-in residuals of the training
@@ -173,8 +173,8 @@ def fit_and_evaluate(data, n_test: int, rank: int, budgets: tuple, n_starts: int
         f"({time.perf_counter() - t0:.1f} s, {table.attrs['n_days']} validation days); "
         "validation MSE ratio to memoryless per size, then the 95 % upper bound of the "
         "relative change (admissible <= 0.01):")
-    say((table / table.loc[0.0]).round(3).to_string())
-    say(table.attrs["ucb"].round(3).to_string())
+    say(table["ratio"].swap_dims(candidate="alpha").to_pandas().round(3).to_string())
+    say(table["ucb"].swap_dims(candidate="alpha").to_pandas().round(3).to_string())
 
     t0 = time.perf_counter()
     cal = calibrate(model, train, seed=0)

@@ -11,15 +11,14 @@ from scipy.stats import norm
 
 from lrm_cvx.errors import ModelError
 from lrm_cvx.glrm import GLRM
-from lrm_cvx.glrm.calibrated import prediction_factor
-from lrm_cvx.monitor import MonitorState
-from lrm_cvx.validation.calibration import (
+from lrm_cvx.glrm.calibrated import (
     Calibration,
-    calibrate,
-    fit_scale,
     interval_coverage,
+    prediction_factor,
     predictive_std,
 )
+from lrm_cvx.monitor import MonitorState
+from lrm_cvx.validation.calibration import calibrate, fit_scale
 from lrm_cvx.validation.designs import sample_sets
 
 
@@ -215,11 +214,12 @@ def test_blend_dynamics_endpoints_and_select_dynamics():
     np.testing.assert_allclose(base.Q, plain.Q)
     alpha, table = select_dynamics(model, data, alphas=(0.0, 1.0), sizes=(3, 10), n_val=6)
     # candidates: the given alphas, 0 and the fit's own blend
-    assert set(table.index) == {0.0, 1.0, round(dyn.blend, 12)} and table.shape[1] == 2
-    assert alpha in set(table.index)
+    total = table["total"].swap_dims(candidate="alpha")
+    assert set(total["alpha"].values) == {0.0, 1.0, round(dyn.blend, 12)}
+    assert table.sizes["size"] == 2 and alpha in set(total["alpha"].values)
     # the choice never does worse than memoryless on the validation snapshots, at any size
-    assert np.all(table.loc[alpha].values <= table.loc[0.0].values + 1e-12)
-    assert model.dynamics_alpha_ == alpha
+    assert np.all(total.sel(alpha=alpha).values <= total.sel(alpha=0.0).values + 1e-12)
+    assert model.dynamics_selection_.attrs["choice_alpha"] == alpha
     # one rule: the applied dynamics are the *unblended* estimate blended by alpha (the fit's
     # blend does not compose with it)
     np.testing.assert_allclose(model.dynamics_.A, alpha * plain.A, atol=1e-12)
@@ -298,13 +298,14 @@ def test_select_dynamics_keeps_memoryless_without_significant_gain():
     alpha, table = select_dynamics(model, data, alphas=(0.5, 1.0), sizes=(3,), n_val=6,
                                    confidence=50.0, tolerance=0.0, apply=False)
     assert alpha == 0.0
-    ucb = table.attrs["ucb"]
-    assert np.all(ucb.loc[0.0].values == 0.0) and table.attrs["n_days"] == 12  # 2 windows
+    ucb = table["ucb"].swap_dims(candidate="alpha")
+    assert np.all(ucb.sel(alpha=0.0).values == 0.0) and table.attrs["n_days"] == 12  # 2 windows
     # no guard: the plain best worst ratio
     alpha2, table2 = select_dynamics(model, data, alphas=(0.5, 1.0), sizes=(3,), n_val=6,
                                      confidence=0.0, tolerance=np.inf, apply=False)
-    ratio = (table2 / table2.loc[0.0]).max(axis=1)
-    assert alpha2 == ratio.idxmin()
+    total = table2["total"].swap_dims(candidate="alpha")
+    ratio = (total / total.sel(alpha=0.0)).max("size")
+    assert alpha2 == float(ratio.idxmin())
     with pytest.raises(ModelError, match="n_folds"):
         select_dynamics(model, data, n_folds=0)
 
@@ -327,6 +328,38 @@ def test_residual_scale_multiplies_the_residual_and_noise_variances():
                                             * prediction_factor(model))  # a new snapshot's
     back = Calibration.from_attrs(model.calibration_.to_attrs())
     assert back.residual_scale == 2.0
+
+
+def test_one_grid_of_the_residual_factor(monkeypatch):
+    """temporal='auto' tries the whole doublings of the one grid of the residual factor and
+    calibrate(residual=True) all of it, on top of the model's residual_inflation_ (which the
+    residual factor multiplies)."""
+    from lrm_cvx.glrm.calibrated import RESIDUAL_FACTORS, residual_factor
+    from lrm_cvx.validation import calibration as calibration_module
+    from lrm_cvx.validation.selection import AUTO_INFLATIONS
+
+    assert AUTO_INFLATIONS == (1.0, 2.0, 4.0, 8.0)
+    assert set(AUTO_INFLATIONS) < set(RESIDUAL_FACTORS) and min(RESIDUAL_FACTORS) < 1.0
+    assert not hasattr(calibration_module, "RESIDUAL_SCALES")
+    asked = []
+
+    def spy(*args, **kw):
+        asked.append(kw["residual_scales"])
+        raise ModelError("stop")
+
+    monkeypatch.setattr(calibration_module, "cv_residuals", spy)
+    for residual in (True, False):
+        with pytest.raises(ModelError, match="stop"):
+            calibrate(object(), np.zeros((20, 3, 3)), residual=residual)
+    assert asked == [RESIDUAL_FACTORS, (1.0,)]
+    data = _planted(T=20, ny=6, nx=7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=3, progress=False, random_state=0, max_iter=5).fit(data)
+    one = residual_factor(model)
+    model.residual_inflation_ = 4.0
+    model.calibration_ = Calibration(scale=1.0, residual_scale=1.41)
+    assert residual_factor(model) == pytest.approx(4.0 * 1.41 * one)
 
 
 def test_adaptive_scale_is_carried_by_the_monitor_state_and_saved(tmp_path):
@@ -417,19 +450,6 @@ def test_default_folds_shrink_on_a_short_record():
         calibrate(model, data, n_blocks=8)
 
 
-def test_moved_names_still_import_from_calibration():
-    """The sample designs, refits and dynamics blends moved to their own modules; the old
-    import location keeps serving the same objects."""
-    from lrm_cvx.validation import blending, calibration, designs, refits
-
-    for mod, names in ((designs, ("sample_sets", "SET_KINDS", "ALL_KINDS")),
-                       (refits, ("clone_model", "training_values")),
-                       (blending, ("blend_dynamics", "unblended_dynamics", "memoryless_cov",
-                                   "select_dynamics"))):
-        for name in names:
-            assert getattr(calibration, name) is getattr(mod, name), name
-
-
 def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry(monkeypatch):
     """The forward folds refit on the snapshots before each block: on a short record the
     earliest blocks cannot carry the model's rank and are skipped (the residuals come from
@@ -454,7 +474,7 @@ def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry(monkeypatc
 
     monkeypatch.setattr(GLRM, "fit", counted)
     z = cv_residuals(model, data, folds=ForwardBlocks(6), sizes=(5,),
-                     kinds=("scattered",), max_snapshots=1)
+                     kinds=("scattered",), max_snapshots=1).z()
     monkeypatch.undo()
     assert refits == [int(b[0]) for b in kept]  # exactly the blocks that can be refitted
     assert z.size > 0 and np.all(np.isfinite(z))
@@ -472,8 +492,38 @@ def test_a_short_record_calibrates_on_the_blocks_its_refits_can_carry(monkeypatc
     cheap = dict(sizes=(5,), kinds=("scattered",), max_snapshots=1, seed=1)
     with pytest.raises(ModelError, match=r"n_blocks must be in \[2, 6\] for 12 snapshots, got 8"):
         cv_residuals(model, data, folds="interleaved", **cheap)  # the name: 8 blocks
-    assert np.all(np.isfinite(cv_residuals(model, data, folds=InterleavedBlocks(6), **cheap)))
+    assert np.all(np.isfinite(cv_residuals(model, data, folds=InterleavedBlocks(6), **cheap).z()))
     for bad in ("sideways", RollingOrigin(2, 2)):
         with pytest.raises(ModelError, match="folds must be") as err:
             cv_residuals(model, data, folds=bad, **cheap)
         assert "\n" not in str(err.value)
+
+
+def test_cv_residuals_returns_one_table_of_rows():
+    """cv_residuals gives one CVResiduals for every setting: rows per fold-in and factor (the
+    same cells for every factor), or per filter day for the filter and its memoryless twin."""
+    from lrm_cvx.validation.calibration import CVResiduals, cv_residuals
+    from lrm_cvx.validation.search import ForwardBlocks, InterleavedBlocks
+
+    data = _planted(T=16, ny=6, nx=7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(rank=2, progress=False, random_state=0, max_iter=10).fit(data)
+        cheap = dict(sizes=(5, 9), kinds=("scattered",), max_snapshots=1, seed=2)
+        res = cv_residuals(model, data, folds=InterleavedBlocks(4), residual_scales=(1.0, 2.0),
+                           **cheap)
+        filt = cv_residuals(model, data, folds=ForwardBlocks(4), temporal="ar1", **cheap)
+    assert isinstance(res, CVResiduals) and isinstance(filt, CVResiduals)
+    assert res.rhos == (1.0, 2.0) and {r.source for r in res.rows} == {"fold-in"}
+    one, two = res.select(1.0), res.select(2.0)
+    assert len(one) == len(two) == 4 * 2  # 4 folds x 1 snapshot x 2 sizes
+    assert [(r.t, r.size, r.z.size) for r in one] == [(r.t, r.size, r.z.size) for r in two]
+    assert not np.array_equal(one[0].z, two[0].z)  # the factor changes the fold-in
+    assert all(np.isfinite(r.q) and r.n_eff > 0 and r.spread.shape == r.z.shape for r in one)
+    np.testing.assert_array_equal(res.z(), np.concatenate([r.z for r in one]))
+    f, m = filt.select(source="filter"), filt.select(source="memoryless")
+    assert len(f) == len(m) > 0 and filt.select(source="fold-in") == []
+    assert [(r.t, r.size, r.z.size) for r in f] == [(r.t, r.size, r.z.size) for r in m]
+    assert min(r.t for r in f) >= 8  # the forward blocks: the record's second half
+    with pytest.raises(ModelError, match="source must be one of"):
+        filt.select(source="twin")

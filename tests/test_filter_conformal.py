@@ -59,9 +59,10 @@ def test_conformal_calibration_gives_the_filter_its_own_thresholds(persistent):
     # the thresholds are the memoryless ones times the filter's score quantile relative to the
     # memoryless model's on the same forward-chained days and cells, in units of the filter's
     # calibrated std (the same folds, seed and cells as calibrate's own call)
-    zt, zm = cv_residuals(model, train, folds=ForwardBlocks(cal.n_blocks), sizes=(5, 15, 50),
-                          kinds=("route", "scattered", "line"), max_snapshots=2,
-                          temporal="ar1", twin=True, max_cells=40, seed=3)
+    twin = cv_residuals(model, train, folds=ForwardBlocks(cal.n_blocks), sizes=(5, 15, 50),
+                        kinds=("route", "scattered", "line"), max_snapshots=2,
+                        temporal="ar1", max_cells=40, seed=3)
+    zt, zm = twin.z(source="filter"), twin.z(source="memoryless")
     assert zt.size == zm.size == cal.temporal_n_residuals
     levels = [0.68, 0.95]
     rel = np.quantile(np.abs(zt), levels) / np.quantile(np.abs(zm), levels)
@@ -71,13 +72,12 @@ def test_conformal_calibration_gives_the_filter_its_own_thresholds(persistent):
     # and the filter's are those times the same ratio
     records = cv_residuals(model, train, folds=ForwardBlocks(cal.n_blocks), sizes=(5, 15, 50),
                            kinds=("route", "scattered", "line"), max_snapshots=2,
-                           innovations=True, residual_scales=(1.0,), max_cells=40,
-                           seed=3)[1.0]
-    per = np.array([conformal_quantile(np.concatenate([np.abs(r[0]) for r in records
-                                                       if r[5] == size]) / np.sqrt(cal.scale),
+                           max_cells=40, seed=3).select(1.0)
+    per = np.array([conformal_quantile(np.concatenate([np.abs(r.z) for r in records
+                                                       if r.size == size]) / np.sqrt(cal.scale),
                                        levels) for size in (5, 15, 50)])
     np.testing.assert_allclose(np.reshape(cal.size_quantiles, (3, 2)), per, rtol=1e-12)
-    held = [np.mean([r[6] for r in records if r[5] == size]) for size in (5, 15, 50)]
+    held = [np.mean([r.n_samples for r in records if r.size == size]) for size in (5, 15, 50)]
     np.testing.assert_allclose(cal.size_samples, held, rtol=1e-12)
     assert np.all(np.asarray(held) < [5, 15, 50])  # the record's gaps give no value
     np.testing.assert_allclose(np.reshape(cal.temporal_size_quantiles, (3, 2)),

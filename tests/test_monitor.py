@@ -382,7 +382,7 @@ def test_model_fingerprint_is_remembered_until_a_refit(field):
     hashed again: a state started from the old factors cannot pass for the new ones."""
     import hashlib
 
-    from lrm_cvx.monitor import model_fingerprint
+    from lrm_cvx.belief.filter import model_fingerprint
 
     def fresh(m):
         h = hashlib.sha256()

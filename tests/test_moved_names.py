@@ -37,15 +37,25 @@ def test_old_locations_of_moved_helpers_are_the_same_objects():
     import lrm_cvx.monitor as monitor
     import lrm_cvx.spatial as sp
     from lrm_cvx.belief import filter
-    from lrm_cvx.glrm import calibrated
-    from lrm_cvx.validation import calibration
 
     assert info.GridConv is sp.GridConv and info.gp_noise is sp.gp_noise
     assert info.gp_latent_cov is sp.gp_latent_cov and info.check_gp_inputs is sp.check_gp_inputs
-    assert calibration.Calibration is calibrated.Calibration
-    assert calibration.variance_scale is calibrated.variance_scale
-    assert monitor.time_label is filter.time_label
     assert issubclass(monitor.MonitorState, filter.LatentFilter)
+
+
+def test_moved_helpers_are_imported_from_their_module_only():
+    """The calibration's and the filter's helpers have one import location each."""
+    import lrm_cvx.monitor as monitor
+    from lrm_cvx.glrm import calibrated
+    from lrm_cvx.validation import blending, calibration
+
+    assert monitor.__all__ == ["MonitorState"]
+    assert not hasattr(monitor, "parse_time") and not hasattr(monitor, "memoryless_dynamics")
+    for name in ("variance_scale", "noise_variance", "select_dynamics", "unblended_dynamics",
+                 "sample_sets", "flown_sets"):
+        assert not hasattr(calibration, name), name
+    assert not {"Calibration", "clone_model", "training_values"} & set(calibration.__all__)
+    assert calibrated.variance_scale and blending.select_dynamics
 
 
 def test_one_temporal_registry():

@@ -184,9 +184,44 @@ def test_select_dynamics_is_pinned():
         alpha, table = select_dynamics(model, data, sizes=(5, 15), apply=False)
     pin = _pin("planted_dynamics")
     assert alpha == pin.attrs["alpha"] == 1.0 and table.attrs["n_days"] == pin.attrs["n_days"]
-    assert np.array_equal(table.index.values, pin["alpha"].values)
-    assert np.array_equal(table.values, pin["mse"].values)
-    assert np.array_equal(table.attrs["ucb"].values, pin["ucb"].values)
+    assert np.array_equal(table["alpha"].values, pin["alpha"].values)
+    assert np.array_equal(table["total"].values, pin["mse"].values)
+    assert np.array_equal(table["ucb"].values, pin["ucb"].values)
+    assert table.attrs["choice"] == "1" and table.attrs["choice_alpha"] == alpha
+
+
+def test_dynamics_blend_table_is_the_search_table_and_saved(tmp_path):
+    """select_dynamics returns the table every validated choice returns; applied, it is the
+    model's dynamics_selection_, which the model file carries back identically (and with it
+    the blend calibrate's refits follow)."""
+    from lrm_cvx.validation.blending import dynamics_alpha, select_dynamics
+
+    data = synthetic_dynamic_field(24, (5, 6), 2, seed=1, A=0.9 * np.eye(2), freq="D",
+                                   noise=0.1)
+    model = _fit(data, rank=2, temporal="ar1", max_iter=20)
+    assert model.dynamics_selection_ is None and dynamics_alpha(model) is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        alpha, table = select_dynamics(model, data, alphas=(0.5, 1.0), sizes=(3,), n_val=4,
+                                       kinds=("scattered",))
+    assert model.dynamics_selection_ is table and dynamics_alpha(model) == alpha
+    assert table.attrs["choice"] == f"{alpha:g}" and table.attrs["choice_alpha"] == alpha
+    assert set(table.data_vars) == {"mse", "ratio", "ucb", "admissible", "total"}
+    assert table["ratio"].dims == table["mse"].dims == ("candidate", "size")
+    model.save(tmp_path / "model.nc")
+    back = GLRM.load(tmp_path / "model.nc")
+    xr.testing.assert_identical(back.dynamics_selection_, table)
+    assert back.selection_ is None and dynamics_alpha(back) == alpha
+    from lrm_cvx.validation.calibration import refit_dynamics
+
+    again = refit_dynamics(back, back, "ar1", back.X_["time"])  # calibrate's refits' blend
+    assert again.blend == pytest.approx(alpha)
+    np.testing.assert_array_equal(again.A, refit_dynamics(model, model, "ar1",
+                                                          model.X_["time"]).A)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model.fit(data)  # a new fit drops the old choice
+    assert model.dynamics_selection_ is None
 
 
 def test_best_takes_the_lowest_worst_ratio_without_a_guard():
@@ -207,8 +242,8 @@ def test_cv_residuals_folds_are_pinned():
     pin = np.load(PINS / "planted_cv_residuals.npz")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        inter = cv_residuals(model, data, max_cells=40)
-        forward = cv_residuals(model, data, folds="forward")
+        inter = cv_residuals(model, data, max_cells=40).z()
+        forward = cv_residuals(model, data, folds="forward").z()
     assert np.array_equal(inter, pin["interleaved"])
     assert np.array_equal(forward, pin["forward"])
 

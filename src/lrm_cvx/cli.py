@@ -332,7 +332,7 @@ def _hold_out(data, args: argparse.Namespace):
             raise UsageError(f"--hold-out {args.hold_out} leaves {max(keep, 0)} of {n_all} "
                              "snapshots to fit on; at least 2 are needed")
     elif args.until is not None:
-        from .monitor import parse_time
+        from .belief.filter import parse_time
 
         until = parse_time(args.until, data["time"], "--until")
         keep = int(np.count_nonzero(data["time"].values <= until))
@@ -342,7 +342,7 @@ def _hold_out(data, args: argparse.Namespace):
     else:
         return data
     if keep < n_all:
-        from .monitor import time_label
+        from .belief.filter import time_label
 
         times = data["time"].values
         print(f"held out the last {n_all - keep} of {n_all} snapshots ({time_label(times[keep])}"

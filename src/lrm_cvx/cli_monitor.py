@@ -387,7 +387,7 @@ def _print_notes(notes: list[str]) -> None:
 
 
 def _label(t: Any) -> str:
-    from .monitor import time_label
+    from .belief.filter import time_label
 
     t = t.item() if isinstance(t, np.ndarray) and t.ndim == 0 and t.dtype == object else t
     if isinstance(t, np.ndarray) and t.ndim == 0:

@@ -25,13 +25,11 @@ import numpy as np
 import xarray as xr
 
 from ._validation import atomic_output, read_netcdf
-from .belief.filter import (  # noqa: F401  (re-exported: the old import location)
+from .belief.filter import (
     LatentFilter,
     coerce_time,
     filter_observation_model,
-    memoryless_dynamics,
     model_fingerprint,
-    parse_time,
     time_label,
     time_to_str,
 )
@@ -42,7 +40,7 @@ from .glrm.dynamics import Dynamics
 from .planning.terms import PriorTerms
 from .recommended import recommended_criterion
 
-__all__ = ["MonitorState", "model_fingerprint", "memoryless_dynamics", "time_label"]
+__all__ = ["MonitorState"]
 
 _FORMAT = "lrm-cvx MonitorState"
 _FORMAT_VERSION = 1

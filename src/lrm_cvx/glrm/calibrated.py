@@ -21,7 +21,7 @@ __all__ = ["Calibration", "variance_scale", "noise_variance", "residual_factor",
            "prediction_factor", "predictive_std", "parameters_per_cell",
            "interval_coverage", "conformal_quantile", "check_level", "gaussian_multiplier",
            "AdaptiveConformal", "SCORE_GRID", "level_index", "ONLINE_GAMMA",
-           "interval_factor"]
+           "interval_factor", "RESIDUAL_FACTORS"]
 
 _PREFIX = "calibration_"
 _TUPLES = ("levels", "quantiles", "score_table", "temporal_quantiles", "temporal_score_table",
@@ -326,11 +326,20 @@ def prediction_factor(model: Any) -> float:
     return residual_dof(model)
 
 
+RESIDUAL_FACTORS = (0.5, 0.71, 1.0, 1.41, 2.0, 2.83, 4.0, 5.66, 8.0)
+"""The one grid of the validated factor of a model's fitted residual and noise variances
+(:func:`residual_factor`). ``temporal="auto"`` tries its whole doublings from 1 with every
+temporal candidate (``validation.selection.AUTO_INFLATIONS``: scored with the dynamics by the
+day-map MSE, stored as ``residual_inflation_``); a calibration then tries all of it on top
+(scored by the held-out log-likelihood, stored as ``Calibration.residual_scale``)."""
+
+
 def residual_factor(model: Any) -> float:
     """The factor of the model's fitted residual and noise variances in every fold-in, plan
-    and interval: the variance of a new snapshot's residual (:func:`prediction_factor`,
-    ``n / (n - k)``) times its validated ``residual_inflation_`` (``temporal="auto"``,
-    glrm/selection.py) and the calibration's ``residual_scale``."""
+    and interval, the one place the validated factor is read: the variance of a new
+    snapshot's residual (:func:`prediction_factor`, ``n / (n - k)``) times the factor of
+    :data:`RESIDUAL_FACTORS` validated with the dynamics (``residual_inflation_``,
+    ``temporal="auto"``) and the calibration's step on top of it (``residual_scale``)."""
     cal = getattr(model, "calibration_", None)
     rho = 1.0 if cal is None else float(getattr(cal, "residual_scale", 1.0) or 1.0)
     inflation = float(getattr(model, "residual_inflation_", 1.0) or 1.0)

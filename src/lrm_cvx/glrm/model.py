@@ -355,6 +355,7 @@ class GLRM:
         self.solver_ = res.solver
         self.calibration_ = None  # a new fit invalidates a calibration (validation/calibration.py)
         self.selection_ = None  # temporal="auto"'s validation (validation/selection.py)
+        self.dynamics_selection_ = None  # select_dynamics' table (validation/blending.py)
 
     # ------------------------------------------------------------------ accessors
     @property

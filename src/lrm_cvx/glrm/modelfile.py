@@ -36,10 +36,15 @@ _TABLES = (  # (attribute, file prefix, its variables and coords, int attrs, flo
      ("mse", "ratio", "ucb", "admissible", "sill", "range", "nugget", "anisotropy", "competes",
       "kernel", "size"),
      ("n_rows", "n_cases"), ("confidence", "tolerance")),
+    ("dynamics_selection_", "dynamics_selection_",
+     ("mse", "ratio", "ucb", "admissible", "total", "candidate", "size", "alpha"),
+     ("n_days",), ("choice_alpha", "confidence", "tolerance")),
 )
-"""The validated choices' tables a model file carries: ``temporal="auto"``'s ``selection_``
-(validation/selection.py) and ``spatial="auto"``'s ``kernel_selection_``
-(validation/kernel_selection.py)."""
+"""The validated choices' tables a model file carries, each made by
+:func:`~lrm_cvx.validation.search.selection_table`: ``temporal="auto"``'s (and
+``rank="auto"``'s) ``selection_`` (validation/selection.py), ``spatial="auto"``'s
+``kernel_selection_`` (validation/kernel_selection.py) and ``select_dynamics``'
+``dynamics_selection_`` (validation/blending.py)."""
 
 
 def validation_tables(model: object) -> list[xr.Dataset]:

@@ -9,14 +9,16 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import xarray as xr
 
 from .._validation import as_generator
 from ..errors import ModelError
 from .designs import SET_KINDS
 from .refits import clone_model, training_values, validation_view
-from .search import HeldOutCells, PairedGuard, RollingOrigin, search
+from .search import HeldOutCells, PairedGuard, RollingOrigin, search, selection_table
 
-__all__ = ["blend_dynamics", "unblended_dynamics", "memoryless_cov", "select_dynamics"]
+__all__ = ["blend_dynamics", "unblended_dynamics", "memoryless_cov", "select_dynamics",
+           "dynamics_alpha"]
 
 
 def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
@@ -36,6 +38,13 @@ def blend_dynamics(dynamics: Any, alpha: float, stationary_cov: Any) -> Any:
     A, Q = blend_moments(dynamics.A, dynamics.Q, np.asarray(stationary_cov, dtype=np.float64), a)
     return replace(dynamics, A=A, Q=0.5 * (Q + Q.T),
                    blend=float(getattr(dynamics, "blend", 1.0)) * a)
+
+
+def dynamics_alpha(model: Any) -> float | None:
+    """The blend :func:`select_dynamics` chose for ``model`` (its saved
+    ``dynamics_selection_``), or None when it has not run."""
+    table = getattr(model, "dynamics_selection_", None)
+    return None if table is None else float(table.attrs["choice_alpha"])
 
 
 def unblended_dynamics(model: Any) -> Any:
@@ -69,7 +78,7 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
                     tolerance: float = 0.01,
                     sizes: Sequence[int] = (5, 15, 50),
                     kinds: Sequence[str] = SET_KINDS, apply: bool = True,
-                    seed: Any = 0) -> tuple[float, Any]:
+                    seed: Any = 0) -> tuple[float, xr.Dataset]:
     """Choose how far to trust the model's dynamics on validation snapshots.
 
     ``n_folds`` forward-chaining validation windows of ``n_val`` snapshots each (default a
@@ -96,11 +105,13 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
 
     With ``apply`` the model's ``dynamics_`` becomes the *unblended* estimate blended by
     ``alpha`` (so ``dynamics_.blend == alpha``: this rule replaces the fit's, the two never
-    compose). Returns ``(alpha, table)``: a DataFrame of validation MSE (summed over windows,
-    days and kinds) per alpha and size, with ``table.attrs["ucb"]`` the bounds
-    ``(alpha, size)`` and ``table.attrs["n_days"]``.
+    compose; the table is then ``model.dynamics_selection_``, saved with the model). Returns
+    ``(alpha, table)``: the table of every validated choice
+    (:func:`~lrm_cvx.validation.search.selection_table`) over ``candidate`` (labels ``"0.5"``,
+    coordinate ``alpha``) and ``size``: ``mse``, ``ratio``, ``ucb``, ``admissible`` and
+    ``total`` (the validation MSE summed over windows, days and kinds); attributes
+    ``choice``, ``choice_alpha``, ``n_days``, ``confidence``, ``tolerance``.
     """
-    import pandas as pd
 
     dyn = getattr(model, "dynamics_", None)
     if dyn is None:
@@ -160,14 +171,16 @@ def select_dynamics(model: Any, data: Any, *, alphas: Sequence[float] = (0.0, 0.
     # alpha 0 (memoryless) is the reference: the rule of every validated choice
     _, E, decision = search(day_errors, windows,
                             PairedGuard(confidence, tolerance, "select_dynamics"))
-    ucb, best, n_days = decision.ucb, decision.best, decision.n_cases
-    alpha = alphas[best]
-    table = pd.DataFrame(np.nansum(E, axis=-1), index=pd.Index(alphas, name="alpha"),
-                         columns=pd.Index(sizes, name="size"))
-    table.attrs["ucb"] = pd.DataFrame(ucb, index=table.index, columns=table.columns)
-    table.attrs["n_days"] = int(n_days)
+    alpha = alphas[decision.choice]
+    total = xr.DataArray(np.nansum(E, axis=-1), dims=("candidate", "size"),
+                         attrs={"long_name": "validation MSE summed over the days"})
+    table = selection_table(
+        decision, [f"{a:g}" for a in alphas], sizes, reference="memoryless (alpha 0)",
+        what="mean validation-day MSE of the filter's map", data_vars={"total": total},
+        coords={"alpha": ("candidate", alphas)}, choice_alpha=float(alpha),
+        n_days=int(decision.n_cases), confidence=confidence, tolerance=tolerance)
     if apply:
         base_dyn = unblended_dynamics(model)
         model.dynamics_ = blend_dynamics(base_dyn, alpha, memoryless_cov(model, base_dyn))
-        model.dynamics_alpha_ = alpha  # read by calibrate's forward-chaining refits
+        model.dynamics_selection_ = table  # saved with the model; read by calibrate's refits
     return alpha, table

@@ -36,38 +36,30 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from .._validation import as_generator
 from ..errors import ModelError
-from ..glrm.calibrated import (  # noqa: F401  (re-exported: the old import location)
+from ..glrm.calibrated import (
+    RESIDUAL_FACTORS,
     SCORE_GRID,
     Calibration,
     check_level,
     conformal_quantile,
     interval_coverage,
-    noise_variance,
     predictive_std,
-    variance_scale,
 )
-from .blending import (  # noqa: F401  (re-exported: the old import location)
-    blend_dynamics,
-    memoryless_cov,
-    select_dynamics,
-    unblended_dynamics,
-)
-from .designs import ALL_KINDS, SET_KINDS, flown_sets, sample_sets  # noqa: F401  (re-exported)
+from .blending import blend_dynamics, dynamics_alpha, memoryless_cov
+from .designs import ALL_KINDS, SET_KINDS
 from .refits import clone_model, refit_carries, training_values, validation_view
 from .search import ForwardBlocks, HeldOutCells, InterleavedBlocks
 
-__all__ = ["Calibration", "calibrate", "cv_residuals", "fit_scale", "interval_coverage",
-           "blend_dynamics", "select_dynamics", "unblended_dynamics",
-           "noise_variance", "predictive_std", "variance_scale", "sample_sets", "Z68", "Z95",
-           "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "RESIDUAL_SCALES", "clone_model",
-           "training_values", "memoryless_cov", "conformal_quantile", "conformal_scores",
-           "calibrate_with", "fit_then_try_calibrate", "LOCAL_POWERS"]
+__all__ = ["calibrate", "cv_residuals", "CVResiduals", "Residual", "fit_scale", "Z68", "Z95",
+           "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "LOCAL_POWERS", "conformal_scores",
+           "calibrate_with", "fit_then_try_calibrate", "refit_dynamics"]
 
 Z68 = 0.994457883209753   # two-sided 68% normal quantile: P(|z| < Z68) = 0.68
 Z95 = 1.959963984540054   # two-sided 95%
@@ -103,13 +95,69 @@ def _standardized(model: Any, values: np.ndarray, cells: np.ndarray, pred: np.nd
     return (values[held] - pred[held]) / sd
 
 
+class Residual(NamedTuple):
+    """One fold-in's (or one filter day's) standardized held-out residuals and what they were
+    standardized by: a row of :class:`CVResiduals`."""
+
+    z: np.ndarray
+    """Standardized residuals at the scored cells (uncalibrated predictive std)."""
+    q: float
+    """Innovation statistic of the samples (NaN for the filter's days)."""
+    n_eff: float
+    """Samples the innovation statistic counts (0 for the filter's days)."""
+    t: int
+    """The snapshot (index into the training snapshots)."""
+    log_sd: float
+    """Sum of the log predictive stds the residuals were divided by."""
+    size: int
+    """The design size."""
+    n_samples: int
+    """Samples that gave a value (fewer than ``size`` where the snapshot has gaps)."""
+    spread: np.ndarray
+    """The refit's ``residual_spread_`` at the scored cells (ones without one)."""
+    rho: float
+    """The factor of the refit's residual and noise variances (1: as validated)."""
+    source: str
+    """``"fold-in"`` (a held-out snapshot folded in), ``"filter"`` or ``"memoryless"`` (the
+    filter and its memoryless twin through the same forward block on the same cells)."""
+
+
+SOURCES = ("fold-in", "filter", "memoryless")
+
+
+@dataclass(frozen=True)
+class CVResiduals:
+    """The result of :func:`cv_residuals`: one :class:`Residual` row per fold-in, per factor
+    ``rho`` and per source, in the order they were made."""
+
+    rows: tuple[Residual, ...]
+
+    @property
+    def rhos(self) -> tuple[float, ...]:
+        """The factors ``rho`` present, in order."""
+        return tuple(dict.fromkeys(r.rho for r in self.rows))
+
+    def select(self, rho: float = 1.0, source: str | None = None) -> list[Residual]:
+        """The rows of factor ``rho`` and ``source`` (None: the first source present)."""
+        if source is None:
+            source = self.rows[0].source if self.rows else "fold-in"
+        if source not in SOURCES:
+            raise ModelError(f"source must be one of {SOURCES}, got {source!r}")
+        return [r for r in self.rows if r.rho == rho and r.source == source]
+
+    def z(self, rho: float = 1.0, source: str | None = None) -> np.ndarray:
+        """The concatenated standardized residuals of :meth:`select`."""
+        rows = self.select(rho, source)
+        return np.concatenate([r.z for r in rows]) if rows else np.empty(0)
+
+
 def cv_residuals(model: Any, data: Any, *,
                  folds: str | InterleavedBlocks | ForwardBlocks = "interleaved",
                  sizes: Sequence[int] = (5, 15, 50), kinds: Sequence[str] = SET_KINDS,
                  max_snapshots: int = 3, prior: str = "empirical", spatial: bool | None = None,
-                 temporal: str | None = None, seed: Any = 0, twin: bool = False,
-                 innovations: bool = False, residual_scales: Sequence[float] | None = None,
-                 max_cells: int | None = None, local_power: float = 0.0) -> Any:
+                 temporal: str | None = None, seed: Any = 0,
+                 residual_scales: Sequence[float] | None = None,
+                 max_cells: int | None = None, local_power: float = 0.0) -> CVResiduals:
     """Standardized cross-validated fold-in residuals (see the module docstring).
 
     ``data`` ``(time, lat, lon)``: the snapshots ``model`` was fitted on (its region is used).
@@ -117,16 +165,15 @@ def cv_residuals(model: Any, data: Any, *,
     of each size and kind. With ``temporal`` (``"ar1"``/``"seasonal"``), forward-chaining folds
     and the filter instead (:func:`lrm_cvx.monitor`), one set per snapshot (kinds and sizes
     cycled). The residuals are standardized by the *uncalibrated* predictive std of the
-    refitted model. Returns a 1-D array; with ``temporal`` and ``twin=True`` a pair: the
-    filter's residuals and the memoryless model's through the same loop on the same cells.
-    With ``innovations=True`` (memoryless only) a list of ``(z, q, n_eff, t, log_sd, size,
-    n_samples, spread)`` per fold-in: its standardized residuals, the innovation statistic of its
-    samples, the snapshot, the sum of the log predictive stds it was standardized by
-    (:meth:`~lrm_cvx.belief.posterior.LatentPosterior.innovation`), its design size and the
-    samples that gave a value (fewer than the size where the snapshot has gaps), and the
-    refit's ``residual_spread_`` at the scored cells (ones without one). With
-    ``residual_scales`` (memoryless, innovations) a dict ``{rho: records}``: the same fold-ins
-    (same cells) with the refitted model's residual and noise variances multiplied by ``rho``.
+    refitted model. Returns one :class:`CVResiduals` table: a :class:`Residual` row per
+    fold-in (``source="fold-in"``: its standardized residuals, the innovation statistic of its
+    samples, :meth:`~lrm_cvx.belief.posterior.LatentPosterior.innovation`, the snapshot, the
+    sum of the log predictive stds, its design size, the samples that gave a value and the
+    refit's ``residual_spread_`` at the scored cells); with ``temporal`` a row per day for
+    the filter (``source="filter"``) and one for the memoryless model through the same loop
+    on the same cells (``"memoryless"``). ``residual_scales`` (memoryless): the same fold-ins
+    (same cells) also with the refitted model's residual and noise variances multiplied by
+    each ``rho`` (the rows' ``rho``; default 1 only).
     ``max_cells`` (memoryless): score at most that many of each fold-in's held-out cells (a
     seeded random subset; None: all), which bounds the kriging cost on large grids. ``folds``:
     the search's splitter, :class:`~.search.InterleavedBlocks` ``(n)`` (every ``n``-th snapshot,
@@ -166,7 +213,7 @@ def cv_residuals(model: Any, data: Any, *,
     # snapshot held out, refitted on all the others
     folds = (ForwardBlocks(n_blocks) if forward else InterleavedBlocks(n_blocks)).split(T)
     holdout = HeldOutCells(region.n_cells if max_cells is None else int(max_cells))
-    out: list[np.ndarray] = []
+    out: list[Residual] = []
     rank = int(model.rank_)
     offset = getattr(model, "offset_", None) is not None
     too_short = 0  # blocks whose refit could not carry the model's rank (a short record)
@@ -190,8 +237,8 @@ def cv_residuals(model: Any, data: Any, *,
                                                data["time"].values[train_idx])
                 if sub.dynamics_ is None:  # this block's history cannot carry the kind
                     continue
-                out.extend(_filter_residuals(sub, data.isel(time=block), V[block], sizes, kinds,
-                                             spatial, rng, max_cells, local_power))
+                out.extend(_filter_residuals(sub, data.isel(time=block), V[block], block, sizes,
+                                             kinds, spatial, rng, max_cells, local_power))
                 continue
             spread = _spread(sub, region.n_cells)
             pick = block[np.unique(np.linspace(0, block.size - 1,
@@ -206,34 +253,28 @@ def cv_residuals(model: Any, data: Any, *,
                     for kind in kinds:
                         # the design's cells (gaps give no value) and those scored
                         cells, hidx = holdout.split(region, observed, size, kind, rng)
-                        recs = {}
+                        recs = []
                         for rho, b in bases.items():
                             post = b.update(cells, V[t, cells])
                             if not post.is_proper or hidx.size == 0:
                                 break
                             mean, _, pstd = post.predict_all(cells=hidx)
-                            z = (V[t, hidx] - mean) / pstd
-                            if innovations:
-                                q, n_eff = b.innovation(cells, V[t, cells])
-                                recs[rho] = (z, q, n_eff, int(t), float(np.sum(np.log(pstd))),
-                                             size, post.n_samples, spread[hidx])
-                            else:
-                                recs[rho] = z
+                            q, n_eff = b.innovation(cells, V[t, cells])
+                            recs.append(Residual((V[t, hidx] - mean) / pstd, q, n_eff, int(t),
+                                                 float(np.sum(np.log(pstd))), size,
+                                                 post.n_samples, spread[hidx], rho, "fold-in"))
                         if len(recs) == len(bases):
-                            out.append(recs if residual_scales is not None else recs[1.0])
+                            out.extend(recs)
     if not out:
         if too_short:
             raise ModelError(f"calibration cannot refit rank {rank} on the snapshots before "
                              f"{too_short} of its {len(folds)} blocks (a record of {T} is too "
                              "short for them); pass fewer n_blocks or a lower rank")
         raise ModelError("calibration produced no held-out residuals")
-    if temporal is not None:
-        z_t = np.concatenate([p[0] for p in out])
-        z_m = np.concatenate([p[1] for p in out])
-        return (z_t, z_m) if twin else z_t
-    if residual_scales is not None:
-        return {rho: [r[rho] for r in out] for rho in out[0]}
-    return out if innovations else np.concatenate(out)
+    if temporal is None:  # rows per fold-in in the order of the factors
+        rhos = [float(r) for r in (residual_scales or (1.0,))]
+        out = [r for rho in rhos for r in out if r.rho == rho]
+    return CVResiduals(tuple(out))
 
 
 def _spread(model: Any, n_cells: int) -> np.ndarray:
@@ -242,16 +283,16 @@ def _spread(model: Any, n_cells: int) -> np.ndarray:
     return np.ones(n_cells) if spread is None else np.asarray(spread, dtype=np.float64)
 
 
-def _powered(records: Sequence[tuple], power: float) -> list[tuple]:
-    """:func:`cv_residuals` records (``innovations``) as the intervals of ``local_power =
+def _powered(records: Sequence[Residual], power: float) -> list[Residual]:
+    """:func:`cv_residuals` rows (:class:`Residual`) as the intervals of ``local_power =
     power`` see them: each residual divided by its cell's spread to ``power``, and the log
     predictive stds (the standardization's Jacobian) raised by as much."""
     if power == 0.0:
         return list(records)
     out = []
     for r in records:
-        f = np.asarray(r[7], dtype=np.float64) ** power
-        out.append((r[0] / f, r[1], r[2], r[3], r[4] + float(np.sum(np.log(f))), *r[5:]))
+        f = np.asarray(r.spread, dtype=np.float64) ** power
+        out.append(r._replace(z=r.z / f, log_sd=r.log_sd + float(np.sum(np.log(f)))))
     return out
 
 
@@ -271,7 +312,6 @@ def _rescaled(prior: Any, rho: float) -> Any:
                            prior.base_shift)
 
 
-RESIDUAL_SCALES = (0.5, 0.71, 1.0, 1.41, 2.0, 2.83, 4.0, 5.66, 8.0)
 LOCAL_POWERS = (0.0, 0.25, 0.5, 0.75, 1.0)
 """The powers of a cell's ``residual_spread_`` a calibration validates for its intervals
 (``Calibration.local_power``)."""
@@ -281,11 +321,34 @@ DOF_GRID = (1.0, 4.0, 16.0, 64.0, 256.0, 1024.0)
 DISCOUNT_GRID = (0.0, 0.5, 0.8, 0.95, 1.0)
 
 
+def _innovation_evidence(records: Sequence[tuple]) -> tuple[np.ndarray, np.ndarray, Any]:
+    """``(q, n, evidence)``: each record's innovation statistic and count (0 where it has
+    none) and ``evidence(discount) -> (E_q, E_n)``, the mean ``q`` and ``n`` per earlier
+    snapshot ``t' < t`` weighted by ``discount^(t - t')`` (0 with ``discount`` 0)."""
+    q = np.array([float(r[1]) for r in records])
+    n = np.array([float(r[2]) for r in records])
+    t = np.array([int(r[3]) if len(r) > 3 else 0 for r in records])
+    ok = np.isfinite(q) & (n > 0)
+    q, n = np.where(ok, q, 0.0), np.where(ok, n, 0.0)
+    snaps = np.unique(t)
+    qbar = np.array([q[t == u].mean() for u in snaps])
+    nbar = np.array([n[t == u].mean() for u in snaps])
+    gap = t[:, None] - snaps[None, :]  # (records, snapshots): steps back to each earlier one
+
+    def evidence(disc: float) -> tuple[np.ndarray, np.ndarray]:
+        if disc == 0.0:
+            return np.zeros(len(records)), np.zeros(len(records))
+        w = np.where(gap > 0, disc ** np.maximum(gap, 0).astype(np.float64), 0.0)
+        return w @ qbar, w @ nbar
+
+    return q, n, evidence
+
+
 def fit_adaptive_scale(records: Sequence[tuple], dofs: Sequence[float] = DOF_GRID,
                        discounts: Sequence[float] = DISCOUNT_GRID
                        ) -> tuple[float, float | None, float, float]:
     """``(scale, dof, discount, gain)``: the adaptive scale of :class:`Calibration` from
-    cross-validated records ``(z, q, n_eff, t)`` (:func:`cv_residuals` with ``innovations``).
+    cross-validated :class:`Residual` rows ``(z, q, n_eff, t, ...)`` of :func:`cv_residuals`.
 
     A record's variance scale is ``s_i = (dof scale + E_q + q_i) / (dof + E_n + n_i)``, with
     ``E_q``, ``E_n`` the evidence of the records of *earlier* snapshots ``t' < t`` (their mean
@@ -296,23 +359,9 @@ def fit_adaptive_scale(records: Sequence[tuple], dofs: Sequence[float] = DOF_GRI
     log-likelihood of the held-out residuals under ``N(0, s_i)`` wins. ``gain`` is its
     log-likelihood per residual minus the fixed scale's (>= 0)."""
     z = [np.asarray(r[0], dtype=np.float64) for r in records]
-    q = np.array([float(r[1]) for r in records])
-    n = np.array([float(r[2]) for r in records])
-    t = np.array([int(r[3]) if len(r) > 3 else 0 for r in records])
-    ok = np.isfinite(q) & (n > 0)
-    q, n = np.where(ok, q, 0.0), np.where(ok, n, 0.0)
+    q, n, evidence = _innovation_evidence(records)
     sizes = np.array([zi.size for zi in z])
     zall = np.concatenate(z)
-    snaps = np.unique(t)
-    qbar = np.array([q[t == u].mean() for u in snaps])
-    nbar = np.array([n[t == u].mean() for u in snaps])
-    gap = t[:, None] - snaps[None, :]  # (records, snapshots): steps back to each earlier one
-
-    def evidence(disc: float) -> tuple[np.ndarray, np.ndarray]:
-        if disc == 0.0:
-            return np.zeros(len(z)), np.zeros(len(z))
-        w = np.where(gap > 0, disc ** np.maximum(gap, 0).astype(np.float64), 0.0)
-        return w @ qbar, w @ nbar
 
     def scales(s0: float, dof: float | None, eq: np.ndarray, en: np.ndarray) -> np.ndarray:
         if dof is None:
@@ -349,20 +398,8 @@ def _record_scales(records: Sequence[tuple], scale: float, dof: float | None,
     (:func:`fit_adaptive_scale`'s model; ``scale`` for all when ``dof`` is None)."""
     if dof is None:
         return np.full(len(records), float(scale))
-    q = np.array([float(r[1]) for r in records])
-    n = np.array([float(r[2]) for r in records])
-    t = np.array([int(r[3]) for r in records])
-    ok = np.isfinite(q) & (n > 0)
-    q, n = np.where(ok, q, 0.0), np.where(ok, n, 0.0)
-    snaps = np.unique(t)
-    qbar = np.array([q[t == u].mean() for u in snaps])
-    nbar = np.array([n[t == u].mean() for u in snaps])
-    gap = t[:, None] - snaps[None, :]
-    if discount > 0:
-        w = np.where(gap > 0, discount ** np.maximum(gap, 0).astype(np.float64), 0.0)
-        eq, en = w @ qbar, w @ nbar
-    else:
-        eq, en = np.zeros(len(records)), np.zeros(len(records))
+    q, n, evidence = _innovation_evidence(records)
+    eq, en = evidence(float(discount))
     return (dof * scale + eq + q) / (dof + en + n)
 
 
@@ -383,7 +420,7 @@ def _loglik(records: Sequence[tuple], scale: float, dof: float | None, discount:
 def conformal_scores(records: Sequence[tuple], scale: float, dof: float | None,
                      discount: float) -> np.ndarray:
     """Non-conformity scores ``|y - mean| / predictive_std`` of cross-validated records (the
-    standardized residuals of :func:`cv_residuals` with ``innovations``), standardized by the
+    standardized residuals of :func:`cv_residuals`' rows), standardized by the
     *calibrated* predictive std (each record's variance scale ``s_i``): what a calibrated
     model's intervals are measured in."""
     z = [np.asarray(r[0], dtype=np.float64) for r in records]
@@ -396,8 +433,8 @@ def refit_dynamics(model: Any, sub: Any, kind: str, times: Any) -> Any:
     """Dynamics of ``kind`` for ``sub`` (a refit of ``model`` on its first snapshots, fitted
     with ``temporal="ar1"``; ``times`` its time coordinate) made as ``model``'s own were: blended
     by the ``temporal="auto"`` choice's ``alpha`` or ``select_dynamics``'
-    (``dynamics_alpha_``). None when ``sub``'s history cannot carry the kind (a season on
-    less than two years)."""
+    (:func:`~.blending.dynamics_alpha`). None when ``sub``'s history cannot carry the kind (a
+    season on less than two years)."""
     from ..glrm.dynamics import kind_dynamics
 
     base = kind_dynamics(kind, sub, times)
@@ -407,19 +444,22 @@ def refit_dynamics(model: Any, sub: Any, kind: str, times: Any) -> Any:
     if sel is not None and sel.attrs.get("choice_kind") == kind:
         alpha = float(sel.attrs["choice_alpha"])
     else:
-        alpha = getattr(model, "dynamics_alpha_", None)
+        alpha = dynamics_alpha(model)
     return base if alpha is None else blend_dynamics(base, alpha, memoryless_cov(sub, base))
 
 
-def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int],
-                      kinds: Sequence[str], spatial: bool, rng: np.random.Generator,
-                      max_cells: int | None = None, local_power: float = 0.0):
-    """Standardized residuals of the filter run through one block in time order, and of the
-    memoryless model through the same loop on the same cells: ``[(z_filter, z_memoryless)]``
-    (at most ``max_cells`` random held-out cells per day; divided by ``sub``'s
-    ``residual_spread_`` to ``local_power``)."""
+def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, block: np.ndarray,
+                      sizes: list[int], kinds: Sequence[str], spatial: bool,
+                      rng: np.random.Generator, max_cells: int | None = None,
+                      local_power: float = 0.0) -> list[Residual]:
+    """Standardized residuals of the filter run through one block (snapshots ``block``) in
+    time order, and of the memoryless model through the same loop on the same cells: a
+    ``"filter"`` and a ``"memoryless"`` :class:`Residual` per day (at most ``max_cells``
+    random held-out cells per day; divided by ``sub``'s ``residual_spread_`` to
+    ``local_power``)."""
     region = sub.region_
-    factor = _spread(sub, region.n_cells) ** float(local_power)
+    spread = _spread(sub, region.n_cells)
+    factor = spread ** float(local_power)
     from ..belief.filter import LatentFilter
 
     states = (LatentFilter.from_model(sub, spatial=spatial),
@@ -432,12 +472,14 @@ def _filter_residuals(sub: Any, block_data: Any, Vb: np.ndarray, sizes: list[int
         # the design's cells (gaps give no value) and those scored
         cells, hidx = HeldOutCells(region.n_cells if max_cells is None else int(max_cells)
                                    ).split(region, np.isfinite(Vb[i]), size, kind, rng)
-        pair = []
-        for state in states:
+        for state, source in zip(states, ("filter", "memoryless"), strict=True):
             state.assimilate((cells, Vb[i, cells]), time=t)
             mean, _, pstd = state.posterior.predict_all(cells=hidx)
-            pair.append((Vb[i, hidx] - mean) / (pstd * factor[hidx]))
-        out.append(tuple(pair))
+            sd = pstd * factor[hidx]
+            out.append(Residual((Vb[i, hidx] - mean) / sd, float("nan"), 0.0, int(block[i]),
+                                float(np.sum(np.log(sd))), size,
+                                int(np.isfinite(Vb[i, cells]).sum()), spread[hidx], 1.0,
+                                source))
     return out
 
 
@@ -531,7 +573,9 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     under the prior (the conjugate update of the scale by the standardized innovations), so a
     calm period gets narrower intervals and a stormy one wider ones, memoryless or filtered.
     ``residual`` (default): also re-estimate the residual and noise variances by a factor
-    ``Calibration.residual_scale`` among :data:`RESIDUAL_SCALES` (the same cross-validated
+    ``Calibration.residual_scale`` among the one grid of the factor,
+    :data:`~lrm_cvx.glrm.calibrated.RESIDUAL_FACTORS`, on top of the model's validated
+    ``residual_inflation_`` (the same cross-validated
     fold-ins redone with each; the factor whose scaled residuals have the highest Gaussian
     log-likelihood *of the raw residuals* wins): the fitted nugget and sill come from training
     residuals, which
@@ -579,10 +623,11 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
         raise ModelError(f"folds must be 'interleaved' or 'forward', got {folds!r}")
     splitter = (ForwardBlocks if folds == "forward" else InterleavedBlocks)(n_blocks)
     kw = dict(sizes=sizes, kinds=kinds, max_snapshots=max_snapshots)
-    rhos = RESIDUAL_SCALES if residual else (1.0,)
+    rhos = RESIDUAL_FACTORS if residual else (1.0,)
     conformal_fit = method == "conformal"
-    by_rho = cv_residuals(model, data, seed=seed, innovations=True, residual_scales=rhos,
-                          max_cells=max_cells, folds=splitter, **kw)
+    residuals = cv_residuals(model, data, seed=seed, residual_scales=rhos,
+                             max_cells=max_cells, folds=splitter, **kw)
+    by_rho = {rho: residuals.select(rho) for rho in residuals.rhos}
     powers = LOCAL_POWERS if local and getattr(model, "residual_spread_", None) is not None \
         else (0.0,)
     best = None
@@ -624,9 +669,10 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
         # forward chaining trains on less data than the final model: take from it only the
         # filter's scale *relative* to the memoryless model's on the same days and cells
         try:
-            zt, zm = cv_residuals(model, data, seed=seed, temporal=temporal, twin=True,
-                                  max_cells=max_cells, local_power=power,
-                                  folds=ForwardBlocks(n_blocks), **kw)
+            twin = cv_residuals(model, data, seed=seed, temporal=temporal,
+                                max_cells=max_cells, local_power=power,
+                                folds=ForwardBlocks(n_blocks), **kw)
+            zt, zm = twin.z(source="filter"), twin.z(source="memoryless")
         except ModelError:  # no forward block's history carries the kind (a short record)
             if not auto:  # asked for by name: say so; "auto": the memoryless calibration
                 raise

@@ -22,10 +22,11 @@ campaign would meet them:
   (:func:`~.filter.batch_step`, the algebra of ``LatentFilter.assimilate``).
 * **Candidates** (cadence-aware): memoryless (every day's prior the empirical prior), AR(1) and
   the seasonal model (monthly or daily dates seen over two years; yearly data has no season), each
-  blended towards the memoryless prior by ``alpha`` (:func:`~.calibration.blend_dynamics`):
+  blended towards the memoryless prior by ``alpha`` (:func:`~.blending.blend_dynamics`):
   ``seasonal`` with ``alpha = 0`` is the seasonal climatology with the anomalies' covariance,
   with ``alpha = 1`` the climatology plus AR(1) anomalies. Each is tried with the residual and
-  noise variances inflated by the factors :data:`AUTO_INFLATIONS` (``model.residual_inflation_``,
+  noise variances inflated by the factors :data:`AUTO_INFLATIONS` (of the one grid
+  :data:`~lrm_cvx.glrm.calibrated.RESIDUAL_FACTORS`; ``model.residual_inflation_``,
   label ``"ar1:0.9 x4"``): the fitted variances come from the training residuals of a basis
   fitted to those very snapshots, which under-state a new snapshot's, so the latent update
   from a few clustered samples is over-confident and spreads a local anomaly over the whole
@@ -64,6 +65,7 @@ import xarray as xr
 from .._blas import single_threaded_blas
 from .._validation import as_generator, check_ranks
 from ..errors import DataError, ModelError
+from ..glrm.calibrated import RESIDUAL_FACTORS
 from ..glrm.dynamics import kind_dynamics
 from .paired import AUTO_DESIGNS, AUTO_SIZES, MAX_SCORED
 from .search import (
@@ -82,8 +84,10 @@ __all__ = ["select_temporal", "AutoUnavailable", "AUTO_ALPHAS",
 
 AUTO_ALPHAS = (0.0, 0.5, 0.9, 1.0)
 """Blends towards the memoryless prior tried for every temporal kind."""
-AUTO_INFLATIONS = (1.0, 2.0, 4.0, 8.0)
-"""Factors of the residual and noise variances tried with every temporal candidate."""
+AUTO_INFLATIONS = RESIDUAL_FACTORS[2::2]
+"""Factors of the residual and noise variances tried with every temporal candidate: the whole
+doublings from 1 of the one grid :data:`~lrm_cvx.glrm.calibrated.RESIDUAL_FACTORS` (1, 2, 4, 8;
+each costs a filter per day and candidate)."""
 AUTO_RANKS = (3, 5, 8, 12)
 """Ranks ``GLRM(rank="auto")`` validates (jointly with the temporal candidates)."""
 REFERENCE_RANK = 5
