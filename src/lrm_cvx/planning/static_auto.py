@@ -124,9 +124,45 @@ def _refit(model: Any, V: np.ndarray, region: Any) -> Any:
             params[key] = value
     if params.get("rank") == "auto":  # the rank the model chose (GLRM(rank="auto"))
         params["rank"] = int(model.rank_)
+    cov = getattr(model, "spatial_cov_", None)
+    if params.get("spatial") == "auto" and cov is not None:  # the kernel the model chose:
+        # its family and anisotropy, the parameters refitted to the refit's own residuals
+        params["spatial"], params["anisotropy"] = cov.model, float(cov.anisotropy)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return type(model)(**params).fit(xr.DataArray(V, dims=("time", "cell")), region=region)
+
+
+_REFITS: list[Any] = []
+"""The last validation's refits: ``[(key, model ref, region, {window start: (refit,
+prior)})]`` (one entry)."""
+
+
+def _shared_refits(model: Any, region: Any, V: np.ndarray) -> dict[int, tuple[Any, Any]]:
+    """The refits of the last validation on the same fitted ``model``, ``region`` and
+    training ``V`` (a placement at another sensor count refits the same windows), else a new
+    empty table that the next call shares. Keyed on the model object (held weakly), its
+    parameters and factors and the training's bytes: a refitted model or other snapshots
+    start afresh."""
+    import hashlib
+    import weakref
+
+    digest = hashlib.blake2b(digest_size=16)
+    for arr in (np.asarray(model.Y_, np.float64), np.ascontiguousarray(V)):
+        digest.update(str(arr.shape).encode())
+        digest.update(arr.tobytes())
+    key = (digest.hexdigest(), repr(sorted(model.get_params().items())))
+    if _REFITS:
+        old_key, ref, old_region, table = _REFITS[0]
+        if old_key == key and ref() is model and old_region is region:
+            return table
+    table: dict[int, tuple[Any, Any]] = {}
+    try:
+        ref = weakref.ref(model)
+    except TypeError:  # an estimator that cannot be referenced weakly: no sharing
+        return table
+    _REFITS[:] = [(key, ref, region, table)]
+    return table
 
 
 def _mse(prior: Any, values: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -164,15 +200,25 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
     held_t = np.concatenate([np.arange(a, b) for a, b in windows]) if windows \
         else np.zeros(0, np.int64)
 
+    refits = _shared_refits(model, region, V) if windows else {}
+
     def window_errors(window: tuple[int, int]) -> dict[str, np.ndarray]:
         """Per held-out snapshot ``(1, b - a)`` the fold-in MSE of each candidate's
-        placement from the model refitted on the snapshots before the window."""
+        placement from the model refitted on the snapshots before the window (one score per
+        distinct set of cells)."""
         a, b = window
-        fit = _refit(model, V[:a], region)
-        prior = fit.latent_prior("empirical", spatial=spatial)
-        return {lab: _mse(prior, V[a:b], np.asarray(place(fit, V[:a], *AUTO_CANDIDATES[lab]),
-                                                     dtype=np.int64))[None]
-                for lab in labels}
+        if a not in refits:
+            fit = _refit(model, V[:a], region)
+            refits[a] = (fit, fit.latent_prior("empirical", spatial=spatial))
+        fit, prior = refits[a]
+        out, scored = {}, {}
+        for lab in labels:
+            cells = np.asarray(place(fit, V[:a], *AUTO_CANDIDATES[lab]), dtype=np.int64)
+            key = np.sort(cells).tobytes()
+            if key not in scored:
+                scored[key] = _mse(prior, V[a:b], cells)[None]
+            out[lab] = scored[key]
+        return out
 
     stops = np.cumsum([0] + [b - a for a, b in windows])
     rule = BlockGuard(list(zip(stops[:-1], stops[1:], strict=True)), AUTO_CONFIDENCE)
