@@ -11,7 +11,8 @@ So :func:`select_criterion` answers it on the user's own training snapshots, as
   tenth of the training, between :data:`AUTO_MIN_BLOCK` and :data:`AUTO_MAX_BLOCK`), the last
   ones of the training, each with at least :data:`AUTO_MIN_FIT` snapshots before it. For each
   window the model is refitted on the snapshots *before* it (same class and parameters,
-  ``type(model)(**get_params())``, memoryless, uncalibrated, on the model's region), and every
+  ``type(model)(**get_params())``, memoryless, uncalibrated, on the model's region; a rank or
+  kernel the model validated is kept, the kernel's parameters refitted), and every
   candidate places ``n`` sensors from that refit and those snapshots only. No candidate ever
   sees the snapshots it is scored on, nor anything after the training.
 * **Candidates** (:data:`AUTO_CANDIDATES`): ``"risk"`` with the recommended exchange rule,
@@ -35,7 +36,9 @@ So :func:`select_criterion` answers it on the user's own training snapshots, as
 Above :data:`AUTO_MAX_CELLS` candidate cells (the region where the recommended exchange is
 skipped too), or with one candidate only (no spatial residual), no validation runs: the choice
 is ``"risk"`` (``selection.attrs["skipped"]`` says why). The cost is the time of one refit and
-three placements per window (four windows: under 10 s for 60 sensors on ~6k cells).
+two placements per window (risk + exchange and gp-variance + exchange; the gp-variance greedy
+is the latter's start, shared) and one fold-in score per distinct set of cells. The refits are kept
+for the next call on the same model and training (another sensor count refits nothing).
 
 The result is an ``xarray.Dataset`` (``plan.refinement["selection"]``): ``mse`` per candidate
 and window, ``mse_snapshot`` per held-out snapshot, ``score`` (mean) and ``ucb`` (the guard's
