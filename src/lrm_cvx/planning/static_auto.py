@@ -119,21 +119,17 @@ def auto_unavailable(model: Any, n_snapshots: int) -> str | None:
 
 
 def _refit(model: Any, V: np.ndarray, region: Any) -> Any:
-    """The model's class and parameters, memoryless and uncalibrated, refitted on ``V (t, L)``
-    on ``region`` (duck typing: any estimator with ``get_params`` and ``fit(data, region=)``)."""
-    params = dict(model.get_params())
-    for key, value in (("progress", False), ("temporal", None), ("calibration", None)):
-        if key in params:
-            params[key] = value
-    if params.get("rank") == "auto":  # the rank the model chose (GLRM(rank="auto"))
-        params["rank"] = int(model.rank_)
-    cov = getattr(model, "spatial_cov_", None)
-    if params.get("spatial") == "auto" and cov is not None:  # the kernel the model chose:
-        # its family and anisotropy, the parameters refitted to the refit's own residuals
-        params["spatial"], params["anisotropy"] = cov.model, float(cov.anisotropy)
+    """The model's unfitted copy of every validation (:func:`~lrm_cvx.validation.refits.
+    clone_model`: uncalibrated, a chosen rank and kernel kept), memoryless, refitted on
+    ``V (t, L)`` on ``region`` (duck typing: any estimator with ``get_params`` and
+    ``fit(data, region=)``)."""
+    from ..validation.refits import clone_model
+
+    memoryless = {"temporal": None} if "temporal" in model.get_params() else {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return type(model)(**params).fit(xr.DataArray(V, dims=("time", "cell")), region=region)
+        return clone_model(model, **memoryless).fit(xr.DataArray(V, dims=("time", "cell")),
+                                                    region=region)
 
 
 _REFITS: list[Any] = []
