@@ -251,3 +251,53 @@ def test_bad_input_is_a_one_line_error_naming_training():
         place_sensors(model.Y_, model.region_, 4, prior=prior, training=train, criterion="auto")
     with pytest.raises(PlanningError, match="fitted GLRM"):
         place_sensors(model.Y_, model.region_, 4, training=train, criterion="auto")
+
+
+def test_the_refits_keep_the_kernel_the_model_chose():
+    """A model whose kernel was validated (``spatial="auto"``) is refitted with that kernel's
+    family and anisotropy, its parameters fitted to the refit's own residuals: the same
+    covariance a refit that validates the kernel again gets when it chooses that family."""
+    _, da = _field(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GLRM(2, random_state=0, progress=False, offset=True, spatial="auto").fit(da)
+    region = model.region_
+    V = region.stack(da).astype(np.float64)
+    fit = sa._refit(model, V[:10], region)
+    chosen = model.spatial_cov_
+    assert fit.spatial == chosen.model and fit.anisotropy == chosen.anisotropy
+    assert fit.spatial_cov_.model == chosen.model
+    assert fit.spatial_cov_.range != chosen.range  # refitted, not copied
+    params = {**model.get_params(), "temporal": None, "calibration": None}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        again = GLRM(**params).fit(xr.DataArray(V[:10], dims=("time", "cell")), region=region)
+    assert again.spatial_cov_.model == chosen.model and again.spatial_cov_.anisotropy == 1.0
+    assert fit.spatial_cov_ == again.spatial_cov_
+    np.testing.assert_array_equal(fit.Y_, again.Y_)
+
+
+def test_another_sensor_count_shares_the_refits(monkeypatch):
+    """A second call on the same model and training refits nothing and gives the table a
+    fresh validation gives; other training snapshots (or another model) refit."""
+    model, train = _field(4, 3.0)
+    calls = []
+    refit = sa._refit
+    monkeypatch.setattr(sa, "_refit", lambda m, V, r: calls.append(V.shape[0]) or refit(m, V, r))
+    sa._REFITS.clear()
+    first = place_sensors(model, 4, training=train).refinement["selection"]
+    n_windows = first.sizes["window"]
+    assert len(calls) == n_windows
+    second = place_sensors(model, 5, training=train).refinement["selection"]
+    assert len(calls) == n_windows
+    sa._REFITS.clear()
+    fresh = place_sensors(model, 5, training=train).refinement["selection"]
+    assert len(calls) == 2 * n_windows
+    np.testing.assert_array_equal(second["mse_snapshot"].values, fresh["mse_snapshot"].values)
+    assert second.attrs["choice"] == fresh.attrs["choice"]
+    other = train.copy()
+    other[0, 0, 0] += 1.0
+    place_sensors(model, 5, training=other)
+    assert len(calls) == 3 * n_windows
+    place_sensors(_fit(other), 5, training=other)
+    assert len(calls) == 4 * n_windows

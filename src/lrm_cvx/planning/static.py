@@ -849,15 +849,23 @@ def _place_auto(Yk: np.ndarray, region: Region, n: int, allowed: np.ndarray, pri
                             "snapshots: pass the fitted GLRM (place_sensors(model, n, "
                             "training=...) or prior=model), not a LatentPosterior")
 
+    greedy: dict[int, tuple[Any, np.ndarray]] = {}  # id(refit) -> (refit, gp greedy's cells)
+
     def place(fit: Any, Vtr: np.ndarray, crit: str, exchange: Any) -> np.ndarray:
         risk = crit == "risk"  # the refit's own training: a new snapshot's errors
-        return place_static(np.asarray(fit.Y_, np.float64), region, n, allowed,
+        if crit == "gp-variance" and exchange is False and id(fit) in greedy:
+            return greedy[id(fit)][1]  # the exchange's start on this refit: the same greedy
+        plan = place_static(np.asarray(fit.Y_, np.float64), region, n, allowed,
                             criterion=crit, exchange=exchange, in_sample=risk,
                             prior=fit if risk else fit.latent_prior("empirical", spatial=True),
                             training=Vtr if risk else None,
                             sweeps=options["sweeps"], method=options["method"],
                             max_candidates=options["max_candidates"],
-                            other={**other, "progress": False}).cells
+                            other={**other, "progress": False})
+        if crit == "gp-variance" and exchange is True:
+            greedy.clear()  # one refit at a time: the windows run one after another
+            greedy[id(fit)] = (fit, np.asarray(plan.history["cell"], dtype=np.int64))
+        return plan.cells
 
     ds = select_criterion(model, region, n, V, place, int(allowed.size))
     crit, exchange = AUTO_CANDIDATES[ds.attrs["choice"]]

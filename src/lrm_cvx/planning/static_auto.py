@@ -11,7 +11,8 @@ So :func:`select_criterion` answers it on the user's own training snapshots, as
   tenth of the training, between :data:`AUTO_MIN_BLOCK` and :data:`AUTO_MAX_BLOCK`), the last
   ones of the training, each with at least :data:`AUTO_MIN_FIT` snapshots before it. For each
   window the model is refitted on the snapshots *before* it (same class and parameters,
-  ``type(model)(**get_params())``, memoryless, uncalibrated, on the model's region), and every
+  ``type(model)(**get_params())``, memoryless, uncalibrated, on the model's region; a rank or
+  kernel the model validated is kept, the kernel's parameters refitted), and every
   candidate places ``n`` sensors from that refit and those snapshots only. No candidate ever
   sees the snapshots it is scored on, nor anything after the training.
 * **Candidates** (:data:`AUTO_CANDIDATES`): ``"risk"`` with the recommended exchange rule,
@@ -35,7 +36,9 @@ So :func:`select_criterion` answers it on the user's own training snapshots, as
 Above :data:`AUTO_MAX_CELLS` candidate cells (the region where the recommended exchange is
 skipped too), or with one candidate only (no spatial residual), no validation runs: the choice
 is ``"risk"`` (``selection.attrs["skipped"]`` says why). The cost is the time of one refit and
-three placements per window (four windows: under 10 s for 60 sensors on ~6k cells).
+two placements per window (risk + exchange and gp-variance + exchange; the gp-variance greedy
+is the latter's start, shared) and one fold-in score per distinct set of cells. The refits are kept
+for the next call on the same model and training (another sensor count refits nothing).
 
 The result is an ``xarray.Dataset`` (``plan.refinement["selection"]``): ``mse`` per candidate
 and window, ``mse_snapshot`` per held-out snapshot, ``score`` (mean) and ``ucb`` (the guard's
@@ -116,17 +119,49 @@ def auto_unavailable(model: Any, n_snapshots: int) -> str | None:
 
 
 def _refit(model: Any, V: np.ndarray, region: Any) -> Any:
-    """The model's class and parameters, memoryless and uncalibrated, refitted on ``V (t, L)``
-    on ``region`` (duck typing: any estimator with ``get_params`` and ``fit(data, region=)``)."""
-    params = dict(model.get_params())
-    for key, value in (("progress", False), ("temporal", None), ("calibration", None)):
-        if key in params:
-            params[key] = value
-    if params.get("rank") == "auto":  # the rank the model chose (GLRM(rank="auto"))
-        params["rank"] = int(model.rank_)
+    """The model's unfitted copy of every validation (:func:`~lrm_cvx.validation.refits.
+    clone_model`: uncalibrated, a chosen rank and kernel kept), memoryless, refitted on
+    ``V (t, L)`` on ``region`` (duck typing: any estimator with ``get_params`` and
+    ``fit(data, region=)``)."""
+    from ..validation.refits import clone_model
+
+    memoryless = {"temporal": None} if "temporal" in model.get_params() else {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return type(model)(**params).fit(xr.DataArray(V, dims=("time", "cell")), region=region)
+        return clone_model(model, **memoryless).fit(xr.DataArray(V, dims=("time", "cell")),
+                                                    region=region)
+
+
+_REFITS: list[Any] = []
+"""The last validation's refits: ``[(key, model ref, region, {window start: (refit,
+prior)})]`` (one entry)."""
+
+
+def _shared_refits(model: Any, region: Any, V: np.ndarray) -> dict[int, tuple[Any, Any]]:
+    """The refits of the last validation on the same fitted ``model``, ``region`` and
+    training ``V`` (a placement at another sensor count refits the same windows), else a new
+    empty table that the next call shares. Keyed on the model object (held weakly), its
+    parameters and factors and the training's bytes: a refitted model or other snapshots
+    start afresh."""
+    import hashlib
+    import weakref
+
+    digest = hashlib.blake2b(digest_size=16)
+    for arr in (np.asarray(model.Y_, np.float64), np.ascontiguousarray(V)):
+        digest.update(str(arr.shape).encode())
+        digest.update(arr.tobytes())
+    key = (digest.hexdigest(), repr(sorted(model.get_params().items())))
+    if _REFITS:
+        old_key, ref, old_region, table = _REFITS[0]
+        if old_key == key and ref() is model and old_region is region:
+            return table
+    table: dict[int, tuple[Any, Any]] = {}
+    try:
+        ref = weakref.ref(model)
+    except TypeError:  # an estimator that cannot be referenced weakly: no sharing
+        return table
+    _REFITS[:] = [(key, ref, region, table)]
+    return table
 
 
 def _mse(prior: Any, values: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -164,15 +199,25 @@ def select_criterion(model: Any, region: Any, n: int, V: np.ndarray, place: Any,
     held_t = np.concatenate([np.arange(a, b) for a, b in windows]) if windows \
         else np.zeros(0, np.int64)
 
+    refits = _shared_refits(model, region, V) if windows else {}
+
     def window_errors(window: tuple[int, int]) -> dict[str, np.ndarray]:
         """Per held-out snapshot ``(1, b - a)`` the fold-in MSE of each candidate's
-        placement from the model refitted on the snapshots before the window."""
+        placement from the model refitted on the snapshots before the window (one score per
+        distinct set of cells)."""
         a, b = window
-        fit = _refit(model, V[:a], region)
-        prior = fit.latent_prior("empirical", spatial=spatial)
-        return {lab: _mse(prior, V[a:b], np.asarray(place(fit, V[:a], *AUTO_CANDIDATES[lab]),
-                                                     dtype=np.int64))[None]
-                for lab in labels}
+        if a not in refits:
+            fit = _refit(model, V[:a], region)
+            refits[a] = (fit, fit.latent_prior("empirical", spatial=spatial))
+        fit, prior = refits[a]
+        out, scored = {}, {}
+        for lab in labels:
+            cells = np.asarray(place(fit, V[:a], *AUTO_CANDIDATES[lab]), dtype=np.int64)
+            key = np.sort(cells).tobytes()
+            if key not in scored:
+                scored[key] = _mse(prior, V[a:b], cells)[None]
+            out[lab] = scored[key]
+        return out
 
     stops = np.cumsum([0] + [b - a for a, b in windows])
     rule = BlockGuard(list(zip(stops[:-1], stops[1:], strict=True)), AUTO_CONFIDENCE)

@@ -43,6 +43,8 @@ MAX_CANDIDATES: int = 200_000
 
 _CUT_SUM = 1e-16  # kernel cut of the once-only full-grid sums (relative to the sill)
 _CUT_PICK = 1e-12  # kernel cut of the per-sensor window
+_FFT_CELLS = 1 << 21  # padded grid cells per batched FFT of the once-only sums (~64 MB of
+# temporaries; one grid at a time at paper scale)
 
 
 def _kernel_table(cov: Any, radius: tuple[int, int]) -> np.ndarray:
@@ -101,7 +103,20 @@ class FactoredState:
                 out = sfft.irfft2(sfft.rfft2(grid, s=shp, workers=-1) * F, s=shp, workers=-1)
                 return out[r[0] + self.gX[:, 0], r[1] + self.gX[:, 1]]
 
-            self.U = np.stack([full_sum(w * Y[a]) for a in range(self.k)])  # (k, p)
+            def full_sums(rows: np.ndarray, out: np.ndarray) -> None:
+                """``out (m, p) +=`` the ``full_sum`` of each row of ``rows (m, L)``, one
+                batched FFT per block of rows (the same transforms: bit for bit)."""
+                for a in range(0, rows.shape[0], batch):
+                    block = rows[a:a + batch]
+                    grids = np.zeros((block.shape[0], *self.shape))
+                    grids[:, gi[:, 0], gi[:, 1]] = block
+                    conv = sfft.irfft2(sfft.rfft2(grids, s=shp, axes=(-2, -1), workers=-1) * KF,
+                                       s=shp, axes=(-2, -1), workers=-1)
+                    out[a:a + batch] += conv[:, r[0] + self.gX[:, 0], r[1] + self.gX[:, 1]]
+
+            batch = max(1, _FFT_CELLS // (shp[0] * shp[1]))
+            self.U = np.zeros((self.k, p))
+            full_sums(w * Y, self.U)
             s = full_sum(w, sfft.rfft2(ktab ** 2, s=shp))
             self.sill = float(self.cov.sill)
             rp = _radius(self.cov, _CUT_PICK, self.shape)
@@ -125,8 +140,7 @@ class FactoredState:
             RW = R * w
             RWC0 = ((RW @ Y.T) @ self.S0) @ self.YX
             if self.cov is not None:
-                for t in range(R.shape[0]):
-                    RWC0[t] += full_sum(RW[t])
+                full_sums(RW, RWC0)
             self.RX = np.ascontiguousarray(R[:, self.pool])
             self.RWC0 = RWC0
             self.Z = self.RX.copy()
