@@ -56,6 +56,7 @@ from .spatial.kriging import (  # noqa: F401  (GridConv and the GP helpers: the 
     check_gp_inputs,
     gp_latent_cov,
     gp_noise,
+    grid_rect,
 )
 
 __all__ = [
@@ -331,16 +332,6 @@ GP_STRUCTURED_MIN_ENTRIES: float = 2e7
 covariances (``|targets + pool| x |pool|``) and the covariance's metric is ``"grid"``."""
 
 
-def _rect(lo: np.ndarray, hi: np.ndarray, margin: tuple[float, float],
-          shape: tuple[int, int]) -> tuple[int, int, int, int]:
-    """Grid rectangle ``(row0, col0, n_rows, n_cols)`` of ``[lo - margin, hi + margin]``
-    (``margin`` per axis: a covariance's ``reach``), clipped to the grid."""
-    mr, mc = (int(np.ceil(v)) if np.isfinite(v) else max(shape) for v in margin)
-    r0, c0 = max(int(lo[0]) - mr, 0), max(int(lo[1]) - mc, 0)
-    r1, c1 = min(int(hi[0]) + mr, shape[0] - 1), min(int(hi[1]) + mc, shape[1] - 1)
-    return r0, c0, r1 - r0 + 1, c1 - c0 + 1
-
-
 class StructuredGPVarianceOracle:
     """Exact ``"gp-variance"`` gains without dense covariances (grid metric), for paper scale.
 
@@ -477,7 +468,7 @@ class StructuredGPVarianceOracle:
         # u(x) and s(x) = sum_i c_i k(i, x)^2 over (almost) the whole grid: terms left out
         # are below 1e-17 sill each
         aniso = spatial_cov.anisotropy
-        wb = _rect(lo, hi, spatial_cov.reach(1e-17), shape)
+        wb = grid_rect(lo, hi, spatial_cov.reach(1e-17), shape)
         sl = (slice(wb[0], wb[0] + wb[2]), slice(wb[1], wb[1] + wb[3]))
         conv = GridConv(wb, out, kern, aniso)
         uX = np.empty((k, X.size))
@@ -491,7 +482,7 @@ class StructuredGPVarianceOracle:
         # autocorrelation K2(x - p) of k minus the targets' complement (bounded below), a table
         # gather per pick; else one convolution per pick over the smaller window
         k2 = self._lag_table(cT, sX, spatial_cov, lo, hi, boundary_tol)
-        wg = _rect(lo, hi, spatial_cov.reach(truncation), shape)
+        wg = grid_rect(lo, hi, spatial_cov.reach(truncation), shape)
         return _GridTerms(uX=uX, sX=sX, W=(self.Y * cT) @ self.Y.T, k2=k2, wg=wg,
                           gconv=GridConv(wg, out, kern, aniso),
                           cwin=cgrid[wg[0]:wg[0] + wg[2], wg[1]:wg[1] + wg[3]],
@@ -820,7 +811,7 @@ def _residual_terms(Yk: np.ndarray, region: Any, spatial_cov: Any, P: np.ndarray
     lo, hi = gP.min(axis=0), gP.max(axis=0)
     out = (int(lo[0]), int(lo[1]), int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
     oidx = (gP[:, 0] - out[0], gP[:, 1] - out[1])
-    wb = _rect(lo, hi, spatial_cov.reach(1e-17), shape)
+    wb = grid_rect(lo, hi, spatial_cov.reach(1e-17), shape)
     sl = (slice(wb[0], wb[0] + wb[2]), slice(wb[1], wb[1] + wb[3]))
 
     def kern(d):

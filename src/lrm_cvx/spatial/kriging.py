@@ -25,7 +25,8 @@ from .covariance import MODELS, ResidualCovariance, arc_distance, chord_distance
 
 __all__ = ["krige", "krige_many", "krige_grid_fft", "krige_core", "check_cov",
            "jittered_cholesky", "prepare_kriging", "GridConv", "gp_noise", "gp_latent_cov",
-           "check_gp_inputs", "FFT_KRIGE_MIN_WORK", "FFT_KRIGE_VAR_TOL", "MAX_DIRECT"]
+           "check_gp_inputs", "grid_rect", "FFT_KRIGE_MIN_WORK", "FFT_KRIGE_VAR_TOL",
+           "FFT_KRIGE_REACH", "MAX_DIRECT"]
 
 _SQRT3 = np.sqrt(3.0)
 _SQRT5 = np.sqrt(5.0)
@@ -195,6 +196,22 @@ FFT_KRIGE_VAR_TOL: float = 1e-6
 """Variance tolerance of :func:`krige_grid_fft`, relative to the nugget."""
 
 
+def grid_rect(lo: np.ndarray, hi: np.ndarray, margin: tuple[float, float],
+              shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Grid rectangle ``(row0, col0, n_rows, n_cols)`` of ``[lo - margin, hi + margin]``
+    (``margin`` per axis: a covariance's ``reach``), clipped to the grid."""
+    mr, mc = (int(np.ceil(v)) if np.isfinite(v) else max(shape) for v in margin)
+    r0, c0 = max(int(lo[0]) - mr, 0), max(int(lo[1]) - mc, 0)
+    r1, c1 = min(int(hi[0]) + mr, shape[0] - 1), min(int(hi[1]) + mc, shape[1] - 1)
+    return r0, c0, r1 - r0 + 1, c1 - c0 + 1
+
+
+FFT_KRIGE_REACH: float = 1e-17
+""":func:`krige_grid_fft` convolves over the observations' bounding box grown by the
+covariance's ``reach(FFT_KRIGE_REACH)``; beyond it every kernel value is below this fraction of
+the sill, and the residual's kriged mean and variance reduction there are 0."""
+
+
 def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarray,
                    z: np.ndarray, *, Ys: np.ndarray | None = None, Yall: np.ndarray | None = None,
                    cov_x: np.ndarray | None = None, var_tol: float = FFT_KRIGE_VAR_TOL
@@ -216,6 +233,11 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
       every cell, ``cov_x`` the GLS covariance of the trend coefficients): ``+ u_t^T cov_x
       u_t``, ``u_t = y_t - Ys C^-1 k_t``, ``Ys C^-1 k_t`` by ``k`` convolutions with the
       weights ``C^-1 Ys^T`` (exact).
+
+    The convolutions cover the observations' bounding box grown by the covariance's
+    ``reach(FFT_KRIGE_REACH)`` (:data:`FFT_KRIGE_REACH`; every ``k_t`` beyond it is below
+    ``1e-17`` sill, taken as 0), and the mean, the ``M`` projections and the trend's ``k``
+    share one batched transform (:meth:`GridConv.many`).
 
     Returns ``(mean (L,), latent variance (L,), M)`` in the region's cell order. Needs a
     nugget > 0 and ``metric="grid"``.
@@ -239,23 +261,20 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     alpha = U @ ((U.T @ z) / lam)
     lo, hi = go.min(axis=0), go.max(axis=0)
     window = (int(lo[0]), int(lo[1]), int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
-    out = (0, 0, int(shape[0]), int(shape[1]))
+    out = grid_rect(lo, hi, cov.reach(FFT_KRIGE_REACH), shape)
+    near = np.flatnonzero((gi[:, 0] >= out[0]) & (gi[:, 0] < out[0] + out[2])
+                          & (gi[:, 1] >= out[1]) & (gi[:, 1] < out[1] + out[3]))
     loc = (go[:, 0] - window[0], go[:, 1] - window[1])
+    rows, cols = gi[near, 0] - out[0], gi[near, 1] - out[1]
 
     def kern(d):
         return cov.covariance(d, nugget=False)
 
     conv = GridConv(window, out, kern, cov.anisotropy)
     img = np.zeros(window[2:])
-    rows, cols = gi[:, 0], gi[:, 1]
-
-    def apply(c: GridConv, w: np.ndarray) -> np.ndarray:
-        img[...] = 0.0
-        np.add.at(img, loc, w)
-        return c(img)[rows, cols]
-
-    mean = apply(conv, alpha)
-    kk = apply(GridConv(window, out, lambda d: kern(d) ** 2, cov.anisotropy), np.ones(z.size))
+    np.add.at(img, loc, 1.0)
+    kk = np.zeros(gi.shape[0])
+    kk[near] = GridConv(window, out, lambda d: kern(d) ** 2, cov.anisotropy)(img)[rows, cols]
     kmax = float(np.max(kk)) if kk.size else 0.0
     # leading eigenvectors: those whose weight differs from 1/nugget by more than the
     # tolerance allows (the error is <= (lambda_cut - nugget) / nugget^2 * max_t ||k_t||^2)
@@ -263,17 +282,22 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     trend = Ys is not None and Yall is not None and cov_x is not None
     order = np.argsort(-lam)
     lead = order[(lam[order] - nug) > thresh]
+    # the weights of every convolution with k: alpha, the leading eigenvectors and, for
+    # universal kriging, C^-1 Ys^T (Ys C^-1 k_t = sum_j (C^-1 Ys^T)_j k(t, o_j), exact)
+    weights = [alpha[:, None], U[:, lead]]
+    if trend:
+        weights.append(U @ ((U.T @ Ys.T) / lam[:, None]))
+    p = conv.many(np.concatenate(weights, axis=1).T, loc, (rows, cols))
+    mean = np.zeros(gi.shape[0])
+    mean[near] = p[0]
     var = np.full(gi.shape[0], float(cov.sill))
     red = kk / nug
-    for m in lead:
-        p = apply(conv, U[:, m])
-        red += (1.0 / lam[m] - 1.0 / nug) * p * p
+    for i, m in enumerate(lead, start=1):
+        red[near] += (1.0 / lam[m] - 1.0 / nug) * p[i] * p[i]
     var -= red
-    if trend:  # Ys C^-1 k_t = sum_j (C^-1 Ys^T)_j k(t, o_j): k convolutions, exact
-        CY = U @ ((U.T @ Ys.T) / lam[:, None])
+    if trend:
         u = np.array(Yall, dtype=np.float64, copy=True)
-        for a in range(Ys.shape[0]):
-            u[a] -= apply(conv, CY[:, a])
+        u[:, near] -= p[1 + lead.size:]
         var += np.einsum("kc,kl,lc->c", u, cov_x, u)
     return mean, var, int(lead.size)
 
@@ -511,6 +535,32 @@ class GridConv:
 
         full = sfft.irfft2(sfft.rfft2(f, s=self.s, workers=-1) * self.H, s=self.s, workers=-1)
         return full[self.a - 1:self.a - 1 + self.oa, self.b - 1:self.b - 1 + self.ob]
+
+    def many(self, weights: np.ndarray, loc: tuple[np.ndarray, np.ndarray],
+             at: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """``(B, |at|)``: the convolution of each row of ``weights`` (``(B, n)``, values at
+        the window's cells ``loc``, ``(rows, cols)`` within it) read at the output cells
+        ``at``; the images are transformed together (one batched ``rfft2`` / ``irfft2`` per
+        chunk of ``_CHUNK_BYTES``), each the same convolution as :meth:`__call__`."""
+        import scipy.fft as sfft
+
+        weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
+        n_img = weights.shape[0]
+        res = np.empty((n_img, at[0].size))
+        step = _chunk(n_img, 32 * self.s[0] * self.s[1])
+        r, c = at[0] + self.a - 1, at[1] + self.b - 1
+        for lo in range(0, n_img, step):
+            w = weights[lo:lo + step]
+            buf = np.zeros((w.shape[0], *self.s))
+            np.add.at(buf, (np.arange(w.shape[0])[:, None], loc[0][None, :], loc[1][None, :]),
+                      w)
+            spec = sfft.rfft2(buf, axes=(-2, -1), workers=-1, overwrite_x=True)
+            del buf
+            spec *= self.H
+            full = sfft.irfft2(spec, s=self.s, axes=(-2, -1), workers=-1, overwrite_x=True)
+            del spec
+            res[lo:lo + w.shape[0]] = full[:, r, c]
+        return res
 
     def product(self, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
         """``self(f1 * f2)``, the same numbers, with the product written straight into the
