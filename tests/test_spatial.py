@@ -510,15 +510,18 @@ def test_krige_grid_fft_equals_direct_kriging(sill, rng_range, nugget):
         sp.krige_grid_fft(km, region, obs, z)
 
 
-def test_krige_grid_fft_beyond_the_kernels_reach_equals_direct_kriging():
-    """Observations in one corner of a large grid and a short range: the FFTs cover only the
-    observations' box grown by the kernel's reach, and every cell (inside or beyond) still
-    gets the direct kriging's mean and variance."""
+@pytest.mark.parametrize("ratio", [0.0, np.inf])
+def test_krige_grid_fft_beyond_the_kernels_reach_equals_direct_kriging(ratio, monkeypatch):
+    """Observations in one corner of a large grid and a short range: the products cover only
+    the observations' box grown by the kernel's reach, and every cell (inside or beyond) still
+    gets the direct kriging's mean and variance, by the batched FFTs (ratio 0) and by the
+    lag table's products (ratio inf) alike."""
     import xarray as xr
 
     from lrm_cvx import Region
     from lrm_cvx import spatial as sp
 
+    monkeypatch.setattr(sp.kriging, "FFT_KRIGE_DIRECT_RATIO", ratio)
     rng = np.random.default_rng(8)
     ny, nx = 150, 140
     da = xr.DataArray(np.zeros((ny, nx)), dims=("lat", "lon"),

@@ -9,7 +9,7 @@ of the planners' criterion (moved here from ``information``, which keeps the old
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, Literal
 
 import numba
@@ -206,6 +206,13 @@ def grid_rect(lo: np.ndarray, hi: np.ndarray, margin: tuple[float, float],
     return r0, c0, r1 - r0 + 1, c1 - c0 + 1
 
 
+FFT_KRIGE_DIRECT_RATIO: float = 0.1
+""":func:`krige_grid_fft` forms each ``k(t, o_j)`` from the kernel's lag table and takes its
+products with the weights by BLAS (exact, no transform) when ``n_targets x n_obs`` is at most
+this times ``n_images x S log2 S`` (``S`` the FFT's size, ``n_images <= n_obs + k + 2`` the
+convolutions the FFT path would run): the direct path reads each ``k(t, o_j)`` twice and
+multiplies it into every image, a transform pair costs ``~ 5 S log2 S`` flops per image."""
+
 FFT_KRIGE_REACH: float = 1e-17
 """:func:`krige_grid_fft` convolves over the observations' bounding box grown by the
 covariance's ``reach(FFT_KRIGE_REACH)``; beyond it every kernel value is below this fraction of
@@ -270,11 +277,36 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     def kern(d):
         return cov.covariance(d, nugget=False)
 
-    conv = GridConv(window, out, kern, cov.anisotropy)
-    img = np.zeros(window[2:])
-    np.add.at(img, loc, 1.0)
-    kk = np.zeros(gi.shape[0])
-    kk[near] = GridConv(window, out, lambda d: kern(d) ** 2, cov.anisotropy)(img)[rows, cols]
+    n, n_near = z.size, near.size
+    whole = n_near == gi.shape[0]  # every cell within reach: slices instead of gathers
+
+    def cells(lo: int, hi: int) -> Any:
+        return slice(lo, hi) if whole else near[lo:hi]
+
+    conv_work = float(np.prod(_fft_shape(window, out))) if n_near else 0.0
+    n_img = n + 2 + (0 if Ys is None else Ys.shape[0])  # at most: mean, k^2, M <= n, trend
+    direct = float(n_near) * n <= (FFT_KRIGE_DIRECT_RATIO * n_img * conv_work
+                                   * np.log2(max(conv_work, 2.0)))
+    if direct:  # k(t, o_j) gathered from the kernel's lag table, products by BLAS
+        tab, dr0, dc0 = lag_table(window, out, kern, cov.anisotropy)
+        step = _chunk(n_near, 8 * (2 * n + z.size + 8))
+
+        def kernel_rows(lo: int, hi: int) -> np.ndarray:
+            t = near[lo:hi]
+            return tab[gi[t, 0][:, None] - go[None, :, 0] - dr0,
+                       gi[t, 1][:, None] - go[None, :, 1] - dc0]
+
+        kk = np.zeros(gi.shape[0])
+        for lo in range(0, n_near, step):
+            K = kernel_rows(lo, lo + step)
+            kk[cells(lo, lo + step)] = np.einsum("tj,tj->t", K, K)
+    else:
+        conv = GridConv(window, out, kern, cov.anisotropy)
+        img = np.zeros(window[2:])
+        np.add.at(img, loc, 1.0)
+        kk = np.zeros(gi.shape[0])
+        kk[near] = GridConv(window, out, lambda d: kern(d) ** 2,
+                            cov.anisotropy)(img)[rows, cols]
     kmax = float(np.max(kk)) if kk.size else 0.0
     # leading eigenvectors: those whose weight differs from 1/nugget by more than the
     # tolerance allows (the error is <= (lambda_cut - nugget) / nugget^2 * max_t ||k_t||^2)
@@ -282,22 +314,36 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     trend = Ys is not None and Yall is not None and cov_x is not None
     order = np.argsort(-lam)
     lead = order[(lam[order] - nug) > thresh]
-    # the weights of every convolution with k: alpha, the leading eigenvectors and, for
+    # the weights of every product with k: alpha, the leading eigenvectors and, for
     # universal kriging, C^-1 Ys^T (Ys C^-1 k_t = sum_j (C^-1 Ys^T)_j k(t, o_j), exact)
     weights = [alpha[:, None], U[:, lead]]
     if trend:
         weights.append(U @ ((U.T @ Ys.T) / lam[:, None]))
-    p = conv.many(np.concatenate(weights, axis=1).T, loc, (rows, cols))
+    weights = np.concatenate(weights, axis=1)
+    scale = 1.0 / lam[lead] - 1.0 / nug
     mean = np.zeros(gi.shape[0])
-    mean[near] = p[0]
-    var = np.full(gi.shape[0], float(cov.sill))
     red = kk / nug
-    for i, m in enumerate(lead, start=1):
-        red[near] += (1.0 / lam[m] - 1.0 / nug) * p[i] * p[i]
+    u = np.array(Yall, dtype=np.float64, copy=True) if trend else None
+
+    def fold(q0: int, P: np.ndarray, at: Any) -> None:
+        """Images ``q0, q0 + 1, ...`` (rows of ``P``) at the cells ``at``, in image order."""
+        for q, pq in enumerate(P, start=q0):
+            if q == 0:
+                mean[at] = pq
+            elif q <= lead.size:
+                red[at] += scale[q - 1] * pq * pq
+            else:
+                u[q - 1 - lead.size, at] -= pq
+
+    if direct:
+        for lo in range(0, n_near, step):
+            fold(0, (kernel_rows(lo, lo + step) @ weights).T, cells(lo, lo + step))
+    else:
+        for q0, P in conv.many(weights.T, loc, (rows, cols)):
+            fold(q0, P, cells(0, n_near))
+    var = np.full(gi.shape[0], float(cov.sill))
     var -= red
     if trend:
-        u = np.array(Yall, dtype=np.float64, copy=True)
-        u[:, near] -= p[1 + lead.size:]
         var += np.einsum("kc,kl,lc->c", u, cov_x, u)
     return mean, var, int(lead.size)
 
@@ -507,6 +553,29 @@ def krige(
 
 
 # ---------------------------------------------------------------------------- FFT convolution
+def _fft_shape(window: tuple[int, int, int, int], out: tuple[int, int, int, int]
+               ) -> tuple[int, int]:
+    """The FFT size of :class:`GridConv`'s linear convolution of ``window`` onto ``out``."""
+    import scipy.fft as sfft
+
+    return (sfft.next_fast_len(window[2] + out[2] - 1, real=True),
+            sfft.next_fast_len(window[3] + out[3] - 1, real=True))
+
+
+def lag_table(window: tuple[int, int, int, int], out: tuple[int, int, int, int], h: Any,
+              anisotropy: float = 1.0) -> tuple[np.ndarray, int, int]:
+    """``(tab, dr0, dc0)``: ``h`` at every grid offset from a cell of ``window`` to a cell of
+    ``out`` (rectangles as in :class:`GridConv`), ``h(x - i) = tab[dr - dr0, dc - dc0]`` for
+    the row and column offsets ``(dr, dc)`` of ``x - i``: the table :class:`GridConv`
+    transforms, and the direct products of :func:`krige_grid_fft` gather from."""
+    r0, c0, a, b = window
+    o_r, o_c, oa, ob = out
+    dr0, dc0 = o_r - r0 - a + 1, o_c - c0 - b + 1
+    dr = np.arange(dr0, o_r + oa - r0, dtype=np.float64)
+    dc = np.arange(dc0, o_c + ob - c0, dtype=np.float64) / anisotropy
+    return h(np.sqrt(dr[:, None] ** 2 + dc[None, :] ** 2)), int(dr0), int(dc0)
+
+
 class GridConv:
     """``out[x] = sum_{i in window} f[i] h(|i - x|)`` for ``x`` in an output rectangle, by FFT.
 
@@ -520,15 +589,9 @@ class GridConv:
                  h: Any, anisotropy: float = 1.0) -> None:
         import scipy.fft as sfft
 
-        r0, c0, a, b = window
-        o_r, o_c, oa, ob = out
-        self.a, self.b, self.oa, self.ob = a, b, oa, ob
-        self.s = (sfft.next_fast_len(a + oa - 1, real=True),
-                  sfft.next_fast_len(b + ob - 1, real=True))
-        dr = np.arange(o_r - r0 - a + 1, o_r + oa - r0, dtype=np.float64)
-        dc = np.arange(o_c - c0 - b + 1, o_c + ob - c0, dtype=np.float64) / anisotropy
-        tab = h(np.sqrt(dr[:, None] ** 2 + dc[None, :] ** 2))
-        self.H = sfft.rfft2(tab, s=self.s)
+        self.a, self.b, self.oa, self.ob = window[2], window[3], out[2], out[3]
+        self.s = _fft_shape(window, out)
+        self.H = sfft.rfft2(lag_table(window, out, h, anisotropy)[0], s=self.s)
 
     def __call__(self, f: np.ndarray) -> np.ndarray:
         import scipy.fft as sfft
@@ -537,16 +600,16 @@ class GridConv:
         return full[self.a - 1:self.a - 1 + self.oa, self.b - 1:self.b - 1 + self.ob]
 
     def many(self, weights: np.ndarray, loc: tuple[np.ndarray, np.ndarray],
-             at: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        """``(B, |at|)``: the convolution of each row of ``weights`` (``(B, n)``, values at
-        the window's cells ``loc``, ``(rows, cols)`` within it) read at the output cells
-        ``at``; the images are transformed together (one batched ``rfft2`` / ``irfft2`` per
-        chunk of ``_CHUNK_BYTES``), each the same convolution as :meth:`__call__`."""
+             at: tuple[np.ndarray, np.ndarray]) -> Iterator[tuple[int, np.ndarray]]:
+        """The convolution of each row of ``weights`` (``(B, n)``, values at the window's
+        cells ``loc``, ``(rows, cols)`` within it) read at the output cells ``at``, by chunks
+        of images transformed together (one batched ``rfft2`` / ``irfft2`` per
+        ``_CHUNK_BYTES``): yields ``(first image, (b, |at|) values)``; each image is the same
+        convolution as :meth:`__call__`."""
         import scipy.fft as sfft
 
         weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
         n_img = weights.shape[0]
-        res = np.empty((n_img, at[0].size))
         step = _chunk(n_img, 32 * self.s[0] * self.s[1])
         r, c = at[0] + self.a - 1, at[1] + self.b - 1
         for lo in range(0, n_img, step):
@@ -559,8 +622,7 @@ class GridConv:
             spec *= self.H
             full = sfft.irfft2(spec, s=self.s, axes=(-2, -1), workers=-1, overwrite_x=True)
             del spec
-            res[lo:lo + w.shape[0]] = full[:, r, c]
-        return res
+            yield lo, full[:, r, c]
 
     def product(self, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
         """``self(f1 * f2)``, the same numbers, with the product written straight into the
