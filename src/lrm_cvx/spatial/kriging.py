@@ -287,26 +287,23 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     n_img = n + 2 + (0 if Ys is None else Ys.shape[0])  # at most: mean, k^2, M <= n, trend
     direct = float(n_near) * n <= (FFT_KRIGE_DIRECT_RATIO * n_img * conv_work
                                    * np.log2(max(conv_work, 2.0)))
+    # ||k_t||^2: one convolution with k^2 (either way: the same leading eigenvectors)
+    img = np.zeros(window[2:])
+    np.add.at(img, loc, 1.0)
+    kk = np.zeros(gi.shape[0])
+    kk[near] = GridConv(window, out, lambda d: kern(d) ** 2, cov.anisotropy)(img)[rows, cols]
     if direct:  # k(t, o_j) gathered from the kernel's lag table, products by BLAS
         tab, dr0, dc0 = lag_table(window, out, kern, cov.anisotropy)
         step = _chunk(n_near, 8 * (2 * n + z.size + 8))
+        go_r = np.ascontiguousarray(go[:, 0] + dr0, dtype=np.int64)
+        go_c = np.ascontiguousarray(go[:, 1] + dc0, dtype=np.int64)
 
         def kernel_rows(lo: int, hi: int) -> np.ndarray:
             t = near[lo:hi]
-            return tab[gi[t, 0][:, None] - go[None, :, 0] - dr0,
-                       gi[t, 1][:, None] - go[None, :, 1] - dc0]
-
-        kk = np.zeros(gi.shape[0])
-        for lo in range(0, n_near, step):
-            K = kernel_rows(lo, lo + step)
-            kk[cells(lo, lo + step)] = np.einsum("tj,tj->t", K, K)
+            return _gather_lags(tab, np.ascontiguousarray(gi[t, 0], dtype=np.int64),
+                                np.ascontiguousarray(gi[t, 1], dtype=np.int64), go_r, go_c)
     else:
         conv = GridConv(window, out, kern, cov.anisotropy)
-        img = np.zeros(window[2:])
-        np.add.at(img, loc, 1.0)
-        kk = np.zeros(gi.shape[0])
-        kk[near] = GridConv(window, out, lambda d: kern(d) ** 2,
-                            cov.anisotropy)(img)[rows, cols]
     kmax = float(np.max(kk)) if kk.size else 0.0
     # leading eigenvectors: those whose weight differs from 1/nugget by more than the
     # tolerance allows (the error is <= (lambda_cut - nugget) / nugget^2 * max_t ||k_t||^2)
@@ -337,7 +334,7 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
 
     if direct:
         for lo in range(0, n_near, step):
-            fold(0, (kernel_rows(lo, lo + step) @ weights).T, cells(lo, lo + step))
+            fold(0, weights.T @ kernel_rows(lo, lo + step), cells(lo, lo + step))
     else:
         for q0, P in conv.many(weights.T, loc, (rows, cols)):
             fold(q0, P, cells(0, n_near))
@@ -346,6 +343,19 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     if trend:
         var += np.einsum("kc,kl,lc->c", u, cov_x, u)
     return mean, var, int(lead.size)
+
+
+@numba.njit(cache=True)
+def _gather_lags(tab: np.ndarray, tr: np.ndarray, tc: np.ndarray, orr: np.ndarray,
+                 oc: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """``K[j, t] = tab[tr[t] - orr[j], tc[t] - oc[j]]`` (the lag table's offsets folded into
+    ``orr``, ``oc``): the kernel between observations and targets, no index temporaries (one
+    observation's row at a time: the targets' neighbouring cells read neighbouring lags)."""
+    K = np.empty((orr.size, tr.size))
+    for j in range(orr.size):
+        for t in range(tr.size):
+            K[j, t] = tab[tr[t] - orr[j], tc[t] - oc[j]]
+    return K
 
 
 @numba.njit(cache=True)
