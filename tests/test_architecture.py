@@ -47,7 +47,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # the calibration and the dynamics blend
     ("lrm_cvx.validation",),
     # what a planner maximises and what a route costs
-    ("lrm_cvx.information", "lrm_cvx.oracles"),
+    ("lrm_cvx.information", "lrm_cvx.gp_structured", "lrm_cvx.oracles"),
     # planners, plans and certificates
     ("lrm_cvx.planning",),
     # research tools used by tests and benchmarks (the convex floor); nothing imports them

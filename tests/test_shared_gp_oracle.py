@@ -10,6 +10,7 @@ import xarray as xr
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import lrm_cvx.gp_structured as gp_structured
 import lrm_cvx.information as information
 import lrm_cvx.planning.lines as lines
 from lrm_cvx.information import StructuredGPVarianceOracle
@@ -79,9 +80,9 @@ def test_rivals_from_one_set_up_plan_as_separate_oracles(structured, seed, start
     kw = dict(criterion="gp-variance", initial="start", progress=False,
               prior=PriorTerms(**terms))
     plan = plan_greedy(Y, region, start, budget, refine="rivals", **kw)
-    information._GRID_TERMS.clear()  # the lone plans set up on their own
+    gp_structured.GRID_TERMS.clear()  # the lone plans set up on their own
     greedy = plan_greedy(Y, region, start, budget, **kw)
-    information._GRID_TERMS.clear()
+    gp_structured.GRID_TERMS.clear()
     gentle = plan_greedy(Y, region, start, budget, cost_exponent=0.5, **kw)
     routes = {"greedy": greedy, "greedy-cost^0.5": gentle}
     routes.update({f"transect-{d}": transect(region, start, budget, d) for d in DIRECTIONS})
@@ -112,7 +113,7 @@ def test_one_set_up_and_one_convolution_per_cell(structured, monkeypatch):
     convolved = count_convolutions(monkeypatch)
     kw = dict(criterion="gp-variance", initial="start", progress=False,
               prior=PriorTerms(**terms))
-    information._GRID_TERMS.clear()
+    gp_structured.GRID_TERMS.clear()
     plan = plan_greedy(Y, region, 90, 8.0, refine="rivals", **kw)
     assert len(built) == 1
     n_convolved = len(convolved)
@@ -135,7 +136,7 @@ def test_forks_and_fresh_forks_are_set_up_oracles_bit_for_bit(seed, picks):
     kw = dict(region=region, pool=np.arange(0, region.n_cells), **terms)
     base = StructuredGPVarianceOracle(Y, [5], **kw)
     a, b = base.fork(), base.fork()
-    information._GRID_TERMS.clear()  # set up on its own
+    gp_structured.GRID_TERMS.clear()  # set up on its own
     alone = StructuredGPVarianceOracle(Y, [5], **kw)
     for c in picks:
         a.add(c)
@@ -146,7 +147,7 @@ def test_forks_and_fresh_forks_are_set_up_oracles_bit_for_bit(seed, picks):
         np.testing.assert_array_equal(o.gains(), alone.gains())
         assert o.value == alone.value
     zero = base.fresh()
-    information._GRID_TERMS.clear()
+    gp_structured.GRID_TERMS.clear()
     empty = StructuredGPVarianceOracle(Y, [], **kw)
     assert zero.cells == [] and zero.value == empty.value
     np.testing.assert_array_equal(zero.gains(), empty.gains())
@@ -174,13 +175,13 @@ def test_a_second_plan_of_the_same_set_up_convolves_only_new_cells(structured, m
     Y, region, terms = problem(8, 12, 12)
     convolved = count_convolutions(monkeypatch)
     kw = dict(criterion="gp-variance", initial="start", progress=False, refine="rivals")
-    information._GRID_TERMS.clear()
+    gp_structured.GRID_TERMS.clear()
     plan_greedy(Y, region, 66, 7.0, **kw, prior=PriorTerms(**terms))
     first = len(convolved)
     day2 = {**terms, "prior_cov": 0.5 * terms["prior_cov"]}
     plan = plan_greedy(Y, region, 66, 7.0, **kw, prior=PriorTerms(**day2))
     assert 0 <= len(convolved) - first < first - Y.shape[0] - 1  # no set-up, fewer cells
-    information._GRID_TERMS.clear()
+    gp_structured.GRID_TERMS.clear()
     alone = plan_greedy(Y, region, 66, 7.0, **kw, prior=PriorTerms(**day2))
     np.testing.assert_array_equal(plan.route, alone.route)
     assert plan.rivals["values"] == alone.rivals["values"]

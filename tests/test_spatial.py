@@ -508,3 +508,45 @@ def test_krige_grid_fft_equals_direct_kriging(sill, rng_range, nugget):
     km = sp.ResidualCovariance("exponential", sill=sill, range=100.0, nugget=nugget, metric="km")
     with pytest.raises(ModelError, match="grid"):
         sp.krige_grid_fft(km, region, obs, z)
+
+
+@pytest.mark.parametrize("ratio", [0.0, np.inf])
+def test_krige_grid_fft_beyond_the_kernels_reach_equals_direct_kriging(ratio, monkeypatch):
+    """Observations in one corner of a large grid and a short range: the products cover only
+    the observations' box grown by the kernel's reach, and every cell (inside or beyond) still
+    gets the direct kriging's mean and variance, by the batched FFTs (ratio 0) and by the
+    lag table's products (ratio inf) alike."""
+    import xarray as xr
+
+    from lrm_cvx import Region
+    from lrm_cvx import spatial as sp
+
+    monkeypatch.setattr(sp.kriging, "FFT_KRIGE_DIRECT_RATIO", ratio)
+    rng = np.random.default_rng(8)
+    ny, nx = 150, 140
+    da = xr.DataArray(np.zeros((ny, nx)), dims=("lat", "lon"),
+                      coords=dict(lat=np.arange(ny) * 1.0, lon=np.arange(nx) * 1.0))
+    region = Region.from_dataarray(da, mask=rng.random((ny, nx)) > 0.1)
+    L = region.n_cells
+    cov = sp.ResidualCovariance("exponential", sill=0.4, range=1.5, nugget=0.05,
+                                anisotropy=1.5)
+    gi = region.grid_index
+    box = np.flatnonzero((gi[:, 0] >= 5) & (gi[:, 0] < 17) & (gi[:, 1] >= 6) & (gi[:, 1] < 20))
+    obs = np.sort(rng.choice(box, 40, replace=False))
+    rect = sp.kriging.grid_rect(gi[obs].min(axis=0), gi[obs].max(axis=0),
+                                cov.reach(sp.kriging.FFT_KRIGE_REACH), region.shape)
+    assert rect[2] * rect[3] < 0.5 * ny * nx  # the convolutions skip most of the grid
+    z = rng.normal(0, 0.6, obs.size)
+    Y = rng.normal(size=(3, L))
+    B = rng.normal(size=(3, 3))
+    cx = 0.01 * B @ B.T
+    m1, v1 = sp._krige_core(cov, cov.points(region, obs), z[:, None],
+                            cov.points(region, np.arange(L)), method="direct", neighbors=32,
+                            cutoff=None, want_var=True, Ys=Y[:, obs],
+                            Yt=lambda sel: Y[:, sel], cov_x=cx)
+    m2, v2, _ = sp.krige_grid_fft(cov, region, obs, z, Ys=Y[:, obs], Yall=Y, cov_x=cx,
+                                  var_tol=0.0)
+    np.testing.assert_allclose(m2, m1[0], rtol=0, atol=1e-12 * np.sqrt(0.45))
+    np.testing.assert_allclose(v2, v1, rtol=0, atol=1e-12)
+    far = (gi[:, 0] > 100) & (gi[:, 1] > 100)
+    assert np.all(m2[far] == 0.0) and np.abs(m1[0][far]).max() < 1e-15

@@ -9,7 +9,7 @@ of the planners' criterion (moved here from ``information``, which keeps the old
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, Literal
 
 import numba
@@ -25,7 +25,8 @@ from .covariance import MODELS, ResidualCovariance, arc_distance, chord_distance
 
 __all__ = ["krige", "krige_many", "krige_grid_fft", "krige_core", "check_cov",
            "jittered_cholesky", "prepare_kriging", "GridConv", "gp_noise", "gp_latent_cov",
-           "check_gp_inputs", "FFT_KRIGE_MIN_WORK", "FFT_KRIGE_VAR_TOL", "MAX_DIRECT"]
+           "check_gp_inputs", "grid_rect", "FFT_KRIGE_MIN_WORK", "FFT_KRIGE_VAR_TOL",
+           "FFT_KRIGE_REACH", "MAX_DIRECT"]
 
 _SQRT3 = np.sqrt(3.0)
 _SQRT5 = np.sqrt(5.0)
@@ -195,6 +196,29 @@ FFT_KRIGE_VAR_TOL: float = 1e-6
 """Variance tolerance of :func:`krige_grid_fft`, relative to the nugget."""
 
 
+def grid_rect(lo: np.ndarray, hi: np.ndarray, margin: tuple[float, float],
+              shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Grid rectangle ``(row0, col0, n_rows, n_cols)`` of ``[lo - margin, hi + margin]``
+    (``margin`` per axis: a covariance's ``reach``), clipped to the grid."""
+    mr, mc = (int(np.ceil(v)) if np.isfinite(v) else max(shape) for v in margin)
+    r0, c0 = max(int(lo[0]) - mr, 0), max(int(lo[1]) - mc, 0)
+    r1, c1 = min(int(hi[0]) + mr, shape[0] - 1), min(int(hi[1]) + mc, shape[1] - 1)
+    return r0, c0, r1 - r0 + 1, c1 - c0 + 1
+
+
+FFT_KRIGE_DIRECT_RATIO: float = 0.1
+""":func:`krige_grid_fft` forms each ``k(t, o_j)`` from the kernel's lag table and takes its
+products with the weights by BLAS (exact, no transform) when ``n_targets x n_obs`` is at most
+this times ``n_images x S log2 S`` (``S`` the FFT's size, ``n_images <= n_obs + k + 2`` the
+convolutions the FFT path would run): the direct path reads each ``k(t, o_j)`` twice and
+multiplies it into every image, a transform pair costs ``~ 5 S log2 S`` flops per image."""
+
+FFT_KRIGE_REACH: float = 1e-17
+""":func:`krige_grid_fft` convolves over the observations' bounding box grown by the
+covariance's ``reach(FFT_KRIGE_REACH)``; beyond it every kernel value is below this fraction of
+the sill, and the residual's kriged mean and variance reduction there are 0."""
+
+
 def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarray,
                    z: np.ndarray, *, Ys: np.ndarray | None = None, Yall: np.ndarray | None = None,
                    cov_x: np.ndarray | None = None, var_tol: float = FFT_KRIGE_VAR_TOL
@@ -216,6 +240,11 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
       every cell, ``cov_x`` the GLS covariance of the trend coefficients): ``+ u_t^T cov_x
       u_t``, ``u_t = y_t - Ys C^-1 k_t``, ``Ys C^-1 k_t`` by ``k`` convolutions with the
       weights ``C^-1 Ys^T`` (exact).
+
+    The convolutions cover the observations' bounding box grown by the covariance's
+    ``reach(FFT_KRIGE_REACH)`` (:data:`FFT_KRIGE_REACH`; every ``k_t`` beyond it is below
+    ``1e-17`` sill, taken as 0), and the mean, the ``M`` projections and the trend's ``k``
+    share one batched transform (:meth:`GridConv.many`).
 
     Returns ``(mean (L,), latent variance (L,), M)`` in the region's cell order. Needs a
     nugget > 0 and ``metric="grid"``.
@@ -239,23 +268,42 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     alpha = U @ ((U.T @ z) / lam)
     lo, hi = go.min(axis=0), go.max(axis=0)
     window = (int(lo[0]), int(lo[1]), int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
-    out = (0, 0, int(shape[0]), int(shape[1]))
+    out = grid_rect(lo, hi, cov.reach(FFT_KRIGE_REACH), shape)
+    near = np.flatnonzero((gi[:, 0] >= out[0]) & (gi[:, 0] < out[0] + out[2])
+                          & (gi[:, 1] >= out[1]) & (gi[:, 1] < out[1] + out[3]))
     loc = (go[:, 0] - window[0], go[:, 1] - window[1])
+    rows, cols = gi[near, 0] - out[0], gi[near, 1] - out[1]
 
     def kern(d):
         return cov.covariance(d, nugget=False)
 
-    conv = GridConv(window, out, kern, cov.anisotropy)
+    n, n_near = z.size, near.size
+    whole = n_near == gi.shape[0]  # every cell within reach: slices instead of gathers
+
+    def cells(lo: int, hi: int) -> Any:
+        return slice(lo, hi) if whole else near[lo:hi]
+
+    conv_work = float(np.prod(_fft_shape(window, out))) if n_near else 0.0
+    n_img = n + 2 + (0 if Ys is None else Ys.shape[0])  # at most: mean, k^2, M <= n, trend
+    direct = float(n_near) * n <= (FFT_KRIGE_DIRECT_RATIO * n_img * conv_work
+                                   * np.log2(max(conv_work, 2.0)))
+    # ||k_t||^2: one convolution with k^2 (either way: the same leading eigenvectors)
     img = np.zeros(window[2:])
-    rows, cols = gi[:, 0], gi[:, 1]
+    np.add.at(img, loc, 1.0)
+    kk = np.zeros(gi.shape[0])
+    kk[near] = GridConv(window, out, lambda d: kern(d) ** 2, cov.anisotropy)(img)[rows, cols]
+    if direct:  # k(t, o_j) gathered from the kernel's lag table, products by BLAS
+        tab, dr0, dc0 = lag_table(window, out, kern, cov.anisotropy)
+        step = _chunk(n_near, 8 * (2 * n + z.size + 8))
+        go_r = np.ascontiguousarray(go[:, 0] + dr0, dtype=np.int64)
+        go_c = np.ascontiguousarray(go[:, 1] + dc0, dtype=np.int64)
 
-    def apply(c: GridConv, w: np.ndarray) -> np.ndarray:
-        img[...] = 0.0
-        np.add.at(img, loc, w)
-        return c(img)[rows, cols]
-
-    mean = apply(conv, alpha)
-    kk = apply(GridConv(window, out, lambda d: kern(d) ** 2, cov.anisotropy), np.ones(z.size))
+        def kernel_rows(lo: int, hi: int) -> np.ndarray:
+            t = near[lo:hi]
+            return _gather_lags(tab, np.ascontiguousarray(gi[t, 0], dtype=np.int64),
+                                np.ascontiguousarray(gi[t, 1], dtype=np.int64), go_r, go_c)
+    else:
+        conv = GridConv(window, out, kern, cov.anisotropy)
     kmax = float(np.max(kk)) if kk.size else 0.0
     # leading eigenvectors: those whose weight differs from 1/nugget by more than the
     # tolerance allows (the error is <= (lambda_cut - nugget) / nugget^2 * max_t ||k_t||^2)
@@ -263,19 +311,51 @@ def krige_grid_fft(cov: ResidualCovariance, region: Region, obs_cells: np.ndarra
     trend = Ys is not None and Yall is not None and cov_x is not None
     order = np.argsort(-lam)
     lead = order[(lam[order] - nug) > thresh]
-    var = np.full(gi.shape[0], float(cov.sill))
+    # the weights of every product with k: alpha, the leading eigenvectors and, for
+    # universal kriging, C^-1 Ys^T (Ys C^-1 k_t = sum_j (C^-1 Ys^T)_j k(t, o_j), exact)
+    weights = [alpha[:, None], U[:, lead]]
+    if trend:
+        weights.append(U @ ((U.T @ Ys.T) / lam[:, None]))
+    weights = np.concatenate(weights, axis=1)
+    scale = 1.0 / lam[lead] - 1.0 / nug
+    mean = np.zeros(gi.shape[0])
     red = kk / nug
-    for m in lead:
-        p = apply(conv, U[:, m])
-        red += (1.0 / lam[m] - 1.0 / nug) * p * p
+    u = np.array(Yall, dtype=np.float64, copy=True) if trend else None
+
+    def fold(q0: int, P: np.ndarray, at: Any) -> None:
+        """Images ``q0, q0 + 1, ...`` (rows of ``P``) at the cells ``at``, in image order."""
+        for q, pq in enumerate(P, start=q0):
+            if q == 0:
+                mean[at] = pq
+            elif q <= lead.size:
+                red[at] += scale[q - 1] * pq * pq
+            else:
+                u[q - 1 - lead.size, at] -= pq
+
+    if direct:
+        for lo in range(0, n_near, step):
+            fold(0, weights.T @ kernel_rows(lo, lo + step), cells(lo, lo + step))
+    else:
+        for q0, P in conv.many(weights.T, loc, (rows, cols)):
+            fold(q0, P, cells(0, n_near))
+    var = np.full(gi.shape[0], float(cov.sill))
     var -= red
-    if trend:  # Ys C^-1 k_t = sum_j (C^-1 Ys^T)_j k(t, o_j): k convolutions, exact
-        CY = U @ ((U.T @ Ys.T) / lam[:, None])
-        u = np.array(Yall, dtype=np.float64, copy=True)
-        for a in range(Ys.shape[0]):
-            u[a] -= apply(conv, CY[:, a])
+    if trend:
         var += np.einsum("kc,kl,lc->c", u, cov_x, u)
     return mean, var, int(lead.size)
+
+
+@numba.njit(cache=True)
+def _gather_lags(tab: np.ndarray, tr: np.ndarray, tc: np.ndarray, orr: np.ndarray,
+                 oc: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """``K[j, t] = tab[tr[t] - orr[j], tc[t] - oc[j]]`` (the lag table's offsets folded into
+    ``orr``, ``oc``): the kernel between observations and targets, no index temporaries (one
+    observation's row at a time: the targets' neighbouring cells read neighbouring lags)."""
+    K = np.empty((orr.size, tr.size))
+    for j in range(orr.size):
+        for t in range(tr.size):
+            K[j, t] = tab[tr[t] - orr[j], tc[t] - oc[j]]
+    return K
 
 
 @numba.njit(cache=True)
@@ -483,6 +563,29 @@ def krige(
 
 
 # ---------------------------------------------------------------------------- FFT convolution
+def _fft_shape(window: tuple[int, int, int, int], out: tuple[int, int, int, int]
+               ) -> tuple[int, int]:
+    """The FFT size of :class:`GridConv`'s linear convolution of ``window`` onto ``out``."""
+    import scipy.fft as sfft
+
+    return (sfft.next_fast_len(window[2] + out[2] - 1, real=True),
+            sfft.next_fast_len(window[3] + out[3] - 1, real=True))
+
+
+def lag_table(window: tuple[int, int, int, int], out: tuple[int, int, int, int], h: Any,
+              anisotropy: float = 1.0) -> tuple[np.ndarray, int, int]:
+    """``(tab, dr0, dc0)``: ``h`` at every grid offset from a cell of ``window`` to a cell of
+    ``out`` (rectangles as in :class:`GridConv`), ``h(x - i) = tab[dr - dr0, dc - dc0]`` for
+    the row and column offsets ``(dr, dc)`` of ``x - i``: the table :class:`GridConv`
+    transforms, and the direct products of :func:`krige_grid_fft` gather from."""
+    r0, c0, a, b = window
+    o_r, o_c, oa, ob = out
+    dr0, dc0 = o_r - r0 - a + 1, o_c - c0 - b + 1
+    dr = np.arange(dr0, o_r + oa - r0, dtype=np.float64)
+    dc = np.arange(dc0, o_c + ob - c0, dtype=np.float64) / anisotropy
+    return h(np.sqrt(dr[:, None] ** 2 + dc[None, :] ** 2)), int(dr0), int(dc0)
+
+
 class GridConv:
     """``out[x] = sum_{i in window} f[i] h(|i - x|)`` for ``x`` in an output rectangle, by FFT.
 
@@ -496,21 +599,40 @@ class GridConv:
                  h: Any, anisotropy: float = 1.0) -> None:
         import scipy.fft as sfft
 
-        r0, c0, a, b = window
-        o_r, o_c, oa, ob = out
-        self.a, self.b, self.oa, self.ob = a, b, oa, ob
-        self.s = (sfft.next_fast_len(a + oa - 1, real=True),
-                  sfft.next_fast_len(b + ob - 1, real=True))
-        dr = np.arange(o_r - r0 - a + 1, o_r + oa - r0, dtype=np.float64)
-        dc = np.arange(o_c - c0 - b + 1, o_c + ob - c0, dtype=np.float64) / anisotropy
-        tab = h(np.sqrt(dr[:, None] ** 2 + dc[None, :] ** 2))
-        self.H = sfft.rfft2(tab, s=self.s)
+        self.a, self.b, self.oa, self.ob = window[2], window[3], out[2], out[3]
+        self.s = _fft_shape(window, out)
+        self.H = sfft.rfft2(lag_table(window, out, h, anisotropy)[0], s=self.s)
 
     def __call__(self, f: np.ndarray) -> np.ndarray:
         import scipy.fft as sfft
 
         full = sfft.irfft2(sfft.rfft2(f, s=self.s, workers=-1) * self.H, s=self.s, workers=-1)
         return full[self.a - 1:self.a - 1 + self.oa, self.b - 1:self.b - 1 + self.ob]
+
+    def many(self, weights: np.ndarray, loc: tuple[np.ndarray, np.ndarray],
+             at: tuple[np.ndarray, np.ndarray]) -> Iterator[tuple[int, np.ndarray]]:
+        """The convolution of each row of ``weights`` (``(B, n)``, values at the window's
+        cells ``loc``, ``(rows, cols)`` within it) read at the output cells ``at``, by chunks
+        of images transformed together (one batched ``rfft2`` / ``irfft2`` per
+        ``_CHUNK_BYTES``): yields ``(first image, (b, |at|) values)``; each image is the same
+        convolution as :meth:`__call__`."""
+        import scipy.fft as sfft
+
+        weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
+        n_img = weights.shape[0]
+        step = _chunk(n_img, 32 * self.s[0] * self.s[1])
+        r, c = at[0] + self.a - 1, at[1] + self.b - 1
+        for lo in range(0, n_img, step):
+            w = weights[lo:lo + step]
+            buf = np.zeros((w.shape[0], *self.s))
+            np.add.at(buf, (np.arange(w.shape[0])[:, None], loc[0][None, :], loc[1][None, :]),
+                      w)
+            spec = sfft.rfft2(buf, axes=(-2, -1), workers=-1, overwrite_x=True)
+            del buf
+            spec *= self.H
+            full = sfft.irfft2(spec, s=self.s, axes=(-2, -1), workers=-1, overwrite_x=True)
+            del spec
+            yield lo, full[:, r, c]
 
     def product(self, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
         """``self(f1 * f2)``, the same numbers, with the product written straight into the
