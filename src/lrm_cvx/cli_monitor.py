@@ -42,6 +42,7 @@ from .cli_common import (
     note,
     paper_setting,
     path_options,
+    pick,
     plan_outputs,
     plan_route,
     read_observations_csv,
@@ -157,15 +158,13 @@ def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
               path: Any) -> tuple[Any, Any, dict]:
     """``(plan, time, terms)``: the greedy plan of ``monitor plan`` with the forecast as prior; the
     recommended criterion and initial cells unless ``--paper`` or given explicitly."""
-    from .recommended import RECOMMENDED
-
     model = state.model
     paper = paper_setting(args)
     criterion = args.criterion
     if criterion is None:
         criterion = default_criterion(paper, state.posterior.obs_model.is_spatial,
                                       f"state {args.state}: its model has")
-    initial = args.initial or ("nearest" if paper else RECOMMENDED["initial"])
+    initial = pick(args.initial, paper, "initial", "nearest")
     kw = state.planner_kwargs(criterion=criterion, time=args.time)
     plan = plan_route(model.Y, model.region_, start, budget, args, criterion=criterion,
                       initial=initial, path=path, paper=paper, **kw)
