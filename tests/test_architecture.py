@@ -58,8 +58,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # the paper's protocol
     ("lrm_cvx.evaluation",),
     # the edges: commands, the demo, figures, the xarray accessor
-    ("lrm_cvx.cli", "lrm_cvx.cli_common", "lrm_cvx.cli_monitor", "lrm_cvx.demo",
-     "lrm_cvx.plots", "lrm_cvx.accessor"),
+    ("lrm_cvx.cli", "lrm_cvx.cli_common", "lrm_cvx.cli_fit", "lrm_cvx.cli_plan",
+     "lrm_cvx.cli_evaluate", "lrm_cvx.cli_monitor", "lrm_cvx.demo", "lrm_cvx.plots",
+     "lrm_cvx.accessor"),
 )
 
 # (importer, imported): an import the layer / cycle checks would accept, with the reason. Empty:

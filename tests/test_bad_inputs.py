@@ -21,7 +21,7 @@ import pandas as pd
 import pytest
 import xarray as xr
 
-from lrm_cvx import cli
+from lrm_cvx import cli, cli_fit
 from lrm_cvx.cli import main
 from lrm_cvx.glrm import GLRM
 
@@ -153,7 +153,7 @@ def test_refuses_the_package_sample_file(run, monkeypatch):
     def tripwire(args):
         raise AssertionError("the guard let the command run")
 
-    monkeypatch.setattr(cli, "_load", tripwire)
+    monkeypatch.setattr(cli_fit, "load_data", tripwire)
     target = resources.files("lrm_cvx") / "data" / "sst.nc"
     code, _, err = run(["fit", "sample:sst", "-o", str(target), "--overwrite"])
     assert code == 2
@@ -248,7 +248,7 @@ def test_unwritable_folder_fails_before_any_work(run, tmp_path, monkeypatch):
         raise AssertionError("loaded the data before checking the output folder")
 
     monkeypatch.setattr(tempfile, "mkstemp", denied)
-    monkeypatch.setattr(cli, "_load", tripwire)
+    monkeypatch.setattr(cli_fit, "load_data", tripwire)
     code, _, err = run(["fit", "{a}", "--rank", "2", "-o", str(tmp_path / "m.nc")])
     assert code == 2
     one_line_error(err, "fit", "Permission denied")

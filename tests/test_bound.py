@@ -22,8 +22,10 @@ from hypothesis import strategies as st
 from lrm_cvx.errors import ConvergenceWarning, PlanningError
 from lrm_cvx.planning import PathOptions
 from lrm_cvx.planning import certificate as B
+from lrm_cvx.planning import cover as C
 from lrm_cvx.planning import dopt as D
 from lrm_cvx.planning.dopt import certify_weights, dopt_upper_bound, dual_value
+from lrm_cvx.planning.families import min_spacing_km, start_limit
 from lrm_cvx.region import Region
 
 
@@ -311,8 +313,8 @@ def test_plan_bound_km_metric_uses_the_smallest_spacing():
     cand = np.arange(region.n_cells)
     D = region.distance(cand[:, None], cand[None, :], metric="km")
     dmin = D[~np.eye(cand.size, dtype=bool)].min()
-    assert B._min_spacing_km(region, cand) == pytest.approx(dmin, rel=1e-8)
-    assert B._min_spacing_km(region, cand) <= dmin
+    assert min_spacing_km(region, cand) == pytest.approx(dmin, rel=1e-8)
+    assert min_spacing_km(region, cand) <= dmin
     budget = 2.5 * dmin
     cert = B.plan_bound(Y, region, start, budget, tol=1e-6, tighten=False,
                         path=PathOptions(metric="km"))
@@ -532,7 +534,7 @@ def test_path_limits_hold_on_random_paths():
             length += D[cur, c]
         cells = np.array(path)
         n_max = math.floor(Bp) + 1
-        thr, caps = B._start_limit(Bp, 1.0, n_max) or (np.zeros(0), np.zeros(0))
+        thr, caps = start_limit(Bp, 1.0, n_max) or (np.zeros(0), np.zeros(0))
         d = D[start, cells]
         assert np.all((d[:, None] >= thr[None, :]).sum(axis=0) <= caps)
         # the midpoint (by arc length) and the square of the cover that holds it
@@ -548,19 +550,19 @@ def test_path_limits_hold_on_random_paths():
         assert np.hypot(*(mid - pos[start])) <= T / 2 + 1e-9
         assert np.all(np.hypot(*(pos[cells] - mid).T) <= T / 2 + 1e-9)
         c0 = pos[start]
-        squares = B._cover_squares(c0, Bp / 2, c0[0] - Bp / 2, c0[1] - Bp / 2, Bp, 4)
-        squares = [c for q in squares for c in B._cover_squares(c0, Bp / 2, *q, 2)]
-        holds = [q for q in squares if B._square_distance(mid[None], *q)[0] == 0]
+        squares = C._cover_squares(c0, Bp / 2, c0[0] - Bp / 2, c0[1] - Bp / 2, Bp, 4)
+        squares = [c for q in squares for c in C._cover_squares(c0, Bp / 2, *q, 2)]
+        holds = [q for q in squares if C.square_distance(mid[None], *q)[0] == 0]
         assert holds, "the cover misses the midpoint"
-        sthr, scaps = B._square_limit(Bp, n_max)
+        sthr, scaps = C._square_limit(Bp, n_max)
         for q in holds:
-            dq = B._square_distance(pos[cells], *q)
+            dq = C.square_distance(pos[cells], *q)
             assert np.all(dq <= Bp / 2 + 1e-9)
             assert np.all((dq[:, None] >= sthr[None, :]).sum(axis=0) <= scaps)
         # and the certificate's own plan check accepts it
         plan = SimpleNamespace(cells=cells, start=start)
-        B._check_plan_limits(cells, np.array([-1]), region, D[start], (thr, caps),
-                             [(*q, 0.0) for q in squares], Bp, n_max, plan)
+        C.check_plan_limits(cells, np.array([-1]), region, D[start], (thr, caps),
+                            [(*q, 0.0) for q in squares], Bp, n_max, plan)
 
 
 @pytest.mark.parametrize("budget, k, ridge", [(2.3, 3, 0.0), (3.0, 2, 0.0), (3.6, 3, 0.0),

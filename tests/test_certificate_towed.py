@@ -339,10 +339,10 @@ def test_towed_cover_check_refuses_legs_outside_every_piece(errors):
     import scipy.sparse as sps
 
     from lrm_cvx.planning import plan_greedy
-    from lrm_cvx.planning.certificate import _check_towed_cover
     from lrm_cvx.planning.families import leg_family, leg_midpoint_limits, path_spec
     from lrm_cvx.planning.request import PathOptions
     from lrm_cvx.planning.sensors import observation_rows
+    from lrm_cvx.planning.towed_certificate import _check_towed_cover
 
     region = make_region(12, 12)
     Y = field_Y(region, 3, 0)

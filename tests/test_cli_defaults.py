@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 import xarray as xr
 
-from lrm_cvx import cli
+from lrm_cvx import cli_fit
 from lrm_cvx.cli import main
 from lrm_cvx.evaluation import METHODS, evaluate
 from lrm_cvx.glrm import GLRM
@@ -118,8 +118,8 @@ def test_a_glrm_key_added_to_recommended_reaches_the_fit(files, tmp_path, monkey
     assert GLRM.load(tmp_path / "s.nc").scale is True
     assert _run("fit", root / "field.nc", "--rank", 2, "--paper", "-o", tmp_path / "p.nc") == 0
     assert GLRM.load(tmp_path / "p.nc").scale is False
-    assert "--scale" in cli._recommended_fit()
-    assert "--calibration" not in cli._recommended_fit()  # no such option: said in words
+    assert "--scale" in cli_fit.recommended_fit()
+    assert "--calibration" not in cli_fit.recommended_fit()  # no such option: said in words
 
 
 def test_residual_scale_flag(files, tmp_path, capsys, monkeypatch):
@@ -133,7 +133,7 @@ def test_residual_scale_flag(files, tmp_path, capsys, monkeypatch):
                 tmp_path / "x.nc") != 0
     assert "exclude each other" in capsys.readouterr().err
     monkeypatch.setitem(RECOMMENDED, "scale", "residual")
-    assert "--residual-scale" in cli._recommended_fit()
+    assert "--residual-scale" in cli_fit.recommended_fit()
 
 
 @pytest.mark.parametrize("kind, why", [

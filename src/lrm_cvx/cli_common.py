@@ -1,8 +1,9 @@
-"""Helpers the ``lrm-cvx`` commands share (:mod:`lrm_cvx.cli` and :mod:`lrm_cvx.cli_monitor`).
+"""Helpers the ``lrm-cvx`` commands share (:mod:`lrm_cvx.cli` and its ``cli_*`` modules).
 
-Argument readers (``LAT,LON``, finite numbers), the output guard of the CLI contract (never onto
-an input, ``--overwrite``, a folder that can take the file), the common options, loading a
-model, reading an observations CSV, and describing / writing a plan. Errors a user can fix are
+Argument readers (``LAT,LON``, finite numbers, integers), the output guard of the CLI contract
+(never onto an input, ``--overwrite``, a folder that can take the file), the common options, the
+defaults (recommended, or the paper's with ``--paper``), loading a model, reading an
+observations CSV, planning a route, and describing / writing a plan. Errors a user can fix are
 :class:`UsageError` (one line, exit status 2; docs/cli.md).
 """
 
@@ -26,7 +27,10 @@ __all__ = ["UsageError", "parse_floats", "check_lat", "parse_start", "finite_num
            "SENSOR_SUFFIXES", "check_plan_output", "add_plan_outputs",
            "plan_outputs", "write_plans", "check_robot", "FOLDER_SUFFIXES", "starts_budgets",
            "read_traversable", "path_options", "metric_choices", "add_path_options",
-           "mask_files", "add_starts_budgets", "add_setting", "paper_setting", "note"]
+           "mask_files", "add_starts_budgets", "add_setting", "paper_setting", "note",
+           "int_at_least", "CERTIFY_LEVELS", "pick", "none_value", "first", "canonical",
+           "prior_choices", "default_criterion", "add_plan_criterion", "plan_route",
+           "require_plan"]
 
 
 class UsageError(LrmError, ValueError):
@@ -73,6 +77,21 @@ def finite_number(text: str) -> float:
     return value
 
 
+def int_at_least(low: int):
+    """argparse ``type=``: an integer ``>= low`` (ArgumentTypeError otherwise)."""
+    def convert(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}")
+        return value
+
+    convert.__name__ = f"int>={low}"
+    return convert
+
+
 def add_common(p: argparse.ArgumentParser) -> None:
     """-q and --debug after the command too (SUPPRESS keeps the global value otherwise)."""
     p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
@@ -106,6 +125,62 @@ def paper_setting(args: argparse.Namespace) -> bool:
 def note(text: str) -> None:
     """One printed line ``note: ...``: a default changed because this input cannot take it."""
     print(f"note: {text}")
+
+
+#: ``--certify`` levels: the library's ``certify="fast"|"tight"`` and ``"off"`` (False).
+CERTIFY_LEVELS = ("fast", "tight", "off")
+
+
+def pick(explicit: Any, paper: bool, key: str, paper_default: Any) -> Any:
+    """``explicit`` when given, else the paper's default with ``--paper``, else the
+    recommended ``RECOMMENDED[key]``."""
+    from .recommended import RECOMMENDED
+
+    if explicit is not None:
+        return explicit
+    return paper_default if paper else RECOMMENDED[key]
+
+
+def none_value(text: str | None) -> str | None:
+    """An option's value with the word ``none`` read as None (``--prior none``,
+    ``--temporal none``)."""
+    return None if text in (None, "none") else text
+
+
+def first(names: Any) -> Any:
+    """The default of a library name list (tuple or registry): its first entry."""
+    return next(iter(names))
+
+
+def canonical(choices: Any, name: str) -> str:
+    """``name`` with a registry alias resolved (``aopt`` -> ``a-optimal``) when the library's
+    name list is alias-aware (:class:`lrm_cvx.registry.Choices`), else ``name``."""
+    registry = getattr(choices, "_registry", None)
+    found = registry.resolve(name) if registry is not None else None
+    return found if isinstance(found, str) else name
+
+
+def prior_choices() -> list[str]:
+    """The ``--prior`` choices: the fold-in's priors, ``none`` for the flat one."""
+    from .glrm.predictive import PRIORS
+
+    return [p or "none" for p in PRIORS]
+
+
+def default_criterion(paper: bool, spatial: bool, who: str) -> str:
+    """The planning criterion when ``--criterion`` is not given: fisher with ``--paper``, else
+    the recommended one, or fisher with a note when the model has no spatial residual
+    (``spatial`` False); ``who`` starts the note (``"model m.nc has"``)."""
+    from .recommended import RECOMMENDED, recommended_criterion
+
+    if paper:
+        return "fisher"
+    criterion = recommended_criterion(spatial)
+    if criterion != RECOMMENDED["criterion"]:
+        note(f"{who} no spatial residual (fitted with --paper or without --spatial), so the "
+             f"recommended {RECOMMENDED['criterion']} criterion cannot run; planning with "
+             f"{criterion} (--criterion chooses)")
+    return criterion
 
 
 def add_output(p: argparse.ArgumentParser) -> None:
@@ -514,3 +589,42 @@ def mask_files(args: argparse.Namespace) -> list[str]:
     """The ``--traversable`` mask file, an input (never overwritten), or nothing."""
     t = getattr(args, "traversable", None)
     return [] if t is None or t.strip().lower() == "valid" else [t]
+
+
+
+# ----------------------------------------------------------------------- the route planner
+def add_plan_criterion(p: argparse.ArgumentParser) -> None:
+    """``--criterion``, ``--cost`` and ``--ridge`` of the greedy route planner (plan, bound,
+    monitor plan; read with :func:`default_criterion` and :func:`plan_route`)."""
+    from .information import CRITERIA
+    from .planning.routecost import COSTS
+    from .recommended import RECOMMENDED
+
+    p.add_argument("--criterion", choices=CRITERIA, default=None,
+                   help=f"planning criterion (default: {RECOMMENDED['criterion']}, or fisher "
+                   "with a note when the model has no spatial residual; fisher with --paper)")
+    p.add_argument("--cost", default=first(COSTS), choices=COSTS,
+                   help="path cost (default: %(default)s)")
+    p.add_argument("--ridge", type=finite_number, default=0.0,
+                   help="ridge added to the information")
+
+
+def plan_route(Y: Any, region: Any, start: Any, budget: Any, args: argparse.Namespace, *,
+               criterion: str, initial: str, path: Any, paper: bool, **terms: Any) -> Any:
+    """The greedy plan of ``plan`` / ``bound`` / ``monitor plan``: ``--cost``, ``--ridge`` and
+    the progress bar from ``args``, the recommended check against rival routes where the path
+    request allows it unless ``--paper``; ``terms``: the criterion's prior terms."""
+    from .planning import plan_greedy
+    from .planning.lines import lines_where_possible
+
+    return plan_greedy(Y, region, start, budget, criterion=criterion, cost=args.cost,
+                       ridge=args.ridge, progress=not args.quiet, initial=initial, path=path,
+                       refine=None if paper else lines_where_possible(path), **terms)
+
+
+def require_plan(state: Any, path: str) -> Any:
+    """The plan stored in the monitor state read from ``path``; UsageError when it holds
+    none."""
+    if state.current_plan is None:
+        raise UsageError(f"state file {path} holds no plan: run 'lrm-cvx monitor plan' first")
+    return state.current_plan

@@ -19,20 +19,24 @@ from .cli_common import (
     add_common,
     add_output,
     add_path_options,
+    add_plan_criterion,
     add_plan_outputs,
     add_setting,
     add_starts_budgets,
     criterion_value,
+    default_criterion,
     describe_plan,
-    finite_number,
     guard_paths,
     load_model,
     mask_files,
     note,
     paper_setting,
     path_options,
+    pick,
     plan_outputs,
+    plan_route,
     read_observations_csv,
+    require_plan,
     starts_budgets,
     write_plans,
 )
@@ -140,26 +144,16 @@ def _plan_day(state: Any, args: argparse.Namespace, start: Any, budget: Any,
               path: Any) -> tuple[Any, Any, dict]:
     """``(plan, time, terms)``: the greedy plan of ``monitor plan`` with the forecast as prior; the
     recommended criterion and initial cells unless ``--paper`` or given explicitly."""
-    from .planning import plan_greedy
-    from .planning.lines import lines_where_possible
-    from .recommended import RECOMMENDED, recommended_criterion
-
     model = state.model
     paper = paper_setting(args)
     criterion = args.criterion
     if criterion is None:
-        spatial = state.posterior.obs_model.is_spatial
-        criterion = "fisher" if paper else recommended_criterion(spatial)
-        if not paper and criterion != RECOMMENDED["criterion"]:
-            note(f"state {args.state}: its model has no spatial residual (fitted with --paper "
-                 "or without --spatial), so the recommended gp-variance criterion cannot run; "
-                 "planning with fisher (--criterion chooses)")
-    initial = args.initial or ("nearest" if paper else RECOMMENDED["initial"])
+        criterion = default_criterion(paper, state.posterior.obs_model.is_spatial,
+                                      f"state {args.state}: its model has")
+    initial = pick(args.initial, paper, "initial", "nearest")
     kw = state.planner_kwargs(criterion=criterion, time=args.time)
-    plan = plan_greedy(model.Y, model.region_, start, budget, criterion=criterion,
-                       cost=args.cost, ridge=args.ridge, progress=not args.quiet,
-                       initial=initial, path=path,
-                       refine=None if paper else lines_where_possible(path), **kw)
+    plan = plan_route(model.Y, model.region_, start, budget, args, criterion=criterion,
+                      initial=initial, path=path, paper=paper, **kw)
     return plan, state.plan_time(args.time), kw
 
 
@@ -198,10 +192,7 @@ def cmd_monitor_replan(args: argparse.Namespace) -> int:
 def _stored_plan(state: Any, args: argparse.Namespace) -> tuple[Any, Any, list]:
     """``(plan, time, files)``: the plan ``monitor plan`` stored in ``state`` (one line when
     there is none) and the output files of ``-o`` for its robots, checked."""
-    plan, t = state.current_plan, state.current_plan_time
-    if plan is None:
-        raise UsageError(f"state file {args.state} holds no plan: run 'lrm-cvx monitor plan' "
-                         "first")
+    plan, t = require_plan(state, args.state), state.current_plan_time
     files = plan_outputs(args.output, plan.n_robots, args.robot)
     _guard_state_outputs([f for f, _ in files], state, args)
     return plan, t, files
@@ -399,7 +390,6 @@ def _label(t: Any) -> str:
 def add_monitor_parser(sub: Any) -> None:
     """Add ``monitor init|plan|replan|export|assimilate|map`` to ``lrm-cvx``'s subcommands."""
     from .information import CRITERIA
-    from .planning.routecost import COSTS
     from .recommended import RECOMMENDED
 
     p = sub.add_parser("monitor", help="the field loop: a filter state carried from day to day "
@@ -433,13 +423,7 @@ def add_monitor_parser(sub: Any) -> None:
                    help="forced initial cells: start (the start alone) or nearest (the start "
                    "and its k-1 nearest cells, the paper) (default: "
                    f"{RECOMMENDED['initial']}; nearest with --paper)")
-    q.add_argument("--criterion", choices=CRITERIA, default=None,
-                   help=f"planning criterion (default: {RECOMMENDED['criterion']}, or fisher "
-                   "with a note when the model has no spatial residual; fisher with --paper)")
-    q.add_argument("--cost", default=COSTS[0], choices=COSTS,
-                   help="path cost (default: %(default)s)")
-    q.add_argument("--ridge", type=finite_number, default=0.0,
-                   help="ridge added to the information")
+    add_plan_criterion(q)
     q.add_argument("--time", default=None,
                    help="plan for this time (default: the next step, or the state's time if "
                    "not observed yet)")

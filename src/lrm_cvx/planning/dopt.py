@@ -864,3 +864,7 @@ def _relaxation(
         )
     idx, wv = best_w
     return result(best_val, best_primal, idx, wv, status, W.size, iters, fw_done, used, hist)
+
+
+# public name of the relaxation on validated input (the certificates solve it piece by piece)
+solve_relaxation = _relaxation
