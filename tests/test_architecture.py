@@ -55,8 +55,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # persistent monitoring: the filter state and the day-after-day simulation
     # and scoring: a plan's scores on held-out snapshots (evaluation and campaigns)
     ("lrm_cvx.monitor", "lrm_cvx.campaign", "lrm_cvx.replanning", "lrm_cvx.scoring"),
-    # the paper's protocol
-    ("lrm_cvx.evaluation",),
+    # the paper's protocol and its result tables
+    ("lrm_cvx.evaluation", "lrm_cvx.evaluation_tables"),
     # the edges: commands, the demo, figures, the xarray accessor
     ("lrm_cvx.cli", "lrm_cvx.cli_common", "lrm_cvx.cli_fit", "lrm_cvx.cli_plan",
      "lrm_cvx.cli_evaluate", "lrm_cvx.cli_monitor", "lrm_cvx.demo", "lrm_cvx.plots",

@@ -136,3 +136,30 @@ def test_the_memoryless_twin_is_the_model_as_fitted(data, model):
     assert not np.allclose(base4.mse.sel(sel).values, base.mse.sel(sel).values, rtol=1e-3)
     assert np.isnan(res.coverage95_memoryless.values).all()  # calibrated for x4, not for x1
     assert np.isfinite(res.coverage95.sel(sel).values).any()
+
+
+def test_a_memoryless_auto_model_runs_each_campaign_once(data, model, monkeypatch):
+    """temporal="auto" on a model without dynamics: its campaigns are its memoryless twin's,
+    so each runs once and both columns hold it; a model with dynamics runs both."""
+    import lrm_cvx.campaign as campaign
+
+    calls = []
+    real = campaign.simulate_campaign
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs.get("temporal"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(campaign, "simulate_campaign", counted)
+    kw = {**KW, "fold_in": {"prior": "empirical"}}
+    n_campaigns = 3 * 2 * (2 + 2)  # starts x budgets x (greedy, transect, 2 random trials)
+    assert getattr(model, "dynamics_", None) is None
+    res = evaluate(data, model=model, temporal="auto", **kw)
+    assert len(calls) == n_campaigns and set(calls) == {"auto"}
+    for name in ("mse", "coverage68", "coverage95"):
+        np.testing.assert_array_equal(res[name].values, res[f"{name}_memoryless"].values)
+    assert np.isfinite(res.mse.values).any()
+    calls.clear()
+    res = evaluate(data, model=model, temporal="ar1", **kw)
+    assert len(calls) == 2 * n_campaigns and set(calls) == {"ar1", None}
+    assert not np.array_equal(res.mse.values, res.mse_memoryless.values, equal_nan=True)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -29,9 +29,18 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from ._blas import single_threaded_blas
-from ._validation import as_factor_matrix, as_generator, atomic_output, check_flag, check_positive
+from ._validation import as_factor_matrix, as_generator, check_flag, check_positive
 from .belief.posterior import LatentPosterior
 from .errors import DataError, ModelError, PlanningError
+from .evaluation_tables import (
+    COVERAGE_BANDS,
+    LOWEST_BLOCK_95,
+    ProtocolResults,
+    coverage_check,
+    path_label,
+    save_results,
+    summary,
+)
 from .planning.planners import (
     GREEDY_VARIANTS,
     METHOD_REGISTRY,
@@ -326,7 +335,7 @@ class EvaluationProtocol:
         self._warn_unscored(results)
         return self._dataset(fit, starts, fleets, results)
 
-    def _warn_unscored(self, res: _Results) -> None:
+    def _warn_unscored(self, res: ProtocolResults) -> None:
         """One UserWarning per budget at which no plan reaches ``min_observations`` on any
         test snapshot: every error there is NaN, which a table alone would not explain."""
         m = max(self.min_observations, 1)
@@ -424,10 +433,10 @@ class EvaluationProtocol:
                                                replace=False)], axis=1)
         return fleets[:, 0], fleets
 
-    def _plan_all(self, fit: _Fitted, starts: np.ndarray, fleets: np.ndarray) -> _Results:
+    def _plan_all(self, fit: _Fitted, starts: np.ndarray, fleets: np.ndarray) -> ProtocolResults:
         """Every start's plans and errors (threads over starts, one seeded stream each)."""
         n_trials = self.random_trials if "random" in self.methods else 1
-        out = _Results.empty(len(self.methods), len(self.budgets), self.n_starts, n_trials,
+        out = ProtocolResults.empty(len(self.methods), len(self.budgets), self.n_starts, n_trials,
                              self.n_test, self.n_robots, self.temporal is not None)
         seeds = np.random.SeedSequence(self.seed).spawn(self.n_starts)
         cov = (coverage_subset(fit.stats.values, self.seed),
@@ -503,20 +512,28 @@ class EvaluationProtocol:
                   start_rng: np.random.Generator) -> tuple:
         """``(plan, mse, n_obs, None, coverage, mse_memoryless, coverage_memoryless)`` of one
         campaign from ``start`` (a cell, or a fleet's cells) under the protocol's path request
-        and its memoryless twin (the same seed)."""
+        and its memoryless twin (the same seed): run once when the model's own temporal model
+        is memoryless and its twin is itself, the same campaign."""
         cseed = int(start_rng.integers(2**31))
         spatial = self.fold_in.get("spatial") if "spatial" in self.fold_in else None
         options = {"cost": self.cost, "ridge": self.ridge, "criterion": self.criterion}
-        runs = [_campaign_errors(m, fit.test, start, budget, method, tm, cseed,
-                                 spatial, self.min_observations, options, self.path)
-                for m, tm in ((fit.model, self.temporal), (fit.twin, None))]
-        (e, n, c, first), ml = runs
+        pairs = ((fit.model, self.temporal), (fit.twin, None))
+        runs = [_campaign_errors(m, fit.test, start, budget, method, tm, cseed, spatial,
+                                 self.min_observations, options, self.path)
+                for m, tm in pairs[: 1 if self._twin_is_model(fit) else 2]]
+        (e, n, c, first), ml = runs[0], runs[-1]
         # the twin's intervals: the model's calibration was made for its inflated variances
         ml_cov = ml[2] if fit.twin is fit.model else np.full_like(ml[2], np.nan)
         return first, e, n, None, c, ml[0], ml_cov
 
+    def _twin_is_model(self, fit: _Fitted) -> bool:
+        """Whether the memoryless twin's campaigns are the model's own: ``temporal="auto"``
+        on a model that chose no dynamics, and a twin that is the model itself."""
+        return (fit.twin is fit.model and self.temporal == "auto"
+                and getattr(fit.model, "dynamics_", None) is None)
+
     def _dataset(self, fit: _Fitted, starts: np.ndarray, fleets: np.ndarray,
-                 res: _Results) -> xr.Dataset:
+                 res: ProtocolResults) -> xr.Dataset:
         """The results as the Dataset of :func:`evaluate`."""
         data, region, path, n_robots = self.data, fit.region, self.path, self.n_robots
         unit = path.unit
@@ -625,74 +642,6 @@ class EvaluationProtocol:
             **({"end": -1 if path.end is None else int(path.resolved(fit.region).end),
                 "sense_along": int(bool(path.sense_along))} if self.temporal else {}),
         }
-
-
-@dataclass
-class _Results:
-    """The arrays a protocol run fills, ``(method, budget, start, trial[, test_time])``."""
-
-    info: np.ndarray
-    cost: np.ndarray
-    n_cells: np.ndarray
-    mse: np.ndarray
-    n_obs: np.ndarray
-    coverage: np.ndarray
-    mse_ml: np.ndarray | None
-    coverage_ml: np.ndarray | None
-    bound: np.ndarray
-    robot_cost: np.ndarray | None
-    own_bound: np.ndarray
-    own_value: np.ndarray
-    routes: dict = field(default_factory=dict)
-    route_robots: dict = field(default_factory=dict)
-
-    @classmethod
-    def empty(cls, n_methods: int, n_budgets: int, n_starts: int, n_trials: int, n_test: int,
-              n_robots: int, temporal: bool) -> _Results:
-        shape = (n_methods, n_budgets, n_starts, n_trials)
-        return cls(
-            info=np.full(shape, np.nan), cost=np.full(shape, np.nan),
-            n_cells=np.zeros(shape, dtype=np.int32), mse=np.full(shape + (n_test,), np.nan),
-            n_obs=np.zeros(shape + (n_test,), dtype=np.int32),
-            coverage=np.full(shape + (n_test, 2), np.nan),
-            mse_ml=np.full(shape + (n_test,), np.nan) if temporal else None,
-            coverage_ml=np.full(shape + (n_test, 2), np.nan) if temporal else None,
-            bound=np.full((n_budgets, n_starts), np.nan),
-            robot_cost=np.full(shape + (n_robots,), np.nan) if n_robots > 1 else None,
-            own_bound=np.full((n_budgets, n_starts), np.nan),
-            own_value=np.full((n_budgets, n_starts), np.nan),
-        )
-
-    def record(self, row: tuple, methods: tuple[str, ...]) -> None:
-        """Store one row of :meth:`EvaluationProtocol._run_start`."""
-        m, b, s, trial, plan, e, n, cert, c, e_ml, c_ml = row
-        if cert is not None and methods[m] != "greedy":
-            self.own_bound[b, s] = cert.bound  # the recommended method's own criterion
-            self.own_value[b, s] = cert.information
-        at = (m, b, s, trial)
-        self.info[at] = plan.information
-        self.cost[at] = plan.cost
-        self.n_cells[at] = len(plan.cells)
-        if self.robot_cost is not None:
-            self.robot_cost[at] = plan.robot_costs
-        self.mse[at] = e
-        self.n_obs[at] = n
-        self.coverage[at] = c
-        if self.mse_ml is not None:
-            self.mse_ml[at] = e_ml
-            self.coverage_ml[at] = c_ml
-        if methods[m] == "greedy":
-            self.bound[b, s] = np.nan if cert is None else cert.bound
-            self.routes[(b, s)] = np.asarray(plan.route)
-            self.route_robots[(b, s)] = np.asarray(getattr(plan, "route_robot", []))
-
-    def padded(self, entries: dict) -> np.ndarray:
-        """``(budget, start, step)`` int64 of the greedy's ``entries``, padded with -1."""
-        width = max([len(r) for r in self.routes.values()] + [1])
-        out = np.full(self.bound.shape + (width,), -1, dtype=np.int64)
-        for (b, s), r in entries.items():
-            out[b, s, : len(r)] = r
-        return out
 
 
 _VARIANCE_METHODS = ("greedy:gp-variance", "greedy:a-optimal")
@@ -946,172 +895,3 @@ def _rolling_origin(data: xr.DataArray, n_origins: int, n_test: int, model: Any,
     out.attrs.update(origins=int(n_origins), n_test=int(n_test))
     return out
 
-
-def summary(results: xr.Dataset, by_origin: bool = False) -> pd.DataFrame:
-    """Mean and standard error of information and MSE per method and budget.
-
-    A rolling-origin result (:func:`backtest`) is pooled over its blocks; with
-    ``by_origin`` there is one row per block, method and budget instead (columns ``origin``,
-    ``origin_time``, ``n_train`` first). ``by_origin`` on a result of one block is that block.
-
-    Information averages the usable plans; MSE averages every (plan, test snapshot) pair with
-    enough observations. Standard error = std / sqrt(count). ``coverage68_mean`` /
-    ``coverage95_mean`` average the per-pair coverage. Results of ``evaluate(temporal=...)``
-    put memoryless and temporal side by side: ``mse_memoryless_mean`` / ``_se``, the
-    memoryless coverage, and ``temporal_cut`` = ``1 - mse / mse_memoryless`` over the pairs
-    where both are defined (positive: the filter lowers the error). ``path`` describes the path
-    model (:func:`path_label`: ``"grid"`` for the paper's).
-    """
-    by_origin = check_flag(by_origin, "by_origin", error=ModelError)
-    if by_origin and "origin" in results.dims:
-        tables = []
-        for i in range(results.sizes["origin"]):
-            block = results.isel(origin=i)
-            table = summary(block)
-            table.insert(0, "n_train", int(block["n_train"]))
-            table.insert(0, "origin_time", block["origin_time"].values)
-            table.insert(0, "origin", int(block["origin"]))
-            tables.append(table)
-        return pd.concat(tables, ignore_index=True)
-    rows = []
-    for method in results["method"].values:
-        for budget in results["budget"].values:
-            sel = results.sel({"method": method, "budget": budget})
-            info = sel["information"].where(sel["information_usable"]).values.ravel()
-            info = info[np.isfinite(info)]
-            err = sel["mse"].values.ravel()
-            err = err[np.isfinite(err)]
-            rows.append({
-                "method": str(method), "budget": float(budget),
-                "information_mean": info.mean() if info.size else np.nan,
-                "information_se": (info.std(ddof=1) / np.sqrt(info.size)
-                                   if info.size > 1 else np.nan),
-                "mse_mean": err.mean() if err.size else np.nan,
-                "mse_se": err.std(ddof=1) / np.sqrt(err.size) if err.size > 1 else np.nan,
-                "n_plans": int(info.size), "n_predictions": int(err.size),
-                "mean_cells": float(sel["n_cells"].where(np.isfinite(sel["cost"])).mean()),
-                **_side_by_side(sel),
-            })
-    df = pd.DataFrame(rows)
-    df["temporal"] = str(results.attrs.get("temporal", "none"))
-    df["path"] = path_label(results.attrs)
-    df["complete_mse"] = float(results["complete_mse"].mean())
-    return df
-
-
-COVERAGE_BANDS = {68: (0.63, 0.73), 95: (0.93, 0.97)}
-"""Where the mean coverage of calibrated 68 % / 95 % intervals should fall over a rolling-origin
-backtest: :func:`coverage_check`, ``plots.plot_backtest``."""
-LOWEST_BLOCK_95 = 0.90
-"""The lowest 95 % coverage one block of a backtest may show."""
-
-
-def coverage_check(results: xr.Dataset) -> pd.DataFrame:
-    """Whether the intervals of a rolling-origin backtest (:func:`backtest`) hold, per
-    method and budget: ``cov68`` / ``cov95`` the mean over the blocks of each block's mean
-    coverage, ``cov95_lowest_block``, ``mse`` the mean of the blocks' mean MSE, and ``holds``:
-    both means inside :data:`COVERAGE_BANDS` and no block's 95 % below
-    :data:`LOWEST_BLOCK_95`. A block without coverage (an uncalibrated memoryless twin) leaves
-    ``holds`` False. ``verdict`` says which way a miss goes (a user can live with intervals too
-    wide, not with intervals too narrow): ``"holds"``, else the misses joined by ``"; "``
-    (``"68 % too wide"``, ``"95 % too narrow"``, ``"a block's 95 % below 0.9"``, ...), or
-    ``"no intervals"``. DataError for a result of one block."""
-    if "origin" not in results.dims:
-        raise DataError("coverage_check needs a rolling-origin result (backtest(data, "
-                        "origins): a Dataset with an 'origin' dim)")
-    per = summary(results, by_origin=True)
-    out = per.groupby(["method", "budget"], sort=False).agg(
-        blocks=("origin", "nunique"), cov68=("coverage68_mean", "mean"),
-        cov95=("coverage95_mean", "mean"), cov95_lowest_block=("coverage95_mean", "min"),
-        mse=("mse_mean", "mean")).reset_index()
-    (lo68, hi68), (lo95, hi95) = COVERAGE_BANDS[68], COVERAGE_BANDS[95]
-    complete = per.groupby(["method", "budget"], sort=False)["coverage95_mean"].apply(
-        lambda c: bool(c.notna().all())).to_numpy()
-    out["holds"] = (complete & out["cov68"].between(lo68, hi68).to_numpy()
-                    & out["cov95"].between(lo95, hi95).to_numpy()
-                    & (out["cov95_lowest_block"] >= LOWEST_BLOCK_95).to_numpy())
-    out["verdict"] = [_coverage_verdict(row, ok) for row, ok in
-                      zip(out.itertuples(index=False), complete, strict=True)]
-    return out
-
-
-def _coverage_verdict(row: Any, complete: bool) -> str:
-    """:func:`coverage_check`'s ``verdict`` of one method and budget."""
-    if not (complete and np.isfinite(row.cov68) and np.isfinite(row.cov95)):
-        return "no intervals"
-    misses = []
-    for level, value in ((68, row.cov68), (95, row.cov95)):
-        lo, hi = COVERAGE_BANDS[level]
-        if value < lo:
-            misses.append(f"{level} % too narrow")
-        elif value > hi:
-            misses.append(f"{level} % too wide")
-    if row.cov95_lowest_block < LOWEST_BLOCK_95:
-        misses.append(f"a block's 95 % below {LOWEST_BLOCK_95:g}")
-    return "; ".join(misses) or "holds"
-
-
-def path_label(attrs: dict[str, Any]) -> str:
-    """A short description of the path model recorded in ``evaluate``'s attrs: ``"grid"``
-    for the paper's, else e.g. ``"km, speed 1.5 km/h, stop 0.5 h, traversable valid, closed,
-    2 robots"`` (the ``path`` column of :func:`summary`)."""
-    parts = [str(attrs.get("metric", "grid"))]
-    speed = attrs.get("speed", np.nan)
-    if speed is not None and np.isfinite(speed):
-        parts.append(f"speed {float(speed):g} km/h")
-    if attrs.get("stop_cost", 0.0):
-        parts.append(f"stop {float(attrs['stop_cost']):g} {attrs.get('budget_unit', '')}".strip())
-    if attrs.get("traversable", "none") != "none":
-        parts.append(f"traversable {attrs['traversable']}")
-    if attrs.get("closed", 0):
-        parts.append("closed")
-    if int(attrs.get("n_robots", 1)) > 1:
-        parts.append(f"{int(attrs['n_robots'])} robots")
-    return ", ".join(parts)
-
-
-def _finite_mean(v: Any) -> float:
-    v = np.asarray(v, dtype=np.float64).ravel()
-    v = v[np.isfinite(v)]
-    return float(v.mean()) if v.size else np.nan
-
-
-def _side_by_side(sel: xr.Dataset) -> dict[str, float]:
-    """Coverage columns and, for temporal results, the memoryless columns of one row."""
-    out: dict[str, float] = {}
-    for level in (68, 95):
-        if f"coverage{level}" in sel:
-            out[f"coverage{level}_mean"] = _finite_mean(sel[f"coverage{level}"].values)
-    if "mse_memoryless" in sel:
-        ml = sel["mse_memoryless"].values.ravel()
-        tm = sel["mse"].values.ravel()
-        both = np.isfinite(ml) & np.isfinite(tm)
-        f = ml[np.isfinite(ml)]
-        out["mse_memoryless_mean"] = float(f.mean()) if f.size else np.nan
-        out["mse_memoryless_se"] = (float(f.std(ddof=1) / np.sqrt(f.size)) if f.size > 1
-                                    else np.nan)
-        out["temporal_cut"] = (float(1.0 - tm[both].mean() / ml[both].mean())
-                               if both.any() and ml[both].mean() > 0 else np.nan)
-        for level in (68, 95):
-            out[f"coverage{level}_memoryless_mean"] = _finite_mean(
-                sel[f"coverage{level}_memoryless"].values)
-    return out
-
-
-def save_results(results: xr.Dataset, out_dir: Any) -> dict[str, Any]:
-    """Write ``results.nc`` and ``summary.csv`` into ``out_dir`` atomically; return the paths."""
-    from pathlib import Path
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"results": out / "results.nc", "summary": out / "summary.csv"}
-    if "origin" in results.dims:  # a rolling-origin backtest: also one row per block
-        paths["summary_by_origin"] = out / "summary_by_origin.csv"
-    with atomic_output(paths["results"]) as tmp:
-        results.to_netcdf(tmp, engine="netcdf4")
-    with atomic_output(paths["summary"]) as tmp:
-        summary(results).to_csv(tmp, index=False)
-    if "summary_by_origin" in paths:
-        with atomic_output(paths["summary_by_origin"]) as tmp:
-            summary(results, by_origin=True).to_csv(tmp, index=False)
-    return paths

@@ -9,6 +9,7 @@ default the plans are exactly the paper's.
 from __future__ import annotations
 
 import math
+import weakref
 from typing import Any
 
 import numpy as np
@@ -362,33 +363,45 @@ def random_walk(
 
 def _random_walk(region: Region, start_cell: int, budget: float, gen: np.random.Generator,
                  request: PathOptions, Y: Any, ridge: float) -> Plan:
-    """One robot's random walk (:func:`random_walk`)."""
+    """One robot's random walk (:func:`random_walk`): each step in Python over the (at most 8)
+    neighbours of :func:`_steps_from`, the same draws from ``gen`` as the walk's definition."""
     geo, record = _path_setup(region, start_cell, budget, request)
-    grid = geo.grid
+    table = _STEPS.setdefault(region, {}) if record is None else {}  # the paper's: shared
     gi = region.grid_index
     positions = [gi[start_cell]]
     step_costs: list[float] = []
     visited = {start_cell}
-    travel, stops = 0.0, geo.stop_cost
+    travel, stops, stop_cost = 0.0, geo.stop_cost, geo.stop_cost
     cur = start_cell
     while True:
-        row, col = int(gi[cur, 0]), int(gi[cur, 1])
-        nb, rows, cols = _neighbours(grid, row, col, geo.enter, geo.wrap)
-        lengths = geo.steps(row, col, rows, cols)
-        fresh = np.array([c not in visited for c in nb.tolist()], dtype=bool)
-        new = np.where(fresh, geo.stop_cost, 0.0)
-        fits = geo.fits(travel, stops, lengths, new, budget)
-        nb, lengths, fresh, new = nb[fits], lengths[fits], fresh[fits], new[fits]
-        if nb.size == 0:
+        steps = table.get(cur)
+        if steps is None:
+            steps = table[cur] = _steps_from(geo, int(gi[cur, 0]), int(gi[cur, 1]))
+        fresh, stale = [], []
+        for c, length in steps:
+            new = 0.0 if c in visited else stop_cost
+            if geo.fits(travel, stops, length, new, budget):
+                (stale if c in visited else fresh).append((c, length, new))
+        if not (fresh or stale):
             break
-        pick = np.flatnonzero(fresh) if fresh.any() else np.arange(nb.size)
-        j = int(pick[gen.integers(pick.size)])
-        cur = int(nb[j])
-        travel += float(lengths[j])
-        stops += float(new[j])
+        pick = fresh or stale  # a random unvisited neighbour if any (in neighbour order)
+        cur, length, new = pick[int(gen.integers(len(pick)))]
+        travel += length
+        stops += new
         positions.append(gi[cur])
-        step_costs.append(float(lengths[j]))
+        step_costs.append(length)
         visited.add(cur)
     route, route_cost, waypoint, cost = _finish(region, positions, step_costs, geo, trim=False)
     return _build(region, route, route_cost, waypoint, cost, Y=Y, ridge=ridge, budget=budget,
                   start=start_cell, method="random", cost_function="path", record=record)
+
+
+_STEPS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+"""Per region, the paper's path model's :func:`_steps_from` of each cell a walk reached."""
+
+
+def _steps_from(geo: _Geometry, row: int, col: int) -> list[tuple[int, float]]:
+    """``(cell, step cost)`` of every neighbour a walk may step to from grid position ``(row,
+    col)`` (:func:`_neighbours` order)."""
+    nb, rows, cols = _neighbours(geo.grid, row, col, geo.enter, geo.wrap)
+    return list(zip(nb.tolist(), geo.steps(row, col, rows, cols).tolist(), strict=True))
