@@ -34,7 +34,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from lrm_cvx import load_sample
-    from lrm_cvx.evaluation import evaluate, summary
+    from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate, summary
     from lrm_cvx.glrm import GLRM
     from lrm_cvx.planning import PathOptions
 
@@ -48,9 +48,12 @@ def main() -> None:
                progress=False).fit(train)
     path = dict(metric="km", traversable="valid", closed=True)
     common = dict(rank=rank, n_test=n_test, budgets=budgets, n_starts=n_starts,
-                  random_trials=trials, min_observations=1, seed=args.seed, progress=False,
-                  model=rec, fold_in={"prior": "empirical", "spatial": True}, certify=False,
-                  path=PathOptions(**path))
+                  seed=args.seed, progress=False,
+                  model=rec,
+                  path=PathOptions(**path),
+                  planning=PlanningOptions(random_trials=trials, certify=False),
+                  scoring=ScoringOptions(min_observations=1,
+                                         fold_in={"prior": "empirical", "spatial": True}))
     pd.set_option("display.width", 200)
     results = {}
     for n_robots in sorted({1, args.robots}):

@@ -141,7 +141,7 @@ def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
     come from the first mode's campaigns (memoryless through the same loop: the same starts
     and data). ``params``: GLRM parameters over the recommended ones (e.g. ``spatial``)."""
     from lrm_cvx import GLRM, evaluate
-    from lrm_cvx.evaluation import summary
+    from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, summary
 
     d = ALL_DATASETS[name]
     data = load_record(name)
@@ -159,9 +159,13 @@ def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
             print(f"[{name}] spatial='auto' chose "
                   f"{model.kernel_selection_.attrs['choice']!r}", flush=True)
         res = evaluate(data, model=model, n_test=N_TEST, budgets=budgets, n_starts=n_starts,
-                       methods=(RECOMMENDED,) + BASELINES, random_trials=random_trials,
-                       min_observations=1, certify=False, progress=False, temporal=temporal,
-                       seed=0, n_jobs=n_jobs, fold_in={"prior": "empirical", "spatial": True})
+                       methods=(RECOMMENDED,) + BASELINES,
+                       progress=False, temporal=temporal,
+                       seed=0,
+                       planning=PlanningOptions(random_trials=random_trials, certify=False,
+                                                n_jobs=n_jobs),
+                       scoring=ScoringOptions(min_observations=1,
+                                              fold_in={"prior": "empirical", "spatial": True}))
         times[temporal] = (t1 - t0, time.perf_counter() - t1)
         table = summary(res).merge(paired_bounds(res), on=["method", "budget"], how="left")
         table["set"] = name
@@ -304,7 +308,7 @@ def rolling_coverage(data, n_origins: int = 3, block: int = N_TEST, budget: int 
     (``RECOMMENDED["calibration"]``, ``calibrate_kw`` ignored) and its filter's campaigns, the
     variants of :func:`filter_variants`."""
     from lrm_cvx import GLRM, evaluate
-    from lrm_cvx.evaluation import summary
+    from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, summary
 
     T = data.sizes["time"]
     rows = []
@@ -330,9 +334,11 @@ def rolling_coverage(data, n_origins: int = 3, block: int = N_TEST, budget: int 
         for name, cal in variants.items():
             model.calibration_ = cal
             res = evaluate(through, model=model, n_test=block, budgets=(budget,),
-                           n_starts=n_starts, methods=(RECOMMENDED,), min_observations=1,
-                           certify=False, progress=False, seed=seed, temporal=temporal,
-                           fold_in={"prior": "empirical", "spatial": True})
+                           n_starts=n_starts, methods=(RECOMMENDED,),
+                           progress=False, seed=seed, temporal=temporal,
+                           planning=PlanningOptions(certify=False),
+                           scoring=ScoringOptions(min_observations=1,
+                                                  fold_in={"prior": "empirical", "spatial": True}))
             row = summary(res).iloc[0]
             rows.append({"block": b, "origin": origin, "variant": name,
                          "cov68": float(row["coverage68_mean"]),

@@ -44,7 +44,7 @@ import xarray as xr
 
 import lrm_cvx
 from lrm_cvx.campaign import simulate_campaign
-from lrm_cvx.evaluation import evaluate, summary
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate, summary
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
@@ -187,9 +187,11 @@ def fit_and_evaluate(data, n_test: int, rank: int, budgets: tuple, n_starts: int
     methods = (RECOMMENDED,) + TRANSECTS + ("random",)
     t0 = time.perf_counter()
     res = evaluate(data, model=model, n_test=n_test, budgets=budgets, n_starts=n_starts,
-                   methods=methods, random_trials=random_trials, min_observations=1,
-                   certify=False, progress=False, temporal="ar1", seed=0,
-                   fold_in={"prior": "empirical", "spatial": True})
+                   methods=methods,
+                   progress=False, temporal="ar1", seed=0,
+                   planning=PlanningOptions(random_trials=random_trials, certify=False),
+                   scoring=ScoringOptions(min_observations=1,
+                                          fold_in={"prior": "empirical", "spatial": True}))
     say(f"evaluate(temporal='ar1'): {time.perf_counter() - t0:.0f} s, {n_starts} starts, "
         f"budgets {budgets}")
     return model, res

@@ -30,7 +30,7 @@ import numpy as np
 import xarray as xr
 
 from lrm_cvx.belief.posterior import fold_in_snapshots
-from lrm_cvx.evaluation import evaluate, summary
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate, summary
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.information import GPVarianceOracle, make_oracle
 
@@ -85,15 +85,18 @@ def table(df, methods, budgets) -> None:
 
 def run_routes(name: str, da: xr.DataArray, budgets, n_starts, trials) -> None:
     # ridge 1e-6: the paper's Fisher greedy needs a nonsingular initial set (hgt500's is not)
-    common = dict(budgets=budgets, n_starts=n_starts, random_trials=trials, min_observations=5,
-                  certify=False, progress=False, seed=0, ridge=1e-6)
+    common = dict(budgets=budgets, n_starts=n_starts, progress=False, seed=0,
+                  planning=PlanningOptions(random_trials=trials, certify=False, ridge=1e-6))
     t = time.perf_counter()
-    paper = evaluate(da, methods=METHODS, paper=True, **common)
+    paper = evaluate(da, methods=METHODS, paper=True,
+                     scoring=ScoringOptions(min_observations=5), **common)
     t1 = time.perf_counter() - t
     t = time.perf_counter()
     pred = evaluate(da, methods=METHODS + NEW,
-                    model_params=dict(offset=True, spatial="exponential"),
-                    fold_in=dict(prior="empirical", spatial=True), **common)
+                    scoring=ScoringOptions(min_observations=5,
+                                           model_params=dict(offset=True, spatial="exponential"),
+                                           fold_in=dict(prior="empirical", spatial=True)),
+                    **common)
     t2 = time.perf_counter() - t
     print(f"\n[{name}] route-constrained MSE (mean over {n_starts} starts x 8 test snapshots)")
     print(f"  paper model + paper fold-in ({t1:.1f} s; planner ridge 1e-6); complete condition "

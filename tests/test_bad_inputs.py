@@ -23,6 +23,7 @@ import xarray as xr
 
 from lrm_cvx import cli, cli_fit
 from lrm_cvx.cli import main
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions
 from lrm_cvx.glrm import GLRM
 
 LAT = -30 + 2.0 * np.arange(6)  # -30 .. -20
@@ -580,8 +581,10 @@ def test_save_results_is_atomic(files, inputs_unchanged, tmp_path, monkeypatch):
     from lrm_cvx.evaluation import evaluate, save_results
 
     inputs_unchanged.watch(files["d"])
-    res = evaluate(_field(), rank=2, n_test=2, budgets=(3,), n_starts=1, random_trials=1,
-                   min_observations=1, certify=False, progress=False)
+    res = evaluate(_field(), rank=2, n_test=2, budgets=(3,), n_starts=1,
+                   progress=False,
+                   planning=PlanningOptions(random_trials=1, certify=False),
+                   scoring=ScoringOptions(min_observations=1))
     (tmp_path / "results.nc").write_text("old")
     monkeypatch.setattr(os, "replace", _failing_replace)
     with pytest.raises(OSError):

@@ -14,7 +14,7 @@ import pytest
 import xarray as xr
 
 from lrm_cvx.errors import DataError, ModelError
-from lrm_cvx.evaluation import evaluate
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.fit import free_parameters, max_identifiable_rank
 from lrm_cvx.io.samples import synthetic_field
@@ -379,7 +379,9 @@ def test_load_round_trip_reads_only(saved, inputs_unchanged):
 
 # --------------------------------------------------------------------------- evaluate
 EV = dict(rank=2, n_test=3, budgets=(3.0,), n_starts=2, methods=("greedy", "random"),
-          random_trials=2, min_observations=1, progress=False, certify=False, paper=True)
+          progress=False, paper=True,
+          planning=PlanningOptions(random_trials=2, certify=False),
+          scoring=ScoringOptions(min_observations=1))
 
 
 def test_evaluate_sorts_unsorted_times(field):
@@ -414,7 +416,7 @@ def test_evaluate_needs_a_time_dim(field):
     (dict(n_starts=0), ModelError, "n_starts"),
     (dict(n_starts=-2), ModelError, "n_starts"),
     (dict(n_starts=1.5), ModelError, "n_starts"),
-    (dict(random_trials=0), ModelError, "random_trials"),
+    (dict(planning=PlanningOptions(random_trials=0)), ModelError, "random_trials"),
     (dict(methods=()), ModelError, "methods"),
     (dict(methods=("greedy", "greedy")), ModelError, "repeat"),
     (dict(budgets=()), ModelError, "budgets"),
@@ -424,17 +426,45 @@ def test_evaluate_needs_a_time_dim(field):
     (dict(budgets=(3.0, 3.0)), ModelError, "repeat"),
     (dict(n_test=0), DataError, "n_test"),
     (dict(n_test=14), DataError, "n_test"),
-    (dict(n_jobs=0), ModelError, "n_jobs"),
-    (dict(ridge=-1.0), ModelError, "ridge"),
-    (dict(fold_ridge=np.nan), ModelError, "fold_ridge"),
+    (dict(planning={"ridge": 1.0}), ModelError, "planning must be a PlanningOptions"),
+    (dict(scoring=PlanningOptions()), ModelError, "scoring must be a ScoringOptions"),
 ])
 def test_evaluate_bad_arguments(field, bad, error, match):
     with pytest.raises(error, match=match):
         evaluate(field, **{**EV, **bad})
 
 
+@pytest.mark.parametrize("record, bad, match", [
+    (PlanningOptions, dict(n_jobs=0), "n_jobs must be an integer >= 1"),
+    (PlanningOptions, dict(ridge=-1.0), "ridge"),
+    (PlanningOptions, dict(random_trials=-1), "random_trials"),
+    (PlanningOptions, dict(random_trials=1.5), "random_trials"),
+    (PlanningOptions, dict(certify="yes"), "certify must be False, 'fast' or 'tight'"),
+    (PlanningOptions, dict(criterion=3), "criterion must be a string"),
+    (ScoringOptions, dict(fold_ridge=np.nan), "fold_ridge"),
+    (ScoringOptions, dict(min_observations=-1), "min_observations"),
+    (ScoringOptions, dict(fold_in={"prior": "empirical", "kriging": True}), "fold_in keys"),
+    (ScoringOptions, dict(model_params=["offset"]), "model_params must be a dict"),
+])
+def test_evaluation_options_refuse_bad_values_naming_the_field(record, bad, match):
+    with pytest.raises(ModelError, match=match) as info:
+        record(**bad)
+    assert "\n" not in str(info.value)
+
+
+def test_evaluation_options_normalise_their_values():
+    p = PlanningOptions(ridge=1, random_trials=3.0, certify=True, n_jobs=np.int64(2))
+    assert (p.ridge, p.random_trials, p.certify, p.n_jobs) == (1.0, 3, "tight", 2)
+    assert type(p.random_trials) is int and type(p.n_jobs) is int
+    s = ScoringOptions(fold_ridge=0, min_observations=np.int32(4))
+    assert (s.fold_ridge, s.min_observations, type(s.min_observations)) == (0.0, 4, int)
+    with pytest.raises(AttributeError):
+        p.ridge = 2.0  # frozen
+
+
 def test_evaluate_random_trials_zero_is_fine_without_random(field):
-    out = evaluate(field, **{**EV, "methods": ("greedy",), "random_trials": 0})
+    planning = PlanningOptions(random_trials=0, certify=False)
+    out = evaluate(field, **{**EV, "methods": ("greedy",), "planning": planning})
     assert out.sizes["trial"] == 1 and np.isfinite(out["mse"].values).any()
 
 

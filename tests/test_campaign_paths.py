@@ -16,7 +16,7 @@ import xarray as xr
 from lrm_cvx import GLRM, load_sample, plan_greedy
 from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.errors import PlanningError
-from lrm_cvx.evaluation import evaluate, path_label
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate, path_label
 from lrm_cvx.monitor import MonitorState
 from lrm_cvx.planning import random_walk, transect
 from lrm_cvx.planning.request import PathOptions
@@ -177,11 +177,13 @@ def test_baselines_follow_the_path_model_as_their_direct_calls(model, test_days,
 
 
 def test_evaluate_campaigns_take_the_path_model_and_fleets(sst, model):
-    kw = dict(model=model, n_test=N_DAYS, budgets=(3000.0,), n_starts=1, random_trials=1,
-              certify=False, progress=False, min_observations=1, temporal="ar1",
+    kw = dict(model=model, n_test=N_DAYS, budgets=(3000.0,), n_starts=1,
+              progress=False, temporal="ar1",
               methods=("greedy:gp-variance", "transect-up"),
               path=PathOptions(metric="km", traversable="valid", closed=True), n_robots=2, seed=1,
-              fold_in={"prior": "empirical", "spatial": True})
+              planning=PlanningOptions(random_trials=1, certify=False),
+              scoring=ScoringOptions(min_observations=1,
+                                     fold_in={"prior": "empirical", "spatial": True}))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = evaluate(sst, **kw)
@@ -235,9 +237,11 @@ def test_fixed_end_fleet_and_attrs_round_trip_through_netcdf(sst, model, test_da
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = evaluate(sst, model=model, n_test=N_DAYS, budgets=(9000.0,), n_starts=1,
-                       certify=False, progress=False, min_observations=1, temporal="ar1",
+                       progress=False, temporal="ar1",
                        methods=("greedy:fisher",),
-                       path=PathOptions(metric="km", traversable="valid", end=end))
+                       path=PathOptions(metric="km", traversable="valid", end=end),
+                       planning=PlanningOptions(certify=False),
+                       scoring=ScoringOptions(min_observations=1))
     assert res.attrs["end"] == cell and np.isfinite(res["mse"]).all()
 
 

@@ -19,6 +19,7 @@ import xarray as xr
 
 from lrm_cvx import GLRM, plan_greedy
 from lrm_cvx.errors import PlanningError
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions
 from lrm_cvx.information import CRITERION_REGISTRY, gp_variance_value
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.monitor import MonitorState
@@ -257,13 +258,16 @@ def test_evaluate_reports_the_recommended_methods_gap_beside_the_papers():
 
     from lrm_cvx.evaluation import evaluate
 
-    kw = dict(rank=2, n_test=2, budgets=(3, 6), n_starts=2, min_observations=1, seed=1,
+    kw = dict(rank=2, n_test=2, budgets=(3, 6), n_starts=2, seed=1,
               methods=("greedy:gp-variance", "greedy"), progress=False,
-              model_params={"offset": True, "spatial": "exponential"})
+              scoring=ScoringOptions(min_observations=1,
+                                     model_params={"offset": True, "spatial": "exponential"}))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ds = evaluate(planted(), certify="fast", **kw)
-        off = evaluate(planted(), certify=False, **kw)
+        ds = evaluate(planted(), planning=PlanningOptions(certify="fast"),
+                      **kw)
+        off = evaluate(planted(), planning=PlanningOptions(certify=False),
+                       **kw)
     bound, value = ds["recommended_bound"], ds["recommended_value"]
     assert bound.dims == ds["bound"].dims == ("budget", "start")
     assert bound.attrs["method"] == "greedy:gp-variance" and bound.attrs["units"] == "(K)^2"
@@ -278,7 +282,8 @@ def test_evaluate_reports_the_recommended_methods_gap_beside_the_papers():
     with pytest.MonkeyPatch.context() as mp, warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
         mp.setattr(varbound, "DENSE_MAX", 5)
-        big = evaluate(planted(), certify="fast", **kw)
+        big = evaluate(planted(), planning=PlanningOptions(certify="fast"),
+                       **kw)
     assert bool(np.isnan(big["recommended_bound"]).all())
     assert any("gap is not reported" in str(w.message) for w in seen)
     np.testing.assert_array_equal(big["bound"].values, ds["bound"].values)

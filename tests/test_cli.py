@@ -11,7 +11,7 @@ import xarray as xr
 from lrm_cvx import cli
 from lrm_cvx.cli import main
 from lrm_cvx.datasets import load_sample
-from lrm_cvx.evaluation import METHODS, evaluate
+from lrm_cvx.evaluation import METHODS, PlanningOptions, ScoringOptions, evaluate
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.losses import LOSSES
 from lrm_cvx.glrm.predictive import PRIORS
@@ -312,11 +312,13 @@ def test_evaluate_recommended_matches_python(tmp_path, capsys):
                  "--out", str(out)]) == 0
     got = xr.load_dataset(out / "results.nc")
     assert list(got["method"].values) == [cli.RECOMMENDED["method"], *METHODS]
-    ref = evaluate(load_sample("sst"), rank=3, n_test=2, n_starts=1, random_trials=1,
-                   budgets=(5, 10), min_observations=1, certify=False, progress=False,
+    ref = evaluate(load_sample("sst"), rank=3, n_test=2, n_starts=1,
+                   budgets=(5, 10), progress=False,
                    methods=("greedy:gp-variance", *METHODS),
-                   model_params={"offset": True, "spatial": "auto", "noise": "global"},
-                   fold_in={"prior": "empirical", "spatial": True})
+                   planning=PlanningOptions(random_trials=1, certify=False),
+                   scoring=ScoringOptions(min_observations=1, model_params={
+                       "offset": True, "spatial": "auto", "noise": "global"},
+                                          fold_in={"prior": "empirical", "spatial": True}))
     np.testing.assert_allclose(got["mse"], ref["mse"], rtol=1e-6, equal_nan=True)
     np.testing.assert_array_equal(got["greedy_route"], ref["greedy_route"])
     summary = pd.read_csv(out / "summary.csv")

@@ -17,7 +17,7 @@ import xarray as xr
 
 from lrm_cvx import cli_fit
 from lrm_cvx.cli import main
-from lrm_cvx.evaluation import METHODS, evaluate
+from lrm_cvx.evaluation import METHODS, PlanningOptions, ScoringOptions, evaluate
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.planning import plan_greedy
 from lrm_cvx.recommended import RECOMMENDED
@@ -337,14 +337,17 @@ def test_evaluate_default_is_recommended_and_paper_is_the_paper(files, tmp_path)
         assert _run("evaluate", root / "field.nc", *TINY, *flags, "--out",
                     tmp_path / name) == 0
         got[name] = xr.load_dataset(tmp_path / name / "results.nc")
-    kw = dict(rank=2, n_test=3, n_starts=1, random_trials=1, budgets=(4, 8),
-              min_observations=1, certify=False, progress=False)
+    kw = dict(rank=2, n_test=3, n_starts=1, budgets=(4, 8), progress=False)
+    planning = PlanningOptions(random_trials=1, certify=False, criterion="fisher")
     params = {k: v for k, v in _glrm_recommended().items() if k != "temporal"}
-    rec = evaluate(da, methods=(RECOMMENDED["method"], *METHODS),
-                   model_params={**params, "noise": "global"},
-                   fold_in={"prior": RECOMMENDED["prior"], "spatial": True}, **kw)
-    paper = evaluate(da, methods=METHODS, criterion="fisher", model_params={"noise": "global"},
-                     paper=True, **kw)
+    rec = evaluate(da, methods=(RECOMMENDED["method"], *METHODS), planning=planning,
+                   scoring=ScoringOptions(min_observations=1,
+                                          model_params={**params, "noise": "global"},
+                                          fold_in={"prior": RECOMMENDED["prior"], "spatial": True}),
+                   **kw)
+    paper = evaluate(da, methods=METHODS, paper=True, planning=planning,
+                     scoring=ScoringOptions(min_observations=1, model_params={"noise": "global"}),
+                     **kw)
     for name, ref in (("default", rec), ("recommended", rec), ("paper", paper)):
         assert list(got[name]["method"].values) == list(ref["method"].values), name
         np.testing.assert_allclose(got[name]["mse"], ref["mse"], rtol=1e-6, equal_nan=True,

@@ -10,7 +10,7 @@ import xarray as xr
 
 from lrm_cvx.cli import main
 from lrm_cvx.datasets import load_sample
-from lrm_cvx.evaluation import evaluate
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.planning import PathOptions, plan_greedy
 
@@ -162,11 +162,13 @@ def test_evaluate_path_options_match_python(tmp_path, capsys):
                  "--traversable", "valid", "--closed", "--robots", "2", "--stop-cost", "10",
                  "--methods", "greedy,transect-up,random", "--out", str(out)]) == 0
     got = xr.load_dataset(out / "results.nc")
-    ref = evaluate(load_sample("sst"), rank=3, n_test=2, n_starts=2, random_trials=2,
-                   budgets=(3000, 6000), min_observations=1, certify=False, progress=False,
+    ref = evaluate(load_sample("sst"), rank=3, n_test=2, n_starts=2,
+                   budgets=(3000, 6000), progress=False,
                    methods=("greedy", "transect-up", "random"), n_robots=2,
-                   model_params={"noise": "global"}, paper=True,
-                   path=PathOptions(metric="km", traversable="valid", closed=True, stop_cost=10.0))
+                   paper=True,
+                   path=PathOptions(metric="km", traversable="valid", closed=True, stop_cost=10.0),
+                   planning=PlanningOptions(random_trials=2, certify=False),
+                   scoring=ScoringOptions(min_observations=1, model_params={"noise": "global"}))
     np.testing.assert_allclose(got["mse"], ref["mse"], rtol=1e-6, equal_nan=True)
     np.testing.assert_allclose(got["robot_cost"], ref["robot_cost"], rtol=1e-12)
     np.testing.assert_array_equal(got["fleet_start_cell"], ref["fleet_start_cell"])

@@ -17,6 +17,7 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from lrm_cvx.errors import DataError, ModelError  # noqa: E402
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions  # noqa: E402
 from lrm_cvx.glrm import GLRM  # noqa: E402
 from lrm_cvx.glrm.chunked import fit_chunked, is_dask_backed  # noqa: E402
 from lrm_cvx.glrm.fit import SMALL_SVD  # noqa: E402
@@ -362,12 +363,16 @@ def test_dask_fitted_model_downstream(field):
     p2 = plan_greedy(out.Y_, out.region_, 0, 20.0, progress=False, ridge=1e-6,
                      **out.planner_kwargs())
     assert list(p1.cells) == list(p2.cells)
-    e1 = evaluate(field, model=ref, n_test=4, budgets=(10,), n_starts=2, random_trials=2,
-                  methods=("greedy", "random"), certify=False, progress=False,
-                  min_observations=1, paper=True)
-    e2 = evaluate(field, model=out, n_test=4, budgets=(10,), n_starts=2, random_trials=2,
-                  methods=("greedy", "random"), certify=False, progress=False,
-                  min_observations=1, paper=True)
+    e1 = evaluate(field, model=ref, n_test=4, budgets=(10,), n_starts=2,
+                  methods=("greedy", "random"), progress=False,
+                  paper=True,
+                  planning=PlanningOptions(random_trials=2, certify=False),
+                  scoring=ScoringOptions(min_observations=1))
+    e2 = evaluate(field, model=out, n_test=4, budgets=(10,), n_starts=2,
+                  methods=("greedy", "random"), progress=False,
+                  paper=True,
+                  planning=PlanningOptions(random_trials=2, certify=False),
+                  scoring=ScoringOptions(min_observations=1))
     for var in e1.data_vars:  # fold-ins from ~10 cells amplify the 1e-8 factor differences
         if np.issubdtype(e1[var].dtype, np.number):
             np.testing.assert_allclose(e2[var].values, e1[var].values, rtol=2e-3, atol=1e-8,

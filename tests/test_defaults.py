@@ -16,15 +16,22 @@ import xarray as xr
 import lrm_cvx  # noqa: F401  (registers the .lrm accessor)
 from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.errors import ModelError, PlanningError
-from lrm_cvx.evaluation import METHODS, evaluate
+from lrm_cvx.evaluation import METHODS, PlanningOptions, ScoringOptions, evaluate
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.monitor import MonitorState
 from lrm_cvx.planning import place_sensors, plan_greedy
 from lrm_cvx.recommended import RECOMMENDED
 
 N_TEST = 4
-EV = dict(rank=3, n_test=N_TEST, budgets=(3, 8), n_starts=2, random_trials=2,
-          min_observations=3, seed=1, progress=False, certify=False)
+EV = dict(rank=3, n_test=N_TEST, budgets=(3, 8), n_starts=2,
+          seed=1, progress=False,
+          planning=PlanningOptions(random_trials=2, certify=False),
+          scoring=ScoringOptions(min_observations=3))
+
+
+def ev(**scoring) -> dict:
+    """``EV`` with these fields of its scoring."""
+    return dict(EV, scoring=ScoringOptions(min_observations=3, **scoring))
 
 
 def planted(seed=0, T=20, ny=8, nx=9, k=3):
@@ -82,7 +89,7 @@ RECOMMENDED_FOLD_IN = {"prior": RECOMMENDED["prior"], "spatial": RECOMMENDED["fo
 def test_evaluate_default_is_the_recommended_setting_spelled_out(data):
     default = quiet(evaluate, data, **EV)
     explicit = quiet(evaluate, data, methods=(RECOMMENDED["method"], *METHODS),
-                     model_params=recommended_params(), fold_in=RECOMMENDED_FOLD_IN, **EV)
+                     **ev(model_params=recommended_params(), fold_in=RECOMMENDED_FOLD_IN))
     xr.testing.assert_identical(default, explicit)
     assert list(default["method"].values) == [RECOMMENDED["method"], *METHODS]
     assert "spatial" in default.attrs["model_params"] and "complete_mse_model" in default
@@ -96,21 +103,21 @@ def test_evaluate_paper_is_the_old_default_bit_for_bit(data):
     """``paper=True`` is the paper's protocol: GLRM(rank), the
     paper's METHODS, the least-squares fold-in (the old defaults, given explicitly)."""
     paper = evaluate(data, paper=True, **EV)
-    old = evaluate(data, methods=METHODS, model_params={}, fold_in={}, **EV)
+    old = evaluate(data, methods=METHODS, **ev(model_params={}, fold_in={}))
     xr.testing.assert_identical(paper, old)
     assert list(paper["method"].values) == list(METHODS)
     assert "complete_mse_model" not in paper and paper.attrs["model_params"] == "{}"
 
 
 def test_evaluate_explicit_arguments_win_over_paper(data):
-    kw = dict(methods=("greedy:gp-variance", "greedy"), model_params=recommended_params(),
-              fold_in=RECOMMENDED_FOLD_IN, **EV)
+    kw = dict(methods=("greedy:gp-variance", "greedy"),
+              **ev(model_params=recommended_params(), fold_in=RECOMMENDED_FOLD_IN))
     a = quiet(evaluate, data, paper=True, **kw)
     b = quiet(evaluate, data, paper=False, **kw)
     xr.testing.assert_identical(a, b)
     # one explicit argument: only that one wins, the others stay the paper's
     c = evaluate(data, paper=True, methods=("greedy", "random"), **EV)
-    d = evaluate(data, methods=("greedy", "random"), model_params={}, fold_in={}, **EV)
+    d = evaluate(data, methods=("greedy", "random"), **ev(model_params={}, fold_in={}))
     xr.testing.assert_identical(c, d)
 
 
@@ -122,14 +129,14 @@ def test_evaluate_model_without_residual_falls_back_with_one_warning(data, plain
     assert len(fallback) == 1 and fallback[0].category is UserWarning
     assert fallback[0].filename == __file__  # points at the caller
     want = evaluate(data, model=plain_model, methods=("greedy:fisher", *METHODS),
-                    fold_in={"prior": RECOMMENDED["prior"], "spatial": False}, **EV)
+                    **ev(fold_in={"prior": RECOMMENDED["prior"], "spatial": False}))
     xr.testing.assert_identical(got, want)
     # explicit choices and paper=True never warn
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         evaluate(data, model=plain_model, paper=True, **EV)
-        evaluate(data, model=plain_model, methods=("greedy",), fold_in={"prior": "empirical"},
-                 **EV)
+        evaluate(data, model=plain_model, methods=("greedy",),
+                 **ev(fold_in={"prior": "empirical"}))
 
 
 def test_evaluate_model_with_residual_takes_the_whole_recommended_setting(data,
@@ -138,7 +145,7 @@ def test_evaluate_model_with_residual_takes_the_whole_recommended_setting(data,
         warnings.simplefilter("error", UserWarning)  # no fallback
         got = evaluate(data, model=spatial_model, **EV)
     want = evaluate(data, model=spatial_model, methods=(RECOMMENDED["method"], *METHODS),
-                    fold_in=RECOMMENDED_FOLD_IN, **EV)
+                    **ev(fold_in=RECOMMENDED_FOLD_IN))
     xr.testing.assert_identical(got, want)
 
 
@@ -282,6 +289,6 @@ def test_evaluate_default_calibrates_and_warns_on_a_record_too_short(data):
     with pytest.warns(UserWarning, match="calibration cannot run") as caught:
         got = evaluate(short, **EV)
     assert sum("calibration cannot run" in str(w.message) for w in caught) == 1
-    ref = quiet(evaluate, short, model_params=params, **EV)
+    ref = quiet(evaluate, short, **ev(model_params=params))
     np.testing.assert_array_equal(got["mse"].values, ref["mse"].values)
     np.testing.assert_array_equal(got["coverage95"].values, ref["coverage95"].values)

@@ -7,7 +7,15 @@ import pytest
 import xarray as xr
 
 from lrm_cvx.errors import DataError, ModelError
-from lrm_cvx.evaluation import SnapshotStatistics, evaluate, foldin_mse, save_results, summary
+from lrm_cvx.evaluation import (
+    PlanningOptions,
+    ScoringOptions,
+    SnapshotStatistics,
+    evaluate,
+    foldin_mse,
+    save_results,
+    summary,
+)
 
 
 def brute_force_mse(Y, values, cells, ridge=0.0):
@@ -69,7 +77,9 @@ def planted(seed=0, T=24, ny=9, nx=11, k=3):
 @pytest.fixture(scope="module")
 def results():  # the paper's protocol (its fold-in is the floor complete_mse bounds)
     return evaluate(planted(), rank=3, n_test=4, budgets=(3, 8, 15), n_starts=3,
-                    random_trials=4, min_observations=4, seed=1, progress=False, paper=True)
+                    seed=1, progress=False, paper=True,
+                    planning=PlanningOptions(random_trials=4),
+                    scoring=ScoringOptions(min_observations=4))
 
 
 def test_protocol_invariants(results):
@@ -94,7 +104,9 @@ def test_protocol_invariants(results):
 
 def test_protocol_is_deterministic(results):
     again = evaluate(planted(), rank=3, n_test=4, budgets=(3, 8, 15), n_starts=3,
-                     random_trials=4, min_observations=4, seed=1, progress=False, paper=True)
+                     seed=1, progress=False, paper=True,
+                     planning=PlanningOptions(random_trials=4),
+                     scoring=ScoringOptions(min_observations=4))
     xr.testing.assert_identical(results, again)
 
 
@@ -130,13 +142,17 @@ def test_a_budget_whose_plans_are_all_unscored_warns():
     that budget is NaN, and one warning says why (none for the budget that scores)."""
     with pytest.warns(UserWarning, match="budget 2: no plan observes min_observations=10"):
         ds = evaluate(planted(), rank=3, n_test=4, budgets=(2, 40), n_starts=2,
-                      random_trials=1, min_observations=10, seed=1, progress=False, paper=True)
+                      seed=1, progress=False, paper=True,
+                      planning=PlanningOptions(random_trials=1),
+                      scoring=ScoringOptions(min_observations=10))
     assert np.isnan(ds["mse"].sel(budget=2)).all()
     assert np.isfinite(ds["mse"].sel(budget=40)).any()
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
-        evaluate(planted(), rank=3, n_test=4, budgets=(40,), n_starts=2, random_trials=1,
-                 min_observations=10, seed=1, progress=False, paper=True)
+        evaluate(planted(), rank=3, n_test=4, budgets=(40,), n_starts=2,
+                 seed=1, progress=False, paper=True,
+                 planning=PlanningOptions(random_trials=1),
+                 scoring=ScoringOptions(min_observations=10))
 
 
 @pytest.mark.parametrize("spatial", ["exponential", None])

@@ -6,7 +6,7 @@ import pytest
 import xarray as xr
 
 from lrm_cvx.errors import DataError, PlanningError
-from lrm_cvx.evaluation import evaluate, path_label, summary
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate, path_label, summary
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.planning import PathOptions, plan_greedy, random_walk, transect
 
@@ -25,8 +25,10 @@ def planted(seed=0, T=20, ny=8, nx=10, k=3):
                 "lon": 150.0 + 2 * np.arange(nx)}, attrs={"units": "K"})
 
 
-COMMON = dict(rank=3, n_test=3, n_starts=3, random_trials=2, min_observations=2, seed=4,
-              certify=False, progress=False, methods=METHODS, paper=True)  # the paper's fold-in
+COMMON = dict(rank=3, n_test=3, n_starts=3, seed=4,
+              progress=False, methods=METHODS, paper=True,
+              planning=PlanningOptions(random_trials=2, certify=False),
+              scoring=ScoringOptions(min_observations=2))  # the paper's fold-in
 
 
 @pytest.fixture(scope="module")

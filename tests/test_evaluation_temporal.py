@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lrm_cvx.errors import ModelError
-from lrm_cvx.evaluation import evaluate, summary
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate, summary
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.io.samples import synthetic_dynamic_field
@@ -31,9 +31,11 @@ def model(data):
             data.isel(time=slice(None, -N_TEST)))
 
 
-KW = dict(n_test=N_TEST, budgets=(8, 16), n_starts=3, random_trials=2, certify=False,
-          progress=False, min_observations=3, methods=("greedy", "transect-up", "random"),
-          paper=True)  # the paper's fold-in unless a test gives fold_in
+KW = dict(n_test=N_TEST, budgets=(8, 16), n_starts=3,
+          progress=False, methods=("greedy", "transect-up", "random"),
+          paper=True,
+          planning=PlanningOptions(random_trials=2, certify=False),
+          scoring=ScoringOptions(min_observations=3))  # the paper's fold-in unless a test asks
 
 
 def test_temporal_none_is_the_default_protocol(data, model):

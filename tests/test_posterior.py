@@ -13,6 +13,7 @@ from scipy.spatial.distance import cdist
 
 from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel, empirical_moments
 from lrm_cvx.errors import DataError, ModelError
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.spatial import ResidualCovariance
 
@@ -334,9 +335,12 @@ def test_complete_mse_is_in_data_units(kw):
     da = small_field()
     n_test = 4
     m = fit_model(da.isel(time=slice(None, -n_test)), **kw)
-    ds = evaluate(da, model=m, n_test=n_test, budgets=(4.0,), n_starts=1, random_trials=1,
-                  methods=("greedy",), certify=False, progress=False, min_observations=2,
-                  paper=True)  # the paper's fold-in, with the model's offset/scale/noise
+    ds = evaluate(da, model=m, n_test=n_test, budgets=(4.0,), n_starts=1,
+                  methods=("greedy",), progress=False,
+                  paper=True,
+                  planning=PlanningOptions(random_trials=1, certify=False),
+                  scoring=ScoringOptions(min_observations=2))
+    # the paper's fold-in, with the model's offset/scale/noise
     Y = m._Yv
     off = np.zeros(m.n_cells_) if m.offset_ is None else m.offset_
     sc = np.ones(m.n_cells_) if m.scale_ is None else m.scale_

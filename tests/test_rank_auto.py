@@ -12,6 +12,7 @@ import xarray as xr
 from lrm_cvx import GLRM
 from lrm_cvx.cli import main
 from lrm_cvx.errors import DataError, ModelError
+from lrm_cvx.evaluation import PlanningOptions
 from lrm_cvx.io.samples import synthetic_dynamic_field
 from lrm_cvx.validation.refits import clone_model
 from lrm_cvx.validation.selection import REFERENCE_RANK, format_selection, select_temporal
@@ -173,7 +174,8 @@ def test_evaluate_with_rank_auto():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = evaluate(rank2_field.isel(time=slice(0, 48)), rank="auto", n_test=4,
-                       budgets=(4,), n_starts=1, methods=("greedy",), certify=False,
-                       progress=False, paper=True)
+                       budgets=(4,), n_starts=1, methods=("greedy",),
+                       progress=False, paper=True,
+                       planning=PlanningOptions(certify=False))
         ref = _auto(rank2_field.isel(time=slice(0, 44)))
     assert res.attrs["rank"] == ref.rank_ < REFERENCE_RANK

@@ -11,7 +11,7 @@ from scipy.spatial.distance import cdist
 from lrm_cvx import Region
 from lrm_cvx.belief.posterior import LatentPosterior, ObservationModel, empirical_moments
 from lrm_cvx.errors import ModelError, PlanningError
-from lrm_cvx.evaluation import evaluate
+from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate
 from lrm_cvx.glrm import GLRM
 from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.glrm.offset import OFFSET_PRIOR_OBS
@@ -597,11 +597,14 @@ def test_make_oracle_switches_to_structured_and_greedy_picks_are_unchanged(monke
 
 # --------------------------------------------------------------------------- evaluation
 def test_evaluate_with_predictive_options(data):
-    kw = dict(rank=3, n_test=4, budgets=(6.0,), n_starts=2, random_trials=2,
-              min_observations=4, certify=False, progress=False, seed=0)
+    kw = dict(rank=3, n_test=4, budgets=(6.0,), n_starts=2,
+              progress=False, seed=0,
+              planning=PlanningOptions(random_trials=2, certify=False))
     ds = evaluate(data, methods=("greedy", "greedy:a-optimal", "greedy:gp-variance", "random"),
-                  model_params=dict(offset=True, spatial="exponential"),
-                  fold_in=dict(prior="empirical", spatial=True), **kw)
+                  scoring=ScoringOptions(min_observations=4,
+                                         model_params=dict(offset=True, spatial="exponential"),
+                                         fold_in=dict(prior="empirical", spatial=True)),
+                  **kw)
     assert "complete_mse_model" in ds
     assert np.isfinite(ds["mse"].sel({"method": "greedy:gp-variance"})).any()
     # the error of one plan equals a manual completion with the same model

@@ -11,11 +11,20 @@ from test_evaluation import planted
 from lrm_cvx import cli
 from lrm_cvx.cli import main
 from lrm_cvx.errors import DataError, ModelError
-from lrm_cvx.evaluation import backtest, evaluate, save_results, summary
+from lrm_cvx.evaluation import (
+    PlanningOptions,
+    ScoringOptions,
+    backtest,
+    evaluate,
+    save_results,
+    summary,
+)
 from lrm_cvx.glrm import GLRM
 
-PAPER = dict(rank=3, n_test=4, budgets=(3, 8), n_starts=2, random_trials=2, min_observations=4,
-             seed=1, progress=False, paper=True)
+PAPER = dict(rank=3, n_test=4, budgets=(3, 8), n_starts=2,
+             seed=1, progress=False, paper=True,
+             planning=PlanningOptions(random_trials=2),
+             scoring=ScoringOptions(min_observations=4))
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +82,10 @@ def test_no_block_sees_its_own_or_later_snapshots():
     """Poison the last block (and its model's every choice and calibration would move): the
     earlier blocks, recommended setting (spatial="auto", conformal calibration), are unchanged."""
     da = planted()
-    kw = dict(rank=3, n_test=4, budgets=(5,), n_starts=2, random_trials=1, min_observations=4,
-              seed=0, progress=False, methods=("greedy:gp-variance", "random"))
+    kw = dict(rank=3, n_test=4, budgets=(5,), n_starts=2,
+              seed=0, progress=False, methods=("greedy:gp-variance", "random"),
+              planning=PlanningOptions(random_trials=1),
+              scoring=ScoringOptions(min_observations=4))
     clean = backtest(da, 2, **kw)
     poisoned = da.copy()
     poisoned[-4:] = 50.0 + 10.0 * np.random.default_rng(0).normal(size=poisoned[-4:].shape)
@@ -186,9 +197,11 @@ def test_campaigns_roll_too():
     """Filter campaigns (``temporal=``) through the rolling origin: each block's campaign is
     the one evaluate() runs on the snapshots up to it, memoryless twin included."""
     da = planted()
-    kw = dict(rank=3, n_test=4, budgets=(5,), n_starts=1, min_observations=4, seed=0,
+    kw = dict(rank=3, n_test=4, budgets=(5,), n_starts=1, seed=0,
               progress=False, methods=("greedy:fisher",), temporal="ar1",
-              model_params={"offset": True}, fold_in={"prior": "empirical"}, certify=False)
+              planning=PlanningOptions(certify=False),
+              scoring=ScoringOptions(min_observations=4, model_params={"offset": True},
+                                     fold_in={"prior": "empirical"}))
     rolled = backtest(da, 2, **kw)
     alone = evaluate(da.isel(time=slice(None, -4)), **kw)
     block = rolled.isel(origin=0).sel(test_time=alone["test_time"])
@@ -302,7 +315,9 @@ def test_campaigns_say_nothing_of_forced_initial_cells_over_budget(n_robots):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         ds = evaluate(load_sample("sst"), paper=True, rank=3, n_test=2, n_starts=2,
-                      random_trials=1, budgets=(1.0,), methods=("greedy",), certify=False,
-                      progress=False, temporal="ar1", min_observations=1, n_robots=n_robots)
+                      budgets=(1.0,), methods=("greedy",),
+                      progress=False, temporal="ar1", n_robots=n_robots,
+                      planning=PlanningOptions(random_trials=1, certify=False),
+                      scoring=ScoringOptions(min_observations=1))
     assert ds.attrs["temporal"] == "ar1" and ds.attrs["n_robots"] == n_robots
     assert not [w for w in caught if "initial cells" in str(w.message)]

@@ -44,6 +44,8 @@ _LAZY = {
     "backtest": "lrm_cvx.evaluation",
     "summary": "lrm_cvx.evaluation",
     "EvaluationProtocol": "lrm_cvx.evaluation",
+    "PlanningOptions": "lrm_cvx.evaluation",
+    "ScoringOptions": "lrm_cvx.evaluation",
     "MonitorState": "lrm_cvx.monitor",
     "simulate_campaign": "lrm_cvx.campaign",
     "Dynamics": "lrm_cvx.glrm.dynamics",

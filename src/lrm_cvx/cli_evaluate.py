@@ -94,6 +94,8 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
         COVERAGE_BANDS,
         LOWEST_BLOCK_95,
         METHODS,
+        PlanningOptions,
+        ScoringOptions,
         backtest,
         coverage_check,
         evaluate,
@@ -115,12 +117,13 @@ def _run_evaluation(data, out_dir: Path, *, rank: int, n_test: int, budgets, n_s
     fold_in = dict(fold_in or {})
     model = fit_model(data.isel(time=slice(0, n_time - n_test)), model_params, rank=rank,
                        random_state=seed, progress=progress)
+    planning = PlanningOptions(criterion=criterion, cost=cost, ridge=ridge,
+                               random_trials=random_trials, certify=certify, n_jobs=n_jobs)
+    scoring = ScoringOptions(model_params=model_params, fold_in=fold_in, fold_ridge=fold_ridge,
+                             min_observations=min_observations)
     kw = dict(rank=rank, n_test=n_test, budgets=budgets, n_starts=n_starts, methods=methods,
-              random_trials=random_trials, min_observations=min_observations,
-              criterion=criterion, cost=cost, ridge=ridge, fold_ridge=fold_ridge,
-              certify=certify, seed=seed, n_jobs=n_jobs, progress=progress, model=model,
-              model_params=model_params, fold_in=fold_in, n_robots=n_robots, path=path,
-              temporal=temporal)
+              seed=seed, progress=progress, model=model, n_robots=n_robots, path=path,
+              temporal=temporal, planning=planning, scoring=scoring)
     results = backtest(data, origins, **kw) if origins > 1 else evaluate(data, **kw)
     table = summary(results)
     last = results.isel(origin=-1) if "origin" in results.dims else results

@@ -108,7 +108,7 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
     from ._validation import atomic_output
     from .datasets import load_sample
     from .errors import DataError
-    from .evaluation import evaluate
+    from .evaluation import PlanningOptions, ScoringOptions, evaluate
     from .glrm import GLRM
     from .planning import plan_greedy
 
@@ -135,14 +135,16 @@ def _run_demo(out_dir: str | Path, *, progress: Callable[[str], None] | None,
     say(f"fitted rank-{rank} GLRMs ({timings['fit recommended'] + timings['fit paper']:.1f} s)")
 
     common = dict(rank=rank, n_test=n_test, budgets=cfg["budgets"], n_starts=int(cfg["n_starts"]),
-                  random_trials=int(cfg["random_trials"]),
-                  min_observations=int(cfg["min_observations"]), seed=seed, progress=False)
+                  seed=seed, progress=False)
+    trials, least = int(cfg["random_trials"]), int(cfg["min_observations"])
+    fold_in = {"prior": SETTING["prior"], "spatial": SETTING["fold_spatial"]}
     res_rec = evaluate(data, model=rec, methods=(SETTING["method"], *BASELINES),
-                       fold_in={"prior": SETTING["prior"], "spatial": SETTING["fold_spatial"]},
-                       certify=False, **common)
+                       planning=PlanningOptions(random_trials=trials, certify=False),
+                       scoring=ScoringOptions(fold_in=fold_in, min_observations=least), **common)
     t = lap("evaluate recommended", t)
-    res_paper = evaluate(data, model=paper, methods=("greedy",), certify="fast", paper=True,
-                         **common)
+    res_paper = evaluate(data, model=paper, methods=("greedy",), paper=True,
+                         planning=PlanningOptions(random_trials=trials, certify="fast"),
+                         scoring=ScoringOptions(min_observations=least), **common)
     t = lap("evaluate paper (+ certify)", t)
     say(f"evaluated {len(cfg['budgets'])} budgets x {cfg['n_starts']} starts x {n_test} test "
         f"snapshots ({timings['evaluate recommended'] + timings[list(timings)[-1]]:.1f} s)")

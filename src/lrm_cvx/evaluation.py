@@ -20,7 +20,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -29,14 +29,18 @@ import xarray as xr
 from tqdm.auto import tqdm
 
 from ._blas import single_threaded_blas
-from ._validation import as_factor_matrix, as_generator, check_flag, check_positive
+from ._validation import as_factor_matrix, as_generator, check_flag
 from .belief.posterior import LatentPosterior
 from .errors import DataError, ModelError, PlanningError
 from .evaluation_tables import (
     COVERAGE_BANDS,
     LOWEST_BLOCK_95,
+    PlanningOptions,
     ProtocolResults,
+    ScoringOptions,
+    check_int,
     coverage_check,
+    options_of,
     path_label,
     save_results,
     summary,
@@ -63,7 +67,8 @@ from .scoring import (
 from .validation.calibration import fit_then_try_calibrate
 from .validation.selection import memoryless_twin
 
-__all__ = ["evaluate", "backtest", "EvaluationProtocol", "summary", "save_results", "METHODS",
+__all__ = ["evaluate", "backtest", "EvaluationProtocol", "PlanningOptions", "ScoringOptions",
+           "summary", "save_results", "METHODS",
            "coverage_check", "COVERAGE_BANDS", "LOWEST_BLOCK_95",
            "GREEDY_VARIANTS", "METHOD_REGISTRY", "SnapshotStatistics", "foldin_mse", "path_label",
            "check_method", "plan_method"]
@@ -134,16 +139,6 @@ def plan_method(method: str, Y: np.ndarray, region: Region, start: Any, budget: 
                         prior=planner.prior_of(model))
 
 
-def _int_arg(value: Any, name: str, minimum: int, error: type[Exception] = ModelError) -> int:
-    """``value`` as an int >= ``minimum`` (bools, floats with a fraction, NaN refused)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float,
-                                                                     np.floating)):
-        raise error(f"{name} must be an integer >= {minimum}, got {value!r}")
-    if not np.isfinite(value) or float(value) != int(value) or value < minimum:
-        raise error(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
-
-
 def _time_ordered(data: xr.DataArray) -> xr.DataArray:
     """``data`` with ``time`` first and sorted by its coordinate (UserWarning when it was not
     sorted: the protocol tests on the *last* times, never on the past). DataError for no
@@ -204,10 +199,6 @@ def _check_given_model(model: Any, test: xr.DataArray) -> None:
                           UserWarning, stacklevel=3)
 
 
-_EVALUATE_OPTIONS = ("random_trials", "min_observations", "ridge", "fold_ridge", "certify",
-                     "n_jobs", "progress", "model_params", "fold_in")
-"""The keywords of :func:`evaluate` it takes through ``**options`` (besides the path options)."""
-
 _EVALUATE_PATH = PATH_FIELDS
 """The path options ``evaluate`` passes to every method (``end`` and ``sense_along``: with
 ``temporal`` campaigns only)."""
@@ -233,13 +224,14 @@ class _Fitted:
 @dataclass(eq=False)
 class EvaluationProtocol:
     """The paper's evaluation protocol as an object: the data split (``n_test``), the model
-    (``rank``, ``model_params``, or a fitted ``model``), the requests (``budgets``, ``n_starts``
-    start cells, ``n_robots`` per start, the path request ``path``), the ``methods`` (names of
-    :data:`~lrm_cvx.planning.planners.METHOD_REGISTRY`), the prediction (``fold_in``,
-    ``fold_ridge``) and ``temporal`` campaigns; ``methods``, ``model_params`` and ``fold_in``
-    left None are the recommended setting's (``paper=True``: the paper's); validated when
-    built, :meth:`run` returns the Dataset of :func:`evaluate` (which is
-    ``EvaluationProtocol(data, ...).run()``; every argument is documented there).
+    (``rank``, or a fitted ``model``), the requests (``budgets``, ``n_starts`` start cells,
+    ``n_robots`` per start, the path request ``path``), the ``methods`` (names of
+    :data:`~lrm_cvx.planning.planners.METHOD_REGISTRY`) and how they plan (``planning``, a
+    :class:`PlanningOptions`), the fit and the prediction (``scoring``, a
+    :class:`ScoringOptions`) and ``temporal`` campaigns; ``methods`` and the scoring's
+    ``model_params`` and ``fold_in`` left None are the recommended setting's (``paper=True``:
+    the paper's); validated when built, :meth:`run` returns the Dataset of :func:`evaluate`
+    (which is ``EvaluationProtocol(data, ...).run()``; every argument is documented there).
 
     >>> EvaluationProtocol(da, budgets=(5, 25), methods=("greedy", "random")).run()
     """
@@ -250,22 +242,14 @@ class EvaluationProtocol:
     budgets: Sequence[float] = (5, 25, 50, 100, 200)
     n_starts: int = 10
     methods: Sequence[str] | None = None
-    random_trials: int = 70
-    min_observations: int = 10
-    criterion: str = "fisher"
-    cost: str = "nearest-neighbor"
-    ridge: float = 0.0
-    fold_ridge: float = 0.0
-    certify: bool | str = "fast"
     model: Any = None
     seed: int = 0
-    n_jobs: int = 1
-    progress: bool = True
-    model_params: dict | None = None
-    fold_in: dict | None = None
     temporal: str | None = None
-    path: PathOptions | None = None
     n_robots: int = 1
+    path: PathOptions | None = None
+    planning: PlanningOptions | None = None
+    scoring: ScoringOptions | None = None
+    progress: bool = True
     paper: bool = False
 
     def __post_init__(self) -> None:
@@ -281,28 +265,29 @@ class EvaluationProtocol:
         self.paper = check_flag(self.paper, "paper", error=ModelError)
         # the defaults left to the protocol (None): the paper's with paper=True, else the
         # recommended setting; _fit adapts the recommended ones to a model without a residual
-        self._defaults = {"methods": self.methods is None, "fold_in": self.fold_in is None}
+        self.planning = options_of(self.planning, PlanningOptions, "planning")
+        scoring = options_of(self.scoring, ScoringOptions, "scoring")
+        model_params, fold_in = scoring.model_params, scoring.fold_in
+        self._defaults = {"methods": self.methods is None, "fold_in": fold_in is None}
         if self.methods is None:
             self.methods = METHODS if self.paper else _recommended_methods()
-        self._defaults["model_params"] = self.model_params is None and self.model is None
-        if self.model_params is None and self.model is None and not self.paper:
-            self.model_params = _recommended_params()
-        if self.fold_in is None and not self.paper:
-            self.fold_in = {"prior": RECOMMENDED["prior"],
-                            "spatial": bool(RECOMMENDED["fold_spatial"])}
+        self._defaults["model_params"] = model_params is None and self.model is None
+        if model_params is None and self.model is None and not self.paper:
+            model_params = _recommended_params()
+        if fold_in is None and not self.paper:
+            fold_in = {"prior": RECOMMENDED["prior"],
+                       "spatial": bool(RECOMMENDED["fold_spatial"])}
+        self.scoring = replace(scoring, model_params=dict(model_params or {}),
+                               fold_in=dict(fold_in or {}))
         self.methods = _check_methods(self.methods)
-        self.n_test = _int_arg(self.n_test, "n_test", 1, DataError)
-        self.n_starts = _int_arg(self.n_starts, "n_starts", 1)
+        self.n_test = check_int(self.n_test, "n_test", 1, DataError)
+        self.n_starts = check_int(self.n_starts, "n_starts", 1)
         if "random" in self.methods:
-            self.random_trials = _int_arg(self.random_trials, "random_trials", 1)
-        self.min_observations = _int_arg(self.min_observations, "min_observations", 0)
-        self.n_jobs = _int_arg(self.n_jobs, "n_jobs", 1)
-        self.ridge = check_positive(self.ridge, "ridge", error=ModelError)
-        self.fold_ridge = check_positive(self.fold_ridge, "fold_ridge", error=ModelError)
+            check_int(self.planning.random_trials, "random_trials", 1)
         self.temporal = _check_temporal(self.temporal)
         self.path = PathOptions.from_kwargs(self.path, where="evaluate",
                                             allowed=_EVALUATE_PATH)
-        self.n_robots = _int_arg(self.n_robots, "n_robots", 1, PlanningError)
+        self.n_robots = check_int(self.n_robots, "n_robots", 1, PlanningError)
         if self.temporal is None and (self.path.end is not None or self.path.sense_along):
             raise PlanningError("end and sense_along apply to temporal campaigns only (pass "
                                 "temporal='ar1' or 'seasonal', or drop them)")
@@ -311,16 +296,7 @@ class EvaluationProtocol:
 
             for m in self.methods:
                 method_request(m, planner_for(m), self.path)
-        self.model_params = dict(self.model_params or {})
-        self.fold_in = dict(self.fold_in or {})
-        bad = set(self.fold_in) - {"prior", "spatial", "ridge"}
-        if bad:
-            raise ModelError(f"fold_in keys must be among prior, spatial, ridge; got "
-                             f"{sorted(bad)}")
         self.budgets = _check_budgets(self.budgets)
-        if self.certify not in (False, "fast", "tight", True):
-            raise ModelError(f"certify must be False, 'fast' or 'tight', got {self.certify!r}")
-        self.certify = "tight" if self.certify is True else self.certify
         if not 0 < self.n_test < self.data.sizes["time"]:
             raise DataError(f"n_test must be in [1, {self.data.sizes['time'] - 1}], got "
                             f"{self.n_test}")
@@ -338,7 +314,7 @@ class EvaluationProtocol:
     def _warn_unscored(self, res: ProtocolResults) -> None:
         """One UserWarning per budget at which no plan reaches ``min_observations`` on any
         test snapshot: every error there is NaN, which a table alone would not explain."""
-        m = max(self.min_observations, 1)
+        m = max(self.scoring.min_observations, 1)
         for b, budget in enumerate(self.budgets):
             if not (res.n_obs[:, b] >= m).any():
                 warnings.warn(f"budget {budget:g}: no plan observes min_observations={m} "
@@ -357,7 +333,7 @@ class EvaluationProtocol:
         if model is not None:
             _check_given_model(model, test)
         if model is None:
-            params = dict(self.model_params)
+            params = dict(self.scoring.model_params)
             if self.temporal == "auto":  # the choice is validated on the training snapshots
                 params.setdefault("temporal", "auto")
             model = GLRM(rank=self.rank, random_state=self.seed, progress=self.progress,
@@ -378,11 +354,12 @@ class EvaluationProtocol:
         # one observation model for every error: the model's offset / scale / noise (data units)
         stats = SnapshotStatistics.from_values(Y, test_values, getattr(model, "offset_", None),
                                                getattr(model, "scale_", None))
-        fold_in = self.fold_in
+        fold_in = self.scoring.fold_in
         use_model = bool(fold_in) or not model.is_plain_low_rank
-        paper_prior = model.latent_prior(None, ridge=self.fold_ridge)  # the paper's fold-in
+        ridge = self.scoring.fold_ridge
+        paper_prior = model.latent_prior(None, ridge=ridge)  # the paper's fold-in
         fold_prior = (model.latent_prior(fold_in.get("prior"),
-                                         ridge=float(fold_in.get("ridge", self.fold_ridge)),
+                                         ridge=float(fold_in.get("ridge", ridge)),
                                          spatial=bool(fold_in.get("spatial", False)))
                       if use_model else paper_prior)
         return _Fitted(model, region, Y, train, test, stats, use_model, paper_prior, fold_prior,
@@ -401,8 +378,9 @@ class EvaluationProtocol:
             methods = [fallback if needs_spatial(m) else m for m in self.methods]
             self.methods = tuple(dict.fromkeys(methods))
             changed.append(f"method {RECOMMENDED['method']!r} -> {fallback!r}")
-        if self._defaults["fold_in"] and self.fold_in.get("spatial"):
-            self.fold_in = {**self.fold_in, "spatial": False}
+        if self._defaults["fold_in"] and self.scoring.fold_in.get("spatial"):
+            self.scoring = replace(self.scoring, fold_in={**self.scoring.fold_in,
+                                                          "spatial": False})
             changed.append("fold-in without the kriged residual")
         if changed:
             warnings.warn("the model has no spatial residual, so the recommended setting falls "
@@ -435,17 +413,17 @@ class EvaluationProtocol:
 
     def _plan_all(self, fit: _Fitted, starts: np.ndarray, fleets: np.ndarray) -> ProtocolResults:
         """Every start's plans and errors (threads over starts, one seeded stream each)."""
-        n_trials = self.random_trials if "random" in self.methods else 1
+        n_trials = self.planning.random_trials if "random" in self.methods else 1
         out = ProtocolResults.empty(len(self.methods), len(self.budgets), self.n_starts, n_trials,
                              self.n_test, self.n_robots, self.temporal is not None)
         seeds = np.random.SeedSequence(self.seed).spawn(self.n_starts)
         cov = (coverage_subset(fit.stats.values, self.seed),
                fit.stats.values.astype(np.float64))
-        planners = [planner_for(m, criterion=self.criterion, cost=self.cost)
-                    for m in self.methods]
+        p = self.planning
+        planners = [planner_for(m, criterion=p.criterion, cost=p.cost) for m in self.methods]
         bar = tqdm(total=self.n_starts, desc="evaluate (starts)", disable=not self.progress)
         with warnings.catch_warnings(), single_threaded_blas(), \
-                ThreadPoolExecutor(max_workers=max(1, self.n_jobs)) as pool:  # tiny k x k
+                ThreadPoolExecutor(max_workers=max(1, p.n_jobs)) as pool:  # tiny k x k
             # at small budgets the forced initial cells exceed the budget: expected, not news
             warnings.filterwarnings("ignore", message=r"(robot \d+.s )?\d+ initial cells")
             jobs = [(s, np.random.default_rng(seeds[s]), starts[s], fleets[s])
@@ -464,7 +442,7 @@ class EvaluationProtocol:
         """One start's rows ``(m, b, s, trial, plan, mse, n_obs, bound, coverage, mse_ml,
         coverage_ml)`` over budgets x methods x trials, in the protocol's order."""
         out = []
-        n_trials = self.random_trials if "random" in self.methods else 1
+        n_trials = self.planning.random_trials if "random" in self.methods else 1
         for b, budget in enumerate(self.budgets):
             for m, method in enumerate(self.methods):
                 for trial in range(n_trials if method == "random" else 1):
@@ -478,7 +456,8 @@ class EvaluationProtocol:
                                    self.n_robots > 1, self.path.unit)
                     planner = planners[m]
                     plan = planner.plan(fit.Y, fit.region, robots, self.path, rng=start_rng,
-                                        ridge=self.ridge, prior=planner.prior_of(fit.model))
+                                        ridge=self.planning.ridge,
+                                        prior=planner.prior_of(fit.model))
                     out.append((m, b, s, trial, plan, *self._score(fit, plan, method, cov)))
         return out
 
@@ -492,9 +471,10 @@ class EvaluationProtocol:
     def _score(self, fit: _Fitted, plan: Any, method: str, cov: tuple) -> tuple:
         """``(mse, n_obs, certificate, coverage, None, None)`` of one plan on the test snapshots
         (the certificate of the paper's greedy and of the recommended method, else None)."""
-        e, n, c = model_scores(fit.fold_prior, cov[1], plan.cells, self.min_observations,
+        e, n, c = model_scores(fit.fold_prior, cov[1], plan.cells,
+                               self.scoring.min_observations,
                                stats=fit.stats, subsets=cov[0])
-        certify = self.certify
+        certify = self.planning.certify
         cert = None  # the paper's greedy: its Fisher bound; the recommended method: its own
         if certify and method == "greedy":
             cert = plan.certify(tighten=certify == "tight", refine=False)
@@ -515,11 +495,12 @@ class EvaluationProtocol:
         and its memoryless twin (the same seed): run once when the model's own temporal model
         is memoryless and its twin is itself, the same campaign."""
         cseed = int(start_rng.integers(2**31))
-        spatial = self.fold_in.get("spatial") if "spatial" in self.fold_in else None
-        options = {"cost": self.cost, "ridge": self.ridge, "criterion": self.criterion}
+        fold_in, p = self.scoring.fold_in, self.planning
+        spatial = fold_in.get("spatial") if "spatial" in fold_in else None
+        options = {"cost": p.cost, "ridge": p.ridge, "criterion": p.criterion}
         pairs = ((fit.model, self.temporal), (fit.twin, None))
         runs = [_campaign_errors(m, fit.test, start, budget, method, tm, cseed, spatial,
-                                 self.min_observations, options, self.path)
+                                 self.scoring.min_observations, options, self.path)
                 for m, tm in pairs[: 1 if self._twin_is_model(fit) else 2]]
         (e, n, c, first), ml = runs[0], runs[-1]
         # the twin's intervals: the model's calibration was made for its inflated variances
@@ -544,7 +525,7 @@ class EvaluationProtocol:
                 "information": (dims4, res.info,
                                 {"long_name": "Fisher information log det(sum Y_p Y_p^T)",
                                  "units": "nats"}),
-                "information_usable": (dims4, (res.n_obs >= self.min_observations).any(
+                "information_usable": (dims4, (res.n_obs >= self.scoring.min_observations).any(
                     axis=-1)),  # enough observations in at least one test snapshot
                 "cost": (dims4, res.cost,
                          {"long_name": "path cost" + (" (the fleet's total)" if n_robots > 1
@@ -606,9 +587,10 @@ class EvaluationProtocol:
             for i, level in enumerate((68, 95)):
                 ds[f"coverage{level}_memoryless"] = (dims5, res.coverage_ml[..., i])
         if fit.use_model:
-            fold_in = self.fold_in
+            fold_in = self.scoring.fold_in
             cm = complete_mse(fit.stats, fit.model.latent_prior(
-                fold_in.get("prior"), ridge=float(fold_in.get("ridge", self.fold_ridge))))
+                fold_in.get("prior"),
+                ridge=float(fold_in.get("ridge", self.scoring.fold_ridge))))
             ds["complete_mse_model"] = (("test_time",), cm, {
                 "long_name": "model fold-in error from every observed cell"})
         return ds
@@ -622,15 +604,15 @@ class EvaluationProtocol:
             "n_train": int(fit.train.sizes["time"]),
             "n_test": int(self.n_test),
             "n_cells_region": int(fit.region.n_cells),
-            "min_observations": int(self.min_observations),
-            "criterion": self.criterion,
-            "cost_function": self.cost,
-            "ridge": float(self.ridge),
-            "fold_ridge": float(self.fold_ridge),
-            "random_trials": int(self.random_trials),
+            "min_observations": int(self.scoring.min_observations),
+            "criterion": self.planning.criterion,
+            "cost_function": self.planning.cost,
+            "ridge": float(self.planning.ridge),
+            "fold_ridge": float(self.scoring.fold_ridge),
+            "random_trials": int(self.planning.random_trials),
             "seed": int(self.seed),
-            "model_params": repr(self.model_params),
-            "fold_in": repr(self.fold_in),
+            "model_params": repr(self.scoring.model_params),
+            "fold_in": repr(self.scoring.fold_in),
             "temporal": "none" if self.temporal is None else self.temporal,
             "metric": path.metric,
             "speed": float(np.nan if path.speed is None else path.speed),
@@ -684,17 +666,22 @@ def evaluate(
     budgets: Sequence[float] = (5, 25, 50, 100, 200),
     n_starts: int = 10,
     methods: Sequence[str] | None = None,
-    criterion: str = "fisher",
-    cost: str = "nearest-neighbor",
     model: Any = None,
     seed: int = 0,
     temporal: str | None = None,
     n_robots: int = 1,
     path: PathOptions | None = None,
+    planning: PlanningOptions | None = None,
+    scoring: ScoringOptions | None = None,
+    progress: bool = True,
     paper: bool = False,
-    **options: Any,
 ) -> xr.Dataset:
     """Run the paper's evaluation protocol on ``data`` ``(time, lat, lon)``.
+
+    ``criterion``, ``cost``, ``ridge``, ``random_trials``, ``certify`` and ``n_jobs`` below are
+    fields of ``planning`` (a :class:`PlanningOptions`); ``model_params``, ``fold_in``,
+    ``fold_ridge`` and ``min_observations`` fields of ``scoring`` (a :class:`ScoringOptions`),
+    e.g. ``evaluate(da, scoring=ScoringOptions(min_observations=4))``.
 
     **Defaults**: the recommended setting of docs/reconstruction.md
     (:data:`lrm_cvx.recommended.RECOMMENDED`, read at run time) wherever an argument is left
@@ -790,20 +777,21 @@ def evaluate(
 
     Parameters
     ----------
-    random_trials, min_observations, ridge, fold_ridge, certify : (``**options``) the protocol's
-        numbers above (defaults 70, 10, 0.0, 0.0 and ``"fast"``).
-    n_jobs, progress, model_params, fold_in : (``**options``) worker processes, a progress bar,
-        the fit's extra GLRM parameters and the prediction (above).
+    planning : PlanningOptions, optional
+        How the methods plan: ``criterion``, ``cost``, ``ridge``, ``random_trials``,
+        ``certify`` and ``n_jobs`` (threads over the start cells); None: the defaults above.
+    scoring : ScoringOptions, optional
+        How each plan is scored: ``model_params``, ``fold_in``, ``fold_ridge`` and
+        ``min_observations``; None: the defaults above.
+    progress : bool
+        Show progress bars.
     """
-    bad = set(options) - set(_EVALUATE_OPTIONS)
-    if bad:
-        raise TypeError(f"evaluate() got an unexpected keyword argument {sorted(bad)[0]!r}")
     request = PathOptions.from_kwargs(path, where="evaluate", allowed=_EVALUATE_PATH)
     return EvaluationProtocol(data, rank=rank, n_test=n_test, budgets=budgets,
-                              n_starts=n_starts, methods=methods, criterion=criterion,
-                              cost=cost, model=model, seed=seed,
+                              n_starts=n_starts, methods=methods, model=model, seed=seed,
                               temporal=temporal, n_robots=n_robots, path=request,
-                              paper=paper, **options).run()
+                              planning=planning, scoring=scoring, progress=progress,
+                              paper=paper).run()
 
 
 def backtest(data: xr.DataArray, origins: int = 3, *, model: Any = None,
@@ -830,7 +818,7 @@ def backtest(data: xr.DataArray, origins: int = 3, *, model: Any = None,
     """
     from dataclasses import fields
 
-    n_origins = _int_arg(origins, "origins", 1, DataError)
+    n_origins = check_int(origins, "origins", 1, DataError)
     request = PathOptions.from_kwargs(kwargs.pop("path", None), where="backtest",
                                       allowed=_EVALUATE_PATH)
     known = {f.name for f in fields(EvaluationProtocol)} - {"data", "model", "path"}

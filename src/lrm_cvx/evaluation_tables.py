@@ -1,5 +1,8 @@
-"""The tables of the evaluation protocol: the arrays a run fills and what is read from them.
+"""The settings records and the tables of the evaluation protocol.
 
+:class:`PlanningOptions` (how the methods plan) and :class:`ScoringOptions` (how each plan is
+scored) group the protocol's secondary settings, validated once when built, as
+:class:`~lrm_cvx.planning.request.PathOptions` does for the path model.
 :class:`ProtocolResults` holds the ``(method, budget, start, trial[, test_time])`` arrays an
 :class:`~lrm_cvx.evaluation.EvaluationProtocol` run fills; :func:`summary` reduces the
 Dataset of :func:`~lrm_cvx.evaluation.evaluate` (or of a rolling-origin
@@ -18,11 +21,106 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from ._validation import atomic_output, check_flag
+from ._validation import atomic_output, check_flag, check_positive
 from .errors import DataError, ModelError
 
-__all__ = ["ProtocolResults", "summary", "coverage_check", "COVERAGE_BANDS", "LOWEST_BLOCK_95",
-           "path_label", "save_results"]
+__all__ = ["PlanningOptions", "ScoringOptions", "ProtocolResults", "summary", "coverage_check",
+           "COVERAGE_BANDS", "LOWEST_BLOCK_95", "path_label", "save_results"]
+
+
+def check_int(value: Any, name: str, minimum: int, error: type[Exception] = ModelError) -> int:
+    """``value`` as an int >= ``minimum`` (bools, floats with a fraction, NaN refused; ``error``
+    naming ``name`` otherwise)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float,
+                                                                     np.floating)):
+        raise error(f"{name} must be an integer >= {minimum}, got {value!r}")
+    if not np.isfinite(value) or float(value) != int(value) or value < minimum:
+        raise error(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def options_of(value: Any, cls: type, name: str) -> Any:
+    """``value`` as a ``cls`` record (None: its defaults); ModelError naming ``name``
+    otherwise."""
+    if value is None:
+        return cls()
+    if not isinstance(value, cls):
+        raise ModelError(f"{name} must be a {cls.__name__} (or None), got "
+                         f"{type(value).__name__}")
+    return value
+
+
+@dataclass(frozen=True)
+class PlanningOptions:
+    """How the protocol's methods plan (docs/evaluation.md); validated when built.
+
+    ``criterion`` and ``cost``: the paper's greedy's criterion and cost function (filled in
+    where a method leaves them open); ``ridge`` (>= 0): every planner's information ridge;
+    ``random_trials``: the random walk's repeats per start and budget (an integer >= 0, >= 1
+    when ``"random"`` is among the protocol's methods);
+    ``certify``: the certified bound attached to the greedy's plans, ``"fast"``, ``"tight"``
+    (``True`` is ``"tight"``) or ``False``; ``n_jobs`` (an integer >= 1): threads over the
+    start cells. The defaults are the paper's. A bad value raises ModelError naming the field.
+
+    >>> PlanningOptions(random_trials=5, certify=False).random_trials
+    5
+    """
+
+    criterion: str = "fisher"
+    cost: str = "nearest-neighbor"
+    ridge: float = 0.0
+    random_trials: int = 70
+    certify: bool | str = "fast"
+    n_jobs: int = 1
+
+    def __post_init__(self) -> None:
+        for name in ("criterion", "cost"):
+            if not isinstance(getattr(self, name), str):
+                raise ModelError(f"{name} must be a string, got {getattr(self, name)!r}")
+        if self.certify not in (False, "fast", "tight", True):
+            raise ModelError(f"certify must be False, 'fast' or 'tight', got {self.certify!r}")
+        object.__setattr__(self, "ridge", check_positive(self.ridge, "ridge", error=ModelError))
+        object.__setattr__(self, "random_trials", check_int(self.random_trials,
+                                                            "random_trials", 0))
+        object.__setattr__(self, "certify", "tight" if self.certify is True else self.certify)
+        object.__setattr__(self, "n_jobs", check_int(self.n_jobs, "n_jobs", 1))
+
+
+@dataclass(frozen=True)
+class ScoringOptions:
+    """How the protocol scores each plan on the test snapshots (docs/evaluation.md);
+    validated when built.
+
+    ``model_params``: extra GLRM parameters of the model fitted for the prediction
+    (``offset``, ``scale``, ``noise``, ``spatial``); ``fold_in``: the prediction (a dict with
+    keys among ``prior``, ``spatial``, ``ridge``), its ``ridge`` defaulting to ``fold_ridge``
+    (>= 0), the paper's fold-in's ridge; ``min_observations`` (an integer >= 0): (plan,
+    snapshot) pairs with fewer observations are left out of the error. ``model_params`` and
+    ``fold_in`` left None are the recommended setting's (``evaluate(paper=True)``: the
+    paper's). A bad value raises ModelError naming the field.
+
+    >>> ScoringOptions(min_observations=4, fold_in={"prior": "empirical"}).min_observations
+    4
+    """
+
+    model_params: dict | None = None
+    fold_in: dict | None = None
+    fold_ridge: float = 0.0
+    min_observations: int = 10
+
+    def __post_init__(self) -> None:
+        for name in ("model_params", "fold_in"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, dict):
+                raise ModelError(f"{name} must be a dict or None, got {type(value).__name__}")
+        bad = set(self.fold_in or {}) - {"prior", "spatial", "ridge"}
+        if bad:
+            raise ModelError(f"fold_in keys must be among prior, spatial, ridge; got "
+                             f"{sorted(bad)}")
+        object.__setattr__(self, "fold_ridge", check_positive(self.fold_ridge, "fold_ridge",
+                                                              error=ModelError))
+        object.__setattr__(self, "min_observations", check_int(self.min_observations,
+                                                               "min_observations", 0))
 
 
 @dataclass
