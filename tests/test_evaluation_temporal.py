@@ -58,7 +58,7 @@ def test_memoryless_errors_and_coverage_against_a_direct_fold_in(data, model):
             cells = np.asarray(plan.cells)
             for t in range(N_TEST):
                 c = cells[np.isfinite(V[t, cells])]
-                if c.size < KW["min_observations"]:
+                if c.size < KW["scoring"].min_observations:
                     assert np.isnan(res.mse.values[m, b, s, 0, t])
                     continue
                 x = np.linalg.lstsq(Y[:, c].T, V[t, c], rcond=None)[0]  # the paper's fold-in
@@ -79,7 +79,7 @@ def test_memoryless_errors_and_coverage_against_a_direct_fold_in(data, model):
 
 
 def test_temporal_campaigns_run_and_memoryless_loop_matches_the_protocol(data, model):
-    kw = {**KW, "fold_in": {"prior": "empirical"}}
+    kw = {**KW, "scoring": ScoringOptions(min_observations=3, fold_in={"prior": "empirical"})}
     base = evaluate(data, model=model, **kw)
     res = evaluate(data, model=model, temporal="ar1", **kw)
     assert res.attrs["temporal"] == "ar1"
@@ -126,7 +126,7 @@ def test_the_memoryless_twin_is_the_model_as_fitted(data, model):
     (inflation 1), the reference the choice was validated against."""
     import copy
 
-    kw = {**KW, "fold_in": {"prior": "empirical"}}
+    kw = {**KW, "scoring": ScoringOptions(min_observations=3, fold_in={"prior": "empirical"})}
     inflated = copy.copy(model)
     inflated.residual_inflation_ = 4.0
     base = evaluate(data, model=model, **kw)
@@ -153,7 +153,7 @@ def test_a_memoryless_auto_model_runs_each_campaign_once(data, model, monkeypatc
         return real(*args, **kwargs)
 
     monkeypatch.setattr(campaign, "simulate_campaign", counted)
-    kw = {**KW, "fold_in": {"prior": "empirical"}}
+    kw = {**KW, "scoring": ScoringOptions(min_observations=3, fold_in={"prior": "empirical"})}
     n_campaigns = 3 * 2 * (2 + 2)  # starts x budgets x (greedy, transect, 2 random trials)
     assert getattr(model, "dynamics_", None) is None
     res = evaluate(data, model=model, temporal="auto", **kw)
