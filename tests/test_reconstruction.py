@@ -623,5 +623,6 @@ def test_evaluate_with_predictive_options(data):
                                                                      trial=0, test_time=t))
     assert got == pytest.approx(ref, rel=1e-6)
     # the paper's protocol is untouched
-    base = evaluate(data, methods=("greedy",), paper=True, **kw)
+    base = evaluate(data, methods=("greedy",), paper=True,
+                    scoring=ScoringOptions(min_observations=4), **kw)
     assert "complete_mse_model" not in base
