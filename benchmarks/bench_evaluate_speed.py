@@ -66,12 +66,12 @@ def library_record():
 def library_row(random_trials: int) -> None:
     """``evaluate(data, temporal="auto")`` with its defaults at budgets 15 / 30 / 60 from 4
     starts, and the memoryless protocol on the same record, timed in the same run."""
-    from lrm_cvx import evaluate
+    from lrm_cvx import PlanningOptions, evaluate
 
     data = library_record()
     n_valid = int(data.notnull().any("time").sum())
     kw = {"budgets": LIBRARY_BUDGETS, "n_starts": LIBRARY_STARTS, "progress": False,
-          "random_trials": random_trials}
+          "planning": PlanningOptions(random_trials=random_trials)}
     print(f"library: {data.sizes['time']} snapshots x {n_valid} cells, evaluate(data, ...) "
           f"with its defaults, budgets {LIBRARY_BUDGETS}, {LIBRARY_STARTS} starts, "
           f"{random_trials} random walks", flush=True)

@@ -159,9 +159,8 @@ def run_set(name: str, budgets: tuple, n_starts: int, random_trials: int,
             print(f"[{name}] spatial='auto' chose "
                   f"{model.kernel_selection_.attrs['choice']!r}", flush=True)
         res = evaluate(data, model=model, n_test=N_TEST, budgets=budgets, n_starts=n_starts,
-                       methods=(RECOMMENDED,) + BASELINES,
-                       progress=False, temporal=temporal,
-                       seed=0,
+                       methods=(RECOMMENDED,) + BASELINES, progress=False,
+                       temporal=temporal, seed=0,
                        planning=PlanningOptions(random_trials=random_trials, certify=False,
                                                 n_jobs=n_jobs),
                        scoring=ScoringOptions(min_observations=1,
