@@ -98,3 +98,18 @@ def test_first_line_of_an_exception_message():
     assert first_line(ValueError("  bad value\nthe traceback's detail")) == "bad value"
     assert first_line(OSError()) == "OSError"
     assert first_line(RuntimeError(" \n ")) == "RuntimeError"
+
+
+def test_array_digest_tells_contents_shapes_and_dtypes_apart():
+    from lrm_cvx._validation import array_digest
+
+    a = np.arange(6.0)
+    assert array_digest(a) == array_digest(a.copy())
+    assert array_digest(a) != array_digest(a.reshape(2, 3))  # same bytes, other shape
+    assert array_digest(a) != array_digest(a.astype(np.float32))
+    b = a.copy()
+    b[3] += 1e-12
+    assert array_digest(a) != array_digest(b)
+    empty = np.empty((0, 2))
+    assert array_digest(empty) != array_digest(np.empty((0, 3)))  # empty arrays digest too
+    assert array_digest(a, empty) != array_digest(a)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import os
 import tempfile
 import time
@@ -448,6 +449,18 @@ def guard_outputs(
         if out.exists() and not overwrite:
             raise FileExistsError(f"output {out} already exists; pass {flag} to replace it")
     return outs
+
+
+def array_digest(*arrays: Any) -> str:
+    """A digest of the arrays' dtypes, shapes and bytes: the key of an in-memory cache of work
+    that depends only on those arrays' contents."""
+    h = hashlib.blake2b(digest_size=20)
+    for arr in arrays:
+        a = np.ascontiguousarray(arr)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        if a.size:  # an empty array has no bytes (and memoryview cannot cast it)
+            h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
 
 
 def first_line(exc: BaseException) -> str:

@@ -11,13 +11,12 @@ per pick, each pick's convolution (or lag-table gather) shared by every fork of 
 from __future__ import annotations
 
 import copy
-import hashlib
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from ._validation import as_factor_matrix
+from ._validation import array_digest, as_factor_matrix
 from .errors import PlanningError
 from .oracles import cells_array
 from .spatial.kriging import GridConv, check_gp_inputs, gp_noise, grid_rect
@@ -95,7 +94,7 @@ class StructuredGPVarianceOracle:
         out = (int(lo[0]), int(lo[1]), int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
         self._oidx = (gX[:, 0] - out[0], gX[:, 1] - out[1])
 
-        key = (_digest(self.Y, cT, gi, X), shape, spatial_cov.model, spatial_cov.sill,
+        key = (array_digest(self.Y, cT, gi, X), shape, spatial_cov.model, spatial_cov.sill,
                spatial_cov.range, spatial_cov.anisotropy, truncation, float(boundary_tol),
                LAG_TABLE_MAX_ENTRIES)
         grid = GRID_TERMS.get(key)
@@ -382,7 +381,7 @@ class StructuredGPVarianceOracle:
         new._uX, new._sX = self._uX[:, pos], self._sX[pos]
         new._YX = np.ascontiguousarray(self._YX[:, pos])
         subsets = self._grid.subsets
-        key = _digest(cells)
+        key = array_digest(cells)
         cache = subsets.pop(key, None)  # the most recently used last
         if cache is None:
             cache = _PickCache(cells.size, parent=(self._grid.picks, pos))
@@ -439,15 +438,6 @@ grid and cells and by its covariance: the plans of a campaign's days (the same m
 and budget; only the forecast's prior covariance changes) set up once and share the picks'
 convolutions, the same numbers as computing them again."""
 
-
-def _digest(*arrays: np.ndarray) -> str:
-    """A digest of the arrays' bytes, shapes and dtypes."""
-    h = hashlib.blake2b(digest_size=20)
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(f"{a.dtype.str}{a.shape}".encode())
-        h.update(memoryview(a).cast("B"))
-    return h.hexdigest()
 
 
 class _PickCache:

@@ -143,14 +143,11 @@ def _shared_refits(model: Any, region: Any, V: np.ndarray) -> dict[int, tuple[An
     empty table that the next call shares. Keyed on the model object (held weakly), its
     parameters and factors and the training's bytes: a refitted model or other snapshots
     start afresh."""
-    import hashlib
     import weakref
 
-    digest = hashlib.blake2b(digest_size=16)
-    for arr in (np.asarray(model.Y_, np.float64), np.ascontiguousarray(V)):
-        digest.update(str(arr.shape).encode())
-        digest.update(arr.tobytes())
-    key = (digest.hexdigest(), repr(sorted(model.get_params().items())))
+    from .._validation import array_digest
+
+    key = (array_digest(np.asarray(model.Y_), V), repr(sorted(model.get_params().items())))
     if _REFITS:
         old_key, ref, old_region, table = _REFITS[0]
         if old_key == key and ref() is model and old_region is region:
