@@ -284,6 +284,61 @@ class StructuredGPVarianceOracle:
         gp = self._sX[pos] - 2.0 * self._r[pos] + self._q[pos]
         return np.maximum(trend + cross + gp, 0.0)
 
+    def _kernel_rows(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(k(p, x), g(p, x))`` over the oracle's cells for the cell ``p`` at position ``j``:
+        a gather from the lag table, or a slice of the kernel's table and one convolution
+        (kept in the picks' cache)."""
+        gxp = self._gX[j]
+        if self._k2 is not None:  # translation-invariant table (see _lag_table)
+            kp = self.cov.lattice(self._gX[:, 0] - gxp[0], self._gX[:, 1] - gxp[1])
+            tab, o0, o1, c0 = self._k2
+            g = c0 * tab[self._oidx[0] - self._oidx[0][j] + o0,
+                         self._oidx[1] - self._oidx[1][j] + o1]
+            return kp, g
+        # k(p, .) over the window, a slice of the kernel's table, then one convolution
+        wg, ktab = self._wg, self._kernel_table()
+        rp, cp = wg[2] - 1 - gxp[0], wg[3] - 1 - gxp[1]  # the table's offset 0 from p
+        kp = ktab[self._gX[:, 0] + rp, self._gX[:, 1] + cp]
+        g = self._gcache.get(j)
+        if g is None:  # a cell no fork of this set-up has conditioned on yet
+            win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
+            g = self._gcache.put(j, self._gconv.product(win, self._cwin)[self._oidx])
+        return kp, g
+
+    def covariance_blocks(self, rows: np.ndarray, cols: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """``(K(rows, cols), G(rows, cols))`` between the oracle's cells at the positions
+        ``rows`` and ``cols`` (of its sorted cells): the prior covariance
+        ``K(i, j) = y_i^T S0 y_j + k(i, j)`` and ``G(i, j) = sum_t c_t K(t, i) K(t, j)`` over
+        the targets, ``G = p_i^T (W p_j + u(j)) + u(i)^T p_j + g(i, j)`` with ``p = S0 y``, from
+        the set-up's sums (the lag table, or one convolution per row). No matrix over all
+        cells is formed: ``O(|rows| |cols|)`` memory."""
+        rows = np.asarray(rows, dtype=np.int64)
+        cols = np.asarray(cols, dtype=np.int64)
+        pr, pc = self._S0 @ self._YX[:, rows], self._S0 @ self._YX[:, cols]
+        gr, gc = self._gX[rows], self._gX[cols]
+        K = pr.T @ self._YX[:, cols]
+        K += self.cov.lattice(gc[None, :, 0] - gr[:, None, 0], gc[None, :, 1] - gr[:, None, 1])
+        if self._k2 is not None:
+            tab, o0, o1, c0 = self._k2
+            oi = self._oidx
+            g = c0 * tab[oi[0][cols][None, :] - oi[0][rows][:, None] + o0,
+                         oi[1][cols][None, :] - oi[1][rows][:, None] + o1]
+        else:
+            g = np.empty((rows.size, cols.size))
+            for r, j in enumerate(rows):
+                g[r] = self._kernel_rows(int(j))[1][cols]
+        g += pr.T @ (self._W @ pc + self._uX[:, cols])
+        g += self._uX[:, rows].T @ pc
+        return K, g
+
+    def g_diagonal(self, cols: np.ndarray) -> np.ndarray:
+        """``G(i, i) = sum_t c_t K(t, i)^2`` of the oracle's cells at the positions ``cols``
+        (the prior gain numerator of each cell)."""
+        p = self._S0 @ self._YX[:, cols]
+        return (np.einsum("an,an->n", p, self._W @ p + 2.0 * self._uX[:, cols])
+                + self._sX[cols])
+
     def _condition(self, p: int) -> None:
         """Condition on an observation at ``p`` (a cell of ``X``): one whitened row."""
         j = int(self._xpos(np.array([p]))[0])
@@ -291,25 +346,12 @@ class StructuredGPVarianceOracle:
         m = self._m
         F, Fk, Rk, Qk, Hk = (self._F[:m], self._Fk[:m], self._Rk[:m], self._Qk[:m, :m],
                              self._Hk[:, :m])
-        gxp = self._gX[j]
         den = self.cvar[j] + self.noise
         d = np.sqrt(den)
         self._value -= float(self._numerator(np.array([j]))[0]) / den
         ell = F[:, j].copy()
         ap = self._a[:, j].copy()
-        if self._k2 is not None:  # translation-invariant table (see _lag_table)
-            kp = self.cov.lattice(self._gX[:, 0] - gxp[0], self._gX[:, 1] - gxp[1])
-            tab, o0, o1, c0 = self._k2
-            g = c0 * tab[self._oidx[0] - self._oidx[0][j] + o0,
-                         self._oidx[1] - self._oidx[1][j] + o1]
-        else:  # k(p, .) over the window, a slice of the kernel's table, then one convolution
-            wg, ktab = self._wg, self._kernel_table()
-            rp, cp = wg[2] - 1 - gxp[0], wg[3] - 1 - gxp[1]  # the table's offset 0 from p
-            kp = ktab[self._gX[:, 0] + rp, self._gX[:, 1] + cp]
-            g = self._gcache.get(j)
-            if g is None:  # a cell no fork of this set-up has conditioned on yet
-                win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
-                g = self._gcache.put(j, self._gconv.product(win, self._cwin)[self._oidx])
+        kp, g = self._kernel_rows(j)
         fk = (kp - ell @ Fk) / d                                  # GP part of the new row
         phi = (ap @ self._YX) / d + fk                            # C_P(p, x) / d
         Rkp = Rk[:, j].copy()

@@ -29,8 +29,8 @@ VARIANCE_CRITERIA = ("a-optimal", "gp-variance")
 _CVX_MAX = 25  # cvxpy polishes a piece of at most this many candidates (by default)
 _BLOCK = 1 << 25  # entries of one (cells x targets) block of K (256 MB)
 DENSE_MAX = 10_000
-"""The most cells the gp-variance bound reads: it forms two dense cells x cells matrices
-(0.8 GB each at this size)."""
+"""The most cells the dense gp-variance objective reads (two dense cells x cells matrices, 0.8 GB
+each at this size); above it the structured objective (:mod:`.varbound_structured`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -184,11 +184,17 @@ def _sqrt_psd(W: np.ndarray) -> np.ndarray:
 
 
 def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: float,
-                       terms: dict[str, Any]) -> AOptimalObjective | GPVarianceObjective:
+                       terms: dict[str, Any], *, structured: bool | None = None,
+                       start: Any = None) -> Any:
     """The objective of ``criterion`` on the cells ``cells`` from the planner's oracle terms
     ``terms`` (``prior_precision``, ``noise_var``, ``target_weights`` for ``"a-optimal"``;
     ``region``, ``spatial_cov``, ``prior_cov``, ``targets``, ``target_weights`` for
-    ``"gp-variance"``)."""
+    ``"gp-variance"``).
+
+    gp-variance over more than :data:`DENSE_MAX` cells (or with ``structured=True``; grid
+    metric) gets the structured objective of :mod:`lrm_cvx.planning.varbound_structured`
+    (no cells x cells matrix; Frank-Wolfe starts at the cells ``start``, e.g. the plan);
+    ``structured=False`` keeps the dense one."""
     from ..information import check_gp_inputs, gp_latent_cov, gp_noise
 
     Y = as_factor_matrix(Y)
@@ -213,11 +219,12 @@ def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: 
     T = np.arange(L) if targets is None else np.unique(np.asarray(targets, dtype=np.int64))
     c = (np.ones(L) if tw is None else np.asarray(tw, dtype=np.float64))[T]
     cells = np.asarray(cells, dtype=np.int64)
-    if cells.size > DENSE_MAX:
-        raise PlanningError(
-            f"the gp-variance bound forms dense covariances over the {cells.size} cells a plan "
-            f"of this budget may observe ({2 * 8 * cells.size ** 2 / 1e9:.3g} GB); it covers "
-            f"at most {DENSE_MAX} (a smaller budget or region; criterion='fisher' scales)")
+    if structured is None:
+        structured = cells.size > DENSE_MAX
+    if structured:
+        from .varbound_structured import structured_objective
+
+        return structured_objective(Y, np.unique(cells), dict(terms, prior_cov=S0), start)
     K = gp_latent_cov(Y, S0, region, cov, cells, cells)
     G = np.zeros_like(K)
     step = max(1, _BLOCK // max(cells.size, 1))  # targets a block: cells x step entries
@@ -260,6 +267,10 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: Polytope, *, iters: int
     gap ``(bound - F) / bound <= tol``) and, when ``polish`` (default: at most 25 candidates;
     then at most 10 Frank-Wolfe steps), over cvxpy's solution of the same relaxation
     (projected into the polytope)."""
+    if getattr(obj, "sparse", False):  # the structured gp-variance objective
+        from .varbound_structured import sparse_relaxation
+
+        return sparse_relaxation(obj, pos, poly, iters=iters, tol=tol)
     t0 = time.perf_counter()
     pos = np.asarray(pos, dtype=np.int64)
     if pos.size == 0:

@@ -69,7 +69,7 @@ def variance_certificate(Y: np.ndarray, region: Any, spec: Any, plan: Any, crite
     cells = (np.asarray(plan.cells, dtype=np.int64) if plan is not None
              else np.zeros(0, np.int64))
     universe = np.unique(np.concatenate([cand, init, cells]))
-    obj = variance_objective(criterion, Y, universe, ridge, terms)
+    obj = variance_objective(criterion, Y, universe, ridge, terms, start=cells)
 
     def at(c: np.ndarray) -> np.ndarray:
         return np.searchsorted(universe, c)
