@@ -31,6 +31,10 @@ _BLOCK = 1 << 25  # entries of one (cells x targets) block of K (256 MB)
 DENSE_MAX = 10_000
 """The most cells the dense gp-variance objective reads (two dense cells x cells matrices, 0.8 GB
 each at this size); above it the structured objective (:mod:`.varbound_structured`)."""
+DENSE_MAX_ENTRIES = 1 << 27
+"""The most (cells x targets) covariances the dense gp-variance objective sums into ``G``
+(``2^27``, about 1 GB of kernel evaluations); beyond it, on a grid-metric residual, the
+structured objective, whose set-up does not grow with the cells times the targets."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -191,8 +195,9 @@ def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: 
     ``region``, ``spatial_cov``, ``prior_cov``, ``targets``, ``target_weights`` for
     ``"gp-variance"``).
 
-    gp-variance over more than :data:`DENSE_MAX` cells (or with ``structured=True``; grid
-    metric) gets the structured objective of :mod:`lrm_cvx.planning.varbound_structured`
+    gp-variance over more than :data:`DENSE_MAX` cells, or more than
+    :data:`DENSE_MAX_ENTRIES` cells x targets on a grid metric (or with ``structured=True``)
+    gets the structured objective of :mod:`lrm_cvx.planning.varbound_structured`
     (no cells x cells matrix; Frank-Wolfe starts at the cells ``start``, e.g. the plan);
     ``structured=False`` keeps the dense one."""
     from ..information import check_gp_inputs, gp_latent_cov, gp_noise
@@ -220,7 +225,9 @@ def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: 
     c = (np.ones(L) if tw is None else np.asarray(tw, dtype=np.float64))[T]
     cells = np.asarray(cells, dtype=np.int64)
     if structured is None:
-        structured = cells.size > DENSE_MAX
+        structured = cells.size > DENSE_MAX or (
+            float(cells.size) * T.size > DENSE_MAX_ENTRIES
+            and getattr(cov, "metric", None) == "grid")
     if structured:
         from .varbound_structured import structured_objective
 
