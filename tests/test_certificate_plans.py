@@ -181,15 +181,25 @@ def test_a_sensor_without_a_variance_bound_is_refused_in_one_line(sensor):
     assert math.isfinite(plan.certify(criterion="fisher", tighten=False).bound)
 
 
-def test_too_many_cells_for_the_dense_gp_bound_is_refused_in_one_line(monkeypatch):
+def test_many_cells_take_the_structured_gp_bound_and_km_is_refused_in_one_line(monkeypatch):
     from lrm_cvx.planning import varbound
+    from lrm_cvx.spatial import ResidualCovariance
 
     plan = plan_greedy(Y, REGION, START, 3, criterion="gp-variance", initial="start",
                        progress=False, **GP)
+    dense = plan.certify(tighten=False)
     monkeypatch.setattr(varbound, "DENSE_MAX", 10)
+    cert = plan.certify(tighten=False)  # a grid-metric residual: the structured objective
+    assert cert.relaxation.solver == "Frank-Wolfe (structured)"
+    assert cert.information == pytest.approx(dense.information, rel=1e-10)
+    assert cert.bound >= dense.relaxation.primal - 1e-9
+    km = ResidualCovariance("exponential", 0.5, 300.0, 0.1, metric="km")
+    plan = plan_greedy(Y, REGION, START, 3, criterion="gp-variance", initial="start",
+                       progress=False, prior=PriorTerms(spatial_cov=km, prior_cov=np.eye(2)))
     with pytest.raises(PlanningError, match="covers at most 10") as err:
         plan.certify(tighten=False)
     assert "\n" not in str(err.value) and "criterion='fisher'" in str(err.value)
+    assert "'km'" in str(err.value)
     assert math.isfinite(plan.certify(criterion="fisher", tighten=False).bound)
 
 
@@ -276,7 +286,7 @@ def test_evaluate_reports_the_recommended_methods_gap_beside_the_papers():
     assert bool(np.isfinite(ds["bound"]).all())  # the paper's Fisher bound, as before
     assert bool(np.isnan(off["recommended_bound"]).all())
     assert bool(np.isnan(off["recommended_value"]).all())
-    # where the dense bound does not reach, NaN and a warning, the rest unchanged
+    # where the dense bound does not reach, the structured one: valid, the rest unchanged
     from lrm_cvx.planning import varbound
 
     with pytest.MonkeyPatch.context() as mp, warnings.catch_warnings(record=True) as seen:
@@ -284,8 +294,9 @@ def test_evaluate_reports_the_recommended_methods_gap_beside_the_papers():
         mp.setattr(varbound, "DENSE_MAX", 5)
         big = evaluate(planted(), planning=PlanningOptions(certify="fast"),
                        **kw)
-    assert bool(np.isnan(big["recommended_bound"]).all())
-    assert any("gap is not reported" in str(w.message) for w in seen)
+    assert not any("gap is not reported" in str(w.message) for w in seen)
+    assert bool((big["recommended_bound"] >= big["recommended_value"] - 1e-9).all())
+    np.testing.assert_allclose(big["recommended_value"], value, rtol=1e-9)
     np.testing.assert_array_equal(big["bound"].values, ds["bound"].values)
     # the maps and plans are the same with or without the certificate
     np.testing.assert_array_equal(ds["mse"].values, off["mse"].values)

@@ -20,9 +20,8 @@ from hypothesis import strategies as st
 from lrm_cvx import Region
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.information import a_optimal_value, gp_latent_cov, gp_variance_value
-from lrm_cvx.planning import PathOptions, PriorTerms, plan_bound, plan_greedy, transect
+from lrm_cvx.planning import PathOptions, PriorTerms, plan_bound, plan_greedy, transect, varbound
 from lrm_cvx.planning.dopt import Polytope
-from lrm_cvx.planning import varbound
 from lrm_cvx.planning.varbound import _fw_bound, variance_objective, variance_relaxation
 from lrm_cvx.spatial import ResidualCovariance
 

@@ -14,11 +14,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.linalg import cho_solve, cholesky, solve_triangular
+from scipy.linalg import cho_solve, solve_triangular
 
 from .._validation import as_factor_matrix
 from ..errors import PlanningError
 from .dopt import Polytope, top_sum, top_vertex
+from .varbound_structured import cholesky_lower as _cholesky
 
 __all__ = ["VarianceBound", "AOptimalObjective", "GPVarianceObjective", "variance_relaxation",
            "variance_objective", "VARIANCE_CRITERIA"]
@@ -30,7 +31,8 @@ _CVX_MAX = 25  # cvxpy polishes a piece of at most this many candidates (by defa
 _BLOCK = 1 << 25  # entries of one (cells x targets) block of K (256 MB)
 DENSE_MAX = 10_000
 """The most cells the dense gp-variance objective reads (two dense cells x cells matrices, 0.8 GB
-each at this size); above it the structured objective (:mod:`.varbound_structured`)."""
+each at this size); above it the structured objective (:mod:`.varbound_structured`, grid metric;
+a ``"km"`` residual is refused in one line)."""
 DENSE_MAX_ENTRIES = 1 << 27
 """The most (cells x targets) covariances the dense gp-variance objective sums into ``G``
 (``2^27``, about 1 GB of kernel evaluations); beyond it, on a grid-metric residual, the
@@ -173,14 +175,6 @@ class GPVarianceObjective:
         return w, float(np.sum(R * R)) - cp.matrix_frac(R, 0.5 * (P + P.T)), []
 
 
-def _cholesky(M: np.ndarray, what: str) -> np.ndarray:
-    try:
-        return cholesky(0.5 * (M + M.T), lower=True)
-    except np.linalg.LinAlgError:
-        raise PlanningError(f"{what} is not positive definite: the variance bound cannot be "
-                            "evaluated") from None
-
-
 def _sqrt_psd(W: np.ndarray) -> np.ndarray:
     lam, V = np.linalg.eigh(0.5 * (W + W.T))
     keep = lam > lam.max(initial=0.0) * 1e-14
@@ -195,9 +189,9 @@ def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: 
     ``region``, ``spatial_cov``, ``prior_cov``, ``targets``, ``target_weights`` for
     ``"gp-variance"``).
 
-    gp-variance over more than :data:`DENSE_MAX` cells, or more than
-    :data:`DENSE_MAX_ENTRIES` cells x targets on a grid metric (or with ``structured=True``)
-    gets the structured objective of :mod:`lrm_cvx.planning.varbound_structured`
+    gp-variance on a grid-metric residual over more than :data:`DENSE_MAX` cells or more than
+    :data:`DENSE_MAX_ENTRIES` cells x targets (or with ``structured=True``) gets the structured
+    objective of :mod:`lrm_cvx.planning.varbound_structured`
     (no cells x cells matrix; Frank-Wolfe starts at the cells ``start``, e.g. the plan);
     ``structured=False`` keeps the dense one."""
     from ..information import check_gp_inputs, gp_latent_cov, gp_noise
@@ -224,10 +218,16 @@ def variance_objective(criterion: str, Y: np.ndarray, cells: np.ndarray, ridge: 
     T = np.arange(L) if targets is None else np.unique(np.asarray(targets, dtype=np.int64))
     c = (np.ones(L) if tw is None else np.asarray(tw, dtype=np.float64))[T]
     cells = np.asarray(cells, dtype=np.int64)
+    grid_metric = getattr(cov, "metric", None) == "grid"
     if structured is None:
-        structured = cells.size > DENSE_MAX or (
-            float(cells.size) * T.size > DENSE_MAX_ENTRIES
-            and getattr(cov, "metric", None) == "grid")
+        structured = grid_metric and (cells.size > DENSE_MAX
+                                      or float(cells.size) * T.size > DENSE_MAX_ENTRIES)
+    if not structured and cells.size > DENSE_MAX:
+        raise PlanningError(
+            f"the gp-variance bound forms dense covariances over the {cells.size} cells a plan "
+            f"of this budget may observe ({2 * 8 * cells.size ** 2 / 1e9:.3g} GB); with "
+            f"spatial_cov.metric {cov.metric!r} it covers at most {DENSE_MAX} (a smaller budget "
+            "or region, or a 'grid' metric; criterion='fisher' scales)")
     if structured:
         from .varbound_structured import structured_objective
 
@@ -270,28 +270,33 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: Polytope, *, iters: int
                         solver: str = "CLARABEL") -> VarianceBound:
     """Certified upper bound on ``max F(w)`` over ``poly`` (weights on ``obj``'s cells at the
     positions ``pos``): the smallest (FW) bound over Frank-Wolfe's iterates (from the
-    polytope's uniform design, parabolic line search, ``iters`` steps or until the relative
+    prior gains' vertex, parabolic line search, ``iters`` steps or until the relative
     gap ``(bound - F) / bound <= tol``) and, when ``polish`` (default: at most 25 candidates;
     then at most 10 Frank-Wolfe steps), over cvxpy's solution of the same relaxation
-    (projected into the polytope)."""
-    if getattr(obj, "sparse", False):  # the structured gp-variance objective
-        from .varbound_structured import sparse_relaxation
-
-        return sparse_relaxation(obj, pos, poly, iters=iters, tol=tol)
+    (projected into the polytope). A structured objective
+    (:class:`~lrm_cvx.planning.varbound_structured.StructuredGPVarianceObjective`) starts at
+    its ``start`` cells' indicator (projected into the polytope) when the piece holds some,
+    keeps its ``max_support`` largest weights after each step and is not polished."""
     t0 = time.perf_counter()
     pos = np.asarray(pos, dtype=np.int64)
     if pos.size == 0:
         return VarianceBound(0.0, 0.0, 0.0, {}, 0, 0, 0.0, "none", "empty")
     # start at the vertex of the prior gains (sparse iterates: the support grows by a vertex
     # a step), not at the uniform design
+    sparse = getattr(obj, "sparse", False)  # the structured objective: small supports
     if polish is None:
-        polish = pos.size <= _CVX_MAX
+        polish = pos.size <= _CVX_MAX and not sparse
     if polish:  # a few first-order steps, then the conic solve does the rest
         iters = min(iters, 10)
-    w = _support(poly, obj.value_grad(pos, np.zeros(pos.size), pos)[1])[1]
+    ind = (np.isin(obj.cells[pos], obj.start).astype(np.float64) if sparse
+           else np.zeros(0))
+    if ind.any():  # the structured objective starts at the plan's cells (in the polytope)
+        w = poly.project(ind)
+    else:
+        w = _support(poly, obj.value_grad(pos, np.zeros(pos.size), pos)[1])[1]
     best_val, best_primal, best_w = math.inf, -math.inf, w
     steps = 0
-    used = "Frank-Wolfe"
+    used = "Frank-Wolfe (structured)" if sparse else "Frank-Wolfe"
     for _ in range(iters):
         steps += 1
         val, F, g, v = _fw_bound(obj, pos, poly, w)
@@ -313,6 +318,10 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: Polytope, *, iters: int
                 break
             gam = step
         w = np.maximum(w + gam * d, 0.0)
+        if sparse:  # keep the largest weights (any w >= 0 gives a bound)
+            nz = np.flatnonzero(w)
+            if nz.size > obj.max_support:
+                w[nz[np.argsort(w[nz])[:nz.size - obj.max_support]]] = 0.0
     if polish and best_val - best_primal > tol * max(abs(best_val), 1e-300):
         wc = _cvx_solve(obj, pos, poly, solver)
         if wc is not None:

@@ -7,30 +7,39 @@ the same ``F(w) = tr(G_SS (K_SS + s^2 diag(1/w_S))^-1)`` and gradient
 supported on a small set ``S``, with ``K`` and ``G`` between ``S`` and blocks of candidates
 taken from the structured gp-variance oracle's set-up (the low-rank trend's ``k x k`` sums over
 the targets, the residual's lag table or one convolution per cell of ``S``);
-:func:`sparse_relaxation` runs Frank-Wolfe with the support kept small. The bound (FW) of
+:func:`~lrm_cvx.planning.varbound.variance_relaxation` runs its Frank-Wolfe from the plan
+with the support kept at most :data:`MAX_SUPPORT` cells. The bound (FW) of
 docs/certificate.md §13 holds at any ``w >= 0``, so the support's size costs tightness, never
 validity.
 """
 
 from __future__ import annotations
 
-import math
-import time
 from typing import Any
 
 import numpy as np
-from scipy.linalg import solve_triangular
+from scipy.linalg import cholesky, solve_triangular
 
 from ..errors import PlanningError
-from .dopt import Polytope
 
-__all__ = ["StructuredGPVarianceObjective", "sparse_relaxation", "MAX_SUPPORT"]
+__all__ = ["StructuredGPVarianceObjective", "structured_objective", "cholesky_lower",
+           "MAX_SUPPORT"]
 
 MAX_SUPPORT = 600
-"""The most cells :func:`sparse_relaxation` keeps weight on between Frank-Wolfe steps (the
+"""The most cells the Frank-Wolfe of a structured objective keeps weight on between steps (the
 largest weights; a gradient costs ``O(|S|^2 N)`` for ``N`` candidates)."""
 
 _BLOCK = 1 << 22  # entries of one (support x candidates) block (32 MB)
+
+
+def cholesky_lower(M: np.ndarray, what: str) -> np.ndarray:
+    """The lower Cholesky factor of the symmetrised ``M``; a one-line PlanningError naming
+    ``what`` when it is not positive definite."""
+    try:
+        return cholesky(0.5 * (M + M.T), lower=True)
+    except np.linalg.LinAlgError:
+        raise PlanningError(f"{what} is not positive definite: the variance bound cannot be "
+                            "evaluated") from None
 
 
 class StructuredGPVarianceObjective:
@@ -44,6 +53,7 @@ class StructuredGPVarianceObjective:
     candidates ``O(|S|^2 N)`` in blocks of candidates."""
 
     sparse = True
+    max_support = MAX_SUPPORT
 
     def __init__(self, oracle: Any, cells: np.ndarray, start: Any = None) -> None:
         self.cells = np.asarray(cells, dtype=np.int64)
@@ -62,9 +72,7 @@ class StructuredGPVarianceObjective:
         gam = np.sqrt(w[keep] / self.noise)
         K, G = self._oracle.covariance_blocks(S, S)
         B = np.eye(S.size) + gam[:, None] * (0.5 * (K + K.T)) * gam[None, :]
-        from .varbound import _cholesky
-
-        LB = _cholesky(B, "I + Gamma K Gamma")
+        LB = cholesky_lower(B, "I + Gamma K Gamma")
         M = solve_triangular(LB, gam[:, None] * (0.5 * (G + G.T)) * gam[None, :], lower=True)
         M = solve_triangular(LB, M.T, lower=True)
         return S, gam, LB, 0.5 * (M + M.T)
@@ -121,54 +129,3 @@ def structured_objective(Y: np.ndarray, cells: np.ndarray, terms: dict[str, Any]
         gp_structured.GRID_TERMS.clear()
         gp_structured.GRID_TERMS.update(kept)
     return StructuredGPVarianceObjective(oracle, cells, start)
-
-
-def sparse_relaxation(obj: StructuredGPVarianceObjective, pos: np.ndarray, poly: Polytope, *,
-                      iters: int = 60, tol: float = 1e-3, max_support: int = MAX_SUPPORT,
-                      **_: Any) -> Any:
-    """Certified upper bound on ``max F(w)`` over ``poly`` with small supports: Frank-Wolfe
-    from the start design's indicator (projected into the polytope; the prior gains' vertex
-    without one), parabolic line search, the largest ``max_support`` weights kept after each
-    step. Every iterate's (FW) is a bound (valid at any ``w >= 0``); the smallest is kept."""
-    from .varbound import VarianceBound, _fw_bound, _support
-
-    t0 = time.perf_counter()
-    pos = np.asarray(pos, dtype=np.int64)
-    if pos.size == 0:
-        return VarianceBound(0.0, 0.0, 0.0, {}, 0, 0, 0.0, "none", "empty")
-    ind = np.isin(obj.cells[pos], obj.start).astype(np.float64)
-    if ind.any():
-        w = poly.project(ind)
-    else:
-        w = _support(poly, obj.value_grad(pos, np.zeros(pos.size), pos)[1])[1]
-    best_val, best_primal, best_w = math.inf, -math.inf, w
-    steps = 0
-    for _ in range(iters):
-        steps += 1
-        val, F, g, v = _fw_bound(obj, pos, poly, w)
-        best_val = min(best_val, val)
-        if F > best_primal:
-            best_primal, best_w = F, w
-        if best_val - best_primal <= tol * max(abs(best_val), 1e-300):
-            break
-        d = v - w
-        slope = float(g @ d)
-        if not slope > 0:
-            break
-        gam = 1.0
-        for _ in range(4):  # parabola through F(0), F'(0), F(gam); concave: curvature >= 0
-            Fg = obj.value(pos, w + gam * d)
-            curv = (F + slope * gam - Fg) / gam ** 2
-            step = gam if curv <= 0 else min(gam, slope / (2.0 * curv))
-            if step >= gam * 0.999:
-                break
-            gam = step
-        w = np.maximum(w + gam * d, 0.0)
-        nz = np.flatnonzero(w)
-        if nz.size > max_support:  # keep the largest weights (any w >= 0 gives a bound)
-            w[nz[np.argsort(w[nz])[:nz.size - max_support]]] = 0.0
-    weights = {int(obj.cells[p]): float(x) for p, x in zip(pos, best_w, strict=True) if x > 0}
-    gap = max(best_val - best_primal, 0.0)
-    status = "optimal" if gap <= tol * max(abs(best_val), 1e-300) else "inexact"
-    return VarianceBound(float(best_val), float(best_primal), float(gap), weights, int(pos.size),
-                         steps, time.perf_counter() - t0, "Frank-Wolfe (structured)", status)
