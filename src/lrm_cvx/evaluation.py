@@ -710,7 +710,7 @@ def evaluate(
     method's plans (``"greedy:gp-variance"``) get the certificate of their own criterion the
     same way: ``recommended_bound`` and ``recommended_value`` ``(budget, start)`` (variance
     removed, the data's units squared; NaN, with a warning, where a plan may observe more
-    cells than :data:`~lrm_cvx.planning.varbound.DENSE_MAX`).
+    cells than :data:`~lrm_cvx.planning.varbound.DENSE_MAX` and the residual's metric is km).
 
     The test snapshots are the last ``n_test`` *times*: data whose ``time`` coordinate is not
     sorted is sorted first (with a UserWarning); missing (NaT/NaN) or duplicated times raise
