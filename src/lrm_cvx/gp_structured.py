@@ -311,19 +311,25 @@ class StructuredGPVarianceOracle:
         ``rows`` and ``cols`` (of its sorted cells): the prior covariance
         ``K(i, j) = y_i^T S0 y_j + k(i, j)`` and ``G(i, j) = sum_t c_t K(t, i) K(t, j)`` over
         the targets, ``G = p_i^T (W p_j + u(j)) + u(i)^T p_j + g(i, j)`` with ``p = S0 y``, from
-        the set-up's sums (the lag table, or one convolution per row). No matrix over all
-        cells is formed: ``O(|rows| |cols|)`` memory."""
+        the set-up's sums (the lag table, or one convolution per row); ``k`` is gathered from
+        the kernel's table. No matrix over all cells is formed: ``O(|rows| |cols|)`` memory."""
         rows = np.asarray(rows, dtype=np.int64)
         cols = np.asarray(cols, dtype=np.int64)
         pr, pc = self._S0 @ self._YX[:, rows], self._S0 @ self._YX[:, cols]
-        gr, gc = self._gX[rows], self._gX[cols]
+        oi = self._oidx
+
+        def lags(table: np.ndarray, o0: int, o1: int) -> np.ndarray:
+            # table[x - p + (o0, o1)] for every (p, x) of rows x cols, by flat offsets
+            w = table.shape[1]
+            flat_c = oi[0][cols] * w + oi[1][cols]
+            flat_r = oi[0][rows] * w + oi[1][rows] - (o0 * w + o1)
+            return np.take(table, flat_c[None, :] - flat_r[:, None])
+
         K = pr.T @ self._YX[:, cols]
-        K += self.cov.lattice(gc[None, :, 0] - gr[:, None, 0], gc[None, :, 1] - gr[:, None, 1])
+        K += lags(self._kernel_table(), self._wg[2] - 1, self._wg[3] - 1)
         if self._k2 is not None:
             tab, o0, o1, c0 = self._k2
-            oi = self._oidx
-            g = c0 * tab[oi[0][cols][None, :] - oi[0][rows][:, None] + o0,
-                         oi[1][cols][None, :] - oi[1][rows][:, None] + o1]
+            g = c0 * lags(tab, o0, o1)
         else:
             g = np.empty((rows.size, cols.size))
             for r, j in enumerate(rows):
