@@ -8,7 +8,7 @@ supported on a small set ``S``, with ``K`` and ``G`` between ``S`` and blocks of
 taken from the structured gp-variance oracle's set-up (the low-rank trend's ``k x k`` sums over
 the targets, the residual's lag table or one convolution per cell of ``S``);
 :func:`~lrm_cvx.planning.varbound.variance_relaxation` runs its Frank-Wolfe from the plan
-with the support kept at most :data:`MAX_SUPPORT` cells. The bound (FW) of
+while the support holds at most :data:`MAX_SUPPORT` cells. The bound (FW) of
 docs/certificate.md §13 holds at any ``w >= 0``, so the support's size costs tightness, never
 validity.
 """
@@ -26,8 +26,9 @@ __all__ = ["StructuredGPVarianceObjective", "structured_objective", "cholesky_lo
            "MAX_SUPPORT"]
 
 MAX_SUPPORT = 600
-"""The most cells the Frank-Wolfe of a structured objective keeps weight on between steps (the
-largest weights; a gradient costs ``O(|S|^2 N)`` for ``N`` candidates)."""
+"""The most cells of weight a Frank-Wolfe iterate of a structured objective may have: it stops
+before a larger one (a gradient costs ``O(|S|^2 N)`` for ``N`` candidates; the smallest bound
+so far is kept)."""
 
 _BLOCK = 1 << 22  # entries of one (support x candidates) block (32 MB)
 
