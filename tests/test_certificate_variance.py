@@ -331,6 +331,10 @@ def test_structured_bound_is_the_dense_bound_and_covers_every_route(monkeypatch)
     b = variance_relaxation(fast, cells, poly, iters=5, tol=1e-9)
     assert b.solver == "Frank-Wolfe (structured)"
     assert b.value >= exact.primal - 1e-9 and b.primal <= exact.value + 1e-9
+    fast.max_support = 4  # it stops before an iterate of more cells: still a bound
+    small = variance_relaxation(fast, cells, poly, iters=10, tol=1e-9)
+    assert small.iterations < b.iterations and len(small.weights) <= 4
+    assert small.value >= exact.primal - 1e-9 and small.value >= b.value - 1e-9
     # the certificate through the structured objective is above every route of the 5x5 grid
     monkeypatch.setattr(varbound, "DENSE_MAX", 0)
     plan = plan_greedy(Y, REGION, START, 2.5, criterion="gp-variance", initial="start",
