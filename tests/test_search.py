@@ -81,12 +81,19 @@ def test_rank_auto_is_pinned(name, choice, rank):
     ("planted", (0.1036559143623305, 0.1076903655844934, 0.11063380839306351,
                  0.12318431676282623))])
 def test_select_rank_is_pinned(name, rmse):
+    """GLRM.select_rank returns the search's table over ``rank``: the held-out RMSEs pinned,
+    the MSE the rule scored, the lowest one chosen."""
     data = _planted() if name == "planted" else load_sample(name)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         got = GLRM(rank=3, random_state=0, progress=False).select_rank(data, [1, 2, 3, 5])
-    assert got.index.tolist() == [1, 2, 3, 5]
-    assert got.tolist() == list(rmse)
+    assert got["rank"].values.tolist() == [1, 2, 3, 5]
+    assert got["rmse"].values.tolist() == list(rmse)
+    assert got.attrs["choice"] == [1, 2, 3, 5][int(np.argmin(rmse))]
+    assert set(got.data_vars) == {"mse", "ratio", "ucb", "admissible", "rmse"}
+    assert got["mse"].dims == got["ratio"].dims == ("rank", "size")
+    np.testing.assert_allclose(got["mse"].values[:, 0], np.square(rmse), rtol=1e-15)
+    assert got["ratio"].values[0, 0] == 1.0 and got["admissible"].values.all()
 
 
 def test_rolling_origin_windows_end_at_the_last_snapshot():
