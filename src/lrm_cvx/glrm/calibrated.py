@@ -1,7 +1,9 @@
-"""A model's calibration as it is stored and applied (the estimation is glrm/calibration.py).
+"""A model's calibration as it is stored and applied (the estimation is
+validation/calibration.py).
 
 :class:`Calibration` holds the variance scales (``calibration_`` on a model, NetCDF attributes
-``calibration_*``); :func:`variance_scale`, :func:`noise_variance`, :func:`predictive_std` and
+``calibration_*``, its choice's table variables ``calibration_selection_*``);
+:func:`variance_scale`, :func:`noise_variance`, :func:`predictive_std` and
 :func:`interval_coverage` are what every predictive variance and coverage reads. They sit below
 the posterior and the model, which read them, while the estimation refits models and runs the
 filter above them.

@@ -29,7 +29,8 @@ days and cells (``temporal_scale``). Measured on held-out campaigns the shared s
 better estimate (docs/monitoring.md).
 
 The result is :class:`Calibration`, stored on the model as ``calibration_`` and saved with its
-NetCDF file (attributes ``calibration_*``).
+NetCDF file (attributes ``calibration_*``; the table of the choice of the residual's factor and
+local power, ``Calibration.selection``, as variables ``calibration_selection_*``).
 """
 
 from __future__ import annotations
