@@ -94,9 +94,10 @@ def test_select_rank_in_data_units_matches_naive_holdout():
     for r in (1, 3):
         ref = quiet_fit(GLRM(rank=r, offset=True, **FAST), train)
         naive = np.sqrt(np.mean((ref.reconstruct().astype(np.float64) - test)[obs] ** 2))
-        assert out[r] == pytest.approx(naive, rel=1e-3)
-    assert out[3] < 1.0  # data units: not the mean (~50)
-    assert exact[3] < 1e-3  # the offset's observed means add one rank: rank 3 is exact
+        assert float(out["rmse"].sel(rank=r)) == pytest.approx(naive, rel=1e-3)
+    assert float(out["rmse"].sel(rank=3)) < 1.0  # data units: not the mean (~50)
+    # the offset's observed means add one rank: rank 3 is exact
+    assert float(exact["rmse"].sel(rank=3)) < 1e-3
 
 
 def test_reconstruct_dataarray_keeps_coords_and_units(field):

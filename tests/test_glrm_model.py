@@ -184,8 +184,11 @@ def test_score_holdout_and_select_rank():
     ref = np.mean(((m.X_.values.T @ m.Y_.values) - vals)[ok] ** 2)
     assert np.isclose(s, ref, rtol=1e-5)
     sel = GLRM(progress=False, max_iter=30, random_state=0).select_rank(da, [1, 2], seed=0)
-    assert list(sel.index) == [1, 2] and np.all(sel > 0)
-    assert sel[2] < sel[1]  # planted rank 2 beats rank 1
+    rmse = sel["rmse"].values
+    assert sel["rank"].values.tolist() == [1, 2] and np.all(rmse > 0)
+    assert rmse[1] < rmse[0]  # planted rank 2 beats rank 1
+    assert sel.attrs["choice"] == 2
+    np.testing.assert_allclose(rmse ** 2, sel["mse"].values[:, 0], rtol=1e-12)
 
 
 def test_save_load_round_trip(tmp_path):

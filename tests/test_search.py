@@ -81,12 +81,19 @@ def test_rank_auto_is_pinned(name, choice, rank):
     ("planted", (0.1036559143623305, 0.1076903655844934, 0.11063380839306351,
                  0.12318431676282623))])
 def test_select_rank_is_pinned(name, rmse):
+    """GLRM.select_rank returns the search's table over ``rank``: the held-out RMSEs pinned,
+    the MSE the rule scored, the lowest one chosen."""
     data = _planted() if name == "planted" else load_sample(name)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         got = GLRM(rank=3, random_state=0, progress=False).select_rank(data, [1, 2, 3, 5])
-    assert got.index.tolist() == [1, 2, 3, 5]
-    assert got.tolist() == list(rmse)
+    assert got["rank"].values.tolist() == [1, 2, 3, 5]
+    assert got["rmse"].values.tolist() == list(rmse)
+    assert got.attrs["choice"] == [1, 2, 3, 5][int(np.argmin(rmse))]
+    assert set(got.data_vars) == {"mse", "ratio", "ucb", "admissible", "rmse"}
+    assert got["mse"].dims == got["ratio"].dims == ("rank", "size")
+    np.testing.assert_allclose(got["mse"].values[:, 0], np.square(rmse), rtol=1e-15)
+    assert got["ratio"].values[0, 0] == 1.0 and got["admissible"].values.all()
 
 
 def test_rolling_origin_windows_end_at_the_last_snapshot():
@@ -252,3 +259,47 @@ def test_forward_blocks_refit_on_everything_before_each_later_block():
     folds = ForwardBlocks(4).split(10)  # blocks 0-2, 3-5, 6-7, 8-9: the last two held out
     assert [test.tolist() for _, test in folds] == [[6, 7], [8, 9]]
     assert [train.tolist() for train, _ in folds] == [list(range(6)), list(range(8))]
+
+
+@pytest.mark.parametrize(("name", "choice", "scale"), [
+    ("planted", "x1 power 0.75", 0.6944122421230459),
+    ("sst", "x4 power 0.75", 0.29391556924202805),
+    ("hgt500", "x1.41 power 0.5", 1.0737591833218065)])
+def test_calibration_choice_is_pinned_and_saved(name, choice, scale, tmp_path):
+    """calibrate's residual factor and local power are the search's choice (the highest
+    held-out log-likelihood): the choice and scale as the hand loop made them, the table
+    pinned, saved with the model and read back identically."""
+    from lrm_cvx.validation.calibration import calibrate
+
+    data = _planted() if name == "planted" else load_sample(name)
+    model = _fit(data, rank=3 if name == "planted" else 5, offset=True,
+                 spatial="exponential")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = calibrate(model, data, n_blocks=2, sizes=(5, 15), kinds=("route", "scattered"),
+                        max_snapshots=1, max_cells=60, adaptive=False)
+    table = cal.selection
+    assert table.attrs["choice"] == choice and cal.scale == scale
+    assert (float(table["residual_scale"].sel(candidate=choice)),
+            float(table["local_power"].sel(candidate=choice))) == (cal.residual_scale,
+                                                                   cal.local_power)
+    assert float(table["scale"].sel(candidate=choice)) == cal.scale
+    ll = table["mse"].values[:, 0]
+    assert table.sizes == {"candidate": 45, "size": 1} and ll.argmax() == list(
+        table["candidate"].values).index(choice)
+    np.testing.assert_allclose(table["ratio"].values[:, 0], np.exp(ll - ll[0]), rtol=1e-12)
+    xr.testing.assert_identical(table, _pin(f"{name}_calibration"))
+    model.save(tmp_path / "model.nc")
+    back = GLRM.load(tmp_path / "model.nc")
+    xr.testing.assert_identical(back.calibration_.selection, table)
+    assert back.calibration_.to_attrs().keys() == cal.to_attrs().keys()
+
+
+def test_best_on_log_likelihoods_takes_the_highest_and_the_first_of_equals():
+    """Log-likelihoods of either sign: the highest mean wins (a ratio to a negative reference
+    would reverse the order), the first of equal ones, never a NaN."""
+    E = np.array([[[-2.0]], [[0.5]], [[0.5]], [[np.nan]], [[-0.1]]])
+    with pytest.warns(RuntimeWarning, match="empty slice"):  # the NaN candidate's mean
+        d = Best(log_likelihood=True)(E)
+    assert d.choice == d.best == 1
+    np.testing.assert_allclose(d.ratio[:, 0], np.exp(E[:, 0, 0] + 2.0))

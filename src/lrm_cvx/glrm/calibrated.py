@@ -1,7 +1,9 @@
-"""A model's calibration as it is stored and applied (the estimation is glrm/calibration.py).
+"""A model's calibration as it is stored and applied (the estimation is
+validation/calibration.py).
 
 :class:`Calibration` holds the variance scales (``calibration_`` on a model, NetCDF attributes
-``calibration_*``); :func:`variance_scale`, :func:`noise_variance`, :func:`predictive_std` and
+``calibration_*``, its choice's table variables ``calibration_selection_*``);
+:func:`variance_scale`, :func:`noise_variance`, :func:`predictive_std` and
 :func:`interval_coverage` are what every predictive variance and coverage reads. They sit below
 the posterior and the model, which read them, while the estimation refits models and runs the
 filter above them.
@@ -10,7 +12,7 @@ filter above them.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -110,6 +112,9 @@ class Calibration:
     threshold interpolated in ``log n`` between those counts (:meth:`multiplier`): a
     standardized residual can shrink as the samples grow denser, so one pooled threshold
     over-covers at large budgets.
+    ``selection``: the table of the choice of ``residual_scale`` and ``local_power`` (the
+    one search's, :func:`~lrm_cvx.validation.search.selection_table`; None when not made
+    here), saved with the model file beside the other validated choices' tables.
     """
 
     scale: float = 1.0
@@ -136,6 +141,7 @@ class Calibration:
     size_quantiles: tuple = ()
     temporal_size_quantiles: tuple = ()
     size_samples: tuple = ()
+    selection: Any = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -246,9 +252,11 @@ class Calibration:
 
     def to_attrs(self) -> dict[str, Any]:
         """Flat NetCDF attributes ``calibration_*`` (None stored as NaN; the tuples as 1-D
-        arrays, left out when empty)."""
+        arrays, left out when empty). The ``selection`` table is not among them: the model
+        file stores it as variables (:func:`~lrm_cvx.glrm.modelfile.validation_tables`)."""
         out = {}
-        for key, value in asdict(self).items():
+        for key, value in ((f.name, getattr(self, f.name)) for f in fields(self)
+                           if f.name != "selection"):
             if key in _TUPLES:
                 if value:
                     out[_PREFIX + key] = np.asarray(value, dtype=np.float64)
@@ -258,12 +266,14 @@ class Calibration:
 
     @classmethod
     def from_attrs(cls, attrs: dict[str, Any]) -> Calibration | None:
-        """The calibration stored by :meth:`to_attrs`, or None when ``attrs`` hold none."""
+        """The calibration stored by :meth:`to_attrs`, or None when ``attrs`` hold none
+        (its ``selection`` None: :func:`~lrm_cvx.glrm.modelfile.restore_validation_tables`
+        sets it from the model file)."""
         if _PREFIX + "scale" not in attrs:
             return None
         kw: dict[str, Any] = {}
         for key in cls.__dataclass_fields__:
-            if _PREFIX + key in attrs:
+            if key != "selection" and _PREFIX + key in attrs:
                 v = attrs[_PREFIX + key]
                 if key in ("temporal_scale", "dof"):
                     v = None if not np.isfinite(float(v)) else float(v)

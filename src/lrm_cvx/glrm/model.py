@@ -13,7 +13,6 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-import pandas as pd
 import xarray as xr
 
 from .._validation import as_generator, atomic_output, check_positive
@@ -726,9 +725,14 @@ class GLRM:
         return train_v, test_v
 
     def select_rank(self, data: Any, ranks: Any, fraction: float = 0.1,
-                    seed: Any = 0) -> pd.Series:
-        """Held-out RMSE for each rank: fit a copy of this model on a training split of the
-        observed entries and score it on the rest. Returns a Series indexed by rank."""
+                    seed: Any = 0) -> xr.Dataset:
+        """Held-out error for each rank: fit a copy of this model on a training split of the
+        observed entries (``fraction`` held out, ``seed``) and score it on the rest.
+
+        Returns the table of every validated choice
+        (:func:`~lrm_cvx.validation.search.selection_table`) over ``rank``: ``mse`` and
+        ``rmse`` (held out, data units), ``ratio`` (to the first rank), the rank of the lowest
+        error in ``attrs["choice"]`` (:func:`~lrm_cvx.validation.choices.select_rank`)."""
         return HOOKS.get("select-rank")(self, data, ranks, fraction, seed)
 
     # ------------------------------------------------------------------ persistence

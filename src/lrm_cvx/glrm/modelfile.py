@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import xarray as xr
@@ -39,12 +40,24 @@ _TABLES = (  # (attribute, file prefix, its variables and coords, int attrs, flo
     ("dynamics_selection_", "dynamics_selection_",
      ("mse", "ratio", "ucb", "admissible", "total", "candidate", "size", "alpha"),
      ("n_days",), ("choice_alpha", "confidence", "tolerance")),
+    ("calibration_.selection", "calibration_selection_",
+     ("mse", "ratio", "ucb", "admissible", "candidate", "size", "residual_scale",
+      "local_power", "scale"),
+     ("n_residuals",), ()),
 )
 """The validated choices' tables a model file carries, each made by
 :func:`~lrm_cvx.validation.search.selection_table`: ``temporal="auto"``'s (and
 ``rank="auto"``'s) ``selection_`` (validation/selection.py), ``spatial="auto"``'s
-``kernel_selection_`` (validation/kernel_selection.py) and ``select_dynamics``'
-``dynamics_selection_`` (validation/blending.py)."""
+``kernel_selection_`` (validation/kernel_selection.py), ``select_dynamics``'
+``dynamics_selection_`` (validation/blending.py) and the calibration's choice,
+``calibration_.selection`` (validation/calibration.py)."""
+
+
+def _table_of(model: object, attr: str) -> xr.Dataset | None:
+    """The table at ``attr`` of ``model`` (``"a.b"``: attribute ``b`` of its ``a``), or None."""
+    for name in attr.split("."):
+        model = getattr(model, name, None)
+    return model
 
 
 def validation_tables(model: object) -> list[xr.Dataset]:
@@ -52,7 +65,7 @@ def validation_tables(model: object) -> list[xr.Dataset]:
     and attributes prefixed, :data:`_TABLES`)."""
     out = []
     for attr, prefix, *_ in _TABLES:
-        table = getattr(model, attr, None)
+        table = _table_of(model, attr)
         if table is not None:
             renamed = table.rename({v: prefix + str(v)
                                     for v in [*table.data_vars, *table.coords]})
@@ -63,7 +76,8 @@ def validation_tables(model: object) -> list[xr.Dataset]:
 
 def restore_validation_tables(model: object, ds: xr.Dataset) -> None:
     """Set each table of :data:`_TABLES` on ``model`` from its file ``ds`` (None when
-    absent), with its attributes' types restored."""
+    absent), with its attributes' types restored; the calibration's on ``model.calibration_``
+    (read before)."""
     for attr, prefix, variables, ints, floats in _TABLES:
         table = None
         if prefix + "mse" in ds:
@@ -81,7 +95,12 @@ def restore_validation_tables(model: object, ds: xr.Dataset) -> None:
             table.attrs.update({k: float(table.attrs[k]) for k in floats  # older files
                                 if k in table.attrs})
             table = table.load()
-        setattr(model, attr, table)
+        if "." not in attr:
+            setattr(model, attr, table)
+            continue
+        owner, name = attr.split(".")
+        if getattr(model, owner, None) is not None:  # a frozen record: replaced
+            setattr(model, owner, replace(getattr(model, owner), **{name: table}))
 
 
 def params_to_json(params: dict) -> tuple[str, list[str]]:

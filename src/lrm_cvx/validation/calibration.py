@@ -29,7 +29,8 @@ days and cells (``temporal_scale``). Measured on held-out campaigns the shared s
 better estimate (docs/monitoring.md).
 
 The result is :class:`Calibration`, stored on the model as ``calibration_`` and saved with its
-NetCDF file (attributes ``calibration_*``).
+NetCDF file (attributes ``calibration_*``; the table of the choice of the residual's factor and
+local power, ``Calibration.selection``, as variables ``calibration_selection_*``).
 """
 
 from __future__ import annotations
@@ -55,7 +56,14 @@ from ..glrm.calibrated import (
 from .blending import blend_dynamics, dynamics_alpha, memoryless_cov
 from .designs import ALL_KINDS, SET_KINDS
 from .refits import clone_model, refit_carries, training_values, validation_view
-from .search import ForwardBlocks, HeldOutCells, InterleavedBlocks
+from .search import (
+    Best,
+    ForwardBlocks,
+    HeldOutCells,
+    InterleavedBlocks,
+    search,
+    selection_table,
+)
 
 __all__ = ["calibrate", "cv_residuals", "CVResiduals", "Residual", "fit_scale", "Z68", "Z95",
            "fit_adaptive_scale", "DOF_GRID", "DISCOUNT_GRID", "LOCAL_POWERS", "conformal_scores",
@@ -502,6 +510,25 @@ def _size_quantiles(records: Sequence[tuple], scores: np.ndarray, sizes: Sequenc
     return {"size_quantiles": tuple(out.ravel()), "size_samples": tuple(n_mean)}
 
 
+def _choice_table(decision: Any, labels: list[str], candidates: dict[str, tuple],
+                  fits: dict[str, tuple], n_residuals: int) -> Any:
+    """The table of :func:`calibrate`'s choice (``Calibration.selection``): the search's
+    over ``candidate`` (coordinates ``residual_scale`` and ``local_power``) and one size (0:
+    every design size pooled), the mean log-likelihood in ``mse``, the likelihood ratio to
+    the first candidate per residual in ``ratio`` and each candidate's fitted ``scale``."""
+    ds = selection_table(
+        decision, labels, [0],
+        what="mean Gaussian log-likelihood of the held-out residuals (data units; higher is "
+             "better)",
+        coords={"residual_scale": ("candidate", [float(candidates[lab][0]) for lab in labels]),
+                "local_power": ("candidate", [float(candidates[lab][1]) for lab in labels])},
+        data_vars={"scale": (("candidate",), [float(fits[lab][0]) for lab in labels])},
+        n_residuals=int(n_residuals))
+    ds["ratio"].attrs["long_name"] = f"likelihood ratio to {labels[0]!r} per residual"
+    ds["scale"].attrs["long_name"] = "the variance scale fitted to the candidate's residuals"
+    return ds
+
+
 def calibrate_with(model: Any, data: Any, calibration: Any) -> Calibration:
     """:func:`calibrate` as ``GLRM(calibration=...)`` asks (``calibration``: a method name or a
     dict of its keywords; the seed is the model's ``random_state``)."""
@@ -587,6 +614,10 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     whose residual varies more get wider intervals and calm cells narrower ones (locally
     weighted conformal prediction, Lei et al. 2018). The maps, plans and the pooled coverage
     stay as they were; what changes is which cells the intervals cover (docs/monitoring.md).
+    The factor and the power are chosen by the one search
+    (:func:`~lrm_cvx.validation.search.search`: one split, the pooled fold-ins; the
+    :class:`~lrm_cvx.validation.search.Best` log-likelihood); its table is
+    ``Calibration.selection`` (saved with the model file).
 
     The filter (``MonitorState``) uses the same scale by default: measured on held-out
     campaigns (docs/monitoring.md) that calibrates it as well as the memoryless fold-in, while a
@@ -630,22 +661,33 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
     by_rho = {rho: residuals.select(rho) for rho in residuals.rhos}
     powers = LOCAL_POWERS if local and getattr(model, "residual_spread_", None) is not None \
         else (0.0,)
-    best = None
-    for rho, raw_records in by_rho.items():
-        for power in powers:
-            records = _powered(raw_records, power)
-            zr = np.concatenate([r[0] for r in records])
+    # the residual's factor jointly with the local power: a specification of the one search
+    # (one split, the pooled cross-validated fold-ins; the highest log-likelihood wins)
+    candidates = {f"x{rho:g} power {power:g}": (rho, power) for rho in by_rho
+                  for power in powers}
+    fits: dict[str, tuple] = {}
+
+    def loglik(split: CVResiduals) -> dict[str, np.ndarray]:
+        """The mean log-likelihood ``(1, 1)`` of each candidate's scaled residuals (its
+        scale fitted to them, kept in ``fits``)."""
+        out = {}
+        for label, (rho, power) in candidates.items():
+            records = _powered(split.select(rho), power)
             if adaptive:
                 # conformal: no evidence carried between snapshots (discount 0), so the scores
                 # are standardized exactly as a memoryless fold-in's predictive std
-                fit = fit_adaptive_scale(records, discounts=(0.0,) if conformal_fit else
-                                         DISCOUNT_GRID)
+                fits[label] = fit_adaptive_scale(records, discounts=(0.0,) if conformal_fit
+                                                 else DISCOUNT_GRID)
             else:
-                fit = (fit_scale(zr), None, 0.0, 0.0)
-            ll = _loglik(records, *fit[:3])
-            if best is None or ll > best[0]:
-                best = (ll, rho, power, fit)
-    _, rho, power, (scale, dof, discount, gain) = best
+                fits[label] = (fit_scale(np.concatenate([r[0] for r in records])), None, 0.0,
+                               0.0)
+            out[label] = np.array([[_loglik(records, *fits[label][:3])]])
+        return out
+
+    labels, _, decision = search(loglik, [residuals], Best(log_likelihood=True))
+    chosen_label = labels[decision.choice]
+    rho, power = candidates[chosen_label]
+    scale, dof, discount, gain = fits[chosen_label]
     conformal: dict[str, Any] = {}
     if method == "conformal":
         chosen = _powered(by_rho[rho], power)
@@ -701,6 +743,7 @@ def calibrate(model: Any, data: Any, *, n_blocks: int | None = None,
                       sizes=",".join(str(int(s)) for s in sizes), dof=dof,
                       discount=float(discount), dof_loglik_gain=float(gain),
                       residual_scale=float(rho), local_power=float(power), **conformal,
-                      **t_conformal)
+                      **t_conformal, selection=_choice_table(decision, labels, candidates,
+                                                             fits, int(z.size)))
     model.calibration_ = cal
     return cal

@@ -11,7 +11,6 @@ import warnings
 from typing import Any
 
 import numpy as np
-import pandas as pd
 import xarray as xr
 
 from .._validation import check_ranks
@@ -20,7 +19,7 @@ from ..glrm.dynamics import temporal_value
 from ..region import Region
 from . import refits
 from .calibration import calibrate_with
-from .search import Best, search
+from .search import Best, search, selection_table
 from .selection import (
     AUTO_INFLATIONS,
     AUTO_RANKS,
@@ -96,12 +95,17 @@ def validate_choices(model: Any, data: Any, stacked: np.ndarray | None = None,
 
 
 def select_rank(model: Any, data: Any, ranks: Any, fraction: float = 0.1,
-                seed: Any = 0) -> pd.Series:
-    """:meth:`GLRM.select_rank <lrm_cvx.glrm.model.GLRM.select_rank>`: the held-out RMSE of each
-    rank, from copies of ``model`` fitted on a random training split of the observed entries
-    (``fraction`` held out, ``seed``) and scored on the rest, through the one search
-    (:func:`~.search.search`, one split, the :class:`~.search.Best` rule). Returns a Series
-    indexed by rank."""
+                seed: Any = 0) -> xr.Dataset:
+    """:meth:`GLRM.select_rank <lrm_cvx.glrm.model.GLRM.select_rank>`: the held-out error of
+    each rank, from copies of ``model`` fitted on a random training split of the observed
+    entries (``fraction`` held out, ``seed``) and scored on the rest, through the one search
+    (:func:`~.search.search`, one split, the :class:`~.search.Best` rule).
+
+    Returns the table of every validated choice (:func:`~.search.selection_table`) over
+    ``rank`` (the reference, for ``ratio``, is the first rank) and one ``size`` (0: not scored
+    per sample size): ``mse`` (the held-out MSE in data units), ``ratio``, ``ucb`` (NaN: no
+    guard), ``admissible`` and ``rmse`` (its square root); ``attrs["choice"]`` is the rank of
+    the lowest held-out error, ``attrs["fraction"]`` the share held out."""
     ranks = check_ranks(ranks)
     if isinstance(data, xr.DataArray) and data.ndim == 3:
         region = Region.from_dataarray(data)
@@ -121,6 +125,11 @@ def select_rank(model: Any, data: Any, ranks: Any, fraction: float = 0.1,
             out[int(r)] = np.array([[fit.score(split[2])]])
         return out
 
-    labels, E, _ = search(mse_by_rank, [(train, mask, test)], Best())
-    return pd.Series({r: float(np.sqrt(e[0, 0])) for r, e in zip(labels, E, strict=True)},
-                     name="holdout_rmse").rename_axis("rank")
+    labels, E, decision = search(mse_by_rank, [(train, mask, test)], Best())
+    table = selection_table(
+        decision, labels, [0], dim="rank", reference=f"rank {labels[0]}",
+        what="held-out MSE (data units)",
+        data_vars={"rmse": (("rank",), [float(np.sqrt(e[0, 0])) for e in E])},
+        fraction=float(fraction))
+    table["rmse"].attrs["long_name"] = "held-out RMSE (data units)"
+    return table

@@ -19,7 +19,8 @@ snapshots of data minus the low-rank reconstruction), the way campaigns use the 
   family (paired);
 * the score is the MSE of the kriged residual at (at most :data:`~lrm_cvx.validation.selection.
   MAX_SCORED` random) held-out observed cells: the part of the map the kernel decides;
-* rule (the paired guard of the one search, :class:`~lrm_cvx.validation.search.
+* rule (the paired guard of the one search, :func:`~lrm_cvx.validation.search.search` on
+  one split, the residual snapshots, with :class:`~lrm_cvx.validation.search.
   FamilyVariants` and :class:`~lrm_cvx.validation.search.PairedGuard`): a
   family is admissible when the upper confidence bound of its MSE change against the
   exponential (the recommended default) is at most ``-MIN_GAIN`` (2 %) at every size; the
@@ -41,7 +42,7 @@ import xarray as xr
 
 from .._validation import as_generator
 from ..errors import DataError
-from .search import FamilyVariants, HeldOutCells, PairedGuard, selection_table
+from .search import FamilyVariants, HeldOutCells, PairedGuard, search, selection_table
 
 __all__ = ["select_kernel", "AUTO_KERNELS", "DEFAULT_KERNEL", "MIN_GAIN", "MIN_ANISOTROPY",
            "format_kernel_selection"]
@@ -133,11 +134,18 @@ def select_kernel(sample: Any, region: Any, *, kernels: Sequence[str] = AUTO_KER
                                                     min_nugget="cell", anisotropy=a))
                 labels.append(f"{k} x{a:.3g}")
                 variants[i] = len(covs) - 1
-    E = _kriging_errors(covs, R, region, sizes, designs, as_generator(seed), MAX_SCORED)
-    # the anisotropy is a fitted parameter of its family (as the range is): the family
-    # competes with it unless the validation finds it worse, with confidence, at some size
-    decision = FamilyVariants(PairedGuard(confidence, tolerance, "spatial='auto'"),
-                              variants)(E)
+    rng = as_generator(seed)
+
+    def kriging_errors(rows: np.ndarray) -> dict[str, np.ndarray]:
+        """The kriging MSE ``(n_sizes, n_rows * n_designs)`` of each fit on one split."""
+        return dict(zip(labels, _kriging_errors(covs, rows, region, sizes, designs, rng,
+                                                MAX_SCORED), strict=True))
+
+    # one split (the residual snapshots); the anisotropy is a fitted parameter of its family
+    # (as the range is): the family competes with it unless the validation finds it worse,
+    # with confidence, at some size
+    _, _, decision = search(kriging_errors, [R], FamilyVariants(
+        PairedGuard(confidence, tolerance, "spatial='auto'"), variants))
     ds = selection_table(
         decision, labels, sizes, dim="kernel", reference=f"the {DEFAULT_KERNEL} family (as it "
         "competes)", what="mean MSE of the kriged residual at held-out cells",

@@ -12,7 +12,8 @@ estimator with one loop:
   leaves, scored on at most ``max_scored`` of them), each with a ``split(...)`` method;
 * **a scorer**: a callable that scores every candidate on one split, on the same sample cells
   (paired), returning errors ``(n_sizes, n_cases)`` per label (day-map MSE, kriging MSE, ...);
-* **a rule** (:class:`Best`: the lowest mean error; :class:`PairedGuard`: the lowest worst
+* **a rule** (:class:`Best`: the lowest mean error, or the highest log-likelihood;
+  :class:`PairedGuard`: the lowest worst
   ratio among candidates whose paired bootstrap bound against the reference (candidate 0) is
   at most ``tolerance``;
   :class:`OneStandardError`: then the most cautious candidate within one standard error of
@@ -244,13 +245,29 @@ def paired_choice(E: np.ndarray, confidence: float, tolerance: float,
 @dataclass(frozen=True)
 class Best:
     """The candidate with the lowest worst ratio (over the sizes) of its mean error to the
-    reference's; no guard (every candidate admissible, ``ucb`` NaN)."""
+    reference's; no guard (every candidate admissible, ``ucb`` NaN).
+
+    Parameters
+    ----------
+    log_likelihood : bool
+        The scores are log-likelihoods, higher is better (not errors): the best has the
+        highest worst mean (over the sizes; a NaN mean never wins, the first of equal ones
+        does) and ``ratio`` is the likelihood ratio to the reference per case,
+        ``exp(mean - reference's mean)``.
+    """
+
+    log_likelihood: bool = False
 
     def __call__(self, E: np.ndarray, labels: Sequence[str] = ()) -> Decision:
-        """The decision on errors ``E (n_candidates, n_sizes, n_cases)``."""
+        """The decision on errors (or log-likelihoods) ``E (n_candidates, n_sizes,
+        n_cases)``."""
         mse = np.nanmean(E, axis=-1)
-        ratio = mse / mse[0]
-        best = int(np.argmin(ratio.max(axis=1)))
+        if self.log_likelihood:
+            ratio = np.exp(mse - mse[0])
+            best = int(np.argmax(np.where(np.isnan(mse), -np.inf, mse).min(axis=1)))
+        else:
+            ratio = mse / mse[0]
+            best = int(np.argmin(ratio.max(axis=1)))
         return Decision(mse, ratio, np.full_like(mse, np.nan), np.ones(E.shape[0], bool),
                         best, best, int(np.isfinite(E).all(axis=(0, 1)).sum()))
 
@@ -459,7 +476,8 @@ def selection_table(decision: Decision, labels: Sequence[str], sizes: Sequence[i
     labels : sequence of str
         Candidate labels.
     sizes : sequence of int
-        Sample sizes.
+        Sample sizes (``[0]``: a choice not scored per sample size, as the calibration's and
+        ``GLRM.select_rank``'s).
     dim : str
         The candidates' dim.
     reference : str
