@@ -296,3 +296,45 @@ def test_the_forecast_error_is_the_morning_map_before_the_samples(model, test_da
     ok = np.isfinite(truth)
     assert np.isclose(ds["mse_forecast"].values[0], np.mean((mean - truth)[ok] ** 2))
     assert np.all(np.isfinite(ds["mse_forecast"].values))
+
+
+def _count_forecast_maps(monkeypatch):
+    """A list that grows by one at every map a latent belief predicts (``predict``)."""
+    from lrm_cvx.belief.posterior import LatentPosterior
+
+    calls = []
+    predict = LatentPosterior.predict
+
+    def counted(self, *args, **kwargs):
+        calls.append(1)
+        return predict(self, *args, **kwargs)
+
+    monkeypatch.setattr(LatentPosterior, "predict", counted)
+    return calls
+
+
+def test_a_campaign_without_the_forecast_score_skips_the_map_and_keeps_the_rest(
+        model, test_days, monkeypatch):
+    """``score_forecast=False`` builds no forecast map and drops ``mse_forecast``; every other
+    output (routes, maps' errors, coverage, information) is the same bit for bit."""
+    calls = _count_forecast_maps(monkeypatch)
+    full = simulate_campaign(model, test_days, (0.0, 200.0), 10.0, temporal="ar1")
+    assert len(calls) == N_DAYS  # the default scores the morning map of every day
+    calls.clear()
+    lean = simulate_campaign(model, test_days, (0.0, 200.0), 10.0, temporal="ar1",
+                             score_forecast=False)
+    assert not calls and "mse_forecast" not in lean
+    xr.testing.assert_identical(full.drop_vars("mse_forecast"), lean)
+    with pytest.raises(PlanningError, match="score_forecast must be True or False"):
+        simulate_campaign(model, test_days, (0.0, 200.0), 10.0, score_forecast="no")
+
+
+def test_evaluate_builds_no_forecast_map(sst, model, monkeypatch):
+    """``evaluate`` reads the campaign's posterior errors only: no day builds a forecast map."""
+    calls = _count_forecast_maps(monkeypatch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = evaluate(sst, model=model, n_test=N_DAYS, budgets=(9000.0,), n_starts=1,
+                       certify=False, progress=False, min_observations=1, temporal="ar1",
+                       methods=("greedy:fisher",))
+    assert np.isfinite(res["mse"]).all() and not calls

@@ -220,6 +220,7 @@ def simulate_campaign(
     criterion: str = "fisher",
     cost: str = "nearest-neighbor",
     ridge: float = 0.0,
+    score_forecast: bool = True,
 ) -> xr.Dataset:
     """Replay a campaign over the snapshots of ``test_data`` ``(time, lat, lon)``.
 
@@ -250,7 +251,9 @@ def simulate_campaign(
     (:func:`~lrm_cvx.replanning.replan`: what was observed so far is assimilated, the rest is
     planned with the budget left, the same end and path model and the plan's check against
     straight lines); greedy methods on the filter's belief only. ``spatial``: use the model's
-    spatial residual (None: when it has one).
+    spatial residual (None: when it has one). ``score_forecast``: build each day's forecast map
+    to score it (``mse_forecast``); False (what ``evaluate`` asks) skips that map and leaves
+    ``mse_forecast`` out of the result. It must be True or False.
 
     Each day: forecast, plan, observe the true snapshot at the plan's cells (cells it lacks
     give no observation), assimilate, predict. Returns a Dataset over ``time`` with ``mse``
@@ -268,6 +271,7 @@ def simulate_campaign(
     """
     request = PathOptions.from_kwargs(path, where="simulate_campaign")
     paper = check_flag(paper, "paper", error=PlanningError)
+    score_forecast = check_flag(score_forecast, "score_forecast", error=PlanningError)
     if method is None:
         residual = getattr(model, "spatial_cov_", None) is not None and spatial is not False
         method = "greedy" if paper else recommended_method(residual)
@@ -301,7 +305,7 @@ def simulate_campaign(
     T = V.shape[0]
     out = {name: np.full(T, np.nan) for name in (
         "mse", "mse_heldout", "mse_forecast", "coverage68", "coverage95", "information",
-        "logdet_cov", "route_cost")}
+        "logdet_cov", "route_cost") if score_forecast or name != "mse_forecast"}
     n_obs = np.zeros(T, dtype=np.int64)
     n_replans = np.zeros(T, dtype=np.int64)
     robot_cost = np.full((T, fleet.n_robots), np.nan)
@@ -313,7 +317,7 @@ def simulate_campaign(
             last = _plan_day(state, t, planner, fleet, request, rng, ridge, last)
             plan = last[0]
         information = float(getattr(plan, "information", np.nan))
-        forecast = state.belief(t).predict()[0]
+        forecast = state.belief(t).predict()[0] if score_forecast else None
         if every:
             flown, cells, n_replans[i] = _fly_replanning(state, plan, t, V[i], every,
                                                          planner.criterion)
@@ -336,7 +340,8 @@ def simulate_campaign(
         err = (mean - truth) ** 2
         if observed.any():
             out["mse"][i] = float(np.mean(err[observed]))
-            out["mse_forecast"][i] = float(np.mean((forecast - truth)[observed] ** 2))
+            if forecast is not None:
+                out["mse_forecast"][i] = float(np.mean((forecast - truth)[observed] ** 2))
         held = observed.copy()
         held[cells] = False
         if held.any():
@@ -374,7 +379,9 @@ def _dataset(out: dict, n_obs: np.ndarray, n_replans: np.ndarray, robot_cost: np
     ds["n_obs"] = ("time", n_obs)
     ds["routes"] = (("time", "stop"), _padded([r for r, _ in routes]))
     ds["routes"].attrs["long_name"] = "route cell indices, padded with -1"
-    ds["mse_forecast"].attrs["long_name"] = "MSE of the forecast map, before the day's samples"
+    if "mse_forecast" in ds:
+        ds["mse_forecast"].attrs["long_name"] = (
+            "MSE of the forecast map, before the day's samples")
     for level in ("68", "95"):
         ds[f"coverage{level}"].attrs["long_name"] = (
             f"fraction of held-out observed cells in the central {level} % predictive interval")

@@ -105,7 +105,8 @@ def _campaign_errors(model: Any, test: xr.DataArray, start: Any, budget: float, 
     from .campaign import simulate_campaign
 
     ds = simulate_campaign(model, test, start, budget, method=method, temporal=temporal,
-                           seed=seed, spatial=spatial, path=path, **options)
+                           seed=seed, spatial=spatial, path=path, score_forecast=False,
+                           **options)
     n = ds["n_obs"].values
     ok = n >= max(min_observations, 1)
     mse = np.where(ok, ds["mse"].values, np.nan)
