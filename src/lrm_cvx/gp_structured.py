@@ -19,10 +19,10 @@ import numpy as np
 from ._validation import array_digest, as_factor_matrix
 from .errors import PlanningError
 from .oracles import cells_array
-from .spatial.kriging import GridConv, check_gp_inputs, gp_noise, grid_rect
+from .spatial.kriging import GridConv, check_gp_inputs, gp_noise, gp_residual_cov, grid_rect
 
 __all__ = ["StructuredGPVarianceOracle", "GP_PICK_CACHE_BYTES", "LAG_TABLE_MAX_ENTRIES",
-           "GRID_TERMS"]
+           "GRID_TERMS", "kept_residual_cov"]
 
 
 class StructuredGPVarianceOracle:
@@ -432,11 +432,46 @@ class _GridTerms:
     subsets: dict[str, _PickCache] = field(default_factory=dict)
 
 
-GRID_TERMS: dict[tuple, _GridTerms] = {}
-"""The latest structured set-up's grid terms, by a digest of its factors, target weights,
-grid and cells and by its covariance: the plans of a campaign's days (the same model, start
-and budget; only the forecast's prior covariance changes) set up once and share the picks'
-convolutions, the same numbers as computing them again."""
+GRID_TERMS: dict[tuple, _GridTerms | np.ndarray] = {}
+"""The latest gp-variance set-up's terms that depend on the model and the cells only, by a
+digest of its inputs and by its covariance: a structured oracle's grid terms, or a dense
+oracle's residual covariance block (:func:`kept_residual_cov`). The plans of a campaign's
+days (the same model, start and budget; only the forecast's prior covariance changes) set up
+once and share the picks' convolutions, the same numbers as computing them again."""
+
+
+def kept_residual_cov(region: Any, spatial_cov: Any, rows: np.ndarray, cols: np.ndarray
+                      ) -> np.ndarray:
+    """:func:`~lrm_cvx.spatial.kriging.gp_residual_cov` of ``rows`` x ``cols``, kept in
+    :data:`GRID_TERMS` (by a digest of the cells' coordinates and by the covariance) for the
+    next set-up on the same cells: the dense gp-variance oracle's prior block without its
+    trend part, which does not depend on the day's belief. Read-only: copy it to update it.
+
+    Parameters
+    ----------
+    region : Region
+        The grid of the cells.
+    spatial_cov : ResidualCovariance
+        The GP residual's covariance.
+    rows, cols : numpy.ndarray
+        Cell indices of the block's rows and columns.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(|rows|, |cols|)`` float64, read-only (the same array on a repeated call).
+    """
+    a = spatial_cov.points(region, rows)
+    b = spatial_cov.points(region, cols)
+    key = ("residual", array_digest(a, b), spatial_cov.model, spatial_cov.sill, spatial_cov.range,
+           spatial_cov.anisotropy, spatial_cov.metric)
+    block = GRID_TERMS.get(key)
+    if block is None:
+        block = gp_residual_cov(region, spatial_cov, rows, cols)
+        block.flags.writeable = False
+        GRID_TERMS.clear()  # one set-up kept: the latest plan's
+        GRID_TERMS[key] = block
+    return block
 
 
 
