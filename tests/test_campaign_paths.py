@@ -335,6 +335,7 @@ def test_evaluate_builds_no_forecast_map(sst, model, monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = evaluate(sst, model=model, n_test=N_DAYS, budgets=(9000.0,), n_starts=1,
-                       certify=False, progress=False, min_observations=1, temporal="ar1",
+                       planning=PlanningOptions(certify=False), progress=False,
+                       scoring=ScoringOptions(min_observations=1), temporal="ar1",
                        methods=("greedy:fisher",))
     assert np.isfinite(res["mse"]).all() and not calls
