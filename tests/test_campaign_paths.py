@@ -6,6 +6,7 @@ requests fail with one line."""
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import warnings
 from types import SimpleNamespace
 
@@ -14,7 +15,7 @@ import pytest
 import xarray as xr
 
 from lrm_cvx import GLRM, load_sample, plan_greedy
-from lrm_cvx.campaign import simulate_campaign
+from lrm_cvx.campaign import _simulate_campaign, posterior_campaign, simulate_campaign
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate, path_label
 from lrm_cvx.monitor import MonitorState
@@ -315,18 +316,25 @@ def _count_forecast_maps(monkeypatch):
 
 def test_a_campaign_without_the_forecast_score_skips_the_map_and_keeps_the_rest(
         model, test_days, monkeypatch):
-    """``score_forecast=False`` builds no forecast map and drops ``mse_forecast``; every other
+    """``posterior_campaign`` builds no forecast map and drops ``mse_forecast``; every other
     output (routes, maps' errors, coverage, information) is the same bit for bit."""
     calls = _count_forecast_maps(monkeypatch)
     full = simulate_campaign(model, test_days, (0.0, 200.0), 10.0, temporal="ar1")
     assert len(calls) == N_DAYS  # the default scores the morning map of every day
     calls.clear()
-    lean = simulate_campaign(model, test_days, (0.0, 200.0), 10.0, temporal="ar1",
-                             score_forecast=False)
+    lean = posterior_campaign(model, test_days, (0.0, 200.0), 10.0, temporal="ar1")
     assert not calls and "mse_forecast" not in lean
     xr.testing.assert_identical(full.drop_vars("mse_forecast"), lean)
-    with pytest.raises(PlanningError, match="score_forecast must be True or False"):
-        simulate_campaign(model, test_days, (0.0, 200.0), 10.0, score_forecast="no")
+
+
+def test_the_campaign_body_takes_the_public_settings_and_defaults():
+    """``simulate_campaign`` forwards to one body: the same settings, names and defaults, plus
+    ``score_forecast`` (which only ``posterior_campaign`` turns off)."""
+    public = inspect.signature(simulate_campaign).parameters
+    body = dict(inspect.signature(_simulate_campaign).parameters)
+    assert body.pop("score_forecast").default is True
+    assert [(p.name, p.kind, p.default) for p in body.values()] == [
+        (p.name, p.kind, p.default) for p in public.values()]
 
 
 def test_evaluate_builds_no_forecast_map(sst, model, monkeypatch):

@@ -38,7 +38,8 @@ from .planning.sensors import observed_cells, plan_observations
 from .planning.terms import PriorTerms
 from .recommended import RECOMMENDED
 
-__all__ = ["simulate_campaign", "method_request", "path_attrs", "CAMPAIGN_OPTIONS"]
+__all__ = ["simulate_campaign", "posterior_campaign", "method_request", "path_attrs",
+           "CAMPAIGN_OPTIONS"]
 
 CAMPAIGN_OPTIONS = ("cost", "ridge", "criterion")
 """The planner options of :func:`simulate_campaign` (besides the path)."""
@@ -220,7 +221,6 @@ def simulate_campaign(
     criterion: str = "fisher",
     cost: str = "nearest-neighbor",
     ridge: float = 0.0,
-    score_forecast: bool = True,
 ) -> xr.Dataset:
     """Replay a campaign over the snapshots of ``test_data`` ``(time, lat, lon)``.
 
@@ -251,9 +251,7 @@ def simulate_campaign(
     (:func:`~lrm_cvx.replanning.replan`: what was observed so far is assimilated, the rest is
     planned with the budget left, the same end and path model and the plan's check against
     straight lines); greedy methods on the filter's belief only. ``spatial``: use the model's
-    spatial residual (None: when it has one). ``score_forecast``: build each day's forecast map
-    to score it (``mse_forecast``); False (what ``evaluate`` asks) skips that map and leaves
-    ``mse_forecast`` out of the result. It must be True or False.
+    spatial residual (None: when it has one).
 
     Each day: forecast, plan, observe the true snapshot at the plan's cells (cells it lacks
     give no observation), assimilate, predict. Returns a Dataset over ``time`` with ``mse``
@@ -269,9 +267,57 @@ def simulate_campaign(
     robot)``, with ``replan_every`` ``n_replans``. The attrs record the method, the budget(s),
     start(s) and the path model (:func:`path_attrs`).
     """
+    return _simulate_campaign(model, test_data, start, budget, method=method, temporal=temporal,
+                              replan=replan, seed=seed, spatial=spatial, path=path,
+                              replan_every=replan_every, paper=paper, criterion=criterion,
+                              cost=cost, ridge=ridge, score_forecast=True)
+
+
+def posterior_campaign(model: Any, test_data: xr.DataArray, start: Any, budget: Any,
+                       **settings: Any) -> xr.Dataset:
+    """:func:`simulate_campaign` without the morning forecast maps: the Dataset lacks
+    ``mse_forecast``, every other output is the same bit for bit (``evaluate``'s campaigns,
+    which score the posterior only).
+
+    Parameters
+    ----------
+    model, test_data, start, budget
+        As :func:`simulate_campaign`.
+    method, temporal, replan, seed, spatial, path : (``**settings``) as simulate_campaign
+    replan_every, paper, criterion, cost, ridge : (``**settings``) as simulate_campaign
+
+    Returns
+    -------
+    xarray.Dataset
+        :func:`simulate_campaign`'s Dataset without ``mse_forecast``.
+    """
+    return _simulate_campaign(model, test_data, start, budget, score_forecast=False, **settings)
+
+
+def _simulate_campaign(
+    model: Any,
+    test_data: xr.DataArray,
+    start: Any,
+    budget: Any,
+    *,
+    method: str | None = None,
+    temporal: Any = RECOMMENDED["temporal"],
+    replan: bool = True,
+    seed: Any = 0,
+    spatial: bool | None = None,
+    path: PathOptions | None = None,
+    replan_every: int | None = None,
+    paper: bool = False,
+    criterion: str = "fisher",
+    cost: str = "nearest-neighbor",
+    ridge: float = 0.0,
+    score_forecast: bool = True,
+) -> xr.Dataset:
+    """:func:`simulate_campaign` (the same settings and defaults), and ``score_forecast``:
+    False (:func:`posterior_campaign`) builds no forecast map and leaves ``mse_forecast`` out of
+    the result, every other output the same bit for bit."""
     request = PathOptions.from_kwargs(path, where="simulate_campaign")
     paper = check_flag(paper, "paper", error=PlanningError)
-    score_forecast = check_flag(score_forecast, "score_forecast", error=PlanningError)
     if method is None:
         residual = getattr(model, "spatial_cov_", None) is not None and spatial is not False
         method = "greedy" if paper else recommended_method(residual)
