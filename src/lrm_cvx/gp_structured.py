@@ -16,13 +16,14 @@ from typing import Any
 
 import numpy as np
 
+from ._blas import single_threaded_blas
 from ._validation import array_digest, as_factor_matrix
 from .errors import PlanningError
 from .oracles import cells_array
 from .spatial.kriging import GridConv, check_gp_inputs, gp_noise, gp_residual_cov, grid_rect
 
-__all__ = ["StructuredGPVarianceOracle", "GP_PICK_CACHE_BYTES", "LAG_TABLE_MAX_ENTRIES",
-           "GRID_TERMS", "kept_residual_cov"]
+__all__ = ["StructuredGPVarianceOracle", "GP_PICK_CACHE_BYTES", "GP_DIRECT_MAX_CELLS",
+           "LAG_TABLE_MAX_ENTRIES", "GRID_TERMS", "kept_residual_cov"]
 
 
 class StructuredGPVarianceOracle:
@@ -110,6 +111,7 @@ class StructuredGPVarianceOracle:
         self._YX = np.ascontiguousarray(self.Y[:, X])
         self._S0 = S0
         self._gcache = grid.picks  # g(p, .) of the picks, shared by every fork
+        self._direct = False  # a pick's g by FFT (restricted forks: summed, _direct_rows)
         prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
         self._value0 = float(cT[T] @ prior_var)
         self._reset()
@@ -307,9 +309,12 @@ class StructuredGPVarianceOracle:
             rp, cp = wg[2] - 1 - gxp[0], wg[3] - 1 - gxp[1]  # the table's offset 0 from p
             kp = ktab[self._gX[:, 0] + rp, self._gX[:, 1] + cp]
             g = self._gcache.get(j)
+            if g is None and self._direct:  # a route's fork: its cells' rows summed directly
+                self._direct_rows()
+                g = self._gcache.get(j)
             if g is None:  # a cell no fork of this set-up has conditioned on yet
-                win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
-                g = self._gcache.put(j, self._gconv.product(win, self._cwin)[self._oidx])
+                g = self._gcache.put(j, self._gconv.product(self._window_of(j),
+                                                            self._cwin)[self._oidx])
         fk = (kp - ell @ Fk) / d                                  # GP part of the new row
         phi = (ap @ self._YX) / d + fk                            # C_P(p, x) / d
         Rkp = Rk[:, j].copy()
@@ -332,6 +337,42 @@ class StructuredGPVarianceOracle:
         self._Hk[:, m] = hcol
         self._m = m + 1
         self.cells.append(int(p))
+
+    def _window_of(self, j: int, rows: slice = slice(None)) -> np.ndarray:
+        """``k(x_j, i)`` for the cells ``i`` of the window (its ``rows``, default all): a
+        slice of the kernel's table."""
+        wg, ktab = self._wg, self._kernel_table()
+        r0 = wg[0] + wg[2] - 1 - int(self._gX[j, 0])  # the window's first row from x_j
+        c0 = wg[1] + wg[3] - 1 - int(self._gX[j, 1])
+        lo, hi, _ = rows.indices(wg[2])
+        return ktab[r0 + lo:r0 + hi, c0:c0 + wg[3]]
+
+    def _direct_rows(self) -> None:
+        """``g(p, x) = sum_i c_i k(p, i) k(i, x)`` for every cell ``p`` of this oracle's cells
+        not in its pick cache and every ``x`` of them, summed over the window directly (the
+        kernel at each cell a slice of the kernel's table, the sums one matrix product per
+        band of window rows): a restricted fork over a few cells
+        (:data:`GP_DIRECT_MAX_CELLS`) gets every row it lacks for the cost of a few of the
+        window's FFTs. The same sums as :meth:`GridConv.product`'s, in another order (rounding
+        apart); into the pick cache, so each row is summed once."""
+        n = self._X.size
+        missing = np.array([j for j in range(n) if self._gcache.get(j) is None], dtype=np.int64)
+        if missing.size == 0:
+            return
+        wg, cwin = self._wg, self._cwin
+        band = max(1, min(wg[2], int(_DIRECT_BAND_BYTES // (8 * n * wg[3]))))
+        G = np.zeros((missing.size, n))
+        B = np.empty((n, band * wg[3]))
+        # (few x long) @ (long x few): OpenBLAS's threads only contend (~10x slower loaded)
+        with single_threaded_blas():
+            for lo in range(0, wg[2], band):  # bands of window rows
+                rows = slice(lo, min(lo + band, wg[2]))
+                Bh = B[:, :(rows.stop - lo) * wg[3]]
+                for x in range(n):  # k(x, i) over the band, one slice of the table per cell
+                    Bh[x].reshape(rows.stop - lo, wg[3])[...] = self._window_of(x, rows)
+                G += (Bh[missing] * cwin[rows].ravel()) @ Bh.T
+        for row, j in zip(G, missing.tolist(), strict=True):
+            self._gcache.put(j, row)
 
     def gains(self, candidates: Any = None) -> np.ndarray:
         """Total-variance decrease of each candidate (``(n,)``, default: the whole pool)."""
@@ -388,6 +429,7 @@ class StructuredGPVarianceOracle:
             if len(subsets) >= 32:
                 subsets.pop(next(iter(subsets)))
         subsets[key] = new._gcache = cache
+        new._direct = cells.size <= GP_DIRECT_MAX_CELLS
         new._reset()
         return new
 
@@ -500,6 +542,15 @@ class _PickCache:
             self._rows[j] = g
         return g
 
+
+GP_DIRECT_MAX_CELLS: int = 256
+"""Most cells of a structured oracle's :meth:`~StructuredGPVarianceOracle.restricted` fork (a
+rival route) whose picks' ``g`` over those cells are summed directly over the window (one pass
+for all the rows it lacks) rather than convolved by one FFT over the window per pick."""
+
+_DIRECT_BAND_BYTES = 2.0 ** 25
+"""Bytes of the kernel's values held at once by a direct sum (:meth:`StructuredGPVariance
+Oracle._direct_rows`): one band of window rows for every cell."""
 
 LAG_TABLE_MAX_ENTRIES: float = 2.0 ** 26
 """Largest kernel lattice (entries, ~0.5 GB of float64) the structured oracle's lag table builds;
