@@ -112,7 +112,8 @@ class StructuredGPVarianceOracle:
         self._S0 = S0
         self._gcache = grid.picks  # g(p, .) of the picks, shared by every fork
         self._direct = False  # a pick's g by FFT (restricted forks: summed, _direct_rows)
-        prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
+        YT = self.Y if targets is None else self.Y[:, T]  # every cell: no gathered copy
+        prior_var = np.einsum("ai,ab,bi->i", YT, S0, YT) + spatial_cov.sill
         self._value0 = float(cT[T] @ prior_var)
         self._reset()
         for p in init:
@@ -359,20 +360,22 @@ class StructuredGPVarianceOracle:
         missing = np.array([j for j in range(n) if self._gcache.get(j) is None], dtype=np.int64)
         if missing.size == 0:
             return
-        wg, cwin = self._wg, self._cwin
+        wg = self._wg
+        root_c = np.sqrt(self._cwin)  # g = (k sqrt(c)) (k sqrt(c))^T: one symmetric product
         band = max(1, min(wg[2], int(_DIRECT_BAND_BYTES // (8 * n * wg[3]))))
-        G = np.zeros((missing.size, n))
+        G = np.zeros((n, n))
         B = np.empty((n, band * wg[3]))
         # (few x long) @ (long x few): OpenBLAS's threads only contend (~10x slower loaded)
         with single_threaded_blas():
             for lo in range(0, wg[2], band):  # bands of window rows
                 rows = slice(lo, min(lo + band, wg[2]))
                 Bh = B[:, :(rows.stop - lo) * wg[3]]
-                for x in range(n):  # k(x, i) over the band, one slice of the table per cell
-                    Bh[x].reshape(rows.stop - lo, wg[3])[...] = self._window_of(x, rows)
-                G += (Bh[missing] * cwin[rows].ravel()) @ Bh.T
-        for row, j in zip(G, missing.tolist(), strict=True):
-            self._gcache.put(j, row)
+                for x in range(n):  # k(x, i) sqrt(c_i) over the band: a slice of the table
+                    np.multiply(self._window_of(x, rows), root_c[rows],
+                                out=Bh[x].reshape(rows.stop - lo, wg[3]))
+                G += Bh @ Bh.T
+        for j in missing.tolist():
+            self._gcache.put(j, G[j])
 
     def gains(self, candidates: Any = None) -> np.ndarray:
         """Total-variance decrease of each candidate (``(n,)``, default: the whole pool)."""
