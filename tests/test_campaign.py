@@ -7,6 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
+import xarray as xr
 
 from lrm_cvx.campaign import simulate_campaign
 from lrm_cvx.errors import DataError, ModelError, PlanningError, RegionError
@@ -147,3 +148,31 @@ def test_bad_input(model, field):
         simulate_campaign(model, test.isel(lat=slice(0, 5)), 0, 3)
     with pytest.raises(DataError, match="test_data"):
         simulate_campaign(model, test.isel(time=0), 0, 3)
+
+
+def test_a_gp_variance_campaign_sets_up_its_residual_block_once(field, monkeypatch):
+    """The dense gp-variance oracle's residual covariance depends on the model and the cells
+    only: a 5-day campaign computes it once, and flies the routes (and scores) of computing it
+    afresh for every plan."""
+    import lrm_cvx.gp_structured as gp_structured
+    import lrm_cvx.information as information
+
+    model = _fit(field.isel(time=slice(0, 40)), spatial="exponential", temporal="ar1")
+    test = field.isel(time=slice(40, 45))
+    calls = []
+    kernel = gp_structured.gp_residual_cov
+
+    def counted(region, cov, rows, cols):
+        calls.append((len(rows), len(cols)))
+        return kernel(region, cov, rows, cols)
+
+    monkeypatch.setattr(gp_structured, "gp_residual_cov", counted)
+    gp_structured.GRID_TERMS.clear()
+    kept = simulate_campaign(model, test, 7, 6, seed=1)
+    assert kept.attrs["method"] == "greedy:gp-variance" and kept.sizes["time"] == 5
+    assert len(calls) == 1
+    calls.clear()
+    monkeypatch.setattr(information, "kept_residual_cov", counted)  # every set-up afresh
+    fresh = simulate_campaign(model, test, 7, 6, seed=1)
+    assert len(calls) >= 5  # the campaign sets up at least once a day
+    xr.testing.assert_identical(kept, fresh)

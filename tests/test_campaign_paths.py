@@ -6,6 +6,7 @@ requests fail with one line."""
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import warnings
 from types import SimpleNamespace
 
@@ -14,7 +15,7 @@ import pytest
 import xarray as xr
 
 from lrm_cvx import GLRM, load_sample, plan_greedy
-from lrm_cvx.campaign import simulate_campaign
+from lrm_cvx.campaign import _simulate_campaign, posterior_campaign, simulate_campaign
 from lrm_cvx.errors import PlanningError
 from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate, path_label
 from lrm_cvx.monitor import MonitorState
@@ -296,3 +297,53 @@ def test_the_forecast_error_is_the_morning_map_before_the_samples(model, test_da
     ok = np.isfinite(truth)
     assert np.isclose(ds["mse_forecast"].values[0], np.mean((mean - truth)[ok] ** 2))
     assert np.all(np.isfinite(ds["mse_forecast"].values))
+
+
+def _count_forecast_maps(monkeypatch):
+    """A list that grows by one at every map a latent belief predicts (``predict``)."""
+    from lrm_cvx.belief.posterior import LatentPosterior
+
+    calls = []
+    predict = LatentPosterior.predict
+
+    def counted(self, *args, **kwargs):
+        calls.append(1)
+        return predict(self, *args, **kwargs)
+
+    monkeypatch.setattr(LatentPosterior, "predict", counted)
+    return calls
+
+
+def test_a_campaign_without_the_forecast_score_skips_the_map_and_keeps_the_rest(
+        model, test_days, monkeypatch):
+    """``posterior_campaign`` builds no forecast map and drops ``mse_forecast``; every other
+    output (routes, maps' errors, coverage, information) is the same bit for bit."""
+    calls = _count_forecast_maps(monkeypatch)
+    full = simulate_campaign(model, test_days, (0.0, 200.0), 10.0, temporal="ar1")
+    assert len(calls) == N_DAYS  # the default scores the morning map of every day
+    calls.clear()
+    lean = posterior_campaign(model, test_days, (0.0, 200.0), 10.0, temporal="ar1")
+    assert not calls and "mse_forecast" not in lean
+    xr.testing.assert_identical(full.drop_vars("mse_forecast"), lean)
+
+
+def test_the_campaign_body_takes_the_public_settings_and_defaults():
+    """``simulate_campaign`` forwards to one body: the same settings, names and defaults, plus
+    ``score_forecast`` (which only ``posterior_campaign`` turns off)."""
+    public = inspect.signature(simulate_campaign).parameters
+    body = dict(inspect.signature(_simulate_campaign).parameters)
+    assert body.pop("score_forecast").default is True
+    assert [(p.name, p.kind, p.default) for p in body.values()] == [
+        (p.name, p.kind, p.default) for p in public.values()]
+
+
+def test_evaluate_builds_no_forecast_map(sst, model, monkeypatch):
+    """``evaluate`` reads the campaign's posterior errors only: no day builds a forecast map."""
+    calls = _count_forecast_maps(monkeypatch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = evaluate(sst, model=model, n_test=N_DAYS, budgets=(9000.0,), n_starts=1,
+                       planning=PlanningOptions(certify=False), progress=False,
+                       scoring=ScoringOptions(min_observations=1), temporal="ar1",
+                       methods=("greedy:fisher",))
+    assert np.isfinite(res["mse"]).all() and not calls

@@ -146,13 +146,13 @@ def test_a_memoryless_auto_model_runs_each_campaign_once(data, model, monkeypatc
     import lrm_cvx.campaign as campaign
 
     calls = []
-    real = campaign.simulate_campaign
+    real = campaign.posterior_campaign
 
     def counted(*args, **kwargs):
         calls.append(kwargs.get("temporal"))
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(campaign, "simulate_campaign", counted)
+    monkeypatch.setattr(campaign, "posterior_campaign", counted)
     kw = {**KW, "scoring": ScoringOptions(min_observations=3, fold_in={"prior": "empirical"})}
     n_campaigns = 3 * 2 * (2 + 2)  # starts x budgets x (greedy, transect, 2 random trials)
     assert getattr(model, "dynamics_", None) is None

@@ -182,6 +182,35 @@ def test_gp_variance_gains_equal_value_differences_for_any_pool_targets_and_cand
         picks.append(int(add))
 
 
+def test_dense_gp_oracles_on_the_same_cells_share_one_residual_block(monkeypatch):
+    """Two dense gp-variance set-ups on the same cells under different priors (two days of a
+    campaign) compute the residual covariance once; each one's covariances are the latent
+    prior covariance ``gp_latent_cov`` bit for bit, and the second set-up starts from the prior
+    though the first one has picked cells."""
+    import lrm_cvx.gp_structured as gp_structured
+    import lrm_cvx.information as info
+
+    rng, region, Y, S0, cov, c = _gp_setup(5, sill=0.5)
+    L = region.n_cells
+    pool = np.sort(rng.choice(L, L // 2, replace=False))
+    calls = []
+    kernel = gp_structured.gp_residual_cov
+
+    def counted(*args):
+        calls.append(1)
+        return kernel(*args)
+
+    monkeypatch.setattr(gp_structured, "gp_residual_cov", counted)
+    gp_structured.GRID_TERMS.clear()
+    for prior in (S0, 2.0 * S0 + 0.1 * np.eye(2)):
+        o = info.GPVarianceOracle(Y, region=region, spatial_cov=cov, prior_cov=prior, pool=pool,
+                                  target_weights=c)
+        ref = info.gp_latent_cov(Y, 0.5 * (prior + prior.T), region, cov, np.arange(L), pool)
+        np.testing.assert_array_equal(o.C, ref)
+        o.add(int(pool[3]))  # updates its own copy, not the kept block
+    assert len(calls) == 1
+
+
 def test_trend_oracle_is_the_gp_criterion_with_the_residual_as_noise(monkeypatch):
     import lrm_cvx.information as info
 

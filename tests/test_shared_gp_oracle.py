@@ -102,15 +102,30 @@ def test_rivals_from_one_set_up_plan_as_separate_oracles(structured, seed, start
             np.testing.assert_array_equal(plan.history[key], v)
 
 
+def count_direct_rows(monkeypatch) -> list:
+    """A list that grows by the rows each direct sum of a route's fork computes."""
+    rows = []
+    direct = StructuredGPVarianceOracle._direct_rows
+
+    def counted(self):
+        rows.append(sum(self._gcache.get(j) is None for j in range(self._X.size)))
+        return direct(self)
+
+    monkeypatch.setattr(StructuredGPVarianceOracle, "_direct_rows", counted)
+    return rows
+
+
 def test_one_set_up_and_one_convolution_per_cell(structured, monkeypatch):
-    """A plan with its rivals sets the structured oracle up once, and convolves each cell that
-    the greedy, the gentler greedy or a route conditions on once."""
+    """A plan with its rivals sets the structured oracle up once and convolves each cell that
+    the greedy or the gentler greedy conditions on once; each route's other cells are summed
+    directly, once, by the route's fork."""
     Y, region, terms = problem(4, 13, 14)
     built = []
     init = StructuredGPVarianceOracle.__init__
     monkeypatch.setattr(StructuredGPVarianceOracle, "__init__",
                         lambda self, *a, **k: built.append(1) or init(self, *a, **k))
     convolved = count_convolutions(monkeypatch)
+    summed = count_direct_rows(monkeypatch)
     kw = dict(criterion="gp-variance", initial="start", progress=False,
               prior=PriorTerms(**terms))
     gp_structured.GRID_TERMS.clear()
@@ -119,11 +134,34 @@ def test_one_set_up_and_one_convolution_per_cell(structured, monkeypatch):
     n_convolved = len(convolved)
     gentle = plan_greedy(Y, region, 90, 8.0, cost_exponent=0.5, **kw)
     greedy = plan_greedy(Y, region, 90, 8.0, **kw)
-    cells = set(greedy.cells.tolist()) | set(gentle.cells.tolist())
-    for d in DIRECTIONS:
-        cells |= set(transect(region, 90, 8.0, d).cells.tolist())
-    assert n_convolved == Y.shape[0] + 1 + len(cells)  # the set-up's u (k) and s, then cells
+    picked = set(greedy.cells.tolist()) | set(gentle.cells.tolist())
+    assert n_convolved == Y.shape[0] + 1 + len(picked)  # the set-up's u (k) and s, then cells
+    lines = [set(transect(region, 90, 8.0, d).cells.tolist()) - picked for d in DIRECTIONS]
+    assert sum(summed) == sum(len(c) for c in lines) > 0  # each route's own cells, once
     assert len(plan.rivals["values"]) == 6
+
+
+@pytest.mark.parametrize("seed", [0, 3, 7])
+def test_a_routes_fork_sums_its_rows_as_the_convolution_would(seed, monkeypatch):
+    """A restricted fork's rows ``g(p, .)`` summed directly equal the FFT convolution's to
+    rounding (1e-12 of the largest), and the route's value equals the value its fork gets
+    from the convolutions (``GP_DIRECT_MAX_CELLS = 0``) to 1e-12 relative."""
+    Y, region, terms = problem(seed)
+    base = StructuredGPVarianceOracle(Y, [5], region=region, **terms)
+    cells = np.array([7, 8, 20, 33, 34, 35, 60, 61, 100])
+    fork = base.restricted(cells)
+    assert fork._direct
+    fork._direct_rows()
+    g_direct = np.array([fork._gcache.get(j) for j in range(cells.size)])
+    g_fft = np.array([fork._gconv.product(fork._window_of(j), fork._cwin)[fork._oidx]
+                      for j in range(cells.size)])
+    assert np.abs(g_direct - g_fft).max() <= 1e-12 * np.abs(g_fft).max()
+    direct = lines.forked_values(base.restricted(cells[::-1]), {"r": cells})["r"]
+    monkeypatch.setattr(gp_structured, "GP_DIRECT_MAX_CELLS", 0)
+    gp_structured.GRID_TERMS.clear()
+    base = StructuredGPVarianceOracle(Y, [5], region=region, **terms)
+    fft = lines.forked_values(base.restricted(cells[::-1]), {"r": cells})["r"]
+    assert direct == pytest.approx(fft, rel=1e-12)
 
 
 @settings(max_examples=20, deadline=None)
@@ -180,7 +218,15 @@ def test_a_second_plan_of_the_same_set_up_convolves_only_new_cells(structured, m
     first = len(convolved)
     day2 = {**terms, "prior_cov": 0.5 * terms["prior_cov"]}
     plan = plan_greedy(Y, region, 66, 7.0, **kw, prior=PriorTerms(**day2))
-    assert 0 <= len(convolved) - first < first - Y.shape[0] - 1  # no set-up, fewer cells
+    second = len(convolved) - first
+
+    def picked(prior):  # the cells the greedy and the gentler greedy condition on
+        kw1 = {**kw, "refine": None, "prior": PriorTerms(**prior)}
+        return (set(plan_greedy(Y, region, 66, 7.0, **kw1).cells.tolist())
+                | set(plan_greedy(Y, region, 66, 7.0, cost_exponent=0.5, **kw1).cells.tolist()))
+
+    assert first == Y.shape[0] + 1 + len(picked(terms))
+    assert second == len(picked(day2) - picked(terms))  # no set-up, only the new cells
     gp_structured.GRID_TERMS.clear()
     alone = plan_greedy(Y, region, 66, 7.0, **kw, prior=PriorTerms(**day2))
     np.testing.assert_array_equal(plan.route, alone.route)

@@ -38,7 +38,8 @@ from .planning.sensors import observed_cells, plan_observations
 from .planning.terms import PriorTerms
 from .recommended import RECOMMENDED
 
-__all__ = ["simulate_campaign", "method_request", "path_attrs", "CAMPAIGN_OPTIONS"]
+__all__ = ["simulate_campaign", "posterior_campaign", "method_request", "path_attrs",
+           "CAMPAIGN_OPTIONS"]
 
 CAMPAIGN_OPTIONS = ("cost", "ridge", "criterion")
 """The planner options of :func:`simulate_campaign` (besides the path)."""
@@ -266,6 +267,55 @@ def simulate_campaign(
     robot)``, with ``replan_every`` ``n_replans``. The attrs record the method, the budget(s),
     start(s) and the path model (:func:`path_attrs`).
     """
+    return _simulate_campaign(model, test_data, start, budget, method=method, temporal=temporal,
+                              replan=replan, seed=seed, spatial=spatial, path=path,
+                              replan_every=replan_every, paper=paper, criterion=criterion,
+                              cost=cost, ridge=ridge, score_forecast=True)
+
+
+def posterior_campaign(model: Any, test_data: xr.DataArray, start: Any, budget: Any,
+                       **settings: Any) -> xr.Dataset:
+    """:func:`simulate_campaign` without the morning forecast maps: the Dataset lacks
+    ``mse_forecast``, every other output is the same bit for bit (``evaluate``'s campaigns,
+    which score the posterior only).
+
+    Parameters
+    ----------
+    model, test_data, start, budget
+        As :func:`simulate_campaign`.
+    method, temporal, replan, seed, spatial, path : (``**settings``) as simulate_campaign
+    replan_every, paper, criterion, cost, ridge : (``**settings``) as simulate_campaign
+
+    Returns
+    -------
+    xarray.Dataset
+        :func:`simulate_campaign`'s Dataset without ``mse_forecast``.
+    """
+    return _simulate_campaign(model, test_data, start, budget, score_forecast=False, **settings)
+
+
+def _simulate_campaign(
+    model: Any,
+    test_data: xr.DataArray,
+    start: Any,
+    budget: Any,
+    *,
+    method: str | None = None,
+    temporal: Any = RECOMMENDED["temporal"],
+    replan: bool = True,
+    seed: Any = 0,
+    spatial: bool | None = None,
+    path: PathOptions | None = None,
+    replan_every: int | None = None,
+    paper: bool = False,
+    criterion: str = "fisher",
+    cost: str = "nearest-neighbor",
+    ridge: float = 0.0,
+    score_forecast: bool = True,
+) -> xr.Dataset:
+    """:func:`simulate_campaign` (the same settings and defaults), and ``score_forecast``:
+    False (:func:`posterior_campaign`) builds no forecast map and leaves ``mse_forecast`` out of
+    the result, every other output the same bit for bit."""
     request = PathOptions.from_kwargs(path, where="simulate_campaign")
     paper = check_flag(paper, "paper", error=PlanningError)
     if method is None:
@@ -301,7 +351,7 @@ def simulate_campaign(
     T = V.shape[0]
     out = {name: np.full(T, np.nan) for name in (
         "mse", "mse_heldout", "mse_forecast", "coverage68", "coverage95", "information",
-        "logdet_cov", "route_cost")}
+        "logdet_cov", "route_cost") if score_forecast or name != "mse_forecast"}
     n_obs = np.zeros(T, dtype=np.int64)
     n_replans = np.zeros(T, dtype=np.int64)
     robot_cost = np.full((T, fleet.n_robots), np.nan)
@@ -313,7 +363,7 @@ def simulate_campaign(
             last = _plan_day(state, t, planner, fleet, request, rng, ridge, last)
             plan = last[0]
         information = float(getattr(plan, "information", np.nan))
-        forecast = state.belief(t).predict()[0]
+        forecast = state.belief(t).predict()[0] if score_forecast else None
         if every:
             flown, cells, n_replans[i] = _fly_replanning(state, plan, t, V[i], every,
                                                          planner.criterion)
@@ -336,7 +386,8 @@ def simulate_campaign(
         err = (mean - truth) ** 2
         if observed.any():
             out["mse"][i] = float(np.mean(err[observed]))
-            out["mse_forecast"][i] = float(np.mean((forecast - truth)[observed] ** 2))
+            if forecast is not None:
+                out["mse_forecast"][i] = float(np.mean((forecast - truth)[observed] ** 2))
         held = observed.copy()
         held[cells] = False
         if held.any():
@@ -374,7 +425,9 @@ def _dataset(out: dict, n_obs: np.ndarray, n_replans: np.ndarray, robot_cost: np
     ds["n_obs"] = ("time", n_obs)
     ds["routes"] = (("time", "stop"), _padded([r for r, _ in routes]))
     ds["routes"].attrs["long_name"] = "route cell indices, padded with -1"
-    ds["mse_forecast"].attrs["long_name"] = "MSE of the forecast map, before the day's samples"
+    if "mse_forecast" in ds:
+        ds["mse_forecast"].attrs["long_name"] = (
+            "MSE of the forecast map, before the day's samples")
     for level in ("68", "95"):
         ds[f"coverage{level}"].attrs["long_name"] = (
             f"fraction of held-out observed cells in the central {level} % predictive interval")

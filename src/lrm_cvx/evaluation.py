@@ -102,10 +102,11 @@ def _campaign_errors(model: Any, test: xr.DataArray, start: Any, budget: float, 
     ``start`` (a cell, or a list of cells: a fleet, ``budget`` each) under ``path``:
     ``(mse (n_test,), n_obs, coverage (n_test, 2), the first day's plan as a _CampaignPlan)``;
     ``mse`` NaN where a day has fewer than ``min_observations`` observations."""
-    from .campaign import simulate_campaign
+    from .campaign import posterior_campaign
 
-    ds = simulate_campaign(model, test, start, budget, method=method, temporal=temporal,
-                           seed=seed, spatial=spatial, path=path, **options)
+    # evaluate never reads mse_forecast: its campaigns build no forecast map
+    ds = posterior_campaign(model, test, start, budget, method=method, temporal=temporal,
+                            seed=seed, spatial=spatial, path=path, **options)
     n = ds["n_obs"].values
     ok = n >= max(min_observations, 1)
     mse = np.where(ok, ds["mse"].values, np.nan)

@@ -16,13 +16,14 @@ from typing import Any
 
 import numpy as np
 
+from ._blas import single_threaded_blas
 from ._validation import array_digest, as_factor_matrix
 from .errors import PlanningError
 from .oracles import cells_array
-from .spatial.kriging import GridConv, check_gp_inputs, gp_noise, grid_rect
+from .spatial.kriging import GridConv, check_gp_inputs, gp_noise, gp_residual_cov, grid_rect
 
-__all__ = ["StructuredGPVarianceOracle", "GP_PICK_CACHE_BYTES", "LAG_TABLE_MAX_ENTRIES",
-           "GRID_TERMS"]
+__all__ = ["StructuredGPVarianceOracle", "GP_PICK_CACHE_BYTES", "GP_DIRECT_MAX_CELLS",
+           "LAG_TABLE_MAX_ENTRIES", "GRID_TERMS", "kept_residual_cov"]
 
 
 class StructuredGPVarianceOracle:
@@ -110,7 +111,9 @@ class StructuredGPVarianceOracle:
         self._YX = np.ascontiguousarray(self.Y[:, X])
         self._S0 = S0
         self._gcache = grid.picks  # g(p, .) of the picks, shared by every fork
-        prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
+        self._direct = False  # a pick's g by FFT (restricted forks: summed, _direct_rows)
+        YT = self.Y if targets is None else self.Y[:, T]  # every cell: no gathered copy
+        prior_var = np.einsum("ai,ab,bi->i", YT, S0, YT) + spatial_cov.sill
         self._value0 = float(cT[T] @ prior_var)
         self._reset()
         for p in init:
@@ -300,9 +303,12 @@ class StructuredGPVarianceOracle:
         rp, cp = wg[2] - 1 - gxp[0], wg[3] - 1 - gxp[1]  # the table's offset 0 from p
         kp = ktab[self._gX[:, 0] + rp, self._gX[:, 1] + cp]
         g = self._gcache.get(j)
+        if g is None and self._direct:  # a route's fork: its cells' rows summed directly
+            self._direct_rows()
+            g = self._gcache.get(j)
         if g is None:  # a cell no fork of this set-up has conditioned on yet
-            win = ktab[wg[0] + rp:wg[0] + rp + wg[2], wg[1] + cp:wg[1] + cp + wg[3]]
-            g = self._gcache.put(j, self._gconv.product(win, self._cwin)[self._oidx])
+            g = self._gcache.put(j, self._gconv.product(self._window_of(j),
+                                                        self._cwin)[self._oidx])
         return kp, g
 
     def covariance_blocks(self, rows: np.ndarray, cols: np.ndarray
@@ -381,6 +387,44 @@ class StructuredGPVarianceOracle:
         self._m = m + 1
         self.cells.append(int(p))
 
+    def _window_of(self, j: int, rows: slice = slice(None)) -> np.ndarray:
+        """``k(x_j, i)`` for the cells ``i`` of the window (its ``rows``, default all): a
+        slice of the kernel's table."""
+        wg, ktab = self._wg, self._kernel_table()
+        r0 = wg[0] + wg[2] - 1 - int(self._gX[j, 0])  # the window's first row from x_j
+        c0 = wg[1] + wg[3] - 1 - int(self._gX[j, 1])
+        lo, hi, _ = rows.indices(wg[2])
+        return ktab[r0 + lo:r0 + hi, c0:c0 + wg[3]]
+
+    def _direct_rows(self) -> None:
+        """``g(p, x) = sum_i c_i k(p, i) k(i, x)`` for every cell ``p`` of this oracle's cells
+        not in its pick cache and every ``x`` of them, summed over the window directly (the
+        kernel at each cell a slice of the kernel's table, the sums one matrix product per
+        band of window rows): a restricted fork over a few cells
+        (:data:`GP_DIRECT_MAX_CELLS`) gets every row it lacks for the cost of a few of the
+        window's FFTs. The same sums as :meth:`GridConv.product`'s, in another order (rounding
+        apart); into the pick cache, so each row is summed once."""
+        n = self._X.size
+        missing = np.array([j for j in range(n) if self._gcache.get(j) is None], dtype=np.int64)
+        if missing.size == 0:
+            return
+        wg = self._wg
+        root_c = np.sqrt(self._cwin)  # g = (k sqrt(c)) (k sqrt(c))^T: one symmetric product
+        band = max(1, min(wg[2], int(_DIRECT_BAND_BYTES // (8 * n * wg[3]))))
+        G = np.zeros((n, n))
+        B = np.empty((n, band * wg[3]))
+        # (few x long) @ (long x few): OpenBLAS's threads only contend (~10x slower loaded)
+        with single_threaded_blas():
+            for lo in range(0, wg[2], band):  # bands of window rows
+                rows = slice(lo, min(lo + band, wg[2]))
+                Bh = B[:, :(rows.stop - lo) * wg[3]]
+                for x in range(n):  # k(x, i) sqrt(c_i) over the band: a slice of the table
+                    np.multiply(self._window_of(x, rows), root_c[rows],
+                                out=Bh[x].reshape(rows.stop - lo, wg[3]))
+                G += Bh @ Bh.T
+        for j in missing.tolist():
+            self._gcache.put(j, G[j])
+
     def gains(self, candidates: Any = None) -> np.ndarray:
         """Total-variance decrease of each candidate (``(n,)``, default: the whole pool)."""
         pos = self._pos(candidates)
@@ -436,6 +480,7 @@ class StructuredGPVarianceOracle:
             if len(subsets) >= 32:
                 subsets.pop(next(iter(subsets)))
         subsets[key] = new._gcache = cache
+        new._direct = cells.size <= GP_DIRECT_MAX_CELLS
         new._reset()
         return new
 
@@ -480,11 +525,46 @@ class _GridTerms:
     subsets: dict[str, _PickCache] = field(default_factory=dict)
 
 
-GRID_TERMS: dict[tuple, _GridTerms] = {}
-"""The latest structured set-up's grid terms, by a digest of its factors, target weights,
-grid and cells and by its covariance: the plans of a campaign's days (the same model, start
-and budget; only the forecast's prior covariance changes) set up once and share the picks'
-convolutions, the same numbers as computing them again."""
+GRID_TERMS: dict[tuple, _GridTerms | np.ndarray] = {}
+"""The latest gp-variance set-up's terms that depend on the model and the cells only, by a
+digest of its inputs and by its covariance: a structured oracle's grid terms, or a dense
+oracle's residual covariance block (:func:`kept_residual_cov`). The plans of a campaign's
+days (the same model, start and budget; only the forecast's prior covariance changes) set up
+once and share the picks' convolutions, the same numbers as computing them again."""
+
+
+def kept_residual_cov(region: Any, spatial_cov: Any, rows: np.ndarray, cols: np.ndarray
+                      ) -> np.ndarray:
+    """:func:`~lrm_cvx.spatial.kriging.gp_residual_cov` of ``rows`` x ``cols``, kept in
+    :data:`GRID_TERMS` (by a digest of the cells' coordinates and by the covariance) for the
+    next set-up on the same cells: the dense gp-variance oracle's prior block without its
+    trend part, which does not depend on the day's belief. Read-only: copy it to update it.
+
+    Parameters
+    ----------
+    region : Region
+        The grid of the cells.
+    spatial_cov : ResidualCovariance
+        The GP residual's covariance.
+    rows, cols : numpy.ndarray
+        Cell indices of the block's rows and columns.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(|rows|, |cols|)`` float64, read-only (the same array on a repeated call).
+    """
+    a = spatial_cov.points(region, rows)
+    b = spatial_cov.points(region, cols)
+    key = ("residual", array_digest(a, b), spatial_cov.model, spatial_cov.sill, spatial_cov.range,
+           spatial_cov.anisotropy, spatial_cov.metric)
+    block = GRID_TERMS.get(key)
+    if block is None:
+        block = gp_residual_cov(region, spatial_cov, rows, cols)
+        block.flags.writeable = False
+        GRID_TERMS.clear()  # one set-up kept: the latest plan's
+        GRID_TERMS[key] = block
+    return block
 
 
 
@@ -513,6 +593,15 @@ class _PickCache:
             self._rows[j] = g
         return g
 
+
+GP_DIRECT_MAX_CELLS: int = 256
+"""Most cells of a structured oracle's :meth:`~StructuredGPVarianceOracle.restricted` fork (a
+rival route) whose picks' ``g`` over those cells are summed directly over the window (one pass
+for all the rows it lacks) rather than convolved by one FFT over the window per pick."""
+
+_DIRECT_BAND_BYTES = 2.0 ** 25
+"""Bytes of the kernel's values held at once by a direct sum (:meth:`StructuredGPVariance
+Oracle._direct_rows`): one band of window rows for every cell."""
 
 LAG_TABLE_MAX_ENTRIES: float = 2.0 ** 26
 """Largest kernel lattice (entries, ~0.5 GB of float64) the structured oracle's lag table builds;

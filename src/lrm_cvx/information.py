@@ -41,6 +41,7 @@ from .gp_structured import (  # noqa: F401  (the structured oracle and its set-u
     GP_PICK_CACHE_BYTES,
     LAG_TABLE_MAX_ENTRIES,
     StructuredGPVarianceOracle,
+    kept_residual_cov,
 )
 from .oracles import (  # noqa: F401  (the Fisher and A-optimal oracles: re-exported)
     AOptimalOracle,
@@ -59,6 +60,7 @@ from .spatial.kriging import (  # noqa: F401  (GridConv and the GP helpers: the 
     check_gp_inputs,
     gp_latent_cov,
     gp_noise,
+    gp_residual_cov,
     grid_rect,
 )
 
@@ -169,7 +171,13 @@ class GPVarianceOracle:
         self._pool_in_rows = np.searchsorted(rows, self.pool)
         self.noise = gp_noise(spatial_cov)
         self.cells: list[int] = [int(v) for v in cells_array(cells, L)]
-        C = gp_latent_cov(self.Y, S0, region, spatial_cov, rows, self.pool)
+        # K(rows, pool) = residual + trend: the residual block depends on the cells only and is
+        # kept for the next set-up on them (a campaign's days); the trend is the day's prior
+        if float(rows.size) * float(self.pool.size) <= GP_STRUCTURED_MIN_ENTRIES:
+            C = kept_residual_cov(region, spatial_cov, rows, self.pool).copy()
+        else:
+            C = gp_residual_cov(region, spatial_cov, rows, self.pool)
+        C += self.Y[:, rows].T @ S0 @ self.Y[:, self.pool]
         prior_var = np.einsum("ai,ab,bi->i", self.Y[:, T], S0, self.Y[:, T]) + spatial_cov.sill
         self._value = float(self._tw @ prior_var)
         if self.cells:

@@ -25,8 +25,8 @@ from .covariance import MODELS, ResidualCovariance, arc_distance, chord_distance
 
 __all__ = ["krige", "krige_many", "krige_grid_fft", "krige_core", "check_cov",
            "jittered_cholesky", "prepare_kriging", "GridConv", "gp_noise", "gp_latent_cov",
-           "check_gp_inputs", "grid_rect", "FFT_KRIGE_MIN_WORK", "FFT_KRIGE_VAR_TOL",
-           "FFT_KRIGE_REACH", "MAX_DIRECT"]
+           "gp_residual_cov", "check_gp_inputs", "grid_rect", "FFT_KRIGE_MIN_WORK",
+           "FFT_KRIGE_VAR_TOL", "FFT_KRIGE_REACH", "MAX_DIRECT"]
 
 _SQRT3 = np.sqrt(3.0)
 _SQRT5 = np.sqrt(5.0)
@@ -655,13 +655,22 @@ def gp_noise(spatial_cov: Any) -> float:
     return max(float(spatial_cov.nugget), 1e-9 * float(spatial_cov.total_variance))
 
 
+def gp_residual_cov(region: Any, spatial_cov: Any, rows: np.ndarray, cols: np.ndarray
+                    ) -> np.ndarray:
+    """``sill rho(d_ij)`` (``(|rows|, |cols|)``): the GP residual's covariance between the
+    cells ``rows`` and ``cols`` without its nugget, the part of :func:`gp_latent_cov` that does
+    not depend on the latent prior."""
+    a = spatial_cov.points(region, rows)
+    b = spatial_cov.points(region, cols)
+    return spatial_cov.covariance(arc_distance(cdist(a, b), spatial_cov.metric), nugget=False)
+
+
 def gp_latent_cov(Y: np.ndarray, S0: np.ndarray, region: Any, spatial_cov: Any,
                    rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """``K(rows, cols) = y_i^T S0 y_j + sill rho(d_ij)``: prior covariance of the latent field
-    (low-rank trend with prior ``N(., S0)`` plus the GP residual without its nugget)."""
-    a = spatial_cov.points(region, rows)
-    b = spatial_cov.points(region, cols)
-    K = spatial_cov.covariance(arc_distance(cdist(a, b), spatial_cov.metric), nugget=False)
+    (low-rank trend with prior ``N(., S0)`` plus the GP residual without its nugget,
+    :func:`gp_residual_cov`)."""
+    K = gp_residual_cov(region, spatial_cov, rows, cols)
     K += Y[:, rows].T @ S0 @ Y[:, cols]
     return K
 
