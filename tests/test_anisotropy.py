@@ -223,6 +223,10 @@ def test_cli_fits_a_fixed_anisotropy(tmp_path, capsys):
     assert main(["-q", "fit", "sample:sst", "--rank", "3", "--spatial", "auto",
                  "--anisotropy", "2.5", "-o", str(tmp_path / "n.nc")]) != 0
     assert "fixed spatial family" in capsys.readouterr().err
+    assert main(["-q", "fit", "sample:sst", "--paper", "--anisotropy", "2.5",
+                 "-o", str(tmp_path / "p.nc")]) == 2
+    assert "--anisotropy needs --spatial KERNEL" in capsys.readouterr().err
+    assert not (tmp_path / "p.nc").exists()
 
 
 def test_an_anisotropic_fit_validated_worse_does_not_compete(monkeypatch):

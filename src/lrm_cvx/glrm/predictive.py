@@ -367,30 +367,26 @@ def _dof_corrected(sample: np.ndarray, model: Any) -> np.ndarray:
     return np.multiply(sample, np.sqrt(residual_dof(model)), out=out, casting="same_kind")
 
 
-def residual_covariance(model: Any, V: np.ndarray, family: str, *, max_pairs: int = 200_000
+def residual_covariance(model: Any, V: np.ndarray, family: Any, *, max_pairs: int = 200_000
                         ) -> Any:
-    """The spatial residual covariance (``family``) of a fitted ``model`` from its training
-    values ``V (T, L)`` (data units, NaN = missing): what the fit's ``spatial=family`` sets
-    (the variogram of the residuals of :func:`sample_rows`, ``min_nugget="cell"``), with at most
-    ``max_pairs`` pairs. Only those rows of ``V`` are read (``temporal="auto"``'s refit fits it
-    once, with fewer pairs, for all its refits)."""
+    """The spatial residual covariance (``family``: a fixed family's name or
+    :class:`~.options.SpatialOptions`, with its anisotropy) of a fitted ``model`` from its
+    training values ``V (T, L)`` (data units, NaN = missing): what the fit's ``spatial=family``
+    sets (the variogram of the residuals of :func:`sample_rows`, ``min_nugget="cell"``), with at
+    most ``max_pairs`` pairs. Only those rows of ``V`` are read (``temporal="auto"``'s refit
+    fits it once, with fewer pairs, for all its refits)."""
     from ..spatial import fit_residual_covariance
 
+    spatial = spatial_options(family)
     rows = sample_rows(V.shape[0])
     D = V[rows]
     M = ~np.isnan(D)
     D = standardize(D, M, getattr(model, "offset_", None), getattr(model, "scale_", None))
     R = _dof_corrected(residual_sample(D, M, model._Xv[:, rows], model._Yv,
                                        max_times=rows.size), model)
-    return fit_residual_covariance(R, model.region_, model=family, random_state=0,
+    return fit_residual_covariance(R, model.region_, model=spatial.model, random_state=0,
                                    min_nugget="cell", max_pairs=max_pairs,
-                                   anisotropy=_anisotropy(model))
-
-
-def _anisotropy(model: Any) -> float:
-    """The anisotropy ``model``'s ``spatial`` fixes (1: isotropic, or none given)."""
-    spatial = spatial_options(getattr(model, "spatial", None))
-    return 1.0 if spatial is None else spatial.anisotropy
+                                   anisotropy=spatial.anisotropy)
 
 
 class _PredictiveIO:
