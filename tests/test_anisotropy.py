@@ -159,6 +159,15 @@ def test_spatial_auto_chooses_the_anisotropy_and_refits_keep_it():
                                            model.spatial_cov_.anisotropy)
 
 
+@pytest.mark.parametrize("auto", ["auto", SpatialOptions("auto")])
+def test_a_clone_keeps_the_chosen_kernel_however_auto_is_written(auto):
+    from lrm_cvx.validation.refits import clone_model
+
+    model = GLRM(rank=1, spatial=auto, progress=False)
+    model.spatial_cov_ = ResidualCovariance("matern32", sill=1.0, range=2.0, anisotropy=2.5)
+    assert clone_model(model).spatial == SpatialOptions("matern32", anisotropy=2.5)
+
+
 def test_persistence_and_old_files(tmp_path):
     cov = ResidualCovariance("gaussian", sill=1.0, range=2.0, nugget=0.1, anisotropy=2.2)
     assert ResidualCovariance.from_attrs(cov.to_attrs()) == cov
