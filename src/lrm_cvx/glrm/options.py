@@ -89,7 +89,7 @@ class SpatialOptions:
         object.__setattr__(self, "anisotropy", a)
 
     def __str__(self) -> str:
-        return self.model if self.anisotropy == 1.0 else f"{self.model} x{self.anisotropy:g}"
+        return self.model if self.anisotropy == 1.0 else f"{self.model} x{self.anisotropy:.3g}"
 
 
 def solver_options(value: Any) -> SolverOptions:
