@@ -406,7 +406,7 @@ def main() -> None:
                 opts = {"chunk_mb": args.chunk_mb, "block_mb": args.block_mb, "scratch_dir": base}
                 t = time.perf_counter()  # warm-up: numba compiles in every worker
                 warm = dsa.from_array(np.random.default_rng(0).random((20, 2000)), chunks=5)
-                GLRM(rank=5, max_iter=1, tol=0, progress=False, dask_options=opts).fit(warm)
+                GLRM(rank=5, max_iter=1, tol=0, progress=False, dask=opts).fit(warm)
                 print(f"warm-up (compile in the workers): {time.perf_counter() - t:.1f} s",
                       flush=True)
                 if args.stage_only:
@@ -416,7 +416,7 @@ def main() -> None:
                 timings: dict = {}
                 t = time.perf_counter()
                 m = GLRM(rank=5, max_iter=args.rounds, tol=0, random_state=0, progress=False,
-                         dask_options={**opts, "timings": timings})
+                         dask={**opts, "timings": timings})
                 m.fit(da)
                 total = time.perf_counter() - t
             L, T = m.n_cells_, m.n_times_

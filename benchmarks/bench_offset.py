@@ -131,7 +131,7 @@ def coads(ranks: tuple[int, ...] = (1, 2, 3)) -> None:
           f"{np.sqrt(np.mean((D - W)[~gap] ** 2)):.3f} K RMS")
     print("factors  rank   joint RMS (bias) vs WOA at the gaps   centring RMS (bias)")
     mean = np.nanmean(D, axis=0)
-    for regs in ({}, {"reg_x": "ridge", "reg_y": "ridge"}):
+    for regs in ({}, {"reg": "ridge"}):
         for k in ranks:
             kw = dict(max_iter=500, progress=False, random_state=0, **regs)
             joint, _ = fit(GLRM(k, offset=True, **kw), D)

@@ -45,7 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_reconstruction import cost_free_greedy, qr_cells, score  # noqa: E402
 
-from lrm_cvx.glrm import GLRM  # noqa: E402
+from lrm_cvx.glrm import GLRM, SolverOptions  # noqa: E402
 from lrm_cvx.information import GPVarianceOracle, make_oracle  # noqa: E402
 
 #: CPU seconds (all threads) of the last :func:`fit_lrm`: on a shared machine wall times
@@ -130,8 +130,8 @@ def fit_lrm(D: np.ndarray, train: np.ndarray, rank: int = 5, tol: float = 1e-6,
     exactly ``max_iter`` rounds); returns ``(model, wall seconds)``. The zero-filling of the
     data (the fit's input layout) is not timed."""
     Z = np.where(train, D, 0.0).astype(np.float32)
-    model = GLRM(rank=rank, max_iter=max_iter, tol=tol, init="svd", random_state=0,
-                 progress=False)
+    model = GLRM(rank=rank, max_iter=max_iter, tol=tol, solver=SolverOptions(init="svd"),
+                 random_state=0, progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         c0 = time.process_time()

@@ -14,7 +14,7 @@ import pytest
 import xarray as xr
 from scipy.spatial.distance import cdist
 
-from lrm_cvx import GLRM, Region
+from lrm_cvx import GLRM, Region, SpatialOptions
 from lrm_cvx.errors import ModelError
 from lrm_cvx.spatial import ResidualCovariance, estimate_anisotropy, krige
 from lrm_cvx.spatial.covariance import correlation
@@ -155,8 +155,17 @@ def test_spatial_auto_chooses_the_anisotropy_and_refits_keep_it():
     model = GLRM(rank=1, offset=True, spatial="auto", random_state=0, progress=False).fit(da)
     assert model.spatial_cov_.anisotropy > 2.0
     clone = clone_model(model)
-    assert clone.spatial == model.spatial_cov_.model
-    assert clone.anisotropy == model.spatial_cov_.anisotropy
+    assert clone.spatial == SpatialOptions(model.spatial_cov_.model,
+                                           model.spatial_cov_.anisotropy)
+
+
+@pytest.mark.parametrize("auto", ["auto", SpatialOptions("auto")])
+def test_a_clone_keeps_the_chosen_kernel_however_auto_is_written(auto):
+    from lrm_cvx.validation.refits import clone_model
+
+    model = GLRM(rank=1, spatial=auto, progress=False)
+    model.spatial_cov_ = ResidualCovariance("matern32", sill=1.0, range=2.0, anisotropy=2.5)
+    assert clone_model(model).spatial == SpatialOptions("matern32", anisotropy=2.5)
 
 
 def test_persistence_and_old_files(tmp_path):
@@ -169,14 +178,14 @@ def test_persistence_and_old_files(tmp_path):
                       dims=("time", "lat", "lon"),
                       coords=dict(time=np.arange(10), lat=region.lat.values,
                                   lon=region.lon.values))
-    model = GLRM(rank=1, offset=True, spatial="exponential", anisotropy=2.0, random_state=0,
-                 progress=False).fit(da)
+    model = GLRM(rank=1, offset=True, spatial=SpatialOptions("exponential", anisotropy=2.0),
+                 random_state=0, progress=False).fit(da)
     assert model.spatial_cov_.anisotropy == 2.0
     path = tmp_path / "m.nc"
     model.save(path)
     back = GLRM.load(path)
     assert back.spatial_cov_ == model.spatial_cov_
-    assert back.anisotropy == 2.0
+    assert back.spatial == SpatialOptions("exponential", anisotropy=2.0)
 
 
 @pytest.mark.parametrize("bad", [0.0, -1.0, np.nan, np.inf, "wide", True])
@@ -187,7 +196,8 @@ def test_bad_anisotropy_is_a_one_line_error(bad):
                       dims=("time", "lat", "lon"),
                       coords=dict(time=np.arange(6), lat=np.arange(5.0), lon=np.arange(4.0)))
     with pytest.raises(ModelError, match="anisotropy"):
-        GLRM(rank=1, spatial="exponential", anisotropy=bad, progress=False).fit(da)
+        GLRM(rank=1, spatial=SpatialOptions("exponential", anisotropy=bad),
+             progress=False).fit(da)
 
 
 def test_anisotropy_needs_a_fixed_family():
@@ -195,7 +205,7 @@ def test_anisotropy_needs_a_fixed_family():
                       dims=("time", "lat", "lon"),
                       coords=dict(time=np.arange(6), lat=np.arange(5.0), lon=np.arange(4.0)))
     with pytest.raises(ModelError, match="fixed spatial family"):
-        GLRM(rank=1, spatial="auto", anisotropy=2.0, progress=False).fit(da)
+        GLRM(rank=1, spatial=SpatialOptions("auto", anisotropy=2.0), progress=False).fit(da)
 
 
 def test_white_noise_has_no_anisotropy():
@@ -218,10 +228,14 @@ def test_cli_fits_a_fixed_anisotropy(tmp_path, capsys):
                  "exponential", "--anisotropy", "2.5", "--temporal", "none",
                  "-o", str(out)]) == 0
     model = GLRM.load(out)
-    assert model.anisotropy == 2.5 and model.spatial_cov_.anisotropy == 2.5
+    assert model.spatial.anisotropy == 2.5 and model.spatial_cov_.anisotropy == 2.5
     assert main(["-q", "fit", "sample:sst", "--rank", "3", "--spatial", "auto",
                  "--anisotropy", "2.5", "-o", str(tmp_path / "n.nc")]) != 0
     assert "fixed spatial family" in capsys.readouterr().err
+    assert main(["-q", "fit", "sample:sst", "--paper", "--anisotropy", "2.5",
+                 "-o", str(tmp_path / "p.nc")]) == 2
+    assert "--anisotropy needs --spatial KERNEL" in capsys.readouterr().err
+    assert not (tmp_path / "p.nc").exists()
 
 
 def test_an_anisotropic_fit_validated_worse_does_not_compete(monkeypatch):

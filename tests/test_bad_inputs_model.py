@@ -15,7 +15,7 @@ import xarray as xr
 
 from lrm_cvx.errors import DataError, ModelError
 from lrm_cvx.evaluation import PlanningOptions, ScoringOptions, evaluate
-from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm import GLRM, SolverOptions, SpatialOptions
 from lrm_cvx.glrm.fit import free_parameters, max_identifiable_rank
 from lrm_cvx.io.samples import synthetic_field
 
@@ -463,6 +463,37 @@ def test_evaluation_options_normalise_their_values():
         p.ridge = 2.0  # frozen
 
 
+@pytest.mark.parametrize("record, bad, match", [
+    (SolverOptions, dict(name="nope"), "solver name must be 'auto', 'fast' or 'cvxpy'"),
+    (SolverOptions, dict(name=None), "solver name must be"),
+    (SolverOptions, dict(init="zeros"), "init must be 'svd' or 'random', got 'zeros'"),
+    (SpatialOptions, dict(model="spline"), "spatial model must be 'auto' or one of"),
+    (SpatialOptions, dict(model="exponential", anisotropy=0.0), "anisotropy must be a finite"),
+    (SpatialOptions, dict(model="exponential", anisotropy="wide"), "anisotropy must be"),
+    (SpatialOptions, dict(model="auto", anisotropy=2.0), "applies to a fixed spatial family"),
+])
+def test_glrm_options_refuse_bad_values_naming_the_field(record, bad, match):
+    with pytest.raises(ModelError, match=match) as info:
+        record(**bad)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(solver=3), "solver must be 'auto', 'fast', 'cvxpy' or a SolverOptions"),
+    (dict(solver="nope"), "solver name must be"),
+    (dict(spatial={"model": "exponential"}), "spatial must be None, 'auto', one of"),
+    (dict(reg=("ridge",)), r"reg must be one regulariser or a pair \(reg_x, reg_y\)"),
+    (dict(reg=["ridge", None, "l1"]), "reg must be one regulariser or a pair"),
+    (dict(dask=5), "dask must be None or a mapping"),
+    (dict(dask={"chunk": 1}), r"dask: unknown option\(s\) \['chunk'\]"),
+    (dict(dask={"keep_dask": "yes"}), r"dask\['keep_dask'\] must be True or False"),
+])
+def test_glrm_refuses_a_bad_merged_setting_in_one_line(field, bad, match):
+    with pytest.raises(ModelError, match=match) as info:
+        GLRM(rank=2, **FAST, **bad).fit(field)
+    assert "\n" not in str(info.value)
+
+
 def test_evaluate_random_trials_zero_is_fine_without_random(field):
     planning = PlanningOptions(random_trials=0, certify=False)
     out = evaluate(field, **{**EV, "methods": ("greedy",), "planning": planning})
@@ -540,7 +571,7 @@ def test_cells_with_at_most_rank_values_warn_unless_y_is_penalised():
     D = low_rank(T=12, L=15) + 0.1 * rng.standard_normal((12, 15))
     D[2:, :3] = np.nan  # three cells seen twice
     for params, count in ((dict(rank=2), 3), (dict(rank=1, offset=True), 3),
-                          (dict(rank=1), 0), (dict(rank=2, reg_y="ridge"), 0)):
+                          (dict(rank=1), 0), (dict(rank=2, reg=(None, "ridge")), 0)):
         with warnings.catch_warnings(record=True) as got:
             warnings.simplefilter("always")
             GLRM(**params, max_iter=5, progress=False, random_state=0).fit(D)

@@ -18,7 +18,7 @@ from hypothesis import strategies as st  # noqa: E402
 
 from lrm_cvx.errors import DataError, ModelError  # noqa: E402
 from lrm_cvx.evaluation import PlanningOptions, ScoringOptions  # noqa: E402
-from lrm_cvx.glrm import GLRM  # noqa: E402
+from lrm_cvx.glrm import GLRM, SolverOptions  # noqa: E402
 from lrm_cvx.glrm.chunked import fit_chunked, is_dask_backed  # noqa: E402
 from lrm_cvx.glrm.fit import SMALL_SVD  # noqa: E402
 from lrm_cvx.io.samples import synthetic_field  # noqa: E402
@@ -37,7 +37,7 @@ def _pair(data, dask_data, options=SMALL_CHUNKS, **params):
     kw = dict(rank=3, max_iter=12, tol=0, random_state=7, progress=False)
     kw.update(params)
     ref = GLRM(**kw).fit(data)
-    out = GLRM(**kw, dask_options=options).fit(dask_data)
+    out = GLRM(**kw, dask=options).fit(dask_data)
     return ref, out
 
 
@@ -54,7 +54,7 @@ def _same_fit(ref, out, rtol=1e-5):
 
 @pytest.mark.parametrize("init", ["svd", "random"])
 def test_same_answer_as_in_memory(field, init):
-    ref, out = _pair(field, field.chunk({"time": 5}), init=init)
+    ref, out = _pair(field, field.chunk({"time": 5}), solver=SolverOptions(init=init))
     assert is_dask_backed(field.chunk({"time": 5})) and not is_dask_backed(field)
     _same_fit(ref, out, rtol=1e-8)
     assert out.region_.equals(ref.region_)
@@ -65,7 +65,7 @@ def test_same_answer_as_in_memory(field, init):
 @pytest.mark.parametrize("loss,reg_x,reg_y", [
     ("huber", "ridge", None), ("absolute", None, "ridge"), ("quadratic", "l1", "nonneg")])
 def test_same_answer_other_losses(field, loss, reg_x, reg_y):
-    ref, out = _pair(field, field.chunk({"time": 16}), loss=loss, reg_x=reg_x, reg_y=reg_y,
+    ref, out = _pair(field, field.chunk({"time": 16}), loss=loss, reg=(reg_x, reg_y),
                      max_iter=6)
     _same_fit(ref, out, rtol=1e-6)
 
@@ -79,7 +79,7 @@ def test_randomized_svd_regime_and_unobserved_cell():
     D[rng.random((T, L)) < 0.3] = np.nan
     D[:, 5] = np.nan  # a cell never observed
     ref, out = _pair(D, da.from_array(D, chunks=(8, -1)), {"chunk_mb": 4}, rank=k, max_iter=2,
-                     init="svd")
+                     solver=SolverOptions(init="svd"))
     _same_fit(ref, out, rtol=1e-6)
     assert out.unobserved_cells_.tolist() == [5]
     assert isinstance(out.Y_, np.ndarray)
@@ -92,7 +92,7 @@ def test_mask_input_and_tol_stopping(field):
     Dz = np.where(M, D, 1e30).astype(np.float32)  # outside the mask never read
     kw = dict(rank=3, max_iter=50, tol=1e-3, random_state=1, progress=False)
     ref = GLRM(**kw).fit(Dz, mask=M)
-    out = GLRM(**kw, dask_options=SMALL_CHUNKS).fit(da.from_array(Dz, chunks=(10, -1)),
+    out = GLRM(**kw, dask=SMALL_CHUNKS).fit(da.from_array(Dz, chunks=(10, -1)),
                                                     mask=da.from_array(M, chunks=(10, -1)))
     assert ref.converged_ and ref.n_iter_ < 50
     _same_fit(ref, out, rtol=1e-8)
@@ -147,8 +147,8 @@ def test_time_blocks_cover_and_respect_chunks(sizes, budget):
 
 def test_keep_dask_save_load_complete(field, tmp_path):
     fd = field.chunk({"time": 8})
-    m = GLRM(rank=3, max_iter=5, tol=0, random_state=0, progress=False, keep_dask=True,
-             dask_options=SMALL_CHUNKS).fit(fd)
+    m = GLRM(rank=3, max_iter=5, tol=0, random_state=0, progress=False,
+             dask={**SMALL_CHUNKS, "keep_dask": True}).fit(fd)
     ref = GLRM(rank=3, max_iter=5, tol=0, random_state=0, progress=False).fit(field)
     assert is_dask_backed(m.Y_) and m.Y_.data.numblocks[1] > 1
     path = tmp_path / "m.nc"
@@ -208,8 +208,9 @@ def test_distributed_local_cluster(field, tmp_path):
             assert len(client.scheduler_info()["workers"]) == 2
             ref, out = _pair(field, field.chunk({"time": 6}), {"chunk_mb": 0.1}, max_iter=5)
             _same_fit(ref, out, rtol=1e-8)
-            m = GLRM(rank=3, max_iter=4, tol=0, random_state=7, progress=False, keep_dask=True,
-                     dask_options={"chunk_mb": 0.1, "scratch_dir": str(tmp_path)}).fit(
+            m = GLRM(rank=3, max_iter=4, tol=0, random_state=7, progress=False,
+                     dask={"chunk_mb": 0.1, "scratch_dir": str(tmp_path), "keep_dask": True}
+                     ).fit(
                          field.chunk({"time": 6}))
             m.save(tmp_path / "d.nc")
             ref4 = GLRM(rank=3, max_iter=4, tol=0, random_state=7, progress=False).fit(field)
@@ -220,7 +221,7 @@ def test_distributed_local_cluster(field, tmp_path):
             kw = dict(rank=3, max_iter=5, tol=0, random_state=7, progress=False, offset=True,
                       scale=True, noise="per-cell", spatial="exponential", temporal="ar1")
             ref5 = GLRM(**kw).fit(field)
-            out5 = GLRM(**kw, dask_options={"chunk_mb": 0.05, "scratch_dir": str(tmp_path)}
+            out5 = GLRM(**kw, dask={"chunk_mb": 0.05, "scratch_dir": str(tmp_path)}
                         ).fit(field.chunk({"time": 6}))
             _assert_model_equal(ref5, out5)
     finally:
@@ -229,7 +230,7 @@ def test_distributed_local_cluster(field, tmp_path):
 
 def test_convergence_warning_points_at_the_callers_line(field):
     for data, options in ((field, None), (field.chunk({"time": 8}), SMALL_CHUNKS)):
-        model = GLRM(rank=3, max_iter=1, tol=1e-12, progress=False, dask_options=options)
+        model = GLRM(rank=3, max_iter=1, tol=1e-12, progress=False, dask=options)
         with pytest.warns(Warning) as record:
             model.fit(data)
         hits = [w for w in record if "max_iter=1" in str(w.message)]
@@ -242,7 +243,7 @@ OPTIONS = [
     dict(scale=True),
     dict(offset=True, scale=True, noise="per-cell"),
     dict(offset=True, noise="per-cell", spatial="exponential", temporal="ar1"),
-    dict(noise="per-cell", spatial="gaussian", reg_x="ridge", reg_y="ridge"),
+    dict(noise="per-cell", spatial="gaussian", reg="ridge"),
     dict(offset=True, scale="residual", spatial="exponential"),
 ]
 CHUNKINGS = [  # (input time chunks, fit options): one chunk, several, ragged
@@ -296,7 +297,7 @@ def test_every_option_same_model_as_in_memory(field, options, chunking):
     chunks, fit_options = CHUNKINGS[chunking]
     kw = dict(rank=3, max_iter=8, tol=0, random_state=3, progress=False, **options)
     ref = GLRM(**kw).fit(field)
-    out = GLRM(**kw, dask_options=fit_options).fit(field.chunk(chunks))
+    out = GLRM(**kw, dask=fit_options).fit(field.chunk(chunks))
     _assert_model_equal(ref, out)
 
 
@@ -316,7 +317,7 @@ def test_scale_floor_is_that_of_all_cells_not_of_a_chunk(field):
     np.testing.assert_allclose(ref.scale_, np.maximum(sd, SCALE_FLOOR * np.median(sd)),
                                rtol=1e-6)
     assert np.sum(ref.scale_ > sd * (1 + 1e-6)) >= 20  # the corner is floored
-    out = GLRM(**kw, dask_options=SMALL_CHUNKS).fit(data.chunk({"time": 5}))
+    out = GLRM(**kw, dask=SMALL_CHUNKS).fit(data.chunk({"time": 5}))
     _assert_model_equal(ref, out)
 
 
@@ -334,7 +335,7 @@ def test_options_on_array_with_mask_and_randomized_init():
     kw = dict(rank=k, max_iter=30, tol=1e-6, random_state=2, progress=False, offset=True,
               scale=True, noise="per-cell")
     ref = GLRM(**kw).fit(Dz, mask=M)
-    out = GLRM(**kw, dask_options={"chunk_mb": 3}).fit(
+    out = GLRM(**kw, dask={"chunk_mb": 3}).fit(
         da.from_array(Dz, chunks=(9, -1)), mask=da.from_array(M, chunks=(9, -1)))
     assert out.converged_ == ref.converged_ and out.n_iter_ == ref.n_iter_
     _assert_model_equal(ref, out, rtol=1e-6)
@@ -349,7 +350,7 @@ def test_dask_fitted_model_downstream(field):
     kw = dict(rank=3, max_iter=6, tol=0, random_state=0, progress=False, offset=True,
               noise="per-cell", spatial="exponential")
     ref = GLRM(**kw).fit(field.isel(time=slice(0, 40)))
-    out = GLRM(**kw, keep_dask=True, dask_options=SMALL_CHUNKS).fit(
+    out = GLRM(**kw, dask={**SMALL_CHUNKS, "keep_dask": True}).fit(
         field.isel(time=slice(0, 40)).chunk({"time": 8}))
     assert is_dask_backed(out.Y_)
     snap = field.isel(time=44)
@@ -401,7 +402,7 @@ def test_rounds_make_two_passes():
     assert Q.PASSES.passes(D.shape) == 1 + 1 + 4 + 2 * 9
     Dn = np.where(M, D, np.nan)
     Q.PASSES.reset()
-    GLRM(**kw, dask_options={"chunk_mb": 1.5}).fit(da.from_array(Dn, chunks=(6, -1)))
+    GLRM(**kw, dask={"chunk_mb": 1.5}).fit(da.from_array(Dn, chunks=(6, -1)))
     # prepare (scan) 1, range 1, power 2, projection 1, rounds 2 x 5; no final pass
     assert Q.PASSES.passes(D.shape) == pytest.approx(1 + 1 + 2 + 1 + 2 * 5)
 

@@ -10,7 +10,7 @@ import xarray as xr
 
 from lrm_cvx.belief import fold_in, fold_in_many
 from lrm_cvx.errors import ConvergenceWarning, DataError, ModelError, NotFittedError
-from lrm_cvx.glrm import GLRM, L1, Huber, Ridge
+from lrm_cvx.glrm import GLRM, L1, Huber, Quadratic, Ridge, SolverOptions, SpatialOptions
 from lrm_cvx.glrm.calibrated import prediction_factor
 from lrm_cvx.region import Region
 
@@ -88,7 +88,8 @@ def test_fit_leaves_callers_nan_arrays_alone():
 
 
 def test_same_seed_same_result():
-    a, b = fitted(init="random", random_state=3), fitted(init="random", random_state=3)
+    rand = SolverOptions(init="random")
+    a, b = fitted(solver=rand, random_state=3), fitted(solver=rand, random_state=3)
     np.testing.assert_array_equal(a.X_.values, b.X_.values)
     np.testing.assert_array_equal(a.Y_.values, b.Y_.values)
 
@@ -192,7 +193,7 @@ def test_score_holdout_and_select_rank():
 
 
 def test_save_load_round_trip(tmp_path):
-    m = fitted(loss=Huber(0.5), reg_y=Ridge(0.01))
+    m = fitted(loss=Huber(0.5), reg=(None, Ridge(0.01)))
     p = tmp_path / "model.nc"
     m.save(p)
     m2 = GLRM.load(p)
@@ -213,18 +214,65 @@ def test_save_load_round_trip(tmp_path):
         GLRM.load(junk)
 
 
+def test_merged_settings_round_trip(tmp_path):
+    """A model fitted with a non-default value of every merged setting (a pair of
+    regularisers, a solver record with the random init, an anisotropic spatial record, dask
+    options) loads back with the same parameters and the same predictions."""
+    spatial = SpatialOptions("exponential", anisotropy=1.5)
+    m = fitted(loss=Quadratic(), reg=(Ridge(0.1), L1(0.01)),
+               solver=SolverOptions("fast", init="random"), spatial=spatial,
+               dask={"chunk_mb": 0.5, "keep_dask": True}, max_iter=5)
+    assert m.spatial_cov_.anisotropy == 1.5 and m.solver_ == "fast"
+    m.save(tmp_path / "m.nc")
+    back = GLRM.load(tmp_path / "m.nc")
+    assert back.get_params() == m.get_params()
+    assert back.reg == (Ridge(0.1), L1(0.01)) and back.spatial == spatial
+    assert back.solver == SolverOptions("fast", "random")
+    assert back.dask == {"chunk_mb": 0.5, "keep_dask": True}
+    assert back.spatial_cov_ == m.spatial_cov_
+    obs = {0: 0.1, 3: 0.2, 8: 0.3}
+    xr.testing.assert_identical(back.complete(obs, prior="empirical", spatial=True),
+                                m.complete(obs, prior="empirical", spatial=True))
+    # one regulariser is both factors': the same fit as the pair of it
+    np.testing.assert_array_equal(fitted(reg="ridge", max_iter=5).Y,
+                                  fitted(reg=("ridge", "ridge"), max_iter=5).Y)
+
+
+def test_a_file_with_the_separate_settings_loads_merged(tmp_path):
+    """A model file whose params hold ``reg_x``/``reg_y``, ``init``, ``anisotropy``,
+    ``keep_dask``/``dask_options`` reads back with ``reg``, ``solver``, ``spatial``, ``dask``."""
+    import json
+
+    m = fitted(spatial="exponential", max_iter=3)
+    m.save(tmp_path / "m.nc")
+    with xr.open_dataset(tmp_path / "m.nc") as f:
+        ds = f.load()
+    params = {k: v for k, v in json.loads(ds.attrs["params"]).items()
+              if k not in ("reg", "dask")}
+    ds.attrs["params"] = json.dumps({**params, "reg_x": None, "reg_y": "ridge",
+                                     "init": "random", "anisotropy": 2.0, "keep_dask": True,
+                                     "dask_options": {"chunk_mb": 3}})
+    ds.to_netcdf(tmp_path / "separate.nc")
+    back = GLRM.load(tmp_path / "separate.nc")
+    assert back.reg == (None, "ridge")
+    assert back.solver == SolverOptions("auto", "random")
+    assert back.spatial == SpatialOptions("exponential", 2.0)
+    assert back.dask == {"chunk_mb": 3, "keep_dask": True}
+    assert "init" not in back.get_params() and "anisotropy" not in back.get_params()
+
+
 def test_custom_regulariser_saved_as_repr(tmp_path):
     import cvxpy as cp
 
     rng = np.random.default_rng(5)
     D = rng.standard_normal((6, 10))
-    m = GLRM(rank=2, reg_y=lambda V: 0.1 * cp.sum_squares(V), progress=False, max_iter=2,
+    m = GLRM(rank=2, reg=(None, lambda V: 0.1 * cp.sum_squares(V)), progress=False, max_iter=2,
              tol=0).fit(D)
     assert m.solver_ == "cvxpy"
     m.save(tmp_path / "c.nc")
     with pytest.warns(UserWarning, match="custom"):
         m2 = GLRM.load(tmp_path / "c.nc")
-    assert m2.reg_y is None
+    assert m2.reg[1] is None
     np.testing.assert_array_equal(m2.Y_, m.Y_)
 
 
@@ -264,7 +312,8 @@ def test_params_and_errors():
     D3[rng.random(D.shape) < 0.4] = np.nan
     D3[:, 0] = D[:, 0]
     with pytest.warns(ConvergenceWarning):
-        GLRM(rank=2, progress=False, max_iter=1, tol=1e-12, init="random").fit(D3)
+        GLRM(rank=2, progress=False, max_iter=1, tol=1e-12,
+             solver=SolverOptions(init="random")).fit(D3)
 
 
 def test_region_given_with_unobserved_cell():

@@ -82,7 +82,7 @@ def objective(Z, M, X, Y, o, lam_y=0.0, lam_x=0.0):
 def test_equals_the_naive_alternating_reference(reg):
     _, D = clouded(T=30, L=80, k=3, seed=1)
     M = ~np.isnan(D)
-    kw = dict(offset=True, reg_x=reg, reg_y=reg, **FIT)
+    kw = dict(offset=True, reg=reg, **FIT)
     X0 = np.asarray(quiet(GLRM(3, max_iter=0, **kw), D).X_)  # the shared initialisation
     m = quiet(GLRM(3, max_iter=6, tol=0, **kw), D)
     mean = np.nanmean(D, axis=0)
@@ -142,7 +142,7 @@ def test_dask_fit_is_the_in_memory_joint_fit():
     da = clouded_grid(seed=4)
     kw = dict(offset=True, scale=True, max_iter=15, tol=0, **FIT)
     ref = quiet(GLRM(2, **kw), da)
-    out = quiet(GLRM(2, dask_options={"chunk_mb": 0.01, "block_mb": 0.05}, **kw),
+    out = quiet(GLRM(2, dask={"chunk_mb": 0.01, "block_mb": 0.05}, **kw),
                 da.chunk({"time": 7}))
     assert np.abs(ref.offset_ - np.nanmean(ref.region_.stack(da), axis=0)).max() > 1e-3
     np.testing.assert_allclose(out.offset_, ref.offset_, rtol=0, atol=1e-6)
@@ -184,16 +184,16 @@ def test_robust_losses_fit_the_offset_jointly_and_never_increase(loss):
 
 def test_l1_factors_keep_the_observed_mean():
     _, D = clouded(T=30, L=80, k=2, seed=7)
-    m = quiet(GLRM(2, offset=True, reg_y="l1", max_iter=5, **FIT), D)
+    m = quiet(GLRM(2, offset=True, reg=(None, "l1"), max_iter=5, **FIT), D)
     np.testing.assert_allclose(m.offset_, np.nanmean(D, axis=0), rtol=1e-12)
 
 
 def test_dask_robust_loss_is_the_in_memory_joint_fit():
     pytest.importorskip("dask")
     da = clouded_grid(seed=8)
-    kw = dict(offset=True, loss="huber", reg_x="ridge", max_iter=6, tol=0, **FIT)
+    kw = dict(offset=True, loss="huber", reg=("ridge", None), max_iter=6, tol=0, **FIT)
     ref = quiet(GLRM(2, **kw), da)
-    out = quiet(GLRM(2, dask_options={"chunk_mb": 0.01, "block_mb": 0.05}, **kw),
+    out = quiet(GLRM(2, dask={"chunk_mb": 0.01, "block_mb": 0.05}, **kw),
                 da.chunk({"time": 7}))
     np.testing.assert_allclose(out.offset_, ref.offset_, rtol=0, atol=1e-6)
     np.testing.assert_allclose(out.objective_, ref.objective_, rtol=1e-7)

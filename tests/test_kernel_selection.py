@@ -138,5 +138,5 @@ def test_refits_keep_the_chosen_family():
 
     model = _fit(_field("gaussian", 4.0, T=20, n=12), "auto")
     refit = clone_model(model)
-    assert refit.spatial == model.kernel_selection_.attrs["choice"] != "auto"
+    assert str(refit.spatial) == model.kernel_selection_.attrs["choice"] != "auto"
     assert clone_model(GLRM(2, spatial="auto")).spatial == "auto"  # unfitted: still auto

@@ -12,7 +12,7 @@ import xarray as xr
 
 from lrm_cvx.belief.posterior import fold_in_snapshots
 from lrm_cvx.errors import PlanningError
-from lrm_cvx.glrm import GLRM
+from lrm_cvx.glrm import GLRM, SpatialOptions
 from lrm_cvx.planning import place_sensors
 from lrm_cvx.planning import static_auto as sa
 from lrm_cvx.validation.search import BlockGuard
@@ -265,7 +265,7 @@ def test_the_refits_keep_the_kernel_the_model_chose():
     V = region.stack(da).astype(np.float64)
     fit = sa._refit(model, V[:10], region)
     chosen = model.spatial_cov_
-    assert fit.spatial == chosen.model and fit.anisotropy == chosen.anisotropy
+    assert fit.spatial == SpatialOptions(chosen.model, chosen.anisotropy)
     assert fit.spatial_cov_.model == chosen.model
     assert fit.spatial_cov_.range != chosen.range  # refitted, not copied
     params = {**model.get_params(), "temporal": None, "calibration": None}

@@ -21,6 +21,8 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "GLRM": "lrm_cvx.glrm",
+    "SolverOptions": "lrm_cvx.glrm",
+    "SpatialOptions": "lrm_cvx.glrm",
     "load_sample": "lrm_cvx.datasets",
     "list_samples": "lrm_cvx.datasets",
     "open_data": "lrm_cvx.io.generic",

@@ -106,6 +106,7 @@ def model_params(args: argparse.Namespace) -> dict:
     """The GLRM parameters of ``fit`` / ``evaluate``: the explicit model options over the
     paper's defaults (``--paper``) or over the recommended ones (every GLRM parameter in
     ``RECOMMENDED``, so a key the recommended setting gains reaches the fit)."""
+    from .glrm.options import SpatialOptions
     from .glrm.predictive import NOISE_MODELS
 
     params: dict = {"offset": False, "spatial": None, "scale": False,
@@ -114,9 +115,12 @@ def model_params(args: argparse.Namespace) -> dict:
         params.update(recommended_glrm())
     explicit = {"offset": True if args.offset else None,
                 "scale": _scale_option(args),
-                "noise": args.noise, "spatial": args.spatial, "temporal": args.temporal,
-                "anisotropy": args.anisotropy}
+                "noise": args.noise, "spatial": args.spatial, "temporal": args.temporal}
     params.update({k: v for k, v in explicit.items() if v is not None})
+    if args.anisotropy is not None:  # --spatial KERNEL --anisotropy A: one spatial setting
+        if params["spatial"] is None:
+            raise UsageError("--anisotropy needs --spatial KERNEL (a fixed covariance family)")
+        params["spatial"] = SpatialOptions(params["spatial"], args.anisotropy)
     params["temporal"] = none_value(params["temporal"])  # --temporal none: no dynamics
     return params
 

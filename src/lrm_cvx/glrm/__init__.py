@@ -15,6 +15,7 @@ if TYPE_CHECKING:  # the names of _LAZY, for readers and type checkers
     from .fit import FitResult, fit_glrm
     from .losses import Absolute, Huber, Loss, Quadratic, Quantile, get_loss
     from .model import GLRM
+    from .options import SolverOptions, SpatialOptions
     from .regularizers import (
         L1,
         CvxpyRegularizer,
@@ -27,6 +28,8 @@ if TYPE_CHECKING:  # the names of _LAZY, for readers and type checkers
 
 _LAZY = {
     "GLRM": ".model",
+    "SolverOptions": ".options",
+    "SpatialOptions": ".options",
     "fit_glrm": ".fit",
     "FitResult": ".fit",
     **dict.fromkeys(("Loss", "Quadratic", "Huber", "Absolute", "Quantile", "get_loss"),
@@ -37,9 +40,9 @@ _LAZY = {
 """Public name -> its module, imported on first use (the fit imports cvxpy and numba, which
 ``import lrm_cvx`` does not need)."""
 
-__all__ = ["GLRM", "fit_glrm", "FitResult", "Loss", "Quadratic", "Huber", "Absolute", "Quantile",
-           "get_loss", "Regularizer", "ZeroReg", "Ridge", "L1", "NonNegative", "CvxpyRegularizer",
-           "get_regularizer"]
+__all__ = ["GLRM", "SolverOptions", "SpatialOptions", "fit_glrm", "FitResult", "Loss",
+           "Quadratic", "Huber", "Absolute", "Quantile", "get_loss", "Regularizer", "ZeroReg",
+           "Ridge", "L1", "NonNegative", "CvxpyRegularizer", "get_regularizer"]
 
 
 __getattr__, __dir__ = lazy_attributes(__name__, _LAZY)

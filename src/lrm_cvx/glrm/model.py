@@ -34,6 +34,13 @@ from .modelfile import (
     restore_validation_tables,
     validation_tables,
 )
+from .options import (
+    SolverOptions,
+    SpatialOptions,
+    dask_options,
+    regularizer_pair,
+    solver_options,
+)
 from .predictive import PREDICTIVE_ATTRS, add_joint_offset, fit_predictive
 from .regularizers import get_regularizer
 
@@ -53,20 +60,25 @@ class GLRM:
         from a few samples. ``rank_`` is the rank fitted, the table is ``selection_``.
     loss : ``"quadratic"`` (the paper), ``"huber"``, ``"absolute"``/``"l1"``, ``"quantile"``, or
         a :class:`~lrm_cvx.glrm.losses.Loss` instance (``Huber(delta=1.0)``, ``Quantile(0.9)``).
-    reg_x, reg_y : regulariser of each column of ``X`` (times) / ``Y`` (cells): ``None``,
-        ``"ridge"``/``"l2"``, ``"l1"``, ``"nonneg"`` (weight 1), an instance (``Ridge(0.1)``,
-        ``L1(0.1)``, ``NonNegative()``), or a callable ``fn(V)`` on a cvxpy Variable ``(k, n)``
-        returning a scalar expression (or ``(expression, constraints)``), summed over columns;
-        callables are fitted by the cvxpy path.
+    reg : the regulariser of each column of ``X`` (times) and of ``Y`` (cells), or a pair
+        ``(reg_x, reg_y)`` of one for each (``reg=(None, "ridge")``: ``Y`` only). A regulariser
+        is ``None``, ``"ridge"``/``"l2"``, ``"l1"``, ``"nonneg"`` (weight 1), an instance
+        (``Ridge(0.1)``, ``L1(0.1)``, ``NonNegative()``), or a callable ``fn(V)`` on a cvxpy
+        Variable ``(k, n)`` returning a scalar expression (or ``(expression, constraints)``),
+        summed over columns; callables are fitted by the cvxpy path.
     max_iter, tol : at most ``max_iter`` rounds (Y step then X step); stop when the relative
         decrease of the objective is below ``tol``.
-    init : ``"svd"`` (SVD of the mean-filled matrix; randomized for large data) or ``"random"``.
     solver : ``"auto"`` (compiled fast path whenever the loss/regularisers allow), ``"fast"``
-        (require it), or ``"cvxpy"`` (every block subproblem in cvxpy with Clarabel/SCS).
+        (require it), or ``"cvxpy"`` (every block subproblem in cvxpy with Clarabel/SCS); or a
+        :class:`~lrm_cvx.glrm.options.SolverOptions` naming one of them and the
+        initialisation, ``init="svd"`` (SVD of the mean-filled matrix; randomized for large
+        data, the default) or ``"random"``: ``solver=SolverOptions(init="random")``.
     random_state : seed / Generator for the initialisation.
     progress : show a tqdm progress bar.
-    keep_dask : for dask-backed data, keep ``Y_`` as a dask array of the persisted column chunks
-        (docs/scaling.md); ``dask_options``: :func:`~.chunked.fit_chunked`'s options.
+    dask : for dask-backed data (docs/scaling.md): None (default) or a mapping of
+        :func:`~.chunked.fit_chunked`'s options, keys among ``chunk_mb``, ``scratch_dir``,
+        ``block_mb``, ``staging_options``, ``timings`` and ``keep_dask`` (True: keep ``Y_`` as
+        a dask array of the persisted column chunks; default: a numpy array).
     offset, scale : fit a per-cell mean (``offset_``: jointly with the factors, the observed
         mean plus a correction with a prior worth one observation, glrm/offset.py; the observed
         mean alone with L1 / non-negative factors or ``solver="cvxpy"``) and/or divide by a
@@ -80,11 +92,13 @@ class GLRM:
     spatial : None, a covariance model name (``"exponential"``, ``"matern32"``, ...) or
         ``"auto"`` (the family validated on the training residuals, ``kernel_selection_``,
         :mod:`~lrm_cvx.validation.kernel_selection`): fit a stationary covariance of the training
-        residuals (``spatial_cov_``) for the trend + GP residual prediction.
-    anisotropy : a fixed ``spatial`` family's east-west over north-south range (grid cells;
-        1: isotropic, the default). ``spatial="auto"`` validates its own: the isotropic
-        families against the same families at the directional-variogram estimate
-        (:func:`~lrm_cvx.spatial.estimate_anisotropy`), docs/spatial.md.
+        residuals (``spatial_cov_``) for the trend + GP residual prediction. A
+        :class:`~lrm_cvx.glrm.options.SpatialOptions` also fixes a family's anisotropy, its
+        east-west over north-south range (grid cells; 1: isotropic, the default):
+        ``spatial=SpatialOptions("exponential", anisotropy=2.0)``. ``spatial="auto"`` validates
+        its own: the isotropic families against the same families at the
+        directional-variogram estimate (:func:`~lrm_cvx.spatial.estimate_anisotropy`),
+        docs/spatial.md.
     temporal : None (default: snapshots independent), ``"ar1"`` or ``"seasonal"``: after the
         fit, estimate linear-Gaussian dynamics of the latent columns of ``X_`` (``dynamics_``,
         :mod:`~lrm_cvx.glrm.dynamics`, docs/monitoring.md) for :meth:`monitor`. Needs a sorted,
@@ -109,31 +123,25 @@ class GLRM:
         self,
         rank: int = 5,
         loss: Any = "quadratic",
-        reg_x: Any = None,
-        reg_y: Any = None,
+        reg: Any = None,
         max_iter: int = 100,
         tol: float = 1e-4,
-        init: str = "svd",
-        solver: str = "auto",
+        solver: str | SolverOptions = "auto",
         random_state: Any = None,
         progress: bool = True,
         offset: bool = False,
         scale: bool = False,
         noise: str = "global",
-        spatial: str | None = None,
-        anisotropy: float = 1.0,
-        keep_dask: bool = False,
-        dask_options: dict | None = None,
+        spatial: str | SpatialOptions | None = None,
+        dask: Mapping[str, Any] | None = None,
         temporal: str | None = None,
         calibration: str | None = None,
     ) -> None:
         self.rank = rank
         self.loss = loss
-        self.reg_x = reg_x
-        self.reg_y = reg_y
+        self.reg = reg
         self.max_iter = max_iter
         self.tol = tol
-        self.init = init
         self.solver = solver
         self.random_state = random_state
         self.progress = progress
@@ -141,9 +149,7 @@ class GLRM:
         self.scale = scale
         self.noise = noise
         self.spatial = spatial
-        self.anisotropy = anisotropy
-        self.keep_dask = keep_dask
-        self.dask_options = dask_options
+        self.dask = dask
         self.temporal = temporal
         self.calibration = calibration
 
@@ -202,14 +208,16 @@ class GLRM:
         """
         rank, rank_selection = self.rank, None
         _check_temporal(self.temporal, data)
+        solver = solver_options(self.solver)
+        dask, keep_dask = dask_options(self.dask)
         if isinstance(rank, str):  # "auto": validated before the fit (validation/selection.py)
             rank, rank_selection, region = self._choose_rank(data, mask, region)
         loss = get_loss(self.loss)
-        reg_x = get_regularizer(self.reg_x)
-        reg_y = get_regularizer(self.reg_y)
+        reg_x, reg_y = (get_regularizer(r) for r in regularizer_pair(self.reg))
         rng = as_generator(self.random_state)
         if _is_dask(data) or _is_dask(mask):  # out of core, chunk by chunk on dask
-            return self._fit_dask(data, mask, region, rank, loss, reg_x, reg_y, rng)
+            return self._fit_dask(data, mask, region, rank, loss, reg_x, reg_y, rng, solver,
+                                  dask, keep_dask)
         D, M, region, times, owned = self._prepare(data, mask, region)
         offset = bool(self.offset) if isinstance(self.offset, (bool, np.bool_)) else False
         stats = check_data(D, M, rank, offset=offset,
@@ -228,7 +236,7 @@ class GLRM:
             stats = DataStats(stats[0], stats[1], colsum)
         res = fit_glrm(
             D, M, rank, loss, reg_x, reg_y, max_iter=self.max_iter, tol=self.tol,
-            init=self.init, solver=self.solver, rng=rng, progress=bool(self.progress),
+            init=solver.init, solver=solver.name, rng=rng, progress=bool(self.progress),
             stats=stats, overwrite_data=owned,  # our own copy: zero-filled in place
             offset=offset,
         )
@@ -241,7 +249,8 @@ class GLRM:
         _warn_if_static(self._Xv)
         return self
 
-    def _fit_dask(self, data, mask, region, rank, loss, reg_x, reg_y, rng) -> GLRM:
+    def _fit_dask(self, data, mask, region, rank, loss, reg_x, reg_y, rng, solver, opts,
+                  keep_dask) -> GLRM:
         from .chunked import STAGING_KEYS, fit_chunked
         from .fit import FitOptions
         from .predictive import check_options, data_scale, set_predictive, wants_residual_moments
@@ -249,15 +258,15 @@ class GLRM:
         # the same options as in memory, computed chunk by chunk (every statistic is per cell)
         check_options(self, region is not None or getattr(data, "ndim", 0) == 3)
         extras: dict = {}
-        opts = dict(self.dask_options or {})  # fit_chunked's keywords and the staging's
+        opts = dict(opts)  # fit_chunked's keywords and the staging's
         staging = {**(opts.pop("staging_options", None) or {}),
                    **{key: opts.pop(key) for key in STAGING_KEYS if key in opts}}
-        fit = FitOptions(max_iter=self.max_iter, tol=self.tol, init=self.init,
-                         solver=self.solver, rng=rng, progress=bool(self.progress),
+        fit = FitOptions(max_iter=self.max_iter, tol=self.tol, init=solver.init,
+                         solver=solver.name, rng=rng, progress=bool(self.progress),
                          offset=bool(self.offset))
         res, region, times, self._time_dim = fit_chunked(
             data, rank, loss, reg_x, reg_y, mask=mask, region=region,
-            keep_dask=bool(self.keep_dask), scale=data_scale(self),
+            keep_dask=keep_dask, scale=data_scale(self),
             residual_moments=wants_residual_moments(self),
             residual_rows=20 if self.spatial is not None else None, extras=extras, fit=fit,
             staging_options=staging, **opts)

@@ -7,16 +7,19 @@ than this version or is inconsistent (DataError naming the file and what is wron
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import warnings
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import xarray as xr
 
 from .._validation import read_netcdf
 from ..errors import DataError
+from .options import SolverOptions, SpatialOptions
 
 __all__ = ["MODEL_FORMAT", "MODEL_FORMAT_VERSION", "MODEL_VARS", "MODEL_ATTRS",
            "read_model_file", "params_to_json", "params_from_json", "validation_tables",
@@ -26,6 +29,10 @@ MODEL_FORMAT = "lrm-cvx GLRM"
 MODEL_FORMAT_VERSION = 1
 MODEL_VARS = ("X", "Y", "objective", "unobserved_cells")
 MODEL_ATTRS = ("params", "noise_std", "n_iter", "converged", "n_observed")
+
+_RECORDS = (SolverOptions, SpatialOptions)
+"""The settings records a model's parameters may hold, saved as their fields."""
+_RECORD_NAMES = {cls.__name__: cls for cls in _RECORDS}
 
 
 _TABLES = (  # (attribute, file prefix, its variables and coords, int attrs, float attrs)
@@ -104,20 +111,24 @@ def restore_validation_tables(model: object, ds: xr.Dataset) -> None:
 
 
 def params_to_json(params: dict) -> tuple[str, list[str]]:
-    """``(json text, names)`` of a model's ``get_params()``: losses and regularisers as their
-    specs; ``names`` the custom callables that cannot be saved (their repr is stored)."""
+    """``(json text, names)`` of a model's ``get_params()``: the loss and the regularisers as
+    their specs (``reg``'s pair as a list of two), the settings records
+    (:mod:`~lrm_cvx.glrm.options`) as their fields under ``"record"``; ``names`` the custom
+    callables that cannot be saved (their repr is stored)."""
     from .losses import get_loss
-    from .regularizers import get_regularizer
+    from .options import regularizer_pair
 
     out, custom = {}, []
     for key, value in params.items():
-        if key in ("loss", "reg_x", "reg_y"):
-            obj = get_loss(value) if key == "loss" else get_regularizer(value)
-            if getattr(obj, "serializable", True):
-                out[key] = obj.spec()
-            else:
-                out[key] = {"name": "custom", "repr": repr(obj)}
-                custom.append(key)
+        if key == "loss":
+            out[key] = _spec(get_loss(value), key, custom)
+        elif key == "reg":
+            pair = isinstance(value, (tuple, list))
+            specs = [_spec(r, f"{key}[{i}]" if pair else key, custom)
+                     for i, r in enumerate(regularizer_pair(value)[:1 + pair])]
+            out[key] = specs if pair else specs[0]
+        elif isinstance(value, _RECORDS):
+            out[key] = {"record": type(value).__name__, **dataclasses.asdict(value)}
         elif key == "random_state":
             out[key] = value if isinstance(value, (int, type(None))) else repr(value)
         else:
@@ -125,21 +136,64 @@ def params_to_json(params: dict) -> tuple[str, list[str]]:
     return json.dumps(out, default=str), custom
 
 
+def _spec(value: Any, name: str, custom: list[str]) -> dict:
+    """The spec of a loss or regulariser (``custom`` gains ``name`` for a custom callable)."""
+    from .regularizers import get_regularizer
+
+    obj = value if name == "loss" else get_regularizer(value)
+    if getattr(obj, "serializable", True):
+        return obj.spec()
+    custom.append(name)
+    return {"name": "custom", "repr": repr(obj)}
+
+
 def params_from_json(params: dict) -> dict:
     """The parameters of :func:`params_to_json` read back (``read_model_file``'s ``params``):
-    loss and regulariser specs rebuilt; a custom callable becomes None with a warning."""
+    loss and regulariser specs and settings records rebuilt; a custom callable becomes None
+    with a warning. A file that stores the regularisers, the initialisation, the anisotropy
+    and the dask options as separate keys (``reg_x``, ``reg_y``, ``init``, ``anisotropy``,
+    ``keep_dask``, ``dask_options``) reads back as ``reg``, ``solver``, ``spatial`` and
+    ``dask``."""
     from .losses import get_loss
     from .regularizers import get_regularizer
 
-    params = dict(params)
-    for key in ("loss", "reg_x", "reg_y"):
-        spec = params.get(key)
-        if isinstance(spec, dict) and spec.get("name") == "custom":
-            warnings.warn(f"{key} was a custom callable ({spec.get('repr')}) and cannot be "
-                          "restored; it is set to None", UserWarning, stacklevel=3)
-            params[key] = None
-        elif isinstance(spec, dict):
-            params[key] = (get_loss(spec) if key == "loss" else get_regularizer(spec))
+    params = _merged_keys(dict(params))
+    for key in ("loss", "reg"):
+        if key not in params:
+            continue
+        spec = params[key]
+        specs = spec if isinstance(spec, list) else [spec]
+        for i, one in enumerate(specs):
+            if isinstance(one, dict) and one.get("name") == "custom":
+                warnings.warn(f"{key} was a custom callable ({one.get('repr')}) and cannot be "
+                              "restored; it is set to None", UserWarning, stacklevel=3)
+                specs[i] = None
+            elif isinstance(one, dict):
+                specs[i] = get_loss(one) if key == "loss" else get_regularizer(one)
+        params[key] = tuple(specs) if isinstance(spec, list) else specs[0]
+    for key, value in params.items():
+        if isinstance(value, dict) and value.get("record") in _RECORD_NAMES:
+            fields = {k: v for k, v in value.items() if k != "record"}
+            params[key] = _RECORD_NAMES[value["record"]](**fields)
+    return params
+
+
+def _merged_keys(params: dict) -> dict:
+    """``params`` with the separate keys of :func:`params_from_json` merged into ``reg``,
+    ``solver``, ``spatial`` and ``dask`` (their defaults dropped: the same model)."""
+    from .options import SolverOptions, SpatialOptions
+
+    if "reg_x" in params or "reg_y" in params:
+        params["reg"] = [params.pop("reg_x", None), params.pop("reg_y", None)]
+    init = params.pop("init", "svd")
+    if init != "svd":
+        params["solver"] = SolverOptions(params.get("solver", "auto"), init)
+    anisotropy = params.pop("anisotropy", 1.0)
+    if anisotropy != 1.0 and params.get("spatial") is not None:
+        params["spatial"] = SpatialOptions(params.get("spatial"), anisotropy)
+    keep, options = params.pop("keep_dask", False), params.pop("dask_options", None)
+    if keep or options:
+        params["dask"] = {**(options or {}), **({"keep_dask": True} if keep else {})}
     return params
 
 

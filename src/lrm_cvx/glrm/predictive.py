@@ -47,6 +47,7 @@ from .calibrated import residual_dof
 from .hooks import HOOKS
 from .kernels import column_moments_compiled, is_small, standardize_compiled
 from .offset import augmented
+from .options import spatial_options
 
 __all__ = ["fit_predictive", "PREDICTIVE_ATTRS", "NOISE_PRIOR_DF", "NOISE_MODELS", "PRIORS",
            "column_moments", "standardize", "residual_moments", "shrink_noise", "residual_sample",
@@ -65,9 +66,6 @@ PRIORS = (None, "empirical")
 
 
 def _check_params(model: Any) -> None:
-    from ..spatial import MODELS
-    from ..spatial.covariance import check_anisotropy
-
     if not isinstance(model.offset, (bool, np.bool_)):
         raise ModelError(f"offset must be True or False, got {model.offset!r}")
     if not (isinstance(model.scale, (bool, np.bool_)) or model.scale == "residual"):
@@ -75,13 +73,7 @@ def _check_params(model: Any) -> None:
     if model.noise not in NOISE_MODELS:
         raise ModelError(f"noise must be one of {NOISE_MODELS}, got {model.noise!r}")
     _check_calibration(getattr(model, "calibration", None))
-    if model.spatial is not None and model.spatial not in (*MODELS, "auto"):
-        raise ModelError(f"spatial must be None, 'auto' or one of {MODELS}, got "
-                         f"{model.spatial!r}")
-    a = check_anisotropy(getattr(model, "anisotropy", 1.0))  # the residual's grid metric
-    if a != 1 and model.spatial == "auto":
-        raise ModelError(f"anisotropy={a!r} applies to a fixed spatial family (spatial="
-                         "'exponential', ...); spatial='auto' estimates and validates its own")
+    spatial_options(model.spatial)
 
 
 def _check_calibration(value: Any) -> None:
@@ -235,15 +227,16 @@ def set_predictive(model: Any, region: Any, offset: np.ndarray | None,
                 model.noise_var_ = model.noise_var_ / rs ** 2
             if sample is not None:
                 sample = (sample / rs).astype(sample.dtype)
-    if model.spatial == "auto":  # the kernel validated on the residuals (kernel_selection.py)
+    spatial = spatial_options(model.spatial)
+    if spatial is not None and spatial.model == "auto":  # validated on the residuals
         model.spatial_cov_, model.kernel_selection_ = HOOKS.get("select-kernel")(
             sample, region, seed=model.random_state)
-    elif model.spatial is not None:
+    elif spatial is not None:
         from ..spatial import fit_residual_covariance
 
         model.spatial_cov_ = fit_residual_covariance(
-            sample, region, model=model.spatial, random_state=0, min_nugget="cell",
-            anisotropy=float(getattr(model, "anisotropy", 1.0)))
+            sample, region, model=spatial.model, random_state=0, min_nugget="cell",
+            anisotropy=spatial.anisotropy)
 
 
 # ---------------------------------------------------------------------------- predictive model
@@ -374,24 +367,26 @@ def _dof_corrected(sample: np.ndarray, model: Any) -> np.ndarray:
     return np.multiply(sample, np.sqrt(residual_dof(model)), out=out, casting="same_kind")
 
 
-def residual_covariance(model: Any, V: np.ndarray, family: str, *, max_pairs: int = 200_000
+def residual_covariance(model: Any, V: np.ndarray, family: Any, *, max_pairs: int = 200_000
                         ) -> Any:
-    """The spatial residual covariance (``family``) of a fitted ``model`` from its training
-    values ``V (T, L)`` (data units, NaN = missing): what the fit's ``spatial=family`` sets
-    (the variogram of the residuals of :func:`sample_rows`, ``min_nugget="cell"``), with at most
-    ``max_pairs`` pairs. Only those rows of ``V`` are read (``temporal="auto"``'s refit fits it
-    once, with fewer pairs, for all its refits)."""
+    """The spatial residual covariance (``family``: a fixed family's name or
+    :class:`~.options.SpatialOptions`, with its anisotropy) of a fitted ``model`` from its
+    training values ``V (T, L)`` (data units, NaN = missing): what the fit's ``spatial=family``
+    sets (the variogram of the residuals of :func:`sample_rows`, ``min_nugget="cell"``), with at
+    most ``max_pairs`` pairs. Only those rows of ``V`` are read (``temporal="auto"``'s refit
+    fits it once, with fewer pairs, for all its refits)."""
     from ..spatial import fit_residual_covariance
 
+    spatial = spatial_options(family)
     rows = sample_rows(V.shape[0])
     D = V[rows]
     M = ~np.isnan(D)
     D = standardize(D, M, getattr(model, "offset_", None), getattr(model, "scale_", None))
     R = _dof_corrected(residual_sample(D, M, model._Xv[:, rows], model._Yv,
                                        max_times=rows.size), model)
-    return fit_residual_covariance(R, model.region_, model=family, random_state=0,
+    return fit_residual_covariance(R, model.region_, model=spatial.model, random_state=0,
                                    min_nugget="cell", max_pairs=max_pairs,
-                                   anisotropy=float(getattr(model, "anisotropy", 1.0)))
+                                   anisotropy=spatial.anisotropy)
 
 
 class _PredictiveIO:

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DataError, ModelError
+from ..glrm.options import SpatialOptions, spatial_options
 
 __all__ = ["clone_model", "training_values", "validation_window", "validation_view",
            "validation_data", "refit_carries", "VALIDATION_MAX_CELLS"]
@@ -38,9 +39,11 @@ def clone_model(model: Any, **override: Any):
         params["calibration"] = None
     if params.get("rank") == "auto" and getattr(model, "rank_", None) is not None:
         params["rank"] = int(model.rank_)
-    if params.get("spatial") == "auto" and getattr(model, "spatial_cov_", None) is not None:
-        params["spatial"] = model.spatial_cov_.model
-        params["anisotropy"] = float(model.spatial_cov_.anisotropy)
+    spatial = spatial_options(params.get("spatial"))  # "auto" or SpatialOptions("auto")
+    if (spatial is not None and spatial.model == "auto"
+            and getattr(model, "spatial_cov_", None) is not None):
+        params["spatial"] = SpatialOptions(model.spatial_cov_.model,
+                                           float(model.spatial_cov_.anisotropy))
     params = {**params, "progress": False, **override}
     return type(model)(**params)
 

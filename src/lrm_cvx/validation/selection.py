@@ -346,7 +346,7 @@ def select_temporal(model: Any, data: Any, *, kinds: Sequence[str] = ("ar1", "se
 
 
 def _refit_before(model: Any, V: np.ndarray, lo: int, times: np.ndarray, tdim: str,
-                  region: Any, rank: int | None, family: str | None, shared_cov: Any
+                  region: Any, rank: int | None, family: Any, shared_cov: Any
                   ) -> tuple[Any, Any]:
     """``(sub, shared_cov)``: ``model`` refitted (AR(1), no spatial fit, ``rank`` when given)
     on the snapshots ``V[:lo]`` before a window, given the residual covariance shared by every
