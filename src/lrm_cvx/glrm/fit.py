@@ -210,7 +210,7 @@ def warn_sparse_cells(cols: np.ndarray, rank: int, offset: bool, reg_y: Regulari
             f"{few} of {int(np.count_nonzero(cols))} cells have at most "
             f"{rank + int(bool(offset))} observed values (rank {rank}"
             f"{' plus the offset' if offset else ''}): their factors interpolate those values "
-            "and their predictions at other times can be far off; use reg_y='ridge', a lower "
+            "and their predictions at other times can be far off; use reg=(None, 'ridge'), a lower "
             "rank, or drop cells with few values", UserWarning, stacklevel=stacklevel)
 
 
