@@ -7,6 +7,7 @@ indicator against the planner's own value, and the bad inputs' one-line errors.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 
@@ -173,7 +174,7 @@ def test_frank_wolfe_bound_equals_the_cvxpy_optimum(seed, n, criterion):
     terms = dict(GP_TERMS, region=REGION) if criterion == "gp-variance" else {}
     obj = variance_objective(criterion, Y, cells, RIDGE, terms)
     b = variance_relaxation(obj, np.arange(cells.size), Polytope(n, cells.size), iters=40,
-                            tol=1e-9, polish=True)
+                            tol=1e-9, polish=True, rank_bound=False)
     opt = cvx_optimum(criterion, cells, n)
     assert b.value >= opt * (1 - 1e-7)  # a valid bound (cvxpy's value is accurate to ~1e-8)
     assert b.value == pytest.approx(opt, rel=1e-6)  # and tight at convergence
@@ -184,9 +185,10 @@ def test_frank_wolfe_alone_is_a_valid_bound_at_any_iterate():
     cells = np.arange(12)
     obj = variance_objective("gp-variance", Y, cells, RIDGE, dict(GP_TERMS, region=REGION))
     poly = Polytope(3, cells.size)
-    exact = variance_relaxation(obj, cells, poly, iters=30, tol=1e-9, polish=True)
+    exact = variance_relaxation(obj, cells, poly, iters=30, tol=1e-9, polish=True,
+                                rank_bound=False)
     for iters in (1, 3, 10):
-        b = variance_relaxation(obj, cells, poly, iters=iters, polish=False)
+        b = variance_relaxation(obj, cells, poly, iters=iters, polish=False, rank_bound=False)
         assert b.value >= exact.primal - 1e-9 and b.primal <= exact.value + 1e-9
     best = max(obj.value(np.asarray(S), np.ones(3))
                for S in itertools.combinations(range(cells.size), 3))
@@ -327,7 +329,8 @@ def test_structured_bound_is_the_dense_bound_and_covers_every_route(monkeypatch)
         assert _fw_bound(fast, cells, poly, w)[0] == pytest.approx(
             _fw_bound(dense, cells, poly, w)[0], rel=1e-9)
     # the structured Frank-Wolfe (small supports) bounds the dense relaxation's optimum
-    exact = variance_relaxation(dense, cells, poly, iters=60, tol=1e-9, polish=False)
+    exact = variance_relaxation(dense, cells, poly, iters=60, tol=1e-9, polish=False,
+                                rank_bound=False)
     b = variance_relaxation(fast, cells, poly, iters=5, tol=1e-9)
     assert b.solver == "Frank-Wolfe (structured)"
     assert b.value >= exact.primal - 1e-9 and b.primal <= exact.value + 1e-9
@@ -343,3 +346,59 @@ def test_structured_bound_is_the_dense_bound_and_covers_every_route(monkeypatch)
     assert cert.relaxation.solver == "Frank-Wolfe (structured)"
     assert cert.bound >= best_route_value("gp-variance", START, 2.5, False) - 1e-9
     assert cert.information == pytest.approx(reduction("gp-variance", plan.cells), rel=1e-10)
+
+
+# ------------------------------------------------------------------------- the rank bound
+@settings(max_examples=6, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 4))
+def test_rank_bound_is_above_every_set_of_at_most_n_cells(seed, n):
+    rng = np.random.default_rng(seed)
+    cells = np.sort(rng.choice(REGION.n_cells, 9, replace=False))
+    obj = variance_objective("gp-variance", Y, cells, RIDGE, dict(GP_TERMS, region=REGION))
+    pos = np.arange(cells.size)
+    rank = obj.rank_bound(pos, n)
+    best = max(reduction("gp-variance", cells[list(S)])
+               for m in range(1, n + 1) for S in itertools.combinations(range(cells.size), m))
+    assert rank >= best * (1 - 1e-12)
+    assert rank <= obj.value(pos, np.ones(cells.size)) * (1 + 1e-8)  # <= observing them all
+    # the piece's bound is min(FW, rank): still above every set, and the rank bound when lower
+    b = variance_relaxation(obj, pos, Polytope(n, cells.size), iters=3, polish=False)
+    fw = variance_relaxation(obj, pos, Polytope(n, cells.size), iters=3, polish=False,
+                             rank_bound=False)
+    assert b.value >= best * (1 - 1e-12) and b.value <= fw.value * (1 + 1e-12)
+    assert b.active == ("rank" if rank < fw.value else "relaxation")
+    assert fw.active == "relaxation"
+
+
+def test_rank_bound_is_the_top_eigenvalues_of_the_weighted_posterior_reduction():
+    cells = np.arange(0, REGION.n_cells, 2)
+    tw = np.random.default_rng(5).random(REGION.n_cells) + 0.5
+    terms = dict(GP_TERMS, region=REGION, target_weights=tw)
+    obj = variance_objective("gp-variance", Y, cells, RIDGE, terms)
+    # naive reference over all targets: C^1/2 K_TC (K_CC + s^2 I)^-1 K_CT C^1/2
+    T = np.arange(REGION.n_cells)
+    K = gp_latent_cov(Y, np.eye(2), REGION, COV, cells, cells)
+    KTc = gp_latent_cov(Y, np.eye(2), REGION, COV, T, cells)
+    R = KTc @ np.linalg.solve(K + COV.nugget * np.eye(cells.size), KTc.T)
+    lam = np.sort(np.linalg.eigvalsh(np.sqrt(tw)[:, None] * R * np.sqrt(tw)[None, :]))[::-1]
+    for n in (1, 3, 7.5):
+        ref = lam[:math.floor(n)].sum()
+        assert obj.rank_bound(np.arange(cells.size), n) == pytest.approx(ref, rel=1e-9)
+    assert obj.rank_bound(np.arange(cells.size), 0.5) == 0.0
+
+
+@pytest.mark.parametrize("tight", [{"cover": 1, "max_pieces": 4}, False])
+def test_certificate_with_the_rank_bound_is_above_every_route_and_says_which_bound(
+        monkeypatch, tight):
+    plan = plan_greedy(Y, REGION, START, 1.5, criterion="gp-variance", initial="start",
+                       progress=False, **GP)
+    cert = plan.certify(tighten=tight)
+    assert cert.bound >= best_route_value("gp-variance", START, 1.5, False) - 1e-9
+    # the count limit (2 of 9 cells) bites: the rank bound is the largest piece's and is said
+    assert cert.relaxation.active == "rank" and "(rank bound;" in str(cert)
+    # without it the same certificate is the Frank-Wolfe one, higher
+    fw_only = functools.partial(variance_relaxation, rank_bound=False)
+    monkeypatch.setattr(varbound, "variance_relaxation", fw_only)
+    loose = plan.certify(tighten=tight)
+    assert loose.relaxation.active == "relaxation" and "(relaxation bound;" in str(loose)
+    assert cert.bound < loose.bound * (1 - 1e-3)

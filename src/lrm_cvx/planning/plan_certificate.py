@@ -135,8 +135,9 @@ class PlanCertificate:
                          ("gap split", f"plan slack {self.plan_slack:.4g} + bound slack "
                                        f"{self.bound_slack:.4g} unit^2")]
         r = self.relaxation
-        rows.append(("relaxation", f"{r.value:.6g} (primal {r.primal:.6g}, status {r.status}, "
-                                   f"{r.solver})"))
+        kind = "rank bound" if getattr(r, "active", "") == "rank" else "relaxation bound"
+        rows.append(("relaxation", f"{r.value:.6g} ({kind}; primal {r.primal:.6g}, status "
+                                   f"{r.status}, {r.solver})"))
         if self.path.get("kind", "path") == "path" and self.path.get("n_robots", 1) == 1:
             rows.append(("initial set", f"{self.initial_information:.6g} unit^2"))
         rows.append(("cells", f"at most {self.n_max} out of {self.n_candidates} candidates "

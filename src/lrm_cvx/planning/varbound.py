@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.linalg import cho_solve, solve_triangular
+from scipy.linalg import cho_solve, eigh, solve_triangular
 
 from .._validation import as_factor_matrix
 from ..errors import PlanningError
@@ -37,6 +37,12 @@ DENSE_MAX_ENTRIES = 1 << 27
 """The most (cells x targets) covariances the dense gp-variance objective sums into ``G``
 (``2^27``, about 1 GB of kernel evaluations); beyond it, on a grid-metric residual, the
 structured objective, whose set-up does not grow with the cells times the targets."""
+RANK_MAX = 4000
+"""The most candidates of a piece whose rank (Ky Fan) bound
+:meth:`GPVarianceObjective.rank_bound` is computed (an ``O(N^3)`` eigensolve); larger pieces get
+the Frank-Wolfe bound only."""
+RANK_MARGIN = 1e-10
+"""Relative safety margin added to the rank bound (see :meth:`GPVarianceObjective.rank_bound`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,8 +50,10 @@ class VarianceBound:
     """A certified upper bound on the variance reduction of every design in a polytope.
 
     ``value`` is the smallest Frank-Wolfe bound (FW) over the designs tried (valid whatever
-    the solvers did); ``primal`` is ``F`` at the best feasible design found (``weights``, over
-    cell indices), so the relaxation's optimum lies in ``[primal, value]``. Units: the
+    the solvers did) or, when smaller, the rank (Ky Fan) bound of a dense gp-variance piece;
+    ``active`` says which one ``value`` is (``"relaxation"`` or ``"rank"``). ``primal`` is ``F``
+    at the best feasible design found (``weights``, over cell indices), so the relaxation's
+    optimum lies in ``[primal, value]`` when ``active == "relaxation"``. Units: the
     criterion's (variance removed, the data's unit squared)."""
 
     value: float
@@ -57,12 +65,13 @@ class VarianceBound:
     solve_time: float
     solver: str
     status: str
+    active: str = "relaxation"
 
     def __repr__(self) -> str:
         return (f"VarianceBound(value={self.value:.6g}, primal={self.primal:.6g}, "
                 f"gap={self.gap:.3g}, candidates={self.n_candidates}, "
                 f"iterations={self.iterations}, {self.solve_time:.2f} s, solver={self.solver}, "
-                f"status={self.status!r})")
+                f"status={self.status!r}, active={self.active!r})")
 
 
 # ----------------------------------------------------------------------------- objectives
@@ -159,6 +168,33 @@ class GPVarianceObjective:
         Y = gam[:, None] * self.G[np.ix_(S, S)] * gam[None, :]
         F = float(np.trace(cho_solve((LB, True), Y)))
         return F, np.maximum(g0 - 2.0 * t2 + t3, 0.0) / self.noise
+
+    def rank_bound(self, pos: np.ndarray, n: float) -> float:
+        """The rank (Ky Fan) bound: the sum of the ``floor(n)`` largest eigenvalues of
+        ``M = L^-1 G_CC L^-T``, ``L L^T = K_CC + s^2 I``, on the candidates ``C`` at the
+        positions ``pos``; at least ``F(1_P)`` for every set ``P`` of at most ``n`` of them.
+
+        Observing ``P`` removes ``tr(C^1/2 R_P C^1/2)`` (target weights ``C``), ``R_P =
+        K_TP (K_PP + s^2 I)^-1 K_PT``, of rank at most ``|P|`` and below ``R_C`` in PSD order;
+        by Weyl's monotonicity its trace is at most the ``|P|`` largest eigenvalues of
+        ``C^1/2 R_C C^1/2``, whose nonzero eigenvalues are ``M``'s. One Cholesky factor and
+        one eigensolve in float64, ``O(N^3)``: callers skip it above :data:`RANK_MAX`
+        candidates. A relative margin :data:`RANK_MARGIN` (times ``n`` times the largest
+        eigenvalue) covers the eigensolver's backward error (Weyl: ``O(N eps ||M||)`` per
+        eigenvalue) and the factor's (``O(cond(K_CC + s^2 I) eps)`` relative, under the
+        margin for condition numbers up to about ``1e5``)."""
+        pos = np.asarray(pos, dtype=np.int64)
+        m = min(math.floor(float(n) + 1e-9), pos.size)
+        if m <= 0:
+            return 0.0
+        A = self.K[np.ix_(pos, pos)] + self.noise * np.eye(pos.size)
+        L = _cholesky(A, "K + s^2 I on the candidates")
+        X = solve_triangular(L, self.G[np.ix_(pos, pos)], lower=True)
+        M = solve_triangular(L, X.T, lower=True)
+        lam = eigh(0.5 * (M + M.T), eigvals_only=True,
+                   subset_by_index=[pos.size - m, pos.size - 1])
+        top = float(np.sum(np.maximum(lam, 0.0)))
+        return top + RANK_MARGIN * m * float(max(lam.max(), 0.0))
 
     def cvx_model(self, pos: np.ndarray) -> tuple[Any, Any, Any]:
         """cvxpy model in the whitened latent ``z = chol(K_pos)^-1 f_pos``: ``F = tr(R^T R) -
@@ -267,7 +303,7 @@ def _support(poly: Polytope, g: np.ndarray) -> tuple[float, np.ndarray]:
 
 def variance_relaxation(obj: Any, pos: np.ndarray, poly: Polytope, *, iters: int = 60,
                         tol: float = 1e-3, polish: bool | None = None,
-                        solver: str = "CLARABEL") -> VarianceBound:
+                        solver: str = "CLARABEL", rank_bound: bool = True) -> VarianceBound:
     """Certified upper bound on ``max F(w)`` over ``poly`` (weights on ``obj``'s cells at the
     positions ``pos``): the smallest (FW) bound over Frank-Wolfe's iterates (from the
     prior gains' vertex, parabolic line search, ``iters`` steps or until the relative
@@ -277,7 +313,14 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: Polytope, *, iters: int
     (:class:`~lrm_cvx.planning.varbound_structured.StructuredGPVarianceObjective`) starts at
     its ``start`` cells' indicator (projected into the polytope) when the piece holds some,
     stops before an iterate with more than its ``max_support`` cells of weight and is not
-    polished."""
+    polished.
+
+    With ``rank_bound`` (default) an objective with a ``rank_bound`` method (the dense
+    gp-variance one, on at most :data:`RANK_MAX` candidates) also bounds the piece by the rank
+    (Ky Fan) bound with the polytope's count limit; ``value`` is the smaller of the two
+    (``active``: ``"rank"`` or ``"relaxation"``) and Frank-Wolfe stops once it is within
+    ``tol`` of the best design. The structured objective and a-optimal get the (FW) bound
+    only."""
     t0 = time.perf_counter()
     pos = np.asarray(pos, dtype=np.int64)
     if pos.size == 0:
@@ -295,7 +338,9 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: Polytope, *, iters: int
         w = poly.project(ind)
     else:
         w = _support(poly, obj.value_grad(pos, np.zeros(pos.size), pos)[1])[1]
-    best_val, best_primal, best_w = math.inf, -math.inf, w
+    rank = (obj.rank_bound(pos, poly.n)
+            if rank_bound and hasattr(obj, "rank_bound") and pos.size <= RANK_MAX else math.inf)
+    best_val, best_primal, best_w = rank, -math.inf, w
     steps = 0
     used = "Frank-Wolfe (structured)" if sparse else "Frank-Wolfe"
     for _ in range(iters):
@@ -333,7 +378,8 @@ def variance_relaxation(obj: Any, pos: np.ndarray, poly: Polytope, *, iters: int
     gap = max(best_val - best_primal, 0.0)
     status = "optimal" if gap <= tol * max(abs(best_val), 1e-300) else "inexact"
     return VarianceBound(float(best_val), float(best_primal), float(gap), weights, int(pos.size),
-                         steps, time.perf_counter() - t0, used, status)
+                         steps, time.perf_counter() - t0, used, status,
+                         "rank" if best_val == rank else "relaxation")
 
 
 def _cvx_solve(obj: Any, pos: np.ndarray, poly: Polytope, solver: str) -> np.ndarray | None:
