@@ -34,13 +34,7 @@ from .modelfile import (
     restore_validation_tables,
     validation_tables,
 )
-from .options import (
-    SolverOptions,
-    SpatialOptions,
-    dask_options,
-    regularizer_pair,
-    solver_options,
-)
+from .options import SolverOptions, SpatialOptions, dask_options, regularizer_pair, solver_options
 from .predictive import PREDICTIVE_ATTRS, add_joint_offset, fit_predictive
 from .regularizers import get_regularizer
 
